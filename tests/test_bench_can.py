@@ -1,0 +1,25 @@
+"""Smoke test of the CAN throughput benchmark (small, fast)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+try:
+    import fluxdrive.bench_can  # noqa: F401
+except ImportError:  # not installed: use the source tree
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "python"))
+
+from fluxdrive.bench_can import measure_decode_rates, run_can_benchmark
+
+
+def test_benchmark_smoke_no_drops():
+    res = run_can_benchmark(3000, decode_rates=False, progress=False)
+    assert res["decoded"] == 3000 and res["dropped"] == 0
+    assert res["malformed"] == 0 and res["seq_lost"] == 0 and not res["listener_errors"]
+    assert res["frames_per_s"] > 0
+
+
+def test_decode_rates_numpy_faster_than_cantools():
+    r = measure_decode_rates(n_numpy=20_000, n_cantools=2_000)
+    assert r["numpy_decode_frames_per_s"] > 2 * r["cantools_decode_frames_per_s"]
