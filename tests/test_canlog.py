@@ -27,9 +27,10 @@ def make_frames(n: int, seed: int = 0) -> np.ndarray:
     f[:, 3:6] = rng.uniform(-72, 72, (n, 3))
     f[:, 6] = rng.uniform(60, 80, n)
     f[:, 7:10] = rng.uniform(0, 1, (n, 3))
-    f[:, 10] = rng.integers(-(2**31), 2**31, n)
-    f[:, 11] = 1
-    f[:, 12] = (np.arange(n) + 65_300) % 65536  # crosses the wrap
+    f[:, FD["encoder_counts"]] = rng.integers(-(2**31), 2**31, n)
+    f[:, FD["pwm_enabled"]] = 1
+    f[:, FD["seq"]] = (np.arange(n) + 65_300) % 65536  # crosses the wrap
+    f[:, FD["flags"]] = rng.integers(0, 2, n)
     return f
 
 

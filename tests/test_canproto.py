@@ -166,9 +166,10 @@ def make_frames(n: int, seed: int = 0) -> np.ndarray:
     f[:, 3:6] = rng.uniform(-72, 72, (n, 3))
     f[:, 6] = rng.uniform(60, 80, n)
     f[:, 7:10] = rng.uniform(0, 1, (n, 3))
-    f[:, 10] = rng.integers(-(2**31), 2**31, n)
-    f[:, 11] = rng.integers(0, 2, n)
-    f[:, 12] = np.arange(n) + 65_000  # crosses the 16-bit wrap
+    f[:, FD["encoder_counts"]] = rng.integers(-(2**31), 2**31, n)
+    f[:, FD["pwm_enabled"]] = rng.integers(0, 2, n)
+    f[:, FD["seq"]] = np.arange(n) + 65_000  # crosses the 16-bit wrap
+    f[:, FD["flags"]] = rng.integers(0, 2, n)  # bit 0: ADC clipped
     return f
 
 
@@ -182,8 +183,9 @@ def test_frame_round_trip_quantisation(proto):
     assert np.max(np.abs(back[:, 3:6] - f[:, 3:6])) <= lsb["v"] / 2 + 1e-12
     assert np.max(np.abs(back[:, 6] - f[:, 6])) <= lsb["vdc"] / 2 + 1e-12
     assert np.max(np.abs(back[:, 7:10] - f[:, 7:10])) <= lsb["duty"] / 2 + 1e-12
-    assert np.array_equal(back[:, 10:12], f[:, 10:12])
-    assert np.array_equal(back[:, 12], np.mod(f[:, 12], 65536))
+    for name in ("pwm_enabled", "encoder_counts", "flags"):
+        assert np.array_equal(back[:, FD[name]], f[:, FD[name]])
+    assert np.array_equal(back[:, FD["seq"]], np.mod(f[:, FD["seq"]], 65536))
     # decode -> encode -> decode is exact (values on the grid)
     assert np.array_equal(cp.fd_payloads_to_frames(cp.frames_to_fd_payloads(back)), back)
     # single-frame API == vectorised, and == cantools
@@ -316,7 +318,7 @@ def test_classic_multiframe_reassembly(proto):
     f[:, FD["encoder_counts"]] = 8_000_000 + np.cumsum(rng.integers(0, 40_000, n))
     f[:, FD["pwm_enabled"]] = 1
     dec = cp.decimate_for_classic(f, 8)
-    assert dec.shape == (60, 13)
+    assert dec.shape == (60, 14)
     assert np.allclose(dec[0, FD["v_ab"]], f[1:9, FD["v_ab"]].mean())
     assert dec[0, FD["seq"]] == f[8, FD["seq"]] and dec[0, FD["i_a"]] == f[8, FD["i_a"]]
     stream: list[tuple[int, bytes]] = []
@@ -370,3 +372,17 @@ def test_command_frames_round_trip(proto):
     assert st["st_state"] == 3 and st["st_temp"] == -5
     with pytest.raises(Exception):  # noqa: B017 - cantools raises EncodeError (strict)
         proto.encode("DUTY_CMD", {"cmd_duty_a": 1.2, "cmd_seq": 1})
+
+
+def test_frame_layout_matches_plant():
+    """FRAME_FIELDS must mirror the engine's FR_* column indices (when importable)."""
+    plant = pytest.importorskip("fluxdrive.plant")
+    names = {
+        "FR_IA": "i_a", "FR_IB": "i_b", "FR_IC": "i_c", "FR_VAB": "v_ab", "FR_VBC": "v_bc",
+        "FR_VCA": "v_ca", "FR_VDC": "vdc", "FR_DA": "duty_a", "FR_DB": "duty_b",
+        "FR_DC": "duty_c", "FR_EN": "pwm_enabled", "FR_ENC": "encoder_counts",
+        "FR_SEQ": "seq", "FR_FLAGS": "flags",
+    }  # fmt: skip
+    assert plant.FR_N == len(cp.FRAME_FIELDS)
+    for fr, name in names.items():
+        assert getattr(plant, fr) == cp.FRAME_INDEX[name], fr

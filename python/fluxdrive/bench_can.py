@@ -35,7 +35,7 @@ _channel_counter = itertools.count()
 
 
 def make_test_frames(n: int, seed: int = 0) -> np.ndarray:
-    """Deterministic in-range engine frames (N, 13): a rotating current/voltage vector
+    """Deterministic in-range engine frames (N, 14): a rotating current/voltage vector
     with noise, 72 V bus, SVPWM-like duties, a counting encoder, seq = 0..N-1."""
     rng = np.random.default_rng(seed)
     k = np.arange(n, dtype=np.float64)
@@ -47,9 +47,9 @@ def make_test_frames(n: int, seed: int = 0) -> np.ndarray:
     for j in range(3):
         f[:, 3 + j] = 72.0 * (f[:, 7 + j] - f[:, 7 + (j + 1) % 3])
     f[:, 6] = 72.0 + rng.normal(0, 0.1, n)
-    f[:, 10] = np.floor(k * 0.3)
-    f[:, 11] = 1.0
-    f[:, 12] = k
+    f[:, FRAME_FIELDS.index("encoder_counts")] = np.floor(k * 0.3)
+    f[:, FRAME_FIELDS.index("pwm_enabled")] = 1.0
+    f[:, FRAME_FIELDS.index("seq")] = k
     return f
 
 

@@ -40,7 +40,7 @@ SUPPORTED_SUFFIXES = (".log", ".asc", ".blf")
 class CaptureResult:
     """Decoded capture.
 
-    ``frames``: (M, 13) float64 engine frames of the valid sample frames, in log order;
+    ``frames``: (M, 14) float64 engine frames of the valid sample frames, in log order;
     ``timestamps``: (M,) log timestamps [s] (absolute, as stored); ``counts``:
     ``total`` (all messages in the log), ``sample`` (messages with a sample ID),
     ``decoded`` (valid samples),

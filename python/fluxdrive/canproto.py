@@ -23,8 +23,10 @@ ID     name             DLC   content
 The engine's per-period *frame* is a float64 row with the columns of
 :data:`FRAME_FIELDS`: ``i_a, i_b, i_c`` [A], ``v_ab, v_bc, v_ca`` [V] (line voltages
 averaged over the period that just ended), ``vdc`` [V], ``duty_a, duty_b, duty_c``
-(0..1, applied over the period that just ended), ``encoder_counts`` [counts],
-``pwm_enabled`` (0/1) and ``seq`` (PWM-period counter). Timing as BRIEF section 3.
+(0..1, applied over the period that just ended), ``pwm_enabled`` (0/1),
+``encoder_counts`` [counts], ``seq`` (PWM-period counter) and ``flags`` (status bits,
+bit 0 = current ADC clipped). The column order mirrors ``fluxdrive.plant``'s ``FR_*``
+indices. Timing as BRIEF section 3.
 
 The numpy codec (:class:`NumpyCodec`) is generated from a cantools ``Message``: each
 signal's start bit, length, byte order, signedness, float flag, scale and offset are
@@ -51,6 +53,7 @@ __all__ = [
     "CLASSIC_SAMPLE_IDS",
     "DBC_ENV_VAR",
     "FRAME_FIELDS",
+    "FRAME_FLAG_ADC_CLIP",
     "FRAME_INDEX",
     "ID_ARM_MODE",
     "ID_DUTY_CMD",
@@ -110,9 +113,12 @@ FRAME_FIELDS: tuple[str, ...] = (
     "v_ab", "v_bc", "v_ca",
     "vdc",
     "duty_a", "duty_b", "duty_c",
-    "encoder_counts", "pwm_enabled", "seq",
+    "pwm_enabled", "encoder_counts", "seq", "flags",
 )  # fmt: skip
-"""Column names of the engine's per-period frame row (float64)."""
+"""Column names of the engine's per-period frame row (float64); same order as the
+plant's ``FR_IA .. FR_FLAGS`` indices."""
+FRAME_FLAG_ADC_CLIP = 1
+"""Bit of the frame's ``flags`` column: a current ADC channel clipped (SAMPLE_FD.adc_clip)."""
 FRAME_INDEX: dict[str, int] = {name: i for i, name in enumerate(FRAME_FIELDS)}
 
 # SAMPLE_FD signal -> engine frame column
@@ -122,6 +128,7 @@ _FD_TO_FRAME: dict[str, str] = {
     "vdc": "vdc",
     "duty_a": "duty_a", "duty_b": "duty_b", "duty_c": "duty_c",
     "encoder": "encoder_counts", "pwm_enabled": "pwm_enabled", "seq": "seq",
+    "adc_clip": "flags",
 }  # fmt: skip
 # classic-layout signal -> engine frame column, per message ID
 _CLASSIC_TO_FRAME: dict[int, dict[str, str]] = {
@@ -129,7 +136,7 @@ _CLASSIC_TO_FRAME: dict[int, dict[str, str]] = {
     ID_SAMPLE_C_VLT: {"c_v_ab": "v_ab", "c_v_bc": "v_bc", "c_v_ca": "v_ca"},
     ID_SAMPLE_C_DUTY: {"c_duty_a": "duty_a", "c_duty_b": "duty_b", "c_duty_c": "duty_c"},
     ID_SAMPLE_C_AUX: {"c_vdc": "vdc", "c_encoder": "encoder_counts",
-                      "c_pwm_enabled": "pwm_enabled"},
+                      "c_pwm_enabled": "pwm_enabled", "c_adc_clip": "flags"},
 }  # fmt: skip
 
 
@@ -578,6 +585,11 @@ class FluxdriveProtocol:
             vals[ok, self.fd_codec.index["encoder"]] = (
                 np.mod(np.rint(enc[ok]) + 2**31, 2**32) - 2**31
             )
+            flg = f[:, FRAME_INDEX["flags"]]
+            ok = np.isfinite(flg)
+            vals[ok, self.fd_codec.index["adc_clip"]] = (
+                flg[ok].astype(np.int64) & FRAME_FLAG_ADC_CLIP
+            )
         for k, v in (extra or {}).items():
             vals[:, self.fd_codec.index[k]] = v
         return vals
@@ -589,11 +601,11 @@ class FluxdriveProtocol:
         *,
         check: bool = True,
     ) -> np.ndarray:
-        """Engine frames (N, 13) -> (N, 64) uint8 SAMPLE_FD payloads (vectorised)."""
+        """Engine frames (N, 14) -> (N, 64) uint8 SAMPLE_FD payloads (vectorised)."""
         return self.fd_codec.encode(self.frames_to_signal_values(frames, extra), check=check)
 
     def fd_payloads_to_frames(self, payloads: np.ndarray) -> np.ndarray:
-        """(N, 64) uint8 SAMPLE_FD payloads -> engine frames (N, 13) float64 (no checks;
+        """(N, 64) uint8 SAMPLE_FD payloads -> engine frames (N, 14) float64 (no checks;
         use :meth:`decode_fd` for validation)."""
         vals = self.fd_codec.decode(payloads)
         return self._fd_values_to_frames(vals)
@@ -631,6 +643,8 @@ class FluxdriveProtocol:
                 v = f[FRAME_INDEX[col]]
                 if sig == "c_encoder":
                     v = float((int(np.rint(v)) + (1 << 23)) % (1 << 24) - (1 << 23))
+                elif sig == "c_adc_clip":
+                    v = float(int(v) & FRAME_FLAG_ADC_CLIP)
                 vals[0, codec.index[sig]] = v
             if fid == ID_SAMPLE_C_AUX:
                 for k, v in (flags or {}).items():
@@ -656,7 +670,7 @@ def frame_to_fd_payload(
     *,
     protocol: FluxdriveProtocol | None = None,
 ) -> bytes:
-    """One engine frame row (13 floats, :data:`FRAME_FIELDS`) -> 64-byte SAMPLE_FD
+    """One engine frame row (14 floats, :data:`FRAME_FIELDS`) -> 64-byte SAMPLE_FD
     payload. ``extra`` sets signals that are not in the frame (``cmd_seq_applied``,
     ``t_mcu`` [s], ``armed``, ``fault_active``, ``adc_clip``, ``cmd_stale``,
     ``capture_valid``, ``mode``, ``fault_code``). Raises ``ValueError`` on NaN or
@@ -673,7 +687,7 @@ def frames_to_fd_payloads(
     check: bool = True,
     protocol: FluxdriveProtocol | None = None,
 ) -> np.ndarray:
-    """Vectorised :func:`frame_to_fd_payload`: (N, 13) frames -> (N, 64) uint8."""
+    """Vectorised :func:`frame_to_fd_payload`: (N, 14) frames -> (N, 64) uint8."""
     return (protocol or get_protocol()).frames_to_fd_payloads(frames, extra, check=check)
 
 
@@ -683,7 +697,7 @@ def fd_payloads_to_frames(
     protocol: FluxdriveProtocol | None = None,
 ) -> np.ndarray:
     """SAMPLE_FD payloads ((N, 64) uint8 array, or a sequence of 64-byte strings) ->
-    engine frames (N, 13) float64. Unchecked fast path; see
+    engine frames (N, 14) float64. Unchecked fast path; see
     :meth:`FluxdriveProtocol.decode_fd` for per-frame validation."""
     proto = protocol or get_protocol()
     if not isinstance(payloads, np.ndarray):
@@ -708,7 +722,7 @@ def decimate_for_classic(frames: np.ndarray, factor: int) -> np.ndarray:
     sends every ``factor`` periods). Window j covers periods ``(j*D, (j+1)*D]``, i.e.
     rows ``j*D+1 .. (j+1)*D``; currents, vdc, encoder and seq are those of the last row;
     line voltages and duties are window means (volt-seconds over [t_(k-D), t_k]);
-    pwm_enabled is 1 only if enabled in every period of the window."""
+    pwm_enabled is 1 only if enabled in every period of the window; flags are OR-ed."""
     f = np.asarray(frames, dtype=np.float64)
     d = int(factor)
     if d < 1:
@@ -721,6 +735,8 @@ def decimate_for_classic(frames: np.ndarray, factor: int) -> np.ndarray:
     for name in ("v_ab", "v_bc", "v_ca", "duty_a", "duty_b", "duty_c"):
         out[:, FRAME_INDEX[name]] = body[:, :, FRAME_INDEX[name]].mean(axis=1)
     out[:, FRAME_INDEX["pwm_enabled"]] = body[:, :, FRAME_INDEX["pwm_enabled"]].min(axis=1)
+    flg = body[:, :, FRAME_INDEX["flags"]].astype(np.int64)
+    out[:, FRAME_INDEX["flags"]] = np.bitwise_or.reduce(flg, axis=1)
     return out
 
 
@@ -857,7 +873,7 @@ class ClassicReassembler:
     _enc_prev: float | None = field(default=None, init=False, repr=False)
 
     def feed(self, arbitration_id: int, data: bytes | bytearray) -> np.ndarray | None:
-        """Accept one classic sample frame; return a completed (13,) frame or None."""
+        """Accept one classic sample frame; return a completed (14,) frame or None."""
         codec = self.protocol.classic_codecs.get(arbitration_id)
         if codec is None:
             return None
@@ -894,7 +910,7 @@ class ClassicReassembler:
         return frame
 
     def feed_many(self, frames: Iterable[tuple[int, bytes | bytearray]]) -> np.ndarray:
-        """Feed (id, payload) pairs; return the completed frames as (M, 13)."""
+        """Feed (id, payload) pairs; return the completed frames as (M, 14)."""
         rows = [r for fid, d in frames if (r := self.feed(fid, d)) is not None]
         if not rows:
             return np.empty((0, len(FRAME_FIELDS)))
