@@ -1,0 +1,139 @@
+"""Machine card: the physical drive (motor, inverter, sensors) as one typed, validated record.
+
+Loaded from config/machines/*.yaml.  Every other module derives its defaults from this card
+(observer model parameters, controller gains), so a scenario runs on another machine by
+swapping one file.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+
+class ConfigError(ValueError):
+    """A configuration file or value is invalid; the message names the file, key and rule."""
+
+
+def _require_range(src: str, key: str, value: Any, lo: float, hi: float) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(f"{src}: '{key}' must be a number in [{lo}, {hi}], got {value!r}")
+    v = float(value)
+    if not (lo <= v <= hi) or math.isnan(v):
+        raise ConfigError(f"{src}: '{key}' = {v} is out of range [{lo}, {hi}]")
+    return v
+
+
+@dataclass(frozen=True)
+class MachineCard:
+    """SPM machine + two-level inverter + sensors.  SI units throughout."""
+
+    name: str = "default_spm"
+    pole_pairs: int = 4
+    rated_speed_rpm: float = 3000.0
+    flux_linkage_vs: float = 0.0235  # magnet flux, peak per phase [V s]
+    resistance_ohm: float = 0.40
+    inductance_h: float = 0.80e-3
+    rated_current_a: float = 9.0  # peak phase current
+    inertia_kgm2: float = 1.5e-4  # motor + dyno
+    viscous_nms: float = 1.0e-4  # [N m s/rad]
+    dc_bus_v: float = 72.0
+    pwm_hz: float = 10_000.0
+    deadtime_s: float = 2.0e-6
+    device_drop_v: float = 0.0  # switch/diode forward drop
+    current_adc_bits: int = 12
+    current_range_a: float = 20.0  # ADC full scale +-range
+    current_noise_a: float = 0.02  # Gaussian, RMS (about 2 LSB of a 12-bit +-20 A ADC)
+    capture_bits: int = 12  # line-voltage capture: resolution in bits of the period
+    dc_bus_adc_bits: int = 12
+    dc_bus_range_v: float = 100.0
+    dc_bus_noise_v: float = 0.0
+    encoder_lines: int = 2500
+    flux_h5: float = 0.0  # 5th/7th magnet-flux harmonics, per unit of the fundamental
+    flux_h7: float = 0.0
+    saturation: float = 0.0  # L drops by this fraction at rated current (L = L0 (1 - s (i/I_r)^2))
+
+    # ---- derived quantities
+    @property
+    def ts_s(self) -> float:
+        return 1.0 / self.pwm_hz
+
+    @property
+    def torque_constant_nm_per_a(self) -> float:
+        return 1.5 * self.pole_pairs * self.flux_linkage_vs
+
+    @property
+    def rated_torque_nm(self) -> float:
+        return self.torque_constant_nm_per_a * self.rated_current_a
+
+    @property
+    def rated_speed_rad_s(self) -> float:
+        """Rated mechanical speed [rad/s]."""
+        return self.rated_speed_rpm * 2.0 * math.pi / 60.0
+
+    def validate(self, src: str = "machine card") -> MachineCard:
+        checks = {
+            "pole_pairs": (1, 64), "rated_speed_rpm": (1.0, 1e6), "flux_linkage_vs": (1e-6, 10.0),
+            "resistance_ohm": (0.0, 1e3), "inductance_h": (1e-7, 10.0),
+            "rated_current_a": (1e-3, 1e4), "inertia_kgm2": (1e-9, 1e3), "viscous_nms": (0.0, 1e3),
+            "dc_bus_v": (1.0, 1e4), "pwm_hz": (100.0, 1e6), "deadtime_s": (0.0, 1e-4),
+            "device_drop_v": (0.0, 10.0), "current_adc_bits": (4, 24),
+            "current_range_a": (1e-3, 1e5), "current_noise_a": (0.0, 1e3),
+            "capture_bits": (4, 24), "dc_bus_adc_bits": (4, 24), "dc_bus_range_v": (1.0, 1e5),
+            "dc_bus_noise_v": (0.0, 1e3), "encoder_lines": (1, 1 << 20),
+            "flux_h5": (-0.5, 0.5), "flux_h7": (-0.5, 0.5), "saturation": (0.0, 0.7),
+        }
+        for key, (lo, hi) in checks.items():
+            _require_range(src, key, getattr(self, key), lo, hi)
+        if self.deadtime_s * self.pwm_hz >= 0.2:
+            raise ConfigError(f"{src}: deadtime_s {self.deadtime_s} is >= 20 % of the PWM period")
+        return self
+
+
+_SECTIONS = ("motor", "inverter", "sensors", "options")
+
+
+def load_machine(path: str | Path) -> MachineCard:
+    """Load a machine card YAML (flat keys, or grouped under motor/inverter/sensors/options)."""
+    path = Path(path)
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise ConfigError(f"{path}: cannot read machine card: {exc}") from exc
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{path}: a machine card must be a mapping")
+    flat: dict[str, Any] = {}
+    for key, value in raw.items():
+        if key in _SECTIONS and isinstance(value, dict):
+            flat.update(value)
+        else:
+            flat[key] = value
+    known = {f.name: f for f in fields(MachineCard)}
+    unknown = sorted(set(flat) - set(known))
+    if unknown:
+        raise ConfigError(f"{path}: unknown machine-card key(s) {unknown}; expected some of "
+                          f"{sorted(known)}")
+    kwargs: dict[str, Any] = {}
+    for key, value in flat.items():
+        ftype = known[key].type
+        if ftype in ("int", int):
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise ConfigError(f"{path}: '{key}' must be an integer, got {value!r}")
+            kwargs[key] = value
+        elif ftype in ("str", str):
+            kwargs[key] = str(value)
+        else:
+            kwargs[key] = _require_range(str(path), key, value, -math.inf, math.inf)
+    return MachineCard(**kwargs).validate(str(path))
+
+
+@dataclass
+class Profile:
+    """Piecewise-linear time profile: breakpoints (t_s, value)."""
+
+    t_s: list[float] = field(default_factory=lambda: [0.0])
+    value: list[float] = field(default_factory=lambda: [0.0])
