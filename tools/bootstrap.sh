@@ -1,0 +1,203 @@
+#!/usr/bin/env bash
+# Set up fluxdrive from nothing, or check quickly that nothing needs doing.
+#
+#   1. .venv (repo root) created with Python 3.11 if missing;
+#   2. requirements.lock installed exactly (packages no longer pinned are removed) and the
+#      project installed editable (pip install -e .); skipped while the hash of
+#      requirements.lock + pyproject.toml + this script's STAMP_VERSION is unchanged;
+#   3. the ROS wheels' CMake export files repaired: they point at the wheel builder's
+#      /opt/python/cpXY-cpXY include dirs; rewritten to this Python's and numpy's;
+#   4. colcon build of src/ into .ws/{build,install,log} (merge install, symlink install),
+#      skipped while the hash of the package manifests, build files, interface
+#      definitions and resource markers is unchanged.
+#
+# Needs only python3.11 (with headers), cmake and g++ on the machine; pip reaches the
+# package index. Progress on stderr, prefixed "[bootstrap]". Exits non-zero on any failure.
+# Safe to run concurrently: real work is serialised with flock on .ws/bootstrap.lock.
+#
+# Environment: FLUXDRIVE_PYTHON=/path/to/python3.11 to choose the interpreter;
+# FLUXDRIVE_BOOTSTRAP_FORCE=1 to redo pip and colcon steps regardless of stamps.
+set -euo pipefail
+
+STAMP_VERSION=1 # bump to force every checkout to redo the pip step
+
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+VENV="$ROOT/.venv"
+WS="$ROOT/.ws"
+PIP_STAMP="$VENV/.fluxdrive-pip.stamp"
+COLCON_STAMP="$WS/.fluxdrive-colcon.stamp"
+PKGS_STAMP="$WS/.fluxdrive-packages"
+
+log() { echo "[bootstrap] $*" >&2; }
+die() {
+  echo "[bootstrap] ERROR: $*" >&2
+  exit 1
+}
+show_log_and_die() { # $1 log file, $2 message
+  if [ -f "$1" ]; then
+    echo "[bootstrap] ---- last lines of $1 ----" >&2
+    tail -n 40 "$1" >&2 || true
+    echo "[bootstrap] ----" >&2
+  fi
+  die "$2 (full log: $1)"
+}
+
+# ---------------------------------------------------------------------------- stamps
+pip_hash() {
+  {
+    echo "stamp-version $STAMP_VERSION"
+    echo "venv $VENV"
+    cat "$ROOT/requirements.lock" "$ROOT/pyproject.toml"
+  } | sha256sum | cut -d' ' -f1
+}
+
+# Files whose change needs a colcon run. Python sources of ament_python packages are not
+# among them: they are symlink-installed (develop mode), so edits show up without a build.
+colcon_inputs() {
+  (cd "$ROOT" && find src \
+    \( -name build -o -name install -o -name log -o -name '__pycache__' -o -name '.*' \) -prune -o \
+    -type f \( -name package.xml -o -name CMakeLists.txt -o -name setup.py -o -name setup.cfg \
+    -o -name '*.msg' -o -name '*.srv' -o -name '*.action' -o -name '*.cmake' -o -name COLCON_IGNORE \
+    -o -path '*/resource/*' \) -print | LC_ALL=C sort)
+}
+colcon_hash() {
+  {
+    echo "pip $(cat "$PIP_STAMP" 2>/dev/null || true)"
+    local f
+    while IFS= read -r f; do
+      echo "== $f"
+      cat "$ROOT/$f"
+    done < <(colcon_inputs)
+  } | sha256sum | cut -d' ' -f1
+}
+package_list() { (cd "$ROOT" && find src -name package.xml -not -path '*/.*' | LC_ALL=C sort); }
+
+pip_current() { [ -x "$VENV/bin/python" ] && [ -f "$PIP_STAMP" ] && [ "$(cat "$PIP_STAMP")" = "$(pip_hash)" ]; }
+colcon_current() {
+  [ -f "$WS/install/local_setup.bash" ] && [ -f "$COLCON_STAMP" ] &&
+    [ "$(cat "$COLCON_STAMP")" = "$(colcon_hash)" ]
+}
+
+# ------------------------------------------------------------------------- fast path
+if [ "${FLUXDRIVE_BOOTSTRAP_FORCE:-0}" != 1 ] && pip_current && colcon_current; then
+  exit 0
+fi
+
+mkdir -p "$WS"
+exec 9>"$WS/bootstrap.lock"
+if ! flock -n 9; then
+  log "another bootstrap is running; waiting for it..."
+  flock 9
+fi
+
+# ----------------------------------------------------------------------- tool checks
+for tool in cmake g++ make sha256sum; do
+  command -v "$tool" >/dev/null 2>&1 || die "'$tool' not found on PATH; install it (Debian: apt-get install cmake g++ make)"
+done
+[ -f "$ROOT/requirements.lock" ] || die "requirements.lock missing at $ROOT"
+
+# ----------------------------------------------------------------------------- venv
+if [ ! -x "$VENV/bin/python" ]; then
+  PY="${FLUXDRIVE_PYTHON:-}"
+  if [ -z "$PY" ]; then
+    for cand in python3.11 python3; do
+      if command -v "$cand" >/dev/null 2>&1 &&
+        [ "$("$cand" -c 'import sys; print("%d.%d" % sys.version_info[:2])' 2>/dev/null)" = 3.11 ]; then
+        PY="$(command -v "$cand")"
+        break
+      fi
+    done
+  fi
+  [ -n "$PY" ] || die "Python 3.11 not found (requirements.lock is resolved for 3.11); set FLUXDRIVE_PYTHON"
+  log "creating venv at .venv with $PY..."
+  rm -rf "$VENV"
+  "$PY" -m venv "$VENV" || die "python -m venv failed"
+  rm -f "$PIP_STAMP"
+fi
+VPY="$VENV/bin/python"
+[ "$("$VPY" -c 'import sys; print("%d.%d" % sys.version_info[:2])')" = 3.11 ] ||
+  die ".venv is not Python 3.11; remove .venv and run again"
+
+PYINC="$("$VPY" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')"
+[ -f "$PYINC/Python.h" ] || die "Python headers missing ($PYINC/Python.h); install the -dev package of python3.11"
+
+# ------------------------------------------------------------------------------ pip
+if [ "${FLUXDRIVE_BOOTSTRAP_FORCE:-0}" = 1 ] || ! pip_current; then
+  PIPLOG="$WS/pip.log"
+  : >"$PIPLOG"
+  # _ROS_WHEELS_BOOTSTRAP_COMPLETE=1: skip the wheels' re-exec of every python start
+  # (see tools/env.sh); nothing here loads ROS libraries.
+  export _ROS_WHEELS_BOOTSTRAP_COMPLETE=1
+  PIP=("$VPY" -m pip --disable-pip-version-check --no-input)
+  log "installing requirements.lock into .venv (log: .ws/pip.log)..."
+  "${PIP[@]}" install -r "$ROOT/requirements.lock" >>"$PIPLOG" 2>&1 ||
+    show_log_and_die "$PIPLOG" "pip install -r requirements.lock failed"
+
+  # Remove what pip installed earlier but the lock no longer pins (keeps the venv exact).
+  STALE="$("$VPY" "$ROOT/tools/freeze_lock.py" --stale "$ROOT/requirements.lock")" || die "could not compare the venv with requirements.lock"
+  if [ -n "$STALE" ]; then
+    log "removing packages no longer in requirements.lock: $(echo $STALE)"
+    # shellcheck disable=SC2086
+    "${PIP[@]}" uninstall -y $STALE >>"$PIPLOG" 2>&1 || show_log_and_die "$PIPLOG" "pip uninstall failed"
+  fi
+
+  log "installing the project (editable)..."
+  "${PIP[@]}" install --no-deps --no-build-isolation -e "$ROOT" >>"$PIPLOG" 2>&1 ||
+    show_log_and_die "$PIPLOG" "pip install -e . failed"
+
+  # The ROS wheels' CMake export files name the wheel builder's interpreter
+  # (/opt/python/cp311-cp311/include/python3.11 and .../site-packages/numpy/_core/include).
+  # Point them at this venv's Python include dir and numpy include dir.
+  NPINC="$("$VPY" -c 'import numpy; print(numpy.get_include())')" || die "numpy not importable in .venv"
+  log "repairing CMake export files of the ROS wheels (python: $PYINC, numpy: $NPINC)..."
+  BUILDER_RE='/opt/python/cp[0-9]+-cp[0-9]+t?'
+  mapfile -t CMAKE_FILES < <(grep -rlIE --include='*.cmake' "$BUILDER_RE" "$VENV" 2>/dev/null || true)
+  if [ "${#CMAKE_FILES[@]}" -gt 0 ]; then
+    sed -i -E \
+      -e "s#${BUILDER_RE}/lib/python3\.[0-9]+t?/site-packages/numpy/(_core|core)/include#${NPINC}#g" \
+      -e "s#${BUILDER_RE}/include/python3\.[0-9]+t?#${PYINC}#g" \
+      "${CMAKE_FILES[@]}" || die "sed on CMake export files failed"
+  fi
+  LEFT="$(grep -rlIE --include='*.cmake' "$BUILDER_RE" "$VENV" 2>/dev/null || true)"
+  [ -z "$LEFT" ] || die "CMake files still name the wheel builder's paths: $LEFT"
+  log "repaired ${#CMAKE_FILES[@]} CMake export files"
+
+  # Sanity: the ROS client library loads with its rmw (in a child with the wheels' own
+  # bootstrapper, i.e. without the guard variable).
+  (unset _ROS_WHEELS_BOOTSTRAP_COMPLETE && "$VPY" -c 'import rclpy, numpy, numba, rosbags') >>"$PIPLOG" 2>&1 ||
+    show_log_and_die "$PIPLOG" "import check (rclpy, numpy, numba, rosbags) failed in .venv"
+
+  pip_hash >"$PIP_STAMP"
+  rm -f "$COLCON_STAMP" # a changed venv means the workspace must be rebuilt against it
+  log "venv ready"
+fi
+
+# --------------------------------------------------------------------------- colcon
+if [ "${FLUXDRIVE_BOOTSTRAP_FORCE:-0}" = 1 ] || ! colcon_current; then
+  # A package added or removed: start clean, a merged install keeps stale files otherwise.
+  if [ -f "$PKGS_STAMP" ] && [ "$(cat "$PKGS_STAMP")" != "$(package_list)" ]; then
+    log "set of packages in src/ changed: removing .ws/build and .ws/install"
+    rm -rf "$WS/build" "$WS/install"
+  fi
+  CLOG="$WS/colcon-build.log"
+  log "colcon build of src/ into .ws/ (log: .ws/colcon-build.log)..."
+  t0=$SECONDS
+  # Build against the venv only: drop whatever workspace the caller's shell has sourced.
+  if ! env -u PYTHONPATH -u COLCON_PREFIX_PATH -u _ROS_WHEELS_BOOTSTRAP_COMPLETE \
+    AMENT_PREFIX_PATH="$VENV" CMAKE_PREFIX_PATH="$VENV" PATH="$VENV/bin:$PATH" \
+    COLCON_HOME="$WS/colcon_home" \
+    "$VENV/bin/colcon" --log-base "$WS/log" build \
+    --base-paths "$ROOT/src" \
+    --build-base "$WS/build" --install-base "$WS/install" \
+    --merge-install --symlink-install \
+    --event-handlers console_direct+ console_cohesion- console_start_end- status- summary+ \
+    --cmake-args -DPython3_EXECUTABLE="$VENV/bin/python" -DBUILD_TESTING=OFF \
+    -DCMAKE_BUILD_TYPE=Release \
+    >"$CLOG" 2>&1; then
+    show_log_and_die "$CLOG" "colcon build failed"
+  fi
+  [ -f "$WS/install/local_setup.bash" ] || show_log_and_die "$CLOG" "colcon produced no .ws/install/local_setup.bash"
+  package_list >"$PKGS_STAMP"
+  colcon_hash >"$COLCON_STAMP"
+  log "workspace built in $((SECONDS - t0)) s"
+fi
