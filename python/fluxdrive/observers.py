@@ -133,10 +133,19 @@ def observer_step(os_, op, fr, out):
     # not kp*err + integ -- the proportional part would close an algebraic loop
     # w^ -> inverse HPF -> flux angle -> err -> w^ that limit-cycles sample to sample.
     w_prev = os_[OS_PLL_I]
-    if op[OP_COMP_LPF] > 0.0:
-        # optionally smoothed further: the compensation angle atan(w_c/w^) turns w^ ripple
-        # into angle ripple, most at low w^/w_c
-        os_[OS_WCOMP] = lowpass_step(os_[OS_WCOMP], w_prev, pole(op[OP_COMP_LPF], ts))
+    if op[OP_COMP_LPF] > 0.0 and (kind == K_PAPER or kind == K_PLPF):
+        # Rotor frequency for the compensation from the rotation of the *uncompensated*
+        # LPF output itself, low-passed: it has the right sign from the first samples (no
+        # 180 deg false lock when the PLL wanders at standstill) and it does not feed the
+        # PLL's 6th-harmonic ripple back through atan(w_c/w^) into the angle.
+        ea_old = os_[OS_ETA_A]
+        eb_old = os_[OS_ETA_B]
+        a_c = pole(wc, ts)
+        ea_new = leaky_integrator_step(ea_old, xa, a_c, wc, ts)
+        eb_new = leaky_integrator_step(eb_old, xb, a_c, wc, ts)
+        w_rot = math.atan2(ea_old * eb_new - eb_old * ea_new,
+                           ea_old * ea_new + eb_old * eb_new) / ts
+        os_[OS_WCOMP] = lowpass_step(os_[OS_WCOMP], w_rot, pole(op[OP_COMP_LPF], ts))
         w_prev = os_[OS_WCOMP]
     wf = _floored(w_prev, op[OP_WFLOOR])
     la = 0.0
@@ -268,7 +277,9 @@ class ObserverConfig:
     gamma_bw_rad_s: float = 1000.0  # ortega: gamma = gamma_bw / lambda^2
     plpf_k: float = 0.25  # programmable LPF: w_c = |w^|/K, floored at cutoff_min_hz
     cutoff_min_hz: float = 2.0
-    comp_freq_lpf_hz: float = 0.0  # LPF on the rotor frequency fed to the compensation (0: off)
+    # > 0: the compensation's rotor frequency is the LPF output's own rotation rate, low-passed
+    # at this cut-off; 0: the PLL's frequency estimate, as in the paper
+    comp_freq_lpf_hz: float = 0.0
     r_hat_ohm: float | None = None
     l_hat_h: float | None = None
     lambda_hat_vs: float | None = None
@@ -332,7 +343,7 @@ PARAM_RANGES: list[tuple[str, float, float]] = [
 
 # Defaults per variant (what a motor-control engineer would pick for this testbed).
 VARIANT_DEFAULTS: dict[str, dict[str, Any]] = {
-    "paper": {"cutoff_hz": 100.0, "comp_freq_lpf_hz": 5.0},
+    "paper": {"cutoff_hz": 100.0, "comp_freq_lpf_hz": 2.0},
     "pure_integrator": {"cutoff_hz": 0.0},
     "lpf": {"cutoff_hz": 5.0},
     "programmable_lpf": {"plpf_k": 0.25},
