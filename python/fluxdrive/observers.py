@@ -212,7 +212,7 @@ def observer_step(os_, op, fr, out):
     else:
         mag = math.sqrt(la * la + lb * lb)
         err = (lb * c_t - la * s_t) / max(mag, 1e-12)
-        mag_ok = 0.5 * lam < mag < 1.5 * lam
+        mag_ok = 0.3 * lam < mag < 3.0 * lam  # loose: compensation transients scale |lam^|
     w, os_[OS_PLL_I], th_next = pll_step(th, os_[OS_PLL_I], err, op[OP_PLL_KP], op[OP_PLL_KI], ts)
     os_[OS_W] = w
     os_[OS_TH] = th_next
