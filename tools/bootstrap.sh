@@ -73,13 +73,15 @@ colcon_hash() {
 package_list() { (cd "$ROOT" && find src -name package.xml -not -path '*/.*' | LC_ALL=C sort); }
 
 pip_current() { [ -x "$VENV/bin/python" ] && [ -f "$PIP_STAMP" ] && [ "$(cat "$PIP_STAMP")" = "$(pip_hash)" ]; }
+# venvs and CMake build trees hold absolute paths: a moved checkout must start afresh.
+moved() { [ -f "$VENV/.fluxdrive-root" ] && [ "$(cat "$VENV/.fluxdrive-root")" != "$ROOT" ]; }
 colcon_current() {
   [ -f "$WS/install/local_setup.bash" ] && [ -f "$COLCON_STAMP" ] &&
     [ "$(cat "$COLCON_STAMP")" = "$(colcon_hash)" ]
 }
 
 # ------------------------------------------------------------------------- fast path
-if [ "${FLUXDRIVE_BOOTSTRAP_FORCE:-0}" != 1 ] && pip_current && colcon_current; then
+if [ "${FLUXDRIVE_BOOTSTRAP_FORCE:-0}" != 1 ] && ! moved && pip_current && colcon_current; then
   exit 0
 fi
 
@@ -97,10 +99,15 @@ done
 [ -f "$ROOT/requirements.lock" ] || die "requirements.lock missing at $ROOT"
 
 # ----------------------------------------------------------------------------- venv
+if moved; then
+  log "checkout moved from $(cat "$VENV/.fluxdrive-root"): removing .venv and .ws/build, .ws/install"
+  rm -rf "$VENV" "$WS/build" "$WS/install" "$COLCON_STAMP" "$PKGS_STAMP"
+fi
 if [ ! -x "$VENV/bin/python" ]; then
   PY="${FLUXDRIVE_PYTHON:-}"
   if [ -z "$PY" ]; then
-    for cand in python3.11 python3; do
+    for cand in python3.11 python3 "${HOME:-/root}"/.pyenv/versions/3.11*/bin/python3.11 \
+      /usr/local/bin/python3.11 /usr/bin/python3.11; do
       if command -v "$cand" >/dev/null 2>&1 &&
         [ "$("$cand" -c 'import sys; print("%d.%d" % sys.version_info[:2])' 2>/dev/null)" = 3.11 ]; then
         PY="$(command -v "$cand")"
@@ -112,6 +119,7 @@ if [ ! -x "$VENV/bin/python" ]; then
   log "creating venv at .venv with $PY..."
   rm -rf "$VENV"
   "$PY" -m venv "$VENV" || die "python -m venv failed"
+  echo "$ROOT" >"$VENV/.fluxdrive-root"
   rm -f "$PIP_STAMP"
 fi
 VPY="$VENV/bin/python"
@@ -174,11 +182,12 @@ fi
 
 # --------------------------------------------------------------------------- colcon
 if [ "${FLUXDRIVE_BOOTSTRAP_FORCE:-0}" = 1 ] || ! colcon_current; then
-  # A package added or removed: start clean, a merged install keeps stale files otherwise.
-  if [ -f "$PKGS_STAMP" ] && [ "$(cat "$PKGS_STAMP")" != "$(package_list)" ]; then
-    log "set of packages in src/ changed: removing .ws/build and .ws/install"
+  # A package removed or moved: start clean, a merged install keeps its files otherwise.
+  if [ -f "$PKGS_STAMP" ] && [ -n "$(LC_ALL=C comm -23 "$PKGS_STAMP" <(package_list))" ]; then
+    log "packages gone from src/ ($(LC_ALL=C comm -23 "$PKGS_STAMP" <(package_list) | tr '\n' ' ')): removing .ws/build and .ws/install"
     rm -rf "$WS/build" "$WS/install"
   fi
+  rm -f "$COLCON_STAMP" # an interrupted or failed build must not look current later
   CLOG="$WS/colcon-build.log"
   log "colcon build of src/ into .ws/ (log: .ws/colcon-build.log)..."
   t0=$SECONDS
