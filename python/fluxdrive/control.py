@@ -38,14 +38,14 @@ from .transforms import TWO_PI, clarke, inv_clarke, inv_park, park, wrap_angle
 (CP_TS, CP_P, CP_L, CP_LAM, CP_KP_I, CP_KI_I, CP_KP_W, CP_KI_W, CP_IMAX, CP_ADV,
  CP_TDCOMP, CP_SRC, CP_ALIGN_T, CP_ALIGN_I, CP_IF_I, CP_IF_ACC, CP_HANDOVER, CP_HANDBACK,
  CP_ENC_KP, CP_ENC_KI, CP_ENC_CPR, CP_OC_TRIP, CP_OS_TRIP, CP_VDC_MIN, CP_VDC_MAX,
- CP_DECOUPLE, CP_WFB_LPF, CP_INV_TIMEOUT) = range(28)
-CP_N = 28
+ CP_DECOUPLE, CP_WFB_LPF, CP_INV_TIMEOUT, CP_HANDOVER_DWELL) = range(29)
+CP_N = 29
 SRC_ENCODER, SRC_ESTIMATE = 0, 1
 
 # ---- controller state CS_*
 (CS_MODE, CS_T_MODE, CS_ID_I, CS_IQ_I, CS_W_I, CS_TH_IF, CS_W_IF, CS_ENC_TH, CS_ENC_W,
- CS_ENC_I, CS_ENC_INIT, CS_FAULT, CS_WFB_F, CS_INV_T, CS_IQ_REF_PREV) = range(15)
-CS_N = 15
+ CS_ENC_I, CS_ENC_INIT, CS_FAULT, CS_WFB_F, CS_INV_T, CS_IQ_IF_F, CS_AGREE_T) = range(16)
+CS_N = 16
 
 MODE_DISABLED, MODE_ALIGN, MODE_IF_RAMP, MODE_CLOSED_LOOP, MODE_FAULT = range(5)
 MODE_NAMES = {0: "disabled", 1: "align", 2: "if_ramp", 3: "closed_loop", 4: "fault"}
@@ -196,13 +196,23 @@ def controller_step(cs, cp, fr, est, w_ref_m, id_inj, out):
         id_ref = cp[CP_IF_I] + id_inj
         iq_ref = 0.0
         hand = cp[CP_HANDOVER] * p
-        if abs(w_if) >= hand and abs(w_tgt) >= hand and est[ES_VALID] != 0.0:
+        # average torque current the rotor carries, seen in the observer's frame (5 Hz LPF):
+        # the speed integrator starts from it at handover (an instantaneous sample would
+        # kick the lightly damped rotor)
+        _, iq_obs = park(ia, ib, math.cos(est[ES_TH]), math.sin(est[ES_TH]))
+        cs[CS_IQ_IF_F] = lowpass_step(cs[CS_IQ_IF_F], iq_obs, pole(31.4, ts))
+        # hand over only to an observer that agrees with the open-loop ramp: the rotor lags
+        # the I-f vector by its load angle (< 90 deg) and turns at the ramp's speed
+        agree = (abs(wrap_angle(est[ES_TH] - th)) < 1.22
+                 and abs(est[ES_W] - w_if) < 0.3 * abs(w_if))
+        if abs(w_if) >= hand and est[ES_VALID] != 0.0 and agree:
+            cs[CS_AGREE_T] += ts
+        else:
+            cs[CS_AGREE_T] = 0.0
+        if abs(w_tgt) >= hand and cs[CS_AGREE_T] >= cp[CP_HANDOVER_DWELL]:
             # handover: continue closed loop on the observer; the speed integrator starts
             # from the torque current the rotor is carrying in the observer's frame
-            c_e = math.cos(est[ES_TH])
-            s_e = math.sin(est[ES_TH])
-            _, iq_meas = park(ia, ib, c_e, s_e)
-            cs[CS_W_I] = iq_meas
+            cs[CS_W_I] = cs[CS_IQ_IF_F]
             cs[CS_MODE] = MODE_CLOSED_LOOP
             cs[CS_T_MODE] = 0.0
             cs[CS_WFB_F] = est[ES_W] / p
@@ -374,7 +384,8 @@ class ControllerConfig:
     overspeed_pu: float = 1.5
     vdc_min_v: float = 20.0
     vdc_max_v: float = 95.0
-    invalid_timeout_s: float = 0.02
+    invalid_timeout_s: float = 0.05
+    handover_dwell_s: float = 0.1  # estimate valid and agreeing with the ramp for this long
     r_hat_ohm: float | None = None
     l_hat_h: float | None = None
     lambda_hat_vs: float | None = None
@@ -421,6 +432,7 @@ class ControllerConfig:
         cp[CP_DECOUPLE] = 1.0 if self.decoupling else 0.0
         cp[CP_WFB_LPF] = 2 * math.pi * self.speed_feedback_lpf_hz
         cp[CP_INV_TIMEOUT] = self.invalid_timeout_s
+        cp[CP_HANDOVER_DWELL] = self.handover_dwell_s
         return cp
 
 
