@@ -6,7 +6,6 @@ import dataclasses
 from pathlib import Path
 
 import yaml
-
 from fluxdrive.machine import MachineCard
 from fluxdrive.scenario import CONFIG_DIR, load_scenario
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import pytest
 import yaml
-
 from fluxdrive.machine import ConfigError, load_machine
 from fluxdrive.observers import observer_config
 from fluxdrive.scenario import CONFIG_DIR, load_scenario

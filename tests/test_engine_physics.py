@@ -7,19 +7,29 @@ import math
 
 import numpy as np
 import pytest
-from helpers_engine import ideal_machine, make_scenario
-
 from fluxdrive.blocks import pll_gains, rng_new
-from fluxdrive.control import (CO_ID, CO_ID_REF, CO_IQ, CO_VQ, design_current_loop,
-                               design_speed_loop)
+from fluxdrive.control import CO_ID, CO_ID_REF, CO_IQ, CO_VQ, design_current_loop, design_speed_loop
 from fluxdrive.freqresp import analyse
 from fluxdrive.machine import MachineCard
 from fluxdrive.metrics import compute, wrap
 from fluxdrive.observers import ES_LA, ES_LB, ES_TH, KernelObserver, observer_config
-from fluxdrive.plant import (FR_N, FR_VAB, FR_VBC, FR_VCA, PS_IA, PS_IB, TR_N, TR_THETA_E,
-                             TR_WM, machine_params, plant_advance, plant_state)
+from fluxdrive.plant import (
+    FR_N,
+    FR_VAB,
+    FR_VBC,
+    FR_VCA,
+    PS_IA,
+    PS_IB,
+    TR_N,
+    TR_THETA_E,
+    TR_WM,
+    machine_params,
+    plant_advance,
+    plant_state,
+)
 from fluxdrive.scenario import CONFIG_DIR, load_scenario
 from fluxdrive.sim import run_scenario
+from helpers_engine import ideal_machine, make_scenario
 
 RPM = 2 * math.pi / 60
 

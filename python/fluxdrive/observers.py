@@ -37,8 +37,20 @@ from numba import njit
 
 from .blocks import leaky_integrator_step, lowpass_step, pll_gains, pll_step, pole
 from .machine import ConfigError, MachineCard
-from .plant import (FR_DA, FR_DB, FR_DC, FR_EN, FR_IA, FR_IB, FR_IC, FR_N, FR_VAB, FR_VBC,
-                    FR_VCA, FR_VDC)
+from .plant import (
+    FR_DA,
+    FR_DB,
+    FR_DC,
+    FR_EN,
+    FR_IA,
+    FR_IB,
+    FR_IC,
+    FR_N,
+    FR_VAB,
+    FR_VBC,
+    FR_VCA,
+    FR_VDC,
+)
 from .transforms import clarke, line_to_phase, wrap_angle
 
 # ---- variant kinds
@@ -337,7 +349,8 @@ PARAM_RANGES: list[tuple[str, float, float]] = [
     ("cutoff_hz", 0.0, 2000.0), ("pll_bandwidth_hz", 0.1, 2000.0), ("pll_damping", 0.1, 5.0),
     ("speed_lpf_hz", 0.0, 2000.0), ("omega_floor_rad_s", 0.01, 1000.0),
     ("deadtime_comp_s", 0.0, 1e-4), ("gamma_bw_rad_s", 0.0, 1e5), ("plpf_k", 0.01, 10.0),
-    ("cutoff_min_hz", 0.0, 1000.0), ("comp_freq_lpf_hz", 0.0, 1000.0), ("r_hat_ohm", 0.0, 1e3), ("l_hat_h", 1e-7, 10.0),
+    ("cutoff_min_hz", 0.0, 1000.0), ("comp_freq_lpf_hz", 0.0, 1000.0), ("r_hat_ohm", 0.0, 1e3),
+    ("l_hat_h", 1e-7, 10.0),
     ("lambda_hat_vs", 1e-6, 10.0),
 ]
 

@@ -112,7 +112,8 @@ def _dataclass_from(src: str, key: str, cls, data: dict, base=None):
 
 
 _TOP_KEYS = {"name", "description", "machine", "duration_s", "seed", "speed_rpm", "load_pu",
-             "dyno_pu_per_rpm", "load_type", "brake_band_rpm", "control", "observers", "driving", "steady_window_s",
+             "dyno_pu_per_rpm", "load_type", "brake_band_rpm", "control", "observers", "driving",
+             "steady_window_s",
              "step_load_time_s", "faults", "plant", "initial_angle_deg", "id_injection",
              "speed_injection", "extra"}
 

@@ -21,11 +21,10 @@ import numpy as np
 from numba import njit
 
 from .blocks import rng_new
-from .control import (CO_DA, CO_EN, CO_N, CS_N, controller_reset, controller_step)
+from .control import CO_DA, CO_EN, CO_N, CS_N, controller_reset, controller_step
 from .freqresp import Segment, stepped_sine
 from .observers import ES_N, OP_N, OS_N, KernelObserver, observer_reset, observer_step
-from .plant import (FR_N, TR_N, machine_params, plant_advance, plant_initial_frame,
-                    plant_state)
+from .plant import FR_N, TR_N, machine_params, plant_advance, plant_initial_frame, plant_state
 from .scenario import RPM, Scenario
 
 
