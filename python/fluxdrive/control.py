@@ -38,20 +38,25 @@ from .transforms import TWO_PI, clarke, inv_clarke, inv_park, park, wrap_angle
 (CP_TS, CP_P, CP_L, CP_LAM, CP_KP_I, CP_KI_I, CP_KP_W, CP_KI_W, CP_IMAX, CP_ADV,
  CP_TDCOMP, CP_SRC, CP_ALIGN_T, CP_ALIGN_I, CP_IF_I, CP_IF_ACC, CP_HANDOVER, CP_HANDBACK,
  CP_ENC_KP, CP_ENC_KI, CP_ENC_CPR, CP_OC_TRIP, CP_OS_TRIP, CP_VDC_MIN, CP_VDC_MAX,
- CP_DECOUPLE, CP_WFB_LPF, CP_INV_TIMEOUT, CP_HANDOVER_DWELL) = range(29)
-CP_N = 29
+ CP_DECOUPLE, CP_WFB_LPF, CP_INV_TIMEOUT, CP_HANDOVER_DWELL, CP_I2T_LIMIT, CP_IRATED) = range(31)
+CP_N = 31
 SRC_ENCODER, SRC_ESTIMATE = 0, 1
 
 # ---- controller state CS_*
 (CS_MODE, CS_T_MODE, CS_ID_I, CS_IQ_I, CS_W_I, CS_TH_IF, CS_W_IF, CS_ENC_TH, CS_ENC_W,
- CS_ENC_I, CS_ENC_INIT, CS_FAULT, CS_WFB_F, CS_INV_T, CS_IQ_IF_F, CS_AGREE_T) = range(16)
-CS_N = 16
+ CS_ENC_I, CS_ENC_INIT, CS_FAULT, CS_WFB_F, CS_INV_T, CS_IQ_IF_F, CS_AGREE_T, CS_I2T) = range(17)
+CS_N = 17
 
 MODE_DISABLED, MODE_ALIGN, MODE_IF_RAMP, MODE_CLOSED_LOOP, MODE_FAULT = range(5)
 MODE_NAMES = {0: "disabled", 1: "align", 2: "if_ramp", 3: "closed_loop", 4: "fault"}
-FAULT_NONE, FAULT_OVERCURRENT, FAULT_OVERVOLTAGE, FAULT_UNDERVOLTAGE, FAULT_OVERSPEED = range(5)
-FAULT_POSITION_INVALID = 7
-FAULT_BAD_SAMPLE = 10
+# fault codes: the same numbers as flux_drive_msgs/msg/DriveFault
+(FAULT_NONE, FAULT_OVERCURRENT, FAULT_OVERCURRENT_I2T, FAULT_OVERVOLTAGE, FAULT_UNDERVOLTAGE,
+ FAULT_OVERSPEED, FAULT_LOSS_OF_LOCK, FAULT_POSITION_INVALID, FAULT_STALE_INPUT, FAULT_WATCHDOG,
+ FAULT_BAD_SAMPLE) = range(11)
+FAULT_NAMES = {0: "none", 1: "over-current (instantaneous)", 2: "over-current (I2t)",
+               3: "DC-bus over-voltage", 4: "DC-bus under-voltage", 5: "over-speed",
+               6: "loss of observer lock", 7: "position estimate not finite",
+               8: "stale input", 9: "watchdog", 10: "bad sample (NaN/inf)"}
 
 # ---- controller output CO_*
 (CO_DA, CO_DB, CO_DC, CO_EN, CO_ID, CO_IQ, CO_ID_REF, CO_IQ_REF, CO_VD, CO_VQ, CO_W_REF,
@@ -64,6 +69,16 @@ def controller_reset(cs):
     for j in range(CS_N):
         cs[j] = 0.0
     cs[CS_MODE] = MODE_ALIGN
+
+
+@njit(cache=True)
+def controller_clear_fault(cs):
+    """Explicit reset of a latched fault: back to the start-up sequence.  Returns the code
+    that was cleared.  Faults are never cleared by anything else."""
+    code = cs[CS_FAULT]
+    if cs[CS_MODE] == MODE_FAULT:
+        controller_reset(cs)
+    return code
 
 
 @njit(cache=True)
@@ -121,6 +136,12 @@ def controller_step(cs, cp, fr, est, w_ref_m, id_inj, out):
     if max(abs(fr[FR_IA]), abs(fr[FR_IB]), abs(fr[FR_IC])) > cp[CP_OC_TRIP]:
         _trip(cs, out, FAULT_OVERCURRENT)
         return
+    # I2t: integrate (i/I_rated)^2 - 1 while above rated; trip at the configured pu^2 s
+    i_pk2 = (ia * ia + ib * ib) / (cp[CP_IRATED] * cp[CP_IRATED])
+    cs[CS_I2T] = max(cs[CS_I2T] + (i_pk2 - 1.0) * ts, 0.0)
+    if cs[CS_I2T] > cp[CP_I2T_LIMIT]:
+        _trip(cs, out, FAULT_OVERCURRENT_I2T)
+        return
     if vdc > cp[CP_VDC_MAX]:
         _trip(cs, out, FAULT_OVERVOLTAGE)
         return
@@ -153,7 +174,8 @@ def controller_step(cs, cp, fr, est, w_ref_m, id_inj, out):
             if est[ES_VALID] == 0.0:
                 cs[CS_INV_T] += ts
                 if cs[CS_INV_T] > cp[CP_INV_TIMEOUT]:
-                    _trip(cs, out, FAULT_POSITION_INVALID)
+                    # PLL error or flux magnitude out of bounds for too long
+                    _trip(cs, out, FAULT_LOSS_OF_LOCK)
                     return
             else:
                 cs[CS_INV_T] = 0.0
@@ -380,12 +402,13 @@ class ControllerConfig:
     handback_rpm: float = 20.0
     encoder_pll_hz: float = 150.0
     speed_feedback_lpf_hz: float = 20.0  # only for display/metrics, not in the loop
-    overcurrent_pu: float = 2.1  # instantaneous trip, per unit of the ADC range... of rated
+    overcurrent_pu: float = 2.1  # instantaneous trip on any sampled phase current, pu of rated
     overspeed_pu: float = 1.5
     vdc_min_v: float = 20.0
     vdc_max_v: float = 95.0
     invalid_timeout_s: float = 0.05
     handover_dwell_s: float = 0.1  # estimate valid and agreeing with the ramp for this long
+    i2t_limit_pu2s: float = 10.0  # I2t trip: integral of ((i/I_rated)^2-1) dt (150 % for 8 s)
     r_hat_ohm: float | None = None
     l_hat_h: float | None = None
     lambda_hat_vs: float | None = None
@@ -433,6 +456,8 @@ class ControllerConfig:
         cp[CP_WFB_LPF] = 2 * math.pi * self.speed_feedback_lpf_hz
         cp[CP_INV_TIMEOUT] = self.invalid_timeout_s
         cp[CP_HANDOVER_DWELL] = self.handover_dwell_s
+        cp[CP_I2T_LIMIT] = self.i2t_limit_pu2s
+        cp[CP_IRATED] = card.rated_current_a
         return cp
 
 
