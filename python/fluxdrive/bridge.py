@@ -1,0 +1,547 @@
+"""Bench bridge supervisor logic (no ROS): CAN frames <-> engine frames, with safety.
+
+:class:`CanBridge` is everything the ``bench_bridge`` ROS node does except ROS:
+
+* **decode** SAMPLE_FD frames into engine frame rows (:data:`fluxdrive.canproto.FRAME_FIELDS`,
+  seq unwrapped to a 64-bit period index). A burst of frames goes through the vectorised
+  numpy codec (:meth:`FluxdriveProtocol.decode_fd`); a lone frame (lockstep, lowest
+  latency) through cantools with the same DBC range checks;
+* **malformed** frames (wrong length, FD flag clear, out of the DBC range, non-finite) are
+  dropped and counted by reason; **sequence gaps**, duplicates and out-of-order frames
+  are counted (:class:`SeqTracker`) and the loop continues;
+* **stale data**: no valid sample for ``stale_timeout_s`` while the link was live ->
+  STALE fault (latched), a disable DUTY_CMD and a disarm ARM_MODE;
+* **arming**: duties go out with ``cmd_enable=1`` only while armed (by :meth:`arm`,
+  the node's parameter or service) and no fault is latched; otherwise enable is forced
+  to 0 and the suppression counted. ARM_MODE is repeated at 10 Hz with the HOST_HEARTBEAT.
+  :meth:`shutdown` disarms (disable + disarm frames) before closing the bus;
+* **bus errors / bus-off**: an exception from the bus (or a bus reporting
+  ``BusState.ERROR``) closes it; reconnects are attempted through the injectable
+  ``bus_factory`` with exponential back-off. The bridge comes back disarmed;
+* **counters** for diagnostics (:meth:`diagnostics`).
+
+The bridge is single-threaded: call :meth:`poll` from one thread (the node's CAN
+thread); :meth:`send_duty`, :meth:`arm` and friends may be called from others
+(sends are serialised by a lock).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import can
+import numpy as np
+
+from .canproto import (
+    ARM_KEY,
+    FRAME_FIELDS,
+    FRAME_FLAG_ADC_CLIP,
+    ID_ARM_MODE,
+    ID_DUTY_CMD,
+    ID_FAULT,
+    ID_HOST_HEARTBEAT,
+    ID_SAMPLE_FD,
+    ID_STATUS,
+    PROTOCOL_VERSION,
+    SEQ_BITS,
+    FluxdriveProtocol,
+    SeqTracker,
+    get_protocol,
+)
+
+__all__ = [
+    "FRAME_FLAG_STALE_COMMAND",
+    "BridgeConfig",
+    "CanBridge",
+    "bus_factory_from_params",
+]
+
+FRAME_FLAG_STALE_COMMAND = 16
+"""Frame ``flags`` bit (= PhaseFrame.STATUS_STALE_COMMAND): the MCU re-applied old duties."""
+
+_SEQ_MOD = 1 << SEQ_BITS
+_I_SEQ = FRAME_FIELDS.index("seq")
+_I_FLAGS = FRAME_FIELDS.index("flags")
+# SAMPLE_FD signal -> frame column, for the cantools single-frame path
+_FD_COLS = {
+    "i_a": 0, "i_b": 1, "i_c": 2, "v_ab": 3, "v_bc": 4, "v_ca": 5, "vdc": 6,
+    "duty_a": 7, "duty_b": 8, "duty_c": 9, "pwm_enabled": 10, "encoder": 11, "seq": 12,
+}  # fmt: skip
+
+
+@dataclass
+class BridgeConfig:
+    """Supervisor settings (the node's parameters)."""
+
+    stale_timeout_s: float = 0.05
+    """No valid sample for this long (after the first) -> STALE fault + disable."""
+    cmd_timeout_s: float = 1e-3
+    """MCU duty-command watchdog sent in ARM_MODE.cmd_timeout."""
+    heartbeat_period_s: float = 0.1
+    """HOST_HEARTBEAT and ARM_MODE repetition period."""
+    reconnect_initial_s: float = 0.05
+    reconnect_max_s: float = 2.0
+    reconnect_factor: float = 2.0
+    send_timeout_s: float = 0.05
+    fast_path_min: int = 4
+    """Bursts of at least this many sample frames use the vectorised numpy decoder."""
+    max_reasons: int = 50
+    """Examples of malformed-frame reasons kept for diagnostics."""
+
+
+def bus_factory_from_params(
+    interface: str = "virtual",
+    channel: str = "fluxdrive",
+    bitrate: int = 1_000_000,
+    fd: bool = True,
+    data_bitrate: int = 5_000_000,
+    **extra: Any,
+) -> Callable[[], can.BusABC]:
+    """A bus factory for :class:`CanBridge` from the node's parameters."""
+
+    def make() -> can.BusABC:
+        kw: dict[str, Any] = {"interface": interface, "channel": channel, "fd": fd}
+        if interface != "virtual":
+            kw["bitrate"] = bitrate
+            if fd:
+                kw["data_bitrate"] = data_bitrate
+        kw.update(extra)
+        return can.Bus(**kw)
+
+    return make
+
+
+class CanBridge:
+    """The bench-bridge supervisor (see module doc)."""
+
+    def __init__(
+        self,
+        bus_factory: Callable[[], can.BusABC],
+        config: BridgeConfig | None = None,
+        *,
+        protocol: FluxdriveProtocol | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.cfg = config or BridgeConfig()
+        self.bus_factory = bus_factory
+        self.proto = protocol or get_protocol()
+        self.clock = clock
+        self.bus: can.BusABC | None = None
+        self._tx_lock = threading.Lock()
+        self._msg_fd = self.proto.sample_fd
+        self._msg_duty = self.proto.message("DUTY_CMD")
+        self._msg_arm = self.proto.message("ARM_MODE")
+        self._msg_fault = self.proto.message("FAULT")
+        self._msg_status = self.proto.message("STATUS")
+        self._msg_hb = self.proto.message("HOST_HEARTBEAT")
+        self._ranges = [
+            (s.name, s.minimum, s.maximum) for s in self._msg_fd.signals
+            if s.minimum is not None or s.maximum is not None
+        ]
+        # state
+        self.armed = False
+        self.fault: str = ""  # latched host-side fault reason ("" = none)
+        self.mcu: dict[str, Any] = {}  # last MCU status / fault / sample flags
+        self.seq = SeqTracker()
+        self._seq_hi = 0  # unwrapped period index of the last valid sample
+        self._seq_last16: int | None = None
+        self._last_valid_t: float | None = None
+        self._next_hb_t = 0.0
+        self._hb_alive = 0
+        self._arm_counter = 0
+        self._reset_pulse = False
+        self._backoff = self.cfg.reconnect_initial_s
+        self._next_connect_t = 0.0
+        self.counters: Counter[str] = Counter()
+        self.malformed_reasons: Counter[str] = Counter()
+        self.malformed_examples: list[str] = []
+        self.last_error = ""
+
+    # ------------------------------------------------------------------ connection
+
+    @property
+    def connected(self) -> bool:
+        return self.bus is not None
+
+    def connect(self) -> bool:
+        """Open the bus through the factory now (no back-off). True on success."""
+        try:
+            self.bus = self.bus_factory()
+        except Exception as exc:  # noqa: BLE001 - any driver error means "not connected"
+            self.bus = None
+            self.counters["connect_failures"] += 1
+            self.last_error = f"connect: {exc!r}"
+            self._schedule_reconnect()
+            return False
+        self.counters["connects"] += 1
+        self._backoff = self.cfg.reconnect_initial_s
+        self._last_valid_t = None  # the stale timer restarts with the first frame
+        self._seq_last16 = None
+        self._next_hb_t = 0.0
+        return True
+
+    def _schedule_reconnect(self) -> None:
+        self._next_connect_t = self.clock() + self._backoff
+        self.counters["backoff_ms"] = int(self._backoff * 1e3)
+        self._backoff = min(self._backoff * self.cfg.reconnect_factor, self.cfg.reconnect_max_s)
+
+    def _bus_failed(self, exc: BaseException | str) -> None:
+        """Bus error / bus-off: close, disarm (the MCU disarms on heartbeat loss too),
+        and schedule a reconnect with back-off."""
+        self.counters["bus_errors"] += 1
+        self.last_error = f"bus: {exc!r}" if not isinstance(exc, str) else exc
+        if self.armed:
+            self.counters["disarmed_by_bus_error"] += 1
+        self.armed = False
+        bus, self.bus = self.bus, None
+        if bus is not None:
+            try:
+                bus.shutdown()
+            except Exception:  # noqa: BLE001 - already broken
+                pass
+        self._schedule_reconnect()
+
+    # ------------------------------------------------------------------ sending
+
+    def _send(self, aid: int, data: bytes, fd: bool = False) -> bool:
+        bus = self.bus
+        if bus is None:
+            self.counters["tx_while_disconnected"] += 1
+            return False
+        msg = can.Message(
+            arbitration_id=aid, is_extended_id=False, is_fd=fd, bitrate_switch=fd, data=data
+        )
+        try:
+            with self._tx_lock:
+                bus.send(msg, timeout=self.cfg.send_timeout_s)
+        except can.CanOperationError as exc:
+            # a full queue / TX timeout is not a dead bus; anything else is
+            if "timed out" in str(exc).lower() or "full" in str(exc).lower():
+                self.counters["tx_timeouts"] += 1
+                return False
+            self._bus_failed(exc)
+            return False
+        except (can.CanError, OSError) as exc:
+            self._bus_failed(exc)
+            return False
+        self.counters["tx_frames"] += 1
+        return True
+
+    def send_duty(self, seq: int, duty: Sequence[float], enable: bool) -> bool:
+        """DUTY_CMD answering sample ``seq``. ``enable`` only reaches the wire while armed
+        and unfaulted (else forced to 0, counted in ``enable_suppressed``); duties are
+        clamped to [0, 1], non-finite ones replaced by 0.5 with PWM off."""
+        d = [float(x) for x in duty]
+        en = bool(enable)
+        if not all(math.isfinite(x) for x in d):
+            d = [0.5, 0.5, 0.5]
+            en = False
+            self.counters["duty_nonfinite"] += 1
+        if en and (not self.armed or self.fault):
+            en = False
+            self.counters["enable_suppressed"] += 1
+        d = [min(max(x, 0.0), 1.0) for x in d]
+        data = self._msg_duty.encode(
+            {"cmd_seq": int(seq) % _SEQ_MOD, "cmd_duty_a": d[0], "cmd_duty_b": d[1],
+             "cmd_duty_c": d[2], "cmd_enable": int(en)},
+            strict=False,
+        )  # fmt: skip
+        ok = self._send(ID_DUTY_CMD, data)
+        if ok:
+            self.counters["duty_tx"] += 1
+            if en:
+                self.counters["duty_tx_enabled"] += 1
+        return ok
+
+    def _send_arm(self, arm: bool, reset_fault: bool = False) -> bool:
+        self._arm_counter = (self._arm_counter + 1) % 256
+        data = self._msg_arm.encode(
+            {"arm": int(arm), "reset_fault": int(reset_fault), "sample_layout": 0,
+             "mode": 1 if arm else 0, "arm_key": ARM_KEY if arm else 0,
+             "cmd_timeout": self.cfg.cmd_timeout_s, "decimation": 1,
+             "arm_counter": self._arm_counter},
+            strict=False,
+        )  # fmt: skip
+        return self._send(ID_ARM_MODE, data)
+
+    def arm(self) -> tuple[bool, str]:
+        """Arm the drive (host side and ARM_MODE). Refused while a fault is latched or
+        the bus is down."""
+        if self.fault:
+            return False, f"fault latched: {self.fault}; reset it first"
+        if not self.connected:
+            return False, "CAN bus not connected"
+        if not self._send_arm(True):
+            return False, "ARM_MODE could not be sent"
+        self.armed = True
+        self.counters["arms"] += 1
+        return True, "armed"
+
+    def disarm(self, reason: str = "") -> tuple[bool, str]:
+        """Disarm: a disable DUTY_CMD (for the last sample) and ARM_MODE arm=0."""
+        self.armed = False
+        self.counters["disarms"] += 1
+        if self.connected:
+            self.send_duty(self._seq_hi, (0.5, 0.5, 0.5), False)
+            self._send_arm(False)
+        return True, reason or "disarmed"
+
+    def reset_fault(self) -> tuple[bool, str]:
+        """Clear the host-side latched fault and pulse ARM_MODE.reset_fault."""
+        self.fault = ""
+        if self.connected:
+            self._send_arm(False, reset_fault=True)
+            self._send_arm(False, reset_fault=False)
+        return True, "fault reset"
+
+    def _raise_fault(self, reason: str) -> None:
+        if not self.fault:
+            self.counters["faults"] += 1
+        self.fault = reason
+        self.disarm(reason)
+
+    # ------------------------------------------------------------------ receiving
+
+    def poll(self, timeout: float = 0.0, max_frames: int = 4096) -> np.ndarray:
+        """Receive what is there (waiting up to ``timeout`` for the first message),
+        run the supervisor checks and return the valid samples as (N, 14) frames."""
+        now = self.clock()
+        if self.bus is None:
+            if now >= self._next_connect_t:
+                self.connect()
+            if self.bus is None:
+                if timeout > 0:
+                    time.sleep(min(timeout, max(self._next_connect_t - now, 0.0)))
+                return np.empty((0, len(FRAME_FIELDS)))
+        samples: list[can.Message] = []
+        bus = self.bus
+        try:
+            msg = bus.recv(timeout=timeout)
+            while msg is not None:
+                if msg.arbitration_id == ID_SAMPLE_FD and not msg.is_error_frame:
+                    samples.append(msg)
+                else:
+                    self._handle_other(msg)
+                if len(samples) >= max_frames:
+                    break
+                msg = bus.recv(timeout=0.0)
+            state = getattr(bus, "state", None)
+            if state == can.BusState.ERROR:
+                raise can.CanOperationError("bus-off (BusState.ERROR)")
+        except (can.CanError, OSError) as exc:
+            frames = self._decode(samples)
+            self._bus_failed(exc)
+            return frames
+        frames = self._decode(samples)
+        self.tick(self.clock())
+        return frames
+
+    def _handle_other(self, msg: can.Message) -> None:
+        if msg.is_error_frame:
+            self.counters["error_frames"] += 1
+            return
+        aid = msg.arbitration_id
+        try:
+            if aid == ID_STATUS:
+                d = self._msg_status.decode(bytes(msg.data), decode_choices=False)
+                self.counters["status_rx"] += 1
+                self.mcu.update(
+                    state=int(d["st_state"]), armed=int(d["st_armed"]),
+                    pwm_enabled=int(d["st_pwm_enabled"]),
+                    fault_latched=int(d["st_fault_latched"]),
+                    protocol_version=int(d["st_protocol_version"]),
+                )  # fmt: skip
+            elif aid == ID_FAULT:
+                d = self._msg_fault.decode(bytes(msg.data), decode_choices=False)
+                self.counters["fault_rx"] += 1
+                self.mcu.update(fault_code=int(d["fault_code"]),
+                                fault_latched=int(d["fault_latched"]),
+                                fault_count=int(d["fault_count"]))
+                if d["fault_code"] and d["fault_latched"] and self.armed:
+                    self.armed = False  # the MCU disarmed itself
+                    self.counters["disarmed_by_mcu_fault"] += 1
+            elif aid in (ID_DUTY_CMD, ID_ARM_MODE, ID_HOST_HEARTBEAT):
+                self.counters["rx_own_traffic"] += 1
+            else:
+                self.counters["rx_other"] += 1
+        except Exception as exc:  # noqa: BLE001 - a bad housekeeping frame is counted
+            self._malformed("housekeeping", f"0x{aid:03X}: {exc}")
+
+    def _malformed(self, kind: str, detail: str) -> None:
+        self.counters["malformed"] += 1
+        self.malformed_reasons[kind] += 1
+        if len(self.malformed_examples) < self.cfg.max_reasons:
+            self.malformed_examples.append(detail)
+
+    def _decode(self, msgs: list[can.Message]) -> np.ndarray:
+        n = len(msgs)
+        if n == 0:
+            return np.empty((0, len(FRAME_FIELDS)))
+        self.counters["rx_samples"] += n
+        ok_fd = [bool(m.is_fd) for m in msgs]
+        if n >= self.cfg.fast_path_min:
+            frames, res = self.proto.decode_fd([bytes(m.data) for m in msgs])
+            valid = res.report.valid.copy()
+            reasons = res.report.reasons
+            stale = res.column("cmd_stale")
+            names = res.names
+            self.counters["fast_path_frames"] += n
+            for i in range(n):
+                if not ok_fd[i] and valid[i]:
+                    valid[i] = False
+                    reasons[i] = "sent as a classic CAN frame (FD flag clear)"
+            for i in np.flatnonzero(~valid):
+                self._malformed(_reason_kind(reasons[int(i)]), reasons[int(i)])
+            frames = frames[valid]
+            frames[:, _I_FLAGS] = (frames[:, _I_FLAGS].astype(np.int64) & FRAME_FLAG_ADC_CLIP) | (
+                np.where(stale[valid] > 0.5, FRAME_FLAG_STALE_COMMAND, 0)
+            )
+            if valid.any():
+                last = res.values[np.flatnonzero(valid)[-1]]
+                self._note_info(dict(zip(names, last, strict=True)))
+        else:
+            rows = []
+            for i, m in enumerate(msgs):
+                row = self._decode_one(m, ok_fd[i])
+                if row is not None:
+                    rows.append(row)
+            frames = np.vstack(rows) if rows else np.empty((0, len(FRAME_FIELDS)))
+        if frames.shape[0]:
+            self._sequence(frames)
+            self._last_valid_t = self.clock()
+            self.counters["frames_out"] += frames.shape[0]
+        return frames
+
+    def _decode_one(self, m: can.Message, is_fd: bool) -> np.ndarray | None:
+        data = bytes(m.data)
+        if len(data) != self._msg_fd.length:
+            self._malformed("length", f"wrong length {len(data)} bytes (expected 64)")
+            return None
+        if not is_fd:
+            self._malformed("not_fd", "sent as a classic CAN frame (FD flag clear)")
+            return None
+        d = self._msg_fd.decode(data, decode_choices=False)
+        for name, lo, hi in self._ranges:
+            v = d[name]
+            if not math.isfinite(v):
+                self._malformed("nonfinite", f"{name} is {v}")
+                return None
+            if (lo is not None and v < lo) or (hi is not None and v > hi):
+                self._malformed("range", f"{name}={v:g} outside [{lo:g}, {hi:g}]")
+                return None
+        row = np.empty(len(FRAME_FIELDS))
+        for name, col in _FD_COLS.items():
+            row[col] = d[name]
+        row[_I_FLAGS] = (int(d["adc_clip"]) & FRAME_FLAG_ADC_CLIP) | (
+            FRAME_FLAG_STALE_COMMAND if d["cmd_stale"] else 0
+        )
+        self._note_info(d)
+        return row
+
+    def _note_info(self, d: dict[str, Any]) -> None:
+        self.mcu["sample_armed"] = int(d["armed"])
+        self.mcu["sample_fault_code"] = int(d["fault_code"])
+        self.mcu["cmd_seq_applied"] = int(d["cmd_seq_applied"])
+        if d["cmd_stale"]:
+            self.counters["mcu_cmd_stale"] += 1
+
+    def _sequence(self, frames: np.ndarray) -> None:
+        """Gap accounting and seq unwrap (16-bit wire counter -> 64-bit period index)."""
+        s16 = frames[:, _I_SEQ].astype(np.int64)
+        self.seq.update_many(s16)
+        out = np.empty(s16.shape[0], dtype=np.float64)
+        hi = self._seq_hi
+        last = self._seq_last16
+        for i, s in enumerate(s16):
+            if last is None:
+                hi = int(s) if hi == 0 else hi + ((int(s) - hi) % _SEQ_MOD)
+            else:
+                d = (int(s) - last) % _SEQ_MOD
+                if d >= _SEQ_MOD // 2:
+                    d -= _SEQ_MOD
+                hi += d
+            last = int(s)
+            out[i] = hi
+        self._seq_hi = hi
+        self._seq_last16 = last
+        frames[:, _I_SEQ] = out
+
+    # ------------------------------------------------------------------ periodic
+
+    def tick(self, now: float | None = None) -> None:
+        """Supervisor checks: stale data, heartbeat/ARM_MODE repetition, reconnect."""
+        now = self.clock() if now is None else now
+        if self.bus is None:
+            if now >= self._next_connect_t:
+                self.connect()
+            return
+        t = self._last_valid_t
+        if t is not None and now - t > self.cfg.stale_timeout_s and not self.fault:
+            self.counters["stale_faults"] += 1
+            self._last_valid_t = None
+            self._raise_fault(f"stale data: no valid sample for {now - t:.3f} s")
+        if now >= self._next_hb_t:
+            self._next_hb_t = now + self.cfg.heartbeat_period_s
+            self._hb_alive = (self._hb_alive + 1) % 256
+            self._send(ID_HOST_HEARTBEAT, self._msg_hb.encode(
+                {"hb_alive": self._hb_alive, "hb_protocol_version": PROTOCOL_VERSION}))
+            if self.bus is not None:
+                self._send_arm(self.armed and not self.fault)
+
+    def shutdown(self) -> None:
+        """Disarm (disable + disarm frames), then close the bus."""
+        if self.bus is not None:
+            self.disarm("shutdown")
+        bus, self.bus = self.bus, None
+        if bus is not None:
+            bus.shutdown()
+
+    # ------------------------------------------------------------------ diagnostics
+
+    def state(self) -> str:
+        if self.bus is None:
+            return "disconnected"
+        if self.fault:
+            return "fault"
+        return "armed" if self.armed else "idle"
+
+    def diagnostics(self) -> dict[str, Any]:
+        """Flat dict of counters and state for diagnostic_msgs KeyValues."""
+        st = self.seq.stats
+        out: dict[str, Any] = {
+            "state": self.state(),
+            "armed": self.armed,
+            "fault": self.fault,
+            "seq_gaps": st.gaps,
+            "seq_lost": st.lost,
+            "seq_duplicates": st.duplicates,
+            "seq_out_of_order": st.out_of_order,
+            "last_error": self.last_error,
+        }
+        base = ("rx_samples", "frames_out", "malformed", "faults", "stale_faults", "bus_errors",
+                "connects", "connect_failures", "duty_tx", "duty_tx_enabled",
+                "enable_suppressed", "tx_timeouts", "error_frames", "fast_path_frames")
+        out.update({k: 0 for k in base})
+        out.update({k: int(v) for k, v in sorted(self.counters.items())})
+        out.update({f"malformed_{k}": int(v) for k, v in sorted(self.malformed_reasons.items())})
+        out.update({f"mcu_{k}": v for k, v in sorted(self.mcu.items())})
+        return out
+
+
+def _reason_kind(reason: str) -> str:
+    r = reason.lower()
+    if "length" in r:
+        return "length"
+    if "fd flag" in r:
+        return "not_fd"
+    if " is nan" in r or " is inf" in r or " is -inf" in r:
+        return "nonfinite"
+    if "outside" in r:
+        return "range"
+    return "other"
