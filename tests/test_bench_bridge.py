@@ -306,3 +306,11 @@ def test_shipped_capture_imports_into_a_bag(tmp_path):
     est = obs.run(frames)
     w = est[-1000:, 1].mean() / sc.machine.pole_pairs / RPM
     assert abs(w - 60.0) < 10.0
+
+
+def test_bench_can_cli_reports_rate_and_drops():
+    from fluxdrive.bench_can import bench_can_cli
+
+    out = bench_can_cli(["--frames", "5000", "--seconds", "0.3"])
+    assert out["dropped"] == 0 and out["frames_per_s"] > 10_000
+    assert out["sustained"] and out["sustained_dropped"] == 0
