@@ -134,6 +134,7 @@ class CanBridge:
         self.clock = clock
         self.bus: can.BusABC | None = None
         self._tx_lock = threading.Lock()
+        self._arm_lock = threading.RLock()  # arm state change + ARM_MODE send are atomic
         self._msg_fd = self.proto.sample_fd
         self._msg_duty = self.proto.message("DUTY_CMD")
         self._msg_arm = self.proto.message("ARM_MODE")
@@ -277,19 +278,22 @@ class CanBridge:
             return False, f"fault latched: {self.fault}; reset it first"
         if not self.connected:
             return False, "CAN bus not connected"
-        if not self._send_arm(True):
-            return False, "ARM_MODE could not be sent"
-        self.armed = True
+        with self._arm_lock:
+            self.armed = True
+            if not self._send_arm(True):
+                self.armed = False
+                return False, "ARM_MODE could not be sent"
         self.counters["arms"] += 1
         return True, "armed"
 
     def disarm(self, reason: str = "") -> tuple[bool, str]:
         """Disarm: a disable DUTY_CMD (for the last sample) and ARM_MODE arm=0."""
-        self.armed = False
-        self.counters["disarms"] += 1
-        if self.connected:
-            self.send_duty(self._seq_hi, (0.5, 0.5, 0.5), False)
-            self._send_arm(False)
+        with self._arm_lock:
+            self.armed = False
+            self.counters["disarms"] += 1
+            if self.connected:
+                self.send_duty(self._seq_hi, (0.5, 0.5, 0.5), False)
+                self._send_arm(False)
         return True, reason or "disarmed"
 
     def reset_fault(self) -> tuple[bool, str]:
@@ -491,8 +495,9 @@ class CanBridge:
             self._hb_alive = (self._hb_alive + 1) % 256
             self._send(ID_HOST_HEARTBEAT, self._msg_hb.encode(
                 {"hb_alive": self._hb_alive, "hb_protocol_version": PROTOCOL_VERSION}))
-            if self.bus is not None:
-                self._send_arm(self.armed and not self.fault)
+            with self._arm_lock:
+                if self.bus is not None:
+                    self._send_arm(self.armed and not self.fault)
 
     def shutdown(self) -> None:
         """Disarm (disable + disarm frames), then close the bus."""

@@ -17,6 +17,6 @@ setup(
     description="Bridge between the real drive on CAN and the fluxdrive ROS graph.",
     license="Apache-2.0",
     entry_points={
-        "console_scripts": [],
+        "console_scripts": ["bridge_node = bench_bridge.bridge_node:main"],
     },
 )
