@@ -329,12 +329,108 @@ def _bag_files(path: Path) -> list[Path]:
         path.glob("*.zstd"))
 
 
+class _Conn:
+    def __init__(self, topic: str, msgtype: str):
+        self.topic, self.msgtype = topic, msgtype
+
+
+def _info(path: Path) -> dict[str, Any]:
+    import yaml
+
+    try:
+        info = yaml.safe_load((path / "metadata.yaml").read_text()) or {}
+    except Exception as exc:  # noqa: BLE001
+        raise BagError(f"{path}: unreadable metadata.yaml ({_one_line(exc)})") from None
+    if not isinstance(info, dict) or "rosbag2_bagfile_information" not in info:
+        raise BagError(f"{path}: metadata.yaml is not rosbag2 bag information")
+    return info["rosbag2_bagfile_information"] or {}
+
+
+def _indexed_source(path: Path):
+    """rosbags AnyReader: (topics, message iterator, deserialize, close)."""
+    from rosbags.highlevel import AnyReader
+
+    reader = AnyReader([path])
+    reader.open()
+    topics = {c.topic: c.msgtype for c in reader.connections}
+    conns = [c for c in reader.connections if _wanted(c.topic, c.msgtype)]
+
+    def it():
+        for c, t_ns, data in reader.messages(connections=conns):
+            yield c.topic, c.msgtype, t_ns, data
+
+    return topics, it(), reader.deserialize, reader.close
+
+
+def _stream_source(path: Path):
+    """Sequential mcap reader for a bag without a usable index (recording cut off): reads
+    records until the data ends or breaks."""
+    import io
+
+    from mcap.records import Channel, Message, Schema
+    from mcap.stream_reader import StreamReader
+
+    files = _bag_files(path)
+    f = files[0]
+    if f.name.endswith(".zstd"):
+        try:
+            from compression import zstd  # type: ignore[import-not-found]
+        except ImportError:
+            from backports import zstd  # type: ignore[import-not-found,no-redef]
+        raw = f.read_bytes()
+        dec = zstd.ZstdDecompressor()
+        try:
+            data = dec.decompress(raw)
+        except Exception:  # noqa: BLE001 - keep what decompressed
+            data = b""
+        stream: Any = io.BytesIO(data)
+    elif f.suffix == ".mcap":
+        stream = io.BytesIO(f.read_bytes())
+    else:
+        raise BagError(f"{path}: cannot open {f.name} (damaged sqlite3 storage)")
+    schemas: dict[int, str] = {}
+    chans: dict[int, tuple[str, str]] = {}
+    topics: dict[str, str] = {}
+    # read the records up front (small bags; the reader keeps no index)
+    msgs: list[tuple[str, str, int, bytes]] = []
+    err = None
+    try:
+        for rec in StreamReader(stream, emit_chunks=False).records:
+            if isinstance(rec, Schema):
+                schemas[rec.id] = rec.name
+            elif isinstance(rec, Channel):
+                ty = schemas.get(rec.schema_id, "")
+                chans[rec.id] = (rec.topic, ty)
+                topics[rec.topic] = ty
+            elif isinstance(rec, Message) and rec.channel_id in chans:
+                tp, ty = chans[rec.channel_id]
+                if _wanted(tp, ty):
+                    msgs.append((tp, ty, rec.log_time, rec.data))
+    except Exception as exc:  # noqa: BLE001
+        err = exc
+    store = typestore()
+
+    def it():
+        yield from msgs
+        if err is not None:
+            raise EOFError(f"data ends after {len(msgs)} readable messages "
+                           f"({_one_line(err)})")
+
+    return topics, it(), store.deserialize_cdr, lambda: None
+
+
+def _wanted(topic: str, msgtype: str) -> bool:
+    return ((topic == TOPIC_FRAME and msgtype == T_FRAME)
+            or (topic == TOPIC_TRUTH and msgtype == T_TRUTH)
+            or (topic == TOPIC_CTRL and msgtype == T_CTRL)
+            or (topic.startswith(EST_PREFIX) and topic.endswith(EST_SUFFIX)
+                and msgtype == T_EST))
+
+
 def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
     """Read a drive bag into aligned arrays.  Raises BagError (one line) for a bag that
     holds nothing replayable; a damaged or partial bag returns what it holds, with the
     damage listed in `problems`."""
-    from rosbags.highlevel import AnyReader
-
     path = Path(path)
     if not path.exists():
         raise BagError(f"{path}: no such bag")
@@ -345,9 +441,41 @@ def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
             raise BagError(f"{path}: not a rosbag2 folder (no metadata.yaml next to it)")
     if not (path / "metadata.yaml").exists():
         raise BagError(f"{path}: not a rosbag2 bag (no metadata.yaml)")
+    info = _info(path)
     if not _bag_files(path):
         raise BagError(f"{path}: bag has no storage file (.mcap/.db3)")
     problems: list[str] = []
+    meta: dict[str, Any] = {}
+    try:
+        cd = info.get("custom_data") or {}
+        if META_KEY in cd:
+            meta = json.loads(cd[META_KEY])
+    except Exception:  # noqa: BLE001
+        problems.append("unreadable fluxdrive metadata (ignored)")
+    expected: dict[str, int] = {}
+    for tm in info.get("topics_with_message_count") or []:
+        try:
+            md = tm["topic_metadata"]
+            if _wanted(md["name"], md["type"]):
+                expected[md["name"]] = int(tm["message_count"])
+        except (KeyError, TypeError, ValueError):
+            pass
+    try:
+        topics, messages, deser, close = _indexed_source(path)
+    except Exception as exc:  # noqa: BLE001 - rosbags raises many kinds; name the problem
+        first = f"{type(exc).__name__}: {_one_line(exc)}"
+        try:
+            topics, messages, deser, close = _stream_source(path)
+        except BagError:
+            raise
+        except Exception:  # noqa: BLE001
+            raise BagError(f"{path}: cannot open bag ({first}); not a readable rosbag2 "
+                           f"bag") from None
+        if not topics:
+            raise BagError(f"{path}: cannot open bag ({first}); storage holds no readable "
+                           f"records (truncated or damaged)") from None
+        problems.append(f"bag index unreadable ({first}): storage truncated, read "
+                        f"sequentially")
     counts: dict[str, int] = {}
     fr_rows: dict[int, np.ndarray] = {}
     fr_t: dict[int, int] = {}
@@ -355,24 +483,7 @@ def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
     tr_rows: dict[int, np.ndarray] = {}
     co_rows: dict[int, np.ndarray] = {}
     es_rows: dict[str, dict[int, np.ndarray]] = {}
-    meta: dict[str, Any] = {}
     try:
-        reader = AnyReader([path])
-        reader.open()
-    except Exception as exc:  # noqa: BLE001 - rosbags raises many kinds; name the problem
-        raise BagError(f"{path}: cannot open bag ({type(exc).__name__}: "
-                       f"{_one_line(exc)}); truncated or not a rosbag2 bag") from None
-    try:
-        try:
-            import yaml
-
-            info = yaml.safe_load((path / "metadata.yaml").read_text())
-            cd = (info.get("rosbag2_bagfile_information") or {}).get("custom_data") or {}
-            if META_KEY in cd:
-                meta = json.loads(cd[META_KEY])
-        except Exception:  # noqa: BLE001
-            problems.append("unreadable fluxdrive metadata (ignored)")
-        topics = {c.topic: c.msgtype for c in reader.connections}
         if not topics:
             raise BagError(f"{path}: bag is empty (no topics)")
         if TOPIC_FRAME not in topics:
@@ -384,18 +495,11 @@ def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
         if topics[TOPIC_FRAME] != T_FRAME:
             raise BagError(f"{path}: {TOPIC_FRAME} has type {topics[TOPIC_FRAME]}, "
                            f"expected {T_FRAME}")
-        wanted = [c for c in reader.connections
-                  if (c.topic == TOPIC_FRAME) or (c.topic == TOPIC_TRUTH and c.msgtype == T_TRUTH)
-                  or (c.topic == TOPIC_CTRL and c.msgtype == T_CTRL)
-                  or (c.topic.startswith(EST_PREFIX) and c.topic.endswith(EST_SUFFIX)
-                      and c.msgtype == T_EST)]
-        deser = reader.deserialize
         try:
-            for c, t_ns, data in reader.messages(connections=wanted):
-                tp = c.topic
+            for tp, msgtype, t_ns, data in messages:
                 counts[tp] = counts.get(tp, 0) + 1
                 try:
-                    m = deser(data, c.msgtype)
+                    m = deser(data, msgtype)
                 except Exception as exc:  # noqa: BLE001
                     problems.append(f"undecodable {tp} message ({_one_line(exc)})")
                     continue
@@ -412,21 +516,13 @@ def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
                 else:
                     es_rows.setdefault(tp[len(EST_PREFIX):-len(EST_SUFFIX)], {})[m.seq] = \
                         est_row(m)
-        except BagError:
-            raise
         except Exception as exc:  # noqa: BLE001
             got = sum(counts.values())
             problems.append(f"bag truncated or damaged after {got} messages "
                             f"({type(exc).__name__}: {_one_line(exc)})")
-        expected = {}
-        for c in wanted:
-            try:
-                expected[c.topic] = expected.get(c.topic, 0) + int(c.msgcount)
-            except Exception:  # noqa: BLE001
-                pass
     finally:
         try:
-            reader.close()
+            close()
         except Exception:  # noqa: BLE001
             pass
     if not fr_rows:
