@@ -295,7 +295,15 @@ def main(argv: list[str]) -> int:
     try:
         for n in names:
             sys.stderr.write(f"== experiment {n} ({time.perf_counter() - t0:.0f} s elapsed)\n")
-            res = run_experiment(n, out, args.quick, pool)
+            try:
+                res = run_experiment(n, out, args.quick, pool)
+            except Exception as exc:  # one broken experiment must not lose the others
+                import traceback
+
+                traceback.print_exc()
+                res = {"title": n, "runtime_s": 0.0, "quick": args.quick, "figures": [],
+                       "claims": [claim("experiment ran", f"failed: {exc!r}", False,
+                                        "see the traceback on stderr")]}
             write_report(out, {n: res})
             for c in res["claims"]:
                 print(f"[{n}] {_fmt_holds(c['holds']):6s} {c['claim']}  ->  {c['ours']}")

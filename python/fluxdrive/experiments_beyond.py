@@ -185,7 +185,8 @@ def mismatch(ctx):
     off_rows = []
     for o, r in zip(offs, res[1:1 + len(offs)], strict=True):
         d_ab = o * 9.0 * math.sqrt(1 / 9 + 1 / 3)
-        pred = math.degrees(math.asin(min(1.0, R0 * d_ab / (r["we"] * LAM))))
+        ratio = R0 * d_ab / (abs(r["we"]) * LAM) if abs(r["we"]) > 1.0 else 1.0
+        pred = math.degrees(math.asin(min(1.0, ratio)))
         mm = r["metrics"]
         off_rows.append({"offset_pu": o, "stable": mm["stable"],
                          "h1_deg": mm["observers"]["flux_measured"]["theta_err_h1_deg"],
@@ -206,8 +207,10 @@ def mismatch(ctx):
         claims.append(claim(
             "Driving with mismatched R^/L^ (2 %/150 %, flux drive, measured voltages)",
             "; ".join(f"{x['param']}={x['value']:.4g}: stable {x['stable']}" for x in cl_rows),
-            None, "see the R^ row: ±15 % R^ is survivable, ±30 % needs the online estimate "
-            "(experiment rs_adapt)"))
+            None, "at 60 rpm / 150 % load the R̂ tolerance is tiny (the flux flips at "
+            f"{100 * LAM * we / iq / R0:.0f} % high; the start-up's I-f angle check also "
+            "fails), so R̂ must be tracked online (experiment rs_adapt); L̂ errors only tilt "
+            "the angle by atan((L−L̂)i_q/λ)"))
     p = plt()
     fig, ax = p.subplots(1, 2, figsize=(10, 3.8))
     ax[0].plot([x * 100 - 100 for x in rs], [1e3 * rr[f"R^={k}R"]["mag"] for k in rs], "o",
