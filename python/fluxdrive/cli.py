@@ -24,7 +24,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "node": ("fluxdrive_bringup.cli", "main_node", "node list"),
     "param": ("fluxdrive_bringup.cli", "main_param", "param get|set|dump"),
     "replay": ("fluxdrive.replay", "main", "replay bags through observer variants"),
-    "can-import": ("fluxdrive.canimport", "main", "CAN capture (.log/.asc/.blf) -> bag of phase frames"),
+    "can-import": ("fluxdrive.canimport", "main", "CAN capture (.log/.asc/.blf) -> bag"),
     "experiment": ("fluxdrive.experiments", "main", "reproduce the paper's figures"),
     "test": ("fluxdrive.cli", "main_test", "run the test suite"),
     "lint": ("fluxdrive.cli", "main_lint", "ruff over the project"),

@@ -164,6 +164,13 @@ def load_scenario(path: str | Path, machine: str | Path | None = None,
         raise ConfigError(f"{src}: 'driving' must be 'encoder' or one of the observers "
                           f"{sorted(observers)}, got '{driving}'")
     ctrl.position_source = "encoder" if driving == "encoder" else "estimate"
+    if driving != "encoder" and ctrl.speed_observer_pll_hz is None:
+        # the speed loop is designed with the driving observer's speed path, unless the
+        # scenario fixes the design (e.g. to compare position sources on the same gains)
+        d = observers[driving]
+        ctrl.speed_observer_pll_hz = d.pll_bandwidth_hz
+        ctrl.speed_observer_damping = d.pll_damping
+        ctrl.speed_observer_lpf_hz = d.speed_lpf_hz
     win = raw.get("steady_window_s", [0.5 * duration, duration])
     if (not isinstance(win, (list, tuple)) or len(win) != 2
             or not 0 <= float(win[0]) < float(win[1]) <= duration + 1e-9):
