@@ -70,7 +70,9 @@ def plot_run(result, out_dir: Path) -> list[Path]:
         ax.set_title(nm, fontsize=9)
         ax.set_xlabel("λ̂α [mV·s]")
         ax.set_ylabel("λ̂β [mV·s]")
-        lim = max(1.6 * lam * 1e3, 1e-6)
+        mag = np.hypot(la, lb)
+        lim = max(1.3 * lam, 1.1 * float(np.percentile(mag, 99)) if mag.size else 0.0) * 1e3
+        lim = max(lim, 1e-6)
         ax.set_xlim(-lim, lim)
         ax.set_ylim(-lim, lim)
     for j in range(n, rows * cols):
