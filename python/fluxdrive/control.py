@@ -436,7 +436,23 @@ class ControllerConfig:
     l_hat_h: float | None = None
     lambda_hat_vs: float | None = None
 
+    def validate(self, src: str = "control") -> ControllerConfig:
+        """Every field checked for type and range; the message names the key and rule."""
+        for key, (lo, hi) in CONTROL_RANGES.items():
+            v = getattr(self, key)
+            if v is None and key.startswith(("r_hat", "l_hat", "lambda_hat", "speed_observer_pll")):
+                continue
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not lo <= v <= hi:
+                raise ConfigError(f"{src}: {key} must be a number in [{lo}, {hi}], got {v!r}")
+        if not isinstance(self.decoupling, bool):
+            raise ConfigError(f"{src}: decoupling must be true/false, got {self.decoupling!r}")
+        return self
+
     def to_params(self, card: MachineCard) -> np.ndarray:
+        self.validate()
+        if self.current_bandwidth_hz >= 0.25 * card.pwm_hz:
+            raise ConfigError(f"control: current_bandwidth_hz {self.current_bandwidth_hz} must "
+                              f"be below a quarter of the PWM frequency ({card.pwm_hz} Hz)")
         if self.position_source not in ("encoder", "estimate"):
             raise ConfigError(f"position_source must be 'encoder' or 'estimate', got "
                               f"'{self.position_source}'")
@@ -489,6 +505,22 @@ class ControllerConfig:
         cp[CP_I2T_LIMIT] = self.i2t_limit_pu2s
         cp[CP_IRATED] = card.rated_current_a
         return cp
+
+
+CONTROL_RANGES: dict[str, tuple[float, float]] = {
+    "current_bandwidth_hz": (10.0, 5000.0), "speed_bandwidth_hz": (0.1, 200.0),
+    "current_limit_pu": (0.05, 3.0), "angle_advance_periods": (0.0, 3.0),
+    "deadtime_comp_s": (0.0, 1e-4), "align_time_s": (0.0, 10.0),
+    "align_current_pu": (0.0, 2.0), "if_current_pu": (0.0, 2.0),
+    "if_accel_rpm_s": (1.0, 1e5), "handover_rpm": (0.1, 1e5), "handback_rpm": (0.0, 1e5),
+    "encoder_pll_hz": (1.0, 2000.0), "speed_feedback_lpf_hz": (0.1, 2000.0),
+    "overcurrent_pu": (0.1, 5.0), "overspeed_pu": (0.1, 5.0), "vdc_min_v": (0.0, 1e4),
+    "vdc_max_v": (1.0, 1e4), "invalid_timeout_s": (1e-4, 10.0),
+    "handover_dwell_s": (0.0, 10.0), "i2t_limit_pu2s": (0.01, 1e4),
+    "r_hat_ohm": (0.0, 1e3), "l_hat_h": (1e-7, 10.0), "lambda_hat_vs": (1e-6, 10.0),
+    "speed_observer_pll_hz": (0.1, 2000.0), "speed_observer_damping": (0.1, 5.0),
+    "speed_observer_lpf_hz": (0.0, 2000.0),
+}
 
 
 def current_loop_bandwidth_hz(card: MachineCard, kp: float, ki: float) -> float:

@@ -46,6 +46,7 @@ from .plant import (
     FR_IB,
     FR_IC,
     FR_N,
+    FR_SEQ,
     FR_VAB,
     FR_VBC,
     FR_VCA,
@@ -69,8 +70,8 @@ OP_N = 16
 
 # ---- state vector OS_*
 (OS_INIT, OS_IPA, OS_IPB, OS_ETA_A, OS_ETA_B, OS_TH, OS_W, OS_PLL_I, OS_WF, OS_N_SAMPLES,
- OS_BAD, OS_WCOMP) = range(12)
-OS_N = 12
+ OS_BAD, OS_WCOMP, OS_LAST_SEQ, OS_GAPS, OS_STALE) = range(15)
+OS_N = 15
 
 # ---- estimate row ES_*
 ES_TH, ES_W, ES_LA, ES_LB, ES_EA, ES_EB, ES_ERR, ES_VALID = range(8)
@@ -95,7 +96,8 @@ def _finite_frame(fr):
 def observer_step(os_, op, fr, out):
     """Advance one observer by one frame; writes the ES_* row into `out`."""
     if not _finite_frame(fr):
-        # bad sample: hold the last estimate (coasting at omega^), flag it invalid
+        # bad sample (NaN/inf anywhere): hold the last estimate (coasting at w^), flag it
+        # invalid, count it; the next good frame then sees a one-period gap
         os_[OS_BAD] += 1.0
         os_[OS_TH] = wrap_angle(os_[OS_TH] + op[OP_TS] * os_[OS_PLL_I])
         out[ES_TH] = os_[OS_TH]
@@ -104,6 +106,32 @@ def observer_step(os_, op, fr, out):
         return
     ts = op[OP_TS]
     ia, ib = clarke(fr[FR_IA], fr[FR_IB], fr[FR_IC])
+    # ---- sequence policy (frames carry the PWM period index k):
+    #  repeated or backwards frame: ignored (estimate held, flagged invalid, counted);
+    #  gap of n periods: the volt-seconds of the missing intervals are unknown, so no
+    #  current step is formed across the gap (i(k-1) := i(k)), the angle coasts n periods
+    #  at w^, the flux filter state is kept, and this sample is flagged invalid.
+    seq = fr[FR_SEQ]
+    last = os_[OS_LAST_SEQ]
+    if os_[OS_INIT] != 0.0 and seq <= last and seq > 0.0:
+        os_[OS_STALE] += 1.0
+        out[ES_TH] = os_[OS_TH]
+        out[ES_W] = os_[OS_WF]
+        out[ES_VALID] = 0.0
+        return
+    gap = os_[OS_INIT] != 0.0 and seq > last + 1.0
+    os_[OS_LAST_SEQ] = seq
+    if gap:
+        missed = seq - last - 1.0
+        os_[OS_GAPS] += missed
+        os_[OS_TH] = wrap_angle(os_[OS_TH] + missed * ts * os_[OS_PLL_I])
+        os_[OS_IPA] = ia
+        os_[OS_IPB] = ib
+        out[ES_TH] = os_[OS_TH]
+        out[ES_W] = os_[OS_WF]
+        out[ES_VALID] = 0.0
+        os_[OS_TH] = wrap_angle(os_[OS_TH] + ts * os_[OS_PLL_I])
+        return
     if os_[OS_INIT] == 0.0:
         os_[OS_INIT] = 1.0
         os_[OS_IPA] = ia
