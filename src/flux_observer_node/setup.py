@@ -17,6 +17,6 @@ setup(
     description="Sensorless rotor observer node wrapping the fluxdrive observer variants (PhaseFrame in, RotorEstimate out).",
     license="Apache-2.0",
     entry_points={
-        "console_scripts": [],
+        "console_scripts": ["observer = flux_observer_node.node:main"],
     },
 )

@@ -17,6 +17,6 @@ setup(
     description="Field-oriented controller node with sensorless start-up (PhaseFrame and RotorEstimate in, DutyCommand out).",
     license="Apache-2.0",
     entry_points={
-        "console_scripts": [],
+        "console_scripts": ["controller = foc_controller_node.node:main"],
     },
 )

@@ -17,6 +17,6 @@ setup(
     description="Switching-level SPM machine, inverter and sensor simulator node (publishes PhaseFrame, PlantTruth, /clock).",
     license="Apache-2.0",
     entry_points={
-        "console_scripts": [],
+        "console_scripts": ["plant = spm_plant_sim.node:main"],
     },
 )

@@ -1,0 +1,177 @@
+"""flux_observer_node: one rotor-position observer variant as a ROS node.
+
+A thin wrapper around fluxdrive.observers.observer_step: every PhaseFrame in, one
+RotorEstimate out (same seq and stamp).  Several instances run side by side, each in its
+own name (/obs/<name>), one driving the controller and the others in shadow; all publish
+on /obs/<name>/estimate.
+
+Parameters: `variant` (read-only) and every field of fluxdrive.observers.ObserverConfig,
+declared with description, unit and range.  The model parameters r_hat_ohm, l_hat_h and
+lambda_hat_vs default to the machine card's values.  Live changes (cutoff_hz,
+pll_bandwidth_hz, voltage_source, deadtime_comp_s, ...) are validated as a whole through
+ObserverConfig.with_overrides and rebuild the kernel's parameter row in place; the
+observer's state is kept.  The change takes effect from the next frame processed (the
+successful result says which).
+
+With `scenario` set, the defaults come from that scenario's `observers.<observer>` entry
+(`observer` defaults to the node's name) and its machine card; without it, from
+`machine` (a machine card YAML) and the variant's defaults.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import fields
+
+import numpy as np
+from fluxdrive.machine import load_machine
+from fluxdrive.observers import (ES_N, OS_N, PARAM_RANGES, VARIANT_KINDS, observer_config,
+                                 observer_reset, observer_step)
+from fluxdrive.plant import FR_N
+from fluxdrive.scenario import CONFIG_DIR, load_scenario, scenario_path
+from fluxdrive_ros import qos, topics
+from fluxdrive_ros.params import P, declare, on_set
+from fluxdrive_ros.runner import FluxNode, main_node
+from fluxdrive_ros.wire import EstimateWire, FrameWire, Stamp
+
+import flux_drive_msgs.msg as fm
+from std_msgs.msg import UInt64
+
+# ObserverConfig field -> (description, unit)
+DOCS = {
+    "voltage_source": ("stator voltage the observer integrates: captured line voltages or "
+                       "duty x Vdc", ""),
+    "cutoff_hz": ("cut-off of the LPF replacing the integrator (lpf/paper); correction gain "
+                  "of hinkkanen_luomi", "Hz"),
+    "pll_bandwidth_hz": ("PLL natural frequency (Kp = 2 zeta wn, Ki = wn^2)", "Hz"),
+    "pll_damping": ("PLL damping ratio", ""),
+    "speed_lpf_hz": ("extra low-pass on the speed output (EMF path, Fig. 5); 0 = off", "Hz"),
+    "omega_floor_rad_s": ("floor on |w^| in the inverse-HPF compensation", "rad/s"),
+    "deadtime_comp_s": ("deadtime feed-forward on commanded voltages (0 = off)", "s"),
+    "gamma_bw_rad_s": ("ortega: observer gain gamma = gamma_bw / lambda^2", "rad/s"),
+    "plpf_k": ("programmable LPF: w_c = |w^|/K", ""),
+    "cutoff_min_hz": ("programmable LPF: floor on w_c", "Hz"),
+    "comp_freq_lpf_hz": ("paper: low-pass on the LPF output's own rotation used as the "
+                         "compensation frequency; 0 = use the PLL's frequency", "Hz"),
+    "r_hat_ohm": ("observer's stator resistance R^", "ohm"),
+    "l_hat_h": ("observer's stator inductance L^", "H"),
+    "lambda_hat_vs": ("observer's magnet flux lambda^", "V s"),
+}
+RANGES = {k: (lo, hi) for k, lo, hi in PARAM_RANGES}
+MODEL_DEFAULTS = {"r_hat_ohm": "resistance_ohm", "l_hat_h": "inductance_h",
+                  "lambda_hat_vs": "flux_linkage_vs"}
+
+
+def config_params(cfg, card) -> list[P]:
+    """Declared parameters for every ObserverConfig field (defaults from cfg / the card)."""
+    out = []
+    for f in fields(cfg):
+        if f.name in ("variant", "extra"):
+            continue
+        v = getattr(cfg, f.name)
+        if v is None and f.name in MODEL_DEFAULTS:
+            v = float(getattr(card, MODEL_DEFAULTS[f.name]))
+        desc, unit = DOCS.get(f.name, (f.name, ""))
+        if f.name == "voltage_source":
+            out.append(P(f.name, str(v), desc, choices=("measured", "commanded")))
+            continue
+        lo, hi = RANGES.get(f.name, (None, None))
+        out.append(P(f.name, float(v), desc + " (live)", unit, lo, hi))
+    return out
+
+
+class ObserverNode(FluxNode):
+    def __init__(self, name: str = "observer", namespace: str | None = None, **kw):
+        super().__init__(name, namespace, **kw)
+        sp = self.declare_parameter("scenario", "").value
+        obs_name = self.declare_parameter("observer", name).value
+        mpath = self.declare_parameter(
+            "machine", str(CONFIG_DIR / "machines" / "default_spm.yaml")).value
+        base = None
+        if sp:
+            sc = load_scenario(scenario_path(sp))
+            card = sc.machine
+            base = sc.observers.get(obs_name)
+        else:
+            card = load_machine(mpath)
+        if base is None:
+            base = observer_config("paper")
+        variant = declare(self, [P("variant", base.variant, "observer variant",
+                                   choices=tuple(sorted(VARIANT_KINDS)), read_only=True)])
+        variant = variant["variant"]
+        if variant != base.variant:
+            base = observer_config(variant)
+        self.card = card
+        self.specs = config_params(base, card)
+        pv = declare(self, self.specs)
+        common = declare(self, [
+            P("frame_topic", topics.FRAME, "PhaseFrame input topic", read_only=True),
+            P("exit_on_done", True, "exit once the frame named by /drive/done is processed"),
+            P("frame_id", "", "header.frame_id of published estimates", read_only=True),
+        ])
+        self.cfg = base.with_overrides(**pv)
+        self.params = self.cfg.to_params(card)
+        self.state = np.zeros(OS_N)
+        observer_reset(self.state)
+        self.frame = np.zeros(FR_N)
+        self.row = np.zeros(ES_N)
+        self.stamp = Stamp(card.ts_s)
+        self.fw = FrameWire()
+        self.ew = EstimateWire(obs_name, common["frame_id"])
+        self.exit_on_done = common["exit_on_done"]
+        self.last_seq = -1
+        self.done_seq: int | None = None
+        self.n_bad_order = 0
+        self.pub = self.create_publisher(fm.RotorEstimate, "~/" + topics.ESTIMATE, qos.SAMPLES)
+        self.create_subscription(fm.PhaseFrame, common["frame_topic"], self._on_frame,
+                                 qos.SAMPLES_READER, raw=True)
+        self.create_subscription(UInt64, topics.DONE, self._on_done, qos.LATCHED)
+        on_set(self, self.specs, self._apply)
+        self.get_logger().info(
+            f"{obs_name}: variant {self.cfg.variant}, {self.cfg.voltage_source} voltages, "
+            f"publishing {self.pub.topic_name}")
+
+    def _apply(self, changes: dict) -> str:
+        cfg = self.cfg.with_overrides(**changes)  # raises ConfigError with the reason
+        self.params[:] = cfg.to_params(self.card)
+        self.cfg = cfg
+        return f"applied from frame {self.last_seq + 1}"
+
+    def _on_frame(self, data: bytes) -> None:
+        seq = self.fw.unpack(data, self.frame)
+        if seq <= self.last_seq:
+            self.n_bad_order += 1
+            if self.n_bad_order <= 10:
+                self.get_logger().warning(f"frame {seq} after {self.last_seq}: out of order")
+        self.row.fill(0.0)
+        observer_step(self.state, self.params, self.frame, self.row)
+        sec, nsec = self.stamp(seq)
+        self.pub.publish(self.ew.pack(self.row, seq, sec, nsec))
+        self.last_seq = seq
+        if self.done_seq is not None and seq >= self.done_seq:
+            self.finished = True
+
+    def _on_done(self, msg: UInt64) -> None:
+        if not self.exit_on_done:
+            return
+        self.done_seq = int(msg.data)
+        if self.last_seq >= self.done_seq:
+            self.finished = True
+
+    def close(self) -> None:
+        if self.done_seq is not None:
+            self.pub.wait_for_all_acked(_dur(10.0))
+
+
+def _dur(s: float):
+    from rclpy.duration import Duration
+
+    return Duration(seconds=s)
+
+
+def main(argv: list[str] | None = None) -> int:
+    return main_node("flux_observer_node.node:ObserverNode", "observer", argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,479 @@
+"""Start a whole fluxdrive graph from a YAML description (there is no ros2 launch here).
+
+Graph file (config/graphs/*.yaml)::
+
+    name: sim_lockstep
+    discovery_range: LOCALHOST        # default; SUBNET/SYSTEM_DEFAULT to open up
+    domain_id: 42                     # optional; else the environment's ROS_DOMAIN_ID
+    env: {FLUXDRIVE_EXECUTOR: events} # optional extra environment for every process
+    nodes:
+      - name: plant                   # node name (unique within its namespace)
+        node: plant                   # plant | observer | controller | recorder | module:Class
+        namespace: /                  # optional
+        process: drive                # optional: nodes naming the same process share one
+                                      #   (one DDS participant, in-process delivery); default:
+                                      #   a process of its own, named after the node
+        params: [config/ros/plant.yaml]     # ros__parameters files (relative to the repo)
+        parameters: {scenario: config/scenarios/paper_2pct_150load.yaml}  # inline, win
+        required: true                # its exit (code 0) ends the graph; default false
+      - name: bridge                  # any other program, started as is
+        cmd: [python, -m, some.module]
+
+Every process gets the parent's whole environment (the ROS wheels need it) plus
+ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST unless the graph or the environment says otherwise.
+Output lines are prefixed with the process name.  Ctrl-C (or SIGTERM) is forwarded as
+SIGINT to every process (each finalises: the recorder closes its bag), then SIGTERM and
+SIGKILL after timeouts.  The launcher exits non-zero, naming the node, if any process dies
+with a non-zero code; a process that ends with 0 just leaves the graph (a `required` one
+takes the rest down with it).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+from fluxdrive.machine import ConfigError
+from fluxdrive.scenario import REPO_ROOT
+from fluxdrive_ros.runner import NODE_CLASSES
+
+_NODE_KEYS = {"name", "node", "namespace", "process", "params", "parameters", "required", "cmd"}
+_TOP_KEYS = {"name", "description", "discovery_range", "domain_id", "env", "nodes",
+             "stop_timeout_s"}
+
+
+@dataclass
+class NodeSpec:
+    name: str
+    node: str | None = None
+    namespace: str = ""
+    process: str = ""
+    params: list[str] = field(default_factory=list)
+    parameters: dict[str, Any] = field(default_factory=dict)
+    required: bool = False
+    cmd: list[str] | None = None
+
+    @property
+    def fqn(self) -> str:
+        ns = self.namespace.strip("/")
+        return f"/{ns}/{self.name}" if ns else f"/{self.name}"
+
+
+@dataclass
+class Graph:
+    name: str
+    nodes: list[NodeSpec]
+    discovery_range: str = "LOCALHOST"
+    domain_id: int | None = None
+    env: dict[str, str] = field(default_factory=dict)
+    stop_timeout_s: float = 15.0
+    source: str = ""
+
+    def processes(self) -> dict[str, list[NodeSpec]]:
+        out: dict[str, list[NodeSpec]] = {}
+        for n in self.nodes:
+            out.setdefault(n.process or n.name, []).append(n)
+        return out
+
+    def to_dict(self) -> dict:
+        nodes = []
+        for n in self.nodes:
+            d: dict[str, Any] = {"name": n.name}
+            if n.cmd:
+                d["cmd"] = list(n.cmd)
+            else:
+                d["node"] = n.node
+            for k in ("namespace", "process"):
+                if getattr(n, k):
+                    d[k] = getattr(n, k)
+            if n.params:
+                d["params"] = list(n.params)
+            if n.parameters:
+                d["parameters"] = dict(n.parameters)
+            if n.required:
+                d["required"] = True
+            nodes.append(d)
+        out: dict[str, Any] = {"name": self.name, "discovery_range": self.discovery_range}
+        if self.domain_id is not None:
+            out["domain_id"] = self.domain_id
+        if self.env:
+            out["env"] = dict(self.env)
+        out["nodes"] = nodes
+        return out
+
+
+def _resolve(p: str | Path, base: Path) -> Path:
+    p = Path(p)
+    if p.is_absolute():
+        return p
+    for root in (base, REPO_ROOT):
+        if (root / p).exists():
+            return root / p
+    return REPO_ROOT / p
+
+
+def parse_graph(raw: Any, src: str = "graph", base: Path = REPO_ROOT) -> Graph:
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{src}: a graph must be a mapping with a 'nodes' list")
+    bad = sorted(set(raw) - _TOP_KEYS)
+    if bad:
+        raise ConfigError(f"{src}: unknown key(s) {bad}; expected some of {sorted(_TOP_KEYS)}")
+    nodes_raw = raw.get("nodes")
+    if not isinstance(nodes_raw, list) or not nodes_raw:
+        raise ConfigError(f"{src}: 'nodes' must be a non-empty list")
+    nodes = []
+    seen = set()
+    for i, nd in enumerate(nodes_raw):
+        where = f"{src}: nodes[{i}]"
+        if not isinstance(nd, dict):
+            raise ConfigError(f"{where} must be a mapping")
+        bad = sorted(set(nd) - _NODE_KEYS)
+        if bad:
+            raise ConfigError(f"{where}: unknown key(s) {bad}; expected some of "
+                              f"{sorted(_NODE_KEYS)}")
+        name = nd.get("name")
+        if not isinstance(name, str) or not name.replace("_", "a").isalnum():
+            raise ConfigError(f"{where}: 'name' must be a ROS name (letters, digits, _), "
+                              f"got {name!r}")
+        if ("node" in nd) == ("cmd" in nd):
+            raise ConfigError(f"{where} ({name}): give exactly one of 'node' (one of "
+                              f"{sorted(NODE_CLASSES)} or module:Class) and 'cmd'")
+        node = nd.get("node")
+        if node is not None and (not isinstance(node, str) or (
+                node not in NODE_CLASSES and ":" not in node)):
+            raise ConfigError(f"{where} ({name}): 'node' must be one of {sorted(NODE_CLASSES)} "
+                              f"or module:Class, got {node!r}")
+        cmd = nd.get("cmd")
+        if cmd is not None and (not isinstance(cmd, list) or not all(
+                isinstance(c, str) for c in cmd) or not cmd):
+            raise ConfigError(f"{where} ({name}): 'cmd' must be a list of strings")
+        params = nd.get("params", []) or []
+        if isinstance(params, str):
+            params = [params]
+        if not isinstance(params, list):
+            raise ConfigError(f"{where} ({name}): 'params' must be a list of files")
+        files = []
+        for p in params:
+            f = _resolve(p, base)
+            if not f.exists():
+                raise ConfigError(f"{where} ({name}): parameter file {p} not found")
+            try:
+                yaml.safe_load(f.read_text())
+            except yaml.YAMLError as exc:
+                raise ConfigError(f"{f}: not valid YAML: {exc}") from exc
+            files.append(str(f))
+        parameters = nd.get("parameters", {}) or {}
+        if not isinstance(parameters, dict):
+            raise ConfigError(f"{where} ({name}): 'parameters' must be a mapping")
+        ns = str(nd.get("namespace", "") or "")
+        if ns and not ns.startswith("/"):
+            ns = "/" + ns
+        spec = NodeSpec(name=name, node=node, namespace=ns.rstrip("/"),
+                        process=str(nd.get("process", "") or ""), params=files,
+                        parameters=dict(parameters), required=bool(nd.get("required", False)),
+                        cmd=cmd)
+        if spec.fqn in seen:
+            raise ConfigError(f"{where}: node {spec.fqn} appears twice")
+        seen.add(spec.fqn)
+        nodes.append(spec)
+    dr = str(raw.get("discovery_range", "LOCALHOST")).upper()
+    if dr not in ("LOCALHOST", "SUBNET", "SYSTEM_DEFAULT", "OFF"):
+        raise ConfigError(f"{src}: 'discovery_range' must be LOCALHOST, SUBNET, OFF or "
+                          f"SYSTEM_DEFAULT, got {dr!r}")
+    dom = raw.get("domain_id")
+    if dom is not None and (not isinstance(dom, int) or not 0 <= dom <= 232):
+        raise ConfigError(f"{src}: 'domain_id' must be an integer 0..232")
+    env = raw.get("env", {}) or {}
+    if not isinstance(env, dict):
+        raise ConfigError(f"{src}: 'env' must be a mapping")
+    g = Graph(name=str(raw.get("name", Path(src).stem)), nodes=nodes, discovery_range=dr,
+              domain_id=dom, env={str(k): str(v) for k, v in env.items()},
+              stop_timeout_s=float(raw.get("stop_timeout_s", 15.0)), source=src)
+    for pname, members in g.processes().items():
+        if len(members) > 1 and any(m.cmd for m in members):
+            raise ConfigError(f"{src}: process '{pname}' mixes a 'cmd' with other nodes")
+    return g
+
+
+def load_graph(path: str | Path) -> Graph:
+    path = Path(path)
+    if not path.exists():
+        cand = REPO_ROOT / "config" / "graphs" / (path.name if path.suffix else path.name + ".yaml")
+        if cand.exists():
+            path = cand
+        else:
+            raise ConfigError(f"graph '{path}' not found (looked at {path} and {cand})")
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise ConfigError(f"{path}: cannot read graph: {exc}") from exc
+    return parse_graph(raw, str(path), path.parent)
+
+
+# ---------------------------------------------------------------------------- running
+class Proc:
+    def __init__(self, name: str, nodes: list[NodeSpec], argv: list[str]):
+        self.name = name
+        self.nodes = nodes
+        self.argv = argv
+        self.popen: subprocess.Popen | None = None
+        self.code: int | None = None
+        self.reader: threading.Thread | None = None
+
+    @property
+    def label(self) -> str:
+        names = ", ".join(n.fqn for n in self.nodes)
+        return f"'{self.name}'" + (f" ({names})" if names != f"/{self.name}" else "")
+
+
+class Launcher:
+    """Runs a Graph: start, stream prefixed output, watch, stop."""
+
+    def __init__(self, graph: Graph, out=None, quiet: bool = False, progress: bool = True,
+                 log_dir: Path | None = None):
+        self.g = graph
+        self.out = out or sys.stdout
+        self.quiet = quiet
+        self.show_progress = progress
+        self.log_dir = log_dir
+        self.procs: list[Proc] = []
+        self.bags: list[str] = []
+        self.progress: tuple[int, int, float] | None = None
+        self.lock = threading.Lock()
+        self.stopping = False
+        self.failed: list[Proc] = []
+        self._progress_shown = False
+        self._last_progress_print = 0.0
+        self.tty = hasattr(sys.stderr, "isatty") and sys.stderr.isatty()
+
+    def env(self) -> dict[str, str]:
+        env = dict(os.environ)
+        env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", self.g.discovery_range)
+        if self.g.discovery_range != "LOCALHOST":
+            env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = self.g.discovery_range
+        if self.g.domain_id is not None:
+            env["ROS_DOMAIN_ID"] = str(self.g.domain_id)
+        env.update(self.g.env)
+        env["PYTHONUNBUFFERED"] = "1"
+        env.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
+        env.setdefault("RCUTILS_CONSOLE_OUTPUT_FORMAT", "[{severity}] [{name}]: {message}")
+        return env
+
+    def _argv(self, pname: str, members: list[NodeSpec]) -> list[str]:
+        if members[0].cmd:
+            return list(members[0].cmd)
+        spec = {"process": pname, "nodes": [
+            {"class": m.node, "name": m.name, "namespace": m.namespace,
+             "parameters": m.parameters, "params_files": m.params} for m in members]}
+        return [sys.executable, "-m", "fluxdrive_ros.runner", "--spec-json", json.dumps(spec)]
+
+    def start(self) -> None:
+        env = self.env()
+        for pname, members in self.g.processes().items():
+            p = Proc(pname, members, self._argv(pname, members))
+            p.popen = subprocess.Popen(p.argv, env=env, stdout=subprocess.PIPE,
+                                       stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                       start_new_session=True, cwd=str(REPO_ROOT))
+            p.reader = threading.Thread(target=self._pump, args=(p,), daemon=True)
+            p.reader.start()
+            self.procs.append(p)
+
+    def _emit(self, text: str) -> None:
+        with self.lock:
+            if self._progress_shown and self.tty:
+                sys.stderr.write("\r\033[K")
+                self._progress_shown = False
+            self.out.write(text + "\n")
+            self.out.flush()
+
+    def _pump(self, p: Proc) -> None:
+        logf = None
+        if self.log_dir is not None:
+            self.log_dir.mkdir(parents=True, exist_ok=True)
+            logf = open(self.log_dir / f"{p.name}.log", "w")  # noqa: SIM115
+        assert p.popen and p.popen.stdout
+        for raw in p.popen.stdout:
+            line = raw.decode(errors="replace").rstrip("\n")
+            if line.startswith("@progress "):
+                self._on_progress(line)
+                continue
+            if line.startswith("@bag "):
+                self.bags.append(line[5:].strip())
+                continue
+            if logf:
+                logf.write(line + "\n")
+            if not self.quiet:
+                self._emit(f"[{p.name}] {line}")
+        if logf:
+            logf.close()
+
+    def _on_progress(self, line: str) -> None:
+        try:
+            k, n, wall = line.split()[1:4]
+            self.progress = (int(k), int(n), float(wall))
+        except ValueError:
+            return
+        if not self.show_progress:
+            return
+        k, n, wall = self.progress
+        ts = 1e-4
+        sim = k * ts
+        rtf = sim / wall if wall > 0 else 0.0
+        total = f"/{n * ts:.2f}" if n < 2**62 else ""
+        text = (f"[progress] {sim:7.2f}{total} s simulated, {wall:6.1f} s wall, "
+                f"real-time factor {rtf:.3f}")
+        with self.lock:
+            if self.tty:
+                sys.stderr.write("\r\033[K" + text)
+                sys.stderr.flush()
+                self._progress_shown = True
+            elif time.monotonic() - self._last_progress_print > 5.0 or k >= n:
+                self._last_progress_print = time.monotonic()
+                self.out.write(text + "\n")
+                self.out.flush()
+
+    def signal_all(self, sig: int, procs: list[Proc] | None = None) -> None:
+        for p in procs if procs is not None else self.procs:
+            if p.popen and p.popen.poll() is None:
+                try:
+                    os.killpg(p.popen.pid, sig)
+                except ProcessLookupError:
+                    pass
+
+    def stop(self, timeout: float | None = None) -> None:
+        """SIGINT every live process, then SIGTERM, then SIGKILL."""
+        self.stopping = True
+        timeout = self.g.stop_timeout_s if timeout is None else timeout
+        self.signal_all(signal.SIGINT)
+        for sig, wait in ((signal.SIGTERM, timeout), (signal.SIGKILL, 5.0)):
+            t_end = time.monotonic() + wait
+            while time.monotonic() < t_end and any(p.popen.poll() is None for p in self.procs):
+                time.sleep(0.05)
+            alive = [p for p in self.procs if p.popen.poll() is None]
+            if not alive:
+                break
+            self._emit(f"[launch] {', '.join(p.label for p in alive)} still running; "
+                       f"sending {signal.Signals(sig).name}")
+            self.signal_all(sig, alive)
+        for p in self.procs:
+            p.popen.wait()
+
+    def wait(self, timeout: float | None = None) -> int:
+        """Watch until the graph ends.  Returns 0, or 1 if a process died (named)."""
+        t_end = None if timeout is None else time.monotonic() + timeout
+        exited: set[str] = set()
+        while True:
+            for p in self.procs:
+                if p.name in exited:
+                    continue
+                code = p.popen.poll()
+                if code is None:
+                    continue
+                exited.add(p.name)
+                p.code = code
+                if code != 0 and not self.stopping:
+                    self.failed.append(p)
+                    what = (f"signal {signal.Signals(-code).name}" if code < 0
+                            else f"exit code {code}")
+                    self._emit(f"[launch] ERROR: process {p.label} died ({what}); stopping "
+                               f"the graph")
+                    self.stop()
+                    self._join()
+                    return 1
+                if code == 0 and any(n.required for n in p.nodes) and not self.stopping:
+                    self._emit(f"[launch] required process {p.label} finished; stopping "
+                               f"the graph")
+                    self.stop()
+            if len(exited) == len(self.procs):
+                break
+            if t_end is not None and time.monotonic() > t_end:
+                self._emit("[launch] timeout; stopping the graph")
+                self.stop()
+                self._join()
+                return 1
+            time.sleep(0.05)
+        self._join()
+        bad = [p for p in self.procs if p.code not in (0, None) and not self.stopping]
+        return 1 if bad else 0
+
+    def _join(self) -> None:
+        for p in self.procs:
+            if p.reader:
+                p.reader.join(timeout=5.0)
+        if self._progress_shown and self.tty:
+            sys.stderr.write("\n")
+            self._progress_shown = False
+
+    def run(self, timeout: float | None = None) -> int:
+        """start + wait, with Ctrl-C/SIGTERM turned into a clean stop."""
+        interrupted = threading.Event()
+
+        def on_signal(signum, frame):  # noqa: ARG001
+            if interrupted.is_set():
+                self.signal_all(signal.SIGKILL)
+                return
+            interrupted.set()
+            self._emit(f"[launch] {signal.Signals(signum).name}: stopping the graph")
+            threading.Thread(target=self.stop, daemon=True).start()
+
+        old = {}
+        if threading.current_thread() is threading.main_thread():
+            for s in (signal.SIGINT, signal.SIGTERM):
+                old[s] = signal.signal(s, on_signal)
+        try:
+            self.start()
+            code = self.wait(timeout)
+        finally:
+            for s, h in old.items():
+                signal.signal(s, h)
+        if interrupted.is_set():
+            dirty = [p for p in self.procs if p.code not in (0, None)]
+            for p in dirty:
+                self._emit(f"[launch] process {p.label} ended with code {p.code} on stop")
+            return 1 if dirty else 0
+        return code
+
+
+def main(argv: list[str]) -> int:
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="fluxdrive launch",
+                                 description="start a graph described in YAML")
+    ap.add_argument("graph", help="graph YAML (path, or a name under config/graphs/)")
+    ap.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID for every process")
+    ap.add_argument("--timeout", type=float, help="stop the graph after this many seconds")
+    ap.add_argument("--log-dir", type=Path, help="also write each process's output here")
+    ap.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE",
+                    help="override a node parameter (YAML value), e.g. plant.duration_s=0.5")
+    args = ap.parse_args(argv)
+    g = load_graph(args.graph)
+    if args.domain_id is not None:
+        g.domain_id = args.domain_id
+    for item in args.set:
+        key, _, val = item.partition("=")
+        node, _, pname = key.partition(".")
+        match = [n for n in g.nodes if n.name == node or n.fqn == node]
+        if not match or not pname or not _:
+            raise ConfigError(f"--set {item!r}: expected NODE.PARAM=VALUE with NODE one of "
+                              f"{[n.name for n in g.nodes]}")
+        for n in match:
+            n.parameters[pname] = yaml.safe_load(val)
+    print(f"[launch] graph {g.name}: " + ", ".join(
+        f"{pn}[{', '.join(m.fqn for m in ms)}]" for pn, ms in g.processes().items())
+        + f"; ROS_DOMAIN_ID={g.domain_id if g.domain_id is not None else os.environ.get('ROS_DOMAIN_ID', '0')}"
+        + f", discovery {os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE', g.discovery_range)}",
+        flush=True)
+    launcher = Launcher(g, log_dir=args.log_dir)
+    code = launcher.run(args.timeout)
+    for b in launcher.bags:
+        print(f"[launch] bag: {b}")
+    return code

@@ -1,0 +1,196 @@
+"""A scenario through the ROS graph: `./fluxdrive run SCENARIO.yaml` and `./fluxdrive demo`.
+
+1. the graph for the scenario: the plant (lockstep), one observer node per scenario
+   observer (/obs/<name>, the driving one and the shadows), the controller (position from
+   the driving observer's estimate topic, or the encoder), the recorder;
+2. launched (fluxdrive_bringup.launch) with a domain of its own; the plant waits until
+   every frame subscriber and the duty publisher are matched (plus a settling delay) before
+   its first frame, and all per-sample topics are transient-local, so nothing published
+   during discovery is lost;
+3. the run goes to the end (progress line), every node exits after /drive/done, the
+   recorder finalises the bag;
+4. the bag is read back into the engine's arrays and reported with the same code as
+   `./fluxdrive sim` (fluxdrive.report: metric table, metrics.json, plots).
+
+Process layouts (`--layout`): composed (default: plant, observers and controller share one
+process, i.e. one DDS participant with in-process delivery; the recorder has its own
+process on the other core), single (everything in one process), separate (one process per
+node, the classic ROS layout; slowest).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+from fluxdrive.scenario import REPO_ROOT, load_scenario, scenario_path
+
+from .launch import Graph, Launcher, NodeSpec
+
+LAYOUTS = ("composed", "single", "separate", "split")
+DEMO_SCENARIO = "paper_2pct_150load"
+
+
+def graph_for_scenario(sc_path: Path, sc, bag_dir: Path | None, layout: str = "composed",
+                       duration_s: float | None = None, domain_id: int | None = None,
+                       start_delay_s: float = 0.5, extra: dict | None = None) -> Graph:
+    """The lockstep graph of a scenario.  `extra` = {node name: {param: value}}."""
+    if layout not in LAYOUTS:
+        raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
+    names = list(sc.observers)
+    sp = str(Path(sc_path).resolve())
+    dur = {} if duration_s is None else {"duration_s": float(duration_s)}
+    n_frame_subs = len(names) + 1 + (1 if bag_dir is not None else 0)
+
+    def proc(name: str, group: str) -> str:
+        return {"composed": "recorder" if group == "rec" else "drive",
+                "single": "drive",
+                "split": {"rec": "plant", "plant": "plant"}.get(group, "control"),
+                "separate": name}[layout]
+
+    nodes = [NodeSpec(name="plant", node="plant", process=proc("plant", "plant"),
+                      parameters={"scenario": sp, "wait_frame_subscribers": n_frame_subs,
+                                  "wait_duty_publishers": 1, "start_delay_s": start_delay_s,
+                                  **dur})]
+    for nm in names:
+        nodes.append(NodeSpec(name=nm, node="observer", namespace="/obs",
+                              process=proc(f"obs_{nm}", "obs"),
+                              parameters={"scenario": sp, "observer": nm}))
+    nodes.append(NodeSpec(name="controller", node="controller",
+                          process=proc("controller", "ctrl"), parameters={"scenario": sp}))
+    if bag_dir is not None:
+        nodes.append(NodeSpec(name="recorder", node="recorder", process=proc("recorder", "rec"),
+                              parameters={"bag_dir": str(bag_dir), "observers": names,
+                                          "scenario": sp, **dur}))
+    for n in nodes:
+        n.parameters.update((extra or {}).get(n.name, {}))
+    return Graph(name=f"{sc.name}-lockstep", nodes=nodes, domain_id=domain_id)
+
+
+def shorten(sc, duration_s: float | None) -> None:
+    """Cut a scenario to `duration_s`; a steady window beyond the end becomes the second
+    half of the run."""
+    if duration_s is None:
+        return
+    sc.duration_s = float(duration_s)
+    w0, w1 = sc.steady_window_s
+    if w1 > duration_s + 1e-9:
+        sc.steady_window_s = (0.5 * duration_s, float(duration_s))
+
+
+def pick_domain_id() -> int:
+    """The environment's ROS_DOMAIN_ID, else a random one (a run must not meet another)."""
+    env = os.environ.get("ROS_DOMAIN_ID")
+    if env:
+        return int(env)
+    return random.randint(110, 219)
+
+
+def result_from_bag(bag: Path, sc, duration_s: float | None = None, wall_s: float = 0.0):
+    """fluxdrive.sim.SimResult from a graph run's bag (the report's input)."""
+    from fluxdrive.control import CO_W_REF
+    from fluxdrive.sim import DriveSetup, SimResult
+
+    from .bagio import load_run_arrays
+
+    shorten(sc, duration_s)
+    ds = DriveSetup(sc)
+    arr = load_run_arrays(bag, ds.ts, names=list(sc.observers))
+    n = arr["n"]
+    ctrl = arr["ctrl"]
+    w_ref = ctrl[:, CO_W_REF].copy()
+    bad = ~np.isfinite(w_ref)
+    w_ref[bad] = ds.w_ref[:n][bad] if n <= len(ds.w_ref) else 0.0
+    res = SimResult(sc, list(sc.observers), sc.driving, np.arange(n) * ds.ts, arr["frames"],
+                    arr["truth"], arr["est"], ctrl, w_ref, ds.id_inj[:n], ds.segments, wall_s)
+    return res, arr
+
+
+def run_graph(sc_path: Path, *, out: Path, bag: Path, layout: str = "composed",
+              duration_s: float | None = None, domain_id: int | None = None,
+              quiet: bool = False, timeout: float | None = None, extra: dict | None = None,
+              progress: bool = True) -> dict:
+    """Launch the lockstep graph of a scenario, wait for the end.  Returns a summary dict
+    (exit code, wall time, real-time factor, bag path)."""
+    sc = load_scenario(sc_path)
+    shorten(sc, duration_s)
+    dom = pick_domain_id() if domain_id is None else domain_id
+    g = graph_for_scenario(sc_path, sc, bag, layout, duration_s, dom, extra=extra)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "graph.yaml").write_text(yaml.safe_dump(g.to_dict(), sort_keys=False))
+    print(f"[run] {sc.name}: {sc.n_periods} periods ({sc.duration_s:g} s) through the graph, "
+          f"layout {layout} ({', '.join(g.processes())}), ROS_DOMAIN_ID={dom}; "
+          f"graph: {out / 'graph.yaml'}", flush=True)
+    launcher = Launcher(g, quiet=quiet, progress=progress, log_dir=out / "logs")
+    t0 = time.perf_counter()
+    code = launcher.run(timeout)
+    wall = time.perf_counter() - t0
+    prog = launcher.progress
+    rtf = None
+    if prog and prog[2] > 0:
+        rtf = prog[0] * sc.machine.ts_s / prog[2]
+    return {"code": code, "wall_s": wall, "lockstep_rtf": rtf,
+            "frames": prog[0] if prog else 0, "loop_wall_s": prog[2] if prog else None,
+            "bag": str(bag), "scenario": sc, "graph": g, "domain_id": dom}
+
+
+def main_run(argv: list[str], default_scenario: str | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="fluxdrive run" if default_scenario is None
+                                 else "fluxdrive demo", description=__doc__.split("\n\n")[0])
+    if default_scenario is None:
+        ap.add_argument("scenario", help="scenario YAML (path, or a name under "
+                        "config/scenarios)")
+    ap.add_argument("--out", type=Path, help="report folder (default runs/<name>-<time>)")
+    ap.add_argument("--bag", type=Path, help="bag folder (default bags/<name>-<time>)")
+    ap.add_argument("--duration", type=float, help="simulate only this long [s]")
+    ap.add_argument("--layout", choices=LAYOUTS, default="composed",
+                    help="process layout of the graph (default composed)")
+    ap.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default: environment's, "
+                    "else a random one)")
+    ap.add_argument("--timeout", type=float, help="give up after this many seconds")
+    ap.add_argument("--quiet", action="store_true", help="hide the nodes' log lines")
+    ap.add_argument("--no-plots", action="store_true")
+    args = ap.parse_args(argv)
+    sp = scenario_path(args.scenario if default_scenario is None else default_scenario)
+    sc = load_scenario(sp)
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    out = args.out or REPO_ROOT / "runs" / f"{sc.name}-{stamp}"
+    bag = args.bag or REPO_ROOT / "bags" / f"{sc.name}-{stamp}"
+    r = run_graph(sp, out=out, bag=bag, layout=args.layout, duration_s=args.duration,
+                  domain_id=args.domain_id, quiet=args.quiet, timeout=args.timeout)
+    if r["code"] != 0:
+        print(f"[run] the graph failed (exit {r['code']}); logs in {out / 'logs'}",
+              file=sys.stderr)
+        if Path(bag).exists():
+            print(f"[run] partial bag: {bag}", file=sys.stderr)
+        return r["code"]
+    if r["lockstep_rtf"] is not None:
+        print(f"[run] lockstep loop: {r['frames']} frames in {r['loop_wall_s']:.2f} s wall = "
+              f"real-time factor {r['lockstep_rtf']:.3f} (whole command {r['wall_s']:.1f} s "
+              f"incl. start-up and finalising)")
+    from fluxdrive.report import report
+
+    t0 = time.perf_counter()
+    res, arr = result_from_bag(bag, r["scenario"], args.duration, r["loop_wall_s"] or 0.0)
+    miss = {k: v for k, v in arr["missing"].items() if v}
+    print(f"[run] bag read back in {time.perf_counter() - t0:.1f} s: {arr['n']} frames"
+          + (f"; MISSING samples: {miss}" if miss else "; every sample of every topic present"))
+    m = report(res, out, plots=not args.no_plots)
+    summary = {"scenario": r["scenario"].name, "bag": str(bag), "layout": args.layout,
+               "domain_id": r["domain_id"], "frames": arr["n"], "missing": arr["missing"],
+               "lockstep_rtf": r["lockstep_rtf"], "loop_wall_s": r["loop_wall_s"],
+               "command_wall_s": r["wall_s"]}
+    (out / "graph_run.json").write_text(json.dumps(summary, indent=2))
+    print(f"[run] bag: {bag}")
+    return 0 if m.get("stable", True) and not miss else 1
+
+
+def main_demo(argv: list[str]) -> int:
+    return main_run(argv, default_scenario=DEMO_SCENARIO)

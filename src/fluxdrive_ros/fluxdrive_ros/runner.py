@@ -1,0 +1,185 @@
+"""Run one or several fluxdrive nodes in a process (a "container"), the way every fluxdrive
+process runs.
+
+Executor: rclpy.experimental.EventsExecutor, driven by a `spin_once` loop.  In the Jazzy
+wheels used here its `spin()` busy-waits on one core, never fires timers and ignores
+SIGINT/SIGTERM, while `spin_once(timeout)` in a loop is fine (timers fire, idle costs
+nothing, a signal ends it through ExternalShutdownException).  `FLUXDRIVE_EXECUTOR=single`
+selects rclpy's SingleThreadedExecutor instead (slower; for comparison).
+
+Nodes that share a process share one DDS participant, so messages between them are
+delivered in-process by the middleware (no transport), which is what makes a 10 kHz
+lockstep loop cheap; other processes (recorder, inspection tools) still see every topic.
+
+A node class derives from `FluxNode`; it sets `self.finished = True` when its work is done
+(the container exits when all its nodes are finished) and may override `close()` (called
+once on exit, also after Ctrl-C / SIGTERM, e.g. to finalise a bag).
+
+Container spec (JSON, given as `--spec FILE` or `--spec-json TEXT`):
+  {"process": "drive",
+   "nodes": [{"class": "spm_plant_sim.node:PlantNode", "name": "plant", "namespace": "/",
+              "parameters": {"scenario": "...", "seed": 1}, "params_files": []}]}
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import os
+import sys
+import time
+import traceback
+from typing import Any
+
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+# short names for the node classes, usable in graph files as `node: plant`
+NODE_CLASSES = {
+    "plant": "spm_plant_sim.node:PlantNode",
+    "observer": "flux_observer_node.node:ObserverNode",
+    "controller": "foc_controller_node.node:ControllerNode",
+    "recorder": "fluxdrive_bringup.recorder:RecorderNode",
+}
+
+
+class FluxNode(Node):
+    """Base of the fluxdrive nodes: a `finished` flag and a `close()` hook."""
+
+    def __init__(self, name: str, namespace: str | None = None, **kw: Any):
+        super().__init__(name, namespace=namespace or "", **kw)
+        self.finished = False
+        self.exit_code = 0
+
+    def close(self) -> None:
+        """Called once when the process ends (normally or on a signal)."""
+
+    def progress(self, text: str) -> None:
+        """A machine-readable progress line for the launcher (not logged)."""
+        sys.stdout.write(f"@progress {text}\n")
+        sys.stdout.flush()
+
+
+def make_executor(context=None):
+    kind = os.environ.get("FLUXDRIVE_EXECUTOR", "events")
+    if kind == "single":
+        from rclpy.executors import SingleThreadedExecutor
+
+        return SingleThreadedExecutor(context=context)
+    from rclpy.experimental import EventsExecutor
+
+    return EventsExecutor(context=context)
+
+
+def spin(nodes: list[FluxNode], executor=None, poll_s: float = 0.2) -> int:
+    """Spin until every node is finished or the context is shut down (signal).
+    Returns the process exit code: 0 normally, else the first node's non-zero code."""
+    ex = executor or make_executor()
+    for n in nodes:
+        ex.add_node(n)
+    code = 0
+    try:
+        while rclpy.ok() and not all(n.finished for n in nodes):
+            ex.spin_once(timeout_sec=poll_s)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except Exception:  # noqa: BLE001 - a callback raised: report, exit non-zero
+        traceback.print_exc()
+        code = 1
+    for n in nodes:
+        try:
+            n.close()
+        except Exception:  # noqa: BLE001
+            traceback.print_exc()
+            code = code or 1
+        code = code or int(getattr(n, "exit_code", 0) or 0)
+    for n in nodes:
+        try:
+            ex.remove_node(n)
+            n.destroy_node()
+        except Exception:  # noqa: BLE001 - shutting down anyway
+            pass
+    try:
+        ex.shutdown()
+    except Exception:  # noqa: BLE001
+        pass
+    if rclpy.ok():
+        rclpy.try_shutdown()
+    return code
+
+
+def load_class(spec: str):
+    spec = NODE_CLASSES.get(spec, spec)
+    mod, _, cls = spec.partition(":")
+    return getattr(importlib.import_module(mod), cls)
+
+
+def _param_overrides(params: dict[str, Any]) -> list[Parameter]:
+    return [Parameter(k, value=v) for k, v in params.items()]
+
+
+def build_node(spec: dict) -> FluxNode:
+    cls = load_class(spec["class"])
+    cli = ["--ros-args"]
+    for f in spec.get("params_files", []) or []:
+        cli += ["--params-file", str(f)]
+    kw = {}
+    if len(cli) > 1:
+        kw["cli_args"] = cli
+    return cls(spec["name"], namespace=spec.get("namespace", ""),
+               parameter_overrides=_param_overrides(spec.get("parameters", {}) or {}), **kw)
+
+
+def main_node(cls_spec: str, default_name: str, argv: list[str] | None = None) -> int:
+    """Entry point of a single-node executable: `<exe> [--ros-args ...]`."""
+    argv = sys.argv if argv is None else argv
+    rclpy.init(args=argv)
+    try:
+        node = load_class(cls_spec)(default_name)
+    except Exception as exc:  # noqa: BLE001 - configuration problems end the process
+        print(f"{default_name}: cannot start: {exc}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    return spin([node])
+
+
+def container_main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="fluxdrive-container", description=__doc__.split("\n")[0])
+    ap.add_argument("--spec", help="JSON spec file")
+    ap.add_argument("--spec-json", help="JSON spec text")
+    args, rest = ap.parse_known_args(argv)
+    if args.spec:
+        with open(args.spec) as fh:
+            spec = json.load(fh)
+    elif args.spec_json:
+        spec = json.loads(args.spec_json)
+    else:
+        ap.error("--spec or --spec-json is required")
+    rclpy.init(args=["fluxdrive-container", *rest])
+    nodes = []
+    try:
+        for ns in spec["nodes"]:
+            nodes.append(build_node(ns))
+    except Exception as exc:  # noqa: BLE001
+        traceback.print_exc()
+        name = ns.get("name", "?") if isinstance(ns, dict) else "?"
+        print(f"[{spec.get('process', 'container')}] cannot start node '{name}': {exc}",
+              file=sys.stderr)
+        for n in nodes:
+            n.close()
+            n.destroy_node()
+        rclpy.try_shutdown()
+        return 2
+    t0 = time.perf_counter()
+    code = spin(nodes)
+    if os.environ.get("FLUXDRIVE_DEBUG"):
+        print(f"[{spec.get('process')}] exit {code} after {time.perf_counter() - t0:.1f} s",
+              file=sys.stderr)
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(container_main())

@@ -1,0 +1,33 @@
+"""Topic names and message types of the fluxdrive graph (one place, used by every node,
+the recorder, the launcher and the inspection tools)."""
+
+from __future__ import annotations
+
+FRAME = "/drive/frame"  # flux_drive_msgs/PhaseFrame, plant (or bench bridge) -> all
+TRUTH = "/drive/truth"  # flux_drive_msgs/PlantTruth, simulation only
+DUTY = "/drive/duty"  # flux_drive_msgs/DutyCommand, controller -> plant
+CONTROLLER_STATE = "/drive/controller_state"  # flux_drive_msgs/ControllerState
+DONE = "/drive/done"  # std_msgs/UInt64: last seq of a finished run (latched)
+CLOCK = "/clock"  # rosgraph_msgs/Clock: sim time of the plant
+ESTIMATE = "estimate"  # relative: /obs/<name>/estimate (flux_drive_msgs/RotorEstimate)
+OBS_NAMESPACE = "/obs"
+
+T_FRAME = "flux_drive_msgs/msg/PhaseFrame"
+T_TRUTH = "flux_drive_msgs/msg/PlantTruth"
+T_DUTY = "flux_drive_msgs/msg/DutyCommand"
+T_STATE = "flux_drive_msgs/msg/ControllerState"
+T_ESTIMATE = "flux_drive_msgs/msg/RotorEstimate"
+T_UINT64 = "std_msgs/msg/UInt64"
+T_CLOCK = "rosgraph_msgs/msg/Clock"
+
+
+def estimate_topic(observer: str) -> str:
+    return f"{OBS_NAMESPACE}/{observer}/{ESTIMATE}"
+
+
+def msg_class(type_name: str):
+    """rclpy message class of 'pkg/msg/Name'."""
+    import importlib
+
+    pkg, _, name = type_name.replace("/msg/", "/").partition("/")
+    return getattr(importlib.import_module(f"{pkg}.msg"), name)

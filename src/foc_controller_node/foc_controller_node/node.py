@@ -1,0 +1,260 @@
+"""foc_controller_node: field-oriented control as a ROS node.
+
+A thin wrapper around fluxdrive.control.controller_step.  For every sample k it waits for
+PhaseFrame k and, when sensorless (position_source = estimate), the RotorEstimate k of the
+driving observer (`estimate_topic`), then computes duty(k) and publishes DutyCommand(seq=k)
+on /drive/duty and ControllerState(seq=k) on /drive/controller_state.  Samples are
+processed strictly in order, so the graph reproduces the in-process runner exactly.
+
+Parameters: every field of fluxdrive.control.ControllerConfig (gains derive from the
+bandwidths), declared with description, unit and range; all but position_source and
+estimate_topic are live: a change re-runs the gain design (ControllerConfig.to_params) and
+replaces the kernel's parameter row from the next sample.  A change the design refuses
+(e.g. a current bandwidth the 1.5-period delay cannot reach, handback >= handover) is
+rejected with the reason.  The speed reference follows the scenario's profile (with its
+injection) unless speed_ref_mode = constant (speed_ref_rpm).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+
+import numpy as np
+from fluxdrive.control import (CO_N, CONTROL_RANGES, CS_N, ControllerConfig,
+                               controller_reset, controller_step)
+from fluxdrive.machine import load_machine
+from fluxdrive.observers import ES_N
+from fluxdrive.plant import FR_N
+from fluxdrive.scenario import CONFIG_DIR, RPM, load_scenario, scenario_path
+from fluxdrive.sim import DriveSetup
+from fluxdrive_ros import qos, topics
+from fluxdrive_ros.params import P, declare, on_set
+from fluxdrive_ros.runner import FluxNode, main_node
+from fluxdrive_ros.wire import ControlWire, EstimateWire, FrameWire, Stamp
+
+import flux_drive_msgs.msg as fm
+from std_msgs.msg import UInt64
+
+# ControllerConfig field -> (description, unit); ranges from fluxdrive.control.CONTROL_RANGES
+DOCS = {
+    "current_bandwidth_hz": ("-3 dB bandwidth of the dq current loops (gains re-designed)",
+                             "Hz"),
+    "speed_bandwidth_hz": ("-3 dB bandwidth of the speed loop (gains re-designed)", "Hz"),
+    "current_limit_pu": ("|i_q*| limit, per unit of rated current", "pu"),
+    "angle_advance_periods": ("inverse-Park angle advance, in periods of w^", "periods"),
+    "deadtime_comp_s": ("deadtime feed-forward on the duties (0 = off)", "s"),
+    "decoupling": ("cross-coupling and back-EMF feed-forward on", ""),
+    "align_time_s": ("sensorless start: alignment time", "s"),
+    "align_current_pu": ("sensorless start: alignment d current", "pu"),
+    "if_current_pu": ("sensorless start: I-f ramp current", "pu"),
+    "if_accel_rpm_s": ("sensorless start: I-f ramp acceleration", "rpm/s"),
+    "handover_rpm": ("I-f -> observer handover speed", "rpm"),
+    "handback_rpm": ("observer -> I-f hand-back speed (below handover)", "rpm"),
+    "handover_dwell_s": ("estimate valid and agreeing with the I-f ramp this long before "
+                         "handover", "s"),
+    "encoder_pll_hz": ("encoder tracking-PLL bandwidth", "Hz"),
+    "speed_feedback_lpf_hz": ("display low-pass of the speed feedback", "Hz"),
+    "speed_observer_pll_hz": ("driving observer's PLL bandwidth assumed by the speed-loop "
+                              "design; 0 = ideal feedback", "Hz"),
+    "speed_observer_damping": ("driving observer's PLL damping assumed by the design", ""),
+    "speed_observer_lpf_hz": ("driving observer's speed LPF assumed by the design", "Hz"),
+    "overcurrent_pu": ("instantaneous over-current trip, per unit of rated current", "pu"),
+    "overspeed_pu": ("over-speed trip, per unit of rated speed", "pu"),
+    "vdc_min_v": ("DC-bus under-voltage trip", "V"),
+    "vdc_max_v": ("DC-bus over-voltage trip", "V"),
+    "invalid_timeout_s": ("loss-of-lock trip: estimate invalid this long in closed loop", "s"),
+    "i2t_limit_pu2s": ("I2t trip: integral of ((i/I_rated)^2 - 1) dt", "pu^2 s"),
+    "r_hat_ohm": ("controller's stator resistance R^", "ohm"),
+    "l_hat_h": ("controller's stator inductance L^", "H"),
+    "lambda_hat_vs": ("controller's magnet flux lambda^", "V s"),
+}
+# None-able fields: ROS parameters cannot be None; 0.0 stands for None
+NONE_AS_ZERO = {"speed_observer_pll_hz"}
+MODEL_DEFAULTS = {"r_hat_ohm": "resistance_ohm", "l_hat_h": "inductance_h",
+                  "lambda_hat_vs": "flux_linkage_vs"}
+
+
+def config_params(cfg: ControllerConfig, card) -> list[P]:
+    out = []
+    for f in dataclasses.fields(cfg):
+        if f.name == "position_source":
+            continue
+        v = getattr(cfg, f.name)
+        if v is None and f.name in MODEL_DEFAULTS:
+            v = float(getattr(card, MODEL_DEFAULTS[f.name]))
+        desc, unit = DOCS.get(f.name, (f.name, ""))
+        lo, hi = CONTROL_RANGES.get(f.name, (None, None))
+        if f.name in NONE_AS_ZERO:
+            v = 0.0 if v is None else v
+            lo = 0.0
+        if isinstance(v, bool):
+            out.append(P(f.name, v, desc + " (live)"))
+        else:
+            out.append(P(f.name, float(v), desc + " (live)", unit, lo, hi))
+    return out
+
+
+def to_config(cfg: ControllerConfig, values: dict) -> ControllerConfig:
+    """cfg with parameter values applied (0.0 -> None where ROS cannot say None)."""
+    kw = {}
+    names = {f.name for f in dataclasses.fields(cfg)}
+    for k, v in values.items():
+        if k not in names:
+            continue
+        if k in NONE_AS_ZERO and v == 0.0:
+            v = None
+        kw[k] = v
+    return dataclasses.replace(cfg, **kw)
+
+
+class ControllerNode(FluxNode):
+    def __init__(self, name: str = "controller", namespace: str | None = None, **kw):
+        super().__init__(name, namespace, **kw)
+        sp = self.declare_parameter("scenario", "").value
+        mpath = self.declare_parameter(
+            "machine", str(CONFIG_DIR / "machines" / "default_spm.yaml")).value
+        if sp:
+            sc = load_scenario(scenario_path(sp))
+            card = sc.machine
+            cfg = sc.control
+            ds = DriveSetup(sc)
+            self.w_ref_profile, self.id_inj = ds.w_ref, ds.id_inj
+            driving = sc.driving
+        else:
+            card = load_machine(mpath)
+            cfg = ControllerConfig()
+            self.w_ref_profile, self.id_inj = np.zeros(1), np.zeros(1)
+            driving = "encoder"
+        src = declare(self, [
+            P("position_source", cfg.position_source, "angle/speed feedback: the encoder or "
+              "an observer's estimate topic", choices=("encoder", "estimate"), read_only=True),
+            P("estimate_topic", topics.estimate_topic(driving if driving != "encoder" else
+                                                      "flux_measured"),
+              "RotorEstimate topic of the driving observer (position_source = estimate)",
+              read_only=True),
+        ])
+        cfg = dataclasses.replace(cfg, position_source=src["position_source"])
+        self.card = card
+        self.specs = config_params(cfg, card) + [
+            P("speed_ref_mode", "profile", "speed reference: the scenario's profile or the "
+              "constant speed_ref_rpm (live)", choices=("profile", "constant")),
+            P("speed_ref_rpm", 0.0, "constant mechanical speed reference (live)", "rpm",
+              -1e5, 1e5),
+        ]
+        pv = declare(self, self.specs)
+        common = declare(self, [
+            P("frame_topic", topics.FRAME, "PhaseFrame input topic", read_only=True),
+            P("exit_on_done", True, "exit once the frame named by /drive/done is processed"),
+            P("frame_id", "", "header.frame_id of published messages", read_only=True),
+        ])
+        self.pv = pv
+        self.cfg = to_config(cfg, pv)
+        self.cp = self.cfg.to_params(card)
+        self.sensorless = self.cfg.position_source == "estimate"
+        self.cs = np.zeros(CS_N)
+        controller_reset(self.cs)
+        self.out = np.zeros(CO_N)
+        self.no_est = np.zeros(ES_N)
+        self.stamp = Stamp(card.ts_s)
+        self.fw = FrameWire()
+        self.ew = EstimateWire("")
+        self.cw = ControlWire(common["frame_id"])
+        self.frames: dict[int, np.ndarray] = {}
+        self.ests: dict[int, np.ndarray] = {}
+        self.next_k = 0
+        self.done_seq: int | None = None
+        self.exit_on_done = common["exit_on_done"]
+        self._set_ref(pv)
+        self.pub_duty = self.create_publisher(fm.DutyCommand, topics.DUTY, qos.SAMPLES)
+        self.pub_state = self.create_publisher(fm.ControllerState, topics.CONTROLLER_STATE,
+                                               qos.SAMPLES)
+        self.create_subscription(fm.PhaseFrame, common["frame_topic"], self._on_frame,
+                                 qos.SAMPLES_READER, raw=True)
+        if self.sensorless:
+            self.create_subscription(fm.RotorEstimate, src["estimate_topic"], self._on_est,
+                                     qos.SAMPLES_READER, raw=True)
+        self.create_subscription(UInt64, topics.DONE, self._on_done, qos.LATCHED)
+        on_set(self, self.specs, self._apply)
+        self.get_logger().info(
+            "position from " + (src["estimate_topic"] if self.sensorless else "the encoder")
+            + f"; current loop {self.cfg.current_bandwidth_hz:g} Hz, speed loop "
+            f"{self.cfg.speed_bandwidth_hz:g} Hz")
+
+    # ----------------------------------------------------------------- parameters
+    def _set_ref(self, pv) -> None:
+        self.const_ref = (pv["speed_ref_rpm"] * RPM if pv["speed_ref_mode"] == "constant"
+                          else None)
+
+    def _apply(self, changes: dict) -> str:
+        new = {**self.pv, **changes}
+        ctrl = {k: v for k, v in changes.items() if not k.startswith("speed_ref_")}
+        if ctrl:
+            cfg = to_config(self.cfg, ctrl)
+            cp = cfg.to_params(self.card)  # ConfigError (a ValueError) -> rejected
+            self.cp[:] = cp
+            self.cfg = cfg
+        self.pv = new
+        self._set_ref(new)
+        return f"applied from sample {self.next_k}"
+
+    # ----------------------------------------------------------------- samples
+    def _on_frame(self, data: bytes) -> None:
+        fr = np.empty(FR_N)
+        k = self.fw.unpack(data, fr)
+        self.frames[k] = fr
+        self._run()
+
+    def _on_est(self, data: bytes) -> None:
+        es = np.empty(ES_N)
+        k = self.ew.unpack(data, es)
+        self.ests[k] = es
+        self._run()
+
+    def _run(self) -> None:
+        frames, ests = self.frames, self.ests
+        while True:
+            k = self.next_k
+            fr = frames.get(k)
+            if fr is None:
+                return
+            if self.sensorless:
+                es = ests.pop(k, None)
+                if es is None:
+                    return
+            else:
+                es = self.no_est
+            del frames[k]
+            n = self.w_ref_profile.shape[0]
+            w_ref = self.const_ref if self.const_ref is not None else float(
+                self.w_ref_profile[min(k, n - 1)])
+            inj = float(self.id_inj[k]) if k < self.id_inj.shape[0] else 0.0
+            controller_step(self.cs, self.cp, fr, es, w_ref, inj, self.out)
+            sec, nsec = self.stamp(k)
+            self.pub_duty.publish(self.cw.pack_duty(self.out, k, sec, nsec))
+            self.pub_state.publish(self.cw.pack_state(self.out, k, sec, nsec))
+            self.next_k = k + 1
+            if self.done_seq is not None and k >= self.done_seq:
+                self.finished = True
+
+    def _on_done(self, msg: UInt64) -> None:
+        if not self.exit_on_done:
+            return
+        self.done_seq = int(msg.data)
+        if self.next_k > self.done_seq:
+            self.finished = True
+
+    def close(self) -> None:
+        if self.done_seq is not None:
+            from rclpy.duration import Duration
+
+            for p in (self.pub_duty, self.pub_state):
+                p.wait_for_all_acked(Duration(seconds=10.0))
+
+
+def main(argv: list[str] | None = None) -> int:
+    return main_node("foc_controller_node.node:ControllerNode", "controller", argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

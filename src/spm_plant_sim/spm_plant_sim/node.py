@@ -1,0 +1,290 @@
+"""spm_plant_sim: the switching-level SPM machine + inverter + sensors as a ROS node.
+
+A thin wrapper around fluxdrive.plant's kernels (plant_initial_frame, plant_advance): the
+scenario file gives the machine card, load profile, sensor faults and seed, exactly as for
+the in-process runner (fluxdrive.sim.DriveSetup builds both).
+
+Publishes   /drive/frame (PhaseFrame)  /drive/truth (PlantTruth)  /clock  /drive/done (UInt64)
+Subscribes  /drive/duty (DutyCommand)
+
+Modes
+- lockstep (default, sim time): frame 0 and frame 1 (duty(-1) = PWM off) go out as soon as
+  the graph is matched; then DutyCommand(seq = j), computed from frame j, drives the period
+  [t_{j+1}, t_{j+2}] and frame j+2 is published at once.  Two frames are in flight, which
+  is exactly the one-period computation delay of BRIEF sec. 3, so the graph reproduces the
+  in-process runner sample for sample.  After frame N-1 and its duty the plant publishes
+  /drive/done = N-1 (latched) and exits.
+- paced: wall clock at `rate_factor` x real time.  Each period applies the newest duty
+  received; with none for `watchdog_periods` periods the PWM is switched off (frames flagged
+  STATUS_STALE_COMMAND while a duty is re-used).
+
+Sim time: /clock carries t_k every `clock_decimation` frames (0: no /clock).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+from fluxdrive.plant import FR_N, MP_TD, TR_N, plant_advance, plant_initial_frame
+from fluxdrive.scenario import load_scenario, scenario_path
+from fluxdrive.sim import DriveSetup
+from fluxdrive_ros import qos, topics
+from fluxdrive_ros.cdr import Codec, Decoder
+from fluxdrive_ros.params import P, declare, on_set
+from fluxdrive_ros.runner import FluxNode, main_node
+from fluxdrive_ros.wire import STATUS_SIMULATED, STATUS_STALE_COMMAND, FrameWire, Stamp, TruthWire
+from rclpy.duration import Duration
+
+import flux_drive_msgs.msg as fm
+from rosgraph_msgs.msg import Clock
+from std_msgs.msg import UInt64
+
+
+def param_table(sc) -> list[P]:
+    card = sc.machine
+    td = card.deadtime_s if sc.plant_deadtime_s is None else sc.plant_deadtime_s
+    return [
+        P("mode", "lockstep", "lockstep: sim time, one period per duty command; paced: wall "
+          "clock at rate_factor", choices=("lockstep", "paced"), read_only=True),
+        P("seed", int(sc.seed), "sensor-noise random seed", "", 0, 2**62, read_only=True),
+        P("duration_s", float(sc.duration_s), "run length (paced: 0 = until stopped)", "s",
+          0.0, 3600.0, read_only=True),
+        P("deadtime_s", float(td), "inverter deadtime of the simulated bridge (live)", "s",
+          0.0, 1e-4),
+        P("load_mode", "profile", "load torque: the scenario's profile (times load_scale) or "
+          "a constant load_constant_nm (live)", choices=("profile", "constant")),
+        P("load_scale", 1.0, "factor on the scenario's load profile (live)", "", 0.0, 10.0),
+        P("load_constant_nm", 0.0, "load torque when load_mode = constant (live)", "N m",
+          -100.0, 100.0),
+        P("rate_factor", 1.0, "paced mode: simulated seconds per wall second (live)", "",
+          1e-3, 10.0),
+        P("watchdog_periods", 20, "paced mode: PWM off after this many periods without a "
+          "duty command", "periods", 1, 10_000_000),
+        P("clock_decimation", 10, "publish /clock every N frames (0: never)", "frames", 0,
+          1_000_000),
+        P("wait_frame_subscribers", 1, "lockstep: matched /drive/frame subscribers needed "
+          "before the first frame", "", 0, 1000, read_only=True),
+        P("wait_duty_publishers", 1, "lockstep: matched /drive/duty publishers needed before "
+          "the first frame", "", 0, 100, read_only=True),
+        P("start_delay_s", 0.5, "wait this long after matching before the first frame (lets "
+          "the rest of the graph finish discovery)", "s", 0.0, 60.0, read_only=True),
+        P("progress_interval_s", 0.5, "progress line period on stdout (0: none)", "s", 0.0,
+          3600.0),
+        P("exit_on_done", True, "exit after the run's last frame (after /drive/done)"),
+        P("frame_id", "", "header.frame_id of published frames", read_only=True),
+    ]
+
+
+class PlantNode(FluxNode):
+    def __init__(self, name: str = "plant", namespace: str | None = None, **kw):
+        super().__init__(name, namespace, **kw)
+        sp = self.declare_parameter("scenario", "").value
+        if not sp:
+            raise ValueError("parameter 'scenario' (path of a scenario YAML) is required")
+        sc = load_scenario(scenario_path(sp))
+        self.specs = param_table(sc)
+        pv = declare(self, self.specs)
+        self.pv = pv
+        sc.seed = int(pv["seed"])
+        sc.duration_s = float(pv["duration_s"]) or sc.duration_s
+        sc.plant_deadtime_s = float(pv["deadtime_s"])
+        self.sc = sc
+        self.ds = ds = DriveSetup(sc)
+        self.n = ds.n if float(pv["duration_s"]) > 0 else 2**62
+        self.paced = pv["mode"] == "paced"
+        self.pst, self.rng = ds.new_plant()
+        self.frame = np.zeros(FR_N)
+        self.truth = np.zeros(TR_N)
+        self.duty = np.array([0.5, 0.5, 0.5])
+        self.mp = ds.mp.copy()
+        self._set_load(pv)
+        self.stamp = Stamp(ds.ts)
+        self.fw = FrameWire(pv["frame_id"], extra_flags=STATUS_SIMULATED)
+        self.tw = TruthWire(pv["frame_id"])
+        self.clock_codec = Codec(topics.T_CLOCK)
+        self.duty_dec = Decoder(topics.T_DUTY)
+        self.pub_frame = self.create_publisher(fm.PhaseFrame, topics.FRAME, qos.SAMPLES)
+        self.pub_truth = self.create_publisher(fm.PlantTruth, topics.TRUTH, qos.SAMPLES)
+        self.pub_clock = self.create_publisher(Clock, topics.CLOCK, qos.CLOCK)
+        self.pub_done = self.create_publisher(UInt64, topics.DONE, qos.LATCHED)
+        self.sub_duty = self.create_subscription(fm.DutyCommand, topics.DUTY, self._on_duty,
+                                                 qos.SAMPLES_READER, raw=True)
+        self.k = -1  # index of the last frame published
+        self.next_duty = 0  # lockstep: seq of the duty command expected next
+        self.pending: dict[int, tuple] = {}
+        self.started = False
+        self.done = False
+        self.t_wall0 = 0.0
+        self.t_last_progress = 0.0
+        self.t_matched = None
+        self.clock_dec = int(pv["clock_decimation"])
+        # paced mode state
+        self.since_duty = 0
+        self.have_duty = False
+        self.watchdog_tripped = False
+        on_set(self, self.specs, self._apply)
+        self.get_logger().info(
+            f"scenario {sc.name} ({self.sc.source}): {self.n if self.n < 2**62 else 'inf'} "
+            f"periods of {ds.ts * 1e6:.0f} us, seed {sc.seed}, {pv['mode']}")
+        self._start_timer = self.create_timer(0.05, self._try_start)
+        self._pace_timer = None
+
+    # ----------------------------------------------------------------- parameters
+    def _set_load(self, pv) -> None:
+        ds = self.ds
+        if pv["load_mode"] == "constant":
+            self.load_t = np.array([0.0])
+            self.load_y = np.array([float(pv["load_constant_nm"])])
+        elif pv["load_scale"] == 1.0:
+            self.load_t, self.load_y = ds.load_t, ds.load_y
+        else:
+            self.load_t, self.load_y = ds.load_t, ds.load_y * float(pv["load_scale"])
+
+    def _apply(self, changes: dict) -> str:
+        new = {**self.pv, **changes}
+        self.pv = new
+        if "deadtime_s" in changes:
+            self.mp[MP_TD] = float(new["deadtime_s"])
+        if changes.keys() & {"load_mode", "load_scale", "load_constant_nm"}:
+            self._set_load(new)
+        if "clock_decimation" in changes:
+            self.clock_dec = int(new["clock_decimation"])
+        return f"applied from frame {self.k + 1}"
+
+    # ----------------------------------------------------------------- start-up
+    def _try_start(self) -> None:
+        if self.started:
+            return
+        ok = (self.pub_frame.get_subscription_count() >= self.pv["wait_frame_subscribers"])
+        if not self.paced:
+            ok = ok and self.sub_duty.get_publisher_count() >= self.pv["wait_duty_publishers"]
+        now = time.monotonic()
+        if not ok:
+            self.t_matched = None
+            return
+        if self.t_matched is None:
+            self.t_matched = now
+        if now - self.t_matched < self.pv["start_delay_s"]:
+            return
+        self.started = True
+        self._start_timer.cancel()
+        self.t_wall0 = time.perf_counter()
+        self.get_logger().info(
+            f"graph matched ({self.pub_frame.get_subscription_count()} frame subscribers); "
+            f"starting")
+        plant_initial_frame(self.pst, self.mp, self.rng, self.frame, self.truth)
+        self._publish(0)
+        if self.paced:
+            self._pace_timer = self.create_timer(0.001, self._on_pace)
+            return
+        if self.n > 1:
+            # frame 1 comes from duty(-1): PWM off
+            self._advance(self.duty, False, 1)
+
+    # ----------------------------------------------------------------- stepping
+    def _advance(self, duty, enabled: bool, k: int, flags: int = 0) -> None:
+        plant_advance(self.pst, self.mp, self.rng, duty, enabled, self.load_t, self.load_y,
+                      self.ds.load_cfg, self.frame, self.truth)
+        self._publish(k, flags)
+
+    def _publish(self, k: int, flags: int = 0) -> None:
+        sec, nsec = self.stamp(k)
+        self.pub_frame.publish(self.fw.pack(self.frame, sec, nsec, flags))
+        self.pub_truth.publish(self.tw.pack(self.truth, k, sec, nsec))
+        self.k = k
+        if self.clock_dec and k % self.clock_dec == 0:
+            self.pub_clock.publish(self.clock_codec.pack(sec, nsec))
+        if self.pv["progress_interval_s"] > 0.0:
+            now = time.perf_counter()
+            if now - self.t_last_progress >= self.pv["progress_interval_s"]:
+                self.t_last_progress = now
+                self.progress(f"{k + 1} {self.n} {now - self.t_wall0:.3f}")
+
+    def _on_duty(self, data: bytes) -> None:
+        v = self.duty_dec.decode(data)
+        seq = v[2]
+        if self.paced:
+            self.duty[0], self.duty[1], self.duty[2] = v[3], v[4], v[5]
+            self.have_duty = bool(v[6])
+            self.since_duty = 0
+            if self.watchdog_tripped:
+                self.watchdog_tripped = False
+                self.get_logger().info(f"duty commands back (seq {seq}); PWM follows them")
+            return
+        if self.done or seq < self.next_duty:
+            return
+        if seq > self.next_duty:
+            self.pending[seq] = v
+            return
+        while True:
+            k = seq + 2
+            if k < self.n:
+                self.duty[0], self.duty[1], self.duty[2] = v[3], v[4], v[5]
+                self._advance(self.duty, bool(v[6]), k)
+            self.next_duty = seq + 1
+            if seq >= self.n - 1:
+                self._finish()
+                return
+            v = self.pending.pop(self.next_duty, None)
+            if v is None:
+                return
+            seq = v[2]
+
+    def _on_pace(self) -> None:
+        if self.done:
+            return
+        ts = self.ds.ts
+        due = int((time.perf_counter() - self.t_wall0) * self.pv["rate_factor"] / ts)
+        steps = min(due - self.k, 2000)
+        wd = self.pv["watchdog_periods"]
+        for _ in range(max(steps, 0)):
+            k = self.k + 1
+            if k >= self.n:
+                self._finish()
+                return
+            self.since_duty += 1
+            flags = STATUS_STALE_COMMAND if self.since_duty > 1 else 0
+            if self.since_duty > wd:
+                if not self.watchdog_tripped:
+                    self.watchdog_tripped = True
+                    self.get_logger().warning(
+                        f"watchdog: no duty command for {wd} periods; PWM off (frame {k})")
+                self._advance(np.array([0.5, 0.5, 0.5]), False, k, flags)
+            else:
+                self._advance(self.duty, self.have_duty, k, flags)
+
+    # ----------------------------------------------------------------- end
+    def _finish(self) -> None:
+        if self.done:
+            return
+        self.done = True
+        if self._pace_timer is not None:
+            self._pace_timer.cancel()
+        el = time.perf_counter() - self.t_wall0
+        sim = (self.k + 1) * self.ds.ts
+        self.progress(f"{self.k + 1} {self.n} {el:.3f}")
+        self.get_logger().info(
+            f"done: {self.k + 1} frames, {sim:.3f} s simulated in {el:.2f} s wall "
+            f"(real-time factor {sim / max(el, 1e-9):.3f})")
+        msg = UInt64()
+        msg.data = self.k
+        self.pub_done.publish(msg)
+        for p in (self.pub_frame, self.pub_truth, self.pub_done):
+            p.wait_for_all_acked(Duration(seconds=10.0))
+        if self.pv["exit_on_done"]:
+            # keep the latched /drive/done readable for a moment (late readers)
+            self._exit_timer = self.create_timer(0.5, self._exit)
+
+    def _exit(self) -> None:
+        self._exit_timer.cancel()
+        self.finished = True
+
+
+def main(argv: list[str] | None = None) -> int:
+    return main_node("spm_plant_sim.node:PlantNode", "plant", argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
