@@ -57,7 +57,7 @@ def test_fig19_light_rotor_stalls_heavier_rotor_recovers(tmp_path):
     r = _run("fig19", tmp_path)
     rows = {x["J_scale"]: x for x in r["data"]["step_vs_inertia"]}
     assert not rows[1]["stable"]
-    assert rows[15]["stable"] and rows[15]["recovery_s"] < 0.25
+    assert rows[20]["stable"] and rows[20]["recovery_s"] < 0.25
     assert _holds(r, "Full load at 4 %")
 
 
