@@ -30,6 +30,7 @@ from fluxdrive.observers import (ES_N, OS_N, PARAM_RANGES, VARIANT_KINDS, observ
 from fluxdrive.plant import FR_N
 from fluxdrive.scenario import CONFIG_DIR, load_scenario, scenario_path
 from fluxdrive_ros import qos, topics
+from fluxdrive_ros.intra import RawPublisher, RawSubscription
 from fluxdrive_ros.params import P, declare, on_set
 from fluxdrive_ros.runner import FluxNode, main_node
 from fluxdrive_ros.wire import EstimateWire, FrameWire, Stamp
@@ -122,9 +123,9 @@ class ObserverNode(FluxNode):
         self.last_seq = -1
         self.done_seq: int | None = None
         self.n_bad_order = 0
-        self.pub = self.create_publisher(fm.RotorEstimate, "~/" + topics.ESTIMATE, qos.SAMPLES)
-        self.create_subscription(fm.PhaseFrame, common["frame_topic"], self._on_frame,
-                                 qos.SAMPLES_READER, raw=True)
+        self.pub = RawPublisher(self, fm.RotorEstimate, "~/" + topics.ESTIMATE, qos.SAMPLES)
+        self.sub = RawSubscription(self, fm.PhaseFrame, common["frame_topic"], self._on_frame,
+                                   qos.SAMPLES_READER)
         self.create_subscription(UInt64, topics.DONE, self._on_done, qos.LATCHED)
         on_set(self, self.specs, self._apply)
         self.get_logger().info(

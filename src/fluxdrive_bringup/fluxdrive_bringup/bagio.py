@@ -68,8 +68,7 @@ def load_run_arrays(bag: Path, ts_s: float, names: list[str] | None = None):
     from fluxdrive_ros.wire import (control_row, estimate_row, fault_code, frame_row,
                                     truth_row)
 
-    dec = {t: Decoder(t) for t in (topics.T_FRAME, topics.T_TRUTH, topics.T_ESTIMATE,
-                                   topics.T_DUTY, topics.T_STATE)}
+    decs: dict[str, Decoder] = {}  # one per topic: each keeps its strings' layout
     frames: dict[int, np.ndarray] = {}
     truth: dict[int, np.ndarray] = {}
     est: dict[str, dict[int, np.ndarray]] = {}
@@ -77,24 +76,27 @@ def load_run_arrays(bag: Path, ts_s: float, names: list[str] | None = None):
     state: dict[int, tuple] = {}
     faults: dict[int, int] = {}
     for topic, mtype, _, raw in read_raw(bag):
+        d = decs.get(topic)
+        if d is None:
+            d = decs[topic] = Decoder(mtype)
         if topic == topics.FRAME and mtype == topics.T_FRAME:
-            v = dec[mtype].decode(raw)
+            v = d.decode(raw)
             frames[v[2]] = frame_row(v)
         elif topic == topics.TRUTH and mtype == topics.T_TRUTH:
-            v = dec[mtype].decode(raw)
+            v = d.decode(raw)
             truth[v[2]] = truth_row(v, ts_s)
         elif mtype == topics.T_ESTIMATE:
             m = _EST_RE.match(topic)
             name = m.group(1) if m else topic
-            v = dec[mtype].decode(raw)
+            v = d.decode(raw)
             est.setdefault(name, {})[v[2]] = estimate_row(v)
         elif topic == topics.DUTY and mtype == topics.T_DUTY:
-            v = dec[mtype].decode(raw)
+            v = d.decode(raw)
             duty[v[2]] = v
         elif topic == topics.CONTROLLER_STATE and mtype == topics.T_STATE:
-            v = dec[mtype].decode(raw)
+            v = d.decode(raw)
             state[v[2]] = v
-            reason = dec[mtype].codec_for(raw).strings.get("fault_reason", "")
+            reason = d.codec_for(raw).strings.get("fault_reason", "")
             if reason:
                 faults[v[2]] = fault_code(reason)
     n = (max(frames) + 1) if frames else 0

@@ -1,27 +1,37 @@
 """recorder: every configured topic -> a rosbag2 bag (MCAP storage, version 9) with rosbags.
 
-Subscriptions are raw (the CDR bytes go into the bag untouched, no deserialisation), with
-the graph's sample QoS (reliable, deep, transient-local: nothing published before discovery
-completed is lost).  Callbacks only append to a buffer; a writer thread moves the buffer
-into the bag, so the executor thread stays free.  The message definitions are embedded
-(typestore built from the project's .msg files), so the bag opens without the package.
+Subscriptions are raw (the CDR bytes go into the bag untouched, never deserialised), with
+the graph's sample QoS (reliable, deep, transient-local: nothing published during discovery
+is lost).  In a process shared with the drive nodes, their topics arrive through the
+intra-process bus (fluxdrive_ros.intra); from other processes over DDS.
 
-Topics: `topics` lists names; types come from the graph's naming conventions (see
-fluxdrive_ros.topics) or, for other names, from graph discovery (subscribed as soon as the
-topic appears).  Timestamps: `timestamps` = header (default: the sample instant in each
-message's header, i.e. sim time in a lockstep run; /clock by its value) or receive (wall
-clock at reception, as ros2 bag record does).
+Writing: a callback only appends the framed bytes to a buffer; a feeder thread ships the
+buffer every 20 ms to the bag-writer helper process (fluxdrive_bringup.bagwriter, rosbags
+Writer), which runs on the other core.  The message definitions are embedded (typestore
+registered from the project's .msg files), so the bag opens without the package; the run's
+machine card and observer configurations go into the metadata (custom_data "fluxdrive",
+as fluxdrive.bagio writes it), so `./fluxdrive replay` treats graph bags like in-process
+ones.
 
-End: on SIGINT/SIGTERM the buffer is written and the bag finalised (metadata.yaml, MCAP
+Topics: `topics` plus /obs/<name>/estimate for every name in `observers`; types from the
+graph's conventions (fluxdrive_ros.topics), others discovered from the graph.
+Timestamps: `timestamps` = header (default: each message's header stamp, i.e. the sample
+instant -- sim time in a lockstep run; /clock by its value) or receive (wall clock at
+reception, as ros2 bag record does).
+
+End: on SIGINT/SIGTERM the buffer is flushed and the bag finalised (metadata.yaml, MCAP
 summary).  With exit_on_done, after /drive/done = N-1 it waits until every per-sample topic
 it has seen has delivered seq N-1 (or nothing arrived for `drain_timeout_s`), then
-finalises and exits.
+finalises and exits.  If the recorder is killed outright, the writer process still
+finalises the bag with everything handed over (at most the last 20 ms are lost).
 """
 
 from __future__ import annotations
 
+import json
 import re
 import struct
+import subprocess
 import sys
 import threading
 import time
@@ -30,18 +40,20 @@ from pathlib import Path
 
 from fluxdrive.scenario import REPO_ROOT
 from fluxdrive_ros import qos, topics
+from fluxdrive_ros.intra import RawSubscription
 from fluxdrive_ros.params import P, declare
 from fluxdrive_ros.runner import FluxNode, main_node
 
 from std_msgs.msg import UInt64
 
-from .bagio import typestore
+from .bagwriter import pack_json
 
 DEFAULT_TOPICS = [topics.FRAME, topics.TRUTH, topics.DUTY, topics.CONTROLLER_STATE,
                   topics.DONE, topics.CLOCK]
 _HDR = struct.Struct("<iI")
-_U64 = struct.Struct("<Q")
 _U32 = struct.Struct("<I")
+_U64 = struct.Struct("<Q")
+_REC = struct.Struct("<cHqI")
 
 
 def conventional_type(topic: str) -> str | None:
@@ -55,8 +67,18 @@ def conventional_type(topic: str) -> str | None:
     return None
 
 
-def _seq_offset(msgtype: str) -> bool:
-    return msgtype.startswith("flux_drive_msgs/") and msgtype != "flux_drive_msgs/msg/DriveFault"
+def _has_seq(msgtype: str) -> bool:
+    """flux_drive_msgs per-sample types: Header, then `uint64 seq`."""
+    return msgtype in (topics.T_FRAME, topics.T_TRUTH, topics.T_DUTY, topics.T_STATE,
+                       topics.T_ESTIMATE)
+
+
+def _seq(data: bytes) -> int:
+    """seq of a per-sample message: right after the header's frame_id string."""
+    n = _U32.unpack_from(data, 12)[0]
+    off = 16 + n
+    off += (-(off - 4)) % 8
+    return _U64.unpack_from(data, off)[0]
 
 
 class RecorderNode(FluxNode):
@@ -83,24 +105,21 @@ class RecorderNode(FluxNode):
         want = [t for t in pv["topics"] if t]
         want += [topics.estimate_topic(o) for o in pv["observers"] if o]
         self.want = list(dict.fromkeys(want))
-        self.bag_dir = Path(pv["bag_dir"])
+        self.bag_dir = Path(pv["bag_dir"]).resolve()
         if self.bag_dir.exists():
             raise ValueError(f"bag directory {self.bag_dir} exists already; choose a new one")
         try:
             self.bag_dir.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise ValueError(f"cannot create {self.bag_dir.parent}: {exc}") from exc
-        from rosbags.rosbag2 import StoragePlugin, Writer
-
-        self.store = typestore()
-        self.writer = Writer(self.bag_dir, version=9, storage_plugin=StoragePlugin.MCAP)
+        custom = {}
         if pv["scenario"]:
-            self._set_run_metadata(pv)
-        self.writer.open()
+            custom = self._run_metadata(pv)
+        self._start_writer(custom)
         self.header_ts = pv["timestamps"] == "header"
-        self.buf: list[tuple] = []
+        self.buf: list[bytes] = []
         self.lock = threading.Lock()
-        self.conns: dict[str, object] = {}
+        self.conn_ids: dict[str, int] = {}
         self.types: dict[str, str] = {}
         self.counts: dict[str, int] = {}
         self.last_seq: dict[str, int] = {}
@@ -108,6 +127,7 @@ class RecorderNode(FluxNode):
         self.last_ts = 0
         self.done_seq: int | None = None
         self.closed = False
+        self.subs: list[RawSubscription] = []
         self.pending = [t for t in self.want if not self._subscribe(t, conventional_type(t))]
         if self.pending:
             self._discover_timer = self.create_timer(0.2, self._discover)
@@ -115,15 +135,26 @@ class RecorderNode(FluxNode):
             self.create_subscription(UInt64, topics.DONE, self._on_done, qos.LATCHED)
             self._done_timer = self.create_timer(0.1, self._check_done)
         self.stop = threading.Event()
-        self.thread = threading.Thread(target=self._writer_loop, name="bag-writer", daemon=True)
+        self.thread = threading.Thread(target=self._feeder, name="bag-feeder", daemon=True)
         self.thread.start()
         self.get_logger().info(f"recording {len(self.want)} topics to {self.bag_dir}")
 
-    def _set_run_metadata(self, pv) -> None:
-        """The same custom_data fluxdrive.bagio.write_run_bag stores (machine card, observer
-        configurations, scenario), so `./fluxdrive replay` treats graph bags like in-process
-        ones.  Live parameter changes during the run are not reflected there."""
-        import json
+    # ----------------------------------------------------------------- writer process
+    def _start_writer(self, custom: dict) -> None:
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "fluxdrive_bringup.bagwriter"], stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE, bufsize=0)
+        self.pipe = self.proc.stdin
+        self.pipe.write(pack_json(b"H", {"path": str(self.bag_dir), "custom_data": custom}))
+        line = self.proc.stdout.readline().decode().strip()
+        if line != "ready":
+            self.proc.wait(timeout=10)
+            raise ValueError(f"cannot open bag {self.bag_dir} (bag writer exited with "
+                             f"{self.proc.returncode})")
+
+    def _run_metadata(self, pv) -> dict:
+        """custom_data as fluxdrive.bagio.write_run_bag stores it.  Live parameter changes
+        during the run are not reflected there."""
         from types import SimpleNamespace
 
         from fluxdrive.bagio import META_KEY, _json_default, run_metadata
@@ -136,7 +167,7 @@ class RecorderNode(FluxNode):
         meta = run_metadata(SimpleNamespace(scenario=sc, names=names, driving=sc.driving),
                             0, None, names)
         meta["recorded_by"] = "graph"
-        self.writer.set_custom_data(META_KEY, json.dumps(meta, default=_json_default))
+        return {META_KEY: json.dumps(meta, default=_json_default)}
 
     # ----------------------------------------------------------------- subscriptions
     def _subscribe(self, topic: str, mtype: str | None) -> bool:
@@ -145,46 +176,38 @@ class RecorderNode(FluxNode):
         from fluxdrive_ros.topics import msg_class
 
         cls = msg_class(mtype)
-        self.conns[topic] = self.writer.add_connection(topic, mtype, typestore=self.store)
+        cid = len(self.conn_ids) + 1
+        self.conn_ids[topic] = cid
         self.types[topic] = mtype
         self.counts[topic] = 0
+        with self.lock:  # the connection record goes down the pipe before its messages
+            self.buf.append(pack_json(b"C", {"id": cid, "topic": topic, "type": mtype}))
         prof = {topics.DONE: qos.LATCHED, topics.CLOCK: qos.CLOCK}.get(topic, qos.SAMPLES_READER)
-        conn = self.conns[topic]
         buf = self.buf
-        if self.header_ts and mtype == topics.T_CLOCK:
-            def cb(data: bytes, conn=conn, topic=topic):
-                s, ns = _HDR.unpack_from(data, 4)
+        counts = self.counts
+        last = self.last_seq
+        rec = _REC.pack
+        hdr = _HDR.unpack_from
+        has_seq = _has_seq(mtype)
+        header_ts = self.header_ts
+        stamped = header_ts and (mtype == topics.T_CLOCK or mtype.startswith("flux_drive_msgs/"))
+
+        def cb(data: bytes) -> None:
+            if stamped:
+                s, ns = hdr(data, 4)
                 t = s * 1_000_000_000 + ns
                 self.last_ts = t
-                buf.append((conn, t, data, topic, -1))
-        elif self.header_ts and mtype.startswith("flux_drive_msgs/"):
-            # Header first: stamp at bytes 4..12; seq right after the frame_id string
-            has_seq = _seq_offset(mtype)
+            elif header_ts:
+                t = self.last_ts
+            else:
+                t = time.time_ns()
+            buf.append(rec(b"M", cid, t, len(data)) + data)
+            counts[topic] += 1
+            if has_seq:
+                last[topic] = _seq(data)
+            self.last_rx = time.monotonic()
 
-            def cb(data: bytes, conn=conn, topic=topic, has_seq=has_seq):
-                s, ns = _HDR.unpack_from(data, 4)
-                t = s * 1_000_000_000 + ns
-                self.last_ts = t
-                seq = -1
-                if has_seq:
-                    n = _U32.unpack_from(data, 12)[0]
-                    off = 16 + n
-                    off += (-(off - 4)) % 8
-                    seq = _U64.unpack_from(data, off)[0]
-                buf.append((conn, t, data, topic, seq))
-        else:
-            has_seq = _seq_offset(mtype)
-
-            def cb(data: bytes, conn=conn, topic=topic, has_seq=has_seq):
-                seq = -1
-                if has_seq:
-                    n = _U32.unpack_from(data, 12)[0]
-                    off = 16 + n
-                    off += (-(off - 4)) % 8
-                    seq = _U64.unpack_from(data, off)[0]
-                t = time.time_ns() if not self.header_ts else self.last_ts
-                buf.append((conn, t, data, topic, seq))
-        self.create_subscription(cls, topic, cb, prof, raw=True)
+        self.subs.append(RawSubscription(self, cls, topic, cb, prof))
         return True
 
     def _discover(self) -> None:
@@ -201,36 +224,30 @@ class RecorderNode(FluxNode):
         if not still:
             self._discover_timer.cancel()
 
-    # ----------------------------------------------------------------- writing
-    def _take(self) -> list[tuple]:
-        # swap the buffer (the executor thread appends to self.buf via the closures)
+    # ----------------------------------------------------------------- feeding the writer
+    def _take(self) -> bytes:
         buf = self.buf
-        if not buf:
-            return []
-        items = buf[:]
-        del buf[:len(items)]
-        return items
+        n = len(buf)
+        if not n:
+            return b""
+        items = buf[:n]
+        del buf[:n]
+        return b"".join(items)
 
-    def _write(self, items: list[tuple]) -> None:
-        w = self.writer.write
-        counts, last = self.counts, self.last_seq
-        for conn, t, data, topic, seq in items:
-            w(conn, t, data)
-            counts[topic] += 1
-            if seq >= 0:
-                last[topic] = seq
-        if items:
-            self.last_rx = time.monotonic()
-
-    def _writer_loop(self) -> None:
-        while not self.stop.is_set():
-            items = self._take()
-            if items:
+    def _feeder(self) -> None:
+        while not self.stop.wait(0.02):
+            chunk = self._take()
+            if chunk:
                 with self.lock:
-                    if not self.closed:
-                        self._write(items)
-            else:
-                time.sleep(0.02)
+                    if self.closed:
+                        return
+                    try:
+                        self.pipe.write(chunk)
+                    except OSError as exc:
+                        self.get_logger().error(f"bag writer gone ({exc}); stopping")
+                        self.exit_code = 1
+                        self.finished = True
+                        return
 
     # ----------------------------------------------------------------- end of run
     def _on_done(self, msg: UInt64) -> None:
@@ -239,9 +256,9 @@ class RecorderNode(FluxNode):
     def _check_done(self) -> None:
         if self.done_seq is None or self.finished:
             return
-        seen = [t for t, mt in self.types.items() if _seq_offset(mt) and self.counts[t] > 0]
-        complete = all(self.last_seq.get(t, -1) >= self.done_seq for t in seen) and not self.buf
-        quiet = time.monotonic() - self.last_rx > self.pv["drain_timeout_s"] and not self.buf
+        seen = [t for t, mt in self.types.items() if _has_seq(mt) and self.counts[t] > 0]
+        complete = all(self.last_seq.get(t, -1) >= self.done_seq for t in seen)
+        quiet = time.monotonic() - self.last_rx > self.pv["drain_timeout_s"]
         if complete or quiet:
             if not complete:
                 short = {t: self.last_seq.get(t, -1) for t in seen
@@ -255,9 +272,22 @@ class RecorderNode(FluxNode):
         with self.lock:
             if self.closed:
                 return
-            self._write(self._take())
             self.closed = True
-            self.writer.close()
+            try:
+                self.pipe.write(self._take() + b"E")
+                self.pipe.close()
+            except OSError:
+                pass
+        try:
+            out = self.proc.stdout.read().decode().strip()
+            self.proc.wait(timeout=120)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            out = ""
+        if self.proc.returncode != 0 or "closed" not in out:
+            self.get_logger().error(f"bag writer failed (exit {self.proc.returncode}); "
+                                    f"{self.bag_dir} may be incomplete")
+            self.exit_code = 1
         total = sum(self.counts.values())
         detail = ", ".join(f"{t} {c}" for t, c in self.counts.items())
         self.get_logger().info(f"bag {self.bag_dir} finalised: {total} messages ({detail})")

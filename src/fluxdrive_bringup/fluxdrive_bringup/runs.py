@@ -12,10 +12,13 @@
 4. the bag is read back into the engine's arrays and reported with the same code as
    `./fluxdrive sim` (fluxdrive.report: metric table, metrics.json, plots).
 
-Process layouts (`--layout`): composed (default: plant, observers and controller share one
-process, i.e. one DDS participant with in-process delivery; the recorder has its own
-process on the other core), single (everything in one process), separate (one process per
-node, the classic ROS layout; slowest).
+Process layouts (`--layout`):
+  composed  (default) every node in one process, like an rclcpp component container: one
+            DDS participant, deliveries between the nodes in-process (fluxdrive_ros.intra),
+            the bag written by the recorder's helper process on the other core; every topic
+            is still on DDS for anything outside (topic echo, param set, a remote node);
+  split     the drive nodes in one process, the recorder in another (all recording over DDS);
+  separate  one process per node, the classic ROS layout (everything over DDS; slowest).
 """
 
 from __future__ import annotations
@@ -34,7 +37,7 @@ from fluxdrive.scenario import REPO_ROOT, load_scenario, scenario_path
 
 from .launch import Graph, Launcher, NodeSpec
 
-LAYOUTS = ("composed", "single", "separate", "split")
+LAYOUTS = ("composed", "split", "separate")
 DEMO_SCENARIO = "paper_2pct_150load"
 
 
@@ -50,9 +53,8 @@ def graph_for_scenario(sc_path: Path, sc, bag_dir: Path | None, layout: str = "c
     n_frame_subs = len(names) + 1 + (1 if bag_dir is not None else 0)
 
     def proc(name: str, group: str) -> str:
-        return {"composed": "recorder" if group == "rec" else "drive",
-                "single": "drive",
-                "split": {"rec": "plant", "plant": "plant"}.get(group, "control"),
+        return {"composed": "drive",
+                "split": "recorder" if group == "rec" else "drive",
                 "separate": name}[layout]
 
     nodes = [NodeSpec(name="plant", node="plant", process=proc("plant", "plant"),

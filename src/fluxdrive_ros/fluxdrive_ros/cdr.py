@@ -26,6 +26,7 @@ from __future__ import annotations
 import re
 import struct
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 
 ENCAPSULATION = b"\x00\x01\x00\x00"
@@ -79,7 +80,8 @@ class Leaf:
     kind: str  # ROS primitive type or 'string'
 
 
-def _fields(type_name: str) -> list[tuple[str, str, int | None]]:
+@lru_cache(maxsize=None)
+def _fields(type_name: str) -> tuple[tuple[str, str, int | None], ...]:
     """(type, name, array length or None) of a message, constants and comments skipped."""
     pkg = type_name.replace("/msg/", "/").partition("/")[0]
     out = []
@@ -100,10 +102,11 @@ def _fields(type_name: str) -> list[tuple[str, str, int | None]]:
         if typ == "Header":
             typ = "std_msgs/Header"
         out.append((typ, name, n))
-    return out
+    return tuple(out)
 
 
-def leaves(type_name: str, prefix: str = "") -> list[Leaf]:
+@lru_cache(maxsize=None)
+def leaves(type_name: str, prefix: str = "") -> tuple[Leaf, ...]:
     """Flattened primitive/string fields in wire order."""
     res: list[Leaf] = []
     for typ, name, n in _fields(type_name):
@@ -113,7 +116,7 @@ def leaves(type_name: str, prefix: str = "") -> list[Leaf]:
                 res.append(Leaf(path, typ))
             else:
                 res.extend(leaves(typ, path + "."))
-    return res
+    return tuple(res)
 
 
 class Codec:
@@ -231,6 +234,10 @@ class Decoder:
         c = self._last
         if c is not None and c.matches(data):
             return c
+        for c in self._cache.values():  # several publishers with other strings
+            if c.matches(data):
+                self._last = c
+                return c
         strings = read_strings(self.type_name, data)
         key = tuple(sorted(strings.items()))
         c = self._cache.get(key)
@@ -247,4 +254,6 @@ class Decoder:
             vals = c.struct.unpack_from(data, 4)
             if all(vals[i] == v for i, v in c._len_checks):
                 return tuple(vals[i] for i in c._num_idx)
-        return self.codec_for(data).unpack(data)
+        c = self.codec_for(data)
+        self._last = c
+        return c.unpack(data)

@@ -50,9 +50,20 @@ class FluxNode(Node):
     """Base of the fluxdrive nodes: a `finished` flag and a `close()` hook."""
 
     def __init__(self, name: str, namespace: str | None = None, **kw: Any):
+        self._finished = False
+        self._finish_hook = None
         super().__init__(name, namespace=namespace or "", **kw)
-        self.finished = False
         self.exit_code = 0
+
+    @property
+    def finished(self) -> bool:
+        return self._finished
+
+    @finished.setter
+    def finished(self, value: bool) -> None:
+        self._finished = bool(value)
+        if value and self._finish_hook is not None:
+            self._finish_hook()
 
     def close(self) -> None:
         """Called once when the process ends (normally or on a signal)."""
@@ -74,20 +85,48 @@ def make_executor(context=None):
     return EventsExecutor(context=context)
 
 
-def spin(nodes: list[FluxNode], executor=None, poll_s: float = 0.2) -> int:
+def spin(nodes: list[FluxNode], executor=None, poll_s: float = 0.5) -> int:
     """Spin until every node is finished or the context is shut down (signal).
-    Returns the process exit code: 0 normally, else the first node's non-zero code."""
+    Returns the process exit code: 0 normally, else the first node's non-zero code.
+
+    The loop is `spin_until_future_complete(all_finished, poll_s)`: the executor handles
+    events back to back in C++ for up to poll_s (no Python between events); the future is
+    completed when the last node sets `finished`."""
+    from rclpy.task import Future
+
     ex = executor or make_executor()
+    all_done = Future()
+
+    def check() -> None:
+        if all(n.finished for n in nodes) and not all_done.done():
+            all_done.set_result(True)
+
     for n in nodes:
+        n._finish_hook = check
         ex.add_node(n)
+    from . import intra
+
+    bus = intra.bus()
+    failed: list[BaseException] = []
+    if bus is not None:
+        def on_error(exc: BaseException) -> None:
+            failed.append(exc)
+            if not all_done.done():
+                all_done.set_result(False)
+
+        bus.on_error = on_error
+        bus.start(ex)
+    check()
     code = 0
     try:
-        while rclpy.ok() and not all(n.finished for n in nodes):
-            ex.spin_once(timeout_sec=poll_s)
+        while rclpy.ok() and not all_done.done():
+            ex.spin_until_future_complete(all_done, timeout_sec=poll_s)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception:  # noqa: BLE001 - a callback raised: report, exit non-zero
         traceback.print_exc()
+        code = 1
+    if failed:
         code = 1
     for n in nodes:
         try:
@@ -174,7 +213,18 @@ def container_main(argv: list[str] | None = None) -> int:
         rclpy.try_shutdown()
         return 2
     t0 = time.perf_counter()
-    code = spin(nodes)
+    prof = os.environ.get("FLUXDRIVE_PROFILE")
+    if prof:  # development aid: cProfile of this process into <dir>/<process>.prof
+        import cProfile
+
+        pr = cProfile.Profile()
+        pr.enable()
+        code = spin(nodes)
+        pr.disable()
+        os.makedirs(prof, exist_ok=True)
+        pr.dump_stats(os.path.join(prof, f"{spec.get('process', 'container')}.prof"))
+    else:
+        code = spin(nodes)
     if os.environ.get("FLUXDRIVE_DEBUG"):
         print(f"[{spec.get('process')}] exit {code} after {time.perf_counter() - t0:.1f} s",
               file=sys.stderr)

@@ -29,6 +29,7 @@ from fluxdrive.plant import FR_N
 from fluxdrive.scenario import CONFIG_DIR, RPM, load_scenario, scenario_path
 from fluxdrive.sim import DriveSetup
 from fluxdrive_ros import qos, topics
+from fluxdrive_ros.intra import RawPublisher, RawSubscription
 from fluxdrive_ros.params import P, declare, on_set
 from fluxdrive_ros.runner import FluxNode, main_node
 from fluxdrive_ros.wire import ControlWire, EstimateWire, FrameWire, Stamp
@@ -166,14 +167,15 @@ class ControllerNode(FluxNode):
         self.done_seq: int | None = None
         self.exit_on_done = common["exit_on_done"]
         self._set_ref(pv)
-        self.pub_duty = self.create_publisher(fm.DutyCommand, topics.DUTY, qos.SAMPLES)
-        self.pub_state = self.create_publisher(fm.ControllerState, topics.CONTROLLER_STATE,
-                                               qos.SAMPLES)
-        self.create_subscription(fm.PhaseFrame, common["frame_topic"], self._on_frame,
-                                 qos.SAMPLES_READER, raw=True)
+        self.pub_duty = RawPublisher(self, fm.DutyCommand, topics.DUTY, qos.SAMPLES)
+        self.pub_state = RawPublisher(self, fm.ControllerState, topics.CONTROLLER_STATE,
+                                      qos.SAMPLES)
+        self.sub_frame = RawSubscription(self, fm.PhaseFrame, common["frame_topic"],
+                                         self._on_frame, qos.SAMPLES_READER)
+        self.sub_est = None
         if self.sensorless:
-            self.create_subscription(fm.RotorEstimate, src["estimate_topic"], self._on_est,
-                                     qos.SAMPLES_READER, raw=True)
+            self.sub_est = RawSubscription(self, fm.RotorEstimate, src["estimate_topic"],
+                                           self._on_est, qos.SAMPLES_READER)
         self.create_subscription(UInt64, topics.DONE, self._on_done, qos.LATCHED)
         on_set(self, self.specs, self._apply)
         self.get_logger().info(

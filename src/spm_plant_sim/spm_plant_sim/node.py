@@ -32,6 +32,7 @@ from fluxdrive.scenario import load_scenario, scenario_path
 from fluxdrive.sim import DriveSetup
 from fluxdrive_ros import qos, topics
 from fluxdrive_ros.cdr import Codec, Decoder
+from fluxdrive_ros.intra import RawPublisher, RawSubscription
 from fluxdrive_ros.params import P, declare, on_set
 from fluxdrive_ros.runner import FluxNode, main_node
 from fluxdrive_ros.wire import STATUS_SIMULATED, STATUS_STALE_COMMAND, FrameWire, Stamp, TruthWire
@@ -105,12 +106,12 @@ class PlantNode(FluxNode):
         self.tw = TruthWire(pv["frame_id"])
         self.clock_codec = Codec(topics.T_CLOCK)
         self.duty_dec = Decoder(topics.T_DUTY)
-        self.pub_frame = self.create_publisher(fm.PhaseFrame, topics.FRAME, qos.SAMPLES)
-        self.pub_truth = self.create_publisher(fm.PlantTruth, topics.TRUTH, qos.SAMPLES)
-        self.pub_clock = self.create_publisher(Clock, topics.CLOCK, qos.CLOCK)
+        self.pub_frame = RawPublisher(self, fm.PhaseFrame, topics.FRAME, qos.SAMPLES)
+        self.pub_truth = RawPublisher(self, fm.PlantTruth, topics.TRUTH, qos.SAMPLES)
+        self.pub_clock = RawPublisher(self, Clock, topics.CLOCK, qos.CLOCK)
         self.pub_done = self.create_publisher(UInt64, topics.DONE, qos.LATCHED)
-        self.sub_duty = self.create_subscription(fm.DutyCommand, topics.DUTY, self._on_duty,
-                                                 qos.SAMPLES_READER, raw=True)
+        self.sub_duty = RawSubscription(self, fm.DutyCommand, topics.DUTY, self._on_duty,
+                                        qos.SAMPLES_READER)
         self.k = -1  # index of the last frame published
         self.next_duty = 0  # lockstep: seq of the duty command expected next
         self.pending: dict[int, tuple] = {}
@@ -157,9 +158,9 @@ class PlantNode(FluxNode):
     def _try_start(self) -> None:
         if self.started:
             return
-        ok = (self.pub_frame.get_subscription_count() >= self.pv["wait_frame_subscribers"])
+        ok = (self.pub_frame.subscription_count() >= self.pv["wait_frame_subscribers"])
         if not self.paced:
-            ok = ok and self.sub_duty.get_publisher_count() >= self.pv["wait_duty_publishers"]
+            ok = ok and self.sub_duty.publisher_count() >= self.pv["wait_duty_publishers"]
         now = time.monotonic()
         if not ok:
             self.t_matched = None
@@ -172,7 +173,7 @@ class PlantNode(FluxNode):
         self._start_timer.cancel()
         self.t_wall0 = time.perf_counter()
         self.get_logger().info(
-            f"graph matched ({self.pub_frame.get_subscription_count()} frame subscribers); "
+            f"graph matched ({self.pub_frame.subscription_count()} frame subscribers); "
             f"starting")
         plant_initial_frame(self.pst, self.mp, self.rng, self.frame, self.truth)
         self._publish(0)

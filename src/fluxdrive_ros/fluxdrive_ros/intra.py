@@ -1,0 +1,170 @@
+"""Intra-process delivery for nodes that share a process (rclpy has none of its own).
+
+rclcpp delivers between nodes of one process without the middleware (intra-process
+communication in component containers); rclpy always goes through DDS, which costs about
+10 us per delivery plus 5 us per publish here -- most of a 10 kHz period once a frame has six
+readers.  This module gives the fluxdrive nodes the same shortcut:
+
+- `RawPublisher.publish(bytes)` hands the CDR bytes to every subscriber of that topic in
+  the same process (queued, see below) and publishes them over DDS only if a reader in
+  another process is matched (`topic echo`, a recorder elsewhere, a remote controller);
+- `RawSubscription` registers its callback with the process's bus; while the topic has a
+  publisher in this process it keeps no DDS subscription (so no message arrives twice),
+  otherwise it subscribes over DDS as usual.
+
+Ordering: deliveries go through one FIFO per process, drained by executor tasks in batches
+of `BATCH`; between batches the executor serves everything else (parameter services,
+timers, messages from other processes), so a lockstep loop that lives entirely inside one
+process still answers `param set` at once.  The bytes are the same CDR either way, so a
+graph gives the same numbers with and without intra-process delivery (tests check both).
+
+Limitation: a topic with a publisher in this process is read only from that publisher by
+this process's subscribers (one publisher per topic is the graph's convention; a second
+publisher of the same topic in another process would not be heard here).
+Set FLUXDRIVE_INTRA_PROCESS=0 to switch the shortcut off (everything over DDS).
+"""
+
+from __future__ import annotations
+
+import os
+import traceback
+from collections import defaultdict, deque
+from collections.abc import Callable
+
+BATCH = 256
+
+
+def enabled() -> bool:
+    return os.environ.get("FLUXDRIVE_INTRA_PROCESS", "1") not in ("0", "false", "no", "off")
+
+
+class Bus:
+    def __init__(self):
+        self.publishers: dict[str, int] = defaultdict(int)
+        self.callbacks: dict[str, list[Callable[[bytes], None]]] = defaultdict(list)
+        self.subscriptions: dict[str, list[RawSubscription]] = defaultdict(list)
+        self.queue: deque = deque()
+        self.scheduled = False
+        self.executor = None
+        self.error: BaseException | None = None
+        self.on_error: Callable[[BaseException], None] | None = None
+        self.delivered = 0
+
+    # ------------------------------------------------------------- registration
+    def add_publisher(self, topic: str) -> None:
+        self.publishers[topic] += 1
+        for s in self.subscriptions.get(topic, []):
+            s._drop_dds()
+
+    def add_subscription(self, sub: RawSubscription) -> None:
+        self.callbacks[sub.topic].append(sub.callback)
+        self.subscriptions[sub.topic].append(sub)
+
+    # ------------------------------------------------------------- delivery
+    def post(self, topic: str, data: bytes) -> None:
+        cbs = self.callbacks.get(topic)
+        if not cbs:
+            return
+        self.queue.append((cbs, data))
+        if not self.scheduled:
+            self._schedule()
+
+    def _schedule(self) -> None:
+        if self.executor is None:  # not spinning yet: delivered once spinning starts
+            return
+        self.scheduled = True
+        self.executor.create_task(self._drain)
+
+    def start(self, executor) -> None:
+        self.executor = executor
+        if self.queue and not self.scheduled:
+            self._schedule()
+
+    def _drain(self) -> None:
+        self.scheduled = False
+        q = self.queue
+        n = 0
+        try:
+            while q and n < BATCH:
+                cbs, data = q.popleft()
+                for cb in cbs:
+                    cb(data)
+                n += 1
+        except BaseException as exc:  # noqa: BLE001 - report through the runner
+            traceback.print_exc()
+            self.error = exc
+            if self.on_error:
+                self.on_error(exc)
+            return
+        finally:
+            self.delivered += n
+        if q and not self.scheduled:
+            self._schedule()
+
+
+_BUS: Bus | None = None
+
+
+def bus() -> Bus | None:
+    """The process's bus (None when intra-process delivery is off)."""
+    global _BUS
+    if _BUS is None and enabled():
+        _BUS = Bus()
+    return _BUS
+
+
+class RawPublisher:
+    """A publisher of serialised messages with intra-process delivery."""
+
+    def __init__(self, node, msg_cls, topic: str, qos):
+        self.pub = node.create_publisher(msg_cls, topic, qos)
+        self.topic = self.pub.topic_name
+        self.bus = bus()
+        if self.bus is not None:
+            self.bus.add_publisher(self.topic)
+        self._post = self.bus.post if self.bus is not None else None
+        self._count = self.pub.get_subscription_count
+        self._publish = self.pub.publish
+
+    def publish(self, data: bytes) -> None:
+        if self._post is not None:
+            self._post(self.topic, data)
+        if self._count():
+            self._publish(data)
+
+    @property
+    def topic_name(self) -> str:
+        return self.topic
+
+    def subscription_count(self) -> int:
+        local = len(self.bus.callbacks.get(self.topic, ())) if self.bus is not None else 0
+        return self.pub.get_subscription_count() + local
+
+    def wait_for_all_acked(self, timeout) -> bool:
+        return self.pub.wait_for_all_acked(timeout)
+
+
+class RawSubscription:
+    """A raw (bytes) subscription with intra-process delivery."""
+
+    def __init__(self, node, msg_cls, topic: str, callback: Callable[[bytes], None], qos):
+        self.node = node
+        self.msg_cls = msg_cls
+        self.qos = qos
+        self.callback = callback
+        self.topic = node.resolve_topic_name(topic)
+        self.bus = bus()
+        self.sub = None
+        if self.bus is not None:
+            self.bus.add_subscription(self)
+        if self.bus is None or not self.bus.publishers.get(self.topic):
+            self.sub = node.create_subscription(msg_cls, self.topic, callback, qos, raw=True)
+
+    def _drop_dds(self) -> None:
+        if self.sub is not None:
+            self.node.destroy_subscription(self.sub)
+            self.sub = None
+
+    def publisher_count(self) -> int:
+        local = self.bus.publishers.get(self.topic, 0) if self.bus is not None else 0
+        return (self.sub.get_publisher_count() if self.sub is not None else 0) + local
