@@ -107,6 +107,10 @@ class ObserverNode(FluxNode):
         pv = declare(self, self.specs)
         common = declare(self, [
             P("frame_topic", topics.FRAME, "PhaseFrame input topic", read_only=True),
+            P("input_durability", "transient_local", "durability of the sample-topic "
+              "subscriptions: transient_local (also receive what was sent before the match) or "
+              "volatile (needed to hear a volatile publisher)",
+              choices=qos.INPUT_DURABILITY_CHOICES, read_only=True),
             P("exit_on_done", True, "exit once the frame named by /drive/done is processed"),
             P("frame_id", "", "header.frame_id of published estimates", read_only=True),
         ])
@@ -125,7 +129,7 @@ class ObserverNode(FluxNode):
         self.n_bad_order = 0
         self.pub = RawPublisher(self, fm.RotorEstimate, "~/" + topics.ESTIMATE, qos.SAMPLES)
         self.sub = RawSubscription(self, fm.PhaseFrame, common["frame_topic"], self._on_frame,
-                                   qos.SAMPLES_READER)
+                                   qos.reader(common["input_durability"]))
         self.create_subscription(UInt64, topics.DONE, self._on_done, qos.LATCHED)
         on_set(self, self.specs, self._apply)
         self.get_logger().info(

@@ -100,6 +100,10 @@ class RecorderNode(FluxNode):
               "configurations go into the bag's metadata (for replay)", read_only=True),
             P("duration_s", 0.0, "run length for the metadata (0: the scenario's)", "s", 0.0,
               3600.0, read_only=True),
+            P("input_durability", "transient_local", "durability of the sample-topic "
+              "subscriptions: transient_local (also receive what was sent before the match) or "
+              "volatile (needed to hear a volatile publisher)",
+              choices=qos.INPUT_DURABILITY_CHOICES, read_only=True),
         ])
         self.pv = pv
         want = [t for t in pv["topics"] if t]
@@ -182,7 +186,8 @@ class RecorderNode(FluxNode):
         self.counts[topic] = 0
         with self.lock:  # the connection record goes down the pipe before its messages
             self.buf.append(pack_json(b"C", {"id": cid, "topic": topic, "type": mtype}))
-        prof = {topics.DONE: qos.LATCHED, topics.CLOCK: qos.CLOCK}.get(topic, qos.SAMPLES_READER)
+        prof = {topics.DONE: qos.LATCHED, topics.CLOCK: qos.CLOCK}.get(
+            topic, qos.reader(self.pv["input_durability"]))
         buf = self.buf
         counts = self.counts
         last = self.last_seq

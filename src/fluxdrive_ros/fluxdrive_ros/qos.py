@@ -18,6 +18,20 @@ SAMPLES = QoSProfile(depth=SAMPLE_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
                      history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 # readers in the loop / the recorder: the same, so they also receive the writer's history
 SAMPLES_READER = SAMPLES
+
+
+def reader(durability: str = "transient_local") -> QoSProfile:
+    """Sample-topic reader QoS.  transient_local (default) also gets what was published
+    before the match; volatile is needed to hear a volatile writer (a transient-local reader
+    does not match one), e.g. a bench bridge publishing with plain depth-100 QoS."""
+    if durability == "volatile":
+        return QoSProfile(depth=SAMPLE_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
+                          history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.VOLATILE)
+    return SAMPLES_READER
+
+
+INPUT_DURABILITY_CHOICES = ("transient_local", "volatile")
+
 # live watchers (inspection tools): volatile, shallow
 WATCH = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
                    history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.VOLATILE)

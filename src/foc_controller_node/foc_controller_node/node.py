@@ -146,6 +146,10 @@ class ControllerNode(FluxNode):
         pv = declare(self, self.specs)
         common = declare(self, [
             P("frame_topic", topics.FRAME, "PhaseFrame input topic", read_only=True),
+            P("input_durability", "transient_local", "durability of the sample-topic "
+              "subscriptions: transient_local (also receive what was sent before the match) or "
+              "volatile (needed to hear a volatile publisher)",
+              choices=qos.INPUT_DURABILITY_CHOICES, read_only=True),
             P("exit_on_done", True, "exit once the frame named by /drive/done is processed"),
             P("frame_id", "", "header.frame_id of published messages", read_only=True),
         ])
@@ -171,11 +175,11 @@ class ControllerNode(FluxNode):
         self.pub_state = RawPublisher(self, fm.ControllerState, topics.CONTROLLER_STATE,
                                       qos.SAMPLES)
         self.sub_frame = RawSubscription(self, fm.PhaseFrame, common["frame_topic"],
-                                         self._on_frame, qos.SAMPLES_READER)
+                                         self._on_frame, qos.reader(common["input_durability"]))
         self.sub_est = None
         if self.sensorless:
             self.sub_est = RawSubscription(self, fm.RotorEstimate, src["estimate_topic"],
-                                           self._on_est, qos.SAMPLES_READER)
+                                           self._on_est, qos.reader(common["input_durability"]))
         self.create_subscription(UInt64, topics.DONE, self._on_done, qos.LATCHED)
         on_set(self, self.specs, self._apply)
         self.get_logger().info(

@@ -75,6 +75,10 @@ def param_table(sc) -> list[P]:
           3600.0),
         P("exit_on_done", True, "exit after the run's last frame (after /drive/done)"),
         P("frame_id", "", "header.frame_id of published frames", read_only=True),
+        P("input_durability", "transient_local", "durability of the sample-topic "
+          "subscriptions: transient_local (also receive what was sent before the match) or "
+          "volatile (needed to hear a volatile publisher)",
+          choices=qos.INPUT_DURABILITY_CHOICES, read_only=True),
     ]
 
 
@@ -111,7 +115,7 @@ class PlantNode(FluxNode):
         self.pub_clock = RawPublisher(self, Clock, topics.CLOCK, qos.CLOCK)
         self.pub_done = self.create_publisher(UInt64, topics.DONE, qos.LATCHED)
         self.sub_duty = RawSubscription(self, fm.DutyCommand, topics.DUTY, self._on_duty,
-                                        qos.SAMPLES_READER)
+                                        qos.reader(pv["input_durability"]))
         self.k = -1  # index of the last frame published
         self.next_duty = 0  # lockstep: seq of the duty command expected next
         self.pending: dict[int, tuple] = {}

@@ -1,0 +1,354 @@
+"""Inspection of a running graph without ros2cli (the wheel set has none):
+
+  ./fluxdrive topic list [-v]                    topics, types, publisher/subscriber counts
+  ./fluxdrive topic echo TOPIC [-n N] [--field F] messages as YAML (first N)
+  ./fluxdrive topic hz TOPIC [-w SECONDS]        message rate, once a second
+  ./fluxdrive node list                          nodes of the graph
+  ./fluxdrive param list NODE                    parameter names
+  ./fluxdrive param get NODE NAME                value (and description, range with -v)
+  ./fluxdrive param set NODE NAME VALUE          set; prints the node's answer (the reason
+                                                 if rejected, exit 1)
+  ./fluxdrive param dump NODE [-o FILE]          all parameters as a ros__parameters file
+
+All of them are rclpy clients in the same ROS_DOMAIN_ID (pass --domain-id or set the
+variable) with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST unless set.  Discovery takes 1-2 s,
+so each command first waits for the graph (--wait, default 2 s).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import time
+from typing import Any
+
+import yaml
+
+
+def _common(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID of the graph")
+    ap.add_argument("--wait", type=float, default=2.0, help="discovery wait [s] (default 2)")
+
+
+class Session:
+    """An rclpy context with one helper node; spun with a plain executor."""
+
+    def __init__(self, args):
+        if args.domain_id is not None:
+            os.environ["ROS_DOMAIN_ID"] = str(args.domain_id)
+        os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+
+        self.rclpy = rclpy
+        rclpy.init(args=None)
+        self.node = rclpy.create_node(f"fluxdrive_inspect_{os.getpid()}",
+                                      start_parameter_services=False)
+        self.ex = SingleThreadedExecutor()
+        self.ex.add_node(self.node)
+        self.wait_s = args.wait
+
+    def spin_for(self, seconds: float) -> None:
+        t_end = time.monotonic() + seconds
+        while time.monotonic() < t_end and self.rclpy.ok():
+            self.ex.spin_once(timeout_sec=min(0.05, max(t_end - time.monotonic(), 0.0)))
+
+    def discover(self, until=None) -> None:
+        """Spin until `until()` is true or the wait elapses."""
+        t_end = time.monotonic() + self.wait_s
+        while time.monotonic() < t_end:
+            self.spin_for(0.1)
+            if until is not None and until():
+                return
+
+    def close(self) -> None:
+        try:
+            self.node.destroy_node()
+            self.rclpy.try_shutdown()
+        except Exception:  # noqa: BLE001
+            pass
+
+
+def _topic_type(s: Session, topic: str) -> str | None:
+    found: dict[str, list[str]] = {}
+
+    def have() -> bool:
+        found.update(dict(s.node.get_topic_names_and_types()))
+        return topic in found
+
+    s.discover(have)
+    types = found.get(topic)
+    return types[0] if types else None
+
+
+def _msg_to_plain(msg) -> Any:
+    if hasattr(msg, "get_fields_and_field_types"):
+        return {k: _msg_to_plain(getattr(msg, k)) for k in msg.get_fields_and_field_types()}
+    if hasattr(msg, "tolist"):
+        return msg.tolist()
+    if isinstance(msg, (list, tuple)):
+        return [_msg_to_plain(x) for x in msg]
+    if isinstance(msg, float) and not math.isfinite(msg):
+        return str(msg)
+    return msg
+
+
+# --------------------------------------------------------------------------- topic
+def main_topic(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(prog="fluxdrive topic", description="topic list|echo|hz")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    p = sub.add_parser("list", help="topics with types")
+    p.add_argument("-v", "--verbose", action="store_true", help="publisher/subscriber counts")
+    _common(p)
+    p = sub.add_parser("echo", help="print messages")
+    p.add_argument("topic")
+    p.add_argument("-n", "--count", type=int, default=0, help="stop after N messages")
+    p.add_argument("--field", help="print only this field (dotted path)")
+    p.add_argument("--timeout", type=float, default=0.0, help="give up after [s]")
+    _common(p)
+    p = sub.add_parser("hz", help="message rate")
+    p.add_argument("topic")
+    p.add_argument("-w", "--window", type=float, default=1.0, help="report period [s]")
+    p.add_argument("--duration", type=float, default=0.0, help="stop after [s] (0: Ctrl-C)")
+    _common(p)
+    args = ap.parse_args(argv)
+    s = Session(args)
+    try:
+        if args.cmd == "list":
+            s.discover()
+            rows = sorted(s.node.get_topic_names_and_types())
+            for name, types in rows:
+                if args.verbose:
+                    print(f"{name} [{', '.join(types)}] publishers: "
+                          f"{s.node.count_publishers(name)}, subscribers: "
+                          f"{s.node.count_subscribers(name)}")
+                else:
+                    print(f"{name} [{', '.join(types)}]")
+            return 0
+        ty = _topic_type(s, args.topic)
+        if ty is None:
+            print(f"fluxdrive topic: '{args.topic}' not found in the graph (ROS_DOMAIN_ID="
+                  f"{os.environ.get('ROS_DOMAIN_ID', '0')})", file=sys.stderr)
+            return 1
+        from fluxdrive_ros.topics import msg_class
+
+        cls = msg_class(ty)
+        if args.cmd == "echo":
+            return _echo(s, args, cls)
+        return _hz(s, args, cls)
+    except KeyboardInterrupt:
+        return 0
+    finally:
+        s.close()
+
+
+def _echo(s: Session, args, cls) -> int:
+    from fluxdrive_ros import qos
+
+    got = [0]
+
+    def cb(msg) -> None:
+        if args.count and got[0] >= args.count:
+            return
+        got[0] += 1
+        d = _msg_to_plain(msg)
+        if args.field:
+            for part in args.field.split("."):
+                d = d[int(part)] if isinstance(d, list) else d[part]
+        print(yaml.safe_dump(d, sort_keys=False, default_flow_style=None).rstrip())
+        print("---", flush=True)
+
+    s.node.create_subscription(cls, args.topic, cb, qos.WATCH)
+    t_end = time.monotonic() + args.timeout if args.timeout else None
+    while s.rclpy.ok() and (not args.count or got[0] < args.count):
+        s.spin_for(0.1)
+        if t_end and time.monotonic() > t_end:
+            break
+    return 0 if got[0] else 1
+
+
+def _hz(s: Session, args, cls) -> int:
+    from fluxdrive_ros import qos
+
+    n = [0]
+    s.node.create_subscription(cls, args.topic, lambda d: n.__setitem__(0, n[0] + 1),
+                               qos.WATCH, raw=True)
+    t0 = time.monotonic()
+    last_t, last_n, total_reports = t0, 0, 0
+    while s.rclpy.ok():
+        s.spin_for(args.window)
+        now = time.monotonic()
+        rate = (n[0] - last_n) / (now - last_t)
+        print(f"{args.topic}: {rate:10.1f} msg/s ({n[0]} received)", flush=True)
+        last_t, last_n = now, n[0]
+        total_reports += 1
+        if args.duration and now - t0 >= args.duration:
+            break
+    return 0
+
+
+# --------------------------------------------------------------------------- node
+def main_node(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(prog="fluxdrive node", description="node list")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    p = sub.add_parser("list", help="nodes of the graph")
+    _common(p)
+    args = ap.parse_args(argv)
+    s = Session(args)
+    try:
+        s.discover()
+        me = s.node.get_name()
+        names = sorted(f"{ns.rstrip('/')}/{n}" for n, ns in
+                       s.node.get_node_names_and_namespaces() if n != me)
+        for n in names:
+            print(n)
+        return 0
+    finally:
+        s.close()
+
+
+# --------------------------------------------------------------------------- param
+def _call(s: Session, srv_type, name: str, req, timeout: float = 5.0):
+    cli = s.node.create_client(srv_type, name)
+    t_end = time.monotonic() + max(s.wait_s, 0.5)
+    while not cli.service_is_ready() and time.monotonic() < t_end:
+        s.spin_for(0.05)
+    if not cli.service_is_ready():
+        raise LookupError(f"service {name} not available (is the node running, same "
+                          f"ROS_DOMAIN_ID={os.environ.get('ROS_DOMAIN_ID', '0')}?)")
+    fut = cli.call_async(req)
+    t_end = time.monotonic() + timeout
+    while not fut.done() and time.monotonic() < t_end:
+        s.spin_for(0.02)
+    if not fut.done():
+        raise TimeoutError(f"{name}: no answer within {timeout} s")
+    return fut.result()
+
+
+def _node_fqn(node: str) -> str:
+    return node if node.startswith("/") else "/" + node
+
+
+def _get(s: Session, node: str, names: list[str]):
+    from rcl_interfaces.srv import GetParameters
+    from rclpy.parameter import parameter_value_to_python
+
+    res = _call(s, GetParameters, f"{node}/get_parameters", GetParameters.Request(names=names))
+    return [(v.type, parameter_value_to_python(v)) for v in res.values]
+
+
+def _list(s: Session, node: str) -> list[str]:
+    from rcl_interfaces.srv import ListParameters
+
+    res = _call(s, ListParameters, f"{node}/list_parameters", ListParameters.Request())
+    return sorted(res.result.names)
+
+
+def _describe(s: Session, node: str, names: list[str]):
+    from rcl_interfaces.srv import DescribeParameters
+
+    res = _call(s, DescribeParameters, f"{node}/describe_parameters",
+                DescribeParameters.Request(names=names))
+    return res.descriptors
+
+
+def parse_value(text: str, current_type: int | None):
+    """Command-line text -> Python value of the parameter's type (an integer given for a
+    double parameter becomes a float, like the nodes accept in their files)."""
+    from rcl_interfaces.msg import ParameterType
+
+    v = yaml.safe_load(text)
+    if current_type == ParameterType.PARAMETER_DOUBLE and isinstance(v, int) and not isinstance(
+            v, bool):
+        v = float(v)
+    if current_type == ParameterType.PARAMETER_STRING and not isinstance(v, str):
+        v = text
+    return v
+
+
+def set_param(s: Session, node: str, name: str, text: str) -> tuple[bool, str, Any]:
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.parameter import Parameter
+
+    node = _node_fqn(node)
+    (typ, _cur), = _get(s, node, [name])
+    if typ == 0:
+        return False, f"{node} has no parameter '{name}'", None
+    value = parse_value(text, typ)
+    msg = Parameter(name, value=value).to_parameter_msg()
+    res = _call(s, SetParameters, f"{node}/set_parameters",
+                SetParameters.Request(parameters=[msg]))
+    r = res.results[0]
+    return r.successful, r.reason, value
+
+
+def main_param(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(prog="fluxdrive param", description="param list|get|set|dump")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    p = sub.add_parser("list", help="parameter names of a node")
+    p.add_argument("node")
+    _common(p)
+    p = sub.add_parser("get", help="a parameter's value")
+    p.add_argument("node")
+    p.add_argument("name")
+    p.add_argument("-v", "--verbose", action="store_true", help="also description and range")
+    _common(p)
+    p = sub.add_parser("set", help="set a parameter (the node validates it)")
+    p.add_argument("node")
+    p.add_argument("name")
+    p.add_argument("value", help="YAML value, e.g. 50.0, measured, true, [1, 2]")
+    _common(p)
+    p = sub.add_parser("dump", help="all parameters as a ros__parameters YAML file")
+    p.add_argument("node")
+    p.add_argument("-o", "--output", help="write to this file instead of stdout")
+    _common(p)
+    args = ap.parse_args(argv)
+    s = Session(args)
+    node = _node_fqn(args.node)
+    try:
+        if args.cmd == "list":
+            for n in _list(s, node):
+                print(n)
+            return 0
+        if args.cmd == "get":
+            (typ, val), = _get(s, node, [args.name])
+            if typ == 0:
+                print(f"{node} has no parameter '{args.name}'", file=sys.stderr)
+                return 1
+            print(f"{args.name}: {val!r}")
+            if args.verbose:
+                d = _describe(s, node, [args.name])[0]
+                print(f"  description: {d.description}")
+                for r in d.floating_point_range:
+                    print(f"  range: [{r.from_value}, {r.to_value}]")
+                for r in d.integer_range:
+                    print(f"  range: [{r.from_value}, {r.to_value}]")
+                if d.additional_constraints:
+                    print(f"  constraints: {d.additional_constraints}")
+                print(f"  read-only: {d.read_only}")
+            return 0
+        if args.cmd == "set":
+            ok, reason, value = set_param(s, node, args.name, args.value)
+            if ok:
+                print(f"set {node} {args.name} = {value!r}" + (f": {reason}" if reason else ""))
+                return 0
+            print(f"rejected: {node} {args.name} = {args.value}: {reason}", file=sys.stderr)
+            return 1
+        names = _list(s, node)
+        vals = _get(s, node, names)
+        params = {n: v for n, (_, v) in zip(names, vals)}
+        text = yaml.safe_dump({node: {"ros__parameters": params}}, sort_keys=True)
+        if args.output:
+            with open(args.output, "w") as fh:
+                fh.write(text)
+            print(f"wrote {args.output}")
+        else:
+            print(text, end="")
+        return 0
+    except (LookupError, TimeoutError) as exc:
+        print(f"fluxdrive param: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        s.close()
