@@ -29,7 +29,8 @@ import yaml
 
 def _common(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID of the graph")
-    ap.add_argument("--wait", type=float, default=2.0, help="discovery wait [s] (default 2)")
+    ap.add_argument("--wait", type=float, default=3.0,
+                    help="discovery wait [s] (default 3; longer on a busy machine)")
 
 
 class Session:
@@ -56,11 +57,23 @@ class Session:
             self.ex.spin_once(timeout_sec=min(0.05, max(t_end - time.monotonic(), 0.0)))
 
     def discover(self, until=None) -> None:
-        """Spin until `until()` is true or the wait elapses."""
-        t_end = time.monotonic() + self.wait_s
+        """Spin until `until()` is true or the wait elapses; without `until`, until the
+        graph has stopped changing for a second (at least 1 s, at most the wait)."""
+        t0 = time.monotonic()
+        t_end = t0 + self.wait_s
+        last, t_last = None, t0
         while time.monotonic() < t_end:
             self.spin_for(0.1)
-            if until is not None and until():
+            if until is not None:
+                if until():
+                    return
+                continue
+            now = time.monotonic()
+            snap = (sorted(self.node.get_node_names_and_namespaces()),
+                    sorted((n, tuple(t)) for n, t in self.node.get_topic_names_and_types()))
+            if snap != last:
+                last, t_last = snap, now
+            elif now - t0 > 1.0 and now - t_last > 1.0:
                 return
 
     def close(self) -> None:
@@ -173,8 +186,11 @@ def _hz(s: Session, args, cls) -> int:
     from fluxdrive_ros import qos
 
     n = [0]
-    s.node.create_subscription(cls, args.topic, lambda d: n.__setitem__(0, n[0] + 1),
-                               qos.WATCH, raw=True)
+    sub = s.node.create_subscription(cls, args.topic, lambda d: n.__setitem__(0, n[0] + 1),
+                                     qos.WATCH, raw=True)
+    s.discover(lambda: sub.get_publisher_count() > 0)
+    s.spin_for(0.2)
+    n[0] = 0
     t0 = time.monotonic()
     last_t, last_n, total_reports = t0, 0, 0
     while s.rclpy.ok():
@@ -200,8 +216,8 @@ def main_node(argv: list[str]) -> int:
     try:
         s.discover()
         me = s.node.get_name()
-        names = sorted(f"{ns.rstrip('/')}/{n}" for n, ns in
-                       s.node.get_node_names_and_namespaces() if n != me)
+        names = sorted({f"{ns.rstrip('/')}/{n}" for n, ns in
+                        s.node.get_node_names_and_namespaces() if n != me})
         for n in names:
             print(n)
         return 0
@@ -212,7 +228,7 @@ def main_node(argv: list[str]) -> int:
 # --------------------------------------------------------------------------- param
 def _call(s: Session, srv_type, name: str, req, timeout: float = 5.0):
     cli = s.node.create_client(srv_type, name)
-    t_end = time.monotonic() + max(s.wait_s, 0.5)
+    t_end = time.monotonic() + max(s.wait_s, 5.0)
     while not cli.service_is_ready() and time.monotonic() < t_end:
         s.spin_for(0.05)
     if not cli.service_is_ready():

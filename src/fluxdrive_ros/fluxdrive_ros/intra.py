@@ -129,8 +129,15 @@ class RawPublisher:
     def publish(self, data: bytes) -> None:
         if self._post is not None:
             self._post(self.topic, data)
-        if self._count():
-            self._publish(data)
+        try:
+            if self._count():
+                self._publish(data)
+        except Exception:
+            import rclpy
+
+            if rclpy.ok():
+                raise
+            # the context is shutting down (Ctrl-C): messages still in flight are dropped
 
     @property
     def topic_name(self) -> str:

@@ -129,6 +129,7 @@ class PlantNode(FluxNode):
         self.since_duty = 0
         self.have_duty = False
         self.watchdog_tripped = False
+        self.ever_duty = False
         on_set(self, self.specs, self._apply)
         self.get_logger().info(
             f"scenario {sc.name} ({self.sc.source}): {self.n if self.n < 2**62 else 'inf'} "
@@ -211,6 +212,7 @@ class PlantNode(FluxNode):
         v = self.duty_dec.decode(data)
         seq = v[2]
         if self.paced:
+            self.ever_duty = True
             self.duty[0], self.duty[1], self.duty[2] = v[3], v[4], v[5]
             self.have_duty = bool(v[6])
             self.since_duty = 0
@@ -250,8 +252,10 @@ class PlantNode(FluxNode):
                 self._finish()
                 return
             self.since_duty += 1
-            flags = STATUS_STALE_COMMAND if self.since_duty > 1 else 0
-            if self.since_duty > wd:
+            flags = STATUS_STALE_COMMAND if self.since_duty > 1 and self.ever_duty else 0
+            if not self.ever_duty:  # no controller yet: PWM off, the watchdog not armed
+                self._advance(np.array([0.5, 0.5, 0.5]), False, k)
+            elif self.since_duty > wd:
                 if not self.watchdog_tripped:
                     self.watchdog_tripped = True
                     self.get_logger().warning(
