@@ -34,26 +34,35 @@ def _common(ap: argparse.ArgumentParser) -> None:
 
 
 class Session:
-    """An rclpy context with one helper node; spun with a plain executor."""
+    """A private rclpy context with one helper node, spun with a plain executor (usable
+    from tests next to other rclpy users: it never touches the default context)."""
 
-    def __init__(self, args):
-        if args.domain_id is not None:
-            os.environ["ROS_DOMAIN_ID"] = str(args.domain_id)
-        os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    def __init__(self, args=None, domain_id: int | None = None, wait_s: float = 3.0):
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
 
+        if args is not None:
+            domain_id = args.domain_id if args.domain_id is not None else domain_id
+            wait_s = args.wait
+        os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+        if domain_id is None:
+            domain_id = int(os.environ.get("ROS_DOMAIN_ID", "0") or 0)
+        self.domain_id = domain_id
         self.rclpy = rclpy
-        rclpy.init(args=None)
-        self.node = rclpy.create_node(f"fluxdrive_inspect_{os.getpid()}",
+        self.ctx = rclpy.Context()
+        rclpy.init(args=None, context=self.ctx, domain_id=domain_id)
+        self.node = rclpy.create_node(f"fluxdrive_inspect_{os.getpid()}", context=self.ctx,
                                       start_parameter_services=False)
-        self.ex = SingleThreadedExecutor()
+        self.ex = SingleThreadedExecutor(context=self.ctx)
         self.ex.add_node(self.node)
-        self.wait_s = args.wait
+        self.wait_s = wait_s
+
+    def ok(self) -> bool:
+        return self.ctx.ok()
 
     def spin_for(self, seconds: float) -> None:
         t_end = time.monotonic() + seconds
-        while time.monotonic() < t_end and self.rclpy.ok():
+        while time.monotonic() < t_end and self.ctx.ok():
             self.ex.spin_once(timeout_sec=min(0.05, max(t_end - time.monotonic(), 0.0)))
 
     def discover(self, until=None) -> None:
@@ -78,8 +87,9 @@ class Session:
 
     def close(self) -> None:
         try:
+            self.ex.shutdown()
             self.node.destroy_node()
-            self.rclpy.try_shutdown()
+            self.ctx.try_shutdown()
         except Exception:  # noqa: BLE001
             pass
 
@@ -143,7 +153,7 @@ def main_topic(argv: list[str]) -> int:
         ty = _topic_type(s, args.topic)
         if ty is None:
             print(f"fluxdrive topic: '{args.topic}' not found in the graph (ROS_DOMAIN_ID="
-                  f"{os.environ.get('ROS_DOMAIN_ID', '0')})", file=sys.stderr)
+                  f"{s.domain_id})", file=sys.stderr)
             return 1
         from fluxdrive_ros.topics import msg_class
 
@@ -175,7 +185,7 @@ def _echo(s: Session, args, cls) -> int:
 
     s.node.create_subscription(cls, args.topic, cb, qos.WATCH)
     t_end = time.monotonic() + args.timeout if args.timeout else None
-    while s.rclpy.ok() and (not args.count or got[0] < args.count):
+    while s.ok() and (not args.count or got[0] < args.count):
         s.spin_for(0.1)
         if t_end and time.monotonic() > t_end:
             break
@@ -193,7 +203,7 @@ def _hz(s: Session, args, cls) -> int:
     n[0] = 0
     t0 = time.monotonic()
     last_t, last_n, total_reports = t0, 0, 0
-    while s.rclpy.ok():
+    while s.ok():
         s.spin_for(args.window)
         now = time.monotonic()
         rate = (n[0] - last_n) / (now - last_t)
@@ -233,7 +243,7 @@ def _call(s: Session, srv_type, name: str, req, timeout: float = 5.0):
         s.spin_for(0.05)
     if not cli.service_is_ready():
         raise LookupError(f"service {name} not available (is the node running, same "
-                          f"ROS_DOMAIN_ID={os.environ.get('ROS_DOMAIN_ID', '0')}?)")
+                          f"ROS_DOMAIN_ID={s.domain_id}?)")
     fut = cli.call_async(req)
     t_end = time.monotonic() + timeout
     while not fut.done() and time.monotonic() < t_end:

@@ -290,12 +290,12 @@ class RecorderNode(FluxNode):
             self.proc.kill()
             out = ""
         if self.proc.returncode != 0 or "closed" not in out:
-            self.get_logger().error(f"bag writer failed (exit {self.proc.returncode}); "
-                                    f"{self.bag_dir} may be incomplete")
+            self.log(f"bag writer failed (exit {self.proc.returncode}); {self.bag_dir} may be "
+                     f"incomplete", "error")
             self.exit_code = 1
         total = sum(self.counts.values())
         detail = ", ".join(f"{t} {c}" for t, c in self.counts.items())
-        self.get_logger().info(f"bag {self.bag_dir} finalised: {total} messages ({detail})")
+        self.log(f"bag {self.bag_dir} finalised: {total} messages ({detail})")
         sys.stdout.write(f"@bag {self.bag_dir}\n")
         sys.stdout.flush()
 

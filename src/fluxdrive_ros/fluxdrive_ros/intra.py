@@ -48,6 +48,7 @@ class Bus:
         self.executor = None
         self.error: BaseException | None = None
         self.on_error: Callable[[BaseException], None] | None = None
+        self.on_interrupt: Callable[[], None] | None = None
         self.delivered = 0
 
     # ------------------------------------------------------------- registration
@@ -90,6 +91,10 @@ class Bus:
                 for cb in cbs:
                     cb(data)
                 n += 1
+        except KeyboardInterrupt:  # Ctrl-C while a callback ran: a stop, not an error
+            if self.on_interrupt:
+                self.on_interrupt()
+            return
         except BaseException as exc:  # noqa: BLE001 - report through the runner
             traceback.print_exc()
             self.error = exc

@@ -68,6 +68,13 @@ class FluxNode(Node):
     def close(self) -> None:
         """Called once when the process ends (normally or on a signal)."""
 
+    def log(self, text: str, level: str = "info") -> None:
+        """Log through rosout while the context lives, else straight to stdout (close())."""
+        if self.context.ok():
+            getattr(self.get_logger(), level)(text)
+        else:
+            print(f"[{level.upper()}] [{self.get_logger().name}]: {text}", flush=True)
+
     def progress(self, text: str) -> None:
         """A machine-readable progress line for the launcher (not logged)."""
         sys.stdout.write(f"@progress {text}\n")
@@ -108,6 +115,13 @@ def spin(nodes: list[FluxNode], executor=None, poll_s: float = 0.5) -> int:
 
     bus = intra.bus()
     failed: list[BaseException] = []
+    stop_requested = []
+
+    def request_stop(*_a) -> None:
+        stop_requested.append(True)
+        if not all_done.done():
+            all_done.set_result(False)
+
     if bus is not None:
         def on_error(exc: BaseException) -> None:
             failed.append(exc)
@@ -115,7 +129,15 @@ def spin(nodes: list[FluxNode], executor=None, poll_s: float = 0.5) -> int:
                 all_done.set_result(False)
 
         bus.on_error = on_error
+        bus.on_interrupt = request_stop
         bus.start(ex)
+    # Ctrl-C / SIGTERM: stop between callbacks, never a KeyboardInterrupt inside one
+    import signal
+    import threading
+
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, request_stop)
     check()
     code = 0
     try:
