@@ -311,6 +311,7 @@ class Launcher:
                 continue
             if logf:
                 logf.write(line + "\n")
+                logf.flush()
             if not self.quiet:
                 self._emit(f"[{p.name}] {line}")
         if logf:
