@@ -86,8 +86,17 @@ def test_rows_survive_messages_bit_for_bit():
     from fluxdrive.control import CO_DA, CO_EN, CO_FAULT, CO_MODE, CO_N
     from fluxdrive.observers import ES_N, ES_VALID
     from fluxdrive.plant import FR_EN, FR_FLAGS, FR_N, FR_SEQ, TR_N, TR_T, TR_THETA_E
-    from fluxdrive_ros.wire import (ControlWire, EstimateWire, FrameWire, Stamp, TruthWire,
-                                    control_row, estimate_row, frame_row, truth_row)
+    from fluxdrive_ros.wire import (
+        ControlWire,
+        EstimateWire,
+        FrameWire,
+        Stamp,
+        TruthWire,
+        control_row,
+        estimate_row,
+        frame_row,
+        truth_row,
+    )
 
     rng = np.random.default_rng(3)
     st = Stamp(1e-4)

@@ -112,7 +112,7 @@ def _bag_checks(bag: Path, complete_n: int | None = None) -> int:
     m_seqs = []
     with open(files[0], "rb") as fh:
         rd = make_reader(fh, decoder_factories=[DecoderFactory()])
-        for _, ch, _, msg in rd.iter_decoded_messages(topics=["/drive/frame"]):
+        for _, _ch, _, msg in rd.iter_decoded_messages(topics=["/drive/frame"]):
             m_seqs.append(msg.seq)
             assert len(msg.i_abc) == 3
     assert m_seqs == seqs
@@ -123,10 +123,9 @@ def test_bag_every_frame_two_readers_and_replay_metadata(tmp_path):
     """(b) A run's bag holds every frame (count = last seq + 1) and every estimate; it opens
     with rosbags and with mcap/mcap_ros2; the replay lab (fluxdrive.bagio) reads it with the
     run's metadata and no problems."""
+    from fluxdrive.scenario import load_scenario
     from fluxdrive_bringup.launch import Launcher
     from fluxdrive_bringup.runs import graph_for_scenario, shorten
-
-    from fluxdrive.scenario import load_scenario
 
     sc = load_scenario(SCENARIO)
     shorten(sc, 0.3)

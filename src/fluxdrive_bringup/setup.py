@@ -17,6 +17,7 @@ setup(
     description="Scripts and configuration to start the fluxdrive node graph.",
     license="Apache-2.0",
     entry_points={
-        "console_scripts": ["recorder = fluxdrive_bringup.recorder:main", "container = fluxdrive_ros.runner:container_main"],
+        "console_scripts": ["recorder = fluxdrive_bringup.recorder:main",
+                            "container = fluxdrive_ros.runner:container_main"],
     },
 )

@@ -25,18 +25,25 @@ from dataclasses import fields
 
 import numpy as np
 from fluxdrive.machine import load_machine
-from fluxdrive.observers import (ES_N, OS_N, PARAM_RANGES, VARIANT_KINDS, observer_config,
-                                 observer_reset, observer_step)
+from fluxdrive.observers import (
+    ES_N,
+    OS_N,
+    PARAM_RANGES,
+    VARIANT_KINDS,
+    observer_config,
+    observer_reset,
+    observer_step,
+)
 from fluxdrive.plant import FR_N
 from fluxdrive.scenario import CONFIG_DIR, load_scenario, scenario_path
-from fluxdrive_ros import qos, topics
 from fluxdrive_ros.intra import RawPublisher, RawSubscription
 from fluxdrive_ros.params import P, declare, on_set
 from fluxdrive_ros.runner import FluxNode, main_node
 from fluxdrive_ros.wire import EstimateWire, FrameWire, Stamp
+from std_msgs.msg import UInt64
 
 import flux_drive_msgs.msg as fm
-from std_msgs.msg import UInt64
+from fluxdrive_ros import qos, topics
 
 # ObserverConfig field -> (description, unit)
 DOCS = {

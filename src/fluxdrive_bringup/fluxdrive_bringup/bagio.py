@@ -9,8 +9,9 @@ import re
 from pathlib import Path
 
 import numpy as np
-from fluxdrive_ros import topics
 from fluxdrive_ros.cdr import Decoder, msg_dir
+
+from fluxdrive_ros import topics
 
 _STORE = None
 
@@ -65,8 +66,7 @@ def load_run_arrays(bag: Path, ts_s: float, names: list[str] | None = None):
     from fluxdrive.control import CO_N
     from fluxdrive.observers import ES_N
     from fluxdrive.plant import FR_N, TR_N
-    from fluxdrive_ros.wire import (control_row, estimate_row, fault_code, frame_row,
-                                    truth_row)
+    from fluxdrive_ros.wire import control_row, estimate_row, fault_code, frame_row, truth_row
 
     decs: dict[str, Decoder] = {}  # one per topic: each keeps its strings' layout
     frames: dict[int, np.ndarray] = {}

@@ -364,7 +364,7 @@ def main_param(argv: list[str]) -> int:
             return 1
         names = _list(s, node)
         vals = _get(s, node, names)
-        params = {n: v for n, (_, v) in zip(names, vals)}
+        params = {n: v for n, (_, v) in zip(names, vals, strict=True)}
         text = yaml.safe_dump({node: {"ros__parameters": params}}, sort_keys=True)
         if args.output:
             with open(args.output, "w") as fh:

@@ -444,6 +444,12 @@ class Launcher:
         return code
 
 
+def launcher_env_discovery(g: Graph) -> str:
+    if g.discovery_range != "LOCALHOST":
+        return g.discovery_range
+    return os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", g.discovery_range)
+
+
 def main(argv: list[str]) -> int:
     import argparse
 
@@ -468,11 +474,12 @@ def main(argv: list[str]) -> int:
                               f"{[n.name for n in g.nodes]}")
         for n in match:
             n.parameters[pname] = yaml.safe_load(val)
-    print(f"[launch] graph {g.name}: " + ", ".join(
-        f"{pn}[{', '.join(m.fqn for m in ms)}]" for pn, ms in g.processes().items())
-        + f"; ROS_DOMAIN_ID={g.domain_id if g.domain_id is not None else os.environ.get('ROS_DOMAIN_ID', '0')}"
-        + f", discovery {os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE', g.discovery_range)}",
-        flush=True)
+    dom = g.domain_id if g.domain_id is not None else os.environ.get("ROS_DOMAIN_ID", "0")
+    procs = ", ".join(f"{pn}[{', '.join(m.fqn for m in ms)}]"
+                      for pn, ms in g.processes().items())
+    disc = launcher_env_discovery(g)
+    print(f"[launch] graph {g.name}: {procs}; ROS_DOMAIN_ID={dom}, discovery {disc}",
+          flush=True)
     launcher = Launcher(g, log_dir=args.log_dir)
     code = launcher.run(args.timeout)
     for b in launcher.bags:

@@ -39,12 +39,12 @@ from datetime import datetime
 from pathlib import Path
 
 from fluxdrive.scenario import REPO_ROOT
-from fluxdrive_ros import qos, topics
 from fluxdrive_ros.intra import RawSubscription
 from fluxdrive_ros.params import P, declare
 from fluxdrive_ros.runner import FluxNode, main_node
-
 from std_msgs.msg import UInt64
+
+from fluxdrive_ros import qos, topics
 
 from .bagwriter import pack_json
 

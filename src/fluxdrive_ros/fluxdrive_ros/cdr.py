@@ -26,7 +26,7 @@ from __future__ import annotations
 import re
 import struct
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 
 ENCAPSULATION = b"\x00\x01\x00\x00"
@@ -80,7 +80,7 @@ class Leaf:
     kind: str  # ROS primitive type or 'string'
 
 
-@lru_cache(maxsize=None)
+@cache
 def _fields(type_name: str) -> tuple[tuple[str, str, int | None], ...]:
     """(type, name, array length or None) of a message, constants and comments skipped."""
     pkg = type_name.replace("/msg/", "/").partition("/")[0]
@@ -105,7 +105,7 @@ def _fields(type_name: str) -> tuple[tuple[str, str, int | None], ...]:
     return tuple(out)
 
 
-@lru_cache(maxsize=None)
+@cache
 def leaves(type_name: str, prefix: str = "") -> tuple[Leaf, ...]:
     """Flattened primitive/string fields in wire order."""
     res: list[Leaf] = []

@@ -13,12 +13,42 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from fluxdrive.control import (CO_DA, CO_DB, CO_DC, CO_EN, CO_FAULT, CO_ID, CO_ID_REF, CO_IQ,
-                               CO_IQ_REF, CO_MODE, CO_N, CO_TH, CO_VD, CO_VQ, CO_W_FB,
-                               CO_W_REF)
+from fluxdrive.control import (
+    CO_DA,
+    CO_DB,
+    CO_DC,
+    CO_EN,
+    CO_FAULT,
+    CO_ID,
+    CO_ID_REF,
+    CO_IQ,
+    CO_IQ_REF,
+    CO_MODE,
+    CO_N,
+    CO_TH,
+    CO_VD,
+    CO_VQ,
+    CO_W_FB,
+    CO_W_REF,
+)
 from fluxdrive.observers import ES_N, ES_VALID
-from fluxdrive.plant import (FLAG_CLIP, FR_EN, FR_ENC, FR_FLAGS, FR_N, FR_SEQ, TR_IA, TR_IB,
-                             TR_IC, TR_N, TR_T, TR_TE, TR_THETA_E, TR_TL, TR_WM)
+from fluxdrive.plant import (
+    FLAG_CLIP,
+    FR_EN,
+    FR_ENC,
+    FR_FLAGS,
+    FR_N,
+    FR_SEQ,
+    TR_IA,
+    TR_IB,
+    TR_IC,
+    TR_N,
+    TR_T,
+    TR_TE,
+    TR_THETA_E,
+    TR_TL,
+    TR_WM,
+)
 
 from . import topics
 from .cdr import Codec, Decoder

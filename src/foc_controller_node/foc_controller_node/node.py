@@ -21,21 +21,27 @@ import dataclasses
 import sys
 
 import numpy as np
-from fluxdrive.control import (CO_N, CONTROL_RANGES, CS_N, ControllerConfig,
-                               controller_reset, controller_step)
+from fluxdrive.control import (
+    CO_N,
+    CONTROL_RANGES,
+    CS_N,
+    ControllerConfig,
+    controller_reset,
+    controller_step,
+)
 from fluxdrive.machine import load_machine
 from fluxdrive.observers import ES_N
 from fluxdrive.plant import FR_N
 from fluxdrive.scenario import CONFIG_DIR, RPM, load_scenario, scenario_path
 from fluxdrive.sim import DriveSetup
-from fluxdrive_ros import qos, topics
 from fluxdrive_ros.intra import RawPublisher, RawSubscription
 from fluxdrive_ros.params import P, declare, on_set
 from fluxdrive_ros.runner import FluxNode, main_node
 from fluxdrive_ros.wire import ControlWire, EstimateWire, FrameWire, Stamp
+from std_msgs.msg import UInt64
 
 import flux_drive_msgs.msg as fm
-from std_msgs.msg import UInt64
+from fluxdrive_ros import qos, topics
 
 # ControllerConfig field -> (description, unit); ranges from fluxdrive.control.CONTROL_RANGES
 DOCS = {

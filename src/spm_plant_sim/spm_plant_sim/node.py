@@ -30,17 +30,17 @@ import numpy as np
 from fluxdrive.plant import FR_N, MP_TD, TR_N, plant_advance, plant_initial_frame
 from fluxdrive.scenario import load_scenario, scenario_path
 from fluxdrive.sim import DriveSetup
-from fluxdrive_ros import qos, topics
 from fluxdrive_ros.cdr import Codec, Decoder
 from fluxdrive_ros.intra import RawPublisher, RawSubscription
 from fluxdrive_ros.params import P, declare, on_set
 from fluxdrive_ros.runner import FluxNode, main_node
 from fluxdrive_ros.wire import STATUS_SIMULATED, STATUS_STALE_COMMAND, FrameWire, Stamp, TruthWire
 from rclpy.duration import Duration
-
-import flux_drive_msgs.msg as fm
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import UInt64
+
+import flux_drive_msgs.msg as fm
+from fluxdrive_ros import qos, topics
 
 
 def param_table(sc) -> list[P]:
