@@ -91,10 +91,15 @@ def config_params(cfg, card) -> list[P]:
 class ObserverNode(FluxNode):
     def __init__(self, name: str = "observer", namespace: str | None = None, **kw):
         super().__init__(name, namespace, **kw)
-        sp = self.declare_parameter("scenario", "").value
-        obs_name = self.declare_parameter("observer", name).value
-        mpath = self.declare_parameter(
-            "machine", str(CONFIG_DIR / "machines" / "default_spm.yaml")).value
+        first = declare(self, [
+            P("scenario", "", "scenario YAML (path or a name under config/scenarios): the "
+              "machine card and this observer's defaults", read_only=True),
+            P("observer", name, "entry of the scenario's observers this node runs (default: "
+              "the node name); also the estimate's variant field", read_only=True),
+            P("machine", str(CONFIG_DIR / "machines" / "default_spm.yaml"), "machine card "
+              "YAML when no scenario is given", read_only=True),
+        ])
+        sp, obs_name, mpath = first["scenario"], first["observer"], first["machine"]
         base = None
         if sp:
             sc = load_scenario(scenario_path(sp))

@@ -118,9 +118,13 @@ def to_config(cfg: ControllerConfig, values: dict) -> ControllerConfig:
 class ControllerNode(FluxNode):
     def __init__(self, name: str = "controller", namespace: str | None = None, **kw):
         super().__init__(name, namespace, **kw)
-        sp = self.declare_parameter("scenario", "").value
-        mpath = self.declare_parameter(
-            "machine", str(CONFIG_DIR / "machines" / "default_spm.yaml")).value
+        first = declare(self, [
+            P("scenario", "", "scenario YAML (path or a name under config/scenarios): machine "
+              "card, controller defaults, speed profile and injections", read_only=True),
+            P("machine", str(CONFIG_DIR / "machines" / "default_spm.yaml"), "machine card "
+              "YAML when no scenario is given", read_only=True),
+        ])
+        sp, mpath = first["scenario"], first["machine"]
         if sp:
             sc = load_scenario(scenario_path(sp))
             card = sc.machine

@@ -85,7 +85,9 @@ def param_table(sc) -> list[P]:
 class PlantNode(FluxNode):
     def __init__(self, name: str = "plant", namespace: str | None = None, **kw):
         super().__init__(name, namespace, **kw)
-        sp = self.declare_parameter("scenario", "").value
+        sp = declare(self, [P("scenario", "", "scenario YAML (path or a name under "
+                                "config/scenarios): machine card, load, seed, faults",
+                                read_only=True)])["scenario"]
         if not sp:
             raise ValueError("parameter 'scenario' (path of a scenario YAML) is required")
         sc = load_scenario(scenario_path(sp))
