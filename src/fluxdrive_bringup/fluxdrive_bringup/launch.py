@@ -250,6 +250,7 @@ class Launcher:
         self.progress: tuple[int, int, float] | None = None
         self.lock = threading.Lock()
         self.stopping = False
+        self.interrupted = False
         self.failed: list[Proc] = []
         self._progress_shown = False
         self._last_progress_print = 0.0
@@ -423,6 +424,7 @@ class Launcher:
                 self.signal_all(signal.SIGKILL)
                 return
             interrupted.set()
+            self.interrupted = True
             self._emit(f"[launch] {signal.Signals(signum).name}: stopping the graph")
             threading.Thread(target=self.stop, daemon=True).start()
 

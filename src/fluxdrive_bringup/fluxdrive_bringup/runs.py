@@ -138,7 +138,7 @@ def run_graph(sc_path: Path, *, out: Path, bag: Path, layout: str = "composed",
     rtf = None
     if prog and prog[2] > 0:
         rtf = prog[0] * sc.machine.ts_s / prog[2]
-    return {"code": code, "wall_s": wall, "lockstep_rtf": rtf,
+    return {"code": code, "wall_s": wall, "lockstep_rtf": rtf, "interrupted": launcher.interrupted,
             "frames": prog[0] if prog else 0, "loop_wall_s": prog[2] if prog else None,
             "bag": str(bag), "scenario": sc, "graph": g, "domain_id": dom}
 
@@ -167,6 +167,10 @@ def main_run(argv: list[str], default_scenario: str | None = None) -> int:
     bag = args.bag or REPO_ROOT / "bags" / f"{sc.name}-{stamp}"
     r = run_graph(sp, out=out, bag=bag, layout=args.layout, duration_s=args.duration,
                   domain_id=args.domain_id, quiet=args.quiet, timeout=args.timeout)
+    if r["interrupted"]:
+        print(f"[run] interrupted after {r['frames']} frames; bag (finalised): {bag}",
+              file=sys.stderr)
+        return 130
     if r["code"] != 0:
         print(f"[run] the graph failed (exit {r['code']}); logs in {out / 'logs'}",
               file=sys.stderr)
