@@ -79,16 +79,22 @@ def main() -> int:
                 for k, v in (h.get("custom_data") or {}).items():
                     writer.set_custom_data(k, v)
                 writer.open()
-                sys.stdout.write("ready\n")
-                sys.stdout.flush()
+                try:
+                    sys.stdout.write("ready\n")
+                    sys.stdout.flush()
+                except BrokenPipeError:
+                    pass
             else:
                 print(f"bagwriter: corrupt input (record type {kind!r})", file=sys.stderr)
                 break
     finally:
         if writer is not None:
             writer.close()
-            sys.stdout.write(f"closed {n_msgs}\n")
-            sys.stdout.flush()
+            try:
+                sys.stdout.write(f"closed {n_msgs}\n")
+                sys.stdout.flush()
+            except BrokenPipeError:  # the recorder is gone; the bag is finalised anyway
+                pass
     return 0
 
 

@@ -138,6 +138,8 @@ def spin(nodes: list[FluxNode], executor=None, poll_s: float = 0.5) -> int:
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, request_stop)
+    if _EARLY_STOP:  # a signal arrived while the nodes were being built
+        request_stop()
     check()
     code = 0
     try:
@@ -172,6 +174,21 @@ def spin(nodes: list[FluxNode], executor=None, poll_s: float = 0.5) -> int:
     return code
 
 
+_EARLY_STOP: list[int] = []
+
+
+def _early_stop(signum, frame) -> None:  # noqa: ARG001
+    _EARLY_STOP.append(signum)
+
+
+def _config_problem(exc: BaseException) -> bool:
+    """Errors that are the user's configuration (reported in one line, no traceback)."""
+    from rclpy.exceptions import ParameterException
+
+    return isinstance(exc, (ValueError, TypeError, KeyError, FileNotFoundError,
+                            ParameterException))
+
+
 def load_class(spec: str):
     spec = NODE_CLASSES.get(spec, spec)
     mod, _, cls = spec.partition(":")
@@ -201,6 +218,8 @@ def main_node(cls_spec: str, default_name: str, argv: list[str] | None = None) -
     try:
         node = load_class(cls_spec)(default_name)
     except Exception as exc:  # noqa: BLE001 - configuration problems end the process
+        if not _config_problem(exc):
+            traceback.print_exc()
         print(f"{default_name}: cannot start: {exc}", file=sys.stderr)
         rclpy.try_shutdown()
         return 2
@@ -220,15 +239,19 @@ def container_main(argv: list[str] | None = None) -> int:
     else:
         ap.error("--spec or --spec-json is required")
     rclpy.init(args=["fluxdrive-container", *rest])
+    import signal
+
+    for sig in (signal.SIGINT, signal.SIGTERM):  # a stop while building: finish building
+        signal.signal(sig, _early_stop)
     nodes = []
     try:
         for ns in spec["nodes"]:
             nodes.append(build_node(ns))
     except Exception as exc:  # noqa: BLE001
-        traceback.print_exc()
+        if not _config_problem(exc):
+            traceback.print_exc()
         name = ns.get("name", "?") if isinstance(ns, dict) else "?"
-        print(f"[{spec.get('process', 'container')}] cannot start node '{name}': {exc}",
-              file=sys.stderr)
+        print(f"cannot start node '{name}': {exc}", file=sys.stderr, flush=True)
         for n in nodes:
             n.close()
             n.destroy_node()
