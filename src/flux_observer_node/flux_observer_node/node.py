@@ -119,9 +119,9 @@ class ObserverNode(FluxNode):
         pv = declare(self, self.specs)
         common = declare(self, [
             P("frame_topic", topics.FRAME, "PhaseFrame input topic", read_only=True),
-            P("input_durability", "transient_local", "durability of the sample-topic "
-              "subscriptions: transient_local (also receive what was sent before the match) or "
-              "volatile (needed to hear a volatile publisher)",
+            P("input_durability", "volatile", "durability of the sample-topic "
+              "subscriptions: volatile (matches any publisher) or transient_local (also receives "
+              "what was published before the match; the lockstep sim graphs use it)",
               choices=qos.INPUT_DURABILITY_CHOICES, read_only=True),
             P("exit_on_done", True, "exit once the frame named by /drive/done is processed"),
             P("frame_id", "", "header.frame_id of published estimates", read_only=True),

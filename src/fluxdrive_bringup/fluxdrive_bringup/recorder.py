@@ -100,9 +100,9 @@ class RecorderNode(FluxNode):
               "configurations go into the bag's metadata (for replay)", read_only=True),
             P("duration_s", 0.0, "run length for the metadata (0: the scenario's)", "s", 0.0,
               3600.0, read_only=True),
-            P("input_durability", "transient_local", "durability of the sample-topic "
-              "subscriptions: transient_local (also receive what was sent before the match) or "
-              "volatile (needed to hear a volatile publisher)",
+            P("input_durability", "volatile", "durability of the sample-topic "
+              "subscriptions: volatile (matches any publisher) or transient_local (also receives "
+              "what was published before the match; the lockstep sim graphs use it)",
               choices=qos.INPUT_DURABILITY_CHOICES, read_only=True),
         ])
         self.pv = pv

@@ -72,6 +72,8 @@ def graph_for_scenario(sc_path: Path, sc, bag_dir: Path | None, layout: str = "c
                               parameters={"bag_dir": str(bag_dir), "observers": names,
                                           "scenario": sp, **dur}))
     for n in nodes:
+        # late-matched readers still get the first samples (lockstep must lose nothing)
+        n.parameters["input_durability"] = "transient_local"
         n.parameters.update((extra or {}).get(n.name, {}))
     return Graph(name=f"{sc.name}-lockstep", nodes=nodes, domain_id=domain_id)
 

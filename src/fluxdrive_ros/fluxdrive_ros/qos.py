@@ -4,7 +4,8 @@ Lockstep never drops: per-sample topics are RELIABLE with a deep KEEP_LAST histo
 second of samples at 10 kHz), so a reader that falls behind (the recorder, a shadow
 observer) catches up instead of losing samples, and TRANSIENT_LOCAL, so a reader whose
 discovery completes a little after the first samples still gets them from the writer's
-history.  Readers that only watch (topic echo/hz) use VOLATILE and get live data only.
+history -- if it asks for TRANSIENT_LOCAL too (`input_durability`, set by the lockstep sim
+graphs).  By default readers are VOLATILE, which matches any writer.
 """
 
 from __future__ import annotations
@@ -16,14 +17,15 @@ SAMPLE_DEPTH = 10000
 # per-sample data written by the drive nodes (frames, truth, estimates, duty, state)
 SAMPLES = QoSProfile(depth=SAMPLE_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
                      history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-# readers in the loop / the recorder: the same, so they also receive the writer's history
+# readers that want the writer's history (transient-local writers only)
 SAMPLES_READER = SAMPLES
 
 
-def reader(durability: str = "transient_local") -> QoSProfile:
-    """Sample-topic reader QoS.  transient_local (default) also gets what was published
-    before the match; volatile is needed to hear a volatile writer (a transient-local reader
-    does not match one), e.g. a bench bridge publishing with plain depth-100 QoS."""
+def reader(durability: str = "volatile") -> QoSProfile:
+    """Sample-topic reader QoS.  volatile (the nodes' default) matches every writer, also a
+    volatile one (a bench bridge or a bag replay publishing with plain depth-100 QoS: a
+    transient-local reader would not match it); transient_local also gets what was
+    published before the match (the lockstep sim graphs, whose writers are all ours)."""
     if durability == "volatile":
         return QoSProfile(depth=SAMPLE_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
                           history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.VOLATILE)

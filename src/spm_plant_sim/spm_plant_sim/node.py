@@ -75,9 +75,9 @@ def param_table(sc) -> list[P]:
           3600.0),
         P("exit_on_done", True, "exit after the run's last frame (after /drive/done)"),
         P("frame_id", "", "header.frame_id of published frames", read_only=True),
-        P("input_durability", "transient_local", "durability of the sample-topic "
-          "subscriptions: transient_local (also receive what was sent before the match) or "
-          "volatile (needed to hear a volatile publisher)",
+        P("input_durability", "volatile", "durability of the sample-topic "
+          "subscriptions: volatile (matches any publisher) or transient_local (also receives "
+          "what was published before the match; the lockstep sim graphs use it)",
           choices=qos.INPUT_DURABILITY_CHOICES, read_only=True),
     ]
 
