@@ -196,3 +196,29 @@ def test_ctrl_c_finalises_the_bag(tmp_path):
     assert "finalised" in out
     n = _bag_checks(bag)
     assert 1000 < n < 600000, out  # interrupted mid-run
+
+
+def test_tripped_run_records_the_fault(tmp_path):
+    """A drive that trips at once (DC-bus over-voltage limit below the bus): the graph
+    records the latched fault, its code survives the trip through ControllerState's text,
+    and the whole run still equals the in-process runner."""
+    from fluxdrive.control import CO_EN, CO_FAULT, FAULT_OVERVOLTAGE
+    from fluxdrive.scenario import load_scenario
+    from fluxdrive.sim import run_scenario
+    from fluxdrive_bringup.runs import result_from_bag, run_graph
+
+    raw = yaml.safe_load(SCENARIO.read_text())
+    raw.update(name="tripped", duration_s=0.1, steady_window_s=[0.05, 0.1],
+               machine=str(ROOT / "config" / "machines" / "default_spm.yaml"))
+    raw["control"] = {**raw["control"], "vdc_max_v": 50.0}
+    sp = tmp_path / "tripped.yaml"
+    sp.write_text(yaml.safe_dump(raw))
+    bag = tmp_path / "bag"
+    r = run_graph(sp, out=tmp_path / "run", bag=bag, duration_s=0.1, domain_id=domain(6),
+                  quiet=True, timeout=120, progress=False)
+    assert r["code"] == 0
+    res, arr = result_from_bag(bag, load_scenario(sp), 0.1)
+    assert all(v == 0 for v in arr["missing"].values()), arr["missing"]
+    assert (res.ctrl[:, CO_FAULT] == FAULT_OVERVOLTAGE).all()
+    assert (res.ctrl[:, CO_EN] == 0.0).all()
+    assert_same_run(res, run_scenario(load_scenario(sp), progress=False))

@@ -139,6 +139,8 @@ class Codec:
         off = 0
         self._consts: list[tuple[int, bytes]] = []  # (struct arg index, value) of strings
         self.fields: list[str] = []
+        self.offsets: list[int] = []  # byte offset of each numeric field in the message
+        self.codes: list[str] = []  # its struct code
         n_args = 0
         for lf in self.leaves:
             if lf.kind == "string":
@@ -153,8 +155,11 @@ class Codec:
             code, size = _PRIM[lf.kind]
             pad = (-off) % size
             fmt.append("x" * pad + code)
-            off += pad + size
+            off += pad
             self.fields.append(lf.path)
+            self.offsets.append(4 + off)
+            self.codes.append(code)
+            off += size
             n_args += 1
         self.struct = struct.Struct("".join(fmt))
         self.size = 4 + self.struct.size
@@ -182,6 +187,17 @@ class Codec:
         exec(src, env)  # noqa: S102 - generated from the message definition only
         self.pack = env["pack"]
         self.n_values = it
+
+    def numpy_dtype(self):
+        """A numpy structured dtype over whole messages of this layout (field names =
+        positions f0, f1, ... in `fields` order): np.frombuffer(b"".join(msgs), dtype)."""
+        import numpy as np
+
+        np_codes = {"d": "<f8", "f": "<f4", "q": "<i8", "Q": "<u8", "i": "<i4", "I": "<u4",
+                    "h": "<i2", "H": "<u2", "b": "i1", "B": "u1", "?": "?"}
+        return np.dtype({"names": [f"f{j}" for j in range(len(self.fields))],
+                         "formats": [np_codes[c] for c in self.codes],
+                         "offsets": self.offsets, "itemsize": self.size})
 
     def index(self, path: str) -> int:
         """Position of a field in pack()/unpack() value tuples."""
