@@ -15,7 +15,8 @@ Graph file (config/graphs/*.yaml)::
                                       #   a process of its own, named after the node
         params: [config/ros/plant.yaml]     # ros__parameters files (relative to the repo)
         parameters: {scenario: config/scenarios/paper_2pct_150load.yaml}  # inline, win
-        required: true                # its exit (code 0) ends the graph; default false
+        required: true                # its exit (code 0) ends the graph (the others get
+                                      #   stop_grace_s, default 20 s, to end by themselves)
       - name: bridge                  # any other program, started as is
         cmd: [python, -m, some.module]
 
@@ -48,7 +49,7 @@ from fluxdrive_ros.runner import NODE_CLASSES
 
 _NODE_KEYS = {"name", "node", "namespace", "process", "params", "parameters", "required", "cmd"}
 _TOP_KEYS = {"name", "description", "discovery_range", "domain_id", "env", "nodes",
-             "stop_timeout_s"}
+             "stop_timeout_s", "stop_grace_s"}
 
 
 @dataclass
@@ -76,6 +77,7 @@ class Graph:
     domain_id: int | None = None
     env: dict[str, str] = field(default_factory=dict)
     stop_timeout_s: float = 15.0
+    stop_grace_s: float = 20.0
     source: str = ""
 
     def processes(self) -> dict[str, list[NodeSpec]]:
@@ -197,7 +199,8 @@ def parse_graph(raw: Any, src: str = "graph", base: Path = REPO_ROOT) -> Graph:
         raise ConfigError(f"{src}: 'env' must be a mapping")
     g = Graph(name=str(raw.get("name", Path(src).stem)), nodes=nodes, discovery_range=dr,
               domain_id=dom, env={str(k): str(v) for k, v in env.items()},
-              stop_timeout_s=float(raw.get("stop_timeout_s", 15.0)), source=src)
+              stop_timeout_s=float(raw.get("stop_timeout_s", 15.0)),
+              stop_grace_s=float(raw.get("stop_grace_s", 20.0)), source=src)
     for pname, members in g.processes().items():
         if len(members) > 1 and any(m.cmd for m in members):
             raise ConfigError(f"{src}: process '{pname}' mixes a 'cmd' with other nodes")
@@ -373,6 +376,7 @@ class Launcher:
         """Watch until the graph ends.  Returns 0, or 1 if a process died (named)."""
         t_end = None if timeout is None else time.monotonic() + timeout
         exited: set[str] = set()
+        grace_end: float | None = None
         while True:
             for p in self.procs:
                 if p.name in exited:
@@ -391,10 +395,17 @@ class Launcher:
                     self.stop()
                     self._join()
                     return 1
-                if code == 0 and any(n.required for n in p.nodes) and not self.stopping:
-                    self._emit(f"[launch] required process {p.label} finished; stopping "
-                               f"the graph")
-                    self.stop()
+                if code == 0 and any(n.required for n in p.nodes) and not self.stopping \
+                        and grace_end is None:
+                    # the others usually end by themselves (/drive/done); give them time
+                    # to drain (the recorder) before stopping them
+                    grace_end = time.monotonic() + self.g.stop_grace_s
+            if grace_end is not None and time.monotonic() > grace_end and not self.stopping \
+                    and len(exited) < len(self.procs):
+                req = [p for p in self.procs if any(n.required for n in p.nodes)]
+                self._emit(f"[launch] required process {req[0].label} finished; stopping "
+                           f"the graph")
+                self.stop()
             if len(exited) == len(self.procs):
                 break
             if t_end is not None and time.monotonic() > t_end:

@@ -186,8 +186,7 @@ class RecorderNode(FluxNode):
         self.counts[topic] = 0
         with self.lock:  # the connection record goes down the pipe before its messages
             self.buf.append(pack_json(b"C", {"id": cid, "topic": topic, "type": mtype}))
-        prof = {topics.DONE: qos.LATCHED, topics.CLOCK: qos.CLOCK}.get(
-            topic, qos.reader(self.pv["input_durability"]))
+        prof = {topics.DONE: qos.LATCHED}.get(topic, qos.reader(self.pv["input_durability"]))
         buf = self.buf
         counts = self.counts
         last = self.last_seq

@@ -6,8 +6,10 @@ communication in component containers); rclpy always goes through DDS, which cos
 readers.  This module gives the fluxdrive nodes the same shortcut:
 
 - `RawPublisher.publish(bytes)` hands the CDR bytes to every subscriber of that topic in
-  the same process (queued, see below) and publishes them over DDS only if a reader in
-  another process is matched (`topic echo`, a recorder elsewhere, a remote controller);
+  the same process (queued, see below) and publishes them over DDS too if a reader in
+  another process is matched (`topic echo`, a recorder elsewhere, a remote controller) or
+  if nobody in this process reads the topic (so a late reader still finds the samples in
+  the writer's transient-local history);
 - `RawSubscription` registers its callback with the process's bus; while the topic has a
   publisher in this process it keeps no DDS subscription (so no message arrives twice),
   otherwise it subscribes over DDS as usual.
@@ -132,10 +134,16 @@ class RawPublisher:
         self._publish = self.pub.publish
 
     def publish(self, data: bytes) -> None:
+        local = False
         if self._post is not None:
-            self._post(self.topic, data)
+            local = bool(self.bus.callbacks.get(self.topic))
+            if local:
+                self._post(self.topic, data)
         try:
-            if self._count():
+            # over DDS when a reader elsewhere is matched -- and always when nobody in this
+            # process reads the topic, so the writer's transient-local history keeps it for
+            # a reader that matches late
+            if not local or self._count():
                 self._publish(data)
         except Exception:
             import rclpy

@@ -40,6 +40,6 @@ WATCH = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
 # latched single events: /drive/done (last seq), /drive/start
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-# /clock: like rosgraph's default for the clock (keep last, reliable, volatile)
-CLOCK = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
-                   history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.VOLATILE)
+# /clock: written like the samples (reliable, deep, transient-local) so that the recorder
+# keeps every tick; compatible with the usual clock readers (best effort or reliable, depth 1)
+CLOCK = SAMPLES
