@@ -14,9 +14,11 @@ Modes
   is exactly the one-period computation delay of BRIEF sec. 3, so the graph reproduces the
   in-process runner sample for sample.  After frame N-1 and its duty the plant publishes
   /drive/done = N-1 (latched) and exits.
-- paced: wall clock at `rate_factor` x real time.  Each period applies the newest duty
-  received; with none for `watchdog_periods` periods the PWM is switched off (frames flagged
-  STATUS_STALE_COMMAND while a duty is re-used).
+- paced: the same loop, held to the wall clock at `rate_factor` x real time: frame k is
+  published once it is due *and* duty(k-2) has arrived (so while the graph keeps up, a paced
+  run equals a lockstep run); a controller that falls behind holds the plant for up to
+  `watchdog_periods` periods of wall time, after which the plant runs on with the PWM off
+  (frames flagged STATUS_STALE_COMMAND) until duty commands come back.
 
 Sim time: /clock carries t_k every `clock_decimation` frames (0: no /clock).
 """
@@ -61,14 +63,14 @@ def param_table(sc) -> list[P]:
           -100.0, 100.0),
         P("rate_factor", 1.0, "paced mode: simulated seconds per wall second (live)", "",
           1e-3, 10.0),
-        P("watchdog_periods", 20, "paced mode: PWM off after this many periods without a "
-          "duty command", "periods", 1, 10_000_000),
+        P("watchdog_periods", 20, "paced mode: PWM off when no duty command came for this "
+          "many periods of (paced) wall time", "periods", 1, 10_000_000),
         P("clock_decimation", 10, "publish /clock every N frames (0: never)", "frames", 0,
           1_000_000),
-        P("wait_frame_subscribers", 1, "lockstep: matched /drive/frame subscribers needed "
-          "before the first frame", "", 0, 1000, read_only=True),
-        P("wait_duty_publishers", 1, "lockstep: matched /drive/duty publishers needed before "
-          "the first frame", "", 0, 100, read_only=True),
+        P("wait_frame_subscribers", 1, "matched /drive/frame subscribers needed before the "
+          "first frame", "", 0, 1000, read_only=True),
+        P("wait_duty_publishers", 1, "matched /drive/duty publishers needed before the first "
+          "frame", "", 0, 100, read_only=True),
         P("start_delay_s", 0.5, "wait this long after matching before the first frame (lets "
           "the rest of the graph finish discovery)", "s", 0.0, 60.0, read_only=True),
         P("progress_interval_s", 0.5, "progress line period on stdout (0: none)", "s", 0.0,
@@ -128,10 +130,10 @@ class PlantNode(FluxNode):
         self.t_matched = None
         self.clock_dec = int(pv["clock_decimation"])
         # paced mode state
-        self.since_duty = 0
-        self.have_duty = False
+        self.duties: dict[int, tuple] = {}  # seq -> (da, db, dc, enable), recent ones
+        self.last_duty: tuple | None = None
+        self.t_last_duty = 0.0
         self.watchdog_tripped = False
-        self.ever_duty = False
         on_set(self, self.specs, self._apply)
         self.get_logger().info(
             f"scenario {sc.name} ({self.sc.source}): {self.n if self.n < 2**62 else 'inf'} "
@@ -165,9 +167,8 @@ class PlantNode(FluxNode):
     def _try_start(self) -> None:
         if self.started:
             return
-        ok = (self.pub_frame.subscription_count() >= self.pv["wait_frame_subscribers"])
-        if not self.paced:
-            ok = ok and self.sub_duty.publisher_count() >= self.pv["wait_duty_publishers"]
+        ok = (self.pub_frame.subscription_count() >= self.pv["wait_frame_subscribers"]
+              and self.sub_duty.publisher_count() >= self.pv["wait_duty_publishers"])
         now = time.monotonic()
         if not ok:
             self.t_matched = None
@@ -179,6 +180,7 @@ class PlantNode(FluxNode):
         self.started = True
         self._start_timer.cancel()
         self.t_wall0 = time.perf_counter()
+        self.t_last_duty = self.t_wall0
         self.get_logger().info(
             f"graph matched ({self.pub_frame.subscription_count()} frame subscribers); "
             f"starting")
@@ -214,13 +216,15 @@ class PlantNode(FluxNode):
         v = self.duty_dec.decode(data)
         seq = v[2]
         if self.paced:
-            self.ever_duty = True
-            self.duty[0], self.duty[1], self.duty[2] = v[3], v[4], v[5]
-            self.have_duty = bool(v[6])
-            self.since_duty = 0
+            d = (v[3], v[4], v[5], bool(v[6]))
+            self.duties[seq] = d
+            if self.last_duty is None or seq >= self.last_duty[0]:
+                self.last_duty = (seq, d)
+            self.t_last_duty = time.perf_counter()
             if self.watchdog_tripped:
                 self.watchdog_tripped = False
                 self.get_logger().info(f"duty commands back (seq {seq}); PWM follows them")
+            self._pace_step()
             return
         if self.done or seq < self.next_duty:
             return
@@ -242,29 +246,43 @@ class PlantNode(FluxNode):
             seq = v[2]
 
     def _on_pace(self) -> None:
-        if self.done:
+        self._pace_step()
+
+    def _pace_step(self) -> None:
+        """Advance every period that is due and whose duty(k-2) is here (or whose wait for
+        it has outlasted the watchdog)."""
+        if self.done or not self.started:
             return
+        now = time.perf_counter()
+        rate = self.pv["rate_factor"]
         ts = self.ds.ts
-        due = int((time.perf_counter() - self.t_wall0) * self.pv["rate_factor"] / ts)
-        steps = min(due - self.k, 2000)
-        wd = self.pv["watchdog_periods"]
-        for _ in range(max(steps, 0)):
+        due = int((now - self.t_wall0) * rate / ts)
+        wd_wall = self.pv["watchdog_periods"] * ts / rate
+        steps = 0
+        while self.k < due and steps < 5000:
             k = self.k + 1
             if k >= self.n:
                 self._finish()
                 return
-            self.since_duty += 1
-            flags = STATUS_STALE_COMMAND if self.since_duty > 1 and self.ever_duty else 0
-            if not self.ever_duty:  # no controller yet: PWM off, the watchdog not armed
+            d = self.duties.pop(k - 2, None)
+            if k < 2:  # frame 1 comes from duty(-1): PWM off, as in lockstep
                 self._advance(np.array([0.5, 0.5, 0.5]), False, k)
-            elif self.since_duty > wd:
+            elif d is not None:
+                self.duty[0], self.duty[1], self.duty[2] = d[0], d[1], d[2]
+                self._advance(self.duty, d[3], k)
+            elif now - self.t_last_duty <= wd_wall:
+                break  # the controller is behind: wait for duty(k-2)
+            else:
                 if not self.watchdog_tripped:
                     self.watchdog_tripped = True
                     self.get_logger().warning(
-                        f"watchdog: no duty command for {wd} periods; PWM off (frame {k})")
-                self._advance(np.array([0.5, 0.5, 0.5]), False, k, flags)
-            else:
-                self._advance(self.duty, self.have_duty, k, flags)
+                        f"watchdog: no duty command for {self.pv['watchdog_periods']} periods "
+                        f"({wd_wall * 1e3:.1f} ms); PWM off from frame {k}")
+                self._advance(np.array([0.5, 0.5, 0.5]), False, k, STATUS_STALE_COMMAND)
+            steps += 1
+        if len(self.duties) > 64:  # drop duties for frames already simulated
+            for old in [j for j in self.duties if j < self.k - 2]:
+                del self.duties[old]
 
     # ----------------------------------------------------------------- end
     def _finish(self) -> None:
