@@ -258,6 +258,8 @@ class PlantNode(FluxNode):
         ts = self.ds.ts
         due = int((now - self.t_wall0) * rate / ts)
         wd_wall = self.pv["watchdog_periods"] * ts / rate
+        if self.last_duty is None:  # the first answer may take a while (code loading)
+            wd_wall = max(wd_wall, 5.0)
         steps = 0
         while self.k < due and steps < 5000:
             k = self.k + 1
@@ -276,8 +278,8 @@ class PlantNode(FluxNode):
                 if not self.watchdog_tripped:
                     self.watchdog_tripped = True
                     self.get_logger().warning(
-                        f"watchdog: no duty command for {self.pv['watchdog_periods']} periods "
-                        f"({wd_wall * 1e3:.1f} ms); PWM off from frame {k}")
+                        f"watchdog: no duty command for {wd_wall * 1e3:.1f} ms of wall time; "
+                        f"PWM off from frame {k}")
                 self._advance(np.array([0.5, 0.5, 0.5]), False, k, STATUS_STALE_COMMAND)
             steps += 1
         if len(self.duties) > 64:  # drop duties for frames already simulated
