@@ -139,3 +139,32 @@ def test_live_parameters_take_effect_exactly_and_bad_values_are_rejected(tmp_pat
     assert np.array_equal(res.est[:, :k0], base_e[:, :k0])
     assert not np.array_equal(res.est[i_obs, k_obs:], base_e[i_obs, k_obs:])
     assert not np.array_equal(res.ctrl[k_ctl:], base_c[k_ctl:])
+
+
+def test_paced_plant_watchdog_switches_pwm_off_without_a_controller(tmp_path):
+    """Paced mode with no controller in the graph: the plant holds frame 2 waiting for
+    duty(0), then its watchdog lets it run on at the wall-clock rate with the PWM off, every
+    frame flagged as run on a stale command; the recorder still gets every frame."""
+    from fluxdrive_bringup.launch import Graph, Launcher, NodeSpec
+    from rosbags.highlevel import AnyReader
+
+    dom = 120 + (os.getpid() * 7 + 8) % 100
+    bag = tmp_path / "bag"
+    g = Graph(name="paced", domain_id=dom, nodes=[
+        NodeSpec(name="plant", node="plant", process="drive", parameters={
+            "scenario": str(SCENARIO), "mode": "paced", "rate_factor": 0.2, "duration_s": 0.05,
+            "wait_frame_subscribers": 1, "wait_duty_publishers": 0, "start_delay_s": 0.0}),
+        NodeSpec(name="recorder", node="recorder", process="drive",
+                 parameters={"bag_dir": str(bag), "topics": ["/drive/frame"]})])
+    launcher = Launcher(g, quiet=True, progress=False, log_dir=tmp_path / "logs")
+    t0 = time.monotonic()
+    assert launcher.run(timeout=60) == 0
+    assert time.monotonic() - t0 > 5.0  # held ~5 s for a first duty command
+    log = (tmp_path / "logs" / "drive.log").read_text()
+    assert "watchdog: no duty command" in log and "PWM off from frame 2" in log
+    with AnyReader([bag]) as r:
+        frames = [r.deserialize(raw, c.msgtype) for c, _, raw in r.messages()]
+    assert [f.seq for f in frames] == list(range(500))
+    assert not any(f.pwm_enabled for f in frames)
+    assert all(f.status_flags & 16 for f in frames[2:])  # STATUS_STALE_COMMAND
+    assert all(f.status_flags & 2 for f in frames)  # STATUS_SIMULATED
