@@ -31,6 +31,7 @@ from rclpy.node import Node
 
 from flux_drive_msgs.msg import DutyCommand, PhaseFrame
 from flux_drive_msgs.srv import Arm, ResetFault
+from fluxdrive_ros import qos, topics
 
 STATUS_SENSOR_CLIP = 1
 STATUS_STALE_COMMAND = 16
@@ -58,9 +59,11 @@ class BenchBridgeNode(Node):
         self.bridge = CanBridge(factory, BridgeConfig(
             stale_timeout_s=stale, cmd_timeout_s=cmd_to,
             reconnect_initial_s=rc0, reconnect_max_s=rc1))
-        self.pub = self.create_publisher(PhaseFrame, "/drive/frame", 100)
+        # the simulated plant's QoS: every reader of /drive/frame matches (volatile ones and
+        # the transient-local ones of lockstep graphs); duties read like the plant reads them
+        self.pub = self.create_publisher(PhaseFrame, topics.FRAME, qos.SAMPLES)
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.create_subscription(DutyCommand, "/drive/duty", self._on_duty, 100)
+        self.create_subscription(DutyCommand, topics.DUTY, self._on_duty, qos.reader("volatile"))
         self.create_service(Arm, "/drive/arm", self._on_arm)
         self.create_service(ResetFault, "/drive/reset_fault", self._on_reset)
         self.create_timer(diag_period, self._publish_diagnostics)
