@@ -26,7 +26,7 @@ from fluxdrive.bridge import (
     CanBridge,
     bus_factory_from_params,
 )
-from rcl_interfaces.msg import SetParametersResult
+from fluxdrive_ros.params import P, declare, on_set
 from rclpy.node import Node
 
 from flux_drive_msgs.msg import DutyCommand, PhaseFrame
@@ -37,23 +37,53 @@ STATUS_SENSOR_CLIP = 1
 STATUS_STALE_COMMAND = 16
 
 
+def param_table() -> list[P]:
+    """The bridge's declared parameters (description, unit, range; live ones marked)."""
+    return [
+        P("interface", "virtual", "python-can interface (virtual, socketcan, pcan, ...)",
+          read_only=True),
+        P("channel", "fluxdrive", "python-can channel (virtual bus name, can0, ...)",
+          read_only=True),
+        P("bitrate", 1_000_000, "CAN (FD arbitration) bit rate", "bit/s", 10_000, 1_000_000,
+          read_only=True),
+        P("data_bitrate", 5_000_000, "CAN FD data-phase bit rate", "bit/s", 125_000,
+          12_000_000, read_only=True),
+        P("fd", True, "use CAN FD frames", read_only=True),
+        P("stale_timeout_s", 0.05, "no valid sample for this long (after the first): STALE "
+          "fault, PWM disabled (live)", "s", 1e-4, 60.0),
+        P("cmd_timeout_s", 0.001, "MCU duty-command watchdog sent in ARM_MODE (0: the MCU's "
+          "default, 1 ms)", "s", 0.0, 6.5535, read_only=True),
+        P("reconnect_initial_s", 0.05, "first reconnect delay after the bus is lost", "s",
+          1e-3, 60.0, read_only=True),
+        P("reconnect_max_s", 2.0, "longest reconnect delay (exponential back-off)", "s",
+          1e-3, 3600.0, read_only=True),
+        P("ts_s", 1e-4, "PWM period of the drive (header.stamp = seq * ts_s)", "s", 1e-6,
+          1e-2, read_only=True),
+        P("frame_id", "drive", "header.frame_id of published frames", read_only=True),
+        P("armed", False, "arm the drive (at start, and live: true arms, false disarms; "
+          "refused with the reason while a fault is latched)"),
+        P("diagnostics_period_s", 1.0, "period of the /diagnostics status", "s", 0.05, 60.0,
+          read_only=True),
+    ]
+
+
 class BenchBridgeNode(Node):
     def __init__(self, **kw) -> None:
         super().__init__("bench_bridge", **kw)
-        p = self.declare_parameter
-        self.p_interface = p("interface", "virtual").value
-        self.p_channel = p("channel", "fluxdrive").value
-        self.p_bitrate = p("bitrate", 1_000_000).value
-        self.p_data_bitrate = p("data_bitrate", 5_000_000).value
-        self.p_fd = p("fd", True).value
-        stale = p("stale_timeout_s", 0.05).value
-        cmd_to = p("cmd_timeout_s", 0.001).value
-        rc0 = p("reconnect_initial_s", 0.05).value
-        rc1 = p("reconnect_max_s", 2.0).value
-        self.ts = p("ts_s", 1e-4).value
-        self.frame_id = p("frame_id", "drive").value
-        arm_at_start = p("armed", False).value
-        diag_period = p("diagnostics_period_s", 1.0).value
+        pv = declare(self, param_table())
+        self.p_interface = pv["interface"]
+        self.p_channel = pv["channel"]
+        self.p_bitrate = pv["bitrate"]
+        self.p_data_bitrate = pv["data_bitrate"]
+        self.p_fd = pv["fd"]
+        stale = pv["stale_timeout_s"]
+        cmd_to = pv["cmd_timeout_s"]
+        rc0 = pv["reconnect_initial_s"]
+        rc1 = pv["reconnect_max_s"]
+        self.ts = pv["ts_s"]
+        self.frame_id = pv["frame_id"]
+        arm_at_start = pv["armed"]
+        diag_period = pv["diagnostics_period_s"]
         factory = bus_factory_from_params(self.p_interface, self.p_channel, self.p_bitrate,
                                           self.p_fd, self.p_data_bitrate)
         self.bridge = CanBridge(factory, BridgeConfig(
@@ -67,7 +97,7 @@ class BenchBridgeNode(Node):
         self.create_service(Arm, "/drive/arm", self._on_arm)
         self.create_service(ResetFault, "/drive/reset_fault", self._on_reset)
         self.create_timer(diag_period, self._publish_diagnostics)
-        self.add_on_set_parameters_callback(self._on_params)
+        on_set(self, param_table(), self._apply_params)
         self.bridge.connect()
         if arm_at_start:
             ok, why = self.bridge.arm()
@@ -120,15 +150,15 @@ class BenchBridgeNode(Node):
         resp.success, resp.message = bool(ok), why
         return resp
 
-    def _on_params(self, params) -> SetParametersResult:
-        for prm in params:
-            if prm.name == "armed":
-                ok, why = self.bridge.arm() if prm.value else self.bridge.disarm("parameter")
-                if not ok:
-                    return SetParametersResult(successful=False, reason=why)
-            elif prm.name == "stale_timeout_s":
-                self.bridge.cfg.stale_timeout_s = float(prm.value)
-        return SetParametersResult(successful=True)
+    def _apply_params(self, changes: dict) -> str | None:
+        if "armed" in changes:
+            ok, why = (self.bridge.arm() if changes["armed"]
+                       else self.bridge.disarm("parameter"))
+            if not ok:
+                raise ValueError(why)
+        if "stale_timeout_s" in changes:
+            self.bridge.cfg.stale_timeout_s = float(changes["stale_timeout_s"])
+        return None
 
     def _publish_diagnostics(self) -> None:
         d = self.bridge.diagnostics()
