@@ -23,6 +23,8 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "topic": ("fluxdrive_bringup.cli", "main_topic", "topic list|echo|hz"),
     "node": ("fluxdrive_bringup.cli", "main_node", "node list"),
     "param": ("fluxdrive_bringup.cli", "main_param", "param get|set|dump"),
+    "bag": ("fluxdrive_bringup.cli", "main_bag",
+            "bag recover BAG_DIR [--out DIR]: a valid bag from an unfinalised one"),
     "replay": ("fluxdrive.replay", "main", "replay bags through observer variants"),
     "can-import": ("fluxdrive.canimport", "main", "CAN capture (.log/.asc/.blf) -> bag"),
     "experiment": ("fluxdrive.experiments", "main", "reproduce the paper's figures"),

@@ -10,18 +10,33 @@ It ignores SIGINT/SIGTERM (the recorder owns the run's end) and finalises the ba
 input ends: on the recorder's end marker, or on EOF because the recorder died -- so even a
 SIGKILLed recorder leaves a finalised bag with everything it had handed over.
 
+Crash safety: the MCAP data section is a sequence of chunks; a chunk goes to the file when
+it reaches 1 MiB (rosbags) or on the recorder's flush marker (every `flush_interval_s`,
+default 0.5 s), whichever comes first, and the file is flushed and fsync'ed then.  If this
+process is killed too (SIGKILL of the recorder's process group, a power cut after the
+fsync), the file lacks only its summary and the open chunk: `./fluxdrive bag recover DIR`
+(fluxdrive_bringup.bagrecover) rebuilds a valid bag from the complete chunks.  While the
+bag is open, RECORDING_FILE in the bag directory keeps what metadata.yaml would get at the
+end (custom_data), for the recovery; it is removed once the bag is finalised.
+
+A failing write (disk full, file too large, I/O error) stops the recording: one line on
+stderr and "error <reason>" on stdout, then the bag is finalised if the file system still
+lets it (else it is left for `bag recover`) and the process exits with code 3.
+
 Protocol on stdin (little endian):
   b"H" u32 n, JSON {"path": str, "custom_data": {key: str}}     first record; opens the bag
   b"C" u32 n, JSON {"id": int, "topic": str, "type": str}       a connection (before use)
   b"M" u16 id, i64 t_ns, u32 n, n bytes of CDR                   a message
+  b"F"                                                          flush: close the open chunk
   b"E"                                                          end: finalise and exit
-On stdout: "ready" once the bag is open, "closed <messages>" once finalised; errors on
-stderr with a non-zero exit.
+On stdout: "ready" once the bag is open, "closed <messages>" once finalised, "error <text>"
+when writing failed; errors on stderr with a non-zero exit.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import signal
 import struct
 import sys
@@ -29,11 +44,66 @@ from pathlib import Path
 
 MSG_HDR = struct.Struct("<cHqI")  # b"M", id, t, n
 U32 = struct.Struct("<I")
+RECORDING_FILE = "recording.json"  # in the bag directory while the bag is being written
+EXIT_WRITE_FAILED = 3
 
 
 def pack_json(kind: bytes, obj: dict) -> bytes:
     raw = json.dumps(obj).encode()
     return kind + U32.pack(len(raw)) + raw
+
+
+def check_bag_target(bag_dir: Path, min_free_mb: float = 0.0, must_not_exist: bool = True
+                     ) -> float:
+    """Can a bag be written at bag_dir?  Creates its parent directories, checks that a file
+    can be written there and that at least min_free_mb are free.  Returns the free space
+    [MB]; raises ValueError with a one-line reason (before anything starts recording)."""
+    import errno
+    import shutil
+    import tempfile
+
+    bag_dir = Path(bag_dir)
+    if must_not_exist and bag_dir.exists():
+        raise ValueError(f"bag directory {bag_dir} exists already; choose a new one")
+    parent = bag_dir.parent
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+        if not parent.is_dir():
+            raise NotADirectoryError(errno.ENOTDIR, "not a directory", str(parent))
+        with tempfile.TemporaryFile(dir=parent, prefix=".fluxdrive-write-test-") as fh:
+            fh.write(b"x")
+            fh.flush()
+    except OSError as exc:
+        raise ValueError(f"cannot record to {bag_dir}: {parent} is not a writable "
+                         f"directory ({exc.strerror or exc})") from exc
+    free_mb = shutil.disk_usage(parent).free / 1e6
+    if free_mb < min_free_mb:
+        raise ValueError(f"cannot record to {bag_dir}: {free_mb:.0f} MB free on its file "
+                         f"system, the recorder's min_free_mb is {min_free_mb:g} MB")
+    return free_mb
+
+
+def _say(text: str) -> None:
+    try:
+        sys.stdout.write(text + "\n")
+        sys.stdout.flush()
+    except (BrokenPipeError, ValueError):  # the recorder is gone
+        pass
+
+
+def flush_chunk(writer, sync: bool = True) -> None:
+    """Close the open MCAP chunk (if it holds messages) and push the file to the disk, so a
+    crash from here on loses nothing written so far (rosbags 0.11 McapWriter internals;
+    without them, chunks still close at 1 MiB)."""
+    st = getattr(writer, "storage", None)
+    chunk = getattr(st, "chunk", None)
+    if chunk is None or not hasattr(st, "close_chunk"):
+        return
+    if chunk.msgs:
+        st.close_chunk()
+    st.bio.flush()
+    if sync:
+        os.fsync(st.bio.fileno())
 
 
 def main() -> int:
@@ -46,9 +116,11 @@ def main() -> int:
     inp = sys.stdin.buffer
     read = inp.read
     writer = None
+    side: Path | None = None
     conns: dict[int, object] = {}
     n_msgs = 0
     store = None
+    failed = ""
 
     def read_json() -> dict:
         (n,) = U32.unpack(read(4))
@@ -69,33 +141,54 @@ def main() -> int:
                     break
                 writer.write(conns[cid], t, data)
                 n_msgs += 1
+            elif kind == b"F":
+                flush_chunk(writer)
             elif kind == b"C":
                 c = read_json()
                 conns[c["id"]] = writer.add_connection(c["topic"], c["type"], typestore=store)
             elif kind == b"H":
                 h = read_json()
                 store = typestore()
-                writer = Writer(Path(h["path"]), version=9, storage_plugin=StoragePlugin.MCAP)
+                path = Path(h["path"])
+                w = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
                 for k, v in (h.get("custom_data") or {}).items():
-                    writer.set_custom_data(k, v)
-                writer.open()
-                try:
-                    sys.stdout.write("ready\n")
-                    sys.stdout.flush()
-                except BrokenPipeError:
-                    pass
+                    w.set_custom_data(k, v)
+                w.open()
+                writer = w
+                side = path / RECORDING_FILE
+                side.write_text(json.dumps({
+                    "note": "this bag is being written; without metadata.yaml it was not "
+                            "finalised: ./fluxdrive bag recover " + str(path),
+                    "custom_data": h.get("custom_data") or {}}))
+                _say("ready")
             else:
                 print(f"bagwriter: corrupt input (record type {kind!r})", file=sys.stderr)
                 break
+    except OSError as exc:  # disk full, file too large, I/O error: stop recording
+        where = getattr(getattr(writer, "storage", None), "path", None) or exc.filename or (
+            writer.path if writer is not None else "the bag")
+        failed = (f"cannot write {where}: {exc.strerror or exc} (after {n_msgs} messages); "
+                  f"recording stopped")
     finally:
-        if writer is not None:
-            writer.close()
+        if writer is not None and not failed:
             try:
-                sys.stdout.write(f"closed {n_msgs}\n")
-                sys.stdout.flush()
-            except BrokenPipeError:  # the recorder is gone; the bag is finalised anyway
-                pass
-    return 0
+                writer.close()
+                if side is not None:
+                    side.unlink(missing_ok=True)
+                _say(f"closed {n_msgs}")
+            except OSError as exc:
+                failed = f"cannot finalise {writer.path}: {exc.strerror or exc}"
+        if failed:
+            if writer is not None and writer.storage is not None:
+                try:  # no summary: the complete chunks stay readable for `bag recover`
+                    writer.storage.abort()
+                except OSError:
+                    pass
+                failed += (f"; the complete chunks can be recovered with "
+                           f"./fluxdrive bag recover {writer.path}")
+            print(f"bagwriter: {failed}", file=sys.stderr, flush=True)
+            _say(f"error {failed}")
+    return EXIT_WRITE_FAILED if failed else 0
 
 
 if __name__ == "__main__":

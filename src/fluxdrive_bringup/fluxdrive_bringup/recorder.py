@@ -7,11 +7,18 @@ intra-process bus (fluxdrive_ros.intra); from other processes over DDS.
 
 Writing: a callback only appends the framed bytes to a buffer; a feeder thread ships the
 buffer every 20 ms to the bag-writer helper process (fluxdrive_bringup.bagwriter, rosbags
-Writer), which runs on the other core.  The message definitions are embedded (typestore
-registered from the project's .msg files), so the bag opens without the package; the run's
-machine card and observer configurations go into the metadata (custom_data "fluxdrive",
-as fluxdrive.bagio writes it), so `./fluxdrive replay` treats graph bags like in-process
-ones.
+Writer), which runs on the other core.  Every `flush_interval_s` (0.5 s) the writer closes
+its open MCAP chunk and flushes the file, so at most that much (or one 1 MiB chunk, about
+0.1 s of a 10 kHz run) is at risk if the recorder and its writer are killed outright;
+`./fluxdrive bag recover` rebuilds a valid bag from the rest.  At start the bag directory
+must be new and writable and its file system must have `min_free_mb` free (one-line error
+otherwise); a write that fails later (disk full) stops the recording with an error, the
+recorder exits 1 and the complete chunks stay recoverable.
+
+The message definitions are embedded (typestore registered from the project's .msg
+files), so the bag opens without the package; the run's machine card and observer
+configurations go into the metadata (custom_data "fluxdrive", as fluxdrive.bagio writes
+it), so `./fluxdrive replay` treats graph bags like in-process ones.
 
 Topics: `topics` plus /obs/<name>/estimate for every name in `observers`; types from the
 graph's conventions (fluxdrive_ros.topics), others discovered from the graph.
@@ -22,8 +29,9 @@ reception, as ros2 bag record does).
 End: on SIGINT/SIGTERM the buffer is flushed and the bag finalised (metadata.yaml, MCAP
 summary).  With exit_on_done, after /drive/done = N-1 it waits until every per-sample topic
 it has seen has delivered seq N-1 (or nothing arrived for `drain_timeout_s`), then
-finalises and exits.  If the recorder is killed outright, the writer process still
-finalises the bag with everything handed over (at most the last 20 ms are lost).
+finalises and exits.  If the recorder alone is killed outright, the writer process still
+finalises the bag with everything handed over (at most the last 20 ms are lost); if the
+writer dies too (SIGKILL of the process group), see above.
 """
 
 from __future__ import annotations
@@ -46,7 +54,7 @@ from std_msgs.msg import UInt64
 
 from fluxdrive_ros import qos, topics
 
-from .bagwriter import pack_json
+from .bagwriter import check_bag_target, pack_json
 
 DEFAULT_TOPICS = [topics.FRAME, topics.TRUTH, topics.DUTY, topics.CONTROLLER_STATE,
                   topics.DONE, topics.CLOCK]
@@ -104,18 +112,18 @@ class RecorderNode(FluxNode):
               "subscriptions: volatile (matches any publisher) or transient_local (also receives "
               "what was published before the match; the lockstep sim graphs use it)",
               choices=qos.INPUT_DURABILITY_CHOICES, read_only=True),
+            P("flush_interval_s", 0.5, "close the open MCAP chunk and flush the bag file this "
+              "often (bounds what a killed recorder loses)", "s", 0.05, 60.0),
+            P("min_free_mb", 100.0, "refuse to start unless the bag's file system has this "
+              "much free space", "MB", 0.0, 1e9, read_only=True),
         ])
         self.pv = pv
         want = [t for t in pv["topics"] if t]
         want += [topics.estimate_topic(o) for o in pv["observers"] if o]
         self.want = list(dict.fromkeys(want))
         self.bag_dir = Path(pv["bag_dir"]).resolve()
-        if self.bag_dir.exists():
-            raise ValueError(f"bag directory {self.bag_dir} exists already; choose a new one")
-        try:
-            self.bag_dir.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise ValueError(f"cannot create {self.bag_dir.parent}: {exc}") from exc
+        free_mb = check_bag_target(self.bag_dir, pv["min_free_mb"])
+        self.write_failed = ""
         custom = {}
         if pv["scenario"]:
             custom = self._run_metadata(pv)
@@ -141,7 +149,8 @@ class RecorderNode(FluxNode):
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self._feeder, name="bag-feeder", daemon=True)
         self.thread.start()
-        self.get_logger().info(f"recording {len(self.want)} topics to {self.bag_dir}")
+        self.get_logger().info(f"recording {len(self.want)} topics to {self.bag_dir} "
+                               f"({free_mb:.0f} MB free)")
 
     # ----------------------------------------------------------------- writer process
     def _start_writer(self, custom: dict) -> None:
@@ -153,8 +162,9 @@ class RecorderNode(FluxNode):
         line = self.proc.stdout.readline().decode().strip()
         if line != "ready":
             self.proc.wait(timeout=10)
-            raise ValueError(f"cannot open bag {self.bag_dir} (bag writer exited with "
-                             f"{self.proc.returncode})")
+            why = line[6:] if line.startswith("error ") else (
+                f"bag writer exited with {self.proc.returncode}")
+            raise ValueError(f"cannot open bag {self.bag_dir}: {why}")
 
     def _run_metadata(self, pv) -> dict:
         """custom_data as fluxdrive.bagio.write_run_bag stores it.  Live parameter changes
@@ -239,8 +249,13 @@ class RecorderNode(FluxNode):
         return b"".join(items)
 
     def _feeder(self) -> None:
+        t_flush = time.monotonic()
         while not self.stop.wait(0.02):
             chunk = self._take()
+            now = time.monotonic()
+            if now - t_flush >= self.pv["flush_interval_s"]:
+                t_flush = now
+                chunk += b"F"  # the writer closes its open chunk: on disk from here on
             if chunk:
                 with self.lock:
                     if self.closed:
@@ -248,10 +263,26 @@ class RecorderNode(FluxNode):
                     try:
                         self.pipe.write(chunk)
                     except OSError as exc:
-                        self.get_logger().error(f"bag writer gone ({exc}); stopping")
-                        self.exit_code = 1
-                        self.finished = True
+                        self._writer_failed(exc)
                         return
+
+    def _writer_failed(self, exc: OSError) -> None:
+        """The bag writer stopped (a write failed: disk full, ...): stop recording, say why
+        and what is left, and end this node with exit code 1 (the launcher applies the
+        recorder's on_death policy; the rest of the graph is stopped cleanly by default)."""
+        self.closed = True
+        try:
+            out = self.proc.stdout.read().decode()
+            self.proc.wait(timeout=30)
+        except (OSError, subprocess.TimeoutExpired):
+            out = ""
+        reason = next((ln[6:] for ln in out.splitlines() if ln.startswith("error ")),
+                      f"bag writer gone ({exc}); {self.bag_dir} may need "
+                      f"./fluxdrive bag recover {self.bag_dir}")
+        self.write_failed = reason
+        self.get_logger().error(f"recording stopped: {reason}")
+        self.exit_code = 1
+        self.finished = True
 
     # ----------------------------------------------------------------- end of run
     def _on_done(self, msg: UInt64) -> None:
@@ -274,6 +305,10 @@ class RecorderNode(FluxNode):
         self.stop.set()
         self.thread.join(timeout=30.0)
         with self.lock:
+            if self.write_failed:
+                self.log(f"bag {self.bag_dir} not finalised (recording stopped early)",
+                         "error")
+                return
             if self.closed:
                 return
             self.closed = True
@@ -289,8 +324,10 @@ class RecorderNode(FluxNode):
             self.proc.kill()
             out = ""
         if self.proc.returncode != 0 or "closed" not in out:
-            self.log(f"bag writer failed (exit {self.proc.returncode}); {self.bag_dir} may be "
-                     f"incomplete", "error")
+            why = next((ln[6:] for ln in out.splitlines() if ln.startswith("error ")),
+                       f"bag writer failed (exit {self.proc.returncode}); {self.bag_dir} may "
+                       f"be incomplete: ./fluxdrive bag recover {self.bag_dir}")
+            self.log(why, "error")
             self.exit_code = 1
         total = sum(self.counts.values())
         detail = ", ".join(f"{t} {c}" for t, c in self.counts.items())

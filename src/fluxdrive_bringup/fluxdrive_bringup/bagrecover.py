@@ -1,0 +1,213 @@
+"""`./fluxdrive bag recover BAG_DIR [--out DIR]`: a valid bag from one that was not finalised.
+
+A recorder killed together with its bag writer (SIGKILL of its process group, a power cut)
+or stopped by a failing write (disk full) leaves BAG_DIR/<name>.mcap without its summary
+and footer, and no metadata.yaml.  The MCAP data section is still a sequence of complete
+records: the schemas and channels, then chunks of messages (closed every
+`flush_interval_s` or 1 MiB by the recorder's writer, see fluxdrive_bringup.bagwriter).
+This reads it front to back with the mcap library's StreamReader (no summary needed; a
+chunk's messages are used only once the whole chunk was read), stops at the first
+truncated or corrupt record, and writes every message read so far into a new rosbag2 bag
+(version 9, MCAP, message definitions embedded, the run's custom_data from the
+recording.json the writer left behind) with the same writer as the recorder (rosbags,
+the project's typestore from fluxdrive_bringup.bagio).  It prints the messages recovered
+per topic, the time span and, for /drive/frame, the sequence range and any gap.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from fluxdrive.machine import ConfigError
+
+from .bagwriter import RECORDING_FILE
+
+
+@dataclass
+class Recovery:
+    source: Path
+    out: Path
+    counts: dict[str, int] = field(default_factory=dict)
+    t_first_ns: int | None = None
+    t_last_ns: int = 0
+    chunks: int = 0
+    bytes_read: int = 0
+    bytes_total: int = 0
+    stop_reason: str = ""
+    frame_seqs: tuple[int, int, int] | None = None  # first, last, gaps (count of missing)
+
+    @property
+    def messages(self) -> int:
+        return sum(self.counts.values())
+
+
+def _mcap_file(bag: Path) -> Path:
+    if bag.is_file() and bag.suffix == ".mcap":
+        return bag
+    if not bag.is_dir():
+        raise ConfigError(f"bag recover: {bag} is neither a bag directory nor an .mcap file")
+    files = sorted(bag.glob("*.mcap"))
+    if len(files) != 1:
+        raise ConfigError(f"bag recover: expected one .mcap file in {bag}, found "
+                          f"{[f.name for f in files] or 'none'}")
+    return files[0]
+
+
+def is_finalised(mcap: Path) -> bool:
+    """The file ends with the MCAP footer magic and its bag has metadata.yaml."""
+    magic = b"\x89MCAP0\r\n"
+    size = mcap.stat().st_size
+    if size < 2 * len(magic) or not (mcap.parent / "metadata.yaml").exists():
+        return False
+    with open(mcap, "rb") as fh:
+        fh.seek(size - len(magic))
+        return fh.read() == magic
+
+
+def recover(bag: Path, out: Path | None = None) -> Recovery:
+    """Read what is readable of bag's MCAP file and write it to `out` (default
+    <bag>-recovered) as a new, finalised bag."""
+    from mcap.records import Channel, Chunk, Message, Schema
+    from mcap.stream_reader import StreamReader, breakup_chunk
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    from .bagio import typestore
+    from .recorder import _seq
+
+    bag = Path(bag)
+    mcap = _mcap_file(bag)
+    bag_dir = mcap.parent
+    out = Path(out) if out is not None else bag_dir.with_name(bag_dir.name + "-recovered")
+    if out.exists():
+        raise ConfigError(f"bag recover: {out} exists already; give --out a new directory")
+    rec = Recovery(source=mcap, out=out, bytes_total=mcap.stat().st_size)
+    custom: dict[str, str] = {}
+    side = bag_dir / RECORDING_FILE
+    if side.exists():
+        try:
+            custom = dict(json.loads(side.read_text()).get("custom_data") or {})
+        except (OSError, ValueError) as exc:
+            rec.stop_reason = f"{side} unreadable ({exc}); custom_data not recovered. "
+
+    store = typestore()
+    schemas: dict[int, Schema] = {}
+    conns: dict[int, object] = {}
+    topic_of: dict[int, str] = {}
+    first_seq = last_seq = None
+    gaps = 0
+    writer = Writer(out, version=9, storage_plugin=StoragePlugin.MCAP)
+    for k, v in custom.items():
+        writer.set_custom_data(k, v)
+    writer.open()
+    try:
+        with open(mcap, "rb") as fh:
+            records = StreamReader(fh, emit_chunks=True, validate_crcs=True).records
+            while True:
+                try:
+                    r = next(records)
+                    # a chunk counts only once it is complete and decodes (CRC if present)
+                    inner = breakup_chunk(r, validate_crc=True) if isinstance(r, Chunk) else [r]
+                except StopIteration:
+                    rec.stop_reason += "the file is complete (it has its footer)"
+                    break
+                except Exception as exc:  # noqa: BLE001 - any damage ends the readable part
+                    what = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+                    if type(exc).__name__ == "EndOfFile":
+                        what = ("the data ends there, without the summary (not finalised)"
+                                if rec.bytes_read == rec.bytes_total else
+                                "the file ends inside a record (the writer stopped there)")
+                    rec.stop_reason += f"stopped at byte {rec.bytes_read}: {what}"
+                    break
+                rec.bytes_read = fh.tell()
+                rec.chunks += isinstance(r, Chunk)
+                for x in inner:
+                    if isinstance(x, Message):
+                        conn = conns.get(x.channel_id)
+                        if conn is None:
+                            continue
+                        writer.write(conn, x.log_time, x.data)
+                        topic = topic_of[x.channel_id]
+                        rec.counts[topic] += 1
+                        if rec.t_first_ns is None or x.log_time < rec.t_first_ns:
+                            rec.t_first_ns = x.log_time
+                        rec.t_last_ns = max(rec.t_last_ns, x.log_time)
+                        if topic == "/drive/frame":
+                            sq = _seq(x.data)
+                            if first_seq is None:
+                                first_seq = sq
+                            elif sq != last_seq + 1:
+                                gaps += abs(sq - last_seq - 1)
+                            last_seq = sq
+                    elif isinstance(x, Schema):
+                        schemas[x.id] = x
+                    elif isinstance(x, Channel) and x.id not in conns:
+                        sch = schemas.get(x.schema_id)
+                        if sch is None:
+                            continue
+                        ts = store
+                        if sch.name not in store.fielddefs:  # not ours: its embedded text
+                            ts = get_typestore(Stores.EMPTY)
+                            ts.register(get_types_from_msg(sch.data.decode(), sch.name))
+                        conns[x.id] = writer.add_connection(
+                            x.topic, sch.name, typestore=ts,
+                            serialization_format=x.message_encoding)
+                        topic_of[x.id] = x.topic
+                        rec.counts[x.topic] = 0
+    finally:
+        writer.close()
+    if first_seq is not None:
+        rec.frame_seqs = (first_seq, last_seq, gaps)
+    if not conns:
+        import shutil
+
+        shutil.rmtree(out, ignore_errors=True)
+        raise ConfigError(f"bag recover: nothing readable in {mcap} ({rec.stop_reason})")
+    return rec
+
+
+def report(rec: Recovery) -> str:
+    lines = [f"bag recover: {rec.source}: read {rec.bytes_read} of {rec.bytes_total} bytes, "
+             f"{rec.chunks} complete chunks; {rec.stop_reason}",
+             f"recovered {rec.messages} messages into {rec.out} (rosbag2 v9, MCAP):"]
+    w = max((len(t) for t in rec.counts), default=10)
+    for t, c in rec.counts.items():
+        lines.append(f"  {t:{w}s} {c:9d}")
+    if rec.t_first_ns is not None:
+        t0, t1 = rec.t_first_ns * 1e-9, rec.t_last_ns * 1e-9
+        lines.append(f"time span {t0:.4f} .. {t1:.4f} s ({t1 - t0:.4f} s)")
+    if rec.frame_seqs is not None:
+        a, b, gaps = rec.frame_seqs
+        lines.append(f"/drive/frame seq {a}..{b}, " + (
+            "no gaps" if gaps == 0 else f"{gaps} frames missing inside"))
+    return "\n".join(lines)
+
+
+def main(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(prog="fluxdrive bag", description="bag maintenance")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    rp = sub.add_parser("recover", help="rebuild a valid bag from one that was not finalised "
+                        "(recorder killed, disk full)")
+    rp.add_argument("bag", type=Path, help="bag directory (or its .mcap file)")
+    rp.add_argument("--out", type=Path, help="new bag directory (default <BAG>-recovered)")
+    rp.add_argument("--force", action="store_true",
+                    help="rewrite even a bag that was finalised properly")
+    args = ap.parse_args(argv)
+    try:
+        mcap = _mcap_file(args.bag)
+        if is_finalised(mcap) and not args.force:
+            print(f"bag recover: {mcap.parent} was finalised properly (metadata.yaml, MCAP "
+                  f"footer); nothing to recover (--force rewrites it anyway)")
+            return 0
+        rec = recover(args.bag, args.out)
+    except (ConfigError, OSError) as exc:
+        import sys
+
+        print(f"fluxdrive {exc}" if isinstance(exc, ConfigError) else
+              f"fluxdrive bag recover: {exc}", file=sys.stderr)
+        return 2
+    print(report(rec))
+    return 0
