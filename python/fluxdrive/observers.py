@@ -92,6 +92,38 @@ def _finite_frame(fr):
     return True
 
 
+def frame_limits(card: MachineCard) -> np.ndarray:
+    """Plausibility limits of a frame, from the card's sensor full scales: |i| <= the current
+    ADC range, 0 <= vdc <= the bus ADC range, |v_ll| <= the bus ADC range; duties in [0, 1].
+    A sensor cannot report more than its full scale (the simulated one clips there), so a
+    value beyond is a corrupted sample (the ROS observer node treats it as a bad sample)."""
+    return np.array([card.current_range_a, card.dc_bus_range_v, card.dc_bus_range_v])
+
+
+@njit(cache=True)
+def frame_out_of_range(fr, lim) -> bool:
+    """True if frame `fr` is finite and a value lies beyond `frame_limits` (1e-9 relative
+    slack); a non-finite frame is the kernel's own business (observer_step)."""
+    tol = 1.0 + 1e-9
+    i_max = lim[0] * tol
+    v_max = lim[2] * tol
+    for j in range(FR_N):
+        if not math.isfinite(fr[j]):
+            return False
+    for j in (FR_IA, FR_IB, FR_IC):
+        if abs(fr[j]) > i_max:
+            return True
+    for j in (FR_VAB, FR_VBC, FR_VCA):
+        if abs(fr[j]) > v_max:
+            return True
+    if fr[FR_VDC] < -1e-9 or fr[FR_VDC] > lim[1] * tol:
+        return True
+    for j in (FR_DA, FR_DB, FR_DC):
+        if fr[j] < -1e-9 or fr[j] > tol:
+            return True
+    return False
+
+
 @njit(cache=True)
 def observer_step(os_, op, fr, out):
     """Advance one observer by one frame; writes the ES_* row into `out`."""

@@ -27,14 +27,20 @@ import numpy as np
 from fluxdrive.machine import load_machine
 from fluxdrive.observers import (
     ES_N,
+    ES_VALID,
+    OS_BAD,
+    OS_GAPS,
     OS_N,
+    OS_STALE,
     PARAM_RANGES,
     VARIANT_KINDS,
+    frame_limits,
+    frame_out_of_range,
     observer_config,
     observer_reset,
     observer_step,
 )
-from fluxdrive.plant import FR_N
+from fluxdrive.plant import FR_IA, FR_N
 from fluxdrive.scenario import CONFIG_DIR, load_scenario, scenario_path
 from fluxdrive_ros.intra import RawPublisher, RawSubscription
 from fluxdrive_ros.params import P, declare, on_set
@@ -43,6 +49,7 @@ from fluxdrive_ros.wire import EstimateWire, FrameWire, Stamp
 from std_msgs.msg import UInt64
 
 import flux_drive_msgs.msg as fm
+from fluxdrive_ros import diagnostics as diag
 from fluxdrive_ros import qos, topics
 
 # ObserverConfig field -> (description, unit)
@@ -125,6 +132,7 @@ class ObserverNode(FluxNode):
               choices=qos.INPUT_DURABILITY_CHOICES, read_only=True),
             P("exit_on_done", True, "exit once the frame named by /drive/done is processed"),
             P("frame_id", "", "header.frame_id of published estimates", read_only=True),
+            diag.PARAM,
         ])
         self.cfg = base.with_overrides(**pv)
         self.params = self.cfg.to_params(card)
@@ -138,12 +146,19 @@ class ObserverNode(FluxNode):
         self.exit_on_done = common["exit_on_done"]
         self.last_seq = -1
         self.done_seq: int | None = None
-        self.n_bad_order = 0
+        self.limits = frame_limits(card)
+        self.counts = diag.Counters("frames", "good", "bad_samples", "out_of_range",
+                                    "repeated_or_backwards", "missing", "invalid_estimates")
+        self._good_reported = 0
+        self._frames_reported = 0
+        self._logged = 0
         self.pub = RawPublisher(self, fm.RotorEstimate, "~/" + topics.ESTIMATE, qos.SAMPLES)
         self.sub = RawSubscription(self, fm.PhaseFrame, common["frame_topic"], self._on_frame,
                                    qos.reader(common["input_durability"]))
         self.create_subscription(UInt64, topics.DONE, self._on_done, qos.LATCHED)
         on_set(self, self.specs, self._apply)
+        self.diag = diag.Diagnostics(self, common["diagnostics_period_s"])
+        self.diag.add("input", self._diag_input)
         self.get_logger().info(
             f"{obs_name}: variant {self.cfg.variant}, {self.cfg.voltage_source} voltages, "
             f"publishing {self.pub.topic_name}")
@@ -155,18 +170,60 @@ class ObserverNode(FluxNode):
         return f"applied from frame {self.last_seq + 1}"
 
     def _on_frame(self, data: bytes) -> None:
-        seq = self.fw.unpack(data, self.frame)
-        if seq <= self.last_seq:
-            self.n_bad_order += 1
-            if self.n_bad_order <= 10:
-                self.get_logger().warning(f"frame {seq} after {self.last_seq}: out of order")
+        fr, st, c = self.frame, self.state, self.counts.values
+        seq = self.fw.unpack(data, fr)
+        before = (st[OS_BAD], st[OS_STALE], st[OS_GAPS])
+        oor = frame_out_of_range(fr, self.limits)
+        if oor:  # beyond the sensors' full scale: a bad sample like a NaN
+            fr[FR_IA] = np.nan
         self.row.fill(0.0)
-        observer_step(self.state, self.params, self.frame, self.row)
+        observer_step(st, self.params, fr, self.row)
         sec, nsec = self.stamp(seq)
         self.pub.publish(self.ew.pack(self.row, seq, sec, nsec))
-        self.last_seq = seq
+        c["frames"] += 1
+        if self.row[ES_VALID] == 0.0:
+            c["invalid_estimates"] += 1
+        if (st[OS_BAD], st[OS_STALE], st[OS_GAPS]) != before:
+            self._count_bad(seq, oor, before)
+        else:
+            c["good"] += 1
+        if seq > self.last_seq:
+            self.last_seq = seq
         if self.done_seq is not None and seq >= self.done_seq:
             self.finished = True
+
+    def _count_bad(self, seq: int, oor: bool, before: tuple) -> None:
+        st, c = self.state, self.counts.values
+        c["bad_samples"] = int(st[OS_BAD])
+        c["out_of_range"] += int(oor)
+        c["repeated_or_backwards"] = int(st[OS_STALE])
+        c["missing"] = int(st[OS_GAPS])
+        if self._logged < 10:
+            self._logged += 1
+            what = ("out of range (beyond the sensors' full scale)" if oor else
+                    "not finite" if st[OS_BAD] != before[0] else
+                    f"repeated/backwards after {self.last_seq}" if st[OS_STALE] != before[1]
+                    else f"{int(st[OS_GAPS] - before[2])} frame(s) missing before it")
+            self.get_logger().warning(
+                f"frame {seq}: {what}; estimate held and flagged invalid"
+                + ("" if self._logged < 10 else " (further cases: /diagnostics only)"))
+
+    def _diag_input(self) -> tuple[int, str, dict]:
+        c = self.counts
+        grew = c.grew("bad_samples", "repeated_or_backwards", "missing")
+        frames_new = c["frames"] - self._frames_reported
+        good_new = c["good"] - self._good_reported
+        self._frames_reported, self._good_reported = c["frames"], c["good"]
+        values = {**c.report(), "last_seq": self.last_seq,
+                  "estimate_valid": bool(self.row[ES_VALID])}
+        if frames_new and not good_new:
+            return diag.ERROR, (f"no usable frame among the last {frames_new}: estimate held, "
+                                f"flagged invalid"), values
+        if grew:
+            return diag.WARN, "bad input since the last report (" + ", ".join(
+                f"{k} {c[k]}" for k in grew) + "); estimates flagged invalid", values
+        return diag.OK, "input ok" + ("" if values["estimate_valid"] else
+                                      " (estimate not valid yet)"), values
 
     def _on_done(self, msg: UInt64) -> None:
         if not self.exit_on_done:

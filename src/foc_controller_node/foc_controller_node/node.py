@@ -13,18 +13,44 @@ replaces the kernel's parameter row from the next sample.  A change the design r
 (e.g. a current bandwidth the 1.5-period delay cannot reach, handback >= handover) is
 rejected with the reason.  The speed reference follows the scenario's profile (with its
 injection) unless speed_ref_mode = constant (speed_ref_rpm).
+
+Bad input and a lost position source (safe state = DutyCommand enable = false, latched
+fault in ControllerState.fault_reason, until the node is restarted / reset):
+- the engine trips at once on a non-finite frame (bad sample), over-current, DC-bus over-
+  or under-voltage, over-speed, a non-finite estimate, and -- in closed loop -- on an
+  estimate flagged invalid for longer than `invalid_timeout_s` (loss of lock);
+- here: when the driving estimate of a received frame does not come -- frames
+  `position_timeout_s` of sample time later are already here (bench, paced plant), or it
+  has been waited for `position_wall_timeout_s` of wall time (lockstep: the plant waits for
+  us, so sample time stands still) -- the controller trips with "stale input" and from then
+  on answers every frame at once with the PWM off;
+- a frame whose seq repeats or goes backwards is dropped; a jump skips the missing
+  samples (frames lost upstream: never waited for); `position_timeout_s` worth of
+  consecutive dropped frames (e.g. a restarted source counting from 0 again) trips
+  "stale input" too.  Everything is counted on /diagnostics ("<node>: input", "<node>:
+  state").
 """
 
 from __future__ import annotations
 
 import dataclasses
 import sys
+import time
 
 import numpy as np
 from fluxdrive.control import (
+    CO_EN,
+    CO_FAULT,
+    CO_MODE,
     CO_N,
     CONTROL_RANGES,
+    CS_FAULT,
+    CS_MODE,
     CS_N,
+    FAULT_NAMES,
+    FAULT_STALE_INPUT,
+    MODE_FAULT,
+    MODE_NAMES,
     ControllerConfig,
     controller_reset,
     controller_step,
@@ -41,6 +67,7 @@ from fluxdrive_ros.wire import ControlWire, EstimateWire, FrameWire, Stamp
 from std_msgs.msg import UInt64
 
 import flux_drive_msgs.msg as fm
+from fluxdrive_ros import diagnostics as diag
 from fluxdrive_ros import qos, topics
 
 # ControllerConfig field -> (description, unit); ranges from fluxdrive.control.CONTROL_RANGES
@@ -76,6 +103,8 @@ DOCS = {
     "l_hat_h": ("controller's stator inductance L^", "H"),
     "lambda_hat_vs": ("controller's magnet flux lambda^", "V s"),
 }
+# parameters of the node, not of ControllerConfig
+NODE_LEVEL = {"speed_ref_mode", "speed_ref_rpm", "position_timeout_s", "position_wall_timeout_s"}
 # None-able fields: ROS parameters cannot be None; 0.0 stands for None
 NONE_AS_ZERO = {"speed_observer_pll_hz"}
 MODEL_DEFAULTS = {"r_hat_ohm": "resistance_ohm", "l_hat_h": "inductance_h",
@@ -152,6 +181,12 @@ class ControllerNode(FluxNode):
               "constant speed_ref_rpm (live)", choices=("profile", "constant")),
             P("speed_ref_rpm", 0.0, "constant mechanical speed reference (live)", "rpm",
               -1e5, 1e5),
+            P("position_timeout_s", 0.05, "safe state (PWM off, latched 'stale input') when "
+              "the driving estimate of a frame has not come while frames this much sample "
+              "time later have (live)", "s", 1e-4, 10.0),
+            P("position_wall_timeout_s", 2.0, "safe state when the driving estimate of a "
+              "waiting frame has not come for this much wall time (lockstep graphs, where "
+              "the plant waits for us; 0: off) (live)", "s", 0.0, 3600.0),
         ]
         pv = declare(self, self.specs)
         common = declare(self, [
@@ -162,6 +197,7 @@ class ControllerNode(FluxNode):
               choices=qos.INPUT_DURABILITY_CHOICES, read_only=True),
             P("exit_on_done", True, "exit once the frame named by /drive/done is processed"),
             P("frame_id", "", "header.frame_id of published messages", read_only=True),
+            diag.PARAM,
         ])
         self.pv = pv
         self.cfg = to_config(cfg, pv)
@@ -178,6 +214,13 @@ class ControllerNode(FluxNode):
         self.frames: dict[int, np.ndarray] = {}
         self.ests: dict[int, np.ndarray] = {}
         self.next_k = 0
+        self.max_seq = -1  # highest frame seq received
+        self.rejected_run = 0  # consecutive dropped (repeated/backwards) frames
+        self.wait_k = -1  # sample whose estimate is being waited for since t_wait (wall)
+        self.t_wait = 0.0
+        self.fault_detail = ""
+        self.counts = diag.Counters("frames", "estimates", "repeated_or_backwards",
+                                    "missing_frames", "late_estimates", "stale_trips")
         self.done_seq: int | None = None
         self.exit_on_done = common["exit_on_done"]
         self._set_ref(pv)
@@ -192,6 +235,11 @@ class ControllerNode(FluxNode):
                                            self._on_est, qos.reader(common["input_durability"]))
         self.create_subscription(UInt64, topics.DONE, self._on_done, qos.LATCHED)
         on_set(self, self.specs, self._apply)
+        self.diag = diag.Diagnostics(self, common["diagnostics_period_s"])
+        self.diag.add("input", self._diag_input)
+        self.diag.add("state", self._diag_state)
+        if self.sensorless:
+            self.create_timer(0.1, self._check_wall_timeout)
         self.get_logger().info(
             "position from " + (src["estimate_topic"] if self.sensorless else "the encoder")
             + f"; current loop {self.cfg.current_bandwidth_hz:g} Hz, speed loop "
@@ -199,12 +247,13 @@ class ControllerNode(FluxNode):
 
     # ----------------------------------------------------------------- parameters
     def _set_ref(self, pv) -> None:
+        self.n_pos_timeout = max(1, round(pv["position_timeout_s"] / self.card.ts_s))
         self.const_ref = (pv["speed_ref_rpm"] * RPM if pv["speed_ref_mode"] == "constant"
                           else None)
 
     def _apply(self, changes: dict) -> str:
         new = {**self.pv, **changes}
-        ctrl = {k: v for k, v in changes.items() if not k.startswith("speed_ref_")}
+        ctrl = {k: v for k, v in changes.items() if k not in NODE_LEVEL}
         if ctrl:
             cfg = to_config(self.cfg, ctrl)
             cp = cfg.to_params(self.card)  # ConfigError (a ValueError) -> rejected
@@ -218,13 +267,37 @@ class ControllerNode(FluxNode):
     def _on_frame(self, data: bytes) -> None:
         fr = np.empty(FR_N)
         k = self.fw.unpack(data, fr)
+        c = self.counts.values
+        c["frames"] += 1
+        if k < self.next_k or k in self.frames:  # repeated or backwards: dropped
+            c["repeated_or_backwards"] += 1
+            self.rejected_run += 1
+            if self.rejected_run == 1 and c["repeated_or_backwards"] <= 10:
+                self.get_logger().warning(f"frame {k} repeated or backwards (expected "
+                                          f"{self.next_k}): dropped")
+            if self.rejected_run >= self.n_pos_timeout and self.cs[CS_MODE] != MODE_FAULT:
+                self._trip_stale(f"{self.rejected_run} consecutive frames repeated or "
+                                 f"backwards (last {k}, expected {self.next_k})")
+            if self.cs[CS_MODE] == MODE_FAULT:
+                self._answer(k, fr, self.no_est)  # PWM off, whatever the seq
+            return
+        self.rejected_run = 0
+        if k > self.max_seq:
+            self.max_seq = k
         self.frames[k] = fr
         self._run()
 
     def _on_est(self, data: bytes) -> None:
         es = np.empty(ES_N)
         k = self.ew.unpack(data, es)
+        self.counts.values["estimates"] += 1
+        if k < self.next_k:  # its frame was answered already (late, stale trip) or lost
+            self.counts.values["late_estimates"] += 1
+            return
         self.ests[k] = es
+        if len(self.ests) > qos.SAMPLE_DEPTH:  # estimates of frames that never came
+            for j in sorted(self.ests)[: len(self.ests) - qos.SAMPLE_DEPTH]:
+                del self.ests[j]
         self._run()
 
     def _run(self) -> None:
@@ -233,25 +306,97 @@ class ControllerNode(FluxNode):
             k = self.next_k
             fr = frames.get(k)
             if fr is None:
-                return
+                if not frames or self.max_seq <= k:
+                    return
+                # frame k never came but later ones did (lost upstream): skip to them
+                first = min(frames)
+                self.counts.values["missing_frames"] += first - k
+                for j in [j for j in ests if j < first]:
+                    del ests[j]
+                self.next_k = k = first
+                fr = frames[k]
             if self.sensorless:
                 es = ests.pop(k, None)
                 if es is None:
-                    return
+                    if self.cs[CS_MODE] == MODE_FAULT:
+                        es = self.no_est  # tripped: no need to wait for the estimate
+                    elif self.max_seq - k >= self.n_pos_timeout:
+                        late_ms = (self.max_seq - k) * self.card.ts_s * 1e3
+                        self._trip_stale(
+                            f"no position estimate for frame {k} while frames up to "
+                            f"{self.max_seq} arrived ({late_ms:.1f} ms of sample time)")
+                        es = self.no_est
+                    else:
+                        if self.wait_k != k:
+                            self.wait_k = k
+                            self.t_wait = time.monotonic()
+                        return
             else:
                 es = self.no_est
             del frames[k]
-            n = self.w_ref_profile.shape[0]
-            w_ref = self.const_ref if self.const_ref is not None else float(
-                self.w_ref_profile[min(k, n - 1)])
-            inj = float(self.id_inj[k]) if k < self.id_inj.shape[0] else 0.0
-            controller_step(self.cs, self.cp, fr, es, w_ref, inj, self.out)
-            sec, nsec = self.stamp(k)
-            self.pub_duty.publish(self.cw.pack_duty(self.out, k, sec, nsec))
-            self.pub_state.publish(self.cw.pack_state(self.out, k, sec, nsec))
+            self._answer(k, fr, es)
             self.next_k = k + 1
             if self.done_seq is not None and k >= self.done_seq:
                 self.finished = True
+
+    def _answer(self, k: int, fr: np.ndarray, es: np.ndarray) -> None:
+        n = self.w_ref_profile.shape[0]
+        w_ref = self.const_ref if self.const_ref is not None else float(
+            self.w_ref_profile[min(max(k, 0), n - 1)])
+        inj = float(self.id_inj[k]) if 0 <= k < self.id_inj.shape[0] else 0.0
+        controller_step(self.cs, self.cp, fr, es, w_ref, inj, self.out)
+        sec, nsec = self.stamp(k)
+        self.pub_duty.publish(self.cw.pack_duty(self.out, k, sec, nsec))
+        self.pub_state.publish(self.cw.pack_state(self.out, k, sec, nsec))
+
+    def _trip_stale(self, detail: str) -> None:
+        """Latch FAULT_STALE_INPUT: from the next step on the engine outputs PWM off."""
+        self.cs[CS_MODE] = MODE_FAULT
+        self.cs[CS_FAULT] = FAULT_STALE_INPUT
+        self.counts.values["stale_trips"] += 1
+        self.fault_detail = detail
+        self.get_logger().error(f"{FAULT_NAMES[FAULT_STALE_INPUT]}: {detail}; PWM off "
+                                f"(latched)")
+
+    def _check_wall_timeout(self) -> None:
+        lim = self.pv["position_wall_timeout_s"]
+        if (lim <= 0.0 or self.cs[CS_MODE] == MODE_FAULT or self.wait_k != self.next_k
+                or self.next_k not in self.frames or self.next_k in self.ests):
+            return
+        waited = time.monotonic() - self.t_wait
+        if waited > lim:
+            self._trip_stale(f"no position estimate for frame {self.next_k} on "
+                             f"{self.sub_est.topic} for {waited:.1f} s of wall time")
+            self._run()
+
+    # ----------------------------------------------------------------- diagnostics
+    def _diag_input(self) -> tuple[int, str, dict]:
+        c = self.counts
+        grew = c.grew("repeated_or_backwards", "missing_frames", "late_estimates")
+        values = {**c.report(), "next_sample": self.next_k, "last_frame_seq": self.max_seq,
+                  "pending_frames": len(self.frames)}
+        if grew:
+            return diag.WARN, "bad input since the last report (" + ", ".join(
+                f"{k} {c[k]}" for k in grew) + ")", values
+        return diag.OK, "input ok", values
+
+    def _diag_state(self) -> tuple[int, str, dict]:
+        out = self.out
+        code = int(out[CO_FAULT]) if self.next_k > 0 else int(self.cs[CS_FAULT])
+        mode = MODE_NAMES.get(int(out[CO_MODE]), "?")
+        values = {"mode": mode, "pwm_enabled": bool(out[CO_EN] > 0.5), "fault_code": code,
+                  "fault": FAULT_NAMES.get(code, "?") if code else "",
+                  "fault_detail": self.fault_detail if code else "",
+                  "position_source": (self.sub_est.topic if self.sub_est is not None
+                                      else "encoder")}
+        if self.cs[CS_MODE] == MODE_FAULT:
+            code = int(self.cs[CS_FAULT])
+            values.update(fault_code=code, fault=FAULT_NAMES.get(code, "?"), mode="fault",
+                          pwm_enabled=False)
+            text = FAULT_NAMES.get(code, "fault") + (f": {self.fault_detail}"
+                                                     if code == FAULT_STALE_INPUT else "")
+            return diag.ERROR, f"PWM off, latched fault: {text}", values
+        return diag.OK, f"{mode}, PWM {'on' if values['pwm_enabled'] else 'off'}", values
 
     def _on_done(self, msg: UInt64) -> None:
         if not self.exit_on_done:

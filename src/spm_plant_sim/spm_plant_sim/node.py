@@ -21,10 +21,15 @@ Modes
   (frames flagged STATUS_STALE_COMMAND) until duty commands come back.
 
 Sim time: /clock carries t_k every `clock_decimation` frames (0: no /clock).
+
+Malformed duty commands (counted on /diagnostics, "<node>: commands"): a non-finite duty
+drives that period with the PWM off; a duty outside [0, 1] is clamped (as a real modulator
+does); a seq that repeats or goes backwards, or names a frame not published yet, is dropped.
 """
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 
@@ -42,6 +47,7 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import UInt64
 
 import flux_drive_msgs.msg as fm
+from fluxdrive_ros import diagnostics as diag
 from fluxdrive_ros import qos, topics
 
 
@@ -81,6 +87,7 @@ def param_table(sc) -> list[P]:
           "subscriptions: volatile (matches any publisher) or transient_local (also receives "
           "what was published before the match; the lockstep sim graphs use it)",
           choices=qos.INPUT_DURABILITY_CHOICES, read_only=True),
+        diag.PARAM,
     ]
 
 
@@ -134,7 +141,12 @@ class PlantNode(FluxNode):
         self.last_duty: tuple | None = None
         self.t_last_duty = 0.0
         self.watchdog_tripped = False
+        self.counts = diag.Counters("duty_received", "duty_nonfinite", "duty_out_of_range",
+                                    "repeated_or_backwards", "unexpected_seq", "watchdog_trips")
+        self._logged = 0
         on_set(self, self.specs, self._apply)
+        self.diag = diag.Diagnostics(self, pv["diagnostics_period_s"])
+        self.diag.add("commands", self._diag_commands)
         self.get_logger().info(
             f"scenario {sc.name} ({self.sc.source}): {self.n if self.n < 2**62 else 'inf'} "
             f"periods of {ds.ts * 1e6:.0f} us, seed {sc.seed}, {pv['mode']}")
@@ -212,9 +224,30 @@ class PlantNode(FluxNode):
                 self.t_last_progress = now
                 self.progress(f"{k + 1} {self.n} {now - self.t_wall0:.3f}")
 
+    def _bad_duty(self, kind: str, text: str) -> None:
+        self.counts.add(kind)
+        if self._logged < 10:
+            self._logged += 1
+            self.get_logger().warning(text + ("" if self._logged < 10 else
+                                              " (further cases: /diagnostics only)"))
+
     def _on_duty(self, data: bytes) -> None:
         v = self.duty_dec.decode(data)
         seq = v[2]
+        c = self.counts.values
+        c["duty_received"] += 1
+        da, db, dc = v[3], v[4], v[5]
+        if not (math.isfinite(da) and math.isfinite(db) and math.isfinite(dc)):
+            self._bad_duty("duty_nonfinite", f"duty command {seq}: non-finite duty "
+                           f"({da}, {db}, {dc}): PWM off for that period")
+            v = (v[0], v[1], seq, 0.5, 0.5, 0.5, False)
+        elif not (-1e-9 <= min(da, db, dc) and max(da, db, dc) <= 1.0 + 1e-9):
+            self._bad_duty("duty_out_of_range", f"duty command {seq}: duty ({da:g}, {db:g}, "
+                           f"{dc:g}) outside [0, 1]: clamped")
+        if seq > self.k:
+            self._bad_duty("unexpected_seq", f"duty command {seq} answers no published frame "
+                           f"(last {self.k}): dropped")
+            return
         if self.paced:
             d = (v[3], v[4], v[5], bool(v[6]))
             self.duties[seq] = d
@@ -226,7 +259,11 @@ class PlantNode(FluxNode):
                 self.get_logger().info(f"duty commands back (seq {seq}); PWM follows them")
             self._pace_step()
             return
-        if self.done or seq < self.next_duty:
+        if self.done:
+            return
+        if seq < self.next_duty or seq in self.pending:
+            self._bad_duty("repeated_or_backwards", f"duty command {seq} repeated or "
+                           f"backwards (expected {self.next_duty}): dropped")
             return
         if seq > self.next_duty:
             self.pending[seq] = v
@@ -277,6 +314,7 @@ class PlantNode(FluxNode):
             else:
                 if not self.watchdog_tripped:
                     self.watchdog_tripped = True
+                    self.counts.add("watchdog_trips")
                     self.get_logger().warning(
                         f"watchdog: no duty command for {wd_wall * 1e3:.1f} ms of wall time; "
                         f"PWM off from frame {k}")
@@ -285,6 +323,18 @@ class PlantNode(FluxNode):
         if len(self.duties) > 64:  # drop duties for frames already simulated
             for old in [j for j in self.duties if j < self.k - 2]:
                 del self.duties[old]
+
+    def _diag_commands(self) -> tuple[int, str, dict]:
+        c = self.counts
+        grew = c.grew("duty_nonfinite", "duty_out_of_range", "repeated_or_backwards",
+                      "unexpected_seq")
+        values = {**c.report(), "last_frame": self.k, "mode": self.pv["mode"]}
+        if self.watchdog_tripped:
+            return diag.ERROR, "watchdog: no duty command in time, PWM off", values
+        if grew:
+            return diag.WARN, "malformed duty commands since the last report (" + ", ".join(
+                f"{k} {c[k]}" for k in grew) + ")", values
+        return diag.OK, "commands ok", values
 
     # ----------------------------------------------------------------- end
     def _finish(self) -> None:
