@@ -3,7 +3,8 @@ read-only or live; plus the set-parameters callback that validates a change as a
 rejects it with a reason.
 
 Conventions
-- every tunable is declared with a description that ends in its unit, e.g. "[Hz]";
+- every tunable is declared with a description that ends in its unit, e.g. "[Hz]" ("[-]"
+  for a dimensionless number);
 - numbers carry a FloatingPointRange / IntegerRange, strings their choices (checked here,
   listed in additional_constraints);
 - an integer given for a double parameter (YAML `250` for 250.0) is accepted and converted
@@ -16,10 +17,13 @@ Conventions
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
+import yaml
 from rcl_interfaces.msg import (
     FloatingPointRange,
     IntegerRange,
@@ -42,8 +46,13 @@ class P:
     choices: tuple[str, ...] | None = None
     read_only: bool = False
 
+    @property
+    def numeric(self) -> bool:
+        return isinstance(self.default, (int, float)) and not isinstance(self.default, bool)
+
     def descriptor(self) -> ParameterDescriptor:
-        text = self.description + (f" [{self.unit}]" if self.unit else "")
+        unit = self.unit or ("-" if self.numeric else "")  # [-]: dimensionless
+        text = self.description + (f" [{unit}]" if unit else "")
         d = ParameterDescriptor(description=text, read_only=self.read_only)
         if self.choices:
             d.additional_constraints = "one of: " + ", ".join(self.choices)
@@ -112,3 +121,92 @@ def on_set(node, specs: list[P], apply: Callable[[dict[str, Any]], str | None]) 
         return SetParametersResult(successful=True, reason=note or "")
 
     node.add_on_set_parameters_callback(cb)
+
+
+# --------------------------------------------------------------- ros__parameters files
+def _key_regex(key: str) -> re.Pattern:
+    """rcl's node-name patterns in parameter files: /ns/node, node, /**, /ns/*."""
+    k = key if key.startswith("/") else "/" + key
+    out = ""
+    for part in re.split(r"(\*\*|\*)", k):
+        out += ".*" if part == "**" else "[^/]*" if part == "*" else re.escape(part)
+    return re.compile(out.replace("/.*", "(/.*)?") + "$")
+
+
+def check_params_file(path: str | Path) -> dict[str, dict[str, Any]]:
+    """Read a ros__parameters file; raise ValueError naming the file (and the key) if it
+    is not what rcl accepts: {node pattern: {ros__parameters: {name: value}}} with scalar
+    values or lists of one scalar type.  Returns {node pattern: {name: value}} (nested
+    names flattened with dots)."""
+    path = Path(path)
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read parameter file: {exc.strerror}") from exc
+    except yaml.YAMLError as exc:
+        where = getattr(exc, "problem_mark", None)
+        line = f" (line {where.line + 1})" if where is not None else ""
+        raise ValueError(f"{path}: not valid YAML{line}: "
+                         f"{getattr(exc, 'problem', None) or exc}") from exc
+    if not isinstance(raw, dict):
+        raise ValueError(f"{path}: a parameter file is a mapping of node names to "
+                         f"{{ros__parameters: {{...}}}}, got {type(raw).__name__}")
+    out: dict[str, dict[str, Any]] = {}
+    for node_key, body in raw.items():
+        if not isinstance(body, dict) or "ros__parameters" not in body:
+            raise ValueError(f"{path}: '{node_key}' must hold a 'ros__parameters' mapping")
+        params = body["ros__parameters"]
+        if not isinstance(params, dict):
+            raise ValueError(f"{path}: '{node_key}.ros__parameters' must be a mapping of "
+                             f"parameter names to values, got {type(params).__name__}")
+        out[str(node_key)] = _flatten(path, str(node_key), params, "", {})
+    return out
+
+
+def _flatten(path: Path, node_key: str, d: dict, prefix: str,
+             flat: dict[str, Any]) -> dict[str, Any]:
+    for name, value in d.items():
+        key = f"{prefix}{name}"
+        where = f"{path}: '{node_key}.ros__parameters.{key}'"
+        if isinstance(value, dict):
+            _flatten(path, node_key, value, key + ".", flat)
+            continue
+        if isinstance(value, list):
+            kinds = {type(v) for v in value}
+            if not value or len(kinds) > 1 or not kinds <= {bool, int, float, str}:
+                raise ValueError(f"{where} must be a non-empty list of one type (bools, "
+                                 f"integers, doubles or strings), got {value!r}")
+        elif value is None or not isinstance(value, (bool, int, float, str)):
+            raise ValueError(f"{where} must be a value (number, string, bool or list), "
+                             f"got {value!r}")
+        flat[key] = value
+    return flat
+
+
+def file_values_for(paths: list[str], node_fqn: str) -> list[tuple[str, str, str, Any]]:
+    """(file, node pattern, name, value) of every parameter the files set for node_fqn."""
+    out = []
+    for p in paths:
+        for key, params in check_params_file(p).items():
+            if _key_regex(key).match(node_fqn):
+                out += [(str(p), key, name, v) for name, v in params.items()]
+    return out
+
+
+def blame(message: str, node_fqn: str, paths: list[str], inline: dict[str, Any]) -> str:
+    """Where a parameter named in an error `message` was set: ' (set in FILE as
+    NODE.ros__parameters.NAME)' or ' (set inline ...)'; '' if it cannot tell."""
+    def named(name: str) -> bool:
+        return re.search(rf"(?<![\w.]){re.escape(name)}(?![\w])", message) is not None
+
+    for name in inline:
+        if named(name):
+            return f" (set inline in the graph: {name} = {inline[name]!r})"
+    try:
+        hits = [h for h in file_values_for(paths, node_fqn) if named(h[2])]
+    except ValueError:
+        return ""
+    if hits:
+        f, key, name, _ = hits[-1]  # the last file wins, as in rcl
+        return f" (set in {f} as {key}.ros__parameters.{name})"
+    return ""

@@ -185,8 +185,12 @@ def _config_problem(exc: BaseException) -> bool:
     """Errors that are the user's configuration (reported in one line, no traceback)."""
     from rclpy.exceptions import ParameterException
 
+    try:
+        from rclpy._rclpy_pybind11 import RCLInvalidROSArgsError as ArgsError
+    except ImportError:  # pragma: no cover - other rclpy builds
+        ArgsError = ValueError  # noqa: N806
     return isinstance(exc, (ValueError, TypeError, KeyError, FileNotFoundError,
-                            ParameterException))
+                            ParameterException, ArgsError))
 
 
 def load_class(spec: str):
@@ -200,15 +204,31 @@ def _param_overrides(params: dict[str, Any]) -> list[Parameter]:
 
 
 def build_node(spec: dict) -> FluxNode:
+    """Construct a node from a container spec entry.  A bad parameter file or value ends
+    in a ValueError naming the parameter and where it was set (file and key, or inline)."""
+    from .params import blame, check_params_file
+
     cls = load_class(spec["class"])
+    files = [str(f) for f in spec.get("params_files", []) or []]
+    for f in files:
+        check_params_file(f)  # rcl's own parser reports C source lines, not the key
     cli = ["--ros-args"]
-    for f in spec.get("params_files", []) or []:
-        cli += ["--params-file", str(f)]
+    for f in files:
+        cli += ["--params-file", f]
     kw = {}
     if len(cli) > 1:
         kw["cli_args"] = cli
-    return cls(spec["name"], namespace=spec.get("namespace", ""),
-               parameter_overrides=_param_overrides(spec.get("parameters", {}) or {}), **kw)
+    inline = spec.get("parameters", {}) or {}
+    try:
+        return cls(spec["name"], namespace=spec.get("namespace", ""),
+                   parameter_overrides=_param_overrides(inline), **kw)
+    except Exception as exc:
+        if not _config_problem(exc):
+            raise
+        ns = (spec.get("namespace", "") or "").rstrip("/")
+        fqn = f"{ns}/{spec['name']}" if ns.startswith("/") else f"/{spec['name']}"
+        text = str(exc)
+        raise ValueError(text + blame(text, fqn, files, inline)) from exc
 
 
 def main_node(cls_spec: str, default_name: str, argv: list[str] | None = None) -> int:
