@@ -103,12 +103,23 @@ def _svpwm(va, vb, vdc):
 
 @njit(cache=True)
 def _trip(cs, out, code):
+    """Latch `code` and write a complete PWM-off row: every CO_* field is set (zeros for
+    the dq quantities, angle and feedback, which are not computed once tripped), so a
+    reused output buffer never carries a stale value into a recording."""
     cs[CS_MODE] = MODE_FAULT
     cs[CS_FAULT] = code
     out[CO_DA] = 0.5
     out[CO_DB] = 0.5
     out[CO_DC] = 0.5
     out[CO_EN] = 0.0
+    out[CO_ID] = 0.0
+    out[CO_IQ] = 0.0
+    out[CO_ID_REF] = 0.0
+    out[CO_IQ_REF] = 0.0
+    out[CO_VD] = 0.0
+    out[CO_VQ] = 0.0
+    out[CO_W_FB] = 0.0
+    out[CO_TH] = 0.0
     out[CO_MODE] = MODE_FAULT
     out[CO_FAULT] = code
 
