@@ -25,6 +25,8 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "param": ("fluxdrive_bringup.cli", "main_param", "param get|set|dump"),
     "bag": ("fluxdrive_bringup.cli", "main_bag",
             "bag recover BAG_DIR [--out DIR]: a valid bag from an unfinalised one"),
+    "soak": ("fluxdrive_bringup.cli", "main_soak",
+             "load check: long lockstep graph run + burst replay (memory, no loss)"),
     "replay": ("fluxdrive.replay", "main", "replay bags through observer variants"),
     "can-import": ("fluxdrive.canimport", "main", "CAN capture (.log/.asc/.blf) -> bag"),
     "experiment": ("fluxdrive.experiments", "main", "reproduce the paper's figures"),

@@ -550,7 +550,8 @@ def format_sweep(rows: list[dict[str, Any]], key: str) -> str:
 
 # ====================================================================== live replay
 def live_replay(bag_path: Path, rate: float, loop: bool, start_s: float,
-                max_frames: int | None = None, topic: str = "/drive/frame") -> int:
+                max_frames: int | None = None, topic: str = "/drive/frame",
+                wait_s: float = 2.0) -> int:
     """Publish the bag's frames (the recorded CDR bytes, untouched) at `rate` x real time."""
     bag = read_run_bag(bag_path, keep_raw=True)
     for pr in bag.problems:
@@ -561,19 +562,26 @@ def live_replay(bag_path: Path, rate: float, loop: bool, start_s: float,
     if not raw:
         raise BagError(f"{bag_path}: --start {start_s} s is past the end of the bag")
     import rclpy
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rclpy.duration import Duration
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
     try:
         from flux_drive_msgs.msg import PhaseFrame
     except ImportError as exc:
         raise ConfigError(f"--live needs the built flux_drive_msgs ({exc})") from None
+    from rclpy.impl.implementation_singleton import rclpy_implementation
+
+    rcl_error = rclpy_implementation.RCLError
     rclpy.init()
     node = rclpy.create_node("fluxdrive_replay")
-    pub = node.create_publisher(PhaseFrame, topic,
-                                QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+    # KEEP_ALL + reliable: a reader that keeps all (a recorder, a counting probe) is
+    # flow-controlled rather than overrun at high --rate (KEEP_LAST lost frames in bursts);
+    # readers that keep only the last N still choose to drop on their side.
+    pub = node.create_publisher(PhaseFrame, topic, QoSProfile(
+        depth=100, history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE))
     sent = 0
     try:
-        t_wait = time.monotonic() + 2.0
+        t_wait = time.monotonic() + wait_s
         while pub.get_subscription_count() == 0 and time.monotonic() < t_wait:
             time.sleep(0.05)
         while True:
@@ -585,7 +593,7 @@ def live_replay(bag_path: Path, rate: float, loop: bool, start_s: float,
                 now = time.monotonic()
                 if due > now + 2e-4:
                     time.sleep(due - now)
-                pub.publish(data)
+                _publish_flow_controlled(pub, data, rcl_error)
                 sent += 1
                 if max_frames is not None and sent >= max_frames:
                     return _live_done(sent, t0_wall)
@@ -597,8 +605,32 @@ def live_replay(bag_path: Path, rate: float, loop: bool, start_s: float,
                 break
         return _live_done(sent, t0_wall)
     finally:
+        # frames still in the writer's history would be lost with the process
+        if sent and not pub.wait_for_all_acked(Duration(seconds=30.0)):
+            print("[live] warning: not every frame was acknowledged by the readers within "
+                  "30 s", file=sys.stderr)
         node.destroy_node()
         rclpy.try_shutdown()
+
+
+def _publish_flow_controlled(pub, data: bytes, rcl_error: type, give_up_s: float = 30.0):
+    """Publish, waiting while a KEEP_ALL reader is behind: the middleware blocks a full
+    writer history for its max_blocking_time and then refuses the sample, so retry until
+    the readers have caught up (a reader that stops acknowledging for `give_up_s` ends the
+    replay with an error instead of losing frames)."""
+    t_end = None
+    while True:
+        try:
+            pub.publish(data)
+            return
+        except rcl_error as exc:
+            now = time.monotonic()
+            if t_end is None:
+                t_end = now + give_up_s
+            elif now > t_end:
+                raise BagError(f"live replay: the readers took no frame for {give_up_s:g} s "
+                               f"({exc})") from None
+            time.sleep(0.002)
 
 
 def _live_done(sent: int, t0_wall: float) -> int:
@@ -639,6 +671,8 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--rate", type=float, default=1.0, help="live: factor of real time")
     ap.add_argument("--loop", action="store_true", help="live: start again at the end")
     ap.add_argument("--start", type=float, default=0.0, help="live: offset into the bag [s]")
+    ap.add_argument("--wait-s", type=float, default=2.0,
+                    help="live: wait this long for a first subscriber before publishing")
     ap.add_argument("--max-frames", type=int, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     try:
@@ -654,7 +688,8 @@ def _main(args) -> int:
             raise ConfigError("--live takes exactly one bag")
         if args.rate <= 0:
             raise ConfigError("--rate must be > 0")
-        return live_replay(args.bags[0], args.rate, args.loop, args.start, args.max_frames)
+        return live_replay(args.bags[0], args.rate, args.loop, args.start, args.max_frames,
+                           wait_s=args.wait_s)
     machine = load_machine(args.machine) if args.machine else None
     window = _parse_window(args.window)
     out = args.out or REPO_ROOT / "runs" / f"replay-{time.strftime('%Y%m%d-%H%M%S')}"
