@@ -72,21 +72,25 @@ from .plant import (
     TR_TL,
     TR_WM,
 )
+from .topics import (
+    CONTROLLER_STATE,
+    DUTY,
+    ESTIMATE,
+    FRAME,
+    MSG_SRC_DIR,
+    OBS_NAMESPACE,
+    T_DUTY,
+    T_ESTIMATE,
+    T_FRAME,
+    T_STATE,
+    T_TRUTH,
+    TRUTH,
+)
 
-TOPIC_FRAME = "/drive/frame"
-TOPIC_TRUTH = "/drive/truth"
-TOPIC_DUTY = "/drive/duty"
-TOPIC_CTRL = "/drive/controller_state"
-EST_PREFIX, EST_SUFFIX = "/obs/", "/estimate"
-
-T_FRAME = "flux_drive_msgs/msg/PhaseFrame"
-T_TRUTH = "flux_drive_msgs/msg/PlantTruth"
-T_DUTY = "flux_drive_msgs/msg/DutyCommand"
-T_CTRL = "flux_drive_msgs/msg/ControllerState"
-T_EST = "flux_drive_msgs/msg/RotorEstimate"
-MSG_NAMES = ("PhaseFrame", "PlantTruth", "DutyCommand", "ControllerState", "RotorEstimate",
-             "DriveFault", "FreqResponsePoint")
-MSG_DIR = Path(__file__).resolve().parents[2] / "src" / "flux_drive_msgs" / "msg"
+TOPIC_FRAME, TOPIC_TRUTH, TOPIC_DUTY, TOPIC_CTRL = FRAME, TRUTH, DUTY, CONTROLLER_STATE
+EST_PREFIX, EST_SUFFIX = f"{OBS_NAMESPACE}/", f"/{ESTIMATE}"
+T_CTRL, T_EST = T_STATE, T_ESTIMATE
+MSG_DIR = MSG_SRC_DIR
 META_KEY = "fluxdrive"  # custom_data key: JSON with machine, observers, scenario, states
 
 
@@ -102,16 +106,17 @@ _STORE = None
 
 
 def typestore():
-    """rosbags typestore with the project's messages registered from their .msg files."""
+    """rosbags typestore: ROS 2 Jazzy's standard types + every flux_drive_msgs message,
+    registered from the .msg sources (so every bag embeds its definitions).  The one
+    typestore of the project (the graph's recorder and bag reader use it too)."""
     global _STORE
     if _STORE is None:
         from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
         store = get_typestore(Stores.ROS2_JAZZY)
         types = {}
-        for name in MSG_NAMES:
-            text = (MSG_DIR / f"{name}.msg").read_text()
-            types.update(get_types_from_msg(text, f"flux_drive_msgs/msg/{name}"))
+        for p in sorted(MSG_DIR.glob("*.msg")):
+            types.update(get_types_from_msg(p.read_text(), f"flux_drive_msgs/msg/{p.stem}"))
         store.register(types)
         _STORE = store
     return _STORE

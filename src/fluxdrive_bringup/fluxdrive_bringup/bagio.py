@@ -9,26 +9,16 @@ import re
 from pathlib import Path
 
 import numpy as np
-from fluxdrive_ros.cdr import Decoder, msg_dir
+from fluxdrive_ros.cdr import Decoder
 
 from fluxdrive_ros import topics
 
-_STORE = None
-
 
 def typestore():
-    """rosbags typestore: ROS 2 Jazzy's standard types + every flux_drive_msgs message."""
-    global _STORE
-    if _STORE is None:
-        from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+    """The project's one rosbags typestore (fluxdrive.bagio.typestore)."""
+    from fluxdrive.bagio import typestore as engine_typestore
 
-        store = get_typestore(Stores.ROS2_JAZZY)
-        types = {}
-        for p in sorted(msg_dir().glob("*.msg")):
-            types.update(get_types_from_msg(p.read_text(), f"flux_drive_msgs/msg/{p.stem}"))
-        store.register(types)
-        _STORE = store
-    return _STORE
+    return engine_typestore()
 
 
 def bag_files(bag: Path) -> list[Path]:

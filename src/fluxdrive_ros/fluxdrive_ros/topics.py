@@ -1,28 +1,27 @@
 """Topic names and message types of the fluxdrive graph (one place, used by every node,
-the recorder, the launcher and the inspection tools)."""
+the recorder, the launcher and the inspection tools).  Defined in fluxdrive.topics (the
+engine's bag I/O needs them without ROS); this module adds what needs rclpy."""
 
 from __future__ import annotations
 
-FRAME = "/drive/frame"  # flux_drive_msgs/PhaseFrame, plant (or bench bridge) -> all
-TRUTH = "/drive/truth"  # flux_drive_msgs/PlantTruth, simulation only
-DUTY = "/drive/duty"  # flux_drive_msgs/DutyCommand, controller -> plant
-CONTROLLER_STATE = "/drive/controller_state"  # flux_drive_msgs/ControllerState
-DONE = "/drive/done"  # std_msgs/UInt64: last seq of a finished run (latched)
-CLOCK = "/clock"  # rosgraph_msgs/Clock: sim time of the plant
-ESTIMATE = "estimate"  # relative: /obs/<name>/estimate (flux_drive_msgs/RotorEstimate)
-OBS_NAMESPACE = "/obs"
-
-T_FRAME = "flux_drive_msgs/msg/PhaseFrame"
-T_TRUTH = "flux_drive_msgs/msg/PlantTruth"
-T_DUTY = "flux_drive_msgs/msg/DutyCommand"
-T_STATE = "flux_drive_msgs/msg/ControllerState"
-T_ESTIMATE = "flux_drive_msgs/msg/RotorEstimate"
-T_UINT64 = "std_msgs/msg/UInt64"
-T_CLOCK = "rosgraph_msgs/msg/Clock"
-
-
-def estimate_topic(observer: str) -> str:
-    return f"{OBS_NAMESPACE}/{observer}/{ESTIMATE}"
+from fluxdrive.topics import (  # noqa: F401 - re-exported: the one definition
+    CLOCK,
+    CONTROLLER_STATE,
+    DONE,
+    DUTY,
+    ESTIMATE,
+    FRAME,
+    OBS_NAMESPACE,
+    T_CLOCK,
+    T_DUTY,
+    T_ESTIMATE,
+    T_FRAME,
+    T_STATE,
+    T_TRUTH,
+    T_UINT64,
+    TRUTH,
+    estimate_topic,
+)
 
 
 def msg_class(type_name: str):
