@@ -167,6 +167,11 @@ def main_run(argv: list[str], default_scenario: str | None = None) -> int:
     stamp = time.strftime("%Y%m%d-%H%M%S")
     out = args.out or REPO_ROOT / "runs" / f"{sc.name}-{stamp}"
     bag = args.bag or REPO_ROOT / "bags" / f"{sc.name}-{stamp}"
+    if Path(bag).exists():
+        # before anything starts: a failed run must never be mistaken for this old bag
+        print(f"[run] bag directory {bag} exists already; choose a new one (--bag)",
+              file=sys.stderr)
+        return 2
     r = run_graph(sp, out=out, bag=bag, layout=args.layout, duration_s=args.duration,
                   domain_id=args.domain_id, quiet=args.quiet, timeout=args.timeout)
     if r["interrupted"]:
