@@ -316,3 +316,134 @@ def test_bench_can_cli_reports_rate_and_drops():
     out = bench_can_cli(["--frames", "5000", "--seconds", "0.3"])
     assert out["dropped"] == 0 and out["sustained_dropped"] == 0
     assert out["frames_per_s"] > 0 and "sustained" in out
+
+
+# --------------------------------------------------------------------------- classic CAN
+
+
+def classic_control(sc, d):
+    """The observers' and controller's side of a classic-layout loop, at the sample rate
+    10 kHz / D: a current loop just under a quarter of it (300 Hz at D = 8), a slower
+    speed loop (5 Hz: at 10 Hz the delayed loop limit-cycles by +-5 rpm) and a softer
+    I-f start (0.4 pu, 0.1 s agreement) that hands over without the rotor swinging."""
+    from fluxdrive.canloop import decimated_scenario
+
+    return decimated_scenario(sc, d, current_bandwidth_hz=300.0, speed_bandwidth_hz=5.0,
+                              if_current_pu=0.4, handover_dwell_s=0.1)
+
+
+def test_closed_loop_over_classic_can_2pct_sensorless():
+    from fluxdrive.canproto import CLASSIC_SAMPLE_IDS, decimate_for_classic, frame_bits, link_budget
+
+    proto = get_protocol()
+    d = proto.classic_decimation
+    sc = short_2pct(2.0)
+    # what the classic layout costs at 1 Mbit/s: 10 kHz does not fit, D = 8 does
+    full = link_budget("classic", decimation=1)
+    dec = link_budget("classic", decimation=d)
+    assert not full["fits"] and full["load_none"] > 5.0  # 555 bits every 100 us
+    assert dec["fits"] and dec["load_worst"] < 0.9
+    ref = run_scenario(sc, progress=False)
+    ref_rms = theta_rms_deg(ref.est[0], ref.truth, int(1.5 / sc.machine.ts_s))
+    ch = new_virtual_channel()
+    tap = can.Bus(interface="virtual", channel=ch, fd=False)
+    try:
+        res = run_can_loop(sc, channel=ch, layout="classic",
+                           control_scenario=classic_control(sc, d),
+                           emulator_kw={"lockstep_wait_s": 5.0})
+        bits, counts = 0, {}
+        msg = tap.recv(0.1)
+        while msg is not None:
+            assert not msg.is_fd
+            bits += frame_bits(len(msg.data))[0]
+            counts[msg.arbitration_id] = counts.get(msg.arbitration_id, 0) + 1
+            msg = tap.recv(0.0)
+    finally:
+        tap.shutdown()
+    m = sc.n_periods // d
+    assert res.decimation == d and res.frames_rx.shape[0] == m
+    assert np.array_equal(res.seq_rx, np.arange(m))  # sample index j, every sample in order
+    assert all(counts[i] == m for i in CLASSIC_SAMPLE_IDS) and counts[ID_DUTY_CMD] >= m
+    # the drive's windows are the full-rate frames decimated (volt-seconds over D periods)
+    win = decimate_for_classic(res.frames_sent, d)[: m - 1]
+    rx = res.frames_rx[1:]
+    assert np.max(np.abs(rx[:, 0:3] - win[:, 0:3])) <= 0.0005 + 1e-9  # currents, 1 mA
+    assert np.max(np.abs(rx[:, 3:6] - win[:, 3:6])) <= 0.002 + 1e-9  # v_ll means, 4 mV
+    assert np.max(np.abs(rx[:, 7:10] - win[:, 7:10])) <= 1e-5 + 1e-9  # duty means
+    assert np.array_equal(rx[:, 11], win[:, 11])  # 24-bit encoder unwrapped
+    j0 = int(1.5 / (d * sc.machine.ts_s))
+    truth = res.truth_at_samples
+    can_rms = theta_rms_deg(res.est[0], truth, j0)
+    speed = truth[j0:, TR_WM].mean() / RPM
+    load = bits / (sc.duration_s * 1e6)
+    print(f"classic CAN, D={d} ({1e4 / d:.0f} Hz samples, control at D*Ts): theta RMS "
+          f"{can_rms:.3f} deg (FD in-process {ref_rms:.3f} deg), {speed:.1f} rpm; "
+          f"bus load at 1 Mbit/s {100 * load:.1f} % without stuffing (budget "
+          f"{100 * dec['load_none']:.1f}-{100 * dec['load_worst']:.1f} %), "
+          f"10 kHz would need {100 * full['load_none']:.0f} %; {m / res.wall_s:.0f} samples/s wall")
+    assert abs(speed - 60.0) < 6.0
+    assert np.all(res.ctrl[j0:, 13] == 3)  # closed loop on the flux observer
+    assert can_rms < max(1.5 * ref_rms, ref_rms + 0.3)
+    assert abs(load - dec["load_none"]) < 0.02  # the traffic is what the budget counts
+    dg = res.diagnostics
+    assert dg["layout"] == "classic" and dg["decimation"] == d
+    assert dg["malformed"] == 0 and dg["seq_gaps"] == 0 and dg["faults"] == 0
+    assert dg["layout_mismatch"] == 0 and dg.get("classic_incomplete", 0) == 0
+    assert res.emulator_stats["lockstep_timeouts"] == 0
+    assert res.emulator_stats["stale_periods"] == 0
+    assert res.emulator_stats["layout_mismatch"] == 0
+
+
+def test_classic_bridge_gaps_malformed_and_wire_seq():
+    """Bridge in the classic layout, fed by hand: a lost part (incomplete set -> a gap of
+    one sample), a short part (malformed), an FD sample (other layout), the 16-bit wire
+    seq wrapping; frames come out with the sample index, duties go back with the wire seq
+    of the sample they answer, ARM_MODE asks for the classic layout."""
+    from fluxdrive.bridge import bus_factory_from_params
+    from fluxdrive.canproto import frame_to_classic_payloads
+
+    proto = get_protocol()
+    d = 8
+    ch = new_virtual_channel()
+    tx = can.Bus(interface="virtual", channel=ch, fd=False)
+    br = CanBridge(bus_factory_from_params("virtual", ch, fd=False), BridgeConfig(decimation=d))
+    assert br.layout == "classic" and br.decimation == d  # "auto" follows fd=False
+    br.connect()
+    wire = [(65536 - 3 * d + i * d) % 65536 for i in range(8)]  # wraps after 3 samples
+    try:
+        for i, s in enumerate(wire):
+            fr = np.zeros(14)
+            fr[6], fr[12], fr[11] = 72.0, s, 1000 * i
+            parts = frame_to_classic_payloads(fr)
+            if i == 4:
+                parts = parts[:2] + parts[3:]  # DUTY part lost -> sample dropped
+            if i == 6:
+                parts[1] = (parts[1][0], parts[1][1][:5])  # short VLT part
+            for aid, data in parts:
+                tx.send(can.Message(arbitration_id=aid, is_extended_id=False, data=data),
+                        timeout=0.1)
+        tx.send(can.Message(arbitration_id=ID_SAMPLE_FD, is_extended_id=False, is_fd=True,
+                            data=proto.encode("SAMPLE_FD", {"vdc": 72.0})), timeout=0.1)
+        time.sleep(0.05)
+        frames = br.poll(timeout=0.1)
+        assert br.send_duty(int(frames[-1, 12]), (0.5, 0.5, 0.5), False)
+        got = []
+        msg = tx.recv(0.1)
+        while msg is not None:
+            got.append(msg)
+            msg = tx.recv(0.0)
+    finally:
+        br.shutdown()
+        tx.shutdown()
+    dg = br.diagnostics()
+    j = frames[:, 12].astype(int)
+    assert list(j - j[0]) == [0, 1, 2, 3, 5, 7]  # samples 4 and 6 lost, wrap unwrapped
+    assert list(frames[:, 11]) == [0, 1000, 2000, 3000, 5000, 7000]
+    assert dg["seq_gaps"] == 2 and dg["seq_lost"] == 2
+    assert dg["malformed"] == 1 and dg["malformed_length"] == 1
+    assert dg["classic_incomplete"] == 2 and dg["layout_mismatch"] == 1
+    duty = [proto.decode(ID_DUTY_CMD, m.data) for m in got if m.arbitration_id == ID_DUTY_CMD]
+    assert duty[0]["cmd_seq"] == wire[7]  # answers sample 7 with its wire seq
+    arm = [proto.decode(ID_ARM_MODE, m.data) for m in got if m.arbitration_id == ID_ARM_MODE]
+    assert arm and all(a["sample_layout"] == 1 and a["decimation"] == d for a in arm)
+    assert arm[0]["cmd_timeout"] >= 1.5 * d * 1e-4 - 1e-4  # the MCU watchdog spans a sample

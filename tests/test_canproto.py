@@ -386,3 +386,50 @@ def test_frame_layout_matches_plant():
     assert plant.FR_N == len(cp.FRAME_FIELDS)
     for fr, name in names.items():
         assert getattr(plant, fr) == cp.FRAME_INDEX[name], fr
+
+
+# --------------------------------------------------------------------------- bus time
+
+
+def test_frame_bits_and_link_budget():
+    # classic base frame, 8 bytes: 111 bits, 135 with worst-case stuffing (Davis et al.)
+    assert cp.frame_bits(8) == (111, 0) and cp.frame_bits(8, stuffing="worst") == (135, 0)
+    assert cp.frame_bits(0) == (47, 0) and cp.frame_bits(2) == (63, 0)
+    # CAN FD, 64 bytes with BRS: 29 bits at the nominal rate, 550 at the data rate
+    assert cp.frame_bits(64, fd=True, brs=True) == (29, 550)
+    assert cp.frame_bits(38, fd=True, brs=True) == cp.frame_bits(48, fd=True, brs=True)
+    assert cp.frame_bits(64, fd=True) == (579, 0)
+    assert cp.bus_time_s(64, 1e6, 5e6, fd=True, brs=True) == pytest.approx(139e-6)
+    with pytest.raises(ValueError):
+        cp.frame_bits(9)
+    # classic at 10 kHz: 4 sample parts + the duty = 555..675 bits every 100 us
+    full = cp.link_budget("classic", decimation=1)
+    assert full["bits_none"]["nominal"] == 555 and full["bits_worst"]["nominal"] == 675
+    assert not full["fits"] and full["load_none"] > 5.5
+    assert not cp.link_budget("classic", decimation=6)["fits"]  # worst case 113 %
+    d8 = cp.link_budget("classic", decimation=8)
+    assert d8["fits"] and 0.69 < d8["load_none"] < 0.70 and 0.84 < d8["load_worst"] < 0.85
+    assert d8["host_budget_us_worst"] == pytest.approx(125.0)
+    # the FD layout at 10 kHz and 1/5 Mbit/s: the 64-byte sample alone takes 139 us
+    fd = cp.link_budget("fd")
+    assert not fd["fits"] and fd["bus_time_us_none"] == pytest.approx(250.0)
+
+
+def test_one_frame_codec_equals_vectorised(proto):
+    rng = np.random.default_rng(8)
+    for fid, codec in proto.classic_codecs.items():
+        msg = proto.message(fid)
+        raw = random_raw(msg, 200, rng)
+        pay = codec.encode_raw(raw)
+        rows = [r.tobytes() for r in pay] + [pay[0, :5].tobytes()]
+        res = codec.decode_checked(rows)
+        for i, row in enumerate(rows):
+            vals, reason = codec.decode_one(row)
+            assert reason == res.report.reasons[i]
+            if res.report.valid[i]:
+                assert np.array_equal(vals, res.values[i])
+                assert codec.encode_one(dict(zip(codec.names, vals, strict=True))) == row
+            else:
+                assert vals is None and reason
+        with pytest.raises(ValueError):
+            codec.encode_one({codec.names[1]: float("nan")})

@@ -6,6 +6,13 @@
   seq unwrapped to a 64-bit period index). A burst of frames goes through the vectorised
   numpy codec (:meth:`FluxdriveProtocol.decode_fd`); a lone frame (lockstep, lowest
   latency) through cantools with the same DBC range checks;
+* or, with the **classic layout** (``BridgeConfig.layout``; ``"auto"`` follows the bus
+  factory's ``fd`` flag), reassemble SAMPLE_C_CUR/VLT/DUTY/AUX into frames
+  (:class:`ClassicReassembler`). The samples come every D-th PWM period, so the frames'
+  seq is the *sample* index j = k // D (consecutive, what the observers and the controller
+  expect; they must run at D*Ts), and a duty for sample j goes out with the wire seq of
+  that sample. ARM_MODE tells the MCU the layout and D; a STATUS reporting another
+  layout is counted (``layout_mismatch``);
 * **malformed** frames (wrong length, FD flag clear, out of the DBC range, non-finite) are
   dropped and counted by reason; **sequence gaps**, duplicates and out-of-order frames
   are counted (:class:`SeqTracker`) and the loop continues;
@@ -40,6 +47,7 @@ import numpy as np
 
 from .canproto import (
     ARM_KEY,
+    CLASSIC_SAMPLE_IDS,
     FRAME_FIELDS,
     FRAME_FLAG_ADC_CLIP,
     ID_ARM_MODE,
@@ -50,6 +58,7 @@ from .canproto import (
     ID_STATUS,
     PROTOCOL_VERSION,
     SEQ_BITS,
+    ClassicReassembler,
     FluxdriveProtocol,
     SeqTracker,
     get_protocol,
@@ -58,6 +67,7 @@ from .canproto import (
 __all__ = [
     "FRAME_FLAG_STALE_COMMAND",
     "BridgeConfig",
+    "BusFactory",
     "CanBridge",
     "bus_factory_from_params",
 ]
@@ -93,6 +103,38 @@ class BridgeConfig:
     """Bursts of at least this many sample frames use the vectorised numpy decoder."""
     max_reasons: int = 50
     """Examples of malformed-frame reasons kept for diagnostics."""
+    layout: str = "auto"
+    """Sample layout: "fd" (SAMPLE_FD each period), "classic" (4-frame layout every D
+    periods) or "auto" (classic when the bus factory says ``fd=False``, else fd)."""
+    decimation: int = 0
+    """Classic layout's D (0: the DBC's ClassicDecimation)."""
+
+
+# python-can interfaces that take no bit-rate arguments (software buses)
+_NO_BITRATE = ("virtual", "udp_multicast")
+
+
+@dataclass
+class BusFactory:
+    """A bus factory for :class:`CanBridge` from the node's parameters (callable; opens a
+    new python-can bus each call). ``fd`` also selects the bridge's sample layout when
+    its ``layout`` is "auto"."""
+
+    interface: str = "virtual"
+    channel: str = "fluxdrive"
+    bitrate: int = 1_000_000
+    fd: bool = True
+    data_bitrate: int = 5_000_000
+    extra: dict[str, Any] | None = None
+
+    def __call__(self) -> can.BusABC:
+        kw: dict[str, Any] = {"interface": self.interface, "channel": self.channel, "fd": self.fd}
+        if self.interface not in _NO_BITRATE:
+            kw["bitrate"] = self.bitrate
+            if self.fd:
+                kw["data_bitrate"] = self.data_bitrate
+        kw.update(self.extra or {})
+        return can.Bus(**kw)
 
 
 def bus_factory_from_params(
@@ -102,19 +144,10 @@ def bus_factory_from_params(
     fd: bool = True,
     data_bitrate: int = 5_000_000,
     **extra: Any,
-) -> Callable[[], can.BusABC]:
-    """A bus factory for :class:`CanBridge` from the node's parameters."""
-
-    def make() -> can.BusABC:
-        kw: dict[str, Any] = {"interface": interface, "channel": channel, "fd": fd}
-        if interface != "virtual":
-            kw["bitrate"] = bitrate
-            if fd:
-                kw["data_bitrate"] = data_bitrate
-        kw.update(extra)
-        return can.Bus(**kw)
-
-    return make
+) -> BusFactory:
+    """A :class:`BusFactory` from the node's parameters (``extra``: more python-can
+    arguments, e.g. ``port`` / ``hop_limit`` of ``udp_multicast``)."""
+    return BusFactory(interface, channel, bitrate, fd, data_bitrate, dict(extra) or None)
 
 
 class CanBridge:
@@ -145,12 +178,30 @@ class CanBridge:
             (s.name, s.minimum, s.maximum) for s in self._msg_fd.signals
             if s.minimum is not None or s.maximum is not None
         ]
+        layout = self.cfg.layout
+        if layout == "auto":
+            layout = "fd" if getattr(bus_factory, "fd", True) else "classic"
+        if layout not in ("fd", "classic"):
+            raise ValueError(f"layout must be 'fd', 'classic' or 'auto', not {layout!r}")
+        self.layout = layout
+        d = self.cfg.decimation or self.proto.classic_decimation
+        if layout == "classic" and not 1 <= d <= 255:
+            raise ValueError(f"classic decimation must be in 1..255, not {d}")
+        self.decimation = d if layout == "classic" else 1
+        """PWM periods per sample (1 with the FD layout)."""
+        # the MCU's duty watchdog must outlast a sample period (D periods classic)
+        self.mcu_cmd_timeout_s = max(
+            self.cfg.cmd_timeout_s, 1.5 * self.decimation / self.proto.pwm_frequency
+        ) if layout == "classic" else self.cfg.cmd_timeout_s
+        self._reasm = ClassicReassembler(protocol=self.proto)
+        self._wire: dict[int, int] = {}  # classic: sample index j -> wire seq (16 bit)
         # state
         self.armed = False
         self.fault: str = ""  # latched host-side fault reason ("" = none)
         self.mcu: dict[str, Any] = {}  # last MCU status / fault / sample flags
-        self.seq = SeqTracker()
+        self.seq = SeqTracker(step=self.decimation)
         self._seq_hi = 0  # unwrapped period index of the last valid sample
+        self._seq_out = 0  # seq of the last frame handed out (k, or j = k // D classic)
         self._seq_last16: int | None = None
         self._last_valid_t: float | None = None
         self._next_hb_t = 0.0
@@ -184,6 +235,7 @@ class CanBridge:
         self._backoff = self.cfg.reconnect_initial_s
         self._last_valid_t = None  # the stale timer restarts with the first frame
         self._seq_last16 = None
+        self._reasm = ClassicReassembler(protocol=self.proto)
         self._next_hb_t = 0.0
         return True
 
@@ -249,7 +301,7 @@ class CanBridge:
             self.counters["enable_suppressed"] += 1
         d = [min(max(x, 0.0), 1.0) for x in d]
         data = self._msg_duty.encode(
-            {"cmd_seq": int(seq) % _SEQ_MOD, "cmd_duty_a": d[0], "cmd_duty_b": d[1],
+            {"cmd_seq": self._wire_seq(int(seq)), "cmd_duty_a": d[0], "cmd_duty_b": d[1],
              "cmd_duty_c": d[2], "cmd_enable": int(en)},
             strict=False,
         )  # fmt: skip
@@ -260,13 +312,20 @@ class CanBridge:
                 self.counters["duty_tx_enabled"] += 1
         return ok
 
+    def _wire_seq(self, seq: int) -> int:
+        """16-bit wire seq of the sample a duty answers (classic: j -> its c_seq)."""
+        if self.layout == "classic":
+            return self._wire.get(seq, (seq * self.decimation) % _SEQ_MOD)
+        return seq % _SEQ_MOD
+
     def _send_arm(self, arm: bool, reset_fault: bool = False) -> bool:
         self._arm_counter = (self._arm_counter + 1) % 256
         data = self._msg_arm.encode(
-            {"arm": int(arm), "reset_fault": int(reset_fault), "sample_layout": 0,
+            {"arm": int(arm), "reset_fault": int(reset_fault),
+             "sample_layout": int(self.layout == "classic"),
              "mode": 1 if arm else 0, "arm_key": ARM_KEY if arm else 0,
-             "cmd_timeout": self.cfg.cmd_timeout_s, "decimation": 1,
-             "arm_counter": self._arm_counter},
+             "cmd_timeout": min(self.mcu_cmd_timeout_s, 6.5535),
+             "decimation": self.decimation, "arm_counter": self._arm_counter},
             strict=False,
         )  # fmt: skip
         return self._send(ID_ARM_MODE, data)
@@ -292,7 +351,7 @@ class CanBridge:
             self.armed = False
             self.counters["disarms"] += 1
             if self.connected:
-                self.send_duty(self._seq_hi, (0.5, 0.5, 0.5), False)
+                self.send_duty(self._seq_out, (0.5, 0.5, 0.5), False)
                 self._send_arm(False)
         return True, reason or "disarmed"
 
@@ -325,10 +384,11 @@ class CanBridge:
                 return np.empty((0, len(FRAME_FIELDS)))
         samples: list[can.Message] = []
         bus = self.bus
+        sample_ids = (ID_SAMPLE_FD,) if self.layout == "fd" else CLASSIC_SAMPLE_IDS
         try:
             msg = bus.recv(timeout=timeout)
             while msg is not None:
-                if msg.arbitration_id == ID_SAMPLE_FD and not msg.is_error_frame:
+                if msg.arbitration_id in sample_ids and not msg.is_error_frame:
                     samples.append(msg)
                 else:
                     self._handle_other(msg)
@@ -360,7 +420,14 @@ class CanBridge:
                     pwm_enabled=int(d["st_pwm_enabled"]),
                     fault_latched=int(d["st_fault_latched"]),
                     protocol_version=int(d["st_protocol_version"]),
+                    sample_layout=int(d["st_sample_layout"]),
+                    decimation=int(d["st_decimation"]),
                 )  # fmt: skip
+                classic = self.layout == "classic"
+                if bool(d["st_sample_layout"]) != classic or (
+                    classic and int(d["st_decimation"]) != self.decimation
+                ):
+                    self.counters["layout_mismatch"] += 1
             elif aid == ID_FAULT:
                 d = self._msg_fault.decode(bytes(msg.data), decode_choices=False)
                 self.counters["fault_rx"] += 1
@@ -372,6 +439,8 @@ class CanBridge:
                     self.counters["disarmed_by_mcu_fault"] += 1
             elif aid in (ID_DUTY_CMD, ID_ARM_MODE, ID_HOST_HEARTBEAT):
                 self.counters["rx_own_traffic"] += 1
+            elif aid == ID_SAMPLE_FD or aid in CLASSIC_SAMPLE_IDS:
+                self.counters["layout_mismatch"] += 1  # samples of the other layout
             else:
                 self.counters["rx_other"] += 1
         except Exception as exc:  # noqa: BLE001 - a bad housekeeping frame is counted
@@ -387,6 +456,8 @@ class CanBridge:
         n = len(msgs)
         if n == 0:
             return np.empty((0, len(FRAME_FIELDS)))
+        if self.layout == "classic":
+            return self._decode_classic(msgs)
         self.counters["rx_samples"] += n
         ok_fd = [bool(m.is_fd) for m in msgs]
         if n >= self.cfg.fast_path_min:
@@ -418,8 +489,51 @@ class CanBridge:
             frames = np.vstack(rows) if rows else np.empty((0, len(FRAME_FIELDS)))
         if frames.shape[0]:
             self._sequence(frames)
+            self._seq_out = int(frames[-1, _I_SEQ])
             self._last_valid_t = self.clock()
             self.counters["frames_out"] += frames.shape[0]
+        return frames
+
+    def _decode_classic(self, msgs: list[can.Message]) -> np.ndarray:
+        """Reassemble classic sample parts; completed samples get seq j = k // D."""
+        ra = self._reasm
+        rows: list[np.ndarray] = []
+        for m in msgs:
+            self.counters["rx_sample_parts"] += 1
+            n_bad, n_inc = ra.malformed, ra.incomplete
+            row = ra.feed(m.arbitration_id, bytes(m.data))
+            if ra.malformed > n_bad:
+                reason = ra.reasons[-1] if ra.reasons else "malformed classic part"
+                ra.reasons.clear()
+                self._malformed(_reason_kind(reason), reason)
+            if ra.incomplete > n_inc:
+                self.counters["classic_incomplete"] += ra.incomplete - n_inc
+            if row is None:
+                continue
+            aux = ra.last_aux
+            row[_I_FLAGS] = (int(row[_I_FLAGS]) & FRAME_FLAG_ADC_CLIP) | (
+                FRAME_FLAG_STALE_COMMAND if aux.get("c_cmd_stale") else 0
+            )
+            self.mcu["sample_armed"] = int(aux.get("c_armed", 0))
+            self.mcu["sample_fault_active"] = int(aux.get("c_fault_active", 0))
+            if aux.get("c_cmd_stale"):
+                self.counters["mcu_cmd_stale"] += 1
+            rows.append(row)
+        if not rows:
+            return np.empty((0, len(FRAME_FIELDS)))
+        frames = np.vstack(rows)
+        self.counters["rx_samples"] += frames.shape[0]
+        wire = frames[:, _I_SEQ].astype(np.int64)
+        self._sequence(frames)  # -> unwrapped period index k
+        j = np.floor_divide(frames[:, _I_SEQ].astype(np.int64), self.decimation)
+        frames[:, _I_SEQ] = j
+        for jj, w in zip(j.tolist(), wire.tolist(), strict=True):
+            self._wire[jj] = w
+        while len(self._wire) > 512:
+            del self._wire[next(iter(self._wire))]
+        self._seq_out = int(j[-1])
+        self._last_valid_t = self.clock()
+        self.counters["frames_out"] += frames.shape[0]
         return frames
 
     def _decode_one(self, m: can.Message, is_fd: bool) -> np.ndarray | None:
@@ -523,6 +637,8 @@ class CanBridge:
             "state": self.state(),
             "armed": self.armed,
             "fault": self.fault,
+            "layout": self.layout,
+            "decimation": self.decimation,
             "seq_gaps": st.gaps,
             "seq_lost": st.lost,
             "seq_duplicates": st.duplicates,
@@ -531,7 +647,8 @@ class CanBridge:
         }
         base = ("rx_samples", "frames_out", "malformed", "faults", "stale_faults", "bus_errors",
                 "connects", "connect_failures", "duty_tx", "duty_tx_enabled",
-                "enable_suppressed", "tx_timeouts", "error_frames", "fast_path_frames")
+                "enable_suppressed", "tx_timeouts", "error_frames", "fast_path_frames",
+                "layout_mismatch")
         out.update({k: 0 for k in base})
         out.update({k: int(v) for k, v in sorted(self.counters.items())})
         out.update({f"malformed_{k}": int(v) for k, v in sorted(self.malformed_reasons.items())})

@@ -38,6 +38,7 @@ with round-half-even to encode).
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -74,6 +75,7 @@ __all__ = [
     "SeqStats",
     "SeqTracker",
     "ValidationReport",
+    "bus_time_s",
     "count_seq_gaps",
     "decimate_for_classic",
     "default_dbc_path",
@@ -81,7 +83,9 @@ __all__ = [
     "frame_to_classic_payloads",
     "frame_to_fd_payload",
     "frames_to_fd_payloads",
+    "frame_bits",
     "get_protocol",
+    "link_budget",
     "load_database",
     "pack_payloads",
     "unwrap_counter",
@@ -443,6 +447,44 @@ class NumpyCodec:
                 flags.append((j, bad))
         return flags
 
+    # -- one frame at a time (cantools underneath: ~100x less overhead than an (1, L) array)
+
+    def _row_reason(self, vals: Sequence[float], check_all: bool) -> str:
+        msgs = []
+        for sp, v in zip(self.specs, vals, strict=True):
+            if not math.isfinite(v):
+                msgs.append(f"{sp.name} is {v}")
+                continue
+            if not (sp.range_check or check_all):
+                continue
+            tol = 0.0 if sp.is_float else 0.25 * abs(sp.scale)
+            if (sp.minimum is not None and v < sp.minimum - tol) or (
+                sp.maximum is not None and v > sp.maximum + tol
+            ):
+                msgs.append(f"{sp.name}={v:g} outside [{sp.minimum:g}, {sp.maximum:g}]")
+        return "; ".join(msgs)
+
+    def decode_one(self, data: bytes | bytearray | memoryview) -> tuple[np.ndarray | None, str]:
+        """Checked decode of one payload: ``(values in names order, "")``, or
+        ``(None, reason)`` for a frame :meth:`decode_checked` would flag (same values,
+        same checks, same reasons)."""
+        b = bytes(data)
+        if len(b) != self.length:
+            return None, f"wrong length {len(b)} bytes (expected {self.length})"
+        d = self.message.decode(b, decode_choices=False, scaling=True)
+        vals = [float(d[n]) for n in self.names]  # type: ignore[index]
+        reason = self._row_reason(vals, check_all=False)
+        return (None, reason) if reason else (np.array(vals), "")
+
+    def encode_one(self, values: Mapping[str, float]) -> bytes:
+        """Encode one frame from ``{signal: physical value}`` (missing signals 0) with the
+        checks of :meth:`encode` (finite, within the DBC range); same bytes."""
+        vals = [float(values.get(n, 0.0)) for n in self.names]
+        reason = self._row_reason(vals, check_all=True)
+        if reason:
+            raise ValueError(f"{self.message.name}: invalid values: {reason}")
+        return bytes(self.message.encode(dict(zip(self.names, vals, strict=True)), strict=False))
+
     def validate_values(self, values: np.ndarray) -> ValidationReport:
         """Check physical values before encoding: finite and within the DBC [min, max]
         (plus a quarter LSB of tolerance for integer signals)."""
@@ -633,23 +675,23 @@ class FluxdriveProtocol:
         four classic frames [(id, 8-byte payload)] in send order CUR, VLT, DUTY, AUX.
         The encoder is sent as its low 24 bits; ``flags`` sets the AUX flag bits."""
         f = np.asarray(frame, dtype=np.float64).reshape(-1)
+        if not np.all(np.isfinite(f)):
+            raise ValueError("classic sample: non-finite values in the frame")
         seq = int(np.rint(f[FRAME_INDEX["seq"]])) % (1 << SEQ_BITS)
         out: list[tuple[int, bytes]] = []
         for fid in CLASSIC_SAMPLE_IDS:
             codec = self.classic_codecs[fid]
-            vals = np.zeros((1, len(codec.names)), dtype=np.float64)
-            vals[0, codec.index["c_seq"]] = seq
+            vals: dict[str, float] = {"c_seq": seq}
             for sig, col in _CLASSIC_TO_FRAME[fid].items():
-                v = f[FRAME_INDEX[col]]
+                v = float(f[FRAME_INDEX[col]])
                 if sig == "c_encoder":
                     v = float((int(np.rint(v)) + (1 << 23)) % (1 << 24) - (1 << 23))
                 elif sig == "c_adc_clip":
                     v = float(int(v) & FRAME_FLAG_ADC_CLIP)
-                vals[0, codec.index[sig]] = v
+                vals[sig] = v
             if fid == ID_SAMPLE_C_AUX:
-                for k, v in (flags or {}).items():
-                    vals[0, codec.index[k]] = v
-            out.append((fid, codec.encode(vals)[0].tobytes()))
+                vals.update({k: float(v) for k, v in (flags or {}).items()})
+            out.append((fid, codec.encode_one(vals)))
         return out
 
 
@@ -868,6 +910,8 @@ class ClassicReassembler:
     malformed: int = 0
     completed: int = 0
     reasons: list[str] = field(default_factory=list)
+    last_aux: dict[str, float] = field(default_factory=dict, init=False)
+    """SAMPLE_C_AUX signals of the last completed sample (flags: c_armed, c_cmd_stale, ...)."""
     _seq: int | None = field(default=None, init=False, repr=False)
     _parts: dict[int, np.ndarray] = field(default_factory=dict, init=False, repr=False)
     _enc_prev: float | None = field(default=None, init=False, repr=False)
@@ -877,13 +921,12 @@ class ClassicReassembler:
         codec = self.protocol.classic_codecs.get(arbitration_id)
         if codec is None:
             return None
-        res = codec.decode_checked([bytes(data)])
-        if not res.report.valid[0]:
+        vals, reason = codec.decode_one(data)
+        if vals is None:
             self.malformed += 1
             if len(self.reasons) < 100:
-                self.reasons.append(f"0x{arbitration_id:03X}: {res.report.reasons[0]}")
+                self.reasons.append(f"0x{arbitration_id:03X}: {reason}")
             return None
-        vals = res.values[0]
         seq = int(vals[codec.index["c_seq"]])
         if self._seq is not None and seq != self._seq:
             if self._parts:
@@ -904,6 +947,8 @@ class ClassicReassembler:
         frame[FRAME_INDEX["encoder_counts"]] = enc
         self._enc_prev = enc
         frame[FRAME_INDEX["seq"]] = seq
+        aux = self.protocol.classic_codecs[ID_SAMPLE_C_AUX]
+        self.last_aux = dict(zip(aux.names, self._parts[ID_SAMPLE_C_AUX].tolist(), strict=True))
         self._parts = {}
         self._seq = None
         self.completed += 1
@@ -915,3 +960,108 @@ class ClassicReassembler:
         if not rows:
             return np.empty((0, len(FRAME_FIELDS)))
         return np.vstack(rows)
+
+
+# --------------------------------------------------------------------------- bus time
+
+_FD_LENGTHS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)
+
+
+def frame_bits(
+    n_bytes: int, *, fd: bool = False, brs: bool = False, stuffing: str = "none"
+) -> tuple[int, int]:
+    """Bits one base-format (11-bit ID) data frame occupies on the wire, intermission
+    included, as ``(bits at the nominal bit rate, bits at the data bit rate)``
+    (ISO 11898-1:2015 frame fields).
+
+    Classic: SOF, ID, RTR, IDE, r0, DLC, data, CRC-15 (34 + 8n stuffable bits), CRC
+    delimiter, ACK slot + delimiter, EOF, intermission (13): 47 + 8n bits, i.e. 111 for 8
+    bytes; ``stuffing="worst"`` adds the worst-case dynamic stuff bits (34 + 8n - 1) // 4
+    (24 for 8 bytes: 135 bits).
+    CAN FD: SOF, ID, RRS, IDE, FDF, res, BRS (17, nominal rate), then ESI, DLC, data, the
+    stuff count (4), CRC-17 (<= 16 bytes) or CRC-21 with its fixed stuff bits (6 or 7),
+    the CRC delimiter (at the data rate when ``brs``), then ACK, EOF and intermission (12,
+    nominal rate). ``n_bytes`` is rounded up to the next valid FD length."""
+    if stuffing not in ("none", "worst"):
+        raise ValueError("stuffing must be 'none' or 'worst'")
+    worst = stuffing == "worst"
+    if not fd:
+        if not 0 <= n_bytes <= 8:
+            raise ValueError(f"a classic CAN frame carries 0..8 bytes, not {n_bytes}")
+        body = 34 + 8 * n_bytes
+        return body + 13 + ((body - 1) // 4 if worst else 0), 0
+    n = next((m for m in _FD_LENGTHS if m >= n_bytes), None)
+    if n is None:
+        raise ValueError(f"a CAN FD frame carries at most 64 bytes, not {n_bytes}")
+    arb = 17
+    data = 1 + 4 + 8 * n
+    crc = 4 + (17 + 6 if n <= 16 else 21 + 7) + 1
+    stuff_arb = (arb - 1) // 4 if worst else 0
+    stuff_data = ((arb + data - 1) // 4 - stuff_arb) if worst else 0
+    nominal = arb + stuff_arb + 12
+    fast = data + stuff_data + crc
+    if brs:
+        return nominal, fast
+    return nominal + fast, 0
+
+
+def bus_time_s(
+    n_bytes: int,
+    nominal_bitrate: float,
+    data_bitrate: float | None = None,
+    *,
+    fd: bool = False,
+    brs: bool = False,
+    stuffing: str = "none",
+) -> float:
+    """Wire time of one frame [s] (see :func:`frame_bits`)."""
+    nom, fast = frame_bits(n_bytes, fd=fd, brs=brs, stuffing=stuffing)
+    return nom / nominal_bitrate + (fast / (data_bitrate or nominal_bitrate) if fast else 0.0)
+
+
+def link_budget(
+    layout: str,
+    *,
+    pwm_hz: float = 10_000.0,
+    decimation: int = 1,
+    nominal_bitrate: float = 1e6,
+    data_bitrate: float = 5e6,
+    housekeeping_hz: float = 10.0,
+) -> dict[str, Any]:
+    """What the sample/duty exchange costs on a real bus, per sample period
+    ``T = decimation / pwm_hz``: the sample frame(s) (``"fd"``: one 64-byte SAMPLE_FD with
+    BRS; ``"classic"``: SAMPLE_C_CUR/VLT/DUTY/AUX, 4 x 8 bytes) plus the DUTY_CMD answering
+    it (8 bytes, classic format, as the bridge sends it), plus STATUS, ARM_MODE and
+    HOST_HEARTBEAT at ``housekeeping_hz``. For no stuffing and worst-case stuffing:
+    ``bits_*`` (sample set + duty, nominal-rate and data-rate bits), ``bus_time_us_*``,
+    ``load_*`` (fraction of the bus time) and ``host_budget_us_*``: what is left of the
+    period for the host's turnaround (last sample bit -> start of the duty frame) when
+    the duty must be on the wire before the next sample boundary. ``fits`` = worst-case
+    load < 1 and a positive worst-case host budget."""
+    if layout not in ("fd", "classic"):
+        raise ValueError("layout must be 'fd' or 'classic'")
+    d = 1 if layout == "fd" else int(decimation)
+    if d < 1:
+        raise ValueError("decimation must be >= 1")
+    period = d / pwm_hz
+    out: dict[str, Any] = {
+        "layout": layout, "decimation": d, "sample_rate_hz": pwm_hz / d,
+        "period_us": period * 1e6, "nominal_bitrate": nominal_bitrate,
+        "data_bitrate": data_bitrate if layout == "fd" else None,
+    }  # fmt: skip
+    for st in ("none", "worst"):
+        if layout == "fd":
+            s_nom, s_fast = frame_bits(64, fd=True, brs=True, stuffing=st)
+            t_s = s_nom / nominal_bitrate + s_fast / data_bitrate
+        else:
+            s_nom, s_fast = 4 * frame_bits(8, stuffing=st)[0], 0
+            t_s = s_nom / nominal_bitrate
+        c_nom = frame_bits(8, stuffing=st)[0]
+        t_c = c_nom / nominal_bitrate
+        hk = housekeeping_hz * (2 * frame_bits(8, stuffing=st)[0] + frame_bits(2, stuffing=st)[0])
+        out[f"bits_{st}"] = {"nominal": s_nom + c_nom, "data": s_fast}
+        out[f"bus_time_us_{st}"] = (t_s + t_c) * 1e6
+        out[f"load_{st}"] = (t_s + t_c) / period + hk / nominal_bitrate
+        out[f"host_budget_us_{st}"] = (period - t_s - t_c) * 1e6
+    out["fits"] = bool(out["load_worst"] < 1.0 and out["host_budget_us_worst"] > 0.0)
+    return out

@@ -29,6 +29,8 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
              "load check: long lockstep graph run + burst replay (memory, no loss)"),
     "replay": ("fluxdrive.replay", "main", "replay bags through observer variants"),
     "can-import": ("fluxdrive.canimport", "main", "CAN capture (.log/.asc/.blf) -> bag"),
+    "can-emulator": ("fluxdrive.emulator", "main",
+                     "the drive emulator (plant as the MCU) on a CAN bus, as a process"),
     "experiment": ("fluxdrive.experiments", "main", "reproduce the paper's figures"),
     "test": ("fluxdrive.cli", "main_test", "run the test suite"),
     "lint": ("fluxdrive.cli", "main_lint", "ruff over the project"),

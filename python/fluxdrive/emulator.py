@@ -19,6 +19,17 @@ it does what the drive's microcontroller does (BRIEF sec. 3, DBC comments):
 * FAULT on every new fault (and at 10 Hz sim time while latched), STATUS at 10 Hz sim time;
   over-current trip on the sampled currents.
 
+Sample layouts (``layout``, fixed at construction like an MCU's firmware build; an
+ARM_MODE asking for another layout or decimation is counted in ``layout_mismatch``):
+
+* ``"fd"``: one SAMPLE_FD (64 bytes, CAN FD with BRS) every PWM period;
+* ``"classic"``: the classic-CAN layout, every D-th period (``decimation``, default the
+  DBC's ClassicDecimation) the four 8-byte frames SAMPLE_C_CUR/VLT/DUTY/AUX of sample
+  k = j*D (k = 0 included): currents, vdc and encoder at t_k, line voltages and duties
+  averaged over the D periods (t_(k-D), t_k], pwm_enabled only if on in all of them. The
+  control loop runs at the decimated rate: the DUTY_CMD answering sample k (cmd_seq = its
+  c_seq) is held over [t_(k+D), t_(k+2D)], i.e. the FD timing with Ts -> D*Ts.
+
 No ROS imports. Sends always use a timeout (python-can's ``virtual`` bus blocks forever on
 a full receive queue otherwise).
 """
@@ -84,6 +95,8 @@ class EmulatorStats:
     arm_rx: int = 0
     bad_rx: int = 0
     tx_timeouts: int = 0
+    layout_mismatch: int = 0
+    disarm_rx: int = 0
     faults: int = 0
     fault_codes: list[int] = field(default_factory=list)
 
@@ -111,11 +124,20 @@ class DriveEmulator:
         heartbeat_timeout_s: float | None = None,
         send_timeout_s: float = 0.5,
         record: bool = False,
+        layout: str = "fd",
+        decimation: int | None = None,
         protocol: FluxdriveProtocol | None = None,
     ) -> None:
         self.setup = setup
         self.bus = bus
         self.proto = protocol or get_protocol()
+        if layout not in ("fd", "classic"):
+            raise ValueError(f"layout must be 'fd' or 'classic', not {layout!r}")
+        self.layout = layout
+        d = self.proto.classic_decimation if decimation is None else int(decimation)
+        if not 1 <= d <= 255:
+            raise ValueError(f"decimation must be in 1..255, not {d}")
+        self.decimation = d if layout == "classic" else 1
         self.lockstep = lockstep
         self.lockstep_wait_s = lockstep_wait_s
         self.cmd_timeout_s = cmd_timeout_s
@@ -157,6 +179,13 @@ class DriveEmulator:
         self._msg_arm = self.proto.message("ARM_MODE")
         self._msg_fault = self.proto.message("FAULT")
         self._msg_status = self.proto.message("STATUS")
+        # classic layout: window sums over (t_(k-D), t_k] of v_ll and duties (6), PWM on
+        # in every period, OR of the flags; frame 0 forms the first window on its own
+        self._win_sum = np.zeros(6)
+        self._win_n = 0
+        self._win_pwm = True
+        self._win_flags = 0
+        self._accumulate()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -197,10 +226,17 @@ class DriveEmulator:
                 if d["reset_fault"] and not self._reset_prev:
                     self._clear_fault()
                 self._reset_prev = int(d["reset_fault"])
+                want_classic = bool(d["sample_layout"])
+                if want_classic != (self.layout == "classic") or (
+                    want_classic and int(d["decimation"]) != self.decimation
+                ):
+                    self.stats.layout_mismatch += 1
                 if d["arm"] and int(d["arm_key"]) == ARM_KEY and not self.fault_latched:
                     self.armed = True
                     self.mode = int(d["mode"])
                 else:
+                    if self.armed:
+                        self.stats.disarm_rx += 1
                     self._disarm()
                 if float(d["cmd_timeout"]) > 0.0:
                     self.cmd_timeout_s = float(d["cmd_timeout"])
@@ -272,9 +308,9 @@ class DriveEmulator:
                 "st_armed": int(self.armed),
                 "st_pwm_enabled": int(self.pwm_enabled),
                 "st_fault_latched": int(self.fault_latched),
-                "st_sample_layout": 0,
+                "st_sample_layout": int(self.layout == "classic"),
                 "st_protocol_version": PROTOCOL_VERSION,
-                "st_decimation": 1,
+                "st_decimation": self.decimation,
                 "st_tx_overruns": 0,
                 "st_temp": 35,
                 "st_rx_errors": 0,
@@ -306,6 +342,49 @@ class DriveEmulator:
         }  # fmt: skip
         return bytes(self._msg_sample.encode(sig, strict=False))
 
+    def _accumulate(self) -> None:
+        """Add the frame just sampled to the classic layout's window."""
+        f = self.frame
+        self._win_sum[0:3] += f[3:6]
+        self._win_sum[3:6] += f[7:10]
+        self._win_n += 1
+        self._win_pwm = self._win_pwm and bool(f[10] > 0.5)
+        self._win_flags |= int(f[13])
+
+    def classic_payloads(self) -> list[tuple[int, bytes]]:
+        """The four classic sample frames [(id, 8 bytes)] of frame k with the window
+        averages, values saturated to the DBC ranges like the MCU's converters."""
+        f = self.frame.copy()
+        n = max(self._win_n, 1)
+        f[3:6] = self._win_sum[0:3] / n
+        f[7:10] = self._win_sum[3:6] / n
+        f[10] = 1.0 if self._win_pwm else 0.0
+        f[13] = float(self._win_flags)
+        f[12] = self.k
+        f[0:3] = np.clip(f[0:3], -25.0, 25.0)
+        f[3:6] = np.clip(f[3:6], -100.0, 100.0)
+        f[6] = min(max(f[6], 0.0), 100.0)
+        f[7:10] = np.clip(f[7:10], 0.0, 1.0)
+        flags = {
+            "c_armed": int(self.armed),
+            "c_fault_active": int(self.fault_latched),
+            "c_cmd_stale": int(self._stale_prev),
+            "c_capture_valid": int(self._win_pwm),
+        }
+        return self.proto.frame_to_classic_payloads(f, flags)
+
+    def _send_sample(self) -> None:
+        if self.layout == "fd":
+            self._send(ID_SAMPLE_FD, self.sample_payload(), True)
+        else:
+            for aid, data in self.classic_payloads():
+                self._send(aid, data, False)
+            self._win_sum[:] = 0.0
+            self._win_n = 0
+            self._win_pwm = True
+            self._win_flags = 0
+        self.stats.samples_sent += 1
+
     def _protect(self) -> None:
         """Over-current trip on the frame just sampled."""
         imax = float(np.max(np.abs(self.frame[0:3])))
@@ -315,23 +394,45 @@ class DriveEmulator:
 
     def step(self) -> None:
         """One PWM period: send frame k, take the duty answering frame k-1, simulate
-        [t_k, t_(k+1)], sample frame k+1."""
+        [t_k, t_(k+1)], sample frame k+1. Classic layout: samples and duty updates only
+        every D-th period (the duty answering sample k-D), duties held in between."""
         k = self.k
+        d = self.decimation
         if self.record:
             self.rec_frames.append(self.frame.copy())
             self.rec_truth.append(self.truth.copy())
-        self._send(ID_SAMPLE_FD, self.sample_payload(), True)
-        self.stats.samples_sent += 1
+        boundary = k % d == 0
+        if boundary:
+            self._send_sample()
         if k >= self._next_status_k:
             self._send_status()
             self._next_status_k = k + int(round(0.1 / self.ts))
         if self.fault_latched and k >= self._next_fault_repeat_k:
             self._send_fault(0)
             self._next_fault_repeat_k = k + int(round(0.1 / self.ts))
-        # the command for this period answers frame k-1
-        want = (k - 1) % _SEQ_MOD
         self._drain(0.0)
-        if k >= 1 and want not in self._cmds and self.lockstep:
+        if boundary:
+            self._take_command(k)
+        if self.heartbeat_timeout_s is not None and self.armed and self._hb_last is not None:
+            if time.monotonic() - self._hb_last > self.heartbeat_timeout_s:
+                self._raise_fault(FAULT_HOST_HEARTBEAT_LOST)
+        if not self.armed:
+            self.pwm_enabled = False
+        s = self.setup
+        plant_advance(self.pst, s.mp, self.rng, self.duty, self.pwm_enabled, s.load_t, s.load_y,
+                      s.load_cfg, self.frame, self.truth)
+        self.k = k + 1
+        self.stats.periods += 1
+        if self.layout == "classic":
+            self._accumulate()
+        self._protect()
+
+    def _take_command(self, k: int) -> None:
+        """At a sample boundary k: take the DUTY_CMD answering the previous sample (k-D);
+        in lockstep wait for it. Missing: hold the duties, and the watchdog runs."""
+        d = self.decimation
+        want = (k - d) % _SEQ_MOD
+        if k >= d and want not in self._cmds and self.lockstep:
             deadline = time.monotonic() + self.lockstep_wait_s
             while want not in self._cmds and not self._stop.is_set():
                 left = deadline - time.monotonic()
@@ -339,7 +440,7 @@ class DriveEmulator:
                     self.stats.lockstep_timeouts += 1
                     break
                 self._drain(min(left, 0.05))
-        cmd = self._cmds.pop(want, None) if k >= 1 else None
+        cmd = self._cmds.pop(want, None) if k >= d else None
         # commands answering frames older than k-1 arrived too late: drop them
         for key in [q for q in self._cmds if 0 < (want - q) % _SEQ_MOD < _SEQ_MOD // 2]:
             del self._cmds[key]
@@ -356,22 +457,11 @@ class DriveEmulator:
                 self.mode = MODE_RUN
             elif not enable:
                 self.pwm_enabled = False
-        elif k >= 1:
+        elif k >= d:
             self._stale_prev = True
             self.stats.stale_periods += 1
             if self.pwm_enabled and (k - self._last_cmd_k) * self.ts >= self.cmd_timeout_s - 1e-12:
                 self._raise_fault(FAULT_CMD_TIMEOUT, int((k - self._last_cmd_k) * self.ts * 1e4))
-        if self.heartbeat_timeout_s is not None and self.armed and self._hb_last is not None:
-            if time.monotonic() - self._hb_last > self.heartbeat_timeout_s:
-                self._raise_fault(FAULT_HOST_HEARTBEAT_LOST)
-        if not self.armed:
-            self.pwm_enabled = False
-        s = self.setup
-        plant_advance(self.pst, s.mp, self.rng, self.duty, self.pwm_enabled, s.load_t, s.load_y,
-                      s.load_cfg, self.frame, self.truth)
-        self.k = k + 1
-        self.stats.periods += 1
-        self._protect()
 
     # ------------------------------------------------------------------ running
 
@@ -413,3 +503,88 @@ def wrap_seq(k: int) -> int:
     """Sample index -> 16-bit wire sequence counter."""
     return int(k) % _SEQ_MOD
 
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`./fluxdrive can-emulator [SCENARIO] --interface I --channel C ...`: the drive
+    emulator as a process of its own, on any python-can bus (``udp_multicast`` reaches
+    other processes on this host). Runs ``--periods`` PWM periods (default: the
+    scenario's) or until SIGINT/SIGTERM; the last stdout line is a JSON object with the
+    MCU's final state and counters."""
+    import argparse
+    import json
+    import signal
+    import sys
+
+    from .scenario import load_scenario, scenario_path
+    from .sim import DriveSetup
+
+    ap = argparse.ArgumentParser(prog="fluxdrive can-emulator", description=main.__doc__)
+    ap.add_argument("scenario", nargs="?", default="paper_2pct_150load",
+                    help="scenario YAML or name under config/scenarios (the plant side)")
+    ap.add_argument("--interface", default="udp_multicast", help="python-can interface")
+    ap.add_argument("--channel", default="239.255.74.68",
+                    help="python-can channel (udp_multicast: the IPv4/IPv6 multicast group)")
+    ap.add_argument("--port", type=int, default=None, help="udp_multicast: UDP port")
+    ap.add_argument("--hop-limit", type=int, default=0,
+                    help="udp_multicast: IP TTL / hop limit (0: never leaves this host)")
+    ap.add_argument("--layout", choices=("fd", "classic"), default="fd")
+    ap.add_argument("--decimation", type=int, default=None,
+                    help="classic layout: periods per sample (default: the DBC's)")
+    ap.add_argument("--periods", type=int, default=None, help="PWM periods to run")
+    ap.add_argument("--duration", type=float, default=None, help="override duration_s [s]")
+    ap.add_argument("--free-running", action="store_true",
+                    help="pace periods to wall time and never wait for duties (a real MCU)")
+    ap.add_argument("--lockstep-wait", type=float, default=0.5,
+                    help="lockstep: wall time to wait for the duty of the previous sample [s]")
+    ap.add_argument("--wait-for-host", type=float, default=0.0,
+                    help="wait up to this long for the host's first HOST_HEARTBEAT [s]")
+    a = ap.parse_args(sys.argv[1:] if argv is None else argv)
+    overrides = {"duration_s": a.duration} if a.duration else None
+    sc = load_scenario(scenario_path(a.scenario), overrides=overrides)
+    kw: dict[str, Any] = {"interface": a.interface, "channel": a.channel,
+                          "fd": a.layout == "fd"}
+    if a.interface == "udp_multicast":
+        kw["hop_limit"] = a.hop_limit
+        if a.port is not None:
+            kw["port"] = a.port
+    elif a.port is not None:
+        kw["port"] = a.port
+    try:
+        bus = can.Bus(**kw)
+    except (can.CanError, OSError, ImportError, ValueError) as exc:
+        print(f"can-emulator: cannot open the {a.interface} bus on {a.channel}: {exc}",
+              file=sys.stderr)
+        return 2
+    emu = DriveEmulator(DriveSetup(sc), bus, lockstep=not a.free_running,
+                        lockstep_wait_s=a.lockstep_wait, layout=a.layout,
+                        decimation=a.decimation)
+    signal.signal(signal.SIGTERM, lambda *_: emu._stop.set())
+    signal.signal(signal.SIGINT, lambda *_: emu._stop.set())
+    n = sc.n_periods if a.periods is None else a.periods
+    print(f"[can-emulator] {sc.name}: {a.layout} layout (D={emu.decimation}) on "
+          f"{a.interface}:{a.channel}, {n} periods, "
+          f"{'free-running' if a.free_running else 'lockstep'}", file=sys.stderr, flush=True)
+    rc = 0
+    t0 = time.perf_counter()
+    try:
+        if a.wait_for_host > 0:
+            deadline = time.monotonic() + a.wait_for_host
+            while emu._hb_last is None and not emu._stop.is_set():
+                if time.monotonic() > deadline:
+                    print(f"can-emulator: no host heartbeat within {a.wait_for_host:g} s",
+                          file=sys.stderr)
+                    rc = 1
+                    break
+                emu._drain(0.05)
+        if rc == 0:
+            emu.run(n, realtime=a.free_running)
+            emu._drain(0.05)  # a disarm sent while we stopped
+    finally:
+        bus.shutdown()
+    out = {"periods": emu.k, "armed": emu.armed, "pwm_enabled": emu.pwm_enabled,
+           "fault_latched": emu.fault_latched, "fault_code": emu.fault_code,
+           "layout": emu.layout, "decimation": emu.decimation,
+           "wall_s": round(time.perf_counter() - t0, 3), **emu.stats.as_dict()}
+    print(json.dumps(out), flush=True)
+    return rc
