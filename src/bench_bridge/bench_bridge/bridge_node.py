@@ -6,8 +6,10 @@ Thin wrapper over :class:`fluxdrive.bridge.CanBridge` (all supervisor logic live
   ``stale_timeout_s``, ``cmd_timeout_s``, ``armed`` (arm at start / live), ``frame_id``,
   ``reconnect_initial_s``, ``reconnect_max_s``, ``diagnostics_period_s``, ``ts_s``;
 * publishes flux_drive_msgs/PhaseFrame on ``/drive/frame`` (header.stamp = k * ts_s,
-  sample-time like the simulated plant), subscribes ``/drive/duty`` (DutyCommand) ->
-  DUTY_CMD frames, service ``/drive/arm`` (flux_drive_msgs/srv/Arm) and
+  sample-time like the simulated plant; ``fd`` false selects the classic-CAN layout: one
+  sample every D PWM periods, seq = the sample index j, stamp = j * D * ts_s, so the
+  observers and the controller must run at D * ts_s), subscribes ``/drive/duty``
+  (DutyCommand) -> DUTY_CMD frames, service ``/drive/arm`` (flux_drive_msgs/srv/Arm) and
   ``/drive/reset_fault`` (ResetFault), diagnostics on ``/diagnostics``;
 * a CAN thread polls the bus; the node disarms on shutdown.
 """
@@ -119,8 +121,8 @@ class BenchBridgeNode(Node):
 
     def _to_msg(self, fr: np.ndarray) -> PhaseFrame:
         m = PhaseFrame()
-        k = int(fr[12])
-        t = k * self.ts
+        k = int(fr[12])  # classic layout: the sample index, one every D periods
+        t = k * self.ts * self.bridge.decimation
         m.header.stamp.sec = int(t)
         m.header.stamp.nanosec = int(round((t - int(t)) * 1e9)) % 1_000_000_000
         m.header.frame_id = self.frame_id
