@@ -37,7 +37,8 @@ def test_bridge_node_smoke():
     rclpy.init(context=ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "0")) % 100 + 1)
     node = BenchBridgeNode(context=ctx, parameter_overrides=[
         Parameter("channel", value=ch), Parameter("stale_timeout_s", value=30.0),
-        Parameter("diagnostics_period_s", value=0.2)])
+        Parameter("diagnostics_period_s", value=0.2),
+        Parameter("allowed_commanders", value=["*"])])  # the probe plays the graph (access)
     probe = rclpy.create_node("probe", context=ctx)
     ex = rclpy.executors.SingleThreadedExecutor(context=ctx)
     ex.add_node(node)

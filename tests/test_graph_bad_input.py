@@ -344,21 +344,26 @@ def test_plant_counts_and_neutralises_malformed_duty_commands(graph, tmp_path):
     dpub = graph.publisher(DutyCommand, "/drive/duty")
     sent: list = []
 
+    from fluxdrive_ros import access, qos
+
+    def duty_msg(seq: int, duty: list) -> DutyCommand:
+        d = DutyCommand(seq=seq, duty=duty, enable=True)
+        d.header.frame_id = access.mark("/probe", "/drive/duty")  # the probe is allowed
+        return d
+
     def on_frame(m):
         frames.append(m)
         k = m.seq
         duty = {5: [np.nan, 0.5, 0.5], 6: [1.7, 0.5, -0.2]}.get(k, [0.55, 0.5, 0.45])
-        dpub.publish(DutyCommand(seq=k, duty=duty, enable=True))
+        dpub.publish(duty_msg(k, duty))
         if k == 7:
-            dpub.publish(DutyCommand(seq=7, duty=duty, enable=True))  # repeat
-            dpub.publish(DutyCommand(seq=500, duty=duty, enable=True))  # no such frame yet
+            dpub.publish(duty_msg(7, duty))  # repeat
+            dpub.publish(duty_msg(500, duty))  # no such frame yet
         sent.append(k)
-
-    from fluxdrive_ros import qos
 
     graph.probe.create_subscription(PhaseFrame, "/drive/frame", on_frame, qos.reader("volatile"))
     graph.add(PlantNode, "plant", scenario=str(sc.source), diagnostics_period_s=0.2,
-              exit_on_done=False, start_delay_s=0.3)
+              exit_on_done=False, start_delay_s=0.3, allowed_commanders=["/probe"])
     wait_for(lambda: len(frames) >= 100, what="the plant's 100 frames")
     by = {m.seq: m for m in frames}
     assert by[6].pwm_enabled and not by[7].pwm_enabled  # duty(5) acts on period 6 -> 7

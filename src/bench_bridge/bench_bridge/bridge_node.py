@@ -11,11 +11,17 @@ Thin wrapper over :class:`fluxdrive.bridge.CanBridge` (all supervisor logic live
   observers and the controller must run at D * ts_s), subscribes ``/drive/duty``
   (DutyCommand) -> DUTY_CMD frames, service ``/drive/arm`` (flux_drive_msgs/srv/Arm) and
   ``/drive/reset_fault`` (ResetFault), diagnostics on ``/diagnostics``;
-* a CAN thread polls the bus; the node disarms on shutdown.
+* a CAN thread polls the bus; the node disarms on shutdown;
+* access (fluxdrive_ros.access): duty commands are obeyed only from `allowed_commanders`
+  (default /controller; others dropped and counted on /diagnostics); /drive/arm (arm) and
+  /drive/reset_fault only while every node holding a client of them is in that list; a
+  disarm is always obeyed.  A non-finite duty goes out as PWM off, one outside [0, 1] is
+  clamped; both counted.
 """
 
 from __future__ import annotations
 
+import math
 import sys
 import threading
 
@@ -33,7 +39,7 @@ from rclpy.node import Node
 
 from flux_drive_msgs.msg import DutyCommand, PhaseFrame
 from flux_drive_msgs.srv import Arm, ResetFault
-from fluxdrive_ros import qos, topics
+from fluxdrive_ros import access, qos, topics
 
 STATUS_SENSOR_CLIP = 1
 STATUS_STALE_COMMAND = 16
@@ -66,6 +72,7 @@ def param_table() -> list[P]:
           "refused with the reason while a fault is latched)"),
         P("diagnostics_period_s", 1.0, "period of the /diagnostics status", "s", 0.05, 60.0,
           read_only=True),
+        access.param(),
     ]
 
 
@@ -86,6 +93,10 @@ class BenchBridgeNode(Node):
         self.frame_id = pv["frame_id"]
         arm_at_start = pv["armed"]
         diag_period = pv["diagnostics_period_s"]
+        self.allowed = list(pv["allowed_commanders"])
+        self.guard = access.CommandGuard(self.allowed, topics.DUTY)
+        self.duty_out_of_range = 0
+        self.service_refused = 0
         factory = bus_factory_from_params(self.p_interface, self.p_channel, self.p_bitrate,
                                           self.p_fd, self.p_data_bitrate)
         self.bridge = CanBridge(factory, BridgeConfig(
@@ -140,14 +151,37 @@ class BenchBridgeNode(Node):
 
     # ---------------------------------------------------------------- ROS side
     def _on_duty(self, msg: DutyCommand) -> None:
-        self.bridge.send_duty(int(msg.seq), list(msg.duty), bool(msg.enable))
+        if not self.guard.accept_frame_id(msg.header.frame_id):
+            if self.guard.n_rejected <= 3:
+                self.get_logger().warning(f"duty command dropped ({self.guard.last_rejected}); "
+                                          f"obeyed only from {self.allowed}")
+            return
+        d = list(msg.duty)
+        if all(math.isfinite(x) for x in d) and not all(-1e-9 <= x <= 1.0 + 1e-9 for x in d):
+            self.duty_out_of_range += 1  # clamped by send_duty; non-finite counted there
+        self.bridge.send_duty(int(msg.seq), d, bool(msg.enable))
+
+    def _refused(self, service: str) -> str | None:
+        why = access.check_service_caller(self, service, self.allowed)
+        if why:
+            self.service_refused += 1
+            self.get_logger().warning(why)
+        return why
 
     def _on_arm(self, req, resp):
+        why = self._refused("/drive/arm") if req.arm else None  # disarm: always obeyed
+        if why:
+            resp.success, resp.message = False, why
+            return resp
         ok, why = self.bridge.arm() if req.arm else self.bridge.disarm("service")
         resp.success, resp.message = bool(ok), why
         return resp
 
     def _on_reset(self, req, resp):
+        why = self._refused("/drive/reset_fault")
+        if why:
+            resp.success, resp.message = False, why
+            return resp
         ok, why = self.bridge.reset_fault()
         resp.success, resp.message = bool(ok), why
         return resp
@@ -169,11 +203,14 @@ class BenchBridgeNode(Node):
         st.hardware_id = f"{self.p_interface}:{self.p_channel}"
         if d["state"] in ("fault", "disconnected"):
             st.level = DiagnosticStatus.ERROR
-        elif d["malformed"] or d["seq_gaps"] or d["bus_errors"]:
+        elif (d["malformed"] or d["seq_gaps"] or d["bus_errors"] or self.guard.n_rejected
+              or self.duty_out_of_range or d.get("duty_nonfinite") or self.service_refused):
             st.level = DiagnosticStatus.WARN
         else:
             st.level = DiagnosticStatus.OK
         st.message = d["state"] + (f": {d['fault']}" if d["fault"] else "")
+        d.update(self.guard.values(), duty_out_of_range=self.duty_out_of_range,
+                 service_requests_refused=self.service_refused)
         st.values = [KeyValue(key=k, value=str(v)) for k, v in d.items()]
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()

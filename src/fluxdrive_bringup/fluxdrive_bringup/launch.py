@@ -21,7 +21,10 @@ Graph file (config/graphs/*.yaml)::
         cmd: [python, -m, some.module]
 
 Every process gets the parent's whole environment (the ROS wheels need it) plus
-ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST unless the graph or the environment says otherwise.
+ROS_AUTOMATIC_DISCOVERY_RANGE from the graph's `discovery_range` (default LOCALHOST, whatever
+the environment says: leaving the machine is an explicit opt-in in the graph file) and
+FLUXDRIVE_GRAPH_KEY, a random key per launch that marks the graph's commands
+(fluxdrive_ros.access).
 Output lines are prefixed with the process name.  Ctrl-C (or SIGTERM) is forwarded as
 SIGINT to every process (each finalises: the recorder closes its bag), then SIGTERM and
 SIGKILL after timeouts.  The launcher exits non-zero, naming the node, if any process dies
@@ -261,9 +264,16 @@ class Launcher:
 
     def env(self) -> dict[str, str]:
         env = dict(os.environ)
-        env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", self.g.discovery_range)
-        if self.g.discovery_range != "LOCALHOST":
-            env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = self.g.discovery_range
+        # discovery: the graph decides (default LOCALHOST); leaving this machine is an opt-in
+        # in the graph file (discovery_range: SUBNET | SYSTEM_DEFAULT), never inherited
+        env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = self.g.discovery_range
+        # one random key per launch (kept across restarts): commands are obeyed only with
+        # a mark made with it (fluxdrive_ros.access); an explicit one in the environment wins
+        if not getattr(self, "_graph_key", None):
+            import secrets
+
+            self._graph_key = os.environ.get("FLUXDRIVE_GRAPH_KEY") or secrets.token_hex(16)
+        env["FLUXDRIVE_GRAPH_KEY"] = self._graph_key
         if self.g.domain_id is not None:
             env["ROS_DOMAIN_ID"] = str(self.g.domain_id)
         env.update(self.g.env)
@@ -458,9 +468,13 @@ class Launcher:
 
 
 def launcher_env_discovery(g: Graph) -> str:
-    if g.discovery_range != "LOCALHOST":
-        return g.discovery_range
-    return os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", g.discovery_range)
+    """The discovery range the graph runs with (for the start line), noting an environment
+    value that is overridden."""
+    env = os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "")
+    if env and env.upper() != g.discovery_range:
+        return (f"{g.discovery_range} (ROS_AUTOMATIC_DISCOVERY_RANGE={env} from the environment "
+                f"ignored: set discovery_range in the graph file to change it)")
+    return g.discovery_range
 
 
 def main(argv: list[str]) -> int:

@@ -193,6 +193,30 @@ def _config_problem(exc: BaseException) -> bool:
                             ParameterException, ArgsError))
 
 
+def _describe(exc: BaseException) -> str:
+    """One line for a start-up failure: configuration and security problems without a
+    traceback, anything else with one."""
+    from .security import describe_error
+
+    why = describe_error(exc)
+    if why is not None:
+        return why
+    if not _config_problem(exc):
+        traceback.print_exc()
+    return str(exc)
+
+
+def _init(args: list[str], what: str) -> bool:
+    """rclpy.init; False (after a one-line message) if it fails, e.g. ROS security is
+    enforced without a usable keystore."""
+    try:
+        rclpy.init(args=args)
+    except Exception as exc:  # noqa: BLE001
+        print(f"cannot start process '{what}': {_describe(exc)}", file=sys.stderr, flush=True)
+        return False
+    return True
+
+
 def load_class(spec: str):
     spec = NODE_CLASSES.get(spec, spec)
     mod, _, cls = spec.partition(":")
@@ -234,13 +258,13 @@ def build_node(spec: dict) -> FluxNode:
 def main_node(cls_spec: str, default_name: str, argv: list[str] | None = None) -> int:
     """Entry point of a single-node executable: `<exe> [--ros-args ...]`."""
     argv = sys.argv if argv is None else argv
-    rclpy.init(args=argv)
+    if not _init(argv, default_name):
+        return 2
     try:
         node = load_class(cls_spec)(default_name)
     except Exception as exc:  # noqa: BLE001 - configuration problems end the process
-        if not _config_problem(exc):
-            traceback.print_exc()
-        print(f"{default_name}: cannot start: {exc}", file=sys.stderr)
+        why = _describe(exc)
+        print(f"{default_name}: cannot start: {why}", file=sys.stderr)
         rclpy.try_shutdown()
         return 2
     return spin([node])
@@ -258,7 +282,8 @@ def container_main(argv: list[str] | None = None) -> int:
         spec = json.loads(args.spec_json)
     else:
         ap.error("--spec or --spec-json is required")
-    rclpy.init(args=["fluxdrive-container", *rest])
+    if not _init(["fluxdrive-container", *rest], str(spec.get("process", "container"))):
+        return 2
     import signal
 
     for sig in (signal.SIGINT, signal.SIGTERM):  # a stop while building: finish building
@@ -268,10 +293,9 @@ def container_main(argv: list[str] | None = None) -> int:
         for ns in spec["nodes"]:
             nodes.append(build_node(ns))
     except Exception as exc:  # noqa: BLE001
-        if not _config_problem(exc):
-            traceback.print_exc()
+        why = _describe(exc)
         name = ns.get("name", "?") if isinstance(ns, dict) else "?"
-        print(f"cannot start node '{name}': {exc}", file=sys.stderr, flush=True)
+        print(f"cannot start node '{name}': {why}", file=sys.stderr, flush=True)
         for n in nodes:
             n.close()
             n.destroy_node()

@@ -159,8 +159,10 @@ def estimate_row(v: tuple) -> np.ndarray:
 
 # ------------------------------------------------------------- DutyCommand, ControllerState
 class ControlWire:
-    def __init__(self, frame_id: str = ""):
-        self.duty = Codec(topics.T_DUTY, {"header.frame_id": frame_id})
+    def __init__(self, frame_id: str = "", duty_frame_id: str | None = None):
+        # duty_frame_id: the commanding node's mark (fluxdrive_ros.access), else frame_id
+        self.duty = Codec(topics.T_DUTY, {"header.frame_id": frame_id if duty_frame_id is None
+                                          else duty_frame_id})
         self.duty_decoder = Decoder(topics.T_DUTY)
         self.state_codecs: dict[int, Codec] = {}
         self.frame_id = frame_id

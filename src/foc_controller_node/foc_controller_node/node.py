@@ -67,8 +67,8 @@ from fluxdrive_ros.wire import ControlWire, EstimateWire, FrameWire, Stamp
 from std_msgs.msg import UInt64
 
 import flux_drive_msgs.msg as fm
+from fluxdrive_ros import access, qos, topics
 from fluxdrive_ros import diagnostics as diag
-from fluxdrive_ros import qos, topics
 
 # ControllerConfig field -> (description, unit); ranges from fluxdrive.control.CONTROL_RANGES
 DOCS = {
@@ -196,7 +196,8 @@ class ControllerNode(FluxNode):
               "what was published before the match; the lockstep sim graphs use it)",
               choices=qos.INPUT_DURABILITY_CHOICES, read_only=True),
             P("exit_on_done", True, "exit once the frame named by /drive/done is processed"),
-            P("frame_id", "", "header.frame_id of published messages", read_only=True),
+            P("frame_id", "", "header.frame_id of ControllerState (a DutyCommand carries the "
+              "node's access mark instead)", read_only=True),
             diag.PARAM,
         ])
         self.pv = pv
@@ -210,7 +211,10 @@ class ControllerNode(FluxNode):
         self.stamp = Stamp(card.ts_s)
         self.fw = FrameWire()
         self.ew = EstimateWire("")
-        self.cw = ControlWire(common["frame_id"])
+        # DutyCommand.header.frame_id = this node's mark: the plant / bench bridge obey
+        # only marked commands of their allowed_commanders (fluxdrive_ros.access)
+        self.cw = ControlWire(common["frame_id"], duty_frame_id=access.mark(
+            self.get_fully_qualified_name(), topics.DUTY))
         self.frames: dict[int, np.ndarray] = {}
         self.ests: dict[int, np.ndarray] = {}
         self.next_k = 0

@@ -25,6 +25,8 @@ Sim time: /clock carries t_k every `clock_decimation` frames (0: no /clock).
 Malformed duty commands (counted on /diagnostics, "<node>: commands"): a non-finite duty
 drives that period with the PWM off; a duty outside [0, 1] is clamped (as a real modulator
 does); a seq that repeats or goes backwards, or names a frame not published yet, is dropped.
+Duty commands are obeyed only from the nodes in `allowed_commanders` (default /controller;
+fluxdrive_ros.access); others are dropped and counted.
 """
 
 from __future__ import annotations
@@ -47,8 +49,8 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import UInt64
 
 import flux_drive_msgs.msg as fm
+from fluxdrive_ros import access, qos, topics
 from fluxdrive_ros import diagnostics as diag
-from fluxdrive_ros import qos, topics
 
 
 def param_table(sc) -> list[P]:
@@ -88,6 +90,7 @@ def param_table(sc) -> list[P]:
           "what was published before the match; the lockstep sim graphs use it)",
           choices=qos.INPUT_DURABILITY_CHOICES, read_only=True),
         diag.PARAM,
+        access.param(),
     ]
 
 
@@ -145,6 +148,7 @@ class PlantNode(FluxNode):
                                     "repeated_or_backwards", "unexpected_seq", "watchdog_trips")
         self._logged = 0
         on_set(self, self.specs, self._apply)
+        self.guard = access.CommandGuard(pv["allowed_commanders"], topics.DUTY)
         self.diag = diag.Diagnostics(self, pv["diagnostics_period_s"])
         self.diag.add("commands", self._diag_commands)
         self.get_logger().info(
@@ -232,6 +236,12 @@ class PlantNode(FluxNode):
                                               " (further cases: /diagnostics only)"))
 
     def _on_duty(self, data: bytes) -> None:
+        if not self.guard.accept_raw(data):  # not from an allowed commander: ignored
+            if self.guard.n_rejected <= 3:
+                self.get_logger().warning(
+                    f"duty command dropped ({self.guard.last_rejected}); obeyed only from "
+                    f"{self.guard.allowed}")
+            return
         v = self.duty_dec.decode(data)
         seq = v[2]
         c = self.counts.values
@@ -326,13 +336,15 @@ class PlantNode(FluxNode):
 
     def _diag_commands(self) -> tuple[int, str, dict]:
         c = self.counts
+        c.set("commands_rejected", self.guard.n_rejected)
         grew = c.grew("duty_nonfinite", "duty_out_of_range", "repeated_or_backwards",
-                      "unexpected_seq")
-        values = {**c.report(), "last_frame": self.k, "mode": self.pv["mode"]}
+                      "unexpected_seq", "commands_rejected")
+        values = {**c.report(), **self.guard.values(), "last_frame": self.k,
+                  "mode": self.pv["mode"]}
         if self.watchdog_tripped:
             return diag.ERROR, "watchdog: no duty command in time, PWM off", values
         if grew:
-            return diag.WARN, "malformed duty commands since the last report (" + ", ".join(
+            return diag.WARN, "bad duty commands since the last report (" + ", ".join(
                 f"{k} {c[k]}" for k in grew) + ")", values
         return diag.OK, "commands ok", values
 
