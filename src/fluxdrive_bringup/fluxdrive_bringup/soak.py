@@ -6,7 +6,8 @@
    every topic has a known message count: one frame, one estimate per observer, one
    controller state and one truth sample per PWM period.  The resident memory (VmRSS) of
    every process of the graph (bag-writer helper included) is sampled every --sample-s;
-   after a warm-up of 20 % of the run, the growth must stay under --max-growth-mb.  The
+   after a warm-up of 20 % of the run, the growth (median of the last third of the
+   samples minus median of the first third) must stay under --max-growth-mb.  The
    bag's per-topic counts are read from the mcap summary (independent of the recorder's
    own metadata.yaml, which is checked too) and must equal the number of periods.
 2. Burst replay: the bag is published by `./fluxdrive replay --live` with no pacing
@@ -25,6 +26,7 @@ import json
 import os
 import shutil
 import signal
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -77,20 +79,45 @@ def _pids_in_groups(pgids: set[int]) -> list[int]:
     return out
 
 
+def _label(pid: int) -> str:
+    """Short name of a process: the container's process name, else the command."""
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            argv = f.read().split(b"\0")
+    except OSError:
+        return str(pid)
+    text = " ".join(a.decode(errors="replace") for a in argv if a)
+    if '"process": "' in text:
+        return text.split('"process": "', 1)[1].split('"', 1)[0]
+    for mod in ("bagwriter", "replay"):
+        if mod in text:
+            return mod
+    return Path(argv[0].decode(errors="replace")).name or str(pid)
+
+
 class RssSampler(threading.Thread):
-    """Samples the summed VmRSS [MiB] of a set of process groups (or pids) periodically."""
+    """Samples the VmRSS [MiB] of a set of process groups (or pids) periodically, summed
+    and per process."""
 
     def __init__(self, period_s: float, groups=None, pids=None):
         super().__init__(daemon=True)
         self.period_s = period_s
         self.groups = groups  # callable -> set of pgids
         self.pids = pids  # callable -> list of pids
-        self.samples: list[tuple[float, float]] = []  # (monotonic s, MiB)
+        self.samples: list[tuple[float, float]] = []  # (monotonic s, MiB summed)
+        self.per_proc: dict[str, list[float]] = {}  # label -> MiB per sample
         self.stop_evt = threading.Event()
 
     def sample(self) -> float:
         pids = list(self.pids()) if self.pids else _pids_in_groups(self.groups())
-        return sum(_rss_kib(p) for p in pids) / 1024.0
+        total = 0.0
+        for pid in pids:
+            mib = _rss_kib(pid) / 1024.0
+            total += mib
+            if mib > 0:
+                lab = f"{_label(pid)}[{pid}]"
+                self.per_proc.setdefault(lab, []).append(round(mib, 1))
+        return total
 
     def run(self) -> None:
         while not self.stop_evt.is_set():
@@ -100,16 +127,19 @@ class RssSampler(threading.Thread):
             self.stop_evt.wait(self.period_s)
 
     def growth_mb(self, warmup_frac: float = 0.2) -> tuple[float, float, float]:
-        """(MiB after warm-up, MiB at the end, growth) from averages of 3 samples."""
+        """(MiB, MiB, growth): medians of the first and the last third of the samples
+        after the warm-up, and their difference.  Medians, because the bag writer's
+        buffers and the allocator make single samples swing by tens of MiB; a leak moves
+        the medians, a swing does not."""
         if len(self.samples) < 4:
             return (float("nan"),) * 3
         t0, t1 = self.samples[0][0], self.samples[-1][0]
         steady = [m for t, m in self.samples if t >= t0 + warmup_frac * (t1 - t0)]
-        if len(steady) < 2:
-            steady = [m for _, m in self.samples[-2:]]
-        k = min(3, len(steady) // 2)
-        start = sum(steady[:k]) / k
-        end = sum(steady[-k:]) / k
+        if len(steady) < 3:
+            steady = [m for _, m in self.samples[-3:]]
+        k = max(1, len(steady) // 3)
+        start = statistics.median(steady[:k])
+        end = statistics.median(steady[-k:])
         return start, end, end - start
 
 
@@ -212,7 +242,8 @@ def lockstep_soak(sp: Path, wall_s: float, sample_s: float, max_growth_mb: float
            "bag_mb": round(bag_mb, 1), "rss_mb_after_warmup": round(start, 1),
            "rss_mb_end": round(end, 1), "rss_growth_mb": round(growth, 1),
            "rss_samples": len(sampler.samples),
-           "rss_mb_series": [round(m, 1) for _, m in sampler.samples]}
+           "rss_mb_series": [round(m, 1) for _, m in sampler.samples],
+           "rss_mb_per_process": sampler.per_proc}
     res["soak_ok"] = bool(not lost and not meta_diff and growth <= max_growth_mb)
     _say(f"soak: {n} periods in {wall:.1f} s, {res['messages']} messages, lost {lost or 0}, "
          f"RSS {start:.1f} -> {end:.1f} MiB (growth {growth:+.1f} MiB, limit "
