@@ -20,10 +20,11 @@ fault in ControllerState.fault_reason, until the node is restarted / reset):
   or under-voltage, over-speed, a non-finite estimate, and -- in closed loop -- on an
   estimate flagged invalid for longer than `invalid_timeout_s` (loss of lock);
 - here: when the driving estimate of a received frame does not come -- frames
-  `position_timeout_s` of sample time later are already here (bench, paced plant), or it
+  `position_timeout_s` of sample time later are already here (bench, paced plant; once a
+  first estimate has come), or it
   has been waited for `position_wall_timeout_s` of wall time (lockstep: the plant waits for
-  us, so sample time stands still) -- the controller trips with "stale input" and from then
-  on answers every frame at once with the PWM off;
+  us, so sample time stands still; 30 s for the very first estimate) -- the controller
+  trips with "stale input" and from then on answers every frame at once with the PWM off;
 - a frame whose seq repeats or goes backwards is dropped; a jump skips the missing
   samples (frames lost upstream: never waited for); `position_timeout_s` worth of
   consecutive dropped frames (e.g. a restarted source counting from 0 again) trips
@@ -103,6 +104,8 @@ DOCS = {
     "l_hat_h": ("controller's stator inductance L^", "H"),
     "lambda_hat_vs": ("controller's magnet flux lambda^", "V s"),
 }
+# wall-clock grace for the very first estimate (a starting observer process, compilation)
+FIRST_ESTIMATE_WALL_S = 30.0
 # parameters of the node, not of ControllerConfig
 NODE_LEVEL = {"speed_ref_mode", "speed_ref_rpm", "position_timeout_s", "position_wall_timeout_s"}
 # None-able fields: ROS parameters cannot be None; 0.0 stands for None
@@ -289,6 +292,10 @@ class ControllerNode(FluxNode):
         if k > self.max_seq:
             self.max_seq = k
         self.frames[k] = fr
+        if len(self.frames) > qos.SAMPLE_DEPTH:  # waiting long for the first estimate
+            oldest = min(self.frames)
+            del self.frames[oldest]
+            self.counts.values["missing_frames"] += 1
         self._run()
 
     def _on_est(self, data: bytes) -> None:
@@ -324,7 +331,8 @@ class ControllerNode(FluxNode):
                 if es is None:
                     if self.cs[CS_MODE] == MODE_FAULT:
                         es = self.no_est  # tripped: no need to wait for the estimate
-                    elif self.max_seq - k >= self.n_pos_timeout:
+                    elif (self.max_seq - k >= self.n_pos_timeout
+                          and self.counts.values["estimates"] > 0):  # (start: wall clock)
                         late_ms = (self.max_seq - k) * self.card.ts_s * 1e3
                         self._trip_stale(
                             f"no position estimate for frame {k} while frames up to "
@@ -364,6 +372,8 @@ class ControllerNode(FluxNode):
 
     def _check_wall_timeout(self) -> None:
         lim = self.pv["position_wall_timeout_s"]
+        if lim > 0.0 and self.counts["estimates"] == 0:  # the first one may take a while
+            lim = max(lim, FIRST_ESTIMATE_WALL_S)  # (observer starting, code compiling)
         if (lim <= 0.0 or self.cs[CS_MODE] == MODE_FAULT or self.wait_k != self.next_k
                 or self.next_k not in self.frames or self.next_k in self.ests):
             return
