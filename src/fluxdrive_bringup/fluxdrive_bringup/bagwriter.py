@@ -19,9 +19,9 @@ fsync), the file lacks only its summary and the open chunk: `./fluxdrive bag rec
 bag is open, RECORDING_FILE in the bag directory keeps what metadata.yaml would get at the
 end (custom_data), for the recovery; it is removed once the bag is finalised.
 
-A failing write (disk full, file too large, I/O error) stops the recording: one line on
-stderr and "error <reason>" on stdout, then the bag is finalised if the file system still
-lets it (else it is left for `bag recover`) and the process exits with code 3.
+A failing write (disk full, file too large, I/O error) stops the recording: "error
+<reason>" on stdout (the recorder logs it), the file is closed without its summary (its
+complete chunks stay readable for `bag recover`) and the process exits with code 3.
 
 Protocol on stdin (little endian):
   b"H" u32 n, JSON {"path": str, "custom_data": {key: str}}     first record; opens the bag
@@ -167,8 +167,7 @@ def main() -> int:
     except OSError as exc:  # disk full, file too large, I/O error: stop recording
         where = getattr(getattr(writer, "storage", None), "path", None) or exc.filename or (
             writer.path if writer is not None else "the bag")
-        failed = (f"cannot write {where}: {exc.strerror or exc} (after {n_msgs} messages); "
-                  f"recording stopped")
+        failed = f"cannot write {where}: {exc.strerror or exc} (after {n_msgs} messages)"
     finally:
         if writer is not None and not failed:
             try:
@@ -186,8 +185,7 @@ def main() -> int:
                     pass
                 failed += (f"; the complete chunks can be recovered with "
                            f"./fluxdrive bag recover {writer.path}")
-            print(f"bagwriter: {failed}", file=sys.stderr, flush=True)
-            _say(f"error {failed}")
+            _say(f"error {failed}")  # the recorder logs it
     return EXIT_WRITE_FAILED if failed else 0
 
 

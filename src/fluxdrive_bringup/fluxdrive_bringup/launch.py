@@ -17,8 +17,13 @@ Graph file (config/graphs/*.yaml)::
         parameters: {scenario: config/scenarios/paper_2pct_150load.yaml}  # inline, win
         required: true                # its exit (code 0) ends the graph (the others get
                                       #   stop_grace_s, default 20 s, to end by themselves)
+        on_death: stop                # when its process dies (signal, non-zero exit):
+                                      #   stop (default) | restart | ignore
+        max_restarts: 3               # restart: at most this many times, then stop
+        restart_backoff_s: 1.0        # restart: wait 1, 2, 4, ... s before restart 1, 2, 3
       - name: bridge                  # any other program, started as is
         cmd: [python, -m, some.module]
+    on_death: stop                    # graph-wide defaults of the three keys above
 
 Every process gets the parent's whole environment (the ROS wheels need it) plus
 ROS_AUTOMATIC_DISCOVERY_RANGE from the graph's `discovery_range` (default LOCALHOST, whatever
@@ -27,9 +32,16 @@ FLUXDRIVE_GRAPH_KEY, a random key per launch that marks the graph's commands
 (fluxdrive_ros.access).
 Output lines are prefixed with the process name.  Ctrl-C (or SIGTERM) is forwarded as
 SIGINT to every process (each finalises: the recorder closes its bag), then SIGTERM and
-SIGKILL after timeouts.  The launcher exits non-zero, naming the node, if any process dies
-with a non-zero code; a process that ends with 0 just leaves the graph (a `required` one
-takes the rest down with it).
+SIGKILL after timeouts; processes holding a recorder are stopped last, once the others have
+ended, so that the bag gets their last messages.  Before anything starts, every recorder's
+bag directory is checked (new, writable, `min_free_mb` free).
+
+A process that dies (killed by a signal, or a non-zero exit code) is reported with its
+nodes, pid and signal/code and handled per its nodes' `on_death`: stop the graph (exit code
+1), restart it (FLUXDRIVE_RESTART_COUNT=n in its environment; its sample readers then start
+from the live samples, not the writers' history) up to `max_restarts` times with a doubling
+back-off, or ignore it (the graph runs on; exit code unaffected).  A process that ends with
+0 just leaves the graph (a `required` one takes the rest down with it).
 """
 
 from __future__ import annotations
@@ -50,9 +62,12 @@ from fluxdrive.machine import ConfigError
 from fluxdrive.scenario import REPO_ROOT
 from fluxdrive_ros.runner import NODE_CLASSES
 
-_NODE_KEYS = {"name", "node", "namespace", "process", "params", "parameters", "required", "cmd"}
+_POLICY_KEYS = {"on_death", "max_restarts", "restart_backoff_s"}
+ON_DEATH = ("stop", "restart", "ignore")
+_NODE_KEYS = {"name", "node", "namespace", "process", "params", "parameters", "required",
+              "cmd"} | _POLICY_KEYS
 _TOP_KEYS = {"name", "description", "discovery_range", "domain_id", "env", "nodes",
-             "stop_timeout_s", "stop_grace_s"}
+             "stop_timeout_s", "stop_grace_s"} | _POLICY_KEYS
 
 
 @dataclass
@@ -65,6 +80,14 @@ class NodeSpec:
     parameters: dict[str, Any] = field(default_factory=dict)
     required: bool = False
     cmd: list[str] | None = None
+    on_death: str | None = None  # None: the graph's default
+    max_restarts: int | None = None
+    restart_backoff_s: float | None = None
+
+    @property
+    def is_recorder(self) -> bool:
+        return bool(self.node) and NODE_CLASSES.get(self.node, self.node) == NODE_CLASSES[
+            "recorder"]
 
     @property
     def fqn(self) -> str:
@@ -82,6 +105,16 @@ class Graph:
     stop_timeout_s: float = 15.0
     stop_grace_s: float = 20.0
     source: str = ""
+    on_death: str = "stop"
+    max_restarts: int = 3
+    restart_backoff_s: float = 1.0
+
+    def policy(self, members: list[NodeSpec]) -> tuple[str, int, float]:
+        """(on_death, max_restarts, restart_backoff_s) of a process (its nodes agree)."""
+        m = members[0]
+        return (m.on_death or self.on_death,
+                self.max_restarts if m.max_restarts is None else m.max_restarts,
+                self.restart_backoff_s if m.restart_backoff_s is None else m.restart_backoff_s)
 
     def processes(self) -> dict[str, list[NodeSpec]]:
         out: dict[str, list[NodeSpec]] = {}
@@ -106,12 +139,18 @@ class Graph:
                 d["parameters"] = dict(n.parameters)
             if n.required:
                 d["required"] = True
+            for k in sorted(_POLICY_KEYS):
+                if getattr(n, k) is not None:
+                    d[k] = getattr(n, k)
             nodes.append(d)
         out: dict[str, Any] = {"name": self.name, "discovery_range": self.discovery_range}
         if self.domain_id is not None:
             out["domain_id"] = self.domain_id
         if self.env:
             out["env"] = dict(self.env)
+        if (self.on_death, self.max_restarts, self.restart_backoff_s) != ("stop", 3, 1.0):
+            out.update(on_death=self.on_death, max_restarts=self.max_restarts,
+                       restart_backoff_s=self.restart_backoff_s)
         out["nodes"] = nodes
         return out
 
@@ -124,6 +163,29 @@ def _resolve(p: str | Path, base: Path) -> Path:
         if (root / p).exists():
             return root / p
     return REPO_ROOT / p
+
+
+def _policy(d: dict, where: str) -> dict[str, Any]:
+    """The on_death keys of a node or of the graph, validated (absent keys left out)."""
+    out: dict[str, Any] = {}
+    if "on_death" in d:
+        v = d["on_death"]
+        if v not in ON_DEATH:
+            raise ConfigError(f"{where}: 'on_death' must be one of {', '.join(ON_DEATH)}, "
+                              f"got {v!r}")
+        out["on_death"] = v
+    if "max_restarts" in d:
+        v = d["max_restarts"]
+        if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= 1000:
+            raise ConfigError(f"{where}: 'max_restarts' must be an integer 0..1000, got {v!r}")
+        out["max_restarts"] = v
+    if "restart_backoff_s" in d:
+        v = d["restart_backoff_s"]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v <= 3600.0:
+            raise ConfigError(f"{where}: 'restart_backoff_s' must be a number of seconds "
+                              f"0..3600, got {v!r}")
+        out["restart_backoff_s"] = float(v)
+    return out
 
 
 def parse_graph(raw: Any, src: str = "graph", base: Path = REPO_ROOT) -> Graph:
@@ -185,7 +247,11 @@ def parse_graph(raw: Any, src: str = "graph", base: Path = REPO_ROOT) -> Graph:
         spec = NodeSpec(name=name, node=node, namespace=ns.rstrip("/"),
                         process=str(nd.get("process", "") or ""), params=files,
                         parameters=dict(parameters), required=bool(nd.get("required", False)),
-                        cmd=cmd)
+                        cmd=cmd, **_policy(nd, f"{where} ({name})"))
+        if spec.is_recorder and spec.on_death == "restart":
+            raise ConfigError(f"{where} ({name}): 'on_death: restart' is not supported for a "
+                              f"recorder (its bag directory exists after the first start); "
+                              f"use stop or ignore")
         if spec.fqn in seen:
             raise ConfigError(f"{where}: node {spec.fqn} appears twice")
         seen.add(spec.fqn)
@@ -203,10 +269,19 @@ def parse_graph(raw: Any, src: str = "graph", base: Path = REPO_ROOT) -> Graph:
     g = Graph(name=str(raw.get("name", Path(src).stem)), nodes=nodes, discovery_range=dr,
               domain_id=dom, env={str(k): str(v) for k, v in env.items()},
               stop_timeout_s=float(raw.get("stop_timeout_s", 15.0)),
-              stop_grace_s=float(raw.get("stop_grace_s", 20.0)), source=src)
+              stop_grace_s=float(raw.get("stop_grace_s", 20.0)), source=src,
+              **_policy(raw, src))
     for pname, members in g.processes().items():
         if len(members) > 1 and any(m.cmd for m in members):
             raise ConfigError(f"{src}: process '{pname}' mixes a 'cmd' with other nodes")
+        pols = {m.name: g.policy([m]) for m in members}
+        if len(set(pols.values())) > 1:
+            raise ConfigError(f"{src}: the nodes of process '{pname}' disagree on on_death/"
+                              f"max_restarts/restart_backoff_s ({pols}); give them one policy")
+        if any(m.is_recorder for m in members) and pols[members[0].name][0] == "restart":
+            raise ConfigError(f"{src}: process '{pname}' holds a recorder: 'on_death: "
+                              f"restart' is not supported for it (its bag directory exists "
+                              f"after the first start); use stop or ignore")
     return g
 
 
@@ -226,14 +301,44 @@ def load_graph(path: str | Path) -> Graph:
 
 
 # ---------------------------------------------------------------------------- running
+def node_parameters(n: NodeSpec) -> dict[str, Any]:
+    """A node's parameter values as the graph gives them: its parameter files' sections
+    for /** and for the node (ros__parameters), then the inline `parameters`."""
+    out: dict[str, Any] = {}
+    for f in n.params:
+        try:
+            data = yaml.safe_load(Path(f).read_text()) or {}
+        except (OSError, yaml.YAMLError):
+            continue
+        if not isinstance(data, dict):
+            continue
+        for key in ("/**", "**", n.fqn.lstrip("/"), n.fqn):
+            sec = data.get(key)
+            if isinstance(sec, dict) and isinstance(sec.get("ros__parameters"), dict):
+                out.update(sec["ros__parameters"])
+    out.update(n.parameters)
+    return out
+
+
 class Proc:
-    def __init__(self, name: str, nodes: list[NodeSpec], argv: list[str]):
+    def __init__(self, name: str, nodes: list[NodeSpec], argv: list[str],
+                 policy: tuple[str, int, float] = ("stop", 3, 1.0)):
         self.name = name
         self.nodes = nodes
         self.argv = argv
         self.popen: subprocess.Popen | None = None
         self.code: int | None = None
         self.reader: threading.Thread | None = None
+        self.on_death, self.max_restarts, self.backoff_s = policy
+        self.restarts = 0
+        self.restart_at: float | None = None
+        self.done = False  # ended for good (normally, stopped, or died and ignored)
+        self.ignored = False
+        self.bag_open: str | None = None  # bag directory its recorder opened
+
+    @property
+    def has_recorder(self) -> bool:
+        return any(n.is_recorder for n in self.nodes)
 
     @property
     def label(self) -> str:
@@ -258,6 +363,9 @@ class Launcher:
         self.stopping = False
         self.interrupted = False
         self.failed: list[Proc] = []
+        self.ignored: list[Proc] = []
+        self.restarts: dict[str, int] = {}  # process name -> restarts so far
+        self._spawn_lock = threading.Lock()  # no restart once a stop has begun
         self._progress_shown = False
         self._last_progress_print = 0.0
         self.tty = hasattr(sys.stderr, "isatty") and sys.stderr.isatty()
@@ -290,16 +398,65 @@ class Launcher:
              "parameters": m.parameters, "params_files": m.params} for m in members]}
         return [sys.executable, "-m", "fluxdrive_ros.runner", "--spec-json", json.dumps(spec)]
 
+    def preflight(self) -> None:
+        """Before anything starts: every recorder's bag directory must be new and writable,
+        with the recorder's min_free_mb free (ConfigError naming the node otherwise)."""
+        from .bagwriter import check_bag_target
+
+        for n in self.g.nodes:
+            if not n.is_recorder:
+                continue
+            pv = node_parameters(n)
+            bag = pv.get("bag_dir") or ""
+            target = Path(str(bag)) if bag else REPO_ROOT / "bags" / "run-new"
+            if not target.is_absolute():
+                target = REPO_ROOT / target
+            try:
+                min_free = float(pv.get("min_free_mb", 100.0))
+                check_bag_target(target, min_free, must_not_exist=bool(bag))
+            except (TypeError, ValueError) as exc:
+                raise ConfigError(f"{self.g.source or self.g.name}: recorder {n.fqn}: "
+                                  f"{exc}") from exc
+
     def start(self) -> None:
+        self.preflight()
         env = self.env()
+        if self._restart_transport(dict(env)) and not self.quiet:
+            self._emit("[launch] on_death: restart in the graph: Fast DDS without shared "
+                       "memory (FASTDDS_BUILTIN_TRANSPORTS=UDPv4), which does not carry a "
+                       "restarted process's messages after a SIGKILL")
         for pname, members in self.g.processes().items():
-            p = Proc(pname, members, self._argv(pname, members))
-            p.popen = subprocess.Popen(p.argv, env=env, stdout=subprocess.PIPE,
-                                       stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                       start_new_session=True, cwd=str(REPO_ROOT))
-            p.reader = threading.Thread(target=self._pump, args=(p,), daemon=True)
-            p.reader.start()
+            p = Proc(pname, members, self._argv(pname, members), self.g.policy(members))
+            self._spawn(p, env)
             self.procs.append(p)
+            if not self.quiet:
+                self._emit(f"[launch] process {p.label} started (pid {p.popen.pid})")
+
+    def _restart_transport(self, env: dict[str, str]) -> bool:
+        """Graphs with on_death: restart run Fast DDS without its shared-memory transport
+        (UDP on loopback instead): after a SIGKILL, Fast DDS 2.14's shared memory no longer
+        carries a restarted process's messages to the readers that were already there
+        (eProsima/Fast-DDS#5053, #5469).  An explicit FASTDDS_BUILTIN_TRANSPORTS wins."""
+        if not any(self.g.policy([n])[0] == "restart" for n in self.g.nodes):
+            return False
+        if not env.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp").startswith("rmw_fastrtps"):
+            return False
+        if "FASTDDS_BUILTIN_TRANSPORTS" in env:
+            return False
+        env["FASTDDS_BUILTIN_TRANSPORTS"] = "UDPv4"
+        return True
+
+    def _spawn(self, p: Proc, env: dict[str, str] | None = None) -> None:
+        env = dict(env or self.env())
+        self._restart_transport(env)
+        if p.restarts:
+            env["FLUXDRIVE_RESTART_COUNT"] = str(p.restarts)
+        p.code = None
+        p.popen = subprocess.Popen(p.argv, env=env, stdout=subprocess.PIPE,
+                                   stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                   start_new_session=True, cwd=str(REPO_ROOT))
+        p.reader = threading.Thread(target=self._pump, args=(p,), daemon=True)
+        p.reader.start()
 
     def _emit(self, text: str) -> None:
         with self.lock:
@@ -313,7 +470,7 @@ class Launcher:
         logf = None
         if self.log_dir is not None:
             self.log_dir.mkdir(parents=True, exist_ok=True)
-            logf = open(self.log_dir / f"{p.name}.log", "w")  # noqa: SIM115
+            logf = open(self.log_dir / f"{p.name}.log", "a" if p.restarts else "w")  # noqa: SIM115
         assert p.popen and p.popen.stdout
         for raw in p.popen.stdout:
             line = raw.decode(errors="replace").rstrip("\n")
@@ -322,6 +479,9 @@ class Launcher:
                 continue
             if line.startswith("@bag "):
                 self.bags.append(line[5:].strip())
+                continue
+            if line.startswith("@bag-open "):
+                p.bag_open = line[10:].strip()
                 continue
             if logf:
                 logf.write(line + "\n")
@@ -365,58 +525,113 @@ class Launcher:
                     pass
 
     def stop(self, timeout: float | None = None) -> None:
-        """SIGINT every live process, then SIGTERM, then SIGKILL."""
-        self.stopping = True
+        """SIGINT every live process, then SIGTERM, then SIGKILL; processes holding a
+        recorder only once the others have ended (the bag gets their last messages)."""
+        with self._spawn_lock:
+            self.stopping = True
         timeout = self.g.stop_timeout_s if timeout is None else timeout
-        self.signal_all(signal.SIGINT)
+        first = [p for p in self.procs if not p.has_recorder]
+        last = [p for p in self.procs if p.has_recorder]
+        for group in (first, last):
+            self._stop_group(group, timeout)
+        for p in self.procs:
+            p.popen.wait()
+
+    def _stop_group(self, group: list[Proc], timeout: float) -> None:
+        self.signal_all(signal.SIGINT, group)
         for sig, wait in ((signal.SIGTERM, timeout), (signal.SIGKILL, 5.0)):
             t_end = time.monotonic() + wait
-            while time.monotonic() < t_end and any(p.popen.poll() is None for p in self.procs):
+            while time.monotonic() < t_end and any(p.popen.poll() is None for p in group):
                 time.sleep(0.05)
-            alive = [p for p in self.procs if p.popen.poll() is None]
+            alive = [p for p in group if p.popen.poll() is None]
             if not alive:
                 break
             self._emit(f"[launch] {', '.join(p.label for p in alive)} still running; "
                        f"sending {signal.Signals(sig).name}")
             self.signal_all(sig, alive)
-        for p in self.procs:
-            p.popen.wait()
+
+    @staticmethod
+    def death_text(p: Proc, code: int) -> str:
+        if code < 0:
+            try:
+                what = f"signal {signal.Signals(-code).name}"
+            except ValueError:
+                what = f"signal {-code}"
+        else:
+            what = f"exit code {code}"
+        return f"{what}, pid {p.popen.pid}"
+
+    def _on_death(self, p: Proc, code: int, now: float) -> bool:
+        """A process died while the graph runs: apply its on_death.  True = stop the graph."""
+        what = self.death_text(p, code)
+        if p.on_death == "restart" and p.restarts < p.max_restarts:
+            delay = p.backoff_s * 2 ** p.restarts
+            p.restarts += 1
+            self.restarts[p.name] = p.restarts
+            p.restart_at = now + delay
+            self._emit(f"[launch] WARNING: process {p.label} died ({what}); restarting in "
+                       f"{delay:g} s (restart {p.restarts} of {p.max_restarts})")
+            return False
+        if p.on_death == "ignore":
+            p.done = p.ignored = True
+            self.ignored.append(p)
+            self._emit(f"[launch] WARNING: process {p.label} died ({what}); on_death: "
+                       f"ignore, the graph runs on without it")
+            return False
+        p.done = True
+        self.failed.append(p)
+        why = (f"on_death: restart, {p.restarts} restarts used" if p.on_death == "restart"
+               else "on_death: stop")
+        self._emit(f"[launch] ERROR: process {p.label} died ({what}); stopping the graph "
+                   f"({why})")
+        return True
 
     def wait(self, timeout: float | None = None) -> int:
-        """Watch until the graph ends.  Returns 0, or 1 if a process died (named)."""
+        """Watch until the graph ends.  Returns 0, or 1 if a process died (named) and its
+        policy stopped the graph."""
         t_end = None if timeout is None else time.monotonic() + timeout
-        exited: set[str] = set()
         grace_end: float | None = None
         while True:
+            now = time.monotonic()
             for p in self.procs:
-                if p.name in exited:
+                if p.done:
+                    continue
+                if p.restart_at is not None:
+                    if self.stopping:
+                        p.restart_at = None
+                        p.done = True
+                    elif now >= p.restart_at:
+                        with self._spawn_lock:
+                            if self.stopping:
+                                continue
+                            p.restart_at = None
+                            self._spawn(p)
+                        self._emit(f"[launch] process {p.label} restarted (pid "
+                                   f"{p.popen.pid}, restart {p.restarts} of {p.max_restarts})")
                     continue
                 code = p.popen.poll()
                 if code is None:
                     continue
-                exited.add(p.name)
                 p.code = code
                 if code != 0 and not self.stopping:
-                    self.failed.append(p)
-                    what = (f"signal {signal.Signals(-code).name}" if code < 0
-                            else f"exit code {code}")
-                    self._emit(f"[launch] ERROR: process {p.label} died ({what}); stopping "
-                               f"the graph")
-                    self.stop()
-                    self._join()
-                    return 1
+                    if self._on_death(p, code, now):
+                        self.stop()
+                        self._join()
+                        return 1
+                    continue
+                p.done = True
                 if code == 0 and any(n.required for n in p.nodes) and not self.stopping \
                         and grace_end is None:
                     # the others usually end by themselves (/drive/done); give them time
                     # to drain (the recorder) before stopping them
                     grace_end = time.monotonic() + self.g.stop_grace_s
             if grace_end is not None and time.monotonic() > grace_end and not self.stopping \
-                    and len(exited) < len(self.procs):
+                    and not all(p.done for p in self.procs):
                 req = [p for p in self.procs if any(n.required for n in p.nodes)]
                 self._emit(f"[launch] required process {req[0].label} finished; stopping "
                            f"the graph")
                 self.stop()
-            if len(exited) == len(self.procs):
+            if all(p.done for p in self.procs):
                 break
             if t_end is not None and time.monotonic() > t_end:
                 self._emit("[launch] timeout; stopping the graph")
@@ -425,7 +640,8 @@ class Launcher:
                 return 1
             time.sleep(0.05)
         self._join()
-        bad = [p for p in self.procs if p.code not in (0, None) and not self.stopping]
+        bad = [p for p in self.procs
+               if p.code not in (0, None) and not self.stopping and not p.ignored]
         return 1 if bad else 0
 
     def _join(self) -> None:
@@ -459,12 +675,23 @@ class Launcher:
         finally:
             for s, h in old.items():
                 signal.signal(s, h)
+        self._bag_hints()
         if interrupted.is_set():
             dirty = [p for p in self.procs if p.code not in (0, None)]
             for p in dirty:
                 self._emit(f"[launch] process {p.label} ended with code {p.code} on stop")
             return 1 if dirty else 0
         return code
+
+    def _bag_hints(self) -> None:
+        """Name every bag a recorder opened but did not finalise (killed with its writer,
+        disk full) and the command that recovers it."""
+        for p in self.procs:
+            if p.bag_open and Path(p.bag_open).is_dir() and not (
+                    Path(p.bag_open) / "metadata.yaml").exists():
+                self._emit(f"[launch] bag {p.bag_open} was not finalised (process {p.label} "
+                           f"ended with code {p.code}); recover it with: ./fluxdrive bag "
+                           f"recover {p.bag_open}")
 
 
 def launcher_env_discovery(g: Graph) -> str:
@@ -511,4 +738,9 @@ def main(argv: list[str]) -> int:
     code = launcher.run(args.timeout)
     for b in launcher.bags:
         print(f"[launch] bag: {b}")
+    if launcher.restarts:
+        print("[launch] restarts: " + ", ".join(f"{k} {v}" for k, v in
+                                                 launcher.restarts.items()))
+    for p in launcher.ignored:
+        print(f"[launch] died and ignored: {p.label} ({launcher.death_text(p, p.code or 0)})")
     return code

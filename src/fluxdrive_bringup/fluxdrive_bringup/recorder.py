@@ -128,6 +128,8 @@ class RecorderNode(FluxNode):
         if pv["scenario"]:
             custom = self._run_metadata(pv)
         self._start_writer(custom)
+        sys.stdout.write(f"@bag-open {self.bag_dir}\n")  # the launcher names it if unfinalised
+        sys.stdout.flush()
         self.header_ts = pv["timestamps"] == "header"
         self.buf: list[bytes] = []
         self.lock = threading.Lock()

@@ -10,6 +10,8 @@ graphs).  By default readers are VOLATILE, which matches any writer.
 
 from __future__ import annotations
 
+import os
+
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 SAMPLE_DEPTH = 10000
@@ -21,12 +23,22 @@ SAMPLES = QoSProfile(depth=SAMPLE_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
 SAMPLES_READER = SAMPLES
 
 
+def restarted() -> int:
+    """How often the launcher has restarted this process (on_death: restart), 0 at first."""
+    try:
+        return int(os.environ.get("FLUXDRIVE_RESTART_COUNT", "0") or 0)
+    except ValueError:
+        return 0
+
+
 def reader(durability: str = "volatile") -> QoSProfile:
     """Sample-topic reader QoS.  volatile (the nodes' default) matches every writer, also a
     volatile one (a bench bridge or a bag replay publishing with plain depth-100 QoS: a
     transient-local reader would not match it); transient_local also gets what was
-    published before the match (the lockstep sim graphs, whose writers are all ours)."""
-    if durability == "volatile":
+    published before the match (the lockstep sim graphs, whose writers are all ours).
+    A process the launcher restarted reads volatile: it starts at the live samples instead
+    of replaying (and answering) up to SAMPLE_DEPTH samples of the writers' history."""
+    if durability == "volatile" or restarted():
         return QoSProfile(depth=SAMPLE_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
                           history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.VOLATILE)
     return SAMPLES_READER

@@ -20,6 +20,18 @@ Modes
   `watchdog_periods` periods of wall time, after which the plant runs on with the PWM off
   (frames flagged STATUS_STALE_COMMAND) until duty commands come back.
 
+Safe state when the controller is gone (watchdogs):
+- lockstep: a duty command that has not come after `duty_timeout_s` of wall time (the
+  controller died or hangs; 10 s for the first one) -> the period it would have driven is
+  simulated with the PWM off (frame flagged STATUS_STALE_COMMAND), and one more each further
+  `duty_timeout_s`, until duty commands come back (a restarted controller picks up at the
+  live frame; the skipped duties are dropped if they come late);
+- paced: see above (`watchdog_periods`);
+- stopped before the end of the run (SIGINT/SIGTERM, the launcher stopping the graph): one
+  last period with the PWM off is simulated and published (flagged STATUS_STALE_COMMAND,
+  acknowledged by the readers in other processes, e.g. a recorder stopped after us), and
+  the node logs the frame it stopped at.
+
 Sim time: /clock carries t_k every `clock_decimation` frames (0: no /clock).
 
 Malformed duty commands (counted on /diagnostics, "<node>: commands"): a non-finite duty
@@ -73,6 +85,10 @@ def param_table(sc) -> list[P]:
           1e-3, 10.0),
         P("watchdog_periods", 20, "paced mode: PWM off when no duty command came for this "
           "many periods of (paced) wall time", "periods", 1, 10_000_000),
+        P("duty_timeout_s", 5.0, "lockstep mode: simulate the next period with the PWM off "
+          "when its duty command has not come for this much wall time (controller dead or "
+          "hung), then one period per timeout until commands come back; 0 = wait forever "
+          "(live)", "s", 0.0, 3600.0),
         P("clock_decimation", 10, "publish /clock every N frames (0: never)", "frames", 0,
           1_000_000),
         P("wait_frame_subscribers", 1, "matched /drive/frame subscribers needed before the "
@@ -144,6 +160,8 @@ class PlantNode(FluxNode):
         self.last_duty: tuple | None = None
         self.t_last_duty = 0.0
         self.watchdog_tripped = False
+        self._wd_k = -1  # lockstep watchdog: frame index and wall time of the last progress
+        self._wd_t = 0.0
         self.counts = diag.Counters("duty_received", "duty_nonfinite", "duty_out_of_range",
                                     "repeated_or_backwards", "unexpected_seq", "watchdog_trips")
         self._logged = 0
@@ -208,6 +226,8 @@ class PlantNode(FluxNode):
         if self.n > 1:
             # frame 1 comes from duty(-1): PWM off
             self._advance(self.duty, False, 1)
+        self._wd_t = time.perf_counter()
+        self._wd_timer = self.create_timer(0.05, self._lockstep_watchdog)
 
     # ----------------------------------------------------------------- stepping
     def _advance(self, duty, enabled: bool, k: int, flags: int = 0) -> None:
@@ -278,6 +298,11 @@ class PlantNode(FluxNode):
         if seq > self.next_duty:
             self.pending[seq] = v
             return
+        self._lockstep(v)
+
+    def _lockstep(self, v: tuple) -> None:
+        """Apply duty(seq = next_duty) to frame seq + 2, then any queued successors."""
+        seq = v[2]
         while True:
             k = seq + 2
             if k < self.n:
@@ -291,6 +316,43 @@ class PlantNode(FluxNode):
             if v is None:
                 return
             seq = v[2]
+
+    def _lockstep_watchdog(self) -> None:
+        """lockstep: no duty command for duty_timeout_s of wall time -> the period it would
+        have driven goes with the PWM off (flagged stale); again each further timeout."""
+        if self.done or not self.started:
+            return
+        now = time.perf_counter()
+        if self.k != self._wd_k:  # the loop moved: a duty command came
+            if self.watchdog_tripped:
+                self.watchdog_tripped = False
+                self.get_logger().info(f"duty commands back (seq {self.next_duty - 1}); "
+                                       f"lockstep resumes")
+            self._wd_k, self._wd_t = self.k, now
+            return
+        lim = float(self.pv["duty_timeout_s"])
+        if self.next_duty == 0:  # the first answer may take a while (code loading)
+            lim = max(lim, 10.0)
+        if lim <= 0.0 or now - self._wd_t < lim:
+            return
+        j = self.next_duty
+        if not self.watchdog_tripped:
+            self.watchdog_tripped = True
+            self.counts.add("watchdog_trips")
+            self.get_logger().warning(
+                f"watchdog: no duty command {j} for {lim:g} s of wall time (controller gone?); "
+                f"PWM off from frame {j + 2}, one period per {lim:g} s until duty commands "
+                f"come back")
+        self.next_duty = j + 1
+        if j + 2 < self.n:
+            self._advance(np.array([0.5, 0.5, 0.5]), False, j + 2, STATUS_STALE_COMMAND)
+        self._wd_k, self._wd_t = self.k, now
+        if j >= self.n - 1:
+            self._finish()
+            return
+        v = self.pending.pop(self.next_duty, None)
+        if v is not None:
+            self._lockstep(v)
 
     def _on_pace(self) -> None:
         self._pace_step()
@@ -373,6 +435,25 @@ class PlantNode(FluxNode):
     def _exit(self) -> None:
         self._exit_timer.cancel()
         self.finished = True
+
+    def close(self) -> None:
+        """Stopped before the end of the run: the bridge is switched off -- one last period
+        with the PWM off, published (flagged STATUS_STALE_COMMAND) and acknowledged by the
+        readers still there, so that a recording ends in the safe state."""
+        if not self.started or self.done:
+            return
+        self.done = True
+        k = self.k + 1
+        ts = self.ds.ts
+        if k < self.n and self.context.ok():
+            try:
+                self._advance(np.array([0.5, 0.5, 0.5]), False, k, STATUS_STALE_COMMAND)
+                for p in (self.pub_frame, self.pub_truth):
+                    p.wait_for_all_acked(Duration(seconds=2.0))
+            except Exception as exc:  # noqa: BLE001 - shutting down anyway
+                self.log(f"could not publish the final PWM-off frame: {exc}", "warning")
+        self.log(f"stopped before the end of the run: PWM off from frame {self.k} "
+                 f"(t = {self.k * ts:.4f} s); {self.k + 1} frames published")
 
 
 def main(argv: list[str] | None = None) -> int:
