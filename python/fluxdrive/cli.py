@@ -25,6 +25,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "param": ("fluxdrive_bringup.cli", "main_param", "param get|set|dump"),
     "bag": ("fluxdrive_bringup.cli", "main_bag",
             "bag recover BAG_DIR [--out DIR]: a valid bag from an unfinalised one"),
+    "fault": ("fluxdrive_bringup.cli", "main_fault", "fault reset: clear a latched drive fault"),
     "soak": ("fluxdrive_bringup.cli", "main_soak",
              "load check: long lockstep graph run + burst replay (memory, no loss)"),
     "replay": ("fluxdrive.replay", "main", "replay bags through observer variants"),

@@ -56,3 +56,9 @@ def main_soak(argv: list[str]) -> int:
     from .soak import main
 
     return main(argv)
+
+
+def main_fault(argv: list[str]) -> int:
+    from .inspect_cli import main_fault as f
+
+    return f(argv)

@@ -37,7 +37,8 @@ class Session:
     """A private rclpy context with one helper node, spun with a plain executor (usable
     from tests next to other rclpy users: it never touches the default context)."""
 
-    def __init__(self, args=None, domain_id: int | None = None, wait_s: float = 3.0):
+    def __init__(self, args=None, domain_id: int | None = None, wait_s: float = 3.0,
+                 node_name: str | None = None):
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
 
@@ -51,7 +52,8 @@ class Session:
         self.rclpy = rclpy
         self.ctx = rclpy.Context()
         rclpy.init(args=None, context=self.ctx, domain_id=domain_id)
-        self.node = rclpy.create_node(f"fluxdrive_inspect_{os.getpid()}", context=self.ctx,
+        self.node = rclpy.create_node(node_name or f"fluxdrive_inspect_{os.getpid()}",
+                                      context=self.ctx,
                                       start_parameter_services=False)
         self.ex = SingleThreadedExecutor(context=self.ctx)
         self.ex.add_node(self.node)
@@ -378,3 +380,39 @@ def main_param(argv: list[str]) -> int:
         return 1
     finally:
         s.close()
+
+
+OPERATOR_NODE = "fluxdrive_operator"  # fluxdrive_ros.access.DEFAULT_OPERATORS
+
+
+def main_fault(argv: list[str]) -> int:
+    """`./fluxdrive fault reset [SERVICE]`: clear a latched drive fault (the only way one is
+    cleared).  Runs as node /fluxdrive_operator, the name the controller's
+    allowed_operators (and a bench bridge's allowed_commanders, if listed) must contain."""
+    from flux_drive_msgs.srv import ResetFault
+
+    ap = argparse.ArgumentParser(prog="fluxdrive fault", description=main_fault.__doc__)
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    p = sub.add_parser("reset", help="clear a latched fault")
+    p.add_argument("service", nargs="?", default="/controller/reset_fault",
+                   help="ResetFault service (default /controller/reset_fault; the bench "
+                   "bridge's is /drive/reset_fault)")
+    _common(p)
+    args = ap.parse_args(argv)
+    s = Session(args, node_name=OPERATOR_NODE)
+    try:
+        t_end = time.monotonic() + max(s.wait_s, 5.0)
+        while True:
+            res = _call(s, ResetFault, args.service, ResetFault.Request())
+            # the server checks its clients by discovery, which may not show us yet
+            if res.success or "not known to the graph yet" not in res.message \
+                    or time.monotonic() > t_end:
+                break
+            s.spin_for(0.3)
+    except (LookupError, TimeoutError) as exc:
+        print(f"fault reset: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        s.close()
+    print(f"{args.service}: {'ok' if res.success else 'REFUSED'}: {res.message}")
+    return 0 if res.success else 1

@@ -42,6 +42,9 @@ from .params import P
 KEY_ENV = "FLUXDRIVE_GRAPH_KEY"
 ANYONE = "*"
 DEFAULT_ALLOWED = ("/controller",)
+# the node name of `./fluxdrive fault reset` (fluxdrive_bringup.inspect_cli), the operator's
+# tool; the controller obeys ~/reset_fault only from these
+DEFAULT_OPERATORS = ("/fluxdrive_operator",)
 
 
 def param(default: tuple[str, ...] = DEFAULT_ALLOWED) -> P:
@@ -137,7 +140,8 @@ def service_clients(node, service: str) -> list[str]:
     return out
 
 
-def check_service_caller(node, service: str, allowed: list[str]) -> str | None:
+def check_service_caller(node, service: str, allowed: list[str],
+                         list_name: str = "allowed_commanders") -> str | None:
     """None if a request on `service` may be obeyed, else the reason it may not: every node
     with a client of the service must be allowed (rclpy does not say which one called)."""
     if ANYONE in allowed:
@@ -145,7 +149,7 @@ def check_service_caller(node, service: str, allowed: list[str]) -> str | None:
     clients = service_clients(node, service)
     foreign = [c for c in clients if c not in allowed]
     if foreign:
-        return (f"refused: {', '.join(foreign)} (not in allowed_commanders {allowed}) holds a "
+        return (f"refused: {', '.join(foreign)} (not in {list_name} {allowed}) holds a "
                 f"client of {service}, and a request cannot be attributed to its caller")
     if not clients:
         return (f"refused: the caller of {service} is not known to the graph yet "

@@ -15,7 +15,9 @@ rejected with the reason.  The speed reference follows the scenario's profile (w
 injection) unless speed_ref_mode = constant (speed_ref_rpm).
 
 Bad input and a lost position source (safe state = DutyCommand enable = false, latched
-fault in ControllerState.fault_reason, until the node is restarted / reset):
+fault in ControllerState.fault_reason, until an explicit reset: the ~/reset_fault service
+(flux_drive_msgs/ResetFault, e.g. `./fluxdrive fault reset`), obeyed only while every
+client of it is in `allowed_operators`; the drive then starts again from align / I-f):
 - the engine trips at once on a non-finite frame (bad sample), over-current, DC-bus over-
   or under-voltage, over-speed, a non-finite estimate, and -- in closed loop -- on an
   estimate flagged invalid for longer than `invalid_timeout_s` (loss of lock);
@@ -53,6 +55,7 @@ from fluxdrive.control import (
     MODE_FAULT,
     MODE_NAMES,
     ControllerConfig,
+    controller_clear_fault,
     controller_reset,
     controller_step,
 )
@@ -68,6 +71,7 @@ from fluxdrive_ros.wire import ControlWire, EstimateWire, FrameWire, Stamp
 from std_msgs.msg import UInt64
 
 import flux_drive_msgs.msg as fm
+from flux_drive_msgs.srv import ResetFault
 from fluxdrive_ros import access, qos, topics
 from fluxdrive_ros import diagnostics as diag
 
@@ -202,7 +206,11 @@ class ControllerNode(FluxNode):
             P("frame_id", "", "header.frame_id of ControllerState (a DutyCommand carries the "
               "node's access mark instead)", read_only=True),
             diag.PARAM,
+            P("allowed_operators", list(access.DEFAULT_OPERATORS), "nodes (fully qualified "
+              "names) whose ~/reset_fault requests are obeyed; '*' = anyone",
+              read_only=True),
         ])
+        self.allowed_operators = list(common["allowed_operators"])
         self.pv = pv
         self.cfg = to_config(cfg, pv)
         self.cp = self.cfg.to_params(card)
@@ -241,6 +249,8 @@ class ControllerNode(FluxNode):
             self.sub_est = RawSubscription(self, fm.RotorEstimate, src["estimate_topic"],
                                            self._on_est, qos.reader(common["input_durability"]))
         self.create_subscription(UInt64, topics.DONE, self._on_done, qos.LATCHED)
+        self.reset_service = self.resolve_service_name("~/reset_fault")
+        self.create_service(ResetFault, self.reset_service, self._on_reset)
         on_set(self, self.specs, self._apply)
         self.diag = diag.Diagnostics(self, common["diagnostics_period_s"])
         self.diag.add("input", self._diag_input)
@@ -382,6 +392,29 @@ class ControllerNode(FluxNode):
             self._trip_stale(f"no position estimate for frame {self.next_k} on "
                              f"{self.sub_est.topic} for {waited:.1f} s of wall time")
             self._run()
+
+    def _on_reset(self, req, resp):  # noqa: ARG002 - the request is empty
+        """Explicit reset of a latched fault (the only way one is cleared)."""
+        why = access.check_service_caller(self, self.reset_service, self.allowed_operators,
+                                          "allowed_operators")
+        if why:
+            self.get_logger().warning(f"reset_fault {why}")
+            resp.success, resp.message = False, why
+            return resp
+        if self.cs[CS_MODE] != MODE_FAULT:
+            resp.success, resp.message = True, "no latched fault"
+            return resp
+        code = int(controller_clear_fault(self.cs))
+        name = FAULT_NAMES.get(code, str(code))
+        detail = f" ({self.fault_detail})" if self.fault_detail else ""
+        self.fault_detail = ""
+        self.rejected_run = 0
+        self.wait_k = -1
+        msg = (f"cleared latched fault '{name}'{detail}; from sample {self.next_k} the drive "
+               f"starts again (align, I-f, handover)")
+        self.get_logger().warning(msg)
+        resp.success, resp.message = True, msg
+        return resp
 
     # ----------------------------------------------------------------- diagnostics
     def _diag_input(self) -> tuple[int, str, dict]:

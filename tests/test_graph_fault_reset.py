@@ -1,0 +1,86 @@
+"""Issue 7, item 2 at the graph level: a latched controller fault is cleared only by an
+explicit reset -- the controller's ~/reset_fault service, called by `./fluxdrive fault
+reset` (node /fluxdrive_operator) -- and only while no node outside `allowed_operators`
+holds a client of it.  After the reset the drive starts again from align (PWM on)."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+pytest.importorskip("fluxdrive_ros")
+
+from test_graph_bad_input import (  # noqa: E402,F401 - fixtures and helpers shared
+    _controller,
+    _est_bytes,
+    frame_bytes,
+    graph,
+    run,
+    wait_for,
+    wait_matched,
+)
+
+
+def test_latched_fault_cleared_only_by_an_allowed_reset(graph, run, capsys):  # noqa: F811
+    from fluxdrive_bringup.inspect_cli import main_fault
+    from fluxdrive_ros.wire import EstimateWire, FrameWire
+
+    from flux_drive_msgs.msg import ControllerState, DutyCommand, PhaseFrame, RotorEstimate
+    from flux_drive_msgs.srv import ResetFault
+
+    sc, r = run
+    _controller(graph, sc, position_wall_timeout_s=0.3)
+    duties = graph.listen(DutyCommand, "/drive/duty")
+    states = graph.listen(ControllerState, "/drive/controller_state")
+    fpub = graph.publisher(PhaseFrame, "/drive/frame")
+    epub = graph.publisher(RotorEstimate, "/probe/estimate")
+    wait_matched(fpub)
+    wait_matched(epub)
+    fw, ew = FrameWire(), EstimateWire("probe")
+    for k in range(10):
+        fpub.publish(frame_bytes(fw, r.frames[k], k))
+        epub.publish(_est_bytes(ew, k))
+    fpub.publish(frame_bytes(fw, r.frames[10], 10))  # its estimate never comes: trip
+    wait_for(lambda: len(states) >= 11, what="the stale-input trip")
+    assert states[10].fault_reason == "stale input: fault code 8" and not duties[10].enable
+
+    # frames keep coming, estimates too: still latched (PWM off)
+    for k in range(11, 20):
+        fpub.publish(frame_bytes(fw, r.frames[k], k))
+        epub.publish(_est_bytes(ew, k, True))
+    wait_for(lambda: len(duties) >= 20, what="duties while latched")
+    assert not any(d.enable for d in duties[10:20])
+
+    dom = graph.ctx.get_domain_id()
+    # a node outside allowed_operators holding a client of the service: refused
+    rogue = rclpy.create_node("rogue", context=graph.ctx)
+    rogue.create_client(ResetFault, "/controller/reset_fault")
+    graph.ex.add_node(rogue)
+    time.sleep(0.5)
+    code = main_fault(["reset", "--domain-id", str(dom), "--wait", "10"])
+    out = capsys.readouterr().out
+    print(out)
+    assert code == 1 and "REFUSED" in out and "/rogue" in out
+    graph.ex.remove_node(rogue)
+    rogue.destroy_node()
+
+    # the operator alone: cleared, with the reason it cleared
+    t_end = time.monotonic() + 15.0
+    while True:
+        code = main_fault(["reset", "--domain-id", str(dom), "--wait", "10"])
+        out = capsys.readouterr().out
+        if code == 0 or time.monotonic() > t_end:  # discovery may still show /rogue
+            break
+        time.sleep(0.5)
+    print(out)
+    assert code == 0 and "cleared latched fault 'stale input'" in out
+
+    # the drive starts again: align, PWM on, no fault
+    for k in range(20, 40):
+        fpub.publish(frame_bytes(fw, r.frames[k], k))
+        epub.publish(_est_bytes(ew, k, True))
+    wait_for(lambda: len(states) >= 40, what="states after the reset")
+    assert all(d.enable for d in duties[21:40])
+    assert states[39].fault_reason == "" and states[39].mode != 4
