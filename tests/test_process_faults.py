@@ -328,6 +328,73 @@ def test_observer_restart_and_ignore(tmp_path):
     assert fc[-1] < k_back and fc == list(range(len(fc)))
 
 
+def test_kill_driving_observer_controller_goes_pwm_off(tmp_path):
+    """The driving observer (a process of its own, on_death: ignore) is killed: the
+    controller waits for its estimate, trips 'stale input' after position_wall_timeout_s
+    (latched, PWM off) and from then on answers every frame with the PWM off, so the
+    lockstep run goes on to its end with the bridge disabled."""
+    bag = tmp_path / "bag"
+    g = graph_dict(bag, duration_s=1.0, processes={"flux_measured": "obs_fm"},
+                   policies={"flux_measured": {"on_death": "ignore"}})
+    g["nodes"][0]["required"] = True
+    run = Run(g, domain(8), tmp_path).start()
+    k_kill = run.wait_frames(3000)
+    os.kill(run.pid("obs_fm"), signal.SIGKILL)
+    code = run.join()
+    out = run.text()
+    assert code == 0, out
+    m = re.search(r"\[controller\]: (.*stale input.*)", out)
+    assert m, out
+    print(m.group(1))
+    from rosbags.highlevel import AnyReader
+
+    en = []
+    with AnyReader([bag]) as reader:
+        conns = [c for c in reader.connections if c.topic == "/drive/duty"]
+        for conn, _, raw in reader.messages(connections=conns):
+            d = reader.deserialize(raw, conn.msgtype)
+            en.append((int(d.seq), bool(d.enable)))
+    seqs, pwm, _, _ = read_frames(bag)
+    first_off = next(k for k, e in en if k > 100 and not e)
+    print(f"observer killed at frame >= {k_kill}; duties enabled until {first_off - 1}, "
+          f"PWM off from duty {first_off} to the end ({len(seqs)} frames)")
+    assert seqs == list(range(10000)) and [k for k, _ in en] == list(range(10000))
+    assert first_off >= k_kill - 200 and not any(e for k, e in en if k >= first_off)
+    assert not any(pwm[first_off + 2:]) and any(pwm[:first_off])
+
+
+def test_on_death_policy_errors_name_file_and_key():
+    """Malformed on_death settings are refused with the file, the node and the key."""
+    from fluxdrive.machine import ConfigError
+    from fluxdrive_bringup.launch import parse_graph
+
+    def bad(pol: dict, node: str = "controller", top: dict | None = None) -> str:
+        g = graph_dict(Path("/tmp/x"), processes={"controller": "ctl"},
+                       policies={node: pol}, defaults=top)
+        with pytest.raises(ConfigError) as ei:
+            parse_graph(g, "g.yaml")
+        return str(ei.value)
+
+    assert bad({"on_death": "explode"}) == ("g.yaml: nodes[2] (controller): 'on_death' must "
+                                            "be one of stop, restart, ignore, got 'explode'")
+    assert bad({"max_restarts": -1}) == ("g.yaml: nodes[2] (controller): 'max_restarts' must "
+                                         "be an integer 0..1000, got -1")
+    assert bad({"restart_backoff_s": "soon"}) == (
+        "g.yaml: nodes[2] (controller): 'restart_backoff_s' must be a number of seconds "
+        "0..3600, got 'soon'")
+    assert bad({}, top={"on_death": "retry"}) == (
+        "g.yaml: 'on_death' must be one of stop, restart, ignore, got 'retry'")
+    assert "'on_death: restart' is not supported for a recorder" in bad(
+        {"on_death": "restart"}, node="recorder")
+    assert "the nodes of process 'drive' disagree on on_death" in bad(
+        {"on_death": "ignore"}, node="plant")
+    g = parse_graph(graph_dict(None, processes={"plant": "plant"}, defaults={
+        "on_death": "ignore"}, policies={"plant": {"on_death": "stop"}}), "g.yaml")
+    assert g.to_dict()["on_death"] == "ignore"
+    assert {pn: g.policy(m)[0] for pn, m in g.processes().items()} == {
+        "plant": "stop", "drive": "ignore"}
+
+
 # ----------------------------------------------------------------------------- item 4
 def _recorder_counts(run: Run) -> dict[str, int]:
     m = run.wait_line(r"\[recorder\] .*finalised: \d+ messages \((.*)\)")
@@ -366,7 +433,7 @@ def test_sigkill_recorder_and_writer_then_bag_recover(tmp_path):
     bag = tmp_path / "bag"
     g = graph_dict(bag, processes={"recorder": "recorder"})
     run = Run(g, domain(5), tmp_path).start()
-    run.wait_frames(8000)
+    run.wait_frames(5000)
     pid = run.pid("recorder")
     k_kill = run.frames()
     os.killpg(pid, signal.SIGKILL)
@@ -399,6 +466,22 @@ def test_sigkill_recorder_and_writer_then_bag_recover(tmp_path):
     from fluxdrive.bagio import read_run_bag  # the run's metadata came back too
 
     assert read_run_bag(out_dir).meta["scenario"]["name"] == "paper_2pct_150load"
+
+    # a file cut inside its last chunk (killed while writing it): that chunk is dropped
+    import shutil
+
+    from fluxdrive_bringup.bagrecover import recover
+
+    cut = tmp_path / "cut"
+    cut.mkdir()
+    shutil.copy(bag / "recording.json", cut)
+    data = (bag / "bag.mcap").read_bytes()
+    (cut / "cut.mcap").write_bytes(data[: len(data) - 200_000])
+    rc = recover(cut, tmp_path / "cut-recovered")
+    print(f"cut 200 kB before the end: {rc.chunks} complete chunks; {rc.stop_reason}")
+    assert "the file ends inside a record" in rc.stop_reason and rc.chunks >= 1
+    seqs_cut, _, _, _ = read_frames(tmp_path / "cut-recovered")
+    assert seqs_cut == list(range(len(seqs_cut))) and 0 < len(seqs_cut) < n
 
 
 def test_bag_target_refused_before_start(tmp_path):
