@@ -1,4 +1,5 @@
-"""`./fluxdrive experiment NAME|all [--quick] [--out DIR]`: the paper's figures, and past them.
+"""`./fluxdrive experiment NAME|all [--quick] [--graph] [--out DIR]`: the paper's figures, and
+past them.  `--graph` runs every scenario through the ROS node graph instead of in-process.
 
 Each experiment builds scenarios, runs them in-process (the two cores in parallel), writes
 PNGs laid out like the paper's figure, and one row per claim of the paper into
@@ -112,12 +113,43 @@ def encoder_run(speed_rpm: float, load_pu: float, *, observers: dict | None = No
 
 
 # ---------------------------------------------------------------- running
+# --graph: every run goes through the ROS 2 node graph (lockstep, recorded, read back from
+# the bag) instead of fluxdrive.sim.run_scenario; the numbers are the same (the lockstep
+# graph reproduces the in-process runner bit for bit), only slower (about real time).
+_GRAPH = {"on": False, "keep": None}
+
+
+def graph_run(sc: Scenario):
+    """One scenario through the lockstep node graph -> SimResult (from the bag)."""
+    import shutil
+
+    from fluxdrive_bringup.runs import result_from_bag, run_graph
+
+    from .scenario import save_scenario
+
+    d = Path(tempfile.mkdtemp(prefix=f"fluxdrive-exp-graph-{sc.name}-"))
+    sp = save_scenario(sc, d / f"{sc.name}.yaml")
+    r = run_graph(sp, out=d / "run", bag=d / "bag", quiet=True, progress=False,
+                  timeout=max(600.0, 30.0 * sc.duration_s))
+    if r["code"] != 0:
+        raise RuntimeError(f"graph run of {sc.name} failed (exit {r['code']}); logs in "
+                           f"{d / 'run' / 'logs'}")
+    res, arr = result_from_bag(d / "bag", load_scenario(sp), wall_s=r["loop_wall_s"] or 0.0)
+    missing = {k: v for k, v in arr["missing"].items() if v}
+    if missing:
+        raise RuntimeError(f"graph run of {sc.name}: samples missing from the bag {missing} "
+                           f"({d / 'bag'})")
+    if _GRAPH["keep"] is None:
+        shutil.rmtree(d, ignore_errors=True)
+    return res
+
+
 def _job(args):
     sc, extractor, kw = args
     from .sim import run_scenario
 
     t0 = time.perf_counter()
-    r = run_scenario(sc, progress=False)
+    r = graph_run(sc) if _GRAPH["on"] else run_scenario(sc, progress=False)
     m = compute(r)
     out = extractor(r, m, **(kw or {}))
     out["_wall_s"] = time.perf_counter() - t0
@@ -276,7 +308,14 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--quick", action="store_true", help="fewer points, shorter runs")
     ap.add_argument("--out", type=Path, help="output folder (default results/experiments)")
     ap.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
+    ap.add_argument("--graph", action="store_true",
+                    help="run every scenario through the ROS 2 node graph (lockstep, "
+                    "recorded to a bag and read back) instead of in-process; same numbers, "
+                    "about real time, one run at a time")
     args = ap.parse_args(argv)
+    if args.graph:
+        _GRAPH["on"] = True
+        args.workers = 1  # a graph run uses both cores
     if args.name == "list":
         for k, (_, title) in reg.items():
             print(f"{k:18s} {title}")

@@ -240,3 +240,84 @@ def scenario_path(name_or_path: str) -> Path:
     if cand.exists():
         return cand
     raise ConfigError(f"scenario '{name_or_path}' not found (looked at {p} and {cand})")
+
+
+def scenario_to_raw(sc: Scenario, machine_path: str) -> dict[str, Any]:
+    """The YAML mapping that `load_scenario` turns back into `sc` (the machine card is
+    referenced by `machine_path`; write it with `save_machine`)."""
+    from dataclasses import asdict
+
+    rated = sc.machine.rated_current_a
+    def set_fields(obj) -> dict[str, Any]:  # None = "the machine card's" = the default
+        return {k: v for k, v in asdict(obj).items() if v is not None}
+
+    ctrl = set_fields(sc.control)
+    ctrl.pop("position_source")  # follows from `driving`
+    raw: dict[str, Any] = {
+        "name": sc.name, "description": sc.description, "machine": machine_path,
+        "duration_s": float(sc.duration_s), "seed": int(sc.seed),
+        "speed_rpm": sc.speed_profile_rpm.tolist(), "load_pu": sc.load_profile_pu.tolist(),
+        "dyno_pu_per_rpm": float(sc.dyno_pu_per_rpm),
+        "load_type": "active" if sc.brake_band_rpm == 0.0 else "brake",
+        "control": ctrl,
+        "observers": {n: set_fields(c) for n, c in sc.observers.items()},
+        "driving": sc.driving,
+        "steady_window_s": [float(sc.steady_window_s[0]), float(sc.steady_window_s[1])],
+        "faults": {"current_offset_pu": [float(x) / rated for x in sc.current_offset_a],
+                   "current_gain": [float(x) for x in sc.current_gain]},
+        "initial_angle_deg": float(sc.initial_angle_deg),
+        "extra": dict(sc.extra),
+    }
+    if sc.brake_band_rpm != 0.0:
+        raw["brake_band_rpm"] = float(sc.brake_band_rpm)
+    if sc.step_load_time_s is not None:
+        raw["step_load_time_s"] = float(sc.step_load_time_s)
+    if sc.plant_deadtime_s is not None:
+        raw["plant"] = {"deadtime_s": float(sc.plant_deadtime_s)}
+    for key in ("id_injection", "speed_injection"):
+        if getattr(sc, key) is not None:
+            raw[key] = getattr(sc, key)
+    return raw
+
+
+def save_machine(card: MachineCard, path: str | Path) -> Path:
+    from dataclasses import asdict
+
+    path = Path(path)
+    path.write_text(yaml.safe_dump(asdict(card), sort_keys=False))
+    return path
+
+
+def save_scenario(sc: Scenario, path: str | Path) -> Path:
+    """Write `sc` as a scenario file (plus its machine card next to it, `<stem>.machine.yaml`)
+    that loads back into the same scenario -- for scenarios built or changed in memory that
+    must run elsewhere (the node graph loads scenarios from files).  Raises ConfigError if
+    the file would not reproduce `sc`."""
+    path = Path(path)
+    mpath = save_machine(sc.machine, path.with_name(path.stem + ".machine.yaml"))
+    path.write_text(yaml.safe_dump(scenario_to_raw(sc, mpath.name), sort_keys=False))
+    back = load_scenario(path)
+    diff = scenario_differences(sc, back)
+    if diff:
+        raise ConfigError(f"{path}: the scenario file does not reproduce the scenario "
+                          f"({', '.join(diff)})")
+    return path
+
+
+def scenario_differences(a: Scenario, b: Scenario, rel_tol: float = 1e-15) -> list[str]:
+    """Names of the fields in which two scenarios differ (numbers within `rel_tol`: a fault
+    offset goes through per-unit and back)."""
+    out = []
+    for f in fields(Scenario):
+        if f.name in ("source",):
+            continue
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        if isinstance(x, np.ndarray):
+            same = x.shape == y.shape and np.allclose(x, y, rtol=rel_tol, atol=0.0)
+        elif f.name == "current_offset_a":
+            same = np.allclose(x, y, rtol=1e-12, atol=1e-15)
+        else:
+            same = x == y
+        if not same:
+            out.append(f.name)
+    return out
