@@ -363,6 +363,47 @@ def test_kill_driving_observer_controller_goes_pwm_off(tmp_path):
     assert not any(pwm[first_off + 2:]) and any(pwm[:first_off])
 
 
+def test_launcher_killed_graph_stops_and_bag_is_finalised(tmp_path):
+    """SIGKILL of the launcher itself: its processes (in sessions of their own) get SIGTERM
+    from the kernel (parent-death signal), stop cleanly -- none outlives it -- and the
+    recorder finalises the bag."""
+    import yaml
+
+    bag = tmp_path / "bag"
+    gpath = tmp_path / "graph.yaml"
+    gpath.write_text(yaml.safe_dump(graph_dict(bag, processes={"recorder": "recorder"})))
+    env = dict(os.environ)
+    proc = subprocess.Popen([sys.executable, "-m", "fluxdrive.cli", "launch", str(gpath),
+                             "--domain-id", str(domain(9))], cwd=ROOT, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines: list[str] = []
+    threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True).start()
+    mcap = bag / "bag.mcap"
+    t_end = time.monotonic() + 90
+    while not (mcap.exists() and mcap.stat().st_size > 2_000_000):  # a few chunks in
+        assert proc.poll() is None and time.monotonic() < t_end, "".join(lines)
+        time.sleep(0.1)
+    pids = [int(x) for x in re.findall(r"started \(pid (\d+)\)", "".join(lines))]
+    assert len(pids) == 2, "".join(lines)
+    proc.kill()
+    proc.wait()
+    t_end = time.monotonic() + 30
+    alive = pids
+    while alive and time.monotonic() < t_end:
+        time.sleep(0.1)
+        alive = [p for p in pids if os.path.exists(f"/proc/{p}") and
+                 open(f"/proc/{p}/stat").read().split()[2] != "Z"]
+    assert not alive, f"graph processes outlived the launcher: {alive}"
+    for _ in range(100):  # the bag writer finishes after the recorder
+        if (bag / "metadata.yaml").exists():
+            break
+        time.sleep(0.1)
+    seqs, _, _, _ = read_frames(bag)
+    print(f"launcher SIGKILLed; its processes {pids} ended; bag finalised with "
+          f"{len(seqs)} frames")
+    assert seqs == list(range(len(seqs))) and len(seqs) > 1000
+
+
 def test_on_death_policy_errors_name_file_and_key():
     """Malformed on_death settings are refused with the file, the node and the key."""
     from fluxdrive.machine import ConfigError

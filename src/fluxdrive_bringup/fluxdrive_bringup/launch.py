@@ -301,6 +301,27 @@ def load_graph(path: str | Path) -> Graph:
 
 
 # ---------------------------------------------------------------------------- running
+def _libc_prctl():
+    try:
+        import ctypes
+
+        return ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):  # not Linux
+        return None
+
+
+_PRCTL = _libc_prctl()
+_PR_SET_PDEATHSIG = 1
+
+
+def _die_with_launcher() -> None:
+    """In a graph process before exec: SIGTERM when the launcher goes away (killed,
+    crashed), so that no process of a graph outlives it (they run in sessions of their own
+    and would otherwise go on, e.g. answering a later graph on the same domain)."""
+    if _PRCTL is not None:
+        _PRCTL(_PR_SET_PDEATHSIG, int(signal.SIGTERM))
+
+
 def node_parameters(n: NodeSpec) -> dict[str, Any]:
     """A node's parameter values as the graph gives them: its parameter files' sections
     for /** and for the node (ros__parameters), then the inline `parameters`."""
@@ -454,7 +475,8 @@ class Launcher:
         p.code = None
         p.popen = subprocess.Popen(p.argv, env=env, stdout=subprocess.PIPE,
                                    stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                   start_new_session=True, cwd=str(REPO_ROOT))
+                                   start_new_session=True, cwd=str(REPO_ROOT),
+                                   preexec_fn=_die_with_launcher)  # noqa: PLW1509
         p.reader = threading.Thread(target=self._pump, args=(p,), daemon=True)
         p.reader.start()
 
