@@ -413,6 +413,23 @@ def test_frame_bits_and_link_budget():
     # the FD layout at 10 kHz and 1/5 Mbit/s: the 64-byte sample alone takes 139 us
     fd = cp.link_budget("fd")
     assert not fd["fits"] and fd["bus_time_us_none"] == pytest.approx(250.0)
+    # decimated FD: D = 2 and 3 still do not fit 1/5 Mbit/s (152 %, 102 % worst case),
+    # D = 4 does (63-76 %, 96-150 us for the host), the DBC's FdDecimationRealBus; 1/8: D = 3
+    assert not cp.link_budget("fd", decimation=2)["fits"]
+    assert not cp.link_budget("fd", decimation=3)["fits"]
+    fd4 = cp.link_budget("fd", decimation=4)
+    assert fd4["fits"] and fd4["bus_time_us_none"] == pytest.approx(250.0)
+    assert 0.62 < fd4["load_none"] < 0.63 and 0.76 < fd4["load_worst"] < 0.77
+    assert fd4["host_budget_us_none"] == pytest.approx(150.0)
+    assert 96.0 < fd4["host_budget_us_worst"] < 97.0
+    proto = cp.get_protocol()
+    assert cp.smallest_fitting_decimation("fd") == proto.fd_decimation_real_bus == 4
+    assert cp.smallest_fitting_decimation("fd", data_bitrate=8e6) == 3
+    assert cp.smallest_fitting_decimation("classic") == 7
+    assert proto.default_decimation("fd") == proto.fd_decimation == 1
+    assert proto.default_decimation("classic") == proto.classic_decimation == 8
+    with pytest.raises(ValueError, match="fits no decimation"):
+        cp.smallest_fitting_decimation("fd", nominal_bitrate=125e3, max_decimation=4)
 
 
 def test_one_frame_codec_equals_vectorised(proto):

@@ -8,11 +8,14 @@
   latency) through cantools with the same DBC range checks;
 * or, with the **classic layout** (``BridgeConfig.layout``; ``"auto"`` follows the bus
   factory's ``fd`` flag), reassemble SAMPLE_C_CUR/VLT/DUTY/AUX into frames
-  (:class:`ClassicReassembler`). The samples come every D-th PWM period, so the frames'
-  seq is the *sample* index j = k // D (consecutive, what the observers and the controller
-  expect; they must run at D*Ts), and a duty for sample j goes out with the wire seq of
-  that sample. ARM_MODE tells the MCU the layout and D; a STATUS reporting another
-  layout is counted (``layout_mismatch``);
+  (:class:`ClassicReassembler`);
+* **decimation** (``BridgeConfig.decimation``, either layout; default the DBC's: FD 1,
+  classic 8): the samples come every D-th PWM period, so the frames' seq is the *sample*
+  index j = k // D (consecutive, what the observers and the controller expect; they must
+  run at D*Ts), and a duty for sample j goes out with the wire seq of that sample.
+  ARM_MODE tells the MCU the layout and D; a STATUS reporting another layout or D is
+  counted (``layout_mismatch``) and latches a fault (the loop would run at the wrong
+  sample time), so the drive cannot be armed until it agrees;
 * **malformed** frames (wrong length, FD flag clear, out of the DBC range, non-finite) are
   dropped and counted by reason; **sequence gaps**, duplicates and out-of-order frames
   are counted (:class:`SeqTracker`) and the loop continues;
@@ -107,7 +110,9 @@ class BridgeConfig:
     """Sample layout: "fd" (SAMPLE_FD each period), "classic" (4-frame layout every D
     periods) or "auto" (classic when the bus factory says ``fd=False``, else fd)."""
     decimation: int = 0
-    """Classic layout's D (0: the DBC's ClassicDecimation)."""
+    """PWM periods per sample, either layout (0: the DBC's default for the layout,
+    FdDecimation = 1 / ClassicDecimation = 8; a real 1/5 Mbit/s FD bus needs
+    FdDecimationRealBus = 4)."""
 
 
 # python-can interfaces that take no bit-rate arguments (software buses)
@@ -184,24 +189,26 @@ class CanBridge:
         if layout not in ("fd", "classic"):
             raise ValueError(f"layout must be 'fd', 'classic' or 'auto', not {layout!r}")
         self.layout = layout
-        d = self.cfg.decimation or self.proto.classic_decimation
-        if layout == "classic" and not 1 <= d <= 255:
-            raise ValueError(f"classic decimation must be in 1..255, not {d}")
-        self.decimation = d if layout == "classic" else 1
-        """PWM periods per sample (1 with the FD layout)."""
-        # the MCU's duty watchdog must outlast a sample period (D periods classic)
+        d = self.cfg.decimation or self.proto.default_decimation(layout)
+        if not 1 <= d <= 255:
+            raise ValueError(f"decimation must be in 1..255, not {d}")
+        self.decimation = d
+        """PWM periods per sample (either layout)."""
+        # the MCU's duty watchdog must outlast a sample period (D periods)
         self.mcu_cmd_timeout_s = max(
             self.cfg.cmd_timeout_s, 1.5 * self.decimation / self.proto.pwm_frequency
-        ) if layout == "classic" else self.cfg.cmd_timeout_s
+        ) if self.decimation > 1 else self.cfg.cmd_timeout_s
         self._reasm = ClassicReassembler(protocol=self.proto)
-        self._wire: dict[int, int] = {}  # classic: sample index j -> wire seq (16 bit)
+        self._wire: dict[int, int] = {}  # D > 1: sample index j -> wire seq (16 bit)
         # state
         self.armed = False
         self.fault: str = ""  # latched host-side fault reason ("" = none)
+        self.drive_mismatch: str = ""  # the last STATUS's layout/D disagreement ("" = none)
+        self._mismatch_run = 0  # consecutive disagreeing STATUS frames
         self.mcu: dict[str, Any] = {}  # last MCU status / fault / sample flags
         self.seq = SeqTracker(step=self.decimation)
         self._seq_hi = 0  # unwrapped period index of the last valid sample
-        self._seq_out = 0  # seq of the last frame handed out (k, or j = k // D classic)
+        self._seq_out = 0  # seq of the last frame handed out (the sample index j = k // D)
         self._seq_last16: int | None = None
         self._last_valid_t: float | None = None
         self._next_hb_t = 0.0
@@ -237,6 +244,8 @@ class CanBridge:
         self._seq_last16 = None
         self._reasm = ClassicReassembler(protocol=self.proto)
         self._next_hb_t = 0.0
+        self.drive_mismatch = ""  # the drive's next STATUS tells again
+        self._mismatch_run = 0
         return True
 
     def _schedule_reconnect(self) -> None:
@@ -313,8 +322,8 @@ class CanBridge:
         return ok
 
     def _wire_seq(self, seq: int) -> int:
-        """16-bit wire seq of the sample a duty answers (classic: j -> its c_seq)."""
-        if self.layout == "classic":
+        """16-bit wire seq of the sample a duty answers (sample index j -> its seq)."""
+        if self.decimation > 1:
             return self._wire.get(seq, (seq * self.decimation) % _SEQ_MOD)
         return seq % _SEQ_MOD
 
@@ -331,10 +340,12 @@ class CanBridge:
         return self._send(ID_ARM_MODE, data)
 
     def arm(self) -> tuple[bool, str]:
-        """Arm the drive (host side and ARM_MODE). Refused while a fault is latched or
-        the bus is down."""
+        """Arm the drive (host side and ARM_MODE). Refused while a fault is latched, the
+        drive's last STATUS reported another layout or D, or the bus is down."""
         if self.fault:
             return False, f"fault latched: {self.fault}; reset it first"
+        if self.drive_mismatch:
+            return False, self.drive_mismatch
         if not self.connected:
             return False, "CAN bus not connected"
         with self._arm_lock:
@@ -423,11 +434,7 @@ class CanBridge:
                     sample_layout=int(d["st_sample_layout"]),
                     decimation=int(d["st_decimation"]),
                 )  # fmt: skip
-                classic = self.layout == "classic"
-                if bool(d["st_sample_layout"]) != classic or (
-                    classic and int(d["st_decimation"]) != self.decimation
-                ):
-                    self.counters["layout_mismatch"] += 1
+                self._check_drive_layout(bool(d["st_sample_layout"]), int(d["st_decimation"]))
             elif aid == ID_FAULT:
                 d = self._msg_fault.decode(bytes(msg.data), decode_choices=False)
                 self.counters["fault_rx"] += 1
@@ -488,14 +495,47 @@ class CanBridge:
                     rows.append(row)
             frames = np.vstack(rows) if rows else np.empty((0, len(FRAME_FIELDS)))
         if frames.shape[0]:
-            self._sequence(frames)
-            self._seq_out = int(frames[-1, _I_SEQ])
-            self._last_valid_t = self.clock()
-            self.counters["frames_out"] += frames.shape[0]
+            self._hand_out(frames)
         return frames
 
+    def _hand_out(self, frames: np.ndarray) -> None:
+        """Valid samples of either layout, in place: gap accounting and seq unwrap, then
+        the period index k -> the sample index j = k // D (the wire seq of each j kept
+        for the duty answering it)."""
+        wire = frames[:, _I_SEQ].astype(np.int64)
+        self._sequence(frames)  # -> unwrapped period index k
+        if self.decimation > 1:
+            j = np.floor_divide(frames[:, _I_SEQ].astype(np.int64), self.decimation)
+            frames[:, _I_SEQ] = j
+            for jj, w in zip(j.tolist(), wire.tolist(), strict=True):
+                self._wire[jj] = w
+            while len(self._wire) > 512:
+                del self._wire[next(iter(self._wire))]
+        self._seq_out = int(frames[-1, _I_SEQ])
+        self._last_valid_t = self.clock()
+        self.counters["frames_out"] += frames.shape[0]
+
+    def _check_drive_layout(self, classic: bool, decimation: int) -> None:
+        """STATUS: the drive must run the layout and D this bridge asked for; otherwise
+        the samples would be read at the wrong sample time. Every disagreeing STATUS is
+        counted and refuses :meth:`arm`; two in a row (the drive had a whole STATUS
+        period to apply ARM_MODE) latch a fault: disable + disarm, and it comes back after
+        a reset for as long as the drive disagrees."""
+        if classic == (self.layout == "classic") and decimation == self.decimation:
+            self.drive_mismatch = ""
+            self._mismatch_run = 0
+            return
+        self.counters["layout_mismatch"] += 1
+        self._mismatch_run += 1
+        self.drive_mismatch = (
+            f"layout mismatch: the drive runs the {'classic' if classic else 'fd'} layout "
+            f"with D={decimation}, this bridge expects the {self.layout} layout with "
+            f"D={self.decimation}")
+        if self._mismatch_run >= 2 and not self.fault:
+            self._raise_fault(self.drive_mismatch)
+
     def _decode_classic(self, msgs: list[can.Message]) -> np.ndarray:
-        """Reassemble classic sample parts; completed samples get seq j = k // D."""
+        """Reassemble classic sample parts into frames (seq: see :meth:`_hand_out`)."""
         ra = self._reasm
         rows: list[np.ndarray] = []
         for m in msgs:
@@ -523,17 +563,7 @@ class CanBridge:
             return np.empty((0, len(FRAME_FIELDS)))
         frames = np.vstack(rows)
         self.counters["rx_samples"] += frames.shape[0]
-        wire = frames[:, _I_SEQ].astype(np.int64)
-        self._sequence(frames)  # -> unwrapped period index k
-        j = np.floor_divide(frames[:, _I_SEQ].astype(np.int64), self.decimation)
-        frames[:, _I_SEQ] = j
-        for jj, w in zip(j.tolist(), wire.tolist(), strict=True):
-            self._wire[jj] = w
-        while len(self._wire) > 512:
-            del self._wire[next(iter(self._wire))]
-        self._seq_out = int(j[-1])
-        self._last_valid_t = self.clock()
-        self.counters["frames_out"] += frames.shape[0]
+        self._hand_out(frames)
         return frames
 
     def _decode_one(self, m: can.Message, is_fd: bool) -> np.ndarray | None:
@@ -639,6 +669,7 @@ class CanBridge:
             "fault": self.fault,
             "layout": self.layout,
             "decimation": self.decimation,
+            "drive_mismatch": self.drive_mismatch,
             "seq_gaps": st.gaps,
             "seq_lost": st.lost,
             "seq_duplicates": st.duplicates,

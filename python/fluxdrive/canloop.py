@@ -8,9 +8,11 @@ before simulating period k), the bridge and the kernels in the calling thread, s
 is deterministic and comparable with :func:`fluxdrive.sim.run_scenario` on the same
 scenario (differences come only from the protocol's quantisation).
 
-``layout="classic"`` runs the same loop over the classic-CAN layout on a non-FD bus: a
-sample every D PWM periods, so the observers and the controller run at D*Ts
-(:func:`decimated_scenario`) while the plant keeps switching at Ts.
+``decimation=D`` (either layout; ``layout="classic"`` runs over the classic-CAN layout on
+a non-FD bus, by default with the DBC's D = 8) sends a sample every D PWM periods, so the
+observers and the controller run at D*Ts (:func:`decimated_scenario`) while the plant
+keeps switching at Ts. Control at D*Ts needs its own tuning: the scenario
+``config/scenarios/can_2pct_decimated.yaml`` carries one for D = 4..8.
 """
 
 from __future__ import annotations
@@ -44,11 +46,14 @@ def new_virtual_channel(prefix: str = "fluxdrive") -> str:
 
 
 def decimated_scenario(sc: Any, decimation: int, **control: Any) -> Any:
-    """The control side of a classic-layout loop: a copy of scenario ``sc`` whose machine
-    card runs at ``pwm_hz / decimation`` (observers and controller step once per sample,
-    ts = D*Ts), with ``control`` overriding :class:`fluxdrive.control.ControllerConfig`
-    fields (a decimated loop needs its own tuning: the current-loop bandwidth must stay
-    below a quarter of the sample rate and be reachable with the 1.5-sample delay)."""
+    """The control side of a decimated loop (either layout): a copy of scenario ``sc``
+    whose machine card runs at ``pwm_hz / decimation`` (observers and controller step once
+    per sample, ts = D*Ts), with ``control`` overriding
+    :class:`fluxdrive.control.ControllerConfig` fields. A decimated loop needs its own
+    tuning (the current-loop bandwidth below a quarter of the sample rate and reachable
+    with the 1.5-sample delay; a slower speed loop; a softer I-f start): load it from a
+    scenario that carries it, ``config/scenarios/can_2pct_decimated.yaml``, rather than
+    passing it here."""
     d = int(decimation)
     out = copy.deepcopy(sc)
     out.machine = dataclasses.replace(sc.machine, pwm_hz=sc.machine.pwm_hz / d)
@@ -69,7 +74,7 @@ class CanLoopResult:
     emulator_stats: dict[str, Any]
     wall_s: float
     extra: dict[str, Any] = field(default_factory=dict)
-    decimation: int = 1  # PWM periods per sample (classic layout)
+    decimation: int = 1  # PWM periods per sample
     control_setup: DriveSetup | None = None  # the observers'/controller's setup (ts = D*Ts)
 
     @property
@@ -122,9 +127,10 @@ def run_can_loop(
     virtual CAN bus. ``frame_hook(bridge, k)`` is called before each sample is handled
     (fault injection in tests). ``log_path`` records all bus traffic with python-can's
     Logger (.blf/.log/.asc). ``layout="classic"`` uses a non-FD bus and the classic
-    layout decimated by ``decimation`` (default: the DBC's); the observers and the
-    controller then run from ``control_scenario`` (default
-    ``decimated_scenario(scenario, D)``)."""
+    layout. ``decimation``: PWM periods per sample, either layout (default: the DBC's for
+    the layout, FD 1, classic 8); with D > 1 the observers and the controller run from
+    ``control_scenario`` (default ``decimated_scenario(scenario, D)``, i.e. the
+    scenario's own control section at ts = D*Ts)."""
     ds = DriveSetup(scenario)
     n = ds.n if n_periods is None else int(n_periods)
     ch = channel or new_virtual_channel()

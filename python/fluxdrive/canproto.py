@@ -11,7 +11,7 @@ ID     name             DLC   content
 0x010  FAULT            8     MCU->PC fault code, latched/active, detail, seq, count
 0x020  ARM_MODE         8     PC->MCU arm (+ key 0xA5), reset_fault, mode, layout, D
 0x040  DUTY_CMD         8     PC->MCU seq answered, 3 duties (15 bit, 4e-5), enable
-0x080  SAMPLE_FD        64    MCU->PC one per PWM period (CAN FD, BRS)
+0x080  SAMPLE_FD        64    MCU->PC one every D PWM periods (CAN FD, BRS; D=1 default)
 0x100  SAMPLE_C_CUR     8     classic layout part 1/4: seq, i_a, i_b, i_c
 0x101  SAMPLE_C_VLT     8     classic layout part 2/4: seq, v_ab, v_bc, v_ca (4 mV)
 0x102  SAMPLE_C_DUTY    8     classic layout part 3/4: seq, duties applied
@@ -78,6 +78,7 @@ __all__ = [
     "bus_time_s",
     "count_seq_gaps",
     "decimate_for_classic",
+    "decimate_frames",
     "default_dbc_path",
     "fd_payloads_to_frames",
     "frame_to_classic_payloads",
@@ -87,6 +88,7 @@ __all__ = [
     "get_protocol",
     "link_budget",
     "load_database",
+    "smallest_fitting_decimation",
     "pack_payloads",
     "unwrap_counter",
 ]
@@ -579,10 +581,21 @@ class FluxdriveProtocol:
         }
         attrs = self.db.dbc.attributes if self.db.dbc is not None else {}
         self.classic_decimation: int = int(attrs["ClassicDecimation"].value)
+        self.fd_decimation: int = int(attrs["FdDecimation"].value)
+        """FD layout's default D (1: a SAMPLE_FD every PWM period, virtual bus / bench PC)."""
+        self.fd_decimation_real_bus: int = int(attrs["FdDecimationRealBus"].value)
+        """Smallest FD-layout D that fits a real 1/5 Mbit/s bus (:func:`link_budget`)."""
         self.protocol_version: int = int(attrs["ProtocolVersion"].value)
         self.pwm_frequency: float = float(attrs["PwmFrequency"].value)
         self._fd_cols = [self.fd_codec.index[s] for s in _FD_TO_FRAME]
         self._fd_frame_cols = [FRAME_INDEX[c] for c in _FD_TO_FRAME.values()]
+
+    def default_decimation(self, layout: str) -> int:
+        """The DBC's default D of a sample layout ("fd": FdDecimation, "classic":
+        ClassicDecimation)."""
+        if layout not in ("fd", "classic"):
+            raise ValueError(f"layout must be 'fd' or 'classic', not {layout!r}")
+        return self.fd_decimation if layout == "fd" else self.classic_decimation
 
     def message(self, name_or_id: str | int) -> Message:
         """Message by name or arbitration ID."""
@@ -671,7 +684,7 @@ class FluxdriveProtocol:
     def frame_to_classic_payloads(
         self, frame: np.ndarray, flags: Mapping[str, float] | None = None
     ) -> list[tuple[int, bytes]]:
-        """One engine frame (already decimated, see :func:`decimate_for_classic`) -> the
+        """One engine frame (already decimated, see :func:`decimate_frames`) -> the
         four classic frames [(id, 8-byte payload)] in send order CUR, VLT, DUTY, AUX.
         The encoder is sent as its low 24 bits; ``flags`` sets the AUX flag bits."""
         f = np.asarray(frame, dtype=np.float64).reshape(-1)
@@ -759,9 +772,9 @@ def frame_to_classic_payloads(
     return (protocol or get_protocol()).frame_to_classic_payloads(np.asarray(frame), flags)
 
 
-def decimate_for_classic(frames: np.ndarray, factor: int) -> np.ndarray:
-    """Per-period engine frames -> the classic layout's decimated samples (what the MCU
-    sends every ``factor`` periods). Window j covers periods ``(j*D, (j+1)*D]``, i.e.
+def decimate_frames(frames: np.ndarray, factor: int) -> np.ndarray:
+    """Per-period engine frames -> the decimated samples the MCU sends every ``factor``
+    periods (either layout: ARM_MODE.decimation). Window j covers periods ``(j*D, (j+1)*D]``, i.e.
     rows ``j*D+1 .. (j+1)*D``; currents, vdc, encoder and seq are those of the last row;
     line voltages and duties are window means (volt-seconds over [t_(k-D), t_k]);
     pwm_enabled is 1 only if enabled in every period of the window; flags are OR-ed."""
@@ -780,6 +793,10 @@ def decimate_for_classic(frames: np.ndarray, factor: int) -> np.ndarray:
     flg = body[:, :, FRAME_INDEX["flags"]].astype(np.int64)
     out[:, FRAME_INDEX["flags"]] = np.bitwise_or.reduce(flg, axis=1)
     return out
+
+
+decimate_for_classic = decimate_frames
+"""The classic layout's name for :func:`decimate_frames` (same windows in both layouts)."""
 
 
 # --------------------------------------------------------------------------- sequences
@@ -818,8 +835,8 @@ def count_seq_gaps(
     prev: int | None = None,
 ) -> SeqStats:
     """Vectorised gap count over a received sequence-counter stream (``bits`` wide,
-    wrapping). ``step`` is the nominal increment (the classic layout's decimation
-    factor D). A forward jump ``d != step`` with ``0 < d < 2**(bits-1)`` (modulo the
+    wrapping). ``step`` is the nominal increment (the decimation factor D,
+    either layout). A forward jump ``d != step`` with ``0 < d < 2**(bits-1)`` (modulo the
     counter width) counts as one gap with ``d // step - 1`` lost frames; ``d == 0`` is a
     duplicate; a backwards jump is out of order. ``prev`` is the last seq of a previous
     chunk."""
@@ -1029,8 +1046,9 @@ def link_budget(
     housekeeping_hz: float = 10.0,
 ) -> dict[str, Any]:
     """What the sample/duty exchange costs on a real bus, per sample period
-    ``T = decimation / pwm_hz``: the sample frame(s) (``"fd"``: one 64-byte SAMPLE_FD with
-    BRS; ``"classic"``: SAMPLE_C_CUR/VLT/DUTY/AUX, 4 x 8 bytes) plus the DUTY_CMD answering
+    ``T = decimation / pwm_hz`` (either layout sends one sample set every ``decimation``
+    PWM periods): the sample frame(s) (``"fd"``: one 64-byte SAMPLE_FD with BRS;
+    ``"classic"``: SAMPLE_C_CUR/VLT/DUTY/AUX, 4 x 8 bytes) plus the DUTY_CMD answering
     it (8 bytes, classic format, as the bridge sends it), plus STATUS, ARM_MODE and
     HOST_HEARTBEAT at ``housekeeping_hz``. For no stuffing and worst-case stuffing:
     ``bits_*`` (sample set + duty, nominal-rate and data-rate bits), ``bus_time_us_*``,
@@ -1040,7 +1058,7 @@ def link_budget(
     load < 1 and a positive worst-case host budget."""
     if layout not in ("fd", "classic"):
         raise ValueError("layout must be 'fd' or 'classic'")
-    d = 1 if layout == "fd" else int(decimation)
+    d = int(decimation)
     if d < 1:
         raise ValueError("decimation must be >= 1")
     period = d / pwm_hz
@@ -1065,3 +1083,13 @@ def link_budget(
         out[f"host_budget_us_{st}"] = (period - t_s - t_c) * 1e6
     out["fits"] = bool(out["load_worst"] < 1.0 and out["host_budget_us_worst"] > 0.0)
     return out
+
+
+def smallest_fitting_decimation(layout: str, *, max_decimation: int = 255, **kw: Any) -> int:
+    """The smallest D for which :func:`link_budget` says the layout fits (``kw``: its bus
+    settings: ``pwm_hz``, ``nominal_bitrate``, ``data_bitrate``, ``housekeeping_hz``).
+    Raises ``ValueError`` if none up to ``max_decimation`` does."""
+    for d in range(1, int(max_decimation) + 1):
+        if link_budget(layout, decimation=d, **kw)["fits"]:
+            return d
+    raise ValueError(f"the {layout} layout fits no decimation up to {max_decimation}")

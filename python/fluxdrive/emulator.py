@@ -4,7 +4,9 @@
 kernels the in-process runner and the sim node use) and a python-can bus. Per PWM period
 it does what the drive's microcontroller does (BRIEF sec. 3, DBC comments):
 
-* sends SAMPLE_FD(k): currents at t_k, line voltages / duties averaged over [t_(k-1), t_k];
+* sends SAMPLE_FD(k): currents at t_k, line voltages / duties averaged over [t_(k-1), t_k]
+  (with a decimation factor D > 1: every D-th period, averages over [t_(k-D), t_k], see
+  below);
 * the DUTY_CMD answering sample k (``cmd_seq = k``) is applied over [t_(k+1), t_(k+2)]:
   before simulating period k (which yields frame k+1) the emulator needs the duty of frame
   k-1. In *lockstep* mode it waits for it (up to ``lockstep_wait_s`` of wall time), so runs
@@ -19,16 +21,21 @@ it does what the drive's microcontroller does (BRIEF sec. 3, DBC comments):
 * FAULT on every new fault (and at 10 Hz sim time while latched), STATUS at 10 Hz sim time;
   over-current trip on the sampled currents.
 
-Sample layouts (``layout``, fixed at construction like an MCU's firmware build; an
-ARM_MODE asking for another layout or decimation is counted in ``layout_mismatch``):
+Sample layouts (``layout``) and the decimation factor D (``decimation``), both fixed at
+construction like an MCU's firmware build (an ARM_MODE asking for another layout or D is
+counted in ``layout_mismatch``; STATUS reports both so the host can check):
 
-* ``"fd"``: one SAMPLE_FD (64 bytes, CAN FD with BRS) every PWM period;
-* ``"classic"``: the classic-CAN layout, every D-th period (``decimation``, default the
-  DBC's ClassicDecimation) the four 8-byte frames SAMPLE_C_CUR/VLT/DUTY/AUX of sample
-  k = j*D (k = 0 included): currents, vdc and encoder at t_k, line voltages and duties
-  averaged over the D periods (t_(k-D), t_k], pwm_enabled only if on in all of them. The
-  control loop runs at the decimated rate: the DUTY_CMD answering sample k (cmd_seq = its
-  c_seq) is held over [t_(k+D), t_(k+2D)], i.e. the FD timing with Ts -> D*Ts.
+* ``"fd"``: one SAMPLE_FD (64 bytes, CAN FD with BRS) every D-th PWM period (default the
+  DBC's FdDecimation = 1: every period; a real 1/5 Mbit/s bus needs D >= 4);
+* ``"classic"``: the four 8-byte frames SAMPLE_C_CUR/VLT/DUTY/AUX every D-th period
+  (default the DBC's ClassicDecimation = 8).
+
+Decimation works the same in both layouts (one implementation): the sample of period
+k = j*D (k = 0 included) carries currents, vdc and encoder at t_k, line voltages and
+duties averaged over the D periods (t_(k-D), t_k], pwm_enabled only if on in all of them
+(:func:`fluxdrive.canproto.decimate_frames` offline). The control loop runs at the
+decimated rate: the DUTY_CMD answering sample k (cmd_seq = its seq) is held over
+[t_(k+D), t_(k+2D)], i.e. the D = 1 timing with Ts -> D*Ts.
 
 No ROS imports. Sends always use a timeout (python-can's ``virtual`` bus blocks forever on
 a full receive queue otherwise).
@@ -134,10 +141,11 @@ class DriveEmulator:
         if layout not in ("fd", "classic"):
             raise ValueError(f"layout must be 'fd' or 'classic', not {layout!r}")
         self.layout = layout
-        d = self.proto.classic_decimation if decimation is None else int(decimation)
+        d = self.proto.default_decimation(layout) if decimation is None else int(decimation)
         if not 1 <= d <= 255:
             raise ValueError(f"decimation must be in 1..255, not {d}")
-        self.decimation = d if layout == "classic" else 1
+        self.decimation = d
+        """PWM periods per sample (either layout)."""
         self.lockstep = lockstep
         self.lockstep_wait_s = lockstep_wait_s
         self.cmd_timeout_s = cmd_timeout_s
@@ -179,8 +187,8 @@ class DriveEmulator:
         self._msg_arm = self.proto.message("ARM_MODE")
         self._msg_fault = self.proto.message("FAULT")
         self._msg_status = self.proto.message("STATUS")
-        # classic layout: window sums over (t_(k-D), t_k] of v_ll and duties (6), PWM on
-        # in every period, OR of the flags; frame 0 forms the first window on its own
+        # the sample window: sums over (t_(k-D), t_k] of v_ll and duties (6), PWM on in
+        # every period, OR of the flags; frame 0 forms the first window on its own
         self._win_sum = np.zeros(6)
         self._win_n = 0
         self._win_pwm = True
@@ -227,9 +235,8 @@ class DriveEmulator:
                     self._clear_fault()
                 self._reset_prev = int(d["reset_fault"])
                 want_classic = bool(d["sample_layout"])
-                if want_classic != (self.layout == "classic") or (
-                    want_classic and int(d["decimation"]) != self.decimation
-                ):
+                if (want_classic != (self.layout == "classic")
+                        or int(d["decimation"]) != self.decimation):
                     self.stats.layout_mismatch += 1
                 if d["arm"] and int(d["arm_key"]) == ARM_KEY and not self.fault_latched:
                     self.armed = True
@@ -320,8 +327,9 @@ class DriveEmulator:
         self._send(ID_STATUS, data, False)
 
     def sample_payload(self) -> bytes:
-        """SAMPLE_FD payload of the frame currently held (frame k)."""
-        f = self.frame
+        """SAMPLE_FD payload of the frame currently held (frame k), with the window's
+        averages (:meth:`window_frame`)."""
+        f = self.window_frame()
         sig = {
             "seq": self.k % _SEQ_MOD,
             "i_a": f[0], "i_b": f[1], "i_c": f[2],
@@ -336,14 +344,14 @@ class DriveEmulator:
             "fault_active": int(self.fault_latched),
             "adc_clip": int(int(f[13]) & FRAME_FLAG_ADC_CLIP),
             "cmd_stale": int(self._stale_prev),
-            "capture_valid": int(f[10] > 0.5),
+            "capture_valid": int(self._win_pwm),
             "mode": self.mode,
             "fault_code": self.fault_code,
         }  # fmt: skip
         return bytes(self._msg_sample.encode(sig, strict=False))
 
     def _accumulate(self) -> None:
-        """Add the frame just sampled to the classic layout's window."""
+        """Add the frame just sampled to the sample window."""
         f = self.frame
         self._win_sum[0:3] += f[3:6]
         self._win_sum[3:6] += f[7:10]
@@ -351,16 +359,29 @@ class DriveEmulator:
         self._win_pwm = self._win_pwm and bool(f[10] > 0.5)
         self._win_flags |= int(f[13])
 
-    def classic_payloads(self) -> list[tuple[int, bytes]]:
-        """The four classic sample frames [(id, 8 bytes)] of frame k with the window
-        averages, values saturated to the DBC ranges like the MCU's converters."""
+    def window_frame(self) -> np.ndarray:
+        """Frame k as the sample reports it (either layout): currents, vdc, encoder at
+        t_k; line voltages and duties averaged over the window (t_(k-D), t_k]; PWM on
+        only if on in all of its periods; flags OR-ed. D = 1: frame k itself."""
         f = self.frame.copy()
-        n = max(self._win_n, 1)
-        f[3:6] = self._win_sum[0:3] / n
-        f[7:10] = self._win_sum[3:6] / n
+        if self._win_n > 1:
+            f[3:6] = self._win_sum[0:3] / self._win_n
+            f[7:10] = self._win_sum[3:6] / self._win_n
         f[10] = 1.0 if self._win_pwm else 0.0
         f[13] = float(self._win_flags)
         f[12] = self.k
+        return f
+
+    def _reset_window(self) -> None:
+        self._win_sum[:] = 0.0
+        self._win_n = 0
+        self._win_pwm = True
+        self._win_flags = 0
+
+    def classic_payloads(self) -> list[tuple[int, bytes]]:
+        """The four classic sample frames [(id, 8 bytes)] of frame k with the window
+        averages, values saturated to the DBC ranges like the MCU's converters."""
+        f = self.window_frame()
         f[0:3] = np.clip(f[0:3], -25.0, 25.0)
         f[3:6] = np.clip(f[3:6], -100.0, 100.0)
         f[6] = min(max(f[6], 0.0), 100.0)
@@ -379,10 +400,7 @@ class DriveEmulator:
         else:
             for aid, data in self.classic_payloads():
                 self._send(aid, data, False)
-            self._win_sum[:] = 0.0
-            self._win_n = 0
-            self._win_pwm = True
-            self._win_flags = 0
+        self._reset_window()
         self.stats.samples_sent += 1
 
     def _protect(self) -> None:
@@ -394,8 +412,9 @@ class DriveEmulator:
 
     def step(self) -> None:
         """One PWM period: send frame k, take the duty answering frame k-1, simulate
-        [t_k, t_(k+1)], sample frame k+1. Classic layout: samples and duty updates only
-        every D-th period (the duty answering sample k-D), duties held in between."""
+        [t_k, t_(k+1)], sample frame k+1. With D > 1 (either layout): samples and duty
+        updates only every D-th period (the duty answering sample k-D), duties held in
+        between."""
         k = self.k
         d = self.decimation
         if self.record:
@@ -423,8 +442,7 @@ class DriveEmulator:
                       s.load_cfg, self.frame, self.truth)
         self.k = k + 1
         self.stats.periods += 1
-        if self.layout == "classic":
-            self._accumulate()
+        self._accumulate()
         self._protect()
 
     def _take_command(self, k: int) -> None:
@@ -530,7 +548,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="udp_multicast: IP TTL / hop limit (0: never leaves this host)")
     ap.add_argument("--layout", choices=("fd", "classic"), default="fd")
     ap.add_argument("--decimation", type=int, default=None,
-                    help="classic layout: periods per sample (default: the DBC's)")
+                    help="PWM periods per sample, either layout (default: the DBC's, FD 1, "
+                         "classic 8; a real 1/5 Mbit/s FD bus needs 4)")
     ap.add_argument("--periods", type=int, default=None, help="PWM periods to run")
     ap.add_argument("--duration", type=float, default=None, help="override duration_s [s]")
     ap.add_argument("--free-running", action="store_true",

@@ -3,12 +3,15 @@
 Thin wrapper over :class:`fluxdrive.bridge.CanBridge` (all supervisor logic lives there):
 
 * parameters: ``interface``, ``channel``, ``bitrate``, ``data_bitrate``, ``fd``,
-  ``stale_timeout_s``, ``cmd_timeout_s``, ``armed`` (arm at start / live), ``frame_id``,
-  ``reconnect_initial_s``, ``reconnect_max_s``, ``diagnostics_period_s``, ``ts_s``;
+  ``decimation``, ``stale_timeout_s``, ``cmd_timeout_s``, ``armed`` (arm at start / live),
+  ``frame_id``, ``reconnect_initial_s``, ``reconnect_max_s``, ``diagnostics_period_s``,
+  ``ts_s``;
 * publishes flux_drive_msgs/PhaseFrame on ``/drive/frame`` (header.stamp = k * ts_s,
-  sample-time like the simulated plant; ``fd`` false selects the classic-CAN layout: one
-  sample every D PWM periods, seq = the sample index j, stamp = j * D * ts_s, so the
-  observers and the controller must run at D * ts_s), subscribes ``/drive/duty``
+  sample-time like the simulated plant; ``fd`` false selects the classic-CAN layout;
+  ``decimation`` D, either layout: one sample every D PWM periods, seq = the sample index
+  j, stamp = j * D * ts_s, so the observers and the controller must run at D * ts_s; the
+  drive must report the same layout and D in STATUS, else arming is refused and a fault
+  latched), subscribes ``/drive/duty``
   (DutyCommand) -> DUTY_CMD frames, service ``/drive/arm`` (flux_drive_msgs/srv/Arm) and
   ``/drive/reset_fault`` (ResetFault), diagnostics on ``/diagnostics``;
 * a CAN thread polls the bus; the node disarms on shutdown;
@@ -34,6 +37,7 @@ from fluxdrive.bridge import (
     CanBridge,
     bus_factory_from_params,
 )
+from fluxdrive.canproto import link_budget, smallest_fitting_decimation
 from fluxdrive_ros.params import P, declare, on_set
 from rclpy.node import Node
 
@@ -43,6 +47,7 @@ from fluxdrive_ros import access, qos, topics
 
 STATUS_SENSOR_CLIP = 1
 STATUS_STALE_COMMAND = 16
+_SOFTWARE_BUSES = ("virtual", "udp_multicast")  # no wire time: any layout and D "fit"
 
 
 def param_table() -> list[P]:
@@ -56,7 +61,13 @@ def param_table() -> list[P]:
           read_only=True),
         P("data_bitrate", 5_000_000, "CAN FD data-phase bit rate", "bit/s", 125_000,
           12_000_000, read_only=True),
-        P("fd", True, "use CAN FD frames", read_only=True),
+        P("fd", True, "use CAN FD frames (and the SAMPLE_FD layout; false: the classic "
+          "4-frame layout)", read_only=True),
+        P("decimation", 0, "PWM periods per sample, either layout (0: the DBC's default, FD 1 "
+          "= every period, which only fits a virtual bus, classic 8; a real 1/5 Mbit/s FD "
+          "bus needs >= 4, see docs/can.md); sent in ARM_MODE, the drive must report it in "
+          "STATUS; observers and controller must then run at decimation * ts_s", "periods",
+          0, 255, read_only=True),
         P("stale_timeout_s", 0.05, "no valid sample for this long (after the first): STALE "
           "fault, PWM disabled (live)", "s", 1e-4, 60.0),
         P("cmd_timeout_s", 0.001, "MCU duty-command watchdog sent in ARM_MODE (0: the MCU's "
@@ -85,6 +96,7 @@ class BenchBridgeNode(Node):
         self.p_bitrate = pv["bitrate"]
         self.p_data_bitrate = pv["data_bitrate"]
         self.p_fd = pv["fd"]
+        self.p_decimation = int(pv["decimation"])
         stale = pv["stale_timeout_s"]
         cmd_to = pv["cmd_timeout_s"]
         rc0 = pv["reconnect_initial_s"]
@@ -101,7 +113,9 @@ class BenchBridgeNode(Node):
                                           self.p_fd, self.p_data_bitrate)
         self.bridge = CanBridge(factory, BridgeConfig(
             stale_timeout_s=stale, cmd_timeout_s=cmd_to,
-            reconnect_initial_s=rc0, reconnect_max_s=rc1))
+            reconnect_initial_s=rc0, reconnect_max_s=rc1, decimation=self.p_decimation))
+        self._report_link()
+        self._mismatch_logged = ""
         # the simulated plant's QoS: every reader of /drive/frame matches (volatile ones and
         # the transient-local ones of lockstep graphs); duties read like the plant reads them
         self.pub = self.create_publisher(PhaseFrame, topics.FRAME, qos.SAMPLES)
@@ -118,6 +132,29 @@ class BenchBridgeNode(Node):
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._can_loop, name="can-rx", daemon=True)
         self._thread.start()
+
+    def _report_link(self) -> None:
+        """Log the layout and D; warn when they do not fit the configured bus."""
+        br = self.bridge
+        self.get_logger().info(
+            f"{br.layout} layout, D={br.decimation}: a sample every "
+            f"{br.decimation * self.ts * 1e3:g} ms (observers and controller must run at "
+            f"ts = {br.decimation * self.ts:g} s)")
+        if self.p_interface in _SOFTWARE_BUSES:
+            return
+        kw = {"pwm_hz": 1.0 / self.ts, "nominal_bitrate": float(self.p_bitrate),
+              "data_bitrate": float(self.p_data_bitrate)}
+        lb = link_budget(br.layout, decimation=br.decimation, **kw)
+        if not lb["fits"]:
+            try:
+                need = f"decimation >= {smallest_fitting_decimation(br.layout, **kw)}"
+            except ValueError:
+                need = "a faster bus"
+            self.get_logger().warning(
+                f"the {br.layout} layout at D={br.decimation} needs "
+                f"{100 * lb['load_none']:.0f}-{100 * lb['load_worst']:.0f} % of this "
+                f"{self.p_bitrate / 1e6:g}/{self.p_data_bitrate / 1e6:g} Mbit/s bus (host "
+                f"budget {lb['host_budget_us_worst']:.0f} us per sample): use {need}")
 
     # ---------------------------------------------------------------- CAN side
     def _can_loop(self) -> None:
@@ -201,9 +238,15 @@ class BenchBridgeNode(Node):
         st = DiagnosticStatus()
         st.name = "bench_bridge: CAN link"
         st.hardware_id = f"{self.p_interface}:{self.p_channel}"
+        mismatch = d["drive_mismatch"]
+        if mismatch and mismatch != self._mismatch_logged:
+            self.get_logger().error(f"{mismatch}: arming refused (set the decimation and "
+                                    f"fd parameters to what the drive runs, or reflash it)")
+        self._mismatch_logged = mismatch
         if d["state"] in ("fault", "disconnected"):
             st.level = DiagnosticStatus.ERROR
         elif (d["malformed"] or d["seq_gaps"] or d["bus_errors"] or self.guard.n_rejected
+              or d["layout_mismatch"]
               or self.duty_out_of_range or d.get("duty_nonfinite") or self.service_refused):
             st.level = DiagnosticStatus.WARN
         else:
