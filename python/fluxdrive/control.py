@@ -260,17 +260,33 @@ def controller_step(cs, cp, fr, est, w_ref_m, id_inj, out):
     if mode == MODE_CLOSED_LOOP:
         if (cp[CP_SRC] == SRC_ESTIMATE and abs(w_ref_m) < cp[CP_HANDBACK]
                 and cs[CS_MODE] == MODE_CLOSED_LOOP and cs[CS_T_MODE] > 0.05):
+            # hand-back to I-f: the I-f vector takes over the torque the closed loop carried.
+            # It is placed ahead of (motoring) or behind (braking) the estimated rotor angle
+            # by the load angle asin(i_q/I_if), i_q the speed integrator's (steady) torque
+            # current, so the torque does not step to zero -- a step would kick the rotor
+            # into the I-f ramp's undamped load-angle oscillation.  Either sign of speed and
+            # torque; the angle is clipped at 64 deg (the I-f stiffness vanishes at 90).
+            s_ld = min(max(cs[CS_W_I] / max(cp[CP_IF_I], 1e-9), -0.9), 0.9)
+            ld = math.asin(s_ld)
             cs[CS_MODE] = MODE_IF_RAMP
             cs[CS_T_MODE] = 0.0
-            cs[CS_TH_IF] = th
             cs[CS_W_IF] = we
-        # speed PI -> i_q*
-        w_err = w_ref_m - w_m_fb
-        u = pi_output(cp[CP_KP_W], cs[CS_W_I], w_err)
-        u_sat = min(max(u, -cp[CP_IMAX]), cp[CP_IMAX])
-        cs[CS_W_I] = pi_update(cs[CS_W_I], cp[CP_KI_W], ts, w_err, u, u_sat)
-        iq_ref = u_sat
-        if cs[CS_MODE] != MODE_IF_RAMP:
+            cs[CS_IQ_IF_F] = cs[CS_W_I]
+            # the current PIs keep their integrators, re-expressed in the I-f frame
+            cid, ciq = cs[CS_ID_I], cs[CS_IQ_I]
+            cs[CS_ID_I] = cid * math.cos(ld) + ciq * math.sin(ld)
+            cs[CS_IQ_I] = -cid * math.sin(ld) + ciq * math.cos(ld)
+            th = wrap_angle(th + ld)
+            cs[CS_TH_IF] = wrap_angle(th + we * ts)
+            id_ref = cp[CP_IF_I] + id_inj
+            iq_ref = 0.0
+        else:
+            # speed PI -> i_q*
+            w_err = w_ref_m - w_m_fb
+            u = pi_output(cp[CP_KP_W], cs[CS_W_I], w_err)
+            u_sat = min(max(u, -cp[CP_IMAX]), cp[CP_IMAX])
+            cs[CS_W_I] = pi_update(cs[CS_W_I], cp[CP_KI_W], ts, w_err, u, u_sat)
+            iq_ref = u_sat
             cs[CS_MODE] = MODE_CLOSED_LOOP
 
     # ---------------------------------------------------------------- current loops
