@@ -426,8 +426,11 @@ class PlantNode(FluxNode):
         msg = UInt64()
         msg.data = self.k
         self.pub_done.publish(msg)
+        # one 10 s deadline for all: a reader that died (SIGKILL) stays matched, unacking,
+        # until its participant's lease runs out
+        t_end = time.monotonic() + 10.0
         for p in (self.pub_frame, self.pub_truth, self.pub_done):
-            p.wait_for_all_acked(Duration(seconds=10.0))
+            p.wait_for_all_acked(Duration(seconds=max(0.0, t_end - time.monotonic())))
         if self.pv["exit_on_done"]:
             # keep the latched /drive/done readable for a moment (late readers)
             self._exit_timer = self.create_timer(0.5, self._exit)
