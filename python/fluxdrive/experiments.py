@@ -7,9 +7,10 @@ report.md / report.json: {"claim", "ours", "holds", "why"}.  "why" explains ever
 that does not hold with our numbers (physics first; nothing is tuned silently).
 
 Experiments live in experiments_paper.py (Figs. 2-4, 13-19) and experiments_beyond.py
-(lowest speed, mismatch, offsets, online R_s).  Each one is `fn(ctx) -> dict` with keys
-claims, figures, data; `ctx.run(jobs)` runs (scenario, extractor) jobs and returns the
-extractors' outputs, so only small arrays cross process boundaries.
+(lowest speed, mismatch, sensitivity, online R_s, speed reversal, where peers fail).
+Each one is `fn(ctx) -> dict` with keys claims, figures, data; `ctx.run(jobs)` runs
+(scenario, extractor) jobs and returns the extractors' outputs, so only small arrays cross
+process boundaries.
 """
 
 from __future__ import annotations

@@ -1,4 +1,17 @@
-"""Past the paper: lowest sustainable speed, parameter mismatch and offsets, online R_s.
+"""Past the paper: lowest sustainable speed per variant, parameter mismatch and offsets,
+sensitivity per variant, online R_s, sensorless speed reversal, where peers fail.
+
+  lowest_speed    sensorless start at 480 rpm, load ramped in, descent under load to the
+                  speed; grid + bisection per variant, 100 % and 150 % load, against the bound
+                  (0.2 R I + V_dt)/lambda
+  mismatch        the paper observer under R^/L^/lambda^ errors and current offsets, shadow
+                  and driving (2 %/150 %)
+  sensitivity     the same errors plus the cut-off, for every variant, against a
+                  steady-state fundamental model of each (shadow observers on one encoder run)
+  rs_adapt        online R_s estimate for R^ 30 % off
+  speed_reversal  +60 -> -60 rpm under brake/active load: hand-back to I-f, through zero,
+                  handover again
+  peers_fail      60 rpm, rated load, 2 us deadtime: the loop closed on each observer
 
 The online R_s estimate runs *outside* the compiled kernels: the closed loop is stepped in
 1 ms chunks (the same `closed_loop_chunk` the runner uses) and between chunks an adapter
@@ -6,6 +19,9 @@ reads the driving observer's flux magnitude and rewrites its R^ parameter.  Mech
 (SPM, i_d = 0): an R^ error puts (R - R^) i along q into the EMF; integrated over the
 rotation it lands along d, so |lambda^| = lambda + (R - R^) |i_q| / |w|: the flux
 magnitude measures the resistance error.  dR^/dt = g (|lambda^| - lambda^_pm) w^ / i_q.
+rs_adapt and peers_fail's loop-closing runs are in-process only (they change parameters or
+the position source mid-run, which the node graph does not do); every other run goes through
+ctx.run (parallel, or the node graph with --graph).
 """
 
 from __future__ import annotations
@@ -1137,13 +1153,15 @@ def _switch_job(args):
     after = np.abs(err[ks:]) > 60.0
     k_lost = int(np.argmax(after)) if after.any() else None
     dec = slice(max(ks - int(0.5 / sc.machine.ts_s), 0), None, 20)
+    zoom = slice(max(ks - int(0.02 / sc.machine.ts_s), 0), ks + int(0.06 / sc.machine.ts_s))
     return {"stable": m["stable"], "fault": FAULT_NAMES.get(m["fault_code"], "?"),
             "rms_deg": m["observers"][d]["theta_err_rms_deg"],
             "mean_rpm": m["speed"]["mean_rpm"], "pre_mean_deg": cm,
             "pre_rms_deg": float(np.sqrt(np.mean(pre ** 2))),
             "lost_after_s": None if k_lost is None else k_lost * sc.machine.ts_s,
             "series": {"t": r.t[dec] - t_sw, "rpm": r.truth[dec, TR_WM] * RAD_S_TO_RPM,
-                       "err": err[dec]}}
+                       "err": err[dec], "tz": r.t[zoom] - t_sw,
+                       "rpmz": r.truth[zoom, TR_WM] * RAD_S_TO_RPM, "errz": err[zoom]}}
 
 
 def peers_fail(ctx):
@@ -1299,25 +1317,33 @@ def peers_fail(ctx):
 
 def _plot_peers(ctx, sw_jobs, sw_res, drivers):
     p = plt()
-    fig, ax = p.subplots(2, 1, figsize=(10, 6.5), sharex=True)
+    fig = p.figure(figsize=(12, 7))
+    gs = fig.add_gridspec(2, 3)
+    ax = [fig.add_subplot(gs[0, :2]), fig.add_subplot(gs[1, :2])]
+    az = [fig.add_subplot(gs[0, 2]), fig.add_subplot(gs[1, 2])]
     for i, d in enumerate(drivers):
         x = next(r for (_, key), r in zip(sw_jobs, sw_res, strict=True)
                  if key[0] == d and key[2] == "2us")
         s = x["series"]
         ax[0].plot(s["t"], s["rpm"], lw=0.7, color=f"C{i}", label=d)
         ax[1].plot(s["t"], s["err"], lw=0.5, color=f"C{i}")
-    ax[0].axvline(0.0, color="k", lw=0.8, ls=":")
-    ax[1].axvline(0.0, color="k", lw=0.8, ls=":")
+        az[0].plot(1e3 * s["tz"], s["rpmz"], lw=0.8, color=f"C{i}")
+        az[1].plot(1e3 * s["tz"], s["errz"], lw=0.8, color=f"C{i}")
+    for a in ax + az:
+        a.axvline(0.0, color="k", lw=0.8, ls=":")
+        a.grid(alpha=0.3)
     ax[0].set_ylabel("rotor speed [rpm]")
     ax[0].set_ylim(-30, 120)
+    az[0].set_ylim(-30, 120)
     ax[0].legend(fontsize=7, ncol=3)
     ax[1].set_ylabel("θ̃ of the driving observer [deg]")
     ax[1].set_ylim(-185, 185)
+    az[1].set_ylim(-185, 185)
     ax[1].set_xlabel("time after closing the loop on the observer [s]")
+    az[1].set_xlabel("the first 60 ms [ms]")
     ax[0].set_title("60 rpm, rated brake load, 2 µs deadtime uncompensated: encoder until t = 0, "
                     "then sensorless on each observer (seed 1)", fontsize=9)
-    for a in ax:
-        a.grid(alpha=0.3)
+    az[0].set_title("zoom: the light rotor stalls in ~15 ms", fontsize=9)
     return ctx.fig(fig, "beyond_peers_fail")
 
 
