@@ -212,15 +212,17 @@ def lowest_speed(ctx):
 
     notes = {
         "flux_measured": "measured voltages carry the deadtime, and R^ = R: neither term of the "
-                         "bound applies; what is left is ADC/capture noise amplified by the "
-                         "inverse HPF gain w_c/w",
+                         "bound applies.  What ends it near 12-15 rpm was not isolated; "
+                         "candidates are what the measured voltage still gets wrong (the "
+                         "≈3.6 mV deadtime residue of the sensitivity experiment) and noise, "
+                         "both amplified by the inverse HPF gain ω_c/ω (≈100 at 15 rpm)",
         "flux_commanded": "the deadtime fundamental (4/π)V_dt = 1.83 V lies along the current, so "
                           "it integrates into a flux-magnitude error (4/π)V_dt/ω (Fig. 4): |λ̂| "
                           "leaves the 3λ validity band near 90-140 rpm and the drive trips on "
                           "loss of lock",
         "emf_measured": "no integration: the per-sample EMF carries L/Ts·σ_i ≈ 0.18 V of noise "
-                        "against ωλ (0.59 V at 60 rpm); the PLL's sign(ω̂) flips on noise near "
-                        "the low end",
+                        "against ωλ (0.59 V at 60 rpm, 0.3 V at 30 rpm): the SNR runs out "
+                        "first (the paper's argument)",
         "emf_commanded": "the deadtime error (4/π)V_dt follows the current; once the loop is "
                          "closed on the estimate it rotates with the estimated frame and hides "
                          "(4/π)V_dt/(ωλ+(4/π)V_dt) of every angle error from the PLL (peers_fail)",
@@ -734,16 +736,16 @@ def _sens_claims(tab, rs, ls, lams, cuts, offs, w, iq, nd, ids):
 
         def fmt(k, t=t):
             x = t[k]
-            pr = "none" if x["pred_deg"] is None else f"{x['pred_deg']:.1f}°"
-            tag = "" if x["steady"] else " slips"
+            pr = "no equilibrium" if x["pred_deg"] is None else f"{x['pred_deg']:.1f}°"
+            tag = "" if x["steady"] else ", slips"
             return f"{_label(k)}: {x['mean_deg']:.1f}° (model {pr}{tag})"
 
         nom = t["nom"]
         why = []
         if no_eq:
             why.append(f"no stable equilibrium in the model at {', '.join(map(_label, no_eq))} "
-                       "(the magnitude loop cannot reach λ̂ once ωλ + ΔR i_q shrinks: the "
-                       "estimate keeps turning)")
+                       "(the magnitude loop cannot hold |η| at λ̂ with the |x| it is given: "
+                       "the estimate keeps turning)")
         if slip:
             why.append(f"the estimate slips (θ̃ wanders > {STEADY_AC_DEG:.0f}° about its mean) "
                        f"at {', '.join(map(_label, slip))}")
@@ -1023,8 +1025,8 @@ def speed_reversal(ctx):
                 f"{sorted({x['fault'] for x in rr})}")
         if lp < i_if:
             claims.append(claim(
-                f"Sensorless reversal +60 → −60 rpm through zero under a {lt} load of "
-                f"{lp:g} pu (I-f current {i_if:g} pu): no loss of synchronism, hand-back to I-f "
+                f"Sensorless reversal +60 → −60 rpm through zero under {lt} load "
+                f"({lp:g} pu, I-f current {i_if:g} pu): no loss of synchronism, hand-back to I-f "
                 "below 20 rpm and handover again past −40 rpm",
                 ours, n_ok == len(rr),
                 "the brake (the paper's hysteresis dyno) opposes the motion, so its torque "
@@ -1036,6 +1038,12 @@ def speed_reversal(ctx):
                 "by the current loop (the speed ripple in the figure)"
                 if n_ok == len(rr) else "see the figure"))
         else:
+            x0 = rr[0]
+            ours = (f"stable {n_ok}/{len(rr)}: hand-back at ref "
+                    f"{x0.get('handback_ref_rpm', float('nan')):.0f} rpm, then pulled out of "
+                    f"step (load angle up to {x0.get('if_load_angle_max_deg', float('nan')):.0f}°,"
+                    f" slip up to {x0.get('if_slip_max_rpm', float('nan')):.0f} rpm), fault "
+                    f"{x0['fault']}; θ̃ RMS on the + side {x0['rms_pos_deg']:.2f}°")
             claims.append(claim(
                 f"Limit: an active load above what the I-f current carries ({lp:g} pu > "
                 f"K_t I_if = {i_if:g} pu) cannot be taken through zero open-loop",
@@ -1262,14 +1270,18 @@ def peers_fail(ctx):
         if n_all:
             ctrl_rows.append(f"{d}: {txt}")
     if ctrl_rows:
+        em_ok = all(x["stable"] for x in rows.get("emf_measured@2us", []))
         claims.append(claim(
             "Controls at the same point: the paper's observer on commanded voltages, and the "
             "EMF / ortega observers on measured voltages",
             "; ".join(ctrl_rows), None,
             "flux_commanded: |λ̂| = λ + (4/π)V_dt/ω ≈ 4λ leaves the 3λ validity band → loss-of-"
-            "lock trip (the angle itself is fine).  emf_measured: no deadtime error, but per "
-            "sample L/Ts·σ_i ≈ 0.18 V of noise against 0.59 V; the shadow estimate can have "
-            "slipped before the loop is closed.  ortega_measured: measured voltages remove "
+            "lock trip (the angle itself is fine).  emf_measured: no deadtime error; its per-"
+            "sample noise L/Ts·σ_i ≈ 0.18 V against 0.59 V "
+            + ("costs accuracy (θ̃ RMS ~1° vs 0.15° for the flux observer) but it holds here; "
+               "it fails at 30 rpm (lowest_speed).  " if em_ok else
+               "can make the estimate slip before or after the loop is closed.  ")
+            + "ortega_measured: measured voltages remove "
             "the 1.83 V, but the ≈3.6 mV deadtime residue times k/(ω²λ) (sensitivity) and its "
             "0.6 s⁻¹ angle pole still lose the rotor at its default gain: a structural limit "
             "at low speed, not the voltage source"))
@@ -1292,7 +1304,8 @@ def peers_fail(ctx):
             parts.append(f"{d}: " + ("held 60 rpm" if x["stable"] else
                                      (f"lost at ref {lo['ref_rpm']:.0f} rpm, load "
                                       f"{lo['load_pu']:.2f} pu ({lo['fault']})" if lo
-                                      else "lost")))
+                                      else f"not held (mean {x['mean_rpm']:.0f} rpm, θ̃ RMS "
+                                      f"{x['rms_deg']:.0f}°)")))
         claims.append(claim(
             "The same drivers started sensorless at 480 rpm, rated load ramped in there, then "
             "decelerated to 60 rpm (the lowest_speed protocol): where each loses the rotor",
