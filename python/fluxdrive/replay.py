@@ -61,7 +61,7 @@ from .observers import (
     ObserverConfig,
     make_observer,
 )
-from .plant import FR_ENC, FR_N, TR_N, TR_T, TR_THETA_E, TR_WM
+from .plant import FR_ENC, FR_N, FR_SEQ, TR_N, TR_T, TR_THETA_E, TR_WM
 from .scenario import REPO_ROOT, Scenario
 
 SAMPLES_DIR = REPO_ROOT / "bags" / "samples"
@@ -802,6 +802,9 @@ def bench_replay(argv: list[str]) -> dict[str, Any]:
     card = bag.machine()
     reps = max(1, args.samples // bag.n)
     frames = np.ascontiguousarray(np.tile(bag.frames, (reps, 1)))
+    # one continuous recording: without renumbering, every tile after the first would be
+    # "backwards" to the input policy and skipped (measuring the reject path, not the work)
+    frames[:, FR_SEQ] = np.arange(len(frames), dtype=float)
     out: dict[str, float] = {}
     for v in args.variant or list(VARIANT_KINDS):
         obs = make_observer(v, card)
