@@ -114,6 +114,11 @@ class RecorderNode(FluxNode):
               choices=qos.INPUT_DURABILITY_CHOICES, read_only=True),
             P("flush_interval_s", 0.5, "close the open MCAP chunk and flush the bag file this "
               "often (bounds what a killed recorder loses)", "s", 0.05, 60.0),
+            P("max_backlog_mb", 8.0, "messages received but not yet handed to the bag "
+              "writer are held to this much; beyond it the recorder's callback waits for the "
+              "writer (backpressure: a lockstep graph slows to the disk's speed instead of "
+              "growing in memory; also bounds what a SIGKILL loses)", "MB", 0.5, 4096.0,
+              read_only=True),
             P("min_free_mb", 100.0, "refuse to start unless the bag's file system has this "
               "much free space", "MB", 0.0, 1e9, read_only=True),
         ])
@@ -132,6 +137,12 @@ class RecorderNode(FluxNode):
         sys.stdout.flush()
         self.header_ts = pv["timestamps"] == "header"
         self.buf: list[bytes] = []
+        # backlog = bytes_in - bytes_out; each counter has one writer thread (callbacks /
+        # feeder), so no lock is needed and no update is lost
+        self.bytes_in = 0
+        self.bytes_out = 0
+        self.max_backlog = int(pv["max_backlog_mb"] * 1e6)
+        self.holds = 0  # callbacks that waited for the writer
         self.lock = threading.Lock()
         self.conn_ids: dict[str, int] = {}
         self.types: dict[str, str] = {}
@@ -218,6 +229,9 @@ class RecorderNode(FluxNode):
             else:
                 t = time.time_ns()
             buf.append(rec(b"M", cid, t, len(data)) + data)
+            self.bytes_in += len(data) + _REC.size
+            if self.bytes_in - self.bytes_out > self.max_backlog:
+                self._hold()
             counts[topic] += 1
             if has_seq:
                 last[topic] = _seq(data)
@@ -248,7 +262,22 @@ class RecorderNode(FluxNode):
             return b""
         items = buf[:n]
         del buf[:n]
-        return b"".join(items)
+        out = b"".join(items)
+        self.bytes_out += len(out)
+        return out
+
+    def _hold(self) -> None:
+        """Backpressure: wait (in the callback, so the executor of this process waits too)
+        until the writer has taken the backlog down to half the limit."""
+        self.holds += 1
+        if self.holds == 1:
+            self.get_logger().warning(
+                f"bag writer behind by {(self.bytes_in - self.bytes_out) / 1e6:.1f} MB "
+                f"(max_backlog_mb {self.max_backlog / 1e6:g}): holding the callbacks until it "
+                f"catches up (a lockstep graph slows down; nothing is dropped)")
+        while (self.bytes_in - self.bytes_out > self.max_backlog // 2 and not self.closed
+               and not self.stop.is_set()):
+            time.sleep(0.002)
 
     def _feeder(self) -> None:
         t_flush = time.monotonic()
@@ -333,7 +362,9 @@ class RecorderNode(FluxNode):
             self.exit_code = 1
         total = sum(self.counts.values())
         detail = ", ".join(f"{t} {c}" for t, c in self.counts.items())
-        self.log(f"bag {self.bag_dir} finalised: {total} messages ({detail})")
+        held = (f"; the writer's backpressure held the callbacks {self.holds} times"
+                if self.holds else "")
+        self.log(f"bag {self.bag_dir} finalised: {total} messages ({detail}){held}")
         sys.stdout.write(f"@bag {self.bag_dir}\n")
         sys.stdout.flush()
 
