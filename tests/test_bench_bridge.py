@@ -12,15 +12,15 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
-from fluxdrive.bridge import BridgeConfig, CanBridge
-from fluxdrive.canloop import new_virtual_channel, run_can_loop
-from fluxdrive.canproto import ID_ARM_MODE, ID_DUTY_CMD, ID_SAMPLE_FD, get_protocol
-from fluxdrive.emulator import DriveEmulator
-from fluxdrive.metrics import wrap
-from fluxdrive.observers import ES_TH
-from fluxdrive.plant import FR_EN, TR_THETA_E, TR_WM
-from fluxdrive.scenario import CONFIG_DIR, RPM, load_scenario, scenario_path
-from fluxdrive.sim import DriveSetup, run_scenario
+from fluxdrive.analysis.metrics import wrap
+from fluxdrive.can.bridge import BridgeConfig, CanBridge
+from fluxdrive.can.emulator import DriveEmulator
+from fluxdrive.can.loop import new_virtual_channel, run_can_loop
+from fluxdrive.can.protocol import ID_ARM_MODE, ID_DUTY_CMD, ID_SAMPLE_FD, get_protocol
+from fluxdrive.core.scenario import CONFIG_DIR, RPM, load_scenario, scenario_path
+from fluxdrive.drive.observers import ES_TH
+from fluxdrive.drive.plant import FR_EN, TR_THETA_E, TR_WM
+from fluxdrive.drive.sim import DriveSetup, run_scenario
 
 REPO = Path(__file__).resolve().parents[1]
 SAMPLE_LOG = REPO / "bags" / "samples" / "emulator_2pct_start_1s.blf"
@@ -278,7 +278,7 @@ def test_never_enabled_while_disarmed():
 
 def test_shipped_capture_imports_into_a_bag(tmp_path):
     pytest.importorskip("rosbags")
-    from fluxdrive.canimport import main
+    from fluxdrive.io.canimport import main
     from rosbags.highlevel import AnyReader
 
     assert SAMPLE_LOG.is_file() and SAMPLE_LOG.stat().st_size < 2_000_000
@@ -311,7 +311,7 @@ def test_shipped_capture_imports_into_a_bag(tmp_path):
 def test_bench_can_cli_reports_rate_and_drops():
     """The benchmark reports its figures and loses nothing; the rate itself is a
     benchmark figure (./fluxdrive benchmark can), not asserted here: it depends on load."""
-    from fluxdrive.bench_can import bench_can_cli
+    from fluxdrive.can.benchmark import bench_can_cli
 
     out = bench_can_cli(["--frames", "5000", "--seconds", "0.3"])
     assert out["dropped"] == 0 and out["sustained_dropped"] == 0
@@ -333,7 +333,12 @@ def decimated_2pct():
 
 
 def test_closed_loop_over_classic_can_2pct_sensorless():
-    from fluxdrive.canproto import CLASSIC_SAMPLE_IDS, decimate_for_classic, frame_bits, link_budget
+    from fluxdrive.can.protocol import (
+        CLASSIC_SAMPLE_IDS,
+        decimate_for_classic,
+        frame_bits,
+        link_budget,
+    )
 
     proto = get_protocol()
     d = proto.classic_decimation
@@ -399,8 +404,8 @@ def test_classic_bridge_gaps_malformed_and_wire_seq():
     one sample), a short part (malformed), an FD sample (other layout), the 16-bit wire
     seq wrapping; frames come out with the sample index, duties go back with the wire seq
     of the sample they answer, ARM_MODE asks for the classic layout."""
-    from fluxdrive.bridge import bus_factory_from_params
-    from fluxdrive.canproto import frame_to_classic_payloads
+    from fluxdrive.can.bridge import bus_factory_from_params
+    from fluxdrive.can.protocol import frame_to_classic_payloads
 
     proto = get_protocol()
     d = 8
@@ -458,7 +463,7 @@ def test_closed_loop_over_fd_can_decimated_2pct_sensorless():
     D periods, duty held D periods, observers and controller at D*Ts with the decimated
     tuning. Sensorless at 2 % speed, θ̃ RMS between the FD D = 1 loop (0.33-0.34°) and the
     classic D = 8 one (0.46°)."""
-    from fluxdrive.canproto import decimate_frames, frame_bits, link_budget
+    from fluxdrive.can.protocol import decimate_frames, frame_bits, link_budget
 
     proto = get_protocol()
     d = proto.fd_decimation_real_bus

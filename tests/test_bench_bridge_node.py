@@ -21,9 +21,9 @@ def test_bridge_node_smoke():
     import can
     from bench_bridge.bridge_node import BenchBridgeNode
     from diagnostic_msgs.msg import DiagnosticArray
-    from fluxdrive.canloop import new_virtual_channel
-    from fluxdrive.emulator import DriveEmulator
-    from fluxdrive.sim import DriveSetup
+    from fluxdrive.can.emulator import DriveEmulator
+    from fluxdrive.can.loop import new_virtual_channel
+    from fluxdrive.drive.sim import DriveSetup
     from rclpy.parameter import Parameter
     from test_bench_bridge import short_2pct
 
@@ -93,9 +93,9 @@ def test_bridge_node_decimation_parameter_and_drive_check():
     import can
     from bench_bridge.bridge_node import BenchBridgeNode
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-    from fluxdrive.canloop import new_virtual_channel
-    from fluxdrive.emulator import DriveEmulator
-    from fluxdrive.sim import DriveSetup
+    from fluxdrive.can.emulator import DriveEmulator
+    from fluxdrive.can.loop import new_virtual_channel
+    from fluxdrive.drive.sim import DriveSetup
     from rclpy.exceptions import InvalidParameterValueException
     from rclpy.parameter import Parameter
     from test_bench_bridge import short_2pct

@@ -6,11 +6,11 @@ import sys
 from pathlib import Path
 
 try:
-    import fluxdrive.bench_can  # noqa: F401
+    import fluxdrive.can.benchmark  # noqa: F401
 except ImportError:  # not installed: use the source tree
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "python"))
 
-from fluxdrive.bench_can import measure_decode_rates, run_can_benchmark
+from fluxdrive.can.benchmark import measure_decode_rates, run_can_benchmark
 
 
 def test_benchmark_smoke_no_drops():

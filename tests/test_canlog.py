@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 try:
-    import fluxdrive.canlog  # noqa: F401
+    import fluxdrive.io.canlog  # noqa: F401
 except ImportError:  # not installed: use the source tree
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "python"))
 
-from fluxdrive import canlog
-from fluxdrive import canproto as cp
+from fluxdrive.can import protocol as cp
+from fluxdrive.io import canlog
 
 FD = cp.FRAME_INDEX
 

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 try:
-    import fluxdrive.canproto  # noqa: F401
+    import fluxdrive.can.protocol  # noqa: F401
 except ImportError:  # not installed: use the source tree
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "python"))
 
-from fluxdrive import canproto as cp
+from fluxdrive.can import protocol as cp
 
 FD = cp.FRAME_INDEX
 
@@ -376,7 +376,7 @@ def test_command_frames_round_trip(proto):
 
 def test_frame_layout_matches_plant():
     """FRAME_FIELDS must mirror the engine's FR_* column indices (when importable)."""
-    plant = pytest.importorskip("fluxdrive.plant")
+    plant = pytest.importorskip("fluxdrive.drive.plant")
     names = {
         "FR_IA": "i_a", "FR_IB": "i_b", "FR_IC": "i_c", "FR_VAB": "v_ab", "FR_VBC": "v_bc",
         "FR_VCA": "v_ca", "FR_VDC": "vdc", "FR_DA": "duty_a", "FR_DB": "duty_b",

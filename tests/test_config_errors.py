@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 import yaml
-from fluxdrive.machine import ConfigError, load_machine
-from fluxdrive.observers import observer_config
-from fluxdrive.scenario import CONFIG_DIR, load_scenario
+from fluxdrive.core.machine import ConfigError, load_machine
+from fluxdrive.core.scenario import CONFIG_DIR, load_scenario
+from fluxdrive.drive.observers import observer_config
 
 
 def _write(tmp_path, name, data):

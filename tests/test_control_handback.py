@@ -7,7 +7,9 @@ import math
 
 import numpy as np
 import pytest
-from fluxdrive.control import (
+from fluxdrive.analysis.metrics import RAD_S_TO_RPM, wrap
+from fluxdrive.core.machine import MachineCard
+from fluxdrive.drive.control import (
     CO_ID_REF,
     CO_IQ_REF,
     CO_MODE,
@@ -24,10 +26,8 @@ from fluxdrive.control import (
     controller_reset,
     controller_step,
 )
-from fluxdrive.machine import MachineCard
-from fluxdrive.metrics import RAD_S_TO_RPM, wrap
-from fluxdrive.observers import ES_N, ES_TH, ES_VALID, ES_W
-from fluxdrive.plant import FR_N, FR_VDC, TR_THETA_E, TR_WM
+from fluxdrive.drive.observers import ES_N, ES_TH, ES_VALID, ES_W
+from fluxdrive.drive.plant import FR_N, FR_VDC, TR_THETA_E, TR_WM
 
 CARD = MachineCard()
 RPM = 2 * math.pi / 60
@@ -78,10 +78,10 @@ def test_sensorless_reversal_under_active_load_hands_back_without_a_swing(tmp_pa
     asin(0.4/1.0) = 24 deg (no loss of synchronism) and the speed does not swing: before the
     torque-keeping hand-back the step to zero torque set off the I-f ramp's undamped
     load-angle oscillation (+-150 rpm)."""
-    from fluxdrive.control import CO_MODE as MODE
-    from fluxdrive.experiments import OBS4, build
-    from fluxdrive.metrics import compute
-    from fluxdrive.sim import run_scenario
+    from fluxdrive.analysis.metrics import compute
+    from fluxdrive.drive.control import CO_MODE as MODE
+    from fluxdrive.drive.sim import run_scenario
+    from fluxdrive.experiments.registry import OBS4, build
 
     sc = build(name="reversal_unit", duration_s=7.0, seed=1,
                speed_rpm=[[0.0, 60.0], [3.6, 60.0], [4.8, -60.0]], load_type="active",

@@ -7,13 +7,21 @@ import math
 
 import numpy as np
 import pytest
-from fluxdrive.blocks import pll_gains, rng_new
-from fluxdrive.control import CO_ID, CO_ID_REF, CO_IQ, CO_VQ, design_current_loop, design_speed_loop
-from fluxdrive.freqresp import analyse
-from fluxdrive.machine import MachineCard
-from fluxdrive.metrics import compute, wrap
-from fluxdrive.observers import ES_LA, ES_LB, ES_TH, KernelObserver, observer_config
-from fluxdrive.plant import (
+from fluxdrive.analysis.freqresp import analyse
+from fluxdrive.analysis.metrics import compute, wrap
+from fluxdrive.core.blocks import pll_gains, rng_new
+from fluxdrive.core.machine import MachineCard
+from fluxdrive.core.scenario import CONFIG_DIR, load_scenario
+from fluxdrive.drive.control import (
+    CO_ID,
+    CO_ID_REF,
+    CO_IQ,
+    CO_VQ,
+    design_current_loop,
+    design_speed_loop,
+)
+from fluxdrive.drive.observers import ES_LA, ES_LB, ES_TH, KernelObserver, observer_config
+from fluxdrive.drive.plant import (
     FR_N,
     FR_VAB,
     FR_VBC,
@@ -27,8 +35,7 @@ from fluxdrive.plant import (
     plant_advance,
     plant_state,
 )
-from fluxdrive.scenario import CONFIG_DIR, load_scenario
-from fluxdrive.sim import run_scenario
+from fluxdrive.drive.sim import run_scenario
 from helpers_engine import ideal_machine, make_scenario
 
 RPM = 2 * math.pi / 60

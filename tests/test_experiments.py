@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 import pytest
-from fluxdrive.experiments import run_experiment, write_report
+from fluxdrive.experiments.registry import run_experiment, write_report
 
 
 def _run(name, tmp_path):
@@ -153,10 +153,10 @@ def test_graph_flag_runs_through_the_node_graph_with_the_same_numbers(tmp_path):
     gives the in-process runner's arrays and metrics exactly."""
     pytest.importorskip("rclpy")
     import numpy as np
-    from fluxdrive.experiments import graph_run, sensorless
-    from fluxdrive.metrics import compute
-    from fluxdrive.scenario import load_scenario, save_scenario, scenario_differences
-    from fluxdrive.sim import run_scenario
+    from fluxdrive.analysis.metrics import compute
+    from fluxdrive.core.scenario import load_scenario, save_scenario, scenario_differences
+    from fluxdrive.drive.sim import run_scenario
+    from fluxdrive.experiments.registry import graph_run, sensorless
 
     sc = sensorless(120.0, 0.3, name="exp_graph", ramp_pu_s=1.0, settle_s=0.1, window_s=0.2,
                     observers={"flux_measured": {"variant": "paper"},

@@ -88,7 +88,7 @@ def test_bridge_arms_and_resets_only_for_allowed_nodes(graph):
     only while every client of them is an allowed node; a disarm is always obeyed; duty
     commands from other nodes are dropped and counted."""
     from bench_bridge.bridge_node import BenchBridgeNode
-    from fluxdrive.canloop import new_virtual_channel
+    from fluxdrive.can.loop import new_virtual_channel
     from rclpy.parameter import Parameter
 
     from flux_drive_msgs.msg import DutyCommand

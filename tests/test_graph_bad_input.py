@@ -24,7 +24,7 @@ TS = 1e-4
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     """A short closed-loop run whose frames are replayed onto the nodes."""
-    from fluxdrive.sim import run_scenario
+    from fluxdrive.drive.sim import run_scenario
     from helpers_engine import make_scenario
 
     tmp = tmp_path_factory.mktemp("badin")
@@ -117,7 +117,7 @@ def values(st) -> dict[str, str]:
 
 
 def frame_bytes(fw, fr: np.ndarray, seq: int) -> bytes:
-    from fluxdrive.plant import FR_SEQ
+    from fluxdrive.drive.plant import FR_SEQ
 
     fr = fr.copy()
     fr[FR_SEQ] = seq
@@ -131,7 +131,7 @@ def test_observer_flags_holds_and_reports_bad_frames(graph, run):
     /diagnostics; good frames afterwards give valid estimates again."""
     from diagnostic_msgs.msg import DiagnosticArray
     from flux_observer_node.node import ObserverNode
-    from fluxdrive.plant import FR_IA, FR_IB, FR_VAB, FR_VDC
+    from fluxdrive.drive.plant import FR_IA, FR_IB, FR_VAB, FR_VDC
     from fluxdrive_ros.wire import FrameWire
 
     from flux_drive_msgs.msg import PhaseFrame, RotorEstimate
@@ -201,7 +201,7 @@ def _controller(graph, sc, **params):
 
 
 def _est_bytes(ew, seq: int, valid: bool = False) -> bytes:
-    from fluxdrive.observers import ES_N, ES_VALID
+    from fluxdrive.drive.observers import ES_N, ES_VALID
 
     es = np.zeros(ES_N)
     es[ES_VALID] = float(valid)
@@ -301,7 +301,7 @@ def test_controller_wall_clock_timeout_when_the_estimate_never_comes(graph, run)
 def test_controller_trips_on_a_nan_frame(graph, run):
     """A non-finite current reaches the controller: the engine's bad-sample trip, PWM off
     at once and latched."""
-    from fluxdrive.plant import FR_IA
+    from fluxdrive.drive.plant import FR_IA
     from fluxdrive_ros.wire import EstimateWire, FrameWire
 
     from flux_drive_msgs.msg import ControllerState, DutyCommand, PhaseFrame, RotorEstimate

@@ -83,9 +83,9 @@ def test_codec_matches_rclpy(name):
 
 
 def test_rows_survive_messages_bit_for_bit():
-    from fluxdrive.control import CO_DA, CO_EN, CO_FAULT, CO_MODE, CO_N
-    from fluxdrive.observers import ES_N, ES_VALID
-    from fluxdrive.plant import FR_EN, FR_FLAGS, FR_N, FR_SEQ, TR_N, TR_T, TR_THETA_E
+    from fluxdrive.drive.control import CO_DA, CO_EN, CO_FAULT, CO_MODE, CO_N
+    from fluxdrive.drive.observers import ES_N, ES_VALID
+    from fluxdrive.drive.plant import FR_EN, FR_FLAGS, FR_N, FR_SEQ, TR_N, TR_T, TR_THETA_E
     from fluxdrive_ros.wire import (
         ControlWire,
         EstimateWire,

@@ -26,12 +26,12 @@ DURATION = 3.0
 
 
 def _reference(sc, changes: dict[int, list]):
-    """The in-process loop (fluxdrive.sim.closed_loop_chunk) with parameter rows replaced
+    """The in-process loop (fluxdrive.drive.sim.closed_loop_chunk) with parameter rows replaced
     at given samples: changes = {k: [callable(ds, cp, obs_params), ...]}."""
-    from fluxdrive.control import CO_N
-    from fluxdrive.observers import ES_N
-    from fluxdrive.plant import FR_N, TR_N, plant_initial_frame
-    from fluxdrive.sim import DriveSetup, closed_loop_chunk
+    from fluxdrive.drive.control import CO_N
+    from fluxdrive.drive.observers import ES_N
+    from fluxdrive.drive.plant import FR_N, TR_N, plant_initial_frame
+    from fluxdrive.drive.sim import DriveSetup, closed_loop_chunk
 
     ds = DriveSetup(sc)
     n = ds.n
@@ -58,7 +58,7 @@ def _reference(sc, changes: dict[int, list]):
 
 
 def test_live_parameters_take_effect_exactly_and_bad_values_are_rejected(tmp_path):
-    from fluxdrive.scenario import load_scenario
+    from fluxdrive.core.scenario import load_scenario
     from fluxdrive_bringup.inspect_cli import Session, set_param
     from fluxdrive_bringup.launch import Launcher
     from fluxdrive_bringup.runs import graph_for_scenario, result_from_bag, shorten

@@ -31,8 +31,8 @@ def domain(offset: int) -> int:
 
 
 def reference(duration: float):
-    from fluxdrive.scenario import load_scenario
-    from fluxdrive.sim import run_scenario
+    from fluxdrive.core.scenario import load_scenario
+    from fluxdrive.drive.sim import run_scenario
     from fluxdrive_bringup.runs import shorten
 
     sc = load_scenario(SCENARIO)
@@ -41,7 +41,7 @@ def reference(duration: float):
 
 
 def graph_result(bag: Path, duration: float):
-    from fluxdrive.scenario import load_scenario
+    from fluxdrive.core.scenario import load_scenario
     from fluxdrive_bringup.runs import result_from_bag
 
     return result_from_bag(bag, load_scenario(SCENARIO), duration)
@@ -76,7 +76,7 @@ def test_graph_equals_in_process_runner(tmp_path, layout, duration):
     assert all(v == 0 for v in arr["missing"].values()), arr["missing"]
     assert_same_run(res, reference(duration))
     if layout == "composed":
-        from fluxdrive.control import CO_MODE, MODE_CLOSED_LOOP
+        from fluxdrive.drive.control import CO_MODE, MODE_CLOSED_LOOP
 
         # the run reached sensorless closed loop on the flux observer
         assert (res.ctrl[:, CO_MODE] == MODE_CLOSED_LOOP).any()
@@ -121,9 +121,9 @@ def _bag_checks(bag: Path, complete_n: int | None = None) -> int:
 
 def test_bag_every_frame_two_readers_and_replay_metadata(tmp_path):
     """(b) A run's bag holds every frame (count = last seq + 1) and every estimate; it opens
-    with rosbags and with mcap/mcap_ros2; the replay lab (fluxdrive.bagio) reads it with the
+    with rosbags and with mcap/mcap_ros2; the replay lab (fluxdrive.io.bagio) reads it with the
     run's metadata and no problems."""
-    from fluxdrive.scenario import load_scenario
+    from fluxdrive.core.scenario import load_scenario
     from fluxdrive_bringup.launch import Launcher
     from fluxdrive_bringup.runs import graph_for_scenario, shorten
 
@@ -136,7 +136,7 @@ def test_bag_every_frame_two_readers_and_replay_metadata(tmp_path):
     assert launcher.bags == [str(bag.resolve())]
     assert _bag_checks(bag, complete_n=3000) == 3000
 
-    from fluxdrive.bagio import read_run_bag
+    from fluxdrive.io.bagio import read_run_bag
 
     rb = read_run_bag(bag)
     assert rb.problems == []
@@ -202,9 +202,9 @@ def test_tripped_run_records_the_fault(tmp_path):
     """A drive that trips at once (DC-bus over-voltage limit below the bus): the graph
     records the latched fault, its code survives the trip through ControllerState's text,
     and the whole run still equals the in-process runner."""
-    from fluxdrive.control import CO_EN, CO_FAULT, FAULT_OVERVOLTAGE
-    from fluxdrive.scenario import load_scenario
-    from fluxdrive.sim import run_scenario
+    from fluxdrive.core.scenario import load_scenario
+    from fluxdrive.drive.control import CO_EN, CO_FAULT, FAULT_OVERVOLTAGE
+    from fluxdrive.drive.sim import run_scenario
     from fluxdrive_bringup.runs import result_from_bag, run_graph
 
     raw = yaml.safe_load(SCENARIO.read_text())

@@ -57,7 +57,7 @@ def _make(kind: str, ctx, tmp: Path, **params):
             Parameter("bag_dir", value=str(tmp / "bag")), Parameter("exit_on_done", value=False),
             *ov])
     from bench_bridge.bridge_node import BenchBridgeNode
-    from fluxdrive.canloop import new_virtual_channel
+    from fluxdrive.can.loop import new_virtual_channel
 
     return BenchBridgeNode(context=ctx, parameter_overrides=[
         Parameter("channel", value=new_virtual_channel()), *ov])

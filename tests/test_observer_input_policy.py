@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from fluxdrive.control import ControllerConfig
-from fluxdrive.machine import ConfigError, MachineCard
-from fluxdrive.metrics import wrap
-from fluxdrive.observers import ES_TH, ES_VALID, OS_BAD, OS_GAPS, OS_STALE
-from fluxdrive.plant import FR_IA, FR_SEQ, TR_THETA_E
-from fluxdrive.sim import DriveSetup, run_scenario
+from fluxdrive.analysis.metrics import wrap
+from fluxdrive.core.machine import ConfigError, MachineCard
+from fluxdrive.drive.control import ControllerConfig
+from fluxdrive.drive.observers import ES_TH, ES_VALID, OS_BAD, OS_GAPS, OS_STALE
+from fluxdrive.drive.plant import FR_IA, FR_SEQ, TR_THETA_E
+from fluxdrive.drive.sim import DriveSetup, run_scenario
 from helpers_engine import make_scenario
 
 

@@ -345,7 +345,7 @@ def test_launcher_killed_graph_stops_and_bag_is_finalised(tmp_path):
 
 def test_on_death_policy_errors_name_file_and_key():
     """Malformed on_death settings are refused with the file, the node and the key."""
-    from fluxdrive.machine import ConfigError
+    from fluxdrive.core.machine import ConfigError
     from fluxdrive_bringup.launch import parse_graph
 
     def bad(pol: dict, node: str = "controller", top: dict | None = None) -> str:
@@ -446,7 +446,7 @@ def test_sigkill_recorder_and_writer_then_bag_recover(tmp_path):
     assert lost <= FRAMES_PER_S
     assert counts["/drive/duty"] >= n - 10 and counts["/obs/flux_measured/estimate"] >= n - 10
 
-    from fluxdrive.bagio import read_run_bag  # the run's metadata came back too
+    from fluxdrive.io.bagio import read_run_bag  # the run's metadata came back too
 
     assert read_run_bag(out_dir).meta["scenario"]["name"] == "paper_2pct_150load"
 
@@ -470,7 +470,7 @@ def test_sigkill_recorder_and_writer_then_bag_recover(tmp_path):
 def test_bag_target_refused_before_start(tmp_path):
     """An unwritable bags/ (its parent is a regular file: fails for root too) and a
     min_free_mb above the free space are refused in one line before any process starts."""
-    from fluxdrive.machine import ConfigError
+    from fluxdrive.core.machine import ConfigError
     from fluxdrive_bringup.launch import Launcher, parse_graph
 
     blocker = tmp_path / "not_a_dir"

@@ -7,7 +7,8 @@ import math
 
 import numpy as np
 import pytest
-from fluxdrive.control import (
+from fluxdrive.core.machine import MachineCard
+from fluxdrive.drive.control import (
     CO_EN,
     CO_FAULT,
     CO_MODE,
@@ -28,9 +29,8 @@ from fluxdrive.control import (
     controller_reset,
     controller_step,
 )
-from fluxdrive.machine import MachineCard
-from fluxdrive.observers import ES_N, ES_TH, ES_VALID, ES_W
-from fluxdrive.plant import FR_ENC, FR_IA, FR_IB, FR_IC, FR_N, FR_VDC
+from fluxdrive.drive.observers import ES_N, ES_TH, ES_VALID, ES_W
+from fluxdrive.drive.plant import FR_ENC, FR_IA, FR_IB, FR_IC, FR_N, FR_VDC
 
 CARD = MachineCard()
 

@@ -9,23 +9,23 @@ import sys
 
 import numpy as np
 import pytest
-from fluxdrive import cli
-from fluxdrive.bagio import (
+from fluxdrive.cli import main as cli
+from fluxdrive.core.scenario import CONFIG_DIR, REPO_ROOT, load_scenario
+from fluxdrive.drive.observers import ES_TH
+from fluxdrive.drive.sim import run_scenario
+from fluxdrive.io.bagio import (
     est_topic,
     observer_states_at,
     read_run_bag,
     typestore,
     write_run_bag,
 )
-from fluxdrive.observers import ES_TH
-from fluxdrive.replay import (
+from fluxdrive.replay.lab import (
     bench_replay,
     expand_variants,
     parse_variant,
     replay_bag,
 )
-from fluxdrive.scenario import CONFIG_DIR, REPO_ROOT, load_scenario
-from fluxdrive.sim import run_scenario
 
 EXAMPLE = REPO_ROOT / "examples" / "my_observer"
 SAMPLE = REPO_ROOT / "bags" / "samples" / "paper_2pct_150load"
@@ -104,7 +104,7 @@ def test_user_variant_module_class_and_entry_point(sample, tmp_path, monkeypatch
                          parse_variant("tight=clamped_flux:clamp=0.95,speed_lpf_hz=5")])
     assert np.array_equal(res.est[0], res.est[1])
     assert not np.array_equal(res.est[1], res.est[2])
-    from fluxdrive.metrics import compute
+    from fluxdrive.analysis.metrics import compute
 
     m = compute(res)
     assert m["observers"]["clamped_flux"]["theta_err_rms_deg"] < 5.0
@@ -137,7 +137,7 @@ def test_no_truth_uses_encoder(run, tmp_path):
     b = read_run_bag(p)
     res = replay_bag(b, [parse_variant("paper")])
     assert res.truth_source == "encoder"
-    from fluxdrive.metrics import compute
+    from fluxdrive.analysis.metrics import compute
 
     assert compute(res)["observers"]["paper"]["theta_err_rms_deg"] < 5.0
 
@@ -185,7 +185,7 @@ def test_bad_bags_one_line_errors(tmp_path, capsys, run):
     err = _bad(capsys, _writer(tmp_path / "foreign", [("/chatter", "std_msgs/msg/String",
                                                        [s])]))
     assert "foreign message types" in err and "std_msgs/msg/String" in err
-    from fluxdrive.bagio import truth_msg
+    from fluxdrive.io.bagio import truth_msg
 
     tr = [truth_msg(store, run.truth[k], k, 1000 * k) for k in range(3)]
     err = _bad(capsys, _writer(tmp_path / "noframe", [("/drive/truth",
@@ -211,7 +211,7 @@ def test_truncated_bag_replays_what_it_holds(bags, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "partial bag" in err and "missing" in err and "Traceback" not in err
     # frames with gaps (lost messages): replayed back to back, counted
-    from fluxdrive.bagio import read_run_bag as rr
+    from fluxdrive.io.bagio import read_run_bag as rr
 
     full = rr(bags["full"])
     assert full.problems == []
@@ -246,7 +246,7 @@ def test_benchmark_replay(capsys):
 def test_live_replay_is_lazy_about_ros():
     import subprocess
 
-    code = ("import sys, fluxdrive.replay, fluxdrive.bagio; "
+    code = ("import sys, fluxdrive.replay.lab, fluxdrive.io.bagio; "
             "sys.exit(1 if 'rclpy' in sys.modules else 0)")
     assert subprocess.call([sys.executable, "-c", code],
                            env={"PYTHONPATH": str(REPO_ROOT / "python")}) == 0

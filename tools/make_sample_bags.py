@@ -17,9 +17,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "python"))
 
-from fluxdrive.bagio import observer_states_at, write_run_bag  # noqa: E402
-from fluxdrive.scenario import CONFIG_DIR, load_scenario  # noqa: E402
-from fluxdrive.sim import run_scenario  # noqa: E402
+from fluxdrive.core.scenario import CONFIG_DIR, load_scenario  # noqa: E402
+from fluxdrive.drive.sim import run_scenario  # noqa: E402
+from fluxdrive.io.bagio import observer_states_at, write_run_bag  # noqa: E402
 
 # name -> (scenario file, window start, window end, observers recorded)
 SAMPLES = {

@@ -23,8 +23,8 @@ def _numba_cache_dir() -> None:
         return
     here = Path(__file__).resolve().parent
     h = hashlib.sha1()
-    for f in sorted(here.glob("*.py")):
-        h.update(f.name.encode())
+    for f in sorted(here.rglob("*.py")):  # every kernel source, in every subpackage
+        h.update(str(f.relative_to(here)).encode())
         h.update(f.read_bytes())
     root = here.parents[1] / ".ws" / "numba_cache"
     try:

@@ -2,8 +2,8 @@
 import math
 
 import numpy as np
-from fluxdrive.observers import ES_EA, ES_EB, ES_LA, ES_LB, ES_N, ES_TH, ES_VALID, ES_W, Observer
-from fluxdrive.plant import FR_IA, FR_IB, FR_IC, FR_VAB, FR_VBC, FR_VCA
+from fluxdrive.drive.observers import ES_EA, ES_EB, ES_LA, ES_LB, ES_N, ES_TH, ES_VALID, ES_W, Observer
+from fluxdrive.drive.plant import FR_IA, FR_IB, FR_IC, FR_VAB, FR_VBC, FR_VCA
 
 
 class ClampedFluxObserver(Observer):

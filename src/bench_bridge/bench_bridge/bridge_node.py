@@ -1,6 +1,6 @@
 """bench_bridge node: the real drive on CAN, seen by the graph like the simulated plant.
 
-Thin wrapper over :class:`fluxdrive.bridge.CanBridge` (all supervisor logic lives there):
+Thin wrapper over :class:`fluxdrive.can.bridge.CanBridge` (all supervisor logic lives there):
 
 * parameters: ``interface``, ``channel``, ``bitrate``, ``data_bitrate``, ``fd``,
   ``decimation``, ``stale_timeout_s``, ``cmd_timeout_s``, ``armed`` (arm at start / live),
@@ -31,13 +31,13 @@ import threading
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from fluxdrive.bridge import (
+from fluxdrive.can.bridge import (
     FRAME_FLAG_STALE_COMMAND,
     BridgeConfig,
     CanBridge,
     bus_factory_from_params,
 )
-from fluxdrive.canproto import link_budget, smallest_fitting_decimation
+from fluxdrive.can.protocol import link_budget, smallest_fitting_decimation
 from fluxdrive_ros.params import P, declare, on_set
 from rclpy.node import Node
 

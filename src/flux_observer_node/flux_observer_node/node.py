@@ -1,11 +1,11 @@
 """flux_observer_node: one rotor-position observer variant as a ROS node.
 
-A thin wrapper around fluxdrive.observers.observer_step: every PhaseFrame in, one
+A thin wrapper around fluxdrive.drive.observers.observer_step: every PhaseFrame in, one
 RotorEstimate out (same seq and stamp).  Several instances run side by side, each in its
 own name (/obs/<name>), one driving the controller and the others in shadow; all publish
 on /obs/<name>/estimate.
 
-Parameters: `variant` (read-only) and every field of fluxdrive.observers.ObserverConfig,
+Parameters: `variant` (read-only) and every field of fluxdrive.drive.observers.ObserverConfig,
 declared with description, unit and range.  The model parameters r_hat_ohm, l_hat_h and
 lambda_hat_vs default to the machine card's values.  Live changes (cutoff_hz,
 pll_bandwidth_hz, voltage_source, deadtime_comp_s, ...) are validated as a whole through
@@ -24,8 +24,9 @@ import sys
 from dataclasses import fields
 
 import numpy as np
-from fluxdrive.machine import load_machine
-from fluxdrive.observers import (
+from fluxdrive.core.machine import load_machine
+from fluxdrive.core.scenario import CONFIG_DIR, load_scenario, scenario_path
+from fluxdrive.drive.observers import (
     ES_N,
     ES_VALID,
     OS_BAD,
@@ -40,8 +41,7 @@ from fluxdrive.observers import (
     observer_reset,
     observer_step,
 )
-from fluxdrive.plant import FR_IA, FR_N
-from fluxdrive.scenario import CONFIG_DIR, load_scenario, scenario_path
+from fluxdrive.drive.plant import FR_IA, FR_N
 from fluxdrive_ros.intra import RawPublisher, RawSubscription
 from fluxdrive_ros.params import P, declare, on_set
 from fluxdrive_ros.runner import FluxNode, main_node

@@ -1,6 +1,7 @@
 """rosbag2 I/O of the project: the typestore (project types registered from their .msg text,
 so every bag embeds its message definitions), and reading a run's bag back into the
-engine's arrays (what fluxdrive.metrics consumes, same layout as fluxdrive.sim.SimResult).
+engine's arrays (what fluxdrive.analysis.metrics consumes, same layout as
+fluxdrive.drive.sim.SimResult).
 """
 
 from __future__ import annotations
@@ -15,8 +16,8 @@ from fluxdrive_ros import topics
 
 
 def typestore():
-    """The project's one rosbags typestore (fluxdrive.bagio.typestore)."""
-    from fluxdrive.bagio import typestore as engine_typestore
+    """The project's one rosbags typestore (fluxdrive.io.bagio.typestore)."""
+    from fluxdrive.io.bagio import typestore as engine_typestore
 
     return engine_typestore()
 
@@ -99,7 +100,7 @@ def load_run_arrays(bag: Path, ts_s: float, names: list[str] | None = None):
     N = last frame seq + 1; rows of samples missing from the bag stay NaN (and `missing`
     counts them per topic).  Vectorised (numpy over the raw CDR), about 3 s per million
     messages."""
-    from fluxdrive.control import (
+    from fluxdrive.drive.control import (
         CO_DA,
         CO_EN,
         CO_FAULT,
@@ -115,8 +116,8 @@ def load_run_arrays(bag: Path, ts_s: float, names: list[str] | None = None):
         CO_W_FB,
         CO_W_REF,
     )
-    from fluxdrive.observers import ES_N, ES_VALID
-    from fluxdrive.plant import (
+    from fluxdrive.drive.observers import ES_N, ES_VALID
+    from fluxdrive.drive.plant import (
         FLAG_CLIP,
         FR_EN,
         FR_ENC,

@@ -21,7 +21,7 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from fluxdrive.machine import ConfigError
+from fluxdrive.core.machine import ConfigError
 
 from .bagwriter import RECORDING_FILE
 

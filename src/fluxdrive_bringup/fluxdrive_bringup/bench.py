@@ -5,7 +5,7 @@ controller, recorder; every message recorded).
   lockstep_rtf    simulated time / wall time of the graph's lockstep loop (first frame to
                   last frame, as the plant measures it), 10 kHz PWM, composed layout;
                   the recorded bag is checked to hold every sample
-  in_process_rtf  the same scenario and observers through fluxdrive.sim.run_scenario
+  in_process_rtf  the same scenario and observers through fluxdrive.drive.sim.run_scenario
 
 Options: --duration S (simulated seconds, default 3), --layouts composed,split,separate
 (extra keys lockstep_rtf_<layout>), --repeat N (best of N).
@@ -22,7 +22,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from fluxdrive.scenario import load_scenario, scenario_path
+from fluxdrive.core.scenario import load_scenario, scenario_path
 
 
 def _say(text: str) -> None:
@@ -47,7 +47,7 @@ def bench_graph(argv: list[str]) -> dict:
             raise SystemExit(f"unknown layout {lay!r}; choose from {LAYOUTS}")
 
     # in-process reference (compiled kernels warmed up first)
-    from fluxdrive.sim import run_scenario
+    from fluxdrive.drive.sim import run_scenario
 
     sc = load_scenario(sp)
     shorten(sc, min(0.05, args.duration))

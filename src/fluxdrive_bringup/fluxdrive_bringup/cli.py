@@ -47,7 +47,7 @@ def main_bag(argv: list[str]) -> int:
 
 
 def main_can_import(argv: list[str]) -> int:
-    from fluxdrive.canimport import main
+    from fluxdrive.io.canimport import main
 
     return main(argv)
 

@@ -58,8 +58,8 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-from fluxdrive.machine import ConfigError
-from fluxdrive.scenario import REPO_ROOT
+from fluxdrive.core.machine import ConfigError
+from fluxdrive.core.scenario import REPO_ROOT
 from fluxdrive_ros.runner import NODE_CLASSES
 
 _POLICY_KEYS = {"on_death", "max_restarts", "restart_backoff_s"}

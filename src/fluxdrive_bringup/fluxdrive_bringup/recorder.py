@@ -17,7 +17,7 @@ recorder exits 1 and the complete chunks stay recoverable.
 
 The message definitions are embedded (typestore registered from the project's .msg
 files), so the bag opens without the package; the run's machine card and observer
-configurations go into the metadata (custom_data "fluxdrive", as fluxdrive.bagio writes
+configurations go into the metadata (custom_data "fluxdrive", as fluxdrive.io.bagio writes
 it), so `./fluxdrive replay` treats graph bags like in-process ones.
 
 Topics: `topics` plus /obs/<name>/estimate for every name in `observers`; types from the
@@ -46,7 +46,7 @@ import time
 from datetime import datetime
 from pathlib import Path
 
-from fluxdrive.scenario import REPO_ROOT
+from fluxdrive.core.scenario import REPO_ROOT
 from fluxdrive_ros.intra import RawSubscription
 from fluxdrive_ros.params import P, declare
 from fluxdrive_ros.runner import FluxNode, main_node
@@ -180,12 +180,12 @@ class RecorderNode(FluxNode):
             raise ValueError(f"cannot open bag {self.bag_dir}: {why}")
 
     def _run_metadata(self, pv) -> dict:
-        """custom_data as fluxdrive.bagio.write_run_bag stores it.  Live parameter changes
+        """custom_data as fluxdrive.io.bagio.write_run_bag stores it.  Live parameter changes
         during the run are not reflected there."""
         from types import SimpleNamespace
 
-        from fluxdrive.bagio import META_KEY, _json_default, run_metadata
-        from fluxdrive.scenario import load_scenario, scenario_path
+        from fluxdrive.core.scenario import load_scenario, scenario_path
+        from fluxdrive.io.bagio import META_KEY, _json_default, run_metadata
 
         sc = load_scenario(scenario_path(pv["scenario"]))
         if pv["duration_s"] > 0:

@@ -10,7 +10,7 @@
 3. the run goes to the end (progress line), every node exits after /drive/done, the
    recorder finalises the bag;
 4. the bag is read back into the engine's arrays and reported with the same code as
-   `./fluxdrive sim` (fluxdrive.report: metric table, metrics.json, plots).
+   `./fluxdrive sim` (fluxdrive.analysis.report: metric table, metrics.json, plots).
 
 Process layouts (`--layout`):
   composed  (default) every node in one process, like an rclcpp component container: one
@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from fluxdrive.scenario import REPO_ROOT, load_scenario, scenario_path
+from fluxdrive.core.scenario import REPO_ROOT, load_scenario, scenario_path
 
 from .launch import Graph, Launcher, NodeSpec
 
@@ -98,9 +98,9 @@ def pick_domain_id() -> int:
 
 
 def result_from_bag(bag: Path, sc, duration_s: float | None = None, wall_s: float = 0.0):
-    """fluxdrive.sim.SimResult from a graph run's bag (the report's input)."""
-    from fluxdrive.control import CO_W_REF
-    from fluxdrive.sim import DriveSetup, SimResult
+    """fluxdrive.drive.sim.SimResult from a graph run's bag (the report's input)."""
+    from fluxdrive.drive.control import CO_W_REF
+    from fluxdrive.drive.sim import DriveSetup, SimResult
 
     from .bagio import load_run_arrays
 
@@ -188,7 +188,7 @@ def main_run(argv: list[str], default_scenario: str | None = None) -> int:
         print(f"[run] lockstep loop: {r['frames']} frames in {r['loop_wall_s']:.2f} s wall = "
               f"real-time factor {r['lockstep_rtf']:.3f} (whole command {r['wall_s']:.1f} s "
               f"incl. start-up and finalising)")
-    from fluxdrive.report import report
+    from fluxdrive.analysis.report import report
 
     t0 = time.perf_counter()
     res, arr = result_from_bag(bag, r["scenario"], args.duration, r["loop_wall_s"] or 0.0)

@@ -35,7 +35,7 @@ import time
 from pathlib import Path
 
 import yaml
-from fluxdrive.scenario import REPO_ROOT, load_scenario, scenario_path
+from fluxdrive.core.scenario import REPO_ROOT, load_scenario, scenario_path
 from fluxdrive_ros.topics import CONTROLLER_STATE, FRAME, TRUTH, estimate_topic
 
 from .launch import Launcher

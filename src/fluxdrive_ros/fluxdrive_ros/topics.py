@@ -1,10 +1,10 @@
 """Topic names and message types of the fluxdrive graph (one place, used by every node,
-the recorder, the launcher and the inspection tools).  Defined in fluxdrive.topics (the
+the recorder, the launcher and the inspection tools).  Defined in fluxdrive.io.topics (the
 engine's bag I/O needs them without ROS); this module adds what needs rclpy."""
 
 from __future__ import annotations
 
-from fluxdrive.topics import (  # noqa: F401 - re-exported: the one definition
+from fluxdrive.io.topics import (  # noqa: F401 - re-exported: the one definition
     CLOCK,
     CONTROLLER_STATE,
     DONE,

@@ -1,8 +1,9 @@
 """Engine arrays <-> the per-sample messages, as CDR bytes (see cdr.py).
 
-The engine's rows (fluxdrive.plant FR_*/TR_*, fluxdrive.observers ES_*, fluxdrive.control
-CO_*) are float64 and so are the message fields, so a row survives a trip through a message
-bit for bit (booleans are 0.0/1.0 in the rows; seq is an exact integer below 2^53).
+The engine's rows (fluxdrive.drive.plant FR_*/TR_*, fluxdrive.drive.observers ES_*,
+fluxdrive.drive.control CO_*) are float64 and so are the message fields, so a row survives a
+trip through a message bit for bit (booleans are 0.0/1.0 in the rows; seq is an exact
+integer below 2^53).
 
 Time stamps: header.stamp is the sample instant t_k = k Ts, computed in integer nanoseconds
 from the sequence number (Ts = 100 us is a whole number of ns).
@@ -13,7 +14,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from fluxdrive.control import (
+from fluxdrive.drive.control import (
     CO_DA,
     CO_DB,
     CO_DC,
@@ -31,8 +32,8 @@ from fluxdrive.control import (
     CO_W_FB,
     CO_W_REF,
 )
-from fluxdrive.observers import ES_N, ES_VALID
-from fluxdrive.plant import (
+from fluxdrive.drive.observers import ES_N, ES_VALID
+from fluxdrive.drive.plant import (
     FLAG_CLIP,
     FR_EN,
     FR_ENC,
@@ -57,8 +58,8 @@ STATUS_SENSOR_CLIP = 1
 STATUS_SIMULATED = 2
 STATUS_STALE_COMMAND = 16
 
-try:  # fault codes of fluxdrive.control (= DriveFault codes) -> text
-    from fluxdrive.control import FAULT_NAMES
+try:  # fault codes of fluxdrive.drive.control (= DriveFault codes) -> text
+    from fluxdrive.drive.control import FAULT_NAMES
 except ImportError:  # pragma: no cover - older engine
     FAULT_NAMES = {}
 
@@ -110,7 +111,7 @@ def frame_row(v: tuple) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------ PlantTruth
-# theta_e goes out as the engine has it, in [0, 2 pi) (as fluxdrive.bagio writes it too), so
+# theta_e goes out as the engine has it, in [0, 2 pi) (as fluxdrive.io.bagio writes it too), so
 # a graph bag and an in-process bag of the same run hold the same numbers.
 class TruthWire:
     def __init__(self, frame_id: str = ""):
@@ -176,7 +177,7 @@ class ControlWire:
         code = int(v[CO_FAULT])
         c = self.state_codecs.get(code)
         if c is None:
-            # "<text>: fault code N" (fluxdrive.bagio.ctrl_row reads the trailing number)
+            # "<text>: fault code N" (fluxdrive.io.bagio.ctrl_row reads the trailing number)
             reason = "" if code == 0 else f"{FAULT_NAMES.get(code, 'fault')}: fault code {code}"
             c = Codec(topics.T_STATE, {"header.frame_id": self.frame_id, "fault_reason": reason})
             self.state_codecs[code] = c
@@ -185,7 +186,7 @@ class ControlWire:
 
 
 def fault_code(reason: str) -> int:
-    """ControllerState.fault_reason -> fluxdrive.control fault code (-1: unknown)."""
+    """ControllerState.fault_reason -> fluxdrive.drive.control fault code (-1: unknown)."""
     if not reason:
         return 0
     tail = reason.rsplit(" ", 1)[-1]

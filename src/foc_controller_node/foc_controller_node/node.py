@@ -1,12 +1,12 @@
 """foc_controller_node: field-oriented control as a ROS node.
 
-A thin wrapper around fluxdrive.control.controller_step.  For every sample k it waits for
+A thin wrapper around fluxdrive.drive.control.controller_step.  For every sample k it waits for
 PhaseFrame k and, when sensorless (position_source = estimate), the RotorEstimate k of the
 driving observer (`estimate_topic`), then computes duty(k) and publishes DutyCommand(seq=k)
 on /drive/duty and ControllerState(seq=k) on /drive/controller_state.  Samples are
 processed strictly in order, so the graph reproduces the in-process runner exactly.
 
-Parameters: every field of fluxdrive.control.ControllerConfig (gains derive from the
+Parameters: every field of fluxdrive.drive.control.ControllerConfig (gains derive from the
 bandwidths), declared with description, unit and range; all but position_source and
 estimate_topic are live: a change re-runs the gain design (ControllerConfig.to_params) and
 replaces the kernel's parameter row from the next sample.  A change the design refuses
@@ -41,7 +41,9 @@ import sys
 import time
 
 import numpy as np
-from fluxdrive.control import (
+from fluxdrive.core.machine import load_machine
+from fluxdrive.core.scenario import CONFIG_DIR, RPM, load_scenario, scenario_path
+from fluxdrive.drive.control import (
     CO_EN,
     CO_FAULT,
     CO_MODE,
@@ -59,11 +61,9 @@ from fluxdrive.control import (
     controller_reset,
     controller_step,
 )
-from fluxdrive.machine import load_machine
-from fluxdrive.observers import ES_N
-from fluxdrive.plant import FR_N
-from fluxdrive.scenario import CONFIG_DIR, RPM, load_scenario, scenario_path
-from fluxdrive.sim import DriveSetup
+from fluxdrive.drive.observers import ES_N
+from fluxdrive.drive.plant import FR_N
+from fluxdrive.drive.sim import DriveSetup
 from fluxdrive_ros.intra import RawPublisher, RawSubscription
 from fluxdrive_ros.params import P, declare, on_set
 from fluxdrive_ros.runner import FluxNode, main_node
@@ -75,7 +75,7 @@ from flux_drive_msgs.srv import ResetFault
 from fluxdrive_ros import access, qos, topics
 from fluxdrive_ros import diagnostics as diag
 
-# ControllerConfig field -> (description, unit); ranges from fluxdrive.control.CONTROL_RANGES
+# ControllerConfig field -> (description, unit); ranges from fluxdrive.drive.control.CONTROL_RANGES
 DOCS = {
     "current_bandwidth_hz": ("-3 dB bandwidth of the dq current loops (gains re-designed)",
                              "Hz"),

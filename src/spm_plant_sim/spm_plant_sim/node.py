@@ -1,8 +1,8 @@
 """spm_plant_sim: the switching-level SPM machine + inverter + sensors as a ROS node.
 
-A thin wrapper around fluxdrive.plant's kernels (plant_initial_frame, plant_advance): the
+A thin wrapper around fluxdrive.drive.plant's kernels (plant_initial_frame, plant_advance): the
 scenario file gives the machine card, load profile, sensor faults and seed, exactly as for
-the in-process runner (fluxdrive.sim.DriveSetup builds both).
+the in-process runner (fluxdrive.drive.sim.DriveSetup builds both).
 
 Publishes   /drive/frame (PhaseFrame)  /drive/truth (PlantTruth)  /clock  /drive/done (UInt64)
 Subscribes  /drive/duty (DutyCommand)
@@ -48,9 +48,9 @@ import sys
 import time
 
 import numpy as np
-from fluxdrive.plant import FR_N, MP_TD, TR_N, plant_advance, plant_initial_frame
-from fluxdrive.scenario import load_scenario, scenario_path
-from fluxdrive.sim import DriveSetup
+from fluxdrive.core.scenario import load_scenario, scenario_path
+from fluxdrive.drive.plant import FR_N, MP_TD, TR_N, plant_advance, plant_initial_frame
+from fluxdrive.drive.sim import DriveSetup
 from fluxdrive_ros.cdr import Codec, Decoder
 from fluxdrive_ros.intra import RawPublisher, RawSubscription
 from fluxdrive_ros.params import P, declare, on_set

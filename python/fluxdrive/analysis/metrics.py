@@ -1,0 +1,196 @@
+"""The one metrics module (BRIEF sec. 8), shared by the in-process runner, the graph run,
+replay and the experiments.
+
+All angle metrics use the true electrical angle at the sample instant.  Harmonic orders are
+taken against the rotor's electrical angle (c_n = 2 <x e^{-j n theta_e}>) over a whole
+number of electrical periods, so they stay meaningful when the speed moves a little.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fluxdrive.drive.control import CO_FAULT, CO_ID, CO_IQ, CO_MODE, MODE_CLOSED_LOOP
+from fluxdrive.drive.observers import ES_EA, ES_LA, ES_LB, ES_TH, ES_VALID
+from fluxdrive.drive.plant import TR_THETA_E, TR_WM
+
+RAD_S_TO_RPM = 60.0 / (2.0 * math.pi)
+THD_ORDERS = range(2, 21)
+
+
+def wrap(x: np.ndarray) -> np.ndarray:
+    return (x + np.pi) % (2 * np.pi) - np.pi
+
+
+def whole_periods(theta_unwrapped: np.ndarray) -> slice:
+    """Largest leading part of the window spanning a whole number of electrical periods
+    (falls back to everything when less than one period elapsed)."""
+    span = abs(theta_unwrapped[-1] - theta_unwrapped[0])
+    n_per = math.floor(span / (2 * math.pi))
+    if n_per < 1:
+        return slice(0, len(theta_unwrapped))
+    target = theta_unwrapped[0] + math.copysign(n_per * 2 * math.pi,
+                                                theta_unwrapped[-1] - theta_unwrapped[0])
+    end = int(np.argmin(np.abs(theta_unwrapped - target)))
+    return slice(0, max(end, 2))
+
+
+def harmonic(x: np.ndarray, theta: np.ndarray, order: int) -> complex:
+    """Complex amplitude of order `order` of x against the angle theta."""
+    return complex(2.0 * np.mean(x * np.exp(-1j * order * theta)))
+
+
+def thd(x: np.ndarray, theta: np.ndarray) -> float:
+    """Harmonics 2..20 over the fundamental (Figs. 15, 16)."""
+    h1 = abs(harmonic(x, theta, 1))
+    if h1 <= 0:
+        return float("nan")
+    return float(math.sqrt(sum(abs(harmonic(x, theta, n)) ** 2 for n in THD_ORDERS)) / h1)
+
+
+def harmonic_spectrum(x: np.ndarray, theta: np.ndarray, orders=range(1, 21)) -> dict[int, float]:
+    return {n: abs(harmonic(x, theta, n)) for n in orders}
+
+
+@dataclass
+class Window:
+    k0: int
+    k1: int
+
+
+def steady_window(t: np.ndarray, window_s: tuple[float, float]) -> Window:
+    k0 = int(np.searchsorted(t, window_s[0]))
+    k1 = int(np.searchsorted(t, window_s[1], side="right"))
+    return Window(k0, max(k1, k0 + 2))
+
+
+def observer_metrics(est: np.ndarray, theta_true: np.ndarray, theta_unwrapped: np.ndarray
+                     ) -> dict[str, float]:
+    """est: (n, ES_N) over the steady window; theta_true wrapped, theta_unwrapped for orders."""
+    err = wrap(est[:, ES_TH] - theta_true)
+    sl = whole_periods(theta_unwrapped)
+    th = theta_unwrapped[sl]
+    e = err[sl]
+    flux_mag = np.hypot(est[:, ES_LA], est[:, ES_LB])
+    mean_mag = float(np.mean(flux_mag))
+    return {
+        "theta_err_rms_deg": float(np.degrees(np.sqrt(np.mean(err ** 2)))),
+        "theta_err_peak_deg": float(np.degrees(np.max(np.abs(err)))),
+        "theta_err_mean_deg": float(np.degrees(np.mean(err))),
+        "theta_err_h1_deg": float(np.degrees(abs(harmonic(e, th, 1)))),
+        "theta_err_h6_deg": float(np.degrees(abs(harmonic(e, th, 6)))),
+        "flux_radius_spread": float((flux_mag.max() - flux_mag.min()) / mean_mag)
+        if mean_mag > 0 else float("nan"),
+        "flux_radius_mean_vs": mean_mag,
+        "thd_flux_alpha": thd(est[sl, ES_LA], th),
+        "thd_emf_alpha": thd(est[sl, ES_EA], th),
+        "valid_fraction": float(np.mean(est[:, ES_VALID] > 0.5)),
+    }
+
+
+def speed_metrics(t: np.ndarray, w_true: np.ndarray, w_ref: np.ndarray, win: Window,
+                  step_time_s: float | None) -> dict[str, Any]:
+    rpm = w_true * RAD_S_TO_RPM
+    ref = w_ref * RAD_S_TO_RPM
+    # ripple: peak-to-peak of the speed smoothed over 1 ms (the PWM-rate jitter is not ripple)
+    n_avg = max(1, int(round(1e-3 / (t[1] - t[0])))) if len(t) > 1 else 1
+    seg = rpm[win.k0:win.k1]
+    sm = np.convolve(seg, np.ones(n_avg) / n_avg, mode="valid") if len(seg) > n_avg else seg
+    out: dict[str, Any] = {
+        "ripple_rpm": float(sm.max() - sm.min()) if len(sm) else float("nan"),
+        "mean_rpm": float(np.mean(seg)),
+        "mean_error_rpm": float(np.mean(seg - ref[win.k0:win.k1])),
+        "dip_rpm": None,
+        "recovery_s": None,
+    }
+    if step_time_s is not None and t[0] <= step_time_s < t[-1]:
+        ks = int(np.searchsorted(t, step_time_s))
+        after = rpm[ks:] - ref[ks:]
+        kd = int(np.argmin(after))
+        out["dip_rpm"] = float(-after[kd])
+        out["min_rpm_after_step"] = float(rpm[ks + kd])
+        tol = 0.1 * np.maximum(np.abs(ref[ks:]), 1e-9)
+        outside = np.nonzero(np.abs(after) > tol)[0]
+        if outside.size == 0:
+            out["recovery_s"] = 0.0
+        elif outside[-1] + 1 < len(after):
+            out["recovery_s"] = float(t[ks + outside[-1] + 1] - t[ks])
+        else:
+            out["recovery_s"] = None  # never settled within 10 %
+    return out
+
+
+def compute(result) -> dict[str, Any]:
+    """Metrics of a run (SimResult or anything with the same fields)."""
+    sc = result.scenario
+    t = result.t
+    win = steady_window(t, sc.steady_window_s)
+    theta = result.truth[:, TR_THETA_E]
+    theta_unw = np.unwrap(theta)
+    sl = slice(win.k0, win.k1)
+    observers = {nm: observer_metrics(result.est[i, sl], theta[sl], theta_unw[sl])
+                 for i, nm in enumerate(result.names)}
+    speed = speed_metrics(t, result.truth[:, TR_WM], result.w_ref, win, sc.step_load_time_s)
+    faults = result.ctrl[:, CO_FAULT]
+    fault_code = int(faults.max()) if faults.size else 0
+    ref_rpm = float(np.mean(result.w_ref[sl])) * RAD_S_TO_RPM
+    stable = fault_code == 0 and abs(speed["mean_error_rpm"]) <= 0.2 * max(abs(ref_rpm), 1.0)
+    if result.driving != "encoder":
+        d = observers[result.driving]
+        stable = stable and d["theta_err_peak_deg"] < 60.0
+        closed = result.ctrl[sl, CO_MODE] == MODE_CLOSED_LOOP
+        stable = stable and bool(np.all(closed))
+    return {
+        "scenario": sc.name,
+        "driving": result.driving,
+        "stable": bool(stable),
+        "fault_code": fault_code,
+        "window_s": list(sc.steady_window_s),
+        "observers": observers,
+        "speed": speed,
+        "currents": {
+            "i_q_mean_a": float(np.mean(result.ctrl[sl, CO_IQ])),
+            "i_d_mean_a": float(np.mean(result.ctrl[sl, CO_ID])),
+        },
+    }
+
+
+def format_table(m: dict[str, Any]) -> str:
+    """The metric table printed by sim/run/replay."""
+    cols = [("theta_err_rms_deg", "rms°", 7, 3), ("theta_err_peak_deg", "peak°", 7, 2),
+            ("theta_err_mean_deg", "mean°", 7, 3), ("theta_err_h1_deg", "h1°", 6, 3),
+            ("theta_err_h6_deg", "h6°", 7, 3), ("flux_radius_spread", "spread", 7, 3),
+            ("thd_flux_alpha", "THDλα", 7, 3), ("thd_emf_alpha", "THDeα", 7, 3),
+            ("valid_fraction", "valid", 6, 2)]
+    name_w = max([len(n) for n in m["observers"]] + [10]) + 2
+    lines = [f"scenario {m['scenario']}: driving={m['driving']} stable={m['stable']} "
+             f"window={m['window_s'][0]:.2f}-{m['window_s'][1]:.2f} s",
+             "observer".ljust(name_w) + "".join(h.rjust(w + 1) for _, h, w, _ in cols)]
+    for name, om in m["observers"].items():
+        tag = "*" if name == m["driving"] else " "
+        row = (tag + name).ljust(name_w)
+        for key, _, w, p in cols:
+            v = om[key]
+            row += (f"{v:{w}.{p}f}" if v is not None and not math.isnan(v) else "nan".rjust(w)
+                    ).rjust(w + 1)
+        lines.append(row)
+    s = m["speed"]
+    line = (f"speed: mean {s['mean_rpm']:.2f} rpm (error {s['mean_error_rpm']:+.2f}), "
+            f"ripple {s['ripple_rpm']:.2f} rpm p-p")
+    if s.get("dip_rpm") is not None:
+        rec = "not within 10 %" if s["recovery_s"] is None else f"{s['recovery_s']:.3f} s"
+        line += f", step-load dip {s['dip_rpm']:.1f} rpm, recovery {rec}"
+    lines.append(line)
+    lines.append("(* driving; θ̃ = θ̂ − θ in electrical degrees over the window; h1/h6 orders "
+                 "of θ̃ vs the rotor angle; spread = (max−min)/mean |λ̂|; THD: orders 2..20)")
+    return "\n".join(lines)
+
+
+def write_json(m: dict[str, Any], path: Path) -> None:
+    path.write_text(json.dumps(m, indent=2, default=float))

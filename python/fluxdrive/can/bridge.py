@@ -1,0 +1,700 @@
+"""Bench bridge supervisor logic (no ROS): CAN frames <-> engine frames, with safety.
+
+:class:`CanBridge` is everything the ``bench_bridge`` ROS node does except ROS:
+
+* **decode** SAMPLE_FD frames into engine frame rows (:data:`fluxdrive.can.protocol.FRAME_FIELDS`,
+  seq unwrapped to a 64-bit period index). A burst of frames goes through the vectorised
+  numpy codec (:meth:`FluxdriveProtocol.decode_fd`); a lone frame (lockstep, lowest
+  latency) through cantools with the same DBC range checks;
+* or, with the **classic layout** (``BridgeConfig.layout``; ``"auto"`` follows the bus
+  factory's ``fd`` flag), reassemble SAMPLE_C_CUR/VLT/DUTY/AUX into frames
+  (:class:`ClassicReassembler`);
+* **decimation** (``BridgeConfig.decimation``, either layout; default the DBC's: FD 1,
+  classic 8): the samples come every D-th PWM period, so the frames' seq is the *sample*
+  index j = k // D (consecutive, what the observers and the controller expect; they must
+  run at D*Ts), and a duty for sample j goes out with the wire seq of that sample.
+  ARM_MODE tells the MCU the layout and D; a STATUS reporting another layout or D is
+  counted (``layout_mismatch``) and latches a fault (the loop would run at the wrong
+  sample time), so the drive cannot be armed until it agrees;
+* **malformed** frames (wrong length, FD flag clear, out of the DBC range, non-finite) are
+  dropped and counted by reason; **sequence gaps**, duplicates and out-of-order frames
+  are counted (:class:`SeqTracker`) and the loop continues;
+* **stale data**: no valid sample for ``stale_timeout_s`` while the link was live ->
+  STALE fault (latched), a disable DUTY_CMD and a disarm ARM_MODE;
+* **arming**: duties go out with ``cmd_enable=1`` only while armed (by :meth:`arm`,
+  the node's parameter or service) and no fault is latched; otherwise enable is forced
+  to 0 and the suppression counted. ARM_MODE is repeated at 10 Hz with the HOST_HEARTBEAT.
+  :meth:`shutdown` disarms (disable + disarm frames) before closing the bus;
+* **bus errors / bus-off**: an exception from the bus (or a bus reporting
+  ``BusState.ERROR``) closes it; reconnects are attempted through the injectable
+  ``bus_factory`` with exponential back-off. The bridge comes back disarmed;
+* **counters** for diagnostics (:meth:`diagnostics`).
+
+The bridge is single-threaded: call :meth:`poll` from one thread (the node's CAN
+thread); :meth:`send_duty`, :meth:`arm` and friends may be called from others
+(sends are serialised by a lock).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import can
+import numpy as np
+
+from fluxdrive.can.protocol import (
+    ARM_KEY,
+    CLASSIC_SAMPLE_IDS,
+    FRAME_FIELDS,
+    FRAME_FLAG_ADC_CLIP,
+    ID_ARM_MODE,
+    ID_DUTY_CMD,
+    ID_FAULT,
+    ID_HOST_HEARTBEAT,
+    ID_SAMPLE_FD,
+    ID_STATUS,
+    PROTOCOL_VERSION,
+    SEQ_BITS,
+    ClassicReassembler,
+    FluxdriveProtocol,
+    SeqTracker,
+    get_protocol,
+)
+
+__all__ = [
+    "FRAME_FLAG_STALE_COMMAND",
+    "BridgeConfig",
+    "BusFactory",
+    "CanBridge",
+    "bus_factory_from_params",
+]
+
+FRAME_FLAG_STALE_COMMAND = 16
+"""Frame ``flags`` bit (= PhaseFrame.STATUS_STALE_COMMAND): the MCU re-applied old duties."""
+
+_SEQ_MOD = 1 << SEQ_BITS
+_I_SEQ = FRAME_FIELDS.index("seq")
+_I_FLAGS = FRAME_FIELDS.index("flags")
+# SAMPLE_FD signal -> frame column, for the cantools single-frame path
+_FD_COLS = {
+    "i_a": 0, "i_b": 1, "i_c": 2, "v_ab": 3, "v_bc": 4, "v_ca": 5, "vdc": 6,
+    "duty_a": 7, "duty_b": 8, "duty_c": 9, "pwm_enabled": 10, "encoder": 11, "seq": 12,
+}  # fmt: skip
+
+
+@dataclass
+class BridgeConfig:
+    """Supervisor settings (the node's parameters)."""
+
+    stale_timeout_s: float = 0.05
+    """No valid sample for this long (after the first) -> STALE fault + disable."""
+    cmd_timeout_s: float = 1e-3
+    """MCU duty-command watchdog sent in ARM_MODE.cmd_timeout."""
+    heartbeat_period_s: float = 0.1
+    """HOST_HEARTBEAT and ARM_MODE repetition period."""
+    reconnect_initial_s: float = 0.05
+    reconnect_max_s: float = 2.0
+    reconnect_factor: float = 2.0
+    send_timeout_s: float = 0.05
+    fast_path_min: int = 4
+    """Bursts of at least this many sample frames use the vectorised numpy decoder."""
+    max_reasons: int = 50
+    """Examples of malformed-frame reasons kept for diagnostics."""
+    layout: str = "auto"
+    """Sample layout: "fd" (SAMPLE_FD each period), "classic" (4-frame layout every D
+    periods) or "auto" (classic when the bus factory says ``fd=False``, else fd)."""
+    decimation: int = 0
+    """PWM periods per sample, either layout (0: the DBC's default for the layout,
+    FdDecimation = 1 / ClassicDecimation = 8; a real 1/5 Mbit/s FD bus needs
+    FdDecimationRealBus = 4)."""
+
+
+# python-can interfaces that take no bit-rate arguments (software buses)
+_NO_BITRATE = ("virtual", "udp_multicast")
+
+
+@dataclass
+class BusFactory:
+    """A bus factory for :class:`CanBridge` from the node's parameters (callable; opens a
+    new python-can bus each call). ``fd`` also selects the bridge's sample layout when
+    its ``layout`` is "auto"."""
+
+    interface: str = "virtual"
+    channel: str = "fluxdrive"
+    bitrate: int = 1_000_000
+    fd: bool = True
+    data_bitrate: int = 5_000_000
+    extra: dict[str, Any] | None = None
+
+    def __call__(self) -> can.BusABC:
+        kw: dict[str, Any] = {"interface": self.interface, "channel": self.channel, "fd": self.fd}
+        if self.interface not in _NO_BITRATE:
+            kw["bitrate"] = self.bitrate
+            if self.fd:
+                kw["data_bitrate"] = self.data_bitrate
+        kw.update(self.extra or {})
+        return can.Bus(**kw)
+
+
+def bus_factory_from_params(
+    interface: str = "virtual",
+    channel: str = "fluxdrive",
+    bitrate: int = 1_000_000,
+    fd: bool = True,
+    data_bitrate: int = 5_000_000,
+    **extra: Any,
+) -> BusFactory:
+    """A :class:`BusFactory` from the node's parameters (``extra``: more python-can
+    arguments, e.g. ``port`` / ``hop_limit`` of ``udp_multicast``)."""
+    return BusFactory(interface, channel, bitrate, fd, data_bitrate, dict(extra) or None)
+
+
+class CanBridge:
+    """The bench-bridge supervisor (see module doc)."""
+
+    def __init__(
+        self,
+        bus_factory: Callable[[], can.BusABC],
+        config: BridgeConfig | None = None,
+        *,
+        protocol: FluxdriveProtocol | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.cfg = config or BridgeConfig()
+        self.bus_factory = bus_factory
+        self.proto = protocol or get_protocol()
+        self.clock = clock
+        self.bus: can.BusABC | None = None
+        self._tx_lock = threading.Lock()
+        self._arm_lock = threading.RLock()  # arm state change + ARM_MODE send are atomic
+        self._msg_fd = self.proto.sample_fd
+        self._msg_duty = self.proto.message("DUTY_CMD")
+        self._msg_arm = self.proto.message("ARM_MODE")
+        self._msg_fault = self.proto.message("FAULT")
+        self._msg_status = self.proto.message("STATUS")
+        self._msg_hb = self.proto.message("HOST_HEARTBEAT")
+        self._ranges = [
+            (s.name, s.minimum, s.maximum) for s in self._msg_fd.signals
+            if s.minimum is not None or s.maximum is not None
+        ]
+        layout = self.cfg.layout
+        if layout == "auto":
+            layout = "fd" if getattr(bus_factory, "fd", True) else "classic"
+        if layout not in ("fd", "classic"):
+            raise ValueError(f"layout must be 'fd', 'classic' or 'auto', not {layout!r}")
+        self.layout = layout
+        d = self.cfg.decimation or self.proto.default_decimation(layout)
+        if not 1 <= d <= 255:
+            raise ValueError(f"decimation must be in 1..255, not {d}")
+        self.decimation = d
+        """PWM periods per sample (either layout)."""
+        # the MCU's duty watchdog must outlast a sample period (D periods)
+        self.mcu_cmd_timeout_s = max(
+            self.cfg.cmd_timeout_s, 1.5 * self.decimation / self.proto.pwm_frequency
+        ) if self.decimation > 1 else self.cfg.cmd_timeout_s
+        self._reasm = ClassicReassembler(protocol=self.proto)
+        self._wire: dict[int, int] = {}  # D > 1: sample index j -> wire seq (16 bit)
+        # state
+        self.armed = False
+        self.fault: str = ""  # latched host-side fault reason ("" = none)
+        self.drive_mismatch: str = ""  # the last STATUS's layout/D disagreement ("" = none)
+        self._mismatch_run = 0  # consecutive disagreeing STATUS frames
+        self.mcu: dict[str, Any] = {}  # last MCU status / fault / sample flags
+        self.seq = SeqTracker(step=self.decimation)
+        self._seq_hi = 0  # unwrapped period index of the last valid sample
+        self._seq_out = 0  # seq of the last frame handed out (the sample index j = k // D)
+        self._seq_last16: int | None = None
+        self._last_valid_t: float | None = None
+        self._next_hb_t = 0.0
+        self._hb_alive = 0
+        self._arm_counter = 0
+        self._reset_pulse = False
+        self._backoff = self.cfg.reconnect_initial_s
+        self._next_connect_t = 0.0
+        self.counters: Counter[str] = Counter()
+        self.malformed_reasons: Counter[str] = Counter()
+        self.malformed_examples: list[str] = []
+        self.last_error = ""
+
+    # ------------------------------------------------------------------ connection
+
+    @property
+    def connected(self) -> bool:
+        return self.bus is not None
+
+    def connect(self) -> bool:
+        """Open the bus through the factory now (no back-off). True on success."""
+        try:
+            self.bus = self.bus_factory()
+        except Exception as exc:  # noqa: BLE001 - any driver error means "not connected"
+            self.bus = None
+            self.counters["connect_failures"] += 1
+            self.last_error = f"connect: {exc!r}"
+            self._schedule_reconnect()
+            return False
+        self.counters["connects"] += 1
+        self._backoff = self.cfg.reconnect_initial_s
+        self._last_valid_t = None  # the stale timer restarts with the first frame
+        self._seq_last16 = None
+        self._reasm = ClassicReassembler(protocol=self.proto)
+        self._next_hb_t = 0.0
+        self.drive_mismatch = ""  # the drive's next STATUS tells again
+        self._mismatch_run = 0
+        return True
+
+    def _schedule_reconnect(self) -> None:
+        self._next_connect_t = self.clock() + self._backoff
+        self.counters["backoff_ms"] = int(self._backoff * 1e3)
+        self._backoff = min(self._backoff * self.cfg.reconnect_factor, self.cfg.reconnect_max_s)
+
+    def _bus_failed(self, exc: BaseException | str) -> None:
+        """Bus error / bus-off: close, disarm (the MCU disarms on heartbeat loss too),
+        and schedule a reconnect with back-off."""
+        self.counters["bus_errors"] += 1
+        self.last_error = f"bus: {exc!r}" if not isinstance(exc, str) else exc
+        if self.armed:
+            self.counters["disarmed_by_bus_error"] += 1
+        self.armed = False
+        bus, self.bus = self.bus, None
+        if bus is not None:
+            try:
+                bus.shutdown()
+            except Exception:  # noqa: BLE001 - already broken
+                pass
+        self._schedule_reconnect()
+
+    # ------------------------------------------------------------------ sending
+
+    def _send(self, aid: int, data: bytes, fd: bool = False) -> bool:
+        bus = self.bus
+        if bus is None:
+            self.counters["tx_while_disconnected"] += 1
+            return False
+        msg = can.Message(
+            arbitration_id=aid, is_extended_id=False, is_fd=fd, bitrate_switch=fd, data=data
+        )
+        try:
+            with self._tx_lock:
+                bus.send(msg, timeout=self.cfg.send_timeout_s)
+        except can.CanOperationError as exc:
+            # a full queue / TX timeout is not a dead bus; anything else is
+            if "timed out" in str(exc).lower() or "full" in str(exc).lower():
+                self.counters["tx_timeouts"] += 1
+                return False
+            self._bus_failed(exc)
+            return False
+        except (can.CanError, OSError) as exc:
+            self._bus_failed(exc)
+            return False
+        self.counters["tx_frames"] += 1
+        return True
+
+    def send_duty(self, seq: int, duty: Sequence[float], enable: bool) -> bool:
+        """DUTY_CMD answering sample ``seq``. ``enable`` only reaches the wire while armed
+        and unfaulted (else forced to 0, counted in ``enable_suppressed``); duties are
+        clamped to [0, 1], non-finite ones replaced by 0.5 with PWM off."""
+        d = [float(x) for x in duty]
+        en = bool(enable)
+        if not all(math.isfinite(x) for x in d):
+            d = [0.5, 0.5, 0.5]
+            en = False
+            self.counters["duty_nonfinite"] += 1
+        if en and (not self.armed or self.fault):
+            en = False
+            self.counters["enable_suppressed"] += 1
+        d = [min(max(x, 0.0), 1.0) for x in d]
+        data = self._msg_duty.encode(
+            {"cmd_seq": self._wire_seq(int(seq)), "cmd_duty_a": d[0], "cmd_duty_b": d[1],
+             "cmd_duty_c": d[2], "cmd_enable": int(en)},
+            strict=False,
+        )  # fmt: skip
+        ok = self._send(ID_DUTY_CMD, data)
+        if ok:
+            self.counters["duty_tx"] += 1
+            if en:
+                self.counters["duty_tx_enabled"] += 1
+        return ok
+
+    def _wire_seq(self, seq: int) -> int:
+        """16-bit wire seq of the sample a duty answers (sample index j -> its seq)."""
+        if self.decimation > 1:
+            return self._wire.get(seq, (seq * self.decimation) % _SEQ_MOD)
+        return seq % _SEQ_MOD
+
+    def _send_arm(self, arm: bool, reset_fault: bool = False) -> bool:
+        self._arm_counter = (self._arm_counter + 1) % 256
+        data = self._msg_arm.encode(
+            {"arm": int(arm), "reset_fault": int(reset_fault),
+             "sample_layout": int(self.layout == "classic"),
+             "mode": 1 if arm else 0, "arm_key": ARM_KEY if arm else 0,
+             "cmd_timeout": min(self.mcu_cmd_timeout_s, 6.5535),
+             "decimation": self.decimation, "arm_counter": self._arm_counter},
+            strict=False,
+        )  # fmt: skip
+        return self._send(ID_ARM_MODE, data)
+
+    def arm(self) -> tuple[bool, str]:
+        """Arm the drive (host side and ARM_MODE). Refused while a fault is latched, the
+        drive's last STATUS reported another layout or D, or the bus is down."""
+        if self.fault:
+            return False, f"fault latched: {self.fault}; reset it first"
+        if self.drive_mismatch:
+            return False, self.drive_mismatch
+        if not self.connected:
+            return False, "CAN bus not connected"
+        with self._arm_lock:
+            self.armed = True
+            if not self._send_arm(True):
+                self.armed = False
+                return False, "ARM_MODE could not be sent"
+        self.counters["arms"] += 1
+        return True, "armed"
+
+    def disarm(self, reason: str = "") -> tuple[bool, str]:
+        """Disarm: a disable DUTY_CMD (for the last sample) and ARM_MODE arm=0."""
+        with self._arm_lock:
+            self.armed = False
+            self.counters["disarms"] += 1
+            if self.connected:
+                self.send_duty(self._seq_out, (0.5, 0.5, 0.5), False)
+                self._send_arm(False)
+        return True, reason or "disarmed"
+
+    def reset_fault(self) -> tuple[bool, str]:
+        """Clear the host-side latched fault and pulse ARM_MODE.reset_fault."""
+        self.fault = ""
+        if self.connected:
+            self._send_arm(False, reset_fault=True)
+            self._send_arm(False, reset_fault=False)
+        return True, "fault reset"
+
+    def _raise_fault(self, reason: str) -> None:
+        if not self.fault:
+            self.counters["faults"] += 1
+        self.fault = reason
+        self.disarm(reason)
+
+    # ------------------------------------------------------------------ receiving
+
+    def poll(self, timeout: float = 0.0, max_frames: int = 4096) -> np.ndarray:
+        """Receive what is there (waiting up to ``timeout`` for the first message),
+        run the supervisor checks and return the valid samples as (N, 14) frames."""
+        now = self.clock()
+        if self.bus is None:
+            if now >= self._next_connect_t:
+                self.connect()
+            if self.bus is None:
+                if timeout > 0:
+                    time.sleep(min(timeout, max(self._next_connect_t - now, 0.0)))
+                return np.empty((0, len(FRAME_FIELDS)))
+        samples: list[can.Message] = []
+        bus = self.bus
+        sample_ids = (ID_SAMPLE_FD,) if self.layout == "fd" else CLASSIC_SAMPLE_IDS
+        try:
+            msg = bus.recv(timeout=timeout)
+            while msg is not None:
+                if msg.arbitration_id in sample_ids and not msg.is_error_frame:
+                    samples.append(msg)
+                else:
+                    self._handle_other(msg)
+                if len(samples) >= max_frames:
+                    break
+                msg = bus.recv(timeout=0.0)
+            state = getattr(bus, "state", None)
+            if state == can.BusState.ERROR:
+                raise can.CanOperationError("bus-off (BusState.ERROR)")
+        except (can.CanError, OSError) as exc:
+            frames = self._decode(samples)
+            self._bus_failed(exc)
+            return frames
+        frames = self._decode(samples)
+        self.tick(self.clock())
+        return frames
+
+    def _handle_other(self, msg: can.Message) -> None:
+        if msg.is_error_frame:
+            self.counters["error_frames"] += 1
+            return
+        aid = msg.arbitration_id
+        try:
+            if aid == ID_STATUS:
+                d = self._msg_status.decode(bytes(msg.data), decode_choices=False)
+                self.counters["status_rx"] += 1
+                self.mcu.update(
+                    state=int(d["st_state"]), armed=int(d["st_armed"]),
+                    pwm_enabled=int(d["st_pwm_enabled"]),
+                    fault_latched=int(d["st_fault_latched"]),
+                    protocol_version=int(d["st_protocol_version"]),
+                    sample_layout=int(d["st_sample_layout"]),
+                    decimation=int(d["st_decimation"]),
+                )  # fmt: skip
+                self._check_drive_layout(bool(d["st_sample_layout"]), int(d["st_decimation"]))
+            elif aid == ID_FAULT:
+                d = self._msg_fault.decode(bytes(msg.data), decode_choices=False)
+                self.counters["fault_rx"] += 1
+                self.mcu.update(fault_code=int(d["fault_code"]),
+                                fault_latched=int(d["fault_latched"]),
+                                fault_count=int(d["fault_count"]))
+                if d["fault_code"] and d["fault_latched"] and self.armed:
+                    self.armed = False  # the MCU disarmed itself
+                    self.counters["disarmed_by_mcu_fault"] += 1
+            elif aid in (ID_DUTY_CMD, ID_ARM_MODE, ID_HOST_HEARTBEAT):
+                self.counters["rx_own_traffic"] += 1
+            elif aid == ID_SAMPLE_FD or aid in CLASSIC_SAMPLE_IDS:
+                self.counters["layout_mismatch"] += 1  # samples of the other layout
+            else:
+                self.counters["rx_other"] += 1
+        except Exception as exc:  # noqa: BLE001 - a bad housekeeping frame is counted
+            self._malformed("housekeeping", f"0x{aid:03X}: {exc}")
+
+    def _malformed(self, kind: str, detail: str) -> None:
+        self.counters["malformed"] += 1
+        self.malformed_reasons[kind] += 1
+        if len(self.malformed_examples) < self.cfg.max_reasons:
+            self.malformed_examples.append(detail)
+
+    def _decode(self, msgs: list[can.Message]) -> np.ndarray:
+        n = len(msgs)
+        if n == 0:
+            return np.empty((0, len(FRAME_FIELDS)))
+        if self.layout == "classic":
+            return self._decode_classic(msgs)
+        self.counters["rx_samples"] += n
+        ok_fd = [bool(m.is_fd) for m in msgs]
+        if n >= self.cfg.fast_path_min:
+            frames, res = self.proto.decode_fd([bytes(m.data) for m in msgs])
+            valid = res.report.valid.copy()
+            reasons = res.report.reasons
+            stale = res.column("cmd_stale")
+            names = res.names
+            self.counters["fast_path_frames"] += n
+            for i in range(n):
+                if not ok_fd[i] and valid[i]:
+                    valid[i] = False
+                    reasons[i] = "sent as a classic CAN frame (FD flag clear)"
+            for i in np.flatnonzero(~valid):
+                self._malformed(_reason_kind(reasons[int(i)]), reasons[int(i)])
+            frames = frames[valid]
+            frames[:, _I_FLAGS] = (frames[:, _I_FLAGS].astype(np.int64) & FRAME_FLAG_ADC_CLIP) | (
+                np.where(stale[valid] > 0.5, FRAME_FLAG_STALE_COMMAND, 0)
+            )
+            if valid.any():
+                last = res.values[np.flatnonzero(valid)[-1]]
+                self._note_info(dict(zip(names, last, strict=True)))
+        else:
+            rows = []
+            for i, m in enumerate(msgs):
+                row = self._decode_one(m, ok_fd[i])
+                if row is not None:
+                    rows.append(row)
+            frames = np.vstack(rows) if rows else np.empty((0, len(FRAME_FIELDS)))
+        if frames.shape[0]:
+            self._hand_out(frames)
+        return frames
+
+    def _hand_out(self, frames: np.ndarray) -> None:
+        """Valid samples of either layout, in place: gap accounting and seq unwrap, then
+        the period index k -> the sample index j = k // D (the wire seq of each j kept
+        for the duty answering it)."""
+        wire = frames[:, _I_SEQ].astype(np.int64)
+        self._sequence(frames)  # -> unwrapped period index k
+        if self.decimation > 1:
+            j = np.floor_divide(frames[:, _I_SEQ].astype(np.int64), self.decimation)
+            frames[:, _I_SEQ] = j
+            for jj, w in zip(j.tolist(), wire.tolist(), strict=True):
+                self._wire[jj] = w
+            while len(self._wire) > 512:
+                del self._wire[next(iter(self._wire))]
+        self._seq_out = int(frames[-1, _I_SEQ])
+        self._last_valid_t = self.clock()
+        self.counters["frames_out"] += frames.shape[0]
+
+    def _check_drive_layout(self, classic: bool, decimation: int) -> None:
+        """STATUS: the drive must run the layout and D this bridge asked for; otherwise
+        the samples would be read at the wrong sample time. Every disagreeing STATUS is
+        counted and refuses :meth:`arm`; two in a row (the drive had a whole STATUS
+        period to apply ARM_MODE) latch a fault: disable + disarm, and it comes back after
+        a reset for as long as the drive disagrees."""
+        if classic == (self.layout == "classic") and decimation == self.decimation:
+            self.drive_mismatch = ""
+            self._mismatch_run = 0
+            return
+        self.counters["layout_mismatch"] += 1
+        self._mismatch_run += 1
+        self.drive_mismatch = (
+            f"layout mismatch: the drive runs the {'classic' if classic else 'fd'} layout "
+            f"with D={decimation}, this bridge expects the {self.layout} layout with "
+            f"D={self.decimation}")
+        if self._mismatch_run >= 2 and not self.fault:
+            self._raise_fault(self.drive_mismatch)
+
+    def _decode_classic(self, msgs: list[can.Message]) -> np.ndarray:
+        """Reassemble classic sample parts into frames (seq: see :meth:`_hand_out`)."""
+        ra = self._reasm
+        rows: list[np.ndarray] = []
+        for m in msgs:
+            self.counters["rx_sample_parts"] += 1
+            n_bad, n_inc = ra.malformed, ra.incomplete
+            row = ra.feed(m.arbitration_id, bytes(m.data))
+            if ra.malformed > n_bad:
+                reason = ra.reasons[-1] if ra.reasons else "malformed classic part"
+                ra.reasons.clear()
+                self._malformed(_reason_kind(reason), reason)
+            if ra.incomplete > n_inc:
+                self.counters["classic_incomplete"] += ra.incomplete - n_inc
+            if row is None:
+                continue
+            aux = ra.last_aux
+            row[_I_FLAGS] = (int(row[_I_FLAGS]) & FRAME_FLAG_ADC_CLIP) | (
+                FRAME_FLAG_STALE_COMMAND if aux.get("c_cmd_stale") else 0
+            )
+            self.mcu["sample_armed"] = int(aux.get("c_armed", 0))
+            self.mcu["sample_fault_active"] = int(aux.get("c_fault_active", 0))
+            if aux.get("c_cmd_stale"):
+                self.counters["mcu_cmd_stale"] += 1
+            rows.append(row)
+        if not rows:
+            return np.empty((0, len(FRAME_FIELDS)))
+        frames = np.vstack(rows)
+        self.counters["rx_samples"] += frames.shape[0]
+        self._hand_out(frames)
+        return frames
+
+    def _decode_one(self, m: can.Message, is_fd: bool) -> np.ndarray | None:
+        data = bytes(m.data)
+        if len(data) != self._msg_fd.length:
+            self._malformed("length", f"wrong length {len(data)} bytes (expected 64)")
+            return None
+        if not is_fd:
+            self._malformed("not_fd", "sent as a classic CAN frame (FD flag clear)")
+            return None
+        d = self._msg_fd.decode(data, decode_choices=False)
+        for name, lo, hi in self._ranges:
+            v = d[name]
+            if not math.isfinite(v):
+                self._malformed("nonfinite", f"{name} is {v}")
+                return None
+            if (lo is not None and v < lo) or (hi is not None and v > hi):
+                self._malformed("range", f"{name}={v:g} outside [{lo:g}, {hi:g}]")
+                return None
+        row = np.empty(len(FRAME_FIELDS))
+        for name, col in _FD_COLS.items():
+            row[col] = d[name]
+        row[_I_FLAGS] = (int(d["adc_clip"]) & FRAME_FLAG_ADC_CLIP) | (
+            FRAME_FLAG_STALE_COMMAND if d["cmd_stale"] else 0
+        )
+        self._note_info(d)
+        return row
+
+    def _note_info(self, d: dict[str, Any]) -> None:
+        self.mcu["sample_armed"] = int(d["armed"])
+        self.mcu["sample_fault_code"] = int(d["fault_code"])
+        self.mcu["cmd_seq_applied"] = int(d["cmd_seq_applied"])
+        if d["cmd_stale"]:
+            self.counters["mcu_cmd_stale"] += 1
+
+    def _sequence(self, frames: np.ndarray) -> None:
+        """Gap accounting and seq unwrap (16-bit wire counter -> 64-bit period index)."""
+        s16 = frames[:, _I_SEQ].astype(np.int64)
+        self.seq.update_many(s16)
+        out = np.empty(s16.shape[0], dtype=np.float64)
+        hi = self._seq_hi
+        last = self._seq_last16
+        for i, s in enumerate(s16):
+            if last is None:
+                hi = int(s) if hi == 0 else hi + ((int(s) - hi) % _SEQ_MOD)
+            else:
+                d = (int(s) - last) % _SEQ_MOD
+                if d >= _SEQ_MOD // 2:
+                    d -= _SEQ_MOD
+                hi += d
+            last = int(s)
+            out[i] = hi
+        self._seq_hi = hi
+        self._seq_last16 = last
+        frames[:, _I_SEQ] = out
+
+    # ------------------------------------------------------------------ periodic
+
+    def tick(self, now: float | None = None) -> None:
+        """Supervisor checks: stale data, heartbeat/ARM_MODE repetition, reconnect."""
+        now = self.clock() if now is None else now
+        if self.bus is None:
+            if now >= self._next_connect_t:
+                self.connect()
+            return
+        t = self._last_valid_t
+        if t is not None and now - t > self.cfg.stale_timeout_s and not self.fault:
+            self.counters["stale_faults"] += 1
+            self._last_valid_t = None
+            self._raise_fault(f"stale data: no valid sample for {now - t:.3f} s")
+        if now >= self._next_hb_t:
+            self._next_hb_t = now + self.cfg.heartbeat_period_s
+            self._hb_alive = (self._hb_alive + 1) % 256
+            self._send(ID_HOST_HEARTBEAT, self._msg_hb.encode(
+                {"hb_alive": self._hb_alive, "hb_protocol_version": PROTOCOL_VERSION}))
+            with self._arm_lock:
+                if self.bus is not None:
+                    self._send_arm(self.armed and not self.fault)
+
+    def shutdown(self) -> None:
+        """Disarm (disable + disarm frames), then close the bus."""
+        if self.bus is not None:
+            self.disarm("shutdown")
+        bus, self.bus = self.bus, None
+        if bus is not None:
+            bus.shutdown()
+
+    # ------------------------------------------------------------------ diagnostics
+
+    def state(self) -> str:
+        if self.bus is None:
+            return "disconnected"
+        if self.fault:
+            return "fault"
+        return "armed" if self.armed else "idle"
+
+    def diagnostics(self) -> dict[str, Any]:
+        """Flat dict of counters and state for diagnostic_msgs KeyValues."""
+        st = self.seq.stats
+        out: dict[str, Any] = {
+            "state": self.state(),
+            "armed": self.armed,
+            "fault": self.fault,
+            "layout": self.layout,
+            "decimation": self.decimation,
+            "drive_mismatch": self.drive_mismatch,
+            "seq_gaps": st.gaps,
+            "seq_lost": st.lost,
+            "seq_duplicates": st.duplicates,
+            "seq_out_of_order": st.out_of_order,
+            "last_error": self.last_error,
+        }
+        base = ("rx_samples", "frames_out", "malformed", "faults", "stale_faults", "bus_errors",
+                "connects", "connect_failures", "duty_tx", "duty_tx_enabled",
+                "enable_suppressed", "tx_timeouts", "error_frames", "fast_path_frames",
+                "layout_mismatch")
+        out.update({k: 0 for k in base})
+        out.update({k: int(v) for k, v in sorted(self.counters.items())})
+        out.update({f"malformed_{k}": int(v) for k, v in sorted(self.malformed_reasons.items())})
+        out.update({f"mcu_{k}": v for k, v in sorted(self.mcu.items())})
+        return out
+
+
+def _reason_kind(reason: str) -> str:
+    r = reason.lower()
+    if "length" in r:
+        return "length"
+    if "fd flag" in r:
+        return "not_fd"
+    if " is nan" in r or " is inf" in r or " is -inf" in r:
+        return "nonfinite"
+    if "outside" in r:
+        return "range"
+    return "other"

@@ -1,0 +1,609 @@
+"""Drive emulator: the project's plant kernels behind the CAN protocol, acting as the MCU.
+
+:class:`DriveEmulator` owns a plant (``DriveSetup`` + ``plant_advance``, the same compiled
+kernels the in-process runner and the sim node use) and a python-can bus. Per PWM period
+it does what the drive's microcontroller does (BRIEF sec. 3, DBC comments):
+
+* sends SAMPLE_FD(k): currents at t_k, line voltages / duties averaged over [t_(k-1), t_k]
+  (with a decimation factor D > 1: every D-th period, averages over [t_(k-D), t_k], see
+  below);
+* the DUTY_CMD answering sample k (``cmd_seq = k``) is applied over [t_(k+1), t_(k+2)]:
+  before simulating period k (which yields frame k+1) the emulator needs the duty of frame
+  k-1. In *lockstep* mode it waits for it (up to ``lockstep_wait_s`` of wall time), so runs
+  are deterministic and reproduce the in-process runner up to the protocol's quantisation;
+  in free-running mode it takes whatever has arrived (a real MCU);
+* a missing command holds the previous duties (``cmd_stale``); the duty-command watchdog
+  (``ARM_MODE.cmd_timeout``, default 1 ms of *sim* time) disables PWM and latches
+  CMD_TIMEOUT while PWM is enabled;
+* ARM_MODE: arm=1 with key 0xA5 arms, anything else disarms (PWM off at once);
+  reset_fault (rising edge) clears a latched fault; DUTY_CMD.cmd_enable switches PWM on
+  only while armed with no fault latched;
+* FAULT on every new fault (and at 10 Hz sim time while latched), STATUS at 10 Hz sim time;
+  over-current trip on the sampled currents.
+
+Sample layouts (``layout``) and the decimation factor D (``decimation``), both fixed at
+construction like an MCU's firmware build (an ARM_MODE asking for another layout or D is
+counted in ``layout_mismatch``; STATUS reports both so the host can check):
+
+* ``"fd"``: one SAMPLE_FD (64 bytes, CAN FD with BRS) every D-th PWM period (default the
+  DBC's FdDecimation = 1: every period; a real 1/5 Mbit/s bus needs D >= 4);
+* ``"classic"``: the four 8-byte frames SAMPLE_C_CUR/VLT/DUTY/AUX every D-th period
+  (default the DBC's ClassicDecimation = 8).
+
+Decimation works the same in both layouts (one implementation): the sample of period
+k = j*D (k = 0 included) carries currents, vdc and encoder at t_k, line voltages and
+duties averaged over the D periods (t_(k-D), t_k], pwm_enabled only if on in all of them
+(:func:`fluxdrive.can.protocol.decimate_frames` offline). The control loop runs at the
+decimated rate: the DUTY_CMD answering sample k (cmd_seq = its seq) is held over
+[t_(k+D), t_(k+2D)], i.e. the D = 1 timing with Ts -> D*Ts.
+
+No ROS imports. Sends always use a timeout (python-can's ``virtual`` bus blocks forever on
+a full receive queue otherwise).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import can
+import numpy as np
+
+from fluxdrive.can.protocol import (
+    ARM_KEY,
+    FRAME_FLAG_ADC_CLIP,
+    ID_ARM_MODE,
+    ID_DUTY_CMD,
+    ID_FAULT,
+    ID_HOST_HEARTBEAT,
+    ID_SAMPLE_FD,
+    ID_STATUS,
+    PROTOCOL_VERSION,
+    SEQ_BITS,
+    FluxdriveProtocol,
+    get_protocol,
+)
+from fluxdrive.drive.plant import FR_N, TR_N, plant_advance, plant_initial_frame
+
+__all__ = [
+    "FAULT_CMD_TIMEOUT",
+    "FAULT_HOST_HEARTBEAT_LOST",
+    "FAULT_OVERCURRENT",
+    "DriveEmulator",
+    "EmulatorStats",
+    "ST_ARMED",
+    "ST_FAULT",
+    "ST_IDLE",
+    "ST_RUNNING",
+]
+
+# DBC value tables
+FAULT_NONE, FAULT_OVERCURRENT, FAULT_CMD_TIMEOUT, FAULT_HOST_HEARTBEAT_LOST = 0, 1, 5, 6
+FAULT_BAD_COMMAND = 10
+ST_BOOT, ST_IDLE, ST_ARMED, ST_RUNNING, ST_FAULT = 0, 1, 2, 3, 4
+MODE_IDLE, MODE_RUN = 0, 1
+
+_SEQ_MOD = 1 << SEQ_BITS
+
+
+@dataclass
+class EmulatorStats:
+    """Counters of the emulated MCU."""
+
+    periods: int = 0
+    samples_sent: int = 0
+    duty_rx: int = 0
+    duty_applied: int = 0
+    duty_late: int = 0  # a DUTY_CMD answering an older sample than the one needed
+    stale_periods: int = 0
+    lockstep_timeouts: int = 0
+    arm_rx: int = 0
+    bad_rx: int = 0
+    tx_timeouts: int = 0
+    layout_mismatch: int = 0
+    disarm_rx: int = 0
+    faults: int = 0
+    fault_codes: list[int] = field(default_factory=list)
+
+    def as_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+class DriveEmulator:
+    """The emulated drive MCU on a python-can bus (see module doc).
+
+    ``setup`` is a :class:`fluxdrive.drive.sim.DriveSetup` (plant parameters, load profile,
+    seed). ``bus`` is any python-can bus (usually ``interface="virtual"`` in-process).
+    ``record`` keeps the true state per period (``truth``) and the frames sent, for tests.
+    """
+
+    def __init__(
+        self,
+        setup: Any,
+        bus: can.BusABC,
+        *,
+        lockstep: bool = True,
+        lockstep_wait_s: float = 0.5,
+        cmd_timeout_s: float = 1e-3,
+        overcurrent_a: float | None = None,
+        heartbeat_timeout_s: float | None = None,
+        send_timeout_s: float = 0.5,
+        record: bool = False,
+        layout: str = "fd",
+        decimation: int | None = None,
+        protocol: FluxdriveProtocol | None = None,
+    ) -> None:
+        self.setup = setup
+        self.bus = bus
+        self.proto = protocol or get_protocol()
+        if layout not in ("fd", "classic"):
+            raise ValueError(f"layout must be 'fd' or 'classic', not {layout!r}")
+        self.layout = layout
+        d = self.proto.default_decimation(layout) if decimation is None else int(decimation)
+        if not 1 <= d <= 255:
+            raise ValueError(f"decimation must be in 1..255, not {d}")
+        self.decimation = d
+        """PWM periods per sample (either layout)."""
+        self.lockstep = lockstep
+        self.lockstep_wait_s = lockstep_wait_s
+        self.cmd_timeout_s = cmd_timeout_s
+        self.heartbeat_timeout_s = heartbeat_timeout_s
+        self.send_timeout_s = send_timeout_s
+        self.ts = float(setup.ts)
+        card = setup.card
+        self.overcurrent_a = (
+            overcurrent_a if overcurrent_a is not None else 2.0 * card.rated_current_a
+        )
+        self.pst, self.rng = setup.new_plant()
+        self.frame = np.zeros(FR_N)
+        self.truth = np.zeros(TR_N)
+        plant_initial_frame(self.pst, setup.mp, self.rng, self.frame, self.truth)
+        self.k = 0  # index of the frame held in self.frame
+        # MCU state
+        self.armed = False
+        self.pwm_enabled = False  # PWM state for the next period
+        self.duty = np.array([0.5, 0.5, 0.5])  # duties for the next period
+        self.fault_code = FAULT_NONE
+        self.fault_latched = False
+        self.fault_count = 0
+        self.mode = MODE_IDLE
+        self._reset_prev = 0
+        self._cmds: dict[int, tuple[np.ndarray, bool]] = {}  # cmd_seq (16 bit) -> duty, enable
+        self._applied_seq = 0
+        self._last_cmd_k = 0  # period index of the last fresh command
+        self._stale_prev = False
+        self._status_alive = 0
+        self._hb_last: float | None = None
+        self._next_status_k = 0
+        self._next_fault_repeat_k = 0
+        self.stats = EmulatorStats()
+        self.record = record
+        self.rec_frames: list[np.ndarray] = []
+        self.rec_truth: list[np.ndarray] = []
+        self._msg_sample = self.proto.sample_fd
+        self._msg_duty = self.proto.message("DUTY_CMD")
+        self._msg_arm = self.proto.message("ARM_MODE")
+        self._msg_fault = self.proto.message("FAULT")
+        self._msg_status = self.proto.message("STATUS")
+        # the sample window: sums over (t_(k-D), t_k] of v_ll and duties (6), PWM on in
+        # every period, OR of the flags; frame 0 forms the first window on its own
+        self._win_sum = np.zeros(6)
+        self._win_n = 0
+        self._win_pwm = True
+        self._win_flags = 0
+        self._accumulate()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    # ------------------------------------------------------------------ bus I/O
+
+    def _send(self, aid: int, data: bytes, fd: bool) -> None:
+        msg = can.Message(
+            arbitration_id=aid,
+            is_extended_id=False,
+            is_fd=fd,
+            bitrate_switch=fd,
+            data=data,
+        )
+        try:
+            self.bus.send(msg, timeout=self.send_timeout_s)
+        except can.CanError:
+            self.stats.tx_timeouts += 1
+
+    def _handle(self, msg: can.Message) -> None:
+        if msg.is_error_frame or msg.is_extended_id:
+            return
+        aid = msg.arbitration_id
+        try:
+            if aid == ID_DUTY_CMD:
+                d = self._msg_duty.decode(bytes(msg.data), decode_choices=False)
+                duty = np.array([d["cmd_duty_a"], d["cmd_duty_b"], d["cmd_duty_c"]], float)
+                if not np.all(np.isfinite(duty)) or duty.min() < 0.0 or duty.max() > 1.0:
+                    self.stats.bad_rx += 1
+                    return
+                self._cmds[int(d["cmd_seq"])] = (duty, bool(d["cmd_enable"]))
+                self.stats.duty_rx += 1
+                if len(self._cmds) > 64:  # forget very old ones
+                    for key in list(self._cmds)[:-32]:
+                        del self._cmds[key]
+            elif aid == ID_ARM_MODE:
+                d = self._msg_arm.decode(bytes(msg.data), decode_choices=False)
+                self.stats.arm_rx += 1
+                if d["reset_fault"] and not self._reset_prev:
+                    self._clear_fault()
+                self._reset_prev = int(d["reset_fault"])
+                want_classic = bool(d["sample_layout"])
+                if (want_classic != (self.layout == "classic")
+                        or int(d["decimation"]) != self.decimation):
+                    self.stats.layout_mismatch += 1
+                if d["arm"] and int(d["arm_key"]) == ARM_KEY and not self.fault_latched:
+                    self.armed = True
+                    self.mode = int(d["mode"])
+                else:
+                    if self.armed:
+                        self.stats.disarm_rx += 1
+                    self._disarm()
+                if float(d["cmd_timeout"]) > 0.0:
+                    self.cmd_timeout_s = float(d["cmd_timeout"])
+            elif aid == ID_HOST_HEARTBEAT:
+                self._hb_last = time.monotonic()
+        except (ValueError, KeyError, can.CanError, Exception):  # noqa: BLE001 - bad frame
+            self.stats.bad_rx += 1
+
+    def _drain(self, timeout: float = 0.0) -> None:
+        """Handle everything already received; wait at most ``timeout`` for the first."""
+        msg = self.bus.recv(timeout=timeout)
+        while msg is not None:
+            self._handle(msg)
+            msg = self.bus.recv(timeout=0.0)
+
+    # ------------------------------------------------------------------ MCU logic
+
+    def _disarm(self) -> None:
+        self.armed = False
+        self.pwm_enabled = False
+        self.mode = MODE_IDLE
+
+    def _raise_fault(self, code: int, detail: int = 0) -> None:
+        self.pwm_enabled = False
+        new = not self.fault_latched or self.fault_code != code
+        self.fault_code = code
+        self.fault_latched = True
+        self.armed = False
+        if new:
+            self.fault_count = min(self.fault_count + 1, 255)
+            self.stats.faults += 1
+            self.stats.fault_codes.append(code)
+            self._send_fault(detail)
+            self._next_fault_repeat_k = self.k + int(round(0.1 / self.ts))
+
+    def _clear_fault(self) -> None:
+        if self.fault_latched:
+            self.fault_latched = False
+            self.fault_code = FAULT_NONE
+            self._send_fault(0)
+
+    def _send_fault(self, detail: int) -> None:
+        data = self._msg_fault.encode(
+            {
+                "fault_code": self.fault_code,
+                "fault_latched": int(self.fault_latched),
+                "fault_active": int(self.fault_latched),
+                "fault_pwm_disabled": int(self.fault_latched),
+                "fault_detail": int(min(max(detail, 0), 65535)),
+                "fault_seq": self.k % _SEQ_MOD,
+                "fault_count": self.fault_count,
+            }
+        )
+        self._send(ID_FAULT, data, False)
+
+    def _send_status(self) -> None:
+        if self.fault_latched:
+            state = ST_FAULT
+        elif self.pwm_enabled:
+            state = ST_RUNNING
+        elif self.armed:
+            state = ST_ARMED
+        else:
+            state = ST_IDLE
+        data = self._msg_status.encode(
+            {
+                "st_alive": self._status_alive,
+                "st_state": state,
+                "st_armed": int(self.armed),
+                "st_pwm_enabled": int(self.pwm_enabled),
+                "st_fault_latched": int(self.fault_latched),
+                "st_sample_layout": int(self.layout == "classic"),
+                "st_protocol_version": PROTOCOL_VERSION,
+                "st_decimation": self.decimation,
+                "st_tx_overruns": 0,
+                "st_temp": 35,
+                "st_rx_errors": 0,
+            }
+        )
+        self._status_alive = (self._status_alive + 1) % 256
+        self._send(ID_STATUS, data, False)
+
+    def sample_payload(self) -> bytes:
+        """SAMPLE_FD payload of the frame currently held (frame k), with the window's
+        averages (:meth:`window_frame`)."""
+        f = self.window_frame()
+        sig = {
+            "seq": self.k % _SEQ_MOD,
+            "i_a": f[0], "i_b": f[1], "i_c": f[2],
+            "v_ab": f[3], "v_bc": f[4], "v_ca": f[5],
+            "vdc": f[6],
+            "duty_a": f[7], "duty_b": f[8], "duty_c": f[9],
+            "encoder": int((int(f[11]) + 2**31) % 2**32 - 2**31),
+            "cmd_seq_applied": self._applied_seq,
+            "t_mcu": round((self.k * self.ts) % 4294.967295, 6),
+            "pwm_enabled": int(f[10] > 0.5),
+            "armed": int(self.armed),
+            "fault_active": int(self.fault_latched),
+            "adc_clip": int(int(f[13]) & FRAME_FLAG_ADC_CLIP),
+            "cmd_stale": int(self._stale_prev),
+            "capture_valid": int(self._win_pwm),
+            "mode": self.mode,
+            "fault_code": self.fault_code,
+        }  # fmt: skip
+        return bytes(self._msg_sample.encode(sig, strict=False))
+
+    def _accumulate(self) -> None:
+        """Add the frame just sampled to the sample window."""
+        f = self.frame
+        self._win_sum[0:3] += f[3:6]
+        self._win_sum[3:6] += f[7:10]
+        self._win_n += 1
+        self._win_pwm = self._win_pwm and bool(f[10] > 0.5)
+        self._win_flags |= int(f[13])
+
+    def window_frame(self) -> np.ndarray:
+        """Frame k as the sample reports it (either layout): currents, vdc, encoder at
+        t_k; line voltages and duties averaged over the window (t_(k-D), t_k]; PWM on
+        only if on in all of its periods; flags OR-ed. D = 1: frame k itself."""
+        f = self.frame.copy()
+        if self._win_n > 1:
+            f[3:6] = self._win_sum[0:3] / self._win_n
+            f[7:10] = self._win_sum[3:6] / self._win_n
+        f[10] = 1.0 if self._win_pwm else 0.0
+        f[13] = float(self._win_flags)
+        f[12] = self.k
+        return f
+
+    def _reset_window(self) -> None:
+        self._win_sum[:] = 0.0
+        self._win_n = 0
+        self._win_pwm = True
+        self._win_flags = 0
+
+    def classic_payloads(self) -> list[tuple[int, bytes]]:
+        """The four classic sample frames [(id, 8 bytes)] of frame k with the window
+        averages, values saturated to the DBC ranges like the MCU's converters."""
+        f = self.window_frame()
+        f[0:3] = np.clip(f[0:3], -25.0, 25.0)
+        f[3:6] = np.clip(f[3:6], -100.0, 100.0)
+        f[6] = min(max(f[6], 0.0), 100.0)
+        f[7:10] = np.clip(f[7:10], 0.0, 1.0)
+        flags = {
+            "c_armed": int(self.armed),
+            "c_fault_active": int(self.fault_latched),
+            "c_cmd_stale": int(self._stale_prev),
+            "c_capture_valid": int(self._win_pwm),
+        }
+        return self.proto.frame_to_classic_payloads(f, flags)
+
+    def _send_sample(self) -> None:
+        if self.layout == "fd":
+            self._send(ID_SAMPLE_FD, self.sample_payload(), True)
+        else:
+            for aid, data in self.classic_payloads():
+                self._send(aid, data, False)
+        self._reset_window()
+        self.stats.samples_sent += 1
+
+    def _protect(self) -> None:
+        """Over-current trip on the frame just sampled."""
+        imax = float(np.max(np.abs(self.frame[0:3])))
+        if imax > self.overcurrent_a and not self.fault_latched:
+            ph = int(np.argmax(np.abs(self.frame[0:3])))
+            self._raise_fault(FAULT_OVERCURRENT, ph | (min(int(imax * 10), 16383) << 2))
+
+    def step(self) -> None:
+        """One PWM period: send frame k, take the duty answering frame k-1, simulate
+        [t_k, t_(k+1)], sample frame k+1. With D > 1 (either layout): samples and duty
+        updates only every D-th period (the duty answering sample k-D), duties held in
+        between."""
+        k = self.k
+        d = self.decimation
+        if self.record:
+            self.rec_frames.append(self.frame.copy())
+            self.rec_truth.append(self.truth.copy())
+        boundary = k % d == 0
+        if boundary:
+            self._send_sample()
+        if k >= self._next_status_k:
+            self._send_status()
+            self._next_status_k = k + int(round(0.1 / self.ts))
+        if self.fault_latched and k >= self._next_fault_repeat_k:
+            self._send_fault(0)
+            self._next_fault_repeat_k = k + int(round(0.1 / self.ts))
+        self._drain(0.0)
+        if boundary:
+            self._take_command(k)
+        if self.heartbeat_timeout_s is not None and self.armed and self._hb_last is not None:
+            if time.monotonic() - self._hb_last > self.heartbeat_timeout_s:
+                self._raise_fault(FAULT_HOST_HEARTBEAT_LOST)
+        if not self.armed:
+            self.pwm_enabled = False
+        s = self.setup
+        plant_advance(self.pst, s.mp, self.rng, self.duty, self.pwm_enabled, s.load_t, s.load_y,
+                      s.load_cfg, self.frame, self.truth)
+        self.k = k + 1
+        self.stats.periods += 1
+        self._accumulate()
+        self._protect()
+
+    def _take_command(self, k: int) -> None:
+        """At a sample boundary k: take the DUTY_CMD answering the previous sample (k-D);
+        in lockstep wait for it. Missing: hold the duties, and the watchdog runs."""
+        d = self.decimation
+        want = (k - d) % _SEQ_MOD
+        if k >= d and want not in self._cmds and self.lockstep:
+            deadline = time.monotonic() + self.lockstep_wait_s
+            while want not in self._cmds and not self._stop.is_set():
+                left = deadline - time.monotonic()
+                if left <= 0.0:
+                    self.stats.lockstep_timeouts += 1
+                    break
+                self._drain(min(left, 0.05))
+        cmd = self._cmds.pop(want, None) if k >= d else None
+        # commands answering frames older than k-1 arrived too late: drop them
+        for key in [q for q in self._cmds if 0 < (want - q) % _SEQ_MOD < _SEQ_MOD // 2]:
+            del self._cmds[key]
+            self.stats.duty_late += 1
+        if cmd is not None:
+            duty, enable = cmd
+            self.duty = np.clip(duty, 0.0, 1.0)
+            self._applied_seq = want
+            self._last_cmd_k = k
+            self._stale_prev = False
+            self.stats.duty_applied += 1
+            if enable and self.armed and not self.fault_latched:
+                self.pwm_enabled = True
+                self.mode = MODE_RUN
+            elif not enable:
+                self.pwm_enabled = False
+        elif k >= d:
+            self._stale_prev = True
+            self.stats.stale_periods += 1
+            if self.pwm_enabled and (k - self._last_cmd_k) * self.ts >= self.cmd_timeout_s - 1e-12:
+                self._raise_fault(FAULT_CMD_TIMEOUT, int((k - self._last_cmd_k) * self.ts * 1e4))
+
+    # ------------------------------------------------------------------ running
+
+    def run(self, n_periods: int, realtime: bool = False) -> None:
+        """Run ``n_periods`` periods (or until :meth:`stop`). ``realtime`` paces the
+        periods to wall time (free-running MCU)."""
+        t0 = time.perf_counter()
+        for i in range(n_periods):
+            if self._stop.is_set():
+                break
+            if realtime:
+                lag = i * self.ts - (time.perf_counter() - t0)
+                if lag > 0:
+                    time.sleep(lag)
+            self.step()
+
+    def start(self, n_periods: int, realtime: bool = False) -> threading.Thread:
+        """Run in a background thread; returns it."""
+        self._stop.clear()
+        self._thread = threading.Thread(
+            target=self.run, args=(n_periods, realtime), name="drive-emulator", daemon=True
+        )
+        self._thread.start()
+        return self._thread
+
+    def stop(self, join_s: float = 2.0) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(join_s)
+
+    def recorded(self) -> tuple[np.ndarray, np.ndarray]:
+        """(frames, truth) recorded so far (``record=True``)."""
+        if not self.rec_frames:
+            return np.empty((0, FR_N)), np.empty((0, TR_N))
+        return np.vstack(self.rec_frames), np.vstack(self.rec_truth)
+
+
+def wrap_seq(k: int) -> int:
+    """Sample index -> 16-bit wire sequence counter."""
+    return int(k) % _SEQ_MOD
+
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`./fluxdrive can-emulator [SCENARIO] --interface I --channel C ...`: the drive
+    emulator as a process of its own, on any python-can bus (``udp_multicast`` reaches
+    other processes on this host). Runs ``--periods`` PWM periods (default: the
+    scenario's) or until SIGINT/SIGTERM; the last stdout line is a JSON object with the
+    MCU's final state and counters."""
+    import argparse
+    import json
+    import signal
+    import sys
+
+    from fluxdrive.core.scenario import load_scenario, scenario_path
+    from fluxdrive.drive.sim import DriveSetup
+
+    ap = argparse.ArgumentParser(prog="fluxdrive can-emulator", description=main.__doc__)
+    ap.add_argument("scenario", nargs="?", default="paper_2pct_150load",
+                    help="scenario YAML or name under config/scenarios (the plant side)")
+    ap.add_argument("--interface", default="udp_multicast", help="python-can interface")
+    ap.add_argument("--channel", default="239.255.74.68",
+                    help="python-can channel (udp_multicast: the IPv4/IPv6 multicast group)")
+    ap.add_argument("--port", type=int, default=None, help="udp_multicast: UDP port")
+    ap.add_argument("--hop-limit", type=int, default=0,
+                    help="udp_multicast: IP TTL / hop limit (0: never leaves this host)")
+    ap.add_argument("--layout", choices=("fd", "classic"), default="fd")
+    ap.add_argument("--decimation", type=int, default=None,
+                    help="PWM periods per sample, either layout (default: the DBC's, FD 1, "
+                         "classic 8; a real 1/5 Mbit/s FD bus needs 4)")
+    ap.add_argument("--periods", type=int, default=None, help="PWM periods to run")
+    ap.add_argument("--duration", type=float, default=None, help="override duration_s [s]")
+    ap.add_argument("--free-running", action="store_true",
+                    help="pace periods to wall time and never wait for duties (a real MCU)")
+    ap.add_argument("--lockstep-wait", type=float, default=0.5,
+                    help="lockstep: wall time to wait for the duty of the previous sample [s]")
+    ap.add_argument("--wait-for-host", type=float, default=0.0,
+                    help="wait up to this long for the host's first HOST_HEARTBEAT [s]")
+    a = ap.parse_args(sys.argv[1:] if argv is None else argv)
+    overrides = {"duration_s": a.duration} if a.duration else None
+    sc = load_scenario(scenario_path(a.scenario), overrides=overrides)
+    kw: dict[str, Any] = {"interface": a.interface, "channel": a.channel,
+                          "fd": a.layout == "fd"}
+    if a.interface == "udp_multicast":
+        kw["hop_limit"] = a.hop_limit
+        if a.port is not None:
+            kw["port"] = a.port
+    elif a.port is not None:
+        kw["port"] = a.port
+    try:
+        bus = can.Bus(**kw)
+    except (can.CanError, OSError, ImportError, ValueError) as exc:
+        print(f"can-emulator: cannot open the {a.interface} bus on {a.channel}: {exc}",
+              file=sys.stderr)
+        return 2
+    emu = DriveEmulator(DriveSetup(sc), bus, lockstep=not a.free_running,
+                        lockstep_wait_s=a.lockstep_wait, layout=a.layout,
+                        decimation=a.decimation)
+    signal.signal(signal.SIGTERM, lambda *_: emu._stop.set())
+    signal.signal(signal.SIGINT, lambda *_: emu._stop.set())
+    n = sc.n_periods if a.periods is None else a.periods
+    print(f"[can-emulator] {sc.name}: {a.layout} layout (D={emu.decimation}) on "
+          f"{a.interface}:{a.channel}, {n} periods, "
+          f"{'free-running' if a.free_running else 'lockstep'}", file=sys.stderr, flush=True)
+    rc = 0
+    t0 = time.perf_counter()
+    try:
+        if a.wait_for_host > 0:
+            deadline = time.monotonic() + a.wait_for_host
+            while emu._hb_last is None and not emu._stop.is_set():
+                if time.monotonic() > deadline:
+                    print(f"can-emulator: no host heartbeat within {a.wait_for_host:g} s",
+                          file=sys.stderr)
+                    rc = 1
+                    break
+                emu._drain(0.05)
+        if rc == 0:
+            emu.run(n, realtime=a.free_running)
+            emu._drain(0.05)  # a disarm sent while we stopped
+    finally:
+        bus.shutdown()
+    out = {"periods": emu.k, "armed": emu.armed, "pwm_enabled": emu.pwm_enabled,
+           "fault_latched": emu.fault_latched, "fault_code": emu.fault_code,
+           "layout": emu.layout, "decimation": emu.decimation,
+           "wall_s": round(time.perf_counter() - t0, 3), **emu.stats.as_dict()}
+    print(json.dumps(out), flush=True)
+    return rc

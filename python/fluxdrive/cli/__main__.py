@@ -1,0 +1,7 @@
+"""`python -m fluxdrive.cli`: the ./fluxdrive command line."""
+
+import sys
+
+from fluxdrive.cli.main import main
+
+sys.exit(main())

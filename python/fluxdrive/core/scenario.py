@@ -1,0 +1,323 @@
+"""The one way to load a scenario: YAML -> validated Scenario (machine card included).
+
+A scenario file names its machine card (path relative to the scenario file), the speed and
+load profiles, which position source closes the loop, which observers run alongside in
+shadow, the duration, the random seed and sensor faults.  Errors name the file, the key
+and what was expected.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from fluxdrive.core.machine import ConfigError, MachineCard, load_machine
+from fluxdrive.drive.control import ControllerConfig
+from fluxdrive.drive.observers import ObserverConfig, observer_config
+
+REPO_ROOT = Path(__file__).resolve().parents[3]
+CONFIG_DIR = REPO_ROOT / "config"
+RPM = 2.0 * math.pi / 60.0
+
+
+@dataclass
+class Scenario:
+    name: str
+    machine: MachineCard
+    duration_s: float
+    seed: int
+    speed_profile_rpm: np.ndarray  # (n, 2): t_s, rpm (mechanical)
+    load_profile_pu: np.ndarray  # (n, 2): t_s, per unit of rated torque
+    dyno_pu_per_rpm: float
+    brake_band_rpm: float  # > 0: load is a passive brake (hysteresis dyno); 0: active torque
+    control: ControllerConfig
+    observers: dict[str, ObserverConfig]
+    driving: str  # 'encoder' or an observer name
+    steady_window_s: tuple[float, float]
+    step_load_time_s: float | None = None
+    current_offset_a: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    current_gain: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    plant_deadtime_s: float | None = None
+    initial_angle_deg: float = 0.0
+    id_injection: dict[str, Any] | None = None
+    speed_injection: dict[str, Any] | None = None
+    description: str = ""
+    source: str = ""
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def n_periods(self) -> int:
+        return int(round(self.duration_s * self.machine.pwm_hz))
+
+    def speed_ref_rad_s(self, t: np.ndarray) -> np.ndarray:
+        p = self.speed_profile_rpm
+        return np.interp(t, p[:, 0], p[:, 1]) * RPM
+
+    def load_breakpoints_nm(self) -> tuple[np.ndarray, np.ndarray]:
+        p = self.load_profile_pu
+        return (np.ascontiguousarray(p[:, 0], dtype=float),
+                np.ascontiguousarray(p[:, 1] * self.machine.rated_torque_nm, dtype=float))
+
+    def dyno_nm_per_rad_s(self) -> float:
+        return self.dyno_pu_per_rpm * self.machine.rated_torque_nm / RPM
+
+
+def _num(src: str, key: str, v: Any, lo: float = -math.inf, hi: float = math.inf) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not (lo <= float(v) <= hi):
+        raise ConfigError(f"{src}: '{key}' must be a number in [{lo}, {hi}], got {v!r}")
+    return float(v)
+
+
+def _profile(src: str, key: str, v: Any) -> np.ndarray:
+    if isinstance(v, (int, float)) and not isinstance(v, bool):
+        return np.array([[0.0, float(v)]])
+    try:
+        arr = np.array(v, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{src}: '{key}' must be a number or a list of [t_s, value] "
+                          f"pairs") from exc
+    if arr.ndim != 2 or arr.shape[1] != 2 or arr.shape[0] < 1:
+        raise ConfigError(f"{src}: '{key}' must be a list of [t_s, value] pairs, got {v!r}")
+    if np.any(np.diff(arr[:, 0]) < 0) or not np.all(np.isfinite(arr)):
+        raise ConfigError(f"{src}: '{key}' breakpoint times must be finite and non-decreasing")
+    return arr
+
+
+def _dataclass_from(src: str, key: str, cls, data: dict, base=None):
+    if not isinstance(data, dict):
+        raise ConfigError(f"{src}: '{key}' must be a mapping")
+    known = {f.name for f in fields(cls)}
+    bad = sorted(set(data) - known)
+    if bad:
+        raise ConfigError(f"{src}: unknown key(s) {bad} under '{key}'; expected some of "
+                          f"{sorted(known)}")
+    obj = base if base is not None else cls()
+    for k, v in data.items():
+        cur = getattr(obj, k)
+        if isinstance(cur, bool):
+            if not isinstance(v, bool):
+                raise ConfigError(f"{src}: '{key}.{k}' must be true/false, got {v!r}")
+        elif isinstance(cur, (int, float)) or (cur is None and k.endswith(("_ohm", "_h", "_vs"))):
+            _num(src, f"{key}.{k}", v)
+            v = float(v)
+        elif isinstance(cur, str) and not isinstance(v, str):
+            raise ConfigError(f"{src}: '{key}.{k}' must be a string, got {v!r}")
+        setattr(obj, k, v)
+    return obj
+
+
+_TOP_KEYS = {"name", "description", "machine", "duration_s", "seed", "speed_rpm", "load_pu",
+             "dyno_pu_per_rpm", "load_type", "brake_band_rpm", "control", "observers", "driving",
+             "steady_window_s",
+             "step_load_time_s", "faults", "plant", "initial_angle_deg", "id_injection",
+             "speed_injection", "extra"}
+
+
+def load_scenario(path: str | Path, machine: str | Path | None = None,
+                  overrides: dict[str, Any] | None = None) -> Scenario:
+    """Load and validate a scenario; `machine` swaps the machine card."""
+    path = Path(path)
+    src = str(path)
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise ConfigError(f"{src}: cannot read scenario: {exc}") from exc
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{src}: a scenario must be a mapping")
+    if overrides:
+        raw = {**raw, **overrides}
+    unknown = sorted(set(raw) - _TOP_KEYS)
+    if unknown:
+        raise ConfigError(f"{src}: unknown key(s) {unknown}; expected some of {sorted(_TOP_KEYS)}")
+    mpath = machine or raw.get("machine", "../machines/default_spm.yaml")
+    mpath = Path(mpath)
+    if not mpath.is_absolute():
+        cand = (path.parent / mpath)
+        mpath = cand if cand.exists() or machine is None else Path(machine)
+    card = load_machine(mpath)
+
+    duration = _num(src, "duration_s", raw.get("duration_s", 2.0), 1e-3, 3600.0)
+    seed = raw.get("seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise ConfigError(f"{src}: 'seed' must be an integer, got {seed!r}")
+    ctrl = _dataclass_from(src, "control", ControllerConfig, raw.get("control", {}) or {})
+    obs_raw = raw.get("observers", {}) or {}
+    if not isinstance(obs_raw, dict):
+        raise ConfigError(f"{src}: 'observers' must be a mapping name -> settings")
+    observers: dict[str, ObserverConfig] = {}
+    for name, spec in obs_raw.items():
+        spec = dict(spec or {})
+        variant = spec.pop("variant", "paper")
+        try:
+            base = observer_config(variant)
+        except ConfigError as exc:
+            raise ConfigError(f"{src}: observers.{name}: {exc}") from exc
+        cfg = _dataclass_from(src, f"observers.{name}", ObserverConfig, spec, base)
+        observers[str(name)] = cfg.validate(f"{src}: observers.{name}")
+    driving = str(raw.get("driving", "encoder"))
+    if driving != "encoder" and driving not in observers:
+        raise ConfigError(f"{src}: 'driving' must be 'encoder' or one of the observers "
+                          f"{sorted(observers)}, got '{driving}'")
+    ctrl.position_source = "encoder" if driving == "encoder" else "estimate"
+    if driving != "encoder" and ctrl.speed_observer_pll_hz is None:
+        # the speed loop is designed with the driving observer's speed path, unless the
+        # scenario fixes the design (e.g. to compare position sources on the same gains)
+        d = observers[driving]
+        ctrl.speed_observer_pll_hz = d.pll_bandwidth_hz
+        ctrl.speed_observer_damping = d.pll_damping
+        ctrl.speed_observer_lpf_hz = d.speed_lpf_hz
+    win = raw.get("steady_window_s", [0.5 * duration, duration])
+    if (not isinstance(win, (list, tuple)) or len(win) != 2
+            or not 0 <= float(win[0]) < float(win[1]) <= duration + 1e-9):
+        raise ConfigError(f"{src}: 'steady_window_s' must be [start, end] within the duration")
+    faults = raw.get("faults", {}) or {}
+    if not isinstance(faults, dict):
+        raise ConfigError(f"{src}: 'faults' must be a mapping")
+    bad = sorted(set(faults) - {"current_offset_pu", "current_gain"})
+    if bad:
+        raise ConfigError(f"{src}: unknown fault key(s) {bad}; expected current_offset_pu, "
+                          f"current_gain")
+    off = faults.get("current_offset_pu", [0.0, 0.0, 0.0])
+    gain = faults.get("current_gain", [1.0, 1.0, 1.0])
+    for key, val in (("faults.current_offset_pu", off), ("faults.current_gain", gain)):
+        if not isinstance(val, list) or len(val) != 3:
+            raise ConfigError(f"{src}: '{key}' must be a list of 3 numbers (phases a, b, c)")
+        for x in val:
+            _num(src, key, x)
+    plant = raw.get("plant", {}) or {}
+    bad = sorted(set(plant) - {"deadtime_s"})
+    if bad:
+        raise ConfigError(f"{src}: unknown plant key(s) {bad}; expected deadtime_s")
+    td = plant.get("deadtime_s")
+    step_t = raw.get("step_load_time_s")
+    return Scenario(
+        name=str(raw.get("name", path.stem)),
+        description=str(raw.get("description", "")),
+        machine=card,
+        duration_s=duration,
+        seed=seed,
+        speed_profile_rpm=_profile(src, "speed_rpm", raw.get("speed_rpm", 60.0)),
+        load_profile_pu=_profile(src, "load_pu", raw.get("load_pu", 0.0)),
+        dyno_pu_per_rpm=_num(src, "dyno_pu_per_rpm", raw.get("dyno_pu_per_rpm", 0.0)),
+        brake_band_rpm=_load_band(src, raw),
+        control=ctrl,
+        observers=observers,
+        driving=driving,
+        steady_window_s=(float(win[0]), float(win[1])),
+        step_load_time_s=None if step_t is None else _num(src, "step_load_time_s", step_t),
+        current_offset_a=tuple(float(x) * card.rated_current_a for x in off),
+        current_gain=tuple(float(x) for x in gain),
+        plant_deadtime_s=None if td is None else _num(src, "plant.deadtime_s", td, 0.0, 1e-4),
+        initial_angle_deg=_num(src, "initial_angle_deg", raw.get("initial_angle_deg", 0.0)),
+        id_injection=raw.get("id_injection"),
+        speed_injection=raw.get("speed_injection"),
+        source=src,
+        extra=raw.get("extra", {}) or {},
+    )
+
+
+def _load_band(src: str, raw: dict) -> float:
+    kind = raw.get("load_type", "brake")
+    if kind not in ("brake", "active"):
+        raise ConfigError(f"{src}: 'load_type' must be 'brake' (passive, like the paper's "
+                          f"hysteresis dyno) or 'active', got {kind!r}")
+    if kind == "active":
+        return 0.0
+    return _num(src, "brake_band_rpm", raw.get("brake_band_rpm", 2.0), 1e-3, 1e4)
+
+
+def scenario_path(name_or_path: str) -> Path:
+    """Accept a path, or a bare scenario name under config/scenarios/."""
+    p = Path(name_or_path)
+    if p.exists():
+        return p
+    cand = CONFIG_DIR / "scenarios" / (p.name if p.suffix else p.name + ".yaml")
+    if cand.exists():
+        return cand
+    raise ConfigError(f"scenario '{name_or_path}' not found (looked at {p} and {cand})")
+
+
+def scenario_to_raw(sc: Scenario, machine_path: str) -> dict[str, Any]:
+    """The YAML mapping that `load_scenario` turns back into `sc` (the machine card is
+    referenced by `machine_path`; write it with `save_machine`)."""
+    from dataclasses import asdict
+
+    rated = sc.machine.rated_current_a
+    def set_fields(obj) -> dict[str, Any]:  # None = "the machine card's" = the default
+        return {k: v for k, v in asdict(obj).items() if v is not None}
+
+    ctrl = set_fields(sc.control)
+    ctrl.pop("position_source")  # follows from `driving`
+    raw: dict[str, Any] = {
+        "name": sc.name, "description": sc.description, "machine": machine_path,
+        "duration_s": float(sc.duration_s), "seed": int(sc.seed),
+        "speed_rpm": sc.speed_profile_rpm.tolist(), "load_pu": sc.load_profile_pu.tolist(),
+        "dyno_pu_per_rpm": float(sc.dyno_pu_per_rpm),
+        "load_type": "active" if sc.brake_band_rpm == 0.0 else "brake",
+        "control": ctrl,
+        "observers": {n: set_fields(c) for n, c in sc.observers.items()},
+        "driving": sc.driving,
+        "steady_window_s": [float(sc.steady_window_s[0]), float(sc.steady_window_s[1])],
+        "faults": {"current_offset_pu": [float(x) / rated for x in sc.current_offset_a],
+                   "current_gain": [float(x) for x in sc.current_gain]},
+        "initial_angle_deg": float(sc.initial_angle_deg),
+        "extra": dict(sc.extra),
+    }
+    if sc.brake_band_rpm != 0.0:
+        raw["brake_band_rpm"] = float(sc.brake_band_rpm)
+    if sc.step_load_time_s is not None:
+        raw["step_load_time_s"] = float(sc.step_load_time_s)
+    if sc.plant_deadtime_s is not None:
+        raw["plant"] = {"deadtime_s": float(sc.plant_deadtime_s)}
+    for key in ("id_injection", "speed_injection"):
+        if getattr(sc, key) is not None:
+            raw[key] = getattr(sc, key)
+    return raw
+
+
+def save_machine(card: MachineCard, path: str | Path) -> Path:
+    from dataclasses import asdict
+
+    path = Path(path)
+    path.write_text(yaml.safe_dump(asdict(card), sort_keys=False))
+    return path
+
+
+def save_scenario(sc: Scenario, path: str | Path) -> Path:
+    """Write `sc` as a scenario file (plus its machine card next to it, `<stem>.machine.yaml`)
+    that loads back into the same scenario -- for scenarios built or changed in memory that
+    must run elsewhere (the node graph loads scenarios from files).  Raises ConfigError if
+    the file would not reproduce `sc`."""
+    path = Path(path)
+    mpath = save_machine(sc.machine, path.with_name(path.stem + ".machine.yaml"))
+    path.write_text(yaml.safe_dump(scenario_to_raw(sc, mpath.name), sort_keys=False))
+    back = load_scenario(path)
+    diff = scenario_differences(sc, back)
+    if diff:
+        raise ConfigError(f"{path}: the scenario file does not reproduce the scenario "
+                          f"({', '.join(diff)})")
+    return path
+
+
+def scenario_differences(a: Scenario, b: Scenario, rel_tol: float = 1e-15) -> list[str]:
+    """Names of the fields in which two scenarios differ (numbers within `rel_tol`: a fault
+    offset goes through per-unit and back)."""
+    out = []
+    for f in fields(Scenario):
+        if f.name in ("source",):
+            continue
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        if isinstance(x, np.ndarray):
+            same = x.shape == y.shape and np.allclose(x, y, rtol=rel_tol, atol=0.0)
+        elif f.name == "current_offset_a":
+            same = np.allclose(x, y, rtol=1e-12, atol=1e-15)
+        else:
+            same = x == y
+        if not same:
+            out.append(f.name)
+    return out

@@ -1,0 +1,558 @@
+"""Field-oriented control: dq current PI loops, speed PI, SVPWM, sensorless start-up.
+
+Per PWM period (frame k in, duty out; the duty is applied over [t_{k+1}, t_{k+2}]):
+  measure   Clarke/Park of the sampled currents at the position source's angle
+  feedback  speed PI -> i_q*, current PIs with cross-coupling and back-EMF feed-forward
+  output    inverse Park at theta + 1.5 Ts w (the voltage acts on average 1.5 periods
+            later), SVPWM (min-max zero sequence) with the hexagon limit
+  update    integrators back-calculated from the realised (limited) voltage.
+
+Loop design (`design_current_loop`): the brief's law K_p = L w_cc, K_i = R w_cc cancels the
+RL pole; with the 1.5-period delay of a real digital drive the closed loop then peaks and its
+-3 dB bandwidth overshoots the target.  So the gain is scaled until the *discrete* closed
+loop (ZOH RL plant, one period of computation delay, the PI) has exactly the requested
+-3 dB bandwidth.  The speed PI is designed the same way on J s + B with the current loop
+approximated as its designed first-order bandwidth.
+
+Start-up without a position sensor (`position_source` = estimate): align (d-current at a
+fixed angle), then an open-loop I-f ramp (current vector of fixed magnitude ON an angle
+integrated from a ramped speed; the rotor follows at a load angle), handover to the observer
+above `handover_speed` once its estimate is valid, and back to I-f below `handback_speed`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from fluxdrive.core.blocks import lowpass_step, pi_output, pi_update, pll_gains, pll_step, pole
+from fluxdrive.core.machine import ConfigError, MachineCard
+from fluxdrive.core.transforms import TWO_PI, clarke, inv_clarke, inv_park, park, wrap_angle
+from fluxdrive.drive.observers import ES_TH, ES_VALID, ES_W
+from fluxdrive.drive.plant import FR_ENC, FR_IA, FR_IB, FR_IC, FR_VDC
+
+# ---- controller parameter vector CP_*
+(CP_TS, CP_P, CP_L, CP_LAM, CP_KP_I, CP_KI_I, CP_KP_W, CP_KI_W, CP_IMAX, CP_ADV,
+ CP_TDCOMP, CP_SRC, CP_ALIGN_T, CP_ALIGN_I, CP_IF_I, CP_IF_ACC, CP_HANDOVER, CP_HANDBACK,
+ CP_ENC_KP, CP_ENC_KI, CP_ENC_CPR, CP_OC_TRIP, CP_OS_TRIP, CP_VDC_MIN, CP_VDC_MAX,
+ CP_DECOUPLE, CP_WFB_LPF, CP_INV_TIMEOUT, CP_HANDOVER_DWELL, CP_I2T_LIMIT, CP_IRATED) = range(31)
+CP_N = 31
+SRC_ENCODER, SRC_ESTIMATE = 0, 1
+
+# ---- controller state CS_*
+(CS_MODE, CS_T_MODE, CS_ID_I, CS_IQ_I, CS_W_I, CS_TH_IF, CS_W_IF, CS_ENC_TH, CS_ENC_W,
+ CS_ENC_I, CS_ENC_INIT, CS_FAULT, CS_WFB_F, CS_INV_T, CS_IQ_IF_F, CS_AGREE_T, CS_I2T) = range(17)
+CS_N = 17
+
+MODE_DISABLED, MODE_ALIGN, MODE_IF_RAMP, MODE_CLOSED_LOOP, MODE_FAULT = range(5)
+MODE_NAMES = {0: "disabled", 1: "align", 2: "if_ramp", 3: "closed_loop", 4: "fault"}
+# fault codes: the same numbers as flux_drive_msgs/msg/DriveFault
+(FAULT_NONE, FAULT_OVERCURRENT, FAULT_OVERCURRENT_I2T, FAULT_OVERVOLTAGE, FAULT_UNDERVOLTAGE,
+ FAULT_OVERSPEED, FAULT_LOSS_OF_LOCK, FAULT_POSITION_INVALID, FAULT_STALE_INPUT, FAULT_WATCHDOG,
+ FAULT_BAD_SAMPLE) = range(11)
+FAULT_NAMES = {0: "none", 1: "over-current (instantaneous)", 2: "over-current (I2t)",
+               3: "DC-bus over-voltage", 4: "DC-bus under-voltage", 5: "over-speed",
+               6: "loss of observer lock", 7: "position estimate not finite",
+               8: "stale input", 9: "watchdog", 10: "bad sample (NaN/inf)"}
+
+# ---- controller output CO_*
+(CO_DA, CO_DB, CO_DC, CO_EN, CO_ID, CO_IQ, CO_ID_REF, CO_IQ_REF, CO_VD, CO_VQ, CO_W_REF,
+ CO_W_FB, CO_TH, CO_MODE, CO_FAULT) = range(15)
+CO_N = 15
+
+
+@njit(cache=True)
+def controller_reset(cs):
+    for j in range(CS_N):
+        cs[j] = 0.0
+    cs[CS_MODE] = MODE_ALIGN
+
+
+@njit(cache=True)
+def controller_clear_fault(cs):
+    """Explicit reset of a latched fault: back to the start-up sequence.  Returns the code
+    that was cleared.  Faults are never cleared by anything else."""
+    code = cs[CS_FAULT]
+    if cs[CS_MODE] == MODE_FAULT:
+        controller_reset(cs)
+    return code
+
+
+@njit(cache=True)
+def _svpwm(va, vb, vdc):
+    """Phase voltages -> duties, min-max zero sequence; beyond the hexagon the vector is
+    scaled down (direction kept).  Returns (da, db, dc, scale)."""
+    pa, pb, pc = inv_clarke(va, vb)
+    hi = max(pa, pb, pc)
+    lo = min(pa, pb, pc)
+    span = hi - lo
+    scale = 1.0
+    if span > vdc:
+        scale = vdc / span
+        pa *= scale
+        pb *= scale
+        pc *= scale
+        hi *= scale
+        lo *= scale
+    off = -0.5 * (hi + lo)
+    return (0.5 + (pa + off) / vdc, 0.5 + (pb + off) / vdc, 0.5 + (pc + off) / vdc, scale)
+
+
+@njit(cache=True)
+def _trip(cs, out, code):
+    """Latch `code` and write a complete PWM-off row: every CO_* field is set (zeros for
+    the dq quantities, angle and feedback, which are not computed once tripped), so a
+    reused output buffer never carries a stale value into a recording."""
+    cs[CS_MODE] = MODE_FAULT
+    cs[CS_FAULT] = code
+    out[CO_DA] = 0.5
+    out[CO_DB] = 0.5
+    out[CO_DC] = 0.5
+    out[CO_EN] = 0.0
+    out[CO_ID] = 0.0
+    out[CO_IQ] = 0.0
+    out[CO_ID_REF] = 0.0
+    out[CO_IQ_REF] = 0.0
+    out[CO_VD] = 0.0
+    out[CO_VQ] = 0.0
+    out[CO_W_FB] = 0.0
+    out[CO_TH] = 0.0
+    out[CO_MODE] = MODE_FAULT
+    out[CO_FAULT] = code
+
+
+@njit(cache=True)
+def controller_step(cs, cp, fr, est, w_ref_m, id_inj, out):
+    """One control period.  `est` is the driving observer's ES_* row (ignored in encoder
+    mode); `w_ref_m` the mechanical speed reference [rad/s]; `id_inj` an additive i_d*
+    injection [A] (frequency-response sweeps).  Writes CO_* into `out`."""
+    ts = cp[CP_TS]
+    p = cp[CP_P]
+    cs[CS_T_MODE] += ts
+    out[CO_W_REF] = w_ref_m
+    # ---------------------------------------------------------------- measure + protect
+    vdc = fr[FR_VDC]
+    ok = math.isfinite(fr[FR_IA]) and math.isfinite(fr[FR_IB]) and math.isfinite(fr[FR_IC])
+    ok = ok and math.isfinite(vdc) and math.isfinite(fr[FR_ENC])
+    if cs[CS_MODE] == MODE_FAULT:
+        _trip(cs, out, cs[CS_FAULT])
+        return
+    if not ok:
+        _trip(cs, out, FAULT_BAD_SAMPLE)
+        return
+    ia, ib = clarke(fr[FR_IA], fr[FR_IB], fr[FR_IC])
+    if max(abs(fr[FR_IA]), abs(fr[FR_IB]), abs(fr[FR_IC])) > cp[CP_OC_TRIP]:
+        _trip(cs, out, FAULT_OVERCURRENT)
+        return
+    # I2t: integrate (i/I_rated)^2 - 1 while above rated; trip at the configured pu^2 s
+    i_pk2 = (ia * ia + ib * ib) / (cp[CP_IRATED] * cp[CP_IRATED])
+    cs[CS_I2T] = max(cs[CS_I2T] + (i_pk2 - 1.0) * ts, 0.0)
+    if cs[CS_I2T] > cp[CP_I2T_LIMIT]:
+        _trip(cs, out, FAULT_OVERCURRENT_I2T)
+        return
+    if vdc > cp[CP_VDC_MAX]:
+        _trip(cs, out, FAULT_OVERVOLTAGE)
+        return
+    if vdc < cp[CP_VDC_MIN]:
+        _trip(cs, out, FAULT_UNDERVOLTAGE)
+        return
+    # encoder angle/speed through a tracking PLL (reference and encoder-mode feedback)
+    th_enc_meas = wrap_angle(fr[FR_ENC] / cp[CP_ENC_CPR] * TWO_PI * p)
+    if cs[CS_ENC_INIT] == 0.0:
+        cs[CS_ENC_INIT] = 1.0
+        cs[CS_ENC_TH] = th_enc_meas
+    e_enc = math.sin(th_enc_meas - cs[CS_ENC_TH])
+    w_enc, cs[CS_ENC_I], th_next = pll_step(cs[CS_ENC_TH], cs[CS_ENC_I], e_enc, cp[CP_ENC_KP],
+                                            cp[CP_ENC_KI], ts)
+    th_enc = th_enc_meas
+    cs[CS_ENC_TH] = th_next
+
+    mode = cs[CS_MODE]
+    if cp[CP_SRC] == SRC_ENCODER:
+        mode = MODE_CLOSED_LOOP
+        th = th_enc
+        we = w_enc
+    else:
+        th = est[ES_TH]
+        we = est[ES_W]
+        if not math.isfinite(th) or not math.isfinite(we):
+            _trip(cs, out, FAULT_POSITION_INVALID)
+            return
+        if mode == MODE_CLOSED_LOOP:
+            if est[ES_VALID] == 0.0:
+                cs[CS_INV_T] += ts
+                if cs[CS_INV_T] > cp[CP_INV_TIMEOUT]:
+                    # PLL error or flux magnitude out of bounds for too long
+                    _trip(cs, out, FAULT_LOSS_OF_LOCK)
+                    return
+            else:
+                cs[CS_INV_T] = 0.0
+    w_m_fb = we / p
+    if abs(w_m_fb) > cp[CP_OS_TRIP]:
+        _trip(cs, out, FAULT_OVERSPEED)
+        return
+    cs[CS_WFB_F] = lowpass_step(cs[CS_WFB_F], w_m_fb, pole(cp[CP_WFB_LPF], ts))
+
+    # ---------------------------------------------------------------- references
+    iq_ref = 0.0
+    id_ref = id_inj
+    if mode == MODE_ALIGN:
+        th = 0.0
+        we = 0.0
+        frac = min(cs[CS_T_MODE] / (0.5 * cp[CP_ALIGN_T]), 1.0)
+        id_ref = cp[CP_ALIGN_I] * frac
+        if cs[CS_T_MODE] >= cp[CP_ALIGN_T]:
+            cs[CS_MODE] = MODE_IF_RAMP
+            cs[CS_T_MODE] = 0.0
+            cs[CS_TH_IF] = 0.0
+            cs[CS_W_IF] = 0.0
+    elif mode == MODE_IF_RAMP:
+        # open loop: the current vector leads an angle integrated from a ramped speed
+        w_tgt = w_ref_m * p
+        step = cp[CP_IF_ACC] * p * ts
+        w_if = cs[CS_W_IF]
+        if w_if < w_tgt - step:
+            w_if += step
+        elif w_if > w_tgt + step:
+            w_if -= step
+        else:
+            w_if = w_tgt
+        cs[CS_W_IF] = w_if
+        th = cs[CS_TH_IF]
+        cs[CS_TH_IF] = wrap_angle(th + w_if * ts)
+        we = w_if
+        # the current vector sits on the ramped angle (continuous with the alignment);
+        # the rotor lags it by the load angle asin(T_L / (K_t I)), which pulls it along
+        id_ref = cp[CP_IF_I] + id_inj
+        iq_ref = 0.0
+        hand = cp[CP_HANDOVER] * p
+        # average torque current the rotor carries, seen in the observer's frame (5 Hz LPF):
+        # the speed integrator starts from it at handover (an instantaneous sample would
+        # kick the lightly damped rotor)
+        _, iq_obs = park(ia, ib, math.cos(est[ES_TH]), math.sin(est[ES_TH]))
+        cs[CS_IQ_IF_F] = lowpass_step(cs[CS_IQ_IF_F], iq_obs, pole(31.4, ts))
+        # hand over only to an observer that agrees with the open-loop ramp: the rotor lags
+        # the I-f vector by its load angle (< 90 deg) and turns at the ramp's speed
+        agree = (abs(wrap_angle(est[ES_TH] - th)) < 1.22
+                 and abs(est[ES_W] - w_if) < 0.3 * abs(w_if))
+        if abs(w_if) >= hand and est[ES_VALID] != 0.0 and agree:
+            cs[CS_AGREE_T] += ts
+        else:
+            cs[CS_AGREE_T] = 0.0
+        if abs(w_tgt) >= hand and cs[CS_AGREE_T] >= cp[CP_HANDOVER_DWELL]:
+            # handover: continue closed loop on the observer; the speed integrator starts
+            # from the torque current the rotor is carrying in the observer's frame
+            cs[CS_W_I] = cs[CS_IQ_IF_F]
+            cs[CS_MODE] = MODE_CLOSED_LOOP
+            cs[CS_T_MODE] = 0.0
+            cs[CS_WFB_F] = est[ES_W] / p
+            # the current PIs keep their integrators: re-express them in the new frame
+            cid, ciq = cs[CS_ID_I], cs[CS_IQ_I]
+            dth = th - est[ES_TH]
+            cs[CS_ID_I] = cid * math.cos(dth) - ciq * math.sin(dth)
+            cs[CS_IQ_I] = cid * math.sin(dth) + ciq * math.cos(dth)
+            th = est[ES_TH]
+            we = est[ES_W]
+            mode = MODE_CLOSED_LOOP
+    if mode == MODE_CLOSED_LOOP:
+        if (cp[CP_SRC] == SRC_ESTIMATE and abs(w_ref_m) < cp[CP_HANDBACK]
+                and cs[CS_MODE] == MODE_CLOSED_LOOP and cs[CS_T_MODE] > 0.05):
+            # hand-back to I-f: the I-f vector takes over the torque the closed loop carried.
+            # It is placed ahead of (motoring) or behind (braking) the estimated rotor angle
+            # by the load angle asin(i_q/I_if), i_q the speed integrator's (steady) torque
+            # current, so the torque does not step to zero -- a step would kick the rotor
+            # into the I-f ramp's undamped load-angle oscillation.  Either sign of speed and
+            # torque; the angle is clipped at 64 deg (the I-f stiffness vanishes at 90).
+            s_ld = min(max(cs[CS_W_I] / max(cp[CP_IF_I], 1e-9), -0.9), 0.9)
+            ld = math.asin(s_ld)
+            cs[CS_MODE] = MODE_IF_RAMP
+            cs[CS_T_MODE] = 0.0
+            cs[CS_W_IF] = we
+            cs[CS_IQ_IF_F] = cs[CS_W_I]
+            # the current PIs keep their integrators, re-expressed in the I-f frame
+            cid, ciq = cs[CS_ID_I], cs[CS_IQ_I]
+            cs[CS_ID_I] = cid * math.cos(ld) + ciq * math.sin(ld)
+            cs[CS_IQ_I] = -cid * math.sin(ld) + ciq * math.cos(ld)
+            th = wrap_angle(th + ld)
+            cs[CS_TH_IF] = wrap_angle(th + we * ts)
+            id_ref = cp[CP_IF_I] + id_inj
+            iq_ref = 0.0
+        else:
+            # speed PI -> i_q*
+            w_err = w_ref_m - w_m_fb
+            u = pi_output(cp[CP_KP_W], cs[CS_W_I], w_err)
+            u_sat = min(max(u, -cp[CP_IMAX]), cp[CP_IMAX])
+            cs[CS_W_I] = pi_update(cs[CS_W_I], cp[CP_KI_W], ts, w_err, u, u_sat)
+            iq_ref = u_sat
+            cs[CS_MODE] = MODE_CLOSED_LOOP
+
+    # ---------------------------------------------------------------- current loops
+    c_t = math.cos(th)
+    s_t = math.sin(th)
+    i_d, i_q = park(ia, ib, c_t, s_t)
+    lh = cp[CP_L]
+    ed = id_ref - i_d
+    eq = iq_ref - i_q
+    dec = cp[CP_DECOUPLE]
+    vd_u = pi_output(cp[CP_KP_I], cs[CS_ID_I], ed) - dec * we * lh * iq_ref
+    vq_u = pi_output(cp[CP_KP_I], cs[CS_IQ_I], eq) + dec * we * (lh * id_ref + cp[CP_LAM])
+    th_adv = th + cp[CP_ADV] * ts * we
+    c_a = math.cos(th_adv)
+    s_a = math.sin(th_adv)
+    va, vb = inv_park(vd_u, vq_u, c_a, s_a)
+    da, db, dc, scale = _svpwm(va, vb, vdc)
+    vd_s = vd_u * scale
+    vq_s = vq_u * scale
+    cs[CS_ID_I] = pi_update(cs[CS_ID_I], cp[CP_KI_I], ts, ed, vd_u, vd_s)
+    cs[CS_IQ_I] = pi_update(cs[CS_IQ_I], cp[CP_KI_I], ts, eq, vq_u, vq_s)
+    if cp[CP_TDCOMP] > 0.0:
+        # deadtime feed-forward on the reference current's sign per phase
+        ra, rb = inv_park(id_ref, iq_ref, c_a, s_a)
+        xa, xb, xc = inv_clarke(ra, rb)
+        dd = cp[CP_TDCOMP] / ts
+        da += dd * (1.0 if xa > 0.0 else -1.0)
+        db += dd * (1.0 if xb > 0.0 else -1.0)
+        dc += dd * (1.0 if xc > 0.0 else -1.0)
+    out[CO_DA] = min(max(da, 0.0), 1.0)
+    out[CO_DB] = min(max(db, 0.0), 1.0)
+    out[CO_DC] = min(max(dc, 0.0), 1.0)
+    out[CO_EN] = 1.0
+    out[CO_ID] = i_d
+    out[CO_IQ] = i_q
+    out[CO_ID_REF] = id_ref
+    out[CO_IQ_REF] = iq_ref
+    out[CO_VD] = vd_s
+    out[CO_VQ] = vq_s
+    out[CO_W_FB] = w_m_fb
+    out[CO_TH] = th
+    out[CO_MODE] = cs[CS_MODE]
+    out[CO_FAULT] = 0.0
+
+
+# ====================================================================== design
+def _current_loop_tf(kp: float, ki: float, r: float, lind: float, ts: float, f_hz: np.ndarray):
+    """Discrete closed loop i/i* at f: ZOH RL plant, one period of computation delay,
+    PI with forward-Euler integral (as implemented in controller_step)."""
+    z = np.exp(1j * 2 * np.pi * f_hz * ts)
+    a = math.exp(-r * ts / lind)
+    b = (1 - a) / r if r > 0 else ts / lind
+    plant = b / (z - a) / z  # one period of delay: duty(k) acts over [k+1, k+2]
+    ctrl = kp + ki * ts / (z - 1)  # integral term uses past errors (output, then update)
+    loop = ctrl * plant
+    return loop / (1 + loop)
+
+
+def _bandwidth_from_tf(tf_fn, f_lo: float, f_hi: float) -> float:
+    f = np.geomspace(f_lo, f_hi, 4000)
+    mag = np.abs(tf_fn(f))
+    below = np.nonzero(mag < 1 / math.sqrt(2))[0]
+    return float(f[below[0]]) if below.size else float(f_hi)
+
+
+def design_current_loop(card: MachineCard, bandwidth_hz: float, r_hat: float | None = None,
+                        l_hat: float | None = None) -> tuple[float, float]:
+    """(K_p [V/A], K_i [V/(A s)]) giving the requested -3 dB bandwidth of i_d/i_d*."""
+    r = card.resistance_ohm if r_hat is None else r_hat
+    lind = card.inductance_h if l_hat is None else l_hat
+    ts = card.ts_s
+    w = 2 * math.pi * bandwidth_hz
+    nyq = 0.5 / ts
+
+    def bw(g: float) -> float:
+        return _bandwidth_from_tf(
+            lambda f: _current_loop_tf(g * lind * w, g * r * w, r, lind, ts, f), 1.0, nyq)
+
+    lo, hi = 0.05, 2.0
+    if bw(hi) < bandwidth_hz:
+        raise ConfigError(f"current-loop bandwidth {bandwidth_hz} Hz is not reachable at "
+                          f"{card.pwm_hz} Hz PWM with the 1.5-period delay")
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        if bw(mid) < bandwidth_hz:
+            lo = mid
+        else:
+            hi = mid
+    g = 0.5 * (lo + hi)
+    return g * lind * w, g * r * w
+
+
+def speed_feedback_tf(s: np.ndarray, pll_hz: float, damping: float, lpf_hz: float):
+    """Speed estimate / true speed of a type-2 PLL's frequency (integrator) output,
+    w_n^2/(s^2 + 2 zeta w_n s + w_n^2), times an optional first-order speed LPF."""
+    wn = 2 * math.pi * pll_hz
+    h = wn * wn / (s * s + 2 * damping * wn * s + wn * wn)
+    if lpf_hz > 0:
+        wl = 2 * math.pi * lpf_hz
+        h = h * wl / (s + wl)
+    return h
+
+
+def design_speed_loop(card: MachineCard, bandwidth_hz: float, current_bw_hz: float,
+                      zero_ratio: float = 0.25, feedback_pll_hz: float | None = None,
+                      feedback_damping: float = 1.0, feedback_lpf_hz: float = 0.0
+                      ) -> tuple[float, float]:
+    """(K_p [A s/rad], K_i [A/rad]) of the speed PI for a -3 dB bandwidth of w/w*;
+    plant K_t/(J s + B), current loop as a first-order lag at its bandwidth, the speed
+    feedback through the position source's PLL (and LPF) when given, integral zero at
+    zero_ratio times the bandwidth.  Modelling the feedback path matters: a 25 Hz PLL costs
+    ~40 deg at 10 Hz, and a design that ignores it peaks by several dB."""
+    kt = card.torque_constant_nm_per_a
+    j = card.inertia_kgm2
+    bv = card.viscous_nms
+    wb = 2 * math.pi * bandwidth_hz
+    wi = 2 * math.pi * current_bw_hz
+
+    def tf(g: float, f: np.ndarray):
+        s = 1j * 2 * np.pi * f
+        kp = g * j * wb / kt
+        ki = kp * wb * zero_ratio
+        fwd = (kp + ki / s) * kt / (j * s + bv) * wi / (s + wi)
+        h = (speed_feedback_tf(s, feedback_pll_hz, feedback_damping, feedback_lpf_hz)
+             if feedback_pll_hz else 1.0)
+        return fwd / (1 + fwd * h)
+
+    lo, hi = 0.05, 5.0
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        if _bandwidth_from_tf(lambda f, m=mid: tf(m, f), 0.01, 5e3) < bandwidth_hz:
+            lo = mid
+        else:
+            hi = mid
+    g = 0.5 * (lo + hi)
+    kp = g * j * wb / kt
+    return kp, kp * wb * zero_ratio
+
+
+@dataclass
+class ControllerConfig:
+    """FOC settings; gains derive from bandwidths and the controller's own model of the
+    machine (r_hat/l_hat/lambda_hat default to the machine card)."""
+
+    position_source: str = "encoder"  # 'encoder' or 'estimate'
+    current_bandwidth_hz: float = 1000.0
+    speed_bandwidth_hz: float = 10.0
+    current_limit_pu: float = 2.0  # |i_q*| limit, per unit of rated current
+    angle_advance_periods: float = 1.5
+    deadtime_comp_s: float = 0.0
+    decoupling: bool = True
+    align_time_s: float = 0.15
+    align_current_pu: float = 0.8
+    if_current_pu: float = 1.0
+    if_accel_rpm_s: float = 600.0
+    handover_rpm: float = 30.0
+    handback_rpm: float = 20.0
+    encoder_pll_hz: float = 150.0
+    speed_feedback_lpf_hz: float = 20.0  # only for display/metrics, not in the loop
+    # the driving observer's speed path, for the speed-loop design (set from the scenario's
+    # driving observer; None: ideal feedback)
+    speed_observer_pll_hz: float | None = None
+    speed_observer_damping: float = 1.0
+    speed_observer_lpf_hz: float = 0.0
+    overcurrent_pu: float = 2.1  # instantaneous trip on any sampled phase current, pu of rated
+    overspeed_pu: float = 1.5
+    vdc_min_v: float = 20.0
+    vdc_max_v: float = 95.0
+    invalid_timeout_s: float = 0.05
+    handover_dwell_s: float = 0.3  # estimate valid and agreeing with the ramp this long (the
+    # paper observer's compensation frequency settles in ~0.3 s)
+    i2t_limit_pu2s: float = 10.0  # I2t trip: integral of ((i/I_rated)^2-1) dt (150 % for 8 s)
+    r_hat_ohm: float | None = None
+    l_hat_h: float | None = None
+    lambda_hat_vs: float | None = None
+
+    def validate(self, src: str = "control") -> ControllerConfig:
+        """Every field checked for type and range; the message names the key and rule."""
+        for key, (lo, hi) in CONTROL_RANGES.items():
+            v = getattr(self, key)
+            if v is None and key.startswith(("r_hat", "l_hat", "lambda_hat", "speed_observer_pll")):
+                continue
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not lo <= v <= hi:
+                raise ConfigError(f"{src}: {key} must be a number in [{lo}, {hi}], got {v!r}")
+        if not isinstance(self.decoupling, bool):
+            raise ConfigError(f"{src}: decoupling must be true/false, got {self.decoupling!r}")
+        return self
+
+    def to_params(self, card: MachineCard) -> np.ndarray:
+        self.validate()
+        if self.current_bandwidth_hz >= 0.25 * card.pwm_hz:
+            raise ConfigError(f"control: current_bandwidth_hz {self.current_bandwidth_hz} must "
+                              f"be below a quarter of the PWM frequency ({card.pwm_hz} Hz)")
+        if self.position_source not in ("encoder", "estimate"):
+            raise ConfigError(f"position_source must be 'encoder' or 'estimate', got "
+                              f"'{self.position_source}'")
+        if self.handback_rpm >= self.handover_rpm:
+            raise ConfigError("handback_rpm must be below handover_rpm (hysteresis)")
+        cp = np.zeros(CP_N)
+        lind = card.inductance_h if self.l_hat_h is None else self.l_hat_h
+        r = card.resistance_ohm if self.r_hat_ohm is None else self.r_hat_ohm
+        lam = card.flux_linkage_vs if self.lambda_hat_vs is None else self.lambda_hat_vs
+        kp_i, ki_i = design_current_loop(card, self.current_bandwidth_hz, r, lind)
+        if self.position_source == "encoder":
+            fb = (self.encoder_pll_hz, 1.0, 0.0)
+        else:
+            fb = (self.speed_observer_pll_hz, self.speed_observer_damping,
+                  self.speed_observer_lpf_hz)
+        kp_w, ki_w = design_speed_loop(card, self.speed_bandwidth_hz, self.current_bandwidth_hz,
+                                       feedback_pll_hz=fb[0], feedback_damping=fb[1],
+                                       feedback_lpf_hz=fb[2])
+        rpm = 2 * math.pi / 60
+        cp[CP_TS] = card.ts_s
+        cp[CP_P] = card.pole_pairs
+        cp[CP_L] = lind
+        cp[CP_LAM] = lam
+        cp[CP_KP_I] = kp_i
+        cp[CP_KI_I] = ki_i
+        cp[CP_KP_W] = kp_w
+        cp[CP_KI_W] = ki_w
+        cp[CP_IMAX] = self.current_limit_pu * card.rated_current_a
+        cp[CP_ADV] = self.angle_advance_periods
+        cp[CP_TDCOMP] = self.deadtime_comp_s
+        cp[CP_SRC] = SRC_ENCODER if self.position_source == "encoder" else SRC_ESTIMATE
+        cp[CP_ALIGN_T] = self.align_time_s
+        cp[CP_ALIGN_I] = self.align_current_pu * card.rated_current_a
+        cp[CP_IF_I] = self.if_current_pu * card.rated_current_a
+        cp[CP_IF_ACC] = self.if_accel_rpm_s * rpm
+        cp[CP_HANDOVER] = self.handover_rpm * rpm
+        cp[CP_HANDBACK] = self.handback_rpm * rpm
+        kp, ki = pll_gains(self.encoder_pll_hz, 1.0)
+        cp[CP_ENC_KP] = kp
+        cp[CP_ENC_KI] = ki
+        cp[CP_ENC_CPR] = 4.0 * card.encoder_lines
+        cp[CP_OC_TRIP] = self.overcurrent_pu * card.rated_current_a
+        cp[CP_OS_TRIP] = self.overspeed_pu * card.rated_speed_rad_s
+        cp[CP_VDC_MIN] = self.vdc_min_v
+        cp[CP_VDC_MAX] = self.vdc_max_v
+        cp[CP_DECOUPLE] = 1.0 if self.decoupling else 0.0
+        cp[CP_WFB_LPF] = 2 * math.pi * self.speed_feedback_lpf_hz
+        cp[CP_INV_TIMEOUT] = self.invalid_timeout_s
+        cp[CP_HANDOVER_DWELL] = self.handover_dwell_s
+        cp[CP_I2T_LIMIT] = self.i2t_limit_pu2s
+        cp[CP_IRATED] = card.rated_current_a
+        return cp
+
+
+CONTROL_RANGES: dict[str, tuple[float, float]] = {
+    "current_bandwidth_hz": (10.0, 5000.0), "speed_bandwidth_hz": (0.1, 200.0),
+    "current_limit_pu": (0.05, 3.0), "angle_advance_periods": (0.0, 3.0),
+    "deadtime_comp_s": (0.0, 1e-4), "align_time_s": (0.0, 10.0),
+    "align_current_pu": (0.0, 2.0), "if_current_pu": (0.0, 2.0),
+    "if_accel_rpm_s": (1.0, 1e5), "handover_rpm": (0.1, 1e5), "handback_rpm": (0.0, 1e5),
+    "encoder_pll_hz": (1.0, 2000.0), "speed_feedback_lpf_hz": (0.1, 2000.0),
+    "overcurrent_pu": (0.1, 5.0), "overspeed_pu": (0.1, 5.0), "vdc_min_v": (0.0, 1e4),
+    "vdc_max_v": (1.0, 1e4), "invalid_timeout_s": (1e-4, 10.0),
+    "handover_dwell_s": (0.0, 10.0), "i2t_limit_pu2s": (0.01, 1e4),
+    "r_hat_ohm": (0.0, 1e3), "l_hat_h": (1e-7, 10.0), "lambda_hat_vs": (1e-6, 10.0),
+    "speed_observer_pll_hz": (0.1, 2000.0), "speed_observer_damping": (0.1, 5.0),
+    "speed_observer_lpf_hz": (0.0, 2000.0),
+}
+
+
+def current_loop_bandwidth_hz(card: MachineCard, kp: float, ki: float) -> float:
+    """-3 dB bandwidth of the discrete current-loop model for given gains."""
+    r, lind, ts = card.resistance_ohm, card.inductance_h, card.ts_s
+    return _bandwidth_from_tf(lambda f: _current_loop_tf(kp, ki, r, lind, ts, f), 1.0, 0.5 / ts)
+
+

@@ -1,0 +1,415 @@
+"""SPM machine, two-level inverter with deadtime, and sensors, simulated at switching level.
+
+Conventions (BRIEF sec. 3): sample k is at t_k = k Ts (carrier valley).  `plant_advance`
+simulates the period [t_k, t_{k+1}] with the duty it is given (the duty the controller
+computed from frame k-1), then samples frame k+1: currents at t_{k+1}, the captured line
+voltages averaged over [t_k, t_{k+1}] and the duty that was applied over that period.
+
+Inside each period the carrier-comparison instants of the three legs, each with its
+deadtime window, split the period into up to 13 segments of constant leg state.  Across a
+segment the stator equation  L di/dt = v - R i - e(theta)  is solved exactly (RL step
+response, EMF at the segment midpoint).  In a deadtime window the leg voltage follows the
+sign of its phase current (i > 0: lower diode, leg at 0; i < 0: upper diode, leg at Vdc),
+so those segments are sub-stepped and the sign is re-checked at every sub-step.
+The motor neutral floats: the amplitude-invariant Clarke transform removes the common mode.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from fluxdrive.core.blocks import pwl, rng_normal
+from fluxdrive.core.machine import MachineCard
+from fluxdrive.core.transforms import SQRT3, clarke, inv_clarke
+
+# ---- machine/inverter/sensor parameter vector (MP_*)
+MP_R, MP_L, MP_LAM, MP_P, MP_J, MP_B, MP_VDC, MP_TS, MP_TD, MP_VDEV = range(10)
+MP_H5, MP_H7, MP_SAT, MP_IRATED = range(10, 14)
+MP_ADC_LSB, MP_ADC_RANGE, MP_NOISE = range(14, 17)
+MP_OFF_A, MP_OFF_B, MP_OFF_C, MP_GAIN_A, MP_GAIN_B, MP_GAIN_C = range(17, 23)
+MP_CAP_LEVELS, MP_VDC_LSB, MP_VDC_RANGE, MP_VDC_NOISE, MP_ENC_CPR = range(23, 28)
+MP_DEAD_SUBSTEPS, MP_VDC_GAIN = range(28, 30)
+MP_N = 30
+
+# ---- plant state vector (PS_*)
+PS_IA, PS_IB = 0, 1  # true stator current, alpha/beta [A]
+PS_THM, PS_WM = 2, 3  # mechanical angle (unwrapped) [rad], speed [rad/s]
+PS_T, PS_K = 4, 5  # time of the last sample [s], its index
+PS_TE, PS_TL = 6, 7  # average electrical / load torque over the last period [N m]
+PS_N = 8
+
+# ---- frame vector (what the drive's MCU knows at sample k): FR_*
+FR_IA, FR_IB, FR_IC = 0, 1, 2  # sampled phase currents [A]
+FR_VAB, FR_VBC, FR_VCA = 3, 4, 5  # captured line voltages, average over the last period [V]
+FR_VDC = 6  # DC-bus ADC [V]
+FR_DA, FR_DB, FR_DC = 7, 8, 9  # duties applied over the last period
+FR_EN = 10  # 1.0 if PWM was enabled over the last period
+FR_ENC = 11  # cumulative encoder counts
+FR_SEQ = 12  # sample index k
+FR_FLAGS = 13  # status bits (1: current ADC clipped)
+FR_N = 14
+FLAG_CLIP = 1
+
+# ---- truth vector (simulation only): TR_*
+TR_THETA_E, TR_WM, TR_TE, TR_TL, TR_IA, TR_IB, TR_IC, TR_T = range(8)
+TR_N = 8
+
+LEG_BOTTOM, LEG_TOP, LEG_DIODE = 0, 1, 2
+
+
+def machine_params(card: MachineCard, current_offset_a=(0.0, 0.0, 0.0),
+                   current_gain=(1.0, 1.0, 1.0), dead_substeps: int = 4,
+                   deadtime_s: float | None = None, dc_bus_v: float | None = None,
+                   vdc_adc_gain: float = 1.0) -> np.ndarray:
+    """Parameter vector for the plant kernels from a machine card and sensor faults."""
+    mp = np.zeros(MP_N)
+    mp[MP_R] = card.resistance_ohm
+    mp[MP_L] = card.inductance_h
+    mp[MP_LAM] = card.flux_linkage_vs
+    mp[MP_P] = card.pole_pairs
+    mp[MP_J] = card.inertia_kgm2
+    mp[MP_B] = card.viscous_nms
+    mp[MP_VDC] = card.dc_bus_v if dc_bus_v is None else dc_bus_v
+    mp[MP_TS] = card.ts_s
+    mp[MP_TD] = card.deadtime_s if deadtime_s is None else deadtime_s
+    mp[MP_VDEV] = card.device_drop_v
+    mp[MP_H5] = card.flux_h5
+    mp[MP_H7] = card.flux_h7
+    mp[MP_SAT] = card.saturation
+    mp[MP_IRATED] = card.rated_current_a
+    mp[MP_ADC_RANGE] = card.current_range_a
+    mp[MP_ADC_LSB] = 2.0 * card.current_range_a / 2 ** card.current_adc_bits
+    mp[MP_NOISE] = card.current_noise_a
+    mp[MP_OFF_A:MP_OFF_C + 1] = current_offset_a
+    mp[MP_GAIN_A:MP_GAIN_C + 1] = current_gain
+    mp[MP_CAP_LEVELS] = 2.0 ** card.capture_bits
+    mp[MP_VDC_RANGE] = card.dc_bus_range_v
+    mp[MP_VDC_LSB] = card.dc_bus_range_v / 2 ** card.dc_bus_adc_bits
+    mp[MP_VDC_NOISE] = card.dc_bus_noise_v
+    mp[MP_ENC_CPR] = 4.0 * card.encoder_lines
+    mp[MP_DEAD_SUBSTEPS] = dead_substeps
+    mp[MP_VDC_GAIN] = vdc_adc_gain
+    return mp
+
+
+def plant_state(theta_e0_rad: float = 0.0, omega_m0: float = 0.0, pole_pairs: int = 4):
+    st = np.zeros(PS_N)
+    st[PS_THM] = theta_e0_rad / pole_pairs
+    st[PS_WM] = omega_m0
+    return st
+
+
+# ------------------------------------------------------------------ machine equations
+@njit(cache=True, inline="always")
+def _magnet_flux_derivative(mp, th):
+    """d(lambda_pm)/d(theta_e) as alpha/beta, including optional 5th/7th harmonics.
+    lambda_pm(th) = lam [e^{j th} + h5 e^{-j5 th} + h7 e^{j7 th}]."""
+    lam = mp[MP_LAM]
+    h5 = mp[MP_H5]
+    h7 = mp[MP_H7]
+    # j e^{j th} = (-sin, cos)
+    da = -math.sin(th)
+    db = math.cos(th)
+    if h5 != 0.0 or h7 != 0.0:
+        # d/dth of h5 e^{-j5th} = -5j h5 e^{-j5th} = -5 h5 (sin5th, cos5th)... as (re, im):
+        s5 = math.sin(5.0 * th)
+        c5 = math.cos(5.0 * th)
+        s7 = math.sin(7.0 * th)
+        c7 = math.cos(7.0 * th)
+        da += -5.0 * h5 * s5 - 7.0 * h7 * s7
+        db += -5.0 * h5 * c5 + 7.0 * h7 * c7
+    return lam * da, lam * db
+
+
+@njit(cache=True, inline="always")
+def _inductance(mp, ia, ib):
+    sat = mp[MP_SAT]
+    if sat == 0.0:
+        return mp[MP_L]
+    x = (ia * ia + ib * ib) / (mp[MP_IRATED] * mp[MP_IRATED])
+    return mp[MP_L] * max(1.0 - sat * x, 0.3)
+
+
+@njit(cache=True, inline="always")
+def _sgn(x):
+    if x > 0.0:
+        return 1.0
+    if x < 0.0:
+        return -1.0
+    return 0.0
+
+
+@njit(cache=True, inline="always")
+def _leg_voltage(state, i_phase, vdc, vdev):
+    """Leg-to-negative-rail voltage for a leg state and its phase current.
+    Returns (real voltage incl. device drops, ideal level seen by the capture timer)."""
+    if state == LEG_TOP:
+        return vdc - vdev * _sgn(i_phase), vdc
+    if state == LEG_BOTTOM:
+        return -vdev * _sgn(i_phase), 0.0
+    # both switches off: the freewheeling diode picked by the current sign conducts
+    if i_phase > 0.0:
+        return -vdev, 0.0
+    if i_phase < 0.0:
+        return vdc + vdev, vdc
+    return 0.5 * vdc, 0.5 * vdc  # no current: the leg floats (only exactly at i = 0)
+
+
+@njit(cache=True, inline="always")
+def _leg_state(t, t1, t2, td, enabled):
+    """Centre-aligned leg: top gate on over [t1+td, t2], bottom gate on outside
+    [t1, t2+td]; in between neither conducts (deadtime)."""
+    if not enabled:
+        return LEG_DIODE
+    if t < t1 or t >= t2 + td:
+        return LEG_BOTTOM
+    if t >= t1 + td and t < t2:
+        return LEG_TOP
+    return LEG_DIODE
+
+
+@njit(cache=True)
+def _insertion_sort(a, n):
+    for i in range(1, n):
+        x = a[i]
+        j = i - 1
+        while j >= 0 and a[j] > x:
+            a[j + 1] = a[j]
+            j -= 1
+        a[j + 1] = x
+
+
+@njit(cache=True)
+def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out):
+    """Integrate [t_k, t_k + Ts] at switching level.  Writes the line volt-seconds
+    (real and ideal-level) into vs_out[0:6]; updates currents, speed, angle."""
+    ts = mp[MP_TS]
+    td = mp[MP_TD]
+    vdc = mp[MP_VDC]
+    vdev = mp[MP_VDEV]
+    r = mp[MP_R]
+    p = mp[MP_P]
+    n_sub = int(mp[MP_DEAD_SUBSTEPS])
+    half = 0.5 * ts
+    t1a = (1.0 - da) * half
+    t2a = (1.0 + da) * half
+    t1b = (1.0 - db) * half
+    t2b = (1.0 + db) * half
+    t1c = (1.0 - dc) * half
+    t2c = (1.0 + dc) * half
+    n = 0
+    ev[n] = 0.0
+    n += 1
+    if enabled:
+        for tx in (t1a, t1a + td, t2a, t2a + td, t1b, t1b + td, t2b, t2b + td,
+                   t1c, t1c + td, t2c, t2c + td):
+            if 0.0 < tx < ts:
+                ev[n] = tx
+                n += 1
+    ev[n] = ts
+    n += 1
+    _insertion_sort(ev, n)
+
+    ia = st[PS_IA]
+    ib = st[PS_IB]
+    wm = st[PS_WM]
+    thm0 = st[PS_THM]
+    we = p * wm
+    lind = _inductance(mp, ia, ib)
+    for j in range(6):
+        vs_out[j] = 0.0
+    te_int = 0.0
+    zero_lock = (not enabled) and (ia * ia + ib * ib) < 1e-6
+    for s in range(n - 1):
+        ta = ev[s]
+        tb = ev[s + 1]
+        h = tb - ta
+        if h <= 1e-15:
+            continue
+        tm = 0.5 * (ta + tb)
+        sa = _leg_state(tm, t1a, t2a, td, enabled)
+        sb = _leg_state(tm, t1b, t2b, td, enabled)
+        sc = _leg_state(tm, t1c, t2c, td, enabled)
+        nsub = 1
+        if sa == LEG_DIODE or sb == LEG_DIODE or sc == LEG_DIODE:
+            nsub = n_sub
+        hs = h / nsub
+        a_rl = math.exp(-r * hs / lind)
+        for u in range(nsub):
+            tmid = ta + (u + 0.5) * hs
+            th = p * (thm0 + wm * tmid)
+            ea, eb = _magnet_flux_derivative(mp, th)
+            ea *= we
+            eb *= we
+            if zero_lock:
+                # PWM off, no current, EMF below the bus: all diodes block, legs float.
+                pa, pb, pc = inv_clarke(ea, eb)
+                va0 = pa + 0.5 * vdc
+                vb0 = pb + 0.5 * vdc
+                vc0 = pc + 0.5 * vdc
+                qa, qb, qc = va0, vb0, vc0
+                if max(pa, pb, pc) - min(pa, pb, pc) < vdc:
+                    vs_out[0] += (va0 - vb0) * hs
+                    vs_out[1] += (vb0 - vc0) * hs
+                    vs_out[2] += (vc0 - va0) * hs
+                    vs_out[3] += (qa - qb) * hs
+                    vs_out[4] += (qb - qc) * hs
+                    vs_out[5] += (qc - qa) * hs
+                    continue
+                zero_lock = False
+            iph_a, iph_b, iph_c = inv_clarke(ia, ib)
+            va0, qa = _leg_voltage(sa, iph_a, vdc, vdev)
+            vb0, qb = _leg_voltage(sb, iph_b, vdc, vdev)
+            vc0, qc = _leg_voltage(sc, iph_c, vdc, vdev)
+            va, vb = clarke(va0, vb0, vc0)
+            if r > 0.0:
+                ia_n = a_rl * ia + (1.0 - a_rl) * (va - ea) / r
+                ib_n = a_rl * ib + (1.0 - a_rl) * (vb - eb) / r
+            else:
+                ia_n = ia + hs * (va - ea) / lind
+                ib_n = ib + hs * (vb - eb) / lind
+            # torque from d(lambda_pm)/d(theta) x i (power balance), average current
+            dla, dlb = _magnet_flux_derivative(mp, th)
+            te_int += 1.5 * p * (dla * 0.5 * (ia + ia_n) + dlb * 0.5 * (ib + ib_n)) * hs
+            if not enabled:
+                # diode commutation ends when a phase current reaches zero: clamp
+                na, nb, nc = inv_clarke(ia_n, ib_n)
+                if na * iph_a < 0.0 or nb * iph_b < 0.0 or nc * iph_c < 0.0:
+                    ia_n = 0.0
+                    ib_n = 0.0
+                    zero_lock = True
+            ia = ia_n
+            ib = ib_n
+            vs_out[0] += (va0 - vb0) * hs
+            vs_out[1] += (vb0 - vc0) * hs
+            vs_out[2] += (vc0 - va0) * hs
+            vs_out[3] += (qa - qb) * hs
+            vs_out[4] += (qb - qc) * hs
+            vs_out[5] += (qc - qa) * hs
+    te = te_int / ts
+    # mechanics over the period (semi-implicit in the viscous term)
+    tl = t_load
+    j = mp[MP_J]
+    bv = mp[MP_B]
+    wm_new = (wm * (j / ts) + te - tl) / (j / ts + bv)
+    st[PS_THM] = thm0 + 0.5 * (wm + wm_new) * ts
+    st[PS_WM] = wm_new
+    st[PS_IA] = ia
+    st[PS_IB] = ib
+    st[PS_TE] = te
+    st[PS_TL] = tl
+
+
+@njit(cache=True)
+def _adc(x, lsb, full_scale):
+    q = math.floor(x / lsb + 0.5) * lsb
+    if q > full_scale:
+        return full_scale, True
+    if q < -full_scale:
+        return -full_scale, True
+    return q, False
+
+
+@njit(cache=True)
+def _sample(st, mp, rng, vs, da, db, dc, enabled, frame, truth):
+    """Fill frame/truth for the sample at the end of the period just simulated."""
+    ts = mp[MP_TS]
+    ia_t, ib_t, ic_t = inv_clarke(st[PS_IA], st[PS_IB])
+    noise = mp[MP_NOISE]
+    lsb = mp[MP_ADC_LSB]
+    rng_ = mp[MP_ADC_RANGE]
+    flags = 0
+    n0 = rng_normal(rng) * noise if noise > 0.0 else 0.0
+    n1 = rng_normal(rng) * noise if noise > 0.0 else 0.0
+    n2 = rng_normal(rng) * noise if noise > 0.0 else 0.0
+    x, c0 = _adc(mp[MP_GAIN_A] * ia_t + mp[MP_OFF_A] + n0, lsb, rng_)
+    frame[FR_IA] = x
+    x, c1 = _adc(mp[MP_GAIN_B] * ib_t + mp[MP_OFF_B] + n1, lsb, rng_)
+    frame[FR_IB] = x
+    x, c2 = _adc(mp[MP_GAIN_C] * ic_t + mp[MP_OFF_C] + n2, lsb, rng_)
+    frame[FR_IC] = x
+    if c0 or c1 or c2:
+        flags |= 1
+    # DC bus ADC
+    vdc = mp[MP_VDC]
+    vn = rng_normal(rng) * mp[MP_VDC_NOISE] if mp[MP_VDC_NOISE] > 0.0 else 0.0
+    vlsb = mp[MP_VDC_LSB]
+    vdc_meas = min(max(math.floor((vdc * mp[MP_VDC_GAIN] + vn) / vlsb + 0.5) * vlsb, 0.0),
+                   mp[MP_VDC_RANGE])
+    frame[FR_VDC] = vdc_meas
+    # capture timer: high time of each line-to-line PWM voltage, 2^bits counts a period,
+    # scaled by the measured bus; device drops are invisible to it.
+    levels = mp[MP_CAP_LEVELS]
+    for j in range(3):
+        frac = vs[3 + j] / (ts * vdc)
+        frame[FR_VAB + j] = math.floor(frac * levels + 0.5) / levels * vdc_meas
+    frame[FR_DA] = da
+    frame[FR_DB] = db
+    frame[FR_DC] = dc
+    frame[FR_EN] = 1.0 if enabled else 0.0
+    frame[FR_ENC] = math.floor(st[PS_THM] / (2.0 * math.pi) * mp[MP_ENC_CPR])
+    frame[FR_SEQ] = st[PS_K]
+    frame[FR_FLAGS] = flags
+    truth[TR_THETA_E] = (mp[MP_P] * st[PS_THM]) % (2.0 * math.pi)
+    truth[TR_WM] = st[PS_WM]
+    truth[TR_TE] = st[PS_TE]
+    truth[TR_TL] = st[PS_TL]
+    truth[TR_IA] = ia_t
+    truth[TR_IB] = ib_t
+    truth[TR_IC] = ic_t
+    truth[TR_T] = st[PS_T]
+
+
+LD_DYNO, LD_BRAKE_BAND = 0, 1  # load_cfg: [dyno N m s/rad, brake speed band rad/s]
+
+
+@njit(cache=True)
+def load_torque(t, wm, load_t, load_y, load_cfg):
+    """Load torque [N m] opposing positive speed: a piecewise-linear profile (constant,
+    step, ramp) plus a speed-proportional dyno term.  With a brake band > 0 the profile
+    torque acts as a passive brake (hysteresis dyno): it opposes the motion and fades
+    linearly to zero inside +-band, so it can stop the rotor but never drive it backwards.
+    With band = 0 it is an active torque (a dyno in torque mode)."""
+    tl = pwl(load_t, load_y, t)
+    band = load_cfg[LD_BRAKE_BAND]
+    if band > 0.0:
+        tl *= min(max(wm / band, -1.0), 1.0)
+    return tl + load_cfg[LD_DYNO] * wm
+
+
+@njit(cache=True)
+def plant_initial_frame(st, mp, rng, frame, truth):
+    """Frame 0 (t = 0): currents sampled, no voltage history, PWM off."""
+    vs = np.zeros(6)
+    st[PS_T] = 0.0
+    st[PS_K] = 0.0
+    _sample(st, mp, rng, vs, 0.5, 0.5, 0.5, False, frame, truth)
+
+
+@njit(cache=True)
+def plant_advance(st, mp, rng, duty, enabled, load_t, load_y, load_cfg, frame, truth):
+    """Simulate one PWM period with `duty` (3 values in [0, 1]) and sample the next frame."""
+    ev = np.empty(16)
+    vs = np.empty(6)
+    da = min(max(duty[0], 0.0), 1.0)
+    db = min(max(duty[1], 0.0), 1.0)
+    dc = min(max(duty[2], 0.0), 1.0)
+    tl = load_torque(st[PS_T], st[PS_WM], load_t, load_y, load_cfg)
+    _simulate_period(st, mp, da, db, dc, enabled, tl, ev, vs)
+    st[PS_K] += 1.0
+    st[PS_T] = st[PS_K] * mp[MP_TS]
+    _sample(st, mp, rng, vs, da, db, dc, enabled, frame, truth)
+
+
+def deadtime_volt_second_loss(vdc_v: float, deadtime_s: float, ts_s: float) -> float:
+    """Expected average per-leg voltage error sign(i) Vdc td/Ts (BRIEF sec. 4)."""
+    return vdc_v * deadtime_s / ts_s
+
+
+__all__ = [n for n in dir() if n.isupper()] + [
+    "machine_params", "plant_state", "plant_advance", "plant_initial_frame", "load_torque",
+    "deadtime_volt_second_loss", "SQRT3",
+]

@@ -1,0 +1,846 @@
+"""The paper's figures (Chen, Chen, Yang 2019): Figs. 2-4, 13, 14, 15/16, 17, 18, 19.
+
+Every experiment returns {"claims": [...], "figures": [...], "data": {...}}; see
+experiments.py for the framework and the claim format.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from fluxdrive.analysis.freqresp import analyse
+from fluxdrive.analysis.metrics import RAD_S_TO_RPM, harmonic, steady_window, whole_periods, wrap
+from fluxdrive.core.transforms import clarke
+from fluxdrive.drive.control import CO_ID, CO_ID_REF, CO_IQ, CO_MODE, MODE_CLOSED_LOOP
+from fluxdrive.drive.observers import (
+    ES_EA,
+    ES_EB,
+    ES_LA,
+    ES_LB,
+    ES_TH,
+    ES_VALID,
+    KernelObserver,
+    observer_config,
+)
+from fluxdrive.drive.plant import FR_IA, FR_IB, FR_IC, TR_IA, TR_IB, TR_IC, TR_THETA_E, TR_WM
+from fluxdrive.experiments.registry import OBS4, build, claim, encoder_run, plt, sensorless
+
+RPM = 2 * math.pi / 60
+LAM = 0.0235
+
+
+def _win(r):
+    w = steady_window(r.t, r.scenario.steady_window_s)
+    return slice(w.k0, w.k1)
+
+
+def theta_err(r, name):
+    return wrap(r.estimate(name)[:, ES_TH] - r.truth[:, TR_THETA_E])
+
+
+def harmonic_residual_rms(x: np.ndarray, theta_unw: np.ndarray, orders=range(0, 21)) -> float:
+    """RMS of x after removing its orders 0..20 against the rotor angle: the broadband
+    noise part (what the paper calls the SNR of theta~)."""
+    sl = whole_periods(theta_unw)
+    x, th = x[sl], theta_unw[sl]
+    y = x - np.mean(x)
+    for n in orders:
+        if n == 0:
+            continue
+        c = harmonic(y, th, n)
+        y = y - np.real(c * np.exp(1j * n * th))
+    return float(np.sqrt(np.mean(y ** 2)))
+
+
+def _dec(x, n=3000):
+    return x[:: max(1, len(x) // n)]
+
+
+# ======================================================================== Fig. 14
+def _x_fig14(r, m, show_s=0.5):
+    sl = _win(r)
+    th = r.truth[sl, TR_THETA_E]
+    thu = np.unwrap(th)
+    out = {"metrics": m, "noise": {}}
+    n_show = int(show_s / r.scenario.machine.ts_s)
+    series = {"t": _dec(r.t[sl][-n_show:]), "theta": _dec(th[-n_show:])}
+    for nm in r.names:
+        e = theta_err(r, nm)[sl]
+        out["noise"][nm] = math.degrees(harmonic_residual_rms(e, thu))
+        series[nm] = _dec(np.degrees(e[-n_show:]))
+        series[nm + "_th"] = _dec(r.estimate(nm)[sl, ES_TH][-n_show:])
+    out["series"] = series
+    return out
+
+
+def fig14(ctx):
+    seeds = [1] if ctx.quick else [1, 2, 3]
+    jobs = [(build(base="paper_2pct_150load", seed=s), _x_fig14, None) for s in seeds]
+    res = ctx.run(jobs)
+    names = list(OBS4)
+    rms = {n: [r["metrics"]["observers"][n]["theta_err_rms_deg"] for r in res] for n in names}
+    h6 = {n: [r["metrics"]["observers"][n]["theta_err_h6_deg"] for r in res] for n in names}
+    noise = {n: [r["noise"][n] for r in res] for n in names}
+    stable = [r["metrics"]["stable"] for r in res]
+    avg = {k: {n: float(np.mean(v[n])) for n in names} for k, v in
+           (("rms", rms), ("h6", h6), ("noise", noise))}
+    # figure: (a) commanded, (b) measured; rows theta & theta^_flux, theta~_emf, theta~_flux
+    p = plt()
+    s = res[0]["series"]
+    fig, ax = p.subplots(3, 2, figsize=(11, 7), sharex=True)
+    for c, src in enumerate(("commanded", "measured")):
+        ax[0, c].plot(s["t"], np.degrees(wrap(s["theta"])), lw=0.8, label="θe (encoder)")
+        ax[0, c].plot(s["t"], np.degrees(s[f"flux_{src}_th"]), lw=0.8, label="θ̂ flux")
+        ax[0, c].set_ylabel("angle [deg]")
+        ax[0, c].legend(fontsize=7)
+        ax[0, c].set_title(f"({'ab'[c]}) {src} voltages, 60 rpm, 150 % load")
+        for rr, kind in ((1, "emf"), (2, "flux")):
+            ax[rr, c].plot(s["t"], s[f"{kind}_{src}"], lw=0.6)
+            ax[rr, c].set_ylim(-40, 40)
+            ax[rr, c].set_ylabel(f"θ̃ {kind} [deg]")
+            ax[rr, c].grid(alpha=0.3)
+            ax[rr, c].text(0.01, 0.9, f"RMS {avg['rms'][f'{kind}_{src}']:.2f}°, 6th "
+                           f"{avg['h6'][f'{kind}_{src}']:.2f}°, noise "
+                           f"{avg['noise'][f'{kind}_{src}']:.2f}°",
+                           transform=ax[rr, c].transAxes, fontsize=7)
+        ax[2, c].set_xlabel("time [s]")
+    figs = [ctx.fig(fig, "fig14_theta_error")]
+    a = avg
+    claims = [
+        claim("Commanded voltages: visible deadtime 6th-order harmonic on both θ̃_emf and "
+              "θ̃_flux (Fig. 14a)",
+              f"6th order: emf {a['h6']['emf_commanded']:.1f}°, flux "
+              f"{a['h6']['flux_commanded']:.1f}° (RMS {a['rms']['emf_commanded']:.1f}° / "
+              f"{a['rms']['flux_commanded']:.1f}°)",
+              a["h6"]["emf_commanded"] > 3 and a["h6"]["flux_commanded"] > 3),
+        claim("Commanded voltages: flux-based θ̃ has the better SNR than EMF-based",
+              f"broadband noise (θ̃ minus orders 0-20): flux {a['noise']['flux_commanded']:.2f}° "
+              f"vs emf {a['noise']['emf_commanded']:.2f}°; total RMS "
+              f"{a['rms']['flux_commanded']:.2f}° vs {a['rms']['emf_commanded']:.2f}°",
+              a["noise"]["flux_commanded"] < a["noise"]["emf_commanded"],
+              "The noise part holds; the total RMS nearly ties because the deadtime 5th/7th "
+              "(20-28 Hz at 2 % speed) sit far below the 100 Hz cut-off, where the LPF + "
+              "inverse HPF gives the same 1/(jω) gain as the EMF path: the flux path has no "
+              "integration advantage on those harmonics, only on noise."),
+        claim("Measured voltages: the 6th-order harmonics disappear in both θ̃ (Fig. 14b)",
+              f"6th order: emf {a['h6']['emf_measured']:.2f}°, flux {a['h6']['flux_measured']:.2f}°"
+              f" (commanded: {a['h6']['emf_commanded']:.1f}° / {a['h6']['flux_commanded']:.1f}°)",
+              a["h6"]["emf_measured"] < 0.1 * a["h6"]["emf_commanded"]
+              and a["h6"]["flux_measured"] < 0.1 * a["h6"]["flux_commanded"]),
+        claim("Measured voltages: flux-based θ̃ still has the better SNR",
+              f"noise flux {a['noise']['flux_measured']:.2f}° vs emf "
+              f"{a['noise']['emf_measured']:.2f}°; RMS {a['rms']['flux_measured']:.2f}° vs "
+              f"{a['rms']['emf_measured']:.2f}°",
+              a["noise"]["flux_measured"] < a["noise"]["emf_measured"]
+              and a["rms"]["flux_measured"] < a["rms"]["emf_measured"]),
+        claim("Sensorless flux drive (measured voltages) is stable at 2 % speed, 150 % load",
+              f"stable on {sum(stable)}/{len(stable)} seeds", all(stable)),
+    ]
+    return {"claims": claims, "figures": figs,
+            "data": {"seeds": seeds, "rms_deg": rms, "h6_deg": h6, "noise_deg": noise}}
+
+
+# ======================================================================== Fig. 13
+def _x_locus(r, m):
+    sl = _win(r)
+    we = float(np.mean(r.truth[sl, TR_WM])) * r.scenario.machine.pole_pairs
+    emf = r.estimate("emf_measured")[sl]
+    flx = r.estimate("flux_measured")[sl]
+    e_a, e_b = emf[:, ES_EA], emf[:, ES_EB]
+    n_av = 10  # 1 ms moving average (what a scope at 1 kS/s would show)
+    k = np.ones(n_av) / n_av
+    ea_f, eb_f = np.convolve(e_a, k, "valid"), np.convolve(e_b, k, "valid")
+    re = np.hypot(e_a, e_b)
+    ref = np.hypot(ea_f, eb_f)
+    rf = np.hypot(flx[:, ES_LA], flx[:, ES_LB]) * we
+    thu = np.unwrap(r.truth[sl, TR_THETA_E])
+    mag_h6 = abs(harmonic(rf - rf.mean(), thu, 6)) / rf.mean()
+
+    def rng(x):
+        return [float(np.percentile(x, 0.5)), float(np.percentile(x, 99.5))]
+
+    return {"metrics": m, "we": we, "ripple_rpm": m["speed"]["ripple_rpm"],
+            "emf_raw": rng(re), "emf_1ms": rng(ref), "flux_v": rng(rf),
+            "flux_mean_v": float(rf.mean()), "flux_h6_rel": float(mag_h6),
+            "emf_series": (_dec(ea_f, 4000), _dec(eb_f, 4000)),
+            "emf_raw_series": (_dec(e_a, 4000), _dec(e_b, 4000)),
+            "flux_series": (_dec(flx[:, ES_LA] * we, 4000), _dec(flx[:, ES_LB] * we, 4000))}
+
+
+def fig13(ctx):
+    obs = {k: OBS4[k] for k in ("flux_measured", "emf_measured")}
+    cases = [("no load", 0.0, {}), ("full load", 1.0, {})]
+    if not ctx.quick:
+        cases.append(("full load, 10 % L saturation", 1.0, {"saturation": 0.1}))
+    jobs = [(sensorless(60.0, ld, observers=obs, machine_kw=mk or None, name="fig13"),
+             _x_locus, None) for _, ld, mk in cases]
+    res = ctx.run(jobs)
+    p = plt()
+    fig, ax = p.subplots(2, len(cases), figsize=(3.6 * len(cases), 7.2), squeeze=False)
+    for c, ((lab, _, _), r) in enumerate(zip(cases, res, strict=True)):
+        for row, (key, what) in enumerate((("emf", "ê"), ("flux", "ω·λ̂pm"))):
+            a = ax[row, c]
+            if key == "emf":
+                a.plot(*r["emf_raw_series"], lw=0.3, color="0.75", label="per sample")
+                a.plot(*r["emf_series"], lw=0.5, label="1 ms average")
+                a.legend(fontsize=6, loc="lower right")
+                rr = r["emf_raw"]
+            else:
+                a.plot(*r["flux_series"], lw=0.5)
+                rr = r["flux_v"]
+            a.set_aspect("equal")
+            lim = 1.8
+            a.set_xlim(-lim, lim)
+            a.set_ylim(-lim, lim)
+            a.set_title(f"({'abcdef'[row * len(cases) + c]}) {what}, {lab}\n"
+                        f"radius {rr[0]:.2f}-{rr[1]:.2f} V", fontsize=8)
+            a.set_xlabel("α [V]")
+            a.set_ylabel("β [V]")
+    figs = [ctx.fig(fig, "fig13_loci")]
+    nl, fl = res[0], res[1]
+    claims = [
+        claim("No load, 60 rpm: EMF locus noisy, radius 0.51-0.72 V",
+              f"ê radius {nl['emf_raw'][0]:.2f}-{nl['emf_raw'][1]:.2f} V per sample, "
+              f"{nl['emf_1ms'][0]:.2f}-{nl['emf_1ms'][1]:.2f} V over 1 ms",
+              nl["emf_1ms"][1] - nl["emf_1ms"][0] > 0.1,
+              "(per-sample band: 12-bit current ADC noise times L/Ts = 8 Ω; 1-ms band is "
+              "closer to a scope view)"),
+        claim("Full load: EMF locus distorts, radius 0.45-1.17 V",
+              f"ê radius {fl['emf_raw'][0]:.2f}-{fl['emf_raw'][1]:.2f} V per sample, "
+              f"{fl['emf_1ms'][0]:.2f}-{fl['emf_1ms'][1]:.2f} V over 1 ms",
+              fl["emf_1ms"][1] - fl["emf_1ms"][0] > nl["emf_1ms"][1] - nl["emf_1ms"][0],
+              "with measured voltages and L_d = L_q our EMF locus does not distort under load "
+              "(the R i_q and L di/dt terms are modelled exactly); the paper's 0.45-1.17 V "
+              "needs model error its EMF path does not remove (saturated L, deadtime "
+              "residue)"),
+        claim("No load: flux locus nearly a circle of radius 0.59 V (as ω·λ̂)",
+              f"ω·|λ̂| {nl['flux_v'][0]:.3f}-{nl['flux_v'][1]:.3f} V, mean "
+              f"{nl['flux_mean_v']:.3f} V (speed ripple {nl['ripple_rpm']:.1f} rpm p-p at "
+              f"no load; full load {fl['flux_v'][0]:.3f}-{fl['flux_v'][1]:.3f} V)",
+              abs(nl["flux_mean_v"] - 0.59) < 0.05 and nl["flux_v"][1] - nl["flux_v"][0] < 0.15,
+              "the mean radius is right; at no load the light rotor (J = 1.5e-4) hunts in "
+              "speed and the inverse-HPF compensation, evaluated at a 2 Hz-filtered rotor "
+              "frequency, turns that into |λ̂| ripple; under load the circle is tight"),
+        claim("Full load: flux locus less distorted than the EMF locus",
+              f"flux band {fl['flux_v'][1] - fl['flux_v'][0]:.3f} V vs EMF band "
+              f"{fl['emf_1ms'][1] - fl['emf_1ms'][0]:.3f} V (1 ms average), "
+              f"{fl['emf_raw'][1] - fl['emf_raw'][0]:.2f} V (per sample)",
+              (fl["flux_v"][1] - fl["flux_v"][0]) < (fl["emf_1ms"][1] - fl["emf_1ms"][0])),
+    ]
+    if len(res) > 2:
+        sat = res[2]
+        claims.append(claim(
+            "Full-load flux locus turns hexagonal because of saturation",
+            f"6th order of |λ̂|: {100 * sat['flux_h6_rel']:.2f} % with 10 % L saturation vs "
+            f"{100 * fl['flux_h6_rel']:.2f} % without",
+            sat["flux_h6_rel"] > 1.5 * fl["flux_h6_rel"],
+            "our saturation option lowers L with |i|² only (isotropic): at a steady load |i| "
+            "is constant, so it cannot make a hexagon; the paper's hexagon needs spatial "
+            "saturation or magnet-flux 5th/7th harmonics (card options flux_h5/flux_h7)"))
+    return {"claims": claims, "figures": figs,
+            "data": {lab: {k: v for k, v in r.items() if not k.endswith("series")
+                           and k != "metrics"} for (lab, _, _), r in zip(cases, res, strict=True)}}
+
+
+# ======================================================================== Figs. 2-4
+def _x_frames(r, m):
+    return {"metrics": m, "frames": r.frames, "theta": r.truth[:, TR_THETA_E],
+            "t": r.t, "iq": r.ctrl[:, CO_IQ], "wm": r.truth[:, TR_WM],
+            "win": r.scenario.steady_window_s}
+
+
+def _replay(frames, variant, src, **kw):
+    card = build(duration_s=0.01).machine
+    obs = KernelObserver(observer_config(variant, voltage_source=src, **kw), card)
+    return obs.run(frames)
+
+
+def fig2_4(ctx):
+    from fluxdrive.analysis.metrics import harmonic as H
+
+    pure = {"pure_integrator": {"variant": "pure_integrator", "voltage_source": "measured"}}
+    card_kw = {"inertia_kgm2": 1.5e-2}  # as in the engine test: isolate the estimator
+    jobs = [
+        # Fig. 2 and 4: encoder drive at 60 rpm and 300 rpm, full load, no sensor offsets
+        (encoder_run(60.0, 1.0, observers=pure, window_s=1.0), _x_frames, None),
+        # Fig. 3: 5 % offset on i_b, 60 rpm, no load
+        (build(machine_kw=card_kw, duration_s=2.0, speed_rpm=60.0, steady_window_s=[1.0, 2.0],
+               faults={"current_offset_pu": [0.0, 0.05, 0.0]},
+               observers={"pure": {"variant": "pure_integrator"}, "paper": {"variant": "paper"}}),
+         _x_frames, None),
+    ]
+    if not ctx.quick:
+        jobs.append((encoder_run(300.0, 1.0, observers=pure, window_s=1.0), _x_frames, None))
+    res = ctx.run(jobs)
+    p = plt()
+    claims = []
+    figs = []
+    data = {}
+    # ---- Fig. 2: integration started at theta0 = 45 deg -> DC offset -lambda_s(t0)
+    r = res[0]
+    th = r["theta"]
+    k_start = int(np.searchsorted(r["t"], r["win"][0]))
+    k0 = k_start + int(np.argmin(np.abs(wrap(th[k_start:k_start + 3000] - math.radians(45)))))
+    est = _replay(r["frames"][k0:], "pure_integrator", "measured")
+    n_per = int(round(2 * math.pi / (np.mean(r["wm"][k0:]) * 4) / 1e-4))
+    seg = est[1:1 + 2 * n_per]
+    centre = complex(seg[:, ES_LA].mean(), seg[:, ES_LB].mean())
+    ia, ib = clarke(r["frames"][k0, FR_IA], r["frames"][k0, FR_IB], r["frames"][k0, FR_IC])
+    # the observer integrates the EMF v - R i - L di/dt from zero, so it misses
+    # lambda_pm(t0): centre -|lambda| e^{j theta0} (eq. 6), whatever the current
+    del ia, ib
+    pred = -LAM * np.exp(1j * th[k0])
+    e2 = wrap(seg[:, ES_TH] - th[k0 + 1:k0 + 1 + 2 * n_per])
+    thu = np.unwrap(th[k0 + 1:k0 + 1 + 2 * n_per])
+    h1 = abs(H(e2, thu, 1))
+    claims.append(claim(
+        "Fig. 2 / eq. 6: integration started at θ0 = 45° leaves a DC offset "
+        "-|λpm|(cos θ0, sin θ0) in λ̂αβ, a 1st-order θ̃ harmonic",
+        f"locus centre {1e3 * abs(centre):.2f} mV·s at {math.degrees(np.angle(centre)):.0f}° "
+        f"(eq. 6: {1e3 * abs(pred):.2f} mV·s at "
+        f"{math.degrees(np.angle(pred)):.0f}°); θ̃ 1st order {math.degrees(h1):.0f}°",
+        abs(centre - pred) < 0.1 * abs(pred) and h1 > math.radians(10)))
+    data["fig2"] = {"centre_mvs": [1e3 * centre.real, 1e3 * centre.imag],
+                    "pred_mvs": [1e3 * pred.real, 1e3 * pred.imag]}
+    fig, ax = p.subplots(1, 2, figsize=(10, 4))
+    tt = np.arange(len(seg)) * 1e-4
+    ax[0].plot(tt, seg[:, ES_LA] * 1e3, label="λ̂α")
+    ax[0].plot(tt, seg[:, ES_LB] * 1e3, label="λ̂β")
+    ax[0].axhline(centre.real * 1e3, color="C0", ls="--", lw=0.7)
+    ax[0].axhline(centre.imag * 1e3, color="C1", ls="--", lw=0.7)
+    ax[0].set_xlabel("time since integration start [s]")
+    ax[0].set_ylabel("flux [mV·s]")
+    ax[0].legend(fontsize=8)
+    ax[0].set_title("Fig. 2: pure integration from θ0 = 45° (60 rpm)", fontsize=9)
+    ax[1].plot(seg[:, ES_LA] * 1e3, seg[:, ES_LB] * 1e3, lw=0.6)
+    ax[1].plot(pred.real * 1e3, pred.imag * 1e3, "rx", label="eq. 6 centre")
+    ax[1].set_aspect("equal")
+    ax[1].legend(fontsize=8)
+    ax[1].set_xlabel("λ̂α [mV·s]")
+    ax[1].set_ylabel("λ̂β [mV·s]")
+    figs.append(ctx.fig(fig, "fig2_integration_offset"))
+
+    # ---- Fig. 3: 5 % offset on i_b: drift of the pure integrator
+    r = res[1]
+    ts = 1e-4
+    est_p = _replay(r["frames"], "pure_integrator", "measured")
+    est_q = _replay(r["frames"], "paper", "measured")
+    cen = []
+    n_per = int(round(1 / (60 / 60 * 4) / ts))  # one electrical period (4 Hz)
+    ks = list(range(2000, len(est_p) - n_per, n_per))
+    for k in ks:
+        cen.append(complex(est_p[k:k + n_per, ES_LA].mean(), est_p[k:k + n_per, ES_LB].mean()))
+    cen = np.array(cen)
+    tk = np.array(ks) * ts
+    rate = np.polyfit(tk, cen.real, 1)[0] + 1j * np.polyfit(tk, cen.imag, 1)[0]
+    d_i = 0.05 * 9.0
+    dab = complex(*clarke(0.0, d_i, 0.0))
+    pred_rate = -0.40 * dab  # x = v - R i_meas: the offset enters as -R*Delta
+    sl = slice(10000, None)
+    thq = r["theta"][sl]
+    eq_ = wrap(est_q[sl, ES_TH] - thq)
+    h1q = abs(H(eq_, np.unwrap(thq), 1))
+    we = 60 * RPM * 4
+    wc = 2 * math.pi * 100
+    # the LPF leaves R*Delta/w_c, the inverse HPF multiplies it by |1 - j w_c/w|
+    off_pred = 0.40 * abs(dab) / wc * abs(1 - 1j * wc / we)
+    h1_pred = math.asin(min(off_pred / LAM, 1.0))
+    claims.append(claim(
+        "Fig. 3: a 5 % offset on i_b makes the pure integrator drift",
+        f"locus centre drifts at {1e3 * abs(rate):.3f} mV·s/s (predicted R̂·|Δi_αβ| = "
+        f"{1e3 * abs(pred_rate):.3f}), direction {math.degrees(np.angle(rate)):.0f}° "
+        f"(pred. {math.degrees(np.angle(pred_rate)):.0f}°)",
+        abs(rate - pred_rate) < 0.15 * abs(pred_rate)))
+    claims.append(claim(
+        "Proposed LPF + inverse HPF: drift removed (bounded estimate)",
+        f"bounded; the DC residual R̂Δi/ωc is re-amplified by |1 - jωc/ω| at 2 % speed: θ̃ "
+        f"1st order {math.degrees(h1q):.1f}° (predicted {math.degrees(h1_pred):.1f}°)",
+        bool(np.all(np.isfinite(eq_))) and np.max(np.abs(eq_)) < math.radians(45),
+        "bounded but not harmless: at 60 rpm the inverse HPF gain |1 - jωc/ω| = 25 turns the "
+        "offset into a 1st-order position error"))
+    data["fig3"] = {"drift_mvs_per_s": abs(rate) * 1e3, "pred": abs(pred_rate) * 1e3,
+                    "paper_h1_deg": math.degrees(h1q), "paper_h1_pred_deg": math.degrees(h1_pred)}
+    fig, ax = p.subplots(1, 2, figsize=(10, 4))
+    dd = slice(0, len(est_p), 20)
+    ax[0].plot(r["t"][dd], est_p[dd, ES_LA] * 1e3, lw=0.6, label="λ̂α pure integrator")
+    ax[0].plot(r["t"][dd], est_p[dd, ES_LB] * 1e3, lw=0.6, label="λ̂β pure integrator")
+    ax[0].plot(r["t"][dd], est_q[dd, ES_LA] * 1e3, lw=0.6, label="λ̂α proposed")
+    ax[0].set_xlabel("time [s]")
+    ax[0].set_ylabel("flux [mV·s]")
+    ax[0].legend(fontsize=7)
+    ax[0].set_title("Fig. 3: 5 % offset on i_b (60 rpm)", fontsize=9)
+    ax[1].plot(est_p[dd, ES_LA] * 1e3, est_p[dd, ES_LB] * 1e3, lw=0.5, label="pure")
+    ax[1].plot(est_q[10000::20, ES_LA] * 1e3, est_q[10000::20, ES_LB] * 1e3, lw=0.5,
+               label="proposed")
+    ax[1].set_aspect("equal")
+    ax[1].legend(fontsize=7)
+    figs.append(ctx.fig(fig, "fig3_offset_drift"))
+
+    # ---- Fig. 4: deadtime -> magnitude error and attenuated 5th/7th in the integrated flux
+    fig, ax = p.subplots(1, len(res) - 1 if len(res) > 2 else 1, figsize=(10, 4),
+                         squeeze=False)
+    f4 = {}
+    for c, r in enumerate([res[0]] + res[2:]):
+        k0 = int(np.searchsorted(r["t"], r["win"][0]))
+        fr = r["frames"]
+        th = r["theta"][k0:]
+        thu = np.unwrap(th)
+        w_e = float(np.mean(r["wm"][k0:])) * 4
+        iq = float(np.mean(r["iq"][k0:]))
+        out = {}
+        for var in ("pure_integrator", "paper"):
+            e = _replay(fr, var, "commanded")[k0:]
+            la = e[:, ES_LA] - (e[:, ES_LA].mean() if var == "pure_integrator" else 0.0)
+            lb = e[:, ES_LB] - (e[:, ES_LB].mean() if var == "pure_integrator" else 0.0)
+            lam_c = (la + 1j * lb) * np.exp(-1j * th)  # rotor frame
+            sl = whole_periods(thu)
+            h1 = abs(H(la[sl], thu[sl], 1))
+            out[var] = {"mag": float(np.mean(np.abs(la + 1j * lb))),
+                        "d": float(np.mean(lam_c.real)),
+                        "h57": float(math.hypot(abs(H(la[sl], thu[sl], 5)),
+                                                abs(H(la[sl], thu[sl], 7))) / h1)}
+            if var == "paper":
+                x = e[:, ES_EA]
+                out["emf"] = {"h57": float(math.hypot(abs(H(x[sl], thu[sl], 5)),
+                                                      abs(H(x[sl], thu[sl], 7)))
+                                           / abs(H(x[sl], thu[sl], 1)))}
+            n_show = min(len(la), int(2 * 2 * math.pi / w_e / 1e-4))
+            ax[0, c].plot(np.arange(n_show) * 1e-4, la[:n_show] * 1e3, lw=0.7,
+                          label=f"λ̂α {var}")
+        ax[0, c].axhline(LAM * 1e3, color="k", ls=":", lw=0.6)
+        ax[0, c].axhline(-LAM * 1e3, color="k", ls=":", lw=0.6)
+        rpm = w_e / 4 / RPM
+        ax[0, c].set_title(f"Fig. 4: commanded voltages, 2 µs deadtime, {rpm:.0f} rpm, "
+                           f"full load", fontsize=8)
+        ax[0, c].set_xlabel("time [s]")
+        ax[0, c].set_ylabel("flux [mV·s]")
+        ax[0, c].legend(fontsize=7)
+        vdt = 72.0 * 2e-6 / 1e-4
+        pred_d = LAM + (4 / math.pi) * vdt / w_e * (1 if iq > 0 else -1)
+        wc = 2 * math.pi * 100
+        att_paper = abs(1j * w_e + wc) / abs(1j * 6 * w_e + wc)
+        out["pred_d_mag"] = pred_d
+        out["rpm"] = rpm
+        out["paper_rel_attenuation_pred"] = att_paper
+        f4[f"{rpm:.0f}rpm"] = out
+    figs.append(ctx.fig(fig, "fig4_deadtime"))
+    o = f4[min(f4, key=lambda k: float(k[:-3]))]
+    claims.append(claim(
+        "Fig. 4: with deadtime, the integrated flux shows a magnitude error",
+        f"{o['rpm']:.0f} rpm, full load, commanded voltages: |λ̂| = "
+        f"{1e3 * o['pure_integrator']['mag']:.1f} mV·s vs λpm {1e3 * LAM:.1f} (d-axis "
+        f"{1e3 * o['pure_integrator']['d']:.1f}; predicted λ + (4/π)Vdt/ω = "
+        f"{1e3 * o['pred_d_mag']:.1f})",
+        abs(o["pure_integrator"]["mag"] - LAM) > 0.2 * LAM,
+        "the deadtime fundamental (4/π)·1.44 V lies along the current (q), so it integrates "
+        "into a d-axis (magnitude) error, larger than λpm itself below ~5 % speed"))
+    ok_pure = all(v["pure_integrator"]["h57"] < 0.5 * v["emf"]["h57"] for v in f4.values())
+    txt = "; ".join(f"{k}: emf {100 * v['emf']['h57']:.1f} %, pure ∫ "
+                    f"{100 * v['pure_integrator']['h57']:.1f} %, LPF+inverse HPF "
+                    f"{100 * v['paper']['h57']:.1f} %" for k, v in f4.items())
+    claims.append(claim(
+        "Fig. 4: the integration (an LPF) reduces the deadtime harmonics in the flux",
+        "5th+7th relative to the fundamental: " + txt, ok_pure,
+        "a pure integral divides the n-th order by n"))
+    claims.append(claim(
+        "(implied) the proposed LPF + inverse HPF keeps that reduction at low speed",
+        "see the previous row (LPF+inverse HPF column)",
+        all(v["paper"]["h57"] < 0.7 * v["emf"]["h57"] for v in f4.values()),
+        "LPF(100 Hz) + inverse HPF at ω attenuates order n only by |jω+ωc|/|jnω+ωc|, ≈1 "
+        "when nω << ωc (2 % speed: 5th/7th at 20-28 Hz): at low speed the proposed observer "
+        "keeps the EMF's relative 5th/7th; the reduction returns as nω approaches ωc"))
+    data["fig4"] = f4
+    return {"claims": claims, "figures": figs, "data": data}
+
+
+# ======================================================================== Fig. 17
+FR17_FULL = [5.0, 10.0, 20.0, 50.0, 100.0, 200.0, 300.0, 500.0, 700.0, 850.0, 1000.0, 1200.0,
+             1500.0, 2000.0, 3000.0, 4000.0]
+FR17_QUICK = [20.0, 100.0, 300.0, 700.0, 1000.0, 1500.0, 3000.0]
+
+
+def _x_fr_current(r, m):
+    sc = r.scenario
+    segs = r.segments["current_d"]
+    ts = sc.machine.ts_s
+    # controller frame (what the drive itself measures) and the true rotor frame
+    ia, ib = clarke(r.frames[:, FR_IA], r.frames[:, FR_IB], r.frames[:, FR_IC])
+    del ia, ib
+    ta, tb = clarke(r.truth[:, TR_IA], r.truth[:, TR_IB], r.truth[:, TR_IC])
+    th = r.truth[:, TR_THETA_E]
+    id_true = ta * np.cos(th) + tb * np.sin(th)
+    ctl = analyse(r.ctrl[:, CO_ID], r.ctrl[:, CO_ID_REF], segs, ts)
+    tru = analyse(id_true, r.ctrl[:, CO_ID_REF], segs, ts)
+    k0 = segs[0].k_start
+    closed = bool(np.all(r.ctrl[k0:, CO_MODE] == MODE_CLOSED_LOOP))
+    return {"metrics": m, "ctrl": ctl, "true": tru, "closed_loop": closed}
+
+
+def _fr_scenario(driving, freqs, kind, seed=1):
+    machine_kw = None
+    if driving == "encoder_ideal":
+        driving, machine_kw = "encoder", {"deadtime_s": 0.0}
+    obs = {driving: OBS4[driving]} if driving != "encoder" else {}
+    if kind == "current":
+        t_inj = 3.5
+        inj = {"id_injection": {"frequencies_hz": freqs, "amplitude": 0.2, "start_s": t_inj,
+                                "cycles": 10, "settle_cycles": 4}}
+        from fluxdrive.analysis.freqresp import stepped_sine
+
+        _, _, n = stepped_sine(freqs, 1.0, 1e-4, t_inj, 10, 4)
+        speed = [[0.0, 40.0], [0.8, 40.0], [1.8, 300.0]]
+        load = [[0.0, 0.0], [2.0, 0.0], [3.0, 0.5]]
+    else:
+        t_inj = 3.5
+        inj = {"speed_injection": {"frequencies_hz": freqs, "amplitude": 60.0,
+                                   "start_s": t_inj, "cycles": 6, "settle_cycles": 3}}
+        from fluxdrive.analysis.freqresp import stepped_sine
+
+        _, _, n = stepped_sine(freqs, 1.0, 1e-4, t_inj, 6, 3)
+        speed = [[0.0, 40.0], [0.8, 40.0], [1.8, 300.0]]
+        load = [[0.0, 0.0], [2.0, 0.0], [3.0, 0.3]]
+    dur = n * 1e-4 + 0.01
+    ctrl = {"if_current_pu": 0.6, "handover_rpm": 40.0, "handback_rpm": 20.0}
+    if driving.startswith("emf"):
+        # the paper compares position sources on one drive: the EMF drive keeps the speed
+        # PI designed for the flux drive's speed path (25 Hz PLL, no LPF)
+        flux = OBS4["flux_measured"]
+        ctrl.update(speed_observer_pll_hz=float(flux.get("pll_bandwidth_hz", 25.0)),
+                    speed_observer_lpf_hz=0.0)
+    return build(machine_kw=machine_kw, name=f"fr_{kind}_{driving}",
+                 duration_s=round(dur, 4), seed=seed,
+                 speed_rpm=speed, load_type="brake", load_pu=load,
+                 steady_window_s=[3.0, 3.4], driving=driving,
+                 control=ctrl, observers=obs, **inj)
+
+
+DRIVES = ["encoder", "flux_measured", "emf_measured", "emf_commanded"]
+
+
+def _bode(ctx, res, labels, key, title, fname, target_db=-3.0):
+    p = plt()
+    fig, ax = p.subplots(2, 1, figsize=(8, 6.5), sharex=True)
+    for lab, r in zip(labels, res, strict=True):
+        fr = r[key]
+        bw = fr["bandwidth_hz"]
+        ax[0].semilogx(fr["frequency_hz"], fr["gain_db"], "o-", ms=3,
+                       label=f"{lab} (-3 dB: {bw:.0f} Hz)" if bw == bw else f"{lab}")
+        ax[1].semilogx(fr["frequency_hz"], fr["phase_deg"], "o-", ms=3)
+    ax[0].axhline(target_db, color="k", ls=":", lw=0.7)
+    ax[0].set_ylabel("gain [dB]")
+    ax[0].set_ylim(-25, 8)
+    ax[0].legend(fontsize=8)
+    ax[0].grid(alpha=0.3, which="both")
+    ax[1].set_ylabel("phase [deg]")
+    ax[1].set_xlabel("frequency [Hz]")
+    ax[1].grid(alpha=0.3, which="both")
+    ax[0].set_title(title, fontsize=9)
+    return ctx.fig(fig, fname)
+
+
+def fig17(ctx):
+    freqs = FR17_QUICK if ctx.quick else FR17_FULL
+    drives = DRIVES[:3] if ctx.quick else DRIVES + ["encoder_ideal"]
+    res = ctx.run([(_fr_scenario(d, freqs, "current"), _x_fr_current, None) for d in drives])
+    figs = [_bode(ctx, res, drives, "ctrl", "Fig. 17: i_d/i_d* (controller frame) at 10 % "
+                  "speed (300 rpm), half load, 20 % rated injection", "fig17_current_fr")]
+    bw = {d: r["ctrl"]["bandwidth_hz"] for d, r in zip(drives, res, strict=True)}
+    bw_true = {d: r["true"]["bandwidth_hz"] for d, r in zip(drives, res, strict=True)}
+    closed = {d: r["closed_loop"] for d, r in zip(drives, res, strict=True)}
+    claims = [
+        claim("Encoder drive: current bandwidth ≈ 1 kHz",
+              f"{bw['encoder']:.0f} Hz (true-frame i_d: {bw_true['encoder']:.0f} Hz)",
+              abs(bw["encoder"] - 1000) < 200,
+              "the 2 µs deadtime acts as an extra small-signal resistance and lowers it below "
+              "the 1 kHz design (met exactly with an ideal inverter" +
+              (f": {bw['encoder_ideal']:.0f} Hz here)" if "encoder_ideal" in bw else ")")),
+        claim("Flux-based sensorless drive: current bandwidth ≈ the encoder drive's (≈1 kHz)",
+              f"{bw['flux_measured']:.0f} Hz (true frame {bw_true['flux_measured']:.0f} Hz), "
+              f"stayed in closed loop: {closed['flux_measured']}",
+              closed["flux_measured"] and abs(bw["flux_measured"] - bw["encoder"])
+              < 0.15 * bw["encoder"]),
+        claim("EMF-based drive: current bandwidth only ≈ 100 Hz (gain -20 dB near 50 Hz)",
+              "; ".join(f"{d}: {bw[d]:.0f} Hz (true frame {bw_true[d]:.0f} Hz), closed loop "
+                        f"{closed[d]}" for d in drives if d.startswith("emf")),
+              all(bw[d] < 300 for d in drives if d.startswith("emf")),
+              "in our model the d-axis injection enters the EMF estimate only through "
+              "L̂ di/dt, which cancels exactly with a correct L̂; the PLL and its speed LPF are "
+              "outside the current loop, so the EMF drive keeps the designed bandwidth.  The "
+              "paper's 100 Hz points at something in its EMF drive's current path (filtered "
+              "feedback or L̂ mismatch) that it does not describe."),
+    ]
+    return {"claims": claims, "figures": figs,
+            "data": {d: {"ctrl": r["ctrl"], "true": r["true"]}
+                     for d, r in zip(drives, res, strict=True)}}
+
+
+# ======================================================================== Fig. 18
+FR18_FULL = [0.5, 1.0, 2.0, 4.0, 6.0, 8.0, 10.0, 13.0, 16.0, 20.0, 30.0, 50.0, 100.0, 300.0]
+FR18_QUICK = [1.0, 4.0, 8.0, 12.0, 20.0, 50.0]
+
+
+def _x_fr_speed(r, m):
+    segs = r.segments["speed"]
+    fr = analyse(r.truth[:, TR_WM], r.w_ref, segs, r.scenario.machine.ts_s)
+    k0 = segs[0].k_start
+    closed = bool(np.all(r.ctrl[k0:, CO_MODE] == MODE_CLOSED_LOOP))
+    return {"metrics": m, "speed": fr, "closed_loop": closed}
+
+
+def fig18(ctx):
+    freqs = FR18_QUICK if ctx.quick else FR18_FULL
+    drives = DRIVES[:3] if ctx.quick else DRIVES
+    res = ctx.run([(_fr_scenario(d, freqs, "speed"), _x_fr_speed, None) for d in drives])
+    figs = [_bode(ctx, res, drives, "speed", "Fig. 18: ω/ω* at 300 rpm, ±60 rpm injection",
+                  "fig18_speed_fr")]
+    bw = {d: r["speed"]["bandwidth_hz"] for d, r in zip(drives, res, strict=True)}
+    closed = {d: r["closed_loop"] for d, r in zip(drives, res, strict=True)}
+    peak = {d: float(np.nanmax(r["speed"]["gain_db"])) for d, r in zip(drives, res, strict=True)}
+    claims = [
+        claim("Encoder drive: speed bandwidth ≈ 10 Hz", f"{bw['encoder']:.1f} Hz",
+              abs(bw["encoder"] - 10) < 3),
+        claim("Flux-based drive: speed bandwidth ≈ 10 Hz, about the encoder drive's",
+              f"{bw['flux_measured']:.1f} Hz, peak {peak['flux_measured']:+.1f} dB (encoder "
+              f"{peak['encoder']:+.1f} dB), closed loop {closed['flux_measured']}",
+              closed["flux_measured"] and abs(bw["flux_measured"] - bw["encoder"]) < 2,
+              "the speed PI is designed with the observer's speed path (25 Hz PLL) in the "
+              "loop model, so the flux drive meets the same 10 Hz as the encoder drive"),
+        claim("EMF-based drive: speed bandwidth only ≈ 7 Hz",
+              "; ".join(f"{d}: {bw[d]:.1f} Hz, closed loop {closed[d]}"
+                        for d in drives if d.startswith("emf")),
+              all(bw[d] < 0.85 * bw["encoder"] for d in drives if d.startswith("emf")),
+              "same speed PI as the flux drive; the EMF path's extra 10 Hz speed LPF (Fig. 5) "
+              "sits inside the speed loop and costs phase margin: the response peaks and the "
+              "-3 dB point moves up rather than down.  With commanded voltages the ±60 rpm "
+              "sweep (speed down to 240 rpm, deadtime-dominated EMF) can lose the estimate.  "
+              "A 7 Hz bandwidth would follow from a lower PLL bandwidth / heavier LPF than "
+              "our defaults"),
+    ]
+    return {"claims": claims, "figures": figs,
+            "data": {d: r["speed"] for d, r in zip(drives, res, strict=True)}}
+
+
+# ======================================================================== Fig. 19
+def _x_step(r, m, t_step=2.0):
+    k = int(np.searchsorted(r.t, t_step - 0.3))
+    sl = slice(k, None, 5)
+    return {"metrics": m, "t": r.t[sl], "rpm": r.truth[sl, TR_WM] * RAD_S_TO_RPM,
+            "ref": r.w_ref[sl] * RAD_S_TO_RPM, "iq": r.ctrl[sl, CO_IQ],
+            "th_err": np.degrees(theta_err(r, r.driving)[sl]) if r.driving != "encoder" else None}
+
+
+def fig19(ctx):
+    j_scales = [1, 10, 20] if ctx.quick else [1, 3, 6, 10, 15, 20, 30, 40]
+    j0 = 1.5e-4
+    jobs = [(build(base="paper_6pct_stepload", duration_s=3.0 if ctx.quick else 3.5,
+                   steady_window_s=[2.6, 3.0] if ctx.quick else [3.0, 3.5]),
+             _x_step, None) if s == 1 else
+            (build(base="paper_6pct_stepload", machine_kw={"inertia_kgm2": j0 * s},
+                   duration_s=3.0 if ctx.quick else 3.5,
+                   steady_window_s=[2.6, 3.0] if ctx.quick else [3.0, 3.5]), _x_step, None)
+            for s in j_scales]
+    jobs.append((build(base="paper_4pct_fullload"), _x_step, {"t_step": 6.3}))
+    res = ctx.run(jobs)
+    steps, full4 = res[:-1], res[-1]
+    p = plt()
+    fig, ax = p.subplots(3, 1, figsize=(9, 8), sharex=True)
+    rows = []
+    for s, r in zip(j_scales, steps, strict=True):
+        sp = r["metrics"]["speed"]
+        rows.append({"J_scale": s, "stable": r["metrics"]["stable"],
+                     "min_rpm": sp.get("min_rpm_after_step"), "dip_rpm": sp.get("dip_rpm"),
+                     "recovery_s": sp.get("recovery_s")})
+        ax[0].plot(r["t"], r["rpm"], lw=0.7, label=f"J×{s}")
+        ax[1].plot(r["t"], r["iq"], lw=0.6)
+        if r["th_err"] is not None:
+            ax[2].plot(r["t"], r["th_err"], lw=0.6)
+    ax[0].plot(steps[0]["t"], steps[0]["ref"], "k--", lw=0.7)
+    ax[0].axhline(90, color="0.5", ls=":", lw=0.7)
+    ax[0].set_ylabel("speed [rpm]")
+    ax[0].legend(fontsize=7, ncol=3)
+    ax[0].set_title("Fig. 19: 100 % step load at 6 % speed (180 rpm), flux drive, measured "
+                    "voltages (dotted: 3 % speed)", fontsize=9)
+    ax[1].set_ylabel("i_q [A]")
+    ax[2].set_ylabel("θ̃ [deg]")
+    ax[2].set_ylim(-60, 60)
+    ax[2].set_xlabel("time [s]")
+    figs = [ctx.fig(fig, "fig19_step_load")]
+    fig, ax = p.subplots(2, 1, figsize=(9, 5), sharex=True)
+    ax[0].plot(full4["t"], full4["rpm"], lw=0.7)
+    ax[0].set_ylabel("speed [rpm]")
+    ax[0].set_title("Fig. 19: full load at 4 % speed (120 rpm)", fontsize=9)
+    ax[1].plot(full4["t"], full4["th_err"], lw=0.6)
+    ax[1].set_ylabel("θ̃ [deg]")
+    ax[1].set_xlabel("time [s]")
+    figs.append(ctx.fig(fig, "fig19_full_load_4pct"))
+    # what the model says: P-term needs T/(Kt Kp) of speed error; initial deceleration T/J
+    from fluxdrive.core.machine import MachineCard
+    from fluxdrive.drive.control import design_speed_loop
+
+    card = MachineCard()
+    kp, _ = design_speed_loop(card, 10.0, 1000.0, feedback_pll_hz=25.0)  # sensorless design
+    dw_p = card.rated_torque_nm / (card.torque_constant_nm_per_a * kp) * RAD_S_TO_RPM
+    decel = card.rated_torque_nm / card.inertia_kgm2
+    ok = [r for r in rows if r["stable"] and r["min_rpm"] is not None and r["min_rpm"] >= 80
+          and r["recovery_s"] is not None and r["recovery_s"] <= 0.25]
+    r1 = rows[0]
+    m4 = full4["metrics"]
+    claims = [
+        claim("100 % step load at 6 % speed: dip to ≈3 % speed, recovery within 0.2 s",
+              f"J = 1.5e-4: min speed {r1['min_rpm']:.0f} rpm, recovery "
+              f"{r1['recovery_s'] if r1['recovery_s'] is not None else 'none'} s, stable "
+              f"{r1['stable']}; "
+              + (f"reproduced from J×{ok[0]['J_scale']} on" if ok else
+                 f"not reproduced up to J×{rows[-1]['J_scale']} (min {rows[-1]['min_rpm']:.0f} "
+                 f"rpm)") + " (same 10 Hz loop design, gains scale with J)",
+              bool(r1["stable"] and r1["min_rpm"] >= 80 and r1["recovery_s"] is not None
+                   and r1["recovery_s"] <= 0.25),
+              f"with J = 1.5e-4 kg·m² the step decelerates the rotor at {decel:.0f} rad/s² and "
+              f"the 10 Hz loop's P-term needs {dw_p:.0f} rpm of error for 1.27 N·m: the rotor "
+              "stalls into the zero-speed region the observer cannot see.  The dip scales "
+              "~1/J at a fixed loop bandwidth: "
+              + "; ".join(f"J×{r['J_scale']}: min {r['min_rpm']:.0f} rpm" for r in rows)
+              + ".  The paper's dip to ≈90 rpm implies a much larger dyno inertia (or a "
+              "stiffer loop) than the brief's 1.5e-4 kg·m²"),
+        claim("Full load at 4 % speed is sustained (sensorless flux drive)",
+              f"stable {m4['stable']}, mean {m4['speed']['mean_rpm']:.1f} rpm, θ̃ RMS "
+              f"{m4['observers']['flux_measured']['theta_err_rms_deg']:.2f}°",
+              m4["stable"]),
+    ]
+    return {"claims": claims, "figures": figs,
+            "data": {"step_vs_inertia": rows, "p_term_error_rpm": dw_p,
+                     "initial_decel_rad_s2": decel,
+                     "fullload_4pct": {"stable": m4["stable"], "speed": m4["speed"]}}}
+
+
+# ======================================================================== Figs. 15/16
+def _x_thd(r, m):
+    sl = _win(r)
+    thu = np.unwrap(r.truth[sl, TR_THETA_E])
+    ws = whole_periods(thu)
+    out = {"metrics": m}
+    from fluxdrive.analysis.metrics import harmonic_spectrum, thd
+
+    for src in ("commanded", "measured"):
+        e = r.estimate(f"flux_{src}")[sl]
+        x_e, x_l = e[ws, ES_EA], e[ws, ES_LA]
+        out[src] = {"thd_emf": thd(x_e, thu[ws]), "thd_flux": thd(x_l, thu[ws]),
+                    "spec_emf": harmonic_spectrum(x_e, thu[ws]),
+                    "spec_flux": harmonic_spectrum(x_l, thu[ws])}
+    return out
+
+
+def fig15_16(ctx):
+    speeds = [2, 6] if ctx.quick else [2, 4, 6, 10, 20]
+    bws = [1000] if ctx.quick else [250, 500, 1000, 1500]
+    obs = {"flux_commanded": OBS4["flux_commanded"], "flux_measured": OBS4["flux_measured"]}
+    grid = [(s, b) for b in bws for s in speeds]
+    res = ctx.run([(encoder_run(30.0 * s, 1.0, observers=obs,
+                                control={"current_bandwidth_hz": float(b)},
+                                window_s=1.0 if s >= 4 else 1.5), _x_thd, None)
+                   for s, b in grid])
+    tab = {(s, b): r for (s, b), r in zip(grid, res, strict=True)}
+    p = plt()
+    fig, ax = p.subplots(2, 2, figsize=(10, 7), sharey=True)
+    panels = [("a", "commanded", "thd_emf", "EMF ê_α, commanded"),
+              ("b", "measured", "thd_emf", "EMF ê_α, measured"),
+              ("c", "commanded", "thd_flux", "flux λ̂_α, commanded"),
+              ("d", "measured", "thd_flux", "flux λ̂_α, measured")]
+    for i, (lt, src, key, title) in enumerate(panels):
+        a = ax[i // 2, i % 2]
+        for b in bws:
+            a.plot(speeds, [100 * tab[(s, b)][src][key] for s in speeds], "o-", ms=3,
+                   label=f"{b} Hz")
+        a.set_title(f"({lt}) THD {title} (full load)", fontsize=9)
+        a.set_xlabel("speed [% rated]")
+        a.set_ylabel("THD [%]")
+        a.set_yscale("log")
+        a.grid(alpha=0.3, which="both")
+        a.legend(fontsize=7, title="current bw", title_fontsize=7)
+    figs = [ctx.fig(fig, "fig15_thd")]
+    b0 = 1000
+    fig, ax = p.subplots(1, 2, figsize=(11, 4), sharey=True)
+    orders = np.arange(2, 21)
+    wdt = 0.8 / len(speeds)
+    for i, key in enumerate(("spec_emf", "spec_flux")):
+        for j, s in enumerate(speeds):
+            sp = tab[(s, b0)]["commanded"][key]
+            h1 = sp[1]
+            ax[i].bar(orders + (j - len(speeds) / 2) * wdt, [100 * sp[n] / h1 for n in orders],
+                      width=wdt, label=f"{s} %")
+        ax[i].set_xticks(orders)
+        ax[i].set_xlabel("harmonic order")
+        ax[i].set_title(f"({'ab'[i]}) {'ê_α' if i == 0 else 'λ̂_α'}: full load, commanded, "
+                        "1 kHz", fontsize=9)
+        ax[i].legend(fontsize=7)
+    ax[0].set_ylabel("% of fundamental")
+    figs.append(ctx.fig(fig, "fig16_harmonics"))
+
+    def thd_(s, b, src, key):
+        return tab[(s, b)][src][key]
+
+    lo, hi = speeds[0], speeds[-1]
+    mono_speed = all(thd_(lo, b, "commanded", "thd_emf") > thd_(hi, b, "commanded", "thd_emf")
+                     for b in bws)
+    meas_better = sum(thd_(s, b, "measured", "thd_emf") < thd_(s, b, "commanded", "thd_emf")
+                      for s, b in grid)
+    flux_better_cmd = sum(thd_(s, b, "commanded", "thd_flux") < thd_(s, b, "commanded",
+                                                                       "thd_emf") for s, b in grid)
+    flux_better_meas = sum(thd_(s, b, "measured", "thd_flux") < thd_(s, b, "measured",
+                                                                       "thd_emf") for s, b in grid)
+    h57 = {s: {k: math.hypot(tab[(s, b0)]["commanded"][k][5], tab[(s, b0)]["commanded"][k][7])
+               / tab[(s, b0)]["commanded"][k][1] for k in ("spec_emf", "spec_flux")}
+           for s in speeds}
+    n = len(grid)
+    claims = [
+        claim("EMF THD (commanded) rises as speed falls",
+              ", ".join(f"{s} %: {100 * thd_(s, b0, 'commanded', 'thd_emf'):.1f} %"
+                        for s in speeds) + f" (at {b0} Hz)", mono_speed),
+        claim("Measured voltages lower the EMF THD at all operating points",
+              f"{meas_better}/{n} points lower", meas_better == n),
+        claim("Flux THD below EMF THD (commanded voltages)",
+              f"{flux_better_cmd}/{n} points; " + ", ".join(
+                  f"{s} %: {100 * thd_(s, b0, 'commanded', 'thd_flux'):.1f} vs "
+                  f"{100 * thd_(s, b0, 'commanded', 'thd_emf'):.1f} %" for s in speeds),
+              flux_better_cmd == n,
+              "below ~5 % speed the deadtime 5th/7th lie below the 100 Hz cut-off where the "
+              "LPF + inverse HPF equals 1/(jω) for every order: the flux has the EMF's "
+              "relative harmonics; its advantage grows with speed"),
+        claim("Flux THD with measured voltages the lowest",
+              f"flux measured < emf measured at {flux_better_meas}/{n} points; " + ", ".join(
+                  f"{s} %: {100 * thd_(s, b0, 'measured', 'thd_flux'):.2f} %" for s in speeds),
+              flux_better_meas >= n - 1),
+        claim("Fig. 16: deadtime 5th/7th in ê_α grow as speed falls, and are lower in λ̂_α",
+              ", ".join(f"{s} %: ê {100 * v['spec_emf']:.1f} %, λ̂ {100 * v['spec_flux']:.1f} %"
+                        for s, v in h57.items()),
+              h57[lo]["spec_emf"] > h57[hi]["spec_emf"]
+              and all(v["spec_flux"] < v["spec_emf"] for v in h57.values()),
+              "the growth with falling speed holds; the flux reduction is small at low speed "
+              "(|jω+ωc|/|jnω+ωc| ≈ 1) and only appears as nω approaches ωc"),
+        claim("Current-loop bandwidth raises the EMF THD (commanded)",
+              ", ".join(f"{b} Hz: {100 * thd_(lo, b, 'commanded', 'thd_emf'):.1f} %"
+                        for b in bws) + f" at {lo} %",
+              None if len(bws) < 2 else
+              thd_(lo, bws[-1], "commanded", "thd_emf") > thd_(lo, bws[0], "commanded",
+                                                               "thd_emf"),
+              "in our model the 2..20 orders come from the deadtime, not from loop noise; the "
+              "bandwidth changes the current ripple only slightly"),
+    ]
+    data = {f"{s}pct_{b}Hz": {src: {k: tab[(s, b)][src][k] for k in ("thd_emf", "thd_flux")}
+                              for src in ("commanded", "measured")} for s, b in grid}
+    return {"claims": claims, "figures": figs, "data": data}
+
+
+EXPERIMENTS = {
+    "fig14": (fig14, "θ̃ with commanded vs measured voltages, 2 % speed / 150 % load"),
+    "fig13": (fig13, "EMF vs flux loci at 60 rpm, no load / full load"),
+    "fig2_4": (fig2_4, "integration offset, current-offset drift, deadtime (Figs. 2-4)"),
+    "fig17": (fig17, "current-loop frequency response at 10 % speed"),
+    "fig19": (fig19, "100 % step load at 6 % speed; full load at 4 % speed"),
+    "fig15_16": (fig15_16, "THD vs current bandwidth and speed; harmonic distribution"),
+    "fig18": (fig18, "speed-loop frequency response at 300 rpm"),
+}
+
+_ = (ES_VALID,)

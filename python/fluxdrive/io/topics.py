@@ -1,0 +1,31 @@
+"""Topic names and message types of the fluxdrive graph: one place, used by the engine's
+bag I/O and replay (no ROS import) and by every node, the recorder, the launcher and the
+inspection tools (through fluxdrive_ros.topics, which re-exports these)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+FRAME = "/drive/frame"  # flux_drive_msgs/PhaseFrame, plant (or bench bridge) -> all
+TRUTH = "/drive/truth"  # flux_drive_msgs/PlantTruth, simulation only
+DUTY = "/drive/duty"  # flux_drive_msgs/DutyCommand, controller -> plant
+CONTROLLER_STATE = "/drive/controller_state"  # flux_drive_msgs/ControllerState
+DONE = "/drive/done"  # std_msgs/UInt64: last seq of a finished run (latched)
+CLOCK = "/clock"  # rosgraph_msgs/Clock: sim time of the plant
+ESTIMATE = "estimate"  # relative: /obs/<name>/estimate (flux_drive_msgs/RotorEstimate)
+OBS_NAMESPACE = "/obs"
+
+T_FRAME = "flux_drive_msgs/msg/PhaseFrame"
+T_TRUTH = "flux_drive_msgs/msg/PlantTruth"
+T_DUTY = "flux_drive_msgs/msg/DutyCommand"
+T_STATE = "flux_drive_msgs/msg/ControllerState"
+T_ESTIMATE = "flux_drive_msgs/msg/RotorEstimate"
+T_UINT64 = "std_msgs/msg/UInt64"
+T_CLOCK = "rosgraph_msgs/msg/Clock"
+
+# the .msg sources (the interface package's definitions, embedded in every bag)
+MSG_SRC_DIR = Path(__file__).resolve().parents[3] / "src" / "flux_drive_msgs" / "msg"
+
+
+def estimate_topic(observer: str) -> str:
+    return f"{OBS_NAMESPACE}/{observer}/{ESTIMATE}"
