@@ -1,4 +1,4 @@
-"""Bench bridge (issue 5): emulator <-> python-can virtual bus <-> bridge supervisor.
+"""Bench bridge: emulator <-> python-can virtual bus <-> bridge supervisor.
 
 End-to-end closed loop through the CAN encoding at 2 % speed sensorless on the flux
 observer, fault handling (stale data, malformed frames, gaps, bus-off, arming), and the

@@ -1,4 +1,4 @@
-"""Bench bridge across processes (issue 5): the drive emulator in one process
+"""Bench bridge across processes: the drive emulator in one process
 (`./fluxdrive can-emulator`), the bench_bridge node in another, the ROS side (a probe
 answering every PhaseFrame with a DutyCommand) in the test, over python-can's
 `udp_multicast` interface on this host (TTL 0: the datagrams never leave the machine; a

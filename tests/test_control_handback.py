@@ -1,5 +1,5 @@
 """Sensorless hand-back (closed loop -> I-f below handback_rpm) for either sign of speed and
-torque: the I-f vector takes over the torque the closed loop carried (issue 6, reversal)."""
+torque: the I-f vector takes over the torque the closed loop carried (reversal)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Physics of the drive engine: numbers that follow from the equations (BRIEF secs. 3-8)."""
+"""Physics of the drive engine: numbers that follow from the equations (docs/engine.md)."""
 
 from __future__ import annotations
 

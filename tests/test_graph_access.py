@@ -1,4 +1,4 @@
-"""Access (issue 7, item 6): the drive obeys commands only from the graph's own nodes
+"""Access: the drive obeys commands only from the graph's own nodes
 (allow-list by node name, commands marked with the launch's key -- fluxdrive_ros.access);
 discovery stays on this machine unless the graph file opts in; ROS 2 security (SROS2) with
 the installed middleware: what a user sees."""

@@ -1,4 +1,4 @@
-"""Bad input through the graph (issue 7, items 1): NaN/inf/out-of-range frames and seq
+"""Bad input through the graph : NaN/inf/out-of-range frames and seq
 repeats, reversals and jumps published onto running observer and controller nodes; a lost
 or stale position source; malformed duty commands at the plant.  The nodes run in this
 process on a SingleThreadedExecutor in a background thread (rclpy's multi-threaded executor

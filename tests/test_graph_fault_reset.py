@@ -1,4 +1,4 @@
-"""Issue 7, item 2 at the graph level: a latched controller fault is cleared only by an
+"""Fault latching at the graph level: a latched controller fault is cleared only by an
 explicit reset -- the controller's ~/reset_fault service, called by `./fluxdrive fault
 reset` (node /fluxdrive_operator) -- and only while no node outside `allowed_operators`
 holds a client of it.  After the reset the drive starts again from align (PWM on)."""

@@ -1,6 +1,6 @@
 """Every declared parameter of every node (plant, observer, controller, recorder, bench
 bridge) is documented (description, unit for numbers, range or choices) and refuses a wrong
-type and an out-of-range value with a reason, leaving the value unchanged (issue 7, item 5).
+type and an out-of-range value with a reason, leaving the value unchanged.
 A bad value given at start-up (override, ros__parameters file) stops the node with a
 one-line reason naming the parameter -- and the file."""
 

@@ -1,4 +1,4 @@
-"""Process faults and the recorder's guarantees (issue 7, items 3 and 4): a node killed
+"""Process faults and the recorder's guarantees: a node killed
 mid-run is named by the launcher and handled per its `on_death` policy (stop, restart,
 ignore); the plant takes the drive to PWM off when the controller is gone; the bag stays
 readable whatever dies -- SIGTERM finalises it with every message received, a SIGKILL of the

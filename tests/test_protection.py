@@ -1,5 +1,5 @@
 """Drive protection in the controller kernel: each trip goes to PWM off with a latched
-reason, cleared only by an explicit reset (issue 7, engine side)."""
+reason, cleared only by an explicit reset (engine side)."""
 
 from __future__ import annotations
 

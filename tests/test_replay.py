@@ -1,4 +1,4 @@
-"""Replay lab (issue 4): bag round trip, reproduction of recorded estimates, user variants
+"""Replay lab: bag round trip, reproduction of recorded estimates, user variants
 (module:Class and entry point), CLI report, sweeps, bad bags, benchmark."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Issue 7, item 7 (load), short version: `./fluxdrive soak` on a ~10 s lockstep graph run
+"""Load check, short version: `./fluxdrive soak` on a ~10 s lockstep graph run
 and a 6-pass unpaced burst replay.  Every message of every topic in the bag (counts from
 the mcap summary = periods, and equal to the recorder's metadata.yaml), RSS growth of the
 graph after warm-up under 20 MiB, burst received == sent in order with flat memory.

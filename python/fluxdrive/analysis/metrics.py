@@ -1,5 +1,5 @@
-"""The one metrics module (BRIEF sec. 8), shared by the in-process runner, the graph run,
-replay and the experiments.
+"""The one metrics module (definitions: docs/engine.md, metrics), shared by the in-process
+runner, the graph run, replay and the experiments.
 
 All angle metrics use the true electrical angle at the sample instant.  Harmonic orders are
 taken against the rotor's electrical angle (c_n = 2 <x e^{-j n theta_e}>) over a whole

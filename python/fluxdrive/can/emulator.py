@@ -2,7 +2,7 @@
 
 :class:`DriveEmulator` owns a plant (``DriveSetup`` + ``plant_advance``, the same compiled
 kernels the in-process runner and the sim node use) and a python-can bus. Per PWM period
-it does what the drive's microcontroller does (BRIEF sec. 3, DBC comments):
+it does what the drive's microcontroller does (docs/engine.md timing convention, DBC comments):
 
 * sends SAMPLE_FD(k): currents at t_k, line voltages / duties averaged over [t_(k-1), t_k]
   (with a decimation factor D > 1: every D-th period, averages over [t_(k-D), t_k], see

@@ -26,7 +26,7 @@ averaged over the period that just ended), ``vdc`` [V], ``duty_a, duty_b, duty_c
 (0..1, applied over the period that just ended), ``pwm_enabled`` (0/1),
 ``encoder_counts`` [counts], ``seq`` (PWM-period counter) and ``flags`` (status bits,
 bit 0 = current ADC clipped). The column order mirrors ``fluxdrive.drive.plant``'s ``FR_*``
-indices. Timing as BRIEF section 3.
+indices. Timing as docs/engine.md (timing convention).
 
 The numpy codec (:class:`NumpyCodec`) is generated from a cantools ``Message``: each
 signal's start bit, length, byte order, signedness, float flag, scale and offset are

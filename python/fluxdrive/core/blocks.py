@@ -59,7 +59,7 @@ def pi_gains_from_bandwidth(bandwidth_rad_s: float, plant_gain: float, zero_rati
 
 # ---------------------------------------------------------------- PLL
 def pll_gains(bandwidth_hz: float, damping: float) -> tuple[float, float]:
-    """Type-2 PLL on sin(angle error): Kp = 2 zeta w_n, Ki = w_n^2 (BRIEF sec. 5)."""
+    """Type-2 PLL on sin(angle error): Kp = 2 zeta w_n, Ki = w_n^2 (docs/engine.md, PLL)."""
     wn = 2.0 * math.pi * bandwidth_hz
     return 2.0 * damping * wn, wn * wn
 

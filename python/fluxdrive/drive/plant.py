@@ -1,7 +1,7 @@
 """SPM machine, two-level inverter with deadtime, and sensors, simulated at switching level.
 
-Conventions (BRIEF sec. 3): sample k is at t_k = k Ts (carrier valley).  `plant_advance`
-simulates the period [t_k, t_{k+1}] with the duty it is given (the duty the controller
+Conventions (docs/engine.md, timing convention): sample k is at t_k = k Ts (carrier
+valley).  `plant_advance` simulates the period [t_k, t_{k+1}] with the duty it is given (the duty the controller
 computed from frame k-1), then samples frame k+1: currents at t_{k+1}, the captured line
 voltages averaged over [t_k, t_{k+1}] and the duty that was applied over that period.
 
@@ -405,7 +405,7 @@ def plant_advance(st, mp, rng, duty, enabled, load_t, load_y, load_cfg, frame, t
 
 
 def deadtime_volt_second_loss(vdc_v: float, deadtime_s: float, ts_s: float) -> float:
-    """Expected average per-leg voltage error sign(i) Vdc td/Ts (BRIEF sec. 4)."""
+    """Expected average per-leg voltage error sign(i) Vdc td/Ts (docs/engine.md, inverter)."""
     return vdc_v * deadtime_s / ts_s
 
 

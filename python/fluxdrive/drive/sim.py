@@ -1,6 +1,6 @@
 """In-process closed-loop runner: plant + observers + FOC in one compiled loop.
 
-Per period k (BRIEF sec. 3), exactly the order the ROS graph follows:
+Per period k (docs/engine.md, timing convention), exactly the order the ROS graph follows:
   1. every observer (driving and shadow) consumes frame k,
   2. the controller turns frame k and the driving estimate into duty(k),
   3. the plant simulates [t_k, t_{k+1}] with duty(k-1) and samples frame k+1,

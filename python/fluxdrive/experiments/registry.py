@@ -264,7 +264,7 @@ def write_report(out: Path, results: dict[str, dict]) -> None:
     jpath.write_text(json.dumps({"experiments": allres}, indent=1, default=_json_default))
     lines = ["# fluxdrive experiments: the paper's claims with our numbers", "",
              "Chen, Chen, Yang, IEEE Access 2019, reproduced on the switching-level engine "
-             "(default machine card, BRIEF sec. 7).  `holds`: does the paper's claim hold "
+             "(default machine card, docs/engine.md).  `holds`: does the paper's claim hold "
              "with our numbers; `why` where it does not.", ""]
     for name, r in allres.items():
         lines += [f"## {name}: {r.get('title', '')}", "",

@@ -1,4 +1,4 @@
-"""`./fluxdrive soak`: the load checks of a long bench session (issue 7, item 7).
+"""`./fluxdrive soak`: the load checks of a long bench session.
 
 1. Lockstep soak: the composed lockstep graph of a scenario (plant, observers, controller,
    recorder) runs for about --wall-s of wall time (default 300 s).  The simulated duration

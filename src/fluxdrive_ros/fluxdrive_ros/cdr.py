@@ -14,7 +14,7 @@ Layout rules used (ROS 2 / Fast-CDR, plain CDR v1): a 4-byte encapsulation heade
 start of the payload (after the header); a string is uint32 length (bytes + NUL), the bytes,
 NUL; fixed arrays are their elements back to back with no length; nested messages are
 inlined with no alignment of their own.  Variable-length sequences are not supported
-(the per-sample messages use fixed-size arrays; BRIEF sec. 9).
+(the per-sample messages use fixed-size arrays; docs/architecture.md, "Environment notes").
 
 A `Codec` is specialised per set of string lengths (strings are nearly always constant per
 publisher: the header's frame_id, an observer's variant name), so pack/unpack are one
