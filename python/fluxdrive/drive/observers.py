@@ -4,8 +4,9 @@ Every variant consumes one frame per PWM period and produces one estimate row (E
 theta_hat, omega_hat, the magnet-flux vector, the EMF vector, the PLL error and validity.
 
 Timing (docs/engine.md, timing convention): frame k holds currents sampled at t_k and the
-voltage that acted over [t_{k-1}, t_k] (captured line voltages, or the duty applied over that interval times
-the bus voltage).  The observers pair that voltage with the current step i(k-1) -> i(k):
+voltage that acted over [t_{k-1}, t_k] (captured line voltages, or the duty applied over that
+interval times the bus voltage).  The observers pair that voltage with the current step i(k-1)
+-> i(k):
 
     x(k) = v(k) - R^ (i(k) + i(k-1))/2 - L^ (i(k) - i(k-1))/Ts          (EMF over the step)
 

@@ -1,9 +1,9 @@
 """SPM machine, two-level inverter with deadtime, and sensors, simulated at switching level.
 
-Conventions (docs/engine.md, timing convention): sample k is at t_k = k Ts (carrier
-valley).  `plant_advance` simulates the period [t_k, t_{k+1}] with the duty it is given (the duty the controller
-computed from frame k-1), then samples frame k+1: currents at t_{k+1}, the captured line
-voltages averaged over [t_k, t_{k+1}] and the duty that was applied over that period.
+Conventions (docs/engine.md, timing convention): sample k is at t_k = k Ts (carrier valley).
+`plant_advance` simulates the period [t_k, t_{k+1}] with the duty it is given (the duty the
+controller computed from frame k-1), then samples frame k+1: currents at t_{k+1}, the captured
+line voltages averaged over [t_k, t_{k+1}] and the duty that was applied over that period.
 
 Inside each period the carrier-comparison instants of the three legs, each with its
 deadtime window, split the period into up to 13 segments of constant leg state.  Across a

@@ -8,12 +8,12 @@ Publishes   /drive/frame (PhaseFrame)  /drive/truth (PlantTruth)  /clock  /drive
 Subscribes  /drive/duty (DutyCommand)
 
 Modes
-- lockstep (default, sim time): frame 0 and frame 1 (duty(-1) = PWM off) go out as soon as
-  the graph is matched; then DutyCommand(seq = j), computed from frame j, drives the period
-  [t_{j+1}, t_{j+2}] and frame j+2 is published at once.  Two frames are in flight, which
-  is exactly the one-period computation delay of the timing convention (docs/engine.md), so the graph
-  reproduces the in-process runner sample for sample.  After frame N-1 and its duty the plant publishes
-  /drive/done = N-1 (latched) and exits.
+- lockstep (default, sim time): frame 0 and frame 1 (duty(-1) = PWM off) go out as soon as the
+  graph is matched; then DutyCommand(seq = j), computed from frame j, drives the period
+  [t_{j+1}, t_{j+2}] and frame j+2 is published at once.  Two frames are in flight, which is
+  exactly the one-period computation delay of the timing convention (docs/engine.md), so the
+  graph reproduces the in-process runner sample for sample.  After frame N-1 and its duty the
+  plant publishes /drive/done = N-1 (latched) and exits.
 - paced: the same loop, held to the wall clock at `rate_factor` x real time: frame k is
   published once it is due *and* duty(k-2) has arrived (so while the graph keeps up, a paced
   run equals a lockstep run); a controller that falls behind holds the plant for up to
