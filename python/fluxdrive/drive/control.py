@@ -7,7 +7,7 @@ Per PWM period (frame k in, duty out; the duty is applied over [t_{k+1}, t_{k+2}
             later), SVPWM (min-max zero sequence) with the hexagon limit
   update    integrators back-calculated from the realised (limited) voltage.
 
-Loop design (`design_current_loop`): the brief's law K_p = L w_cc, K_i = R w_cc cancels the
+Loop design (`design_current_loop`): the textbook law K_p = L w_cc, K_i = R w_cc cancels the
 RL pole; with the 1.5-period delay of a real digital drive the closed loop then peaks and its
 -3 dB bandwidth overshoots the target.  So the gain is scaled until the *discrete* closed
 loop (ZOH RL plant, one period of computation delay, the PI) has exactly the requested

@@ -1253,7 +1253,7 @@ def peers_fail(ctx):
         "the estimate by atan(c/ω) = acos(ωλ/|x|), so closing the loop on it puts the current "
         "~75° off the q axis and the torque collapses at once.  The EMF and paper observers "
         "keep the mean angle but carry the deadtime's 6th-order ripple (±16° at 60 rpm, "
-        "Fig. 14a).  What makes that fatal is the operating point: the brief's 1.5e-4 kg·m² "
+        "Fig. 14a).  What makes that fatal is the operating point: the default card's 1.5e-4 kg·m² "
         "rotor under the rated brake decelerates at ΔT/J ≈ 400 rad/s² for a 5 % torque "
         "deficit, so 60 rpm is gone in ~15 ms -- faster than the 10 Hz speed loop or the "
         "25 Hz observer respond (the speed loop's 10 Hz design does not change this: "

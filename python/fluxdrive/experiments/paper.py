@@ -703,7 +703,7 @@ def fig19(ctx):
               "~1/J at a fixed loop bandwidth: "
               + "; ".join(f"J×{r['J_scale']}: min {r['min_rpm']:.0f} rpm" for r in rows)
               + ".  The paper's dip to ≈90 rpm implies a much larger dyno inertia (or a "
-              "stiffer loop) than the brief's 1.5e-4 kg·m²"),
+              "stiffer loop) than the default card's 1.5e-4 kg·m²"),
         claim("Full load at 4 % speed is sustained (sensorless flux drive)",
               f"stable {m4['stable']}, mean {m4['speed']['mean_rpm']:.1f} rpm, θ̃ RMS "
               f"{m4['observers']['flux_measured']['theta_err_rms_deg']:.2f}°",
