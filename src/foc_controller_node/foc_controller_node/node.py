@@ -14,6 +14,10 @@ replaces the kernel's parameter row from the next sample.  A change the design r
 rejected with the reason.  The speed reference follows the scenario's profile (with its
 injection) unless speed_ref_mode = constant (speed_ref_rpm).
 
+The sequencing -- frame/estimate pairing, stale-input trips, the drive picking up after the
+power stage's watchdog switched the PWM off, one log line per latched fault -- is the
+engine's fluxdrive.drive.sequencer.ControlSequencer; this node feeds it and publishes.
+
 Bad input and a lost position source (safe state = DutyCommand enable = false, latched
 fault in ControllerState.fault_reason, until an explicit reset: the ~/reset_fault service
 (flux_drive_msgs/ResetFault, e.g. `./fluxdrive fault reset`), obeyed only while every
@@ -38,7 +42,6 @@ from __future__ import annotations
 
 import dataclasses
 import sys
-import time
 
 import numpy as np
 from fluxdrive.core.machine import load_machine
@@ -47,22 +50,15 @@ from fluxdrive.drive.control import (
     CO_EN,
     CO_FAULT,
     CO_MODE,
-    CO_N,
     CONTROL_RANGES,
     CS_FAULT,
-    CS_MODE,
-    CS_N,
     FAULT_NAMES,
-    FAULT_STALE_INPUT,
-    MODE_FAULT,
     MODE_NAMES,
     ControllerConfig,
-    controller_clear_fault,
-    controller_reset,
-    controller_step,
 )
 from fluxdrive.drive.observers import ES_N
 from fluxdrive.drive.plant import FR_N
+from fluxdrive.drive.sequencer import ControlSequencer
 from fluxdrive.drive.sim import DriveSetup
 from fluxdrive_ros.intra import RawPublisher, RawSubscription
 from fluxdrive_ros.params import P, declare, on_set
@@ -111,7 +107,8 @@ DOCS = {
 # wall-clock grace for the very first estimate (a starting observer process, compilation)
 FIRST_ESTIMATE_WALL_S = 30.0
 # parameters of the node, not of ControllerConfig
-NODE_LEVEL = {"speed_ref_mode", "speed_ref_rpm", "position_timeout_s", "position_wall_timeout_s"}
+NODE_LEVEL = {"speed_ref_mode", "speed_ref_rpm", "position_timeout_s", "position_wall_timeout_s",
+              "max_resyncs", "resync_window_s"}
 # None-able fields: ROS parameters cannot be None; 0.0 stands for None
 NONE_AS_ZERO = {"speed_observer_pll_hz"}
 MODEL_DEFAULTS = {"r_hat_ohm": "resistance_ohm", "l_hat_h": "inductance_h",
@@ -194,6 +191,12 @@ class ControllerNode(FluxNode):
             P("position_wall_timeout_s", 2.0, "safe state when the driving estimate of a "
               "waiting frame has not come for this much wall time (lockstep graphs, where "
               "the plant waits for us; 0: off) (live)", "s", 0.0, 3600.0),
+            P("max_resyncs", 5, "lost intervals (PWM switched off by the power stage's "
+              "watchdog while this controller fell behind) tolerated within "
+              "resync_window_s; one more latches the fault 'watchdog'", "", 0, 1000,
+              read_only=True),
+            P("resync_window_s", 10.0, "sample-time window of max_resyncs", "s", 0.01,
+              3600.0, read_only=True),
         ]
         pv = declare(self, self.specs)
         common = declare(self, [
@@ -215,10 +218,6 @@ class ControllerNode(FluxNode):
         self.cfg = to_config(cfg, pv)
         self.cp = self.cfg.to_params(card)
         self.sensorless = self.cfg.position_source == "estimate"
-        self.cs = np.zeros(CS_N)
-        controller_reset(self.cs)
-        self.out = np.zeros(CO_N)
-        self.no_est = np.zeros(ES_N)
         self.stamp = Stamp(card.ts_s)
         self.fw = FrameWire()
         self.ew = EstimateWire("")
@@ -226,16 +225,14 @@ class ControllerNode(FluxNode):
         # only marked commands of their allowed_commanders (fluxdrive_ros.access)
         self.cw = ControlWire(common["frame_id"], duty_frame_id=access.mark(
             self.get_fully_qualified_name(), topics.DUTY))
-        self.frames: dict[int, np.ndarray] = {}
-        self.ests: dict[int, np.ndarray] = {}
-        self.next_k = 0
-        self.max_seq = -1  # highest frame seq received
-        self.rejected_run = 0  # consecutive dropped (repeated/backwards) frames
-        self.wait_k = -1  # sample whose estimate is being waited for since t_wait (wall)
-        self.t_wait = 0.0
-        self.fault_detail = ""
-        self.counts = diag.Counters("frames", "estimates", "repeated_or_backwards",
-                                    "missing_frames", "late_estimates", "stale_trips")
+        # pairing, stale-input trips, lost-interval re-synchronisation: the engine's
+        self.seq = ControlSequencer(
+            self.cp, card.ts_s, self.sensorless, self._publish, self._log,
+            self.w_ref_profile, self.id_inj, pv["position_timeout_s"],
+            pv["position_wall_timeout_s"], FIRST_ESTIMATE_WALL_S, qos.SAMPLE_DEPTH,
+            pv["max_resyncs"], pv["resync_window_s"])
+        self.counts = diag.Counters(*self.seq.counts)
+        self.counts.values = self.seq.counts
         self.done_seq: int | None = None
         self.exit_on_done = common["exit_on_done"]
         self._set_ref(pv)
@@ -264,9 +261,9 @@ class ControllerNode(FluxNode):
 
     # ----------------------------------------------------------------- parameters
     def _set_ref(self, pv) -> None:
-        self.n_pos_timeout = max(1, round(pv["position_timeout_s"] / self.card.ts_s))
-        self.const_ref = (pv["speed_ref_rpm"] * RPM if pv["speed_ref_mode"] == "constant"
-                          else None)
+        self.seq.set_timeouts(pv["position_timeout_s"], pv["position_wall_timeout_s"])
+        self.seq.const_ref = (pv["speed_ref_rpm"] * RPM if pv["speed_ref_mode"] == "constant"
+                              else None)
 
     def _apply(self, changes: dict) -> str:
         new = {**self.pv, **changes}
@@ -278,120 +275,36 @@ class ControllerNode(FluxNode):
             self.cfg = cfg
         self.pv = new
         self._set_ref(new)
-        return f"applied from sample {self.next_k}"
+        return f"applied from sample {self.seq.next_k}"
 
     # ----------------------------------------------------------------- samples
     def _on_frame(self, data: bytes) -> None:
         fr = np.empty(FR_N)
-        k = self.fw.unpack(data, fr)
-        c = self.counts.values
-        c["frames"] += 1
-        if k < self.next_k or k in self.frames:  # repeated or backwards: dropped
-            c["repeated_or_backwards"] += 1
-            self.rejected_run += 1
-            if self.rejected_run == 1 and c["repeated_or_backwards"] <= 10:
-                self.get_logger().warning(f"frame {k} repeated or backwards (expected "
-                                          f"{self.next_k}): dropped")
-            if self.rejected_run >= self.n_pos_timeout and self.cs[CS_MODE] != MODE_FAULT:
-                self._trip_stale(f"{self.rejected_run} consecutive frames repeated or "
-                                 f"backwards (last {k}, expected {self.next_k})")
-            if self.cs[CS_MODE] == MODE_FAULT:
-                self._answer(k, fr, self.no_est)  # PWM off, whatever the seq
-            return
-        self.rejected_run = 0
-        if k > self.max_seq:
-            self.max_seq = k
-        self.frames[k] = fr
-        if len(self.frames) > qos.SAMPLE_DEPTH:  # waiting long for the first estimate
-            oldest = min(self.frames)
-            del self.frames[oldest]
-            self.counts.values["missing_frames"] += 1
-        self._run()
+        self.seq.on_frame(self.fw.unpack(data, fr), fr)
 
     def _on_est(self, data: bytes) -> None:
         es = np.empty(ES_N)
-        k = self.ew.unpack(data, es)
-        self.counts.values["estimates"] += 1
-        if k < self.next_k:  # its frame was answered already (late, stale trip) or lost
-            self.counts.values["late_estimates"] += 1
-            return
-        self.ests[k] = es
-        if len(self.ests) > qos.SAMPLE_DEPTH:  # estimates of frames that never came
-            for j in sorted(self.ests)[: len(self.ests) - qos.SAMPLE_DEPTH]:
-                del self.ests[j]
-        self._run()
+        self.seq.on_estimate(self.ew.unpack(data, es), es)
 
-    def _run(self) -> None:
-        frames, ests = self.frames, self.ests
-        while True:
-            k = self.next_k
-            fr = frames.get(k)
-            if fr is None:
-                if not frames or self.max_seq <= k:
-                    return
-                # frame k never came but later ones did (lost upstream): skip to them
-                first = min(frames)
-                self.counts.values["missing_frames"] += first - k
-                for j in [j for j in ests if j < first]:
-                    del ests[j]
-                self.next_k = k = first
-                fr = frames[k]
-            if self.sensorless:
-                es = ests.pop(k, None)
-                if es is None:
-                    if self.cs[CS_MODE] == MODE_FAULT:
-                        es = self.no_est  # tripped: no need to wait for the estimate
-                    elif (self.max_seq - k >= self.n_pos_timeout
-                          and self.counts.values["estimates"] > 0):  # (start: wall clock)
-                        late_ms = (self.max_seq - k) * self.card.ts_s * 1e3
-                        self._trip_stale(
-                            f"no position estimate for frame {k} while frames up to "
-                            f"{self.max_seq} arrived ({late_ms:.1f} ms of sample time)")
-                        es = self.no_est
-                    else:
-                        if self.wait_k != k:
-                            self.wait_k = k
-                            self.t_wait = time.monotonic()
-                        return
-            else:
-                es = self.no_est
-            del frames[k]
-            self._answer(k, fr, es)
-            self.next_k = k + 1
-            if self.done_seq is not None and k >= self.done_seq:
-                self.finished = True
-
-    def _answer(self, k: int, fr: np.ndarray, es: np.ndarray) -> None:
-        n = self.w_ref_profile.shape[0]
-        w_ref = self.const_ref if self.const_ref is not None else float(
-            self.w_ref_profile[min(max(k, 0), n - 1)])
-        inj = float(self.id_inj[k]) if 0 <= k < self.id_inj.shape[0] else 0.0
-        controller_step(self.cs, self.cp, fr, es, w_ref, inj, self.out)
+    def _publish(self, k: int, out: np.ndarray) -> None:
         sec, nsec = self.stamp(k)
-        self.pub_duty.publish(self.cw.pack_duty(self.out, k, sec, nsec))
-        self.pub_state.publish(self.cw.pack_state(self.out, k, sec, nsec))
+        self.pub_duty.publish(self.cw.pack_duty(out, k, sec, nsec))
+        self.pub_state.publish(self.cw.pack_state(out, k, sec, nsec))
+        if self.done_seq is not None and k >= self.done_seq:
+            self.finished = True
 
-    def _trip_stale(self, detail: str) -> None:
-        """Latch FAULT_STALE_INPUT: from the next step on the engine outputs PWM off."""
-        self.cs[CS_MODE] = MODE_FAULT
-        self.cs[CS_FAULT] = FAULT_STALE_INPUT
-        self.counts.values["stale_trips"] += 1
-        self.fault_detail = detail
-        self.get_logger().error(f"{FAULT_NAMES[FAULT_STALE_INPUT]}: {detail}; PWM off "
-                                f"(latched)")
+    def _log(self, level: str, text: str) -> None:
+        # one call site per severity: rclpy refuses a second severity from the same line
+        lg = self.get_logger()
+        if level == "error":
+            lg.error(text)
+        elif level == "warning":
+            lg.warning(text)
+        else:
+            lg.info(text)
 
     def _check_wall_timeout(self) -> None:
-        lim = self.pv["position_wall_timeout_s"]
-        if lim > 0.0 and self.counts["estimates"] == 0:  # the first one may take a while
-            lim = max(lim, FIRST_ESTIMATE_WALL_S)  # (observer starting, code compiling)
-        if (lim <= 0.0 or self.cs[CS_MODE] == MODE_FAULT or self.wait_k != self.next_k
-                or self.next_k not in self.frames or self.next_k in self.ests):
-            return
-        waited = time.monotonic() - self.t_wait
-        if waited > lim:
-            self._trip_stale(f"no position estimate for frame {self.next_k} on "
-                             f"{self.sub_est.topic} for {waited:.1f} s of wall time")
-            self._run()
+        self.seq.check_wall()
 
     def _on_reset(self, req, resp):  # noqa: ARG002 - the request is empty
         """Explicit reset of a latched fault (the only way one is cleared)."""
@@ -401,16 +314,13 @@ class ControllerNode(FluxNode):
             self.get_logger().warning(f"reset_fault {why}")
             resp.success, resp.message = False, why
             return resp
-        if self.cs[CS_MODE] != MODE_FAULT:
+        if not self.seq.tripped:
             resp.success, resp.message = True, "no latched fault"
             return resp
-        code = int(controller_clear_fault(self.cs))
+        code, detail = self.seq.reset_fault()
         name = FAULT_NAMES.get(code, str(code))
-        detail = f" ({self.fault_detail})" if self.fault_detail else ""
-        self.fault_detail = ""
-        self.rejected_run = 0
-        self.wait_k = -1
-        msg = (f"cleared latched fault '{name}'{detail}; from sample {self.next_k} the drive "
+        detail = f" ({detail})" if detail else ""
+        msg = (f"cleared latched fault '{name}'{detail}; from sample {self.seq.next_k} the drive "
                f"starts again (align, I-f, handover)")
         self.get_logger().warning(msg)
         resp.success, resp.message = True, msg
@@ -418,30 +328,32 @@ class ControllerNode(FluxNode):
 
     # ----------------------------------------------------------------- diagnostics
     def _diag_input(self) -> tuple[int, str, dict]:
-        c = self.counts
-        grew = c.grew("repeated_or_backwards", "missing_frames", "late_estimates")
-        values = {**c.report(), "next_sample": self.next_k, "last_frame_seq": self.max_seq,
-                  "pending_frames": len(self.frames)}
+        c, sq = self.counts, self.seq
+        grew = c.grew("repeated_or_backwards", "missing_frames", "late_estimates",
+                      "lost_frames")
+        values = {**c.report(), "next_sample": sq.next_k, "last_frame_seq": sq.max_seq,
+                  "pending_frames": len(sq.frames)}
         if grew:
             return diag.WARN, "bad input since the last report (" + ", ".join(
                 f"{k} {c[k]}" for k in grew) + ")", values
         return diag.OK, "input ok", values
 
     def _diag_state(self) -> tuple[int, str, dict]:
-        out = self.out
-        code = int(out[CO_FAULT]) if self.next_k > 0 else int(self.cs[CS_FAULT])
+        sq = self.seq
+        out, cs = sq.out, sq.cs
+        code = int(out[CO_FAULT]) if sq.next_k > 0 else int(cs[CS_FAULT])
         mode = MODE_NAMES.get(int(out[CO_MODE]), "?")
         values = {"mode": mode, "pwm_enabled": bool(out[CO_EN] > 0.5), "fault_code": code,
                   "fault": FAULT_NAMES.get(code, "?") if code else "",
-                  "fault_detail": self.fault_detail if code else "",
+                  "fault_detail": sq.fault_detail if code else "",
                   "position_source": (self.sub_est.topic if self.sub_est is not None
                                       else "encoder")}
-        if self.cs[CS_MODE] == MODE_FAULT:
-            code = int(self.cs[CS_FAULT])
+        if sq.tripped:
+            code = int(cs[CS_FAULT])
             values.update(fault_code=code, fault=FAULT_NAMES.get(code, "?"), mode="fault",
-                          pwm_enabled=False)
-            text = FAULT_NAMES.get(code, "fault") + (f": {self.fault_detail}"
-                                                     if code == FAULT_STALE_INPUT else "")
+                          pwm_enabled=False, fault_detail=sq.fault_detail)
+            text = FAULT_NAMES.get(code, "fault") + (f": {sq.fault_detail}"
+                                                     if sq.fault_detail else "")
             return diag.ERROR, f"PWM off, latched fault: {text}", values
         return diag.OK, f"{mode}, PWM {'on' if values['pwm_enabled'] else 'off'}", values
 
@@ -449,7 +361,7 @@ class ControllerNode(FluxNode):
         if not self.exit_on_done:
             return
         self.done_seq = int(msg.data)
-        if self.next_k > self.done_seq:
+        if self.seq.next_k > self.done_seq:
             self.finished = True
 
     def close(self) -> None:

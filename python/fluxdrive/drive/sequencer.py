@@ -1,0 +1,364 @@
+"""The controller's sequencing outside the kernel: which frame is answered with which
+estimate, when an input counts as stale, and how the drive picks up after the power stage
+switched its PWM off on its own (a watchdog) -- the part of a drive's control task that
+surrounds `controller_step`.  No ROS: the controller node only feeds it decoded messages and
+publishes what it emits; tests drive it directly (tests/test_sequencer.py).
+
+Pairing.  Samples are answered strictly in order k = 0, 1, 2, ...: frame k with (sensorless)
+the driving observer's estimate k.  A frame whose seq repeats or goes backwards is dropped; a
+jump skips the missing samples (frames lost upstream are never waited for).
+
+Stale input (latched fault "stale input", PWM off until an explicit reset; every later frame
+is answered at once with the PWM off):
+- the estimate of a frame has not come while frames `position_timeout_s` of sample time later
+  are already here (a paced plant or a bench keeps producing frames), once a first estimate
+  has come;
+- the estimate of the waiting frame has not come for `position_wall_timeout_s` of wall time
+  (a lockstep plant waits for us, so sample time stands still; `first_estimate_wall_s` for
+  the very first estimate: an observer process starting, code compiling);
+- `position_timeout_s` worth of consecutive repeated/backwards frames (e.g. a restarted
+  source counting from 0 again).
+
+Lost intervals (the drive resumes as a real one does).  Frame k was produced with duty(k-2)
+(one period of computation, one of application).  When duty(k-2) asked for PWM on but frame
+k says the bridge did not switch, the power stage's watchdog has switched it off -- this
+controller stalled (a scheduling hiccup, GC, a stopped process) or its commands were lost.
+The interval is lost, not the rotor's angle: the controller does not count the gap as loss of
+observer lock.  On every lost frame it re-synchronises:
+- flying restart: the driving estimate is valid and the rotor turns above the handover
+  speed -- closed loop continues on the estimate; the current integrators start from zero
+  (the decoupling feed-forward carries the back-EMF), the speed integrator keeps the torque
+  it carried, the invalid-estimate timer is cleared;
+- otherwise back through the start-up: align, I-f ramp, handover (a braked rotor stops
+  within the gap; no observer can see a stopped rotor).
+One log line when an interval starts and one when the PWM is back.  More than
+`max_resyncs` lost intervals within `resync_window_s` of sample time latch the fault
+"watchdog" with that reason (a power stage that keeps timing out is not a hiccup).
+
+Every latched fault -- the kernel's protection trips and the ones above -- is logged once,
+with its detail (values and limits), through the `log(level, text)` callback.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from fluxdrive.drive.control import (
+    CO_EN,
+    CO_N,
+    CP_HANDOVER,
+    CP_I2T_LIMIT,
+    CP_INV_TIMEOUT,
+    CP_OC_TRIP,
+    CP_OS_TRIP,
+    CP_P,
+    CP_VDC_MAX,
+    CP_VDC_MIN,
+    CS_FAULT,
+    CS_I2T,
+    CS_ID_I,
+    CS_INV_T,
+    CS_IQ_I,
+    CS_MODE,
+    CS_N,
+    FAULT_BAD_SAMPLE,
+    FAULT_LOSS_OF_LOCK,
+    FAULT_NAMES,
+    FAULT_OVERCURRENT,
+    FAULT_OVERCURRENT_I2T,
+    FAULT_OVERSPEED,
+    FAULT_OVERVOLTAGE,
+    FAULT_POSITION_INVALID,
+    FAULT_STALE_INPUT,
+    FAULT_UNDERVOLTAGE,
+    FAULT_WATCHDOG,
+    MODE_CLOSED_LOOP,
+    MODE_FAULT,
+    controller_clear_fault,
+    controller_reset,
+    controller_step,
+)
+from fluxdrive.drive.observers import ES_N, ES_TH, ES_VALID, ES_W
+from fluxdrive.drive.plant import FR_EN, FR_IA, FR_IB, FR_IC, FR_VDC
+
+Log = Callable[[str, str], None]  # (level: "info" | "warning" | "error", text)
+Emit = Callable[[int, np.ndarray], None]  # (seq, CO_* row) for every answered frame
+
+
+def describe_fault(code: int, cp: np.ndarray, cs: np.ndarray, fr: np.ndarray,
+                   es: np.ndarray, k: int) -> str:
+    """Detail of a fault the kernel latched at frame k: the value that tripped and its
+    limit (the kernel itself only records the code)."""
+    i_max = max(abs(fr[FR_IA]), abs(fr[FR_IB]), abs(fr[FR_IC]))
+    if code == FAULT_BAD_SAMPLE:
+        what = "frame values not finite"
+    elif code == FAULT_OVERCURRENT:
+        what = f"|i| {i_max:.3g} A > trip {cp[CP_OC_TRIP]:.3g} A"
+    elif code == FAULT_OVERCURRENT_I2T:
+        what = f"I2t {cs[CS_I2T]:.3g} pu^2 s > limit {cp[CP_I2T_LIMIT]:.3g} pu^2 s"
+    elif code == FAULT_OVERVOLTAGE:
+        what = f"Vdc {fr[FR_VDC]:.4g} V > {cp[CP_VDC_MAX]:.4g} V"
+    elif code == FAULT_UNDERVOLTAGE:
+        what = f"Vdc {fr[FR_VDC]:.4g} V < {cp[CP_VDC_MIN]:.4g} V"
+    elif code == FAULT_OVERSPEED:
+        w = es[ES_W] / cp[CP_P] if math.isfinite(es[ES_W]) else float("nan")
+        what = (f"speed feedback {w * 60 / (2 * math.pi):.4g} rpm beyond "
+                f"{cp[CP_OS_TRIP] * 60 / (2 * math.pi):.4g} rpm")
+    elif code == FAULT_LOSS_OF_LOCK:
+        what = (f"driving estimate flagged invalid for more than {cp[CP_INV_TIMEOUT] * 1e3:.4g}"
+                f" ms in closed loop")
+    elif code == FAULT_POSITION_INVALID:
+        what = f"estimate not finite (theta {es[ES_TH]}, omega {es[ES_W]})"
+    else:
+        what = "latched by the controller"
+    return f"{what} (frame {k})"
+
+
+class ControlSequencer:
+    """Pairs frames with estimates, runs `controller_step`, trips on stale input and
+    re-synchronises after lost intervals.  Feed it `on_frame` / `on_estimate`, call
+    `check_wall` now and then (e.g. every 0.1 s); it calls `emit(seq, CO_* row)` for every
+    frame it answers, in order."""
+
+    def __init__(self, cp: np.ndarray, ts_s: float, sensorless: bool, emit: Emit, log: Log,
+                 w_ref_profile: np.ndarray | None = None, id_inj: np.ndarray | None = None,
+                 position_timeout_s: float = 0.05, position_wall_timeout_s: float = 2.0,
+                 first_estimate_wall_s: float = 30.0, depth: int = 10000,
+                 max_resyncs: int = 5, resync_window_s: float = 10.0):
+        self.cp = cp
+        self.ts = ts_s
+        self.sensorless = sensorless
+        self.emit = emit
+        self.log = log
+        self.w_ref_profile = np.zeros(1) if w_ref_profile is None else w_ref_profile
+        self.id_inj = np.zeros(0) if id_inj is None else id_inj
+        self.const_ref: float | None = None
+        self.first_estimate_wall_s = first_estimate_wall_s
+        self.depth = depth
+        self.max_resyncs = max_resyncs
+        self.resync_window_s = resync_window_s
+        self.set_timeouts(position_timeout_s, position_wall_timeout_s)
+        self.cs = np.zeros(CS_N)
+        controller_reset(self.cs)
+        self.out = np.zeros(CO_N)
+        self.no_est = np.zeros(ES_N)
+        self.frames: dict[int, np.ndarray] = {}
+        self.ests: dict[int, np.ndarray] = {}
+        self.next_k = 0
+        self.max_seq = -1  # highest frame seq received
+        self.rejected_run = 0  # consecutive dropped (repeated/backwards) frames
+        self.wait_k = -1  # sample whose estimate is being waited for since t_wait (wall)
+        self.t_wait = 0.0
+        self.fault_detail = ""
+        self._fault_logged = False
+        self.enables: dict[int, bool] = {}  # seq -> PWM enable of the duty sent for it
+        self.lost_run = 0  # consecutive lost frames (0: none in progress)
+        self.lost_first = -1
+        self.resync_at: list[int] = []  # frames at which lost intervals began
+        self.finished_k = -1  # last frame answered
+        self.counts = {n: 0 for n in ("frames", "estimates", "repeated_or_backwards",
+                                      "missing_frames", "late_estimates", "stale_trips",
+                                      "lost_frames", "lost_intervals", "flying_restarts",
+                                      "restarts", "faults_latched")}
+
+    # ------------------------------------------------------------------ settings
+    def set_timeouts(self, position_timeout_s: float, position_wall_timeout_s: float) -> None:
+        self.n_pos_timeout = max(1, round(position_timeout_s / self.ts))
+        self.wall_timeout_s = position_wall_timeout_s
+
+    @property
+    def tripped(self) -> bool:
+        return self.cs[CS_MODE] == MODE_FAULT
+
+    # ------------------------------------------------------------------ inputs
+    def on_frame(self, k: int, fr: np.ndarray) -> None:
+        """Frame k (an FR_* row; kept, not copied)."""
+        c = self.counts
+        c["frames"] += 1
+        if k < self.next_k or k in self.frames:  # repeated or backwards: dropped
+            c["repeated_or_backwards"] += 1
+            self.rejected_run += 1
+            if self.rejected_run == 1 and c["repeated_or_backwards"] <= 10:
+                self.log("warning", f"frame {k} repeated or backwards (expected "
+                                    f"{self.next_k}): dropped")
+            if self.rejected_run >= self.n_pos_timeout and not self.tripped:
+                self.trip_stale(f"{self.rejected_run} consecutive frames repeated or "
+                                f"backwards (last {k}, expected {self.next_k})")
+            if self.tripped:
+                self._answer(k, fr, self.no_est)  # PWM off, whatever the seq
+            return
+        self.rejected_run = 0
+        if k > self.max_seq:
+            self.max_seq = k
+        self.frames[k] = fr
+        if len(self.frames) > self.depth:  # waiting long for the first estimate
+            del self.frames[min(self.frames)]
+            c["missing_frames"] += 1
+        self._run()
+
+    def on_estimate(self, k: int, es: np.ndarray) -> None:
+        """The driving observer's estimate k (an ES_* row)."""
+        self.counts["estimates"] += 1
+        if k < self.next_k:  # its frame was answered already (late, stale trip) or lost
+            self.counts["late_estimates"] += 1
+            return
+        self.ests[k] = es
+        if len(self.ests) > self.depth:  # estimates of frames that never came
+            for j in sorted(self.ests)[: len(self.ests) - self.depth]:
+                del self.ests[j]
+        self._run()
+
+    def check_wall(self, now: float | None = None) -> None:
+        """Wall-clock timeout of the estimate the sequence is waiting for."""
+        if not self.sensorless:
+            return
+        now = time.monotonic() if now is None else now
+        lim = self.wall_timeout_s
+        if lim > 0.0 and self.counts["estimates"] == 0:  # the first one may take a while
+            lim = max(lim, self.first_estimate_wall_s)
+        if (lim <= 0.0 or self.tripped or self.wait_k != self.next_k
+                or self.next_k not in self.frames or self.next_k in self.ests):
+            return
+        waited = now - self.t_wait
+        if waited > lim:
+            self.trip_stale(f"no position estimate for frame {self.next_k} for "
+                            f"{waited:.1f} s of wall time")
+            self._run()
+
+    # ------------------------------------------------------------------ sequencing
+    def _run(self) -> None:
+        frames, ests = self.frames, self.ests
+        while True:
+            k = self.next_k
+            fr = frames.get(k)
+            if fr is None:
+                if not frames or self.max_seq <= k:
+                    return
+                # frame k never came but later ones did (lost upstream): skip to them
+                first = min(frames)
+                self.counts["missing_frames"] += first - k
+                for j in [j for j in ests if j < first]:
+                    del ests[j]
+                self.next_k = k = first
+                fr = frames[k]
+            if self.sensorless:
+                es = ests.pop(k, None)
+                if es is None:
+                    if self.tripped:
+                        es = self.no_est  # tripped: no need to wait for the estimate
+                    elif (self.max_seq - k >= self.n_pos_timeout
+                          and self.counts["estimates"] > 0):  # (start: wall clock)
+                        late_ms = (self.max_seq - k) * self.ts * 1e3
+                        self.trip_stale(
+                            f"no position estimate for frame {k} while frames up to "
+                            f"{self.max_seq} arrived ({late_ms:.1f} ms of sample time)")
+                        es = self.no_est
+                    else:
+                        if self.wait_k != k:
+                            self.wait_k = k
+                            self.t_wait = time.monotonic()
+                        return
+            else:
+                es = self.no_est
+            del frames[k]
+            self._answer(k, fr, es)
+            self.next_k = k + 1
+
+    def _lost(self, k: int, fr: np.ndarray) -> bool:
+        """Frame k was made with PWM off although duty(k-2) asked for it on."""
+        return self.enables.pop(k - 2, False) and fr[FR_EN] < 0.5
+
+    def _answer(self, k: int, fr: np.ndarray, es: np.ndarray) -> None:
+        cs = self.cs
+        if not self.tripped:
+            if self._lost(k, fr):
+                self._resync(k, es)
+            elif self.lost_run:
+                self.log("info", f"PWM back at frame {k} after {self.lost_run} lost "
+                                 f"period(s) from frame {self.lost_first}")
+                self.lost_run = 0
+        n = self.w_ref_profile.shape[0]
+        w_ref = self.const_ref if self.const_ref is not None else float(
+            self.w_ref_profile[min(max(k, 0), n - 1)])
+        inj = float(self.id_inj[k]) if 0 <= k < self.id_inj.shape[0] else 0.0
+        was_fault = self.tripped
+        controller_step(cs, self.cp, fr, es, w_ref, inj, self.out)
+        if self.tripped and not was_fault:
+            code = int(cs[CS_FAULT])
+            self.fault_detail = describe_fault(code, self.cp, cs, fr, es, k)
+            self._log_fault(code)
+        self.enables[k] = bool(self.out[CO_EN] > 0.5)
+        if len(self.enables) > 8:
+            for j in [j for j in self.enables if j < k - 4]:
+                del self.enables[j]
+        self.finished_k = k
+        self.emit(k, self.out)
+
+    def _resync(self, k: int, es: np.ndarray) -> None:
+        """A lost interval: re-synchronise instead of counting it as loss of lock."""
+        cs, cp, c = self.cs, self.cp, self.counts
+        c["lost_frames"] += 1
+        first = self.lost_run == 0
+        self.lost_run += 1
+        if first:
+            self.lost_first = k
+            c["lost_intervals"] += 1
+            win = round(self.resync_window_s / self.ts)
+            self.resync_at = [j for j in self.resync_at if j > k - win] + [k]
+            if len(self.resync_at) > self.max_resyncs:
+                self.fault_detail = (
+                    f"{len(self.resync_at)} lost intervals (PWM switched off by the power "
+                    f"stage's watchdog) within {self.resync_window_s:g} s of sample time, "
+                    f"limit {self.max_resyncs} (frame {k})")
+                cs[CS_MODE] = MODE_FAULT
+                cs[CS_FAULT] = FAULT_WATCHDOG
+                self._log_fault(FAULT_WATCHDOG)
+                return
+        flying = (cs[CS_MODE] == MODE_CLOSED_LOOP and es[ES_VALID] != 0.0
+                  and math.isfinite(es[ES_W]) and abs(es[ES_W]) >= cp[CP_HANDOVER] * cp[CP_P])
+        if flying:
+            cs[CS_ID_I] = 0.0
+            cs[CS_IQ_I] = 0.0
+            cs[CS_INV_T] = 0.0
+            c["flying_restarts"] += first
+        else:
+            controller_reset(cs)
+            c["restarts"] += first
+        if first:
+            self.log("warning", (
+                f"frame {k}: PWM was off although duty {k - 2} asked for it (the power "
+                f"stage's watchdog: this controller fell behind) -- interval lost; "
+                + ("flying restart on the estimate" if flying else
+                   "restarting through align / I-f")))
+
+    # ------------------------------------------------------------------ faults
+    def _log_fault(self, code: int) -> None:
+        self.counts["faults_latched"] += 1
+        name = FAULT_NAMES.get(code, f"fault {code}")
+        self.log("error", f"{name}: {self.fault_detail}; PWM off (latched)")
+
+    def trip_stale(self, detail: str) -> None:
+        """Latch "stale input": from the next step on the controller outputs PWM off."""
+        self.cs[CS_MODE] = MODE_FAULT
+        self.cs[CS_FAULT] = FAULT_STALE_INPUT
+        self.counts["stale_trips"] += 1
+        self.fault_detail = detail
+        self._log_fault(FAULT_STALE_INPUT)
+
+    def reset_fault(self) -> tuple[int, str]:
+        """Explicit reset of a latched fault: (cleared code, its detail); the drive starts
+        again (align, I-f, handover) from the next frame."""
+        if not self.tripped:
+            return 0, ""
+        code = int(controller_clear_fault(self.cs))
+        detail, self.fault_detail = self.fault_detail, ""
+        self.rejected_run = 0
+        self.wait_k = -1
+        self.lost_run = 0
+        self.resync_at = []
+        self.enables.clear()
+        return code, detail

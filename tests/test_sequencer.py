@@ -1,0 +1,220 @@
+"""The controller's sequencing without ROS (fluxdrive.drive.sequencer): frame/estimate
+pairing in any arrival order equals the in-process runner bit for bit, stale-input trips,
+every latched fault logged once with its detail, and the drive resuming after the power
+stage's watchdog switched the PWM off (a stalled controller)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from fluxdrive.core.scenario import RPM, load_scenario, scenario_path
+from fluxdrive.drive.control import (
+    CO_EN,
+    CO_FAULT,
+    CO_MODE,
+    CS_FAULT,
+    FAULT_BAD_SAMPLE,
+    FAULT_STALE_INPUT,
+    FAULT_WATCHDOG,
+    MODE_CLOSED_LOOP,
+    MODE_FAULT,
+)
+from fluxdrive.drive.observers import ES_N, observer_step
+from fluxdrive.drive.plant import FR_IA, FR_N, TR_N, TR_WM, plant_advance, plant_initial_frame
+from fluxdrive.drive.sequencer import ControlSequencer
+from fluxdrive.drive.sim import DriveSetup, run_scenario
+
+SCENARIO = "paper_2pct_150load"
+
+
+def _scenario(duration_s: float):
+    sc = load_scenario(scenario_path(SCENARIO))
+    sc.duration_s = duration_s
+    return sc
+
+
+class Drive:
+    """Plant + observers + a ControlSequencer, the way a paced graph runs them: frame k
+    is produced with duty(k-2); a duty that has not been answered in time is replaced by
+    PWM off (the plant's watchdog), and the controller may be stalled -- it then gets its
+    backlog of frames and estimates at once, as a stopped process does when it resumes."""
+
+    def __init__(self, sc, **kw):
+        self.ds = ds = DriveSetup(sc)
+        self.pst, self.rng = ds.new_plant()
+        self.obs = ds.new_observer_states()
+        self.fr = np.zeros(FR_N)
+        self.tr = np.zeros(TR_N)
+        plant_initial_frame(self.pst, ds.mp, self.rng, self.fr, self.tr)
+        self.duties: dict[int, np.ndarray] = {}
+        self.ctrl: dict[int, np.ndarray] = {}
+        self.lines: list[tuple[str, str]] = []
+        self.seq = ControlSequencer(ds.cp.copy(), ds.ts, ds.driving_index >= 0, self._emit,
+                                    lambda lvl, txt: self.lines.append((lvl, txt)),
+                                    ds.w_ref, ds.id_inj, **kw)
+        self.backlog: list[tuple[int, np.ndarray, np.ndarray]] = []
+        self.speed_rpm: list[float] = []
+        self.lost: list[int] = []
+
+    def _emit(self, k: int, out: np.ndarray) -> None:
+        self.ctrl[k] = out.copy()
+        self.duties[k] = np.array([out[0], out[1], out[2], out[CO_EN]])
+
+    def run(self, n: int, stalled=lambda k: False) -> None:
+        ds = self.ds
+        d = ds.driving_index
+        est = np.zeros((len(ds.names), ES_N))
+        for k in range(n):
+            for o in range(len(ds.names)):
+                observer_step(self.obs[o], ds.obs_params[o], self.fr, est[o])
+            self.backlog.append((k, self.fr.copy(), est[d].copy()))
+            if not stalled(k):
+                for j, f, e in self.backlog:
+                    self.seq.on_frame(j, f)
+                    self.seq.on_estimate(j, e)
+                self.backlog.clear()
+            duty = self.duties.pop(k - 1, None)
+            if duty is None and k >= 1:  # not answered in time: the watchdog's PWM off
+                duty = np.array([0.5, 0.5, 0.5, 0.0])
+                self.lost.append(k + 1)
+            elif duty is None:
+                duty = np.array([0.5, 0.5, 0.5, 0.0])
+            plant_advance(self.pst, ds.mp, self.rng, duty[:3], duty[3] > 0.5, ds.load_t,
+                          ds.load_y, ds.load_cfg, self.fr, self.tr)
+            self.speed_rpm.append(self.tr[TR_WM] / RPM)
+
+
+def test_in_order_equals_the_in_process_runner_bit_for_bit():
+    sc = _scenario(1.2)  # through align, I-f and the handover
+    ref = run_scenario(sc, progress=False)
+    dr = Drive(sc)
+    dr.run(ref.ctrl.shape[0])
+    got = np.array([dr.ctrl[k] for k in range(ref.ctrl.shape[0])])
+    assert np.array_equal(got, ref.ctrl)
+    assert ref.ctrl[-1, CO_MODE] == MODE_CLOSED_LOOP
+    assert not dr.lines or all(lvl == "info" for lvl, _ in dr.lines)
+
+
+def test_any_arrival_order_gives_the_same_answers():
+    sc = _scenario(0.05)
+    ds = DriveSetup(sc)
+    rng = np.random.default_rng(3)
+    n = 400
+    frames = [np.full(FR_N, 0.0) for _ in range(n)]
+    for k, f in enumerate(frames):
+        f[FR_IA] = 0.1 * math.sin(k / 10)
+        f[6] = 72.0  # FR_VDC
+    ests = [np.zeros(ES_N) for _ in range(n)]
+    outs = {}
+    for order in ("in_order", "shuffled"):
+        got: dict[int, np.ndarray] = {}
+        sq = ControlSequencer(ds.cp.copy(), ds.ts, True,
+                              lambda k, o, got=got: got.__setitem__(k, o.copy()),
+                              lambda *_: None, ds.w_ref, ds.id_inj)
+        if order == "shuffled":  # each stream in order, estimates early or late by 0-30
+            lag = np.sort(np.arange(n) + rng.uniform(-30, 30, n))
+            events = sorted([(k, "f", k) for k in range(n)]
+                            + [(lag[k], "e", k) for k in range(n)])
+        else:
+            events = sorted([(k, "f", k) for k in range(n)] + [(k + 0.5, "e", k)
+                                                              for k in range(n)])
+        for _, kind, k in events:
+            (sq.on_frame(k, frames[k]) if kind == "f" else sq.on_estimate(k, ests[k]))
+        assert sorted(got) == list(range(n))
+        outs[order] = np.array([got[k] for k in range(n)])
+    assert np.array_equal(outs["in_order"], outs["shuffled"])
+
+
+def _bare(**kw):
+    ds = DriveSetup(_scenario(0.05))
+    lines: list[tuple[str, str]] = []
+    got: dict[int, np.ndarray] = {}
+    sq = ControlSequencer(ds.cp.copy(), ds.ts, True, lambda k, o: got.__setitem__(k, o.copy()),
+                          lambda lvl, txt: lines.append((lvl, txt)), ds.w_ref, ds.id_inj, **kw)
+    fr = np.zeros(FR_N)
+    fr[6] = 72.0
+    return sq, fr, got, lines
+
+
+def test_missing_estimate_trips_stale_input_after_the_sample_timeout():
+    sq, fr, got, lines = _bare(position_timeout_s=0.01)  # 100 periods
+    sq.on_frame(0, fr.copy())
+    sq.on_estimate(0, np.zeros(ES_N))
+    for k in range(1, 101):  # estimate 1 never comes
+        sq.on_frame(k, fr.copy())
+    assert not sq.tripped and sorted(got) == [0]
+    sq.on_frame(101, fr.copy())  # 100 periods later than frame 1
+    assert sq.tripped
+    assert sorted(got) == list(range(102))  # answered at once, PWM off
+    assert all(got[k][CO_EN] == 0.0 and got[k][CO_FAULT] == FAULT_STALE_INPUT
+               for k in range(1, 102))
+    errors = [t for lvl, t in lines if lvl == "error"]
+    assert len(errors) == 1 and "no position estimate for frame 1" in errors[0]
+    code, detail = sq.reset_fault()
+    assert code == FAULT_STALE_INPUT and "frame 1" in detail and not sq.tripped
+
+
+def test_wall_timeout_and_repeated_frames_trip():
+    sq, fr, got, lines = _bare(position_wall_timeout_s=0.5, first_estimate_wall_s=1.0)
+    sq.on_frame(0, fr.copy())
+    sq.check_wall(sq.t_wait + 0.9)  # the first estimate gets the longer grace
+    assert not sq.tripped
+    sq.check_wall(sq.t_wait + 1.1)
+    assert sq.tripped and "wall time" in sq.fault_detail
+    sq, fr, got, lines = _bare(position_timeout_s=0.001)  # 10 periods
+    sq.on_frame(5, fr.copy())
+    sq.on_estimate(5, np.zeros(ES_N))
+    for _ in range(10):
+        sq.on_frame(3, fr.copy())
+    assert sq.tripped and "10 consecutive frames repeated or backwards" in sq.fault_detail
+    assert sq.counts["repeated_or_backwards"] == 10
+
+
+def test_a_kernel_trip_is_logged_once_with_its_detail():
+    sq, fr, got, lines = _bare()
+    bad = fr.copy()
+    bad[FR_IA] = float("nan")
+    sq.on_frame(0, bad)
+    sq.on_estimate(0, np.zeros(ES_N))
+    for k in range(1, 5):
+        sq.on_frame(k, fr.copy())
+        sq.on_estimate(k, np.zeros(ES_N))
+    assert got[0][CO_FAULT] == FAULT_BAD_SAMPLE
+    errors = [t for lvl, t in lines if lvl == "error"]
+    assert errors == ["bad sample (NaN/inf): frame values not finite (frame 0); PWM off "
+                      "(latched)"]
+
+
+@pytest.mark.parametrize("stall_periods", [100, 500, 1500])
+def test_a_stalled_controller_resumes_through_the_start_up(stall_periods):
+    """A paced graph at rate_factor 0.05 stalled for 0.2 s, 1 s, 3 s of wall time: 100, 500,
+    1500 periods.  The brake load stops the rotor within the gap, so the drive comes back
+    through align and I-f and is in closed loop again, no fault."""
+    sc = _scenario(3.4)
+    dr = Drive(sc)
+    k0 = 15000  # 1.5 s: closed loop at 60 rpm, light brake load
+    dr.run(round(3.4 / dr.ds.ts), stalled=lambda k: k0 <= k < k0 + stall_periods)
+    modes = np.array([dr.ctrl[k][CO_MODE] for k in sorted(dr.ctrl)])
+    assert modes[k0 - 1] == MODE_CLOSED_LOOP
+    assert MODE_FAULT not in modes, [t for _, t in dr.lines]
+    assert modes[-1] == MODE_CLOSED_LOOP
+    assert dr.seq.counts["lost_intervals"] == 1
+    assert dr.seq.counts["lost_frames"] == len(dr.lost) > 0
+    warn = [t for lvl, t in dr.lines if lvl == "warning"]
+    assert len(warn) == 1 and "interval lost" in warn[0]
+    ref = run_scenario(sc, progress=False)  # the same run without the stall
+    ref_rpm = ref.truth[-2000:, TR_WM].mean() / RPM
+    assert ref_rpm > 20.0 and abs(np.mean(dr.speed_rpm[-2000:]) - ref_rpm) < 3.0
+
+
+def test_repeated_stalls_past_the_limit_latch_watchdog_with_the_reason():
+    sc = _scenario(1.6)
+    dr = Drive(sc, max_resyncs=2, resync_window_s=1.0)
+    stalls = [(11000 + 1000 * j, 30) for j in range(3)]
+    dr.run(round(1.5 / dr.ds.ts),
+           stalled=lambda k: any(a <= k < a + n for a, n in stalls))
+    assert dr.seq.tripped and int(dr.seq.cs[CS_FAULT]) == FAULT_WATCHDOG
+    errors = [t for lvl, t in dr.lines if lvl == "error"]
+    assert len(errors) == 1 and "3 lost intervals" in errors[0] and "limit 2" in errors[0]
