@@ -9,7 +9,7 @@ from fluxdrive.experiments.registry import run_experiment, write_report
 
 
 def _run(name, tmp_path):
-    res = run_experiment(name, tmp_path, quick=True, pool=None, echo=False)
+    res = run_experiment(name, tmp_path, quick=True, runner=None, echo=False)
     write_report(tmp_path, {name: res})
     return res
 

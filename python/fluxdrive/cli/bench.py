@@ -1,4 +1,4 @@
-"""`./fluxdrive benchmark engine|replay|graph|can`: throughput figures; the last line of
+"""`./fluxdrive benchmark engine|replay|graph|can|study`: throughput figures; the last line of
 each is a JSON object."""
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ BENCHES = {
     "replay": ("fluxdrive.replay.lab", "bench_replay"),
     "graph": ("fluxdrive_bringup.bench", "bench_graph"),
     "can": ("fluxdrive.can.benchmark", "bench_can_cli"),
+    "study": ("fluxdrive.study.cli", "bench_study"),
 }
 
 

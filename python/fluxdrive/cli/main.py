@@ -15,7 +15,8 @@ REPO = Path(__file__).resolve().parents[3]
 # subcommand -> (module, function, one-line help); each function takes argv (list[str])
 COMMANDS: dict[str, tuple[str, str, str]] = {
     "sim": ("fluxdrive.cli.sim", "main_sim", "run a scenario in-process (no ROS) and report"),
-    "benchmark": ("fluxdrive.cli.bench", "main", "benchmarks: engine | replay | graph | can"),
+    "benchmark": ("fluxdrive.cli.bench", "main",
+                  "benchmarks: engine | replay | graph | can | study"),
     "demo": ("fluxdrive_bringup.cli", "main_demo",
              "the main job: 2 % / 150 % load scenario through the ROS graph, recorded"),
     "run": ("fluxdrive_bringup.cli", "main_run", "run any scenario through the ROS graph"),
@@ -33,6 +34,8 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "can-emulator": ("fluxdrive.can.emulator", "main",
                      "the drive emulator (plant as the MCU) on a CAN bus, as a process"),
     "experiment": ("fluxdrive.experiments.registry", "main", "reproduce the paper's figures"),
+    "study": ("fluxdrive.study.cli", "main",
+              "sweeps and Monte-Carlo robustness maps on dask (local cores or a cluster)"),
     "test": ("fluxdrive.cli.main", "main_test", "run the test suite"),
     "lint": ("fluxdrive.cli.main", "main_lint", "ruff over the project"),
 }

@@ -1181,11 +1181,8 @@ def peers_fail(ctx):
                     for d in PEERS[1:4] for s in seeds[:2]]
     t0 = time.perf_counter()
     scs = [j[0] for j in sw_jobs]
-    if ctx.pool is not None and len(scs) > 1:
-        sw_res = list(ctx.pool.map(_switch_job, scs))
-    else:
-        sw_res = [_switch_job(x) for x in scs]
-    ctx.log(f"{len(scs)} switched runs (in-process) in {time.perf_counter() - t0:.1f} s")
+    sw_res = ctx.map(_switch_job, scs)
+    ctx.log(f"{len(scs)} switched runs (in-process engine) in {time.perf_counter() - t0:.1f} s")
     # shadow: every variant on the encoder drive at the same point, for the mechanism
     shadow_obs = {v: VARIANTS[v] for v in PEERS}
     shadow_obs["hl_commanded"] = {"variant": "hinkkanen_luomi", "voltage_source": "commanded"}
@@ -1449,10 +1446,7 @@ def rs_adapt(ctx):
                    observers={"flux_measured": {**OBS4["flux_measured"], "r_hat_ohm": R0 * f}})
         jobs.append((sc, g))
     t0 = time.perf_counter()
-    if ctx.pool is not None and len(jobs) > 1:
-        res = list(ctx.pool.map(_adaptive_job, jobs))
-    else:
-        res = [_adaptive_job(j) for j in jobs]
+    res = ctx.map(_adaptive_job, jobs)
     ctx.log(f"{len(jobs)} adaptive runs in {time.perf_counter() - t0:.1f} s")
     p = plt()
     fig, ax = p.subplots(3, 1, figsize=(9, 8), sharex=True)

@@ -1,7 +1,9 @@
 """`./fluxdrive experiment NAME|all [--quick] [--graph] [--out DIR]`: the paper's figures, and
 past them.  `--graph` runs every scenario through the ROS node graph instead of in-process.
 
-Each experiment builds scenarios, runs them in-process (the two cores in parallel), writes
+Each experiment builds scenarios, runs them through the project's one parallel runner
+(fluxdrive.study.runner: a dask LocalCluster on every core, an existing cluster with
+--scheduler, or in-process with --workers 1), writes
 PNGs laid out like the paper's figure, and one row per claim of the paper into
 report.md / report.json: {"claim", "ours", "holds", "why"}.  "why" explains every claim
 that does not hold with our numbers (physics first; nothing is tuned silently).
@@ -24,7 +26,6 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -166,8 +167,7 @@ def metrics_only(r, m, **_):
 class Ctx:
     out: Path
     quick: bool = False
-    workers: int = 2
-    pool: Any = None
+    runner: Any = None  # fluxdrive.study.runner.Runner; None: in-process, in order
     name: str = ""
     echo: bool = True
 
@@ -178,21 +178,15 @@ class Ctx:
 
     def run(self, jobs: list[tuple[Scenario, Callable, dict | None]]) -> list[dict]:
         """Run (scenario, extractor, kwargs) jobs; results in order, progress on stderr."""
-        t0 = time.perf_counter()
-        n = len(jobs)
-        results: list[Any] = [None] * n
-        if self.pool is None or n == 1:
-            for i, j in enumerate(jobs):
-                results[i] = _job(j)
-                self.log(f"run {i + 1}/{n} done ({time.perf_counter() - t0:.1f} s)")
-            return results
-        futs = {self.pool.submit(_job, j): i for i, j in enumerate(jobs)}
-        from concurrent.futures import as_completed
+        return self.map(_job, jobs)
 
-        for done, f in enumerate(as_completed(futs), 1):
-            results[futs[f]] = f.result()
-            self.log(f"run {done}/{n} done ({time.perf_counter() - t0:.1f} s)")
-        return results
+    def map(self, fn: Callable[[Any], Any], items: list[Any]) -> list[Any]:
+        """fn over items through the runner (in-process without one); results in order."""
+        from fluxdrive.study.runner import Progress, Runner
+
+        runner = self.runner or Runner("serial")
+        return runner.map(fn, list(items), Progress(len(items), label=self.name,
+                                                    echo=self.echo))
 
     def fig(self, fig, name: str) -> str:
         self.out.mkdir(parents=True, exist_ok=True)
@@ -231,10 +225,10 @@ def _registry() -> dict[str, tuple[Callable, str]]:
     return {**p.EXPERIMENTS, **b.EXPERIMENTS}
 
 
-def run_experiment(name: str, out: Path, quick: bool = False, pool=None,
+def run_experiment(name: str, out: Path, quick: bool = False, runner=None,
                    echo: bool = True) -> dict:
     fn, title = _registry()[name]
-    ctx = Ctx(out=Path(out), quick=quick, pool=pool, name=name, echo=echo)
+    ctx = Ctx(out=Path(out), quick=quick, runner=runner, name=name, echo=echo)
     t0 = time.perf_counter()
     res = fn(ctx)
     res["runtime_s"] = round(time.perf_counter() - t0, 2)
@@ -308,7 +302,9 @@ def main(argv: list[str]) -> int:
     ap.add_argument("name", help="experiment name or 'all' or 'list': " + ", ".join(reg))
     ap.add_argument("--quick", action="store_true", help="fewer points, shorter runs")
     ap.add_argument("--out", type=Path, help="output folder (default results/experiments)")
-    ap.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
+    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1,
+                    help="worker processes of the local dask cluster (1: in-process)")
+    ap.add_argument("--scheduler", help="run on an existing dask cluster tcp://HOST:PORT")
     ap.add_argument("--graph", action="store_true",
                     help="run every scenario through the ROS 2 node graph (lockstep, "
                     "recorded to a bag and read back) instead of in-process; same numbers, "
@@ -328,15 +324,14 @@ def main(argv: list[str]) -> int:
         return 2
     out = args.out or REPO_ROOT / "results" / "experiments"
     t0 = time.perf_counter()
-    import multiprocessing as mp
+    from fluxdrive.study.runner import runner_from_args
 
-    pool = (ProcessPoolExecutor(args.workers, mp_context=mp.get_context("fork"))
-            if args.workers > 1 else None)
+    runner = runner_from_args(None if _GRAPH["on"] else args.scheduler, args.workers)
     try:
         for n in names:
             sys.stderr.write(f"== experiment {n} ({time.perf_counter() - t0:.0f} s elapsed)\n")
             try:
-                res = run_experiment(n, out, args.quick, pool)
+                res = run_experiment(n, out, args.quick, runner)
             except Exception as exc:  # one broken experiment must not lose the others
                 import traceback
 
@@ -349,7 +344,6 @@ def main(argv: list[str]) -> int:
                 print(f"[{n}] {_fmt_holds(c['holds']):6s} {c['claim']}  ->  {c['ours']}")
             print(f"[{n}] {res['runtime_s']:.1f} s")
     finally:
-        if pool is not None:
-            pool.shutdown()
+        runner.close()
     print(f"report: {out / 'report.md'} ({time.perf_counter() - t0:.1f} s total)")
     return 0

@@ -15,7 +15,8 @@ Variant SPEC:
   @NAME                          one recorded observer (e.g. @flux_measured)
   label=SPEC                     give the variant a name of your own
 
-Sweeps: --sweep KEY=START:STOP:N (linspace) or KEY=V1,V2,... over one variant, in parallel.
+Sweeps: --sweep KEY=START:STOP:N (linspace) or KEY=V1,V2,... over one variant, in parallel
+        (the project's dask runner: -j N local workers, or --scheduler tcp://HOST:PORT).
 Live:   --live [--rate R] [--loop] [--start S] publishes the frames on /drive/frame (ROS).
 See docs/replay.md.
 """
@@ -40,7 +41,6 @@ from fluxdrive.analysis.metrics import (
     compute,
     format_table,
     harmonic_spectrum,
-    observer_metrics,
     steady_window,
     whole_periods,
     wrap,
@@ -441,9 +441,6 @@ def markdown_section(res: ReplayResult, m: dict[str, Any], plots: dict[str, Path
 
 
 # ====================================================================== sweeps
-_SWEEP: dict[str, Any] = {}
-
-
 def parse_sweep(text: str) -> tuple[str, list[float]]:
     key, eq, rng = text.partition("=")
     if not eq:
@@ -462,47 +459,39 @@ def parse_sweep(text: str) -> tuple[str, list[float]]:
     return key.strip(), vals
 
 
-def _sweep_job(job: tuple[int, float]) -> tuple[int, float, dict[str, float], float]:
-    i, val = job
-    g = _SWEEP
-    vs = VariantSpec(g["label"], g["target"], {**g["params"], g["key"]: val})
-    obs = build_observer(vs, g["bag"], g["card"])
-    t0 = time.perf_counter()
-    est = obs.run(g["frames"])
-    dt = time.perf_counter() - t0
-    sl = g["sl"]
-    m = observer_metrics(est[sl], g["theta"][sl], g["theta_unw"][sl])
-    return i, val, m, dt
+def run_sweep(bag: RunBag, vs: VariantSpec, key: str, values: list[float], jobs: int,
+              out_dir: Path | None, machine: str | None = None,
+              window: tuple[float, float] | None = None, encoder_offset_deg: float = 0.0,
+              scheduler: str | None = None) -> list[dict[str, Any]]:
+    """Each value is a task of the project's one runner (fluxdrive.study.runner): the
+    study's replay task, on a dask LocalCluster of `jobs` workers (each reads the bag once),
+    on an existing cluster, or in-process for -j 1."""
+    from fluxdrive.study import tasks as study_tasks
+    from fluxdrive.study.runner import runner_from_args
 
-
-def run_sweep(bag: RunBag, vs: VariantSpec, key: str, values: list[float], res: ReplayResult,
-              jobs: int, out_dir: Path | None) -> list[dict[str, Any]]:
-    """Each value in its own process (fork: the frames are inherited, not pickled; each
-    worker builds its observer from the config)."""
-    import multiprocessing as mp
-
-    win = steady_window(res.t, res.scenario.steady_window_s)
-    th = res.truth[:, TR_THETA_E]
-    _SWEEP.update(label=vs.label, target=vs.target, params=dict(vs.params), key=key, bag=bag,
-                  card=res.scenario.machine, frames=res.frames, sl=slice(win.k0, win.k1),
-                  theta=th, theta_unw=np.unwrap(th))
+    scen = {"bag": str(Path(bag.path).resolve()), "window_s": list(window) if window else None,
+            "encoder_offset_deg": encoder_offset_deg}
+    if machine:
+        scen["machine"] = str(Path(machine).resolve())
+    payloads = [{"task_id": f"{vs.label}|{key}={val:g}", "variant": vs.label,
+                 "variant_cfg": {"variant": vs.target, **vs.params}, "grid": {key: val},
+                 "random": {}, "draw": 0, "seed": 0, "scenario": scen} for val in values]
     rows: list[dict[str, Any]] = [None] * len(values)  # type: ignore[list-item]
     jobs = max(1, min(jobs, len(values)))
     t0 = time.perf_counter()
-    todo = list(enumerate(values))
-    if jobs > 1 and "fork" in mp.get_all_start_methods():
-        ctx = mp.get_context("fork")
-        with ctx.Pool(jobs) as pool:
-            it = pool.imap_unordered(_sweep_job, todo)
-            for done, (i, val, m, dt) in enumerate(it, 1):
-                rows[i] = {key: val, **m, "replay_s": dt}
-                _progress(done, len(values), key, val, m, t0)
-    else:
-        for done, job in enumerate(todo, 1):
-            i, val, m, dt = _sweep_job(job)
-            rows[i] = {key: val, **m, "replay_s": dt}
-            _progress(done, len(values), key, val, m, t0)
-    _SWEEP.clear()
+    study_tasks._BAGS[scen["bag"]] = bag  # in-process runs reuse the bag already read
+    try:
+        with runner_from_args(scheduler, jobs) as runner:
+            items = enumerate(payloads)
+            for done, o in enumerate(runner.run_unordered(study_tasks.run_task, items), 1):
+                if not o.ok:
+                    raise ConfigError(f"sweep {key}={values[o.key]:g} failed twice: "
+                                      f"{o.error.splitlines()[0]}")
+                m = o.value["metrics"]
+                rows[o.key] = {key: values[o.key], **m, "replay_s": o.value["replay_s"]}
+                _progress(done, len(values), key, values[o.key], m, t0)
+    finally:
+        study_tasks._BAGS.clear()
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / "sweep.json").write_text(json.dumps(
@@ -666,7 +655,9 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--encoder-offset-deg", type=float, default=0.0,
                     help="electrical offset of the encoder (bags without /drive/truth)")
     ap.add_argument("--sweep", help="KEY=START:STOP:N or KEY=V1,V2,.. over the (single) variant")
-    ap.add_argument("--jobs", "-j", type=int, default=os.cpu_count() or 1)
+    ap.add_argument("--jobs", "-j", type=int, default=os.cpu_count() or 1,
+                    help="sweep: worker processes of the local dask cluster (1: in-process)")
+    ap.add_argument("--scheduler", help="sweep: run on an existing dask cluster tcp://HOST:PORT")
     ap.add_argument("--live", action="store_true", help="publish the frames on /drive/frame")
     ap.add_argument("--rate", type=float, default=1.0, help="live: factor of real time")
     ap.add_argument("--loop", action="store_true", help="live: start again at the end")
@@ -701,11 +692,12 @@ def _main(args) -> int:
         for bp in args.bags:
             bag = _read(bp)
             vs = expand_variants(args.variant or ["paper"], bag)[0]
-            res = replay_bag(bag, [vs], machine, window, args.encoder_offset_deg)
             od = out / _slug(bag.path.name) if len(args.bags) > 1 else out
+            where = args.scheduler or f"{args.jobs} processes"
             print(f"sweep {vs.target} {key} over {len(values)} values on {bag.path} "
-                  f"({bag.n} frames, {args.jobs} processes)")
-            rows = run_sweep(bag, vs, key, values, res, args.jobs, od)
+                  f"({bag.n} frames, {where})")
+            rows = run_sweep(bag, vs, key, values, args.jobs, od, args.machine, window,
+                             args.encoder_offset_deg, args.scheduler)
             print(format_sweep(rows, key))
             print(f"saved: {od}/sweep.json, sweep.png")
         return status

@@ -1,0 +1,203 @@
+"""`./fluxdrive study SPEC.yaml --out DIR [--scheduler tcp://HOST:PORT] [--workers N]`:
+sweeps and Monte-Carlo robustness maps (see docs/study.md).
+
+Runs every task of the spec (variants x grid x draws) on a dask LocalCluster using every core,
+on an existing cluster (--scheduler), or in-process (--workers 1); rows stream into
+DIR/parts/*.parquet as tasks finish and are compacted into DIR/results.parquet at the end.
+Run it again with the same --out to resume: finished tasks are skipped.  Then the maps:
+DIR/p_stable.png, DIR/theta_rms.png, DIR/report.md, DIR/summary.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from fluxdrive.core.machine import ConfigError
+from fluxdrive.core.scenario import REPO_ROOT
+from fluxdrive.study.runner import Progress, Runner, runner_from_args
+from fluxdrive.study.spec import StudySpec, load_spec
+from fluxdrive.study.tasks import run_task
+
+
+def run_study(spec: StudySpec, out: Path, runner: Runner, restart: bool = False,
+              echo: bool = True, on_result=None, flush_s: float = 3.0) -> dict[str, Any]:
+    """Run (or resume) a study into `out`; returns a summary (tasks, skipped, failures,
+    lowest speeds).  `on_result(outcome)` is called after each finished task."""
+    from fluxdrive.study import maps, store
+
+    out = Path(out)
+    fp = spec.fingerprint()
+    meta_p = out / "study.json"
+    if restart and out.exists():
+        for p in ("parts", "results.parquet", "failures.jsonl", "study.json"):
+            q = out / p
+            shutil.rmtree(q) if q.is_dir() else q.unlink(missing_ok=True)
+    if meta_p.exists():
+        old = json.loads(meta_p.read_text()).get("fingerprint")
+        if old != fp:
+            raise ConfigError(f"{out} holds a different study (its spec changed since); use "
+                              f"another --out, or --restart to discard it")
+    out.mkdir(parents=True, exist_ok=True)
+    meta_p.write_text(json.dumps({"name": spec.name, "fingerprint": fp,
+                                  "spec": spec.source}, indent=1))
+    tasks = spec.tasks()
+    order = [t["task_id"] for t in tasks]
+    old_t = store.read_table(out)
+    done = set(old_t.column("task_id").to_pylist()) if old_t is not None else set()
+    todo = [t for t in tasks if t["task_id"] not in done]
+    if echo:
+        print(f"study {spec.name}: {len(tasks)} tasks ({len(spec.variants)} variants x "
+              f"{len(tasks) // max(1, len(spec.variants) * spec.draws)} grid points x "
+              f"{spec.draws} draws), {len(tasks) - len(todo)} already done, {len(todo)} to run "
+              f"on {_describe(runner)}", file=sys.stderr, flush=True)
+    schema = store.schema_for(list(spec.grid), spec.random_columns())
+    w = store.TableWriter(out, schema, flush_s=flush_s)
+    failures: list[dict[str, Any]] = []
+    t0 = time.perf_counter()
+    prog = Progress(len(todo), label=f"study {spec.name}", echo=echo)
+    try:
+        for o in runner.run_unordered(run_task, ((t["task_id"], t) for t in todo), prog):
+            if o.ok:
+                w.add(store.flat_row(o.payload, o.value, o.attempts, o.worker))
+            else:
+                failures.append({"task_id": o.key, "attempts": o.attempts, "error": o.error,
+                                 "inputs": {k: o.payload[k] for k in
+                                            ("variant", "variant_cfg", "grid", "draw", "seed",
+                                             "random", "scenario")}})
+                if echo:
+                    print(f"[study] task {o.key} FAILED after {o.attempts} attempts: "
+                          f"{o.error.splitlines()[0] if o.error else '?'}", file=sys.stderr)
+            if on_result is not None:
+                on_result(o)
+    finally:
+        w.close()
+        store.write_failures(out, failures)
+    elapsed = time.perf_counter() - t0
+    table = store.compact(out, order)
+    info = {"tasks": len(tasks), "runner": _describe(runner), "elapsed_s": elapsed}
+    rep = (maps.write_report(table, spec, out, failures, info) if table is not None
+           else {"lowest": {}, "figures": []})
+    summary = {"study": spec.name, "tasks": len(tasks), "ran": len(todo),
+               "skipped": len(tasks) - len(todo), "rows": 0 if table is None else table.num_rows,
+               "failed": len(failures), "elapsed_s": round(elapsed, 2),
+               "runner": _describe(runner), "lowest_speed": rep["lowest"],
+               "figures": rep["figures"]}
+    (out / "summary.json").write_text(json.dumps(summary, indent=1, default=str))
+    return summary
+
+
+def _describe(r: Runner) -> str:
+    if r.client is None:
+        return "in-process (serial)"
+    kind = "LocalCluster" if r.cluster is not None else "cluster"
+    return f"{kind} {r.address} ({r.workers} workers)"
+
+
+def main(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(prog="fluxdrive study", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("spec", help="study spec YAML (path, or a name under config/studies)")
+    ap.add_argument("--out", type=Path, help="output folder (default runs/study-<name>); "
+                    "an existing one is resumed")
+    ap.add_argument("--scheduler", help="run on an existing dask cluster: tcp://HOST:PORT "
+                    "(started with `dask scheduler` and `dask worker`)")
+    ap.add_argument("--workers", type=int, help="LocalCluster worker processes (default: "
+                    "every core; 1 runs in-process)")
+    ap.add_argument("--restart", action="store_true", help="discard what --out holds")
+    ap.add_argument("--maps-only", action="store_true",
+                    help="redo the maps and report from the table, run nothing")
+    args = ap.parse_args(argv)
+    spec = load_spec(args.spec)
+    out = args.out or REPO_ROOT / "runs" / f"study-{spec.name}"
+    if args.maps_only:
+        from fluxdrive.study import maps, store
+
+        t = store.read_table(out)
+        if t is None:
+            raise ConfigError(f"{out}: no study table (results.parquet) to map")
+        rep = maps.write_report(t, spec, out, [], {"tasks": len(spec.tasks())})
+        print(json.dumps(rep["lowest"], default=str))
+        return 0
+    with runner_from_args(args.scheduler, args.workers) as runner:
+        s = run_study(spec, out, runner, restart=args.restart)
+    for v, r in s["lowest_speed"].items():
+        print(f"{v}: holds {r['load_pu']:g} pu with P^ >= {spec.probability:g} down to "
+              f"{r['point_rpm']} rpm (Wilson-confident: {r['confident_rpm']})")
+    print(f"{s['rows']}/{s['tasks']} rows, {s['failed']} failed, {s['elapsed_s']:.0f} s; "
+          f"report: {out / 'report.md'}")
+    return 1 if s["failed"] else 0
+
+
+# ---------------------------------------------------------------- benchmark
+def bench_study(argv: list[str]) -> dict[str, Any]:
+    """tasks/s of 1 s simulated runs on 1 and 2 local workers, speed-up, and the scheduling
+    overhead per task (wall per task on one worker minus the task's own wall)."""
+    import tempfile
+
+    ap = argparse.ArgumentParser(prog="fluxdrive benchmark study")
+    ap.add_argument("--tasks", type=int, default=12)
+    ap.add_argument("--duration-s", type=float, default=1.0)
+    args = ap.parse_args(argv)
+    spec_text = {
+        "name": "bench", "seed": 7, "draws": args.tasks,
+        "scenario": {"file": "paper_2pct_150load",
+                     "params": {"duration_s": args.duration_s,
+                                "steady_window_s": [0.5 * args.duration_s, args.duration_s]}},
+        "variants": {"flux_measured": {"variant": "paper", "voltage_source": "measured"}},
+        "random": {"r_hat_err": {"dist": "uniform", "low": -0.1, "high": 0.1}},
+    }
+    load_before = os.getloadavg()
+    res: dict[str, Any] = {}
+    with tempfile.TemporaryDirectory(prefix="fluxdrive-bench-study-") as d:
+        sp = Path(d) / "bench.yaml"
+        import yaml
+
+        sp.write_text(yaml.safe_dump(spec_text))
+        spec = load_spec(sp)
+        tasks = spec.tasks()
+        for n in (1, 2):
+            with Runner("local", workers=n) as r:
+                # warm every worker (imports, kernel cache) before timing
+                r.client.run(_warm)
+                t0 = time.perf_counter()
+                walls = []
+                for o in r.run_unordered(run_task, ((t["task_id"], t) for t in tasks)):
+                    if not o.ok:
+                        raise RuntimeError(o.error)
+                    walls.append(o.value["wall_s"])
+                el = time.perf_counter() - t0
+            rate = len(tasks) / el
+            task_s = sum(walls) / len(walls)
+            res[n] = {"tasks_per_s": rate, "task_wall_s": task_s, "elapsed_s": el,
+                      "overhead_s": el * n / len(tasks) - task_s}
+            print(f"[bench] {n} worker(s): {len(tasks)} tasks of {args.duration_s:g} s "
+                  f"simulated in {el:.2f} s = {rate:.2f} tasks/s (task itself {task_s:.3f} s, "
+                  f"overhead {res[n]['overhead_s'] * 1e3:.1f} ms/task)", file=sys.stderr)
+    load_after = os.getloadavg()
+    ov = res[1]["overhead_s"]
+    return {"tasks_per_s_1": round(res[1]["tasks_per_s"], 3),
+            "tasks_per_s_2": round(res[2]["tasks_per_s"], 3),
+            "speedup": round(res[2]["tasks_per_s"] / res[1]["tasks_per_s"], 3),
+            "goal_speedup": 1.8,
+            "overhead_ms_per_task": round(ov * 1e3, 2),
+            "overhead_pct_of_1s_run": round(100 * ov / res[1]["task_wall_s"], 2),
+            "goal_overhead_pct": 5.0,
+            "task_wall_s": round(res[1]["task_wall_s"], 3), "tasks": args.tasks,
+            "cores": os.cpu_count(),
+            "loadavg_1min_before_after": [round(load_before[0], 2), round(load_after[0], 2)]}
+
+
+def _warm() -> None:
+    from fluxdrive.core.scenario import CONFIG_DIR, load_scenario
+    from fluxdrive.drive.sim import run_scenario
+
+    sc = load_scenario(CONFIG_DIR / "scenarios" / "paper_2pct_150load.yaml",
+                       overrides={"duration_s": 0.01, "steady_window_s": [0.0, 0.01]})
+    run_scenario(sc, progress=False)

@@ -1,0 +1,294 @@
+"""Study specs: YAML -> validated `StudySpec` -> the list of tasks.
+
+A study is variants x grid x draws.  Every task's inputs (its grid values, its random draw and
+its plant seed) are a pure function of the spec and the task's own indices -- never of the
+order tasks run in -- so a study gives the same table serially, on two local workers or on a
+cluster, and a resumed study recomputes nothing.  See docs/study.md for the schema.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import json
+import math
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from fluxdrive.core.machine import ConfigError
+from fluxdrive.core.scenario import CONFIG_DIR, REPO_ROOT, scenario_path
+from fluxdrive.drive.control import ControllerConfig
+from fluxdrive.drive.observers import ObserverConfig
+
+STUDY_DIR = CONFIG_DIR / "studies"
+
+# scenario builders a spec may name (speed_rpm, load_pu and the variant are passed in)
+BUILDERS = {
+    "descent": "fluxdrive.experiments.beyond:descent",
+    "sensorless": "fluxdrive.experiments.registry:sensorless",
+    "encoder_run": "fluxdrive.experiments.registry:encoder_run",
+}
+
+# Uncertainty axes: name -> (per phase?, what it sets).  The observer and the controller
+# believe the machine card's values (the datasheet, at 20 degC); these move the truth or
+# the belief away from it.
+PERTURBATIONS: dict[str, tuple[bool, str]] = {
+    "r_hat_err": (False, "observer R^ = R_card (1 + x)"),
+    "l_hat_err": (False, "observer L^ = L_card (1 + x)"),
+    "lambda_hat_err": (False, "observer lambda^ = lambda_card (1 + x)"),
+    "current_offset_pu": (True, "current-sensor offset per phase, x I_rated"),
+    "current_gain_err": (True, "current-sensor gain per phase, 1 + x"),
+    "current_noise_a": (False, "current-sensor noise RMS [A] (plant)"),
+    "deadtime_s": (False, "inverter deadtime of the plant [s]"),
+    "temperature_c": (False, "winding and magnet temperature [degC]: plant R (1 + 0.00393 dT), "
+                             "lambda (1 - 0.0012 dT), dT = T - 20; observer/controller keep "
+                             "the card's values"),
+}
+PHASES = "abc"
+OBSERVER_KEYS = {f.name for f in fields(ObserverConfig)} - {"variant", "extra"}
+CONTROL_KEYS = {f.name for f in fields(ControllerConfig)} - {"position_source"}
+DISTS = {"uniform": ("low", "high"), "normal": ("mean", "std"), "choice": ("values",)}
+_TOP = {"name", "description", "seed", "scenario", "variants", "grid", "random", "draws",
+        "rated_load_pu", "probability", "map"}
+
+
+@dataclass
+class StudySpec:
+    name: str
+    source: str
+    seed: int
+    scenario: dict[str, Any]  # builder | file | bag (+ params); paths made absolute
+    variants: dict[str, dict[str, Any]]
+    grid: dict[str, list[Any]]
+    random: dict[str, dict[str, Any]]
+    draws: int
+    description: str = ""
+    rated_load_pu: float = 1.0
+    probability: float = 0.95
+    map_axes: tuple[str, str] = ("speed_rpm", "load_pu")
+    raw: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def kind(self) -> str:
+        return "bag" if "bag" in self.scenario else "scenario"
+
+    def fingerprint(self) -> str:
+        """Hash of everything that defines the tasks' inputs (not name/description)."""
+        keep = {k: v for k, v in self.raw.items() if k not in ("name", "description", "map",
+                                                               "rated_load_pu", "probability")}
+        keep["scenario"] = self.scenario
+        return hashlib.sha1(json.dumps(keep, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+    def random_columns(self) -> list[str]:
+        cols = []
+        for name in self.random:
+            cols += [f"{name}_{p}" for p in PHASES] if PERTURBATIONS[name][0] else [name]
+        return cols
+
+    def tasks(self) -> list[dict[str, Any]]:
+        """Every task's payload, in a fixed order (variant, grid point, draw)."""
+        draws = [self.draw(d) for d in range(self.draws)]
+        axes = list(self.grid)
+        out = []
+        for vname, vcfg in self.variants.items():
+            for point in itertools.product(*(self.grid[a] for a in axes)):
+                gv = dict(zip(axes, point, strict=True))
+                for d, (seed, rv) in enumerate(draws):
+                    tid = "|".join([vname] + [f"{a}={_fmt(v)}" for a, v in gv.items()]
+                                   + [f"draw={d}"])
+                    out.append({"task_id": tid, "variant": vname, "variant_cfg": dict(vcfg),
+                                "grid": gv, "draw": d, "seed": seed, "random": rv,
+                                "scenario": self.scenario})
+        return out
+
+    def draw(self, d: int) -> tuple[int, dict[str, Any]]:
+        """Draw d: the plant's noise seed and every random axis's value.  Derived from
+        (spec seed, d) alone, and shared by every variant and grid point (common random
+        numbers: variants are compared on the same machines)."""
+        ss = np.random.SeedSequence(self.seed, spawn_key=(d,))
+        seed = int(ss.generate_state(1, np.uint32)[0] & 0x7FFFFFFF)
+        rng = np.random.default_rng(ss.spawn(1)[0])
+        vals: dict[str, Any] = {}
+        for name in sorted(self.random):  # fixed order: the spec's key order must not matter
+            n = 3 if PERTURBATIONS[name][0] else 1
+            x = [_sample(rng, self.random[name]) for _ in range(n)]
+            vals[name] = x if n == 3 else x[0]
+        return seed, vals
+
+
+def _fmt(v: Any) -> str:
+    return f"{v:g}" if isinstance(v, float) else str(v)
+
+
+def _sample(rng: np.random.Generator, d: dict[str, Any]) -> float:
+    kind = d["dist"]
+    if kind == "uniform":
+        x = rng.uniform(d["low"], d["high"])
+    elif kind == "normal":
+        x = rng.normal(d["mean"], d["std"])
+        x = min(max(x, d.get("clip_low", -math.inf)), d.get("clip_high", math.inf))
+    else:
+        x = d["values"][int(rng.integers(len(d["values"])))]
+    return float(x)
+
+
+def _err(src: str, msg: str) -> ConfigError:
+    return ConfigError(f"{src}: {msg}")
+
+
+def load_spec(path: str | Path) -> StudySpec:
+    """Load and validate a study spec; errors name the file and key."""
+    p = Path(path)
+    if not p.exists() and not p.suffix:
+        p = STUDY_DIR / f"{p.name}.yaml"
+    src = str(p)
+    try:
+        raw = yaml.safe_load(p.read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise _err(src, f"cannot read study spec: {exc}") from exc
+    if not isinstance(raw, dict):
+        raise _err(src, "a study spec must be a mapping")
+    bad = sorted(set(raw) - _TOP)
+    if bad:
+        raise _err(src, f"unknown key(s) {bad}; expected some of {sorted(_TOP)}")
+    seed = raw.get("seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise _err(src, f"'seed' must be a non-negative integer, got {seed!r}")
+    draws = raw.get("draws", 1)
+    if isinstance(draws, bool) or not isinstance(draws, int) or draws < 1:
+        raise _err(src, f"'draws' must be a positive integer, got {draws!r}")
+    scen = _scenario(src, p.parent, raw.get("scenario"))
+    variants = raw.get("variants")
+    if not isinstance(variants, dict) or not variants:
+        raise _err(src, "'variants' must be a mapping name -> observer settings "
+                        "(e.g. paper: {variant: paper, voltage_source: measured})")
+    vout: dict[str, dict[str, Any]] = {}
+    for name, cfg in variants.items():
+        cfg = dict(cfg or {})
+        if not isinstance(cfg.get("variant", "paper"), str):
+            raise _err(src, f"variants.{name}.variant must be a string")
+        if scen.get("bag") is None:
+            bad = sorted(set(cfg) - OBSERVER_KEYS - {"variant"})
+            if bad:
+                raise _err(src, f"variants.{name}: unknown key(s) {bad}; expected 'variant' "
+                                f"and observer settings {sorted(OBSERVER_KEYS)}")
+        vout[str(name)] = cfg
+    grid = raw.get("grid") or {}
+    if not isinstance(grid, dict):
+        raise _err(src, "'grid' must be a mapping axis -> list of values")
+    for a, vals in grid.items():
+        if not isinstance(vals, list) or not vals:
+            raise _err(src, f"grid.{a} must be a non-empty list of values")
+        _axis_kind(src, f"grid.{a}", a, scen)
+        if a in PERTURBATIONS and PERTURBATIONS[a][0]:
+            raise _err(src, f"grid.{a}: a per-phase axis can only be random (or set it in "
+                            f"the scenario's faults)")
+        for v in vals:
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise _err(src, f"grid.{a}: values must be numbers, got {v!r}")
+    grid = {a: [float(v) for v in vals] for a, vals in grid.items()}
+    rnd = raw.get("random") or {}
+    if not isinstance(rnd, dict):
+        raise _err(src, "'random' must be a mapping axis -> distribution")
+    for a, d in rnd.items():
+        if a not in PERTURBATIONS:
+            raise _err(src, f"random.{a}: unknown random axis; expected one of "
+                            f"{sorted(PERTURBATIONS)}")
+        if a in grid:
+            raise _err(src, f"random.{a}: also a grid axis")
+        _axis_kind(src, f"random.{a}", a, scen)
+        if not isinstance(d, dict) or d.get("dist") not in DISTS:
+            raise _err(src, f"random.{a} must be {{dist: uniform|normal|choice, ...}}")
+        need = DISTS[d["dist"]]
+        miss = [k for k in need if k not in d]
+        if miss:
+            raise _err(src, f"random.{a}: dist {d['dist']} needs {list(need)}")
+        if d["dist"] == "choice":
+            if not isinstance(d["values"], list) or not d["values"]:
+                raise _err(src, f"random.{a}.values must be a non-empty list")
+        else:
+            for k in need:
+                if isinstance(d[k], bool) or not isinstance(d[k], (int, float)):
+                    raise _err(src, f"random.{a}.{k} must be a number, got {d[k]!r}")
+    rl = raw.get("rated_load_pu", 1.0)
+    prob = raw.get("probability", 0.95)
+    if isinstance(prob, bool) or not isinstance(prob, (int, float)) or not 0 < prob < 1:
+        raise _err(src, f"'probability' must be in (0, 1), got {prob!r}")
+    axes = tuple(raw.get("map", {}).get("axes", ["speed_rpm", "load_pu"])) \
+        if isinstance(raw.get("map"), dict) else ("speed_rpm", "load_pu")
+    return StudySpec(name=str(raw.get("name", p.stem)), source=src, seed=seed, scenario=scen,
+                     variants=vout, grid=grid, random=rnd, draws=draws,
+                     description=str(raw.get("description", "")), rated_load_pu=float(rl),
+                     probability=float(prob), map_axes=axes, raw=raw)  # type: ignore[arg-type]
+
+
+def _scenario(src: str, base: Path, s: Any) -> dict[str, Any]:
+    if not isinstance(s, dict):
+        raise _err(src, "'scenario' must be a mapping with one of builder: NAME, "
+                        "file: SCENARIO, bag: BAG_DIR")
+    kinds = [k for k in ("builder", "file", "bag") if k in s]
+    if len(kinds) != 1:
+        raise _err(src, "'scenario' needs exactly one of builder, file, bag")
+    out = dict(s)
+    params = s.get("params", {}) or {}
+    if not isinstance(params, dict):
+        raise _err(src, "scenario.params must be a mapping")
+    out["params"] = params
+    bad = sorted(set(s) - {"builder", "file", "bag", "params", "machine", "window_s",
+                           "encoder_offset_deg"})
+    if bad:
+        raise _err(src, f"scenario: unknown key(s) {bad}")
+    if "builder" in s:
+        if s["builder"] not in BUILDERS:
+            raise _err(src, f"scenario.builder must be one of {sorted(BUILDERS)}, "
+                            f"got {s['builder']!r}")
+    elif "file" in s:
+        f = Path(str(s["file"]))
+        cand = base / f
+        try:
+            out["file"] = str((cand if cand.exists() else scenario_path(str(f))).resolve())
+        except ConfigError as exc:
+            raise _err(src, f"scenario.file: {exc}") from exc
+    else:
+        b = Path(str(s["bag"]))
+        for cand in (base / b, REPO_ROOT / b, b):
+            if cand.exists():
+                out["bag"] = str(cand.resolve())
+                break
+        else:
+            raise _err(src, f"scenario.bag: no bag at {b}")
+    if "machine" in s:
+        m = base / str(s["machine"])
+        out["machine"] = str(m.resolve() if m.exists() else Path(str(s["machine"])).resolve())
+    return out
+
+
+def _axis_kind(src: str, where: str, name: str, scen: dict[str, Any]) -> str:
+    """observer | control | perturbation | scenario; refuses what a replay cannot vary."""
+    if name in OBSERVER_KEYS:
+        return "observer"
+    if name.startswith("control."):
+        if name[8:] not in CONTROL_KEYS:
+            raise _err(src, f"{where}: unknown controller setting '{name[8:]}'")
+        kind = "control"
+    elif name in PERTURBATIONS:
+        kind = "perturbation"
+    else:
+        kind = "scenario"
+    if "bag" in scen and not (kind == "perturbation" and name in ("r_hat_err", "l_hat_err",
+                                                                  "lambda_hat_err")):
+        raise _err(src, f"{where}: a replay study (scenario.bag) can vary observer settings "
+                        f"and R^/L^/lambda^ errors only; '{name}' changes the recorded drive")
+    return kind
+
+
+def axis_kind(name: str) -> str:
+    if name in OBSERVER_KEYS:
+        return "observer"
+    if name.startswith("control."):
+        return "control"
+    return "perturbation" if name in PERTURBATIONS else "scenario"
