@@ -18,8 +18,9 @@ from fluxdrive.can.emulator import DriveEmulator
 from fluxdrive.can.loop import new_virtual_channel, run_can_loop
 from fluxdrive.can.protocol import ID_ARM_MODE, ID_DUTY_CMD, ID_SAMPLE_FD, get_protocol
 from fluxdrive.core.scenario import CONFIG_DIR, RPM, load_scenario, scenario_path
+from fluxdrive.drive.control import CO_EN, CO_MODE, MODE_CLOSED_LOOP
 from fluxdrive.drive.observers import ES_TH
-from fluxdrive.drive.plant import FR_EN, TR_THETA_E, TR_WM
+from fluxdrive.drive.plant import FR_EN, FR_SEQ, TR_THETA_E, TR_WM
 from fluxdrive.drive.sim import DriveSetup, run_scenario
 
 REPO = Path(__file__).resolve().parents[1]
@@ -58,7 +59,7 @@ def test_closed_loop_over_can_2pct_sensorless():
     print(f"theta RMS: in-process {ref_rms:.3f} deg, over CAN {can_rms:.3f} deg; "
           f"{speed:.1f} rpm; {n / res.wall_s:.0f} periods/s wall")
     assert abs(speed - 60.0) < 6.0  # stable at 2 % speed
-    assert np.all(res.ctrl[k0:, 13] == 3)  # closed loop (MODE_CLOSED_LOOP) throughout
+    assert np.all(res.ctrl[k0:, CO_MODE] == MODE_CLOSED_LOOP)  # closed loop throughout
     assert can_rms < max(1.5 * ref_rms, ref_rms + 0.3)
     assert d["malformed"] == 0 and d["seq_gaps"] == 0 and d["faults"] == 0
     assert res.emulator_stats["lockstep_timeouts"] == 0
@@ -117,7 +118,7 @@ def test_malformed_frames_and_gaps_counted_loop_continues():
     assert frames.shape[0] == len(seqs)
     assert d["seq_gaps"] == 1 and d["seq_lost"] == 3 and d["seq_duplicates"] == 1
     assert d["malformed_length"] == 1
-    assert list(frames[:8, 12]) == [65530 + i for i in range(8)]  # unwrapped past 65535
+    assert list(frames[:8, FR_SEQ]) == [65530 + i for i in range(8)]  # unwrapped past 65535
 
 
 def test_frames_stop_disable_within_timeout():
@@ -136,7 +137,7 @@ def test_frames_stop_disable_within_timeout():
         for _ in range(50):  # the MCU sends 50 frames, then goes silent
             emu.step()
             for fr in br.poll(timeout=0.05):
-                br.send_duty(int(fr[12]), (0.5, 0.5, 0.5), True)
+                br.send_duty(int(fr[FR_SEQ]), (0.5, 0.5, 0.5), True)
         t_last = time.monotonic()
         t_fault = None
         while time.monotonic() - t_last < 1.0:
@@ -183,7 +184,7 @@ def test_mcu_command_watchdog_disables_pwm():
         for _ in range(20):
             emu.step()
             for fr in br.poll(timeout=0.05):
-                br.send_duty(int(fr[12]), (0.55, 0.5, 0.45), True)
+                br.send_duty(int(fr[FR_SEQ]), (0.55, 0.5, 0.45), True)
         assert emu.pwm_enabled
         for _ in range(12):  # the bridge stops answering: 1 ms = 10 periods
             emu.step()
@@ -242,8 +243,8 @@ def test_bus_off_reconnects_with_backoff():
         while time.monotonic() - t0 < 3.0 and len(got) < 120:
             emu.step()
             fr = br.poll(timeout=0.01)
-            got.extend(int(s) for s in fr[:, 12])
-            for s in fr[:, 12]:
+            got.extend(int(s) for s in fr[:, FR_SEQ])
+            for s in fr[:, FR_SEQ]:
                 br.send_duty(int(s), (0.5, 0.5, 0.5), True)
     finally:
         br.shutdown()
@@ -273,7 +274,7 @@ def test_never_enabled_while_disarmed():
     assert enables == 0
     assert np.all(res.frames_sent[:, FR_EN] == 0)  # PWM never on at the drive
     assert res.diagnostics["enable_suppressed"] == sc.n_periods
-    assert res.ctrl[:, 3].max() == 1.0  # the controller did ask for it
+    assert res.ctrl[:, CO_EN].max() == 1.0  # the controller did ask for it
 
 
 def test_shipped_capture_imports_into_a_bag(tmp_path):

@@ -156,7 +156,8 @@ def test_graph_flag_runs_through_the_node_graph_with_the_same_numbers(tmp_path):
     from fluxdrive.analysis.metrics import compute
     from fluxdrive.core.scenario import load_scenario, save_scenario, scenario_differences
     from fluxdrive.drive.sim import run_scenario
-    from fluxdrive.experiments.registry import graph_run, sensorless
+    from fluxdrive.experiments.registry import sensorless
+    from fluxdrive_bringup.runs import graph_run
 
     sc = sensorless(120.0, 0.3, name="exp_graph", ramp_pu_s=1.0, settle_s=0.1, window_s=0.2,
                     observers={"flux_measured": {"variant": "paper"},

@@ -26,35 +26,17 @@ DURATION = 3.0
 
 
 def _reference(sc, changes: dict[int, list]):
-    """The in-process loop (fluxdrive.drive.sim.closed_loop_chunk) with parameter rows replaced
+    """The in-process loop (fluxdrive.drive.sim.LoopRun) with parameter rows replaced
     at given samples: changes = {k: [callable(ds, cp, obs_params), ...]}."""
-    from fluxdrive.drive.control import CO_N
-    from fluxdrive.drive.observers import ES_N
-    from fluxdrive.drive.plant import FR_N, TR_N, plant_initial_frame
-    from fluxdrive.drive.sim import DriveSetup, closed_loop_chunk
+    from fluxdrive.drive.sim import DriveSetup, LoopRun
 
-    ds = DriveSetup(sc)
-    n = ds.n
-    pst, rng = ds.new_plant()
-    cs = ds.new_controller()
-    st = ds.new_observer_states()
-    cp = ds.cp.copy()
-    op = ds.obs_params.copy()
-    frame, truth = np.zeros(FR_N), np.zeros(TR_N)
-    plant_initial_frame(pst, ds.mp, rng, frame, truth)
-    duty_prev = np.array([0.5, 0.5, 0.5, 0.0])
-    out_f, out_t = np.zeros((n, FR_N)), np.zeros((n, TR_N))
-    out_e, out_c = np.zeros((len(ds.names), n, ES_N)), np.zeros((n, CO_N))
-    k = 0
-    for b in sorted([*changes, n]):
-        if b > k:
-            closed_loop_chunk(k, b, pst, ds.mp, rng, ds.load_t, ds.load_y, ds.load_cfg, cs, cp,
-                              ds.w_ref, ds.id_inj, st, op, ds.driving_index, frame, truth,
-                              duty_prev, out_f, out_t, out_e, out_c)
-            k = b
+    run = LoopRun(DriveSetup(sc))
+    for b in sorted([*changes, run.n]):
+        if b > run.k:
+            run.advance(b)
         for fn in changes.get(b, []):
-            fn(ds, cp, op)
-    return out_f, out_e, out_c
+            fn(run.ds, run.cp, run.obs_params)
+    return run.frames, run.est, run.ctrl
 
 
 def test_live_parameters_take_effect_exactly_and_bad_values_are_rejected(tmp_path):

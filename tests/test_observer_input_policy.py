@@ -8,7 +8,7 @@ from fluxdrive.analysis.metrics import wrap
 from fluxdrive.core.machine import ConfigError, MachineCard
 from fluxdrive.drive.control import ControllerConfig
 from fluxdrive.drive.observers import ES_TH, ES_VALID, OS_BAD, OS_GAPS, OS_STALE
-from fluxdrive.drive.plant import FR_IA, FR_SEQ, TR_THETA_E
+from fluxdrive.drive.plant import FR_IA, FR_SEQ, FR_VAB, TR_THETA_E
 from fluxdrive.drive.sim import DriveSetup, run_scenario
 from helpers_engine import make_scenario
 
@@ -36,7 +36,7 @@ def test_nan_and_inf_samples_are_flagged_held_and_counted(run):
     bad = [9000, 9001, 9500]
     frames[bad[0], FR_IA] = np.nan
     frames[bad[1], FR_IA] = np.inf
-    frames[bad[2], 3] = -np.inf
+    frames[bad[2], FR_VAB] = -np.inf
     obs, out = _replay(sc, frames)
     assert all(out[k, ES_VALID] == 0.0 for k in bad)
     assert obs.state[OS_BAD] == 3

@@ -12,6 +12,7 @@ import pytest
 from fluxdrive.cli import main as cli
 from fluxdrive.core.scenario import CONFIG_DIR, REPO_ROOT, load_scenario
 from fluxdrive.drive.observers import ES_TH
+from fluxdrive.drive.plant import TR_THETA_E
 from fluxdrive.drive.sim import run_scenario
 from fluxdrive.io.bagio import (
     est_topic,
@@ -61,7 +62,7 @@ def test_bag_round_trip_is_exact(run, bags):
     assert set(b.est) == set(run.names)
     for i, nm in enumerate(run.names):
         assert np.array_equal(b.est[nm], run.est[i])
-    assert np.array_equal(b.truth[:, 0], run.truth[:, 0])
+    assert np.array_equal(b.truth[:, TR_THETA_E], run.truth[:, TR_THETA_E])
     assert b.machine() == run.scenario.machine
 
 

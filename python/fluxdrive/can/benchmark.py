@@ -124,7 +124,7 @@ class _DecodingListener(can.Listener):
             self.decoded += int(ok.sum())
             self.malformed += int((~ok).sum())
             self.seq.update_many(frames[ok, FRAME_FIELDS.index("seq")].astype(np.int64))
-            self.checksum += float(np.sum(frames[ok, 0]))
+            self.checksum += float(np.sum(frames[ok, FRAME_FIELDS.index("i_a")]))
 
     def on_error(self, exc: Exception) -> None:
         self.errors.append(exc)

@@ -65,7 +65,7 @@ from fluxdrive.can.protocol import (
     FluxdriveProtocol,
     get_protocol,
 )
-from fluxdrive.drive.plant import FR_N, TR_N, plant_advance, plant_initial_frame
+from fluxdrive.drive.plant import FR_IA, FR_IC, FR_N, TR_N, plant_advance, plant_initial_frame
 
 __all__ = [
     "FAULT_CMD_TIMEOUT",
@@ -405,9 +405,9 @@ class DriveEmulator:
 
     def _protect(self) -> None:
         """Over-current trip on the frame just sampled."""
-        imax = float(np.max(np.abs(self.frame[0:3])))
+        imax = float(np.max(np.abs(self.frame[FR_IA:FR_IC + 1])))
         if imax > self.overcurrent_a and not self.fault_latched:
-            ph = int(np.argmax(np.abs(self.frame[0:3])))
+            ph = int(np.argmax(np.abs(self.frame[FR_IA:FR_IC + 1])))
             self._raise_fault(FAULT_OVERCURRENT, ph | (min(int(imax * 10), 16383) << 2))
 
     def step(self) -> None:
@@ -515,12 +515,6 @@ class DriveEmulator:
         if not self.rec_frames:
             return np.empty((0, FR_N)), np.empty((0, TR_N))
         return np.vstack(self.rec_frames), np.vstack(self.rec_truth)
-
-
-def wrap_seq(k: int) -> int:
-    """Sample index -> 16-bit wire sequence counter."""
-    return int(k) % _SEQ_MOD
-
 
 
 def main(argv: list[str] | None = None) -> int:

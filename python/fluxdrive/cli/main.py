@@ -40,6 +40,10 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "lint": ("fluxdrive.cli.main", "main_lint", "ruff over the project"),
 }
 
+# options that need the ROS graph: the same command, entered through the graph tools
+LIVE_REPLAY = ("fluxdrive_bringup.live_replay", "main")
+EXPERIMENT_GRAPH = ("fluxdrive_bringup.runs", "main_experiment_graph")
+
 
 def main_test(argv: list[str]) -> int:
     """Run the whole suite with a ROS domain of its own and discovery on localhost."""
@@ -69,6 +73,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"fluxdrive: unknown command '{cmd}'; try ./fluxdrive help", file=sys.stderr)
         return 2
     mod, fn, _ = COMMANDS[cmd]
+    if cmd == "replay" and "--live" in rest:
+        mod, fn = LIVE_REPLAY  # the ROS publisher lives with the graph tools
+    if cmd == "experiment" and "--graph" in rest:
+        mod, fn = EXPERIMENT_GRAPH  # installs the graph runner, then the same experiments
     try:
         func = getattr(importlib.import_module(mod), fn)
     except (ImportError, AttributeError) as exc:

@@ -15,6 +15,17 @@ from numba import njit
 from fluxdrive.core.transforms import wrap_angle
 
 
+# ---------------------------------------------------------------- sign
+@njit(cache=True, inline="always")
+def sign(x: float) -> float:
+    """+1, -1, or 0 at exactly zero (numpy's sign for one float, inlined)."""
+    if x > 0.0:
+        return 1.0
+    if x < 0.0:
+        return -1.0
+    return 0.0
+
+
 # ---------------------------------------------------------------- first-order filters
 @njit(cache=True, inline="always")
 def pole(cutoff_rad_s: float, ts_s: float) -> float:
@@ -49,12 +60,6 @@ def pi_update(integ: float, ki: float, ts_s: float, err: float, out_unsat: float
     """Integrate and back-calculate: the integrator absorbs the part the limiter cut off,
     so it never winds up beyond what the actuator realised."""
     return integ + ki * ts_s * err + (out_sat - out_unsat)
-
-
-def pi_gains_from_bandwidth(bandwidth_rad_s: float, plant_gain: float, zero_ratio: float):
-    """Generic PI for a plant ~ 1/(plant_gain s): Kp = plant_gain*w_b, Ki = Kp*w_b*zero_ratio."""
-    kp = plant_gain * bandwidth_rad_s
-    return kp, kp * bandwidth_rad_s * zero_ratio
 
 
 # ---------------------------------------------------------------- PLL

@@ -29,23 +29,67 @@ import numpy as np
 from numba import njit
 
 from fluxdrive.core.blocks import lowpass_step, pi_output, pi_update, pll_gains, pll_step, pole
+from fluxdrive.core.layout import Layout
 from fluxdrive.core.machine import ConfigError, MachineCard
 from fluxdrive.core.transforms import TWO_PI, clarke, inv_clarke, inv_park, park, wrap_angle
 from fluxdrive.drive.observers import ES_TH, ES_VALID, ES_W
 from fluxdrive.drive.plant import FR_ENC, FR_IA, FR_IB, FR_IC, FR_VDC
 
 # ---- controller parameter vector CP_*
-(CP_TS, CP_P, CP_L, CP_LAM, CP_KP_I, CP_KI_I, CP_KP_W, CP_KI_W, CP_IMAX, CP_ADV,
- CP_TDCOMP, CP_SRC, CP_ALIGN_T, CP_ALIGN_I, CP_IF_I, CP_IF_ACC, CP_HANDOVER, CP_HANDBACK,
- CP_ENC_KP, CP_ENC_KI, CP_ENC_CPR, CP_OC_TRIP, CP_OS_TRIP, CP_VDC_MIN, CP_VDC_MAX,
- CP_DECOUPLE, CP_WFB_LPF, CP_INV_TIMEOUT, CP_HANDOVER_DWELL, CP_I2T_LIMIT, CP_IRATED) = range(31)
-CP_N = 31
+_CP = Layout("CP")
+CP_TS = _CP.index()  # PWM period [s]
+CP_P = _CP.index()  # pole pairs
+CP_L = _CP.index()  # model inductance L^ [H]
+CP_LAM = _CP.index()  # model flux linkage lambda^ [V s]
+CP_KP_I = _CP.index()  # current PI proportional gain [V/A]
+CP_KI_I = _CP.index()  # current PI integral gain [V/(A s)]
+CP_KP_W = _CP.index()  # speed PI proportional gain [A s/rad]
+CP_KI_W = _CP.index()  # speed PI integral gain [A/rad]
+CP_IMAX = _CP.index()  # |i_q*| limit [A]
+CP_ADV = _CP.index()  # angle advance of the output voltage [periods]
+CP_TDCOMP = _CP.index()  # deadtime compensation [s]
+CP_SRC = _CP.index()  # position source (SRC_*)
+CP_ALIGN_T = _CP.index()  # alignment time [s]
+CP_ALIGN_I = _CP.index()  # alignment d-current [A]
+CP_IF_I = _CP.index()  # I-f current [A]
+CP_IF_ACC = _CP.index()  # I-f ramp acceleration [rad/s^2 mechanical]
+CP_HANDOVER = _CP.index()  # handover speed [rad/s mechanical]
+CP_HANDBACK = _CP.index()  # hand-back speed [rad/s mechanical]
+CP_ENC_KP = _CP.index()  # encoder PLL proportional gain [rad/s]
+CP_ENC_KI = _CP.index()  # encoder PLL integral gain [rad/s^2]
+CP_ENC_CPR = _CP.index()  # encoder counts per mechanical revolution
+CP_OC_TRIP = _CP.index()  # instantaneous over-current trip [A]
+CP_OS_TRIP = _CP.index()  # over-speed trip [rad/s mechanical]
+CP_VDC_MIN = _CP.index()  # under-voltage trip [V]
+CP_VDC_MAX = _CP.index()  # over-voltage trip [V]
+CP_DECOUPLE = _CP.index()  # 1.0: cross-coupling and back-EMF feed-forward on
+CP_WFB_LPF = _CP.index()  # display LPF of the speed feedback [rad/s]
+CP_INV_TIMEOUT = _CP.index()  # estimate invalid this long in closed loop -> trip [s]
+CP_HANDOVER_DWELL = _CP.index()  # estimate agreeing with the ramp this long -> handover [s]
+CP_I2T_LIMIT = _CP.index()  # I2t trip [pu^2 s]
+CP_IRATED = _CP.index()  # rated current [A]
+CP_N = _CP.close(globals())
 SRC_ENCODER, SRC_ESTIMATE = 0, 1
 
 # ---- controller state CS_*
-(CS_MODE, CS_T_MODE, CS_ID_I, CS_IQ_I, CS_W_I, CS_TH_IF, CS_W_IF, CS_ENC_TH, CS_ENC_W,
- CS_ENC_I, CS_ENC_INIT, CS_FAULT, CS_WFB_F, CS_INV_T, CS_IQ_IF_F, CS_AGREE_T, CS_I2T) = range(17)
-CS_N = 17
+_CS = Layout("CS")
+CS_MODE = _CS.index()  # MODE_*
+CS_T_MODE = _CS.index()  # time in the current mode [s]
+CS_ID_I, CS_IQ_I = _CS.indices(2)  # current PI integrators [V]
+CS_W_I = _CS.index()  # speed PI integrator [A]
+CS_TH_IF = _CS.index()  # I-f angle for the next period [rad]
+CS_W_IF = _CS.index()  # I-f electrical speed [rad/s]
+CS_ENC_TH = _CS.index()  # encoder PLL angle [rad]
+CS_ENC_W = _CS.index()  # encoder PLL speed [rad/s]
+CS_ENC_I = _CS.index()  # encoder PLL integrator [rad/s]
+CS_ENC_INIT = _CS.index()  # 1 once the encoder PLL was seeded
+CS_FAULT = _CS.index()  # latched fault code (FAULT_*)
+CS_WFB_F = _CS.index()  # filtered speed feedback [rad/s mechanical]
+CS_INV_T = _CS.index()  # time the estimate has been invalid [s]
+CS_IQ_IF_F = _CS.index()  # filtered torque current in the observer's frame during I-f [A]
+CS_AGREE_T = _CS.index()  # time the estimate has agreed with the ramp [s]
+CS_I2T = _CS.index()  # I2t integral [pu^2 s]
+CS_N = _CS.close(globals())
 
 MODE_DISABLED, MODE_ALIGN, MODE_IF_RAMP, MODE_CLOSED_LOOP, MODE_FAULT = range(5)
 MODE_NAMES = {0: "disabled", 1: "align", 2: "if_ramp", 3: "closed_loop", 4: "fault"}
@@ -59,9 +103,18 @@ FAULT_NAMES = {0: "none", 1: "over-current (instantaneous)", 2: "over-current (I
                8: "stale input", 9: "watchdog", 10: "bad sample (NaN/inf)"}
 
 # ---- controller output CO_*
-(CO_DA, CO_DB, CO_DC, CO_EN, CO_ID, CO_IQ, CO_ID_REF, CO_IQ_REF, CO_VD, CO_VQ, CO_W_REF,
- CO_W_FB, CO_TH, CO_MODE, CO_FAULT) = range(15)
-CO_N = 15
+_CO = Layout("CO")
+CO_DA, CO_DB, CO_DC = _CO.indices(3)  # duties for the next period
+CO_EN = _CO.index()  # 1.0: PWM enabled
+CO_ID, CO_IQ = _CO.indices(2)  # measured dq current [A]
+CO_ID_REF, CO_IQ_REF = _CO.indices(2)  # dq current references [A]
+CO_VD, CO_VQ = _CO.indices(2)  # realised dq voltage [V]
+CO_W_REF = _CO.index()  # mechanical speed reference [rad/s]
+CO_W_FB = _CO.index()  # mechanical speed feedback [rad/s]
+CO_TH = _CO.index()  # angle the controller used [rad]
+CO_MODE = _CO.index()  # MODE_*
+CO_FAULT = _CO.index()  # fault code (FAULT_*)
+CO_N = _CO.close(globals())
 
 
 @njit(cache=True)
@@ -548,11 +601,3 @@ CONTROL_RANGES: dict[str, tuple[float, float]] = {
     "speed_observer_pll_hz": (0.1, 2000.0), "speed_observer_damping": (0.1, 5.0),
     "speed_observer_lpf_hz": (0.0, 2000.0),
 }
-
-
-def current_loop_bandwidth_hz(card: MachineCard, kp: float, ki: float) -> float:
-    """-3 dB bandwidth of the discrete current-loop model for given gains."""
-    r, lind, ts = card.resistance_ohm, card.inductance_h, card.ts_s
-    return _bandwidth_from_tf(lambda f: _current_loop_tf(kp, ki, r, lind, ts, f), 1.0, 0.5 / ts)
-
-

@@ -36,9 +36,17 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-from fluxdrive.core.blocks import leaky_integrator_step, lowpass_step, pll_gains, pll_step, pole
+from fluxdrive.core.blocks import (
+    leaky_integrator_step,
+    lowpass_step,
+    pll_gains,
+    pll_step,
+    pole,
+    sign,
+)
+from fluxdrive.core.layout import Layout
 from fluxdrive.core.machine import ConfigError, MachineCard
-from fluxdrive.core.transforms import clarke, line_to_phase, wrap_angle
+from fluxdrive.core.transforms import clarke, inv_clarke, line_to_phase, wrap_angle
 from fluxdrive.drive.plant import (
     FR_DA,
     FR_DB,
@@ -65,18 +73,51 @@ VS_MEASURED, VS_COMMANDED = 0, 1
 VOLTAGE_SOURCES = {"measured": VS_MEASURED, "commanded": VS_COMMANDED}
 
 # ---- parameter vector OP_*
-(OP_KIND, OP_TS, OP_R, OP_L, OP_LAM, OP_WC, OP_PLL_KP, OP_PLL_KI, OP_SPEED_LPF,
- OP_WFLOOR, OP_GAMMA, OP_VSRC, OP_TD, OP_K, OP_WC_MIN, OP_COMP_LPF) = range(16)
-OP_N = 16
+_OP = Layout("OP")
+OP_KIND = _OP.index()  # variant (K_*)
+OP_TS = _OP.index()  # sample period [s]
+OP_R = _OP.index()  # model resistance R^ [ohm]
+OP_L = _OP.index()  # model inductance L^ [H]
+OP_LAM = _OP.index()  # model flux linkage lambda^ [V s]
+OP_WC = _OP.index()  # filter cut-off w_c (hinkkanen_luomi: correction gain) [rad/s]
+OP_PLL_KP = _OP.index()  # PLL proportional gain [rad/s]
+OP_PLL_KI = _OP.index()  # PLL integral gain [rad/s^2]
+OP_SPEED_LPF = _OP.index()  # extra speed-output LPF [rad/s] (0: none)
+OP_WFLOOR = _OP.index()  # floor on |w^| in the inverse HPF [rad/s]
+OP_GAMMA = _OP.index()  # ortega observer gain [1/(V^2 s^3)]
+OP_VSRC = _OP.index()  # voltage source (VS_*)
+OP_TD = _OP.index()  # deadtime feed-forward [s]
+OP_K = _OP.index()  # programmable LPF: w_c = |w^|/K
+OP_WC_MIN = _OP.index()  # programmable LPF: cut-off floor [rad/s]
+OP_COMP_LPF = _OP.index()  # LPF of the compensation's rotor frequency [rad/s] (0: PLL's)
+OP_N = _OP.close(globals())
 
 # ---- state vector OS_*
-(OS_INIT, OS_IPA, OS_IPB, OS_ETA_A, OS_ETA_B, OS_TH, OS_W, OS_PLL_I, OS_WF, OS_N_SAMPLES,
- OS_BAD, OS_WCOMP, OS_LAST_SEQ, OS_GAPS, OS_STALE) = range(15)
-OS_N = 15
+_OS = Layout("OS")
+OS_INIT = _OS.index()  # 1 once the first frame was seen
+OS_IPA, OS_IPB = _OS.indices(2)  # previous alpha/beta current [A]
+OS_ETA_A, OS_ETA_B = _OS.indices(2)  # flux integrator/filter state [V s]
+OS_TH = _OS.index()  # angle estimate for the next sample [rad]
+OS_W = _OS.index()  # PLL output kp err + integ [rad/s]
+OS_PLL_I = _OS.index()  # PLL integrator (frequency estimate) [rad/s]
+OS_WF = _OS.index()  # speed output [rad/s]
+OS_N_SAMPLES = _OS.index()  # frames consumed
+OS_BAD = _OS.index()  # non-finite frames seen
+OS_WCOMP = _OS.index()  # compensation rotor frequency [rad/s]
+OS_LAST_SEQ = _OS.index()  # sequence number of the last frame
+OS_GAPS = _OS.index()  # periods missed in sequence gaps
+OS_STALE = _OS.index()  # repeated/backwards frames ignored
+OS_N = _OS.close(globals())
 
 # ---- estimate row ES_*
-ES_TH, ES_W, ES_LA, ES_LB, ES_EA, ES_EB, ES_ERR, ES_VALID = range(8)
-ES_N = 8
+_ES = Layout("ES")
+ES_TH = _ES.index()  # electrical angle estimate at t_k [rad]
+ES_W = _ES.index()  # electrical speed estimate [rad/s]
+ES_LA, ES_LB = _ES.indices(2)  # magnet flux estimate, alpha/beta [V s]
+ES_EA, ES_EB = _ES.indices(2)  # EMF over the last step, alpha/beta [V]
+ES_ERR = _ES.index()  # PLL error sin(theta - theta^)
+ES_VALID = _ES.index()  # 1.0 if the estimate is trustworthy
+ES_N = _ES.close(globals())
 
 
 @njit(cache=True)
@@ -187,9 +228,9 @@ def observer_step(os_, op, fr, out):
             # deadtime feed-forward: each leg loses sign(i) Vdc td/Ts (mid-step current)
             ma, mb, mc = _mid_phase_currents(os_, ia, ib)
             dv = vdc * td / ts
-            pa -= dv * _sgn(ma)
-            pb -= dv * _sgn(mb)
-            pc -= dv * _sgn(mc)
+            pa -= dv * sign(ma)
+            pb -= dv * sign(mb)
+            pc -= dv * sign(mc)
     va, vb = clarke(pa, pb, pc)
     r = op[OP_R]
     lh = op[OP_L]
@@ -307,11 +348,6 @@ def observer_step(os_, op, fr, out):
 
 
 @njit(cache=True, inline="always")
-def _sgn(x):
-    return 1.0 if x > 0.0 else (-1.0 if x < 0.0 else 0.0)
-
-
-@njit(cache=True, inline="always")
 def _floored(w, floor):
     if abs(w) >= floor:
         return w
@@ -320,10 +356,7 @@ def _floored(w, floor):
 
 @njit(cache=True, inline="always")
 def _mid_phase_currents(os_, ia, ib):
-    ma = 0.5 * (ia + os_[OS_IPA])
-    mb = 0.5 * (ib + os_[OS_IPB])
-    hb = 0.8660254037844386 * mb
-    return ma, -0.5 * ma + hb, -0.5 * ma - hb
+    return inv_clarke(0.5 * (ia + os_[OS_IPA]), 0.5 * (ib + os_[OS_IPB]))
 
 
 @njit(cache=True)

@@ -21,41 +21,74 @@ import math
 import numpy as np
 from numba import njit
 
-from fluxdrive.core.blocks import pwl, rng_normal
+from fluxdrive.core.blocks import pwl, rng_normal, sign
+from fluxdrive.core.layout import Layout
 from fluxdrive.core.machine import MachineCard
 from fluxdrive.core.transforms import SQRT3, clarke, inv_clarke
 
 # ---- machine/inverter/sensor parameter vector (MP_*)
-MP_R, MP_L, MP_LAM, MP_P, MP_J, MP_B, MP_VDC, MP_TS, MP_TD, MP_VDEV = range(10)
-MP_H5, MP_H7, MP_SAT, MP_IRATED = range(10, 14)
-MP_ADC_LSB, MP_ADC_RANGE, MP_NOISE = range(14, 17)
-MP_OFF_A, MP_OFF_B, MP_OFF_C, MP_GAIN_A, MP_GAIN_B, MP_GAIN_C = range(17, 23)
-MP_CAP_LEVELS, MP_VDC_LSB, MP_VDC_RANGE, MP_VDC_NOISE, MP_ENC_CPR = range(23, 28)
-MP_DEAD_SUBSTEPS, MP_VDC_GAIN = range(28, 30)
-MP_N = 30
+_MP = Layout("MP")
+MP_R = _MP.index()  # stator resistance [ohm]
+MP_L = _MP.index()  # synchronous inductance [H]
+MP_LAM = _MP.index()  # magnet flux linkage [V s]
+MP_P = _MP.index()  # pole pairs
+MP_J = _MP.index()  # inertia [kg m^2]
+MP_B = _MP.index()  # viscous friction [N m s/rad]
+MP_VDC = _MP.index()  # DC bus [V]
+MP_TS = _MP.index()  # PWM period [s]
+MP_TD = _MP.index()  # deadtime [s]
+MP_VDEV = _MP.index()  # device on-state drop [V]
+MP_H5 = _MP.index()  # 5th flux harmonic [pu of lambda]
+MP_H7 = _MP.index()  # 7th flux harmonic [pu of lambda]
+MP_SAT = _MP.index()  # inductance drop per (i/I_rated)^2
+MP_IRATED = _MP.index()  # rated current [A]
+MP_ADC_LSB = _MP.index()  # current ADC step [A]
+MP_ADC_RANGE = _MP.index()  # current ADC full scale [A]
+MP_NOISE = _MP.index()  # current sensor noise, rms [A]
+MP_OFF_A, MP_OFF_B, MP_OFF_C = _MP.indices(3)  # current sensor offsets [A]
+MP_GAIN_A, MP_GAIN_B, MP_GAIN_C = _MP.indices(3)  # current sensor gains
+MP_CAP_LEVELS = _MP.index()  # capture timer counts per period
+MP_VDC_LSB = _MP.index()  # bus ADC step [V]
+MP_VDC_RANGE = _MP.index()  # bus ADC full scale [V]
+MP_VDC_NOISE = _MP.index()  # bus ADC noise, rms [V]
+MP_ENC_CPR = _MP.index()  # encoder counts per mechanical revolution
+MP_DEAD_SUBSTEPS = _MP.index()  # sub-steps of a deadtime segment
+MP_VDC_GAIN = _MP.index()  # bus ADC gain error
+MP_N = _MP.close(globals())
 
 # ---- plant state vector (PS_*)
-PS_IA, PS_IB = 0, 1  # true stator current, alpha/beta [A]
-PS_THM, PS_WM = 2, 3  # mechanical angle (unwrapped) [rad], speed [rad/s]
-PS_T, PS_K = 4, 5  # time of the last sample [s], its index
-PS_TE, PS_TL = 6, 7  # average electrical / load torque over the last period [N m]
-PS_N = 8
+_PS = Layout("PS")
+PS_IA, PS_IB = _PS.indices(2)  # true stator current, alpha/beta [A]
+PS_THM = _PS.index()  # mechanical angle (unwrapped) [rad]
+PS_WM = _PS.index()  # mechanical speed [rad/s]
+PS_T = _PS.index()  # time of the last sample [s]
+PS_K = _PS.index()  # its index
+PS_TE = _PS.index()  # average electrical torque over the last period [N m]
+PS_TL = _PS.index()  # average load torque over the last period [N m]
+PS_N = _PS.close(globals())
 
 # ---- frame vector (what the drive's MCU knows at sample k): FR_*
-FR_IA, FR_IB, FR_IC = 0, 1, 2  # sampled phase currents [A]
-FR_VAB, FR_VBC, FR_VCA = 3, 4, 5  # captured line voltages, average over the last period [V]
-FR_VDC = 6  # DC-bus ADC [V]
-FR_DA, FR_DB, FR_DC = 7, 8, 9  # duties applied over the last period
-FR_EN = 10  # 1.0 if PWM was enabled over the last period
-FR_ENC = 11  # cumulative encoder counts
-FR_SEQ = 12  # sample index k
-FR_FLAGS = 13  # status bits (1: current ADC clipped)
-FR_N = 14
-FLAG_CLIP = 1
+_FR = Layout("FR")
+FR_IA, FR_IB, FR_IC = _FR.indices(3)  # sampled phase currents [A]
+FR_VAB, FR_VBC, FR_VCA = _FR.indices(3)  # captured line voltages, average over the last period [V]
+FR_VDC = _FR.index()  # DC-bus ADC [V]
+FR_DA, FR_DB, FR_DC = _FR.indices(3)  # duties applied over the last period
+FR_EN = _FR.index()  # 1.0 if PWM was enabled over the last period
+FR_ENC = _FR.index()  # cumulative encoder counts
+FR_SEQ = _FR.index()  # sample index k
+FR_FLAGS = _FR.index()  # status bits (FLAG_*)
+FR_N = _FR.close(globals())
+FLAG_CLIP = 1  # a current ADC channel clipped at full scale
 
 # ---- truth vector (simulation only): TR_*
-TR_THETA_E, TR_WM, TR_TE, TR_TL, TR_IA, TR_IB, TR_IC, TR_T = range(8)
-TR_N = 8
+_TR = Layout("TR")
+TR_THETA_E = _TR.index()  # electrical rotor angle in [0, 2 pi) [rad]
+TR_WM = _TR.index()  # mechanical speed [rad/s]
+TR_TE = _TR.index()  # electrical torque, average over the last period [N m]
+TR_TL = _TR.index()  # load torque, average over the last period [N m]
+TR_IA, TR_IB, TR_IC = _TR.indices(3)  # true phase currents [A]
+TR_T = _TR.index()  # sample time [s]
+TR_N = _TR.close(globals())
 
 LEG_BOTTOM, LEG_TOP, LEG_DIODE = 0, 1, 2
 
@@ -134,22 +167,13 @@ def _inductance(mp, ia, ib):
 
 
 @njit(cache=True, inline="always")
-def _sgn(x):
-    if x > 0.0:
-        return 1.0
-    if x < 0.0:
-        return -1.0
-    return 0.0
-
-
-@njit(cache=True, inline="always")
 def _leg_voltage(state, i_phase, vdc, vdev):
     """Leg-to-negative-rail voltage for a leg state and its phase current.
     Returns (real voltage incl. device drops, ideal level seen by the capture timer)."""
     if state == LEG_TOP:
-        return vdc - vdev * _sgn(i_phase), vdc
+        return vdc - vdev * sign(i_phase), vdc
     if state == LEG_BOTTOM:
-        return -vdev * _sgn(i_phase), 0.0
+        return -vdev * sign(i_phase), 0.0
     # both switches off: the freewheeling diode picked by the current sign conducts
     if i_phase > 0.0:
         return -vdev, 0.0
@@ -332,7 +356,7 @@ def _sample(st, mp, rng, vs, da, db, dc, enabled, frame, truth):
     x, c2 = _adc(mp[MP_GAIN_C] * ic_t + mp[MP_OFF_C] + n2, lsb, rng_)
     frame[FR_IC] = x
     if c0 or c1 or c2:
-        flags |= 1
+        flags |= FLAG_CLIP
     # DC bus ADC
     vdc = mp[MP_VDC]
     vn = rng_normal(rng) * mp[MP_VDC_NOISE] if mp[MP_VDC_NOISE] > 0.0 else 0.0
@@ -363,7 +387,19 @@ def _sample(st, mp, rng, vs, da, db, dc, enabled, frame, truth):
     truth[TR_T] = st[PS_T]
 
 
-LD_DYNO, LD_BRAKE_BAND = 0, 1  # load_cfg: [dyno N m s/rad, brake speed band rad/s]
+# ---- load configuration (LD_*)
+_LD = Layout("LD")
+LD_DYNO = _LD.index()  # speed-proportional dyno torque [N m s/rad]
+LD_BRAKE_BAND = _LD.index()  # passive-brake speed band [rad/s] (0: active torque)
+LD_N = _LD.close(globals())
+
+
+def load_config(dyno_nm_per_rad_s: float, brake_band_rad_s: float) -> np.ndarray:
+    """The LD_* row of `load_torque`."""
+    cfg = np.zeros(LD_N)
+    cfg[LD_DYNO] = dyno_nm_per_rad_s
+    cfg[LD_BRAKE_BAND] = brake_band_rad_s
+    return cfg
 
 
 @njit(cache=True)
@@ -409,7 +445,7 @@ def deadtime_volt_second_loss(vdc_v: float, deadtime_s: float, ts_s: float) -> f
     return vdc_v * deadtime_s / ts_s
 
 
-__all__ = [n for n in dir() if n.isupper()] + [
-    "machine_params", "plant_state", "plant_advance", "plant_initial_frame", "load_torque",
-    "deadtime_volt_second_loss", "SQRT3",
+__all__ = [n for n in dir() if n.isupper() and not n.startswith("_")] + [
+    "machine_params", "load_config", "plant_state", "plant_advance", "plant_initial_frame",
+    "load_torque", "deadtime_volt_second_loss", "SQRT3",
 ]

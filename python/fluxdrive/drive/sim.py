@@ -23,7 +23,15 @@ from numba import njit
 from fluxdrive.analysis.freqresp import Segment, stepped_sine
 from fluxdrive.core.blocks import rng_new
 from fluxdrive.core.scenario import RPM, Scenario
-from fluxdrive.drive.control import CO_DA, CO_EN, CO_N, CS_N, controller_reset, controller_step
+from fluxdrive.drive.control import (
+    CO_DA,
+    CO_DC,
+    CO_EN,
+    CO_N,
+    CS_N,
+    controller_reset,
+    controller_step,
+)
 from fluxdrive.drive.observers import (
     ES_N,
     OP_N,
@@ -35,11 +43,23 @@ from fluxdrive.drive.observers import (
 from fluxdrive.drive.plant import (
     FR_N,
     TR_N,
+    load_config,
     machine_params,
     plant_advance,
     plant_initial_frame,
     plant_state,
 )
+
+# the duty latched from period k to k+1: the controller row up to its enable flag
+LATCH_N = max(CO_DA, CO_DC, CO_EN) + 1
+
+
+def pwm_off_latch() -> np.ndarray:
+    """The latch before the first period: PWM off, duties at 50 %."""
+    latch = np.zeros(LATCH_N)
+    latch[CO_DA:CO_DC + 1] = 0.5
+    latch[CO_EN] = 0.0
+    return latch
 
 
 @njit(cache=True)
@@ -47,7 +67,8 @@ def closed_loop_chunk(k0, k1, pst, mp, rng, load_t, load_y, load_cfg, cs, cp, w_
                       obs_states, obs_params, driving, frame, truth, duty_prev,
                       out_frames, out_truth, out_est, out_ctrl):
     """Run periods k0..k1-1.  `frame`/`truth` hold frame k0 on entry and frame k1 on exit;
-    `duty_prev` (4: duties + enable) the duty latched for the next period."""
+    `duty_prev` (the controller row's first LATCH_N fields: duties and enable) the duty
+    latched for the next period."""
     n_obs = obs_states.shape[0]
     no_est = np.zeros(ES_N)
     ctrl = np.zeros(CO_N)
@@ -61,11 +82,10 @@ def closed_loop_chunk(k0, k1, pst, mp, rng, load_t, load_y, load_cfg, cs, cp, w_
         else:
             controller_step(cs, cp, frame, no_est, w_ref[k], id_inj[k], ctrl)
         out_ctrl[k, :] = ctrl
-        plant_advance(pst, mp, rng, duty_prev[0:3], duty_prev[3] > 0.5, load_t, load_y,
-                      load_cfg, frame, truth)
-        for j in range(3):
-            duty_prev[j] = ctrl[CO_DA + j]
-        duty_prev[3] = ctrl[CO_EN]
+        plant_advance(pst, mp, rng, duty_prev[CO_DA:CO_DC + 1], duty_prev[CO_EN] > 0.5, load_t,
+                      load_y, load_cfg, frame, truth)
+        for j in range(LATCH_N):
+            duty_prev[j] = ctrl[j]
     return k1
 
 
@@ -106,7 +126,7 @@ class DriveSetup:
         self.mp = machine_params(card, sc.current_offset_a, sc.current_gain,
                                  deadtime_s=sc.plant_deadtime_s)
         self.load_t, self.load_y = sc.load_breakpoints_nm()
-        self.load_cfg = np.array([sc.dyno_nm_per_rad_s(), sc.brake_band_rpm * RPM])
+        self.load_cfg = load_config(sc.dyno_nm_per_rad_s(), sc.brake_band_rpm * RPM)
         self.cp = sc.control.to_params(card)
         self.names = list(sc.observers)
         self.obs_params = np.zeros((len(self.names), OP_N))
@@ -158,46 +178,70 @@ def _injection(spec: dict, ts: float, unit: float):
                         int(spec.get("settle_cycles", 3)))
 
 
+class LoopRun:
+    """One in-process closed-loop run over a DriveSetup: fresh plant, controller and observer
+    states, frame 0 sampled, the PWM-off latch, and output rows for every period.  `advance`
+    runs the compiled loop up to a period; between calls a caller may change `cp` or
+    `obs_params` (copies of the setup's rows), so experiments that switch a source or adapt
+    a parameter mid-run use the very loop `run_scenario` uses."""
+
+    def __init__(self, ds: DriveSetup):
+        self.ds = ds
+        n = self.n = ds.n
+        self.pst, self.rng = ds.new_plant()
+        self.cs = ds.new_controller()
+        self.obs_states = ds.new_observer_states()
+        self.cp = ds.cp.copy()
+        self.obs_params = ds.obs_params.copy()
+        self.driving = ds.driving_index
+        self.frame = np.zeros(FR_N)
+        self.truth = np.zeros(TR_N)
+        plant_initial_frame(self.pst, ds.mp, self.rng, self.frame, self.truth)
+        self.latch = pwm_off_latch()
+        self.frames = np.zeros((n, FR_N))
+        self.truths = np.zeros((n, TR_N))
+        self.est = np.zeros((len(ds.names), n, ES_N))
+        self.ctrl = np.zeros((n, CO_N))
+        self.k = 0
+        self.wall_s = 0.0
+
+    def advance(self, k1: int) -> None:
+        """Run periods k..k1-1 (k1 = k compiles, or loads from the cache, and runs nothing)."""
+        ds = self.ds
+        t0 = time.perf_counter()
+        self.k = closed_loop_chunk(self.k, k1, self.pst, ds.mp, self.rng, ds.load_t, ds.load_y,
+                                   ds.load_cfg, self.cs, self.cp, ds.w_ref, ds.id_inj,
+                                   self.obs_states, self.obs_params, self.driving, self.frame,
+                                   self.truth, self.latch, self.frames, self.truths, self.est,
+                                   self.ctrl)
+        self.wall_s += time.perf_counter() - t0
+
+    def result(self) -> SimResult:
+        ds = self.ds
+        return SimResult(ds.sc, ds.names, ds.sc.driving, np.arange(self.n) * ds.ts, self.frames,
+                         self.truths, self.est, self.ctrl, ds.w_ref, ds.id_inj, ds.segments,
+                         self.wall_s)
+
+
 def run_scenario(sc: Scenario, progress: bool = True, chunk_s: float = 0.25) -> SimResult:
     """Run a scenario headless in-process.  Shows progress on stderr for long runs."""
-    ds = DriveSetup(sc)
-    n = ds.n
-    pst, rng = ds.new_plant()
-    cs = ds.new_controller()
-    obs_states = ds.new_observer_states()
-    frame = np.zeros(FR_N)
-    truth = np.zeros(TR_N)
-    plant_initial_frame(pst, ds.mp, rng, frame, truth)
-    duty_prev = np.array([0.5, 0.5, 0.5, 0.0])
-    out_frames = np.zeros((n, FR_N))
-    out_truth = np.zeros((n, TR_N))
-    out_est = np.zeros((len(ds.names), n, ES_N))
-    out_ctrl = np.zeros((n, CO_N))
-    chunk = max(1, int(chunk_s / ds.ts))
-    # compile (or load from cache) before timing: a zero-length call
-    closed_loop_chunk(0, 0, pst, ds.mp, rng, ds.load_t, ds.load_y, ds.load_cfg, cs, ds.cp,
-                      ds.w_ref, ds.id_inj, obs_states, ds.obs_params, ds.driving_index,
-                      frame, truth, duty_prev, out_frames, out_truth, out_est, out_ctrl)
-    t0 = time.perf_counter()
-    k = 0
+    run = LoopRun(DriveSetup(sc))
+    n, ts = run.n, run.ds.ts
+    chunk = max(1, int(chunk_s / ts))
+    run.advance(0)  # compile (or load from cache) before timing
+    run.wall_s = 0.0
     show = progress == "always" or (progress and sys.stderr.isatty())
     tty = sys.stderr.isatty()
-    last_print = t0
-    while k < n:
-        k1 = min(n, k + chunk)
-        closed_loop_chunk(k, k1, pst, ds.mp, rng, ds.load_t, ds.load_y, ds.load_cfg, cs, ds.cp,
-                          ds.w_ref, ds.id_inj, obs_states, ds.obs_params, ds.driving_index,
-                          frame, truth, duty_prev, out_frames, out_truth, out_est, out_ctrl)
-        k = k1
+    last_print = time.perf_counter()
+    while run.k < n:
+        run.advance(min(n, run.k + chunk))
         now = time.perf_counter()
-        if show and (tty or now - last_print > 2.0 or k == n):
+        if show and (tty or now - last_print > 2.0 or run.k == n):
             last_print = now
-            msg = (f"[sim] {sc.name}: {k * ds.ts:6.2f}/{sc.duration_s:.2f} s simulated, "
-                   f"{now - t0:5.1f} s wall")
+            msg = (f"[sim] {sc.name}: {run.k * ts:6.2f}/{sc.duration_s:.2f} s simulated, "
+                   f"{run.wall_s:5.1f} s wall")
             sys.stderr.write("\r" + msg if tty else msg + "\n")
             sys.stderr.flush()
     if show and tty:
         sys.stderr.write("\n")
-    return SimResult(sc, ds.names, sc.driving, np.arange(n) * ds.ts, out_frames, out_truth,
-                     out_est, out_ctrl, ds.w_ref, ds.id_inj, ds.segments,
-                     time.perf_counter() - t0)
+    return run.result()

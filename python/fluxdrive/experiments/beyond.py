@@ -43,7 +43,7 @@ from fluxdrive.drive.control import (
     MODE_CLOSED_LOOP,
     MODE_IF_RAMP,
 )
-from fluxdrive.drive.observers import ES_LA, ES_LB, ES_TH, ES_W, OP_R
+from fluxdrive.drive.observers import ES_LA, ES_LB, ES_TH, ES_W, OP_LAM, OP_R
 from fluxdrive.drive.plant import TR_THETA_E, TR_WM
 from fluxdrive.experiments.registry import OBS4, build, claim, encoder_run, plt
 
@@ -1096,39 +1096,16 @@ def run_switched(sc, t_switch_s: float):
     observer at t_switch_s: the loop is *closed* on the observer at a chosen operating point
     (speed, load) with the observer already converged in shadow.  In-process only (the node
     graph has no mid-run source switch).  Returns a SimResult-like record."""
-    from fluxdrive.drive.control import CO_N, CP_SRC, SRC_ENCODER
-    from fluxdrive.drive.observers import ES_N
-    from fluxdrive.drive.plant import FR_N, TR_N, plant_initial_frame
-    from fluxdrive.drive.sim import DriveSetup, closed_loop_chunk
+    from fluxdrive.drive.control import CP_SRC, SRC_ENCODER
+    from fluxdrive.drive.sim import DriveSetup, LoopRun
 
-    ds = DriveSetup(sc)
-    n = ds.n
-    pst, rng = ds.new_plant()
-    cs = ds.new_controller()
-    st = ds.new_observer_states()
-    frame, truth = np.zeros(FR_N), np.zeros(TR_N)
-    plant_initial_frame(pst, ds.mp, rng, frame, truth)
-    duty = np.array([0.5, 0.5, 0.5, 0.0])
-    fr, tr = np.zeros((n, FR_N)), np.zeros((n, TR_N))
-    est, ctl = np.zeros((len(ds.names), n, ES_N)), np.zeros((n, CO_N))
-    ks = min(n, int(round(t_switch_s / ds.ts)))
-    cp_enc = ds.cp.copy()
-    cp_enc[CP_SRC] = SRC_ENCODER  # same gains (designed for the observer), encoder angle
-    t0 = time.perf_counter()
-    for k0, k1, cp in ((0, ks, cp_enc), (ks, n, ds.cp)):
-        closed_loop_chunk(k0, k1, pst, ds.mp, rng, ds.load_t, ds.load_y, ds.load_cfg, cs, cp,
-                          ds.w_ref, ds.id_inj, st, ds.obs_params, ds.driving_index, frame,
-                          truth, duty, fr, tr, est, ctl)
-
-    class R:  # a SimResult-like record for metrics.compute
-        pass
-
-    res = R()
-    res.scenario, res.names, res.driving = sc, ds.names, sc.driving
-    res.t = np.arange(n) * ds.ts
-    res.frames, res.truth, res.est, res.ctrl, res.w_ref = fr, tr, est, ctl, ds.w_ref
-    res.wall_s = time.perf_counter() - t0
-    return res
+    run = LoopRun(DriveSetup(sc))
+    cp_observer = run.cp.copy()
+    run.cp[CP_SRC] = SRC_ENCODER  # same gains (designed for the observer), encoder angle
+    run.advance(min(run.n, int(round(t_switch_s / run.ds.ts))))
+    run.cp[:] = cp_observer
+    run.advance(run.n)
+    return run.result()
 
 
 PEERS = ["flux_measured", "emf_commanded", "ortega_commanded", "flux_commanded",
@@ -1361,35 +1338,18 @@ def _plot_peers(ctx, sw_jobs, sw_res, drivers):
 def run_adaptive(sc, gain: float | None, chunk: int = 10, r0: float = R0):
     """The runner's loop in 1 ms chunks; between chunks the driving observer's R^ is
     adapted from its flux magnitude (gain [1/s]; None: no adaptation)."""
-    from fluxdrive.drive.plant import FR_N, TR_N, plant_initial_frame
-    from fluxdrive.drive.sim import DriveSetup, closed_loop_chunk
+    from fluxdrive.drive.sim import DriveSetup, LoopRun
 
-    ds = DriveSetup(sc)
-    n = ds.n
-    pst, rng = ds.new_plant()
-    cs = ds.new_controller()
-    st = ds.new_observer_states()
-    frame, truth = np.zeros(FR_N), np.zeros(TR_N)
-    plant_initial_frame(pst, ds.mp, rng, frame, truth)
-    duty = np.array([0.5, 0.5, 0.5, 0.0])
-    from fluxdrive.drive.control import CO_N
-    from fluxdrive.drive.observers import ES_N
-
-    fr = np.zeros((n, FR_N))
-    tr = np.zeros((n, TR_N))
-    est = np.zeros((len(ds.names), n, ES_N))
-    ctl = np.zeros((n, CO_N))
-    o = ds.driving_index
-    lam = ds.obs_params[o, 4]  # OP_LAM
+    run = LoopRun(DriveSetup(sc))
+    n, est, ctl, op = run.n, run.est, run.ctrl, run.obs_params
+    o = run.driving
+    lam = op[o, OP_LAM]
     r_hist = np.zeros(n)
-    dt = chunk * ds.ts
+    dt = chunk * run.ds.ts
     k = 0
-    t0 = time.perf_counter()
     while k < n:
         k1 = min(n, k + chunk)
-        closed_loop_chunk(k, k1, pst, ds.mp, rng, ds.load_t, ds.load_y, ds.load_cfg, cs, ds.cp,
-                          ds.w_ref, ds.id_inj, st, ds.obs_params, o, frame, truth, duty,
-                          fr, tr, est, ctl)
+        run.advance(k1)
         if gain is not None:
             e = est[o, k:k1]
             iq = float(np.mean(ctl[k:k1, CO_IQ]))
@@ -1403,26 +1363,17 @@ def run_adaptive(sc, gain: float | None, chunk: int = 10, r0: float = R0):
                 i_d = float(np.mean(ctl[k:k1, CO_ID]))
                 w_if = float(np.mean(ctl[k:k1, CO_W_REF])) * P
                 if abs(i_d) > 0.1 * 9.0 and abs(w_if) > 2 * math.pi * 1.0:
-                    r_new = ds.obs_params[o, OP_R] - gain * dt * lq * w_if / i_d
-                    ds.obs_params[o, OP_R] = min(max(r_new, 0.3 * r0), 3.0 * r0)
+                    r_new = op[o, OP_R] - gain * dt * lq * w_if / i_d
+                    op[o, OP_R] = min(max(r_new, 0.3 * r0), 3.0 * r0)
             elif (np.all(ctl[k:k1, CO_MODE] == MODE_CLOSED_LOOP) and abs(iq) > 0.1 * 9.0
                     and abs(w) > 2 * math.pi * 1.0):
                 mag = float(np.mean(np.hypot(e[:, ES_LA], e[:, ES_LB])))
                 dr = (mag - lam) * abs(w) / abs(iq)
-                r_new = ds.obs_params[o, OP_R] + gain * dt * dr
-                ds.obs_params[o, OP_R] = min(max(r_new, 0.3 * r0), 3.0 * r0)
-        r_hist[k:k1] = ds.obs_params[o, OP_R]
+                r_new = op[o, OP_R] + gain * dt * dr
+                op[o, OP_R] = min(max(r_new, 0.3 * r0), 3.0 * r0)
+        r_hist[k:k1] = op[o, OP_R]
         k = k1
-
-    class R:  # a SimResult-like record for metrics.compute
-        pass
-
-    res = R()
-    res.scenario, res.names, res.driving = sc, ds.names, sc.driving
-    res.t = np.arange(n) * ds.ts
-    res.frames, res.truth, res.est, res.ctrl, res.w_ref = fr, tr, est, ctl, ds.w_ref
-    res.wall_s = time.perf_counter() - t0
-    return res, r_hist
+    return run.result(), r_hist
 
 
 def _adaptive_job(args):

@@ -32,6 +32,7 @@ from typing import Any
 import yaml
 
 from fluxdrive.analysis.metrics import compute
+from fluxdrive.core.machine import ConfigError
 from fluxdrive.core.scenario import CONFIG_DIR, REPO_ROOT, Scenario, load_scenario, scenario_path
 
 DEFAULT_MACHINE = CONFIG_DIR / "machines" / "default_spm.yaml"
@@ -117,33 +118,15 @@ def encoder_run(speed_rpm: float, load_pu: float, *, observers: dict | None = No
 # ---------------------------------------------------------------- running
 # --graph: every run goes through the ROS 2 node graph (lockstep, recorded, read back from
 # the bag) instead of fluxdrive.drive.sim.run_scenario; the numbers are the same (the lockstep
-# graph reproduces the in-process runner bit for bit), only slower (about real time).
-_GRAPH = {"on": False, "keep": None}
+# graph reproduces the in-process runner bit for bit), only slower (about real time).  The
+# graph runner lives with the graph tools (fluxdrive_bringup.runs.graph_run), which install
+# it here: the engine imports no ROS.
+_RUNNER: dict[str, Callable[[Scenario], Any] | None] = {"graph": None}
 
 
-def graph_run(sc: Scenario):
-    """One scenario through the lockstep node graph -> SimResult (from the bag)."""
-    import shutil
-
-    from fluxdrive_bringup.runs import result_from_bag, run_graph
-
-    from fluxdrive.core.scenario import save_scenario
-
-    d = Path(tempfile.mkdtemp(prefix=f"fluxdrive-exp-graph-{sc.name}-"))
-    sp = save_scenario(sc, d / f"{sc.name}.yaml")
-    r = run_graph(sp, out=d / "run", bag=d / "bag", quiet=True, progress=False,
-                  timeout=max(600.0, 30.0 * sc.duration_s))
-    if r["code"] != 0:
-        raise RuntimeError(f"graph run of {sc.name} failed (exit {r['code']}); logs in "
-                           f"{d / 'run' / 'logs'}")
-    res, arr = result_from_bag(d / "bag", load_scenario(sp), wall_s=r["loop_wall_s"] or 0.0)
-    missing = {k: v for k, v in arr["missing"].items() if v}
-    if missing:
-        raise RuntimeError(f"graph run of {sc.name}: samples missing from the bag {missing} "
-                           f"({d / 'bag'})")
-    if _GRAPH["keep"] is None:
-        shutil.rmtree(d, ignore_errors=True)
-    return res
+def use_graph_runner(run: Callable[[Scenario], Any] | None) -> None:
+    """Run every experiment scenario with `run` (scenario -> SimResult); None: in-process."""
+    _RUNNER["graph"] = run
 
 
 def _job(args):
@@ -151,16 +134,13 @@ def _job(args):
     from fluxdrive.drive.sim import run_scenario
 
     t0 = time.perf_counter()
-    r = graph_run(sc) if _GRAPH["on"] else run_scenario(sc, progress=False)
+    graph = _RUNNER["graph"]
+    r = graph(sc) if graph is not None else run_scenario(sc, progress=False)
     m = compute(r)
     out = extractor(r, m, **(kw or {}))
     out["_wall_s"] = time.perf_counter() - t0
     out["_sim_s"] = sc.duration_s
     return out
-
-
-def metrics_only(r, m, **_):
-    return {"metrics": m}
 
 
 @dataclasses.dataclass
@@ -311,7 +291,8 @@ def main(argv: list[str]) -> int:
                     "about real time, one run at a time")
     args = ap.parse_args(argv)
     if args.graph:
-        _GRAPH["on"] = True
+        if _RUNNER["graph"] is None:
+            raise ConfigError("--graph runs through the ROS graph: use ./fluxdrive experiment")
         args.workers = 1  # a graph run uses both cores
     if args.name == "list":
         for k, (_, title) in reg.items():

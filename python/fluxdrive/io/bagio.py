@@ -334,11 +334,6 @@ def _bag_files(path: Path) -> list[Path]:
         path.glob("*.zstd"))
 
 
-class _Conn:
-    def __init__(self, topic: str, msgtype: str):
-        self.topic, self.msgtype = topic, msgtype
-
-
 def _info(path: Path) -> dict[str, Any]:
     import yaml
 
@@ -571,12 +566,6 @@ def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
 def _one_line(exc: BaseException) -> str:
     s = str(exc).strip().splitlines()
     return (s[0] if s else type(exc).__name__)[:200]
-
-
-def seq_gap_fraction(frames: np.ndarray) -> float:
-    s = frames[:, FR_SEQ]
-    span = s[-1] - s[0] + 1
-    return 0.0 if span <= 0 else 1.0 - len(s) / span
 
 
 __all__ = ["BagError", "RunBag", "read_run_bag", "write_run_bag", "typestore", "est_topic",

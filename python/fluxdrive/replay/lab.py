@@ -537,97 +537,6 @@ def format_sweep(rows: list[dict[str, Any]], key: str) -> str:
                                for r in rows])
 
 
-# ====================================================================== live replay
-def live_replay(bag_path: Path, rate: float, loop: bool, start_s: float,
-                max_frames: int | None = None, topic: str = "/drive/frame",
-                wait_s: float = 2.0) -> int:
-    """Publish the bag's frames (the recorded CDR bytes, untouched) at `rate` x real time."""
-    bag = read_run_bag(bag_path, keep_raw=True)
-    for pr in bag.problems:
-        print(f"replay: warning: {pr}", file=sys.stderr)
-    raw = bag.raw_frames
-    t_first = raw[0][0]
-    raw = [(t, b) for t, b in raw if (t - t_first) * 1e-9 >= start_s]
-    if not raw:
-        raise BagError(f"{bag_path}: --start {start_s} s is past the end of the bag")
-    import rclpy
-    from rclpy.duration import Duration
-    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-
-    try:
-        from flux_drive_msgs.msg import PhaseFrame
-    except ImportError as exc:
-        raise ConfigError(f"--live needs the built flux_drive_msgs ({exc})") from None
-    from rclpy.impl.implementation_singleton import rclpy_implementation
-
-    rcl_error = rclpy_implementation.RCLError
-    rclpy.init()
-    node = rclpy.create_node("fluxdrive_replay")
-    # KEEP_ALL + reliable: a reader that keeps all (a recorder, a counting probe) is
-    # flow-controlled rather than overrun at high --rate (KEEP_LAST lost frames in bursts);
-    # readers that keep only the last N still choose to drop on their side.
-    pub = node.create_publisher(PhaseFrame, topic, QoSProfile(
-        depth=100, history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE))
-    sent = 0
-    try:
-        t_wait = time.monotonic() + wait_s
-        while pub.get_subscription_count() == 0 and time.monotonic() < t_wait:
-            time.sleep(0.05)
-        while True:
-            t0_bag = raw[0][0]
-            t0_wall = time.monotonic()
-            last_print = t0_wall
-            for t_ns, data in raw:
-                due = t0_wall + (t_ns - t0_bag) * 1e-9 / rate
-                now = time.monotonic()
-                if due > now + 2e-4:
-                    time.sleep(due - now)
-                _publish_flow_controlled(pub, data, rcl_error)
-                sent += 1
-                if max_frames is not None and sent >= max_frames:
-                    return _live_done(sent, t0_wall)
-                if now - last_print > 2.0:
-                    last_print = now
-                    print(f"[live] {sent} frames, bag t={(t_ns - t_first) * 1e-9:.2f} s",
-                          file=sys.stderr, flush=True)
-            if not loop:
-                break
-        return _live_done(sent, t0_wall)
-    finally:
-        # frames still in the writer's history would be lost with the process
-        if sent and not pub.wait_for_all_acked(Duration(seconds=30.0)):
-            print("[live] warning: not every frame was acknowledged by the readers within "
-                  "30 s", file=sys.stderr)
-        node.destroy_node()
-        rclpy.try_shutdown()
-
-
-def _publish_flow_controlled(pub, data: bytes, rcl_error: type, give_up_s: float = 30.0):
-    """Publish, waiting while a KEEP_ALL reader is behind: the middleware blocks a full
-    writer history for its max_blocking_time and then refuses the sample, so retry until
-    the readers have caught up (a reader that stops acknowledging for `give_up_s` ends the
-    replay with an error instead of losing frames)."""
-    t_end = None
-    while True:
-        try:
-            pub.publish(data)
-            return
-        except rcl_error as exc:
-            now = time.monotonic()
-            if t_end is None:
-                t_end = now + give_up_s
-            elif now > t_end:
-                raise BagError(f"live replay: the readers took no frame for {give_up_s:g} s "
-                               f"({exc})") from None
-            time.sleep(0.002)
-
-
-def _live_done(sent: int, t0_wall: float) -> int:
-    print(f"[live] published {sent} frames in {time.monotonic() - t0_wall:.2f} s",
-          file=sys.stderr)
-    return 0
-
-
 # ====================================================================== CLI
 def _parse_window(s: str | None) -> tuple[float, float] | None:
     if not s:
@@ -639,7 +548,8 @@ def _parse_window(s: str | None) -> tuple[float, float] | None:
     return (a, b)
 
 
-def main(argv: list[str]) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """`fluxdrive replay`'s options (the live publisher in fluxdrive_bringup shares them)."""
     ap = argparse.ArgumentParser(prog="fluxdrive replay", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("bags", nargs="+", type=Path, help="rosbag2 folders (mcap)")
@@ -665,7 +575,11 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--wait-s", type=float, default=2.0,
                     help="live: wait this long for a first subscriber before publishing")
     ap.add_argument("--max-frames", type=int, help=argparse.SUPPRESS)
-    args = ap.parse_args(argv)
+    return ap
+
+
+def main(argv: list[str]) -> int:
+    args = build_parser().parse_args(argv)
     try:
         return _main(args)
     except BagError as exc:
@@ -674,13 +588,8 @@ def main(argv: list[str]) -> int:
 
 
 def _main(args) -> int:
-    if args.live:
-        if len(args.bags) != 1:
-            raise ConfigError("--live takes exactly one bag")
-        if args.rate <= 0:
-            raise ConfigError("--rate must be > 0")
-        return live_replay(args.bags[0], args.rate, args.loop, args.start, args.max_frames,
-                           wait_s=args.wait_s)
+    if args.live:  # the command line sends --live to fluxdrive_bringup.live_replay (ROS)
+        raise ConfigError("--live publishes on the ROS graph: run it as ./fluxdrive replay")
     machine = load_machine(args.machine) if args.machine else None
     window = _parse_window(args.window)
     out = args.out or REPO_ROOT / "runs" / f"replay-{time.strftime('%Y%m%d-%H%M%S')}"

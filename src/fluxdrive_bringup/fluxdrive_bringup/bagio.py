@@ -22,10 +22,6 @@ def typestore():
     return engine_typestore()
 
 
-def bag_files(bag: Path) -> list[Path]:
-    return sorted(Path(bag).glob("*.mcap"))
-
-
 def read_raw(bag: Path, topic_filter=None):
     """Yield (topic, msgtype, timestamp_ns, rawdata) in log order, with rosbags' AnyReader."""
     from rosbags.highlevel import AnyReader

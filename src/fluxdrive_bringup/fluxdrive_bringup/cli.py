@@ -46,12 +46,6 @@ def main_bag(argv: list[str]) -> int:
     return main(argv)
 
 
-def main_can_import(argv: list[str]) -> int:
-    from fluxdrive.io.canimport import main
-
-    return main(argv)
-
-
 def main_soak(argv: list[str]) -> int:
     from .soak import main
 

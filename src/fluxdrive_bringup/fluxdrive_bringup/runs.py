@@ -207,3 +207,37 @@ def main_run(argv: list[str], default_scenario: str | None = None) -> int:
 
 def main_demo(argv: list[str]) -> int:
     return main_run(argv, default_scenario=DEMO_SCENARIO)
+
+
+# ---------------------------------------------------------------- experiments --graph
+def graph_run(sc, keep: bool = False):
+    """One scenario through the lockstep node graph -> SimResult (read back from the bag);
+    the runner `./fluxdrive experiment --graph` installs in the engine's registry."""
+    import shutil
+    import tempfile
+
+    from fluxdrive.core.scenario import save_scenario
+
+    d = Path(tempfile.mkdtemp(prefix=f"fluxdrive-exp-graph-{sc.name}-"))
+    sp = save_scenario(sc, d / f"{sc.name}.yaml")
+    r = run_graph(sp, out=d / "run", bag=d / "bag", quiet=True, progress=False,
+                  timeout=max(600.0, 30.0 * sc.duration_s))
+    if r["code"] != 0:
+        raise RuntimeError(f"graph run of {sc.name} failed (exit {r['code']}); logs in "
+                           f"{d / 'run' / 'logs'}")
+    res, arr = result_from_bag(d / "bag", load_scenario(sp), wall_s=r["loop_wall_s"] or 0.0)
+    missing = {k: v for k, v in arr["missing"].items() if v}
+    if missing:
+        raise RuntimeError(f"graph run of {sc.name}: samples missing from the bag {missing} "
+                           f"({d / 'bag'})")
+    if not keep:
+        shutil.rmtree(d, ignore_errors=True)
+    return res
+
+
+def main_experiment_graph(argv: list[str]) -> int:
+    """`./fluxdrive experiment ... --graph`: the engine's experiments, every run on the graph."""
+    from fluxdrive.experiments import registry
+
+    registry.use_graph_runner(graph_run)
+    return registry.main(argv)
