@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 from fluxdrive.core.scenario import RPM, load_scenario, scenario_path
 from fluxdrive.drive.control import (
+    CO_DA,
+    CO_DC,
     CO_EN,
     CO_FAULT,
     CO_MODE,
@@ -24,7 +26,7 @@ from fluxdrive.drive.control import (
 from fluxdrive.drive.observers import ES_N, observer_step
 from fluxdrive.drive.plant import FR_IA, FR_N, TR_N, TR_WM, plant_advance, plant_initial_frame
 from fluxdrive.drive.sequencer import ControlSequencer
-from fluxdrive.drive.sim import DriveSetup, run_scenario
+from fluxdrive.drive.sim import LATCH_N, DriveSetup, pwm_off_latch, run_scenario
 
 SCENARIO = "paper_2pct_150load"
 
@@ -60,7 +62,7 @@ class Drive:
 
     def _emit(self, k: int, out: np.ndarray) -> None:
         self.ctrl[k] = out.copy()
-        self.duties[k] = np.array([out[0], out[1], out[2], out[CO_EN]])
+        self.duties[k] = out[:LATCH_N].copy()
 
     def run(self, n: int, stalled=lambda k: False) -> None:
         ds = self.ds
@@ -77,12 +79,12 @@ class Drive:
                 self.backlog.clear()
             duty = self.duties.pop(k - 1, None)
             if duty is None and k >= 1:  # not answered in time: the watchdog's PWM off
-                duty = np.array([0.5, 0.5, 0.5, 0.0])
+                duty = pwm_off_latch()
                 self.lost.append(k + 1)
             elif duty is None:
-                duty = np.array([0.5, 0.5, 0.5, 0.0])
-            plant_advance(self.pst, ds.mp, self.rng, duty[:3], duty[3] > 0.5, ds.load_t,
-                          ds.load_y, ds.load_cfg, self.fr, self.tr)
+                duty = pwm_off_latch()
+            plant_advance(self.pst, ds.mp, self.rng, duty[CO_DA:CO_DC + 1], duty[CO_EN] > 0.5,
+                          ds.load_t, ds.load_y, ds.load_cfg, self.fr, self.tr)
             self.speed_rpm.append(self.tr[TR_WM] / RPM)
 
 

@@ -307,7 +307,7 @@ def main(argv: list[str]) -> int:
     t0 = time.perf_counter()
     from fluxdrive.study.runner import runner_from_args
 
-    runner = runner_from_args(None if _GRAPH["on"] else args.scheduler, args.workers)
+    runner = runner_from_args(None if args.graph else args.scheduler, args.workers)
     try:
         for n in names:
             sys.stderr.write(f"== experiment {n} ({time.perf_counter() - t0:.0f} s elapsed)\n")
