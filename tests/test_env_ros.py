@@ -123,6 +123,7 @@ def test_expected_interfaces_exist():
             "DriveFault",
             "DutyCommand",
             "FreqResponsePoint",
+            "ParameterMarker",
             "PhaseFrame",
             "PlantTruth",
             "RotorEstimate",

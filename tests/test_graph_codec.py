@@ -17,7 +17,7 @@ from rclpy.serialization import deserialize_message, serialize_message  # noqa: 
 import flux_drive_msgs.msg as fm  # noqa: E402
 
 MSGS = ["PhaseFrame", "PlantTruth", "RotorEstimate", "DutyCommand", "ControllerState",
-        "FreqResponsePoint", "DriveFault"]
+        "FreqResponsePoint", "DriveFault", "ParameterMarker"]
 
 
 def _get(msg, path):

@@ -9,7 +9,10 @@
 #      /opt/python/cpXY-cpXY include dirs; rewritten to this Python's and numpy's;
 #   4. colcon build of src/ into .ws/{build,install,log} (merge install, symlink install),
 #      skipped while the hash of the package manifests, build files, interface
-#      definitions and resource markers is unchanged.
+#      definitions and resource markers is unchanged;
+#   5. Debian's chromium package (the scope page's browser test drives it with playwright;
+#      no browser build is ever downloaded) when missing: apt-get update + install as root;
+#      not root / no apt-get / FLUXDRIVE_NO_BROWSER=1: a note, and the browser test skips.
 #
 # Needs only python3.11 (with headers), cmake and g++ on the machine; pip reaches the
 # package index. Progress on stderr, prefixed "[bootstrap]". Exits non-zero on any failure.
@@ -80,8 +83,13 @@ colcon_current() {
     [ "$(cat "$COLCON_STAMP")" = "$(colcon_hash)" ]
 }
 
+# A browser for the scope page's test: Debian's chromium, or a note that it cannot be had.
+BROWSER_NOTE="$WS/.fluxdrive-no-browser"
+browser_done() { command -v chromium >/dev/null 2>&1 || [ -f "$BROWSER_NOTE" ]; }
+
 # ------------------------------------------------------------------------- fast path
-if [ "${FLUXDRIVE_BOOTSTRAP_FORCE:-0}" != 1 ] && ! moved && pip_current && colcon_current; then
+if [ "${FLUXDRIVE_BOOTSTRAP_FORCE:-0}" != 1 ] && ! moved && pip_current && colcon_current &&
+  browser_done; then
   exit 0
 fi
 
@@ -209,4 +217,26 @@ if [ "${FLUXDRIVE_BOOTSTRAP_FORCE:-0}" = 1 ] || ! colcon_current; then
   package_list >"$PKGS_STAMP"
   colcon_hash >"$COLCON_STAMP"
   log "workspace built in $((SECONDS - t0)) s"
+fi
+
+# -------------------------------------------------------------------------- browser
+if ! command -v chromium >/dev/null 2>&1 && [ ! -f "$BROWSER_NOTE" ]; then
+  if [ "${FLUXDRIVE_NO_BROWSER:-0}" = 1 ]; then
+    echo "FLUXDRIVE_NO_BROWSER=1" >"$BROWSER_NOTE"
+    log "chromium not installed (FLUXDRIVE_NO_BROWSER=1): the scope's browser test will skip"
+  elif [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+    ALOG="$WS/apt-chromium.log"
+    log "installing Debian's chromium for the scope's browser test (log: .ws/apt-chromium.log)..."
+    if ! { apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium; } \
+      >"$ALOG" 2>&1; then
+      tail -n 5 "$ALOG" >&2 || true
+      echo "apt-get failed" >"$BROWSER_NOTE"
+      log "WARNING: apt-get install chromium failed (log: .ws/apt-chromium.log); the scope's browser test skips until it is installed (remove $BROWSER_NOTE to retry)"
+    else
+      log "chromium installed: $(command -v chromium)"
+    fi
+  else
+    echo "not root or no apt-get" >"$BROWSER_NOTE"
+    log "chromium missing and cannot be installed here (not root / no apt-get): install Debian's chromium package for the scope's browser test; it skips meanwhile"
+  fi
 fi

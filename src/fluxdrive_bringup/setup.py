@@ -10,14 +10,19 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
     ],
+    # the scope's page and its vendored JavaScript (served from the package directory)
+    package_data={package_name: ["scope_web/*.*", "scope_web/vendor/*"]},
     install_requires=["setuptools"],
-    zip_safe=True,
+    zip_safe=False,
     maintainer="fluxdrive",
     maintainer_email="fluxdrive@example.com",
     description="Scripts and configuration to start the fluxdrive node graph.",
     license="Apache-2.0",
     entry_points={
         "console_scripts": ["recorder = fluxdrive_bringup.recorder:main",
-                            "container = fluxdrive_ros.runner:container_main"],
+                            "container = fluxdrive_ros.runner:container_main",
+                            "scope = fluxdrive_bringup.scope:main",
+                            "scope_tap = fluxdrive_bringup.scope_tap:main",
+                            "foxglove_bridge = fluxdrive_bringup.foxglove_bridge:main"],
     },
 )

@@ -14,6 +14,8 @@ DONE = "/drive/done"  # std_msgs/UInt64: last seq of a finished run (latched)
 CLOCK = "/clock"  # rosgraph_msgs/Clock: sim time of the plant
 ESTIMATE = "estimate"  # relative: /obs/<name>/estimate (flux_drive_msgs/RotorEstimate)
 OBS_NAMESPACE = "/obs"
+MARKER = "/drive/param_marker"  # flux_drive_msgs/ParameterMarker: an operator set a parameter
+SCOPE_ENVELOPE = "/scope/envelope"  # std_msgs/String (JSON): display envelopes of the scope tap
 
 T_FRAME = "flux_drive_msgs/msg/PhaseFrame"
 T_TRUTH = "flux_drive_msgs/msg/PlantTruth"
@@ -22,6 +24,8 @@ T_STATE = "flux_drive_msgs/msg/ControllerState"
 T_ESTIMATE = "flux_drive_msgs/msg/RotorEstimate"
 T_UINT64 = "std_msgs/msg/UInt64"
 T_CLOCK = "rosgraph_msgs/msg/Clock"
+T_MARKER = "flux_drive_msgs/msg/ParameterMarker"
+T_STRING = "std_msgs/msg/String"
 
 # the .msg sources (the interface package's definitions, embedded in every bag)
 MSG_SRC_DIR = Path(__file__).resolve().parents[3] / "src" / "flux_drive_msgs" / "msg"

@@ -7,8 +7,15 @@ controller, recorder; every message recorded).
                   the recorded bag is checked to hold every sample
   in_process_rtf  the same scenario and observers through fluxdrive.drive.sim.run_scenario
 
+  lockstep_rtf_scope   (--scope) the same run with the live scope attached: the scope tap
+                  in the graph's process, the scope's web server, and a page reading every
+                  envelope -- a WebSocket client, or with --scope-browser the real page in
+                  headless chromium (its redraw rate is reported as scope_page_fps);
+                  scope_cost_pct = 100 (1 - lockstep_rtf_scope / lockstep_rtf)
+
 Options: --duration S (simulated seconds, default 3), --layouts composed,split,separate
-(extra keys lockstep_rtf_<layout>), --repeat N (best of N).
+(extra keys lockstep_rtf_<layout>), --repeat N (best of N; with --scope the runs with and
+without alternate, so both see the same machine load).
 Progress goes to stderr; the last line on stdout is a JSON object.
 """
 
@@ -39,7 +46,14 @@ def bench_graph(argv: list[str]) -> dict:
                     help=f"comma-separated, of {','.join(LAYOUTS)} (first = lockstep_rtf)")
     ap.add_argument("--repeat", type=int, default=1, help="best of N graph runs per layout")
     ap.add_argument("--domain-id", type=int)
+    ap.add_argument("--scope", action="store_true",
+                    help="also measure with the live scope attached (lockstep_rtf_scope)")
+    ap.add_argument("--scope-browser", action="store_true",
+                    help="with --scope: the page in headless chromium instead of a plain "
+                    "WebSocket client")
     args = ap.parse_args(argv)
+    if args.scope_browser:
+        args.scope = True
     sp = scenario_path(args.scenario)
     layouts = [x.strip() for x in args.layouts.split(",") if x.strip()]
     for lay in layouts:
@@ -63,40 +77,144 @@ def bench_graph(argv: list[str]) -> dict:
          f"{wall_ip:.2f} s = real-time factor {in_rtf:.2f}")
 
     out: dict = {}
+    page: dict = {}
     tmp = Path(tempfile.mkdtemp(prefix="fluxdrive-bench-"))
     try:
         for lay in layouts:
-            best = None
+            best: dict[bool, float] = {}
             for rep in range(args.repeat):
-                bag = tmp / f"bag-{lay}-{rep}"
-                _say(f"graph ({lay}), run {rep + 1}/{args.repeat}: {args.duration:g} s "
-                     f"simulated ...")
-                r = run_graph(sp, out=tmp / f"run-{lay}-{rep}", bag=bag, layout=lay,
-                              duration_s=args.duration, domain_id=args.domain_id, quiet=True,
-                              timeout=600.0, progress=False)
-                if r["code"] != 0 or r["lockstep_rtf"] is None:
-                    raise RuntimeError(f"graph run ({lay}) failed (exit {r['code']}); logs in "
-                                       f"{tmp / f'run-{lay}-{rep}' / 'logs'}")
-                sc2 = load_scenario(sp)
-                _, arr = result_from_bag(bag, sc2, args.duration)
-                missing = sum(arr["missing"].values())
-                _say(f"graph ({lay}): {r['frames']} frames in {r['loop_wall_s']:.2f} s = "
-                     f"real-time factor {r['lockstep_rtf']:.3f}; bag: {arr['n']} frames, "
-                     f"{missing} samples missing")
-                if missing:
-                    raise RuntimeError(f"graph run ({lay}) lost {missing} samples: "
-                                       f"{arr['missing']}")
-                best = r["lockstep_rtf"] if best is None else max(best, r["lockstep_rtf"])
-                shutil.rmtree(bag, ignore_errors=True)
-            out[f"lockstep_rtf_{lay}"] = round(best, 3)
+                for with_scope in ([False, True] if args.scope else [False]):
+                    tag = f"{lay}-{rep}" + ("-scope" if with_scope else "")
+                    bag = tmp / f"bag-{tag}"
+                    what = (" with the scope" + (" (chromium)" if args.scope_browser else
+                                                 " (WebSocket client)")) if with_scope else ""
+                    _say(f"graph ({lay}){what}, run {rep + 1}/{args.repeat}: "
+                         f"{args.duration:g} s simulated ...")
+                    watcher = ScopeWatcher(args.scope_browser) if with_scope else None
+                    r = run_graph(sp, out=tmp / f"run-{tag}", bag=bag, layout=lay,
+                                  duration_s=args.duration, domain_id=args.domain_id,
+                                  quiet=True, timeout=600.0, progress=False,
+                                  scope=with_scope, scope_port=0,
+                                  watch=watcher.run if watcher else None)
+                    if r["code"] != 0 or r["lockstep_rtf"] is None:
+                        raise RuntimeError(f"graph run ({lay}) failed (exit {r['code']}); "
+                                           f"logs in {tmp / f'run-{tag}' / 'logs'}")
+                    sc2 = load_scenario(sp)
+                    _, arr = result_from_bag(bag, sc2, args.duration)
+                    missing = sum(arr["missing"].values())
+                    extra = ""
+                    if watcher is not None:
+                        watcher.stop()
+                        page = watcher.summary(r["loop_wall_s"] or 1.0)
+                        extra = (f"; scope: {page['scope_envelopes']} envelopes to the page "
+                                 f"({page['scope_envelopes_per_s']:.1f}/s)" +
+                                 (f", page redraws {page['scope_page_fps']:.0f}/s"
+                                  if "scope_page_fps" in page else ""))
+                        if page["scope_envelopes"] == 0:
+                            raise RuntimeError(f"the scope delivered nothing ({lay}); logs in "
+                                               f"{tmp / f'run-{tag}' / 'logs'}")
+                    _say(f"graph ({lay}){what}: {r['frames']} frames in "
+                         f"{r['loop_wall_s']:.2f} s = real-time factor "
+                         f"{r['lockstep_rtf']:.3f}; bag: {arr['n']} frames, {missing} samples "
+                         f"missing{extra}")
+                    if missing:
+                        raise RuntimeError(f"graph run ({lay}) lost {missing} samples: "
+                                           f"{arr['missing']}")
+                    best[with_scope] = max(best.get(with_scope, 0.0), r["lockstep_rtf"])
+                    shutil.rmtree(bag, ignore_errors=True)
+            out[f"lockstep_rtf_{lay}"] = round(best[False], 3)
+            if args.scope:
+                out[f"lockstep_rtf_scope_{lay}"] = round(best[True], 3)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     res = {"lockstep_rtf": out[f"lockstep_rtf_{layouts[0]}"], "in_process_rtf": round(in_rtf, 2),
            "layout": layouts[0], "pwm_hz": sc.machine.pwm_hz, "observers": len(sc.observers),
            "simulated_s": args.duration, "recorded": True}
+    if args.scope:
+        rs = out[f"lockstep_rtf_scope_{layouts[0]}"]
+        res.update(lockstep_rtf_scope=rs,
+                   scope_cost_pct=round(100.0 * (1.0 - rs / res["lockstep_rtf"]), 1),
+                   scope_client="chromium" if args.scope_browser else "websocket", **page)
     if len(layouts) > 1:
         res.update(out)
     return res
+
+
+class ScopeWatcher:
+    """What watches the scope during a benchmark run: a WebSocket client that reads every
+    envelope, or the real page in headless chromium (playwright)."""
+
+    def __init__(self, browser: bool):
+        import threading
+
+        self.browser = browser
+        self.done = threading.Event()
+        self.n = 0
+        self.bytes = 0
+        self.fps: list[float] = []
+
+    def run(self, launcher) -> None:
+        t_end = time.monotonic() + 120.0
+        while not launcher.scope_urls and time.monotonic() < t_end and not self.done.is_set():
+            time.sleep(0.05)
+        if not launcher.scope_urls:
+            return
+        url = launcher.scope_urls[0]
+        try:
+            if self.browser:
+                self._page(url)
+            else:
+                self._ws(url)
+        except Exception as exc:  # noqa: BLE001 - the graph ended under us: report what we got
+            if not self.done.is_set():
+                _say(f"scope client: {type(exc).__name__}: {exc}")
+
+    def _ws(self, url: str) -> None:
+        from websockets.sync.client import connect
+
+        ws_url = url.replace("http://", "ws://").replace("/?token=", "/ws?token=")
+        with connect(ws_url, max_size=None) as ws:
+            while not self.done.is_set():
+                try:
+                    m = ws.recv(timeout=0.5)
+                except TimeoutError:
+                    continue
+                if m.startswith('{"hello"'):
+                    continue
+                self.n += 1
+                self.bytes += len(m)
+
+    def _page(self, url: str) -> None:
+        import shutil as sh
+
+        from playwright.sync_api import sync_playwright
+
+        exe = sh.which("chromium") or "/usr/bin/chromium"
+        with sync_playwright() as p:
+            b = p.chromium.launch(executable_path=exe, args=["--no-sandbox"])
+            page = b.new_page(viewport={"width": 1600, "height": 1100})
+            page.goto(url)
+            while not self.done.is_set():
+                page.wait_for_timeout(1000)
+                s = page.evaluate("({...window.scopeStats})")
+                self.n = s["envelopes"]
+                if s["lastSeq"] > 0:
+                    self.fps.append(float(s["fps"]))
+            b.close()
+
+    def stop(self) -> None:
+        self.done.set()
+        time.sleep(0.2)
+
+    def summary(self, wall_s: float) -> dict:
+        out = {"scope_envelopes": self.n,
+               "scope_envelopes_per_s": round(self.n / max(wall_s, 1e-9), 1)}
+        if self.bytes:
+            out["scope_kb_per_s"] = round(self.bytes / 1e3 / max(wall_s, 1e-9), 1)
+        if self.fps:
+            fps = sorted(self.fps[1:] or self.fps)  # the first second loads the page
+            out["scope_page_fps"] = round(fps[len(fps) // 2], 1)  # median
+        return out
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -56,3 +56,15 @@ def main_fault(argv: list[str]) -> int:
     from .inspect_cli import main_fault as f
 
     return f(argv)
+
+
+def main_scope(argv: list[str]) -> int:
+    from .scope import main
+
+    return main(argv)
+
+
+def main_foxglove(argv: list[str]) -> int:
+    from .foxglove_bridge import main
+
+    return main(argv)

@@ -239,7 +239,11 @@ def main_node(argv: list[str]) -> int:
 
 # --------------------------------------------------------------------------- param
 def _call(s: Session, srv_type, name: str, req, timeout: float = 5.0):
-    cli = s.node.create_client(srv_type, name)
+    # one client per service and session (a long-lived session, the scope's, calls often)
+    cache = s.__dict__.setdefault("_clients", {})
+    cli = cache.get((srv_type, name))
+    if cli is None:
+        cli = cache[(srv_type, name)] = s.node.create_client(srv_type, name)
     t_end = time.monotonic() + max(s.wait_s, 5.0)
     while not cli.service_is_ready() and time.monotonic() < t_end:
         s.spin_for(0.05)
@@ -389,8 +393,6 @@ def main_fault(argv: list[str]) -> int:
     """`./fluxdrive fault reset [SERVICE]`: clear a latched drive fault (the only way one is
     cleared).  Runs as node /fluxdrive_operator, the name the controller's
     allowed_operators (and a bench bridge's allowed_commanders, if listed) must contain."""
-    from flux_drive_msgs.srv import ResetFault
-
     ap = argparse.ArgumentParser(prog="fluxdrive fault", description=main_fault.__doc__)
     sub = ap.add_subparsers(dest="cmd", required=True)
     p = sub.add_parser("reset", help="clear a latched fault")
@@ -401,18 +403,28 @@ def main_fault(argv: list[str]) -> int:
     args = ap.parse_args(argv)
     s = Session(args, node_name=OPERATOR_NODE)
     try:
-        t_end = time.monotonic() + max(s.wait_s, 5.0)
-        while True:
-            res = _call(s, ResetFault, args.service, ResetFault.Request())
-            # the server checks its clients by discovery, which may not show us yet
-            if res.success or "not known to the graph yet" not in res.message \
-                    or time.monotonic() > t_end:
-                break
-            s.spin_for(0.3)
+        ok, message = reset_fault(s, args.service)
     except (LookupError, TimeoutError) as exc:
         print(f"fault reset: {exc}", file=sys.stderr)
         return 1
     finally:
         s.close()
-    print(f"{args.service}: {'ok' if res.success else 'REFUSED'}: {res.message}")
-    return 0 if res.success else 1
+    print(f"{args.service}: {'ok' if ok else 'REFUSED'}: {message}")
+    return 0 if ok else 1
+
+
+def reset_fault(s: Session, service: str = "/controller/reset_fault") -> tuple[bool, str]:
+    """Ask `service` (ResetFault) to clear a latched fault, as the operator: `s` must be a
+    Session whose node is OPERATOR_NODE (the name the controller's allowed_operators holds).
+    Used by `fault reset` and the scope's reset button.  (success, the server's message);
+    LookupError/TimeoutError if the service does not answer."""
+    from flux_drive_msgs.srv import ResetFault
+
+    t_end = time.monotonic() + max(s.wait_s, 5.0)
+    while True:
+        res = _call(s, ResetFault, service, ResetFault.Request())
+        # the server checks its clients by discovery, which may not show us yet
+        if res.success or "not known to the graph yet" not in res.message \
+                or time.monotonic() > t_end:
+            return bool(res.success), str(res.message)
+        s.spin_for(0.3)

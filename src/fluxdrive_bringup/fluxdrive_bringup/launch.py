@@ -379,6 +379,7 @@ class Launcher:
         self.log_dir = log_dir
         self.procs: list[Proc] = []
         self.bags: list[str] = []
+        self.scope_urls: list[str] = []
         self.progress: tuple[int, int, float] | None = None
         self.lock = threading.Lock()
         self.stopping = False
@@ -504,6 +505,9 @@ class Launcher:
                 continue
             if line.startswith("@bag-open "):
                 p.bag_open = line[10:].strip()
+                continue
+            if line.startswith("@scope-url "):  # the scope server's address (--scope)
+                self.scope_urls.append(line[11:].strip())
                 continue
             if logf:
                 logf.write(line + "\n")
@@ -716,6 +720,32 @@ class Launcher:
                            f"recover {p.bag_open}")
 
 
+def add_scope(g: Graph, port: int = 8765, token: str | None = None, exit_on_done: bool = False,
+              observers: list[str] | None = None) -> None:
+    """Add the live scope to a graph: the scope tap (fluxdrive_bringup.scope_tap) in the
+    plant's process -- so the samples reach it through the intra-process bus, not DDS -- and
+    the scope's web server (fluxdrive_bringup.scope) as a process of its own."""
+    host = next((n for n in g.nodes if n.node == "plant"), None) or next(
+        (n for n in g.nodes if n.node), None)
+    params: dict[str, Any] = {}
+    if host is not None:
+        sc = node_parameters(host).get("scenario")
+        if sc:
+            params["scenario"] = str(sc)
+    if observers:
+        params["observers"] = list(observers)
+    g.nodes.append(NodeSpec(name="scope_tap", node="scope_tap",
+                            process=(host.process or host.name) if host else "scope_tap",
+                            parameters=params))
+    cmd = [sys.executable, "-m", "fluxdrive_bringup.scope", "--port", str(port),
+           "--attach-wait", "60"]
+    if token:
+        cmd += ["--token", token]
+    if exit_on_done:
+        cmd.append("--exit-on-done")
+    g.nodes.append(NodeSpec(name="scope", cmd=cmd, on_death="ignore"))
+
+
 def launcher_env_discovery(g: Graph) -> str:
     """The discovery range the graph runs with (for the start line), noting an environment
     value that is overridden."""
@@ -737,6 +767,11 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--log-dir", type=Path, help="also write each process's output here")
     ap.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE",
                     help="override a node parameter (YAML value), e.g. plant.duration_s=0.5")
+    ap.add_argument("--scope", action="store_true",
+                    help="also start the live scope (the scope tap in the plant's process and "
+                    "the web page; see ./fluxdrive scope)")
+    ap.add_argument("--scope-port", type=int, default=8765, help="the scope's TCP port "
+                    "(default 8765; 0: any free port)")
     args = ap.parse_args(argv)
     g = load_graph(args.graph)
     if args.domain_id is not None:
@@ -750,6 +785,8 @@ def main(argv: list[str]) -> int:
                               f"{[n.name for n in g.nodes]}")
         for n in match:
             n.parameters[pname] = yaml.safe_load(val)
+    if args.scope:
+        add_scope(g, port=args.scope_port)
     dom = g.domain_id if g.domain_id is not None else os.environ.get("ROS_DOMAIN_ID", "0")
     procs = ", ".join(f"{pn}[{', '.join(m.fqn for m in ms)}]"
                       for pn, ms in g.processes().items())

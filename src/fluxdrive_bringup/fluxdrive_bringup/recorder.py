@@ -57,7 +57,7 @@ from fluxdrive_ros import qos, topics
 from .bagwriter import check_bag_target, pack_json
 
 DEFAULT_TOPICS = [topics.FRAME, topics.TRUTH, topics.DUTY, topics.CONTROLLER_STATE,
-                  topics.DONE, topics.CLOCK]
+                  topics.DONE, topics.CLOCK, topics.MARKER]
 _HDR = struct.Struct("<iI")
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
@@ -67,7 +67,8 @@ _REC = struct.Struct("<cHqI")
 def conventional_type(topic: str) -> str | None:
     known = {topics.FRAME: topics.T_FRAME, topics.TRUTH: topics.T_TRUTH,
              topics.DUTY: topics.T_DUTY, topics.CONTROLLER_STATE: topics.T_STATE,
-             topics.DONE: topics.T_UINT64, topics.CLOCK: topics.T_CLOCK}
+             topics.DONE: topics.T_UINT64, topics.CLOCK: topics.T_CLOCK,
+             topics.MARKER: topics.T_MARKER}
     if topic in known:
         return known[topic]
     if re.fullmatch(r"/obs/[^/]+/estimate", topic):
@@ -209,7 +210,8 @@ class RecorderNode(FluxNode):
         self.counts[topic] = 0
         with self.lock:  # the connection record goes down the pipe before its messages
             self.buf.append(pack_json(b"C", {"id": cid, "topic": topic, "type": mtype}))
-        prof = {topics.DONE: qos.LATCHED}.get(topic, qos.reader(self.pv["input_durability"]))
+        prof = {topics.DONE: qos.LATCHED, topics.MARKER: qos.MARKERS}.get(
+            topic, qos.reader(self.pv["input_durability"]))
         buf = self.buf
         counts = self.counts
         last = self.last_seq

@@ -120,19 +120,29 @@ def result_from_bag(bag: Path, sc, duration_s: float | None = None, wall_s: floa
 def run_graph(sc_path: Path, *, out: Path, bag: Path, layout: str = "composed",
               duration_s: float | None = None, domain_id: int | None = None,
               quiet: bool = False, timeout: float | None = None, extra: dict | None = None,
-              progress: bool = True) -> dict:
+              progress: bool = True, scope: bool = False, scope_port: int = 8765,
+              watch=None) -> dict:
     """Launch the lockstep graph of a scenario, wait for the end.  Returns a summary dict
-    (exit code, wall time, real-time factor, bag path)."""
+    (exit code, wall time, real-time factor, bag path).  scope: with the live scope
+    (launch.add_scope); watch: called in a thread with the Launcher once it starts."""
     sc = load_scenario(sc_path)
     shorten(sc, duration_s)
     dom = pick_domain_id() if domain_id is None else domain_id
     g = graph_for_scenario(sc_path, sc, bag, layout, duration_s, dom, extra=extra)
+    if scope:
+        from .launch import add_scope
+
+        add_scope(g, port=scope_port, exit_on_done=True, observers=list(sc.observers))
     out.mkdir(parents=True, exist_ok=True)
     (out / "graph.yaml").write_text(yaml.safe_dump(g.to_dict(), sort_keys=False))
     print(f"[run] {sc.name}: {sc.n_periods} periods ({sc.duration_s:g} s) through the graph, "
           f"layout {layout} ({', '.join(g.processes())}), ROS_DOMAIN_ID={dom}; "
           f"graph: {out / 'graph.yaml'}", flush=True)
     launcher = Launcher(g, quiet=quiet, progress=progress, log_dir=out / "logs")
+    if watch is not None:
+        import threading
+
+        threading.Thread(target=watch, args=(launcher,), daemon=True).start()
     t0 = time.perf_counter()
     code = launcher.run(timeout)
     wall = time.perf_counter() - t0
@@ -161,6 +171,10 @@ def main_run(argv: list[str], default_scenario: str | None = None) -> int:
     ap.add_argument("--timeout", type=float, help="give up after this many seconds")
     ap.add_argument("--quiet", action="store_true", help="hide the nodes' log lines")
     ap.add_argument("--no-plots", action="store_true")
+    ap.add_argument("--scope", action="store_true", help="watch it live: start the scope "
+                    "(prints its URL; see ./fluxdrive scope)")
+    ap.add_argument("--scope-port", type=int, default=8765,
+                    help="the scope's TCP port (default 8765; 0: any free port)")
     args = ap.parse_args(argv)
     sp = scenario_path(args.scenario if default_scenario is None else default_scenario)
     sc = load_scenario(sp)
@@ -173,7 +187,9 @@ def main_run(argv: list[str], default_scenario: str | None = None) -> int:
               file=sys.stderr)
         return 2
     r = run_graph(sp, out=out, bag=bag, layout=args.layout, duration_s=args.duration,
-                  domain_id=args.domain_id, quiet=args.quiet, timeout=args.timeout)
+                  domain_id=args.domain_id, quiet=args.quiet, timeout=args.timeout,
+                  scope=args.scope, scope_port=args.scope_port,
+                  watch=_print_scope_url if args.scope and args.quiet else None)
     if r["interrupted"]:
         print(f"[run] interrupted after {r['frames']} frames; bag (finalised): {bag}",
               file=sys.stderr)
@@ -203,6 +219,15 @@ def main_run(argv: list[str], default_scenario: str | None = None) -> int:
     (out / "graph_run.json").write_text(json.dumps(summary, indent=2))
     print(f"[run] bag: {bag}")
     return 0 if m.get("stable", True) and not miss else 1
+
+
+def _print_scope_url(launcher) -> None:
+    """--quiet hides the nodes' lines: still say where the scope is."""
+    t_end = time.monotonic() + 60.0
+    while not launcher.scope_urls and time.monotonic() < t_end:
+        time.sleep(0.1)
+    if launcher.scope_urls:
+        print(f"[run] scope: {launcher.scope_urls[0]}", flush=True)
 
 
 def main_demo(argv: list[str]) -> int:

@@ -52,6 +52,9 @@ WATCH = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
 # latched single events: /drive/done (last seq), /drive/start
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# operator markers (/drive/param_marker): rare, every one kept for a late recorder
+MARKERS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                     history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 # /clock: written like the samples (reliable, deep, transient-local) so that the recorder
 # keeps every tick; compatible with the usual clock readers (best effort or reliable, depth 1)
 CLOCK = SAMPLES

@@ -43,6 +43,7 @@ NODE_CLASSES = {
     "observer": "flux_observer_node.node:ObserverNode",
     "controller": "foc_controller_node.node:ControllerNode",
     "recorder": "fluxdrive_bringup.recorder:RecorderNode",
+    "scope_tap": "fluxdrive_bringup.scope_tap:ScopeTapNode",
 }
 
 

@@ -1,0 +1,280 @@
+"""`./fluxdrive foxglove`: every topic and every parameter of a running graph, served to
+Foxglove / Lichtblick with the Foxglove SDK (foxglove-sdk from PyPI).
+
+    ./fluxdrive foxglove [--port 8765] [--host 127.0.0.1] [--domain-id N]
+
+Connect a viewer to ws://127.0.0.1:8765 ("Open connection" -> "Foxglove WebSocket").  The
+server speaks the WebSocket subprotocol `foxglove.sdk.v1` (foxglove-sdk 0.30); a client that
+offers only the older `foxglove.websocket.v1` is refused during the handshake (HTTP 400), so
+use a viewer recent enough for the SDK's protocol (see docs/scope.md).
+
+Topics: found by discovery (every second); each becomes a channel with message encoding
+`cdr` and schema encoding `ros2msg` (the message definition with its dependencies, as a
+rosbag2 MCAP file embeds it; generated from the project's .msg files and the Jazzy
+standard types).  A ROS subscription (raw: the CDR bytes go out untouched) exists only while
+a viewer subscribes to the channel; each message goes out with its receive time.  Reader
+QoS follows the publishers: best effort if any publisher is, transient-local (the writer's
+last messages at subscription) only for latched topics (every publisher transient-local
+with a history of at most 100).
+
+Parameters: `/node.name` for every parameter of every node with parameter services
+(`./fluxdrive param` underneath); a set the node refuses is reported to the viewer as a
+warning status message with the node's reason, and the parameter keeps its value.
+
+Cost: every subscribed per-sample topic of a 10 kHz lockstep graph crosses DDS into this
+process (as the split layout's recorder does): the graph slows accordingly.  For a live
+view at full rate with little cost use `./fluxdrive scope` (decimated in the graph's process).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import threading
+import time
+from typing import Any
+
+SUBPROTOCOL = "foxglove.sdk.v1"
+BRIDGE_NODE = "fluxdrive_foxglove"
+
+
+def ros2msg_schema(msgtype: str) -> str:
+    """The ros2msg text of a type (definition + dependencies), from the project's one
+    typestore (fluxdrive.io.bagio.typestore: Jazzy standard types + flux_drive_msgs)."""
+    from fluxdrive.io.bagio import typestore
+
+    text, _ = typestore().generate_msgdef(msgtype, ros_version=2)
+    return text
+
+
+class Bridge:
+    def __init__(self, args):
+        import foxglove
+        import rclpy
+        from foxglove.websocket import Capability
+        from rclpy.executors import SingleThreadedExecutor
+
+        from .inspect_cli import Session
+
+        self.args = args
+        self.foxglove = foxglove
+        self.ctx = rclpy.Context()
+        rclpy.init(args=None, context=self.ctx, domain_id=args.domain_id)
+        self.node = rclpy.create_node(BRIDGE_NODE, context=self.ctx,
+                                      start_parameter_services=False)
+        self.ex = SingleThreadedExecutor(context=self.ctx)
+        self.ex.add_node(self.node)
+        self.lock = threading.Lock()  # channels / subscriptions (ROS thread + SDK threads)
+        self.channels: dict[str, Any] = {}  # topic -> foxglove Channel
+        self.by_id: dict[int, str] = {}
+        self.subs: dict[str, Any] = {}  # topic -> rclpy subscription
+        self.refs: dict[str, int] = {}  # topic -> subscribed viewers
+        self.skipped: set[str] = set()
+        self.params = Session(domain_id=args.domain_id, wait_s=3.0,
+                              node_name="fluxdrive_foxglove_params")
+        self.params_lock = threading.Lock()
+        self.server = foxglove.start_server(
+            name="fluxdrive", host=args.host, port=args.port,
+            capabilities=[Capability.Parameters], server_listener=self,
+            supported_encodings=["cdr"])
+        self.stop = threading.Event()
+
+    # ------------------------------------------------------------------ channels
+    def discover(self) -> None:
+        for topic, types in self.node.get_topic_names_and_types():
+            if topic in self.channels or topic in self.skipped or not types:
+                continue
+            try:
+                schema = ros2msg_schema(types[0])
+            except Exception as exc:  # noqa: BLE001 - a type the typestore does not know
+                self.skipped.add(topic)
+                print(f"foxglove: {topic} ({types[0]}) not served: no definition ({exc})",
+                      flush=True)
+                continue
+            ch = self.foxglove.Channel(topic, message_encoding="cdr",
+                                       schema=self.foxglove.Schema(
+                                           name=types[0], encoding="ros2msg",
+                                           data=schema.encode()))
+            with self.lock:
+                self.channels[topic] = (ch, types[0])
+                self.by_id[ch.id()] = topic
+            print(f"foxglove: serving {topic} ({types[0]})", flush=True)
+
+    def _qos(self, topic: str):
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+        infos = self.node.get_publishers_info_by_topic(topic)
+        best_effort = any(i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+                          for i in infos)
+        latched = bool(infos) and all(
+            i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+            and 0 < i.qos_profile.depth <= 100 for i in infos)
+        return QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT if best_effort
+                          else ReliabilityPolicy.RELIABLE,
+                          durability=DurabilityPolicy.TRANSIENT_LOCAL if latched
+                          else DurabilityPolicy.VOLATILE)
+
+    # ServerListener (called from the SDK's threads)
+    def on_subscribe(self, client, channel) -> None:
+        from fluxdrive_ros.topics import msg_class
+
+        topic = self.by_id.get(channel.id)
+        if topic is None:
+            return
+        with self.lock:
+            self.refs[topic] = self.refs.get(topic, 0) + 1
+            if topic in self.subs:
+                return
+            ch, mtype = self.channels[topic]
+            log = ch.log
+
+            def cb(data: bytes) -> None:
+                log(data, log_time=time.time_ns())
+
+            self.subs[topic] = self.node.create_subscription(
+                msg_class(mtype), topic, cb, self._qos(topic), raw=True)
+
+    def on_unsubscribe(self, client, channel) -> None:
+        topic = self.by_id.get(channel.id)
+        if topic is None:
+            return
+        with self.lock:
+            self.refs[topic] = max(0, self.refs.get(topic, 0) - 1)
+            if self.refs[topic] == 0 and topic in self.subs:
+                self.node.destroy_subscription(self.subs.pop(topic))
+
+    # ------------------------------------------------------------------ parameters
+    def _nodes(self) -> list[str]:
+        s = self.params
+        out = []
+        for name, ns in s.node.get_node_names_and_namespaces():
+            fqn = f"{ns.rstrip('/')}/{name}"
+            try:
+                svcs = {n for n, _ in s.node.get_service_names_and_types_by_node(name, ns)}
+            except Exception:  # noqa: BLE001 - gone meanwhile
+                continue
+            if f"{fqn}/get_parameters" in svcs:
+                out.append(fqn)
+        return sorted(set(out))
+
+    def _values(self, names: list[str]) -> list:
+        """foxglove Parameters for `/node.param` names; [] = every parameter of every node."""
+        from .inspect_cli import _get, _list
+
+        Parameter = self.foxglove.Parameter  # noqa: N806
+        want: dict[str, list[str]] = {}
+        if names:
+            for full in names:
+                node, _, pname = full.partition(".")
+                if pname:
+                    want.setdefault(node, []).append(pname)
+        else:
+            self.params.spin_for(0.1)
+            for node in self._nodes():
+                try:
+                    want[node] = _list(self.params, node)
+                except (LookupError, TimeoutError):
+                    continue
+        out = []
+        for node, pnames in want.items():
+            try:
+                vals = _get(self.params, node, pnames)
+            except (LookupError, TimeoutError):
+                continue
+            for pname, (typ, v) in zip(pnames, vals, strict=True):
+                if typ == 0:
+                    continue
+                v = v.tolist() if hasattr(v, "tolist") else v
+                try:
+                    out.append(Parameter(f"{node}.{pname}", value=v))
+                except (TypeError, ValueError):
+                    out.append(Parameter(f"{node}.{pname}", value=json.dumps(v)))
+        return out
+
+    def on_get_parameters(self, client, param_names, request_id=None):
+        with self.params_lock:
+            return self._values(list(param_names))
+
+    def on_set_parameters(self, client, parameters, request_id=None):
+        from .inspect_cli import set_param
+
+        names = []
+        with self.params_lock:
+            for p in parameters:
+                node, _, pname = p.name.partition(".")
+                names.append(p.name)
+                v = p.get_value()
+                text = v if isinstance(v, str) else json.dumps(v)
+                try:
+                    ok, reason, _ = set_param(self.params, node, pname, text)
+                except (LookupError, TimeoutError) as exc:
+                    ok, reason = False, str(exc)
+                print(f"foxglove: set {node} {pname} = {text}: "
+                      f"{'ok' if ok else 'REFUSED: ' + reason}", flush=True)
+                if not ok:
+                    self.server.publish_status(f"{p.name} = {text} refused: {reason}",
+                                               self.foxglove.websocket.StatusLevel.Warning
+                                               if hasattr(self.foxglove.websocket, "StatusLevel")
+                                               else self.foxglove.StatusLevel.Warning)
+            return self._values(names)
+
+    # ------------------------------------------------------------------ run
+    def run(self) -> int:
+        port = self.server.port
+        print(f"foxglove: ws://{self.args.host}:{port} (WebSocket subprotocol {SUBPROTOCOL}; "
+              f"ROS_DOMAIN_ID={self.args.domain_id})", flush=True)
+        print(f"@foxglove-url ws://{self.args.host}:{port}", flush=True)
+        import signal
+
+        def on_signal(*_a) -> None:
+            self.stop.set()
+
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, on_signal)
+        t_disc = 0.0
+        try:
+            while not self.stop.is_set() and self.ctx.ok():
+                if time.monotonic() - t_disc > 1.0:
+                    t_disc = time.monotonic()
+                    self.discover()
+                self.ex.spin_once(timeout_sec=0.05)
+        finally:
+            self.server.stop()
+            self.params.close()
+            try:
+                self.node.destroy_node()
+                self.ex.shutdown()
+                self.ctx.try_shutdown()
+            except Exception:  # noqa: BLE001
+                pass
+        return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="fluxdrive foxglove", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
+    ap.add_argument("--port", type=int, default=8765, help="TCP port (default 8765; 0: any)")
+    ap.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID of the graph")
+    args = ap.parse_args(sys.argv[1:] if argv is None else argv)
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    if args.domain_id is None:
+        args.domain_id = int(os.environ.get("ROS_DOMAIN_ID", "0") or 0)
+    try:
+        import foxglove  # noqa: F401
+    except ImportError:
+        print("foxglove: foxglove-sdk is not installed; run ./fluxdrive help (set-up) first",
+              file=sys.stderr)
+        return 2
+    try:
+        b = Bridge(args)
+    except RuntimeError as exc:  # the SDK cannot bind the port
+        print(f"foxglove: cannot start the server on {args.host}:{args.port}: {exc}",
+              file=sys.stderr)
+        return 1
+    return b.run()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,472 @@
+"""`./fluxdrive scope`: a live scope of a running graph in the browser.
+
+    ./fluxdrive scope [--port 8765] [--host 127.0.0.1] [--domain-id N]
+
+prints `scope: http://127.0.0.1:PORT/?token=...` -- open it (the token is drawn afresh per
+launch; every page, API call and WebSocket must carry it).  `./fluxdrive run/demo/launch
+--scope` start the same server with the graph (and the scope tap in the graph's process).
+
+Parts (one process):
+- a ROS thread (rclpy context of its own, node /fluxdrive_scope): subscribes to the display
+  envelopes of the scope tap (/scope/envelope, fluxdrive_bringup.scope_tap) and forwards
+  each one, as it is, to every open page over a WebSocket; publishes a ParameterMarker on
+  /drive/param_marker for every parameter set from the page (the recorder records it, so
+  the bag shows when the operator changed what); if no tap publishes within --attach-wait,
+  it starts one in this process (every sample then crosses DDS: works, costs the graph
+  more -- see docs/scope.md);
+- a worker thread for the parameter services (the same helpers as `./fluxdrive param`):
+  list of nodes, each node's parameters with their declared descriptors, set (the node's
+  refusal reason goes back to the page), and the fault reset (as node /fluxdrive_operator,
+  the same rules as `./fluxdrive fault reset`);
+- an aiohttp server: the page (scope_web/, uPlot vendored under scope_web/vendor), /ws, /api.
+
+Binds 127.0.0.1 unless --host says otherwise (then anyone who can reach the port and has
+the URL can set parameters and reset faults).  Exit with Ctrl-C; with --exit-on-done (run
+and demo use it) a second after the graph's /drive/done.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import concurrent.futures
+import json
+import os
+import secrets
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+WEB_DIR = Path(__file__).resolve().parent / "scope_web"
+TOKEN_HEADER = "X-Scope-Token"
+SCOPE_NODE = "fluxdrive_scope"
+_OWN_NODES = {"/" + SCOPE_NODE, "/fluxdrive_scope_params", "/fluxdrive_operator"}
+MODE_NAMES = {0: "disabled", 1: "align", 2: "I/f ramp", 3: "closed loop", 4: "FAULT"}
+
+
+# ------------------------------------------------------------------------ ROS side
+class RosSide:
+    """The envelope subscription and marker publisher, spun in a thread of their own."""
+
+    def __init__(self, domain_id: int, on_envelope, attach_wait_s: float, quiet: bool = False):
+        import rclpy
+        from fluxdrive_ros.topics import msg_class
+        from rclpy.executors import SingleThreadedExecutor
+        from std_msgs.msg import String, UInt64
+
+        from fluxdrive_ros import qos, topics
+
+        self.rclpy = rclpy
+        self.ctx = rclpy.Context()
+        rclpy.init(args=None, context=self.ctx, domain_id=domain_id)
+        self.node = rclpy.create_node(SCOPE_NODE, context=self.ctx,
+                                      start_parameter_services=False)
+        self.ex = SingleThreadedExecutor(context=self.ctx)
+        self.ex.add_node(self.node)
+        self.on_envelope = on_envelope
+        self.last_seq = -1
+        self.ts_s = 1e-4
+        self.n_envelopes = 0
+        self.done = threading.Event()
+        self.local_tap = None
+        self.quiet = quiet
+
+        def on_env(msg: String) -> None:
+            self.n_envelopes += 1
+            on_envelope(msg.data)
+
+        self.sub = self.node.create_subscription(String, topics.SCOPE_ENVELOPE, on_env, 10)
+        self.node.create_subscription(UInt64, topics.DONE, lambda m: self.done.set(),
+                                      qos.LATCHED)
+        self.marker_cls = msg_class(topics.T_MARKER)
+        # reliable, transient-local: a recorder that matches late still gets the markers
+        self.pub_marker = self.node.create_publisher(self.marker_cls, topics.MARKER,
+                                                     qos.MARKERS)
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._spin, name="scope-ros", daemon=True)
+        self.thread.start()
+        self.attach_wait_s = attach_wait_s
+        threading.Thread(target=self._attach, name="scope-attach", daemon=True).start()
+
+    def _spin(self) -> None:
+        while not self.stop.is_set() and self.ctx.ok():
+            try:
+                self.ex.spin_once(timeout_sec=0.1)
+            except Exception:  # noqa: BLE001 - shutting down
+                if self.stop.is_set() or not self.ctx.ok():
+                    return
+                raise
+
+    def _attach(self) -> None:
+        """No scope tap in the graph after the wait: run one here (direct subscriptions)."""
+        t_end = time.monotonic() + self.attach_wait_s
+        while time.monotonic() < t_end and not self.stop.is_set():
+            if self.sub.get_publisher_count() > 0:
+                return
+            time.sleep(0.1)
+        if self.stop.is_set() or self.sub.get_publisher_count() > 0:
+            return
+        from .scope_tap import ScopeTapNode
+
+        print("scope: no scope tap in the graph (start it with --scope to keep the cost low); "
+              "tapping every sample topic from this process over DDS instead", flush=True)
+        self.local_tap = ScopeTapNode("scope_tap_local", context=self.ctx)
+        self.ex.add_node(self.local_tap)
+
+    def note_envelope(self, seq: int, ts_s: float) -> None:
+        if seq >= 0:
+            self.last_seq = seq
+            self.ts_s = ts_s
+
+    def publish_marker(self, node: str, name: str, value: str, ok: bool, reason: str) -> None:
+        m = self.marker_cls()
+        k = max(self.last_seq, 0)
+        t_ns = int(round(k * self.ts_s * 1e9))
+        m.header.stamp.sec, m.header.stamp.nanosec = divmod(t_ns, 1_000_000_000)
+        m.header.frame_id = ""
+        m.seq = k
+        m.node, m.name, m.value = node, name, value
+        m.successful, m.reason, m.source = ok, reason, "scope"
+        self.pub_marker.publish(m)
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(timeout=2.0)
+        try:
+            if self.local_tap is not None:
+                self.local_tap.destroy_node()
+            self.node.destroy_node()
+            self.ex.shutdown()
+            self.ctx.try_shutdown()
+        except Exception:  # noqa: BLE001 - shutting down anyway
+            pass
+
+
+class ParamSide:
+    """Parameter services and the fault reset, on one worker thread (Session is not
+    thread-safe; calls are serialised)."""
+
+    def __init__(self, domain_id: int, wait_s: float = 3.0):
+        self.domain_id = domain_id
+        self.wait_s = wait_s
+        self.pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="scope-params")
+        self.session = None
+
+    def _s(self):
+        from .inspect_cli import Session
+
+        if self.session is None:
+            self.session = Session(domain_id=self.domain_id, wait_s=self.wait_s,
+                                   node_name="fluxdrive_scope_params")
+            self.session.spin_for(0.5)
+        return self.session
+
+    def run(self, fn, *args):
+        return asyncio.get_running_loop().run_in_executor(self.pool, fn, *args)
+
+    # the blocking calls (worker thread)
+    def nodes(self) -> list[str]:
+        s = self._s()
+        s.spin_for(0.2)
+        out = []
+        for name, ns in s.node.get_node_names_and_namespaces():
+            fqn = f"{ns.rstrip('/')}/{name}"
+            if fqn in _OWN_NODES or name.startswith("fluxdrive_inspect_"):
+                continue
+            svcs = {n for n, _ in s.node.get_service_names_and_types_by_node(name, ns)}
+            if f"{fqn}/describe_parameters" in svcs:
+                out.append(fqn)
+        return sorted(set(out))
+
+    def describe(self, node: str) -> list[dict[str, Any]]:
+        from .inspect_cli import _describe, _get, _list
+
+        s = self._s()
+        names = _list(s, node)
+        descs = _describe(s, node, names)
+        vals = _get(s, node, names)
+        out = []
+        for n, d, (typ, v) in zip(names, descs, vals, strict=True):
+            lo = hi = None
+            if d.floating_point_range:
+                lo, hi = d.floating_point_range[0].from_value, d.floating_point_range[0].to_value
+            elif d.integer_range:
+                lo, hi = d.integer_range[0].from_value, d.integer_range[0].to_value
+            choices = []
+            if d.additional_constraints.startswith("one of:"):
+                choices = [c.strip() for c in d.additional_constraints[7:].split(",")]
+            out.append({"name": n, "type": int(typ), "value": _plain(v),
+                        "description": d.description, "read_only": bool(d.read_only),
+                        "min": lo, "max": hi, "choices": choices})
+        return out
+
+    def set(self, node: str, name: str, text: str) -> tuple[bool, str, Any]:
+        from .inspect_cli import set_param
+
+        ok, reason, value = set_param(self._s(), node, name, text)
+        return ok, reason, _plain(value)
+
+    def reset(self, service: str) -> tuple[bool, str]:
+        from .inspect_cli import OPERATOR_NODE, Session, reset_fault
+
+        s = Session(domain_id=self.domain_id, wait_s=self.wait_s, node_name=OPERATOR_NODE)
+        try:
+            return reset_fault(s, service)
+        finally:
+            s.close()
+
+    def close(self) -> None:
+        def shut():
+            if self.session is not None:
+                self.session.close()
+
+        try:
+            self.pool.submit(shut).result(timeout=5)
+        except Exception:  # noqa: BLE001
+            pass
+        self.pool.shutdown(wait=False)
+
+
+def _plain(v: Any) -> Any:
+    if hasattr(v, "tolist"):
+        return v.tolist()
+    if isinstance(v, float) and v != v:
+        return None
+    return v
+
+
+# ------------------------------------------------------------------------ web side
+class Scope:
+    def __init__(self, args):
+        self.args = args
+        self.token = args.token or secrets.token_urlsafe(18)
+        self.clients: set = set()
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.latest: str | None = None
+        self.sent = 0
+        self.dropped = 0
+        self.ros: RosSide | None = None
+        self.params: ParamSide | None = None
+
+    # ROS thread -> event loop
+    def on_envelope(self, text: str) -> None:
+        if self.loop is not None:
+            self.loop.call_soon_threadsafe(self._broadcast, text)
+
+    def _broadcast(self, text: str) -> None:
+        self.latest = text
+        if self.ros is not None:
+            try:  # the newest seq/ts for markers, without parsing the whole document
+                head = text[:200]
+                i = head.find('"ts_s":')
+                ts = float(head[i + 7:head.index(",", i)]) if i >= 0 else 1e-4
+                j = text.rfind('"seq":')
+                seq = int(text[j + 6:text.index("}", j)]) if j >= 0 else -1
+                self.ros.note_envelope(seq, ts)
+            except ValueError:
+                pass
+        for q in list(self.clients):
+            if q.full():  # a slow page skips periods instead of building a backlog
+                q.get_nowait()
+                self.dropped += 1
+            q.put_nowait(text)
+
+    def _authorised(self, request) -> bool:
+        tok = request.query.get("token") or request.headers.get(TOKEN_HEADER, "")
+        return secrets.compare_digest(tok.encode(), self.token.encode())
+
+    # handlers
+    async def index(self, request):
+        from aiohttp import web
+
+        if not self._authorised(request):
+            return web.Response(status=403, text="scope: missing or wrong token; use the URL "
+                                "that ./fluxdrive scope printed\n")
+        return web.FileResponse(WEB_DIR / "index.html",
+                                headers={"Cache-Control": "no-store"})
+
+    async def ws(self, request):
+        from aiohttp import WSMsgType, web
+
+        if not self._authorised(request):
+            return web.Response(status=403, text="wrong token\n")
+        sock = web.WebSocketResponse(heartbeat=10.0, max_msg_size=1 << 20)
+        await sock.prepare(request)
+        q: asyncio.Queue = asyncio.Queue(maxsize=2)
+        self.clients.add(q)
+        await sock.send_str(json.dumps({"hello": {"domain_id": self.args.domain_id,
+                                                  "modes": MODE_NAMES}}))
+        if self.latest:
+            q.put_nowait(self.latest)
+
+        async def pump():
+            while True:
+                text = await q.get()
+                await sock.send_str(text)
+                self.sent += 1
+
+        task = asyncio.create_task(pump())
+        try:
+            async for msg in sock:
+                if msg.type in (WSMsgType.ERROR, WSMsgType.CLOSE):
+                    break
+        finally:
+            task.cancel()
+            self.clients.discard(q)
+        return sock
+
+    async def api_nodes(self, request):
+        from aiohttp import web
+
+        if not self._authorised(request):
+            return web.json_response({"error": "wrong token"}, status=403)
+        try:
+            nodes = await self.params.run(self.params.nodes)
+            out = []
+            for n in nodes:
+                try:
+                    out.append({"node": n, "params": await self.params.run(
+                        self.params.describe, n)})
+                except (LookupError, TimeoutError) as exc:
+                    out.append({"node": n, "params": [], "error": str(exc)})
+        except (LookupError, TimeoutError) as exc:
+            return web.json_response({"error": str(exc)}, status=504)
+        return web.json_response({"nodes": out})
+
+    async def api_param(self, request):
+        from aiohttp import web
+
+        if not self._authorised(request):
+            return web.json_response({"error": "wrong token"}, status=403)
+        try:
+            body = await request.json()
+            node, name, text = str(body["node"]), str(body["name"]), str(body["value"])
+        except (ValueError, KeyError, TypeError):
+            return web.json_response({"ok": False, "reason": "expected JSON {node, name, "
+                                      "value}"}, status=400)
+        try:
+            ok, reason, value = await self.params.run(self.params.set, node, name, text)
+        except (LookupError, TimeoutError) as exc:
+            ok, reason, value = False, str(exc), None
+        except Exception as exc:  # noqa: BLE001 - a value rclpy cannot even form
+            ok, reason, value = False, f"{type(exc).__name__}: {exc}", None
+        self.ros.publish_marker(node, name, text, ok, reason)
+        print(f"scope: set {node} {name} = {text}: "
+              f"{'ok' if ok else 'REFUSED'}{': ' + reason if reason else ''}", flush=True)
+        return web.json_response({"ok": ok, "reason": reason, "value": value})
+
+    async def api_reset(self, request):
+        from aiohttp import web
+
+        if not self._authorised(request):
+            return web.json_response({"error": "wrong token"}, status=403)
+        service = request.query.get("service", "/controller/reset_fault")
+        try:
+            ok, message = await self.params.run(self.params.reset, service)
+        except (LookupError, TimeoutError) as exc:
+            ok, message = False, str(exc)
+        print(f"scope: fault reset {service}: {'ok' if ok else 'REFUSED'}: {message}",
+              flush=True)
+        return web.json_response({"ok": ok, "message": message})
+
+    async def api_status(self, request):
+        from aiohttp import web
+
+        if not self._authorised(request):
+            return web.json_response({"error": "wrong token"}, status=403)
+        r = self.ros
+        return web.json_response({"envelopes": r.n_envelopes, "sent": self.sent,
+                                  "dropped": self.dropped, "clients": len(self.clients),
+                                  "local_tap": r.local_tap is not None,
+                                  "last_seq": r.last_seq})
+
+    def app(self):
+        from aiohttp import web
+
+        app = web.Application()
+        app.router.add_get("/", self.index)
+        app.router.add_get("/ws", self.ws)
+        app.router.add_get("/api/nodes", self.api_nodes)
+        app.router.add_post("/api/param", self.api_param)
+        app.router.add_post("/api/reset", self.api_reset)
+        app.router.add_get("/api/status", self.api_status)
+        app.router.add_static("/static/", WEB_DIR, show_index=False)
+        return app
+
+    async def serve(self) -> int:
+        from aiohttp import web
+
+        self.loop = asyncio.get_running_loop()
+        dom = self.args.domain_id
+        self.ros = RosSide(dom, self.on_envelope, self.args.attach_wait)
+        self.params = ParamSide(dom)
+        runner = web.AppRunner(self.app(), access_log=None)
+        await runner.setup()
+        site = web.TCPSite(runner, self.args.host, self.args.port)
+        try:
+            await site.start()
+        except OSError as exc:
+            print(f"scope: cannot listen on {self.args.host}:{self.args.port}: "
+                  f"{exc.strerror or exc}", file=sys.stderr)
+            await runner.cleanup()
+            self.ros.close()
+            return 1
+        port = runner.addresses[0][1]
+        host = self.args.host if self.args.host not in ("0.0.0.0", "::") else "127.0.0.1"
+        url = f"http://{host}:{port}/?token={self.token}"
+        print(f"scope: {url}", flush=True)
+        print(f"@scope-url {url}", flush=True)  # for the launcher (run/launch --scope)
+        stop = asyncio.Event()
+        import signal
+
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            try:
+                self.loop.add_signal_handler(sig, stop.set)
+            except (NotImplementedError, RuntimeError):
+                pass
+        try:
+            while not stop.is_set():
+                try:
+                    await asyncio.wait_for(stop.wait(), 0.25)
+                except TimeoutError:
+                    pass
+                if self.args.exit_on_done and self.ros.done.is_set():
+                    await asyncio.sleep(1.0)  # the last envelopes reach the page
+                    break
+        finally:
+            await runner.cleanup()
+            self.params.close()
+            self.ros.close()
+        return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="fluxdrive scope", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: "
+                    "this machine only)")
+    ap.add_argument("--port", type=int, default=8765, help="TCP port (default 8765; 0: any "
+                    "free port)")
+    ap.add_argument("--token", help="access token (default: a fresh random one per launch)")
+    ap.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID of the graph")
+    ap.add_argument("--attach-wait", type=float, default=3.0,
+                    help="seconds to wait for the graph's scope tap before tapping the "
+                    "topics directly (default 3)")
+    ap.add_argument("--exit-on-done", action="store_true",
+                    help="exit a second after the graph's /drive/done")
+    args = ap.parse_args(sys.argv[1:] if argv is None else argv)
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    if args.domain_id is None:
+        args.domain_id = int(os.environ.get("ROS_DOMAIN_ID", "0") or 0)
+    try:
+        import aiohttp  # noqa: F401
+    except ImportError:
+        print("scope: aiohttp is not installed; run ./fluxdrive help (set-up) first",
+              file=sys.stderr)
+        return 2
+    return asyncio.run(Scope(args).serve())
+
+
+if __name__ == "__main__":
+    sys.exit(main())
