@@ -39,7 +39,7 @@ def _recv_json(ws, want_op: str, timeout: float, pred=lambda m: True) -> dict:
     raise AssertionError(f"no '{want_op}' message within {timeout} s")
 
 
-@pytest.mark.timeout(120)
+@pytest.mark.timeout(240)
 def test_foxglove_client_receives_and_decodes_topics(tmp_path):
     from fluxdrive.core.scenario import load_scenario, scenario_path
     from fluxdrive_bringup.launch import Launcher
@@ -91,9 +91,12 @@ def test_foxglove_client_receives_and_decodes_topics(tmp_path):
             ws.send(json.dumps({"op": "subscribe", "subscriptions": [
                 {"id": 1, "channelId": fr["id"]}, {"id": 2, "channelId": es["id"]}]}))
             got: dict[int, list[bytes]] = {1: [], 2: []}
-            t_end = time.monotonic() + 30
+            t_end = time.monotonic() + 90  # a first run compiles the kernels first
             while (len(got[1]) < 200 or len(got[2]) < 200) and time.monotonic() < t_end:
-                m = ws.recv(timeout=5)
+                try:
+                    m = ws.recv(timeout=2)
+                except TimeoutError:
+                    continue
                 if isinstance(m, bytes) and m[0] == 0x01:  # message data
                     sub_id, _log_time = struct.unpack_from("<IQ", m, 1)
                     got[sub_id].append(m[13:])

@@ -33,7 +33,7 @@ def _param(node: str, name: str, domain_id: int):
         s.close()
 
 
-@pytest.mark.timeout(150)
+@pytest.mark.timeout(300)
 def test_scope_page_in_chromium(tmp_path):
     if not Path(CHROMIUM).exists():
         pytest.skip("chromium not installed (tools/bootstrap.sh installs Debian's package)")
@@ -65,7 +65,7 @@ def test_scope_page_in_chromium(tmp_path):
             assert bad is not None and bad.status == 403
             page.goto(url)
             page.wait_for_function("window.scopeStats.envelopes > 10 && "
-                                   "window.scopeStats.lastSeq > 0", timeout=40_000)
+                                   "window.scopeStats.lastSeq > 0", timeout=120_000)
             s1 = page.evaluate("({...window.scopeStats})")
             page.wait_for_timeout(2000)
             s2 = page.evaluate("({...window.scopeStats})")
