@@ -341,6 +341,7 @@ let loadedOnce = false;
 
 async function loadParams() {
   $("nodes").textContent = "loading…";
+  document.body.dataset.params = "loading";
   try {
     const r = await fetch("api/nodes", { headers: { "X-Scope-Token": TOKEN } });
     const j = await r.json();
