@@ -326,11 +326,14 @@ class Scope:
             nodes = await self.params.run(self.params.nodes)
             out = []
             for n in nodes:
-                try:
-                    out.append({"node": n, "params": await self.params.run(
-                        self.params.describe, n)})
-                except (LookupError, TimeoutError) as exc:
-                    out.append({"node": n, "params": [], "error": str(exc)})
+                for attempt in (1, 2):  # a node busy with a lockstep loop may answer late
+                    try:
+                        out.append({"node": n, "params": await self.params.run(
+                            self.params.describe, n)})
+                        break
+                    except (LookupError, TimeoutError) as exc:
+                        if attempt == 2:
+                            out.append({"node": n, "params": [], "error": str(exc)})
         except (LookupError, TimeoutError) as exc:
             return web.json_response({"error": str(exc)}, status=504)
         return web.json_response({"nodes": out})
