@@ -28,7 +28,9 @@ def _numba_cache_dir() -> None:
             continue
         h.update(str(f.relative_to(here)).encode())
         h.update(f.read_bytes())
-    root = here.parents[1] / ".ws" / "numba_cache"
+    from fluxdrive.core.paths import ROOT
+
+    root = ROOT / ".ws" / "numba_cache"  # the checkout's work folder, else the user's cache
     try:
         root.mkdir(parents=True, exist_ok=True)
         test = root / ".w"

@@ -49,6 +49,7 @@ import cantools
 import numpy as np
 from cantools.database.can import Database, Message
 
+from fluxdrive.core.paths import DBC_PATH
 from fluxdrive.drive import plant as _pl
 
 __all__ = [
@@ -155,12 +156,12 @@ _CLASSIC_TO_FRAME: dict[int, dict[str, str]] = {
 
 
 def default_dbc_path() -> Path:
-    """Path of the protocol DBC: ``$FLUXDRIVE_DBC`` if set, else the repo's
-    ``config/can/fluxdrive.dbc`` (resolved relative to this file)."""
+    """Path of the protocol DBC: ``$FLUXDRIVE_DBC`` if set, else the checkout's
+    ``config/can/fluxdrive.dbc`` (fluxdrive.core.paths)."""
     env = os.environ.get(DBC_ENV_VAR)
     if env:
         return Path(env)
-    return Path(__file__).resolve().parents[3] / "config" / "can" / "fluxdrive.dbc"
+    return DBC_PATH
 
 
 def load_database(path: str | os.PathLike[str] | None = None) -> Database:

@@ -8,9 +8,10 @@ import importlib
 import os
 import subprocess
 import sys
-from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[3]
+from fluxdrive.core.paths import ROOT
+
+REPO = ROOT
 
 # subcommand -> (module, function, one-line help); each function takes argv (list[str])
 COMMANDS: dict[str, tuple[str, str, str]] = {

@@ -17,11 +17,11 @@ import numpy as np
 import yaml
 
 from fluxdrive.core.machine import ConfigError, MachineCard, load_machine
+from fluxdrive.core.paths import CONFIG_DIR, ROOT, project_file
 from fluxdrive.drive.control import ControllerConfig
 from fluxdrive.drive.observers import ObserverConfig, observer_config
 
-REPO_ROOT = Path(__file__).resolve().parents[3]
-CONFIG_DIR = REPO_ROOT / "config"
+REPO_ROOT = ROOT  # the checkout (fluxdrive.core.paths: FLUXDRIVE_ROOT or the one we sit in)
 RPM = 2.0 * math.pi / 60.0
 
 
@@ -239,6 +239,8 @@ def scenario_path(name_or_path: str) -> Path:
     cand = CONFIG_DIR / "scenarios" / (p.name if p.suffix else p.name + ".yaml")
     if cand.exists():
         return cand
+    if not CONFIG_DIR.is_dir():
+        project_file(CONFIG_DIR, "config/")  # the package is not pointed at a checkout
     raise ConfigError(f"scenario '{name_or_path}' not found (looked at {p} and {cand})")
 
 

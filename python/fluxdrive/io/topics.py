@@ -4,7 +4,7 @@ inspection tools (through fluxdrive_ros.topics, which re-exports these)."""
 
 from __future__ import annotations
 
-from pathlib import Path
+from fluxdrive.core.paths import MSG_DIR
 
 FRAME = "/drive/frame"  # flux_drive_msgs/PhaseFrame, plant (or bench bridge) -> all
 TRUTH = "/drive/truth"  # flux_drive_msgs/PlantTruth, simulation only
@@ -28,7 +28,7 @@ T_MARKER = "flux_drive_msgs/msg/ParameterMarker"
 T_STRING = "std_msgs/msg/String"
 
 # the .msg sources (the interface package's definitions, embedded in every bag)
-MSG_SRC_DIR = Path(__file__).resolve().parents[3] / "src" / "flux_drive_msgs" / "msg"
+MSG_SRC_DIR = MSG_DIR
 
 
 def estimate_topic(observer: str) -> str:
