@@ -101,9 +101,13 @@ def test_resumed_study_skips_completed_tasks(tmp_path):
     assert _computed(pq.read_table(tmp_path / "s" / "results.parquet")).equals(
         _computed(pq.read_table(tmp_path / "full" / "results.parquet")))
     assert not list((tmp_path / "s" / "parts").glob("*.parquet"))
+    # an extended spec (one more draw) runs only the new tasks and keeps the old rows
+    with Runner("serial") as r:
+        s3 = run_study(load_spec(_spec(tmp_path, draws=3)), tmp_path / "s", r, echo=False)
+    assert s3["skipped"] == 8 and s3["ran"] == 4 and s3["rows"] == 12
     # a changed spec is refused on the same folder (its rows would not be this study's)
     other = load_spec(_spec(tmp_path, seed=12))
-    with Runner("serial") as r, pytest.raises(ValueError, match="different study"):
+    with Runner("serial") as r, pytest.raises(ValueError, match="other inputs"):
         run_study(other, tmp_path / "s", r, echo=False)
 
 

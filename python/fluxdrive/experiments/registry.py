@@ -306,7 +306,10 @@ def main(argv: list[str]) -> int:
     out = args.out or REPO_ROOT / "results" / "experiments"
     t0 = time.perf_counter()
     from fluxdrive.study.runner import runner_from_args
+    from fluxdrive.study.tasks import warm_kernels
 
+    if args.workers > 1 and not args.scheduler and not args.graph:
+        warm_kernels()  # compiled once here, loaded from the cache by the local workers
     runner = runner_from_args(None if args.graph else args.scheduler, args.workers)
     try:
         for n in names:

@@ -4,7 +4,8 @@ sweeps and Monte-Carlo robustness maps (see docs/study.md).
 Runs every task of the spec (variants x grid x draws) on a dask LocalCluster using every core,
 on an existing cluster (--scheduler), or in-process (--workers 1); rows stream into
 DIR/parts/*.parquet as tasks finish and are compacted into DIR/results.parquet at the end.
-Run it again with the same --out to resume: finished tasks are skipped.  Then the maps:
+Run it again with the same --out to resume: finished tasks are skipped (also after adding
+draws, grid points or variants to the spec: only the new tasks run).  Then the maps:
 DIR/p_stable.png, DIR/theta_rms.png, DIR/report.md, DIR/summary.json.
 """
 
@@ -23,34 +24,37 @@ from fluxdrive.core.machine import ConfigError
 from fluxdrive.core.scenario import REPO_ROOT
 from fluxdrive.study.runner import Progress, Runner, runner_from_args
 from fluxdrive.study.spec import StudySpec, load_spec
-from fluxdrive.study.tasks import run_task
+from fluxdrive.study.tasks import run_task, warm_kernels
 
 
 def run_study(spec: StudySpec, out: Path, runner: Runner, restart: bool = False,
-              echo: bool = True, on_result=None, flush_s: float = 3.0) -> dict[str, Any]:
+              echo: bool = True, on_result=None, flush_s: float = 10.0) -> dict[str, Any]:
     """Run (or resume) a study into `out`; returns a summary (tasks, skipped, failures,
     lowest speeds).  `on_result(outcome)` is called after each finished task."""
     from fluxdrive.study import maps, store
 
     out = Path(out)
-    fp = spec.fingerprint()
-    meta_p = out / "study.json"
     if restart and out.exists():
-        for p in ("parts", "results.parquet", "failures.jsonl", "study.json"):
+        for p in ("parts", "results.parquet", "failures.jsonl"):
             q = out / p
             shutil.rmtree(q) if q.is_dir() else q.unlink(missing_ok=True)
-    if meta_p.exists():
-        old = json.loads(meta_p.read_text()).get("fingerprint")
-        if old != fp:
-            raise ConfigError(f"{out} holds a different study (its spec changed since); use "
-                              f"another --out, or --restart to discard it")
     out.mkdir(parents=True, exist_ok=True)
-    meta_p.write_text(json.dumps({"name": spec.name, "fingerprint": fp,
-                                  "spec": spec.source}, indent=1))
     tasks = spec.tasks()
     order = [t["task_id"] for t in tasks]
     old_t = store.read_table(out)
-    done = set(old_t.column("task_id").to_pylist()) if old_t is not None else set()
+    done: dict[str, str] = {}
+    if old_t is not None:
+        if "input_hash" not in old_t.column_names:
+            raise ConfigError(f"{out} holds a table without input hashes; use another --out, "
+                              f"or --restart to discard it")
+        done = dict(zip(old_t.column("task_id").to_pylist(),
+                        old_t.column("input_hash").to_pylist(), strict=True))
+    changed = [t["task_id"] for t in tasks
+               if t["task_id"] in done and done[t["task_id"]] != t["input_hash"]]
+    if changed:
+        raise ConfigError(f"{out} holds results of {len(changed)} task(s) computed from other "
+                          f"inputs (the spec changed, e.g. {changed[0]}); use another --out, or "
+                          f"--restart to discard them")
     todo = [t for t in tasks if t["task_id"] not in done]
     if echo:
         print(f"study {spec.name}: {len(tasks)} tasks ({len(spec.variants)} variants x "
@@ -81,16 +85,35 @@ def run_study(spec: StudySpec, out: Path, runner: Runner, restart: bool = False,
         store.write_failures(out, failures)
     elapsed = time.perf_counter() - t0
     table = store.compact(out, order)
-    info = {"tasks": len(tasks), "runner": _describe(runner), "elapsed_s": elapsed}
+    info = {"tasks": len(tasks), "runner": _describe(runner), "elapsed_s": elapsed,
+            "commit": _commit()}
     rep = (maps.write_report(table, spec, out, failures, info) if table is not None
            else {"lowest": {}, "figures": []})
     summary = {"study": spec.name, "tasks": len(tasks), "ran": len(todo),
                "skipped": len(tasks) - len(todo), "rows": 0 if table is None else table.num_rows,
                "failed": len(failures), "elapsed_s": round(elapsed, 2),
-               "runner": _describe(runner), "lowest_speed": rep["lowest"],
+               "runner": _describe(runner), "commit": info["commit"],
+               "cpu_s": None if table is None else round(sum(
+                   x for x in table.column("cpu_s").to_pylist() if x is not None), 1),
+               "lowest_speed": rep["lowest"],
                "figures": rep["figures"]}
     (out / "summary.json").write_text(json.dumps(summary, indent=1, default=str))
     return summary
+
+
+def _commit() -> str:
+    """The fluxdrive commit the study ran on (+ '-dirty' with uncommitted engine changes)."""
+    import subprocess
+
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short=10", "HEAD"], cwd=REPO_ROOT,
+                              capture_output=True, text=True, timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "python", "config"],
+                               cwd=REPO_ROOT, capture_output=True, text=True,
+                               timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return (head or "unknown") + ("-dirty" if dirty else "")
 
 
 def _describe(r: Runner) -> str:
@@ -105,7 +128,7 @@ def main(argv: list[str]) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("spec", help="study spec YAML (path, or a name under config/studies)")
     ap.add_argument("--out", type=Path, help="output folder (default runs/study-<name>); "
-                    "an existing one is resumed")
+                    "an existing one is resumed (or extended: more draws, points, variants)")
     ap.add_argument("--scheduler", help="run on an existing dask cluster: tcp://HOST:PORT "
                     "(started with `dask scheduler` and `dask worker`)")
     ap.add_argument("--workers", type=int, help="LocalCluster worker processes (default: "
@@ -125,6 +148,8 @@ def main(argv: list[str]) -> int:
         rep = maps.write_report(t, spec, out, [], {"tasks": len(spec.tasks())})
         print(json.dumps(rep["lowest"], default=str))
         return 0
+    if spec.kind == "scenario" and not args.scheduler:
+        warm_kernels()  # compiled once here, loaded from the cache by the local workers
     with runner_from_args(args.scheduler, args.workers) as runner:
         s = run_study(spec, out, runner, restart=args.restart)
     for v, r in s["lowest_speed"].items():
@@ -153,6 +178,7 @@ def bench_study(argv: list[str]) -> dict[str, Any]:
         "variants": {"flux_measured": {"variant": "paper", "voltage_source": "measured"}},
         "random": {"r_hat_err": {"dist": "uniform", "low": -0.1, "high": 0.1}},
     }
+    warm_kernels()
     load_before = os.getloadavg()
     res: dict[str, Any] = {}
     with tempfile.TemporaryDirectory(prefix="fluxdrive-bench-study-") as d:
@@ -165,7 +191,7 @@ def bench_study(argv: list[str]) -> dict[str, Any]:
         for n in (1, 2):
             with Runner("local", workers=n) as r:
                 # warm every worker (imports, kernel cache) before timing
-                r.client.run(_warm)
+                r.client.run(warm_kernels)
                 t0 = time.perf_counter()
                 walls = []
                 for o in r.run_unordered(run_task, ((t["task_id"], t) for t in tasks)):
@@ -194,10 +220,3 @@ def bench_study(argv: list[str]) -> dict[str, Any]:
             "loadavg_1min_before_after": [round(load_before[0], 2), round(load_after[0], 2)]}
 
 
-def _warm() -> None:
-    from fluxdrive.core.scenario import CONFIG_DIR, load_scenario
-    from fluxdrive.drive.sim import run_scenario
-
-    sc = load_scenario(CONFIG_DIR / "scenarios" / "paper_2pct_150load.yaml",
-                       overrides={"duration_s": 0.01, "steady_window_s": [0.0, 0.01]})
-    run_scenario(sc, progress=False)

@@ -145,6 +145,12 @@ def plot_maps(c: dict[str, Any], spec: StudySpec, out: Path) -> list[str]:
     return files
 
 
+def _cpu(table) -> float:
+    if "cpu_s" not in table.column_names:
+        return math.nan
+    return float(sum(x for x in table.column("cpu_s").to_pylist() if x is not None))
+
+
 def _label(axis: str) -> str:
     return {"speed_rpm": "speed [rpm]", "load_pu": "load [pu of rated torque]"}.get(axis, axis)
 
@@ -167,7 +173,8 @@ def write_report(table, spec: StudySpec, out: Path, failures: list[dict[str, Any
              f"{len(spec.variants)} variants × {math.prod(len(v) for v in spec.grid.values())} "
              f"grid points × {spec.draws} draws = {info.get('tasks', '?')} tasks; "
              f"{table.num_rows} rows, {len(failures)} failed; "
-             f"{info.get('runner', '')}, {info.get('elapsed_s', 0):.0f} s.", "",
+             f"{info.get('runner', '')}, {info.get('elapsed_s', 0):.0f} s wall, "
+             f"{_cpu(table):.0f} s of task CPU time; fluxdrive {info.get('commit', '?')}.", "",
              "## Uncertainties (one draw per machine, shared by every variant and grid point)",
              "", "| axis | distribution | what it sets |", "|---|---|---|"]
     for a, d in spec.random.items():

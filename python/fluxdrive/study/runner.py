@@ -43,30 +43,35 @@ class Outcome:
 
 @dataclass
 class Progress:
-    """Counts and an ETA printed on stderr as tasks finish (every `every_s` seconds at most,
-    and at the end)."""
+    """Counts and an ETA printed on stderr as tasks finish (every `every_s` seconds at most:
+    2 s on a terminal, 10 s into a log; and at the end)."""
 
     total: int
     label: str = "run"
-    every_s: float = 2.0
+    every_s: float = field(default_factory=lambda: 2.0 if sys.stderr.isatty() else 10.0)
     echo: bool = True
     done: int = 0
     failed: int = 0
     t0: float = field(default_factory=time.perf_counter)
     _last: float = 0.0
+    _first: float = 0.0  # when the first task finished: the rate excludes the start-up
 
     def update(self, ok: bool) -> None:
         self.done += 1
         self.failed += 0 if ok else 1
         now = time.perf_counter()
+        if self.done == 1:
+            self._first = now
         if self.echo and (now - self._last >= self.every_s or self.done == self.total):
             self._last = now
             sys.stderr.write(self.line() + "\n")
             sys.stderr.flush()
 
     def line(self) -> str:
-        el = time.perf_counter() - self.t0
-        rate = self.done / el if el > 0 else 0.0
+        now = time.perf_counter()
+        el = now - self.t0
+        rate = (self.done - 1) / (now - self._first) if self.done > 1 and now > self._first \
+            else 0.0
         left = self.total - self.done
         eta = f"ETA {_hms(left / rate)}" if rate > 0 and left else "done" if not left else "ETA ?"
         fail = f", {self.failed} failed" if self.failed else ""
@@ -120,7 +125,7 @@ class Runner:
                 return
             self.cluster = LocalCluster(
                 n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                dashboard_address=None, silence_logs=40 if quiet else 30)
+                dashboard_address="127.0.0.1:0", silence_logs=40 if quiet else 30)
             self.client = Client(self.cluster)
         elif mode.startswith("tcp://"):
             self.client = Client(mode, timeout="20s")

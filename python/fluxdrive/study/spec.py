@@ -76,13 +76,6 @@ class StudySpec:
     def kind(self) -> str:
         return "bag" if "bag" in self.scenario else "scenario"
 
-    def fingerprint(self) -> str:
-        """Hash of everything that defines the tasks' inputs (not name/description)."""
-        keep = {k: v for k, v in self.raw.items() if k not in ("name", "description", "map",
-                                                               "rated_load_pu", "probability")}
-        keep["scenario"] = self.scenario
-        return hashlib.sha1(json.dumps(keep, sort_keys=True, default=str).encode()).hexdigest()[:16]
-
     def random_columns(self) -> list[str]:
         cols = []
         for name in self.random:
@@ -100,9 +93,11 @@ class StudySpec:
                 for d, (seed, rv) in enumerate(draws):
                     tid = "|".join([vname] + [f"{a}={_fmt(v)}" for a, v in gv.items()]
                                    + [f"draw={d}"])
-                    out.append({"task_id": tid, "variant": vname, "variant_cfg": dict(vcfg),
-                                "grid": gv, "draw": d, "seed": seed, "random": rv,
-                                "scenario": self.scenario})
+                    t = {"task_id": tid, "variant": vname, "variant_cfg": dict(vcfg),
+                         "grid": gv, "draw": d, "seed": seed, "random": rv,
+                         "scenario": self.scenario}
+                    t["input_hash"] = input_hash(t)
+                    out.append(t)
         return out
 
     def draw(self, d: int) -> tuple[int, dict[str, Any]]:
@@ -118,6 +113,13 @@ class StudySpec:
             x = [_sample(rng, self.random[name]) for _ in range(n)]
             vals[name] = x if n == 3 else x[0]
         return seed, vals
+
+
+def input_hash(task: dict[str, Any]) -> str:
+    """Hash of everything a task computes from: a resumed or extended study reuses a row only
+    if its task's inputs are still the same."""
+    keep = {k: v for k, v in task.items() if k not in ("task_id", "input_hash")}
+    return hashlib.sha1(json.dumps(keep, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
 def _fmt(v: Any) -> str:

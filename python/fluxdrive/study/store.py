@@ -1,12 +1,13 @@
 """The study table: one Parquet table per study folder, written as tasks finish.
 
     DIR/results.parquet     the compacted table (written when a study completes)
-    DIR/parts/*.parquet     rows streamed while it runs (a part file every few seconds,
+    DIR/parts/*.parquet     rows streamed while it runs (a part file every 10 s at most,
                             written to a temporary name and renamed, so an interrupted
                             study leaves only whole files behind)
     DIR/failures.jsonl      tasks that failed twice: their inputs and the error
 
-`read_table(DIR)` is both, deduplicated by task_id; a resumed study skips those task_ids.
+`read_table(DIR)` is both, deduplicated by task_id; a resumed (or extended: more draws, grid
+points, variants) study skips the tasks whose id and input hash are there.
 """
 
 from __future__ import annotations
@@ -22,13 +23,13 @@ import pyarrow.parquet as pq
 
 from fluxdrive.study.tasks import OUTPUTS
 
-INPUT_COLUMNS = ["task_id", "variant", "draw", "seed"]
 RUN_COLUMNS = ["attempts", "worker"]  # how it ran, not what it computed
-TIMING_COLUMNS = ["wall_s"]
+TIMING_COLUMNS = ["wall_s", "cpu_s"]
 
 
 def schema_for(grid_axes: list[str], random_cols: list[str]) -> pa.Schema:
-    f = [pa.field("task_id", pa.string()), pa.field("variant", pa.string())]
+    f = [pa.field("task_id", pa.string()), pa.field("input_hash", pa.string()),
+         pa.field("variant", pa.string())]
     f += [pa.field(a, pa.float64()) for a in grid_axes]
     f += [pa.field("draw", pa.int64()), pa.field("seed", pa.int64())]
     f += [pa.field(c, pa.float64()) for c in random_cols]
@@ -39,7 +40,8 @@ def schema_for(grid_axes: list[str], random_cols: list[str]) -> pa.Schema:
 
 def flat_row(payload: dict[str, Any], value: dict[str, Any], attempts: int,
              worker: str) -> dict[str, Any]:
-    row: dict[str, Any] = {"task_id": payload["task_id"], "variant": payload["variant"],
+    row: dict[str, Any] = {"task_id": payload["task_id"], "input_hash": payload["input_hash"],
+                           "variant": payload["variant"],
                            "draw": payload["draw"], "seed": payload["seed"]}
     row.update(payload["grid"])
     for k, v in payload["random"].items():
@@ -55,7 +57,7 @@ def flat_row(payload: dict[str, Any], value: dict[str, Any], attempts: int,
 class TableWriter:
     """Buffers rows and writes a part file every `flush_s` seconds (and on close)."""
 
-    def __init__(self, out: Path, schema: pa.Schema, flush_s: float = 3.0):
+    def __init__(self, out: Path, schema: pa.Schema, flush_s: float = 10.0):
         self.dir = Path(out) / "parts"
         self.dir.mkdir(parents=True, exist_ok=True)
         self.schema = schema
