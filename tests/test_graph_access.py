@@ -59,10 +59,10 @@ def test_plant_obeys_duty_commands_only_from_allowed_commanders(graph, tmp_path)
         frames.append(m)
         for fid in marks.values():
             d = DutyCommand(seq=m.seq, duty=[0.5, 0.5, 0.5], enable=False)
-            d.header.frame_id = fid
+            d.commander = fid
             rpub.publish(d)
         d = DutyCommand(seq=m.seq, duty=[0.55, 0.5, 0.45], enable=True)
-        d.header.frame_id = access.mark("/probe", DUTY)
+        d.commander = access.mark("/probe", DUTY)
         ppub.publish(d)
 
     graph.probe.create_subscription(PhaseFrame, "/drive/frame", on_frame, qos.reader("volatile"))
@@ -148,9 +148,9 @@ def test_bridge_arms_and_resets_only_for_allowed_nodes(graph):
         for k in range(5):
             d = DutyCommand(seq=k, duty=[0.5, 0.5, 0.5], enable=True)
             rp.publish(d)
-            d.header.frame_id = access.mark("/rogue", DUTY)
+            d.commander = access.mark("/rogue", DUTY)
             rp.publish(d)
-            d.header.frame_id = access.mark("/controller", DUTY)
+            d.commander = access.mark("/controller", DUTY)
             d.duty = [1.5, 0.5, 0.5]  # out of range: clamped and counted
             cp.publish(d)
         wait_for(lambda: bridge.guard.accepted >= 5 and bridge.guard.n_rejected >= 10, 10.0,

@@ -86,17 +86,8 @@ def test_rows_survive_messages_bit_for_bit():
     from fluxdrive.drive.control import CO_DA, CO_EN, CO_FAULT, CO_MODE, CO_N
     from fluxdrive.drive.observers import ES_N, ES_VALID
     from fluxdrive.drive.plant import FR_EN, FR_FLAGS, FR_N, FR_SEQ, TR_N, TR_T, TR_THETA_E
-    from fluxdrive_ros.wire import (
-        ControlWire,
-        EstimateWire,
-        FrameWire,
-        Stamp,
-        TruthWire,
-        control_row,
-        estimate_row,
-        frame_row,
-        truth_row,
-    )
+    from fluxdrive.io.messages import RowCodec, row_codec
+    from fluxdrive_ros.wire import ControlWire, EstimateWire, FrameWire, Stamp, TruthWire
 
     rng = np.random.default_rng(3)
     st = Stamp(1e-4)
@@ -110,35 +101,34 @@ def test_rows_survive_messages_bit_for_bit():
         out = np.zeros(FR_N)
         assert fw.unpack(fw.pack(fr, *st(k)), out) == k
         assert np.array_equal(out, fr)
-        assert np.array_equal(frame_row(fw.decoder.decode(fw.pack(fr, *st(k)))), fr)
+        rc = row_codec("flux_drive_msgs/msg/PhaseFrame")
+        assert np.array_equal(rc.row(rc.decoder.decode(fw.pack(fr, *st(k)))), fr)
         tr = rng.normal(size=TR_N)
         tr[TR_THETA_E] = abs(tr[TR_THETA_E]) % 6.28
-        tr[TR_T] = k * 1e-4
         tw = TruthWire()
-        assert np.array_equal(truth_row(tw.decoder.decode(tw.pack(tr, k, *st(k))), 1e-4), tr)
+        got = row_codec("flux_drive_msgs/msg/PlantTruth").row(
+            tw.rc.decoder.decode(tw.pack(tr, k, *st(k))))
+        got[TR_T] = tr[TR_T]  # not on the wire (t = seq Ts)
+        assert np.array_equal(got, tr)
         es = rng.normal(size=ES_N)
         es[ES_VALID] = float(k % 2)
         ew = EstimateWire("flux_measured")
         row = np.zeros(ES_N)
         assert ew.unpack(ew.pack(es, k, *st(k)), row) == k
         assert np.array_equal(row, es)
-        assert np.array_equal(estimate_row(ew.decoder.decode(ew.pack(es, k, *st(k)))), es)
         co = rng.normal(size=CO_N)
         co[CO_DA:CO_DA + 3] = rng.uniform(size=3)
         co[CO_EN] = 1.0
         co[CO_MODE] = 3.0
-        co[CO_FAULT] = float(k % 3 == 0) * 7
-        cw = ControlWire()
-        from fluxdrive_ros.cdr import Decoder
-        from fluxdrive_ros.wire import fault_code
-
-        dd, sd = Decoder("flux_drive_msgs/msg/DutyCommand"), Decoder(
-            "flux_drive_msgs/msg/ControllerState")
+        co[CO_FAULT] = float(k % 3 == 0) * 7 + float(k == 3) * 30  # 30: an unknown code
+        cw = ControlWire(commander="/controller#0123")
+        got = np.zeros(CO_N)
+        RowCodec("flux_drive_msgs/msg/DutyCommand").unpack(cw.pack_duty(co, k, *st(k)), got)
         sb = cw.pack_state(co, k, *st(k))
-        reason = sd.codec_for(sb).strings["fault_reason"]
-        got = control_row(dd.decode(cw.pack_duty(co, k, *st(k))), sd.decode(sb),
-                          fault_code(reason))
+        RowCodec("flux_drive_msgs/msg/ControllerState").unpack(sb, got)
         assert np.array_equal(got, co)
-        # the replay lab's reader parses the same fault text
-        if co[CO_FAULT]:
-            assert reason.endswith("fault code 7")
+        # the fault travels as a number; its text is the name (one rule for unknown codes)
+        reason = RowCodec("flux_drive_msgs/msg/ControllerState").decoder.codec_for(
+            sb).strings["fault_reason"]
+        assert reason == {0: "", 7: "position estimate not finite",
+                          37: "fault 37"}[int(co[CO_FAULT])]

@@ -172,7 +172,8 @@ def _writer(path, topics):
         for tp, ty, msgs in topics:
             c = w.add_connection(tp, ty, typestore=store)
             for k, m in enumerate(msgs):
-                w.write(c, 1000 * (k + 1), store.serialize_cdr(m, ty))
+                w.write(c, 1000 * (k + 1), m if isinstance(m, bytes)
+                        else store.serialize_cdr(m, ty))
     return path
 
 
@@ -186,15 +187,15 @@ def test_bad_bags_one_line_errors(tmp_path, capsys, run):
     err = _bad(capsys, _writer(tmp_path / "foreign", [("/chatter", "std_msgs/msg/String",
                                                        [s])]))
     assert "foreign message types" in err and "std_msgs/msg/String" in err
-    from fluxdrive.io.bagio import truth_msg
+    from fluxdrive.io.messages import TruthWire
 
-    tr = [truth_msg(store, run.truth[k], k, 1000 * k) for k in range(3)]
+    tr = [TruthWire().pack(run.truth[k], k, 0, 1000 * k) for k in range(3)]
     err = _bad(capsys, _writer(tmp_path / "noframe", [("/drive/truth",
                                                        "flux_drive_msgs/msg/PlantTruth", tr)]))
     assert "no /drive/frame" in err
     # storage file replaced by garbage
     g = shutil.copytree(SAMPLE, tmp_path / "garbage")
-    for f in g.glob("*.zstd"):
+    for f in g.glob("*.mcap*"):
         f.write_bytes(b"\x00" * 100)
     assert "cannot open bag" in _bad(capsys, g)
 

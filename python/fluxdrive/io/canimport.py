@@ -18,24 +18,16 @@ from typing import Any
 
 import numpy as np
 
-from fluxdrive.can.protocol import FRAME_FIELDS, FRAME_FLAG_ADC_CLIP, SEQ_BITS, unwrap_counter
+from fluxdrive.can.protocol import FRAME_FIELDS, SEQ_BITS, unwrap_counter
+from fluxdrive.drive.plant import FR_SEQ
+from fluxdrive.io.bagio import typestore
 from fluxdrive.io.canlog import read_capture
+from fluxdrive.io.messages import FrameWire
+from fluxdrive.io.topics import FRAME, T_FRAME
 
 __all__ = ["PHASE_FRAME_TOPIC", "import_capture", "main"]
 
-PHASE_FRAME_TOPIC = "/drive/frame"
-PHASE_FRAME_TYPE = "flux_drive_msgs/msg/PhaseFrame"
-STATUS_SENSOR_CLIP = 1
-_MSG_DIR = Path(__file__).resolve().parents[3] / "src" / "flux_drive_msgs" / "msg"
-
-
-def _typestore():
-    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-
-    ts = get_typestore(Stores.ROS2_JAZZY)
-    text = (_MSG_DIR / "PhaseFrame.msg").read_text()
-    ts.register(get_types_from_msg(text, PHASE_FRAME_TYPE))
-    return ts
+PHASE_FRAME_TOPIC = FRAME
 
 
 def import_capture(log: str | Path, out: str | Path, *, topic: str = PHASE_FRAME_TOPIC,
@@ -45,38 +37,20 @@ def import_capture(log: str | Path, out: str | Path, *, topic: str = PHASE_FRAME
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     cap = read_capture(log)
-    f = cap.frames
-    seq = unwrap_counter(f[:, FRAME_FIELDS.index("seq")], SEQ_BITS) if len(f) else np.empty(0)
+    f = np.array(cap.frames, dtype=np.float64)
+    i_seq = FRAME_FIELDS.index("seq")
+    seq = unwrap_counter(f[:, i_seq], SEQ_BITS) if len(f) else np.empty(0)
     if len(seq):
-        seq = seq - (seq[0] - f[0, FRAME_FIELDS.index("seq")])  # keep the first wire value
-    ts = _typestore()
-    PhaseFrame = ts.types[PHASE_FRAME_TYPE]
-    Header = ts.types["std_msgs/msg/Header"]
-    Time = ts.types["builtin_interfaces/msg/Time"]
-    ix = {n: i for i, n in enumerate(FRAME_FIELDS)}
+        seq = seq - (seq[0] - f[0, i_seq])  # keep the first wire value
+        f[:, FR_SEQ] = seq
+    fw = FrameWire(frame_id)  # FRAME_FIELDS are the engine's FR_* columns
     outp = Path(out)
     written = 0
     with Writer(outp, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        conn = writer.add_connection(topic, PHASE_FRAME_TYPE, typestore=ts)
+        conn = writer.add_connection(topic, T_FRAME, typestore=typestore())
         for j in range(f.shape[0]):
-            row = f[j]
-            t = float(cap.timestamps[j])
-            sec = int(np.floor(t))
-            nsec = min(int(round((t - sec) * 1e9)), 999_999_999)
-            flags = STATUS_SENSOR_CLIP if int(row[ix["flags"]]) & FRAME_FLAG_ADC_CLIP else 0
-            msg = PhaseFrame(
-                header=Header(stamp=Time(sec=sec, nanosec=nsec), frame_id=frame_id),
-                seq=int(seq[j]),
-                i_abc=np.array(row[0:3], dtype=np.float64),
-                v_ll=np.array(row[3:6], dtype=np.float64),
-                vdc=float(row[ix["vdc"]]),
-                duty_applied=np.array(row[7:10], dtype=np.float64),
-                pwm_enabled=bool(row[ix["pwm_enabled"]] > 0.5),
-                encoder_counts=float(row[ix["encoder_counts"]]),
-                status_flags=flags,
-            )
-            writer.write(conn, sec * 1_000_000_000 + nsec,
-                         ts.serialize_cdr(msg, PHASE_FRAME_TYPE))
+            t_ns = int(round(float(cap.timestamps[j]) * 1e9))
+            writer.write(conn, t_ns, fw.pack(f[j], *divmod(t_ns, 1_000_000_000)))
             written += 1
     out_counts = dict(cap.counts)
     out_counts.update(written=written, layout=cap.layout, topic=topic, bag=str(outp))

@@ -32,21 +32,20 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from fluxdrive.can.bridge import (
-    FRAME_FLAG_STALE_COMMAND,
     BridgeConfig,
     CanBridge,
     bus_factory_from_params,
 )
 from fluxdrive.can.protocol import link_budget, smallest_fitting_decimation
+from fluxdrive.drive.plant import FR_SEQ
 from fluxdrive_ros.params import P, declare, on_set
+from fluxdrive_ros.wire import FrameWire, Stamp
 from rclpy.node import Node
 
 from flux_drive_msgs.msg import DutyCommand, PhaseFrame
 from flux_drive_msgs.srv import Arm, ResetFault
 from fluxdrive_ros import access, qos, topics
 
-STATUS_SENSOR_CLIP = 1
-STATUS_STALE_COMMAND = 16
 _SOFTWARE_BUSES = ("virtual", "udp_multicast")  # no wire time: any layout and D "fit"
 
 
@@ -119,6 +118,9 @@ class BenchBridgeNode(Node):
         # the simulated plant's QoS: every reader of /drive/frame matches (volatile ones and
         # the transient-local ones of lockstep graphs); duties read like the plant reads them
         self.pub = self.create_publisher(PhaseFrame, topics.FRAME, qos.SAMPLES)
+        self.wire = FrameWire(self.frame_id)
+        self._stamp_d = 0
+        self._stamp = Stamp(self.ts)
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_subscription(DutyCommand, topics.DUTY, self._on_duty, qos.reader("volatile"))
         self.create_service(Arm, "/drive/arm", self._on_arm)
@@ -167,28 +169,19 @@ class BenchBridgeNode(Node):
             for fr in frames:
                 self.pub.publish(self._to_msg(fr))
 
-    def _to_msg(self, fr: np.ndarray) -> PhaseFrame:
-        m = PhaseFrame()
-        k = int(fr[12])  # classic layout: the sample index, one every D periods
-        t = k * self.ts * self.bridge.decimation
-        m.header.stamp.sec = int(t)
-        m.header.stamp.nanosec = int(round((t - int(t)) * 1e9)) % 1_000_000_000
-        m.header.frame_id = self.frame_id
-        m.seq = max(k, 0)
-        m.i_abc = [float(x) for x in fr[0:3]]
-        m.v_ll = [float(x) for x in fr[3:6]]
-        m.vdc = float(fr[6])
-        m.duty_applied = [float(x) for x in fr[7:10]]
-        m.pwm_enabled = bool(fr[10] > 0.5)
-        m.encoder_counts = float(fr[11])
-        fl = int(fr[13])
-        m.status_flags = (STATUS_SENSOR_CLIP if fl & 1 else 0) | (
-            STATUS_STALE_COMMAND if fl & FRAME_FLAG_STALE_COMMAND else 0)
-        return m
+    def _to_msg(self, fr: np.ndarray) -> bytes:
+        """A decoded sample -> PhaseFrame bytes (the one mapping, fluxdrive.io.messages);
+        seq = the sample index j, one every D periods, stamped j * D * Ts."""
+        k = max(int(fr[FR_SEQ]), 0)
+        fr[FR_SEQ] = k
+        if self._stamp_d != self.bridge.decimation:
+            self._stamp_d = self.bridge.decimation
+            self._stamp = Stamp(self.ts * self._stamp_d)
+        return self.wire.pack(fr, *self._stamp(k))
 
     # ---------------------------------------------------------------- ROS side
     def _on_duty(self, msg: DutyCommand) -> None:
-        if not self.guard.accept_frame_id(msg.header.frame_id):
+        if not self.guard.accept_mark(msg.commander):
             if self.guard.n_rejected <= 3:
                 self.get_logger().warning(f"duty command dropped ({self.guard.last_rejected}); "
                                           f"obeyed only from {self.allowed}")

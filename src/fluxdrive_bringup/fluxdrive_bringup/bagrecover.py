@@ -10,7 +10,7 @@ chunk's messages are used only once the whole chunk was read), stops at the firs
 truncated or corrupt record, and writes every message read so far into a new rosbag2 bag
 (version 9, MCAP, message definitions embedded, the run's custom_data from the
 recording.json the writer left behind) with the same writer as the recorder (rosbags,
-the project's typestore from fluxdrive_bringup.bagio).  It prints the messages recovered
+the project's typestore from fluxdrive.io.bagio).  It prints the messages recovered
 per topic, the time span and, for /drive/frame, the sequence range and any gap.
 """
 
@@ -70,12 +70,12 @@ def is_finalised(mcap: Path) -> bool:
 def recover(bag: Path, out: Path | None = None) -> Recovery:
     """Read what is readable of bag's MCAP file and write it to `out` (default
     <bag>-recovered) as a new, finalised bag."""
+    from fluxdrive.io.bagio import typestore
     from mcap.records import Channel, Chunk, Message, Schema
     from mcap.stream_reader import StreamReader, breakup_chunk
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-    from .bagio import typestore
     from .recorder import _seq
 
     bag = Path(bag)

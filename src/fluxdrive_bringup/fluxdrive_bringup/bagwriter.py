@@ -109,9 +109,8 @@ def flush_chunk(writer, sync: bool = True) -> None:
 def main() -> int:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    from fluxdrive.io.bagio import typestore
     from rosbags.rosbag2 import StoragePlugin, Writer
-
-    from .bagio import typestore
 
     inp = sys.stdin.buffer
     read = inp.read

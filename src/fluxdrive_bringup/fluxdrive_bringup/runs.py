@@ -101,8 +101,7 @@ def result_from_bag(bag: Path, sc, duration_s: float | None = None, wall_s: floa
     """fluxdrive.drive.sim.SimResult from a graph run's bag (the report's input)."""
     from fluxdrive.drive.control import CO_W_REF
     from fluxdrive.drive.sim import DriveSetup, SimResult
-
-    from .bagio import load_run_arrays
+    from fluxdrive.io.bagio import load_run_arrays
 
     shorten(sc, duration_s)
     ds = DriveSetup(sc)

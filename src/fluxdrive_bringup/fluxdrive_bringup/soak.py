@@ -255,13 +255,12 @@ def lockstep_soak(sp: Path, wall_s: float, sample_s: float, max_growth_mb: float
 # ------------------------------------------------------------------ 2. burst replay
 def burst_replay(bag: Path, loops: int, sample_s: float, max_growth_mb: float) -> dict:
     import rclpy
-    from fluxdrive_ros.cdr import Decoder
+    from fluxdrive.io.bagio import topic_counts
+    from fluxdrive.io.cdr import Decoder
     from rclpy.experimental import EventsExecutor
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
     from flux_drive_msgs.msg import PhaseFrame
-
-    from .bagio import topic_counts
 
     n_bag = topic_counts(bag).get(FRAME, 0)
     if n_bag == 0:

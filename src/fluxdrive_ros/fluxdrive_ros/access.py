@@ -11,7 +11,7 @@ rclpy (Jazzy) hands a subscription callback a message_info with time stamps and 
 numbers but *not* the publisher's gid (rmw_message_info_t.publisher_gid is not exposed), and
 a service callback no caller identity at all; so a message cannot be matched against
 `get_publishers_info_by_topic`.  Instead the commanding node signs its messages: the
-DutyCommand's header.frame_id carries "<node name>#<tag>", tag = the first 16 hex digits of
+DutyCommand.commander carries "<node name>#<tag>", tag = the first 16 hex digits of
 HMAC-SHA256(graph key, "<node name>|<topic>").  The graph key is FLUXDRIVE_GRAPH_KEY from
 the environment: the launcher draws a fresh random one per launch (unless set), so every
 process of a graph shares it and a message from another launch -- an old bag played back, a
@@ -22,7 +22,7 @@ play along (a stray `topic pub`, a test tool), by name.
 Limits -- this is a guard against mistakes, not security
 ---------------------------------------------------------
 The mark travels in clear text: anyone who can read /drive/duty on the domain can copy a
-valid frame_id and publish with it while the key is in use; anyone who can read a graph
+valid mark and publish with it while the key is in use; anyone who can read a graph
 process's environment has the key.  Parameter services (param set) and the bridge's `armed`
 parameter are not covered.  The service check relies on graph discovery, which can lag a
 new client by a moment (the request is then refused: fail safe, retry).  Real access
@@ -36,6 +36,8 @@ import hmac
 import os
 from collections import Counter
 from typing import Any
+
+from fluxdrive.io.messages import duty_commander
 
 from .params import P
 
@@ -64,7 +66,7 @@ def tag(node_fqn: str, topic: str, key: bytes | None = None) -> str:
 
 
 def mark(node_fqn: str, topic: str, key: bytes | None = None) -> str:
-    """The header.frame_id a node puts on its commands on `topic`."""
+    """The mark (DutyCommand.commander) a node puts on its commands on `topic`."""
     return f"{node_fqn}#{tag(node_fqn, topic, key)}"
 
 
@@ -81,20 +83,18 @@ class CommandGuard:
         self.last_rejected = ""
 
     def accept_raw(self, data: bytes) -> bool:
-        """A serialised message whose first field is a std_msgs/Header (CDR: stamp, then
-        frame_id's length at byte 12 and its bytes from 16)."""
+        """A serialised DutyCommand (its commander field, read without decoding the rest)."""
         if self.anyone:
             self.accepted += 1
             return True
-        n = int.from_bytes(data[12:16], "little")
-        fid = data[16:16 + n - 1] if n > 0 else b""
+        fid = duty_commander(data)
         if fid in self.valid:
             self.accepted += 1
             return True
         self._reject(fid.decode(errors="replace"))
         return False
 
-    def accept_frame_id(self, frame_id: str) -> bool:
+    def accept_mark(self, frame_id: str) -> bool:
         if self.anyone or frame_id.encode() in self.valid:
             self.accepted += 1
             return True

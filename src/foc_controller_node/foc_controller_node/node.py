@@ -19,7 +19,7 @@ power stage's watchdog switched the PWM off, one log line per latched fault -- i
 engine's fluxdrive.drive.sequencer.ControlSequencer; this node feeds it and publishes.
 
 Bad input and a lost position source (safe state = DutyCommand enable = false, latched
-fault in ControllerState.fault_reason, until an explicit reset: the ~/reset_fault service
+fault in ControllerState.fault_code (its name in fault_reason), until an explicit reset: the ~/reset_fault service
 (flux_drive_msgs/ResetFault, e.g. `./fluxdrive fault reset`), obeyed only while every
 client of it is in `allowed_operators`; the drive then starts again from align / I-f):
 - the engine trips at once on a non-finite frame (bad sample), over-current, DC-bus over-
@@ -206,8 +206,8 @@ class ControllerNode(FluxNode):
               "what was published before the match; the lockstep sim graphs use it)",
               choices=qos.INPUT_DURABILITY_CHOICES, read_only=True),
             P("exit_on_done", True, "exit once the frame named by /drive/done is processed"),
-            P("frame_id", "", "header.frame_id of ControllerState (a DutyCommand carries the "
-              "node's access mark instead)", read_only=True),
+            P("frame_id", "", "header.frame_id of ControllerState and DutyCommand (the access "
+              "mark travels in DutyCommand.commander)", read_only=True),
             diag.PARAM,
             P("allowed_operators", list(access.DEFAULT_OPERATORS), "nodes (fully qualified "
               "names) whose ~/reset_fault requests are obeyed; '*' = anyone",
@@ -221,9 +221,9 @@ class ControllerNode(FluxNode):
         self.stamp = Stamp(card.ts_s)
         self.fw = FrameWire()
         self.ew = EstimateWire("")
-        # DutyCommand.header.frame_id = this node's mark: the plant / bench bridge obey
+        # DutyCommand.commander = this node's mark: the plant / bench bridge obey
         # only marked commands of their allowed_commanders (fluxdrive_ros.access)
-        self.cw = ControlWire(common["frame_id"], duty_frame_id=access.mark(
+        self.cw = ControlWire(common["frame_id"], commander=access.mark(
             self.get_fully_qualified_name(), topics.DUTY))
         # pairing, stale-input trips, lost-interval re-synchronisation: the engine's
         self.seq = ControlSequencer(

@@ -1,0 +1,346 @@
+"""The one mapping between the engine's rows and the per-sample messages.
+
+Every place that turns an engine row into a message or back -- the nodes (publishing CDR
+bytes), the bag writer and reader (fluxdrive.io.bagio), the CAN-capture import
+(fluxdrive.io.canimport), the bench bridge node -- goes through the tables below:
+
+  PhaseFrame      <-> FR_* row (fluxdrive.drive.plant)       FRAME_MAP, seq = FR_SEQ
+  PlantTruth      <-> TR_* row (fluxdrive.drive.plant)       TRUTH_MAP
+  RotorEstimate   <-> ES_* row (fluxdrive.drive.observers)   ESTIMATE_MAP
+  DutyCommand     <-> CO_* row (fluxdrive.drive.control)     DUTY_MAP
+  ControllerState <-> CO_* row (fluxdrive.drive.control)     STATE_MAP
+
+The rows and the message fields are float64 alike, so a row survives a trip through a
+message bit for bit (booleans are 0.0/1.0 in the rows, integers are exact below 2^53).
+Field kinds come from the .msg text: a bool goes out as `row > 0.5`, an integer as int(row).
+
+Conventions the mapping owns:
+- header.stamp is the sample instant t_k = k Ts in integer nanoseconds (`Stamp`).
+- PhaseFrame.status_flags: the engine's frame flag bits are the message's STATUS_* bits
+  (FLAG_CLIP == STATUS_SENSOR_CLIP; the CAN bridge's stale-command bit == STATUS_STALE_COMMAND);
+  a frame read back keeps only FLAG_CLIP (the one bit the observers and controller use).
+- PlantTruth.theta_e goes out as the engine has it, in [0, 2 pi); a negative angle read
+  back (a bag following the message comment) is wrapped into [0, 2 pi).
+- ControllerState.fault_code is the engine's CO_FAULT (DriveFault codes); fault_reason is
+  its name (`fault_name`: an unknown code reads "fault <N>" -- one rule everywhere).
+- DutyCommand.commander carries the sender's access mark (fluxdrive_ros.access);
+  header.frame_id is an ordinary frame name.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+
+from fluxdrive.drive.control import (
+    CO_DA,
+    CO_DB,
+    CO_DC,
+    CO_EN,
+    CO_FAULT,
+    CO_ID,
+    CO_ID_REF,
+    CO_IQ,
+    CO_IQ_REF,
+    CO_MODE,
+    CO_N,
+    CO_TH,
+    CO_VD,
+    CO_VQ,
+    CO_W_FB,
+    CO_W_REF,
+    FAULT_NAMES,
+)
+from fluxdrive.drive.observers import (
+    ES_EA,
+    ES_EB,
+    ES_ERR,
+    ES_LA,
+    ES_LB,
+    ES_N,
+    ES_TH,
+    ES_VALID,
+    ES_W,
+)
+from fluxdrive.drive.plant import (
+    FLAG_CLIP,
+    FR_DA,
+    FR_DB,
+    FR_DC,
+    FR_EN,
+    FR_ENC,
+    FR_FLAGS,
+    FR_IA,
+    FR_IB,
+    FR_IC,
+    FR_N,
+    FR_SEQ,
+    FR_VAB,
+    FR_VBC,
+    FR_VCA,
+    FR_VDC,
+    TR_IA,
+    TR_IB,
+    TR_IC,
+    TR_N,
+    TR_TE,
+    TR_THETA_E,
+    TR_TL,
+    TR_WM,
+)
+from fluxdrive.io import topics
+from fluxdrive.io.cdr import Codec, Decoder, leaves
+
+# PhaseFrame.STATUS_* bits
+STATUS_SENSOR_CLIP = 1
+STATUS_SIMULATED = 2
+STATUS_VOLTAGE_ESTIMATED = 4
+STATUS_DUTY_CLAMPED = 8
+STATUS_STALE_COMMAND = 16
+# engine frame flag bits that travel (the rest of status_flags is the publisher's)
+FRAME_FLAGS_OUT = STATUS_SENSOR_CLIP | STATUS_STALE_COMMAND
+assert FLAG_CLIP == STATUS_SENSOR_CLIP  # the engine's bit is the message's
+
+TWO_PI = 2.0 * math.pi
+
+# ---------------------------------------------------------------- the mapping tables
+# (message field path, engine column); header.stamp and seq are handled by the codecs
+FRAME_MAP: tuple[tuple[str, int], ...] = (
+    ("i_abc[0]", FR_IA), ("i_abc[1]", FR_IB), ("i_abc[2]", FR_IC),
+    ("v_ll[0]", FR_VAB), ("v_ll[1]", FR_VBC), ("v_ll[2]", FR_VCA),
+    ("vdc", FR_VDC),
+    ("duty_applied[0]", FR_DA), ("duty_applied[1]", FR_DB), ("duty_applied[2]", FR_DC),
+    ("pwm_enabled", FR_EN), ("encoder_counts", FR_ENC), ("status_flags", FR_FLAGS),
+)
+TRUTH_MAP: tuple[tuple[str, int], ...] = (
+    ("theta_e", TR_THETA_E), ("omega_m", TR_WM), ("torque_e", TR_TE), ("torque_load", TR_TL),
+    ("i_abc_true[0]", TR_IA), ("i_abc_true[1]", TR_IB), ("i_abc_true[2]", TR_IC),
+)
+ESTIMATE_MAP: tuple[tuple[str, int], ...] = (
+    ("theta_e", ES_TH), ("omega_e", ES_W), ("flux_ab[0]", ES_LA), ("flux_ab[1]", ES_LB),
+    ("emf_ab[0]", ES_EA), ("emf_ab[1]", ES_EB), ("pll_error", ES_ERR), ("valid", ES_VALID),
+)
+DUTY_MAP: tuple[tuple[str, int], ...] = (
+    ("duty[0]", CO_DA), ("duty[1]", CO_DB), ("duty[2]", CO_DC), ("enable", CO_EN),
+)
+STATE_MAP: tuple[tuple[str, int], ...] = (
+    ("i_dq[0]", CO_ID), ("i_dq[1]", CO_IQ), ("i_dq_ref[0]", CO_ID_REF),
+    ("i_dq_ref[1]", CO_IQ_REF), ("v_dq[0]", CO_VD), ("v_dq[1]", CO_VQ),
+    ("omega_ref_m", CO_W_REF), ("omega_fb_m", CO_W_FB), ("theta_used", CO_TH),
+    ("mode", CO_MODE), ("fault_code", CO_FAULT),
+)
+
+# message type -> (mapping, row width)
+MAPS: dict[str, tuple[tuple[tuple[str, int], ...], int]] = {
+    topics.T_FRAME: (FRAME_MAP, FR_N),
+    topics.T_TRUTH: (TRUTH_MAP, TR_N),
+    topics.T_ESTIMATE: (ESTIMATE_MAP, ES_N),
+    topics.T_DUTY: (DUTY_MAP, CO_N),
+    topics.T_STATE: (STATE_MAP, CO_N),
+}
+
+_INT_KINDS = {"int8", "uint8", "int16", "uint16", "int32", "uint32", "int64", "uint64",
+              "byte", "char"}
+
+
+def field_kinds(mtype: str) -> dict[str, str]:
+    """Field path -> ROS primitive kind of a message type (from the .msg text)."""
+    return {lf.path: lf.kind for lf in leaves(mtype)}
+
+
+def fault_name(code: int) -> str:
+    """ControllerState.fault_reason of a fault code (0: no fault, empty)."""
+    code = int(code)
+    if code == 0:
+        return ""
+    return FAULT_NAMES.get(code, f"fault {code}")
+
+
+def post_read(mtype: str, row: np.ndarray) -> None:
+    """The read-back conventions on rows (or a 2-D block of rows) just filled from messages:
+    frame flags keep FLAG_CLIP only; truth angles wrapped into [0, 2 pi)."""
+    if mtype == topics.T_FRAME:
+        f = row[..., FR_FLAGS]
+        ok = ~np.isnan(f)
+        f[ok] = (f[ok].astype(np.int64) & FLAG_CLIP).astype(np.float64)
+    elif mtype == topics.T_TRUTH:
+        th = row[..., TR_THETA_E]
+        row[..., TR_THETA_E] = np.where(th < 0.0, th + TWO_PI, th)
+
+
+# ---------------------------------------------------------------- generated codecs
+def _pack_expr(kind: str, col: int) -> str:
+    if kind == "bool":
+        return f"v[{col}] > 0.5"
+    if kind in _INT_KINDS:
+        return f"int(v[{col}])"
+    return f"v[{col}]"
+
+
+def _unpack_expr(kind: str, i: int) -> str:
+    if kind == "bool":
+        return f"(1.0 if m[{i}] else 0.0)"
+    return f"m[{i}]"
+
+
+class RowCodec:
+    """CDR bytes <-> an engine row for one message type, generated from its mapping table.
+
+    `pack(row, seq, sec, nsec[, xf])` -> bytes (xf: extra PhaseFrame status bits);
+    `unpack(data, out)` fills the mapped columns of `out` and returns seq;
+    `row(values)` -> a new row from Decoder values.  Strings (the header's frame_id, an
+    estimate's variant, ...) are fixed per codec."""
+
+    def __init__(self, mtype: str, strings: dict[str, str] | None = None,
+                 flags_or: int = 0):
+        mapping, self.width = MAPS[mtype]
+        self.mtype = mtype
+        self.codec = Codec(mtype, strings)
+        self.decoder = Decoder(mtype)
+        kinds = field_kinds(mtype)
+        cols = dict(mapping)
+        known = {"header.stamp.sec", "header.stamp.nanosec", "seq"}
+        missing = [f for f in self.codec.fields if f not in cols and f not in known]
+        if missing:  # the mapping must cover every numeric field of the message
+            raise KeyError(f"{mtype}: fields {missing} have no engine column")
+        args = []
+        for f in self.codec.fields:
+            if f == "header.stamp.sec":
+                args.append("sec")
+            elif f == "header.stamp.nanosec":
+                args.append("nsec")
+            elif f == "seq":
+                args.append("seq")
+            elif mtype == topics.T_FRAME and f == "status_flags":
+                args.append(f"(int(v[{cols[f]}]) & {FRAME_FLAGS_OUT}) | {int(flags_or)} | xf")
+            else:
+                args.append(_pack_expr(kinds[f], cols[f]))
+        env: dict = {"_P": self.codec.pack}
+        src = (f"def pack(row, seq, sec, nsec, xf=0):\n    v = row.tolist()\n"
+               f"    return _P({', '.join(args)})\n")
+        exec(src, env)  # noqa: S102 - generated from the mapping table only
+        self.pack: Callable[..., bytes] = env["pack"]
+        idx = {f: i for i, f in enumerate(self.codec.fields)}
+        sets = [f"    out[{c}] = {_unpack_expr(kinds[f], idx[f])}" for f, c in mapping]
+        seq_i = idx["seq"]
+        if mtype == topics.T_FRAME:
+            sets.append(f"    out[{FR_SEQ}] = m[{seq_i}]")
+            sets.append(f"    out[{FR_FLAGS}] = m[{idx['status_flags']}] & {FLAG_CLIP}")
+        elif mtype == topics.T_TRUTH:
+            th = idx["theta_e"]
+            sets[0] = (f"    out[{TR_THETA_E}] = m[{th}] + {TWO_PI!r} if m[{th}] < 0.0 "
+                       f"else m[{th}]")
+        env = {}
+        src = ("def fill(m, out):\n" + "\n".join(sets) + f"\n    return m[{seq_i}]\n")
+        exec(src, env)  # noqa: S102
+        self.fill: Callable[[tuple, np.ndarray], int] = env["fill"]
+
+    def unpack(self, data: bytes, out: np.ndarray) -> int:
+        """Fill the mapped columns of `out` from serialised bytes; returns seq."""
+        return self.fill(self.decoder.decode(data), out)
+
+    def row(self, values: tuple, out: np.ndarray | None = None) -> np.ndarray:
+        """A row (zeros where unmapped) from decoded values (Codec.fields order)."""
+        out = np.zeros(self.width) if out is None else out
+        self.fill(values, out)
+        return out
+
+
+class Stamp:
+    """t_k = k Ts as (sec, nanosec), in integer nanoseconds (Ts is a whole number of ns)."""
+
+    def __init__(self, ts_s: float, offset_ns: int = 0):
+        self.ts_ns = int(round(ts_s * 1e9))
+        self.offset_ns = int(offset_ns)
+
+    def ns(self, k: int) -> int:
+        return k * self.ts_ns + self.offset_ns
+
+    def __call__(self, k: int) -> tuple[int, int]:
+        return divmod(k * self.ts_ns + self.offset_ns, 1_000_000_000)
+
+
+# ---------------------------------------------------------------- per-message helpers
+class FrameWire:
+    """PhaseFrame <-> FR_* row."""
+
+    def __init__(self, frame_id: str = "", extra_flags: int = 0):
+        self.rc = RowCodec(topics.T_FRAME, {"header.frame_id": frame_id}, extra_flags)
+
+    def pack(self, fr: np.ndarray, sec: int, nsec: int, extra_flags: int = 0) -> bytes:
+        return self.rc.pack(fr, int(fr[FR_SEQ]), sec, nsec, extra_flags)
+
+    def unpack(self, data: bytes, out: np.ndarray) -> int:
+        """Fill an FR_* row; returns seq."""
+        return self.rc.unpack(data, out)
+
+
+class TruthWire:
+    """PlantTruth <-> TR_* row (TR_T is not on the wire: t = seq Ts)."""
+
+    def __init__(self, frame_id: str = ""):
+        self.rc = RowCodec(topics.T_TRUTH, {"header.frame_id": frame_id})
+
+    def pack(self, tr: np.ndarray, seq: int, sec: int, nsec: int) -> bytes:
+        return self.rc.pack(tr, seq, sec, nsec)
+
+
+class EstimateWire:
+    """RotorEstimate <-> ES_* row."""
+
+    def __init__(self, variant: str, frame_id: str = ""):
+        self.rc = RowCodec(topics.T_ESTIMATE, {"header.frame_id": frame_id, "variant": variant})
+
+    def pack(self, es: np.ndarray, seq: int, sec: int, nsec: int) -> bytes:
+        return self.rc.pack(es, seq, sec, nsec)
+
+    def unpack(self, data: bytes, out: np.ndarray) -> int:
+        return self.rc.unpack(data, out)
+
+
+class ControlWire:
+    """DutyCommand and ControllerState <-> CO_* row.  `commander`: the sender's access mark
+    (DutyCommand.commander)."""
+
+    def __init__(self, frame_id: str = "", commander: str = ""):
+        self.duty = RowCodec(topics.T_DUTY, {"header.frame_id": frame_id,
+                                             "commander": commander})
+        self.frame_id = frame_id
+        self.state_codecs: dict[int, RowCodec] = {}
+
+    def pack_duty(self, co: np.ndarray, seq: int, sec: int, nsec: int) -> bytes:
+        return self.duty.pack(co, seq, sec, nsec)
+
+    def pack_state(self, co: np.ndarray, seq: int, sec: int, nsec: int) -> bytes:
+        code = int(co[CO_FAULT])
+        c = self.state_codecs.get(code)
+        if c is None:  # one codec per fault text (the string is part of the layout)
+            c = RowCodec(topics.T_STATE, {"header.frame_id": self.frame_id,
+                                          "fault_reason": fault_name(code)})
+            self.state_codecs[code] = c
+        return c.pack(co, seq, sec, nsec)
+
+
+_ROW_CODECS: dict[str, RowCodec] = {}
+
+
+def row_codec(mtype: str) -> RowCodec:
+    """A shared RowCodec of a type (for reading: strings do not matter)."""
+    c = _ROW_CODECS.get(mtype)
+    if c is None:
+        c = _ROW_CODECS[mtype] = RowCodec(mtype)
+    return c
+
+
+def duty_commander(data: bytes) -> bytes:
+    """DutyCommand.commander of a serialised message, without decoding the rest (the power
+    stage checks it on every command): header (stamp, frame_id), seq, duty[3], enable, then
+    the commander string."""
+    n = int.from_bytes(data[12:16], "little")
+    off = 12 + n  # payload offset (after the 4-byte encapsulation header) past frame_id
+    off += (-off) % 8 + 8 + 24 + 1  # seq aligned to 8, duty[3], enable
+    off += (-off) % 4
+    m = int.from_bytes(data[4 + off:8 + off], "little")
+    return bytes(data[8 + off:8 + off + m - 1]) if m > 0 else b""
