@@ -19,7 +19,8 @@ power stage's watchdog switched the PWM off, one log line per latched fault -- i
 engine's fluxdrive.drive.sequencer.ControlSequencer; this node feeds it and publishes.
 
 Bad input and a lost position source (safe state = DutyCommand enable = false, latched
-fault in ControllerState.fault_code (its name in fault_reason), until an explicit reset: the ~/reset_fault service
+fault in ControllerState.fault_code, its name in fault_reason, until an explicit reset: the
+~/reset_fault service
 (flux_drive_msgs/ResetFault, e.g. `./fluxdrive fault reset`), obeyed only while every
 client of it is in `allowed_operators`; the drive then starts again from align / I-f):
 - the engine trips at once on a non-finite frame (bad sample), over-current, DC-bus over-
