@@ -11,7 +11,12 @@ controller, recorder; every message recorded).
                   in the graph's process, the scope's web server, and a page reading every
                   envelope -- a WebSocket client, or with --scope-browser the real page in
                   headless chromium (its redraw rate is reported as scope_page_fps);
-                  scope_cost_pct = 100 (1 - lockstep_rtf_scope / lockstep_rtf)
+                  scope_cost_pct = 100 (1 - lockstep_rtf_scope / lockstep_rtf);
+                  graph_cpu_s_per_sim_s(_scope): CPU seconds of the graph's process (with
+                  its bag writer) per simulated second, without and with the scope, and
+                  scope_cpu_cost_pct from them -- a figure that, unlike the real-time
+                  factor, hardly moves with other load on the machine;
+                  scope_server_cpu_s_per_sim_s: the scope server's own CPU
 
 Options: --duration S (simulated seconds, default 3), --layouts composed,split,separate
 (extra keys lockstep_rtf_<layout>), --repeat N (best of N; with --scope the runs with and
@@ -82,6 +87,7 @@ def bench_graph(argv: list[str]) -> dict:
     try:
         for lay in layouts:
             best: dict[bool, float] = {}
+            cpus: dict[bool, list[dict]] = {}
             for rep in range(args.repeat):
                 for with_scope in ([False, True] if args.scope else [False]):
                     tag = f"{lay}-{rep}" + ("-scope" if with_scope else "")
@@ -91,11 +97,20 @@ def bench_graph(argv: list[str]) -> dict:
                     _say(f"graph ({lay}){what}, run {rep + 1}/{args.repeat}: "
                          f"{args.duration:g} s simulated ...")
                     watcher = ScopeWatcher(args.scope_browser) if with_scope else None
+                    cpu = CpuWatcher()
+
+                    def watch(launcher, watcher=watcher, cpu=cpu) -> None:
+                        import threading
+
+                        threading.Thread(target=cpu.run, args=(launcher,), daemon=True).start()
+                        if watcher is not None:
+                            watcher.run(launcher)
+
                     r = run_graph(sp, out=tmp / f"run-{tag}", bag=bag, layout=lay,
                                   duration_s=args.duration, domain_id=args.domain_id,
                                   quiet=True, timeout=600.0, progress=False,
-                                  scope=with_scope, scope_port=0,
-                                  watch=watcher.run if watcher else None)
+                                  scope=with_scope, scope_port=0, watch=watch)
+                    cpu.stop()
                     if r["code"] != 0 or r["lockstep_rtf"] is None:
                         raise RuntimeError(f"graph run ({lay}) failed (exit {r['code']}); "
                                            f"logs in {tmp / f'run-{tag}' / 'logs'}")
@@ -113,6 +128,12 @@ def bench_graph(argv: list[str]) -> dict:
                         if page["scope_envelopes"] == 0:
                             raise RuntimeError(f"the scope delivered nothing ({lay}); logs in "
                                                f"{tmp / f'run-{tag}' / 'logs'}")
+                    c = cpu.per_sim_s(sc.machine.ts_s)
+                    if c:
+                        extra += (f"; CPU per simulated second: graph process "
+                                  f"{c['graph']:.2f} s" + (f", scope server {c['scope']:.2f} s"
+                                                          if "scope" in c else ""))
+                        cpus.setdefault(with_scope, []).append(c)
                     _say(f"graph ({lay}){what}: {r['frames']} frames in "
                          f"{r['loop_wall_s']:.2f} s = real-time factor "
                          f"{r['lockstep_rtf']:.3f}; bag: {arr['n']} frames, {missing} samples "
@@ -125,6 +146,17 @@ def bench_graph(argv: list[str]) -> dict:
             out[f"lockstep_rtf_{lay}"] = round(best[False], 3)
             if args.scope:
                 out[f"lockstep_rtf_scope_{lay}"] = round(best[True], 3)
+                if cpus.get(False) and cpus.get(True):
+                    # least CPU per simulated second of each: the run least disturbed by
+                    # other load on the machine
+                    g0 = min(c["graph"] for c in cpus[False])
+                    g1 = min(c["graph"] for c in cpus[True])
+                    out[f"graph_cpu_s_per_sim_s_{lay}"] = round(g0, 3)
+                    out[f"graph_cpu_s_per_sim_s_scope_{lay}"] = round(g1, 3)
+                    out[f"scope_cpu_cost_pct_{lay}"] = round(100.0 * (g1 / g0 - 1.0), 1)
+                    sv = [c["scope"] for c in cpus[True] if "scope" in c]
+                    if sv:
+                        out[f"scope_server_cpu_s_per_sim_s_{lay}"] = round(min(sv), 3)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     res = {"lockstep_rtf": out[f"lockstep_rtf_{layouts[0]}"], "in_process_rtf": round(in_rtf, 2),
@@ -135,9 +167,83 @@ def bench_graph(argv: list[str]) -> dict:
         res.update(lockstep_rtf_scope=rs,
                    scope_cost_pct=round(100.0 * (1.0 - rs / res["lockstep_rtf"]), 1),
                    scope_client="chromium" if args.scope_browser else "websocket", **page)
+        for k in ("graph_cpu_s_per_sim_s", "graph_cpu_s_per_sim_s_scope", "scope_cpu_cost_pct",
+                  "scope_server_cpu_s_per_sim_s"):
+            if f"{k}_{layouts[0]}" in out:
+                res[k] = out[f"{k}_{layouts[0]}"]
     if len(layouts) > 1:
         res.update(out)
     return res
+
+
+class CpuWatcher:
+    """CPU time of the graph's process (the plant's, with its helper processes) and of the
+    scope server against the plant's progress: CPU seconds per simulated second over the
+    middle of the run (start-up and finalising left out).  Unlike the real-time factor it
+    hardly depends on what else the machine is doing."""
+
+    def __init__(self):
+        import threading
+
+        self.done = threading.Event()
+        self.samples: list[tuple[int, float, float]] = []  # (k, graph cpu, scope cpu)
+
+    @staticmethod
+    def _cpu(p) -> float:
+        try:
+            t = p.cpu_times()
+            tot = t.user + t.system
+            for ch in p.children(recursive=True):
+                try:
+                    c = ch.cpu_times()
+                    tot += c.user + c.system
+                except Exception:  # noqa: BLE001 - gone meanwhile
+                    pass
+            return tot
+        except Exception:  # noqa: BLE001 - the process ended
+            return float("nan")
+
+    def run(self, launcher) -> None:
+        import psutil
+
+        graph = scope = None
+        while not self.done.is_set():
+            time.sleep(0.2)
+            if graph is None:
+                for p in launcher.procs:
+                    if p.popen is None:
+                        continue
+                    if any(n.node == "plant" for n in p.nodes):
+                        graph = psutil.Process(p.popen.pid)
+                    elif any(n.name == "scope" for n in p.nodes):
+                        scope = psutil.Process(p.popen.pid)
+                if graph is None:
+                    continue
+            prog = launcher.progress
+            if prog is None:
+                continue
+            self.samples.append((prog[0], self._cpu(graph),
+                                 self._cpu(scope) if scope is not None else float("nan")))
+            if prog[0] >= prog[1]:
+                break
+
+    def stop(self) -> None:
+        self.done.set()
+
+    def per_sim_s(self, ts_s: float) -> dict[str, float]:
+        import math
+
+        if not self.samples:
+            return {}
+        n = self.samples[-1][0]
+        mid = [s for s in self.samples if 0.1 * n <= s[0] <= 0.9 * n and math.isfinite(s[1])]
+        if len(mid) < 2 or mid[-1][0] <= mid[0][0]:
+            return {}
+        dk = (mid[-1][0] - mid[0][0]) * ts_s
+        out = {"graph": (mid[-1][1] - mid[0][1]) / dk}
+        if math.isfinite(mid[0][2]) and math.isfinite(mid[-1][2]):
+            out["scope"] = (mid[-1][2] - mid[0][2]) / dk
+        return out
 
 
 class ScopeWatcher:
@@ -170,6 +276,7 @@ class ScopeWatcher:
                 _say(f"scope client: {type(exc).__name__}: {exc}")
 
     def _ws(self, url: str) -> None:
+        from websockets.exceptions import ConnectionClosed
         from websockets.sync.client import connect
 
         ws_url = url.replace("http://", "ws://").replace("/?token=", "/ws?token=")
@@ -179,6 +286,8 @@ class ScopeWatcher:
                     m = ws.recv(timeout=0.5)
                 except TimeoutError:
                     continue
+                except ConnectionClosed:  # the scope ends with the run
+                    return
                 if m.startswith('{"hello"'):
                     continue
                 self.n += 1

@@ -243,6 +243,7 @@ class Scope:
         self.args = args
         self.token = args.token or secrets.token_urlsafe(18)
         self.clients: set = set()
+        self.sockets: set = set()
         self.loop: asyncio.AbstractEventLoop | None = None
         self.latest: str | None = None
         self.sent = 0
@@ -296,6 +297,7 @@ class Scope:
         await sock.prepare(request)
         q: asyncio.Queue = asyncio.Queue(maxsize=2)
         self.clients.add(q)
+        self.sockets.add(sock)
         await sock.send_str(json.dumps({"hello": {"domain_id": self.args.domain_id,
                                                   "modes": MODE_NAMES}}))
         if self.latest:
@@ -315,6 +317,7 @@ class Scope:
         finally:
             task.cancel()
             self.clients.discard(q)
+            self.sockets.discard(sock)
         return sock
 
     async def api_nodes(self, request):
@@ -439,6 +442,8 @@ class Scope:
                     await asyncio.sleep(1.0)  # the last envelopes reach the page
                     break
         finally:
+            for sock in list(self.sockets):  # a clean close: the page says "disconnected"
+                await sock.close(code=1001, message=b"scope stopped")
             await runner.cleanup()
             self.params.close()
             self.ros.close()
