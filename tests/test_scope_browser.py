@@ -86,6 +86,7 @@ def test_scope_page_in_chromium(tmp_path):
                 if row.count():
                     break
                 page.click("#reload")
+            page.locator('details[data-node="/controller"]').evaluate("e => e.open = true")
             row.locator("input").fill("0.07")
             row.locator("input").press("Enter")
             status = row.locator(".status")

@@ -8,8 +8,9 @@ launch; every page, API call and WebSocket must carry it).  `./fluxdrive run/dem
 
 Parts (one process):
 - a ROS thread (rclpy context of its own, node /fluxdrive_scope): subscribes to the display
-  envelopes of the scope tap (/scope/envelope, fluxdrive_bringup.scope_tap) and forwards
-  each one, as it is, to every open page over a WebSocket; publishes a ParameterMarker on
+  envelopes of the scope tap (/scope/envelope, fluxdrive_bringup.scope_tap: binary, so that
+  the graph's process does not pay for JSON), turns each into the page's JSON and forwards
+  it to every open page over a WebSocket; publishes a ParameterMarker on
   /drive/param_marker for every parameter set from the page (the recorder records it, so
   the bag shows when the operator changed what); if no tap publishes within --attach-wait,
   it starts one in this process (every sample then crosses DDS: works, costs the graph
@@ -33,6 +34,7 @@ import concurrent.futures
 import json
 import os
 import secrets
+import struct
 import sys
 import threading
 import time
@@ -54,7 +56,7 @@ class RosSide:
         import rclpy
         from fluxdrive_ros.topics import msg_class
         from rclpy.executors import SingleThreadedExecutor
-        from std_msgs.msg import String, UInt64
+        from std_msgs.msg import UInt8MultiArray, UInt64
 
         from fluxdrive_ros import qos, topics
 
@@ -73,11 +75,22 @@ class RosSide:
         self.local_tap = None
         self.quiet = quiet
 
-        def on_env(msg: String) -> None:
-            self.n_envelopes += 1
-            on_envelope(msg.data)
+        from .scope_tap import page_json
 
-        self.sub = self.node.create_subscription(String, topics.SCOPE_ENVELOPE, on_env, 10)
+        def on_env(data: bytes) -> None:
+            self.n_envelopes += 1
+            try:
+                text, seq, ts_s = page_json(data)
+            except (ValueError, KeyError, struct.error) as exc:
+                if self.n_envelopes < 5:
+                    print(f"scope: bad envelope message ({exc}); is the tap another version?",
+                          flush=True)
+                return
+            self.note_envelope(seq, ts_s)
+            on_envelope(text)
+
+        self.sub = self.node.create_subscription(UInt8MultiArray, topics.SCOPE_ENVELOPE,
+                                                 on_env, 10, raw=True)
         self.node.create_subscription(UInt64, topics.DONE, lambda m: self.done.set(),
                                       qos.LATCHED)
         self.marker_cls = msg_class(topics.T_MARKER)
@@ -258,16 +271,6 @@ class Scope:
 
     def _broadcast(self, text: str) -> None:
         self.latest = text
-        if self.ros is not None:
-            try:  # the newest seq/ts for markers, without parsing the whole document
-                head = text[:200]
-                i = head.find('"ts_s":')
-                ts = float(head[i + 7:head.index(",", i)]) if i >= 0 else 1e-4
-                j = text.rfind('"seq":')
-                seq = int(text[j + 6:text.index("}", j)]) if j >= 0 else -1
-                self.ros.note_envelope(seq, ts)
-            except ValueError:
-                pass
         for q in list(self.clients):
             if q.full():  # a slow page skips periods instead of building a backlog
                 q.get_nowait()

@@ -20,7 +20,8 @@ Envelope JSON (one object per period)::
     {"v": 1, "ts_s": 1e-4, "bucket": 20, "seq": newest frame seq, "wall": time.time(),
      "rates": {topic: messages/s}, "mode": controller mode, "fault": fault reason or "",
      "enable": duty enable, "observers": [names],
-     "streams": {stream: {"k": [bucket index...], "f": {field: [[min...], [max...]]}}},
+     "streams": {stream: {"k": [bucket index...], "n": [field names],
+                          "lo": [[min of each field] per bucket], "hi": [[max ...] ...]}},
      "locus": {observer: [[x...], [y...]]}}
 
 Streams: "state" (i_d, i_q, i_d_ref, i_q_ref [A], speed_ref, speed_fb [rpm], mode),
@@ -35,6 +36,7 @@ from __future__ import annotations
 import json
 import math
 import re
+import struct
 import time
 from collections.abc import Callable
 
@@ -43,7 +45,7 @@ from fluxdrive_ros.cdr import Decoder
 from fluxdrive_ros.intra import RawSubscription
 from fluxdrive_ros.params import P, declare, on_set
 from fluxdrive_ros.runner import FluxNode, main_node
-from std_msgs.msg import String
+from std_msgs.msg import UInt8MultiArray
 
 from fluxdrive_ros import qos, topics
 
@@ -55,20 +57,36 @@ _EST_RE = re.compile(r"^/obs/([^/]+)/estimate$")
 
 def decode_batch(dec: Decoder, msgs: list[bytes], paths: list[str]) -> np.ndarray:
     """Columns `paths` of a list of serialised messages as an (n, len(paths)) float array,
-    decoded with numpy over the codec's fixed layout (one frombuffer per string layout)."""
+    decoded with numpy over the codec's fixed layout: one join and one frombuffer while the
+    layout holds (the strings of a publisher are constant; a controller's fault reason
+    changes its length), else one per layout."""
     out = np.empty((len(msgs), len(paths)))
     if not msgs:
         return out
-    lens = {len(m) for m in msgs}
-    groups = [(np.arange(len(msgs)), msgs)] if len(lens) == 1 else [
-        (np.array(ix), [msgs[i] for i in ix])
-        for ix in ([i for i, m in enumerate(msgs) if len(m) == n] for n in sorted(lens))]
-    for ix, part in groups:
-        codec = dec.codec_for(part[0])
-        arr = np.frombuffer(b"".join(part), dtype=codec.numpy_dtype())
-        for j, p in enumerate(paths):
-            out[ix, j] = arr[f"f{codec.index(p)}"]
+    buf = b"".join(msgs)
+    n0 = len(msgs[0])
+    if len(buf) == n0 * len(msgs) and len(msgs[-1]) == n0:
+        groups = [(slice(None), msgs[0], buf)]
+    else:
+        by_len: dict[int, list[int]] = {}
+        for i, m in enumerate(msgs):
+            by_len.setdefault(len(m), []).append(i)
+        groups = [(np.array(ix), msgs[ix[0]], b"".join(msgs[i] for i in ix))
+                  for ix in by_len.values()]
+    for ix, first, data in groups:
+        codec = dec.codec_for(first)
+        key = (id(codec), tuple(paths))
+        hit = _LAYOUTS.get(key)
+        if hit is None or hit[0] is not codec:
+            hit = _LAYOUTS[key] = (codec, codec.numpy_dtype(),
+                                   [f"f{codec.index(p)}" for p in paths])
+        arr = np.frombuffer(data, dtype=hit[1])
+        for j, name in enumerate(hit[2]):
+            out[ix, j] = arr[name]
     return out
+
+
+_LAYOUTS: dict[tuple, tuple] = {}  # (codec, paths) -> (codec, numpy dtype, field names)
 
 
 def envelope(seq: np.ndarray, cols: np.ndarray, bucket: int
@@ -77,30 +95,76 @@ def envelope(seq: np.ndarray, cols: np.ndarray, bucket: int
     bucket gives NaN).  seq need not be sorted."""
     if len(seq) == 0:
         return np.empty(0, np.int64), np.empty((0, cols.shape[1])), np.empty((0, cols.shape[1]))
-    order = np.argsort(seq, kind="stable")
-    seq, cols = seq[order], cols[order]
+    if len(seq) > 1 and (seq[1:] < seq[:-1]).any():
+        order = np.argsort(seq, kind="stable")
+        seq, cols = seq[order], cols[order]
     k = seq // bucket
-    starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
-    lo = np.where(np.isnan(cols), np.inf, cols)
-    hi = np.where(np.isnan(cols), -np.inf, cols)
-    mn = np.minimum.reduceat(lo, starts, axis=0)
-    mx = np.maximum.reduceat(hi, starts, axis=0)
-    mn[np.isinf(mn)] = np.nan
-    mx[np.isinf(mx)] = np.nan
-    return k[starts], mn, mx
+    starts = np.flatnonzero(np.diff(k, prepend=k[0] - 1))
+    return k[starts], np.fmin.reduceat(cols, starts, axis=0), np.fmax.reduceat(cols, starts,
+                                                                                axis=0)
 
 
 def wrap_deg(x: np.ndarray) -> np.ndarray:
     return (x + 180.0) % 360.0 - 180.0
 
 
-def _jsonable(a: np.ndarray, decimals: int) -> list:
-    """A float array as a JSON list, rounded; NaN -> null."""
-    r = np.round(a, decimals)
-    out = r.tolist()
-    if np.isnan(r).any():
-        out = [None if v != v else v for v in out]
-    return out
+# ----------------------------------------------------------------- the wire format
+# /scope/envelope carries a std_msgs/UInt8MultiArray (published as raw CDR) whose data is:
+# u32 n, n bytes of JSON (every scalar, and per stream its name, field names, decimals and
+# bucket count, per locus its point count), zero padding to 8 bytes, then little-endian
+# float64 arrays in the order the JSON lists them: per stream k[nb], lo[nb, nf], hi[nb, nf];
+# per locus xy[2, np].  Binary because the graph's process pays for every Python call: the
+# JSON for the page (rounded numbers) is made by the scope server, in its own process.
+_U32 = struct.Struct("<I")
+_CDR_HEAD = b"\x00\x01\x00\x00" + _U32.pack(0) + _U32.pack(0)  # encapsulation, no dims, offset 0
+
+
+def pack_envelopes(doc: dict) -> bytes:
+    head = {k: v for k, v in doc.items() if k not in ("streams", "locus")}
+    arrays = []
+    head["streams"] = []
+    for name, st in doc["streams"].items():
+        head["streams"].append({"name": name, "n": st["n"], "dec": st["dec"], "nb": len(st["k"])})
+        arrays += [st["k"].astype("<f8"), st["lo"].astype("<f8"), st["hi"].astype("<f8")]
+    head["locus"] = []
+    for name, xy in doc["locus"].items():
+        head["locus"].append({"name": name, "np": xy.shape[1]})
+        arrays.append(xy.astype("<f8"))
+    hj = json.dumps(head, separators=(",", ":")).encode()
+    pad = b"\0" * ((-(4 + len(hj))) % 8)
+    data = b"".join([_U32.pack(len(hj)), hj, pad, *(a.tobytes() for a in arrays)])
+    return _CDR_HEAD + _U32.pack(len(data)) + data
+
+
+def page_json(cdr: bytes) -> tuple[str, int, float]:
+    """A /scope/envelope message (raw CDR) -> the page's JSON text (numbers rounded per
+    field; NaN -> null), the newest seq and the sample period."""
+    data = memoryview(cdr)[16:]
+    (n,) = _U32.unpack_from(data, 0)
+    head = json.loads(bytes(data[4:4 + n]))
+    off = 4 + n + (-(4 + n)) % 8
+
+    def take(count: int) -> np.ndarray:
+        nonlocal off
+        a = np.frombuffer(data, dtype="<f8", count=count, offset=off)
+        off += 8 * count
+        return a
+
+    streams = {}
+    for st in head.pop("streams"):
+        nb, nf = st["nb"], len(st["n"])
+        q = 10.0 ** np.array(st["dec"], dtype=float)
+        k = take(nb)
+        lo, hi = take(nb * nf).reshape(nb, nf), take(nb * nf).reshape(nb, nf)
+        streams[st["name"]] = {"k": k.astype(np.int64).tolist(), "n": st["n"],
+                               "lo": (np.round(lo * q) / q).tolist(),
+                               "hi": (np.round(hi * q) / q).tolist()}
+    locus = {}
+    for lc in head.pop("locus"):
+        locus[lc["name"]] = (np.round(take(2 * lc["np"]).reshape(2, -1) * 1e4) / 1e4).tolist()
+    head["streams"], head["locus"] = streams, locus
+    text = json.dumps(head, separators=(",", ":")).replace("NaN", "null")  # JSON has no NaN
+    return text, int(head.get("seq", -1)), float(head.get("ts_s", 1e-4))
 
 
 # stream -> (message type, [(field name, message path(s), transform, decimals)])
@@ -114,26 +178,29 @@ STATE_FIELDS = [
     ("i_d_ref", _col("i_dq_ref[0]"), 3), ("i_q_ref", _col("i_dq_ref[1]"), 3),
     ("speed_ref", _col("omega_ref_m", RPM_PER_RAD_S), 2),
     ("speed_fb", _col("omega_fb_m", RPM_PER_RAD_S), 2),
-    ("mode", _col("mode"), 0),
 ]
 STATE_PATHS = ["seq", "i_dq[0]", "i_dq[1]", "i_dq_ref[0]", "i_dq_ref[1]", "omega_ref_m",
                "omega_fb_m", "mode"]
 DUTY_FIELDS = [("a", _col("duty[0]"), 4), ("b", _col("duty[1]"), 4), ("c", _col("duty[2]"), 4)]
 DUTY_PATHS = ["seq", "duty[0]", "duty[1]", "duty[2]", "enable"]
 TRUTH_PATHS = ["seq", "theta_e", "omega_m"]
-EST_PATHS = ["seq", "theta_e", "omega_e", "flux_ab[0]", "flux_ab[1]", "valid"]
+EST_PATHS = ["seq", "theta_e", "omega_e", "flux_ab[0]", "flux_ab[1]"]
 
 
 class ScopeTapNode(FluxNode):
     def __init__(self, name: str = "scope_tap", namespace: str | None = None, **kw):
         super().__init__(name, namespace, **kw)
         self.specs = [
-            P("period_s", 1.0 / 30.0, "publish the envelopes this often (the page's data "
+            P("period_s", 0.04, "publish the envelopes this often (the page's data "
               "rate) (live)", "s", 0.01, 1.0),
             P("bucket_samples", 20, "samples per envelope bucket (min/max over each bucket; "
               "the page shows one bucket per pixel or so) (live)", "-", 1, 10000),
             P("locus_points", 60, "flux-locus points per observer and period (every n-th "
               "sample) (live)", "-", 1, 2000),
+            P("max_cpu_share", 0.04, "at most this share of its process's CPU time goes to "
+              "the envelopes: a period is skipped (its samples go into the next) while the "
+              "tap is over it, so a slow or loaded graph is not slowed further (live)", "-",
+              0.001, 1.0),
         ]
         pv = declare(self, self.specs)
         fixed = declare(self, [
@@ -166,7 +233,10 @@ class ScopeTapNode(FluxNode):
         self.truth_seq = np.empty(0, np.int64)
         self.truth_th = np.empty(0)
         self.last_t = time.monotonic()
-        self.pub = self.create_publisher(String, topics.SCOPE_ENVELOPE, ENVELOPE_QOS)
+        self.cpu_tap = 0.0  # CPU seconds spent in _tick since the tap became active
+        self.cpu_proc0 = 0.0  # process CPU time when it became active
+        self.skipped = 0
+        self.pub = self.create_publisher(UInt8MultiArray, topics.SCOPE_ENVELOPE, ENVELOPE_QOS)
         for topic, mtype in ((topics.CONTROLLER_STATE, topics.T_STATE),
                              (topics.DUTY, topics.T_DUTY), (topics.TRUTH, topics.T_TRUTH)):
             self._subscribe(topic, mtype)
@@ -228,18 +298,27 @@ class ScopeTapNode(FluxNode):
         return out
 
     def _tick(self) -> None:
+        c0 = time.process_time()  # CPU time of the whole process (every thread)
+        was = self.active
+        self.active = self.pub.get_subscription_count() > 0
+        if not was or not self.active:
+            for lst in self.buf.values():
+                lst.clear()
+            self.cpu_tap, self.cpu_proc0 = 0.0, c0
+            self.last_t = time.monotonic()
+            return
+        # CPU budget: skip this period while the tap has had more than its share
+        if self.cpu_tap > self.pv["max_cpu_share"] * (c0 - self.cpu_proc0):
+            self.skipped += 1
+            return
         now = time.monotonic()
         dt = max(now - self.last_t, 1e-6)
         self.last_t = now
-        was = self.active
-        self.active = self.pub.get_subscription_count() > 0
-        if not was:
-            for lst in self.buf.values():
-                lst.clear()
-            return
         msgs = {t: self._take(t) for t in self.buf}
         doc = self.envelopes(msgs, dt)
-        self.pub.publish(String(data=json.dumps(doc, separators=(",", ":"))))
+        doc["skipped"] = self.skipped
+        self.pub.publish(pack_envelopes(doc))  # raw CDR of a UInt8MultiArray
+        self.cpu_tap += time.process_time() - c0
 
     def envelopes(self, msgs: dict[str, list[bytes]], dt: float) -> dict:
         """The envelope document of one period's messages (see the module doc)."""
@@ -255,9 +334,10 @@ class ScopeTapNode(FluxNode):
                 return
             cols = np.stack([f[1] for f in fields], axis=1)
             k, mn, mx = envelope(seq.astype(np.int64), cols, b)
-            streams[stream] = {"k": k.tolist(), "f": {
-                name: [_jsonable(mn[:, j], d), _jsonable(mx[:, j], d)]
-                for j, (name, _, d) in enumerate(fields)}}
+            q = [f[2] for f in fields]
+            # rows = buckets, columns = the fields in "n" order
+            streams[stream] = {"k": k, "n": [f[0] for f in fields], "dec": q, "lo": mn,
+                               "hi": mx}
 
         # controller state (+ the drive's mode and latched fault)
         st = msgs.get(topics.CONTROLLER_STATE, [])
@@ -309,10 +389,9 @@ class ScopeTapNode(FluxNode):
             fx, fy = a[:, 3], a[:, 4]
             put(f"est/{name}", s, [("theta", wrap_deg(a[:, 1] * DEG), 2), ("err", err, 2),
                                    ("omega_e", a[:, 2], 3),
-                                   ("flux_mag", np.hypot(fx, fy) * 1e3, 4),
-                                   ("valid", a[:, 5], 0)])
+                                   ("flux_mag", np.hypot(fx, fy) * 1e3, 4)])
             n = max(1, len(s) // step)
-            doc["locus"][name] = [_jsonable(fx[::n] * 1e3, 4), _jsonable(fy[::n] * 1e3, 4)]
+            doc["locus"][name] = np.stack([fx[::n], fy[::n]]) * 1e3
         doc["seq"] = seq_max
         return doc
 

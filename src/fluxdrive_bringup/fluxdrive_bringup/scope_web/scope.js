@@ -38,27 +38,30 @@ function ingest(doc) {
   if (seq >= 0 && stats.lastSeq >= 0 && seq < stats.lastSeq - 1000) resetStore(); // a new run
   if (seq >= 0) { stats.lastSeq = seq; stats.simT = seq * tsS; }
   for (const [name, st] of Object.entries(doc.streams)) {
+    // st: k = bucket indices, n = field names, lo/hi = rows (one per bucket) of the fields
     let s = store[name];
     if (!s) s = store[name] = { k: [], f: {} };
     const n0 = s.k.length;
-    for (const f of Object.keys(st.f)) {
+    const col = {};
+    st.n.forEach((f, j) => {
+      col[f] = j;
       if (!s.f[f]) s.f[f] = [new Array(n0).fill(null), new Array(n0).fill(null)];
-    }
+    });
     let start = 0;
     if (n0 && st.k.length && st.k[0] === s.k[n0 - 1]) { // a bucket cut by the period: merge
-      for (const [f, [mn, mx]] of Object.entries(st.f)) {
+      for (const [f, j] of Object.entries(col)) {
         const a = s.f[f];
-        a[0][n0 - 1] = minN(a[0][n0 - 1], mn[0]);
-        a[1][n0 - 1] = maxN(a[1][n0 - 1], mx[0]);
+        a[0][n0 - 1] = minN(a[0][n0 - 1], st.lo[0][j]);
+        a[1][n0 - 1] = maxN(a[1][n0 - 1], st.hi[0][j]);
       }
       start = 1;
     }
     for (let i = start; i < st.k.length; i++) {
       s.k.push(st.k[i]);
       for (const [f, a] of Object.entries(s.f)) {
-        const src = st.f[f];
-        a[0].push(src ? src[0][i] : null);
-        a[1].push(src ? src[1][i] : null);
+        const j = col[f];
+        a[0].push(j === undefined ? null : st.lo[i][j]);
+        a[1].push(j === undefined ? null : st.hi[i][j]);
       }
     }
   }
@@ -72,6 +75,7 @@ function ingest(doc) {
   updateDrive(doc);
   const obs = doc.observers || [];
   if (obs.join(",") !== observers.join(",")) { observers = obs; buildCharts(); }
+  noteArrival();
   dirty = true;
 }
 
@@ -235,11 +239,38 @@ function drawLocus(ch) {
   });
 }
 
-function redraw() {
-  for (const ch of charts) {
-    if (ch.u) ch.u.setData(chartData(ch.def));
-    else drawLocus(ch);
+// The page scrolls smoothly at up to FPS frames a second whatever the data rate: the window's
+// right edge follows the newest data at the sample rate observed between documents, a little
+// behind it, and each frame re-draws every chart at the new edge.
+const FPS = 30;
+let tShow = 0, simRate = 0, arrInt = 40, lastArrWall = null, lastArrT = 0, lastFrameWall = 0;
+let dataDirty = false;
+
+function noteArrival() {
+  const now = performance.now();
+  if (lastArrWall !== null && now > lastArrWall) {
+    const r = (stats.simT - lastArrT) / (now - lastArrWall);  // sim s per wall ms
+    if (r >= 0 && isFinite(r)) simRate = simRate ? 0.8 * simRate + 0.2 * r : r;
+    arrInt = 0.8 * arrInt + 0.2 * Math.min(now - lastArrWall, 2000);  // ms between documents
   }
+  lastArrWall = now; lastArrT = stats.simT;
+  dataDirty = true;
+}
+
+function redraw(now) {
+  const dt = lastFrameWall ? now - lastFrameWall : 0;
+  const lagMax = simRate * arrInt * 1.3;  // about one document behind the newest data
+  tShow = Math.min(stats.simT, Math.max(tShow + simRate * dt, stats.simT - lagMax));
+  const win = winS();
+  for (const ch of charts) {
+    if (ch.u) {
+      ch.u.batch(() => {
+        if (dataDirty) ch.u.setData(chartData(ch.def), false);
+        ch.u.setScale("x", { min: tShow - win, max: tShow });
+      });
+    } else if (dataDirty) drawLocus(ch);
+  }
+  dataDirty = false;
 }
 
 function resize() {
@@ -248,8 +279,15 @@ function resize() {
 }
 window.addEventListener("resize", resize);
 
-function frame() {
-  if (dirty && !paused()) { redraw(); dirty = false; stats.redraws++; }
+function frame(now) {
+  const moving = dirty || dataDirty || tShow < stats.simT;  // nothing new: no redraw
+  if (moving && !paused() && stats.lastSeq >= 0 && now - lastFrameWall >= 1000 / FPS - 2) {
+    if (dirty) dataDirty = true;
+    redraw(now);
+    lastFrameWall = now;
+    dirty = false;
+    stats.redraws++;
+  }
   requestAnimationFrame(frame);
 }
 
@@ -336,8 +374,7 @@ function paramRow(node, p) {
 
 function escapeHtml(s) { return String(s).replace(/[&<>"]/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;" }[c])); }
 
-const openNodes = new Set();  // sections the user opened (kept across reloads)
-let loadedOnce = false;
+const openNodes = new Set(), closedNodes = new Set();  // the user's choice, kept across reloads
 
 async function loadParams() {
   $("nodes").textContent = "loading…";
@@ -351,8 +388,12 @@ async function loadParams() {
     for (const n of j.nodes) {
       const d = document.createElement("details");
       d.dataset.node = n.node;
-      d.open = openNodes.has(n.node) || (!loadedOnce && n.node === "/controller");
-      d.addEventListener("toggle", () => { if (d.open) openNodes.add(n.node); else openNodes.delete(n.node); });
+      // open: what the user opened, and the controller unless the user closed it
+      d.open = openNodes.has(n.node) || (n.node === "/controller" && !closedNodes.has(n.node));
+      d.addEventListener("toggle", () => {
+        if (d.open) { openNodes.add(n.node); closedNodes.delete(n.node); }
+        else { openNodes.delete(n.node); closedNodes.add(n.node); }
+      });
       d.innerHTML = `<summary>${n.node} <small>(${n.params.length})</small></summary>`;
       const t = document.createElement("table");
       for (const p of n.params) t.appendChild(paramRow(n.node, p));
@@ -360,7 +401,6 @@ async function loadParams() {
       d.appendChild(t);
       host.appendChild(d);
     }
-    loadedOnce = true;
     document.body.dataset.params = "loaded";
   } catch (e) {
     $("nodes").textContent = "cannot load parameters: " + e;
