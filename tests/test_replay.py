@@ -136,11 +136,11 @@ def test_cli_report_plots_and_augmented_bag(bags, tmp_path, capsys):
 def test_no_truth_uses_encoder(run, tmp_path):
     p = write_run_bag(run, tmp_path / "notruth", truth=False, ctrl=False, duty=False)
     b = read_run_bag(p)
-    res = replay_bag(b, [parse_variant("paper")])
+    res = replay_bag(b, [parse_variant("paper_robust")])
     assert res.truth_source == "encoder"
     from fluxdrive.analysis.metrics import compute
 
-    assert compute(res)["observers"]["paper"]["theta_err_rms_deg"] < 5.0
+    assert compute(res)["observers"]["paper_robust"]["theta_err_rms_deg"] < 5.0
 
 
 def test_sweep_parallel_with_progress_and_plot(bags, tmp_path, capsys):

@@ -405,31 +405,73 @@ def _bandwidth_from_tf(tf_fn, f_lo: float, f_hi: float) -> float:
     return float(f[below[0]]) if below.size else float(f_hi)
 
 
+def _peak_db(tf_fn, f_lo: float, f_hi: float) -> float:
+    """Largest closed-loop gain over [f_lo, f_hi] in dB (0 dB for a loop that never peaks)."""
+    f = np.geomspace(f_lo, f_hi, 4000)
+    return float(20.0 * np.log10(max(float(np.max(np.abs(tf_fn(f)))), 1e-300)))
+
+
+def _largest_gain(bw_of, peak_of, target_hz: float, peak_limit_db: float, lo: float,
+                  hi: float) -> tuple[float, bool]:
+    """The one design rule of every loop: the gain scale g whose -3 dB bandwidth is the
+    target, unless that peaks by more than the limit -- then the largest g that peaks by
+    exactly the limit (the best the feedback path allows).  Returns (g, limited)."""
+    a, b = lo, hi
+    for _ in range(50):
+        mid = 0.5 * (a + b)
+        if bw_of(mid) < target_hz:
+            a = mid
+        else:
+            b = mid
+    g = 0.5 * (a + b)
+    if peak_of(g) <= peak_limit_db:
+        return g, False
+    # peaking is not monotonic in g (too little gain leaves the PI's integral underdamped):
+    # walk down from the target's gain to the first one within the limit, then refine
+    grid = np.geomspace(g, lo, 60)
+    peaks = [peak_of(x) for x in grid]
+    ok = [i for i, pk in enumerate(peaks) if pk <= peak_limit_db]
+    if not ok:  # nothing within the limit: the least peaking gain
+        return float(grid[int(np.argmin(peaks))]), True
+    a, b = float(grid[ok[0]]), float(grid[ok[0] - 1])
+    for _ in range(30):
+        mid = 0.5 * (a + b)
+        if peak_of(mid) <= peak_limit_db:
+            a = mid
+        else:
+            b = mid
+    return a, True
+
+
 def design_current_loop(card: MachineCard, bandwidth_hz: float, r_hat: float | None = None,
-                        l_hat: float | None = None) -> tuple[float, float]:
-    """(K_p [V/A], K_i [V/(A s)]) giving the requested -3 dB bandwidth of i_d/i_d*."""
+                        l_hat: float | None = None, peak_limit_db: float = 3.0
+                        ) -> tuple[float, float]:
+    """(K_p [V/A], K_i [V/(A s)]) giving the requested -3 dB bandwidth of i_d/i_d*, or the
+    highest the peaking limit allows (see `design_loops`)."""
+    d = _design_current(card, bandwidth_hz, r_hat, l_hat, peak_limit_db)
+    return d[0], d[1]
+
+
+def _design_current(card: MachineCard, bandwidth_hz: float, r_hat: float | None,
+                    l_hat: float | None, peak_limit_db: float):
     r = card.resistance_ohm if r_hat is None else r_hat
     lind = card.inductance_h if l_hat is None else l_hat
     ts = card.ts_s
     w = 2 * math.pi * bandwidth_hz
     nyq = 0.5 / ts
 
-    def bw(g: float) -> float:
-        return _bandwidth_from_tf(
-            lambda f: _current_loop_tf(g * lind * w, g * r * w, r, lind, ts, f), 1.0, nyq)
+    def tf(g: float):
+        return lambda f: _current_loop_tf(g * lind * w, g * r * w, r, lind, ts, f)
 
-    lo, hi = 0.05, 2.0
-    if bw(hi) < bandwidth_hz:
+    hi = 2.0
+    if _bandwidth_from_tf(tf(hi), 1.0, nyq) < bandwidth_hz:
         raise ConfigError(f"current-loop bandwidth {bandwidth_hz} Hz is not reachable at "
                           f"{card.pwm_hz} Hz PWM with the 1.5-period delay")
-    for _ in range(50):
-        mid = 0.5 * (lo + hi)
-        if bw(mid) < bandwidth_hz:
-            lo = mid
-        else:
-            hi = mid
-    g = 0.5 * (lo + hi)
-    return g * lind * w, g * r * w
+    g, limited = _largest_gain(lambda g: _bandwidth_from_tf(tf(g), 1.0, nyq),
+                               lambda g: _peak_db(tf(g), 1.0, nyq), bandwidth_hz,
+                               peak_limit_db, 0.05, hi)
+    return (g * lind * w, g * r * w, _bandwidth_from_tf(tf(g), 1.0, nyq),
+            _peak_db(tf(g), 1.0, nyq), limited)
 
 
 def speed_feedback_tf(s: np.ndarray, pll_hz: float, damping: float, lpf_hz: float):
@@ -443,40 +485,116 @@ def speed_feedback_tf(s: np.ndarray, pll_hz: float, damping: float, lpf_hz: floa
     return h
 
 
+def speed_loop_tf(card: MachineCard, kp: float, ki: float, current_bw_hz: float,
+                  f_hz: np.ndarray, feedback_pll_hz: float | None = None,
+                  feedback_damping: float = 1.0, feedback_lpf_hz: float = 0.0,
+                  estimated: bool = False) -> np.ndarray:
+    """Closed speed loop at f: plant K_t/(J s + B), current loop a first-order lag at its
+    bandwidth, the PI acting on the speed estimate (the position source's PLL and LPF).
+    True speed w/w* = F/(1 + F H); estimated speed w^/w* = F H/(1 + F H)."""
+    s = 1j * 2 * np.pi * np.asarray(f_hz, dtype=float)
+    wi = 2 * math.pi * current_bw_hz
+    fwd = (kp + ki / s) * card.torque_constant_nm_per_a / (card.inertia_kgm2 * s
+                                                           + card.viscous_nms) * wi / (s + wi)
+    h = (speed_feedback_tf(s, feedback_pll_hz, feedback_damping, feedback_lpf_hz)
+         if feedback_pll_hz else 1.0)
+    return fwd * h / (1 + fwd * h) if estimated else fwd / (1 + fwd * h)
+
+
 def design_speed_loop(card: MachineCard, bandwidth_hz: float, current_bw_hz: float,
                       zero_ratio: float = 0.25, feedback_pll_hz: float | None = None,
-                      feedback_damping: float = 1.0, feedback_lpf_hz: float = 0.0
-                      ) -> tuple[float, float]:
-    """(K_p [A s/rad], K_i [A/rad]) of the speed PI for a -3 dB bandwidth of w/w*;
-    plant K_t/(J s + B), current loop as a first-order lag at its bandwidth, the speed
-    feedback through the position source's PLL (and LPF) when given, integral zero at
-    zero_ratio times the bandwidth.  Modelling the feedback path matters: a 25 Hz PLL costs
-    ~40 deg at 10 Hz, and a design that ignores it peaks by several dB."""
+                      feedback_damping: float = 1.0, feedback_lpf_hz: float = 0.0,
+                      peak_limit_db: float = 3.0) -> tuple[float, float]:
+    """(K_p [A s/rad], K_i [A/rad]) of the speed PI: see `design_loops`."""
+    d = _design_speed(card, bandwidth_hz, current_bw_hz, zero_ratio, feedback_pll_hz,
+                      feedback_damping, feedback_lpf_hz, peak_limit_db)
+    return d["kp"], d["ki"]
+
+
+def _design_speed(card, bandwidth_hz, current_bw_hz, zero_ratio, feedback_pll_hz,
+                  feedback_damping, feedback_lpf_hz, peak_limit_db) -> dict:
     kt = card.torque_constant_nm_per_a
     j = card.inertia_kgm2
-    bv = card.viscous_nms
     wb = 2 * math.pi * bandwidth_hz
-    wi = 2 * math.pi * current_bw_hz
+    fb = dict(feedback_pll_hz=feedback_pll_hz, feedback_damping=feedback_damping,
+              feedback_lpf_hz=feedback_lpf_hz)
 
-    def tf(g: float, f: np.ndarray):
-        s = 1j * 2 * np.pi * f
+    def gains(g: float) -> tuple[float, float]:
+        # the whole PI scales with g: crossover ~ g w_b, integral zero at zero_ratio times it
         kp = g * j * wb / kt
-        ki = kp * wb * zero_ratio
-        fwd = (kp + ki / s) * kt / (j * s + bv) * wi / (s + wi)
-        h = (speed_feedback_tf(s, feedback_pll_hz, feedback_damping, feedback_lpf_hz)
-             if feedback_pll_hz else 1.0)
-        return fwd / (1 + fwd * h)
+        return kp, kp * g * wb * zero_ratio
 
-    lo, hi = 0.05, 5.0
-    for _ in range(50):
-        mid = 0.5 * (lo + hi)
-        if _bandwidth_from_tf(lambda f, m=mid: tf(m, f), 0.01, 5e3) < bandwidth_hz:
-            lo = mid
-        else:
-            hi = mid
-    g = 0.5 * (lo + hi)
-    kp = g * j * wb / kt
-    return kp, kp * wb * zero_ratio
+    def tf(g: float, est: bool = False):
+        kp, ki = gains(g)
+        return lambda f: speed_loop_tf(card, kp, ki, current_bw_hz, f, estimated=est, **fb)
+
+    def peak(g: float) -> float:
+        # the robustness limit holds for what the encoder sees and for what the loop sees
+        return max(_peak_db(tf(g), 0.01, 5e3), _peak_db(tf(g, True), 0.01, 5e3))
+
+    g, limited = _largest_gain(lambda g: _bandwidth_from_tf(tf(g), 0.01, 5e3), peak,
+                               bandwidth_hz, peak_limit_db, 0.01, 5.0)
+    kp, ki = gains(g)
+    return {"kp": kp, "ki": ki, "bandwidth_hz": _bandwidth_from_tf(tf(g), 0.01, 5e3),
+            "peak_db": _peak_db(tf(g), 0.01, 5e3),
+            "est_bandwidth_hz": _bandwidth_from_tf(tf(g, True), 0.01, 5e3),
+            "est_peak_db": _peak_db(tf(g, True), 0.01, 5e3), "limited": limited}
+
+
+@dataclass
+class LoopDesign:
+    """What `design_loops` chose and what the loop models predict for it."""
+
+    kp_i: float  # current PI [V/A]
+    ki_i: float  # [V/(A s)]
+    current_bandwidth_hz: float  # achieved -3 dB of i/i*
+    current_peak_db: float
+    current_limited: bool  # True: the peaking limit, not the target, set the gain
+    kp_w: float  # speed PI [A s/rad]
+    ki_w: float  # [A/rad]
+    speed_bandwidth_hz: float  # achieved -3 dB of the true speed w/w*
+    speed_peak_db: float
+    speed_est_bandwidth_hz: float  # of the estimated speed w^/w*
+    speed_est_peak_db: float
+    speed_limited: bool
+    peak_limit_db: float
+
+    def summary(self) -> str:
+        lim = {True: " (peaking-limited)", False: ""}
+        return (f"current loop {self.current_bandwidth_hz:.0f} Hz, peak "
+                f"{self.current_peak_db:+.1f} dB{lim[self.current_limited]}; speed loop "
+                f"{self.speed_bandwidth_hz:.1f} Hz true / {self.speed_est_bandwidth_hz:.1f} Hz "
+                f"estimated, peak {max(self.speed_peak_db, self.speed_est_peak_db):+.1f} dB"
+                f"{lim[self.speed_limited]} (limit {self.peak_limit_db:g} dB)")
+
+
+def design_loops(card: MachineCard, current_bw_hz: float = 1000.0, speed_bw_hz: float = 10.0,
+                 feedback_pll_hz: float | None = None, feedback_damping: float = 1.0,
+                 feedback_lpf_hz: float = 0.0, peak_limit_db: float = 3.0,
+                 r_hat: float | None = None, l_hat: float | None = None,
+                 zero_ratio: float = 0.25) -> LoopDesign:
+    """The one design procedure for every drive's current and speed loops.
+
+    Rule: each loop gets the gain that gives its target -3 dB bandwidth, unless the closed
+    loop then peaks by more than `peak_limit_db` (3 dB: a phase margin of roughly 45 deg);
+    then it gets the largest gain that peaks by exactly the limit.  So every position source
+    gets the best gains its feedback path allows, and no bandwidth is a resonance.
+
+    Current loop: K_p = g L w, K_i = g R w (the PI zero cancels the RL pole), the discrete
+    closed loop (ZOH RL plant, one period of computation delay) evaluated for g.
+    Speed loop: K_p = g J w_b/K_t, K_i = K_p g w_b zero_ratio (the PI zero stays at a fixed
+    fraction of the crossover), on K_t/(J s + B) with the current
+    loop as a first-order lag at its achieved bandwidth and the speed feedback through the
+    position source's PLL (w_n^2/(s^2 + 2 zeta w_n s + w_n^2)) and speed LPF; the limit
+    holds for both the true speed w/w* and the estimated speed w^/w*.  The -3 dB target
+    is met on the true speed (what an encoder on the shaft measures)."""
+    kp_i, ki_i, bw_i, pk_i, lim_i = _design_current(card, current_bw_hz, r_hat, l_hat,
+                                                    peak_limit_db)
+    d = _design_speed(card, speed_bw_hz, bw_i, zero_ratio, feedback_pll_hz, feedback_damping,
+                      feedback_lpf_hz, peak_limit_db)
+    return LoopDesign(kp_i, ki_i, bw_i, pk_i, lim_i, d["kp"], d["ki"], d["bandwidth_hz"],
+                      d["peak_db"], d["est_bandwidth_hz"], d["est_peak_db"], d["limited"],
+                      peak_limit_db)
 
 
 @dataclass
@@ -486,7 +604,7 @@ class ControllerConfig:
 
     position_source: str = "encoder"  # 'encoder' or 'estimate'
     current_bandwidth_hz: float = 1000.0
-    speed_bandwidth_hz: float = 10.0
+    speed_bandwidth_hz: float = 15.0  # target; the peaking limit may grant less (design_loops)
     current_limit_pu: float = 2.0  # |i_q*| limit, per unit of rated current
     angle_advance_periods: float = 1.5
     deadtime_comp_s: float = 0.0
@@ -504,6 +622,8 @@ class ControllerConfig:
     speed_observer_pll_hz: float | None = None
     speed_observer_damping: float = 1.0
     speed_observer_lpf_hz: float = 0.0
+    # robustness limit of the loop design: closed-loop peaking of every designed loop
+    peak_limit_db: float = 3.0
     overcurrent_pu: float = 2.1  # instantaneous trip on any sampled phase current, pu of rated
     overspeed_pu: float = 1.5
     vdc_min_v: float = 20.0
@@ -528,6 +648,19 @@ class ControllerConfig:
             raise ConfigError(f"{src}: decoupling must be true/false, got {self.decoupling!r}")
         return self
 
+    def design(self, card: MachineCard) -> LoopDesign:
+        """The current and speed loops `design_loops` gives this drive: its own model of the
+        machine, its position source's speed path, the peaking limit."""
+        lind = card.inductance_h if self.l_hat_h is None else self.l_hat_h
+        r = card.resistance_ohm if self.r_hat_ohm is None else self.r_hat_ohm
+        if self.position_source == "encoder":
+            fb = (self.encoder_pll_hz, 1.0, 0.0)
+        else:
+            fb = (self.speed_observer_pll_hz, self.speed_observer_damping,
+                  self.speed_observer_lpf_hz)
+        return _cached_design(card, self.current_bandwidth_hz, self.speed_bandwidth_hz, fb,
+                              self.peak_limit_db, r, lind)
+
     def to_params(self, card: MachineCard) -> np.ndarray:
         self.validate()
         if self.current_bandwidth_hz >= 0.25 * card.pwm_hz:
@@ -540,17 +673,9 @@ class ControllerConfig:
             raise ConfigError("handback_rpm must be below handover_rpm (hysteresis)")
         cp = np.zeros(CP_N)
         lind = card.inductance_h if self.l_hat_h is None else self.l_hat_h
-        r = card.resistance_ohm if self.r_hat_ohm is None else self.r_hat_ohm
         lam = card.flux_linkage_vs if self.lambda_hat_vs is None else self.lambda_hat_vs
-        kp_i, ki_i = design_current_loop(card, self.current_bandwidth_hz, r, lind)
-        if self.position_source == "encoder":
-            fb = (self.encoder_pll_hz, 1.0, 0.0)
-        else:
-            fb = (self.speed_observer_pll_hz, self.speed_observer_damping,
-                  self.speed_observer_lpf_hz)
-        kp_w, ki_w = design_speed_loop(card, self.speed_bandwidth_hz, self.current_bandwidth_hz,
-                                       feedback_pll_hz=fb[0], feedback_damping=fb[1],
-                                       feedback_lpf_hz=fb[2])
+        d = self.design(card)
+        kp_i, ki_i, kp_w, ki_w = d.kp_i, d.ki_i, d.kp_w, d.ki_w
         rpm = 2 * math.pi / 60
         cp[CP_TS] = card.ts_s
         cp[CP_P] = card.pole_pairs
@@ -599,5 +724,20 @@ CONTROL_RANGES: dict[str, tuple[float, float]] = {
     "handover_dwell_s": (0.0, 10.0), "i2t_limit_pu2s": (0.01, 1e4),
     "r_hat_ohm": (0.0, 1e3), "l_hat_h": (1e-7, 10.0), "lambda_hat_vs": (1e-6, 10.0),
     "speed_observer_pll_hz": (0.1, 2000.0), "speed_observer_damping": (0.1, 5.0),
-    "speed_observer_lpf_hz": (0.0, 2000.0),
+    "speed_observer_lpf_hz": (0.0, 2000.0), "peak_limit_db": (0.1, 20.0),
 }
+
+
+_DESIGNS: dict[tuple, LoopDesign] = {}
+
+
+def _cached_design(card: MachineCard, current_bw_hz: float, speed_bw_hz: float, fb: tuple,
+                   peak_limit_db: float, r: float, lind: float) -> LoopDesign:
+    """design_loops, memoised on everything it reads (a scenario sweep re-uses a few)."""
+    key = (card.ts_s, card.inertia_kgm2, card.viscous_nms, card.torque_constant_nm_per_a,
+           current_bw_hz, speed_bw_hz, fb, peak_limit_db, r, lind)
+    if key not in _DESIGNS:
+        _DESIGNS[key] = design_loops(card, current_bw_hz, speed_bw_hz, feedback_pll_hz=fb[0],
+                                     feedback_damping=fb[1], feedback_lpf_hz=fb[2],
+                                     peak_limit_db=peak_limit_db, r_hat=r, l_hat=lind)
+    return _DESIGNS[key]

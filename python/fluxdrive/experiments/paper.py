@@ -13,7 +13,14 @@ import numpy as np
 from fluxdrive.analysis.freqresp import analyse
 from fluxdrive.analysis.metrics import RAD_S_TO_RPM, harmonic, steady_window, whole_periods, wrap
 from fluxdrive.core.transforms import clarke
-from fluxdrive.drive.control import CO_ID, CO_ID_REF, CO_IQ, CO_MODE, MODE_CLOSED_LOOP
+from fluxdrive.drive.control import (
+    CO_ID,
+    CO_ID_REF,
+    CO_IQ,
+    CO_MODE,
+    CO_W_FB,
+    MODE_CLOSED_LOOP,
+)
 from fluxdrive.drive.observers import (
     ES_EA,
     ES_EB,
@@ -25,7 +32,16 @@ from fluxdrive.drive.observers import (
     observer_config,
 )
 from fluxdrive.drive.plant import FR_IA, FR_IB, FR_IC, TR_IA, TR_IB, TR_IC, TR_THETA_E, TR_WM
-from fluxdrive.experiments.registry import OBS4, build, claim, encoder_run, plt, sensorless
+from fluxdrive.experiments.registry import (
+    LITERAL,
+    OBS4,
+    OBS6,
+    build,
+    claim,
+    encoder_run,
+    plt,
+    sensorless,
+)
 
 RPM = 2 * math.pi / 60
 LAM = 0.0235
@@ -75,71 +91,104 @@ def _x_fig14(r, m, show_s=0.5):
     return out
 
 
+def per_seed(vals: list[float], fmt: str = "{:.2f}", rel: float = 0.5) -> str:
+    """One number when the seeds agree (within `rel` of their median), else every seed's."""
+    v = np.asarray(vals, dtype=float)
+    med = float(np.median(v))
+    if len(v) == 1 or np.all(np.abs(v - med) <= rel * max(abs(med), 1e-9)):
+        return fmt.format(float(np.mean(v)))
+    return "[" + ", ".join(fmt.format(x) for x in v) + " per seed]"
+
+
+VARIANTS = (("paper_robust", "flux"), ("paper (literal)", "paper"))
+
+
 def fig14(ctx):
     seeds = [1] if ctx.quick else [1, 2, 3]
     jobs = [(build(base="paper_2pct_150load", seed=s), _x_fig14, None) for s in seeds]
     res = ctx.run(jobs)
-    names = list(OBS4)
+    names = list(OBS6)
     rms = {n: [r["metrics"]["observers"][n]["theta_err_rms_deg"] for r in res] for n in names}
     h6 = {n: [r["metrics"]["observers"][n]["theta_err_h6_deg"] for r in res] for n in names}
     noise = {n: [r["noise"][n] for r in res] for n in names}
+    peak = {n: [r["metrics"]["observers"][n]["theta_err_peak_deg"] for r in res] for n in names}
     stable = [r["metrics"]["stable"] for r in res]
-    avg = {k: {n: float(np.mean(v[n])) for n in names} for k, v in
-           (("rms", rms), ("h6", h6), ("noise", noise))}
-    # figure: (a) commanded, (b) measured; rows theta & theta^_flux, theta~_emf, theta~_flux
+    # a seed whose estimate slipped (|θ̃| > 30° anywhere in the window) is not averaged in
+    slipped = {n: [p > 30.0 for p in peak[n]] for n in names}
+
+    def med(d, n):
+        return float(np.median(d[n]))
+
     p = plt()
     s = res[0]["series"]
-    fig, ax = p.subplots(3, 2, figsize=(11, 7), sharex=True)
+    fig, ax = p.subplots(4, 2, figsize=(11, 9), sharex=True)
     for c, src in enumerate(("commanded", "measured")):
         ax[0, c].plot(s["t"], np.degrees(wrap(s["theta"])), lw=0.8, label="θe (encoder)")
         ax[0, c].plot(s["t"], np.degrees(s[f"flux_{src}_th"]), lw=0.8, label="θ̂ flux")
         ax[0, c].set_ylabel("angle [deg]")
         ax[0, c].legend(fontsize=7)
-        ax[0, c].set_title(f"({'ab'[c]}) {src} voltages, 60 rpm, 150 % load")
-        for rr, kind in ((1, "emf"), (2, "flux")):
-            ax[rr, c].plot(s["t"], s[f"{kind}_{src}"], lw=0.6)
+        ax[0, c].set_title(f"({'ab'[c]}) {src} voltages, 60 rpm, 150 % load (seed {seeds[0]})")
+        for rr, (kind, lab) in enumerate((("emf", "emf"), ("flux", "flux robust"),
+                                          ("paper", "flux literal")), 1):
+            nm = f"{kind}_{src}"
+            ax[rr, c].plot(s["t"], s[nm], lw=0.6)
             ax[rr, c].set_ylim(-40, 40)
-            ax[rr, c].set_ylabel(f"θ̃ {kind} [deg]")
+            ax[rr, c].set_ylabel(f"θ̃ {lab} [deg]", fontsize=8)
             ax[rr, c].grid(alpha=0.3)
-            ax[rr, c].text(0.01, 0.9, f"RMS {avg['rms'][f'{kind}_{src}']:.2f}°, 6th "
-                           f"{avg['h6'][f'{kind}_{src}']:.2f}°, noise "
-                           f"{avg['noise'][f'{kind}_{src}']:.2f}°",
-                           transform=ax[rr, c].transAxes, fontsize=7)
-        ax[2, c].set_xlabel("time [s]")
+            ax[rr, c].text(0.01, 0.85, f"RMS {per_seed(rms[nm])}°, 6th {per_seed(h6[nm])}°, "
+                           f"noise {per_seed(noise[nm])}°", transform=ax[rr, c].transAxes,
+                           fontsize=7)
+        ax[3, c].set_xlabel("time [s]")
     figs = [ctx.fig(fig, "fig14_theta_error")]
-    a = avg
-    claims = [
-        claim("Commanded voltages: visible deadtime 6th-order harmonic on both θ̃_emf and "
-              "θ̃_flux (Fig. 14a)",
-              f"6th order: emf {a['h6']['emf_commanded']:.1f}°, flux "
-              f"{a['h6']['flux_commanded']:.1f}° (RMS {a['rms']['emf_commanded']:.1f}° / "
-              f"{a['rms']['flux_commanded']:.1f}°)",
-              a["h6"]["emf_commanded"] > 3 and a["h6"]["flux_commanded"] > 3),
-        claim("Commanded voltages: flux-based θ̃ has the better SNR than EMF-based",
-              f"broadband noise (θ̃ minus orders 0-20): flux {a['noise']['flux_commanded']:.2f}° "
-              f"vs emf {a['noise']['emf_commanded']:.2f}°; total RMS "
-              f"{a['rms']['flux_commanded']:.2f}° vs {a['rms']['emf_commanded']:.2f}°",
-              a["noise"]["flux_commanded"] < a["noise"]["emf_commanded"],
-              "The noise part holds; the total RMS nearly ties because the deadtime 5th/7th "
-              "(20-28 Hz at 2 % speed) sit far below the 100 Hz cut-off, where the LPF + "
-              "inverse HPF gives the same 1/(jω) gain as the EMF path: the flux path has no "
-              "integration advantage on those harmonics, only on noise."),
-        claim("Measured voltages: the 6th-order harmonics disappear in both θ̃ (Fig. 14b)",
-              f"6th order: emf {a['h6']['emf_measured']:.2f}°, flux {a['h6']['flux_measured']:.2f}°"
-              f" (commanded: {a['h6']['emf_commanded']:.1f}° / {a['h6']['flux_commanded']:.1f}°)",
-              a["h6"]["emf_measured"] < 0.1 * a["h6"]["emf_commanded"]
-              and a["h6"]["flux_measured"] < 0.1 * a["h6"]["flux_commanded"]),
-        claim("Measured voltages: flux-based θ̃ still has the better SNR",
-              f"noise flux {a['noise']['flux_measured']:.2f}° vs emf "
-              f"{a['noise']['emf_measured']:.2f}°; RMS {a['rms']['flux_measured']:.2f}° vs "
-              f"{a['rms']['emf_measured']:.2f}°",
-              a["noise"]["flux_measured"] < a["noise"]["emf_measured"]
-              and a["rms"]["flux_measured"] < a["rms"]["emf_measured"]),
-        claim("Sensorless flux drive (measured voltages) is stable at 2 % speed, 150 % load",
-              f"stable on {sum(stable)}/{len(stable)} seeds", all(stable)),
-    ]
+
+    def q(d, n):
+        return per_seed(d[n])
+
+    claims = []
+    for vname, k in VARIANTS:
+        fc, fm = f"{k}_commanded", f"{k}_measured"
+        tag = f"[{vname}] "
+        claims += [
+            claim(tag + "Commanded voltages: visible deadtime 6th-order harmonic on both "
+                  "θ̃_emf and θ̃_flux (Fig. 14a)",
+                  f"6th order: emf {q(h6, 'emf_commanded')}°, flux {q(h6, fc)}° (RMS "
+                  f"{q(rms, 'emf_commanded')}° / {q(rms, fc)}°)",
+                  med(h6, "emf_commanded") > 3 and med(h6, fc) > 3),
+            claim(tag + "Commanded voltages: flux-based θ̃ has the better SNR than EMF-based",
+                  f"broadband noise (θ̃ minus orders 0-20): flux {q(noise, fc)}° vs emf "
+                  f"{q(noise, 'emf_commanded')}°; total RMS {q(rms, fc)}° vs "
+                  f"{q(rms, 'emf_commanded')}°",
+                  med(noise, fc) < med(noise, "emf_commanded"),
+                  "the total RMS is the deadtime 6th order's: at 2 % speed the 5th/7th (20-28 "
+                  "Hz) lie far below the 100 Hz cut-off, where LPF + inverse HPF has the EMF's "
+                  "1/(jω) gain, and the EMF path's 15 Hz PLL filters the 24 Hz θ̃ ripple more "
+                  "than the flux path's 25 Hz one"),
+            claim(tag + "Measured voltages: the 6th-order harmonics disappear in both θ̃ "
+                  "(Fig. 14b)",
+                  f"6th order: emf {q(h6, 'emf_measured')}°, flux {q(h6, fm)}° (commanded: "
+                  f"{q(h6, 'emf_commanded')}° / {q(h6, fc)}°)",
+                  med(h6, "emf_measured") < 0.1 * med(h6, "emf_commanded")
+                  and med(h6, fm) < 0.1 * med(h6, fc)),
+            claim(tag + "Measured voltages: flux-based θ̃ still has the better SNR",
+                  f"noise flux {q(noise, fm)}° vs emf {q(noise, 'emf_measured')}°; RMS "
+                  f"{q(rms, fm)}° vs {q(rms, 'emf_measured')}°"
+                  + (f"; seeds with a slip (|θ̃| > 30°): flux {sum(slipped[fm])}, emf "
+                     f"{sum(slipped['emf_measured'])}" if any(slipped[fm] + slipped["emf_measured"])
+                     else ""),
+                  med(noise, fm) < med(noise, "emf_measured")
+                  and med(rms, fm) < med(rms, "emf_measured"),
+                  "the literal observer compensates at the PLL's own ω̂e: its θ̃ ripple moves "
+                  "ω̂e, which moves the compensation angle atan(ωc/ω̂e) -- a loop that "
+                  "amplifies low-frequency θ̃ noise at 2 % speed (ωc/ωe = 25)"
+                  if k == "paper" else ""),
+        ]
+    claims.append(claim(
+        "Sensorless flux drive (measured voltages) is stable at 2 % speed, 150 % load",
+        f"paper_robust driving: stable on {sum(stable)}/{len(stable)} seeds (the literal "
+        "observer as the driving one: see the paper_robust experiment)", all(stable)))
     return {"claims": claims, "figures": figs,
-            "data": {"seeds": seeds, "rms_deg": rms, "h6_deg": h6, "noise_deg": noise}}
+            "data": {"seeds": seeds, "rms_deg": rms, "h6_deg": h6, "noise_deg": noise,
+                     "peak_deg": peak}}
 
 
 # ======================================================================== Fig. 13
@@ -475,7 +524,17 @@ def _x_fr_current(r, m):
     tru = analyse(id_true, r.ctrl[:, CO_ID_REF], segs, ts)
     k0 = segs[0].k_start
     closed = bool(np.all(r.ctrl[k0:, CO_MODE] == MODE_CLOSED_LOOP))
-    return {"metrics": m, "ctrl": ctl, "true": tru, "closed_loop": closed}
+    # theta~ at each injection frequency (amplitude, deg) for every flux observer
+    leak = {}
+    for nm in r.names:
+        if nm.startswith(("flux", "paper")):
+            e = theta_err(r, nm)
+            leak[nm] = [float(np.degrees(2 * abs(np.mean(
+                e[sg.k_start:sg.k_end] * np.exp(-2j * math.pi * sg.frequency_hz
+                                                 * np.arange(sg.k_start, sg.k_end) * ts)))))
+                for sg in segs]
+    return {"metrics": m, "ctrl": ctl, "true": tru, "closed_loop": closed, "leak": leak,
+            "freqs": [sg.frequency_hz for sg in segs]}
 
 
 def _fr_scenario(driving, freqs, kind, seed=1):
@@ -483,6 +542,9 @@ def _fr_scenario(driving, freqs, kind, seed=1):
     if driving == "encoder_ideal":
         driving, machine_kw = "encoder", {"deadtime_s": 0.0}
     obs = {driving: OBS4[driving]} if driving != "encoder" else {}
+    if driving == "flux_measured" and kind == "current":
+        # the literal observer in shadow: what a d-axis sweep does to eq. (5)'s order
+        obs["paper_measured"] = LITERAL["paper_measured"]
     if kind == "current":
         t_inj = 3.5
         inj = {"id_injection": {"frequencies_hz": freqs, "amplitude": 0.2, "start_s": t_inj,
@@ -502,13 +564,11 @@ def _fr_scenario(driving, freqs, kind, seed=1):
         speed = [[0.0, 40.0], [0.8, 40.0], [1.8, 300.0]]
         load = [[0.0, 0.0], [2.0, 0.0], [3.0, 0.3]]
     dur = n * 1e-4 + 0.01
-    ctrl = {"if_current_pu": 0.6, "handover_rpm": 40.0, "handback_rpm": 20.0}
-    if driving.startswith("emf"):
-        # the paper compares position sources on one drive: the EMF drive keeps the speed
-        # PI designed for the flux drive's speed path (25 Hz PLL, no LPF)
-        flux = OBS4["flux_measured"]
-        ctrl.update(speed_observer_pll_hz=float(flux.get("pll_bandwidth_hz", 25.0)),
-                    speed_observer_lpf_hz=0.0)
+    # the paper's Fig. 18 drives are 10 Hz speed loops: that is the target here
+    ctrl = {"if_current_pu": 0.6, "handover_rpm": 40.0, "handback_rpm": 20.0,
+            "speed_bandwidth_hz": 10.0}
+    # every drive gets its own loops from the one design rule (design_loops: target
+    # bandwidth unless the closed loop would peak by more than 3 dB) for its speed path
     return build(machine_kw=machine_kw, name=f"fr_{kind}_{driving}",
                  duration_s=round(dur, 4), seed=seed,
                  speed_rpm=speed, load_type="brake", load_pu=load,
@@ -571,8 +631,24 @@ def fig17(ctx):
               "paper's 100 Hz points at something in its EMF drive's current path (filtered "
               "feedback or L̂ mismatch) that it does not describe."),
     ]
+    fx = res[drives.index("flux_measured")]
+    lk, fq = fx["leak"], fx["freqs"]
+    if "paper_measured" in lk:
+        i50 = int(np.argmin(np.abs(np.array(fq) - 50.0)))
+        claims.append(claim(
+            "(eq. 5 as written) the flux drive's d-axis sweep leaves the angle estimate alone",
+            "θ̃ at the injection frequency, literal paper (shadow) vs paper_robust (driving): "
+            + ", ".join(f"{f:g} Hz: {a:.2f}° / {b:.2f}°" for f, a, b in
+                        zip(fq, lk["paper_measured"], lk["flux_measured"], strict=True)
+                        if f in (20.0, 50.0, 100.0, 300.0, 1000.0)),
+            lk["paper_measured"][i50] < 1.0,
+            "eq. (5) integrates v - R̂i and subtracts L̂i afterwards; the LPF + inverse HPF is "
+            "exact only at ω̂e, so L̂·i at the injection frequency comes out of the filter "
+            "with the wrong gain and phase while L̂·i is subtracted exactly: the difference "
+            "enters λ̂pm and θ̂.  paper_robust removes L̂ di/dt before the filter "
+            "(inductance_term = before_filter): only the rotor-frequency EMF is filtered"))
     return {"claims": claims, "figures": figs,
-            "data": {d: {"ctrl": r["ctrl"], "true": r["true"]}
+            "data": {d: {"ctrl": r["ctrl"], "true": r["true"], "leak": r["leak"]}
                      for d, r in zip(drives, res, strict=True)}}
 
 
@@ -583,43 +659,66 @@ FR18_QUICK = [1.0, 4.0, 8.0, 12.0, 20.0, 50.0]
 
 def _x_fr_speed(r, m):
     segs = r.segments["speed"]
-    fr = analyse(r.truth[:, TR_WM], r.w_ref, segs, r.scenario.machine.ts_s)
+    ts = r.scenario.machine.ts_s
+    # the true shaft speed (what the paper's encoder measures; the verdicts use it) and the
+    # drive's own speed estimate (what its speed PI sees)
+    fr = analyse(r.truth[:, TR_WM], r.w_ref, segs, ts)
+    fr_est = analyse(r.ctrl[:, CO_W_FB], r.w_ref, segs, ts)
     k0 = segs[0].k_start
     closed = bool(np.all(r.ctrl[k0:, CO_MODE] == MODE_CLOSED_LOOP))
-    return {"metrics": m, "speed": fr, "closed_loop": closed}
+    d = r.scenario.control.design(r.scenario.machine)
+    return {"metrics": m, "speed": fr, "speed_est": fr_est, "closed_loop": closed,
+            "design": {"bandwidth_hz": d.speed_bandwidth_hz, "peak_db": d.speed_peak_db,
+                       "est_bandwidth_hz": d.speed_est_bandwidth_hz,
+                       "est_peak_db": d.speed_est_peak_db, "limited": d.speed_limited,
+                       "kp": d.kp_w, "ki": d.ki_w}}
 
 
 def fig18(ctx):
     freqs = FR18_QUICK if ctx.quick else FR18_FULL
     drives = DRIVES[:3] if ctx.quick else DRIVES
     res = ctx.run([(_fr_scenario(d, freqs, "speed"), _x_fr_speed, None) for d in drives])
-    figs = [_bode(ctx, res, drives, "speed", "Fig. 18: ω/ω* at 300 rpm, ±60 rpm injection",
-                  "fig18_speed_fr")]
-    bw = {d: r["speed"]["bandwidth_hz"] for d, r in zip(drives, res, strict=True)}
-    closed = {d: r["closed_loop"] for d, r in zip(drives, res, strict=True)}
-    peak = {d: float(np.nanmax(r["speed"]["gain_db"])) for d, r in zip(drives, res, strict=True)}
+    figs = [_bode(ctx, res, drives, "speed", "Fig. 18: true ω/ω* at 300 rpm, ±60 rpm "
+                  "injection (loops designed for 10 Hz, ≤ 3 dB peaking)", "fig18_speed_fr")]
+    z = list(zip(drives, res, strict=True))
+    bw = {d: r["speed"]["bandwidth_hz"] for d, r in z}
+    bw_est = {d: r["speed_est"]["bandwidth_hz"] for d, r in z}
+    closed = {d: r["closed_loop"] for d, r in z}
+    peak = {d: float(np.nanmax(r["speed"]["gain_db"])) for d, r in z}
+    peak_est = {d: float(np.nanmax(r["speed_est"]["gain_db"])) for d, r in z}
+    des = {d: r["design"] for d, r in z}
+
+    def row(d):
+        return (f"{d}: true {bw[d]:.1f} Hz / estimated {bw_est[d]:.1f} Hz, peak "
+                f"{peak[d]:+.1f} / {peak_est[d]:+.1f} dB (design {des[d]['bandwidth_hz']:.1f} "
+                f"Hz, {des[d]['peak_db']:+.1f} dB{', peaking-limited' if des[d]['limited'] else ''}"
+                f"), closed loop {closed[d]}")
+
+    emf = [d for d in drives if d.startswith("emf")]
     claims = [
-        claim("Encoder drive: speed bandwidth ≈ 10 Hz", f"{bw['encoder']:.1f} Hz",
+        claim("Encoder drive: speed bandwidth ≈ 10 Hz", row("encoder"),
               abs(bw["encoder"] - 10) < 3),
         claim("Flux-based drive: speed bandwidth ≈ 10 Hz, about the encoder drive's",
-              f"{bw['flux_measured']:.1f} Hz, peak {peak['flux_measured']:+.1f} dB (encoder "
-              f"{peak['encoder']:+.1f} dB), closed loop {closed['flux_measured']}",
+              row("flux_measured"),
               closed["flux_measured"] and abs(bw["flux_measured"] - bw["encoder"]) < 2,
               "the speed PI is designed with the observer's speed path (25 Hz PLL) in the "
-              "loop model, so the flux drive meets the same 10 Hz as the encoder drive"),
-        claim("EMF-based drive: speed bandwidth only ≈ 7 Hz",
-              "; ".join(f"{d}: {bw[d]:.1f} Hz, closed loop {closed[d]}"
-                        for d in drives if d.startswith("emf")),
-              all(bw[d] < 0.85 * bw["encoder"] for d in drives if d.startswith("emf")),
-              "same speed PI as the flux drive; the EMF path's extra 10 Hz speed LPF (Fig. 5) "
-              "sits inside the speed loop and costs phase margin: the response peaks and the "
-              "-3 dB point moves up rather than down.  With commanded voltages the ±60 rpm "
-              "sweep (speed down to 240 rpm, deadtime-dominated EMF) can lose the estimate.  "
-              "A 7 Hz bandwidth would follow from a lower PLL bandwidth / heavier LPF than "
-              "our defaults"),
+              "loop model; the 3 dB peaking limit does not bind for it"),
+        claim("EMF-based drive: speed bandwidth only ≈ 7 Hz", "; ".join(row(d) for d in emf),
+              all(bw[d] < 0.85 * bw["encoder"] and closed[d] for d in emf),
+              "the EMF path's low-bandwidth PLL (15 Hz) and speed LPF (20 Hz) sit inside the "
+              "speed loop: with the 3 dB peaking limit the design can only grant ≈7 Hz.  The "
+              "two values are not in the paper; they are the pair that reproduces its 7 Hz "
+              "under our design rule, so this row checks the measurement against the design, "
+              "not the paper's numbers.  With commanded voltages the ±60 rpm sweep (speed "
+              "down to 240 rpm, deadtime-dominated EMF) can lose the estimate"),
+        claim("(design rule) every drive's measured speed-loop peaking is within 3 dB",
+              ", ".join(f"{d}: {max(peak[d], peak_est[d]):+.1f} dB" for d in drives),
+              all(max(peak[d], peak_est[d]) <= 3.5 for d in drives if closed[d]),
+              "0.5 dB allowance for the stepped-sine measurement at a few frequencies"),
     ]
     return {"claims": claims, "figures": figs,
-            "data": {d: r["speed"] for d, r in zip(drives, res, strict=True)}}
+            "data": {d: {"true": r["speed"], "estimated": r["speed_est"],
+                         "design": r["design"], "verdict_uses": "true"} for d, r in z}}
 
 
 # ======================================================================== Fig. 19
@@ -677,10 +776,9 @@ def fig19(ctx):
     figs.append(ctx.fig(fig, "fig19_full_load_4pct"))
     # what the model says: P-term needs T/(Kt Kp) of speed error; initial deceleration T/J
     from fluxdrive.core.machine import MachineCard
-    from fluxdrive.drive.control import design_speed_loop
-
     card = MachineCard()
-    kp, _ = design_speed_loop(card, 10.0, 1000.0, feedback_pll_hz=25.0)  # sensorless design
+    sc6 = build(base="paper_6pct_stepload")  # the step-load drive's own loop design
+    kp = sc6.control.design(sc6.machine).kp_w
     dw_p = card.rated_torque_nm / (card.torque_constant_nm_per_a * kp) * RAD_S_TO_RPM
     decel = card.rated_torque_nm / card.inertia_kgm2
     ok = [r for r in rows if r["stable"] and r["min_rpm"] is not None and r["min_rpm"] >= 80
@@ -694,11 +792,11 @@ def fig19(ctx):
               f"{r1['stable']}; "
               + (f"reproduced from J×{ok[0]['J_scale']} on" if ok else
                  f"not reproduced up to J×{rows[-1]['J_scale']} (min {rows[-1]['min_rpm']:.0f} "
-                 f"rpm)") + " (same 10 Hz loop design, gains scale with J)",
+                 f"rpm)") + " (same loop design rule, gains scale with J)",
               bool(r1["stable"] and r1["min_rpm"] >= 80 and r1["recovery_s"] is not None
                    and r1["recovery_s"] <= 0.25),
               f"with J = 1.5e-4 kg·m² the step decelerates the rotor at {decel:.0f} rad/s² and "
-              f"the 10 Hz loop's P-term needs {dw_p:.0f} rpm of error for 1.27 N·m: the rotor "
+              f"the speed loop's P-term needs {dw_p:.0f} rpm of error for 1.27 N·m: the rotor "
               "stalls into the zero-speed region the observer cannot see.  The dip scales "
               "~1/J at a fixed loop bandwidth: "
               + "; ".join(f"J×{r['J_scale']}: min {r['min_rpm']:.0f} rpm" for r in rows)

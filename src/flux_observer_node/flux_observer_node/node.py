@@ -34,6 +34,7 @@ from fluxdrive.drive.observers import (
     OS_N,
     OS_STALE,
     PARAM_RANGES,
+    STRING_CHOICES,
     VARIANT_KINDS,
     frame_limits,
     frame_out_of_range,
@@ -66,8 +67,13 @@ DOCS = {
     "gamma_bw_rad_s": ("ortega: observer gain gamma = gamma_bw / lambda^2", "rad/s"),
     "plpf_k": ("programmable LPF: w_c = |w^|/K", ""),
     "cutoff_min_hz": ("programmable LPF: floor on w_c", "Hz"),
-    "comp_freq_lpf_hz": ("paper: low-pass on the LPF output's own rotation used as the "
-                         "compensation frequency; 0 = use the PLL's frequency", "Hz"),
+    "comp_freq_lpf_hz": ("paper/paper_robust: low-pass on the LPF output's own rotation "
+                         "used as the compensation frequency; 0 = the PLL's frequency (eq. 8)",
+                         "Hz"),
+    "phase_detector": ("PLL phase detector: atan (arctangent, Sec. III) or sin (normalised "
+                       "cross product)", ""),
+    "inductance_term": ("where L^ i is removed: after_integration (eq. 5) or before_filter "
+                        "(L^ di/dt in the EMF)", ""),
     "r_hat_ohm": ("observer's stator resistance R^", "ohm"),
     "l_hat_h": ("observer's stator inductance L^", "H"),
     "lambda_hat_vs": ("observer's magnet flux lambda^", "V s"),
@@ -87,8 +93,8 @@ def config_params(cfg, card) -> list[P]:
         if v is None and f.name in MODEL_DEFAULTS:
             v = float(getattr(card, MODEL_DEFAULTS[f.name]))
         desc, unit = DOCS.get(f.name, (f.name, ""))
-        if f.name == "voltage_source":
-            out.append(P(f.name, str(v), desc, choices=("measured", "commanded")))
+        if f.name in STRING_CHOICES:
+            out.append(P(f.name, str(v), desc, choices=STRING_CHOICES[f.name]))
             continue
         lo, hi = RANGES.get(f.name, (None, None))
         out.append(P(f.name, float(v), desc + " (live)", unit, lo, hi))

@@ -76,7 +76,10 @@ from fluxdrive_ros import diagnostics as diag
 DOCS = {
     "current_bandwidth_hz": ("-3 dB bandwidth of the dq current loops (gains re-designed)",
                              "Hz"),
-    "speed_bandwidth_hz": ("-3 dB bandwidth of the speed loop (gains re-designed)", "Hz"),
+    "speed_bandwidth_hz": ("target -3 dB bandwidth of the speed loop (gains re-designed; "
+                           "lower if the peaking limit binds)", "Hz"),
+    "peak_limit_db": ("robustness limit of the loop design: closed-loop peaking of the "
+                      "current and speed loops", "dB"),
     "current_limit_pu": ("|i_q*| limit, per unit of rated current", "pu"),
     "angle_advance_periods": ("inverse-Park angle advance, in periods of w^", "periods"),
     "deadtime_comp_s": ("deadtime feed-forward on the duties (0 = off)", "s"),
