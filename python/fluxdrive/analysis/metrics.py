@@ -54,6 +54,17 @@ def thd(x: np.ndarray, theta: np.ndarray) -> float:
     return float(math.sqrt(sum(abs(harmonic(x, theta, n)) ** 2 for n in THD_ORDERS)) / h1)
 
 
+def thd_n(x: np.ndarray, theta: np.ndarray) -> float:
+    """THD+N: RMS of everything but the fundamental (DC, orders 2.., broadband noise) over the
+    fundamental's RMS.  x over a whole number of electrical periods of theta."""
+    c1 = harmonic(x, theta, 1)
+    h1 = abs(c1)
+    if h1 <= 0:
+        return float("nan")
+    rest = x - np.real(c1 * np.exp(1j * theta))
+    return float(math.sqrt(float(np.mean(rest ** 2))) / (h1 / math.sqrt(2.0)))
+
+
 def harmonic_spectrum(x: np.ndarray, theta: np.ndarray, orders=range(1, 21)) -> dict[int, float]:
     return {n: abs(harmonic(x, theta, n)) for n in orders}
 
@@ -90,6 +101,8 @@ def observer_metrics(est: np.ndarray, theta_true: np.ndarray, theta_unwrapped: n
         "flux_radius_mean_vs": mean_mag,
         "thd_flux_alpha": thd(est[sl, ES_LA], th),
         "thd_emf_alpha": thd(est[sl, ES_EA], th),
+        "thdn_flux_alpha": thd_n(est[sl, ES_LA], th),
+        "thdn_emf_alpha": thd_n(est[sl, ES_EA], th),
         "valid_fraction": float(np.mean(est[:, ES_VALID] > 0.5)),
     }
 
@@ -167,6 +180,7 @@ def format_table(m: dict[str, Any]) -> str:
             ("theta_err_mean_deg", "mean°", 7, 3), ("theta_err_h1_deg", "h1°", 6, 3),
             ("theta_err_h6_deg", "h6°", 7, 3), ("flux_radius_spread", "spread", 7, 3),
             ("thd_flux_alpha", "THDλα", 7, 3), ("thd_emf_alpha", "THDeα", 7, 3),
+            ("thdn_flux_alpha", "THD+Nλ", 7, 3), ("thdn_emf_alpha", "THD+Ne", 7, 3),
             ("valid_fraction", "valid", 6, 2)]
     name_w = max([len(n) for n in m["observers"]] + [10]) + 2
     lines = [f"scenario {m['scenario']}: driving={m['driving']} stable={m['stable']} "
@@ -188,7 +202,8 @@ def format_table(m: dict[str, Any]) -> str:
         line += f", step-load dip {s['dip_rpm']:.1f} rpm, recovery {rec}"
     lines.append(line)
     lines.append("(* driving; θ̃ = θ̂ − θ in electrical degrees over the window; h1/h6 orders "
-                 "of θ̃ vs the rotor angle; spread = (max−min)/mean |λ̂|; THD: orders 2..20)")
+                 "of θ̃ vs the rotor angle; spread = (max−min)/mean |λ̂|; THD: orders 2..20; "
+                 "THD+N: all but the fundamental, noise and DC included)")
     return "\n".join(lines)
 
 

@@ -404,6 +404,7 @@ MD_COLS = [("theta_err_rms_deg", "θ̃ rms °"), ("theta_err_peak_deg", "θ̃ pe
            ("theta_err_mean_deg", "θ̃ mean °"), ("theta_err_h1_deg", "h1 °"),
            ("theta_err_h6_deg", "h6 °"), ("flux_radius_spread", "spread"),
            ("thd_flux_alpha", "THD λα"), ("thd_emf_alpha", "THD eα"),
+           ("thdn_flux_alpha", "THD+N λα"), ("thdn_emf_alpha", "THD+N eα"),
            ("valid_fraction", "valid")]
 
 
