@@ -20,9 +20,10 @@ def _holds(res, start):
 
 def test_fig14_measured_voltages_remove_6th_flux_has_better_snr(tmp_path):
     r = _run("fig14", tmp_path)
-    assert _holds(r, "Commanded voltages: visible deadtime")
-    assert _holds(r, "Measured voltages: the 6th-order")
-    assert _holds(r, "Measured voltages: flux-based")
+    for v in ("[paper_robust] ", "[paper (literal)] "):
+        assert _holds(r, v + "Commanded voltages: visible deadtime")
+        assert _holds(r, v + "Measured voltages: the 6th-order")
+    assert _holds(r, "[paper_robust] Measured voltages: flux-based")
     assert _holds(r, "Sensorless flux drive")
     rep = json.loads((tmp_path / "report.json").read_text())["experiments"]["fig14"]
     assert all({"claim", "ours", "holds"} <= set(c) for c in rep["claims"])
