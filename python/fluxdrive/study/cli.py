@@ -101,6 +101,10 @@ def run_study(spec: StudySpec, out: Path, runner: Runner, restart: bool = False,
     return summary
 
 
+def _noop(x: Any) -> Any:
+    return x
+
+
 def _commit() -> str:
     """The fluxdrive commit the study ran on (+ '-dirty' with uncommitted engine changes)."""
     import subprocess
@@ -145,7 +149,14 @@ def main(argv: list[str]) -> int:
         t = store.read_table(out)
         if t is None:
             raise ConfigError(f"{out}: no study table (results.parquet) to map")
-        rep = maps.write_report(t, spec, out, [], {"tasks": len(spec.tasks())})
+        info: dict[str, Any] = {"tasks": len(spec.tasks())}
+        if (out / "summary.json").exists():  # how the table was made: keep it in the report
+            prev = json.loads((out / "summary.json").read_text())
+            info.update(runner=prev.get("runner", ""), elapsed_s=prev.get("elapsed_s", 0.0),
+                        commit=prev.get("commit", "?"))
+        fails = [json.loads(x) for x in (out / "failures.jsonl").read_text().splitlines()] \
+            if (out / "failures.jsonl").exists() else []
+        rep = maps.write_report(t, spec, out, fails, info)
         print(json.dumps(rep["lowest"], default=str))
         return 0
     if spec.kind == "scenario" and not args.scheduler:
@@ -193,19 +204,29 @@ def bench_study(argv: list[str]) -> dict[str, Any]:
                 # warm every worker (imports, kernel cache) before timing
                 r.client.run(warm_kernels)
                 t0 = time.perf_counter()
-                walls = []
+                walls, cpus = [], []
                 for o in r.run_unordered(run_task, ((t["task_id"], t) for t in tasks)):
                     if not o.ok:
                         raise RuntimeError(o.error)
                     walls.append(o.value["wall_s"])
+                    cpus.append(o.value["cpu_s"])
                 el = time.perf_counter() - t0
+                if n == 1:  # the runner's own cost: empty tasks, submit to result
+                    t1 = time.perf_counter()
+                    r.map(_noop, list(range(40)))
+                    noop_s = (time.perf_counter() - t1) / 40
             rate = len(tasks) / el
             task_s = sum(walls) / len(walls)
+            # the workers' share of a core while they ran: 1.0 on an idle machine; below it,
+            # other processes took the rest (then speed-up figures measure the machine's load)
+            share = sum(cpus) / (el * n)
             res[n] = {"tasks_per_s": rate, "task_wall_s": task_s, "elapsed_s": el,
+                      "task_cpu_s": sum(cpus) / len(cpus), "core_share": share,
                       "overhead_s": el * n / len(tasks) - task_s}
             print(f"[bench] {n} worker(s): {len(tasks)} tasks of {args.duration_s:g} s "
-                  f"simulated in {el:.2f} s = {rate:.2f} tasks/s (task itself {task_s:.3f} s, "
-                  f"overhead {res[n]['overhead_s'] * 1e3:.1f} ms/task)", file=sys.stderr)
+                  f"simulated in {el:.2f} s = {rate:.2f} tasks/s (task itself {task_s:.3f} s "
+                  f"wall, {res[n]['task_cpu_s']:.3f} s CPU; workers got {share:.0%} of a core "
+                  f"each; overhead {res[n]['overhead_s'] * 1e3:.1f} ms/task)", file=sys.stderr)
     load_after = os.getloadavg()
     ov = res[1]["overhead_s"]
     return {"tasks_per_s_1": round(res[1]["tasks_per_s"], 3),
@@ -214,8 +235,15 @@ def bench_study(argv: list[str]) -> dict[str, Any]:
             "goal_speedup": 1.8,
             "overhead_ms_per_task": round(ov * 1e3, 2),
             "overhead_pct_of_1s_run": round(100 * ov / res[1]["task_wall_s"], 2),
+            # load-independent-ish: an empty task's round trip against the run's CPU time
+            # (= its wall time on an idle core)
+            "empty_task_ms": round(noop_s * 1e3, 2),
+            "empty_task_pct_of_1s_run_cpu": round(100 * noop_s / res[1]["task_cpu_s"], 2),
             "goal_overhead_pct": 5.0,
-            "task_wall_s": round(res[1]["task_wall_s"], 3), "tasks": args.tasks,
+            "task_wall_s": round(res[1]["task_wall_s"], 3),
+            "task_cpu_s": round(res[1]["task_cpu_s"], 3),
+            "core_share_1_2": [round(res[1]["core_share"], 2), round(res[2]["core_share"], 2)],
+            "tasks": args.tasks,
             "cores": os.cpu_count(),
             "loadavg_1min_before_after": [round(load_before[0], 2), round(load_after[0], 2)]}
 

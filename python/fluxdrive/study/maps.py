@@ -105,7 +105,8 @@ def plot_maps(c: dict[str, Any], spec: StudySpec, out: Path) -> list[str]:
                                     ("rms_med", "median θ̃ RMS of the stable runs [°el]",
                                      "viridis", None)):
         fig, axs = plt.subplots(rows, cols, figsize=(0.9 * nx * cols + 2.5, 0.75 * ny * rows
-                                                     + 1.6), squeeze=False)
+                                                     + 1.6), squeeze=False,
+                                layout="constrained")
         vals_all = [cell[what] for g in c["variants"].values() for cell in g.values()
                     if not math.isnan(cell[what])]
         top = vmax if vmax is not None else (max(vals_all) if vals_all else 1.0)
