@@ -24,7 +24,15 @@ from fluxdrive.drive.control import (
     MODE_FAULT,
 )
 from fluxdrive.drive.observers import ES_N, observer_step
-from fluxdrive.drive.plant import FR_IA, FR_N, TR_N, TR_WM, plant_advance, plant_initial_frame
+from fluxdrive.drive.plant import (
+    FR_EN,
+    FR_IA,
+    FR_N,
+    TR_N,
+    TR_WM,
+    plant_advance,
+    plant_initial_frame,
+)
 from fluxdrive.drive.sequencer import ControlSequencer
 from fluxdrive.drive.sim import LATCH_N, DriveSetup, pwm_off_latch, run_scenario
 
@@ -136,12 +144,13 @@ def _bare(**kw):
     sq = ControlSequencer(ds.cp.copy(), ds.ts, True, lambda k, o: got.__setitem__(k, o.copy()),
                           lambda lvl, txt: lines.append((lvl, txt)), ds.w_ref, ds.id_inj, **kw)
     fr = np.zeros(FR_N)
-    fr[6] = 72.0
+    fr[6] = 72.0  # FR_VDC
+    fr[FR_EN] = 1.0  # the power stage switches as asked
     return sq, fr, got, lines
 
 
 def test_missing_estimate_trips_stale_input_after_the_sample_timeout():
-    sq, fr, got, lines = _bare(position_timeout_s=0.01)  # 100 periods
+    sq, fr, got, lines = _bare(position_timeout_s=0.01, min_wait_s=0.0)  # 100 periods
     sq.on_frame(0, fr.copy())
     sq.on_estimate(0, np.zeros(ES_N))
     for k in range(1, 101):  # estimate 1 never comes
@@ -206,6 +215,7 @@ def test_a_stalled_controller_resumes_through_the_start_up(stall_periods):
     assert dr.seq.counts["lost_frames"] == len(dr.lost) > 0
     warn = [t for lvl, t in dr.lines if lvl == "warning"]
     assert len(warn) == 1 and "interval lost" in warn[0]
+    assert any("closed loop again" in t for lvl, t in dr.lines if lvl == "info")
     ref = run_scenario(sc, progress=False)  # the same run without the stall
     ref_rpm = ref.truth[-2000:, TR_WM].mean() / RPM
     assert ref_rpm > 20.0 and abs(np.mean(dr.speed_rpm[-2000:]) - ref_rpm) < 3.0

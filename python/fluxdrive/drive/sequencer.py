@@ -10,9 +10,10 @@ jump skips the missing samples (frames lost upstream are never waited for).
 
 Stale input (latched fault "stale input", PWM off until an explicit reset; every later frame
 is answered at once with the PWM off):
-- the estimate of a frame has not come while frames `position_timeout_s` of sample time later
-  are already here (a paced plant or a bench keeps producing frames), once a first estimate
-  has come;
+- the estimate of a frame has not come while frames `position_timeout_s` of sample time
+  later are already here (a paced plant or a bench keeps producing frames) and it has been
+  waited for `min_wait_s` of wall time -- once a first estimate has come and not while
+  catching up after a lost interval (a backlog of queued frames says nothing about time);
 - the estimate of the waiting frame has not come for `position_wall_timeout_s` of wall time
   (a lockstep plant waits for us, so sample time stands still; `first_estimate_wall_s` for
   the very first estimate: an observer process starting, code compiling);
@@ -31,7 +32,10 @@ observer lock.  On every lost frame it re-synchronises:
   it carried, the invalid-estimate timer is cleared;
 - otherwise back through the start-up: align, I-f ramp, handover (a braked rotor stops
   within the gap; no observer can see a stopped rotor).
-One log line when an interval starts and one when the PWM is back.  More than
+Catching up after a stall, it goes on with the newest frame whose estimate is here (the
+queued ones in between would be answered too late to be applied; counted as skipped).
+One log line when an interval starts, one when the PWM is back, one when the drive is in
+closed loop again.  More than
 `max_resyncs` lost intervals within `resync_window_s` of sample time latch the fault
 "watchdog" with that reason (a power stage that keeps timing out is not a hiccup).
 
@@ -49,6 +53,7 @@ import numpy as np
 
 from fluxdrive.drive.control import (
     CO_EN,
+    CO_MODE,
     CO_N,
     CP_HANDOVER,
     CP_I2T_LIMIT,
@@ -128,7 +133,8 @@ class ControlSequencer:
                  w_ref_profile: np.ndarray | None = None, id_inj: np.ndarray | None = None,
                  position_timeout_s: float = 0.05, position_wall_timeout_s: float = 2.0,
                  first_estimate_wall_s: float = 30.0, depth: int = 10000,
-                 max_resyncs: int = 5, resync_window_s: float = 10.0):
+                 max_resyncs: int = 5, resync_window_s: float = 10.0,
+                 min_wait_s: float = 0.25):
         self.cp = cp
         self.ts = ts_s
         self.sensorless = sensorless
@@ -141,6 +147,9 @@ class ControlSequencer:
         self.depth = depth
         self.max_resyncs = max_resyncs
         self.resync_window_s = resync_window_s
+        self.min_wait_s = min_wait_s
+        self.self_stall_s = 0.5  # check_wall called this much later: this process stalled
+        self._last_check = 0.0
         self.set_timeouts(position_timeout_s, position_wall_timeout_s)
         self.cs = np.zeros(CS_N)
         controller_reset(self.cs)
@@ -158,12 +167,13 @@ class ControlSequencer:
         self.enables: dict[int, bool] = {}  # seq -> PWM enable of the duty sent for it
         self.lost_run = 0  # consecutive lost frames (0: none in progress)
         self.lost_first = -1
+        self.recover_from = -1  # first lost frame of a recovery not yet back in closed loop
         self.resync_at: list[int] = []  # frames at which lost intervals began
         self.finished_k = -1  # last frame answered
         self.counts = {n: 0 for n in ("frames", "estimates", "repeated_or_backwards",
                                       "missing_frames", "late_estimates", "stale_trips",
-                                      "lost_frames", "lost_intervals", "flying_restarts",
-                                      "restarts", "faults_latched")}
+                                      "lost_frames", "lost_intervals", "skipped_frames",
+                                      "flying_restarts", "restarts", "faults_latched")}
 
     # ------------------------------------------------------------------ settings
     def set_timeouts(self, position_timeout_s: float, position_wall_timeout_s: float) -> None:
@@ -213,18 +223,26 @@ class ControlSequencer:
         self._run()
 
     def check_wall(self, now: float | None = None) -> None:
-        """Wall-clock timeout of the estimate the sequence is waiting for."""
+        """Wall-clock timeout of the estimate the sequence is waiting for; call it every
+        0.1 s or so -- a call more than 0.5 s after the previous one means this process was
+        stalled itself, and that time does not count as waiting."""
         if not self.sensorless:
             return
         now = time.monotonic() if now is None else now
+        if now - self._last_check > self.self_stall_s and self._last_check > 0.0:
+            self.t_wait += now - self._last_check  # we were stalled ourselves: not counted
+        self._last_check = now
         lim = self.wall_timeout_s
         if lim > 0.0 and self.counts["estimates"] == 0:  # the first one may take a while
             lim = max(lim, self.first_estimate_wall_s)
-        if (lim <= 0.0 or self.tripped or self.wait_k != self.next_k
-                or self.next_k not in self.frames or self.next_k in self.ests):
+        if (self.tripped or self.wait_k != self.next_k or self.next_k not in self.frames
+                or self.next_k in self.ests):
             return
         waited = now - self.t_wait
-        if waited > lim:
+        if self._sample_timeout(self.next_k):
+            self._run()
+            return
+        if lim > 0.0 and waited > lim:
             self.trip_stale(f"no position estimate for frame {self.next_k} for "
                             f"{waited:.1f} s of wall time")
             self._run()
@@ -250,23 +268,59 @@ class ControlSequencer:
                 if es is None:
                     if self.tripped:
                         es = self.no_est  # tripped: no need to wait for the estimate
-                    elif (self.max_seq - k >= self.n_pos_timeout
-                          and self.counts["estimates"] > 0):  # (start: wall clock)
+                    elif self._behind() and self._skip_to_newest_pair(k):
+                        continue
+                    elif self._sample_timeout(k):
                         late_ms = (self.max_seq - k) * self.ts * 1e3
                         self.trip_stale(
                             f"no position estimate for frame {k} while frames up to "
                             f"{self.max_seq} arrived ({late_ms:.1f} ms of sample time)")
                         es = self.no_est
                     else:
-                        if self.wait_k != k:
-                            self.wait_k = k
-                            self.t_wait = time.monotonic()
                         return
             else:
                 es = self.no_est
             del frames[k]
             self._answer(k, fr, es)
             self.next_k = k + 1
+
+    def _behind(self) -> bool:
+        """The newest frame says the power stage has cut the PWM although our last duty
+        asked for it: this controller fell behind (stalled) and is catching up."""
+        newest = self.frames.get(self.max_seq)
+        return (newest is not None and newest[FR_EN] < 0.5
+                and self.enables.get(self.next_k - 1, False))
+
+    def _skip_to_newest_pair(self, k: int) -> bool:
+        """Catching up after a stall, as a drive's control task does: go on with the newest
+        frame whose estimate is here (the queued ones in between would be answered too
+        late to be applied); False if there is none newer than k."""
+        j = max((j for j in self.ests if j > k and j in self.frames), default=-1)
+        if j < 0:
+            return False
+        for i in [i for i in self.frames if i < j]:
+            del self.frames[i]
+        for i in [i for i in self.ests if i < j]:
+            del self.ests[i]
+        self.counts["skipped_frames"] += j - k
+        # the skipped frames' duties were never sent: the PWM state they'd show is unknown
+        self.enables[j - 2] = self.enables[j - 1] = self.enables.get(k - 1, False)
+        self.next_k = j
+        return True
+
+    def _sample_timeout(self, k: int) -> bool:
+        """The estimate of frame k is overdue by sample time: frames n_pos_timeout later
+        are here, and it has been waited for at least min_wait_s of wall time (a process
+        catching up with queued frames and estimates gets them in bursts that say nothing
+        about time; the same at the start, and after a lost interval: wall clock only)."""
+        now = time.monotonic()
+        if self.wait_k != k:
+            self.wait_k = k
+            self.t_wait = now
+        if self.max_seq - k < self.n_pos_timeout or self.lost_run or not self.counts[
+                "estimates"] or now - self.t_wait < self.min_wait_s:
+            return False
+        return not self._behind()  # we are the ones behind (stalled), not the observer
 
     def _lost(self, k: int, fr: np.ndarray) -> bool:
         """Frame k was made with PWM off although duty(k-2) asked for it on."""
@@ -291,6 +345,11 @@ class ControlSequencer:
             code = int(cs[CS_FAULT])
             self.fault_detail = describe_fault(code, self.cp, cs, fr, es, k)
             self._log_fault(code)
+        if (self.recover_from >= 0 and self.out[CO_MODE] == MODE_CLOSED_LOOP
+                and not self.lost_run):
+            self.log("info", f"closed loop again at frame {k}, {k - self.recover_from} "
+                             f"period(s) after the lost interval began")
+            self.recover_from = -1
         self.enables[k] = bool(self.out[CO_EN] > 0.5)
         if len(self.enables) > 8:
             for j in [j for j in self.enables if j < k - 4]:
@@ -306,6 +365,8 @@ class ControlSequencer:
         self.lost_run += 1
         if first:
             self.lost_first = k
+            if self.recover_from < 0:
+                self.recover_from = k
             c["lost_intervals"] += 1
             win = round(self.resync_window_s / self.ts)
             self.resync_at = [j for j in self.resync_at if j > k - win] + [k]
@@ -359,6 +420,7 @@ class ControlSequencer:
         self.rejected_run = 0
         self.wait_k = -1
         self.lost_run = 0
+        self.recover_from = -1
         self.resync_at = []
         self.enables.clear()
         return code, detail

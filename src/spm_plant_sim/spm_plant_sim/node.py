@@ -18,7 +18,11 @@ Modes
   published once it is due *and* duty(k-2) has arrived (so while the graph keeps up, a paced
   run equals a lockstep run); a controller that falls behind holds the plant for up to
   `watchdog_periods` periods of wall time, after which the plant runs on with the PWM off
-  (frames flagged STATUS_STALE_COMMAND) until duty commands come back.
+  (frames flagged STATUS_STALE_COMMAND) until duty commands come back.  Time slips by every
+  hold (the next frame is due when the plant goes on, no burst of frames to catch up with
+  the wall clock); the clock starts with the first duty command (up to 30 s: processes
+  starting).  The pacing record (lateness of every frame against its due time, holds,
+  watchdog trips) is logged as one "pacing {json}" line when the plant stops.
 
 Safe state when the controller is gone (watchdogs):
 - lockstep: a duty command that has not come after `duty_timeout_s` of wall time (the
@@ -110,6 +114,10 @@ def param_table(sc) -> list[P]:
     ]
 
 
+# paced: a plant late by more than this many periods lets time slip instead of catching up
+MAX_CATCH_UP = 50
+
+
 class PlantNode(FluxNode):
     def __init__(self, name: str = "plant", namespace: str | None = None, **kw):
         super().__init__(name, namespace, **kw)
@@ -160,6 +168,10 @@ class PlantNode(FluxNode):
         self.last_duty: tuple | None = None
         self.t_last_duty = 0.0
         self.watchdog_tripped = False
+        self.held = False  # paced: waiting for a duty command late beyond its two periods
+        self.n_holds = 0
+        self.n_slips = 0
+        self.lateness: list[float] = []  # paced: publish time - due time of every frame [s]
         self._wd_k = -1  # lockstep watchdog: frame index and wall time of the last progress
         self._wd_t = 0.0
         self.counts = diag.Counters("duty_received", "duty_nonfinite", "duty_out_of_range",
@@ -366,9 +378,13 @@ class PlantNode(FluxNode):
         rate = self.pv["rate_factor"]
         ts = self.ds.ts
         due = int((now - self.t_wall0) * rate / ts)
+        if due - self.k > MAX_CATCH_UP:  # the plant itself was late (scheduling): time
+            self.n_slips += 1  # slips instead of a burst of frames nobody can answer
+            self.t_wall0 += (due - self.k - 1) * ts / rate
+            due = self.k + 1
         wd_wall = self.pv["watchdog_periods"] * ts / rate
-        if self.last_duty is None:  # the first answer may take a while (code loading)
-            wd_wall = max(wd_wall, 5.0)
+        if self.last_duty is None:  # the first answer may take a while (processes
+            wd_wall = max(wd_wall, 30.0)  # starting, code loading): the clock starts with it
         steps = 0
         while self.k < due and steps < 5000:
             k = self.k + 1
@@ -376,13 +392,21 @@ class PlantNode(FluxNode):
                 self._finish()
                 return
             d = self.duties.pop(k - 2, None)
+            lat = now - self.t_wall0 - k * ts / rate  # lateness against the due time
+            if self.held and (d is not None or k < 2):
+                # the controller held the plant: time slips by the wait (frame k is due now)
+                # instead of a burst of frames to catch up with the wall clock
+                self.held = False
+                self.n_holds += 1
+                self.t_wall0 = now - k * ts / rate
             if k < 2:  # frame 1 comes from duty(-1): PWM off, as in lockstep
                 self._advance(np.array([0.5, 0.5, 0.5]), False, k)
             elif d is not None:
                 self.duty[0], self.duty[1], self.duty[2] = d[0], d[1], d[2]
                 self._advance(self.duty, d[3], k)
             elif now - self.t_last_duty <= wd_wall:
-                break  # the controller is behind: wait for duty(k-2)
+                self.held = True  # the controller is behind: wait for duty(k-2)
+                break
             else:
                 if not self.watchdog_tripped:
                     self.watchdog_tripped = True
@@ -390,11 +414,33 @@ class PlantNode(FluxNode):
                     self.get_logger().warning(
                         f"watchdog: no duty command for {wd_wall * 1e3:.1f} ms of wall time; "
                         f"PWM off from frame {k}")
+                if self.held:  # time slips by the wait: frame k is due now
+                    self.held = False
+                    self.t_wall0 = now - k * ts / rate
                 self._advance(np.array([0.5, 0.5, 0.5]), False, k, STATUS_STALE_COMMAND)
+            if len(self.lateness) < 2_000_000:
+                self.lateness.append(lat)
             steps += 1
         if len(self.duties) > 64:  # drop duties for frames already simulated
             for old in [j for j in self.duties if j < self.k - 2]:
                 del self.duties[old]
+
+    def pacing(self) -> dict:
+        """Paced loop timing: lateness of the frames against their due time (p50/p99/max,
+        in periods of paced wall time), holds (the controller answered later than its two
+        periods: time slipped) and watchdog trips."""
+        lat = np.array(self.lateness)
+        per = self.ds.ts / self.pv["rate_factor"]
+        if lat.size == 0:
+            return {"frames": 0}
+        p50, p99 = np.percentile(lat, [50, 99])
+        return {"frames": int(lat.size), "period_s": per,
+                "lateness_p50_periods": float(p50 / per),
+                "lateness_p99_periods": float(p99 / per),
+                "lateness_max_periods": float(lat.max() / per),
+                "late_frames": int((lat > per).sum()), "holds": self.n_holds,
+                "slips": self.n_slips,
+                "watchdog_trips": self.counts["watchdog_trips"]}
 
     def _diag_commands(self) -> tuple[int, str, dict]:
         c = self.counts
@@ -423,6 +469,8 @@ class PlantNode(FluxNode):
         self.get_logger().info(
             f"done: {self.k + 1} frames, {sim:.3f} s simulated in {el:.2f} s wall "
             f"(real-time factor {sim / max(el, 1e-9):.3f})")
+        if self.paced:
+            self._log_pacing()
         msg = UInt64()
         msg.data = self.k
         self.pub_done.publish(msg)
@@ -457,6 +505,13 @@ class PlantNode(FluxNode):
                 self.log(f"could not publish the final PWM-off frame: {exc}", "warning")
         self.log(f"stopped before the end of the run: PWM off from frame {self.k} "
                  f"(t = {self.k * ts:.4f} s); {self.k + 1} frames published")
+        if self.paced:
+            self._log_pacing()
+
+    def _log_pacing(self) -> None:
+        import json
+
+        self.log("pacing " + json.dumps(self.pacing()))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,0 +1,91 @@
+"""A paced graph survives a stalled controller: the controller process is stopped
+(SIGSTOP) for 0.2 s, 1 s and 3 s of wall time and continued.  Each time the plant's watchdog
+switches the PWM off (frames flagged STATUS_STALE_COMMAND), the controller finds the lost
+interval when it resumes and comes back through align / I-f to closed loop on its own --
+no latched fault; the recorder holds every frame."""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+
+import pytest
+from test_process_faults import STATUS_STALE_COMMAND, Run, domain, graph_dict, read_frames
+
+pytest.importorskip("rclpy")
+
+RATE = 0.2  # simulated seconds per wall second: 2000 frames/s
+MODE_CLOSED_LOOP, MODE_FAULT = 3, 4
+
+
+def _modes(bag):
+    from rosbags.highlevel import AnyReader
+
+    out = {}
+    with AnyReader([bag]) as reader:
+        conns = [c for c in reader.connections if c.topic == "/drive/controller_state"]
+        for conn, _, raw in reader.messages(connections=conns):
+            m = reader.deserialize(raw, conn.msgtype)
+            out[int(m.seq)] = int(m.mode)
+    return out
+
+
+def test_stalled_controller_recovers_in_a_paced_graph(tmp_path):
+    bag = tmp_path / "bag"
+    g = graph_dict(bag, duration_s=0.0,
+                   processes={"controller": "controller", "recorder": "recorder"},
+                   plant={"mode": "paced", "rate_factor": RATE, "exit_on_done": False,
+                          "watchdog_periods": 200})
+    # this loaded 2-core machine also stalls the controller for 100 ms now and then by itself
+    # (each a lost interval too): no limit on their number here
+    # (a shorter start-up than the scenario's keeps the test short)
+    next(nd for nd in g["nodes"] if nd["name"] == "controller")["parameters"].update(
+        max_resyncs=1000, align_time_s=0.1, handover_dwell_s=0.15)
+    run = Run(g, domain(11), tmp_path)
+    run.thread = threading.Thread(
+        target=lambda: setattr(run, "code", run.launcher.run(timeout=400)), daemon=True)
+    run.start()
+    run.wait_frames(11000, timeout=120)  # closed loop from about frame 9000
+    pid = run.pid("controller")
+    stalls = []
+    for stall_s in (0.2, 1.0, 3.0):
+        at = len(run.lines)
+        k0 = run.frames()
+        os.kill(pid, signal.SIGSTOP)
+        time.sleep(stall_s)
+        os.kill(pid, signal.SIGCONT)
+        run.wait_line(r"interval lost; restarting through align / I-f", after=at)
+        run.wait_line(r"PWM back at frame \d+ after \d+ lost", after=at)
+        stalls.append((stall_s, k0))
+        run.wait_line(r"closed loop again at frame \d+", after=at, timeout=120)
+        run.wait_frames(run.frames() + 1000)
+    run.launcher.stop()
+    code = run.join()
+    out = run.text()
+    assert code == 0, out
+    assert "latched" not in out, out
+    seqs, pwm, flags, counts = read_frames(bag)
+    modes = _modes(bag)
+    n = len(seqs)
+    assert seqs == list(range(n)), "the bag lost frames"
+    stale = [k for k, f in zip(seqs, flags, strict=True) if f & STATUS_STALE_COMMAND]
+    runs = []  # the stale intervals, [first, last]
+    for k in stale:
+        if runs and k == runs[-1][1] + 1:
+            runs[-1][1] = k
+        else:
+            runs.append([k, k])
+    runs = [r for r in runs if r[1] < n - 1]  # (the plant's final PWM-off period)
+    print(f"{n} frames; stale intervals {runs}; stalls {stalls}")
+    assert len(runs) >= 3, runs
+    for stall_s, k0 in stalls:  # the stale interval each stall caused
+        a, b = next(r for r in runs if r[1] >= k0)
+        assert not any(pwm[a:b + 1])
+        # the watchdog bridges 200 periods; the stall lasts stall_s * RATE * 1e4 periods
+        assert (b - a + 1) >= 0.5 * stall_s * RATE * 1e4 - 200, (stall_s, a, b)
+    assert MODE_FAULT not in modes.values()
+    assert modes[max(modes)] == MODE_CLOSED_LOOP
+    for a, _ in runs:  # closed loop before each stall and again after it
+        assert modes[a - 30] == MODE_CLOSED_LOOP
