@@ -15,7 +15,7 @@ CLOCK = "/clock"  # rosgraph_msgs/Clock: sim time of the plant
 ESTIMATE = "estimate"  # relative: /obs/<name>/estimate (flux_drive_msgs/RotorEstimate)
 OBS_NAMESPACE = "/obs"
 MARKER = "/drive/param_marker"  # flux_drive_msgs/ParameterMarker: an operator set a parameter
-SCOPE_ENVELOPE = "/scope/envelope"  # std_msgs/String (JSON): display envelopes of the scope tap
+SCOPE_ENVELOPE = "/scope/envelope"  # std_msgs/UInt8MultiArray: display envelopes of the scope tap
 
 T_FRAME = "flux_drive_msgs/msg/PhaseFrame"
 T_TRUTH = "flux_drive_msgs/msg/PlantTruth"
