@@ -77,7 +77,8 @@ def test_scope_page_in_chromium(tmp_path):
             for key in ("est/flux_measured:theta", "est/flux_measured:err", "state:i_q",
                         "state:speed_fb", "duty:a", "truth:theta"):
                 assert n_pts.get(key, 0) > 10, (key, n_pts)
-            print(f"page: {s2['fps']} redraws/s, {s2['dataRate']} envelopes/s; points {n_pts}")
+            print(f"page: {s2['fps']} redraws/s ({s2.get('drawMs', 0):.1f} ms each), "
+                  f"{s2['dataRate']} envelopes/s; points {n_pts}")
 
             # parameter panel: a live change reaches the node ...
             row = page.locator('tr[data-node="/controller"][data-name="position_timeout_s"]')

@@ -258,6 +258,7 @@ class ScopeWatcher:
         self.n = 0
         self.bytes = 0
         self.fps: list[float] = []
+        self.draw_ms: list[float] = []
 
     def run(self, launcher) -> None:
         t_end = time.monotonic() + 120.0
@@ -309,6 +310,7 @@ class ScopeWatcher:
                 self.n = s["envelopes"]
                 if s["lastSeq"] > 0:
                     self.fps.append(float(s["fps"]))
+                    self.draw_ms.append(float(s.get("drawMs") or 0.0))
             b.close()
 
     def stop(self) -> None:
@@ -323,6 +325,8 @@ class ScopeWatcher:
         if self.fps:
             fps = sorted(self.fps[1:] or self.fps)  # the first second loads the page
             out["scope_page_fps"] = round(fps[len(fps) // 2], 1)  # median
+            dm = sorted(self.draw_ms[1:] or self.draw_ms)
+            out["scope_page_draw_ms"] = round(dm[len(dm) // 2], 1)  # one frame, all charts
         return out
 
 

@@ -189,20 +189,30 @@ function buildCharts() {
   }
 }
 
-function chartData(def) {
+function chartData(def, px) {
   // union of the bucket indices of the streams the chart uses
   const streams = [...new Set(def.series.map((s) => s.s))].filter((s) => store[s]);
   const ks = new Set();
   for (const s of streams) for (const k of store[s].k) ks.add(k);
   const kk = [...ks].sort((a, b) => a - b);
-  const idx = new Map(kk.map((k, i) => [k, i]));
-  const out = [kk.map((k) => k * bucket * tsS)];
+  // about one point per pixel: g buckets merge into one (min of the minima, max of the
+  // maxima: still no spike hidden); groups aligned on k so they do not shift as data comes
+  const g = Math.max(1, Math.ceil(kk.length / Math.max(50, px)));
+  const gk = [], gidx = new Map();
+  for (const k of kk) {
+    const q = Math.floor(k / g);
+    if (!gidx.has(q)) { gidx.set(q, gk.length); gk.push(q); }
+  }
+  const out = [gk.map((q) => q * g * bucket * tsS)];
   for (const s of def.series) {
     const st = store[s.s];
-    const hi = new Array(kk.length).fill(null), lo = new Array(kk.length).fill(null);
+    const hi = new Array(gk.length).fill(null), lo = new Array(gk.length).fill(null);
     if (st && st.f[s.f]) {
       const [mn, mx] = st.f[s.f];
-      for (let i = 0; i < st.k.length; i++) { const j = idx.get(st.k[i]); lo[j] = mn[i]; hi[j] = mx[i]; }
+      for (let i = 0; i < st.k.length; i++) {
+        const j = gidx.get(Math.floor(st.k[i] / g));
+        lo[j] = minN(lo[j], mn[i]); hi[j] = maxN(hi[j], mx[i]);
+      }
     }
     out.push(hi, lo);
   }
@@ -265,7 +275,7 @@ function redraw(now) {
   for (const ch of charts) {
     if (ch.u) {
       ch.u.batch(() => {
-        if (dataDirty) ch.u.setData(chartData(ch.def), false);
+        if (dataDirty) ch.u.setData(chartData(ch.def, ch.el.clientWidth), false);
         ch.u.setScale("x", { min: tShow - win, max: tShow });
       });
     } else if (dataDirty) drawLocus(ch);
@@ -283,7 +293,9 @@ function frame(now) {
   const moving = dirty || dataDirty || tShow < stats.simT;  // nothing new: no redraw
   if (moving && !paused() && stats.lastSeq >= 0 && now - lastFrameWall >= 1000 / FPS - 2) {
     if (dirty) dataDirty = true;
+    const t0 = performance.now();
     redraw(now);
+    stats.drawMs = 0.9 * (stats.drawMs || 0) + 0.1 * (performance.now() - t0);  // per frame
     lastFrameWall = now;
     dirty = false;
     stats.redraws++;
