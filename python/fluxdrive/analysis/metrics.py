@@ -16,7 +16,17 @@ from typing import Any
 
 import numpy as np
 
-from fluxdrive.drive.control import CO_FAULT, CO_ID, CO_IQ, CO_MODE, MODE_CLOSED_LOOP
+from fluxdrive.drive.control import (
+    CO_FAULT,
+    CO_ID,
+    CO_IQ,
+    CO_MODE,
+    CO_W_FB,
+    FAULT_NAMES,
+    MODE_CLOSED_LOOP,
+    describe_trip,
+    trip_message,
+)
 from fluxdrive.drive.observers import ES_EA, ES_LA, ES_LB, ES_TH, ES_VALID
 from fluxdrive.drive.plant import TR_THETA_E, TR_WM
 
@@ -149,6 +159,15 @@ def compute(result) -> dict[str, Any]:
     sl = slice(win.k0, win.k1)
     observers = {nm: observer_metrics(result.est[i, sl], theta[sl], theta_unw[sl])
                  for i, nm in enumerate(result.names)}
+    trip = trip_info(result)
+    # after a trip in or before the window (PWM off, rotor coasting or stopped) an observer's
+    # numbers describe a stopped drive: it has valid data only if it flagged some sample
+    # valid while the drive still ran.  (Without a trip a never-valid shadow observer keeps
+    # its numbers: how wrong it is on a running drive is the point of running it.)
+    k_run_end = win.k1 if trip is None else min(max(trip["k"], win.k0), win.k1)
+    for i, nm in enumerate(result.names):
+        ok = trip is None or bool(np.any(result.est[i, win.k0:k_run_end, ES_VALID] > 0.5))
+        observers[nm]["valid_data"] = ok
     speed = speed_metrics(t, result.truth[:, TR_WM], result.w_ref, win, sc.step_load_time_s)
     faults = result.ctrl[:, CO_FAULT]
     fault_code = int(faults.max()) if faults.size else 0
@@ -164,6 +183,7 @@ def compute(result) -> dict[str, Any]:
         "driving": result.driving,
         "stable": bool(stable),
         "fault_code": fault_code,
+        "trip": trip,
         "window_s": list(sc.steady_window_s),
         "observers": observers,
         "speed": speed,
@@ -172,6 +192,31 @@ def compute(result) -> dict[str, Any]:
             "i_d_mean_a": float(np.mean(result.ctrl[sl, CO_ID])),
         },
     }
+
+
+def trip_info(result) -> dict[str, Any] | None:
+    """The first latched fault of a run: code, name, time, the values that tripped it and
+    the one-line message ('tripped at 0.000 s: DC-bus over-voltage 160.0 V > 95.0 V
+    (control.vdc_max_v)'); None if the drive never tripped."""
+    faults = result.ctrl[:, CO_FAULT]
+    hit = np.nonzero(faults > 0)[0]
+    if hit.size == 0:
+        return None
+    k = int(hit[0])
+    code = int(faults[k])
+    sc = result.scenario
+    detail = FAULT_NAMES.get(code, str(code))
+    try:
+        cp = sc.control.to_params(sc.machine)
+        d = result.names.index(result.driving) if result.driving in result.names else -1
+        est = result.est[d, k] if d >= 0 else np.full(8, np.nan)
+        w_prev = float(result.ctrl[k - 1, CO_W_FB]) if k > 0 else 0.0
+        detail = describe_trip(code, result.frames[k], est, cp, w_fb_prev_rad_s=w_prev)
+    except Exception:  # noqa: BLE001 - a replayed run may lack a controller model: name only
+        pass
+    t_s = float(result.t[k])
+    return {"code": code, "fault": FAULT_NAMES.get(code, str(code)), "k": k, "t_s": t_s,
+            "detail": detail, "message": trip_message(t_s, detail)}
 
 
 def format_table(m: dict[str, Any]) -> str:
@@ -186,9 +231,16 @@ def format_table(m: dict[str, Any]) -> str:
     lines = [f"scenario {m['scenario']}: driving={m['driving']} stable={m['stable']} "
              f"window={m['window_s'][0]:.2f}-{m['window_s'][1]:.2f} s",
              "observer".ljust(name_w) + "".join(h.rjust(w + 1) for _, h, w, _ in cols)]
+    trip = m.get("trip")
+    if trip:
+        lines.insert(0, trip["message"])
     for name, om in m["observers"].items():
         tag = "*" if name == m["driving"] else " "
         row = (tag + name).ljust(name_w)
+        if not om.get("valid_data", True):
+            lines.append(row + f"  -- no valid data in the window (drive tripped at "
+                               f"{trip['t_s']:.3f} s)")
+            continue
         for key, _, w, p in cols:
             v = om[key]
             row += (f"{v:{w}.{p}f}" if v is not None and not math.isnan(v) else "nan".rjust(w)

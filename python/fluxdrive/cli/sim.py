@@ -15,7 +15,8 @@ def main_sim(argv: list[str]) -> int:
     ap = argparse.ArgumentParser(prog="fluxdrive sim", description=__doc__)
     ap.add_argument("scenario", help="scenario YAML (path, or a name under config/scenarios)")
     ap.add_argument("--out", type=Path, help="output folder (default runs/<name>-sim-<time>)")
-    ap.add_argument("--machine", help="swap the machine card")
+    ap.add_argument("--machine", help="run on this machine card (a path or a name under "
+                    "config/machines); per-unit speeds and every unset default follow it")
     ap.add_argument("--no-plots", action="store_true")
     args = ap.parse_args(argv)
     sc = load_scenario(scenario_path(args.scenario), machine=args.machine)

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-import yaml
+from fluxdrive.core import yamlio
 
 
 class ConfigError(ValueError):
@@ -101,9 +101,10 @@ def load_machine(path: str | Path) -> MachineCard:
     """Load a machine card YAML (flat keys, or grouped under motor/inverter/sensors/options)."""
     path = Path(path)
     try:
-        raw = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        raise ConfigError(f"{path}: cannot read machine card: {exc}") from exc
+        raw = yamlio.load_file(path)
+    except (OSError, yamlio.YAMLError) as exc:
+        raise ConfigError(f"{path}: cannot read machine card{yamlio.problem_line(exc)}: "
+                          f"{getattr(exc, 'problem', None) or exc}") from exc
     if not isinstance(raw, dict):
         raise ConfigError(f"{path}: a machine card must be a mapping")
     flat: dict[str, Any] = {}

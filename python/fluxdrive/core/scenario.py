@@ -14,11 +14,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
+from fluxdrive.core import yamlio
 from fluxdrive.core.machine import ConfigError, MachineCard, load_machine
 from fluxdrive.core.paths import CONFIG_DIR, ROOT, project_file
-from fluxdrive.drive.control import ControllerConfig
+from fluxdrive.drive.control import CARD_RULES, ControllerConfig
 from fluxdrive.drive.observers import ObserverConfig, observer_config
 
 REPO_ROOT = ROOT  # the checkout (fluxdrive.core.paths: FLUXDRIVE_ROOT or the one we sit in)
@@ -102,7 +102,8 @@ def _dataclass_from(src: str, key: str, cls, data: dict, base=None):
         if isinstance(cur, bool):
             if not isinstance(v, bool):
                 raise ConfigError(f"{src}: '{key}.{k}' must be true/false, got {v!r}")
-        elif isinstance(cur, (int, float)) or (cur is None and k.endswith(("_ohm", "_h", "_vs"))):
+        elif isinstance(cur, (int, float)) or (cur is None and (
+                k.endswith(("_ohm", "_h", "_vs", "_hz")) or k in CARD_RULES)):
             _num(src, f"{key}.{k}", v)
             v = float(v)
         elif isinstance(cur, str) and not isinstance(v, str):
@@ -111,7 +112,12 @@ def _dataclass_from(src: str, key: str, cls, data: dict, base=None):
     return obj
 
 
-_TOP_KEYS = {"name", "description", "machine", "duration_s", "seed", "speed_rpm", "load_pu",
+# control keys a scenario may give in per unit of the card's rated speed instead of rpm
+_CONTROL_PU = {"handover_pu": "handover_rpm", "handback_pu": "handback_rpm",
+               "if_accel_pu_s": "if_accel_rpm_s"}
+
+_TOP_KEYS = {"name", "description", "machine", "duration_s", "seed", "speed_rpm", "speed_pu",
+             "load_pu",
              "dyno_pu_per_rpm", "load_type", "brake_band_rpm", "control", "observers", "driving",
              "steady_window_s",
              "step_load_time_s", "faults", "plant", "initial_angle_deg", "id_injection",
@@ -124,28 +130,45 @@ def load_scenario(path: str | Path, machine: str | Path | None = None,
     path = Path(path)
     src = str(path)
     try:
-        raw = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        raise ConfigError(f"{src}: cannot read scenario: {exc}") from exc
+        raw = yamlio.load_file(path)
+    except (OSError, yamlio.YAMLError) as exc:
+        raise ConfigError(f"{src}: cannot read scenario{yamlio.problem_line(exc)}: "
+                          f"{getattr(exc, 'problem', None) or exc}") from exc
     if not isinstance(raw, dict):
         raise ConfigError(f"{src}: a scenario must be a mapping")
     if overrides:
-        raw = {**raw, **overrides}
+        raw = dict(raw)
+        for pair in (("speed_rpm", "speed_pu"), ("speed_pu", "speed_rpm")):
+            if pair[0] in overrides and pair[0] not in raw:
+                raw.pop(pair[1], None)  # an override in the other unit replaces the profile
+        raw.update(overrides)
     unknown = sorted(set(raw) - _TOP_KEYS)
     if unknown:
         raise ConfigError(f"{src}: unknown key(s) {unknown}; expected some of {sorted(_TOP_KEYS)}")
-    mpath = machine or raw.get("machine", "../machines/default_spm.yaml")
-    mpath = Path(mpath)
-    if not mpath.is_absolute():
-        cand = (path.parent / mpath)
-        mpath = cand if cand.exists() or machine is None else Path(machine)
+    if machine is not None:  # --machine: a path, or a card name under config/machines
+        mpath = machine_path(machine)
+    else:
+        mpath = Path(raw.get("machine", "../machines/default_spm.yaml"))
+        if not mpath.is_absolute():
+            mpath = path.parent / mpath
     card = load_machine(mpath)
 
     duration = _num(src, "duration_s", raw.get("duration_s", 2.0), 1e-3, 3600.0)
     seed = raw.get("seed", 0)
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise ConfigError(f"{src}: 'seed' must be an integer, got {seed!r}")
-    ctrl = _dataclass_from(src, "control", ControllerConfig, raw.get("control", {}) or {})
+    ctrl_raw = raw.get("control", {}) or {}
+    if not isinstance(ctrl_raw, dict):
+        raise ConfigError(f"{src}: 'control' must be a mapping")
+    ctrl_raw = dict(ctrl_raw)
+    for key_pu, key_rpm in _CONTROL_PU.items():
+        if key_pu in ctrl_raw:
+            if key_rpm in ctrl_raw:
+                raise ConfigError(f"{src}: give control.{key_pu} or control.{key_rpm}, not both")
+            ctrl_raw[key_rpm] = _num(src, f"control.{key_pu}", ctrl_raw.pop(key_pu),
+                                     0.0, 100.0) * card.rated_speed_rpm
+    ctrl = _dataclass_from(src, "control", ControllerConfig, ctrl_raw)
+    ctrl.check(card, f"{src}: control")  # on this card: a bad value names the file
     obs_raw = raw.get("observers", {}) or {}
     if not isinstance(obs_raw, dict):
         raise ConfigError(f"{src}: 'observers' must be a mapping name -> settings")
@@ -201,7 +224,7 @@ def load_scenario(path: str | Path, machine: str | Path | None = None,
         machine=card,
         duration_s=duration,
         seed=seed,
-        speed_profile_rpm=_profile(src, "speed_rpm", raw.get("speed_rpm", 60.0)),
+        speed_profile_rpm=_speed_profile(src, raw, card),
         load_profile_pu=_profile(src, "load_pu", raw.get("load_pu", 0.0)),
         dyno_pu_per_rpm=_num(src, "dyno_pu_per_rpm", raw.get("dyno_pu_per_rpm", 0.0)),
         brake_band_rpm=_load_band(src, raw),
@@ -219,6 +242,17 @@ def load_scenario(path: str | Path, machine: str | Path | None = None,
         source=src,
         extra=raw.get("extra", {}) or {},
     )
+
+
+def _speed_profile(src: str, raw: dict, card: MachineCard) -> np.ndarray:
+    """speed_rpm, or speed_pu (per unit of the card's rated speed) -> (t_s, rpm) rows."""
+    if "speed_pu" in raw:
+        if "speed_rpm" in raw:
+            raise ConfigError(f"{src}: give speed_rpm or speed_pu, not both")
+        prof = _profile(src, "speed_pu", raw["speed_pu"])
+        prof[:, 1] *= card.rated_speed_rpm
+        return prof
+    return _profile(src, "speed_rpm", raw.get("speed_rpm", 60.0))
 
 
 def _load_band(src: str, raw: dict) -> float:
@@ -242,6 +276,17 @@ def scenario_path(name_or_path: str) -> Path:
     if not CONFIG_DIR.is_dir():
         project_file(CONFIG_DIR, "config/")  # the package is not pointed at a checkout
     raise ConfigError(f"scenario '{name_or_path}' not found (looked at {p} and {cand})")
+
+
+def machine_path(name_or_path: str | Path) -> Path:
+    """Accept a path, or a bare machine-card name under config/machines/."""
+    p = Path(name_or_path)
+    if p.exists():
+        return p
+    cand = CONFIG_DIR / "machines" / (p.name if p.suffix else p.name + ".yaml")
+    if cand.exists():
+        return cand
+    raise ConfigError(f"machine card '{name_or_path}' not found (looked at {p} and {cand})")
 
 
 def scenario_to_raw(sc: Scenario, machine_path: str) -> dict[str, Any]:
@@ -286,7 +331,7 @@ def save_machine(card: MachineCard, path: str | Path) -> Path:
     from dataclasses import asdict
 
     path = Path(path)
-    path.write_text(yaml.safe_dump(asdict(card), sort_keys=False))
+    path.write_text(yamlio.dumps(asdict(card), sort_keys=False))
     return path
 
 
@@ -297,7 +342,7 @@ def save_scenario(sc: Scenario, path: str | Path) -> Path:
     the file would not reproduce `sc`."""
     path = Path(path)
     mpath = save_machine(sc.machine, path.with_name(path.stem + ".machine.yaml"))
-    path.write_text(yaml.safe_dump(scenario_to_raw(sc, mpath.name), sort_keys=False))
+    path.write_text(yamlio.dumps(scenario_to_raw(sc, mpath.name), sort_keys=False))
     back = load_scenario(path)
     diff = scenario_differences(sc, back)
     if diff:

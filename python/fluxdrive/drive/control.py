@@ -33,7 +33,7 @@ from fluxdrive.core.layout import Layout
 from fluxdrive.core.machine import ConfigError, MachineCard
 from fluxdrive.core.transforms import TWO_PI, clarke, inv_clarke, inv_park, park, wrap_angle
 from fluxdrive.drive.observers import ES_TH, ES_VALID, ES_W
-from fluxdrive.drive.plant import FR_ENC, FR_IA, FR_IB, FR_IC, FR_VDC
+from fluxdrive.drive.plant import FR_ENC, FR_IA, FR_IB, FR_IC, FR_SEQ, FR_VDC
 
 # ---- controller parameter vector CP_*
 _CP = Layout("CP")
@@ -597,14 +597,48 @@ def design_loops(card: MachineCard, current_bw_hz: float = 1000.0, speed_bw_hz: 
                       peak_limit_db)
 
 
+# Per-unit rules that derive every unset ControllerConfig field from the machine card
+# (`ControllerConfig.resolved`).  On the default card they give the values the testbed was
+# tuned with (1 kHz current loop at 10 kHz PWM, 15 Hz speed-loop target, 20-95 V bus window,
+# 30/20 rpm handover/hand-back at 3000 rpm rated), so a scenario carries over to another
+# machine by its physics, not by numbers bound to one motor.
+CARD_RULES: dict[str, str] = {
+    "current_bandwidth_hz": "PWM/10 (1.5-period delay), at least 3x the RL corner R/(2 pi L),"
+                            " at most PWM/5",
+    "speed_bandwidth_hz": "0.015 x the card's current bandwidth (a target: the design's "
+                          "peaking limit may grant less)",
+    "encoder_pll_hz": "0.15 x the card's current bandwidth",
+    "speed_feedback_lpf_hz": "0.02 x the card's current bandwidth",
+    "vdc_min_v": "0.28 x dc_bus_v",
+    "vdc_max_v": "1.32 x dc_bus_v",
+    "handover_rpm": "0.01 x rated speed",
+    "handback_rpm": "2/3 of the card's handover speed",
+    "if_accel_rpm_s": "0.2 x rated speed per second",
+}
+VDC_MIN_PU, VDC_MAX_PU = 0.28, 1.32
+HANDOVER_PU, HANDBACK_OF_HANDOVER, IF_ACCEL_PU_S = 0.01, 2.0 / 3.0, 0.2
+SPEED_OF_CURRENT_BW = 0.015  # speed-loop target / current-loop bandwidth (15 Hz at 1 kHz)
+
+
+def card_current_bandwidth_hz(card: MachineCard) -> float:
+    """Current-loop bandwidth for a card: a tenth of the PWM rate (with the 1.5-period
+    delay of a digital drive the discrete loop peaks beyond that), raised to three times
+    the RL corner R/(2 pi L) for a machine whose own electrical pole is that fast (the loop
+    must be quicker than the plant), never above a fifth of the PWM rate."""
+    corner = card.resistance_ohm / (2 * math.pi * card.inductance_h)
+    return min(max(0.1 * card.pwm_hz, 3.0 * corner), 0.2 * card.pwm_hz)
+
+
 @dataclass
 class ControllerConfig:
     """FOC settings; gains derive from bandwidths and the controller's own model of the
-    machine (r_hat/l_hat/lambda_hat default to the machine card)."""
+    machine (r_hat/l_hat/lambda_hat default to the machine card).  A field left None is
+    derived from the machine card (CARD_RULES, `resolved`); a value set explicitly wins."""
 
     position_source: str = "encoder"  # 'encoder' or 'estimate'
-    current_bandwidth_hz: float = 1000.0
-    speed_bandwidth_hz: float = 15.0  # target; the peaking limit may grant less (design_loops)
+    current_bandwidth_hz: float | None = None
+    # target; the peaking limit may grant less (design_loops)
+    speed_bandwidth_hz: float | None = None
     current_limit_pu: float = 2.0  # |i_q*| limit, per unit of rated current
     angle_advance_periods: float = 1.5
     deadtime_comp_s: float = 0.0
@@ -612,11 +646,11 @@ class ControllerConfig:
     align_time_s: float = 0.15
     align_current_pu: float = 0.8
     if_current_pu: float = 1.0
-    if_accel_rpm_s: float = 600.0
-    handover_rpm: float = 30.0
-    handback_rpm: float = 20.0
-    encoder_pll_hz: float = 150.0
-    speed_feedback_lpf_hz: float = 20.0  # only for display/metrics, not in the loop
+    if_accel_rpm_s: float | None = None
+    handover_rpm: float | None = None
+    handback_rpm: float | None = None
+    encoder_pll_hz: float | None = None
+    speed_feedback_lpf_hz: float | None = None  # only for display/metrics, not in the loop
     # the driving observer's speed path, for the speed-loop design (set from the scenario's
     # driving observer; None: ideal feedback)
     speed_observer_pll_hz: float | None = None
@@ -626,8 +660,8 @@ class ControllerConfig:
     peak_limit_db: float = 3.0
     overcurrent_pu: float = 2.1  # instantaneous trip on any sampled phase current, pu of rated
     overspeed_pu: float = 1.5
-    vdc_min_v: float = 20.0
-    vdc_max_v: float = 95.0
+    vdc_min_v: float | None = None
+    vdc_max_v: float | None = None
     invalid_timeout_s: float = 0.05
     handover_dwell_s: float = 0.3  # estimate valid and agreeing with the ramp this long (the
     # paper observer's compensation frequency settles in ~0.3 s)
@@ -636,11 +670,40 @@ class ControllerConfig:
     l_hat_h: float | None = None
     lambda_hat_vs: float | None = None
 
+    def resolved(self, card: MachineCard) -> ControllerConfig:
+        """A copy with every unset card-derived field filled in from `card` (CARD_RULES)."""
+        from dataclasses import replace
+
+        kw: dict[str, float] = {}
+        # every rule reads the card only (never another field's explicit value), so setting
+        # one bandwidth does not move the others
+        cur = round(card_current_bandwidth_hz(card), 6)
+        if self.current_bandwidth_hz is None:
+            kw["current_bandwidth_hz"] = cur
+        if self.speed_bandwidth_hz is None:
+            kw["speed_bandwidth_hz"] = round(SPEED_OF_CURRENT_BW * cur, 6)
+        if self.encoder_pll_hz is None:
+            kw["encoder_pll_hz"] = 0.15 * cur
+        if self.speed_feedback_lpf_hz is None:
+            kw["speed_feedback_lpf_hz"] = 0.02 * cur
+        if self.vdc_min_v is None:
+            kw["vdc_min_v"] = round(VDC_MIN_PU * card.dc_bus_v, 9)
+        if self.vdc_max_v is None:
+            kw["vdc_max_v"] = round(VDC_MAX_PU * card.dc_bus_v, 9)
+        if self.handover_rpm is None:
+            kw["handover_rpm"] = HANDOVER_PU * card.rated_speed_rpm
+        if self.handback_rpm is None:
+            kw["handback_rpm"] = HANDBACK_OF_HANDOVER * HANDOVER_PU * card.rated_speed_rpm
+        if self.if_accel_rpm_s is None:
+            kw["if_accel_rpm_s"] = IF_ACCEL_PU_S * card.rated_speed_rpm
+        return replace(self, **kw) if kw else self
+
     def validate(self, src: str = "control") -> ControllerConfig:
         """Every field checked for type and range; the message names the key and rule."""
         for key, (lo, hi) in CONTROL_RANGES.items():
             v = getattr(self, key)
-            if v is None and key.startswith(("r_hat", "l_hat", "lambda_hat", "speed_observer_pll")):
+            if v is None and (key in CARD_RULES or key.startswith(
+                    ("r_hat", "l_hat", "lambda_hat", "speed_observer_pll"))):
                 continue
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not lo <= v <= hi:
                 raise ConfigError(f"{src}: {key} must be a number in [{lo}, {hi}], got {v!r}")
@@ -651,6 +714,7 @@ class ControllerConfig:
     def design(self, card: MachineCard) -> LoopDesign:
         """The current and speed loops `design_loops` gives this drive: its own model of the
         machine, its position source's speed path, the peaking limit."""
+        self = self.resolved(card)  # noqa: PLW0642 - the card fills what is unset
         lind = card.inductance_h if self.l_hat_h is None else self.l_hat_h
         r = card.resistance_ohm if self.r_hat_ohm is None else self.r_hat_ohm
         if self.position_source == "encoder":
@@ -661,16 +725,26 @@ class ControllerConfig:
         return _cached_design(card, self.current_bandwidth_hz, self.speed_bandwidth_hz, fb,
                               self.peak_limit_db, r, lind)
 
-    def to_params(self, card: MachineCard) -> np.ndarray:
-        self.validate()
-        if self.current_bandwidth_hz >= 0.25 * card.pwm_hz:
-            raise ConfigError(f"control: current_bandwidth_hz {self.current_bandwidth_hz} must "
+    def check(self, card: MachineCard, src: str = "control") -> ControllerConfig:
+        """The settings resolved on `card` and checked as a whole (ranges, and the rules
+        that tie fields to each other or to the card); returns the resolved copy."""
+        r = self.validate(src).resolved(card).validate(src)
+        if r.vdc_min_v >= r.vdc_max_v:
+            raise ConfigError(f"{src}: vdc_min_v {r.vdc_min_v:g} V must be below vdc_max_v "
+                              f"{r.vdc_max_v:g} V (machine dc_bus_v {card.dc_bus_v:g} V)")
+        if r.current_bandwidth_hz >= 0.25 * card.pwm_hz:
+            raise ConfigError(f"{src}: current_bandwidth_hz {r.current_bandwidth_hz} must "
                               f"be below a quarter of the PWM frequency ({card.pwm_hz} Hz)")
-        if self.position_source not in ("encoder", "estimate"):
-            raise ConfigError(f"position_source must be 'encoder' or 'estimate', got "
-                              f"'{self.position_source}'")
-        if self.handback_rpm >= self.handover_rpm:
-            raise ConfigError("handback_rpm must be below handover_rpm (hysteresis)")
+        if r.position_source not in ("encoder", "estimate"):
+            raise ConfigError(f"{src}: position_source must be 'encoder' or 'estimate', got "
+                              f"'{r.position_source}'")
+        if r.handback_rpm >= r.handover_rpm:
+            raise ConfigError(f"{src}: handback_rpm ({r.handback_rpm:g}) must be below "
+                              f"handover_rpm ({r.handover_rpm:g}) (hysteresis)")
+        return r
+
+    def to_params(self, card: MachineCard) -> np.ndarray:
+        self = self.check(card)  # noqa: PLW0642 - the card fills what is unset
         cp = np.zeros(CP_N)
         lind = card.inductance_h if self.l_hat_h is None else self.l_hat_h
         lam = card.flux_linkage_vs if self.lambda_hat_vs is None else self.lambda_hat_vs
@@ -741,3 +815,61 @@ def _cached_design(card: MachineCard, current_bw_hz: float, speed_bw_hz: float, 
                                      feedback_damping=fb[1], feedback_lpf_hz=fb[2],
                                      peak_limit_db=peak_limit_db, r_hat=r, l_hat=lind)
     return _DESIGNS[key]
+
+
+# ====================================================================== trips, explained
+_FRAME_FIELDS = ("i_a", "i_b", "i_c", "v_ab", "v_bc", "v_ca", "v_dc", "d_a", "d_b", "d_c",
+                 "enable", "encoder", "seq", "flags")
+
+
+def trip_values(code: int, frame: np.ndarray, est: np.ndarray, cp: np.ndarray,
+                cs: np.ndarray | None = None, w_fb_prev_rad_s: float = float("nan")) -> str:
+    """What tripped fault `code` (the kernel records only the code): the value, the limit
+    and the setting the limit comes from, e.g. '160.0 V > 95.0 V (control.vdc_max_v)'.
+    `frame` is the frame the controller tripped on, `est` the driving estimate it saw
+    (ES_*), `cs` its state (for the I2t integral), `w_fb_prev_rad_s` the mechanical speed
+    feedback of the period before (an over-speed on the encoder)."""
+    code = int(code)
+    if code == FAULT_OVERVOLTAGE:
+        return f"{frame[FR_VDC]:.1f} V > {cp[CP_VDC_MAX]:.1f} V (control.vdc_max_v)"
+    if code == FAULT_UNDERVOLTAGE:
+        return f"{frame[FR_VDC]:.1f} V < {cp[CP_VDC_MIN]:.1f} V (control.vdc_min_v)"
+    if code == FAULT_OVERCURRENT:
+        i = (frame[FR_IA], frame[FR_IB], frame[FR_IC])
+        j = int(np.argmax(np.abs(i)))
+        return (f"|i_{'abc'[j]}| {abs(i[j]):.2f} A > {cp[CP_OC_TRIP]:.2f} A (control."
+                f"overcurrent_pu {cp[CP_OC_TRIP] / cp[CP_IRATED]:g} x {cp[CP_IRATED]:g} A)")
+    if code == FAULT_OVERCURRENT_I2T:
+        val = f"{cs[CS_I2T]:.3g}" if cs is not None else "integral of ((i/I_rated)^2 - 1) dt"
+        return (f"{val} > {cp[CP_I2T_LIMIT]:g} pu^2 s (control.i2t_limit_pu2s, I_rated "
+                f"{cp[CP_IRATED]:g} A)")
+    if code == FAULT_OVERSPEED:
+        rpm = 60.0 / (2 * math.pi)
+        w = est[ES_W] / cp[CP_P] if cp[CP_SRC] == SRC_ESTIMATE else w_fb_prev_rad_s
+        return f"{abs(w) * rpm:.0f} rpm > {cp[CP_OS_TRIP] * rpm:.0f} rpm (control.overspeed_pu)"
+    if code == FAULT_LOSS_OF_LOCK:
+        return (f"estimate flagged invalid (PLL error or |flux| out of bounds) for more than "
+                f"{cp[CP_INV_TIMEOUT]:g} s in closed loop (control.invalid_timeout_s)")
+    if code == FAULT_POSITION_INVALID:
+        return f"estimate not finite (theta^ = {est[ES_TH]}, omega^ = {est[ES_W]})"
+    if code == FAULT_BAD_SAMPLE:
+        bad = [f"{_FRAME_FIELDS[j]} = {frame[j]}" for j in (FR_IA, FR_IB, FR_IC, FR_VDC, FR_ENC)
+               if not math.isfinite(frame[j])]
+        seq = frame[FR_SEQ]
+        where = f"in frame {int(seq)}: " if math.isfinite(seq) else ""
+        return where + (", ".join(bad) or "a value not finite")
+    return "latched by the controller"
+
+
+def describe_trip(code: int, frame: np.ndarray, est: np.ndarray, cp: np.ndarray,
+                  cs: np.ndarray | None = None, w_fb_prev_rad_s: float = float("nan")) -> str:
+    """The fault's name and `trip_values`, e.g. 'DC-bus over-voltage 160.0 V > 95.0 V
+    (control.vdc_max_v)'."""
+    what = trip_values(code, frame, est, cp, cs, w_fb_prev_rad_s)
+    sep = " " if what[:1].isdigit() or what[:1] == "|" else ": "
+    return FAULT_NAMES.get(int(code), f"fault {int(code)}") + sep + what
+
+
+def trip_message(t_s: float, detail: str) -> str:
+    """'tripped at 0.000 s: <detail>' -- one line for logs, reports and metrics.json."""
+    return f"tripped at {t_s:.3f} s: {detail}"

@@ -56,39 +56,25 @@ from fluxdrive.drive.control import (
     CO_MODE,
     CO_N,
     CP_HANDOVER,
-    CP_I2T_LIMIT,
-    CP_INV_TIMEOUT,
-    CP_OC_TRIP,
-    CP_OS_TRIP,
     CP_P,
-    CP_VDC_MAX,
-    CP_VDC_MIN,
     CS_FAULT,
-    CS_I2T,
     CS_ID_I,
     CS_INV_T,
     CS_IQ_I,
     CS_MODE,
     CS_N,
-    FAULT_BAD_SAMPLE,
-    FAULT_LOSS_OF_LOCK,
     FAULT_NAMES,
-    FAULT_OVERCURRENT,
-    FAULT_OVERCURRENT_I2T,
-    FAULT_OVERSPEED,
-    FAULT_OVERVOLTAGE,
-    FAULT_POSITION_INVALID,
     FAULT_STALE_INPUT,
-    FAULT_UNDERVOLTAGE,
     FAULT_WATCHDOG,
     MODE_CLOSED_LOOP,
     MODE_FAULT,
     controller_clear_fault,
     controller_reset,
     controller_step,
+    trip_values,
 )
-from fluxdrive.drive.observers import ES_N, ES_TH, ES_VALID, ES_W
-from fluxdrive.drive.plant import FR_EN, FR_IA, FR_IB, FR_IC, FR_VDC
+from fluxdrive.drive.observers import ES_N, ES_VALID, ES_W
+from fluxdrive.drive.plant import FR_EN
 
 Log = Callable[[str, str], None]  # (level: "info" | "warning" | "error", text)
 Emit = Callable[[int, np.ndarray], None]  # (seq, CO_* row) for every answered frame
@@ -96,31 +82,9 @@ Emit = Callable[[int, np.ndarray], None]  # (seq, CO_* row) for every answered f
 
 def describe_fault(code: int, cp: np.ndarray, cs: np.ndarray, fr: np.ndarray,
                    es: np.ndarray, k: int) -> str:
-    """Detail of a fault the kernel latched at frame k: the value that tripped and its
-    limit (the kernel itself only records the code)."""
-    i_max = max(abs(fr[FR_IA]), abs(fr[FR_IB]), abs(fr[FR_IC]))
-    if code == FAULT_BAD_SAMPLE:
-        what = "frame values not finite"
-    elif code == FAULT_OVERCURRENT:
-        what = f"|i| {i_max:.3g} A > trip {cp[CP_OC_TRIP]:.3g} A"
-    elif code == FAULT_OVERCURRENT_I2T:
-        what = f"I2t {cs[CS_I2T]:.3g} pu^2 s > limit {cp[CP_I2T_LIMIT]:.3g} pu^2 s"
-    elif code == FAULT_OVERVOLTAGE:
-        what = f"Vdc {fr[FR_VDC]:.4g} V > {cp[CP_VDC_MAX]:.4g} V"
-    elif code == FAULT_UNDERVOLTAGE:
-        what = f"Vdc {fr[FR_VDC]:.4g} V < {cp[CP_VDC_MIN]:.4g} V"
-    elif code == FAULT_OVERSPEED:
-        w = es[ES_W] / cp[CP_P] if math.isfinite(es[ES_W]) else float("nan")
-        what = (f"speed feedback {w * 60 / (2 * math.pi):.4g} rpm beyond "
-                f"{cp[CP_OS_TRIP] * 60 / (2 * math.pi):.4g} rpm")
-    elif code == FAULT_LOSS_OF_LOCK:
-        what = (f"driving estimate flagged invalid for more than {cp[CP_INV_TIMEOUT] * 1e3:.4g}"
-                f" ms in closed loop")
-    elif code == FAULT_POSITION_INVALID:
-        what = f"estimate not finite (theta {es[ES_TH]}, omega {es[ES_W]})"
-    else:
-        what = "latched by the controller"
-    return f"{what} (frame {k})"
+    """Detail of a fault the kernel latched at frame k: the value that tripped, its limit
+    and the setting (`control.trip_values`, the same text a report prints)."""
+    return f"{trip_values(code, fr, es, cp, cs)} (frame {k})"
 
 
 class ControlSequencer:

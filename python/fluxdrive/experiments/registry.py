@@ -33,7 +33,14 @@ import yaml
 
 from fluxdrive.analysis.metrics import compute
 from fluxdrive.core.machine import ConfigError
-from fluxdrive.core.scenario import CONFIG_DIR, REPO_ROOT, Scenario, load_scenario, scenario_path
+from fluxdrive.core.scenario import (
+    CONFIG_DIR,
+    REPO_ROOT,
+    Scenario,
+    load_scenario,
+    machine_path,
+    scenario_path,
+)
 
 DEFAULT_MACHINE = CONFIG_DIR / "machines" / "default_spm.yaml"
 
@@ -54,6 +61,8 @@ OBS6 = {**OBS4, **LITERAL}
 
 # ---------------------------------------------------------------- scenario building
 _SCEN_DIR: Path | None = None
+# `experiment --machine CARD`: the card every scenario of the run uses (None: the scenarios')
+_MACHINE: dict[str, str | None] = {"path": None}
 
 
 def _scen_dir() -> Path:
@@ -66,10 +75,13 @@ def _scen_dir() -> Path:
 def build(machine_kw: dict | None = None, base: str | None = None, **raw) -> Scenario:
     """A scenario from keyword keys (the YAML schema), optionally over a named scenario
     file; `machine_kw` replaces machine-card fields (e.g. inertia_kgm2)."""
+    swap = _MACHINE["path"]
     if base is not None:
-        sc = load_scenario(scenario_path(base), overrides=raw or None)
+        sc = load_scenario(scenario_path(base), machine=swap, overrides=raw or None)
     else:
         raw.setdefault("machine", str(DEFAULT_MACHINE))
+        if swap is not None:  # `experiment --machine`: every scenario on that card
+            raw["machine"] = str(Path(swap).resolve())
         d = _scen_dir()
         p = d / f"s{os.getpid()}_{len(list(d.iterdir()))}.yaml"
         p.write_text(yaml.safe_dump(raw))
@@ -296,7 +308,16 @@ def main(argv: list[str]) -> int:
                     help="run every scenario through the ROS 2 node graph (lockstep, "
                     "recorded to a bag and read back) instead of in-process; same numbers, "
                     "about real time, one run at a time")
+    ap.add_argument("--machine", help="run every scenario on this machine card (per-unit "
+                    "speeds scale with its rated speed, defaults derive from it; results go "
+                    "to results/experiments-<card> unless --out)")
     args = ap.parse_args(argv)
+    if args.machine:
+        from fluxdrive.core.machine import load_machine
+
+        card = load_machine(machine_path(args.machine))  # refuse a bad card up front
+        _MACHINE["path"] = str(machine_path(args.machine))
+        args.out = args.out or REPO_ROOT / "results" / f"experiments-{card.name}"
     if args.graph:
         if _RUNNER["graph"] is None:
             raise ConfigError("--graph runs through the ROS graph: use ./fluxdrive experiment")

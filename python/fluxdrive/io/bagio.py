@@ -199,10 +199,10 @@ def _bag_files(path: Path) -> list[Path]:
 
 
 def _info(path: Path) -> dict[str, Any]:
-    import yaml
+    from fluxdrive.core import yamlio
 
     try:
-        info = yaml.safe_load((path / "metadata.yaml").read_text()) or {}
+        info = yamlio.load_file(path / "metadata.yaml") or {}
     except Exception as exc:  # noqa: BLE001
         raise BagError(f"{path}: unreadable metadata.yaml ({_one_line(exc)})") from None
     if not isinstance(info, dict) or "rosbag2_bagfile_information" not in info:

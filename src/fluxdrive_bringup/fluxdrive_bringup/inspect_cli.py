@@ -25,6 +25,7 @@ import time
 from typing import Any
 
 import yaml
+from fluxdrive.core import yamlio
 
 
 def _common(ap: argparse.ArgumentParser) -> None:
@@ -291,7 +292,7 @@ def parse_value(text: str, current_type: int | None):
     double parameter becomes a float, like the nodes accept in their files)."""
     from rcl_interfaces.msg import ParameterType
 
-    v = yaml.safe_load(text)
+    v = yamlio.loads(text)
     if current_type == ParameterType.PARAMETER_DOUBLE and isinstance(v, int) and not isinstance(
             v, bool):
         v = float(v)

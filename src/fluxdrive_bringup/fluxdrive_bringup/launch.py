@@ -57,7 +57,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
+from fluxdrive.core import yamlio
 from fluxdrive.core.machine import ConfigError
 from fluxdrive.core.scenario import REPO_ROOT
 from fluxdrive_ros.runner import NODE_CLASSES
@@ -234,8 +234,8 @@ def parse_graph(raw: Any, src: str = "graph", base: Path = REPO_ROOT) -> Graph:
             if not f.exists():
                 raise ConfigError(f"{where} ({name}): parameter file {p} not found")
             try:
-                yaml.safe_load(f.read_text())
-            except yaml.YAMLError as exc:
+                yamlio.load_file(f)
+            except yamlio.YAMLError as exc:
                 raise ConfigError(f"{f}: not valid YAML: {exc}") from exc
             files.append(str(f))
         parameters = nd.get("parameters", {}) or {}
@@ -294,8 +294,8 @@ def load_graph(path: str | Path) -> Graph:
         else:
             raise ConfigError(f"graph '{path}' not found (looked at {path} and {cand})")
     try:
-        raw = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as exc:
+        raw = yamlio.load_file(path)
+    except (OSError, yamlio.YAMLError) as exc:
         raise ConfigError(f"{path}: cannot read graph: {exc}") from exc
     return parse_graph(raw, str(path), path.parent)
 
@@ -328,8 +328,8 @@ def node_parameters(n: NodeSpec) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for f in n.params:
         try:
-            data = yaml.safe_load(Path(f).read_text()) or {}
-        except (OSError, yaml.YAMLError):
+            data = yamlio.load_file(f) or {}
+        except (OSError, yamlio.YAMLError):
             continue
         if not isinstance(data, dict):
             continue
@@ -784,7 +784,7 @@ def main(argv: list[str]) -> int:
             raise ConfigError(f"--set {item!r}: expected NODE.PARAM=VALUE with NODE one of "
                               f"{[n.name for n in g.nodes]}")
         for n in match:
-            n.parameters[pname] = yaml.safe_load(val)
+            n.parameters[pname] = yamlio.loads(val)
     if args.scope:
         add_scope(g, port=args.scope_port)
     dom = g.domain_id if g.domain_id is not None else os.environ.get("ROS_DOMAIN_ID", "0")

@@ -34,7 +34,7 @@ import threading
 import time
 from pathlib import Path
 
-import yaml
+from fluxdrive.core import yamlio
 from fluxdrive.core.scenario import REPO_ROOT, load_scenario, scenario_path
 from fluxdrive_ros.topics import CONTROLLER_STATE, FRAME, TRUTH, estimate_topic
 
@@ -157,7 +157,7 @@ def bag_counts(bag: Path) -> tuple[dict[str, int], dict[str, int]]:
             for cid, n in summ.statistics.channel_message_counts.items():
                 topic = summ.channels[cid].topic
                 mcap_counts[topic] = mcap_counts.get(topic, 0) + n
-    meta = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    meta = yamlio.load_file(bag / "metadata.yaml")["rosbag2_bagfile_information"]
     meta_counts = {t["topic_metadata"]["name"]: int(t["message_count"])
                    for t in meta["topics_with_message_count"]}
     return mcap_counts, meta_counts

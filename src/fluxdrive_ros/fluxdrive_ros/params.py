@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
+from fluxdrive.core import yamlio
 from rcl_interfaces.msg import (
     FloatingPointRange,
     IntegerRange,
@@ -140,10 +140,10 @@ def check_params_file(path: str | Path) -> dict[str, dict[str, Any]]:
     names flattened with dots)."""
     path = Path(path)
     try:
-        raw = yaml.safe_load(path.read_text())
+        raw = yamlio.load_file(path)
     except OSError as exc:
         raise ValueError(f"{path}: cannot read parameter file: {exc.strerror}") from exc
-    except yaml.YAMLError as exc:
+    except yamlio.YAMLError as exc:
         where = getattr(exc, "problem_mark", None)
         line = f" (line {where.line + 1})" if where is not None else ""
         raise ValueError(f"{path}: not valid YAML{line}: "

@@ -244,16 +244,46 @@ def build_node(spec: dict) -> FluxNode:
     if len(cli) > 1:
         kw["cli_args"] = cli
     inline = spec.get("parameters", {}) or {}
+    ns = (spec.get("namespace", "") or "").rstrip("/")
+    fqn = f"{ns}/{spec['name']}" if ns.startswith("/") else f"/{spec['name']}"
     try:
-        return cls(spec["name"], namespace=spec.get("namespace", ""),
+        node = cls(spec["name"], namespace=spec.get("namespace", ""),
                    parameter_overrides=_param_overrides(inline), **kw)
     except Exception as exc:
         if not _config_problem(exc):
             raise
-        ns = (spec.get("namespace", "") or "").rstrip("/")
-        fqn = f"{ns}/{spec['name']}" if ns.startswith("/") else f"/{spec['name']}"
         text = str(exc)
         raise ValueError(text + blame(text, fqn, files, inline)) from exc
+    problem = unknown_parameter(node, fqn, files, inline)
+    if problem:
+        node.destroy_node()
+        raise ValueError(problem)
+    return node
+
+
+def unknown_parameter(node: Node, fqn: str, files: list[str], inline: dict[str, Any]
+                      ) -> str | None:
+    """A parameter the files (or the graph's inline values) set for this node that the node
+    does not declare -- a typo rcl would silently ignore -- as one line naming the file and
+    key, with the closest declared name; None if every name is known.  Sections for every
+    node (`/**`) may hold parameters of other node types and are not checked."""
+    import difflib
+
+    from .params import file_values_for
+
+    def text(name: str, where: str) -> str:
+        near = difflib.get_close_matches(name, list(node._parameters), n=1)
+        hint = f"; did you mean '{near[0]}'?" if near else ""
+        return f"{where}: '{name}' is not a parameter of {fqn}{hint}"
+
+    for f, key, name, _ in file_values_for(files, fqn):
+        if key.strip("/") == "**" or node.has_parameter(name):
+            continue
+        return text(name, f"{f}: '{key}.ros__parameters.{name}'")
+    for name in inline:
+        if not node.has_parameter(name):
+            return text(name, "inline in the graph")
+    return None
 
 
 def main_node(cls_spec: str, default_name: str, argv: list[str] | None = None) -> int:

@@ -182,7 +182,9 @@ class ControllerNode(FluxNode):
               "RotorEstimate topic of the driving observer (position_source = estimate)",
               read_only=True),
         ])
-        cfg = dataclasses.replace(cfg, position_source=src["position_source"])
+        # every card-derived default (bus window, bandwidths, handover) as a concrete value:
+        # ROS parameters cannot say "derive it"
+        cfg = dataclasses.replace(cfg, position_source=src["position_source"]).resolved(card)
         self.card = card
         self.specs = config_params(cfg, card) + [
             P("speed_ref_mode", "profile", "speed reference: the scenario's profile or the "
