@@ -88,4 +88,4 @@ def test_nan_sample_trip_is_logged_with_its_values(capfd):
     err = capfd.readouterr().err
     line = next(ln for ln in err.splitlines() if "bad sample" in ln)
     print(line)
-    assert "bad sample (NaN/inf): in frame 0: i_b = nan (frame 0); PWM off" in line
+    assert "bad sample (NaN/inf): i_b = nan (frame 0); PWM off" in line

@@ -194,7 +194,7 @@ def test_a_kernel_trip_is_logged_once_with_its_detail():
         sq.on_estimate(k, np.zeros(ES_N))
     assert got[0][CO_FAULT] == FAULT_BAD_SAMPLE
     errors = [t for lvl, t in lines if lvl == "error"]
-    assert errors == ["bad sample (NaN/inf): frame values not finite (frame 0); PWM off "
+    assert errors == ["bad sample (NaN/inf): i_a = nan (frame 0); PWM off "
                       "(latched)"]
 
 

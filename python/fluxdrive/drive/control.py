@@ -33,7 +33,7 @@ from fluxdrive.core.layout import Layout
 from fluxdrive.core.machine import ConfigError, MachineCard
 from fluxdrive.core.transforms import TWO_PI, clarke, inv_clarke, inv_park, park, wrap_angle
 from fluxdrive.drive.observers import ES_TH, ES_VALID, ES_W
-from fluxdrive.drive.plant import FR_ENC, FR_IA, FR_IB, FR_IC, FR_SEQ, FR_VDC
+from fluxdrive.drive.plant import FR_ENC, FR_IA, FR_IB, FR_IC, FR_VDC
 
 # ---- controller parameter vector CP_*
 _CP = Layout("CP")
@@ -855,9 +855,7 @@ def trip_values(code: int, frame: np.ndarray, est: np.ndarray, cp: np.ndarray,
     if code == FAULT_BAD_SAMPLE:
         bad = [f"{_FRAME_FIELDS[j]} = {frame[j]}" for j in (FR_IA, FR_IB, FR_IC, FR_VDC, FR_ENC)
                if not math.isfinite(frame[j])]
-        seq = frame[FR_SEQ]
-        where = f"in frame {int(seq)}: " if math.isfinite(seq) else ""
-        return where + (", ".join(bad) or "a value not finite")
+        return ", ".join(bad) or "a value not finite"
     return "latched by the controller"
 
 
