@@ -25,7 +25,7 @@ CARDS = sorted(p.stem for p in (CONFIG_DIR / "machines").glob("*.yaml"))
 def test_defaults_on_the_default_card_are_the_tuned_values():
     """The per-unit rules reproduce what the testbed was tuned with on the default card."""
     r = ControllerConfig().resolved(MachineCard())
-    assert r.current_bandwidth_hz == 1000.0 and r.speed_bandwidth_hz == 10.0
+    assert r.current_bandwidth_hz == 1000.0 and r.speed_bandwidth_hz == 15.0
     assert r.encoder_pll_hz == 150.0 and r.speed_feedback_lpf_hz == 20.0
     assert r.handover_rpm == pytest.approx(30.0) and r.handback_rpm == pytest.approx(20.0)
     assert r.if_accel_rpm_s == pytest.approx(600.0)
