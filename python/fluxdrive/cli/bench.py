@@ -1,4 +1,4 @@
-"""`./fluxdrive benchmark engine|replay|graph|can|study`: throughput figures; the last line of
+"""`./fluxdrive benchmark engine|replay|graph|paced|can|study`: throughput figures; the last line of
 each is a JSON object."""
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ BENCHES = {
     "engine": ("fluxdrive.cli.bench", "bench_engine"),
     "replay": ("fluxdrive.replay.lab", "bench_replay"),
     "graph": ("fluxdrive_bringup.bench", "bench_graph"),
+    "paced": ("fluxdrive_bringup.bench", "bench_paced"),
     "can": ("fluxdrive.can.benchmark", "bench_can_cli"),
     "study": ("fluxdrive.study.cli", "bench_study"),
 }

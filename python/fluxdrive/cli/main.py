@@ -17,7 +17,7 @@ REPO = ROOT
 COMMANDS: dict[str, tuple[str, str, str]] = {
     "sim": ("fluxdrive.cli.sim", "main_sim", "run a scenario in-process (no ROS) and report"),
     "benchmark": ("fluxdrive.cli.bench", "main",
-                  "benchmarks: engine | replay | graph | can | study"),
+                  "benchmarks: engine | replay | graph | paced | can | study"),
     "demo": ("fluxdrive_bringup.cli", "main_demo",
              "the main job: 2 % / 150 % load scenario through the ROS graph, recorded"),
     "run": ("fluxdrive_bringup.cli", "main_run", "run any scenario through the ROS graph"),

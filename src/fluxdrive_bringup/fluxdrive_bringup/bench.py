@@ -338,3 +338,70 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+PACED_DOC = """`./fluxdrive benchmark paced`: timing of the paced loop (the plant held to the wall
+clock at rate_factor x real time, 10 kHz PWM at rate 1), with the demo scenario's four
+observers, the controller and the recorder; composed layout by default.
+
+  lateness_p50/p99/max_periods  how late each frame went out against its due wall time,
+                  in PWM periods (the plant's pacing record: one entry per frame)
+  late_frames_per_min   frames more than one period late, per minute of wall time
+  holds_per_min   the controller answered later than its two periods (the plant waited;
+                  time slipped by the wait)
+  slips_per_min   the plant itself was more than 50 periods late and let time slip
+  watchdog_trips  PWM switched off because no duty command came for watchdog_periods
+  rtf             simulated time / wall time actually achieved
+
+Options: --duration S (simulated seconds, default 2), --rate R (default 1.0),
+--layout composed|split|separate.  Progress on stderr; the last line is JSON."""
+
+
+def bench_paced(argv: list[str]) -> dict:
+    import re
+
+    from .runs import DEMO_SCENARIO, LAYOUTS, run_graph
+
+    ap = argparse.ArgumentParser(prog="fluxdrive benchmark paced", description=PACED_DOC)
+    ap.add_argument("--duration", type=float, default=2.0, help="simulated seconds")
+    ap.add_argument("--rate", type=float, default=1.0, help="rate_factor (1: real time)")
+    ap.add_argument("--layout", choices=LAYOUTS, default="composed")
+    ap.add_argument("--scenario", default=DEMO_SCENARIO)
+    ap.add_argument("--domain-id", type=int)
+    args = ap.parse_args(argv)
+    sp = scenario_path(args.scenario)
+    tmp = Path(tempfile.mkdtemp(prefix="fluxdrive-bench-paced-"))
+    try:
+        _say(f"paced graph ({args.layout}) at rate {args.rate:g}: {args.duration:g} s "
+             f"simulated ...")
+        r = run_graph(sp, out=tmp / "run", bag=tmp / "bag", layout=args.layout,
+                      duration_s=args.duration, domain_id=args.domain_id, quiet=True,
+                      timeout=600.0, progress=False,
+                      extra={"plant": {"mode": "paced", "rate_factor": args.rate}})
+        text = "\n".join(p.read_text(errors="replace")
+                         for p in sorted((tmp / "run" / "logs").glob("*.log")))
+        m = re.search(r"pacing (\{.*\})", text)
+        if r["code"] != 0 or m is None:
+            raise RuntimeError(f"paced graph failed (exit {r['code']}); logs in "
+                               f"{tmp / 'run' / 'logs'}")
+        p = json.loads(m.group(1))
+    finally:
+        if "p" in locals():
+            shutil.rmtree(tmp, ignore_errors=True)
+    wall_min = (r["loop_wall_s"] or r["wall_s"]) / 60.0
+    res = {"layout": args.layout, "rate_factor": args.rate, "observers": 4, "recorded": True,
+           "frames": p["frames"], "period_us": round(p["period_s"] * 1e6, 1),
+           "lateness_p50_periods": round(p["lateness_p50_periods"], 3),
+           "lateness_p99_periods": round(p["lateness_p99_periods"], 3),
+           "lateness_max_periods": round(p["lateness_max_periods"], 1),
+           "late_frames_per_min": round(p["late_frames"] / wall_min, 1),
+           "holds_per_min": round(p["holds"] / wall_min, 1),
+           "slips_per_min": round(p["slips"] / wall_min, 1),
+           "watchdog_trips": p["watchdog_trips"],
+           "rtf": round(r["lockstep_rtf"], 3) if r["lockstep_rtf"] else None}
+    _say(f"{res['frames']} frames: lateness p50 {res['lateness_p50_periods']} / p99 "
+         f"{res['lateness_p99_periods']} / max {res['lateness_max_periods']} periods; "
+         f"{res['late_frames_per_min']} late frames/min, {res['holds_per_min']} holds/min, "
+         f"{res['slips_per_min']} slips/min, {res['watchdog_trips']} watchdog trips; "
+         f"achieved real-time factor {res['rtf']}")
+    return res
