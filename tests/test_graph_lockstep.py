@@ -145,10 +145,11 @@ def test_bag_every_frame_two_readers_and_replay_metadata(tmp_path):
     assert rb.n == 3000
 
 
-def test_ctrl_c_finalises_the_bag(tmp_path):
-    """(b) `./fluxdrive launch` on a long lockstep run, interrupted with SIGINT mid-run: the
-    launcher stops every node cleanly (exit 0) and the bag is finalised and complete up to
-    the last frame recorded."""
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_ctrl_c_finalises_the_bag(tmp_path, sig):
+    """(b) `./fluxdrive launch` on a long lockstep run, interrupted with SIGINT (or SIGTERM)
+    mid-run: the launcher stops every node cleanly -- exit 130 (143), as a shell reports a
+    stop -- and the bag is finalised and complete up to the last frame recorded."""
     bag = tmp_path / "bag"
     graph = {
         "name": "interrupted",
@@ -183,7 +184,7 @@ def test_ctrl_c_finalises_the_bag(tmp_path):
         proc.kill()
         pytest.fail("the graph did not start:\n" + "".join(lines))
     time.sleep(2.0)
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(sig)
     try:
         proc.wait(timeout=60)
     finally:
@@ -191,8 +192,8 @@ def test_ctrl_c_finalises_the_bag(tmp_path):
             proc.kill()
     reader.join(timeout=10)
     out = "".join(lines)
-    assert proc.returncode == 0, out
-    assert "SIGINT: stopping the graph" in out
+    assert proc.returncode == 128 + int(sig), out
+    assert f"{sig.name}: stopping the graph" in out
     assert "finalised" in out
     n = _bag_checks(bag)
     assert 1000 < n < 600000, out  # interrupted mid-run

@@ -30,8 +30,15 @@ from fluxdrive.core import yamlio
 
 def _common(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID of the graph")
-    ap.add_argument("--wait", type=float, default=3.0,
-                    help="discovery wait [s] (default 3; longer on a busy machine)")
+    ap.add_argument("--wait", type=float, default=5.0,
+                    help="longest discovery wait [s] (default 5; `list` returns once "
+                    "discovery has settled)")
+
+
+# A participant that missed another's first announcements learns of it from the next
+# periodic one, 3 s later with Fast DDS's defaults (measured here: 0.1-0.2 s normally, 2.8 s
+# now and then); `topic list` / `node list` wait this long before calling discovery settled.
+SETTLE_MIN_S = 3.2
 
 
 class Session:
@@ -51,6 +58,12 @@ class Session:
             domain_id = int(os.environ.get("ROS_DOMAIN_ID", "0") or 0)
         self.domain_id = domain_id
         self.rclpy = rclpy
+        from fluxdrive_ros.security import precheck
+
+        why = precheck()
+        if why:  # rcl would fail with a traceback
+            print(f"fluxdrive: {why}", file=sys.stderr)
+            raise SystemExit(2)
         self.ctx = rclpy.Context()
         rclpy.init(args=None, context=self.ctx, domain_id=domain_id)
         self.node = rclpy.create_node(node_name or f"fluxdrive_inspect_{os.getpid()}",
@@ -69,11 +82,15 @@ class Session:
             self.ex.spin_once(timeout_sec=min(0.05, max(t_end - time.monotonic(), 0.0)))
 
     def discover(self, until=None) -> None:
-        """Spin until `until()` is true or the wait elapses; without `until`, until the
-        graph has stopped changing for a second (at least 1 s, at most the wait)."""
+        """Spin until `until()` is true or the wait elapses; without `until`, until
+        discovery has settled: the graph has not changed for a second (at least 1 s) and
+        every node seen has its endpoints known too (a node is announced before its
+        publishers and subscriptions are matched; a list taken in between misses topics),
+        and at least SETTLE_MIN_S have passed -- at most the wait."""
         t0 = time.monotonic()
         t_end = t0 + self.wait_s
         last, t_last = None, t0
+        me = self.node.get_name()
         while time.monotonic() < t_end:
             self.spin_for(0.1)
             if until is not None:
@@ -81,12 +98,27 @@ class Session:
                     return
                 continue
             now = time.monotonic()
-            snap = (sorted(self.node.get_node_names_and_namespaces()),
-                    sorted((n, tuple(t)) for n, t in self.node.get_topic_names_and_types()))
+            nodes = sorted(self.node.get_node_names_and_namespaces())
+            snap = (nodes, sorted((n, tuple(t))
+                                  for n, t in self.node.get_topic_names_and_types()))
             if snap != last:
                 last, t_last = snap, now
-            elif now - t0 > 1.0 and now - t_last > 1.0:
+            elif (now - t0 > SETTLE_MIN_S and now - t_last > 1.0
+                  and self._endpoints_known(nodes, me)):
                 return
+
+    def _endpoints_known(self, nodes: list[tuple[str, str]], me: str) -> bool:
+        """Every node (but this one) shows at least one publisher (every rclpy/rclcpp node
+        has /rosout): its endpoints have been discovered, not only its name."""
+        for name, ns in nodes:
+            if name == me:
+                continue
+            try:
+                if not self.node.get_publisher_names_and_types_by_node(name, ns):
+                    return False
+            except Exception:  # noqa: BLE001 - the node left meanwhile
+                return False
+        return True
 
     def close(self) -> None:
         try:
@@ -269,7 +301,13 @@ def _get(s: Session, node: str, names: list[str]):
     from rclpy.parameter import parameter_value_to_python
 
     res = _call(s, GetParameters, f"{node}/get_parameters", GetParameters.Request(names=names))
-    return [(v.type, parameter_value_to_python(v)) for v in res.values]
+    # a name the node does not have: no value at all (rclpy nodes answer an empty list when
+    # any name is unknown) or type 0, PARAMETER_NOT_SET (rclpy's conversion raises on it)
+    if len(res.values) != len(names):
+        if len(names) == 1:
+            return [(0, None)]
+        return [_get(s, node, [n])[0] for n in names]
+    return [(v.type, parameter_value_to_python(v) if v.type else None) for v in res.values]
 
 
 def _list(s: Session, node: str) -> list[str]:

@@ -384,6 +384,7 @@ class Launcher:
         self.lock = threading.Lock()
         self.stopping = False
         self.interrupted = False
+        self.stop_signal = 0  # the signal that stopped the graph (run())
         self.failed: list[Proc] = []
         self.ignored: list[Proc] = []
         self.restarts: dict[str, int] = {}  # process name -> restarts so far
@@ -688,6 +689,7 @@ class Launcher:
                 return
             interrupted.set()
             self.interrupted = True
+            self.stop_signal = signum
             self._emit(f"[launch] {signal.Signals(signum).name}: stopping the graph")
             threading.Thread(target=self.stop, daemon=True).start()
 
@@ -706,7 +708,9 @@ class Launcher:
             dirty = [p for p in self.procs if p.code not in (0, None)]
             for p in dirty:
                 self._emit(f"[launch] process {p.label} ended with code {p.code} on stop")
-            return 1 if dirty else 0
+            # stopped cleanly by a signal: 128 + its number, as a shell reports it (130 for
+            # Ctrl-C, 143 for SIGTERM), so a script can tell a stop from a finished run
+            return 1 if dirty else 128 + int(self.stop_signal)
         return code
 
     def _bag_hints(self) -> None:
@@ -773,6 +777,12 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--scope-port", type=int, default=8765, help="the scope's TCP port "
                     "(default 8765; 0: any free port)")
     args = ap.parse_args(argv)
+    from fluxdrive_ros.security import precheck
+
+    why = precheck()
+    if why:  # every process would fail the same way: say it once, start nothing
+        print(f"[launch] {why}", file=sys.stderr)
+        return 2
     g = load_graph(args.graph)
     if args.domain_id is not None:
         g.domain_id = args.domain_id

@@ -150,6 +150,7 @@ def run_graph(sc_path: Path, *, out: Path, bag: Path, layout: str = "composed",
     if prog and prog[2] > 0:
         rtf = prog[0] * sc.machine.ts_s / prog[2]
     return {"code": code, "wall_s": wall, "lockstep_rtf": rtf, "interrupted": launcher.interrupted,
+            "stop_signal": launcher.stop_signal,
             "frames": prog[0] if prog else 0, "loop_wall_s": prog[2] if prog else None,
             "bag": str(bag), "scenario": sc, "graph": g, "domain_id": dom}
 
@@ -185,6 +186,12 @@ def main_run(argv: list[str], default_scenario: str | None = None) -> int:
         print(f"[run] bag directory {bag} exists already; choose a new one (--bag)",
               file=sys.stderr)
         return 2
+    from fluxdrive_ros.security import precheck
+
+    why = precheck()
+    if why:
+        print(f"[run] {why}", file=sys.stderr)
+        return 2
     r = run_graph(sp, out=out, bag=bag, layout=args.layout, duration_s=args.duration,
                   domain_id=args.domain_id, quiet=args.quiet, timeout=args.timeout,
                   scope=args.scope, scope_port=args.scope_port,
@@ -192,7 +199,7 @@ def main_run(argv: list[str], default_scenario: str | None = None) -> int:
     if r["interrupted"]:
         print(f"[run] interrupted after {r['frames']} frames; bag (finalised): {bag}",
               file=sys.stderr)
-        return 130
+        return 128 + int(r.get("stop_signal") or 2)  # 130 (SIGINT) / 143 (SIGTERM)
     if r["code"] != 0:
         print(f"[run] the graph failed (exit {r['code']}); logs in {out / 'logs'}",
               file=sys.stderr)

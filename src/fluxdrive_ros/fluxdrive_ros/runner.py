@@ -210,6 +210,12 @@ def _describe(exc: BaseException) -> str:
 def _init(args: list[str], what: str) -> bool:
     """rclpy.init; False (after a one-line message) if it fails, e.g. ROS security is
     enforced without a usable keystore."""
+    from .security import precheck
+
+    why = precheck()
+    if why:
+        print(f"cannot start process '{what}': {why}", file=sys.stderr, flush=True)
+        return False
     try:
         rclpy.init(args=args)
     except Exception as exc:  # noqa: BLE001

@@ -73,6 +73,23 @@ _PERMISSIONS = """<?xml version="1.0" encoding="UTF-8"?>
 """
 
 
+def precheck() -> str | None:
+    """One line if ROS 2 security is enforced without a keystore (rcl would fail
+    with "failed to initialize rcl: error not set" and a traceback), else None.  Called by
+    every fluxdrive entry point before rclpy.init."""
+    if os.environ.get("ROS_SECURITY_ENABLE", "").lower() != "true":
+        return None
+    strategy = os.environ.get("ROS_SECURITY_STRATEGY", "Permissive")
+    if strategy != "Enforce":
+        return None
+    if os.environ.get("ROS_SECURITY_KEYSTORE", ""):  # (a wrong one: rcl says which file)
+        return None
+    return ("ROS 2 security is enforced (ROS_SECURITY_ENABLE=true, ROS_SECURITY_STRATEGY="
+            "Enforce) but ROS_SECURITY_KEYSTORE is not set: create a keystore with "
+            "`python -m fluxdrive_ros.security keystore DIR` and set "
+            "ROS_SECURITY_KEYSTORE=DIR, or unset ROS_SECURITY_ENABLE")
+
+
 def describe_error(exc: BaseException) -> str | None:
     """A one-line explanation of a security failure of rclpy.init / node creation, or
     None if `exc` is not about security."""

@@ -1,0 +1,103 @@
+"""Bad input to the graph commands answered in one line, a non-zero exit and no traceback:
+`param get`/`param set` of a parameter the node does not have, ROS 2 security enforced
+without a keystore (topic list, param, launch, run); and the first `topic list` shows every
+topic of a node that has just started (it waits for discovery to settle)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("rclpy")
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _domain() -> int:
+    return 120 + (os.getpid() * 7 + 71) % 100
+
+
+def fluxdrive(*args: str, env_extra: dict | None = None, timeout: float = 90.0):
+    env = {**os.environ, "ROS_DOMAIN_ID": str(_domain()),
+           "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", **(env_extra or {})}
+    return subprocess.run([sys.executable, "-m", "fluxdrive.cli", *args], cwd=ROOT, env=env,
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def _one_line(r: subprocess.CompletedProcess) -> str:
+    err = r.stderr.strip()
+    assert "Traceback" not in r.stderr + r.stdout, r.stderr
+    assert len(err.splitlines()) == 1, err
+    return err
+
+
+class ProbeNode:
+    """A node with a parameter and a few publishers, spun in a thread (own context)."""
+
+    def __init__(self, topics=("/probe/a", "/probe/b", "/probe/c")):
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        from std_msgs.msg import UInt64
+
+        self.ctx = rclpy.Context()
+        rclpy.init(context=self.ctx, domain_id=_domain())
+        self.node = rclpy.create_node("harden_probe", context=self.ctx)
+        self.node.declare_parameter("gain", 1.5)
+        self.pubs = [self.node.create_publisher(UInt64, t, 1) for t in topics]
+        self.ex = SingleThreadedExecutor(context=self.ctx)
+        self.ex.add_node(self.node)
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+
+    def _spin(self) -> None:
+        while self.ctx.ok():
+            try:
+                self.ex.spin_once(timeout_sec=0.05)
+            except Exception:  # noqa: BLE001 - shutting down
+                return
+
+    def close(self) -> None:
+        self.ctx.try_shutdown()
+        self.thread.join(5)
+
+
+@pytest.fixture
+def probe():
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    p = ProbeNode()
+    yield p
+    p.close()
+
+
+def test_first_topic_list_shows_every_topic_and_unknown_parameters_are_one_line(probe):
+    r = fluxdrive("topic", "list")  # at once: discovery of the new node still going on
+    assert r.returncode == 0, r.stderr
+    for t in ("/probe/a", "/probe/b", "/probe/c"):
+        assert t in r.stdout, r.stdout
+    r = fluxdrive("param", "get", "/harden_probe", "gain")
+    assert r.returncode == 0 and "gain: 1.5" in r.stdout, r.stderr
+    r = fluxdrive("param", "get", "/harden_probe", "no_such_param")
+    assert r.returncode == 1
+    assert _one_line(r) == "/harden_probe has no parameter 'no_such_param'"
+    r = fluxdrive("param", "set", "/harden_probe", "no_such_param", "2.0")
+    assert r.returncode == 1
+    assert "has no parameter 'no_such_param'" in _one_line(r)
+
+
+@pytest.mark.parametrize("cmd", [["topic", "list"], ["param", "get", "/plant", "seed"],
+                                 ["launch", "sim_lockstep"], ["run", "paper_2pct_150load"]])
+def test_security_enforced_without_a_keystore_is_one_line(cmd, tmp_path):
+    env = {"ROS_SECURITY_ENABLE": "true", "ROS_SECURITY_STRATEGY": "Enforce",
+           "ROS_SECURITY_KEYSTORE": ""}
+    if cmd[0] == "run":
+        cmd = [*cmd, "--out", str(tmp_path / "out"), "--bag", str(tmp_path / "bag")]
+    r = fluxdrive(*cmd, env_extra=env)
+    assert r.returncode == 2
+    line = _one_line(r)
+    assert "ROS_SECURITY_KEYSTORE is not set" in line and "Enforce" in line, line
+    assert not (tmp_path / "bag").exists()
