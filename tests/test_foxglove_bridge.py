@@ -62,11 +62,13 @@ def test_foxglove_client_receives_and_decodes_topics(tmp_path):
     threading.Thread(target=lambda: lines.extend(bridge.stdout), daemon=True).start()
     try:
         t0 = time.monotonic()
-        while not any(ln.startswith("@foxglove-url") for ln in lines):
+        while not any(ln.startswith("foxglove: ws://") for ln in lines):
             assert time.monotonic() - t0 < 30, f"bridge printed no URL: {lines}"
             assert bridge.poll() is None, f"bridge exited: {lines}"
             time.sleep(0.1)
-        url = next(ln for ln in lines if ln.startswith("@foxglove-url")).split()[1]
+        line = next(ln for ln in lines if ln.startswith("foxglove: ws://"))
+        url = line.split()[1]
+        assert url.startswith("ws://127.0.0.1:") and "subprotocol foxglove.sdk.v1" in line
 
         # the older protocol alone is refused during the handshake
         with pytest.raises(Exception) as exc:  # websockets' InvalidStatus / InvalidHandshake

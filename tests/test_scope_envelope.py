@@ -56,3 +56,16 @@ def test_batch_decode_matches_the_codec():
     out = scope_tap.decode_batch(Decoder(topics.T_ESTIMATE), msgs, paths)
     want = np.array([[r[c.index(p)] for p in paths] for r in rows], dtype=float)
     assert np.array_equal(out, want)
+
+
+def test_batch_decode_reads_padded_dds_payloads():
+    """Over DDS a message may arrive with trailing padding to a multiple of 4 bytes."""
+    from fluxdrive_ros import topics
+    from fluxdrive_ros.cdr import Codec, Decoder
+
+    c = Codec(topics.T_DUTY, {"header.frame_id": ""})
+    pad = (-c.size) % 4 or 4
+    msgs = [c.pack(0, k, k, 0.1 * k, 0.2, 0.3, True) + b"\0" * pad for k in range(20)]
+    out = scope_tap.decode_batch(Decoder(topics.T_DUTY), msgs, ["seq", "duty[0]"])
+    assert out[:, 0].tolist() == list(range(20))
+    assert np.allclose(out[:, 1], 0.1 * np.arange(20))

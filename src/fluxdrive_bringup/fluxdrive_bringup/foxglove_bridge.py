@@ -225,7 +225,6 @@ class Bridge:
         port = self.server.port
         print(f"foxglove: ws://{self.args.host}:{port} (WebSocket subprotocol {SUBPROTOCOL}; "
               f"ROS_DOMAIN_ID={self.args.domain_id})", flush=True)
-        print(f"@foxglove-url ws://{self.args.host}:{port}", flush=True)
         import signal
 
         def on_signal(*_a) -> None:

@@ -426,7 +426,8 @@ class Scope:
         host = self.args.host if self.args.host not in ("0.0.0.0", "::") else "127.0.0.1"
         url = f"http://{host}:{port}/?token={self.token}"
         print(f"scope: {url}", flush=True)
-        print(f"@scope-url {url}", flush=True)  # for the launcher (run/launch --scope)
+        if os.environ.get("FLUXDRIVE_GRAPH_KEY"):  # started by the launcher (--scope)
+            print(f"@scope-url {url}", flush=True)
         stop = asyncio.Event()
         import signal
 

@@ -74,11 +74,13 @@ def decode_batch(dec: Decoder, msgs: list[bytes], paths: list[str]) -> np.ndarra
         groups = [(np.array(ix), msgs[ix[0]], b"".join(msgs[i] for i in ix))
                   for ix in by_len.values()]
     for ix, first, data in groups:
-        codec = dec.codec_for(first)
-        key = (id(codec), tuple(paths))
+        # over DDS a message may carry trailing padding: the layout of its prefix, with
+        # the message's own length as the record size
+        codec = dec.layout_of(first)
+        key = (id(codec), len(first), tuple(paths))
         hit = _LAYOUTS.get(key)
         if hit is None or hit[0] is not codec:
-            hit = _LAYOUTS[key] = (codec, codec.numpy_dtype(),
+            hit = _LAYOUTS[key] = (codec, codec.numpy_dtype(itemsize=len(first)),
                                    [f"f{codec.index(p)}" for p in paths])
         arr = np.frombuffer(data, dtype=hit[1])
         for j, name in enumerate(hit[2]):
