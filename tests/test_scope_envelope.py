@@ -60,8 +60,9 @@ def test_batch_decode_matches_the_codec():
 
 def test_batch_decode_reads_padded_dds_payloads():
     """Over DDS a message may arrive with trailing padding to a multiple of 4 bytes."""
-    from fluxdrive_ros import topics
     from fluxdrive_ros.cdr import Codec, Decoder
+
+    from fluxdrive_ros import topics
 
     c = Codec(topics.T_DUTY, {"header.frame_id": ""})
     pad = (-c.size) % 4 or 4
