@@ -177,42 +177,41 @@ def _trip(cs, out, code):
     out[CO_FAULT] = code
 
 
-@njit(cache=True)
-def controller_step(cs, cp, fr, est, w_ref_m, id_inj, out):
-    """One control period.  `est` is the driving observer's ES_* row (ignored in encoder
-    mode); `w_ref_m` the mechanical speed reference [rad/s]; `id_inj` an additive i_d*
-    injection [A] (frequency-response sweeps).  Writes CO_* into `out`."""
-    ts = cp[CP_TS]
-    p = cp[CP_P]
-    cs[CS_T_MODE] += ts
-    out[CO_W_REF] = w_ref_m
-    # ---------------------------------------------------------------- measure + protect
+@njit(cache=True, inline="always")
+def _protect(cs, cp, fr, out, ia, ib, ts):
+    """Sample checks and trips (bad sample, over-current, I2t, bus voltage).  Returns True
+    if the drive is (now) in fault; the PWM-off row is then already written."""
     vdc = fr[FR_VDC]
     ok = math.isfinite(fr[FR_IA]) and math.isfinite(fr[FR_IB]) and math.isfinite(fr[FR_IC])
     ok = ok and math.isfinite(vdc) and math.isfinite(fr[FR_ENC])
     if cs[CS_MODE] == MODE_FAULT:
         _trip(cs, out, cs[CS_FAULT])
-        return
+        return True
     if not ok:
         _trip(cs, out, FAULT_BAD_SAMPLE)
-        return
-    ia, ib = clarke(fr[FR_IA], fr[FR_IB], fr[FR_IC])
+        return True
     if max(abs(fr[FR_IA]), abs(fr[FR_IB]), abs(fr[FR_IC])) > cp[CP_OC_TRIP]:
         _trip(cs, out, FAULT_OVERCURRENT)
-        return
+        return True
     # I2t: integrate (i/I_rated)^2 - 1 while above rated; trip at the configured pu^2 s
     i_pk2 = (ia * ia + ib * ib) / (cp[CP_IRATED] * cp[CP_IRATED])
     cs[CS_I2T] = max(cs[CS_I2T] + (i_pk2 - 1.0) * ts, 0.0)
     if cs[CS_I2T] > cp[CP_I2T_LIMIT]:
         _trip(cs, out, FAULT_OVERCURRENT_I2T)
-        return
+        return True
     if vdc > cp[CP_VDC_MAX]:
         _trip(cs, out, FAULT_OVERVOLTAGE)
-        return
+        return True
     if vdc < cp[CP_VDC_MIN]:
         _trip(cs, out, FAULT_UNDERVOLTAGE)
-        return
-    # encoder angle/speed through a tracking PLL (reference and encoder-mode feedback)
+        return True
+    return False
+
+
+@njit(cache=True, inline="always")
+def _encoder_feedback(cs, cp, fr, p, ts):
+    """Encoder angle and speed through a tracking PLL (reference, encoder-mode feedback).
+    Returns (angle of this sample [rad], PLL speed [rad/s electrical])."""
     th_enc_meas = wrap_angle(fr[FR_ENC] / cp[CP_ENC_CPR] * TWO_PI * p)
     if cs[CS_ENC_INIT] == 0.0:
         cs[CS_ENC_INIT] = 1.0
@@ -220,129 +219,113 @@ def controller_step(cs, cp, fr, est, w_ref_m, id_inj, out):
     e_enc = math.sin(th_enc_meas - cs[CS_ENC_TH])
     w_enc, cs[CS_ENC_I], th_next = pll_step(cs[CS_ENC_TH], cs[CS_ENC_I], e_enc, cp[CP_ENC_KP],
                                             cp[CP_ENC_KI], ts)
-    th_enc = th_enc_meas
     cs[CS_ENC_TH] = th_next
+    return th_enc_meas, w_enc
 
-    mode = cs[CS_MODE]
-    if cp[CP_SRC] == SRC_ENCODER:
-        mode = MODE_CLOSED_LOOP
-        th = th_enc
-        we = w_enc
+
+@njit(cache=True, inline="always")
+def _align(cs, cp):
+    """Alignment: d-current ramped up at angle 0; then the I-f ramp.  Returns i_d* [A]."""
+    frac = min(cs[CS_T_MODE] / (0.5 * cp[CP_ALIGN_T]), 1.0)
+    id_ref = cp[CP_ALIGN_I] * frac
+    if cs[CS_T_MODE] >= cp[CP_ALIGN_T]:
+        cs[CS_MODE] = MODE_IF_RAMP
+        cs[CS_T_MODE] = 0.0
+        cs[CS_TH_IF] = 0.0
+        cs[CS_W_IF] = 0.0
+    return id_ref
+
+
+@njit(cache=True, inline="always")
+def _rotate_current_integrators(cs, angle):
+    """The current PIs keep their integrators across a frame change: rotate them by angle."""
+    cid, ciq = cs[CS_ID_I], cs[CS_IQ_I]
+    cs[CS_ID_I] = cid * math.cos(angle) - ciq * math.sin(angle)
+    cs[CS_IQ_I] = cid * math.sin(angle) + ciq * math.cos(angle)
+
+
+@njit(cache=True, inline="always")
+def _if_ramp(cs, cp, est, w_ref_m, id_inj, ia, ib, p, ts):
+    """Open-loop I-f: the current vector sits on an angle integrated from a ramped speed; hand
+    over to the observer once it agrees with the ramp.  Returns (theta, w_e, i_d*, mode)."""
+    w_tgt = w_ref_m * p
+    step = cp[CP_IF_ACC] * p * ts
+    w_if = cs[CS_W_IF]
+    if w_if < w_tgt - step:
+        w_if += step
+    elif w_if > w_tgt + step:
+        w_if -= step
     else:
-        th = est[ES_TH]
-        we = est[ES_W]
-        if not math.isfinite(th) or not math.isfinite(we):
-            _trip(cs, out, FAULT_POSITION_INVALID)
-            return
-        if mode == MODE_CLOSED_LOOP:
-            if est[ES_VALID] == 0.0:
-                cs[CS_INV_T] += ts
-                if cs[CS_INV_T] > cp[CP_INV_TIMEOUT]:
-                    # PLL error or flux magnitude out of bounds for too long
-                    _trip(cs, out, FAULT_LOSS_OF_LOCK)
-                    return
-            else:
-                cs[CS_INV_T] = 0.0
-    w_m_fb = we / p
-    if abs(w_m_fb) > cp[CP_OS_TRIP]:
-        _trip(cs, out, FAULT_OVERSPEED)
-        return
-    cs[CS_WFB_F] = lowpass_step(cs[CS_WFB_F], w_m_fb, pole(cp[CP_WFB_LPF], ts))
+        w_if = w_tgt
+    cs[CS_W_IF] = w_if
+    th = cs[CS_TH_IF]
+    cs[CS_TH_IF] = wrap_angle(th + w_if * ts)
+    we = w_if
+    # the current vector sits on the ramped angle (continuous with the alignment);
+    # the rotor lags it by the load angle asin(T_L / (K_t I)), which pulls it along
+    id_ref = cp[CP_IF_I] + id_inj
+    hand = cp[CP_HANDOVER] * p
+    # average torque current the rotor carries, seen in the observer's frame (5 Hz LPF):
+    # the speed integrator starts from it at handover (an instantaneous sample would
+    # kick the lightly damped rotor)
+    _, iq_obs = park(ia, ib, math.cos(est[ES_TH]), math.sin(est[ES_TH]))
+    cs[CS_IQ_IF_F] = lowpass_step(cs[CS_IQ_IF_F], iq_obs, pole(31.4, ts))
+    # hand over only to an observer that agrees with the open-loop ramp: the rotor lags
+    # the I-f vector by its load angle (< 90 deg) and turns at the ramp's speed
+    agree = (abs(wrap_angle(est[ES_TH] - th)) < 1.22
+             and abs(est[ES_W] - w_if) < 0.3 * abs(w_if))
+    if abs(w_if) >= hand and est[ES_VALID] != 0.0 and agree:
+        cs[CS_AGREE_T] += ts
+    else:
+        cs[CS_AGREE_T] = 0.0
+    if abs(w_tgt) >= hand and cs[CS_AGREE_T] >= cp[CP_HANDOVER_DWELL]:
+        # handover: continue closed loop on the observer; the speed integrator starts
+        # from the torque current the rotor is carrying in the observer's frame
+        cs[CS_W_I] = cs[CS_IQ_IF_F]
+        cs[CS_MODE] = MODE_CLOSED_LOOP
+        cs[CS_T_MODE] = 0.0
+        cs[CS_WFB_F] = est[ES_W] / p
+        _rotate_current_integrators(cs, th - est[ES_TH])
+        return est[ES_TH], est[ES_W], id_ref, MODE_CLOSED_LOOP
+    return th, we, id_ref, MODE_IF_RAMP
 
-    # ---------------------------------------------------------------- references
-    iq_ref = 0.0
-    id_ref = id_inj
-    if mode == MODE_ALIGN:
-        th = 0.0
-        we = 0.0
-        frac = min(cs[CS_T_MODE] / (0.5 * cp[CP_ALIGN_T]), 1.0)
-        id_ref = cp[CP_ALIGN_I] * frac
-        if cs[CS_T_MODE] >= cp[CP_ALIGN_T]:
-            cs[CS_MODE] = MODE_IF_RAMP
-            cs[CS_T_MODE] = 0.0
-            cs[CS_TH_IF] = 0.0
-            cs[CS_W_IF] = 0.0
-    elif mode == MODE_IF_RAMP:
-        # open loop: the current vector leads an angle integrated from a ramped speed
-        w_tgt = w_ref_m * p
-        step = cp[CP_IF_ACC] * p * ts
-        w_if = cs[CS_W_IF]
-        if w_if < w_tgt - step:
-            w_if += step
-        elif w_if > w_tgt + step:
-            w_if -= step
-        else:
-            w_if = w_tgt
-        cs[CS_W_IF] = w_if
-        th = cs[CS_TH_IF]
-        cs[CS_TH_IF] = wrap_angle(th + w_if * ts)
-        we = w_if
-        # the current vector sits on the ramped angle (continuous with the alignment);
-        # the rotor lags it by the load angle asin(T_L / (K_t I)), which pulls it along
-        id_ref = cp[CP_IF_I] + id_inj
-        iq_ref = 0.0
-        hand = cp[CP_HANDOVER] * p
-        # average torque current the rotor carries, seen in the observer's frame (5 Hz LPF):
-        # the speed integrator starts from it at handover (an instantaneous sample would
-        # kick the lightly damped rotor)
-        _, iq_obs = park(ia, ib, math.cos(est[ES_TH]), math.sin(est[ES_TH]))
-        cs[CS_IQ_IF_F] = lowpass_step(cs[CS_IQ_IF_F], iq_obs, pole(31.4, ts))
-        # hand over only to an observer that agrees with the open-loop ramp: the rotor lags
-        # the I-f vector by its load angle (< 90 deg) and turns at the ramp's speed
-        agree = (abs(wrap_angle(est[ES_TH] - th)) < 1.22
-                 and abs(est[ES_W] - w_if) < 0.3 * abs(w_if))
-        if abs(w_if) >= hand and est[ES_VALID] != 0.0 and agree:
-            cs[CS_AGREE_T] += ts
-        else:
-            cs[CS_AGREE_T] = 0.0
-        if abs(w_tgt) >= hand and cs[CS_AGREE_T] >= cp[CP_HANDOVER_DWELL]:
-            # handover: continue closed loop on the observer; the speed integrator starts
-            # from the torque current the rotor is carrying in the observer's frame
-            cs[CS_W_I] = cs[CS_IQ_IF_F]
-            cs[CS_MODE] = MODE_CLOSED_LOOP
-            cs[CS_T_MODE] = 0.0
-            cs[CS_WFB_F] = est[ES_W] / p
-            # the current PIs keep their integrators: re-express them in the new frame
-            cid, ciq = cs[CS_ID_I], cs[CS_IQ_I]
-            dth = th - est[ES_TH]
-            cs[CS_ID_I] = cid * math.cos(dth) - ciq * math.sin(dth)
-            cs[CS_IQ_I] = cid * math.sin(dth) + ciq * math.cos(dth)
-            th = est[ES_TH]
-            we = est[ES_W]
-            mode = MODE_CLOSED_LOOP
-    if mode == MODE_CLOSED_LOOP:
-        if (cp[CP_SRC] == SRC_ESTIMATE and abs(w_ref_m) < cp[CP_HANDBACK]
-                and cs[CS_MODE] == MODE_CLOSED_LOOP and cs[CS_T_MODE] > 0.05):
-            # hand-back to I-f: the I-f vector takes over the torque the closed loop carried.
-            # It is placed ahead of (motoring) or behind (braking) the estimated rotor angle
-            # by the load angle asin(i_q/I_if), i_q the speed integrator's (steady) torque
-            # current, so the torque does not step to zero -- a step would kick the rotor
-            # into the I-f ramp's undamped load-angle oscillation.  Either sign of speed and
-            # torque; the angle is clipped at 64 deg (the I-f stiffness vanishes at 90).
-            s_ld = min(max(cs[CS_W_I] / max(cp[CP_IF_I], 1e-9), -0.9), 0.9)
-            ld = math.asin(s_ld)
-            cs[CS_MODE] = MODE_IF_RAMP
-            cs[CS_T_MODE] = 0.0
-            cs[CS_W_IF] = we
-            cs[CS_IQ_IF_F] = cs[CS_W_I]
-            # the current PIs keep their integrators, re-expressed in the I-f frame
-            cid, ciq = cs[CS_ID_I], cs[CS_IQ_I]
-            cs[CS_ID_I] = cid * math.cos(ld) + ciq * math.sin(ld)
-            cs[CS_IQ_I] = -cid * math.sin(ld) + ciq * math.cos(ld)
-            th = wrap_angle(th + ld)
-            cs[CS_TH_IF] = wrap_angle(th + we * ts)
-            id_ref = cp[CP_IF_I] + id_inj
-            iq_ref = 0.0
-        else:
-            # speed PI -> i_q*
-            w_err = w_ref_m - w_m_fb
-            u = pi_output(cp[CP_KP_W], cs[CS_W_I], w_err)
-            u_sat = min(max(u, -cp[CP_IMAX]), cp[CP_IMAX])
-            cs[CS_W_I] = pi_update(cs[CS_W_I], cp[CP_KI_W], ts, w_err, u, u_sat)
-            iq_ref = u_sat
-            cs[CS_MODE] = MODE_CLOSED_LOOP
 
-    # ---------------------------------------------------------------- current loops
+@njit(cache=True, inline="always")
+def _hand_back(cs, cp, th, we, id_inj, ts):
+    """Closed loop -> I-f below the hand-back speed.  The I-f vector takes over the torque
+    the closed loop carried: it is placed ahead of (motoring) or behind (braking) the
+    estimated rotor angle by the load angle asin(i_q/I_if), i_q the speed integrator's
+    (steady) torque current, so the torque does not step to zero -- a step would kick the
+    rotor into the I-f ramp's undamped load-angle oscillation.  Either sign of speed and
+    torque; the angle is clipped at 64 deg (the I-f stiffness vanishes at 90).
+    Returns (theta, i_d*)."""
+    s_ld = min(max(cs[CS_W_I] / max(cp[CP_IF_I], 1e-9), -0.9), 0.9)
+    ld = math.asin(s_ld)
+    cs[CS_MODE] = MODE_IF_RAMP
+    cs[CS_T_MODE] = 0.0
+    cs[CS_W_IF] = we
+    cs[CS_IQ_IF_F] = cs[CS_W_I]
+    _rotate_current_integrators(cs, -ld)  # re-expressed in the I-f frame
+    th = wrap_angle(th + ld)
+    cs[CS_TH_IF] = wrap_angle(th + we * ts)
+    return th, cp[CP_IF_I] + id_inj
+
+
+@njit(cache=True, inline="always")
+def _speed_loop(cs, cp, w_ref_m, w_m_fb, ts):
+    """Speed PI -> i_q* [A], limited, integrator back-calculated."""
+    w_err = w_ref_m - w_m_fb
+    u = pi_output(cp[CP_KP_W], cs[CS_W_I], w_err)
+    u_sat = min(max(u, -cp[CP_IMAX]), cp[CP_IMAX])
+    cs[CS_W_I] = pi_update(cs[CS_W_I], cp[CP_KI_W], ts, w_err, u, u_sat)
+    cs[CS_MODE] = MODE_CLOSED_LOOP
+    return u_sat
+
+
+@njit(cache=True, inline="always")
+def _current_loops(cs, cp, ia, ib, th, we, id_ref, iq_ref, vdc, ts, out):
+    """dq current PIs with decoupling, inverse Park at the advanced angle, SVPWM with the
+    hexagon limit, deadtime feed-forward; writes the CO_* row."""
     c_t = math.cos(th)
     s_t = math.sin(th)
     i_d, i_q = park(ia, ib, c_t, s_t)
@@ -379,10 +362,70 @@ def controller_step(cs, cp, fr, est, w_ref_m, id_inj, out):
     out[CO_IQ_REF] = iq_ref
     out[CO_VD] = vd_s
     out[CO_VQ] = vq_s
-    out[CO_W_FB] = w_m_fb
     out[CO_TH] = th
     out[CO_MODE] = cs[CS_MODE]
     out[CO_FAULT] = 0.0
+
+
+@njit(cache=True)
+def controller_step(cs, cp, fr, est, w_ref_m, id_inj, out):
+    """One control period.  `est` is the driving observer's ES_* row (ignored in encoder
+    mode); `w_ref_m` the mechanical speed reference [rad/s]; `id_inj` an additive i_d*
+    injection [A] (frequency-response sweeps).  Writes CO_* into `out`.
+    measure + protect -> position feedback -> references (align / I-f / closed loop) ->
+    current loops."""
+    ts = cp[CP_TS]
+    p = cp[CP_P]
+    cs[CS_T_MODE] += ts
+    out[CO_W_REF] = w_ref_m
+    ia, ib = clarke(fr[FR_IA], fr[FR_IB], fr[FR_IC])
+    if _protect(cs, cp, fr, out, ia, ib, ts):
+        return
+    th_enc, w_enc = _encoder_feedback(cs, cp, fr, p, ts)
+    # ---------------------------------------------------------------- position feedback
+    mode = cs[CS_MODE]
+    if cp[CP_SRC] == SRC_ENCODER:
+        mode = MODE_CLOSED_LOOP
+        th = th_enc
+        we = w_enc
+    else:
+        th = est[ES_TH]
+        we = est[ES_W]
+        if not math.isfinite(th) or not math.isfinite(we):
+            _trip(cs, out, FAULT_POSITION_INVALID)
+            return
+        if mode == MODE_CLOSED_LOOP:
+            if est[ES_VALID] == 0.0:
+                cs[CS_INV_T] += ts
+                if cs[CS_INV_T] > cp[CP_INV_TIMEOUT]:
+                    # PLL error or flux magnitude out of bounds for too long
+                    _trip(cs, out, FAULT_LOSS_OF_LOCK)
+                    return
+            else:
+                cs[CS_INV_T] = 0.0
+    w_m_fb = we / p
+    if abs(w_m_fb) > cp[CP_OS_TRIP]:
+        _trip(cs, out, FAULT_OVERSPEED)
+        return
+    cs[CS_WFB_F] = lowpass_step(cs[CS_WFB_F], w_m_fb, pole(cp[CP_WFB_LPF], ts))
+    # ---------------------------------------------------------------- references
+    iq_ref = 0.0
+    id_ref = id_inj
+    if mode == MODE_ALIGN:
+        th = 0.0
+        we = 0.0
+        id_ref = _align(cs, cp)
+    elif mode == MODE_IF_RAMP:
+        th, we, id_ref, mode = _if_ramp(cs, cp, est, w_ref_m, id_inj, ia, ib, p, ts)
+    if mode == MODE_CLOSED_LOOP:
+        if (cp[CP_SRC] == SRC_ESTIMATE and abs(w_ref_m) < cp[CP_HANDBACK]
+                and cs[CS_MODE] == MODE_CLOSED_LOOP and cs[CS_T_MODE] > 0.05):
+            th, id_ref = _hand_back(cs, cp, th, we, id_inj, ts)
+            iq_ref = 0.0
+        else:
+            iq_ref = _speed_loop(cs, cp, w_ref_m, w_m_fb, ts)
+    out[CO_W_FB] = w_m_fb
+    _current_loops(cs, cp, ia, ib, th, we, id_ref, iq_ref, fr[FR_VDC], ts, out)
 
 
 # ====================================================================== design

@@ -45,17 +45,12 @@ from fluxdrive.drive.control import (
 )
 from fluxdrive.drive.observers import ES_LA, ES_LB, ES_TH, ES_W, OP_LAM, OP_R
 from fluxdrive.drive.plant import TR_THETA_E, TR_WM
-from fluxdrive.experiments.registry import OBS4, build, claim, encoder_run, plt
+from fluxdrive.experiments.registry import OBS4, build, claim, cv, encoder_run, plt
 
 RPM = 2 * math.pi / 60
-R0, L0, LAM, P = 0.40, 0.8e-3, 0.0235, 4
 
 
 # ======================================================================== shared
-VDT = 72.0 * 2e-6 / 1e-4  # deadtime volt-second loss per leg, Vdc td / Ts = 1.44 V
-V1_DT = 4.0 / math.pi * VDT  # its fundamental along the current (a +-V_dt square wave)
-I_RATED = 9.0
-
 # the observer variants compared past the paper (names are ROS-safe: they become nodes)
 VARIANTS = {
     "flux_measured": {"variant": "paper", "voltage_source": "measured"},
@@ -67,15 +62,25 @@ VARIANTS = {
     "ortega_commanded": {"variant": "ortega", "voltage_source": "commanded"},
     # the bound's 0.2 R I term is a 20 % resistance error: the paper observer with R^ 20 % high
     "flux_measured_rhat120": {"variant": "paper", "voltage_source": "measured",
-                              "r_hat_ohm": 1.2 * R0},
+                              "r_hat_pu": 1.2},
 }
+
+
+def variant_spec(name: str) -> dict:
+    """VARIANTS[name] as an observer spec: a model error given relative to the card
+    (r_hat_pu) becomes the observer's own R^ [ohm]."""
+    spec = dict(VARIANTS[name])
+    if "r_hat_pu" in spec:
+        spec["r_hat_ohm"] = spec.pop("r_hat_pu") * cv().r
+    return spec
 
 
 def speed_bound_rpm(load_pu: float, commanded: bool) -> float:
     """Rule-of-thumb lowest speed w_min = (0.2 R I + V_dt)/lambda (electrical) at the current
     I that carries the load; V_dt only where the observer uses commanded voltages."""
-    v = 0.2 * R0 * load_pu * I_RATED + (VDT if commanded else 0.0)
-    return v / LAM / P * RAD_S_TO_RPM
+    mc = cv()  # the card's values (see CardValues)
+    v = 0.2 * mc.r * load_pu * mc.i_rated + (mc.vdt if commanded else 0.0)
+    return v / mc.lam / mc.p * RAD_S_TO_RPM
 
 
 def descent(speed_rpm: float, load_pu: float, *, driving: str, observers: dict | None = None,
@@ -87,7 +92,7 @@ def descent(speed_rpm: float, load_pu: float, *, driving: str, observers: dict |
     under load to `speed_rpm`, a settle and the steady window.  Loading at the target speed
     instead would measure the speed loop's ramp lag (i_q ramp / K_i: 33 rpm at 0.19 pu/s),
     not the observer; decelerating under a constant load leaves no lag (type-2 loop)."""
-    obs = dict(observers or {driving: VARIANTS[driving]})
+    obs = dict(observers or {driving: variant_spec(driving)})
     s0 = max(start_rpm, speed_rpm)
     t_load = 1.0 + s0 / 300.0
     t_full = t_load + (load_pu / ramp_pu_s if load_pu > 0 else 0.0)
@@ -336,7 +341,7 @@ def _x_mismatch(r, m):
 
     w = steady_window(r.t, r.scenario.steady_window_s)
     sl = slice(w.k0, w.k1)
-    we = float(np.mean(r.truth[sl, TR_WM])) * P
+    we = float(np.mean(r.truth[sl, TR_WM])) * r.scenario.machine.pole_pairs
     iq = float(np.mean(r.ctrl[sl, CO_IQ]))
     out = {"metrics": m, "we": we, "iq": iq, "obs": {}}
     for i, nm in enumerate(r.names):
@@ -350,17 +355,18 @@ def _x_mismatch(r, m):
 
 
 def mismatch(ctx):
+    mc = cv()  # the card's values (see CardValues)
     rs = [0.7, 0.85, 1.15, 1.3]
     ls = [0.5, 0.8, 1.25, 1.5]
     lams = [0.8, 1.2]
     obs = {"ref": OBS4["flux_measured"]}
     base = dict(OBS4["flux_measured"])
     for k in rs:
-        obs[f"R{k}"] = {**base, "r_hat_ohm": R0 * k}
+        obs[f"R{k}"] = {**base, "r_hat_ohm": mc.r * k}
     for k in ls:
-        obs[f"L{k}"] = {**base, "l_hat_h": L0 * k}
+        obs[f"L{k}"] = {**base, "l_hat_h": mc.l * k}
     for k in lams:
-        obs[f"lam{k}"] = {**base, "lambda_hat_vs": LAM * k}
+        obs[f"lam{k}"] = {**base, "lambda_hat_vs": mc.lam * k}
     obs["flux_measured"] = base
     offs = [0.01] if ctx.quick else [0.005, 0.01, 0.02]
     jobs = [(build(base="paper_2pct_150load", observers=obs), _x_mismatch, None)]
@@ -368,8 +374,8 @@ def mismatch(ctx):
         jobs.append((build(base="paper_2pct_150load",
                            faults={"current_offset_pu": [0.0, o, 0.0]},
                            observers={"flux_measured": base}), _x_mismatch, None))
-    closed = [] if ctx.quick else [("r_hat_ohm", R0 * 1.15), ("r_hat_ohm", R0 * 0.85),
-                                   ("l_hat_h", L0 * 1.5), ("l_hat_h", L0 * 0.5)]
+    closed = [] if ctx.quick else [("r_hat_ohm", mc.r * 1.15), ("r_hat_ohm", mc.r * 0.85),
+                                   ("l_hat_h", mc.l * 1.5), ("l_hat_h", mc.l * 0.5)]
     for key, val in closed:
         jobs.append((build(base="paper_2pct_150load",
                            observers={"flux_measured": {**base, key: val}}), _x_mismatch, None))
@@ -380,11 +386,11 @@ def mismatch(ctx):
     claims = []
     for k in rs:
         o = r0["obs"][f"R{k}"]
-        pred = LAM + (R0 - R0 * k) * iq / we
+        pred = mc.lam + (mc.r - mc.r * k) * iq / we
         rows.append({"param": f"R^={k}R", **o, "pred_mag": pred})
     for k in ls:
         o = r0["obs"][f"L{k}"]
-        pred = math.degrees(math.atan2((L0 - L0 * k) * iq, LAM))
+        pred = math.degrees(math.atan2((mc.l - mc.l * k) * iq, mc.lam))
         rows.append({"param": f"L^={k}L", **o, "pred_mean_deg": pred})
     for k in lams:
         rows.append({"param": f"λ^={k}λ", **r0["obs"][f"lam{k}"], "pred_mean_deg": 0.0})
@@ -398,7 +404,8 @@ def mismatch(ctx):
                   for k in rs),
         all(abs(rr[f"R^={k}R"]["mag"] - abs(rr[f"R^={k}R"]["pred_mag"]))
             < 0.2 * abs(rr[f"R^={k}R"]["pred_mag"]) + 2e-3 for k in rs),
-        f"R^ > {R0 + LAM * we / iq:.3f} Ω ({100 * LAM * we / iq / R0:.0f} % high) flips the "
+        f"R^ > {mc.r + mc.lam * we / iq:.3f} Ω ({100 * mc.lam * we / iq / mc.r:.0f} % high) "
+        "flips the "
         "sign of λ̂ (a 180° estimate: the mean θ̃ of those rows is meaningless) at 150 % "
         "load and 60 rpm; R^ ≤ 0.8 R leaves |λ̂| outside the 0.3-3 λ validity band"))
     claims.append(claim(
@@ -413,8 +420,8 @@ def mismatch(ctx):
         all(abs(rr[f"λ^={k}λ"]["mean_deg"]) < 1.0 for k in lams)))
     off_rows = []
     for o, r in zip(offs, res[1:1 + len(offs)], strict=True):
-        d_ab = o * 9.0 * math.sqrt(1 / 9 + 1 / 3)
-        ratio = R0 * d_ab / (abs(r["we"]) * LAM) if abs(r["we"]) > 1.0 else 1.0
+        d_ab = o * mc.i_rated * math.sqrt(1 / 9 + 1 / 3)
+        ratio = mc.r * d_ab / (abs(r["we"]) * mc.lam) if abs(r["we"]) > 1.0 else 1.0
         pred = math.degrees(math.asin(min(1.0, ratio)))
         mm = r["metrics"]
         off_rows.append({"offset_pu": o, "stable": mm["stable"],
@@ -437,7 +444,7 @@ def mismatch(ctx):
             "Driving with mismatched R^/L^ (2 %/150 %, flux drive, measured voltages)",
             "; ".join(f"{x['param']}={x['value']:.4g}: stable {x['stable']}" for x in cl_rows),
             None, "at 60 rpm / 150 % load the R̂ tolerance is tiny (the flux flips at "
-            f"{100 * LAM * we / iq / R0:.0f} % high; the start-up's I-f angle check also "
+            f"{100 * mc.lam * we / iq / mc.r:.0f} % high; the start-up's I-f angle check also "
             "fails), so R̂ must be tracked online (experiment rs_adapt); L̂ errors only tilt "
             "the angle by atan((L−L̂)i_q/λ)"))
     p = plt()
@@ -445,7 +452,7 @@ def mismatch(ctx):
     ax[0].plot([x * 100 - 100 for x in rs], [1e3 * rr[f"R^={k}R"]["mag"] for k in rs], "o",
                label="|λ̂| sim")
     kk = np.linspace(0.65, 1.35, 50)
-    ax[0].plot(kk * 100 - 100, [1e3 * abs(LAM + (R0 - R0 * k) * iq / we) for k in kk], "-",
+    ax[0].plot(kk * 100 - 100, [1e3 * abs(mc.lam + (mc.r - mc.r * k) * iq / we) for k in kk], "-",
                label="λ + (R−R̂)i_q/ω")
     ax[0].set_xlabel("R̂ error [%]")
     ax[0].set_ylabel("|λ̂| [mV·s]")
@@ -453,7 +460,8 @@ def mismatch(ctx):
     ax[1].plot([x * 100 - 100 for x in ls], [rr[f"L^={k}L"]["mean_deg"] for k in ls], "o",
                label="θ̃ mean sim")
     kk = np.linspace(0.45, 1.55, 50)
-    ax[1].plot(kk * 100 - 100, [math.degrees(math.atan2((L0 - L0 * k) * iq, LAM)) for k in kk],
+    ax[1].plot(kk * 100 - 100,
+               [math.degrees(math.atan2((mc.l - mc.l * k) * iq, mc.lam)) for k in kk],
                label="atan((L−L̂)i_q/λ)")
     ax[1].set_xlabel("L̂ error [%]")
     ax[1].set_ylabel("θ̃ mean [deg]")
@@ -523,12 +531,14 @@ def _mag_forced_eq(kind: str, x: complex, w: float, k: float, lam_hat: float) ->
 
 
 def fundamental_estimate(kind: str, w: float, iq: float, *, r_err: float = 0.0,
-                         l_err: float = 0.0, lam_hat: float = LAM, wc: float = 0.0,
+                         l_err: float = 0.0, lam_hat: float | None = None, wc: float = 0.0,
                          k: float = 0.0, v_err_q: float = 0.0) -> complex | None:
-    """Rotor-frame flux estimate (true magnet flux = LAM along +real) of a variant in steady
+    """Rotor-frame flux estimate (true magnet flux = lambda along +real) of a variant in steady
     state; r_err = R - R^, l_err = L - L^, v_err_q an extra EMF error along q [V] (e.g. the
     deadtime fundamental (4/pi) V_dt with commanded voltages).  None: no stable equilibrium."""
-    x = 1j * (w * LAM + r_err * iq + v_err_q) - l_err * w * iq
+    mc = cv()  # the card's values (see CardValues)
+    lam_hat = mc.lam if lam_hat is None else lam_hat
+    x = 1j * (w * mc.lam + r_err * iq + v_err_q) - l_err * w * iq
     if kind in ("paper", "pure_integrator", "programmable_lpf", "emf"):
         return x / (1j * w)
     if kind == "lpf":
@@ -547,18 +557,19 @@ def offset_h1_pred_deg(kind: str, w: float, d_ab: float, *, wc: float = 0.0,
     sees a DC EMF error R^ d_ab; its DC response over the fundamental's magnitude.  For the
     magnitude-forcing observers the linearised (radial r, angle e) dynamics
     r' = -k r + w lam e + Re u,  lam e' = -w r + Im u  are driven at the rotor frequency."""
-    d = R0 * d_ab
+    mc = cv()  # the card's values (see CardValues)
+    d = mc.r * d_ab
     if kind == "pure_integrator":
         return None  # drifts (unbounded)
     if kind in ("paper", "programmable_lpf"):
-        ratio = d * math.sqrt(1 / wc ** 2 + 1 / w ** 2) / LAM
+        ratio = d * math.sqrt(1 / wc ** 2 + 1 / w ** 2) / mc.lam
     elif kind == "lpf":
-        ratio = (d / wc) / (LAM * w / math.hypot(w, wc))
+        ratio = (d / wc) / (mc.lam * w / math.hypot(w, wc))
     elif kind == "emf":
-        ratio = d / (w * LAM)
+        ratio = d / (w * mc.lam)
     else:
-        a = np.array([[-k, w * LAM], [-w / LAM, 0.0]])
-        b = np.array([1.0, 1j / LAM]) * d
+        a = np.array([[-k, w * mc.lam], [-w / mc.lam, 0.0]])
+        b = np.array([1.0, 1j / mc.lam]) * d
         xs = np.linalg.solve(1j * w * np.eye(2) - a, b)
         return math.degrees(abs(xs[1]))
     return math.degrees(math.asin(min(ratio, 1.0)))
@@ -571,7 +582,7 @@ def _x_sens(r, m):
 
     w = steady_window(r.t, r.scenario.steady_window_s)
     sl = slice(w.k0, w.k1)
-    out = {"we": float(np.mean(r.truth[sl, TR_WM])) * P,
+    out = {"we": float(np.mean(r.truth[sl, TR_WM])) * r.scenario.machine.pole_pairs,
            "iq": float(np.mean(r.ctrl[sl, CO_IQ])), "speed": m["speed"], "obs": {}}
     thu = np.unwrap(r.truth[sl, TR_THETA_E])
     ws = whole_periods(thu)
@@ -620,6 +631,7 @@ STEADY_AC_DEG = 10.0  # an estimate whose theta~ wanders more than this about it
 
 
 def sensitivity(ctx):
+    mc = cv()  # the card's values (see CardValues)
     rs, ls, lams, cuts, offs = _sens_lists(ctx.quick)
     speed, load = 60.0, 1.5
     jobs = []
@@ -627,11 +639,11 @@ def sensitivity(ctx):
         base = {"variant": kind, "voltage_source": "measured"}
         obs = {f"{kind}_nom": base}
         for f in rs:
-            obs[f"{kind}_r{round(100 * f):03d}"] = {**base, "r_hat_ohm": R0 * f}
+            obs[f"{kind}_r{round(100 * f):03d}"] = {**base, "r_hat_ohm": mc.r * f}
         for f in ls:
-            obs[f"{kind}_l{round(100 * f):03d}"] = {**base, "l_hat_h": L0 * f}
+            obs[f"{kind}_l{round(100 * f):03d}"] = {**base, "l_hat_h": mc.l * f}
         for f in lams:
-            obs[f"{kind}_lam{round(100 * f):03d}"] = {**base, "lambda_hat_vs": LAM * f}
+            obs[f"{kind}_lam{round(100 * f):03d}"] = {**base, "lambda_hat_vs": mc.lam * f}
         if kind != "emf":
             for f in cuts:
                 obs[f"{kind}_fc{round(10 * f):04d}"] = {**base, **_cut(kind, f)}
@@ -670,17 +682,17 @@ def sensitivity(ctx):
 
         t = {"nom": row(o[f"{kind}_nom"])}
         for f in rs:
-            t[f"r{f}"] = row(o[f"{kind}_r{round(100 * f):03d}"], r_err=R0 * (1 - f))
+            t[f"r{f}"] = row(o[f"{kind}_r{round(100 * f):03d}"], r_err=mc.r * (1 - f))
         for f in ls:
-            t[f"l{f}"] = row(o[f"{kind}_l{round(100 * f):03d}"], l_err=L0 * (1 - f))
+            t[f"l{f}"] = row(o[f"{kind}_l{round(100 * f):03d}"], l_err=mc.l * (1 - f))
         for f in lams:
-            t[f"lam{f}"] = row(o[f"{kind}_lam{round(100 * f):03d}"], lam_hat=LAM * f)
+            t[f"lam{f}"] = row(o[f"{kind}_lam{round(100 * f):03d}"], lam_hat=mc.lam * f)
         if kind != "emf":
             for f in cuts:
                 kk = 2 * math.pi * f
                 t[f"fc{f}"] = {**row(o[f"{kind}_fc{round(10 * f):04d}"], wc=kk, k=kk), "k": kk}
         for o_pu, rr in zip(offs, off_res, strict=True):
-            d_ab = o_pu * I_RATED * math.sqrt(1 / 9 + 1 / 3)
+            d_ab = o_pu * mc.i_rated * math.sqrt(1 / 9 + 1 / 3)
             x = rr["obs"][f"{kind}_nom"]
             t[f"off{o_pu}"] = {**x, "steady": x["ac_rms_deg"] < STEADY_AC_DEG + x["h1_deg"],
                                "pred_h1_deg": offset_h1_pred_deg(kind, w, d_ab, wc=wc, k=k)}
@@ -709,6 +721,7 @@ def _label(key: str) -> str:
 
 
 def _sens_claims(tab, rs, ls, lams, cuts, offs, w, iq, nd, ids):
+    mc = cv()  # the card's values (see CardValues)
     claims = []
     desc = {
         "paper": "R̂: magnitude only, |λ̂| = λ + ΔR i_q/ω (a 180° flip once ΔR i_q < −ωλ); "
@@ -817,7 +830,7 @@ def _sens_claims(tab, rs, ls, lams, cuts, offs, w, iq, nd, ids):
             y = np.radians([t[f"fc{f}"]["mean_deg"] for f in fs])
             # through the origin: e = k delta / (w^2 lam)
             slope = float(np.sum(kk * y) / np.sum(kk * kk))
-            deltas[name] = (1e3 * slope * w * w * LAM, fs)
+            deltas[name] = (1e3 * slope * w * w * mc.lam, fs)
     slips = {name: [f for f in cuts if not t[f"fc{f}"]["steady"]]
              for name, t in (("hinkkanen_luomi", hl), ("ortega", ot))}
     ok = (len(deltas) == 2 and abs(deltas["hinkkanen_luomi"][0] - deltas["ortega"][0])
@@ -838,7 +851,8 @@ def _sens_claims(tab, rs, ls, lams, cuts, offs, w, iq, nd, ids):
         + "; ideal sensors, 2 µs deadtime: " + ", ".join(f"{k.replace('_fc', ' ')} Hz "
                                                          f"{v:.2f}°" for k, v in ids.items()),
         ok,
-        f"the residue ({100 * abs(np.mean([v[0] for v in deltas.values()])) / (1e3 * w * LAM):.1f}"
+        f"the residue "
+        f"({100 * abs(np.mean([v[0] for v in deltas.values()])) / (1e3 * w * mc.lam):.1f}"
         " % of the back-EMF ωλ) comes with the deadtime: it vanishes with an ideal inverter "
         "and stays with ideal sensors, so it is not quantisation or noise; the likely "
         "mechanism is that the valley-sampled current no longer equals the period average "
@@ -850,6 +864,7 @@ def _sens_claims(tab, rs, ls, lams, cuts, offs, w, iq, nd, ids):
 
 
 def _plot_sens(ctx, tab, rs, ls, lams, cuts, offs, w, iq):
+    mc = cv()  # the card's values (see CardValues)
     p = plt()
     fig, ax = p.subplots(2, 3, figsize=(14, 7.5))
     col = {k: f"C{i}" for i, k in enumerate(tab)}
@@ -877,10 +892,10 @@ def _plot_sens(ctx, tab, rs, ls, lams, cuts, offs, w, iq):
             a.set_xlabel(ttl)
             a.set_ylabel("circular mean θ̃ [deg]")
         xs = [100 * f - 100 for f in rs]
-        pts(ax[0, 1], xs, [t[f"r{f}"]["mag"] / LAM for f in rs],
+        pts(ax[0, 1], xs, [t[f"r{f}"]["mag"] / mc.lam for f in rs],
             [t[f"r{f}"]["steady"] for f in rs], c, kind)
         line(ax[0, 1], xs, [None if t[f"r{f}"]["pred_mag"] is None
-                            else t[f"r{f}"]["pred_mag"] / LAM for f in rs], c)
+                            else t[f"r{f}"]["pred_mag"] / mc.lam for f in rs], c)
         xs = [100 * o for o in offs]
         pts(ax[1, 1], xs, [t[f"off{o}"]["h1_deg"] for o in offs],
             [t[f"off{o}"]["steady"] for o in offs], c, kind)
@@ -980,7 +995,8 @@ def _x_reversal(r, m):
                              and mode[-1] == MODE_CLOSED_LOOP)
     sl = slice(max(k_rev - int(0.5 / ts), 0), min(k_rev + int(3.0 / ts), len(t)), 20)
     out["series"] = {"t": t[sl], "rpm": rpm[sl], "ref": ref[sl],
-                     "est_rpm": r.estimate("flux_measured")[sl, ES_W] / P * RAD_S_TO_RPM,
+                     "est_rpm": (r.estimate("flux_measured")[sl, ES_W] * RAD_S_TO_RPM
+                                 / r.scenario.machine.pole_pairs),
                      "err": err[sl], "ang": ang[sl], "iq": r.ctrl[sl, CO_IQ],
                      "id": r.ctrl[sl, CO_ID], "mode": mode[sl]}
     return out
@@ -1121,7 +1137,7 @@ def _switch_scenario(driving: str, seed: int, **extra):
                  speed_rpm=60.0, load_type="brake",
                  load_pu=[[0.0, 0.0], [0.3, 0.0], [round(t_full, 4), 1.0]],
                  steady_window_s=[round(t_sw + 2.5, 4), round(t_sw + 4.0, 4)],
-                 driving=driving, control={}, observers={driving: VARIANTS[driving]},
+                 driving=driving, control={}, observers={driving: variant_spec(driving)},
                  extra={"t_switch_s": round(t_sw, 4)}, **extra)
 
 
@@ -1150,6 +1166,7 @@ def _switch_job(args):
 
 
 def peers_fail(ctx):
+    mc = cv()  # the card's values (see CardValues)
     seeds = [1] if ctx.quick else [1, 2, 3]
     drivers = PEERS[:3] if ctx.quick else PEERS
     sw_jobs = [(_switch_scenario(d, s), (d, s, "2us")) for d in drivers for s in seeds]
@@ -1161,7 +1178,7 @@ def peers_fail(ctx):
     sw_res = ctx.map(_switch_job, scs)
     ctx.log(f"{len(scs)} switched runs (in-process engine) in {time.perf_counter() - t0:.1f} s")
     # shadow: every variant on the encoder drive at the same point, for the mechanism
-    shadow_obs = {v: VARIANTS[v] for v in PEERS}
+    shadow_obs = {v: variant_spec(v) for v in PEERS}
     shadow_obs["hl_commanded"] = {"variant": "hinkkanen_luomi", "voltage_source": "commanded"}
     jobs = [(encoder_run(60.0, 1.0, observers=shadow_obs, name="peers_shadow"), _x_sens, None)]
     if not ctx.quick:  # the same drivers closing the loop at 480 rpm and descending under load
@@ -1176,10 +1193,10 @@ def peers_fail(ctx):
     w, iq = shadow["we"], shadow["iq"]
     so = shadow["obs"]
     pred_ortega = predicted_angle_deg("ortega", w, iq, k=_default_k("ortega")[1],
-                                      v_err_q=V1_DT)
+                                      v_err_q=mc.v1_dt)
     pred_hl = predicted_angle_deg("hinkkanen_luomi", w, iq, k=_default_k("hinkkanen_luomi")[1],
-                                  v_err_q=V1_DT)
-    pred_mag = LAM + V1_DT / w
+                                  v_err_q=mc.v1_dt)
+    pred_mag = mc.lam + mc.v1_dt / w
 
     def summ(key):
         rr = rows.get(key, [])
@@ -1199,8 +1216,9 @@ def peers_fail(ctx):
     s_fm, n_fm, t_fm = summ("flux_measured@2us")
     s_ec, n_ec, t_ec = summ("emf_commanded@2us")
     s_oc, n_oc, t_oc = summ("ortega_commanded@2us")
-    vdt_txt = (f"V_dt = Vdc·td/Ts = {VDT:.2f} V per leg, fundamental (4/π)V_dt = {V1_DT:.2f} V "
-               f"along the current, vs the back-EMF ωλ = {w * LAM:.2f} V")
+    vdt_txt = (f"V_dt = Vdc·td/Ts = {mc.vdt:.2f} V per leg, fundamental (4/π)V_dt = "
+               f"{mc.v1_dt:.2f} V "
+               f"along the current, vs the back-EMF ωλ = {w * mc.lam:.2f} V")
     claims.append(claim(
         "60 rpm, rated load, 2 µs deadtime uncompensated: closing the loop on a reduced-order "
         "observer driven by commanded voltages loses the rotor; the paper's flux observer on "
@@ -1219,7 +1237,7 @@ def peers_fail(ctx):
         f"V_dt)) with γλ² = 1000: {pred_ortega:.1f}°); hinkkanen_luomi commanded "
         f"{h_c['mean_deg']:.1f}° (model {pred_hl:.1f}°); paper commanded |λ̂| "
         f"{1e3 * f_c['mag']:.1f} mV·s (model λ + (4/π)V_dt/ω = {1e3 * pred_mag:.1f}, 3λ "
-        f"validity limit {3e3 * LAM:.1f}), θ̃ mean {f_c['mean_deg']:.1f}°; emf_commanded θ̃ "
+        f"validity limit {3e3 * mc.lam:.1f}), θ̃ mean {f_c['mean_deg']:.1f}°; emf_commanded θ̃ "
         f"mean {e_c['mean_deg']:.1f}° (RMS {e_c['rms_deg']:.1f}°: the 6th order)",
         bool(abs(o_c["mean_deg"] - pred_ortega) < 5.0 and abs(f_c["mag"] - pred_mag)
              < 0.1 * pred_mag and abs(e_c["mean_deg"]) < 5.0),
@@ -1234,7 +1252,8 @@ def peers_fail(ctx):
         "slower speed loops fail too).  As the rotor slows, (4/π)V_dt/(ωλ) (3.1 at 60 rpm) "
         "grows and with it the error, and once the current follows θ̂ the deadtime error "
         "turns with the estimate (the EMF observer then sees only ωλ/(ωλ+(4/π)V_dt) = "
-        f"{w * LAM / (w * LAM + V1_DT):.2f} of its own angle error): a runaway that ends at "
+        f"{w * mc.lam / (w * mc.lam + mc.v1_dt):.2f} of its own angle error): a runaway that "
+        "ends at "
         "standstill, where no back-EMF observer sees the rotor.  The paper's observer on "
         "commanded voltages also has |λ̂| ≈ 4λ, outside the validity band: it trips on loss "
         "of lock (next row) -- the measured voltages are what make it work"))
@@ -1299,7 +1318,7 @@ def peers_fail(ctx):
                      "pred": {"ortega_commanded_deg": pred_ortega,
                               "hl_commanded_deg": pred_hl,
                               "flux_commanded_mag_vs": pred_mag},
-                     "descent": desc, "vdt_v": VDT, "v1_dt_v": V1_DT}}
+                     "descent": desc, "vdt_v": mc.vdt, "v1_dt_v": mc.v1_dt}}
 
 
 def _plot_peers(ctx, sw_jobs, sw_res, drivers):
@@ -1335,13 +1354,16 @@ def _plot_peers(ctx, sw_jobs, sw_res, drivers):
 
 
 # ======================================================================== online R_s
-def run_adaptive(sc, gain: float | None, chunk: int = 10, r0: float = R0):
+def run_adaptive(sc, gain: float | None, chunk: int = 10, r0: float | None = None):
     """The runner's loop in 1 ms chunks; between chunks the driving observer's R^ is
     adapted from its flux magnitude (gain [1/s]; None: no adaptation)."""
     from fluxdrive.drive.sim import DriveSetup, LoopRun
 
     run = LoopRun(DriveSetup(sc))
     n, est, ctl, op = run.n, run.est, run.ctrl, run.obs_params
+    card = sc.machine
+    r0 = card.resistance_ohm if r0 is None else r0
+    i_min = 0.1 * card.rated_current_a  # adapt only with a current to see R^ through
     o = run.driving
     lam = op[o, OP_LAM]
     r_hist = np.zeros(n)
@@ -1361,11 +1383,11 @@ def run_adaptive(sc, gain: float | None, chunk: int = 10, r0: float = R0):
                 th = ctl[k:k1, CO_TH]
                 lq = float(np.mean(-e[:, ES_LA] * np.sin(th) + e[:, ES_LB] * np.cos(th)))
                 i_d = float(np.mean(ctl[k:k1, CO_ID]))
-                w_if = float(np.mean(ctl[k:k1, CO_W_REF])) * P
-                if abs(i_d) > 0.1 * 9.0 and abs(w_if) > 2 * math.pi * 1.0:
+                w_if = float(np.mean(ctl[k:k1, CO_W_REF])) * card.pole_pairs
+                if abs(i_d) > i_min and abs(w_if) > 2 * math.pi * 1.0:
                     r_new = op[o, OP_R] - gain * dt * lq * w_if / i_d
                     op[o, OP_R] = min(max(r_new, 0.3 * r0), 3.0 * r0)
-            elif (np.all(ctl[k:k1, CO_MODE] == MODE_CLOSED_LOOP) and abs(iq) > 0.1 * 9.0
+            elif (np.all(ctl[k:k1, CO_MODE] == MODE_CLOSED_LOOP) and abs(iq) > i_min
                     and abs(w) > 2 * math.pi * 1.0):
                 mag = float(np.mean(np.hypot(e[:, ES_LA], e[:, ES_LB])))
                 dr = (mag - lam) * abs(w) / abs(iq)
@@ -1388,13 +1410,14 @@ def _adaptive_job(args):
 
 
 def rs_adapt(ctx):
+    mc = cv()  # the card's values (see CardValues)
     factors = [1.3] if ctx.quick else [1.3, 0.7]
     gain = 5.0
     cases = [(f, g) for f in factors for g in (None, gain)]
     jobs = []
     for f, g in cases:
         sc = build(base="paper_2pct_150load",
-                   observers={"flux_measured": {**OBS4["flux_measured"], "r_hat_ohm": R0 * f}})
+                   observers={"flux_measured": {**OBS4["flux_measured"], "r_hat_ohm": mc.r * f}})
         jobs.append((sc, g))
     t0 = time.perf_counter()
     res = ctx.map(_adaptive_job, jobs)
@@ -1413,7 +1436,7 @@ def rs_adapt(ctx):
         rows.append({"r0_factor": f, "adaptive": bool(g), "stable": m["stable"],
                      "r_hat_end": float(np.mean(r["r_hat"][win])),
                      "rms_deg": m["observers"]["flux_measured"]["theta_err_rms_deg"]})
-    ax[0].axhline(R0, color="k", ls=":", lw=0.7)
+    ax[0].axhline(mc.r, color="k", ls=":", lw=0.7)
     ax[0].set_ylabel("R̂ [Ω]")
     ax[0].legend(fontsize=7)
     ax[0].set_title("R̂ 30 % off at 2 % speed, 150 % load ramp: fixed vs flux-magnitude "
@@ -1430,8 +1453,8 @@ def rs_adapt(ctx):
             f"R̂ = {f}·R at 2 %/150 %: an online R_s estimate (flux-magnitude law) keeps the "
             "flux drive running",
             f"fixed R̂: stable {fx['stable']}; adaptive: stable {ad['stable']}, R̂ → "
-            f"{ad['r_hat_end']:.3f} Ω (true {R0}), θ̃ RMS {ad['rms_deg']:.2f}°",
-            bool(ad["stable"] and abs(ad["r_hat_end"] - R0) < 0.05 * R0),
+            f"{ad['r_hat_end']:.3f} Ω (true {mc.r}), θ̃ RMS {ad['rms_deg']:.2f}°",
+            bool(ad["stable"] and abs(ad["r_hat_end"] - mc.r) < 0.05 * mc.r),
             "identifiable only with load (|i_q| > 10 %) and with λ_pm known: a λ_pm error is "
             "indistinguishable from an R error at one operating point (magnet temperature "
             "moves both)"))

@@ -38,13 +38,13 @@ from fluxdrive.experiments.registry import (
     OBS6,
     build,
     claim,
+    cv,
     encoder_run,
     plt,
     sensorless,
 )
 
 RPM = 2 * math.pi / 60
-LAM = 0.0235
 
 
 def _win(r):
@@ -226,6 +226,8 @@ def fig13(ctx):
     jobs = [(sensorless(60.0, ld, observers=obs, machine_kw=mk or None, name="fig13"),
              _x_locus, None) for _, ld, mk in cases]
     res = ctx.run(jobs)
+    mc = cv()  # the card's values
+    r_nl = 60.0 * RPM * mc.p * mc.lam  # |e| = w lambda at 60 rpm [V]
     p = plt()
     fig, ax = p.subplots(2, len(cases), figsize=(3.6 * len(cases), 7.2), squeeze=False)
     for c, ((lab, _, _), r) in enumerate(zip(cases, res, strict=True)):
@@ -264,12 +266,12 @@ def fig13(ctx):
               "(the R i_q and L di/dt terms are modelled exactly); the paper's 0.45-1.17 V "
               "needs model error its EMF path does not remove (saturated L, deadtime "
               "residue)"),
-        claim("No load: flux locus nearly a circle of radius 0.59 V (as ω·λ̂)",
+        claim(f"No load: flux locus nearly a circle of radius {r_nl:.2f} V (as ω·λ̂)",
               f"ω·|λ̂| {nl['flux_v'][0]:.3f}-{nl['flux_v'][1]:.3f} V, mean "
               f"{nl['flux_mean_v']:.3f} V (speed ripple {nl['ripple_rpm']:.1f} rpm p-p at "
               f"no load; full load {fl['flux_v'][0]:.3f}-{fl['flux_v'][1]:.3f} V)",
-              abs(nl["flux_mean_v"] - 0.59) < 0.05 and nl["flux_v"][1] - nl["flux_v"][0] < 0.15,
-              "the mean radius is right; at no load the light rotor (J = 1.5e-4) hunts in "
+              abs(nl["flux_mean_v"] - r_nl) < 0.05 and nl["flux_v"][1] - nl["flux_v"][0] < 0.15,
+              f"the mean radius is right; at no load the light rotor (J = {mc.j:.2g}) hunts in "
               "speed and the inverse-HPF compensation, evaluated at a 2 Hz-filtered rotor "
               "frequency, turns that into |λ̂| ripple; under load the circle is tight"),
         claim("Full load: flux locus less distorted than the EMF locus",
@@ -310,6 +312,7 @@ def fig2_4(ctx):
     from fluxdrive.analysis.metrics import harmonic as H
 
     pure = {"pure_integrator": {"variant": "pure_integrator", "voltage_source": "measured"}}
+    mc = cv()  # the card's values: every prediction below follows the card
     card_kw = {"inertia_kgm2": 1.5e-2}  # as in the engine test: isolate the estimator
     jobs = [
         # Fig. 2 and 4: encoder drive at 60 rpm and 300 rpm, full load, no sensor offsets
@@ -333,14 +336,14 @@ def fig2_4(ctx):
     k_start = int(np.searchsorted(r["t"], r["win"][0]))
     k0 = k_start + int(np.argmin(np.abs(wrap(th[k_start:k_start + 3000] - math.radians(45)))))
     est = _replay(r["frames"][k0:], "pure_integrator", "measured")
-    n_per = int(round(2 * math.pi / (np.mean(r["wm"][k0:]) * 4) / 1e-4))
+    n_per = int(round(2 * math.pi / (np.mean(r["wm"][k0:]) * mc.p) / mc.ts))
     seg = est[1:1 + 2 * n_per]
     centre = complex(seg[:, ES_LA].mean(), seg[:, ES_LB].mean())
     ia, ib = clarke(r["frames"][k0, FR_IA], r["frames"][k0, FR_IB], r["frames"][k0, FR_IC])
     # the observer integrates the EMF v - R i - L di/dt from zero, so it misses
     # lambda_pm(t0): centre -|lambda| e^{j theta0} (eq. 6), whatever the current
     del ia, ib
-    pred = -LAM * np.exp(1j * th[k0])
+    pred = -mc.lam * np.exp(1j * th[k0])
     e2 = wrap(seg[:, ES_TH] - th[k0 + 1:k0 + 1 + 2 * n_per])
     thu = np.unwrap(th[k0 + 1:k0 + 1 + 2 * n_per])
     h1 = abs(H(e2, thu, 1))
@@ -354,7 +357,7 @@ def fig2_4(ctx):
     data["fig2"] = {"centre_mvs": [1e3 * centre.real, 1e3 * centre.imag],
                     "pred_mvs": [1e3 * pred.real, 1e3 * pred.imag]}
     fig, ax = p.subplots(1, 2, figsize=(10, 4))
-    tt = np.arange(len(seg)) * 1e-4
+    tt = np.arange(len(seg)) * mc.ts
     ax[0].plot(tt, seg[:, ES_LA] * 1e3, label="λ̂α")
     ax[0].plot(tt, seg[:, ES_LB] * 1e3, label="λ̂β")
     ax[0].axhline(centre.real * 1e3, color="C0", ls="--", lw=0.7)
@@ -373,29 +376,29 @@ def fig2_4(ctx):
 
     # ---- Fig. 3: 5 % offset on i_b: drift of the pure integrator
     r = res[1]
-    ts = 1e-4
+    ts = mc.ts
     est_p = _replay(r["frames"], "pure_integrator", "measured")
     est_q = _replay(r["frames"], "paper", "measured")
     cen = []
-    n_per = int(round(1 / (60 / 60 * 4) / ts))  # one electrical period (4 Hz)
+    n_per = int(round(1 / (60 / 60 * mc.p) / ts))  # one electrical period
     ks = list(range(2000, len(est_p) - n_per, n_per))
     for k in ks:
         cen.append(complex(est_p[k:k + n_per, ES_LA].mean(), est_p[k:k + n_per, ES_LB].mean()))
     cen = np.array(cen)
     tk = np.array(ks) * ts
     rate = np.polyfit(tk, cen.real, 1)[0] + 1j * np.polyfit(tk, cen.imag, 1)[0]
-    d_i = 0.05 * 9.0
+    d_i = 0.05 * mc.i_rated
     dab = complex(*clarke(0.0, d_i, 0.0))
-    pred_rate = -0.40 * dab  # x = v - R i_meas: the offset enters as -R*Delta
+    pred_rate = -mc.r * dab  # x = v - R i_meas: the offset enters as -R*Delta
     sl = slice(10000, None)
     thq = r["theta"][sl]
     eq_ = wrap(est_q[sl, ES_TH] - thq)
     h1q = abs(H(eq_, np.unwrap(thq), 1))
-    we = 60 * RPM * 4
+    we = 60 * RPM * mc.p
     wc = 2 * math.pi * 100
     # the LPF leaves R*Delta/w_c, the inverse HPF multiplies it by |1 - j w_c/w|
-    off_pred = 0.40 * abs(dab) / wc * abs(1 - 1j * wc / we)
-    h1_pred = math.asin(min(off_pred / LAM, 1.0))
+    off_pred = mc.r * abs(dab) / wc * abs(1 - 1j * wc / we)
+    h1_pred = math.asin(min(off_pred / mc.lam, 1.0))
     claims.append(claim(
         "Fig. 3: a 5 % offset on i_b makes the pure integrator drift",
         f"locus centre drifts at {1e3 * abs(rate):.3f} mV·s/s (predicted R̂·|Δi_αβ| = "
@@ -436,7 +439,7 @@ def fig2_4(ctx):
         fr = r["frames"]
         th = r["theta"][k0:]
         thu = np.unwrap(th)
-        w_e = float(np.mean(r["wm"][k0:])) * 4
+        w_e = float(np.mean(r["wm"][k0:])) * mc.p
         iq = float(np.mean(r["iq"][k0:]))
         out = {}
         for var in ("pure_integrator", "paper"):
@@ -455,19 +458,19 @@ def fig2_4(ctx):
                 out["emf"] = {"h57": float(math.hypot(abs(H(x[sl], thu[sl], 5)),
                                                       abs(H(x[sl], thu[sl], 7)))
                                            / abs(H(x[sl], thu[sl], 1)))}
-            n_show = min(len(la), int(2 * 2 * math.pi / w_e / 1e-4))
-            ax[0, c].plot(np.arange(n_show) * 1e-4, la[:n_show] * 1e3, lw=0.7,
+            n_show = min(len(la), int(2 * 2 * math.pi / w_e / mc.ts))
+            ax[0, c].plot(np.arange(n_show) * mc.ts, la[:n_show] * 1e3, lw=0.7,
                           label=f"λ̂α {var}")
-        ax[0, c].axhline(LAM * 1e3, color="k", ls=":", lw=0.6)
-        ax[0, c].axhline(-LAM * 1e3, color="k", ls=":", lw=0.6)
-        rpm = w_e / 4 / RPM
+        ax[0, c].axhline(mc.lam * 1e3, color="k", ls=":", lw=0.6)
+        ax[0, c].axhline(-mc.lam * 1e3, color="k", ls=":", lw=0.6)
+        rpm = w_e / mc.p / RPM
         ax[0, c].set_title(f"Fig. 4: commanded voltages, 2 µs deadtime, {rpm:.0f} rpm, "
                            f"full load", fontsize=8)
         ax[0, c].set_xlabel("time [s]")
         ax[0, c].set_ylabel("flux [mV·s]")
         ax[0, c].legend(fontsize=7)
-        vdt = 72.0 * 2e-6 / 1e-4
-        pred_d = LAM + (4 / math.pi) * vdt / w_e * (1 if iq > 0 else -1)
+        vdt = mc.vdt
+        pred_d = mc.lam + (4 / math.pi) * vdt / w_e * (1 if iq > 0 else -1)
         wc = 2 * math.pi * 100
         att_paper = abs(1j * w_e + wc) / abs(1j * 6 * w_e + wc)
         out["pred_d_mag"] = pred_d
@@ -479,10 +482,10 @@ def fig2_4(ctx):
     claims.append(claim(
         "Fig. 4: with deadtime, the integrated flux shows a magnitude error",
         f"{o['rpm']:.0f} rpm, full load, commanded voltages: |λ̂| = "
-        f"{1e3 * o['pure_integrator']['mag']:.1f} mV·s vs λpm {1e3 * LAM:.1f} (d-axis "
+        f"{1e3 * o['pure_integrator']['mag']:.1f} mV·s vs λpm {1e3 * mc.lam:.1f} (d-axis "
         f"{1e3 * o['pure_integrator']['d']:.1f}; predicted λ + (4/π)Vdt/ω = "
         f"{1e3 * o['pred_d_mag']:.1f})",
-        abs(o["pure_integrator"]["mag"] - LAM) > 0.2 * LAM,
+        abs(o["pure_integrator"]["mag"] - mc.lam) > 0.2 * mc.lam,
         "the deadtime fundamental (4/π)·1.44 V lies along the current (q), so it integrates "
         "into a d-axis (magnitude) error, larger than λpm itself below ~5 % speed"))
     ok_pure = all(v["pure_integrator"]["h57"] < 0.5 * v["emf"]["h57"] for v in f4.values())
@@ -538,6 +541,7 @@ def _x_fr_current(r, m):
 
 
 def _fr_scenario(driving, freqs, kind, seed=1):
+    ts = cv().ts  # the sample period of the card the sweep runs on
     machine_kw = None
     if driving == "encoder_ideal":
         driving, machine_kw = "encoder", {"deadtime_s": 0.0}
@@ -551,7 +555,7 @@ def _fr_scenario(driving, freqs, kind, seed=1):
                                 "cycles": 10, "settle_cycles": 4}}
         from fluxdrive.analysis.freqresp import stepped_sine
 
-        _, _, n = stepped_sine(freqs, 1.0, 1e-4, t_inj, 10, 4)
+        _, _, n = stepped_sine(freqs, 1.0, ts, t_inj, 10, 4)
         speed = [[0.0, 40.0], [0.8, 40.0], [1.8, 300.0]]
         load = [[0.0, 0.0], [2.0, 0.0], [3.0, 0.5]]
     else:
@@ -560,10 +564,10 @@ def _fr_scenario(driving, freqs, kind, seed=1):
                                    "start_s": t_inj, "cycles": 6, "settle_cycles": 3}}
         from fluxdrive.analysis.freqresp import stepped_sine
 
-        _, _, n = stepped_sine(freqs, 1.0, 1e-4, t_inj, 6, 3)
+        _, _, n = stepped_sine(freqs, 1.0, ts, t_inj, 6, 3)
         speed = [[0.0, 40.0], [0.8, 40.0], [1.8, 300.0]]
         load = [[0.0, 0.0], [2.0, 0.0], [3.0, 0.3]]
-    dur = n * 1e-4 + 0.01
+    dur = n * ts + 0.01
     # the paper's Fig. 18 drives are 10 Hz speed loops: that is the target here
     ctrl = {"if_current_pu": 0.6, "handover_rpm": 40.0, "handback_rpm": 20.0,
             "speed_bandwidth_hz": 10.0}
@@ -732,7 +736,8 @@ def _x_step(r, m, t_step=2.0):
 
 def fig19(ctx):
     j_scales = [1, 10, 20] if ctx.quick else [1, 3, 6, 10, 15, 20, 30, 40]
-    j0 = 1.5e-4
+    card = build(base="paper_6pct_stepload").machine  # the card the runs use
+    j0 = card.inertia_kgm2
     jobs = [(build(base="paper_6pct_stepload", duration_s=3.0 if ctx.quick else 3.5,
                    steady_window_s=[2.6, 3.0] if ctx.quick else [3.0, 3.5]),
              _x_step, None) if s == 1 else
@@ -775,8 +780,6 @@ def fig19(ctx):
     ax[1].set_xlabel("time [s]")
     figs.append(ctx.fig(fig, "fig19_full_load_4pct"))
     # what the model says: P-term needs T/(Kt Kp) of speed error; initial deceleration T/J
-    from fluxdrive.core.machine import MachineCard
-    card = MachineCard()
     sc6 = build(base="paper_6pct_stepload")  # the step-load drive's own loop design
     kp = sc6.control.design(sc6.machine).kp_w
     dw_p = card.rated_torque_nm / (card.torque_constant_nm_per_a * kp) * RAD_S_TO_RPM
@@ -787,7 +790,7 @@ def fig19(ctx):
     m4 = full4["metrics"]
     claims = [
         claim("100 % step load at 6 % speed: dip to ≈3 % speed, recovery within 0.2 s",
-              f"J = 1.5e-4: min speed {r1['min_rpm']:.0f} rpm, recovery "
+              f"J = {j0:.2g}: min speed {r1['min_rpm']:.0f} rpm, recovery "
               f"{r1['recovery_s'] if r1['recovery_s'] is not None else 'none'} s, stable "
               f"{r1['stable']}; "
               + (f"reproduced from J×{ok[0]['J_scale']} on" if ok else
@@ -795,13 +798,14 @@ def fig19(ctx):
                  f"rpm)") + " (same loop design rule, gains scale with J)",
               bool(r1["stable"] and r1["min_rpm"] >= 80 and r1["recovery_s"] is not None
                    and r1["recovery_s"] <= 0.25),
-              f"with J = 1.5e-4 kg·m² the step decelerates the rotor at {decel:.0f} rad/s² and "
-              f"the speed loop's P-term needs {dw_p:.0f} rpm of error for 1.27 N·m: the rotor "
-              "stalls into the zero-speed region the observer cannot see.  The dip scales "
+              f"with J = {j0:.2g} kg·m² the step decelerates the rotor at {decel:.0f} rad/s² and "
+              f"the speed loop's P-term needs {dw_p:.0f} rpm of error for "
+              f"{card.rated_torque_nm:.2f} N·m: the rotor stalls into the zero-speed region the "
+              "observer cannot see.  The dip scales "
               "~1/J at a fixed loop bandwidth: "
               + "; ".join(f"J×{r['J_scale']}: min {r['min_rpm']:.0f} rpm" for r in rows)
               + ".  The paper's dip to ≈90 rpm implies a much larger dyno inertia (or a "
-              "stiffer loop) than the default card's 1.5e-4 kg·m²"),
+              f"stiffer loop) than the card's {j0:.2g} kg·m²"),
         claim("Full load at 4 % speed is sustained (sensorless flux drive)",
               f"stable {m4['stable']}, mean {m4['speed']['mean_rpm']:.1f} rpm, θ̃ RMS "
               f"{m4['observers']['flux_measured']['theta_err_rms_deg']:.2f}°",

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import math
 import os
@@ -32,7 +33,7 @@ from typing import Any
 import yaml
 
 from fluxdrive.analysis.metrics import compute
-from fluxdrive.core.machine import ConfigError
+from fluxdrive.core.machine import ConfigError, MachineCard
 from fluxdrive.core.scenario import (
     CONFIG_DIR,
     REPO_ROOT,
@@ -41,6 +42,7 @@ from fluxdrive.core.scenario import (
     machine_path,
     scenario_path,
 )
+from fluxdrive.drive.plant import deadtime_volt_second_loss
 
 DEFAULT_MACHINE = CONFIG_DIR / "machines" / "default_spm.yaml"
 
@@ -132,6 +134,45 @@ def encoder_run(speed_rpm: float, load_pu: float, *, observers: dict | None = No
                  speed_rpm=speed_rpm, load_type="brake", load_pu=load,
                  steady_window_s=[round(w0, 4), round(dur, 4)], driving="encoder",
                  control=control or {}, observers=observers or dict(OBS4), **extra)
+
+
+# ---------------------------------------------------------------- machine values
+@dataclasses.dataclass(frozen=True)
+class CardValues:
+    """The machine values the predictions use, taken from the card the experiment's runs use
+    (never copied here: change the card, or run `experiment --machine`, and they follow)."""
+
+    r: float  # stator resistance [ohm]
+    l: float  # inductance [H]
+    lam: float  # magnet flux linkage [V s]
+    p: int  # pole pairs
+    i_rated: float  # rated current [A]
+    vdt: float  # deadtime volt-second loss per leg, Vdc td / Ts [V]
+    ts: float  # PWM (sample) period [s]
+    j: float  # inertia [kg m^2]
+
+    @property
+    def v1_dt(self) -> float:
+        """Fundamental of the +-V_dt square wave along the current [V]."""
+        return 4.0 / math.pi * self.vdt
+
+    @classmethod
+    def of(cls, card: MachineCard) -> CardValues:
+        return cls(card.resistance_ohm, card.inductance_h, card.flux_linkage_vs,
+                   card.pole_pairs, card.rated_current_a,
+                   deadtime_volt_second_loss(card.dc_bus_v, card.deadtime_s, card.ts_s),
+                   card.ts_s, card.inertia_kgm2)
+
+
+def cv() -> CardValues:
+    """The values of the card `build` puts the experiments' scenarios on (`--machine` or the
+    default card)."""
+    return _card_values(_MACHINE["path"])
+
+
+@functools.cache
+def _card_values(machine: str | None) -> CardValues:
+    return CardValues.of(build(duration_s=0.01).machine)
 
 
 # ---------------------------------------------------------------- running

@@ -21,7 +21,6 @@ With `scenario` set, the defaults come from that scenario's `observers.<observer
 from __future__ import annotations
 
 import sys
-from dataclasses import fields
 
 import numpy as np
 from fluxdrive.core.machine import load_machine
@@ -51,7 +50,7 @@ from std_msgs.msg import UInt64
 
 import flux_drive_msgs.msg as fm
 from fluxdrive_ros import diagnostics as diag
-from fluxdrive_ros import qos, topics
+from fluxdrive_ros import params, qos, topics
 
 # ObserverConfig field -> (description, unit)
 DOCS = {
@@ -79,26 +78,12 @@ DOCS = {
     "lambda_hat_vs": ("observer's magnet flux lambda^", "V s"),
 }
 RANGES = {k: (lo, hi) for k, lo, hi in PARAM_RANGES}
-MODEL_DEFAULTS = {"r_hat_ohm": "resistance_ohm", "l_hat_h": "inductance_h",
-                  "lambda_hat_vs": "flux_linkage_vs"}
 
 
 def config_params(cfg, card) -> list[P]:
     """Declared parameters for every ObserverConfig field (defaults from cfg / the card)."""
-    out = []
-    for f in fields(cfg):
-        if f.name in ("variant", "extra"):
-            continue
-        v = getattr(cfg, f.name)
-        if v is None and f.name in MODEL_DEFAULTS:
-            v = float(getattr(card, MODEL_DEFAULTS[f.name]))
-        desc, unit = DOCS.get(f.name, (f.name, ""))
-        if f.name in STRING_CHOICES:
-            out.append(P(f.name, str(v), desc, choices=STRING_CHOICES[f.name]))
-            continue
-        lo, hi = RANGES.get(f.name, (None, None))
-        out.append(P(f.name, float(v), desc + " (live)", unit, lo, hi))
-    return out
+    return params.config_params(cfg, card, DOCS, RANGES, skip=("variant", "extra"),
+                                choices=STRING_CHOICES)
 
 
 class ObserverNode(FluxNode):

@@ -76,6 +76,42 @@ class P:
         return None
 
 
+# model fields of an engine config that default to the machine card (None in the config)
+MODEL_DEFAULTS = {"r_hat_ohm": "resistance_ohm", "l_hat_h": "inductance_h",
+                  "lambda_hat_vs": "flux_linkage_vs"}
+
+
+def config_params(cfg, card, docs: dict[str, tuple[str, str]],
+                  ranges: dict[str, tuple[float, float]], *, skip: tuple[str, ...] = (),
+                  choices: dict[str, tuple[str, ...]] | None = None,
+                  none_as_zero: frozenset[str] = frozenset()) -> list[P]:
+    """Live parameters for every field of an engine config dataclass (ObserverConfig,
+    ControllerConfig): default from `cfg` (a model field left None: the card's value),
+    description and unit from `docs`, range from the engine's `ranges`; `choices` for
+    string fields; `none_as_zero` fields stand for None with 0.0 (ROS has no None)."""
+    import dataclasses
+
+    out = []
+    for f in dataclasses.fields(cfg):
+        if f.name in skip:
+            continue
+        v = getattr(cfg, f.name)
+        if v is None and f.name in MODEL_DEFAULTS:
+            v = float(getattr(card, MODEL_DEFAULTS[f.name]))
+        desc, unit = docs.get(f.name, (f.name, ""))
+        if choices and f.name in choices:
+            out.append(P(f.name, str(v), desc, choices=choices[f.name]))
+            continue
+        lo, hi = ranges.get(f.name, (None, None))
+        if f.name in none_as_zero:
+            v, lo = (0.0 if v is None else v), 0.0
+        if isinstance(v, bool):
+            out.append(P(f.name, v, desc + " (live)"))
+        else:
+            out.append(P(f.name, float(v), desc + " (live)", unit, lo, hi))
+    return out
+
+
 def declare(node, specs: list[P]) -> dict[str, Any]:
     """Declare every parameter of `specs` on `node` and return {name: value}."""
     overrides = getattr(node, "_parameter_overrides", {})

@@ -69,7 +69,7 @@ from std_msgs.msg import UInt64
 
 import flux_drive_msgs.msg as fm
 from flux_drive_msgs.srv import ResetFault
-from fluxdrive_ros import access, qos, topics
+from fluxdrive_ros import access, params, qos, topics
 from fluxdrive_ros import diagnostics as diag
 
 # ControllerConfig field -> (description, unit); ranges from fluxdrive.drive.control.CONTROL_RANGES
@@ -115,28 +115,11 @@ NODE_LEVEL = {"speed_ref_mode", "speed_ref_rpm", "position_timeout_s", "position
               "max_resyncs", "resync_window_s"}
 # None-able fields: ROS parameters cannot be None; 0.0 stands for None
 NONE_AS_ZERO = {"speed_observer_pll_hz"}
-MODEL_DEFAULTS = {"r_hat_ohm": "resistance_ohm", "l_hat_h": "inductance_h",
-                  "lambda_hat_vs": "flux_linkage_vs"}
 
 
 def config_params(cfg: ControllerConfig, card) -> list[P]:
-    out = []
-    for f in dataclasses.fields(cfg):
-        if f.name == "position_source":
-            continue
-        v = getattr(cfg, f.name)
-        if v is None and f.name in MODEL_DEFAULTS:
-            v = float(getattr(card, MODEL_DEFAULTS[f.name]))
-        desc, unit = DOCS.get(f.name, (f.name, ""))
-        lo, hi = CONTROL_RANGES.get(f.name, (None, None))
-        if f.name in NONE_AS_ZERO:
-            v = 0.0 if v is None else v
-            lo = 0.0
-        if isinstance(v, bool):
-            out.append(P(f.name, v, desc + " (live)"))
-        else:
-            out.append(P(f.name, float(v), desc + " (live)", unit, lo, hi))
-    return out
+    return params.config_params(cfg, card, DOCS, CONTROL_RANGES, skip=("position_source",),
+                                none_as_zero=NONE_AS_ZERO)
 
 
 def to_config(cfg: ControllerConfig, values: dict) -> ControllerConfig:
