@@ -6,12 +6,10 @@ the speed loop with its encoder PLL in the feedback path.)"""
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 from fluxdrive.analysis.freqresp import analyse
-from fluxdrive.drive.control import CO_ID, CO_ID_REF, design_current_loop, design_speed_loop
+from fluxdrive.drive.control import CO_ID, CO_ID_REF, design_current_loop
 from fluxdrive.drive.plant import TR_WM
 from fluxdrive.drive.sim import run_scenario
 from helpers_engine import ideal_machine, make_scenario
@@ -43,11 +41,8 @@ def test_current_loop_sweep_meets_a_400hz_design(tmp_path):
 def test_speed_loop_sweep_meets_its_design(tmp_path):
     """Encoder drive, speed PI designed for 10 Hz on J s + B with the 1 kHz current loop as a
     first-order lag and the 150 Hz encoder PLL in the feedback: the swept w/w* (true speed
-    over the reference) crosses -3 dB at 10 Hz within 15 %.  The design's gain search is
-    what sets it: the zero-ratio and Kp formulas alone give a loop that peaks past it."""
+    over the reference) crosses -3 dB at 10 Hz within 15 %."""
     card = ideal_machine(deadtime_s=0.0)
-    kp_w, ki_w = design_speed_loop(card, 10.0, 1000.0, feedback_pll_hz=150.0)
-    assert ki_w / kp_w == pytest.approx(0.25 * 2 * math.pi * 10.0)
     sc = make_scenario(tmp_path, card, duration_s=5.5, speed_rpm=300.0, load_type="active",
                        load_pu=0.0, steady_window_s=[5.0, 5.5], driving="encoder",
                        control={"current_bandwidth_hz": 1000.0, "speed_bandwidth_hz": 10.0,

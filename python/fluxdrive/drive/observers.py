@@ -198,33 +198,37 @@ def frame_out_of_range(fr, lim) -> bool:
     return False
 
 
-@njit(cache=True)
-def observer_step(os_, op, fr, out):
-    """Advance one observer by one frame; writes the ES_* row into `out`."""
-    if not _finite_frame(fr):
-        # bad sample (NaN/inf anywhere): hold the last estimate (coasting at w^), flag it
-        # invalid, count it; the next good frame then sees a one-period gap
-        os_[OS_BAD] += 1.0
-        os_[OS_TH] = wrap_angle(os_[OS_TH] + op[OP_TS] * os_[OS_PLL_I])
-        out[ES_TH] = os_[OS_TH]
-        out[ES_W] = os_[OS_WF]
-        out[ES_VALID] = 0.0
-        return
+@njit(cache=True, inline="always")
+def _hold(os_, out):
+    """The held estimate of a frame that gives none: last angle and speed, flagged invalid."""
+    out[ES_TH] = os_[OS_TH]
+    out[ES_W] = os_[OS_WF]
+    out[ES_VALID] = 0.0
+
+
+@njit(cache=True, inline="always")
+def _input_policy(os_, op, fr, ia, ib, out):
+    """Frames that give no estimate.  Returns True if `fr` was consumed here:
+    bad sample (NaN/inf anywhere): hold the last estimate (coasting at w^), flag it invalid,
+      count it; the next good frame then sees a one-period gap;
+    repeated or backwards frame (frames carry the PWM period index k): ignored (estimate
+      held, flagged invalid, counted);
+    gap of n periods: the volt-seconds of the missing intervals are unknown, so no current
+      step is formed across the gap (i(k-1) := i(k)), the angle coasts n periods at w^, the
+      flux filter state is kept, and this sample is flagged invalid;
+    first frame: only the current is kept (no step yet)."""
     ts = op[OP_TS]
-    ia, ib = clarke(fr[FR_IA], fr[FR_IB], fr[FR_IC])
-    # ---- sequence policy (frames carry the PWM period index k):
-    #  repeated or backwards frame: ignored (estimate held, flagged invalid, counted);
-    #  gap of n periods: the volt-seconds of the missing intervals are unknown, so no
-    #  current step is formed across the gap (i(k-1) := i(k)), the angle coasts n periods
-    #  at w^, the flux filter state is kept, and this sample is flagged invalid.
+    if not _finite_frame(fr):
+        os_[OS_BAD] += 1.0
+        os_[OS_TH] = wrap_angle(os_[OS_TH] + ts * os_[OS_PLL_I])
+        _hold(os_, out)
+        return True
     seq = fr[FR_SEQ]
     last = os_[OS_LAST_SEQ]
     if os_[OS_INIT] != 0.0 and seq <= last and seq > 0.0:
         os_[OS_STALE] += 1.0
-        out[ES_TH] = os_[OS_TH]
-        out[ES_W] = os_[OS_WF]
-        out[ES_VALID] = 0.0
-        return
+        _hold(os_, out)
+        return True
     gap = os_[OS_INIT] != 0.0 and seq > last + 1.0
     os_[OS_LAST_SEQ] = seq
     if gap:
@@ -233,11 +237,9 @@ def observer_step(os_, op, fr, out):
         os_[OS_TH] = wrap_angle(os_[OS_TH] + missed * ts * os_[OS_PLL_I])
         os_[OS_IPA] = ia
         os_[OS_IPB] = ib
-        out[ES_TH] = os_[OS_TH]
-        out[ES_W] = os_[OS_WF]
-        out[ES_VALID] = 0.0
+        _hold(os_, out)
         os_[OS_TH] = wrap_angle(os_[OS_TH] + ts * os_[OS_PLL_I])
-        return
+        return True
     if os_[OS_INIT] == 0.0:
         os_[OS_INIT] = 1.0
         os_[OS_IPA] = ia
@@ -245,6 +247,18 @@ def observer_step(os_, op, fr, out):
         for j in range(ES_N):
             out[j] = 0.0
         out[ES_TH] = os_[OS_TH]
+        return True
+    return False
+
+
+@njit(cache=True)
+def observer_step(os_, op, fr, out):
+    """Advance one observer by one frame; writes the ES_* row into `out`.
+    input policy -> stator voltage -> EMF over the step -> flux filter (variant) -> phase
+    detector -> PLL -> speed output."""
+    ts = op[OP_TS]
+    ia, ib = clarke(fr[FR_IA], fr[FR_IB], fr[FR_IC])
+    if _input_policy(os_, op, fr, ia, ib, out):
         return
     va, vb = _stator_voltage(os_, op, fr, ia, ib)
     r = op[OP_R]
