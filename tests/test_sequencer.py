@@ -11,8 +11,6 @@ import numpy as np
 import pytest
 from fluxdrive.core.scenario import RPM, load_scenario, scenario_path
 from fluxdrive.drive.control import (
-    CO_DA,
-    CO_DC,
     CO_EN,
     CO_FAULT,
     CO_MODE,
@@ -23,18 +21,16 @@ from fluxdrive.drive.control import (
     MODE_CLOSED_LOOP,
     MODE_FAULT,
 )
-from fluxdrive.drive.observers import ES_N, observer_step
+from fluxdrive.drive.faultmatrix import Drive
+from fluxdrive.drive.observers import ES_N
 from fluxdrive.drive.plant import (
     FR_EN,
     FR_IA,
     FR_N,
-    TR_N,
     TR_WM,
-    plant_advance,
-    plant_initial_frame,
 )
 from fluxdrive.drive.sequencer import ControlSequencer
-from fluxdrive.drive.sim import LATCH_N, DriveSetup, pwm_off_latch, run_scenario
+from fluxdrive.drive.sim import DriveSetup, run_scenario
 
 SCENARIO = "paper_2pct_150load"
 
@@ -43,57 +39,6 @@ def _scenario(duration_s: float):
     sc = load_scenario(scenario_path(SCENARIO))
     sc.duration_s = duration_s
     return sc
-
-
-class Drive:
-    """Plant + observers + a ControlSequencer, the way a paced graph runs them: frame k
-    is produced with duty(k-2); a duty that has not been answered in time is replaced by
-    PWM off (the plant's watchdog), and the controller may be stalled -- it then gets its
-    backlog of frames and estimates at once, as a stopped process does when it resumes."""
-
-    def __init__(self, sc, **kw):
-        self.ds = ds = DriveSetup(sc)
-        self.pst, self.rng = ds.new_plant()
-        self.obs = ds.new_observer_states()
-        self.fr = np.zeros(FR_N)
-        self.tr = np.zeros(TR_N)
-        plant_initial_frame(self.pst, ds.mp, self.rng, self.fr, self.tr)
-        self.duties: dict[int, np.ndarray] = {}
-        self.ctrl: dict[int, np.ndarray] = {}
-        self.lines: list[tuple[str, str]] = []
-        self.seq = ControlSequencer(ds.cp.copy(), ds.ts, ds.driving_index >= 0, self._emit,
-                                    lambda lvl, txt: self.lines.append((lvl, txt)),
-                                    ds.w_ref, ds.id_inj, **kw)
-        self.backlog: list[tuple[int, np.ndarray, np.ndarray]] = []
-        self.speed_rpm: list[float] = []
-        self.lost: list[int] = []
-
-    def _emit(self, k: int, out: np.ndarray) -> None:
-        self.ctrl[k] = out.copy()
-        self.duties[k] = out[:LATCH_N].copy()
-
-    def run(self, n: int, stalled=lambda k: False) -> None:
-        ds = self.ds
-        d = ds.driving_index
-        est = np.zeros((len(ds.names), ES_N))
-        for k in range(n):
-            for o in range(len(ds.names)):
-                observer_step(self.obs[o], ds.obs_params[o], self.fr, est[o])
-            self.backlog.append((k, self.fr.copy(), est[d].copy()))
-            if not stalled(k):
-                for j, f, e in self.backlog:
-                    self.seq.on_frame(j, f)
-                    self.seq.on_estimate(j, e)
-                self.backlog.clear()
-            duty = self.duties.pop(k - 1, None)
-            if duty is None and k >= 1:  # not answered in time: the watchdog's PWM off
-                duty = pwm_off_latch()
-                self.lost.append(k + 1)
-            elif duty is None:
-                duty = pwm_off_latch()
-            plant_advance(self.pst, ds.mp, self.rng, duty[CO_DA:CO_DC + 1], duty[CO_EN] > 0.5,
-                          ds.load_t, ds.load_y, ds.load_cfg, self.fr, self.tr)
-            self.speed_rpm.append(self.tr[TR_WM] / RPM)
 
 
 def test_in_order_equals_the_in_process_runner_bit_for_bit():
@@ -194,8 +139,7 @@ def test_a_kernel_trip_is_logged_once_with_its_detail():
         sq.on_estimate(k, np.zeros(ES_N))
     assert got[0][CO_FAULT] == FAULT_BAD_SAMPLE
     errors = [t for lvl, t in lines if lvl == "error"]
-    assert errors == ["bad sample (NaN/inf): i_a = nan (frame 0); PWM off "
-                      "(latched)"]
+    assert errors == ["bad sample (NaN/inf): i_a = nan (frame 0); PWM off (latched)"]
 
 
 @pytest.mark.parametrize("stall_periods", [100, 500, 1500])

@@ -38,6 +38,8 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "can-import": ("fluxdrive.io.canimport", "main", "CAN capture (.log/.asc/.blf) -> bag"),
     "can-emulator": ("fluxdrive.can.emulator", "main",
                      "the drive emulator (plant as the MCU) on a CAN bus, as a process"),
+    "fault-matrix": ("fluxdrive.drive.faultmatrix", "main",
+                     "fault-injection matrix of the control path (--write docs/safety.md)"),
     "experiment": ("fluxdrive.experiments.registry", "main", "reproduce the paper's figures"),
     "study": ("fluxdrive.study.cli", "main",
               "sweeps and Monte-Carlo robustness maps on dask (local cores or a cluster)"),

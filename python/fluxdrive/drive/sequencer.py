@@ -55,6 +55,7 @@ from fluxdrive.drive.control import (
     CO_EN,
     CO_MODE,
     CO_N,
+    CO_W_FB,
     CP_HANDOVER,
     CP_P,
     CS_FAULT,
@@ -78,13 +79,6 @@ from fluxdrive.drive.plant import FR_EN
 
 Log = Callable[[str, str], None]  # (level: "info" | "warning" | "error", text)
 Emit = Callable[[int, np.ndarray], None]  # (seq, CO_* row) for every answered frame
-
-
-def describe_fault(code: int, cp: np.ndarray, cs: np.ndarray, fr: np.ndarray,
-                   es: np.ndarray, k: int) -> str:
-    """Detail of a fault the kernel latched at frame k: the value that tripped, its limit
-    and the setting (`control.trip_values`, the same text a report prints)."""
-    return f"{trip_values(code, fr, es, cp, cs)} (frame {k})"
 
 
 class ControlSequencer:
@@ -304,10 +298,12 @@ class ControlSequencer:
             self.w_ref_profile[min(max(k, 0), n - 1)])
         inj = float(self.id_inj[k]) if 0 <= k < self.id_inj.shape[0] else 0.0
         was_fault = self.tripped
+        w_fb_prev = float(self.out[CO_W_FB])
         controller_step(cs, self.cp, fr, es, w_ref, inj, self.out)
         if self.tripped and not was_fault:
             code = int(cs[CS_FAULT])
-            self.fault_detail = describe_fault(code, self.cp, cs, fr, es, k)
+            self.fault_detail = (f"{trip_values(code, fr, es, self.cp, cs, w_fb_prev)} "
+                                 f"(frame {k})")
             self._log_fault(code)
         if (self.recover_from >= 0 and self.out[CO_MODE] == MODE_CLOSED_LOOP
                 and not self.lost_run):
