@@ -20,8 +20,25 @@ from fluxdrive.can.protocol import ID_ARM_MODE, ID_DUTY_CMD, ID_SAMPLE_FD, get_p
 from fluxdrive.core.scenario import CONFIG_DIR, RPM, load_scenario, scenario_path
 from fluxdrive.drive.control import CO_EN, CO_MODE, MODE_CLOSED_LOOP
 from fluxdrive.drive.observers import ES_TH
-from fluxdrive.drive.plant import FR_EN, FR_SEQ, TR_THETA_E, TR_WM
+from fluxdrive.drive.plant import (
+    FR_DA,
+    FR_DC,
+    FR_EN,
+    FR_ENC,
+    FR_IA,
+    FR_IC,
+    FR_N,
+    FR_SEQ,
+    FR_VAB,
+    FR_VCA,
+    FR_VDC,
+    TR_THETA_E,
+    TR_WM,
+)
 from fluxdrive.drive.sim import DriveSetup, run_scenario
+
+# frame-row column groups (fluxdrive.drive.plant FR_*)
+CUR, VLL, DUTY = slice(FR_IA, FR_IC + 1), slice(FR_VAB, FR_VCA + 1), slice(FR_DA, FR_DC + 1)
 
 REPO = Path(__file__).resolve().parents[1]
 SAMPLE_LOG = REPO / "bags" / "samples" / "emulator_2pct_start_1s.blf"
@@ -372,10 +389,10 @@ def test_closed_loop_over_classic_can_2pct_sensorless():
     # the drive's windows are the full-rate frames decimated (volt-seconds over D periods)
     win = decimate_for_classic(res.frames_sent, d)[: m - 1]
     rx = res.frames_rx[1:]
-    assert np.max(np.abs(rx[:, 0:3] - win[:, 0:3])) <= 0.0005 + 1e-9  # currents, 1 mA
-    assert np.max(np.abs(rx[:, 3:6] - win[:, 3:6])) <= 0.002 + 1e-9  # v_ll means, 4 mV
-    assert np.max(np.abs(rx[:, 7:10] - win[:, 7:10])) <= 1e-5 + 1e-9  # duty means
-    assert np.array_equal(rx[:, 11], win[:, 11])  # 24-bit encoder unwrapped
+    assert np.max(np.abs(rx[:, CUR] - win[:, CUR])) <= 0.0005 + 1e-9  # currents, 1 mA
+    assert np.max(np.abs(rx[:, VLL] - win[:, VLL])) <= 0.002 + 1e-9  # v_ll means, 4 mV
+    assert np.max(np.abs(rx[:, DUTY] - win[:, DUTY])) <= 1e-5 + 1e-9  # duty means
+    assert np.array_equal(rx[:, FR_ENC], win[:, FR_ENC])  # 24-bit encoder unwrapped
     j0 = int(1.5 / (d * sc.machine.ts_s))
     truth = res.truth_at_samples
     can_rms = theta_rms_deg(res.est[0], truth, j0)
@@ -418,8 +435,8 @@ def test_classic_bridge_gaps_malformed_and_wire_seq():
     wire = [(65536 - 3 * d + i * d) % 65536 for i in range(8)]  # wraps after 3 samples
     try:
         for i, s in enumerate(wire):
-            fr = np.zeros(14)
-            fr[6], fr[12], fr[11] = 72.0, s, 1000 * i
+            fr = np.zeros(FR_N)
+            fr[FR_VDC], fr[FR_SEQ], fr[FR_ENC] = 72.0, s, 1000 * i
             parts = frame_to_classic_payloads(fr)
             if i == 4:
                 parts = parts[:2] + parts[3:]  # DUTY part lost -> sample dropped
@@ -442,9 +459,9 @@ def test_classic_bridge_gaps_malformed_and_wire_seq():
         br.shutdown()
         tx.shutdown()
     dg = br.diagnostics()
-    j = frames[:, 12].astype(int)
+    j = frames[:, FR_SEQ].astype(int)
     assert list(j - j[0]) == [0, 1, 2, 3, 5, 7]  # samples 4 and 6 lost, wrap unwrapped
-    assert list(frames[:, 11]) == [0, 1000, 2000, 3000, 5000, 7000]
+    assert list(frames[:, FR_ENC]) == [0, 1000, 2000, 3000, 5000, 7000]
     assert dg["seq_gaps"] == 2 and dg["seq_lost"] == 2
     assert dg["malformed"] == 1 and dg["malformed_length"] == 1
     assert dg["classic_incomplete"] == 2 and dg["layout_mismatch"] == 1
@@ -496,10 +513,11 @@ def test_closed_loop_over_fd_can_decimated_2pct_sensorless():
     # the drive's SAMPLE_FD carries the full-rate frames decimated (window means)
     win = decimate_frames(res.frames_sent, d)[: m - 1]
     rx = res.frames_rx[1:]
-    assert np.max(np.abs(rx[:, 0:3] - win[:, 0:3])) <= 0.0005 + 1e-9  # currents, 1 mA
-    assert np.max(np.abs(rx[:, 3:6] - win[:, 3:6])) <= 0.0005 + 1e-9  # v_ll means, 1 mV
-    assert np.max(np.abs(rx[:, 7:10] - win[:, 7:10])) <= 1e-5 + 1e-9  # duty means
-    assert np.array_equal(rx[:, 10:12], win[:, 10:12])  # PWM on in the window, encoder
+    assert np.max(np.abs(rx[:, CUR] - win[:, CUR])) <= 0.0005 + 1e-9  # currents, 1 mA
+    assert np.max(np.abs(rx[:, VLL] - win[:, VLL])) <= 0.0005 + 1e-9  # v_ll means, 1 mV
+    assert np.max(np.abs(rx[:, DUTY] - win[:, DUTY])) <= 1e-5 + 1e-9  # duty means
+    # PWM on in the window, encoder
+    assert np.array_equal(rx[:, FR_EN:FR_ENC + 1], win[:, FR_EN:FR_ENC + 1])
     j0 = int(1.5 / (d * sc.machine.ts_s))
     truth = res.truth_at_samples
     can_rms = theta_rms_deg(res.est[0], truth, j0)

@@ -15,7 +15,11 @@ except ImportError:  # not installed: use the source tree
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "python"))
 
 from fluxdrive.can import protocol as cp
+from fluxdrive.drive.plant import FR_DA, FR_DC, FR_IA, FR_IC, FR_VAB, FR_VCA, FR_VDC
 from fluxdrive.io import canlog
+
+# frame-row column groups (fluxdrive.drive.plant FR_*)
+CUR, VLL, DUTY = slice(FR_IA, FR_IC + 1), slice(FR_VAB, FR_VCA + 1), slice(FR_DA, FR_DC + 1)
 
 FD = cp.FRAME_INDEX
 
@@ -23,10 +27,10 @@ FD = cp.FRAME_INDEX
 def make_frames(n: int, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
     f = np.zeros((n, len(cp.FRAME_FIELDS)))
-    f[:, 0:3] = rng.uniform(-20, 20, (n, 3))
-    f[:, 3:6] = rng.uniform(-72, 72, (n, 3))
-    f[:, 6] = rng.uniform(60, 80, n)
-    f[:, 7:10] = rng.uniform(0, 1, (n, 3))
+    f[:, CUR] = rng.uniform(-20, 20, (n, 3))
+    f[:, VLL] = rng.uniform(-72, 72, (n, 3))
+    f[:, FR_VDC] = rng.uniform(60, 80, n)
+    f[:, DUTY] = rng.uniform(0, 1, (n, 3))
     f[:, FD["encoder_counts"]] = rng.integers(-(2**31), 2**31, n)
     f[:, FD["pwm_enabled"]] = 1
     f[:, FD["seq"]] = (np.arange(n) + 65_300) % 65536  # crosses the wrap
@@ -94,7 +98,7 @@ def test_classic_layout_capture(tmp_path):
     res = canlog.read_capture(path)
     assert res.layout == "classic" and res.counts["decoded"] == 40
     assert res.counts["gaps"] == 0 and res.counts["malformed"] == 0
-    assert np.max(np.abs(res.frames[:, 0:3] - dec[:, 0:3])) <= 0.0005 + 1e-12
+    assert np.max(np.abs(res.frames[:, CUR] - dec[:, CUR])) <= 0.0005 + 1e-12
     assert np.array_equal(res.column("encoder_counts"), dec[:, FD["encoder_counts"]])
 
 

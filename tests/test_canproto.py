@@ -15,6 +15,18 @@ except ImportError:  # not installed: use the source tree
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "python"))
 
 from fluxdrive.can import protocol as cp
+from fluxdrive.drive.plant import (
+    FR_DA,
+    FR_DC,
+    FR_IA,
+    FR_IC,
+    FR_VAB,
+    FR_VCA,
+    FR_VDC,
+)
+
+# frame-row column groups (fluxdrive.drive.plant FR_*)
+CUR, VLL, DUTY = slice(FR_IA, FR_IC + 1), slice(FR_VAB, FR_VCA + 1), slice(FR_DA, FR_DC + 1)
 
 FD = cp.FRAME_INDEX
 
@@ -162,10 +174,10 @@ def test_codec_generated_from_dbc_handles_any_layout():
 def make_frames(n: int, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
     f = np.zeros((n, len(cp.FRAME_FIELDS)))
-    f[:, 0:3] = rng.uniform(-20, 20, (n, 3))
-    f[:, 3:6] = rng.uniform(-72, 72, (n, 3))
-    f[:, 6] = rng.uniform(60, 80, n)
-    f[:, 7:10] = rng.uniform(0, 1, (n, 3))
+    f[:, CUR] = rng.uniform(-20, 20, (n, 3))
+    f[:, VLL] = rng.uniform(-72, 72, (n, 3))
+    f[:, FR_VDC] = rng.uniform(60, 80, n)
+    f[:, DUTY] = rng.uniform(0, 1, (n, 3))
     f[:, FD["encoder_counts"]] = rng.integers(-(2**31), 2**31, n)
     f[:, FD["pwm_enabled"]] = rng.integers(0, 2, n)
     f[:, FD["seq"]] = np.arange(n) + 65_000  # crosses the 16-bit wrap
@@ -179,10 +191,10 @@ def test_frame_round_trip_quantisation(proto):
     assert pay.shape == (2000, 64) and pay.dtype == np.uint8
     back = cp.fd_payloads_to_frames(pay)
     lsb = {"i": 0.001, "v": 0.001, "vdc": 0.002, "duty": 2e-5}
-    assert np.max(np.abs(back[:, 0:3] - f[:, 0:3])) <= lsb["i"] / 2 + 1e-12
-    assert np.max(np.abs(back[:, 3:6] - f[:, 3:6])) <= lsb["v"] / 2 + 1e-12
-    assert np.max(np.abs(back[:, 6] - f[:, 6])) <= lsb["vdc"] / 2 + 1e-12
-    assert np.max(np.abs(back[:, 7:10] - f[:, 7:10])) <= lsb["duty"] / 2 + 1e-12
+    assert np.max(np.abs(back[:, CUR] - f[:, CUR])) <= lsb["i"] / 2 + 1e-12
+    assert np.max(np.abs(back[:, VLL] - f[:, VLL])) <= lsb["v"] / 2 + 1e-12
+    assert np.max(np.abs(back[:, FR_VDC] - f[:, FR_VDC])) <= lsb["vdc"] / 2 + 1e-12
+    assert np.max(np.abs(back[:, DUTY] - f[:, DUTY])) <= lsb["duty"] / 2 + 1e-12
     for name in ("pwm_enabled", "encoder_counts", "flags"):
         assert np.array_equal(back[:, FD[name]], f[:, FD[name]])
     assert np.array_equal(back[:, FD["seq"]], np.mod(f[:, FD["seq"]], 65536))
@@ -196,9 +208,9 @@ def test_frame_round_trip_quantisation(proto):
     assert np.array_equal(cp.fd_payloads_to_frames([one])[0], back[5])
     # duty 1.0 and 0.0 survive exactly
     g = f[:3].copy()
-    g[:, 7:10] = [[1.0, 0.0, 0.5]] * 3
+    g[:, DUTY] = [[1.0, 0.0, 0.5]] * 3
     gb = cp.fd_payloads_to_frames(cp.frames_to_fd_payloads(g))
-    assert np.array_equal(gb[:, 7:10], g[:, 7:10])
+    assert np.array_equal(gb[:, DUTY], g[:, DUTY])
 
 
 def test_encoder_and_seq_wrap(proto):
@@ -337,9 +349,9 @@ def test_classic_multiframe_reassembly(proto):
     assert "wrong length 5" in ra.reasons[0]
     keep = np.array([i for i in range(60) if i not in (7, 20)])
     ref = dec[keep]
-    assert np.max(np.abs(out[:, 0:3] - ref[:, 0:3])) <= 0.0005 + 1e-12
-    assert np.max(np.abs(out[:, 3:6] - ref[:, 3:6])) <= 0.002 + 1e-12
-    assert np.max(np.abs(out[:, 7:10] - ref[:, 7:10])) <= 1e-5 + 1e-12
+    assert np.max(np.abs(out[:, CUR] - ref[:, CUR])) <= 0.0005 + 1e-12
+    assert np.max(np.abs(out[:, VLL] - ref[:, VLL])) <= 0.002 + 1e-12
+    assert np.max(np.abs(out[:, DUTY] - ref[:, DUTY])) <= 1e-5 + 1e-12
     # the 24-bit encoder is unwrapped back to the full count
     assert np.array_equal(out[:, FD["encoder_counts"]], ref[:, FD["encoder_counts"]])
     assert np.array_equal(out[:, FD["seq"]], np.mod(ref[:, FD["seq"]], 65536))

@@ -27,6 +27,7 @@ from fluxdrive.drive.plant import (
     FR_EN,
     FR_IA,
     FR_N,
+    FR_VDC,
     TR_WM,
 )
 from fluxdrive.drive.sequencer import ControlSequencer
@@ -89,7 +90,7 @@ def _bare(**kw):
     sq = ControlSequencer(ds.cp.copy(), ds.ts, True, lambda k, o: got.__setitem__(k, o.copy()),
                           lambda lvl, txt: lines.append((lvl, txt)), ds.w_ref, ds.id_inj, **kw)
     fr = np.zeros(FR_N)
-    fr[6] = 72.0  # FR_VDC
+    fr[FR_VDC] = 72.0
     fr[FR_EN] = 1.0  # the power stage switches as asked
     return sq, fr, got, lines
 

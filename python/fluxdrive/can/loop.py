@@ -30,7 +30,7 @@ import numpy as np
 
 from fluxdrive.can.bridge import BridgeConfig, CanBridge, bus_factory_from_params
 from fluxdrive.can.emulator import DriveEmulator
-from fluxdrive.drive.control import CO_DA, CO_EN, CO_N
+from fluxdrive.drive.control import CO_DA, CO_DC, CO_EN, CO_N
 from fluxdrive.drive.observers import ES_N, observer_step
 from fluxdrive.drive.plant import FR_SEQ
 from fluxdrive.drive.sim import DriveSetup
@@ -190,7 +190,7 @@ def run_can_loop(
                 controller_step(cs, dsc.cp, fr, est, dsc.w_ref[ki], dsc.id_inj[ki], ctrl)
                 ctrl_rows[m] = ctrl
                 m += 1
-                bridge.send_duty(kk, ctrl[CO_DA:CO_DA + 3], ctrl[CO_EN] > 0.5)
+                bridge.send_duty(kk, ctrl[CO_DA:CO_DC + 1], ctrl[CO_EN] > 0.5)
     finally:
         emu.stop()
         bridge.shutdown()

@@ -28,7 +28,7 @@ import numpy as np
 from fluxdrive.core.machine import ConfigError, MachineCard
 from fluxdrive.drive.control import CO_N
 from fluxdrive.drive.observers import ES_N
-from fluxdrive.drive.plant import FR_N, FR_SEQ, TR_N, TR_T
+from fluxdrive.drive.plant import FR_N, FR_SEQ, TR_N, TR_T, TR_THETA_E
 from fluxdrive.io import messages
 from fluxdrive.io.cdr import Decoder
 from fluxdrive.io.topics import (
@@ -531,7 +531,7 @@ def load_run_arrays(bag: str | Path, ts_s: float, names: list[str] | None = None
     frames = by_seq(rb.frames, FR_N)
     truth = by_seq(rb.truth, TR_N)
     truth[:, TR_T] = np.arange(n) * ts_s
-    truth[np.isnan(truth[:, 0]), TR_T] = np.nan
+    truth[np.isnan(truth[:, TR_THETA_E]), TR_T] = np.nan  # a sample the bag lacks
     est = np.stack([by_seq(rb.est.get(nm), ES_N) for nm in names]) if names else \
         np.full((0, n, ES_N), np.nan)
     ctrl = by_seq(rb.ctrl, CO_N)
