@@ -51,17 +51,19 @@ RPM = 2 * math.pi / 60
 
 
 # ======================================================================== shared
-# the observer variants compared past the paper (names are ROS-safe: they become nodes)
+# the observer variants compared past the paper (names are ROS-safe: they become nodes);
+# flux_*: paper_robust, the flux observer that can drive (the literal `paper` loses lock
+# after a sensorless start: experiment paper_robust)
 VARIANTS = {
-    "flux_measured": {"variant": "paper", "voltage_source": "measured"},
-    "flux_commanded": {"variant": "paper", "voltage_source": "commanded"},
+    "flux_measured": {"variant": "paper_robust", "voltage_source": "measured"},
+    "flux_commanded": {"variant": "paper_robust", "voltage_source": "commanded"},
     "emf_measured": {"variant": "emf", "voltage_source": "measured"},
     "emf_commanded": {"variant": "emf", "voltage_source": "commanded"},
     "hl_measured": {"variant": "hinkkanen_luomi", "voltage_source": "measured"},
     "ortega_measured": {"variant": "ortega", "voltage_source": "measured"},
     "ortega_commanded": {"variant": "ortega", "voltage_source": "commanded"},
     # the bound's 0.2 R I term is a 20 % resistance error: the paper observer with R^ 20 % high
-    "flux_measured_rhat120": {"variant": "paper", "voltage_source": "measured",
+    "flux_measured_rhat120": {"variant": "paper_robust", "voltage_source": "measured",
                               "r_hat_pu": 1.2},
 }
 
