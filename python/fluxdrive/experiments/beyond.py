@@ -825,10 +825,14 @@ def _sens_claims(tab, rs, ls, lams, cuts, offs, w, iq, nd, ids):
     deltas = {}
     for name, t in (("hinkkanen_luomi", hl), ("ortega", ot)):
         # the small-signal regime of the linearisation: from the lowest gain up to the first
-        # point that slips or leaves |theta~| < 5 deg
+        # point that slips, leaves |theta~| < 5 deg or changes sign (theta~ = k delta/(w^2 lam)
+        # keeps the sign of delta while it is linear)
         fs = []
         for f in cuts:
-            if not (t[f"fc{f}"]["steady"] and abs(t[f"fc{f}"]["mean_deg"]) < 5.0):
+            mean = t[f"fc{f}"]["mean_deg"]
+            if not (t[f"fc{f}"]["steady"] and abs(mean) < 5.0):
+                break
+            if fs and mean * t[f"fc{fs[-1]}"]["mean_deg"] < 0.0:
                 break
             fs.append(f)
         if len(fs) >= 2:
