@@ -40,6 +40,8 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
                      "the drive emulator (plant as the MCU) on a CAN bus, as a process"),
     "fault-matrix": ("fluxdrive.drive.faultmatrix", "main",
                      "fault-injection matrix of the control path (--write docs/safety.md)"),
+    "identify": ("fluxdrive.cli.identify", "main",
+                 "measure R, L, lambda, J, B, deadtime of a motor -> machine card (--check)"),
     "experiment": ("fluxdrive.experiments.registry", "main", "reproduce the paper's figures"),
     "study": ("fluxdrive.study.cli", "main",
               "sweeps and Monte-Carlo robustness maps on dask (local cores or a cluster)"),
