@@ -1,7 +1,8 @@
 """Bad input to the graph commands answered in one line, a non-zero exit and no traceback:
 `param get`/`param set` of a parameter the node does not have, ROS 2 security enforced
-without a keystore (topic list, param, launch, run); and the first `topic list` shows every
-topic of a node that has just started (it waits for discovery to settle)."""
+without a keystore (topic list, param, launch, run), `launch`/`run` on a ROS domain other
+nodes live on (refused, naming them); and the first `topic list` shows every topic of a
+node that has just started (it waits for discovery to settle)."""
 
 from __future__ import annotations
 
@@ -74,7 +75,8 @@ def probe():
     p.close()
 
 
-def test_first_topic_list_shows_every_topic_and_unknown_parameters_are_one_line(probe):
+def test_first_topic_list_shows_every_topic_and_unknown_parameters_are_one_line(probe,
+                                                                               tmp_path):
     r = fluxdrive("topic", "list")  # at once: discovery of the new node still going on
     assert r.returncode == 0, r.stderr
     for t in ("/probe/a", "/probe/b", "/probe/c"):
@@ -87,6 +89,14 @@ def test_first_topic_list_shows_every_topic_and_unknown_parameters_are_one_line(
     r = fluxdrive("param", "set", "/harden_probe", "no_such_param", "2.0")
     assert r.returncode == 1
     assert "has no parameter 'no_such_param'" in _one_line(r)
+    # a second graph on a domain in use is refused, naming what lives there
+    for cmd in (["launch", "sim_lockstep", "--domain-id", str(_domain())],
+                ["run", "paper_2pct_150load", "--duration", "0.1", "--out",
+                 str(tmp_path / "out"), "--bag", str(tmp_path / "bag")]):
+        r = fluxdrive(*cmd)
+        assert r.returncode == 2
+        line = _one_line(r)
+        assert f"ROS_DOMAIN_ID={_domain()} is in use by /harden_probe" in line, line
 
 
 @pytest.mark.parametrize("cmd", [["topic", "list"], ["param", "get", "/plant", "seed"],

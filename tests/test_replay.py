@@ -252,3 +252,19 @@ def test_live_replay_is_lazy_about_ros():
             "sys.exit(1 if 'rclpy' in sys.modules else 0)")
     assert subprocess.call([sys.executable, "-c", code],
                            env={"PYTHONPATH": str(REPO_ROOT / "python")}) == 0
+
+
+def test_duplicate_frames_of_two_graphs_are_reported(run, tmp_path):
+    """A bag holding the frames of two runs interleaved (two graphs on one ROS domain, a
+    restarted source): read_run_bag names the duplicates instead of replaying silently."""
+    from fluxdrive.io.messages import FrameWire
+
+    fw = FrameWire()
+    one = [fw.pack(run.frames[k], 0, 1000 * k) for k in range(200)]
+    mixed = [m for pair in zip(one, one, strict=True) for m in pair]
+    b = read_run_bag(_writer(tmp_path / "dup", [("/drive/frame",
+                                                   "flux_drive_msgs/msg/PhaseFrame", mixed)]))
+    assert b.n == 200
+    dup = [p for p in b.problems if "duplicate frames" in p]
+    assert len(dup) == 1 and dup[0].startswith("200 duplicate frames (a seq recorded more "
+                                               "than once; 200 times the seq did not"), dup

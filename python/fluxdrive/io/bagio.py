@@ -380,6 +380,12 @@ def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
     n = len(seqs)
     t = (fcols["header.stamp.sec"][last].astype(np.int64) * 1_000_000_000
          + fcols["header.stamp.nanosec"][last].astype(np.int64)).astype(np.float64) * 1e-9
+    if len(fseq) > n:  # one seq recorded more than once: not one graph's one run
+        back = int(np.count_nonzero(np.diff(fseq.astype(np.int64)) <= 0))
+        problems.append(f"{len(fseq) - n} duplicate frames (a seq recorded more than once; "
+                        f"{back} times the seq did not advance in recording order): frames of "
+                        f"another graph on the same ROS domain, or a restarted source; the "
+                        f"last of each seq replayed")
     span = int(seqs[-1] - seqs[0] + 1)
     if span > n:
         problems.append(f"{span - n} of {span} frames missing (seq gaps); replaying the "

@@ -776,6 +776,9 @@ def main(argv: list[str]) -> int:
                     "the web page; see ./fluxdrive scope)")
     ap.add_argument("--scope-port", type=int, default=8765, help="the scope's TCP port "
                     "(default 8765; 0: any free port)")
+    ap.add_argument("--shared-domain", action="store_true", help="start even if other "
+                    "nodes live on the ROS domain (by default refused: graphs on one domain "
+                    "hear each other)")
     args = ap.parse_args(argv)
     from fluxdrive_ros.security import precheck
 
@@ -797,6 +800,17 @@ def main(argv: list[str]) -> int:
             n.parameters[pname] = yamlio.loads(val)
     if args.scope:
         add_scope(g, port=args.scope_port)
+    if not args.shared_domain:  # a domain no live node uses (or refused, naming them)
+        from .runs import choose_domain
+
+        # (the graph's domain_id, else ROS_DOMAIN_ID, else 0 -- where `param set` and
+        # `topic echo` from another shell look by default)
+        dom, why = choose_domain(g.domain_id if g.domain_id is not None else int(
+            os.environ.get("ROS_DOMAIN_ID") or 0), "launch")
+        if dom is None:
+            print(f"[launch] {why}", file=sys.stderr)
+            return 2
+        g.domain_id = dom
     dom = g.domain_id if g.domain_id is not None else os.environ.get("ROS_DOMAIN_ID", "0")
     procs = ", ".join(f"{pn}[{', '.join(m.fqn for m in ms)}]"
                       for pn, ms in g.processes().items())
