@@ -56,6 +56,12 @@ class MachineCard:
     flux_h5: float = 0.0  # 5th/7th magnet-flux harmonics, per unit of the fundamental
     flux_h7: float = 0.0
     saturation: float = 0.0  # L drops by this fraction at rated current (L = L0 (1 - s (i/I_r)^2))
+    # winding thermal model (used when a scenario's bench turns it on): one thermal node,
+    # winding to ambient; resistance_ohm is the value at resistance_ref_c
+    thermal_resistance_k_per_w: float = 0.0
+    thermal_time_constant_s: float = 0.0
+    resistance_ref_c: float = 25.0
+    copper_tempco_per_k: float = 0.00393  # annealed copper at 20 deg C (IEC 60028)
 
     # ---- derived quantities
     @property
@@ -86,6 +92,8 @@ class MachineCard:
             "capture_bits": (4, 24), "dc_bus_adc_bits": (4, 24), "dc_bus_range_v": (1.0, 1e5),
             "dc_bus_noise_v": (0.0, 1e3), "encoder_lines": (1, 1 << 20),
             "flux_h5": (-0.5, 0.5), "flux_h7": (-0.5, 0.5), "saturation": (0.0, 0.7),
+            "thermal_resistance_k_per_w": (0.0, 1e3), "thermal_time_constant_s": (0.0, 1e6),
+            "resistance_ref_c": (-60.0, 250.0), "copper_tempco_per_k": (0.0, 0.01),
         }
         for key, (lo, hi) in checks.items():
             _require_range(src, key, getattr(self, key), lo, hi)

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from fluxdrive.core import yamlio
+from fluxdrive.core.bench import BenchConfig, parse_bench
 from fluxdrive.core.machine import ConfigError, MachineCard, load_machine
 from fluxdrive.core.paths import CONFIG_DIR, ROOT, project_file
 from fluxdrive.drive.control import CARD_RULES, ControllerConfig
@@ -49,6 +50,7 @@ class Scenario:
     description: str = ""
     source: str = ""
     extra: dict[str, Any] = field(default_factory=dict)
+    bench: BenchConfig = field(default_factory=BenchConfig)  # default: the ideal bench
 
     @property
     def n_periods(self) -> int:
@@ -121,7 +123,7 @@ _TOP_KEYS = {"name", "description", "machine", "duration_s", "seed", "speed_rpm"
              "dyno_pu_per_rpm", "load_type", "brake_band_rpm", "control", "observers", "driving",
              "steady_window_s",
              "step_load_time_s", "faults", "plant", "initial_angle_deg", "id_injection",
-             "speed_injection", "extra"}
+             "speed_injection", "extra", "bench"}
 
 
 def load_scenario(path: str | Path, machine: str | Path | None = None,
@@ -157,6 +159,7 @@ def load_scenario(path: str | Path, machine: str | Path | None = None,
     seed = raw.get("seed", 0)
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise ConfigError(f"{src}: 'seed' must be an integer, got {seed!r}")
+    bench = parse_bench(src, _bench_raw(src, path, raw.get("bench")), card)
     ctrl_raw = raw.get("control", {}) or {}
     if not isinstance(ctrl_raw, dict):
         raise ConfigError(f"{src}: 'control' must be a mapping")
@@ -181,6 +184,7 @@ def load_scenario(path: str | Path, machine: str | Path | None = None,
         except ConfigError as exc:
             raise ConfigError(f"{src}: observers.{name}: {exc}") from exc
         cfg = _dataclass_from(src, f"observers.{name}", ObserverConfig, spec, base)
+        cfg = bench.apply_observer_model(cfg, card)  # R^, L^, lambda^ the observer leaves open
         observers[str(name)] = cfg.validate(f"{src}: observers.{name}")
     driving = str(raw.get("driving", "encoder"))
     if driving != "encoder" and driving not in observers:
@@ -241,6 +245,7 @@ def load_scenario(path: str | Path, machine: str | Path | None = None,
         speed_injection=raw.get("speed_injection"),
         source=src,
         extra=raw.get("extra", {}) or {},
+        bench=bench,
     )
 
 
@@ -253,6 +258,19 @@ def _speed_profile(src: str, raw: dict, card: MachineCard) -> np.ndarray:
         prof[:, 1] *= card.rated_speed_rpm
         return prof
     return _profile(src, "speed_rpm", raw.get("speed_rpm", 60.0))
+
+
+def _bench_raw(src: str, path: Path, v: Any) -> Any:
+    """The `bench:` entry: a mapping, or the path of a bench file (relative to the scenario)."""
+    if not isinstance(v, str):
+        return v
+    bpath = Path(v) if Path(v).is_absolute() else path.parent / v
+    try:
+        raw = yamlio.load_file(bpath)
+    except (OSError, yamlio.YAMLError) as exc:
+        raise ConfigError(f"{src}: 'bench': cannot read bench file {bpath}"
+                          f"{yamlio.problem_line(exc)}: {exc}") from exc
+    return {} if raw is None else raw
 
 
 def _load_band(src: str, raw: dict) -> float:
@@ -321,6 +339,8 @@ def scenario_to_raw(sc: Scenario, machine_path: str) -> dict[str, Any]:
         raw["step_load_time_s"] = float(sc.step_load_time_s)
     if sc.plant_deadtime_s is not None:
         raw["plant"] = {"deadtime_s": float(sc.plant_deadtime_s)}
+    if not sc.bench.ideal:
+        raw["bench"] = sc.bench.to_raw()
     for key in ("id_injection", "speed_injection"):
         if getattr(sc, key) is not None:
             raw[key] = getattr(sc, key)

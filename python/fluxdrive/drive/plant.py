@@ -21,6 +21,7 @@ import math
 import numpy as np
 from numba import njit
 
+from fluxdrive.core.bench import BenchConfig
 from fluxdrive.core.blocks import pwl, rng_normal, sign
 from fluxdrive.core.layout import Layout
 from fluxdrive.core.machine import MachineCard
@@ -54,6 +55,24 @@ MP_VDC_NOISE = _MP.index()  # bus ADC noise, rms [V]
 MP_ENC_CPR = _MP.index()  # encoder counts per mechanical revolution
 MP_DEAD_SUBSTEPS = _MP.index()  # sub-steps of a deadtime segment
 MP_VDC_GAIN = _MP.index()  # bus ADC gain error
+# non-ideal bench (fluxdrive.core.bench; all zero = the ideal bench)
+MP_CAP_ON = _MP.index()  # 1: line-voltage capture through comparator/link/timer edges
+MP_CAP_VTH_PU = _MP.index()  # comparator threshold [pu of the bus]
+MP_CAP_EDGE = _MP.index()  # switching edge 0 -> 100 % [s]
+MP_CAP_DRISE = _MP.index()  # link delay of a pulse's start [s]
+MP_CAP_DFALL = _MP.index()  # link delay of a pulse's end [s]
+MP_CAP_MINPULSE = _MP.index()  # shortest registered pulse [s]
+MP_CAP_JITTER = _MP.index()  # edge jitter, rms [s]
+MP_CAP_TICK = _MP.index()  # capture timer tick [s]
+MP_SKEW_ON = _MP.index()  # 1: phases sampled at their own instants
+MP_SKEW_A, MP_SKEW_B, MP_SKEW_C = _MP.indices(3)  # sampled this long before the valley [s]
+MP_TH_ON = _MP.index()  # 1: winding thermal model
+MP_TH_RTH = _MP.index()  # thermal resistance winding -> ambient [K/W]
+MP_TH_DECAY = _MP.index()  # exp(-Ts/tau)
+MP_TH_ALPHA = _MP.index()  # copper tempco [1/K]
+MP_TH_TREF = _MP.index()  # temperature of the card's resistance [deg C]
+MP_TH_TAMB = _MP.index()  # ambient [deg C]
+MP_H6_SAT = _MP.index()  # 6th order of |lambda_pm| at rated current [pu] (spatial saturation)
 MP_N = _MP.close(globals())
 
 # ---- plant state vector (PS_*)
@@ -65,6 +84,8 @@ PS_T = _PS.index()  # time of the last sample [s]
 PS_K = _PS.index()  # its index
 PS_TE = _PS.index()  # average electrical torque over the last period [N m]
 PS_TL = _PS.index()  # average load torque over the last period [N m]
+PS_TW = _PS.index()  # winding temperature [deg C] (thermal model)
+PS_H6 = _PS.index()  # load-dependent flux harmonic applied over the last period [pu]
 PS_N = _PS.close(globals())
 
 # ---- frame vector (what the drive's MCU knows at sample k): FR_*
@@ -91,13 +112,15 @@ TR_T = _TR.index()  # sample time [s]
 TR_N = _TR.close(globals())
 
 LEG_BOTTOM, LEG_TOP, LEG_DIODE = 0, 1, 2
+CAP_MAX_EDGES = 32  # line-level edges recorded per period (a line has <= ~10)
 
 
 def machine_params(card: MachineCard, current_offset_a=(0.0, 0.0, 0.0),
                    current_gain=(1.0, 1.0, 1.0), dead_substeps: int = 4,
                    deadtime_s: float | None = None, dc_bus_v: float | None = None,
-                   vdc_adc_gain: float = 1.0) -> np.ndarray:
-    """Parameter vector for the plant kernels from a machine card and sensor faults."""
+                   vdc_adc_gain: float = 1.0, bench: BenchConfig | None = None) -> np.ndarray:
+    """Parameter vector for the plant kernels from a machine card, sensor faults and the
+    non-ideal bench (None: ideal)."""
     mp = np.zeros(MP_N)
     mp[MP_R] = card.resistance_ohm
     mp[MP_L] = card.inductance_h
@@ -125,24 +148,56 @@ def machine_params(card: MachineCard, current_offset_a=(0.0, 0.0, 0.0),
     mp[MP_ENC_CPR] = 4.0 * card.encoder_lines
     mp[MP_DEAD_SUBSTEPS] = dead_substeps
     mp[MP_VDC_GAIN] = vdc_adc_gain
+    if bench is not None:
+        _bench_params(mp, card, bench)
     return mp
 
 
-def plant_state(theta_e0_rad: float = 0.0, omega_m0: float = 0.0, pole_pairs: int = 4):
+def _bench_params(mp: np.ndarray, card: MachineCard, bench: BenchConfig) -> None:
+    cap = bench.voltage_capture
+    if cap is not None:
+        bits = card.capture_bits if cap.resolution_bits is None else cap.resolution_bits
+        mp[MP_CAP_ON] = 1.0
+        mp[MP_CAP_VTH_PU] = cap.threshold_v / mp[MP_VDC]
+        mp[MP_CAP_EDGE] = cap.edge_time_s
+        mp[MP_CAP_DRISE] = cap.delay_rise_s
+        mp[MP_CAP_DFALL] = cap.delay_fall_s
+        mp[MP_CAP_MINPULSE] = cap.min_pulse_s
+        mp[MP_CAP_JITTER] = cap.jitter_s
+        mp[MP_CAP_TICK] = card.ts_s / 2.0 ** bits
+    if bench.current_sample_skew_s is not None and any(bench.current_sample_skew_s):
+        mp[MP_SKEW_ON] = 1.0
+        mp[MP_SKEW_A:MP_SKEW_C + 1] = bench.current_sample_skew_s
+    if bench.thermal is not None:
+        mp[MP_TH_ON] = 1.0
+        mp[MP_TH_RTH] = card.thermal_resistance_k_per_w
+        mp[MP_TH_DECAY] = math.exp(-card.ts_s / card.thermal_time_constant_s)
+        mp[MP_TH_ALPHA] = card.copper_tempco_per_k
+        mp[MP_TH_TREF] = card.resistance_ref_c
+        mp[MP_TH_TAMB] = bench.thermal.ambient_c
+    mp[MP_H6_SAT] = bench.spatial_saturation_h6_pu
+
+
+def plant_state(theta_e0_rad: float = 0.0, omega_m0: float = 0.0, pole_pairs: int = 4,
+                winding_c: float = 25.0):
     st = np.zeros(PS_N)
     st[PS_THM] = theta_e0_rad / pole_pairs
     st[PS_WM] = omega_m0
+    st[PS_TW] = winding_c
     return st
+
+
+def winding_resistance(st: np.ndarray, mp: np.ndarray) -> float:
+    """The plant's winding resistance now [ohm] (the card's value unless the thermal model
+    is on)."""
+    return float(_resistance(st, mp))
 
 
 # ------------------------------------------------------------------ machine equations
 @njit(cache=True, inline="always")
-def _magnet_flux_derivative(mp, th):
+def _magnet_flux_derivative(lam, h5, h7, th):
     """d(lambda_pm)/d(theta_e) as alpha/beta, including optional 5th/7th harmonics.
     lambda_pm(th) = lam [e^{j th} + h5 e^{-j5 th} + h7 e^{j7 th}]."""
-    lam = mp[MP_LAM]
-    h5 = mp[MP_H5]
-    h7 = mp[MP_H7]
     # j e^{j th} = (-sin, cos)
     da = -math.sin(th)
     db = math.cos(th)
@@ -164,6 +219,41 @@ def _inductance(mp, ia, ib):
         return mp[MP_L]
     x = (ia * ia + ib * ib) / (mp[MP_IRATED] * mp[MP_IRATED])
     return mp[MP_L] * max(1.0 - sat * x, 0.3)
+
+
+@njit(cache=True, inline="always")
+def _resistance(st, mp):
+    """Winding resistance at the winding temperature: R_ref (1 + alpha (T_w - T_ref))."""
+    if mp[MP_TH_ON] == 0.0:
+        return mp[MP_R]
+    return mp[MP_R] * (1.0 + mp[MP_TH_ALPHA] * (st[PS_TW] - mp[MP_TH_TREF]))
+
+
+@njit(cache=True, inline="always")
+def _thermal_step(st, mp, r, i2_mean):
+    """One thermal node over one period (exact for a constant loss over the period):
+    C dT/dt = P - (T - T_amb)/R_th, P = 1.5 R |i_ab|^2 (amplitude-invariant alpha/beta:
+    the sum of the three phases' i^2 is 1.5 |i_ab|^2); decay = exp(-Ts/tau), tau = R_th C."""
+    p_cu = 1.5 * r * i2_mean
+    t_inf = mp[MP_TH_TAMB] + p_cu * mp[MP_TH_RTH]
+    st[PS_TW] = t_inf + (st[PS_TW] - t_inf) * mp[MP_TH_DECAY]
+
+
+@njit(cache=True, inline="always")
+def _spatial_saturation(st, mp, ia, ib, th, lind):
+    """Load-dependent flux harmonic h = s6 (|i|/I_r)^2, split evenly into the 5th and 7th
+    (so |lambda_pm| carries h at 6 theta_e: a hexagonal locus).  h is held over a period;
+    when it changes at a period boundary the stator flux stays continuous, so the current
+    takes the difference: L di = -lambda dh (e^{-j5th} + e^{j7th})/2.  Returns (ia, ib, h)."""
+    x = (ia * ia + ib * ib) / (mp[MP_IRATED] * mp[MP_IRATED])
+    h = mp[MP_H6_SAT] * x
+    dh = h - st[PS_H6]
+    if dh != 0.0:
+        k = 0.5 * mp[MP_LAM] * dh / lind
+        ia -= k * (math.cos(5.0 * th) + math.cos(7.0 * th))
+        ib -= k * (-math.sin(5.0 * th) + math.sin(7.0 * th))
+        st[PS_H6] = h
+    return ia, ib, h
 
 
 @njit(cache=True, inline="always")
@@ -206,17 +296,38 @@ def _insertion_sort(a, n):
         a[j + 1] = x
 
 
+@njit(cache=True, inline="always")
+def _cap_track(cap_t, cap_s, cap_n, j, t, v_line, vdc):
+    """Record an edge of line j's ideal level (-1, 0, +1 of the bus) at time t."""
+    s = 0.0
+    if v_line > 0.5 * vdc:
+        s = 1.0
+    elif v_line < -0.5 * vdc:
+        s = -1.0
+    n = cap_n[j]
+    if (n == 0 or cap_s[j, n - 1] != s) and n < cap_t.shape[1]:
+        cap_t[j, n] = t
+        cap_s[j, n] = s
+        cap_n[j] = n + 1
+
+
 @njit(cache=True)
-def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out):
+def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out, cap_t, cap_s, cap_n):
     """Integrate [t_k, t_k + Ts] at switching level.  Writes the line volt-seconds
-    (real and ideal-level) into vs_out[0:6]; updates currents, speed, angle."""
+    (real and ideal-level) into vs_out[0:6] and the phase currents at the skewed sampling
+    instants into vs_out[6:9]; records line-level edges for the capture model (cap_*);
+    updates currents, speed, angle, winding temperature."""
     ts = mp[MP_TS]
     td = mp[MP_TD]
     vdc = mp[MP_VDC]
     vdev = mp[MP_VDEV]
-    r = mp[MP_R]
+    r = _resistance(st, mp)
     p = mp[MP_P]
+    lam = mp[MP_LAM]
     n_sub = int(mp[MP_DEAD_SUBSTEPS])
+    cap_on = enabled and mp[MP_CAP_ON] > 0.0
+    skew_on = mp[MP_SKEW_ON] > 0.0
+    th_on = mp[MP_TH_ON] > 0.0
     half = 0.5 * ts
     t1a = (1.0 - da) * half
     t2a = (1.0 + da) * half
@@ -233,6 +344,12 @@ def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out):
             if 0.0 < tx < ts:
                 ev[n] = tx
                 n += 1
+    if skew_on:
+        # phase j is sampled skew_j before the next valley: a segment boundary there
+        for j in range(3):
+            if mp[MP_SKEW_A + j] > 0.0:
+                ev[n] = ts - mp[MP_SKEW_A + j]
+                n += 1
     ev[n] = ts
     n += 1
     _insertion_sort(ev, n)
@@ -243,13 +360,28 @@ def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out):
     thm0 = st[PS_THM]
     we = p * wm
     lind = _inductance(mp, ia, ib)
+    h5 = mp[MP_H5]
+    h7 = mp[MP_H7]
+    if mp[MP_H6_SAT] != 0.0:
+        ia, ib, hl = _spatial_saturation(st, mp, ia, ib, p * thm0, lind)
+        h5 += 0.5 * hl
+        h7 += 0.5 * hl
     for j in range(6):
         vs_out[j] = 0.0
     te_int = 0.0
+    i2_int = 0.0
+    if cap_on:
+        for j in range(3):
+            cap_n[j] = 0
     zero_lock = (not enabled) and (ia * ia + ib * ib) < 1e-6
     for s in range(n - 1):
         ta = ev[s]
         tb = ev[s + 1]
+        if skew_on:
+            for j in range(3):
+                if ta == ts - mp[MP_SKEW_A + j]:
+                    pa_, pb_, pc_ = inv_clarke(ia, ib)
+                    vs_out[6 + j] = pa_ if j == 0 else (pb_ if j == 1 else pc_)
         h = tb - ta
         if h <= 1e-15:
             continue
@@ -265,9 +397,9 @@ def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out):
         for u in range(nsub):
             tmid = ta + (u + 0.5) * hs
             th = p * (thm0 + wm * tmid)
-            ea, eb = _magnet_flux_derivative(mp, th)
-            ea *= we
-            eb *= we
+            dla, dlb = _magnet_flux_derivative(lam, h5, h7, th)
+            ea = we * dla
+            eb = we * dlb
             if zero_lock:
                 # PWM off, no current, EMF below the bus: all diodes block, legs float.
                 pa, pb, pc = inv_clarke(ea, eb)
@@ -288,6 +420,11 @@ def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out):
             va0, qa = _leg_voltage(sa, iph_a, vdc, vdev)
             vb0, qb = _leg_voltage(sb, iph_b, vdc, vdev)
             vc0, qc = _leg_voltage(sc, iph_c, vdc, vdev)
+            if cap_on:
+                t_sub = ta + u * hs
+                _cap_track(cap_t, cap_s, cap_n, 0, t_sub, qa - qb, vdc)
+                _cap_track(cap_t, cap_s, cap_n, 1, t_sub, qb - qc, vdc)
+                _cap_track(cap_t, cap_s, cap_n, 2, t_sub, qc - qa, vdc)
             va, vb = clarke(va0, vb0, vc0)
             if r > 0.0:
                 ia_n = a_rl * ia + (1.0 - a_rl) * (va - ea) / r
@@ -296,8 +433,9 @@ def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out):
                 ia_n = ia + hs * (va - ea) / lind
                 ib_n = ib + hs * (vb - eb) / lind
             # torque from d(lambda_pm)/d(theta) x i (power balance), average current
-            dla, dlb = _magnet_flux_derivative(mp, th)
             te_int += 1.5 * p * (dla * 0.5 * (ia + ia_n) + dlb * 0.5 * (ib + ib_n)) * hs
+            if th_on:
+                i2_int += 0.5 * (ia * ia + ib * ib + ia_n * ia_n + ib_n * ib_n) * hs
             if not enabled:
                 # diode commutation ends when a phase current reaches zero: clamp
                 na, nb, nc = inv_clarke(ia_n, ib_n)
@@ -313,6 +451,13 @@ def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out):
             vs_out[3] += (qa - qb) * hs
             vs_out[4] += (qb - qc) * hs
             vs_out[5] += (qc - qa) * hs
+    if skew_on:
+        pa_, pb_, pc_ = inv_clarke(ia, ib)
+        for j in range(3):
+            if mp[MP_SKEW_A + j] == 0.0:
+                vs_out[6 + j] = pa_ if j == 0 else (pb_ if j == 1 else pc_)
+    if th_on:
+        _thermal_step(st, mp, r, i2_int / ts)
     te = te_int / ts
     # mechanics over the period (semi-implicit in the viscous term)
     tl = t_load
@@ -338,10 +483,62 @@ def _adc(x, lsb, full_scale):
 
 
 @njit(cache=True)
-def _sample(st, mp, rng, vs, da, db, dc, enabled, frame, truth):
+def _capture_line(mp, rng, cap_t, cap_s, n, j, ts):
+    """Registered high time of line j over the period, signed, as a fraction of Ts.
+
+    Each run of constant nonzero level [t0, t1] is a pulse.  Its edges ramp over t_e
+    (0 -> 100 % of the bus, centred on the ideal edge); the comparator (threshold v_th, per
+    unit of the bus) toggles at t0 - t_e/2 + v_th t_e and t1 - t_e/2 + (pk - v_th) t_e, pk =
+    min(1, (t1 - t0)/t_e) the pulse's peak; the link adds t_rise / t_fall, the timer adds
+    jitter and floors to its tick.  A pulse with pk < v_th, or registered narrower than the
+    minimum pulse, is lost.  A run touching the window's boundary keeps that boundary (the
+    level was already/still high there)."""
+    tick = mp[MP_CAP_TICK]
+    vth = mp[MP_CAP_VTH_PU]
+    te = mp[MP_CAP_EDGE]
+    jit = mp[MP_CAP_JITTER]
+    acc = 0.0
+    for m in range(n):
+        s = cap_s[j, m]
+        if s == 0.0:
+            continue
+        t0 = cap_t[j, m]
+        t1 = cap_t[j, m + 1] if m + 1 < n else ts
+        left = m > 0
+        right = m + 1 < n
+        pk = 1.0
+        if te > 0.0 and left and right:
+            pk = min(1.0, (t1 - t0) / te)
+            if pk < vth:
+                continue  # the ramp never reaches the threshold: the pulse vanishes
+        r0 = 0.0
+        if left:
+            r0 = t0 - 0.5 * te + vth * te + mp[MP_CAP_DRISE]
+            if jit > 0.0:
+                r0 += jit * rng_normal(rng)
+            r0 = min(max(math.floor(r0 / tick) * tick, 0.0), ts)
+        r1 = ts
+        if right:
+            r1 = t1 - 0.5 * te + (pk - vth) * te + mp[MP_CAP_DFALL]
+            if jit > 0.0:
+                r1 += jit * rng_normal(rng)
+            r1 = min(max(math.floor(r1 / tick) * tick, 0.0), ts)
+        w = r1 - r0
+        if left and right and w < mp[MP_CAP_MINPULSE]:
+            continue  # shorter than the capture input's minimum pulse: not registered
+        if w > 0.0:
+            acc += s * w
+    return acc / ts
+
+
+@njit(cache=True)
+def _sample(st, mp, rng, vs, da, db, dc, enabled, frame, truth, cap_t, cap_s, cap_n):
     """Fill frame/truth for the sample at the end of the period just simulated."""
     ts = mp[MP_TS]
     ia_t, ib_t, ic_t = inv_clarke(st[PS_IA], st[PS_IB])
+    sa_, sb_, sc_ = ia_t, ib_t, ic_t
+    if mp[MP_SKEW_ON] > 0.0:
+        sa_, sb_, sc_ = vs[6], vs[7], vs[8]
     noise = mp[MP_NOISE]
     lsb = mp[MP_ADC_LSB]
     rng_ = mp[MP_ADC_RANGE]
@@ -349,11 +546,11 @@ def _sample(st, mp, rng, vs, da, db, dc, enabled, frame, truth):
     n0 = rng_normal(rng) * noise if noise > 0.0 else 0.0
     n1 = rng_normal(rng) * noise if noise > 0.0 else 0.0
     n2 = rng_normal(rng) * noise if noise > 0.0 else 0.0
-    x, c0 = _adc(mp[MP_GAIN_A] * ia_t + mp[MP_OFF_A] + n0, lsb, rng_)
+    x, c0 = _adc(mp[MP_GAIN_A] * sa_ + mp[MP_OFF_A] + n0, lsb, rng_)
     frame[FR_IA] = x
-    x, c1 = _adc(mp[MP_GAIN_B] * ib_t + mp[MP_OFF_B] + n1, lsb, rng_)
+    x, c1 = _adc(mp[MP_GAIN_B] * sb_ + mp[MP_OFF_B] + n1, lsb, rng_)
     frame[FR_IB] = x
-    x, c2 = _adc(mp[MP_GAIN_C] * ic_t + mp[MP_OFF_C] + n2, lsb, rng_)
+    x, c2 = _adc(mp[MP_GAIN_C] * sc_ + mp[MP_OFF_C] + n2, lsb, rng_)
     frame[FR_IC] = x
     if c0 or c1 or c2:
         flags |= FLAG_CLIP
@@ -366,10 +563,14 @@ def _sample(st, mp, rng, vs, da, db, dc, enabled, frame, truth):
     frame[FR_VDC] = vdc_meas
     # capture timer: high time of each line-to-line PWM voltage, 2^bits counts a period,
     # scaled by the measured bus; device drops are invisible to it.
-    levels = mp[MP_CAP_LEVELS]
-    for j in range(3):
-        frac = vs[3 + j] / (ts * vdc)
-        frame[FR_VAB + j] = math.floor(frac * levels + 0.5) / levels * vdc_meas
+    if enabled and mp[MP_CAP_ON] > 0.0:
+        for j in range(3):
+            frame[FR_VAB + j] = _capture_line(mp, rng, cap_t, cap_s, cap_n[j], j, ts) * vdc_meas
+    else:
+        levels = mp[MP_CAP_LEVELS]
+        for j in range(3):
+            frac = vs[3 + j] / (ts * vdc)
+            frame[FR_VAB + j] = math.floor(frac * levels + 0.5) / levels * vdc_meas
     frame[FR_DA] = da
     frame[FR_DB] = db
     frame[FR_DC] = dc
@@ -419,25 +620,38 @@ def load_torque(t, wm, load_t, load_y, load_cfg):
 @njit(cache=True)
 def plant_initial_frame(st, mp, rng, frame, truth):
     """Frame 0 (t = 0): currents sampled, no voltage history, PWM off."""
-    vs = np.zeros(6)
+    vs = np.zeros(9)
+    inv_a, inv_b, inv_c = inv_clarke(st[PS_IA], st[PS_IB])
+    vs[6] = inv_a
+    vs[7] = inv_b
+    vs[8] = inv_c
     st[PS_T] = 0.0
     st[PS_K] = 0.0
-    _sample(st, mp, rng, vs, 0.5, 0.5, 0.5, False, frame, truth)
+    cap_t = np.zeros((3, 1))
+    _sample(st, mp, rng, vs, 0.5, 0.5, 0.5, False, frame, truth, cap_t, cap_t,
+            np.zeros(3, np.int64))
 
 
 @njit(cache=True)
 def plant_advance(st, mp, rng, duty, enabled, load_t, load_y, load_cfg, frame, truth):
     """Simulate one PWM period with `duty` (3 values in [0, 1]) and sample the next frame."""
-    ev = np.empty(16)
-    vs = np.empty(6)
+    ev = np.empty(20)
+    vs = np.empty(9)
+    if mp[MP_CAP_ON] > 0.0:
+        cap_t = np.empty((3, CAP_MAX_EDGES))
+        cap_s = np.empty((3, CAP_MAX_EDGES))
+    else:
+        cap_t = np.empty((1, 1))
+        cap_s = cap_t
+    cap_n = np.zeros(3, np.int64)
     da = min(max(duty[0], 0.0), 1.0)
     db = min(max(duty[1], 0.0), 1.0)
     dc = min(max(duty[2], 0.0), 1.0)
     tl = load_torque(st[PS_T], st[PS_WM], load_t, load_y, load_cfg)
-    _simulate_period(st, mp, da, db, dc, enabled, tl, ev, vs)
+    _simulate_period(st, mp, da, db, dc, enabled, tl, ev, vs, cap_t, cap_s, cap_n)
     st[PS_K] += 1.0
     st[PS_T] = st[PS_K] * mp[MP_TS]
-    _sample(st, mp, rng, vs, da, db, dc, enabled, frame, truth)
+    _sample(st, mp, rng, vs, da, db, dc, enabled, frame, truth, cap_t, cap_s, cap_n)
 
 
 def deadtime_volt_second_loss(vdc_v: float, deadtime_s: float, ts_s: float) -> float:
@@ -446,6 +660,6 @@ def deadtime_volt_second_loss(vdc_v: float, deadtime_s: float, ts_s: float) -> f
 
 
 __all__ = [n for n in dir() if n.isupper() and not n.startswith("_")] + [
-    "machine_params", "load_config", "plant_state", "plant_advance", "plant_initial_frame",
-    "load_torque", "deadtime_volt_second_loss", "SQRT3",
+    "machine_params", "load_config", "plant_state", "winding_resistance", "plant_advance",
+    "plant_initial_frame", "load_torque", "deadtime_volt_second_loss", "SQRT3",
 ]

@@ -124,7 +124,7 @@ class DriveSetup:
         self.n = sc.n_periods
         self.ts = card.ts_s
         self.mp = machine_params(card, sc.current_offset_a, sc.current_gain,
-                                 deadtime_s=sc.plant_deadtime_s)
+                                 deadtime_s=sc.plant_deadtime_s, bench=sc.bench)
         self.load_t, self.load_y = sc.load_breakpoints_nm()
         self.load_cfg = load_config(sc.dyno_nm_per_rad_s(), sc.brake_band_rpm * RPM)
         self.cp = sc.control.to_params(card)
@@ -150,7 +150,10 @@ class DriveSetup:
 
     # fresh states (a run or a node starts from these)
     def new_plant(self):
-        pst = plant_state(math.radians(self.sc.initial_angle_deg), 0.0, self.card.pole_pairs)
+        th = self.sc.bench.thermal
+        pst = plant_state(math.radians(self.sc.initial_angle_deg), 0.0, self.card.pole_pairs,
+                          winding_c=self.card.resistance_ref_c if th is None
+                          else th.initial_winding_c)
         return pst, rng_new(self.sc.seed)
 
     def new_controller(self):

@@ -1,0 +1,196 @@
+"""The non-ideal bench: a scenario's `bench:` entries, typed and validated.
+
+Each entry switches one imperfection of a real test bench on (absent = ideal, so
+`bench: {}` is the ideal bench).  The numbers and where they come from are written next to
+them in the scenario files and in docs/engine.md ("Non-ideal bench").
+
+  voltage_capture          comparator threshold, edge time, propagation delays (rise/fall),
+                           minimum registered pulse, timer resolution and jitter
+  current_sample_skew_s    per-phase sampling instant (a, b, c) before the carrier valley
+  observer_model           every observer's R^, L^, lambda^ relative to the machine card
+  thermal                  winding temperature from I^2 R (card: thermal resistance, time
+                           constant, tempco), so R drifts while R^ does not
+  spatial_saturation_h6_pu 6th order of |lambda_pm| per unit at rated current, growing with
+                           (|i|/I_rated)^2 (hexagonal flux locus under load)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields, replace
+from typing import Any
+
+from fluxdrive.core.machine import ConfigError, MachineCard
+
+
+@dataclass(frozen=True)
+class VoltageCapture:
+    """Line-voltage capture through a comparator and an isolating link into a capture timer.
+
+    A switching edge of the line voltage is a ramp over `edge_time_s` (0 -> 100 % of the bus);
+    the comparator toggles where the ramp crosses `threshold_v`, and the timer latches that
+    instant `delay_rise_s` (pulse start) or `delay_fall_s` (pulse end) later, plus Gaussian
+    jitter, floored to the timer tick.  A pulse whose ramp never reaches the threshold, or
+    whose registered width is below `min_pulse_s`, is not seen at all."""
+
+    threshold_v: float = 0.0
+    edge_time_s: float = 0.0
+    delay_rise_s: float = 0.0
+    delay_fall_s: float = 0.0
+    min_pulse_s: float = 0.0
+    jitter_s: float = 0.0
+    resolution_bits: int | None = None  # None: the machine card's capture_bits
+
+    def width_error_s(self, vdc_v: float) -> float:
+        """Registered minus true width of a full-height pulse: the threshold crossing moves
+        the start by (V_th - Vdc/2) t_edge/Vdc and the end by the opposite, the link adds
+        t_fall - t_rise."""
+        slew = (1.0 - 2.0 * self.threshold_v / vdc_v) * self.edge_time_s
+        return slew + self.delay_fall_s - self.delay_rise_s
+
+
+@dataclass(frozen=True)
+class ObserverModel:
+    """Observer model parameters relative to the machine card (1.0 = exact)."""
+
+    r_pu: float = 1.0
+    l_pu: float = 1.0
+    lambda_pu: float = 1.0
+
+
+@dataclass(frozen=True)
+class Thermal:
+    """Winding temperature: ambient and the temperature the run starts at [deg C]."""
+
+    ambient_c: float = 25.0
+    initial_winding_c: float = 25.0
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    voltage_capture: VoltageCapture | None = None
+    current_sample_skew_s: tuple[float, float, float] | None = None
+    observer_model: ObserverModel | None = None
+    thermal: Thermal | None = None
+    spatial_saturation_h6_pu: float = 0.0
+
+    @property
+    def ideal(self) -> bool:
+        return (self.voltage_capture is None and self.current_sample_skew_s is None
+                and self.observer_model is None and self.thermal is None
+                and self.spatial_saturation_h6_pu == 0.0)
+
+    def apply_observer_model(self, cfg, card: MachineCard):
+        """`cfg` (an ObserverConfig) with R^, L^, lambda^ set from the card times the bench's
+        model errors, where the observer does not set them itself."""
+        om = self.observer_model
+        if om is None:
+            return cfg
+        kw = {}
+        if cfg.r_hat_ohm is None:
+            kw["r_hat_ohm"] = card.resistance_ohm * om.r_pu
+        if cfg.l_hat_h is None:
+            kw["l_hat_h"] = card.inductance_h * om.l_pu
+        if cfg.lambda_hat_vs is None:
+            kw["lambda_hat_vs"] = card.flux_linkage_vs * om.lambda_pu
+        return replace(cfg, **kw) if kw else cfg
+
+    def to_raw(self) -> dict[str, Any]:
+        """The `bench:` mapping that `parse_bench` turns back into this config."""
+        from dataclasses import asdict
+
+        raw: dict[str, Any] = {}
+        if self.voltage_capture is not None:
+            raw["voltage_capture"] = {k: v for k, v in asdict(self.voltage_capture).items()
+                                      if v is not None}
+        if self.current_sample_skew_s is not None:
+            raw["current_sample_skew_s"] = [float(x) for x in self.current_sample_skew_s]
+        if self.observer_model is not None:
+            raw["observer_model"] = asdict(self.observer_model)
+        if self.thermal is not None:
+            raw["thermal"] = asdict(self.thermal)
+        if self.spatial_saturation_h6_pu != 0.0:
+            raw["spatial_saturation_h6_pu"] = float(self.spatial_saturation_h6_pu)
+        return raw
+
+
+def _num(src: str, key: str, v: Any, lo: float, hi: float) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not (lo <= float(v) <= hi) \
+            or math.isnan(float(v)):
+        raise ConfigError(f"{src}: 'bench.{key}' must be a number in [{lo}, {hi}], got {v!r}")
+    return float(v)
+
+
+def _section(src: str, key: str, cls, data: Any, ranges: dict[str, tuple[float, float]]):
+    if not isinstance(data, dict):
+        raise ConfigError(f"{src}: 'bench.{key}' must be a mapping")
+    known = [f.name for f in fields(cls)]
+    bad = sorted(set(data) - set(known))
+    if bad:
+        raise ConfigError(f"{src}: unknown key(s) {bad} under 'bench.{key}'; expected some of "
+                          f"{known}")
+    kw: dict[str, Any] = {}
+    for k, v in data.items():
+        lo, hi = ranges[k]
+        if k == "resolution_bits":
+            if v is None:
+                continue
+            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+                raise ConfigError(f"{src}: 'bench.{key}.{k}' must be an integer in "
+                                  f"[{int(lo)}, {int(hi)}], got {v!r}")
+            kw[k] = v
+        else:
+            kw[k] = _num(src, f"{key}.{k}", v, lo, hi)
+    return cls(**kw)
+
+
+_CAPTURE_RANGES = {"threshold_v": (0.0, 1e4), "edge_time_s": (0.0, 1e-5),
+                   "delay_rise_s": (0.0, 1e-5), "delay_fall_s": (0.0, 1e-5),
+                   "min_pulse_s": (0.0, 1e-5), "jitter_s": (0.0, 1e-6),
+                   "resolution_bits": (4, 30)}
+_MODEL_RANGES = {"r_pu": (0.0, 10.0), "l_pu": (0.01, 10.0), "lambda_pu": (0.01, 10.0)}
+_THERMAL_RANGES = {"ambient_c": (-60.0, 200.0), "initial_winding_c": (-60.0, 250.0)}
+BENCH_KEYS = ("voltage_capture", "current_sample_skew_s", "observer_model", "thermal",
+              "spatial_saturation_h6_pu")
+
+
+def parse_bench(src: str, raw: Any, card: MachineCard) -> BenchConfig:
+    """Validate a scenario's `bench:` mapping (None/absent: the ideal bench)."""
+    if raw is None:
+        return BenchConfig()
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{src}: 'bench' must be a mapping of effects ({', '.join(BENCH_KEYS)})")
+    bad = sorted(set(raw) - set(BENCH_KEYS))
+    if bad:
+        raise ConfigError(f"{src}: unknown key(s) {bad} under 'bench'; expected some of "
+                          f"{list(BENCH_KEYS)}")
+    kw: dict[str, Any] = {}
+    if raw.get("voltage_capture") is not None:
+        cap = _section(src, "voltage_capture", VoltageCapture, raw["voltage_capture"],
+                       _CAPTURE_RANGES)
+        if cap.threshold_v >= card.dc_bus_v:
+            raise ConfigError(f"{src}: 'bench.voltage_capture.threshold_v' = {cap.threshold_v} "
+                              f"must be below the bus ({card.dc_bus_v} V)")
+        kw["voltage_capture"] = cap
+    if raw.get("current_sample_skew_s") is not None:
+        v = raw["current_sample_skew_s"]
+        if not isinstance(v, list) or len(v) != 3:
+            raise ConfigError(f"{src}: 'bench.current_sample_skew_s' must be a list of 3 "
+                              f"numbers (phases a, b, c) [s]")
+        half = 0.25 * card.ts_s
+        kw["current_sample_skew_s"] = tuple(
+            _num(src, "current_sample_skew_s", x, 0.0, half) for x in v)
+    if raw.get("observer_model") is not None:
+        kw["observer_model"] = _section(src, "observer_model", ObserverModel,
+                                        raw["observer_model"], _MODEL_RANGES)
+    if raw.get("thermal") is not None:
+        th = raw["thermal"]
+        th = {} if th is True else th
+        kw["thermal"] = _section(src, "thermal", Thermal, th, _THERMAL_RANGES)
+        if card.thermal_resistance_k_per_w <= 0.0 or card.thermal_time_constant_s <= 0.0:
+            raise ConfigError(f"{src}: 'bench.thermal' needs the machine card's "
+                              f"thermal_resistance_k_per_w and thermal_time_constant_s > 0")
+    if raw.get("spatial_saturation_h6_pu") is not None:
+        kw["spatial_saturation_h6_pu"] = _num(src, "spatial_saturation_h6_pu",
+                                              raw["spatial_saturation_h6_pu"], 0.0, 0.3)
+    return BenchConfig(**kw)
