@@ -225,3 +225,26 @@ def test_paper_scenarios_run_on_the_paper_bench_and_bad_entries_are_refused(tmp_
         parse_bench("x.yaml", {"current_sample_skew_s": [0.0, 1.0]}, card)
     # the ideal bench leaves the plant's parameter vector as it was
     assert np.array_equal(machine_params(card, bench=BenchConfig()), machine_params(card))
+
+
+def test_rig_card_for_the_step_load_differs_from_the_default_only_in_inertia():
+    """paper_rig = default_spm + the dyno's inertia, J = T_L/(e w_n dip) for a zeta = 1 PI
+    speed loop of 10 Hz bandwidth (w_n = 2 pi 10/2.48) and the paper's 90 rpm dip; the step
+    scenario runs on it, the default card keeps the motor-only 1.5e-4."""
+    from fluxdrive.core.machine import load_machine
+
+    default = load_machine(CONFIG_DIR / "machines" / "default_spm.yaml")
+    rig = load_machine(CONFIG_DIR / "machines" / "paper_rig.yaml")
+    assert default.inertia_kgm2 == 1.5e-4
+    assert dataclasses.replace(rig, name=default.name, inertia_kgm2=default.inertia_kgm2) \
+        == default
+    w_n = 2 * math.pi * 10.0 / 2.4826
+    dip = 90.0 * 2 * math.pi / 60
+    assert rig.inertia_kgm2 == pytest.approx(default.rated_torque_nm / (math.e * w_n * dip),
+                                             rel=0.01)
+    # the well-damped loop is back within 10 % of 180 rpm (1/5 of the dip) inside 0.2 s
+    x = np.linspace(1.0, 10.0, 90001)
+    x_back = x[np.argmin(np.abs(x * np.exp(1.0 - x) - 0.2))]
+    assert x_back / w_n < 0.2
+    sc = load_scenario(CONFIG_DIR / "scenarios" / "paper_6pct_stepload.yaml")
+    assert sc.machine == rig
