@@ -24,6 +24,7 @@ from fluxdrive.drive.plant import (
     TR_IA,
     TR_N,
     TR_THETA_E,
+    load_config,
     machine_params,
     plant_advance,
     plant_state,
@@ -32,7 +33,7 @@ from fluxdrive.drive.plant import (
 from fluxdrive.drive.sim import DriveSetup, run_scenario
 from helpers_engine import ideal_machine, make_scenario
 
-NO_LOAD = (np.array([0.0]), np.array([0.0]), np.zeros(2))
+NO_LOAD = (np.array([0.0]), np.array([0.0]), load_config(0.0, 0.0))
 
 # the paper bench's capture numbers (config/benches/paper_lab.yaml), a fine timer, no jitter
 CAPTURE = VoltageCapture(threshold_v=18.0, edge_time_s=50e-9, delay_rise_s=60e-9,

@@ -199,14 +199,21 @@ def _magnet_flux_derivative(lam, h5, h7, th):
     """d(lambda_pm)/d(theta_e) as alpha/beta, including optional 5th/7th harmonics.
     lambda_pm(th) = lam [e^{j th} + h5 e^{-j5 th} + h7 e^{j7 th}]."""
     # j e^{j th} = (-sin, cos)
-    da = -math.sin(th)
-    db = math.cos(th)
+    s1 = math.sin(th)
+    c1 = math.cos(th)
+    da = -s1
+    db = c1
     if h5 != 0.0 or h7 != 0.0:
-        # d/dth of h5 e^{-j5th} = -5j h5 e^{-j5th} = -5 h5 (sin5th, cos5th)... as (re, im):
-        s5 = math.sin(5.0 * th)
-        c5 = math.cos(5.0 * th)
-        s7 = math.sin(7.0 * th)
-        c7 = math.cos(7.0 * th)
+        # d/dth of h5 e^{-j5th} = -5j h5 e^{-j5th} = -5 h5 (sin5th, cos5th)... as (re, im);
+        # e^{j5th}, e^{j7th} by complex products from e^{jth} (cheaper than four sin/cos)
+        c2 = c1 * c1 - s1 * s1
+        s2 = 2.0 * s1 * c1
+        c4 = c2 * c2 - s2 * s2
+        s4 = 2.0 * s2 * c2
+        c5 = c4 * c1 - s4 * s1
+        s5 = s4 * c1 + c4 * s1
+        c7 = c5 * c2 - s5 * s2
+        s7 = s5 * c2 + c5 * s2
         da += -5.0 * h5 * s5 - 7.0 * h7 * s7
         db += -5.0 * h5 * c5 + 7.0 * h7 * c7
     return lam * da, lam * db
@@ -304,7 +311,7 @@ def _cap_track(cap_t, cap_s, cap_n, j, t, v_line, vdc):
         s = 1.0
     elif v_line < -0.5 * vdc:
         s = -1.0
-    n = cap_n[j]
+    n = int(cap_n[j])
     if (n == 0 or cap_s[j, n - 1] != s) and n < cap_t.shape[1]:
         cap_t[j, n] = t
         cap_s[j, n] = s
@@ -372,7 +379,7 @@ def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out, cap_t, cap
     i2_int = 0.0
     if cap_on:
         for j in range(3):
-            cap_n[j] = 0
+            cap_n[j] = 0.0
     zero_lock = (not enabled) and (ia * ia + ib * ib) < 1e-6
     for s in range(n - 1):
         ta = ev[s]
@@ -565,7 +572,8 @@ def _sample(st, mp, rng, vs, da, db, dc, enabled, frame, truth, cap_t, cap_s, ca
     # scaled by the measured bus; device drops are invisible to it.
     if enabled and mp[MP_CAP_ON] > 0.0:
         for j in range(3):
-            frame[FR_VAB + j] = _capture_line(mp, rng, cap_t, cap_s, cap_n[j], j, ts) * vdc_meas
+            frac = _capture_line(mp, rng, cap_t, cap_s, int(cap_n[j]), j, ts)
+            frame[FR_VAB + j] = frac * vdc_meas
     else:
         levels = mp[MP_CAP_LEVELS]
         for j in range(3):
@@ -627,23 +635,25 @@ def plant_initial_frame(st, mp, rng, frame, truth):
     vs[8] = inv_c
     st[PS_T] = 0.0
     st[PS_K] = 0.0
-    cap_t = np.zeros((3, 1))
-    _sample(st, mp, rng, vs, 0.5, 0.5, 0.5, False, frame, truth, cap_t, cap_t,
-            np.zeros(3, np.int64))
+    cap_t = np.zeros((1, 1))
+    _sample(st, mp, rng, vs, 0.5, 0.5, 0.5, False, frame, truth, cap_t, cap_t, np.zeros(3))
 
 
 @njit(cache=True)
 def plant_advance(st, mp, rng, duty, enabled, load_t, load_y, load_cfg, frame, truth):
     """Simulate one PWM period with `duty` (3 values in [0, 1]) and sample the next frame."""
-    ev = np.empty(20)
-    vs = np.empty(9)
+    # one scratch allocation a period: event times, volt-seconds + skewed samples, edge
+    # counts of the capture model (and its edge lists only when that model is on)
+    buf = np.empty(33)
+    ev = buf[0:20]
+    vs = buf[20:29]
+    cap_n = buf[29:32]
     if mp[MP_CAP_ON] > 0.0:
         cap_t = np.empty((3, CAP_MAX_EDGES))
         cap_s = np.empty((3, CAP_MAX_EDGES))
     else:
-        cap_t = np.empty((1, 1))
+        cap_t = buf[32:33].reshape((1, 1))
         cap_s = cap_t
-    cap_n = np.zeros(3, np.int64)
     da = min(max(duty[0], 0.0), 1.0)
     db = min(max(duty[1], 0.0), 1.0)
     dc = min(max(duty[2], 0.0), 1.0)
