@@ -19,6 +19,7 @@ from fluxdrive.drive.plant import (
     FR_VAB,
     FR_VBC,
     FR_VDC,
+    MP_TH_ON,
     PS_IA,
     PS_TW,
     TR_IA,
@@ -36,7 +37,7 @@ from helpers_engine import ideal_machine, make_scenario
 NO_LOAD = (np.array([0.0]), np.array([0.0]), load_config(0.0, 0.0))
 
 # the paper bench's capture numbers (config/benches/paper_lab.yaml), a fine timer, no jitter
-CAPTURE = VoltageCapture(threshold_v=18.0, edge_time_s=50e-9, delay_rise_s=60e-9,
+CAPTURE = VoltageCapture(threshold_pu=0.25, edge_time_s=50e-9, delay_rise_s=60e-9,
                          delay_fall_s=25e-9, min_pulse_s=111e-9, jitter_s=0.0,
                          resolution_bits=24)
 
@@ -68,7 +69,7 @@ def test_capture_delay_gives_the_predicted_duty_dependent_error():
                                deadtime_s=0.0, dc_bus_adc_bits=24)
     mp = machine_params(card, bench=BenchConfig(voltage_capture=CAPTURE))
     ts = card.ts_s
-    dw = CAPTURE.width_error_s(card.dc_bus_v)
+    dw = CAPTURE.width_error_s()
     assert dw == pytest.approx(-10e-9, abs=1e-15)
     for d in (0.001, 0.002, 0.0025, 0.004, 0.01, 0.1, 0.5):
         frames, _, _ = _run_fixed_duty(mp, [0.5 + d / 2, 0.5 - d / 2, 0.5], 3)
@@ -89,7 +90,7 @@ def test_capture_threshold_on_slow_edges_and_jitter():
     the mean error."""
     card = dataclasses.replace(MachineCard(), inertia_kgm2=1e3, current_noise_a=0.0,
                                deadtime_s=0.0, dc_bus_adc_bits=24)
-    slow = VoltageCapture(threshold_v=36.0, edge_time_s=400e-9, resolution_bits=24)
+    slow = VoltageCapture(threshold_pu=0.5, edge_time_s=400e-9, resolution_bits=24)
     mp = machine_params(card, bench=BenchConfig(voltage_capture=slow))
     ts = card.ts_s
     for d, seen in ((0.0036, False), (0.0044, True)):  # pulses 180 ns / 220 ns vs 200 ns
@@ -103,7 +104,7 @@ def test_capture_threshold_on_slow_edges_and_jitter():
     mp = machine_params(card, bench=BenchConfig(voltage_capture=jit))
     frames, _, _ = _run_fixed_duty(mp, [0.55, 0.45, 0.5], 3000, seed=7)
     vdc = frames[-1, FR_VDC]
-    err = frames[:, FR_VAB] - (0.1 + 2 * CAPTURE.width_error_s(card.dc_bus_v) / ts) * vdc
+    err = frames[:, FR_VAB] - (0.1 + 2 * CAPTURE.width_error_s() / ts) * vdc
     assert abs(err.mean()) < 1e-4
     assert err.std() == pytest.approx(2 * sigma * vdc / ts, rel=0.08)
 
@@ -216,12 +217,13 @@ def test_paper_scenarios_run_on_the_paper_bench_and_bad_entries_are_refused(tmp_
         assert all(o.r_hat_ohm is not None for o in sc.observers.values())
     card = MachineCard()
     with pytest.raises(ConfigError, match="bench.voltage_capture"):
-        parse_bench("x.yaml", {"voltage_capture": {"threshold_v": "high"}}, card)
+        parse_bench("x.yaml", {"voltage_capture": {"threshold_pu": "high"}}, card)
     with pytest.raises(ConfigError, match="unknown key"):
         parse_bench("x.yaml", {"capture": {}}, card)
-    with pytest.raises(ConfigError, match="thermal_resistance_k_per_w"):
-        parse_bench("x.yaml", {"thermal": {}}, dataclasses.replace(
-            card, thermal_resistance_k_per_w=0.0))
+    # a card without a thermal model keeps its resistance
+    cold = dataclasses.replace(card, thermal_resistance_k_per_w=0.0)
+    assert machine_params(cold, bench=parse_bench("x.yaml", {"thermal": {}}, cold))[
+        MP_TH_ON] == 0.0
     with pytest.raises(ConfigError, match="current_sample_skew_s"):
         parse_bench("x.yaml", {"current_sample_skew_s": [0.0, 1.0]}, card)
     # the ideal bench leaves the plant's parameter vector as it was

@@ -167,8 +167,11 @@ def test_paper_2pct_150load_shows_fig14_ordering():
     voltages: stable; flux beats EMF on theta RMS with measured voltages (with commanded
     ones the deadtime 6th order dominates both, and the EMF path's lower-bandwidth PLL
     filters it more); measured voltages remove most of the 6th harmonic that uncompensated
-    commanded voltages put into theta."""
-    sc = load_scenario(CONFIG_DIR / "scenarios" / "paper_2pct_150load.yaml")
+    commanded voltages put into theta.  On the ideal bench: on the scenario's non-ideal bench
+    the EMF observer on measured voltages edges out the flux one at this point (2.3 vs
+    2.7 deg, docs/engine.md "Non-ideal bench")."""
+    sc = load_scenario(CONFIG_DIR / "scenarios" / "paper_2pct_150load.yaml",
+                       overrides={"bench": {}})
     m = compute(run_scenario(sc, progress=False))
     o = m["observers"]
     assert m["stable"] and m["driving"] == "flux_measured"
@@ -180,6 +183,4 @@ def test_paper_2pct_150load_shows_fig14_ordering():
         h6_cmd = o[f"{kind}_commanded"]["theta_err_h6_deg"]
         h6_meas = o[f"{kind}_measured"]["theta_err_h6_deg"]
         assert h6_cmd > 5.0
-        # on the scenario's non-ideal bench (capture dead zone around the line voltages' zero
-        # crossings, spatial saturation) measured voltages leave ~20 % of it (ideal: < 10 %)
-        assert h6_meas < 0.25 * h6_cmd
+        assert h6_meas < 0.1 * h6_cmd

@@ -158,7 +158,7 @@ def _bench_params(mp: np.ndarray, card: MachineCard, bench: BenchConfig) -> None
     if cap is not None:
         bits = card.capture_bits if cap.resolution_bits is None else cap.resolution_bits
         mp[MP_CAP_ON] = 1.0
-        mp[MP_CAP_VTH_PU] = cap.threshold_v / mp[MP_VDC]
+        mp[MP_CAP_VTH_PU] = cap.threshold_pu
         mp[MP_CAP_EDGE] = cap.edge_time_s
         mp[MP_CAP_DRISE] = cap.delay_rise_s
         mp[MP_CAP_DFALL] = cap.delay_fall_s
@@ -168,7 +168,8 @@ def _bench_params(mp: np.ndarray, card: MachineCard, bench: BenchConfig) -> None
     if bench.current_sample_skew_s is not None and any(bench.current_sample_skew_s):
         mp[MP_SKEW_ON] = 1.0
         mp[MP_SKEW_A:MP_SKEW_C + 1] = bench.current_sample_skew_s
-    if bench.thermal is not None:
+    if bench.thermal is not None and card.thermal_resistance_k_per_w > 0.0 \
+            and card.thermal_time_constant_s > 0.0:
         mp[MP_TH_ON] = 1.0
         mp[MP_TH_RTH] = card.thermal_resistance_k_per_w
         mp[MP_TH_DECAY] = math.exp(-card.ts_s / card.thermal_time_constant_s)
