@@ -54,6 +54,8 @@ from fluxdrive.drive.control import (
 )
 from fluxdrive.drive.observers import ES_N
 from fluxdrive.drive.plant import (
+    FR_DA,
+    FR_DB,
     FR_ENC,
     FR_IA,
     FR_IB,
@@ -261,7 +263,9 @@ class Identifier:
         y = v_a[1:] - r * 0.5 * (i_a[1:] + i_a[:-1])
         # instrumental variable: the sign of the applied square wave (known, noise-free);
         # plain least squares would be biased low by the current noise in di/dt
-        z = np.tile(np.r_[np.ones(half), -np.ones(half)], n_cycles)[1:]
+        # (from the duty each frame says was applied: right on any link's latency)
+        dd = frs[1:, FR_DA] - frs[1:, FR_DB]
+        z = np.sign(dd - np.mean(dd))
         z = z - np.mean(z)
         lind = float(np.dot(z, y) / np.dot(z, di))
         self.say(f"L = {lind * 1e3:.4f} mH (square wave +-{amp:.2f} V, {n_cycles} cycles)")
