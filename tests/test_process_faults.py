@@ -139,7 +139,9 @@ def read_frames(bag: Path) -> tuple[list[int], list[bool], list[int], dict[str, 
             seqs.append(int(m.seq))
             pwm.append(bool(m.pwm_enabled))
             flags.append(int(m.status_flags))
-        counts = {c.topic: c.msgcount for c in reader.connections}
+        # what the recorder received (the bag writer adds the run's settings message)
+        counts = {c.topic: c.msgcount for c in reader.connections
+                  if c.topic != "/fluxdrive/settings"}
     files = sorted(bag.glob("*.mcap"))
     assert len(files) == 1
     with open(files[0], "rb") as fh:

@@ -50,7 +50,7 @@ def bags(run, tmp_path_factory):
     full = write_run_bag(run, d / "full")
     k0 = 2500
     cut = write_run_bag(run, d / "cut", start_s=run.t[k0], observers=["flux_measured"],
-                        obs_states=observer_states_at(run, k0), compress=True, duty=False)
+                        obs_states=observer_states_at(run, k0), duty=False)
     return {"full": full, "cut": cut, "dir": d}
 
 
@@ -224,7 +224,7 @@ def test_sample_bags_shipped_small_and_documented():
     readme = (d / "README.md").read_text()
     for nm in ("paper_2pct_150load", "paper_6pct_stepload"):
         size = sum(p.stat().st_size for p in (d / nm).iterdir())
-        assert size < 5e6, (nm, size)
+        assert size < 6e6, (nm, size)  # zstd chunks inside the MCAP (every tool opens it)
         assert nm in readme
         b = read_run_bag(d / nm)
         assert b.problems == [] and b.n >= 10000

@@ -39,8 +39,9 @@ def make(name: str, out: Path) -> Path:
     path = out / name
     if path.exists():
         shutil.rmtree(path)
-    write_run_bag(res, path, start_s=t0, end_s=t1, observers=obs, duty=False, compress=True,
-                  obs_states=states,
+    # bag times on a fixed epoch (2026-01-01T00:00:00Z + sim time): the same bytes each run
+    write_run_bag(res, path, start_s=t0, end_s=t1, observers=obs, duty=False,
+                  epoch_offset_ns=1_767_225_600 * 10**9, obs_states=states,
                   extra_meta={"made_by": "tools/make_sample_bags.py", "window_s": [t0, t1]})
     size = sum(p.stat().st_size for p in path.iterdir())
     print(f"{path}: {sc.name} seed {sc.seed}, {t0}-{t1} s, {size / 1e6:.2f} MB")

@@ -19,6 +19,8 @@ Only `rosbags` is used (no rclpy): tests and the sample bags need no ROS graph.
 from __future__ import annotations
 
 import json
+import os
+import time
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -30,7 +32,7 @@ from fluxdrive.drive.control import CO_N
 from fluxdrive.drive.observers import ES_N
 from fluxdrive.drive.plant import FR_N, FR_SEQ, TR_N, TR_T, TR_THETA_E
 from fluxdrive.io import messages
-from fluxdrive.io.cdr import Decoder
+from fluxdrive.io.cdr import Decoder, read_strings
 from fluxdrive.io.topics import (
     CONTROLLER_STATE,
     DUTY,
@@ -38,12 +40,15 @@ from fluxdrive.io.topics import (
     FRAME,
     MSG_SRC_DIR,
     OBS_NAMESPACE,
+    SETTINGS,
     T_DUTY,
     T_ESTIMATE,
     T_FRAME,
     T_STATE,
+    T_STRING,
     T_TRUTH,
     TRUTH,
+    offered_qos,
 )
 
 TOPIC_FRAME, TOPIC_TRUTH, TOPIC_DUTY, TOPIC_CTRL = FRAME, TRUTH, DUTY, CONTROLLER_STATE
@@ -82,6 +87,179 @@ def typestore():
 
 
 # ------------------------------------------------------------------ writing
+class _McapStorage:
+    """rosbags' storage-writer interface over the `mcap` library, so the project's bags
+    open in every MCAP tool: zstd chunk compression (inside the MCAP, not a compressed
+    file), messages sorted by log time within each chunk, a sequence number per channel,
+    the offered QoS per channel, and extra MCAP metadata records (the recorder's settings)
+    next to rosbag2's own."""
+
+    def __init__(self, path: Path, compression: Any) -> None:
+        from mcap.writer import CompressionType, IndexType
+        from mcap.writer import Writer as McapWriter
+
+        self.path = path / f"{path.name}.mcap"
+        self.bio = self.path.open("xb")
+        # chunks are cut here (`chunk_bytes`), the library's own limit is never reached
+        # (no attachment index: the library would point a summary offset at an empty group)
+        self.w = McapWriter(self.bio, chunk_size=1 << 40, compression=CompressionType.ZSTD,
+                            index_types=IndexType.CHUNK | IndexType.MESSAGE
+                            | IndexType.METADATA)
+        self.w.start(profile="ros2", library="fluxdrive")
+        self.schema_ids: dict[str, int] = {}
+        self.channel_ids: dict[int, int] = {}  # rosbags connection id -> MCAP channel id
+        self.seqno: dict[int, int] = {}
+        self.pending: list[tuple[int, int, int, bytes]] = []  # (log time, order, cid, data)
+        self.pending_bytes = 0
+        self.chunk_bytes = 1 << 20
+        self.records: dict[str, dict[str, str]] = {}
+        self.ros_distro = ROS_DISTRO
+
+    def add_msgtype(self, connection: Any) -> None:
+        fmt = "ros2msg" if connection.msgdef.format.name == "MSG" else "ros2idl"
+        self.schema_ids[connection.msgtype] = self.w.register_schema(
+            name=connection.msgtype, encoding=fmt, data=connection.msgdef.data.encode())
+
+    def add_connection(self, connection: Any, offered_qos_profiles: str) -> None:
+        self.channel_ids[connection.id] = self.w.register_channel(
+            topic=connection.topic, message_encoding="cdr",
+            schema_id=self.schema_ids[connection.msgtype],
+            metadata={"offered_qos_profiles": offered_qos_profiles})
+        self.seqno[connection.id] = 0
+
+    def write(self, connection: Any, timestamp: int, data: bytes | memoryview) -> None:
+        self.pending.append((timestamp, len(self.pending), connection.id, bytes(data)))
+        self.pending_bytes += len(data) + 31
+        if self.pending_bytes >= self.chunk_bytes:
+            self.flush(sync=False)
+
+    def flush(self, sync: bool = True) -> None:
+        """Close the open chunk: its messages in log-time order, then on disk."""
+        if self.pending:
+            self.pending.sort()
+            add = self.w.add_message
+            for t, _, cid, data in self.pending:
+                self.seqno[cid] += 1
+                add(channel_id=self.channel_ids[cid], log_time=t, data=data, publish_time=t,
+                    sequence=self.seqno[cid])
+            self.pending.clear()
+            self.pending_bytes = 0
+            self.w.flush()
+        self.bio.flush()
+        if sync:
+            os.fsync(self.bio.fileno())
+
+    def close(self, version: int, metadata: str) -> None:
+        _ = version
+        self.flush(sync=False)
+        self.w.add_metadata("rosbag2", {"serialized_metadata": _distro(metadata)})
+        for name, rec in self.records.items():
+            self.w.add_metadata(name, rec)
+        self.w.finish()
+        self.bio.close()
+
+    def abort(self) -> None:
+        """Close without the summary (complete chunks stay readable for bag recover)."""
+        self.bio.close()
+
+
+ROS_DISTRO = "jazzy"
+
+
+def _distro(metadata_yaml: str) -> str:
+    return metadata_yaml.replace("ros_distro: rosbags", f"ros_distro: {ROS_DISTRO}")
+
+
+def _qos(topic: str) -> list:
+    """The offered QoS of a topic (fluxdrive.io.topics.offered_qos) as rosbags Qos."""
+    from rosbags.interfaces import (
+        Qos,
+        QosDurability,
+        QosHistory,
+        QosLiveliness,
+        QosReliability,
+        QosTime,
+    )
+
+    depth, durability = offered_qos(topic)
+    inf = QosTime(sec=9223372036, nsec=854775807)  # rmw's "infinite", as rosbag2 records it
+    return [Qos(QosHistory.KEEP_LAST, depth, QosReliability.RELIABLE,
+                QosDurability.TRANSIENT_LOCAL if durability == "transient_local"
+                else QosDurability.VOLATILE, inf, inf, QosLiveliness.AUTOMATIC, inf, False)]
+
+
+class BagWriter:
+    """The project's one bag writer: a rosbag2 bag (metadata.yaml version 9, `ros_distro:
+    jazzy`) with one MCAP file that every MCAP tool opens (see _McapStorage).
+
+    Times: `write(cid, t_ns, data)` takes the message's sample time (sim time from 0, the
+    header stamp); the bag's log and publish times are t_ns + `epoch_offset_ns`, by default
+    the wall clock at the start minus nothing, so a viewer shows when the run happened.
+    The offset is recorded (metadata `epoch_offset_ns`) -- header stamps stay sim time.
+
+    Settings (`settings`: the machine card, observers, scenario; JSON-able) go into
+    custom_data "fluxdrive" (rosbag2's place), an MCAP metadata record "fluxdrive", and one
+    latched std_msgs/String message on /fluxdrive/settings -- the last survives any
+    conversion (rosbags-convert to rosbag1 and back keeps only messages)."""
+
+    def __init__(self, path: str | Path, settings: dict[str, Any] | None = None, *,
+                 epoch_offset_ns: int | None = None) -> None:
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        class _Writer(Writer):
+            STORAGE_PLUGINS = {StoragePlugin.MCAP: _McapStorage}  # noqa: RUF012
+
+        self.path = Path(path)
+        self.offset = time.time_ns() if epoch_offset_ns is None else int(epoch_offset_ns)
+        self.store = typestore()
+        self.w = _Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
+        self.settings = dict(settings or {})
+        self.settings.setdefault("epoch_offset_ns", self.offset)
+        text = json.dumps(self.settings, default=_json_default)
+        self.w.set_custom_data(META_KEY, text)
+        self.w.open()
+        self.storage: _McapStorage = self.w.storage  # type: ignore[assignment]
+        self.storage.records[META_KEY] = {META_KEY: text}
+        self.conns: list[Any] = []
+        cid = self.add_connection(SETTINGS, T_STRING)
+        self.w.write(self.conns[cid], int(self.settings["epoch_offset_ns"]),  # at t = 0
+                     self.store.serialize_cdr(self.store.types[T_STRING](data=text), T_STRING))
+
+    def add_connection(self, topic: str, msgtype: str, store: Any = None) -> int:
+        """A topic (`store`: a typestore for a type that is not the project's); returns its
+        id for `write` (the existing one for a topic added before with the same type)."""
+        for i, c in enumerate(self.conns):
+            if c.topic == topic and c.msgtype == msgtype:
+                return i
+        self.conns.append(self.w.add_connection(topic, msgtype, typestore=store or self.store,
+                                                offered_qos_profiles=_qos(topic)))
+        return len(self.conns) - 1
+
+    def write(self, cid: int, t_ns: int, data: bytes | memoryview) -> None:
+        self.w.write(self.conns[cid], t_ns + self.offset, data)
+
+    def flush(self, sync: bool = True) -> None:
+        """Close the open chunk and push the file to the disk (crash safety)."""
+        self.storage.flush(sync)
+
+    def close(self) -> None:
+        self.w.close()
+        meta = self.path / "metadata.yaml"
+        meta.write_text(_distro(meta.read_text()))
+
+    def abort(self) -> None:
+        self.w.abort()
+
+    def __enter__(self) -> BagWriter:
+        return self
+
+    def __exit__(self, exc_type, *_) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
 def _json_default(x):
     if isinstance(x, np.ndarray):
         return x.tolist()
@@ -110,7 +288,7 @@ def run_metadata(result, k0: int = 0, obs_states: dict[str, list[float]] | None 
 
 def write_run_bag(result, path: str | Path, *, start_s: float = 0.0, end_s: float | None = None,
                   observers: list[str] | None = None, truth: bool = True, ctrl: bool = True,
-                  duty: bool = True, compress: bool = False,
+                  duty: bool = True, epoch_offset_ns: int | None = None,
                   obs_states: dict[str, list[float]] | None = None,
                   extra_meta: dict[str, Any] | None = None) -> Path:
     """Write a SimResult (or a replay's arrays with the same fields) as a rosbag2/mcap bag.
@@ -118,10 +296,7 @@ def write_run_bag(result, path: str | Path, *, start_s: float = 0.0, end_s: floa
     start_s/end_s cut a window out of the run; `obs_states` (observer name -> OS_* state
     at the first written frame) lets a replay of a cut bag reproduce the estimates.
     """
-    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
-
     path = Path(path)
-    store = typestore()
     t = result.t
     k0 = int(np.searchsorted(t, start_s - 1e-12))
     k1 = len(t) if end_s is None else int(np.searchsorted(t, end_s - 1e-12))
@@ -129,20 +304,16 @@ def write_run_bag(result, path: str | Path, *, start_s: float = 0.0, end_s: floa
     meta = run_metadata(result, k0, obs_states, names)
     if extra_meta:
         meta.update(extra_meta)
-    w = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
-    if compress:
-        w.set_compression(CompressionMode.FILE, CompressionFormat.ZSTD)
-    w.set_custom_data(META_KEY, json.dumps(meta, default=_json_default))
     fw = messages.FrameWire(extra_flags=messages.STATUS_SIMULATED)
     tw = messages.TruthWire()
     cw = messages.ControlWire()
-    with w:
-        c_fr = w.add_connection(TOPIC_FRAME, T_FRAME, typestore=store)
-        c_tr = w.add_connection(TOPIC_TRUTH, T_TRUTH, typestore=store) if truth else None
-        c_co = w.add_connection(TOPIC_CTRL, T_CTRL, typestore=store) if ctrl else None
-        c_du = w.add_connection(TOPIC_DUTY, T_DUTY, typestore=store) if duty else None
+    with BagWriter(path, meta, epoch_offset_ns=epoch_offset_ns) as w:
+        c_fr = w.add_connection(TOPIC_FRAME, T_FRAME)
+        c_tr = w.add_connection(TOPIC_TRUTH, T_TRUTH) if truth else None
+        c_co = w.add_connection(TOPIC_CTRL, T_CTRL) if ctrl else None
+        c_du = w.add_connection(TOPIC_DUTY, T_DUTY) if duty else None
         c_es = [(result.names.index(nm), messages.EstimateWire(nm),
-                 w.add_connection(est_topic(nm), T_EST, typestore=store)) for nm in names]
+                 w.add_connection(est_topic(nm), T_EST)) for nm in names]
         for k in range(k0, k1):
             t_ns = int(round(t[k] * 1e9))
             st = divmod(t_ns, 1_000_000_000)
@@ -287,6 +458,7 @@ def _wanted(topic: str, msgtype: str) -> bool:
             or (topic == TOPIC_TRUTH and msgtype == T_TRUTH)
             or (topic == TOPIC_CTRL and msgtype == T_CTRL)
             or (topic == TOPIC_DUTY and msgtype == T_DUTY)
+            or (topic == SETTINGS and msgtype == T_STRING)
             or (topic.startswith(EST_PREFIX) and topic.endswith(EST_SUFFIX)
                 and msgtype == T_EST))
 
@@ -370,6 +542,12 @@ def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
             close()
         except Exception:  # noqa: BLE001
             pass
+    if "machine" not in meta:  # converted bag: metadata.yaml lost custom_data
+        meta = {**meta, **_settings_elsewhere(path, raws.get(SETTINGS))}
+        if "machine" not in meta:
+            problems.append("bag carries no recorder settings (machine card, observers): "
+                            "replaying with the default machine card and observers")
+    raws.pop(SETTINGS, None)
     tables = {tp: decode_rows(topics[tp], r, problems, tp) for tp, r in raws.items()}
     if TOPIC_FRAME not in tables or not len(tables[TOPIC_FRAME][0]):
         raise BagError(f"{path}: no readable {TOPIC_FRAME} messages "
@@ -439,6 +617,27 @@ def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
             if e is not None:
                 est[tp[len(EST_PREFIX):-len(EST_SUFFIX)]] = e[0]
     return RunBag(path, t, frames, truth, est, ctrl, meta, counts, problems, raw, matched)
+
+
+def _settings_elsewhere(path: Path, settings_msgs: list[bytes] | None) -> dict[str, Any]:
+    """The recorder's settings when metadata.yaml has none (a converted bag): the MCAP
+    metadata record "fluxdrive", else the /fluxdrive/settings message."""
+    for f in sorted(path.glob("*.mcap")):
+        try:
+            from mcap.reader import make_reader
+
+            with f.open("rb") as fh:
+                for rec in make_reader(fh).iter_metadata():
+                    if rec.name == META_KEY and META_KEY in rec.metadata:
+                        return json.loads(rec.metadata[META_KEY])
+        except Exception:  # noqa: BLE001 - no summary / not ours: try the message
+            pass
+    for data in settings_msgs or []:
+        try:
+            return json.loads(read_strings(T_STRING, data)["data"])
+        except Exception:  # noqa: BLE001
+            continue
+    return {}
 
 
 def _last_of_each(seq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

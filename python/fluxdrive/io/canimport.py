@@ -11,6 +11,7 @@ the .msg text (no ROS import), embedded in the bag so readers need no message pa
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -19,10 +20,12 @@ from typing import Any
 import numpy as np
 
 from fluxdrive.can.protocol import FRAME_FIELDS, SEQ_BITS, unwrap_counter
+from fluxdrive.core.machine import MachineCard
+from fluxdrive.core.scenario import load_scenario, scenario_path
 from fluxdrive.drive.plant import FR_SEQ
-from fluxdrive.io.bagio import typestore
+from fluxdrive.io.bagio import BagWriter
 from fluxdrive.io.canlog import read_capture
-from fluxdrive.io.messages import FrameWire
+from fluxdrive.io.messages import FrameWire, Stamp
 from fluxdrive.io.topics import FRAME, T_FRAME
 
 __all__ = ["PHASE_FRAME_TOPIC", "import_capture", "main"]
@@ -31,51 +34,91 @@ PHASE_FRAME_TOPIC = FRAME
 
 
 def import_capture(log: str | Path, out: str | Path, *, topic: str = PHASE_FRAME_TOPIC,
-                   frame_id: str = "drive") -> dict[str, Any]:
+                   frame_id: str = "drive", scenario: str | None = None,
+                   decimation: int | None = None) -> dict[str, Any]:
     """Decode ``log`` and write the bag directory ``out`` (must not exist). Returns the
-    capture counts plus ``written``."""
-    from rosbags.rosbag2 import StoragePlugin, Writer
+    capture counts plus ``written``.
 
+    A decimated capture (a sample every D PWM periods; FD D = 4 on a real bus, classic
+    D = 8) is imported the way the bench bridge hands it to the graph: the 16-bit wire
+    counter is unwrapped into the period index k and each frame carries the sample index
+    j = k // D as its seq, stamped j D Ts.  D is the capture's own counter step unless
+    given.  The bag records D, the sample period and the machine card at the sample rate
+    (`scenario`: its card and observer configurations, else the default card), so replay
+    runs the observers at D Ts as the live bridge run did."""
     cap = read_capture(log)
+    d = int(decimation or cap.step or 1)
     f = np.array(cap.frames, dtype=np.float64)
     i_seq = FRAME_FIELDS.index("seq")
-    seq = unwrap_counter(f[:, i_seq], SEQ_BITS) if len(f) else np.empty(0)
-    if len(seq):
-        seq = seq - (seq[0] - f[0, i_seq])  # keep the first wire value
-        f[:, FR_SEQ] = seq
+    k = unwrap_counter(f[:, i_seq], SEQ_BITS)
+    k = k - (k[0] - f[0, i_seq])  # keep the first wire value
+    f[:, FR_SEQ] = np.floor_divide(k.astype(np.int64), d)
+    if scenario:
+        sc = load_scenario(scenario_path(scenario))
+    else:
+        sc = None
+    card = sc.machine if sc is not None else MachineCard()
+    sample_card = dataclasses.replace(card, pwm_hz=card.pwm_hz / d)
+    settings: dict[str, Any] = {
+        "format": 1, "machine": dataclasses.asdict(sample_card),
+        "observers": {nm: o.to_dict() for nm, o in sc.observers.items()} if sc else {},
+        "scenario": {"name": sc.name if sc else "", "source": str(sc.source) if sc else ""},
+        "first_seq": int(f[0, FR_SEQ]), "observer_states": {},
+        "can_import": {"source": str(log), "layout": cap.layout, "decimation": d,
+                       "pwm_hz": card.pwm_hz, "sample_period_s": d / card.pwm_hz},
+    }
+    stamp = Stamp(sample_card.ts_s)
     fw = FrameWire(frame_id)  # FRAME_FIELDS are the engine's FR_* columns
     outp = Path(out)
-    written = 0
-    with Writer(outp, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        conn = writer.add_connection(topic, T_FRAME, typestore=typestore())
+    # bag time: the capture's own clock (its timestamps are wall-clock epoch times)
+    offset = int(round(float(cap.timestamps[0]) * 1e9)) - stamp.ns(int(f[0, FR_SEQ]))
+    with BagWriter(outp, settings, epoch_offset_ns=offset) as w:
+        cid = w.add_connection(topic, T_FRAME)
         for j in range(f.shape[0]):
-            t_ns = int(round(float(cap.timestamps[j]) * 1e9))
-            writer.write(conn, t_ns, fw.pack(f[j], *divmod(t_ns, 1_000_000_000)))
-            written += 1
+            t_ns = stamp.ns(int(f[j, FR_SEQ]))
+            w.write(cid, t_ns, fw.pack(f[j], *divmod(t_ns, 1_000_000_000)))
     out_counts = dict(cap.counts)
-    out_counts.update(written=written, layout=cap.layout, topic=topic, bag=str(outp))
+    out_counts.update(written=int(f.shape[0]), layout=cap.layout, decimation=d,
+                      sample_period_s=d / card.pwm_hz, topic=topic, bag=str(outp))
+    if cap.bad_lines:
+        out_counts["first_malformed_lines"] = [f"{Path(log).name}:{n}: {why}"
+                                               for n, why in cap.bad_lines[:5]]
     return out_counts
 
 
 def main(argv: list[str] | None = None) -> int:
-    """CLI: ``can-import LOG --out BAG [--topic T]``; prints counts, last line JSON."""
+    """CLI: ``can-import LOG --out BAG [--topic T] [--scenario S] [--decimation D]``;
+    prints counts, last line JSON."""
     ap = argparse.ArgumentParser(prog="fluxdrive can-import",
                                  description="CAN capture (.log/.asc/.blf) -> bag of PhaseFrames")
     ap.add_argument("log", help="capture file: candump .log, Vector .asc or .blf")
     ap.add_argument("--out", required=True, help="output bag directory (must not exist)")
     ap.add_argument("--topic", default=PHASE_FRAME_TOPIC)
+    ap.add_argument("--scenario", help="scenario the bench ran: its machine card and observer "
+                    "configurations go into the bag (default: the default machine card)")
+    ap.add_argument("--decimation", type=int, help="PWM periods per sample (default: the "
+                    "capture's sequence-counter step)")
     a = ap.parse_args(sys.argv[1:] if argv is None else argv)
     if Path(a.out).exists():
         print(f"can-import: {a.out} exists; choose a new bag directory", file=sys.stderr)
         return 2
-    try:
-        res = import_capture(a.log, a.out, topic=a.topic)
-    except (ValueError, FileNotFoundError) as exc:
-        print(f"can-import: {exc}", file=sys.stderr)
+    if a.decimation is not None and a.decimation < 1:
+        print(f"can-import: --decimation {a.decimation}: must be >= 1", file=sys.stderr)
         return 2
-    print(f"[can-import] {res['decoded']} sample frames decoded, {res['malformed']} malformed, "
-          f"{res['gaps']} gaps -> {res['written']} PhaseFrames on {a.topic} in {a.out}",
-          file=sys.stderr)
+    try:
+        res = import_capture(a.log, a.out, topic=a.topic, scenario=a.scenario,
+                             decimation=a.decimation)
+    except (ValueError, OSError) as exc:  # CaptureError, ConfigError: one line
+        print(f"can-import: {str(exc).splitlines()[0] if str(exc) else exc!r}", file=sys.stderr)
+        return 2
+    bad = res.get("malformed_lines", 0)
+    if bad:
+        print(f"[can-import] skipped {bad} malformed line(s): "
+              + "; ".join(res["first_malformed_lines"]), file=sys.stderr)
+    print(f"[can-import] {res['decoded']} sample frames decoded ({res['layout']}, D = "
+          f"{res['decimation']}, sample period {res['sample_period_s'] * 1e3:g} ms), "
+          f"{res['malformed']} malformed, {res['gaps']} gaps -> {res['written']} PhaseFrames "
+          f"on {a.topic} in {a.out}", file=sys.stderr)
     print(json.dumps(res))
     return 0
 

@@ -30,7 +30,8 @@ from fluxdrive.can.protocol import (
     pack_payloads,
 )
 
-__all__ = ["SUPPORTED_SUFFIXES", "CaptureResult", "read_capture", "write_capture"]
+__all__ = ["SUPPORTED_SUFFIXES", "CaptureError", "CaptureResult", "read_capture",
+           "write_capture"]
 
 SUPPORTED_SUFFIXES = (".log", ".asc", ".blf")
 """Capture formats that keep CAN FD frames."""
@@ -54,6 +55,8 @@ class CaptureResult:
     counts: dict[str, int]
     layout: str
     reasons: list[tuple[int, str]] = field(default_factory=list)
+    bad_lines: list[tuple[int, str]] = field(default_factory=list)  # (line, why), first 20
+    step: int = 1  # wire seq step between samples (the layout's decimation D)
 
     def column(self, name: str) -> np.ndarray:
         """One frame column by name (see FRAME_FIELDS)."""
@@ -91,24 +94,29 @@ def read_capture(
     fd_ts: list[float] = []
     fd_isfd: list[bool] = []
     cl_msgs: list[tuple[int, bytes, float]] = []
-    # .asc: keep absolute times (python-can's default makes them relative to the start)
-    kw = {"relative_timestamp": False} if p.suffix.lower() == ".asc" else {}
-    with can.LogReader(str(p), **kw) as reader:
-        for msg in reader:
-            total += 1
-            if msg.is_error_frame:
-                errors += 1
-                continue
-            aid = msg.arbitration_id
-            if aid == sample_id and not msg.is_extended_id:
-                fd_data.append(bytes(msg.data))
-                fd_ts.append(msg.timestamp)
-                fd_isfd.append(bool(msg.is_fd))
-            elif aid in classic and not msg.is_extended_id:
-                cl_msgs.append((aid, bytes(msg.data), msg.timestamp))
-            else:
-                other += 1
-    counts = {"total": total, "other": other, "error_frames": errors}
+    bad_lines: list[tuple[int, str]] = []
+    if not p.is_file():
+        raise CaptureError(f"{p}: no such capture file")
+    for msg in _messages(p, bad_lines):
+        total += 1
+        if msg.is_error_frame:
+            errors += 1
+            continue
+        aid = msg.arbitration_id
+        if aid == sample_id and not msg.is_extended_id:
+            fd_data.append(bytes(msg.data))
+            fd_ts.append(msg.timestamp)
+            fd_isfd.append(bool(msg.is_fd))
+        elif aid in classic and not msg.is_extended_id:
+            cl_msgs.append((aid, bytes(msg.data), msg.timestamp))
+        else:
+            other += 1
+    counts = {"total": total, "other": other, "error_frames": errors,
+              "malformed_lines": len(bad_lines)}
+    if total == 0:
+        why = f" ({len(bad_lines)} malformed lines, first {p.name}:{bad_lines[0][0]}: " \
+              f"{bad_lines[0][1]})" if bad_lines else ""
+        raise CaptureError(f"{p}: holds no CAN frames{why}")
     reasons: list[tuple[int, str]] = []
     if fd_data or not cl_msgs:
         payloads, lens = pack_payloads(fd_data, proto.fd_codec.length)
@@ -122,7 +130,7 @@ def read_capture(
             reasons.append((int(i), res.report.reasons[int(i)]))
         frames = frames[valid]
         ts = np.asarray(fd_ts, dtype=np.float64)[valid]
-        step = 1
+        step = _infer_step(frames[:, FRAME_FIELDS.index("seq")], 1)
         layout = "fd" if fd_data else "none"
         counts.update(sample=len(fd_data), decoded=int(valid.sum()), malformed=int((~valid).sum()))
         other += len(cl_msgs)
@@ -137,7 +145,8 @@ def read_capture(
                 tss.append(t)
         frames = np.vstack(rows) if rows else np.empty((0, len(FRAME_FIELDS)))
         ts = np.asarray(tss, dtype=np.float64)
-        step = classic_step or proto.classic_decimation
+        step = classic_step or _infer_step(frames[:, FRAME_FIELDS.index("seq")],
+                                           proto.classic_decimation)
         layout = "classic"
         reasons = list(enumerate(ra.reasons))
         counts.update(
@@ -152,9 +161,90 @@ def read_capture(
     counts.update(
         gaps=st.gaps, lost=st.lost, duplicates=st.duplicates, out_of_order=st.out_of_order
     )
+    if not len(frames):
+        raise CaptureError(f"{p}: none of its {total} CAN frames is a valid sample frame "
+                           f"(SAMPLE_FD 0x{sample_id:03X} or the classic layout "
+                           f"{', '.join(f'0x{i:03X}' for i in classic_ids)}); "
+                           f"{counts.get('malformed', 0)} malformed")
     return CaptureResult(
-        frames=frames, timestamps=ts, counts=counts, layout=layout, reasons=reasons
+        frames=frames, timestamps=ts, counts=counts, layout=layout, reasons=reasons,
+        bad_lines=bad_lines[:20], step=step,
     )
+
+
+def _infer_step(wire_seq: np.ndarray, default: int) -> int:
+    """The decimation D of a capture: the most common step of its 16-bit sequence counter
+    (a sample every D PWM periods carries seq k = j D)."""
+    if len(wire_seq) < 3:
+        return default
+    d = np.diff(wire_seq.astype(np.int64)) % (1 << SEQ_BITS)
+    d = d[(d > 0) & (d < 256)]
+    if not len(d):
+        return default
+    vals, cnt = np.unique(d, return_counts=True)
+    return int(vals[np.argmax(cnt)])
+
+
+class CaptureError(ValueError):
+    """A capture that cannot be imported; the message names the file (one line)."""
+
+
+class _Lines:
+    """The lines of a text capture, counting where the reader is (for file:line)."""
+
+    def __init__(self, lines: list[str]) -> None:
+        self.lines = lines
+        self.i = 0  # lines handed out so far = 1-based number of the current line
+
+    def __iter__(self) -> _Lines:
+        return self
+
+    def close(self) -> None:  # the reader closes its file when done
+        pass
+
+    @property
+    def closed(self) -> bool:
+        return False
+
+    def __next__(self) -> str:
+        if self.i >= len(self.lines):
+            raise StopIteration
+        self.i += 1
+        return self.lines[self.i - 1]
+
+
+def _messages(p: Path, bad_lines: list[tuple[int, str]]) -> Iterable[can.Message]:
+    """python-can's reader for the capture; a text capture (.log/.asc) goes line by line:
+    a line the reader cannot parse is skipped and noted (line number, reason) and reading
+    goes on after it.  A binary capture (.blf) that python-can cannot read is one error."""
+    suffix = p.suffix.lower()
+    if suffix == ".blf":
+        try:
+            with can.LogReader(str(p)) as reader:
+                yield from reader
+        except Exception as exc:  # noqa: BLE001 - BLFParseError, struct/zlib errors, ...
+            raise CaptureError(f"{p}: not a readable BLF capture ({type(exc).__name__}: "
+                               f"{str(exc).strip()[:120] or 'damaged'})") from None
+        return
+    try:
+        text = p.read_text(errors="replace")
+    except OSError as exc:
+        raise CaptureError(f"{p}: cannot read ({exc.strerror or exc})") from None
+    src = _Lines(text.splitlines(keepends=True))
+    kw = {"relative_timestamp": False} if suffix == ".asc" else {}  # .asc: absolute times
+    reader = can.LogReader(str(p), **kw)
+    reader.file.close()
+    reader.file = src
+    while True:
+        try:
+            yield from reader
+            return
+        except Exception as exc:  # noqa: BLE001 - the reader's parse error on one line
+            if src.i >= len(src.lines):  # not a line's fault: the end of the file
+                return
+            bad_lines.append((src.i, f"{type(exc).__name__}: {str(exc).strip()[:80]}"))
+            if hasattr(reader, "_extract_header"):  # .asc: the header was read already
+                reader._extract_header = lambda: None  # type: ignore[method-assign]
 
 
 def write_capture(

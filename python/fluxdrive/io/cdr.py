@@ -47,6 +47,7 @@ _BUILTIN = {
     "builtin_interfaces/Time": "int32 sec\nuint32 nanosec\n",
     "rosgraph_msgs/Clock": "builtin_interfaces/Time clock\n",
     "std_msgs/UInt64": "uint64 data\n",
+    "std_msgs/String": "string data\n",
     "std_msgs/Empty": "",
 }
 

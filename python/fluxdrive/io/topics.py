@@ -33,3 +33,23 @@ MSG_SRC_DIR = MSG_DIR
 
 def estimate_topic(observer: str) -> str:
     return f"{OBS_NAMESPACE}/{observer}/{ESTIMATE}"
+
+
+# the recorder's settings (machine card, observers, scenario: the bag metadata's JSON) also
+# travel as one latched message, so they survive any conversion of the bag
+SETTINGS = "/fluxdrive/settings"  # std_msgs/String, JSON, one message at the start
+
+# QoS the graph's publishers offer per topic (fluxdrive_ros.qos), recorded in every bag
+# (offered_qos_profiles) so a playback offers the same: (history depth, durability); all
+# reliable, keep-last.
+SAMPLE_DEPTH = 10000
+OFFERED_QOS: dict[str, tuple[int, str]] = {
+    DONE: (1, "transient_local"),  # latched: a late reader still gets the end of the run
+    SETTINGS: (1, "transient_local"),
+    MARKER: (100, "transient_local"),
+}
+SAMPLE_QOS = (SAMPLE_DEPTH, "transient_local")  # every per-sample topic and /clock
+
+
+def offered_qos(topic: str) -> tuple[int, str]:
+    return OFFERED_QOS.get(topic, SAMPLE_QOS)

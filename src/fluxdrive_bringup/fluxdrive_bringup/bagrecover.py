@@ -70,10 +70,9 @@ def is_finalised(mcap: Path) -> bool:
 def recover(bag: Path, out: Path | None = None) -> Recovery:
     """Read what is readable of bag's MCAP file and write it to `out` (default
     <bag>-recovered) as a new, finalised bag."""
-    from fluxdrive.io.bagio import typestore
+    from fluxdrive.io.bagio import META_KEY, BagWriter, typestore
     from mcap.records import Channel, Chunk, Message, Schema
     from mcap.stream_reader import StreamReader, breakup_chunk
-    from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     from .recorder import _seq
@@ -99,10 +98,12 @@ def recover(bag: Path, out: Path | None = None) -> Recovery:
     topic_of: dict[int, str] = {}
     first_seq = last_seq = None
     gaps = 0
-    writer = Writer(out, version=9, storage_plugin=StoragePlugin.MCAP)
-    for k, v in custom.items():
-        writer.set_custom_data(k, v)
-    writer.open()
+    try:
+        settings = json.loads(custom[META_KEY]) if META_KEY in custom else {}
+    except ValueError:
+        settings = {}
+    # the recorded log times are already on the epoch: no second offset
+    writer = BagWriter(out, settings, epoch_offset_ns=0)
     try:
         with open(mcap, "rb") as fh:
             records = StreamReader(fh, emit_chunks=True, validate_crcs=True).records
@@ -152,9 +153,7 @@ def recover(bag: Path, out: Path | None = None) -> Recovery:
                         if sch.name not in store.fielddefs:  # not ours: its embedded text
                             ts = get_typestore(Stores.EMPTY)
                             ts.register(get_types_from_msg(sch.data.decode(), sch.name))
-                        conns[x.id] = writer.add_connection(
-                            x.topic, sch.name, typestore=ts,
-                            serialization_format=x.message_encoding)
+                        conns[x.id] = writer.add_connection(x.topic, sch.name, ts)
                         topic_of[x.id] = x.topic
                         rec.counts[x.topic] = 0
     finally:

@@ -1,5 +1,6 @@
 """The recorder's bag-writing helper process: serialised messages in on stdin, a rosbag2
-bag (rosbags Writer, MCAP storage, version 9, message definitions embedded) out.
+bag (fluxdrive.io.bagio.BagWriter: MCAP storage, version 9, message definitions embedded)
+out.
 
 Why a process: writing with rosbags costs about 5 us of Python per message; at 10 kHz with
 ten topics that is half a core, and inside the recorder's process it would fight the
@@ -11,7 +12,7 @@ input ends: on the recorder's end marker, or on EOF because the recorder died --
 SIGKILLed recorder leaves a finalised bag with everything it had handed over.
 
 Crash safety: the MCAP data section is a sequence of chunks; a chunk goes to the file when
-it reaches 1 MiB (rosbags) or on the recorder's flush marker (every `flush_interval_s`,
+it reaches 1 MiB or on the recorder's flush marker (every `flush_interval_s`,
 default 0.5 s), whichever comes first, and the file is flushed and fsync'ed then.  If this
 process is killed too (SIGKILL of the recorder's process group, a power cut after the
 fsync), the file lacks only its summary and the open chunk: `./fluxdrive bag recover DIR`
@@ -24,7 +25,8 @@ A failing write (disk full, file too large, I/O error) stops the recording: "err
 complete chunks stay readable for `bag recover`) and the process exits with code 3.
 
 Protocol on stdin (little endian):
-  b"H" u32 n, JSON {"path": str, "custom_data": {key: str}}     first record; opens the bag
+  b"H" u32 n, JSON {"path": str, "custom_data": {key: str},      first record; opens the bag
+                    "epoch_offset_ns": int}                     (bag time = stamp + offset)
   b"C" u32 n, JSON {"id": int, "topic": str, "type": str}       a connection (before use)
   b"M" u16 id, i64 t_ns, u32 n, n bytes of CDR                   a message
   b"F"                                                          flush: close the open chunk
@@ -36,7 +38,6 @@ when writing failed; errors on stderr with a non-zero exit.
 from __future__ import annotations
 
 import json
-import os
 import signal
 import struct
 import sys
@@ -93,24 +94,14 @@ def _say(text: str) -> None:
 
 def flush_chunk(writer, sync: bool = True) -> None:
     """Close the open MCAP chunk (if it holds messages) and push the file to the disk, so a
-    crash from here on loses nothing written so far (rosbags 0.11 McapWriter internals;
-    without them, chunks still close at 1 MiB)."""
-    st = getattr(writer, "storage", None)
-    chunk = getattr(st, "chunk", None)
-    if chunk is None or not hasattr(st, "close_chunk"):
-        return
-    if chunk.msgs:
-        st.close_chunk()
-    st.bio.flush()
-    if sync:
-        os.fsync(st.bio.fileno())
+    crash from here on loses nothing written so far."""
+    writer.flush(sync)
 
 
 def main() -> int:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    from fluxdrive.io.bagio import typestore
-    from rosbags.rosbag2 import StoragePlugin, Writer
+    from fluxdrive.io.bagio import META_KEY, BagWriter
 
     inp = sys.stdin.buffer
     read = inp.read
@@ -118,7 +109,6 @@ def main() -> int:
     side: Path | None = None
     conns: dict[int, object] = {}
     n_msgs = 0
-    store = None
     failed = ""
 
     def read_json() -> dict:
@@ -144,21 +134,18 @@ def main() -> int:
                 flush_chunk(writer)
             elif kind == b"C":
                 c = read_json()
-                conns[c["id"]] = writer.add_connection(c["topic"], c["type"], typestore=store)
+                conns[c["id"]] = writer.add_connection(c["topic"], c["type"])
             elif kind == b"H":
                 h = read_json()
-                store = typestore()
                 path = Path(h["path"])
-                w = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
-                for k, v in (h.get("custom_data") or {}).items():
-                    w.set_custom_data(k, v)
-                w.open()
-                writer = w
+                cd = h.get("custom_data") or {}
+                settings = json.loads(cd[META_KEY]) if META_KEY in cd else {}
+                writer = BagWriter(path, settings, epoch_offset_ns=h.get("epoch_offset_ns"))
                 side = path / RECORDING_FILE
                 side.write_text(json.dumps({
                     "note": "this bag is being written; without metadata.yaml it was not "
                             "finalised: ./fluxdrive bag recover " + str(path),
-                    "custom_data": h.get("custom_data") or {}}))
+                    "custom_data": {META_KEY: json.dumps(writer.settings)}}))
                 _say("ready")
             else:
                 print(f"bagwriter: corrupt input (record type {kind!r})", file=sys.stderr)
@@ -177,9 +164,9 @@ def main() -> int:
             except OSError as exc:
                 failed = f"cannot finalise {writer.path}: {exc.strerror or exc}"
         if failed:
-            if writer is not None and writer.storage is not None:
+            if writer is not None:
                 try:  # no summary: the complete chunks stay readable for `bag recover`
-                    writer.storage.abort()
+                    writer.abort()
                 except OSError:
                     pass
                 failed += (f"; the complete chunks can be recovered with "

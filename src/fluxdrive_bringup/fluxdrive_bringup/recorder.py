@@ -172,7 +172,11 @@ class RecorderNode(FluxNode):
             [sys.executable, "-m", "fluxdrive_bringup.bagwriter"], stdin=subprocess.PIPE,
             stdout=subprocess.PIPE, bufsize=0)
         self.pipe = self.proc.stdin
-        self.pipe.write(pack_json(b"H", {"path": str(self.bag_dir), "custom_data": custom}))
+        # bag times on a real epoch: sample time + the wall clock at the start (header
+        # stamps stay sim time; the offset is recorded in the bag's settings)
+        offset = 0 if self.pv["timestamps"] == "receive" else time.time_ns()
+        self.pipe.write(pack_json(b"H", {"path": str(self.bag_dir), "custom_data": custom,
+                                         "epoch_offset_ns": offset}))
         line = self.proc.stdout.readline().decode().strip()
         if line != "ready":
             self.proc.wait(timeout=10)

@@ -198,6 +198,20 @@ def run_graph(sc_path: Path, *, out: Path, bag: Path, layout: str = "composed",
             "bag": str(bag), "scenario": sc, "graph": g, "domain_id": dom}
 
 
+def interrupted_bag_note(bag: Path) -> str:
+    """What an interrupted run left: the frames the finalised bag holds (counted from the
+    bag itself -- the plant's last progress report lags the recorder)."""
+    from fluxdrive.io.bagio import topic_counts
+    from fluxdrive.io.topics import FRAME
+
+    try:
+        n = topic_counts(bag).get(FRAME, 0)
+    except Exception as exc:  # noqa: BLE001 - not finalised / damaged: say so
+        return (f"bag {bag} is not readable ({type(exc).__name__}); try "
+                f"./fluxdrive bag recover {bag}")
+    return f"the bag holds {n} frames (finalised): {bag}"
+
+
 def main_run(argv: list[str], default_scenario: str | None = None) -> int:
     ap = argparse.ArgumentParser(prog="fluxdrive run" if default_scenario is None
                                  else "fluxdrive demo", description=__doc__.split("\n\n")[0])
@@ -249,8 +263,7 @@ def main_run(argv: list[str], default_scenario: str | None = None) -> int:
                   scope=args.scope, scope_port=args.scope_port,
                   watch=_print_scope_url if args.scope and args.quiet else None)
     if r["interrupted"]:
-        print(f"[run] interrupted after {r['frames']} frames; bag (finalised): {bag}",
-              file=sys.stderr)
+        print(f"[run] interrupted: {interrupted_bag_note(bag)}", file=sys.stderr)
         return 128 + int(r.get("stop_signal") or 2)  # 130 (SIGINT) / 143 (SIGTERM)
     if r["code"] != 0:
         print(f"[run] the graph failed (exit {r['code']}); logs in {out / 'logs'}",
