@@ -54,3 +54,22 @@ def test_identify_command_writes_a_card(tmp_path):
     assert abs(card.resistance_ohm / 0.40 - 1) < 0.02
     sc = load_scenario(scenario_path("paper_2pct_150load"), machine=str(out))
     assert sc.machine.name == "default_spm_identified"
+
+
+def test_resistance_and_deadtime_over_the_can_bridge():
+    """The same procedure over the CAN bench bridge to the drive emulator (its first step,
+    for time: the whole procedure takes ~200 s of wall time over the bus and meets every
+    tolerance, `./fluxdrive identify --can`)."""
+    from fluxdrive.can.plantlink import CanPlantLink
+    from fluxdrive.drive.identify import Identifier
+
+    card = load_machine(machine_path("default_spm"))
+    link = CanPlantLink(card)
+    try:
+        r, v_dt, r_captured = Identifier(link, card).resistance()
+    finally:
+        link.close()
+    vdt_true = card.dc_bus_v * card.deadtime_s * card.pwm_hz
+    print(f"CAN: R {r:.4f} ohm (captured {r_captured:.4f}), V_dt {v_dt:.3f} V")
+    assert abs(r / card.resistance_ohm - 1) <= TOLERANCE["R"]
+    assert abs(v_dt / vdt_true - 1) <= TOLERANCE["V_dt"]

@@ -4,6 +4,8 @@ write a machine card that runs the scenarios directly.
   ./fluxdrive identify --machine CARD --out card.yaml   the simulated plant of CARD (sensor
                                                         noise and quantisation on); CARD also
                                                         gives the nameplate data
+  ./fluxdrive identify --can --machine CARD --out c.yaml  the same over the CAN bench bridge
+                                                        (drive emulator on a virtual bus)
   ./fluxdrive identify --check [--machine CARD ...]     accuracy on every shipped card (or
                                                         those named): table, last line JSON
 """
@@ -31,13 +33,26 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--check", action="store_true",
                     help="accuracy table over the shipped cards (or --machine ones)")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--can", action="store_true",
+                    help="over the CAN bench bridge, to the drive emulator on a virtual bus "
+                         "(the same procedure; ~1 ms of wall time per PWM period)")
     args = ap.parse_args(argv)
     if args.check:
         return _check(args.machine or sorted(p.stem for p in (CONFIG_DIR / "machines")
                                              .glob("*.yaml")), args.seed)
     card = load_machine(machine_path(args.machine[0] if args.machine else "default_spm"))
     t0 = time.perf_counter()
-    ident, _ = identify_sim(card, args.seed, progress=_stderr)
+    if args.can:
+        from fluxdrive.can.plantlink import CanPlantLink
+        from fluxdrive.drive.identify import Identifier
+
+        link = CanPlantLink(card)
+        try:
+            ident = Identifier(link, card, progress=_stderr).run()
+        finally:
+            link.close()
+    else:
+        ident, _ = identify_sim(card, args.seed, progress=_stderr)
     out = args.out or Path(f"{card.name}_identified.yaml")
     save_machine(ident.card(card), out)
     print(f"identified in {time.perf_counter() - t0:.1f} s: R {ident.resistance_ohm:.4f} ohm, "
