@@ -34,6 +34,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from fluxdrive.drive import plant as pl
 from fluxdrive.drive.control import (
     CO_DA,
     CO_DB,
@@ -64,32 +65,7 @@ from fluxdrive.drive.observers import (
     ES_VALID,
     ES_W,
 )
-from fluxdrive.drive.plant import (
-    FLAG_CLIP,
-    FR_DA,
-    FR_DB,
-    FR_DC,
-    FR_EN,
-    FR_ENC,
-    FR_FLAGS,
-    FR_IA,
-    FR_IB,
-    FR_IC,
-    FR_N,
-    FR_SEQ,
-    FR_VAB,
-    FR_VBC,
-    FR_VCA,
-    FR_VDC,
-    TR_IA,
-    TR_IB,
-    TR_IC,
-    TR_N,
-    TR_TE,
-    TR_THETA_E,
-    TR_TL,
-    TR_WM,
-)
+from fluxdrive.drive.plant import FLAG_CLIP, FR_FLAGS, FR_N, FR_SEQ, TR_N, TR_THETA_E
 from fluxdrive.io import topics
 from fluxdrive.io.cdr import Codec, Decoder, leaves
 
@@ -108,15 +84,16 @@ TWO_PI = 2.0 * math.pi
 # ---------------------------------------------------------------- the mapping tables
 # (message field path, engine column); header.stamp and seq are handled by the codecs
 FRAME_MAP: tuple[tuple[str, int], ...] = (
-    ("i_abc[0]", FR_IA), ("i_abc[1]", FR_IB), ("i_abc[2]", FR_IC),
-    ("v_ll[0]", FR_VAB), ("v_ll[1]", FR_VBC), ("v_ll[2]", FR_VCA),
-    ("vdc", FR_VDC),
-    ("duty_applied[0]", FR_DA), ("duty_applied[1]", FR_DB), ("duty_applied[2]", FR_DC),
-    ("pwm_enabled", FR_EN), ("encoder_counts", FR_ENC), ("status_flags", FR_FLAGS),
+    ("i_abc[0]", pl.FR_IA), ("i_abc[1]", pl.FR_IB), ("i_abc[2]", pl.FR_IC),
+    ("v_ll[0]", pl.FR_VAB), ("v_ll[1]", pl.FR_VBC), ("v_ll[2]", pl.FR_VCA),
+    ("vdc", pl.FR_VDC),
+    ("duty_applied[0]", pl.FR_DA), ("duty_applied[1]", pl.FR_DB), ("duty_applied[2]", pl.FR_DC),
+    ("pwm_enabled", pl.FR_EN), ("encoder_counts", pl.FR_ENC), ("status_flags", FR_FLAGS),
 )
 TRUTH_MAP: tuple[tuple[str, int], ...] = (
-    ("theta_e", TR_THETA_E), ("omega_m", TR_WM), ("torque_e", TR_TE), ("torque_load", TR_TL),
-    ("i_abc_true[0]", TR_IA), ("i_abc_true[1]", TR_IB), ("i_abc_true[2]", TR_IC),
+    ("theta_e", TR_THETA_E), ("omega_m", pl.TR_WM), ("torque_e", pl.TR_TE),
+    ("torque_load", pl.TR_TL),
+    ("i_abc_true[0]", pl.TR_IA), ("i_abc_true[1]", pl.TR_IB), ("i_abc_true[2]", pl.TR_IC),
 )
 ESTIMATE_MAP: tuple[tuple[str, int], ...] = (
     ("theta_e", ES_TH), ("omega_e", ES_W), ("flux_ab[0]", ES_LA), ("flux_ab[1]", ES_LB),
