@@ -319,6 +319,52 @@ def _cap_track(cap_t, cap_s, cap_n, j, t, v_line, vdc):
         cap_n[j] = n + 1
 
 
+@njit(cache=True, inline="always")
+def _switching_events(mp, ev, enabled, skew_on, t1a, t2a, t1b, t2b, t1c, t2c):
+    """Sorted instants in [0, Ts] where a leg state can change (each leg's comparator
+    crossings and the ends of their deadtime windows) or a skewed current sample is taken;
+    returns their count."""
+    ts = mp[MP_TS]
+    td = mp[MP_TD]
+    n = 0
+    ev[n] = 0.0
+    n += 1
+    if enabled:
+        for tx in (t1a, t1a + td, t2a, t2a + td, t1b, t1b + td, t2b, t2b + td,
+                   t1c, t1c + td, t2c, t2c + td):
+            if 0.0 < tx < ts:
+                ev[n] = tx
+                n += 1
+    if skew_on:
+        # phase j is sampled skew_j before the next valley: a segment boundary there
+        for j in range(3):
+            if mp[MP_SKEW_A + j] > 0.0:
+                ev[n] = ts - mp[MP_SKEW_A + j]
+                n += 1
+    ev[n] = ts
+    n += 1
+    _insertion_sort(ev, n)
+    return n
+
+
+@njit(cache=True, inline="always")
+def _phase_current_sample(vs_out, j, ia, ib):
+    """Phase j's current at its (skewed) sampling instant into vs_out[6 + j]."""
+    pa_, pb_, pc_ = inv_clarke(ia, ib)
+    vs_out[6 + j] = pa_ if j == 0 else (pb_ if j == 1 else pc_)
+
+
+@njit(cache=True, inline="always")
+def _mechanics(st, mp, wm, thm0, te, tl):
+    """Speed and angle over the period (semi-implicit in the viscous term)."""
+    ts = mp[MP_TS]
+    j = mp[MP_J]
+    bv = mp[MP_B]
+    wm_new = (wm * (j / ts) + te - tl) / (j / ts + bv)
+    st[PS_THM] = thm0 + 0.5 * (wm + wm_new) * ts
+    st[PS_WM] = wm_new
+
+
 @njit(cache=True)
 def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out, cap_t, cap_s, cap_n):
     """Integrate [t_k, t_k + Ts] at switching level.  Writes the line volt-seconds
@@ -343,24 +389,7 @@ def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out, cap_t, cap
     t2b = (1.0 + db) * half
     t1c = (1.0 - dc) * half
     t2c = (1.0 + dc) * half
-    n = 0
-    ev[n] = 0.0
-    n += 1
-    if enabled:
-        for tx in (t1a, t1a + td, t2a, t2a + td, t1b, t1b + td, t2b, t2b + td,
-                   t1c, t1c + td, t2c, t2c + td):
-            if 0.0 < tx < ts:
-                ev[n] = tx
-                n += 1
-    if skew_on:
-        # phase j is sampled skew_j before the next valley: a segment boundary there
-        for j in range(3):
-            if mp[MP_SKEW_A + j] > 0.0:
-                ev[n] = ts - mp[MP_SKEW_A + j]
-                n += 1
-    ev[n] = ts
-    n += 1
-    _insertion_sort(ev, n)
+    n = _switching_events(mp, ev, enabled, skew_on, t1a, t2a, t1b, t2b, t1c, t2c)
 
     ia = st[PS_IA]
     ib = st[PS_IB]
@@ -388,8 +417,7 @@ def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out, cap_t, cap
         if skew_on:
             for j in range(3):
                 if ta == ts - mp[MP_SKEW_A + j]:
-                    pa_, pb_, pc_ = inv_clarke(ia, ib)
-                    vs_out[6 + j] = pa_ if j == 0 else (pb_ if j == 1 else pc_)
+                    _phase_current_sample(vs_out, j, ia, ib)
         h = tb - ta
         if h <= 1e-15:
             continue
@@ -414,14 +442,13 @@ def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out, cap_t, cap
                 va0 = pa + 0.5 * vdc
                 vb0 = pb + 0.5 * vdc
                 vc0 = pc + 0.5 * vdc
-                qa, qb, qc = va0, vb0, vc0
                 if max(pa, pb, pc) - min(pa, pb, pc) < vdc:
-                    vs_out[0] += (va0 - vb0) * hs
+                    vs_out[0] += (va0 - vb0) * hs  # the capture sees the same levels
                     vs_out[1] += (vb0 - vc0) * hs
                     vs_out[2] += (vc0 - va0) * hs
-                    vs_out[3] += (qa - qb) * hs
-                    vs_out[4] += (qb - qc) * hs
-                    vs_out[5] += (qc - qa) * hs
+                    vs_out[3] += (va0 - vb0) * hs
+                    vs_out[4] += (vb0 - vc0) * hs
+                    vs_out[5] += (vc0 - va0) * hs
                     continue
                 zero_lock = False
             iph_a, iph_b, iph_c = inv_clarke(ia, ib)
@@ -434,7 +461,7 @@ def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out, cap_t, cap
                 _cap_track(cap_t, cap_s, cap_n, 1, t_sub, qb - qc, vdc)
                 _cap_track(cap_t, cap_s, cap_n, 2, t_sub, qc - qa, vdc)
             va, vb = clarke(va0, vb0, vc0)
-            if r > 0.0:
+            if r > 0.0:  # exact RL step response over hs (v and e held)
                 ia_n = a_rl * ia + (1.0 - a_rl) * (va - ea) / r
                 ib_n = a_rl * ib + (1.0 - a_rl) * (vb - eb) / r
             else:
@@ -453,6 +480,7 @@ def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out, cap_t, cap
                     zero_lock = True
             ia = ia_n
             ib = ib_n
+            # line volt-seconds: real leg voltages, and the ideal levels the capture sees
             vs_out[0] += (va0 - vb0) * hs
             vs_out[1] += (vb0 - vc0) * hs
             vs_out[2] += (vc0 - va0) * hs
@@ -460,24 +488,17 @@ def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out, cap_t, cap
             vs_out[4] += (qb - qc) * hs
             vs_out[5] += (qc - qa) * hs
     if skew_on:
-        pa_, pb_, pc_ = inv_clarke(ia, ib)
         for j in range(3):
             if mp[MP_SKEW_A + j] == 0.0:
-                vs_out[6 + j] = pa_ if j == 0 else (pb_ if j == 1 else pc_)
+                _phase_current_sample(vs_out, j, ia, ib)
     if th_on:
         _thermal_step(st, mp, r, i2_int / ts)
     te = te_int / ts
-    # mechanics over the period (semi-implicit in the viscous term)
-    tl = t_load
-    j = mp[MP_J]
-    bv = mp[MP_B]
-    wm_new = (wm * (j / ts) + te - tl) / (j / ts + bv)
-    st[PS_THM] = thm0 + 0.5 * (wm + wm_new) * ts
-    st[PS_WM] = wm_new
+    _mechanics(st, mp, wm, thm0, te, t_load)
     st[PS_IA] = ia
     st[PS_IB] = ib
     st[PS_TE] = te
-    st[PS_TL] = tl
+    st[PS_TL] = t_load
 
 
 @njit(cache=True)
