@@ -154,6 +154,8 @@ def bag_counts(bag: Path) -> tuple[dict[str, int], dict[str, int]]:
             summ = make_reader(fh).get_summary()
             if summ is None or summ.statistics is None:
                 raise RuntimeError(f"{f}: no summary section (bag not finalised)")
+            for ch in summ.channels.values():  # a channel with no message has no count entry
+                mcap_counts.setdefault(ch.topic, 0)
             for cid, n in summ.statistics.channel_message_counts.items():
                 topic = summ.channels[cid].topic
                 mcap_counts[topic] = mcap_counts.get(topic, 0) + n
