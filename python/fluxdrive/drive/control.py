@@ -68,6 +68,7 @@ CP_INV_TIMEOUT = _CP.index()  # estimate invalid this long in closed loop -> tri
 CP_HANDOVER_DWELL = _CP.index()  # estimate agreeing with the ramp this long -> handover [s]
 CP_I2T_LIMIT = _CP.index()  # I2t trip [pu^2 s]
 CP_IRATED = _CP.index()  # rated current [A]
+CP_HANDOVER_TIMEOUT = _CP.index()  # at handover speed this long without handover -> trip [s]
 CP_N = _CP.close(globals())
 SRC_ENCODER, SRC_ESTIMATE = 0, 1
 
@@ -89,6 +90,7 @@ CS_INV_T = _CS.index()  # time the estimate has been invalid [s]
 CS_IQ_IF_F = _CS.index()  # filtered torque current in the observer's frame during I-f [A]
 CS_AGREE_T = _CS.index()  # time the estimate has agreed with the ramp [s]
 CS_I2T = _CS.index()  # I2t integral [pu^2 s]
+CS_HO_WAIT_T = _CS.index()  # time the I-f ramp has waited at the handover speed [s]
 CS_N = _CS.close(globals())
 
 MODE_DISABLED, MODE_ALIGN, MODE_IF_RAMP, MODE_CLOSED_LOOP, MODE_FAULT = range(5)
@@ -96,11 +98,12 @@ MODE_NAMES = {0: "disabled", 1: "align", 2: "if_ramp", 3: "closed_loop", 4: "fau
 # fault codes: the same numbers as flux_drive_msgs/msg/DriveFault
 (FAULT_NONE, FAULT_OVERCURRENT, FAULT_OVERCURRENT_I2T, FAULT_OVERVOLTAGE, FAULT_UNDERVOLTAGE,
  FAULT_OVERSPEED, FAULT_LOSS_OF_LOCK, FAULT_POSITION_INVALID, FAULT_STALE_INPUT, FAULT_WATCHDOG,
- FAULT_BAD_SAMPLE) = range(11)
+ FAULT_BAD_SAMPLE, FAULT_START_FAILED) = range(12)
 FAULT_NAMES = {0: "none", 1: "over-current (instantaneous)", 2: "over-current (I2t)",
                3: "DC-bus over-voltage", 4: "DC-bus under-voltage", 5: "over-speed",
                6: "loss of observer lock", 7: "position estimate not finite",
-               8: "stale input", 9: "watchdog", 10: "bad sample (NaN/inf)"}
+               8: "stale input", 9: "watchdog", 10: "bad sample (NaN/inf)",
+               11: "start-up failed"}
 
 # ---- controller output CO_*
 _CO = Layout("CO")
@@ -278,6 +281,14 @@ def _if_ramp(cs, cp, est, w_ref_m, id_inj, ia, ib, p, ts):
         cs[CS_AGREE_T] += ts
     else:
         cs[CS_AGREE_T] = 0.0
+    # a start that cannot hand over (a load above the I-f current's torque pulls the rotor
+    # out of step; an observer that never agrees) would ramp forever: a stated limit
+    if abs(w_tgt) >= hand and abs(w_if) >= hand:
+        cs[CS_HO_WAIT_T] += ts
+        if cp[CP_HANDOVER_TIMEOUT] > 0.0 and cs[CS_HO_WAIT_T] > cp[CP_HANDOVER_TIMEOUT]:
+            return th, we, id_ref, MODE_FAULT
+    else:
+        cs[CS_HO_WAIT_T] = 0.0
     if abs(w_tgt) >= hand and cs[CS_AGREE_T] >= cp[CP_HANDOVER_DWELL]:
         # handover: continue closed loop on the observer; the speed integrator starts
         # from the torque current the rotor is carrying in the observer's frame
@@ -417,6 +428,9 @@ def controller_step(cs, cp, fr, est, w_ref_m, id_inj, out):
         id_ref = _align(cs, cp)
     elif mode == MODE_IF_RAMP:
         th, we, id_ref, mode = _if_ramp(cs, cp, est, w_ref_m, id_inj, ia, ib, p, ts)
+        if mode == MODE_FAULT:
+            _trip(cs, out, FAULT_START_FAILED)
+            return
     if mode == MODE_CLOSED_LOOP:
         if (cp[CP_SRC] == SRC_ESTIMATE and abs(w_ref_m) < cp[CP_HANDBACK]
                 and cs[CS_MODE] == MODE_CLOSED_LOOP and cs[CS_T_MODE] > 0.05):
@@ -708,6 +722,9 @@ class ControllerConfig:
     invalid_timeout_s: float = 0.05
     handover_dwell_s: float = 0.3  # estimate valid and agreeing with the ramp this long (the
     # paper observer's compensation frequency settles in ~0.3 s)
+    # the I-f ramp at the handover speed this long without a handover latches "start-up
+    # failed" (0: wait for ever); 5 s is many handover dwells and I-f load-angle periods
+    handover_timeout_s: float = 5.0
     i2t_limit_pu2s: float = 10.0  # I2t trip: integral of ((i/I_rated)^2-1) dt (150 % for 8 s)
     r_hat_ohm: float | None = None
     l_hat_h: float | None = None
@@ -824,6 +841,7 @@ class ControllerConfig:
         cp[CP_WFB_LPF] = 2 * math.pi * self.speed_feedback_lpf_hz
         cp[CP_INV_TIMEOUT] = self.invalid_timeout_s
         cp[CP_HANDOVER_DWELL] = self.handover_dwell_s
+        cp[CP_HANDOVER_TIMEOUT] = self.handover_timeout_s
         cp[CP_I2T_LIMIT] = self.i2t_limit_pu2s
         cp[CP_IRATED] = card.rated_current_a
         return cp
@@ -838,7 +856,8 @@ CONTROL_RANGES: dict[str, tuple[float, float]] = {
     "encoder_pll_hz": (1.0, 2000.0), "speed_feedback_lpf_hz": (0.1, 2000.0),
     "overcurrent_pu": (0.1, 5.0), "overspeed_pu": (0.1, 5.0), "vdc_min_v": (0.0, 1e4),
     "vdc_max_v": (1.0, 1e4), "invalid_timeout_s": (1e-4, 10.0),
-    "handover_dwell_s": (0.0, 10.0), "i2t_limit_pu2s": (0.01, 1e4),
+    "handover_dwell_s": (0.0, 10.0), "handover_timeout_s": (0.0, 600.0),
+    "i2t_limit_pu2s": (0.01, 1e4),
     "r_hat_ohm": (0.0, 1e3), "l_hat_h": (1e-7, 10.0), "lambda_hat_vs": (1e-6, 10.0),
     "speed_observer_pll_hz": (0.1, 2000.0), "speed_observer_damping": (0.1, 5.0),
     "speed_observer_lpf_hz": (0.0, 2000.0), "peak_limit_db": (0.1, 20.0),
@@ -893,6 +912,12 @@ def trip_values(code: int, frame: np.ndarray, est: np.ndarray, cp: np.ndarray,
     if code == FAULT_LOSS_OF_LOCK:
         return (f"estimate flagged invalid (PLL error or |flux| out of bounds) for more than "
                 f"{cp[CP_INV_TIMEOUT]:g} s in closed loop (control.invalid_timeout_s)")
+    if code == FAULT_START_FAILED:
+        i_if = cp[CP_IF_I] / cp[CP_IRATED]
+        return (f"no handover after {cp[CP_HANDOVER_TIMEOUT]:g} s at the handover speed "
+                f"(control.handover_timeout_s): the estimate never agreed with the I-f ramp "
+                f"for control.handover_dwell_s -- a load torque above the I-f current's "
+                f"({i_if:.2g} pu, control.if_current_pu) pulls the rotor out of step")
     if code == FAULT_POSITION_INVALID:
         return f"estimate not finite (theta^ = {est[ES_TH]}, omega^ = {est[ES_W]})"
     if code == FAULT_BAD_SAMPLE:

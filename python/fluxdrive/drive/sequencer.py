@@ -290,8 +290,12 @@ class ControlSequencer:
             if self._lost(k, fr):
                 self._resync(k, es)
             elif self.lost_run:
+                # each lost frame re-decided flying vs. start-up (a braked rotor slows
+                # below the handover speed during a long gap): say which one resumes
+                how = ("flying restart on the estimate" if cs[CS_MODE] == MODE_CLOSED_LOOP
+                       else "restarting through align / I-f")
                 self.log("info", f"PWM back at frame {k} after {self.lost_run} lost "
-                                 f"period(s) from frame {self.lost_first}")
+                                 f"period(s) from frame {self.lost_first}; {how}")
                 self.lost_run = 0
         n = self.w_ref_profile.shape[0]
         w_ref = self.const_ref if self.const_ref is not None else float(

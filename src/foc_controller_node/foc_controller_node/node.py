@@ -92,6 +92,8 @@ DOCS = {
     "handback_rpm": ("observer -> I-f hand-back speed (below handover)", "rpm"),
     "handover_dwell_s": ("estimate valid and agreeing with the I-f ramp this long before "
                          "handover", "s"),
+    "handover_timeout_s": ("I-f ramp at the handover speed this long without a handover "
+                           "latches 'start-up failed' (0 = wait for ever)", "s"),
     "encoder_pll_hz": ("encoder tracking-PLL bandwidth", "Hz"),
     "speed_feedback_lpf_hz": ("display low-pass of the speed feedback", "Hz"),
     "speed_observer_pll_hz": ("driving observer's PLL bandwidth assumed by the speed-loop "
