@@ -47,6 +47,48 @@ def test_defaults_follow_the_card_and_explicit_values_win():
     assert ControllerConfig(vdc_max_v=95.0).resolved(card).vdc_max_v == 95.0
 
 
+def test_observer_defaults_follow_the_card_rules(tmp_path):
+    """Every observer frequency left unset is derived from the card (OBSERVER_RULES): PLL and
+    speed LPF per unit of the current bandwidth f_i, the flux filters per unit of the rated
+    electrical frequency f_e.  The numbers below follow from the rule and each card's R, L,
+    PWM rate, rated speed and pole pairs; on the paper's card the literal observer gets the
+    paper's w_c = 100 Hz (Sec. III-A)."""
+    from fluxdrive.drive.observers import observer_config
+
+    paper = observer_config("paper", card=MachineCard())
+    assert paper.cutoff_hz == 100.0 and paper.pll_bandwidth_hz == 25.0
+    assert paper.comp_freq_lpf_hz == 0.0  # eq. (8): the PLL's frequency, on every card
+    for name in ("servo_320v", "gimbal_24v"):
+        card = load_machine(CONFIG_DIR / "machines" / f"{name}.yaml")
+        corner = card.resistance_ohm / (2 * math.pi * card.inductance_h)
+        f_i = min(max(0.1 * card.pwm_hz, 3 * corner), 0.2 * card.pwm_hz)
+        f_e = card.rated_speed_rpm / 60 * card.pole_pairs
+        for variant in ("paper", "paper_robust"):
+            c = observer_config(variant, card=card)
+            assert c.cutoff_hz == pytest.approx(0.5 * f_e)
+            assert c.pll_bandwidth_hz == pytest.approx(0.025 * f_i)
+            assert c.omega_floor_rad_s == pytest.approx(2 * math.pi * f_e / (80 * math.pi))
+            assert c.speed_lpf_hz == 0.0
+        assert observer_config("paper_robust", card=card).comp_freq_lpf_hz == pytest.approx(
+            0.01 * f_e)
+        assert observer_config("paper", card=card).comp_freq_lpf_hz == 0.0
+        emf = observer_config("emf", card=card)
+        assert emf.pll_bandwidth_hz == pytest.approx(0.015 * f_i)
+        assert emf.speed_lpf_hz == pytest.approx(0.02 * f_i)
+        assert observer_config("lpf", card=card).cutoff_hz == pytest.approx(0.025 * f_e)
+        assert observer_config("ortega", card=card).gamma_bw_rad_s == pytest.approx(f_i)
+        # in a scenario: unset values from the swapped card, and the speed loop is designed
+        # with the driving observer's derived PLL; a value the scenario sets still wins
+        sc = load_scenario(scenario_path("paper_2pct_150load"), machine=name)
+        assert sc.observers["emf_measured"].pll_bandwidth_hz == pytest.approx(0.015 * f_i)
+        assert sc.control.speed_observer_pll_hz == pytest.approx(0.025 * f_i)
+        f = tmp_path / f"{name}.yaml"
+        f.write_text(f"machine: {CONFIG_DIR / 'machines' / (name + '.yaml')}\n"
+                     "observers:\n  x: {variant: paper, cutoff_hz: 50.0}\n")
+        x = load_scenario(f).observers["x"]
+        assert x.cutoff_hz == 50.0 and x.pll_bandwidth_hz == pytest.approx(0.025 * f_i)
+
+
 def test_per_unit_speeds_scale_with_the_card(tmp_path):
     sc = load_scenario(scenario_path("paper_2pct_150load"), machine="outer_rotor_48v")
     assert sc.speed_profile_rpm[0, 1] == pytest.approx(0.02 * 600.0)

@@ -147,7 +147,7 @@ def test_emf_baseline_pll_and_speed_lpf_match_the_stated_design():
     output passes the stated 20 Hz first-order LPF.  Measured on a synthetic EMF whose
     frequency is modulated: the response of w^ to w at f is
     w_n^2/(s^2 + 2 zeta w_n s + w_n^2) x w_l/(s + w_l)."""
-    cfg = observer_config("emf")
+    cfg = observer_config("emf", card=CARD)  # the default card: 1 kHz current loop
     assert (cfg.pll_bandwidth_hz, cfg.pll_damping, cfg.speed_lpf_hz) == (15.0, 1.0, 20.0)
     assert cfg.phase_detector == "atan"
     lam = CARD.flux_linkage_vs

@@ -81,6 +81,11 @@ class MachineCard:
         """Rated mechanical speed [rad/s]."""
         return self.rated_speed_rpm * 2.0 * math.pi / 60.0
 
+    @property
+    def rated_electrical_hz(self) -> float:
+        """Electrical frequency at rated speed [Hz] (200 Hz on the default card)."""
+        return self.rated_speed_rpm / 60.0 * self.pole_pairs
+
     def validate(self, src: str = "machine card") -> MachineCard:
         checks = {
             "pole_pairs": (1, 64), "rated_speed_rpm": (1.0, 1e6), "flux_linkage_vs": (1e-6, 10.0),
@@ -100,6 +105,15 @@ class MachineCard:
         if self.deadtime_s * self.pwm_hz >= 0.2:
             raise ConfigError(f"{src}: deadtime_s {self.deadtime_s} is >= 20 % of the PWM period")
         return self
+
+
+def card_current_bandwidth_hz(card: MachineCard) -> float:
+    """Current-loop bandwidth for a card: a tenth of the PWM rate (with the 1.5-period
+    delay of a digital drive the discrete loop peaks beyond that), raised to three times
+    the RL corner R/(2 pi L) for a machine whose own electrical pole is that fast (the loop
+    must be quicker than the plant), never above a fifth of the PWM rate."""
+    corner = card.resistance_ohm / (2 * math.pi * card.inductance_h)
+    return min(max(0.1 * card.pwm_hz, 3.0 * corner), 0.2 * card.pwm_hz)
 
 
 _SECTIONS = ("motor", "inverter", "sensors", "options")

@@ -105,7 +105,7 @@ def _dataclass_from(src: str, key: str, cls, data: dict, base=None):
             if not isinstance(v, bool):
                 raise ConfigError(f"{src}: '{key}.{k}' must be true/false, got {v!r}")
         elif isinstance(cur, (int, float)) or (cur is None and (
-                k.endswith(("_ohm", "_h", "_vs", "_hz")) or k in CARD_RULES)):
+                k.endswith(("_ohm", "_h", "_vs", "_hz", "_rad_s")) or k in CARD_RULES)):
             _num(src, f"{key}.{k}", v)
             v = float(v)
         elif isinstance(cur, str) and not isinstance(v, str):
@@ -185,7 +185,8 @@ def load_scenario(path: str | Path, machine: str | Path | None = None,
             raise ConfigError(f"{src}: observers.{name}: {exc}") from exc
         cfg = _dataclass_from(src, f"observers.{name}", ObserverConfig, spec, base)
         cfg = bench.apply_observer_model(cfg, card)  # R^, L^, lambda^ the observer leaves open
-        observers[str(name)] = cfg.validate(f"{src}: observers.{name}")
+        # frequencies the scenario leaves unset: from this card (OBSERVER_RULES)
+        observers[str(name)] = cfg.validate(f"{src}: observers.{name}").resolved(card)
     driving = str(raw.get("driving", "encoder"))
     if driving != "encoder" and driving not in observers:
         raise ConfigError(f"{src}: 'driving' must be 'encoder' or one of the observers "

@@ -30,7 +30,7 @@ from numba import njit
 
 from fluxdrive.core.blocks import lowpass_step, pi_output, pi_update, pll_gains, pll_step, pole
 from fluxdrive.core.layout import Layout
-from fluxdrive.core.machine import ConfigError, MachineCard
+from fluxdrive.core.machine import ConfigError, MachineCard, card_current_bandwidth_hz
 from fluxdrive.core.transforms import TWO_PI, clarke, inv_clarke, inv_park, park, wrap_angle
 from fluxdrive.drive.observers import ES_TH, ES_VALID, ES_W
 from fluxdrive.drive.plant import FR_ENC, FR_IA, FR_IB, FR_IC, FR_VDC
@@ -675,15 +675,6 @@ CARD_RULES: dict[str, str] = {
 VDC_MIN_PU, VDC_MAX_PU = 0.28, 1.32
 HANDOVER_PU, HANDBACK_OF_HANDOVER, IF_ACCEL_PU_S = 0.01, 2.0 / 3.0, 0.2
 SPEED_OF_CURRENT_BW = 0.015  # speed-loop target / current-loop bandwidth (15 Hz at 1 kHz)
-
-
-def card_current_bandwidth_hz(card: MachineCard) -> float:
-    """Current-loop bandwidth for a card: a tenth of the PWM rate (with the 1.5-period
-    delay of a digital drive the discrete loop peaks beyond that), raised to three times
-    the RL corner R/(2 pi L) for a machine whose own electrical pole is that fast (the loop
-    must be quicker than the plant), never above a fifth of the PWM rate."""
-    corner = card.resistance_ohm / (2 * math.pi * card.inductance_h)
-    return min(max(0.1 * card.pwm_hz, 3.0 * corner), 0.2 * card.pwm_hz)
 
 
 @dataclass

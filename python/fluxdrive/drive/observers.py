@@ -40,8 +40,9 @@ exactly (eqs. 3, 5).  Variants differ in what replaces the pure integral:
   hinkkanen_luomi   modified integrator: correction only along eta pulling |eta| to lambda^
   ortega            nonlinear observer (Lee 2010, as in VESC/ODrive): + gamma/2 eta (lam^2-|eta|^2)
   emf               no integration: the PLL runs on the EMF vector (Fig. 5, eq. 7): a low
-                    bandwidth PLL (15 Hz) plus the extra speed LPF (20 Hz); arctangent
-                    phase detector
+                    bandwidth PLL (15 Hz on the default card) plus the extra speed LPF
+                    (20 Hz); arctangent phase detector
+Frequencies a configuration leaves unset derive from the machine card (OBSERVER_RULES).
 Position is tracked by a type-2 PLL on the angle error taken from the flux (or EMF) vector
 in the estimated frame: atan2 (the paper's "arctangent ... with per unit length") or the
 normalised cross product sin(theta - theta^) (`phase_detector`).
@@ -66,7 +67,7 @@ from fluxdrive.core.blocks import (
     sign,
 )
 from fluxdrive.core.layout import Layout
-from fluxdrive.core.machine import ConfigError, MachineCard
+from fluxdrive.core.machine import ConfigError, MachineCard, card_current_bandwidth_hz
 from fluxdrive.core.transforms import clarke, inv_clarke, line_to_phase, wrap_angle
 from fluxdrive.drive.plant import (
     FR_DA,
@@ -460,18 +461,20 @@ class ObserverConfig:
 
     variant: str = "paper"
     voltage_source: str = "measured"  # measured | commanded
-    cutoff_hz: float = 100.0  # w_c of lpf/paper; correction gain of hinkkanen_luomi
-    pll_bandwidth_hz: float = 25.0
+    # the frequency settings left None are derived from the machine card in per unit
+    # (OBSERVER_RULES, `resolved`); a value set explicitly wins
+    cutoff_hz: float | None = None  # w_c of lpf/paper; correction gain of hinkkanen_luomi
+    pll_bandwidth_hz: float | None = None
     pll_damping: float = 1.0
-    speed_lpf_hz: float = 0.0  # extra LPF on the speed output (EMF path, Fig. 5)
-    omega_floor_rad_s: float = 5.0  # floor on |w^| in the inverse HPF
+    speed_lpf_hz: float | None = None  # extra LPF on the speed output (EMF path, Fig. 5)
+    omega_floor_rad_s: float | None = None  # floor on |w^| in the inverse HPF
     deadtime_comp_s: float = 0.0  # deadtime feed-forward (commanded voltages only)
-    gamma_bw_rad_s: float = 1000.0  # ortega: gamma = gamma_bw / lambda^2
+    gamma_bw_rad_s: float | None = None  # ortega: gamma = gamma_bw / lambda^2
     plpf_k: float = 0.25  # programmable LPF: w_c = |w^|/K, floored at cutoff_min_hz
-    cutoff_min_hz: float = 2.0
+    cutoff_min_hz: float | None = None
     # > 0: the compensation's rotor frequency is the LPF output's own rotation rate, low-passed
     # at this cut-off; 0: the PLL's frequency estimate, as in the paper
-    comp_freq_lpf_hz: float = 0.0
+    comp_freq_lpf_hz: float | None = None
     # PLL phase detector: 'atan' (atan2 of the vector in the estimated frame, Sec. III) or
     # 'sin' (normalised cross product, sin of the error)
     phase_detector: str = "sin"
@@ -494,7 +497,7 @@ class ObserverConfig:
                                   f"{getattr(self, key)!r}")
         for key, lo, hi in PARAM_RANGES:
             v = getattr(self, key)
-            if v is None and key.endswith(("_ohm", "_h", "_vs")):
+            if v is None and (key.endswith(("_ohm", "_h", "_vs")) or key in OBSERVER_RULES):
                 continue
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (lo <= v <= hi):
                 raise ConfigError(f"{src}: {key} must be a number in [{lo}, {hi}], got {v!r}")
@@ -507,8 +510,18 @@ class ObserverConfig:
             raise ConfigError(f"unknown observer parameter(s) {bad}; known: {sorted(known)}")
         return replace(self, **kw).validate()
 
+    def resolved(self, card: MachineCard) -> ObserverConfig:
+        """A copy with every unset frequency setting derived from `card` (OBSERVER_RULES:
+        per unit of the card's current-loop bandwidth or rated electrical frequency)."""
+        rules = {**_RULES_ALL, **VARIANT_RULES.get(self.variant, {})}
+        basis = {"f_i": card_current_bandwidth_hz(card), "f_e": card.rated_electrical_hz,
+                 "w_e": 2.0 * math.pi * card.rated_electrical_hz}
+        kw = {k: round(factor * basis[b], 9) for k, (b, factor) in rules.items()
+              if getattr(self, k) is None}
+        return replace(self, **kw) if kw else self
+
     def to_params(self, card: MachineCard) -> np.ndarray:
-        self.validate()
+        self = self.validate().resolved(card)  # noqa: PLW0642 - the card fills what is unset
         op = np.zeros(OP_N)
         op[OP_KIND] = VARIANT_KINDS[self.variant]
         op[OP_TS] = card.ts_s
@@ -545,38 +558,85 @@ PARAM_RANGES: list[tuple[str, float, float]] = [
 ]
 STRING_FIELDS = set(STRING_CHOICES) | {"variant"}
 
-# Defaults per variant (what a motor-control engineer would pick for this testbed).
-VARIANT_DEFAULTS: dict[str, dict[str, Any]] = {
-    # literally eqs. (5)-(8): w_c = 100 Hz (Sec. III-A), compensation at the PLL's w^e,
-    # L^ i after the modified integration, arctangent phase detector; 25 Hz PLL (the paper
-    # gives no number; the flux needs no low-bandwidth PLL, Sec. III-C)
-    "paper": {"cutoff_hz": 100.0, "comp_freq_lpf_hz": 0.0, "phase_detector": "atan",
-              "inductance_term": "after_integration"},
-    # the project's departures, each one option (reasons and measured effects: module
-    # docstring, `./fluxdrive experiment paper_robust`)
-    "paper_robust": {"cutoff_hz": 100.0, "comp_freq_lpf_hz": 2.0, "phase_detector": "atan",
-                     "inductance_term": "before_filter"},
-    "pure_integrator": {"cutoff_hz": 0.0},
-    "lpf": {"cutoff_hz": 5.0},
-    "programmable_lpf": {"plpf_k": 0.25},
-    "hinkkanen_luomi": {"cutoff_hz": 5.0},
-    "ortega": {"gamma_bw_rad_s": 1000.0},
+# Per-unit rules that derive every unset observer frequency from the machine card
+# (`ObserverConfig.resolved`): (basis, factor), basis f_i = the card's current-loop bandwidth
+# [Hz] (card_current_bandwidth_hz: the PWM rate and the electrical time constant L/R), f_e =
+# its rated electrical frequency [Hz], w_e = 2 pi f_e [rad/s].  Loops that track the rotor
+# angle (PLL, speed LPF, the ortega observer's magnitude loop) scale with the current loop
+# they feed; filters that act on the rotor-frequency signal (w_c and its floors, the
+# compensation frequency's LPF) scale with the rotor frequency, so at the same per-unit speed
+# every card sees the same ratio w_c/w_e.  On the default card (1 kHz current loop, 200 Hz
+# rated) they give the values the testbed was tuned with.
+_RULES_ALL: dict[str, tuple[str, float]] = {
+    # 25 Hz at 1 kHz: above the 15 Hz speed-loop target, 40x below the current loop
+    "pll_bandwidth_hz": ("f_i", 0.025),
+    "speed_lpf_hz": ("f_i", 0.0),  # no extra speed LPF (the flux path needs none, Sec. III-C)
+    # the paper's w_c (Sec. III-A): 100 Hz on its 8-pole 3000 rpm machine (200 Hz rated),
+    # "two decades away from 1 Hz" -- in per unit, half the rated electrical frequency
+    "cutoff_hz": ("f_e", 0.5),
+    "omega_floor_rad_s": ("w_e", 1.0 / (80.0 * math.pi)),  # 5 rad/s at 200 Hz rated
+    "gamma_bw_rad_s": ("f_i", 1.0),  # gamma lambda^2 = 1000 rad/s at a 1 kHz current loop
+    "cutoff_min_hz": ("f_e", 0.01),  # 2 Hz
+    "comp_freq_lpf_hz": ("f_e", 0.0),  # 0: the PLL's frequency estimate (eq. 8)
+}
+VARIANT_RULES: dict[str, dict[str, tuple[str, float]]] = {
+    # 2 Hz at 200 Hz rated: a 12th of the 6th order at 2 % speed on every card
+    "paper_robust": {"comp_freq_lpf_hz": ("f_e", 0.01)},
+    "lpf": {"cutoff_hz": ("f_e", 0.025)},  # 5 Hz
+    "hinkkanen_luomi": {"cutoff_hz": ("f_e", 0.025)},  # 5 Hz
     # Fig. 5: a low-bandwidth PLL plus the extra LPF on the speed estimate.  The paper gives
     # neither number; ours are inferred from what it reports: under the loop-design rule
     # (fluxdrive.drive.control.design_loops, 3 dB peaking) a 15 Hz PLL (zeta 1; 0.6x the flux
     # observer's 25 Hz) and a 20 Hz first-order speed LPF give the 7 Hz EMF speed bandwidth
     # of Fig. 18 (the flux path, 25 Hz PLL and no LPF, gets the full 10 Hz)
-    "emf": {"pll_bandwidth_hz": 15.0, "speed_lpf_hz": 20.0, "phase_detector": "atan"},
+    "emf": {"pll_bandwidth_hz": ("f_i", 0.015), "speed_lpf_hz": ("f_i", 0.02)},
+}
+_BASIS_TEXT = {"f_i": "the card's current bandwidth", "f_e": "the rated electrical frequency",
+               "w_e": "the rated electrical speed [rad/s]"}
+
+
+def _rule_text(field_name: str) -> str:
+    b, f = _RULES_ALL[field_name]
+    text = f"{f:.6g} x {_BASIS_TEXT[b]}"
+    for v, rules in VARIANT_RULES.items():
+        if field_name in rules:
+            b, f = rules[field_name]
+            text += f"; {v}: {f:.6g} x {_BASIS_TEXT[b]}"
+    return text
+
+
+OBSERVER_RULES: dict[str, str] = {k: _rule_text(k) for k in _RULES_ALL}
+OBSERVER_RULES["gamma_bw_rad_s"] = ("1 rad/s per Hz of the card's current bandwidth (gamma "
+                                    "lambda^2 = 1000 rad/s at 1 kHz)")
+
+# Fixed settings per variant (structure, not frequencies).
+VARIANT_DEFAULTS: dict[str, dict[str, Any]] = {
+    # literally eqs. (5)-(8): w_c per the rule above (the paper's 100 Hz on its machine),
+    # compensation at the PLL's w^e, L^ i after the modified integration, arctangent phase
+    # detector; the PLL per the rule (the paper gives no number; the flux needs no
+    # low-bandwidth PLL, Sec. III-C)
+    "paper": {"comp_freq_lpf_hz": 0.0, "phase_detector": "atan",
+              "inductance_term": "after_integration"},
+    # the project's departures, each one option (reasons and measured effects: module
+    # docstring, `./fluxdrive experiment paper_robust`)
+    "paper_robust": {"phase_detector": "atan", "inductance_term": "before_filter"},
+    "pure_integrator": {"cutoff_hz": 0.0},
+    "programmable_lpf": {"plpf_k": 0.25},
+    "emf": {"phase_detector": "atan"},
 }
 
 
-def observer_config(variant: str, **overrides: Any) -> ObserverConfig:
-    """An ObserverConfig with the variant's defaults, then the caller's overrides."""
+def observer_config(variant: str, card: MachineCard | None = None,
+                    **overrides: Any) -> ObserverConfig:
+    """An ObserverConfig with the variant's defaults, then the caller's overrides; with a
+    `card`, every frequency left unset is derived from it (otherwise it stays None and is
+    derived from the card the observer runs on)."""
     if variant not in VARIANT_KINDS:
         raise ConfigError(f"unknown variant '{variant}'; built-in variants are "
                           f"{sorted(VARIANT_KINDS)}")
     base = ObserverConfig(variant=variant, **VARIANT_DEFAULTS.get(variant, {}))
-    return base.with_overrides(**overrides) if overrides else base.validate()
+    cfg = base.with_overrides(**overrides) if overrides else base.validate()
+    return cfg if card is None else cfg.resolved(card)
 
 
 class Observer:
@@ -606,7 +666,7 @@ class KernelObserver(Observer):
     """A built-in variant: the compiled kernel with its parameter and state vectors."""
 
     def __init__(self, config: ObserverConfig, card: MachineCard, name: str | None = None):
-        self.config = config.validate()
+        self.config = config.validate().resolved(card)
         self.card = card
         self.name = name or config.variant
         self.params = config.to_params(card)

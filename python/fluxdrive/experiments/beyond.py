@@ -630,7 +630,7 @@ def _default_k(kind: str) -> tuple[float, float]:
     """(w_c, k) of a variant's defaults [rad/s]."""
     from fluxdrive.drive.observers import observer_config
 
-    c = observer_config(kind)
+    c = observer_config(kind, card=build(duration_s=0.01).machine)  # the runs' card
     return 2 * math.pi * c.cutoff_hz, (c.gamma_bw_rad_s if kind == "ortega"
                                        else 2 * math.pi * c.cutoff_hz)
 

@@ -52,23 +52,25 @@ import flux_drive_msgs.msg as fm
 from fluxdrive_ros import diagnostics as diag
 from fluxdrive_ros import params, qos, topics
 
+_CARD = "; default: from the machine card (OBSERVER_RULES)"
 # ObserverConfig field -> (description, unit)
 DOCS = {
     "voltage_source": ("stator voltage the observer integrates: captured line voltages or "
                        "duty x Vdc", ""),
     "cutoff_hz": ("cut-off of the LPF replacing the integrator (lpf/paper); correction gain "
-                  "of hinkkanen_luomi", "Hz"),
-    "pll_bandwidth_hz": ("PLL natural frequency (Kp = 2 zeta wn, Ki = wn^2)", "Hz"),
+                  "of hinkkanen_luomi" + _CARD, "Hz"),
+    "pll_bandwidth_hz": ("PLL natural frequency (Kp = 2 zeta wn, Ki = wn^2)" + _CARD, "Hz"),
     "pll_damping": ("PLL damping ratio", ""),
-    "speed_lpf_hz": ("extra low-pass on the speed output (EMF path, Fig. 5); 0 = off", "Hz"),
-    "omega_floor_rad_s": ("floor on |w^| in the inverse-HPF compensation", "rad/s"),
+    "speed_lpf_hz": ("extra low-pass on the speed output (EMF path, Fig. 5); 0 = off" + _CARD,
+                     "Hz"),
+    "omega_floor_rad_s": ("floor on |w^| in the inverse-HPF compensation" + _CARD, "rad/s"),
     "deadtime_comp_s": ("deadtime feed-forward on commanded voltages (0 = off)", "s"),
-    "gamma_bw_rad_s": ("ortega: observer gain gamma = gamma_bw / lambda^2", "rad/s"),
+    "gamma_bw_rad_s": ("ortega: observer gain gamma = gamma_bw / lambda^2" + _CARD, "rad/s"),
     "plpf_k": ("programmable LPF: w_c = |w^|/K", ""),
-    "cutoff_min_hz": ("programmable LPF: floor on w_c", "Hz"),
+    "cutoff_min_hz": ("programmable LPF: floor on w_c" + _CARD, "Hz"),
     "comp_freq_lpf_hz": ("paper/paper_robust: low-pass on the LPF output's own rotation "
-                         "used as the compensation frequency; 0 = the PLL's frequency (eq. 8)",
-                         "Hz"),
+                         "used as the compensation frequency; 0 = the PLL's frequency (eq. 8)"
+                         + _CARD, "Hz"),
     "phase_detector": ("PLL phase detector: atan (arctangent, Sec. III) or sin (normalised "
                        "cross product)", ""),
     "inductance_term": ("where L^ i is removed: after_integration (eq. 5) or before_filter "
@@ -113,6 +115,7 @@ class ObserverNode(FluxNode):
         if variant != base.variant:
             base = observer_config(variant)
         self.card = card
+        base = base.resolved(card)  # frequencies left unset: from the card (OBSERVER_RULES)
         self.specs = config_params(base, card)
         pv = declare(self, self.specs)
         common = declare(self, [
