@@ -16,7 +16,9 @@ is answered at once with the PWM off):
   catching up after a lost interval (a backlog of queued frames says nothing about time);
 - the estimate of the waiting frame has not come for `position_wall_timeout_s` of wall time
   (a lockstep plant waits for us, so sample time stands still; `first_estimate_wall_s` for
-  the very first estimate: an observer process starting, code compiling);
+  the very first estimate: an observer process starting, code compiling; 10 s while this
+  controller is catching up after a stall of its own -- a sample its DDS reader dropped
+  while the process stood still is sent again only at the writer's next heartbeat);
 - `position_timeout_s` worth of consecutive repeated/backwards frames (e.g. a restarted
   source counting from 0 again).
 
@@ -107,6 +109,9 @@ class ControlSequencer:
         self.resync_window_s = resync_window_s
         self.min_wait_s = min_wait_s
         self.self_stall_s = 0.5  # check_wall called this much later: this process stalled
+        # after a stall of this process: samples its DDS reader dropped meanwhile come again
+        # only at the writer's next heartbeat (seconds); the wall limit while catching up
+        self.catch_up_wall_s = 10.0
         self._last_check = 0.0
         self.set_timeouts(position_timeout_s, position_wall_timeout_s)
         self.cs = np.zeros(CS_N)
@@ -193,6 +198,8 @@ class ControlSequencer:
         lim = self.wall_timeout_s
         if lim > 0.0 and self.counts["estimates"] == 0:  # the first one may take a while
             lim = max(lim, self.first_estimate_wall_s)
+        if lim > 0.0 and self._behind():  # we are the ones behind: a repair is on its way
+            lim = max(lim, self.catch_up_wall_s)
         if (self.tripped or self.wait_k != self.next_k or self.next_k not in self.frames
                 or self.next_k in self.ests):
             return
