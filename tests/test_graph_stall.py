@@ -114,7 +114,8 @@ def test_stalled_controller_recovers_in_a_paced_graph(tmp_path):
         assert not any(pwm[a:b + 1])
         # the watchdog bridges 200 periods; the stall lasts stall_s * RATE * 1e4 periods
         assert (b - a + 1) >= 0.5 * stall_s * RATE * 1e4 - 200, (stall_s, a, b)
-    assert MODE_FAULT not in modes.values()
-    assert modes[max(modes)] == MODE_CLOSED_LOOP
-    for a, _ in runs:  # closed loop before each stall and again after it
+        # closed loop before each stall (the machine's own hiccups may add stale
+        # intervals elsewhere, e.g. during the start)
         assert modes[a - 30] == MODE_CLOSED_LOOP
+    assert MODE_FAULT not in modes.values()
+    assert modes[max(modes)] == MODE_CLOSED_LOOP  # and again after the last
