@@ -100,6 +100,34 @@ def test_per_unit_speeds_scale_with_the_card(tmp_path):
         load_scenario(f)
 
 
+def test_rpm_values_keep_their_per_unit_speed_on_another_card(monkeypatch):
+    """A scenario (or experiment) written in rpm for its own card runs on `--machine CARD`
+    at the same per-unit speeds: every rpm value scales by the ratio of rated speeds."""
+    gimbal = load_machine(CONFIG_DIR / "machines" / "gimbal_24v.yaml")
+    k = gimbal.rated_speed_rpm / MachineCard().rated_speed_rpm  # its file names the default
+    sc = load_scenario(scenario_path("can_2pct_decimated"), machine="gimbal_24v")
+    assert sc.speed_profile_rpm[0, 1] == pytest.approx(60.0 * k)  # 2 % of 1200 rpm
+    c = sc.control
+    assert (c.handover_rpm, c.handback_rpm, c.if_accel_rpm_s) == pytest.approx(
+        (40.0 * k, 20.0 * k, 300.0 * k))
+    same = load_scenario(scenario_path("can_2pct_decimated"))
+    assert same.speed_profile_rpm[0, 1] == 60.0 and same.control.handover_rpm == 40.0
+    # the experiments: the fig. 13/15 sensorless case at 60 rpm, `experiment --machine`
+    from fluxdrive.experiments import registry
+
+    monkeypatch.setitem(registry._MACHINE, "path", str(CONFIG_DIR / "machines" /
+                                                       "gimbal_24v.yaml"))
+    sc = registry.sensorless(60.0, 1.5)
+    assert sc.machine.name == "gimbal_24v"
+    assert sc.speed_profile_rpm[-1, 1] == pytest.approx(0.02 * gimbal.rated_speed_rpm)
+    assert sc.control.handover_rpm == pytest.approx(40.0 * k)
+    low = registry.sensorless(30.0, 1.0)  # 1 %: starts at 40 rpm, hands over at 35 rpm
+    assert low.speed_profile_rpm[:, 1] == pytest.approx([40.0 * k, 40.0 * k, 30.0 * k])
+    assert low.control.handover_rpm == pytest.approx(35.0 * k)
+    enc = registry.encoder_run(300.0, 1.0)
+    assert enc.speed_profile_rpm[0, 1] == pytest.approx(0.1 * gimbal.rated_speed_rpm)
+
+
 def test_yaml_numbers_with_exponents_are_numbers(tmp_path):
     assert yamlio.loads("a: 1e-4\nb: 1.0e9\nc: 10\nd: '1e-4'") == {
         "a": 1e-4, "b": 1e9, "c": 10, "d": "1e-4"}

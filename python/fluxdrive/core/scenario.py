@@ -138,6 +138,8 @@ def load_scenario(path: str | Path, machine: str | Path | None = None,
                           f"{getattr(exc, 'problem', None) or exc}") from exc
     if not isinstance(raw, dict):
         raise ConfigError(f"{src}: a scenario must be a mapping")
+    if machine is not None:  # --machine: the file's rpm values at the same per-unit speed
+        raw = _rescale_rpm(src, path, raw, load_machine(machine_path(machine)))
     if overrides:
         raw = dict(raw)
         for pair in (("speed_rpm", "speed_pu"), ("speed_pu", "speed_rpm")):
@@ -150,9 +152,7 @@ def load_scenario(path: str | Path, machine: str | Path | None = None,
     if machine is not None:  # --machine: a path, or a card name under config/machines
         mpath = machine_path(machine)
     else:
-        mpath = Path(raw.get("machine", "../machines/default_spm.yaml"))
-        if not mpath.is_absolute():
-            mpath = path.parent / mpath
+        mpath = _own_card_path(path, raw)
     card = load_machine(mpath)
 
     duration = _num(src, "duration_s", raw.get("duration_s", 2.0), 1e-3, 3600.0)
@@ -248,6 +248,56 @@ def load_scenario(path: str | Path, machine: str | Path | None = None,
         extra=raw.get("extra", {}) or {},
         bench=bench,
     )
+
+
+def _own_card_path(path: Path, raw: dict) -> Path:
+    """The machine card a scenario file names (default: the default card)."""
+    mpath = Path(raw.get("machine", "../machines/default_spm.yaml"))
+    return mpath if mpath.is_absolute() else path.parent / mpath
+
+
+def _rescale_rpm(src: str, path: Path, raw: dict, card: MachineCard) -> dict:
+    """A scenario run on another card (`--machine`) keeps its per-unit speeds: every value
+    the file gives in rpm (speed_rpm, control.handover_rpm/handback_rpm/if_accel_rpm_s,
+    brake_band_rpm, speed_injection.amplitude; dyno_pu_per_rpm inversely) is scaled by the
+    ratio of the swapped card's rated speed to that of the card the file names, so 60 rpm
+    written for the 3000 rpm default card runs at 2 % of any card's rated speed."""
+    ctrl = raw.get("control") or {}
+    inj = raw.get("speed_injection") or {}
+    keys = [k for k in ("speed_rpm", "brake_band_rpm", "dyno_pu_per_rpm") if k in raw]
+    ckeys = ([k for k in ("handover_rpm", "handback_rpm", "if_accel_rpm_s") if k in ctrl]
+             if isinstance(ctrl, dict) else [])
+    has_inj = isinstance(inj, dict) and "amplitude" in inj
+    if not (keys or ckeys or has_inj):
+        return raw
+    own = _own_card_path(path, raw)
+    try:
+        ref = load_machine(own)
+    except ConfigError as exc:
+        raise ConfigError(f"{src}: its rpm values are read per unit of the card it names "
+                          f"('machine'), which cannot be loaded: {exc}") from exc
+    k = card.rated_speed_rpm / ref.rated_speed_rpm
+    if k == 1.0:
+        return raw
+    out = dict(raw)
+
+    def scale(key: str, v: Any, f: float) -> Any:
+        if isinstance(v, bool):
+            return v
+        if isinstance(v, (int, float)):
+            return float(v) * f
+        if isinstance(v, list):  # a [[t_s, value], ...] profile: the values only
+            return [[row[0], scale(key, row[1], f)] if isinstance(row, list) and len(row) == 2
+                    else row for row in v]
+        return v  # not a number: the loader refuses it with its own message
+
+    for key in keys:
+        out[key] = scale(key, raw[key], 1.0 / k if key == "dyno_pu_per_rpm" else k)
+    if ckeys:
+        out["control"] = {**ctrl, **{c: scale(c, ctrl[c], k) for c in ckeys}}
+    if has_inj:
+        out["speed_injection"] = {**inj, "amplitude": scale("amplitude", inj["amplitude"], k)}
+    return out
 
 
 def _speed_profile(src: str, raw: dict, card: MachineCard) -> np.ndarray:

@@ -81,13 +81,13 @@ def build(machine_kw: dict | None = None, base: str | None = None, **raw) -> Sce
     if base is not None:
         sc = load_scenario(scenario_path(base), machine=swap, overrides=raw or None)
     else:
+        # the experiments give speeds in rpm of the default card; `experiment --machine`
+        # runs every scenario on that card at the same per-unit speeds (load_scenario)
         raw.setdefault("machine", str(DEFAULT_MACHINE))
-        if swap is not None:  # `experiment --machine`: every scenario on that card
-            raw["machine"] = str(Path(swap).resolve())
         d = _scen_dir()
         p = d / f"s{os.getpid()}_{len(list(d.iterdir()))}.yaml"
         p.write_text(yaml.safe_dump(raw))
-        sc = load_scenario(p)
+        sc = load_scenario(p, machine=swap)
     if machine_kw:
         sc.machine = dataclasses.replace(sc.machine, **machine_kw).validate()
     return sc
@@ -357,7 +357,7 @@ def main(argv: list[str]) -> int:
         from fluxdrive.core.machine import load_machine
 
         card = load_machine(machine_path(args.machine))  # refuse a bad card up front
-        _MACHINE["path"] = str(machine_path(args.machine))
+        _MACHINE["path"] = str(machine_path(args.machine).resolve())
         args.out = args.out or REPO_ROOT / "results" / f"experiments-{card.name}"
     if args.graph:
         if _RUNNER["graph"] is None:
