@@ -48,11 +48,11 @@ def test_defaults_follow_the_card_and_explicit_values_win():
 
 
 def test_observer_defaults_follow_the_card_rules(tmp_path):
-    """Every observer frequency left unset is derived from the card (OBSERVER_RULES): PLL and
-    speed LPF per unit of the current bandwidth f_i, the flux filters per unit of the rated
-    electrical frequency f_e.  The numbers below follow from the rule and each card's R, L,
-    PWM rate, rated speed and pole pairs; on the paper's card the literal observer gets the
-    paper's w_c = 100 Hz (Sec. III-A)."""
+    """Every observer frequency left unset is derived from the card (OBSERVER_RULES): per unit
+    of the rated electrical frequency f_e, the PLL and speed LPF capped per unit of the
+    current bandwidth f_i.  The numbers below follow from the rule and each card's R, L,
+    PWM rate, rated speed and pole pairs (servo_320v: PLL at its cap, gimbal_24v: below);
+    on the paper's card the literal observer gets the paper's w_c = 100 Hz (Sec. III-A)."""
     from fluxdrive.drive.observers import observer_config
 
     paper = observer_config("paper", card=MachineCard())
@@ -63,30 +63,32 @@ def test_observer_defaults_follow_the_card_rules(tmp_path):
         corner = card.resistance_ohm / (2 * math.pi * card.inductance_h)
         f_i = min(max(0.1 * card.pwm_hz, 3 * corner), 0.2 * card.pwm_hz)
         f_e = card.rated_speed_rpm / 60 * card.pole_pairs
+        pll = min(0.125 * f_e, 0.025 * f_i)
         for variant in ("paper", "paper_robust"):
             c = observer_config(variant, card=card)
             assert c.cutoff_hz == pytest.approx(0.5 * f_e)
-            assert c.pll_bandwidth_hz == pytest.approx(0.025 * f_i)
+            assert c.pll_bandwidth_hz == pytest.approx(pll)
             assert c.omega_floor_rad_s == pytest.approx(2 * math.pi * f_e / (80 * math.pi))
             assert c.speed_lpf_hz == 0.0
         assert observer_config("paper_robust", card=card).comp_freq_lpf_hz == pytest.approx(
             0.01 * f_e)
         assert observer_config("paper", card=card).comp_freq_lpf_hz == 0.0
         emf = observer_config("emf", card=card)
-        assert emf.pll_bandwidth_hz == pytest.approx(0.015 * f_i)
-        assert emf.speed_lpf_hz == pytest.approx(0.02 * f_i)
+        assert emf.pll_bandwidth_hz == pytest.approx(min(0.075 * f_e, 0.015 * f_i))
+        assert emf.speed_lpf_hz == pytest.approx(min(0.1 * f_e, 0.02 * f_i))
         assert observer_config("lpf", card=card).cutoff_hz == pytest.approx(0.025 * f_e)
         assert observer_config("ortega", card=card).gamma_bw_rad_s == pytest.approx(f_i)
         # in a scenario: unset values from the swapped card, and the speed loop is designed
         # with the driving observer's derived PLL; a value the scenario sets still wins
         sc = load_scenario(scenario_path("paper_2pct_150load"), machine=name)
-        assert sc.observers["emf_measured"].pll_bandwidth_hz == pytest.approx(0.015 * f_i)
-        assert sc.control.speed_observer_pll_hz == pytest.approx(0.025 * f_i)
+        assert sc.observers["emf_measured"].pll_bandwidth_hz == pytest.approx(
+            min(0.075 * f_e, 0.015 * f_i))
+        assert sc.control.speed_observer_pll_hz == pytest.approx(pll)
         f = tmp_path / f"{name}.yaml"
         f.write_text(f"machine: {CONFIG_DIR / 'machines' / (name + '.yaml')}\n"
                      "observers:\n  x: {variant: paper, cutoff_hz: 50.0}\n")
         x = load_scenario(f).observers["x"]
-        assert x.cutoff_hz == 50.0 and x.pll_bandwidth_hz == pytest.approx(0.025 * f_i)
+        assert x.cutoff_hz == 50.0 and x.pll_bandwidth_hz == pytest.approx(pll)
 
 
 def test_per_unit_speeds_scale_with_the_card(tmp_path):
@@ -170,6 +172,32 @@ def test_every_shipped_card_runs_2pct_150pct_sensorless(card):
     # 150 % load is carried: i_q ~ 1.5 rated (plus friction)
     assert m["currents"]["i_q_mean_a"] > 1.4 * sc.machine.rated_current_a
     assert fm["theta_err_rms_deg"] < 1.0
+
+
+def test_gimbal_on_the_paper_bench_runs_at_its_stated_lowest_speed():
+    """On the paper rig's non-ideal bench the gimbal card's lowest speed is 3 % (README): the
+    bench's R^ error |1 - r_pu| R I at 150 % load equals the EMF lambda w_e at 2.3 % of rated
+    speed (the resistive-drop bound with the bench's R^ error), so 2 % is below it and 3 %
+    above; at 3 % the 150 % case runs sensorless on the shipped scenario and bench."""
+    from fluxdrive.core import bench as benchmod
+
+    sc = load_scenario(scenario_path("paper_2pct_150load"), machine="gimbal_24v",
+                       overrides={"speed_pu": 0.03})
+    card = sc.machine
+    assert isinstance(sc.bench, benchmod.BenchConfig) and sc.bench.observer_model is not None
+    d_r = abs(1.0 - sc.bench.observer_model.r_pu) * card.resistance_ohm
+    w_min_e = d_r * 1.5 * card.rated_current_a / card.flux_linkage_vs  # error = EMF
+    n_min_pu = w_min_e / card.pole_pairs / card.rated_speed_rad_s
+    assert 0.02 < n_min_pu < 0.03  # 2.3 %
+    sc.observers = {"flux_measured": sc.observers["flux_measured"]}
+    m = compute(run_scenario(sc, progress=False))
+    fm = m["observers"]["flux_measured"]
+    print(f"gimbal_24v, paper bench, 3 %: theta RMS {fm['theta_err_rms_deg']:.2f} deg; bound "
+          f"{100 * n_min_pu:.2f} %")
+    assert m["stable"] and m["trip"] is None
+    assert abs(m["speed"]["mean_error_rpm"]) < 0.05 * sc.speed_profile_rpm[0, 1]
+    assert m["currents"]["i_q_mean_a"] > 1.4 * card.rated_current_a
+    assert fm["theta_err_rms_deg"] < 3.0
 
 
 # ---------------------------------------------------------------- trips explain themselves
