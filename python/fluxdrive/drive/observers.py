@@ -605,6 +605,8 @@ _BASIS_TEXT = {"f_i": "the card's current bandwidth", "f_e": "the rated electric
 
 def _one_rule(rule: tuple[str, float, float | None]) -> str:
     b, f, cap = rule
+    if f == 0.0:
+        return "0 (off)"
     text = f"{f:.6g} x {_BASIS_TEXT[b]}"
     return text if cap is None else text + f", at most {cap:g} x {_BASIS_TEXT['f_i']}"
 
