@@ -907,8 +907,9 @@ def trip_values(code: int, frame: np.ndarray, est: np.ndarray, cp: np.ndarray,
         i_if = cp[CP_IF_I] / cp[CP_IRATED]
         return (f"no handover after {cp[CP_HANDOVER_TIMEOUT]:g} s at the handover speed "
                 f"(control.handover_timeout_s): the estimate never agreed with the I-f ramp "
-                f"for control.handover_dwell_s -- a load torque above the I-f current's "
-                f"({i_if:.2g} pu, control.if_current_pu) pulls the rotor out of step")
+                f"for control.handover_dwell_s (a load above the torque of the I-f current, "
+                f"{i_if:.2g} pu (control.if_current_pu), holds the rotor; or the observer "
+                f"cannot see the rotor at this speed)")
     if code == FAULT_POSITION_INVALID:
         return f"estimate not finite (theta^ = {est[ES_TH]}, omega^ = {est[ES_W]})"
     if code == FAULT_BAD_SAMPLE:
