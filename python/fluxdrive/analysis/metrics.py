@@ -51,32 +51,69 @@ def whole_periods(theta_unwrapped: np.ndarray) -> slice:
     return slice(0, max(end, 2))
 
 
-def harmonic(x: np.ndarray, theta: np.ndarray, order: int) -> complex:
-    """Complex amplitude of order `order` of x against the angle theta."""
-    return complex(2.0 * np.mean(x * np.exp(-1j * order * theta)))
+def angle_weights(theta: np.ndarray) -> np.ndarray:
+    """Per-sample weights |dθ| normalised to 1: averages over the electrical angle, not time.
+    Why: under speed ripple (a hunting rotor, the deadtime's 6th-order torque ripple) time samples
+    crowd where the rotor is slow; a time average then makes e^{jnθ} non-orthogonal and leaks the
+    fundamental into neighbouring orders, either way (a 5 % 6th-order angle ripple moves the 5th/7th
+    by 3× of it).  The rectangle rule over a half-open window of whole periods; at constant speed
+    the weights are uniform and nothing changes.  Steps are taken modulo 2π, so theta may be
+    wrapped."""
+    n = len(theta)
+    if n < 2:
+        return np.full(n, 1.0 / max(n, 1))
+    d = np.abs(wrap(np.diff(theta)))  # wrapped or unwrapped angles alike
+    w = np.append(d, d[-1])
+    s = float(w.sum())
+    if not math.isfinite(s) or s <= 0:  # standstill: no angle to average over
+        return np.full(n, 1.0 / n)
+    return w / s
+
+
+def harmonic(x: np.ndarray, theta: np.ndarray, order: int,
+             weights: np.ndarray | None = None) -> complex:
+    """Complex amplitude of order `order` of x against the angle theta (an average over the
+    angle: angle_weights)."""
+    w = angle_weights(theta) if weights is None else weights
+    return complex(2.0 * np.sum(w * x * np.exp(-1j * order * theta)))
+
+
+def _spectrum(x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Complex amplitudes of orders 0..max(THD_ORDERS) (angle-weighted) and the weights."""
+    w = angle_weights(theta)
+    return np.array([harmonic(x, theta, n, w) for n in range(max(THD_ORDERS) + 1)]), w
 
 
 def thd(x: np.ndarray, theta: np.ndarray) -> float:
     """Harmonics 2..20 over the fundamental (Figs. 15, 16)."""
-    h1 = abs(harmonic(x, theta, 1))
+    c, _ = _spectrum(x, theta)
+    h1 = abs(c[1])
     if h1 <= 0:
         return float("nan")
-    return float(math.sqrt(sum(abs(harmonic(x, theta, n)) ** 2 for n in THD_ORDERS)) / h1)
+    return float(math.sqrt(float(np.sum(np.abs(c[list(THD_ORDERS)]) ** 2))) / h1)
 
 
 def thd_n(x: np.ndarray, theta: np.ndarray) -> float:
     """THD+N: RMS of everything but the fundamental (DC, orders 2.., broadband noise) over the
-    fundamental's RMS.  x over a whole number of electrical periods of theta."""
-    c1 = harmonic(x, theta, 1)
-    h1 = abs(c1)
+    fundamental's RMS.  x over a whole number of electrical periods of theta.  Built from the
+    same angle-weighted spectrum as thd(): DC² + the orders 2..20 exactly as thd() counts them +
+    the mean square of what is left after removing orders 0..20 (noise, higher and non-integer
+    orders), so THD+N >= THD holds by construction, not only up to leakage."""
+    c, w = _spectrum(x, theta)
+    h1 = abs(c[1])
     if h1 <= 0:
         return float("nan")
-    rest = x - np.real(c1 * np.exp(1j * theta))
-    return float(math.sqrt(float(np.mean(rest ** 2))) / (h1 / math.sqrt(2.0)))
+    fit = np.real(c[0]) / 2.0 + sum(np.real(c[n] * np.exp(1j * n * theta))
+                                     for n in range(1, len(c)))
+    resid_ms = float(np.sum(w * (x - fit) ** 2))
+    dc = np.real(c[0]) / 2.0
+    rest_ms = dc ** 2 + float(np.sum(np.abs(c[list(THD_ORDERS)]) ** 2)) / 2.0 + resid_ms
+    return float(math.sqrt(rest_ms) / (h1 / math.sqrt(2.0)))
 
 
 def harmonic_spectrum(x: np.ndarray, theta: np.ndarray, orders=range(1, 21)) -> dict[int, float]:
-    return {n: abs(harmonic(x, theta, n)) for n in orders}
+    w = angle_weights(theta)
+    return {n: abs(harmonic(x, theta, n, w)) for n in orders}
 
 
 @dataclass
