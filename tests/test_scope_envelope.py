@@ -49,7 +49,7 @@ def test_batch_decode_matches_the_codec():
     rng = np.random.default_rng(3)
     msgs, rows = [], []
     for i in range(50):
-        vals = (i // 10, i * 1000, i, *rng.normal(size=7).tolist(), bool(i % 2))
+        vals = (i // 10, i * 1000, i, 7, *rng.normal(size=7).tolist(), bool(i % 2))
         msgs.append((c if i % 3 else c2).pack(*vals))
         rows.append(vals)
     paths = ["seq", "theta_e", "flux_ab[1]", "valid"]
@@ -66,7 +66,7 @@ def test_batch_decode_reads_padded_dds_payloads():
 
     c = Codec(topics.T_DUTY, {"header.frame_id": ""})
     pad = (-c.size) % 4 or 4
-    msgs = [c.pack(0, k, k, 0.1 * k, 0.2, 0.3, True) + b"\0" * pad for k in range(20)]
+    msgs = [c.pack(0, k, k, 7, 0.1 * k, 0.2, 0.3, True) + b"\0" * pad for k in range(20)]
     out = scope_tap.decode_batch(Decoder(topics.T_DUTY), msgs, ["seq", "duty[0]"])
     assert out[:, 0].tolist() == list(range(20))
     assert np.allclose(out[:, 1], 0.1 * np.arange(20))

@@ -32,7 +32,7 @@ from fluxdrive.drive.control import CO_N
 from fluxdrive.drive.observers import ES_N
 from fluxdrive.drive.plant import FR_N, FR_SEQ, TR_N, TR_T, TR_THETA_E
 from fluxdrive.io import messages
-from fluxdrive.io.cdr import Decoder, read_strings
+from fluxdrive.io.cdr import Decoder, layout_type, read_strings
 from fluxdrive.io.topics import (
     CONTROLLER_STATE,
     DUTY,
@@ -382,19 +382,20 @@ def _info(path: Path) -> dict[str, Any]:
 
 
 def _indexed_source(path: Path):
-    """rosbags AnyReader: (topics, message iterator, deserialize, close)."""
+    """rosbags AnyReader: (topics, message iterator, close, the bag's definitions)."""
     from rosbags.highlevel import AnyReader
 
     reader = AnyReader([path])
     reader.open()
     topics = {c.topic: c.msgtype for c in reader.connections}
+    defs = {c.topic: getattr(c.msgdef, "data", None) for c in reader.connections}
     conns = [c for c in reader.connections if _wanted(c.topic, c.msgtype)]
 
     def it():
         for c, t_ns, data in reader.messages(connections=conns):
             yield c.topic, c.msgtype, t_ns, data
 
-    return topics, it(), reader.close
+    return topics, it(), reader.close, defs
 
 
 def _stream_source(path: Path):
@@ -424,8 +425,10 @@ def _stream_source(path: Path):
     else:
         raise BagError(f"{path}: cannot open {f.name} (damaged sqlite3 storage)")
     schemas: dict[int, str] = {}
+    schema_text: dict[int, str] = {}
     chans: dict[int, tuple[str, str]] = {}
     topics: dict[str, str] = {}
+    defs: dict[str, str | None] = {}
     # read the records up front (small bags; the reader keeps no index)
     msgs: list[tuple[str, str, int, bytes]] = []
     err = None
@@ -433,10 +436,12 @@ def _stream_source(path: Path):
         for rec in StreamReader(stream, emit_chunks=False).records:
             if isinstance(rec, Schema):
                 schemas[rec.id] = rec.name
+                schema_text[rec.id] = bytes(rec.data).decode(errors="replace")
             elif isinstance(rec, Channel):
                 ty = schemas.get(rec.schema_id, "")
                 chans[rec.id] = (rec.topic, ty)
                 topics[rec.topic] = ty
+                defs[rec.topic] = schema_text.get(rec.schema_id)
             elif isinstance(rec, Message) and rec.channel_id in chans:
                 tp, ty = chans[rec.channel_id]
                 if _wanted(tp, ty):
@@ -450,7 +455,7 @@ def _stream_source(path: Path):
             raise EOFError(f"data ends after {len(msgs)} readable messages "
                            f"({_one_line(err)})")
 
-    return topics, it(), lambda: None
+    return topics, it(), lambda: None, defs
 
 
 def _wanted(topic: str, msgtype: str) -> bool:
@@ -497,11 +502,11 @@ def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
         except (KeyError, TypeError, ValueError):
             pass
     try:
-        topics, messages_, close = _indexed_source(path)
+        topics, messages_, close, defs = _indexed_source(path)
     except Exception as exc:  # noqa: BLE001 - rosbags raises many kinds; name the problem
         first = f"{type(exc).__name__}: {_one_line(exc)}"
         try:
-            topics, messages_, close = _stream_source(path)
+            topics, messages_, close, defs = _stream_source(path)
         except BagError:
             raise
         except Exception:  # noqa: BLE001
@@ -548,7 +553,13 @@ def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
             problems.append("bag carries no recorder settings (machine card, observers): "
                             "replaying with the default machine card and observers")
     raws.pop(SETTINGS, None)
-    tables = {tp: decode_rows(topics[tp], r, problems, tp) for tp, r in raws.items()}
+    # each topic decoded with the layout the bag recorded (a bag from before a field was
+    # added still reads)
+    tables = {tp: decode_rows(topics[tp], r, problems, tp, defs.get(tp))
+              for tp, r in raws.items()}
+    graph_id, keep_frames = _own_graph(tables, meta, problems)
+    if keep_raw and keep_frames is not None and len(raw) == len(keep_frames):
+        raw = [r for r, k in zip(raw, keep_frames, strict=True) if k]
     if TOPIC_FRAME not in tables or not len(tables[TOPIC_FRAME][0]):
         raise BagError(f"{path}: no readable {TOPIC_FRAME} messages "
                        + (f"({problems[-1]})" if problems else "(topic is empty)"))
@@ -640,6 +651,44 @@ def _settings_elsewhere(path: Path, settings_msgs: list[bytes] | None) -> dict[s
     return {}
 
 
+def _own_graph(tables: dict, meta: dict, problems: list[str]
+               ) -> tuple[int | None, np.ndarray | None]:
+    """Keep only the messages of the bag's own graph (graph_id: the recorder's, from the
+    settings; else the id most frames carry) -- a recorder on a shared domain of an older
+    version, or a bag merged from two, may hold another graph's messages.  Drops the others
+    from `tables` in place and names them in `problems`; returns the id and the frames' keep
+    mask (None when nothing was dropped or the bag predates graph_id)."""
+    fr = tables.get(TOPIC_FRAME)
+    if fr is None or "graph_id" not in fr[2] or not len(fr[0]):
+        return None, None
+    ids = fr[2]["graph_id"].astype(np.uint64)
+    gid = meta.get("graph_id")
+    if gid is None:
+        u, c = np.unique(ids, return_counts=True)
+        gid = int(u[np.argmax(c)])
+    gid = np.uint64(int(gid))
+    dropped: dict[str, int] = {}
+    keep_frames = None
+    for tp, (seq, rows, cols) in list(tables.items()):
+        if "graph_id" not in cols:
+            continue
+        keep = cols["graph_id"].astype(np.uint64) == gid
+        if keep.all():
+            continue
+        dropped[tp] = int((~keep).sum())
+        tables[tp] = (seq[keep], rows[keep], {k: v[keep] for k, v in cols.items()})
+        if tp == TOPIC_FRAME:
+            keep_frames = keep
+    if dropped:
+        others = sorted({int(i) for i in ids[ids != gid]})
+        problems.append(
+            f"{sum(dropped.values())} messages of another graph dropped ("
+            + ", ".join(f"{tp} {n}" for tp, n in dropped.items())
+            + f"; this bag's graph_id {int(gid)}, others {others[:3]}"
+            + (" ..." if len(others) > 3 else "") + ")")
+    return int(gid), keep_frames
+
+
 def _last_of_each(seq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Sorted unique seqs and, for each, the index of its last message (a repeated seq:
     the later message wins)."""
@@ -682,16 +731,18 @@ def columns(mtype: str, raws: list[bytes]) -> dict[str, np.ndarray]:
 
 
 def decode_rows(mtype: str, raws: list[bytes], problems: list[str] | None = None,
-                topic: str = "") -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+                topic: str = "", definition: str | None = None
+                ) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     """Messages of one type -> (seq (M,), engine rows (M, width), columns), by the one
     mapping (fluxdrive.io.messages); unmapped row columns are NaN.  A message that does not
     decode is skipped and named in `problems`."""
     mapping, width = messages.MAPS.get(mtype, ((), 0))
+    layout = layout_type(mtype, definition)  # `definition`: the bag's own text of mtype
     good = raws
     try:
-        cols = columns(mtype, good)
+        cols = columns(layout, good)
     except Exception as exc:  # noqa: BLE001 - damaged payloads: message by message
-        cols, good = _columns_one_by_one(mtype, good, problems, topic, exc)
+        cols, good = _columns_one_by_one(layout, good, problems, topic, exc)
     m = len(good)
     rows = np.full((m, width), np.nan)
     for fpath, c in mapping:

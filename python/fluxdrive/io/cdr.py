@@ -57,8 +57,54 @@ def msg_dir() -> Path:
     return MSG_SRC_DIR
 
 
+# definitions of older layouts, as bags recorded them (`layout_type`): "pkg/Name@<digest>"
+_RECORDED: dict[str, str] = {}
+
+
+def _main_section(definition: str) -> str:
+    """The top-level message of a rosbag2/MCAP definition (nested types follow '====')."""
+    out = []
+    for line in definition.splitlines():
+        if line.startswith("=" * 8):
+            break
+        out.append(line)
+    return "\n".join(out) + "\n"
+
+
+def _shape(text: str) -> list[tuple[str, str]]:
+    rows = []
+    for line in text.splitlines():
+        line = line.split("#", 1)[0].strip()
+        if line and "=" not in line:
+            rows.append(tuple(line.split()[:2]))
+    return rows
+
+
+def layout_type(type_name: str, definition: str | None) -> str:
+    """The codec type name for messages recorded with `definition` (a bag's own text of
+    `type_name`): `type_name` itself when the fields are today's, else a name of its own for
+    the recorded layout (a bag from before a field was added still decodes; fields it lacks
+    are simply absent from the decoded columns)."""
+    if not definition or "/" not in type_name:
+        return type_name
+    main = _main_section(definition)
+    try:
+        if _shape(main) == _shape(msg_text(type_name)):
+            return type_name
+    except KeyError:
+        pass
+    import hashlib
+
+    pkg, _, name = type_name.replace("/msg/", "/").partition("/")
+    key = f"{pkg}/msg/{name}@{hashlib.sha1(main.encode()).hexdigest()[:10]}"
+    _RECORDED[key] = main
+    return key
+
+
 def msg_text(type_name: str) -> str:
-    """.msg text of 'pkg/Name' or 'pkg/msg/Name'."""
+    """.msg text of 'pkg/Name' or 'pkg/msg/Name' (or a recorded layout, `layout_type`)."""
+    if type_name in _RECORDED:
+        return _RECORDED[type_name]
     pkg, _, name = type_name.replace("/msg/", "/").partition("/")
     key = f"{pkg}/{name}"
     if key in _BUILTIN:

@@ -25,11 +25,17 @@ Conventions the mapping owns:
   its name (`fault_name`: an unknown code reads "fault <N>" -- one rule everywhere).
 - DutyCommand.commander carries the sender's access mark (fluxdrive_ros.access);
   header.frame_id is an ordinary frame name.
+- graph_id (every per-sample message, the parameter marker and the run's end, right after
+  seq) is the identity of the launch that published it: a codec packs its publisher's id as
+  a constant; readers check it on the raw bytes (`graph_id_of`) before decoding anything and
+  drop what is not their graph's (docs/graph.md, "Graph identity").  It is not an engine
+  column: rows are the same whichever graph carried them.
 """
 
 from __future__ import annotations
 
 import math
+import struct
 from collections.abc import Callable
 
 import numpy as np
@@ -171,14 +177,15 @@ class RowCodec:
     estimate's variant, ...) are fixed per codec."""
 
     def __init__(self, mtype: str, strings: dict[str, str] | None = None,
-                 flags_or: int = 0):
+                 flags_or: int = 0, graph_id: int = 0):
         mapping, self.width = MAPS[mtype]
+        self.graph_id = int(graph_id)
         self.mtype = mtype
         self.codec = Codec(mtype, strings)
         self.decoder = Decoder(mtype)
         kinds = field_kinds(mtype)
         cols = dict(mapping)
-        known = {"header.stamp.sec", "header.stamp.nanosec", "seq"}
+        known = {"header.stamp.sec", "header.stamp.nanosec", "seq", "graph_id"}
         missing = [f for f in self.codec.fields if f not in cols and f not in known]
         if missing:  # the mapping must cover every numeric field of the message
             raise KeyError(f"{mtype}: fields {missing} have no engine column")
@@ -190,6 +197,8 @@ class RowCodec:
                 args.append("nsec")
             elif f == "seq":
                 args.append("seq")
+            elif f == "graph_id":
+                args.append(str(self.graph_id))
             elif mtype == topics.T_FRAME and f == "status_flags":
                 args.append(f"(int(v[{cols[f]}]) & {FRAME_FLAGS_OUT}) | {int(flags_or)} | xf")
             else:
@@ -243,8 +252,9 @@ class Stamp:
 class FrameWire:
     """PhaseFrame <-> FR_* row."""
 
-    def __init__(self, frame_id: str = "", extra_flags: int = 0):
-        self.rc = RowCodec(topics.T_FRAME, {"header.frame_id": frame_id}, extra_flags)
+    def __init__(self, frame_id: str = "", extra_flags: int = 0, graph_id: int = 0):
+        self.rc = RowCodec(topics.T_FRAME, {"header.frame_id": frame_id}, extra_flags,
+                           graph_id)
 
     def pack(self, fr: np.ndarray, sec: int, nsec: int, extra_flags: int = 0) -> bytes:
         return self.rc.pack(fr, int(fr[FR_SEQ]), sec, nsec, extra_flags)
@@ -257,8 +267,8 @@ class FrameWire:
 class TruthWire:
     """PlantTruth <-> TR_* row (TR_T is not on the wire: t = seq Ts)."""
 
-    def __init__(self, frame_id: str = ""):
-        self.rc = RowCodec(topics.T_TRUTH, {"header.frame_id": frame_id})
+    def __init__(self, frame_id: str = "", graph_id: int = 0):
+        self.rc = RowCodec(topics.T_TRUTH, {"header.frame_id": frame_id}, graph_id=graph_id)
 
     def pack(self, tr: np.ndarray, seq: int, sec: int, nsec: int) -> bytes:
         return self.rc.pack(tr, seq, sec, nsec)
@@ -267,8 +277,9 @@ class TruthWire:
 class EstimateWire:
     """RotorEstimate <-> ES_* row."""
 
-    def __init__(self, variant: str, frame_id: str = ""):
-        self.rc = RowCodec(topics.T_ESTIMATE, {"header.frame_id": frame_id, "variant": variant})
+    def __init__(self, variant: str, frame_id: str = "", graph_id: int = 0):
+        self.rc = RowCodec(topics.T_ESTIMATE, {"header.frame_id": frame_id, "variant": variant},
+                           graph_id=graph_id)
 
     def pack(self, es: np.ndarray, seq: int, sec: int, nsec: int) -> bytes:
         return self.rc.pack(es, seq, sec, nsec)
@@ -281,10 +292,11 @@ class ControlWire:
     """DutyCommand and ControllerState <-> CO_* row.  `commander`: the sender's access mark
     (DutyCommand.commander)."""
 
-    def __init__(self, frame_id: str = "", commander: str = ""):
+    def __init__(self, frame_id: str = "", commander: str = "", graph_id: int = 0):
         self.duty = RowCodec(topics.T_DUTY, {"header.frame_id": frame_id,
-                                             "commander": commander})
+                                             "commander": commander}, graph_id=graph_id)
         self.frame_id = frame_id
+        self.graph_id = int(graph_id)
         self.state_codecs: dict[int, RowCodec] = {}
 
     def pack_duty(self, co: np.ndarray, seq: int, sec: int, nsec: int) -> bytes:
@@ -295,7 +307,8 @@ class ControlWire:
         c = self.state_codecs.get(code)
         if c is None:  # one codec per fault text (the string is part of the layout)
             c = RowCodec(topics.T_STATE, {"header.frame_id": self.frame_id,
-                                          "fault_reason": fault_name(code)})
+                                          "fault_reason": fault_name(code)},
+                         graph_id=self.graph_id)
             self.state_codecs[code] = c
         return c.pack(co, seq, sec, nsec)
 
@@ -313,11 +326,31 @@ def row_codec(mtype: str) -> RowCodec:
 
 def duty_commander(data: bytes) -> bytes:
     """DutyCommand.commander of a serialised message, without decoding the rest (the power
-    stage checks it on every command): header (stamp, frame_id), seq, duty[3], enable, then
-    the commander string."""
+    stage checks it on every command): header (stamp, frame_id), seq, graph_id, duty[3],
+    enable, then the commander string."""
     n = int.from_bytes(data[12:16], "little")
     off = 12 + n  # payload offset (after the 4-byte encapsulation header) past frame_id
-    off += (-off) % 8 + 8 + 24 + 1  # seq aligned to 8, duty[3], enable
+    off += (-off) % 8 + 16 + 24 + 1  # seq aligned to 8, graph_id, duty[3], enable
     off += (-off) % 4
     m = int.from_bytes(data[4 + off:8 + off], "little")
     return bytes(data[8 + off:8 + off + m - 1]) if m > 0 else b""
+
+
+# ---------------------------------------------------------------- graph identity
+# the message types that carry graph_id right after seq (Header, uint64 seq, uint64 graph_id)
+GRAPH_TYPES = frozenset({topics.T_FRAME, topics.T_TRUTH, topics.T_ESTIMATE, topics.T_DUTY,
+                         topics.T_STATE, topics.T_MARKER, topics.T_DONE})
+_U32 = struct.Struct("<I")
+_U64 = struct.Struct("<Q")
+
+
+def seq_offset(data: bytes) -> int:
+    """Byte offset of `seq` in a serialised GRAPH_TYPES message (past the header's
+    frame_id, aligned to 8 in the payload)."""
+    off = 16 + _U32.unpack_from(data, 12)[0]
+    return off + (-(off - 4)) % 8
+
+
+def graph_id_of(data: bytes) -> int:
+    """graph_id of a serialised GRAPH_TYPES message, without decoding the rest."""
+    return _U64.unpack_from(data, seq_offset(data) + 8)[0]

@@ -576,6 +576,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--wait-s", type=float, default=2.0,
                     help="live: wait this long for a first subscriber before publishing")
     ap.add_argument("--max-frames", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--graph-id", type=int, help="live: graph_id stamped on the frames (the "
+                    "graph they feed: ./fluxdrive param get /plant graph_id; default: the "
+                    "launch's, else 0 = not in a launched graph)")
     return ap
 
 

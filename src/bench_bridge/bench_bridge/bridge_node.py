@@ -4,8 +4,8 @@ Thin wrapper over :class:`fluxdrive.can.bridge.CanBridge` (all supervisor logic 
 
 * parameters: ``interface``, ``channel``, ``bitrate``, ``data_bitrate``, ``fd``,
   ``decimation``, ``stale_timeout_s``, ``cmd_timeout_s``, ``armed`` (arm at start / live),
-  ``frame_id``, ``reconnect_initial_s``, ``reconnect_max_s``, ``diagnostics_period_s``,
-  ``ts_s``;
+  ``frame_id``, ``graph_id``, ``reconnect_initial_s``, ``reconnect_max_s``,
+  ``diagnostics_period_s``, ``ts_s``;
 * publishes flux_drive_msgs/PhaseFrame on ``/drive/frame`` (header.stamp = k * ts_s,
   sample-time like the simulated plant; ``fd`` false selects the classic-CAN layout;
   ``decimation`` D, either layout: one sample every D PWM periods, seq = the sample index
@@ -44,7 +44,7 @@ from rclpy.node import Node
 
 from flux_drive_msgs.msg import DutyCommand, PhaseFrame
 from flux_drive_msgs.srv import Arm, ResetFault
-from fluxdrive_ros import access, qos, topics
+from fluxdrive_ros import access, graph, qos, topics
 
 _SOFTWARE_BUSES = ("virtual", "udp_multicast")  # no wire time: any layout and D "fit"
 
@@ -83,6 +83,7 @@ def param_table() -> list[P]:
         P("diagnostics_period_s", 1.0, "period of the /diagnostics status", "s", 0.05, 60.0,
           read_only=True),
         access.param(),
+        graph.param(),
     ]
 
 
@@ -105,6 +106,9 @@ class BenchBridgeNode(Node):
         arm_at_start = pv["armed"]
         diag_period = pv["diagnostics_period_s"]
         self.allowed = list(pv["allowed_commanders"])
+        # graph identity (fluxdrive_ros.graph): its frames carry the graph's id, duties of
+        # another graph are dropped and counted
+        self.graph = graph.Membership(self, pv["graph_id"])
         self.guard = access.CommandGuard(self.allowed, topics.DUTY)
         self.duty_out_of_range = 0
         self.service_refused = 0
@@ -118,11 +122,13 @@ class BenchBridgeNode(Node):
         # the simulated plant's QoS: every reader of /drive/frame matches (volatile ones and
         # the transient-local ones of lockstep graphs); duties read like the plant reads them
         self.pub = self.create_publisher(PhaseFrame, topics.FRAME, qos.SAMPLES)
-        self.wire = FrameWire(self.frame_id)
+        self.wire = FrameWire(self.frame_id, graph_id=self.graph.id)
         self._stamp_d = 0
         self._stamp = Stamp(self.ts)
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.create_subscription(DutyCommand, topics.DUTY, self._on_duty, qos.reader("volatile"))
+        self.create_subscription(DutyCommand, topics.DUTY,
+                                 self.graph.typed(topics.DUTY, self._on_duty),
+                                 qos.reader("volatile"))
         self.create_service(Arm, "/drive/arm", self._on_arm)
         self.create_service(ResetFault, "/drive/reset_fault", self._on_reset)
         self.create_timer(diag_period, self._publish_diagnostics)
@@ -254,6 +260,8 @@ class BenchBridgeNode(Node):
         self.diag_pub.publish(arr)
 
     def destroy_node(self) -> None:
+        if self.graph.foreign:
+            self.get_logger().warning(self.graph.summary())
         self._stop.set()
         self._thread.join(1.0)
         self.bridge.shutdown()  # disarms first

@@ -46,7 +46,6 @@ from fluxdrive_ros.intra import RawPublisher, RawSubscription
 from fluxdrive_ros.params import P, declare, on_set
 from fluxdrive_ros.runner import FluxNode, main_node
 from fluxdrive_ros.wire import EstimateWire, FrameWire, Stamp
-from std_msgs.msg import UInt64
 
 import flux_drive_msgs.msg as fm
 from fluxdrive_ros import diagnostics as diag
@@ -136,7 +135,7 @@ class ObserverNode(FluxNode):
         self.row = np.zeros(ES_N)
         self.stamp = Stamp(card.ts_s)
         self.fw = FrameWire()
-        self.ew = EstimateWire(obs_name, common["frame_id"])
+        self.ew = EstimateWire(obs_name, common["frame_id"], graph_id=self.graph.id)
         self.exit_on_done = common["exit_on_done"]
         self.last_seq = -1
         self.done_seq: int | None = None
@@ -149,7 +148,8 @@ class ObserverNode(FluxNode):
         self.pub = RawPublisher(self, fm.RotorEstimate, "~/" + topics.ESTIMATE, qos.SAMPLES)
         self.sub = RawSubscription(self, fm.PhaseFrame, common["frame_topic"], self._on_frame,
                                    qos.reader(common["input_durability"]))
-        self.create_subscription(UInt64, topics.DONE, self._on_done, qos.LATCHED)
+        self.create_subscription(fm.RunDone, topics.DONE,
+                                 self.graph.typed(topics.DONE, self._on_done), qos.LATCHED)
         on_set(self, self.specs, self._apply)
         self.diag = diag.Diagnostics(self, common["diagnostics_period_s"])
         self.diag.add("input", self._diag_input)
@@ -219,10 +219,10 @@ class ObserverNode(FluxNode):
         return diag.OK, "input ok" + ("" if values["estimate_valid"] else
                                       " (estimate not valid yet)"), values
 
-    def _on_done(self, msg: UInt64) -> None:
+    def _on_done(self, msg) -> None:
         if not self.exit_on_done:
             return
-        self.done_seq = int(msg.data)
+        self.done_seq = int(msg.seq)
         if self.last_seq >= self.done_seq:
             self.finished = True
 

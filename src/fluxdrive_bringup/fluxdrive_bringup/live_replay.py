@@ -1,12 +1,15 @@
 """`./fluxdrive replay BAG --live`: the bag's frames back onto the ROS graph.
 
-The recorded CDR bytes of /drive/frame are published unchanged at a factor of real time;
+The recorded CDR bytes of /drive/frame are published at a factor of real time, unchanged but
+for their graph_id, which becomes the receiving graph's (`--graph-id`; fluxdrive_ros.graph);
+frames of a bag recorded before messages carried graph_id are re-encoded from their rows;
 the engine's replay lab (fluxdrive.replay.lab) owns the options and the offline replay, this
 module only the ROS publisher (the engine package imports no ROS).
 """
 
 from __future__ import annotations
 
+import struct
 import sys
 import time
 from pathlib import Path
@@ -28,20 +31,46 @@ def main(argv: list[str]) -> int:
         raise ConfigError("--rate must be > 0")
     try:
         return live_replay(args.bags[0], args.rate, args.loop, args.start, args.max_frames,
-                           wait_s=args.wait_s)
+                           wait_s=args.wait_s, graph_id=args.graph_id)
     except BagError as exc:
         print(f"fluxdrive replay: {exc}", file=sys.stderr)
         return 2
 
 
+def for_graph(bag, graph_id: int) -> list[tuple[int, bytes]]:
+    """The bag's frames as (log time [ns], CDR bytes) carrying `graph_id`."""
+    from fluxdrive.io.cdr import Decoder
+    from fluxdrive.io.messages import FrameWire, seq_offset
+    from fluxdrive.io.topics import T_FRAME
+
+    raw = bag.raw_frames
+    gid = struct.pack("<Q", graph_id)
+    if raw and Decoder(T_FRAME).layout_of(raw[0][1]).matches_prefix(raw[0][1]):
+        out = []
+        for t, b in raw:  # today's layout: graph_id right after seq
+            off = seq_offset(b) + 8
+            out.append((t, b[:off] + gid + b[off + 8:]))
+        return out
+    # recorded before graph_id existed: encode the decoded rows with today's layout
+    wire = FrameWire(graph_id=graph_id)
+    out = []
+    for t_s, row in zip(bag.t, bag.frames, strict=True):
+        ns = int(round(float(t_s) * 1e9))
+        out.append((ns, wire.pack(row, *divmod(ns, 1_000_000_000))))
+    return out
+
+
 def live_replay(bag_path: Path, rate: float, loop: bool, start_s: float,
                 max_frames: int | None = None, topic: str = "/drive/frame",
-                wait_s: float = 2.0) -> int:
-    """Publish the bag's frames (the recorded CDR bytes, untouched) at `rate` x real time."""
+                wait_s: float = 2.0, graph_id: int | None = None) -> int:
+    """Publish the bag's frames (the recorded CDR bytes, graph_id set) at `rate` x real
+    time."""
     bag = read_run_bag(bag_path, keep_raw=True)
     for pr in bag.problems:
         print(f"replay: warning: {pr}", file=sys.stderr)
-    raw = bag.raw_frames
+    from fluxdrive_ros import graph
+
+    raw = for_graph(bag, graph.env_id() if graph_id is None else int(graph_id))
     t_first = raw[0][0]
     raw = [(t, b) for t, b in raw if (t - t_first) * 1e-9 >= start_s]
     if not raw:

@@ -20,6 +20,9 @@ files), so the bag opens without the package; the run's machine card and observe
 configurations go into the metadata (custom_data "fluxdrive", as fluxdrive.io.bagio writes
 it), so `./fluxdrive replay` treats graph bags like in-process ones.
 
+Graph identity: only messages of the recorder's own graph are recorded (the graph_id check of
+fluxdrive_ros.graph); others are counted and named in the final line.
+
 Topics: `topics` plus /obs/<name>/estimate for every name in `observers`; types from the
 graph's conventions (fluxdrive_ros.topics), others discovered from the graph.
 Timestamps: `timestamps` = header (default: each message's header stamp, i.e. the sample
@@ -47,11 +50,12 @@ from datetime import datetime
 from pathlib import Path
 
 from fluxdrive.core.scenario import REPO_ROOT
+from fluxdrive.io.messages import seq_offset
 from fluxdrive_ros.intra import RawSubscription
 from fluxdrive_ros.params import P, declare
 from fluxdrive_ros.runner import FluxNode, main_node
-from std_msgs.msg import UInt64
 
+import flux_drive_msgs.msg as fm
 from fluxdrive_ros import qos, topics
 
 from .bagwriter import check_bag_target, pack_json
@@ -67,7 +71,7 @@ _REC = struct.Struct("<cHqI")
 def conventional_type(topic: str) -> str | None:
     known = {topics.FRAME: topics.T_FRAME, topics.TRUTH: topics.T_TRUTH,
              topics.DUTY: topics.T_DUTY, topics.CONTROLLER_STATE: topics.T_STATE,
-             topics.DONE: topics.T_UINT64, topics.CLOCK: topics.T_CLOCK,
+             topics.DONE: topics.T_DONE, topics.CLOCK: topics.T_CLOCK,
              topics.MARKER: topics.T_MARKER}
     if topic in known:
         return known[topic]
@@ -84,10 +88,7 @@ def _has_seq(msgtype: str) -> bool:
 
 def _seq(data: bytes) -> int:
     """seq of a per-sample message: right after the header's frame_id string."""
-    n = _U32.unpack_from(data, 12)[0]
-    off = 16 + n
-    off += (-(off - 4)) % 8
-    return _U64.unpack_from(data, off)[0]
+    return _U64.unpack_from(data, seq_offset(data))[0]
 
 
 class RecorderNode(FluxNode):
@@ -158,7 +159,8 @@ class RecorderNode(FluxNode):
         if self.pending:
             self._discover_timer = self.create_timer(0.2, self._discover)
         if pv["exit_on_done"]:
-            self.create_subscription(UInt64, topics.DONE, self._on_done, qos.LATCHED)
+            self.create_subscription(fm.RunDone, topics.DONE,
+                                     self.graph.typed(topics.DONE, self._on_done), qos.LATCHED)
             self._done_timer = self.create_timer(0.1, self._check_done)
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self._feeder, name="bag-feeder", daemon=True)
@@ -199,6 +201,7 @@ class RecorderNode(FluxNode):
         meta = run_metadata(SimpleNamespace(scenario=sc, names=names, driving=sc.driving),
                             0, None, names)
         meta["recorded_by"] = "graph"
+        meta["graph_id"] = self.graph.id  # replay keeps this graph's messages only
         return {META_KEY: json.dumps(meta, default=_json_default)}
 
     # ----------------------------------------------------------------- subscriptions
@@ -322,8 +325,8 @@ class RecorderNode(FluxNode):
         self.finished = True
 
     # ----------------------------------------------------------------- end of run
-    def _on_done(self, msg: UInt64) -> None:
-        self.done_seq = int(msg.data)
+    def _on_done(self, msg) -> None:
+        self.done_seq = int(msg.seq)
 
     def _check_done(self) -> None:
         if self.done_seq is None or self.finished:
@@ -370,7 +373,8 @@ class RecorderNode(FluxNode):
         detail = ", ".join(f"{t} {c}" for t, c in self.counts.items())
         held = (f"; the writer's backpressure held the callbacks {self.holds} times"
                 if self.holds else "")
-        self.log(f"bag {self.bag_dir} finalised: {total} messages ({detail}){held}")
+        foreign = f"; not recorded: {self.graph.summary()}" if self.graph.foreign else ""
+        self.log(f"bag {self.bag_dir} finalised: {total} messages ({detail}){held}{foreign}")
         sys.stdout.write(f"@bag {self.bag_dir}\n")
         sys.stdout.flush()
 

@@ -56,9 +56,9 @@ class RosSide:
         import rclpy
         from fluxdrive_ros.topics import msg_class
         from rclpy.executors import SingleThreadedExecutor
-        from std_msgs.msg import UInt8MultiArray, UInt64
+        from std_msgs.msg import UInt8MultiArray
 
-        from fluxdrive_ros import qos, topics
+        from fluxdrive_ros import graph, qos, topics
 
         self.rclpy = rclpy
         self.ctx = rclpy.Context()
@@ -91,7 +91,15 @@ class RosSide:
 
         self.sub = self.node.create_subscription(UInt8MultiArray, topics.SCOPE_ENVELOPE,
                                                  on_env, 10, raw=True)
-        self.node.create_subscription(UInt64, topics.DONE, lambda m: self.done.set(),
+        # the graph's id when started by its launch (else 0: any graph's end, and markers
+        # stamped 0, which every recorder accepts; fluxdrive_ros.graph)
+        self.graph_id = graph.env_id()
+
+        def on_done(m) -> None:
+            if self.graph_id in (0, m.graph_id):
+                self.done.set()
+
+        self.node.create_subscription(msg_class(topics.T_DONE), topics.DONE, on_done,
                                       qos.LATCHED)
         self.marker_cls = msg_class(topics.T_MARKER)
         # reliable, transient-local: a recorder that matches late still gets the markers
@@ -140,6 +148,7 @@ class RosSide:
         m.header.stamp.sec, m.header.stamp.nanosec = divmod(t_ns, 1_000_000_000)
         m.header.frame_id = ""
         m.seq = k
+        m.graph_id = self.graph_id
         m.node, m.name, m.value = node, name, value
         m.successful, m.reason, m.source = ok, reason, "scope"
         self.pub_marker.publish(m)

@@ -249,9 +249,8 @@ class ScopeTapNode(FluxNode):
             self._discover()
             self.create_timer(1.0, self._discover)
         if fixed["exit_on_done"]:
-            from std_msgs.msg import UInt64
-
-            self.create_subscription(UInt64, topics.DONE, self._on_done, qos.LATCHED)
+            self.create_subscription(topics.msg_class(topics.T_DONE), topics.DONE,
+                                     self.graph.typed(topics.DONE, self._on_done), qos.LATCHED)
         on_set(self, self.specs, self._apply)
         self.timer = self.create_timer(pv["period_s"], self._tick)
         self.get_logger().info(f"scope tap on {len(self.subs)} topics, envelopes every "

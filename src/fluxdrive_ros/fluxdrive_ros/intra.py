@@ -12,7 +12,8 @@ readers.  This module gives the fluxdrive nodes the same shortcut:
   the writer's transient-local history);
 - `RawSubscription` registers its callback with the process's bus; while the topic has a
   publisher in this process it keeps no DDS subscription (so no message arrives twice),
-  otherwise it subscribes over DDS as usual.
+  otherwise it subscribes over DDS as usual.  Messages of another graph are dropped (and
+  counted) before the callback (fluxdrive_ros.graph).
 
 Ordering: deliveries go through one FIFO per process, drained by executor tasks in batches
 of `BATCH`; between batches the executor serves everything else (parameter services,
@@ -171,8 +172,11 @@ class RawSubscription:
         self.node = node
         self.msg_cls = msg_cls
         self.qos = qos
-        self.callback = callback
         self.topic = node.resolve_topic_name(topic)
+        member = getattr(node, "graph", None)  # only this graph's messages reach `callback`
+        if member is not None and member.carries_id(msg_cls):
+            callback = member.filter(self.topic, callback)
+        self.callback = callback
         self.bus = bus()
         self.sub = None
         if self.bus is not None:

@@ -55,6 +55,12 @@ class FluxNode(Node):
         self._finish_hook = None
         super().__init__(name, namespace=namespace or "", **kw)
         self.exit_code = 0
+        # graph identity (fluxdrive_ros.graph): stamped on what it publishes, checked on
+        # every raw subscription
+        from . import graph
+        from .params import declare
+
+        self.graph = graph.Membership(self, declare(self, [graph.param()])["graph_id"])
 
     @property
     def finished(self) -> bool:
@@ -159,6 +165,9 @@ def spin(nodes: list[FluxNode], executor=None, poll_s: float = 0.5) -> int:
         except Exception:  # noqa: BLE001
             traceback.print_exc()
             code = code or 1
+        g = getattr(n, "graph", None)
+        if g is not None and g.foreign:
+            n.log(g.summary(), "warning")
         code = code or int(getattr(n, "exit_code", 0) or 0)
     for n in nodes:
         try:

@@ -15,6 +15,7 @@ from fluxdrive.io.topics import (  # noqa: F401 - re-exported: the one definitio
     OBS_NAMESPACE,
     SCOPE_ENVELOPE,
     T_CLOCK,
+    T_DONE,
     T_DUTY,
     T_ESTIMATE,
     T_FRAME,

@@ -65,7 +65,6 @@ from fluxdrive_ros.intra import RawPublisher, RawSubscription
 from fluxdrive_ros.params import P, declare, on_set
 from fluxdrive_ros.runner import FluxNode, main_node
 from fluxdrive_ros.wire import ControlWire, EstimateWire, FrameWire, Stamp
-from std_msgs.msg import UInt64
 
 import flux_drive_msgs.msg as fm
 from flux_drive_msgs.srv import ResetFault
@@ -215,7 +214,7 @@ class ControllerNode(FluxNode):
         # DutyCommand.commander = this node's mark: the plant / bench bridge obey
         # only marked commands of their allowed_commanders (fluxdrive_ros.access)
         self.cw = ControlWire(common["frame_id"], commander=access.mark(
-            self.get_fully_qualified_name(), topics.DUTY))
+            self.get_fully_qualified_name(), topics.DUTY), graph_id=self.graph.id)
         # pairing, stale-input trips, lost-interval re-synchronisation: the engine's
         self.seq = ControlSequencer(
             self.cp, card.ts_s, self.sensorless, self._publish, self._log,
@@ -236,7 +235,8 @@ class ControllerNode(FluxNode):
         if self.sensorless:
             self.sub_est = RawSubscription(self, fm.RotorEstimate, src["estimate_topic"],
                                            self._on_est, qos.reader(common["input_durability"]))
-        self.create_subscription(UInt64, topics.DONE, self._on_done, qos.LATCHED)
+        self.create_subscription(fm.RunDone, topics.DONE,
+                                 self.graph.typed(topics.DONE, self._on_done), qos.LATCHED)
         self.reset_service = self.resolve_service_name("~/reset_fault")
         self.create_service(ResetFault, self.reset_service, self._on_reset)
         on_set(self, self.specs, self._apply)
@@ -348,10 +348,10 @@ class ControllerNode(FluxNode):
             return diag.ERROR, f"PWM off, latched fault: {text}", values
         return diag.OK, f"{mode}, PWM {'on' if values['pwm_enabled'] else 'off'}", values
 
-    def _on_done(self, msg: UInt64) -> None:
+    def _on_done(self, msg) -> None:
         if not self.exit_on_done:
             return
-        self.done_seq = int(msg.data)
+        self.done_seq = int(msg.seq)
         if self.seq.next_k > self.done_seq:
             self.finished = True
 

@@ -4,7 +4,7 @@ A thin wrapper around fluxdrive.drive.plant's kernels (plant_initial_frame, plan
 scenario file gives the machine card, load profile, sensor faults and seed, exactly as for
 the in-process runner (fluxdrive.drive.sim.DriveSetup builds both).
 
-Publishes   /drive/frame (PhaseFrame)  /drive/truth (PlantTruth)  /clock  /drive/done (UInt64)
+Publishes   /drive/frame (PhaseFrame)  /drive/truth (PlantTruth)  /clock  /drive/done (RunDone)
 Subscribes  /drive/duty (DutyCommand)
 
 Modes
@@ -62,7 +62,6 @@ from fluxdrive_ros.runner import FluxNode, main_node
 from fluxdrive_ros.wire import STATUS_SIMULATED, STATUS_STALE_COMMAND, FrameWire, Stamp, TruthWire
 from rclpy.duration import Duration
 from rosgraph_msgs.msg import Clock
-from std_msgs.msg import UInt64
 
 import flux_drive_msgs.msg as fm
 from fluxdrive_ros import access, qos, topics
@@ -144,14 +143,15 @@ class PlantNode(FluxNode):
         self.mp = ds.mp.copy()
         self._set_load(pv)
         self.stamp = Stamp(ds.ts)
-        self.fw = FrameWire(pv["frame_id"], extra_flags=STATUS_SIMULATED)
-        self.tw = TruthWire(pv["frame_id"])
+        gid = self.graph.id
+        self.fw = FrameWire(pv["frame_id"], extra_flags=STATUS_SIMULATED, graph_id=gid)
+        self.tw = TruthWire(pv["frame_id"], graph_id=gid)
         self.clock_codec = Codec(topics.T_CLOCK)
         self.duty_dec = Decoder(topics.T_DUTY)
         self.pub_frame = RawPublisher(self, fm.PhaseFrame, topics.FRAME, qos.SAMPLES)
         self.pub_truth = RawPublisher(self, fm.PlantTruth, topics.TRUTH, qos.SAMPLES)
         self.pub_clock = RawPublisher(self, Clock, topics.CLOCK, qos.CLOCK)
-        self.pub_done = self.create_publisher(UInt64, topics.DONE, qos.LATCHED)
+        self.pub_done = self.create_publisher(fm.RunDone, topics.DONE, qos.LATCHED)
         self.sub_duty = RawSubscription(self, fm.DutyCommand, topics.DUTY, self._on_duty,
                                         qos.reader(pv["input_durability"]))
         self.k = -1  # index of the last frame published
@@ -275,6 +275,7 @@ class PlantNode(FluxNode):
                     f"{self.guard.allowed}")
             return
         v = self.duty_dec.decode(data)
+        v = v[:3] + v[4:]  # (sec, nsec, seq, da, db, dc, enable): graph_id checked already
         seq = v[2]
         c = self.counts.values
         c["duty_received"] += 1
@@ -471,8 +472,10 @@ class PlantNode(FluxNode):
             f"(real-time factor {sim / max(el, 1e-9):.3f})")
         if self.paced:
             self._log_pacing()
-        msg = UInt64()
-        msg.data = self.k
+        msg = fm.RunDone()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = self.stamp(self.k)
+        msg.seq = self.k
+        msg.graph_id = self.graph.id
         self.pub_done.publish(msg)
         # one 10 s deadline for all: a reader that died (SIGKILL) stays matched, unacking,
         # until its participant's lease runs out

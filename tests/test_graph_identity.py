@@ -1,0 +1,90 @@
+"""Two graphs on one ROS domain, side by side: each hears the other (same topics), drops
+what carries another graph_id (fluxdrive_ros.graph), and records exactly its own run.
+
+The lockstep graph is deterministic and equal to the in-process runner bit for bit
+(tests/test_graph_lockstep.py), so "equal to its solo run" is checked against the
+in-process run of the same scenario: every frame's seq and every sample value.  The two
+graphs run different seeds, so a frame of the other graph in a bag would not go unnoticed.
+The domain-clash refusal of `run` is bypassed the way a user with two graphs on purpose
+does it: `--shared-domain` (docs/graph.md, "Graph identity")."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+pytest.importorskip("fluxdrive_bringup")
+
+ROOT = Path(__file__).resolve().parents[1]
+DURATION_S = 0.3
+
+
+def domain(offset: int) -> int:
+    """A ROS domain per test (and per pytest process)."""
+    return 120 + (os.getpid() * 7 + offset) % 100
+
+
+def _scenario(seed: int) -> Path:
+    """The shipped scenario on the ideal bench with its own noise seed."""
+    from fluxdrive.core.scenario import load_scenario, save_scenario
+
+    src = ROOT / "config" / "scenarios" / "paper_2pct_150load.yaml"
+    out = Path(tempfile.mkdtemp(prefix="fluxdrive-ident-")) / f"seed{seed}.yaml"
+    return save_scenario(load_scenario(src, overrides={"bench": {}, "seed": seed}), out)
+
+
+def _reference(path: Path):
+    from fluxdrive.core.scenario import load_scenario
+    from fluxdrive.drive.sim import run_scenario
+    from fluxdrive_bringup.runs import shorten
+
+    sc = load_scenario(path)
+    shorten(sc, DURATION_S)
+    return run_scenario(sc, progress=False)
+
+
+def test_two_graphs_one_domain_each_bag_equals_its_solo_run(tmp_path):
+    from fluxdrive.core.scenario import load_scenario
+    from fluxdrive.drive.plant import FR_SEQ
+    from fluxdrive.io.bagio import read_run_bag
+    from fluxdrive_bringup.runs import result_from_bag
+
+    dom = domain(41)
+    env = {k: v for k, v in os.environ.items() if k != "FLUXDRIVE_GRAPH_KEY"}  # one per launch
+    runs = {"composed": _scenario(11), "separate": _scenario(22)}
+    procs = {}
+    for layout, sp in runs.items():
+        cmd = [str(ROOT / "fluxdrive"), "run", str(sp), "--layout", layout, "--duration",
+               str(DURATION_S), "--domain-id", str(dom), "--shared-domain", "--no-plots",
+               "--timeout", "150", "--out", str(tmp_path / f"out_{layout}"),
+               "--bag", str(tmp_path / f"bag_{layout}")]
+        procs[layout] = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE,
+                                         stderr=subprocess.STDOUT, text=True)
+    logs = {layout: p.communicate(timeout=240)[0] for layout, p in procs.items()}
+    for layout, p in procs.items():
+        bag = tmp_path / f"bag_{layout}"
+        assert bag.exists(), logs[layout][-3000:]
+        rb = read_run_bag(bag)
+        # nothing foreign was recorded: no duplicate seq, nothing for replay to drop
+        assert not [pr for pr in rb.problems if "another graph" in pr or "duplicate" in pr], \
+            rb.problems
+        assert np.array_equal(rb.frames[:, FR_SEQ], np.arange(len(rb.frames)))
+        res, arr = result_from_bag(bag, load_scenario(runs[layout]), DURATION_S)
+        ref = _reference(runs[layout])
+        assert arr["n"] == ref.frames.shape[0] == int(round(DURATION_S * 1e4))
+        assert all(v == 0 for v in arr["missing"].values()), (layout, arr["missing"])
+        for name in ("frames", "truth", "est", "ctrl"):
+            a, b = getattr(res, name), getattr(ref, name)
+            assert np.array_equal(a, b), (layout, name, np.argwhere(a != b)[:5])
+        assert p.returncode in (0, 1), (layout, logs[layout][-3000:])  # 1: report verdict
+    # the graphs did hear each other (so the check above means something): the nodes of the
+    # separate layout read the composed graph's samples over DDS and dropped them
+    both = logs["composed"] + logs["separate"]
+    assert "message from another graph" in both, both[-4000:]
+    assert "ignored" in both and "from other graphs" in both
