@@ -127,6 +127,7 @@ def test_expected_interfaces_exist():
             "PhaseFrame",
             "PlantTruth",
             "RotorEstimate",
+            "RunDone",
         ]
     )
     assert SRV_NAMES == ["Arm", "ResetFault"]

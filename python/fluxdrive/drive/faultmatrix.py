@@ -45,6 +45,8 @@ from fluxdrive.drive.control import (
 )
 from fluxdrive.drive.observers import ES_N, ES_TH, ES_VALID, observer_step
 from fluxdrive.drive.plant import (
+    FLAG_STALE,
+    FR_FLAGS,
     FR_IA,
     FR_N,
     FR_VDC,
@@ -118,12 +120,15 @@ class Drive:
                         self.seq.on_estimate(j, e)
                 self.backlog.clear()
             duty = self.duties.pop(k - 1, None)
-            if duty is None:  # not answered in time: the watchdog's PWM off
+            watchdog = duty is None
+            if watchdog:  # not answered in time: the watchdog's PWM off
                 duty = pwm_off_latch()
                 if k >= 1:
                     self.lost.append(k + 1)
             plant_advance(self.pst, ds.mp, self.rng, duty[CO_DA:CO_DC + 1], duty[CO_EN] > 0.5,
                           ds.load_t, ds.load_y, ds.load_cfg, self.fr, self.tr)
+            if watchdog:  # the frame says so, as the plant node's does (STATUS_STALE_COMMAND)
+                self.fr[FR_FLAGS] = float(int(self.fr[FR_FLAGS]) | FLAG_STALE)
             self.speed_rpm.append(self.tr[TR_WM] / RPM)
         self.k += n
 

@@ -70,10 +70,12 @@ from fluxdrive.core.layout import Layout
 from fluxdrive.core.machine import ConfigError, MachineCard, card_current_bandwidth_hz
 from fluxdrive.core.transforms import clarke, inv_clarke, line_to_phase, wrap_angle
 from fluxdrive.drive.plant import (
+    FLAG_STALE,
     FR_DA,
     FR_DB,
     FR_DC,
     FR_EN,
+    FR_FLAGS,
     FR_IA,
     FR_IB,
     FR_IC,
@@ -140,6 +142,7 @@ OS_WCOMP = _OS.index()  # compensation rotor frequency [rad/s]
 OS_LAST_SEQ = _OS.index()  # sequence number of the last frame
 OS_GAPS = _OS.index()  # periods missed in sequence gaps
 OS_STALE = _OS.index()  # repeated/backwards frames ignored
+OS_LOST = _OS.index()  # lost-interval frames coasted (watchdog PWM off, commanded voltages)
 OS_N = _OS.close(globals())
 
 # ---- estimate row ES_*
@@ -217,7 +220,17 @@ def _input_policy(os_, op, fr, ia, ib, out):
     gap of n periods: the volt-seconds of the missing intervals are unknown, so no current
       step is formed across the gap (i(k-1) := i(k)), the angle coasts n periods at w^, the
       flux filter state is kept, and this sample is flagged invalid;
-    first frame: only the current is kept (no step yet)."""
+    first frame: only the current is kept (no step yet);
+    lost interval (the frame says so: FLAG_STALE with the PWM off -- the power stage's
+      watchdog switched it off because no duty command came): an observer on *commanded*
+      voltages would integrate duty x Vdc x 0 = 0 although the terminals carry the back-EMF
+      once the currents have decayed, dragging the flux filter toward zero and the PLL with
+      it.  Instead it coasts like over a gap: the angle advances at w^, the flux filter state
+      is rotated with it (the filter resumes in phase with the rotor, re-seeded rather than
+      decayed), no current step is formed across (i(k-1) := i(k)), the estimate is held and
+      flagged invalid, counted in OS_LOST.  An observer on *measured* voltages integrates
+      on: the line voltages it captures during the PWM-off are the real ones (diode
+      conduction, then the back-EMF), so nothing is lost to it."""
     ts = op[OP_TS]
     if not _finite_frame(fr):
         os_[OS_BAD] += 1.0
@@ -240,6 +253,21 @@ def _input_policy(os_, op, fr, ia, ib, out):
         os_[OS_IPB] = ib
         _hold(os_, out)
         os_[OS_TH] = wrap_angle(os_[OS_TH] + ts * os_[OS_PLL_I])
+        return True
+    if (os_[OS_INIT] != 0.0 and fr[FR_EN] < 0.5 and op[OP_VSRC] != VS_MEASURED
+            and int(fr[FR_FLAGS]) & FLAG_STALE):
+        os_[OS_LOST] += 1.0
+        dth = ts * os_[OS_PLL_I]
+        c = math.cos(dth)
+        s = math.sin(dth)
+        ea = os_[OS_ETA_A]
+        eb = os_[OS_ETA_B]
+        os_[OS_ETA_A] = c * ea - s * eb
+        os_[OS_ETA_B] = s * ea + c * eb
+        os_[OS_IPA] = ia
+        os_[OS_IPB] = ib
+        _hold(os_, out)
+        os_[OS_TH] = wrap_angle(os_[OS_TH] + dth)
         return True
     if os_[OS_INIT] == 0.0:
         os_[OS_INIT] = 1.0

@@ -100,6 +100,9 @@ FR_SEQ = _FR.index()  # sample index k
 FR_FLAGS = _FR.index()  # status bits (FLAG_*)
 FR_N = _FR.close(globals())
 FLAG_CLIP = 1  # a current ADC channel clipped at full scale
+# the power stage had no fresh duty command for this period (PhaseFrame.STATUS_STALE_COMMAND);
+# with FR_EN = 0 its watchdog switched the PWM off: a lost interval (observers coast it)
+FLAG_STALE = 16
 
 # ---- truth vector (simulation only): TR_*
 _TR = Layout("TR")

@@ -17,8 +17,10 @@ Field kinds come from the .msg text: a bool goes out as `row > 0.5`, an integer 
 Conventions the mapping owns:
 - header.stamp is the sample instant t_k = k Ts in integer nanoseconds (`Stamp`).
 - PhaseFrame.status_flags: the engine's frame flag bits are the message's STATUS_* bits
-  (FLAG_CLIP == STATUS_SENSOR_CLIP; the CAN bridge's stale-command bit == STATUS_STALE_COMMAND);
-  a frame read back keeps only FLAG_CLIP (the one bit the observers and controller use).
+  (FLAG_CLIP == STATUS_SENSOR_CLIP, FLAG_STALE == STATUS_STALE_COMMAND; the CAN bridge's
+  stale-command bit is the same); a frame read back keeps only those two (FRAME_FLAGS_IN: the
+  bits the observers and the controller use -- a stale frame with the PWM off is a lost
+  interval to the observers).
 - PlantTruth.theta_e goes out as the engine has it, in [0, 2 pi); a negative angle read
   back (a bag following the message comment) is wrapped into [0, 2 pi).
 - ControllerState.fault_code is the engine's CO_FAULT (DriveFault codes); fault_reason is
@@ -71,7 +73,7 @@ from fluxdrive.drive.observers import (
     ES_VALID,
     ES_W,
 )
-from fluxdrive.drive.plant import FLAG_CLIP, FR_FLAGS, FR_N, FR_SEQ, TR_N, TR_THETA_E
+from fluxdrive.drive.plant import FLAG_CLIP, FLAG_STALE, FR_FLAGS, FR_N, FR_SEQ, TR_N, TR_THETA_E
 from fluxdrive.io import topics
 from fluxdrive.io.cdr import Codec, Decoder, leaves
 
@@ -83,7 +85,9 @@ STATUS_DUTY_CLAMPED = 8
 STATUS_STALE_COMMAND = 16
 # engine frame flag bits that travel (the rest of status_flags is the publisher's)
 FRAME_FLAGS_OUT = STATUS_SENSOR_CLIP | STATUS_STALE_COMMAND
-assert FLAG_CLIP == STATUS_SENSOR_CLIP  # the engine's bit is the message's
+FRAME_FLAGS_IN = FLAG_CLIP | FLAG_STALE  # the engine's bits a frame read back keeps
+assert FLAG_CLIP == STATUS_SENSOR_CLIP  # the engine's bits are the message's
+assert FLAG_STALE == STATUS_STALE_COMMAND
 
 TWO_PI = 2.0 * math.pi
 
@@ -143,11 +147,11 @@ def fault_name(code: int) -> str:
 
 def post_read(mtype: str, row: np.ndarray) -> None:
     """The read-back conventions on rows (or a 2-D block of rows) just filled from messages:
-    frame flags keep FLAG_CLIP only; truth angles wrapped into [0, 2 pi)."""
+    frame flags keep FRAME_FLAGS_IN only; truth angles wrapped into [0, 2 pi)."""
     if mtype == topics.T_FRAME:
         f = row[..., FR_FLAGS]
         ok = ~np.isnan(f)
-        f[ok] = (f[ok].astype(np.int64) & FLAG_CLIP).astype(np.float64)
+        f[ok] = (f[ok].astype(np.int64) & FRAME_FLAGS_IN).astype(np.float64)
     elif mtype == topics.T_TRUTH:
         th = row[..., TR_THETA_E]
         row[..., TR_THETA_E] = np.where(th < 0.0, th + TWO_PI, th)
@@ -213,7 +217,7 @@ class RowCodec:
         seq_i = idx["seq"]
         if mtype == topics.T_FRAME:
             sets.append(f"    out[{FR_SEQ}] = m[{seq_i}]")
-            sets.append(f"    out[{FR_FLAGS}] = m[{idx['status_flags']}] & {FLAG_CLIP}")
+            sets.append(f"    out[{FR_FLAGS}] = m[{idx['status_flags']}] & {FRAME_FLAGS_IN}")
         elif mtype == topics.T_TRUTH:
             th = idx["theta_e"]
             sets[0] = (f"    out[{TR_THETA_E}] = m[{th}] + {TWO_PI!r} if m[{th}] < 0.0 "

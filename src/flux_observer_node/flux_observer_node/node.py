@@ -30,6 +30,7 @@ from fluxdrive.drive.observers import (
     ES_VALID,
     OS_BAD,
     OS_GAPS,
+    OS_LOST,
     OS_N,
     OS_STALE,
     PARAM_RANGES,
@@ -141,7 +142,10 @@ class ObserverNode(FluxNode):
         self.done_seq: int | None = None
         self.limits = frame_limits(card)
         self.counts = diag.Counters("frames", "good", "bad_samples", "out_of_range",
-                                    "repeated_or_backwards", "missing", "invalid_estimates")
+                                    "repeated_or_backwards", "missing", "invalid_estimates",
+                                    "lost_interval_frames")
+        self._lost_seen = 0.0
+        self._lost_frame = -2  # seq of the last coasted lost-interval frame
         self._good_reported = 0
         self._frames_reported = 0
         self._logged = 0
@@ -179,12 +183,29 @@ class ObserverNode(FluxNode):
             c["invalid_estimates"] += 1
         if (st[OS_BAD], st[OS_STALE], st[OS_GAPS]) != before:
             self._count_bad(seq, oor, before)
+        elif st[OS_LOST] != self._lost_seen:  # a lost interval (watchdog PWM off): coasted
+            self._lost(seq)
         else:
             c["good"] += 1
         if seq > self.last_seq:
             self.last_seq = seq
         if self.done_seq is not None and seq >= self.done_seq:
             self.finished = True
+
+    def _lost(self, seq: int) -> None:
+        """A frame of a lost interval (the power stage's watchdog switched the PWM off;
+        commanded voltages would be wrong): coasted -- one line when an interval begins."""
+        c = self.counts.values
+        first = self._lost_frame != seq - 1
+        self._lost_seen = self.state[OS_LOST]
+        self._lost_frame = seq
+        c["lost_interval_frames"] = int(self._lost_seen)
+        if first and self._logged < 10:
+            self._logged += 1
+            self.get_logger().warning(
+                f"frame {seq}: PWM off by the power stage's watchdog (a lost interval): the "
+                f"commanded voltage is not what the terminals saw -- coasting at w^ with the "
+                f"flux state kept in phase, estimates flagged invalid until PWM is back")
 
     def _count_bad(self, seq: int, oor: bool, before: tuple) -> None:
         st, c = self.state, self.counts.values
@@ -205,11 +226,15 @@ class ObserverNode(FluxNode):
     def _diag_input(self) -> tuple[int, str, dict]:
         c = self.counts
         grew = c.grew("bad_samples", "repeated_or_backwards", "missing")
+        lost = c.grew("lost_interval_frames")
         frames_new = c["frames"] - self._frames_reported
         good_new = c["good"] - self._good_reported
         self._frames_reported, self._good_reported = c["frames"], c["good"]
         values = {**c.report(), "last_seq": self.last_seq,
                   "estimate_valid": bool(self.row[ES_VALID])}
+        if lost and not grew:
+            return diag.WARN, ("lost interval (the power stage's watchdog switched the PWM "
+                               "off): coasting, estimates flagged invalid"), values
         if frames_new and not good_new:
             return diag.ERROR, (f"no usable frame among the last {frames_new}: estimate held, "
                                 f"flagged invalid"), values
