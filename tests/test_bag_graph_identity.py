@@ -76,3 +76,26 @@ def test_a_bag_from_before_graph_id_decodes_with_its_own_definition(short_run):
     assert np.array_equal(seq, np.arange(len(res.frames)))
     assert np.array_equal(rows[:, FR_SEQ], res.frames[:, FR_SEQ])
     assert np.array_equal(rows, res.frames)
+
+
+def test_live_replay_stamps_the_receiving_graphs_id(tmp_path, short_run):
+    """`replay --live` into a graph: the frames carry that graph's id -- a today's bag's
+    bytes patched in place, a bag from before graph_id re-encoded from its rows."""
+    pytest.importorskip("rclpy")
+    live = pytest.importorskip("fluxdrive_bringup.live_replay")
+    from fluxdrive.io.bagio import write_run_bag
+    from fluxdrive.io.messages import graph_id_of, row_codec
+    from fluxdrive.core.scenario import REPO_ROOT
+
+    new = read_run_bag(write_run_bag(short_run, tmp_path / "new"), keep_raw=True)
+    old = read_run_bag(REPO_ROOT / "bags" / "samples" / "paper_2pct_150load", keep_raw=True)
+    for bag in (new, old):
+        out = live.for_graph(bag, MINE)
+        assert len(out) == len(bag.frames)
+        assert all(graph_id_of(b) == MINE for _, b in out)
+        rows = np.zeros((len(out), bag.frames.shape[1]))
+        for j, (_, b) in enumerate(out):
+            row_codec(T_FRAME).unpack(b, rows[j])
+        assert np.array_equal(rows, bag.frames)
+    patched = live.for_graph(new, MINE)
+    assert [len(b) for _, b in patched] == [len(b) for _, b in new.raw_frames]
