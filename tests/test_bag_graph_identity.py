@@ -83,9 +83,9 @@ def test_live_replay_stamps_the_receiving_graphs_id(tmp_path, short_run):
     bytes patched in place, a bag from before graph_id re-encoded from its rows."""
     pytest.importorskip("rclpy")
     live = pytest.importorskip("fluxdrive_bringup.live_replay")
+    from fluxdrive.core.scenario import REPO_ROOT
     from fluxdrive.io.bagio import write_run_bag
     from fluxdrive.io.messages import graph_id_of, row_codec
-    from fluxdrive.core.scenario import REPO_ROOT
 
     new = read_run_bag(write_run_bag(short_run, tmp_path / "new"), keep_raw=True)
     old = read_run_bag(REPO_ROOT / "bags" / "samples" / "paper_2pct_150load", keep_raw=True)
