@@ -63,6 +63,20 @@ class Diagnostics:
         self.pub = node.create_publisher(DiagnosticArray, TOPIC, QOS)
         self.timer = node.create_timer(period_s, self.publish) if period_s > 0 else None
         self.n_published = 0
+        member = getattr(node, "graph", None)
+        if member is not None:  # graph identity (fluxdrive_ros.graph): what was dropped
+            self._foreign_reported = 0
+            self.add("graph", lambda: self._graph_status(member))
+
+    def _graph_status(self, member) -> tuple[int, str, dict[str, Any]]:
+        total = member.total()
+        values = {"graph_id": member.id, "foreign_messages": total,
+                  **{f"foreign {t}": c for t, c in sorted(member.foreign.items())}}
+        grew, self._foreign_reported = total > self._foreign_reported, total
+        if grew:
+            return WARN, "messages of another graph on this domain dropped", values
+        return OK, f"graph_id {member.id}" + (f"; {total} foreign messages dropped so far"
+                                              if total else ""), values
 
     def add(self, what: str, fn: Source) -> None:
         self.sources.append((f"{self.node.get_fully_qualified_name()}: {what}", fn))
