@@ -69,6 +69,7 @@ CP_HANDOVER_DWELL = _CP.index()  # estimate agreeing with the ramp this long -> 
 CP_I2T_LIMIT = _CP.index()  # I2t trip [pu^2 s]
 CP_IRATED = _CP.index()  # rated current [A]
 CP_HANDOVER_TIMEOUT = _CP.index()  # at handover speed this long without handover -> trip [s]
+CP_AGREE_LPF = _CP.index()  # handover agreement low-pass pole [rad/s]; 0: per sample
 CP_N = _CP.close(globals())
 SRC_ENCODER, SRC_ESTIMATE = 0, 1
 
@@ -91,6 +92,8 @@ CS_IQ_IF_F = _CS.index()  # filtered torque current in the observer's frame duri
 CS_AGREE_T = _CS.index()  # time the estimate has agreed with the ramp [s]
 CS_I2T = _CS.index()  # I2t integral [pu^2 s]
 CS_HO_WAIT_T = _CS.index()  # time the I-f ramp has waited at the handover speed [s]
+CS_AG_C, CS_AG_S = _CS.indices(2)  # filtered unit vector of (estimate - I-f) angle
+CS_AG_W = _CS.index()  # filtered (estimated - I-f) electrical speed [rad/s]
 CS_N = _CS.close(globals())
 
 MODE_DISABLED, MODE_ALIGN, MODE_IF_RAMP, MODE_CLOSED_LOOP, MODE_FAULT = range(5)
@@ -275,8 +278,26 @@ def _if_ramp(cs, cp, est, w_ref_m, id_inj, ia, ib, p, ts):
     cs[CS_IQ_IF_F] = lowpass_step(cs[CS_IQ_IF_F], iq_obs, pole(31.4, ts))
     # hand over only to an observer that agrees with the open-loop ramp: the rotor lags
     # the I-f vector by its load angle (< 90 deg) and turns at the ramp's speed
-    agree = (abs(wrap_angle(est[ES_TH] - th)) < 1.22
-             and abs(est[ES_W] - w_if) < 0.3 * abs(w_if))
+    d_th = est[ES_TH] - th
+    d_w = est[ES_W] - w_if
+    a_lpf = cp[CP_AGREE_LPF]
+    if a_lpf > 0.0:
+        # filtered agreement (control.handover_agree_lpf_hz): at light load the rotor swings
+        # undamped about the I-f vector (speed +-50 % at no load), so a per-sample check is
+        # reset by every swing although the estimate tracks the rotor; the mean load angle
+        # and the mean speed of a rotor in step are the ramp's.  The angle difference is
+        # filtered as a unit vector (no wrap); the filter restarts from each invalid sample
+        # and on entering I-f (a hand-back must not reuse the agreement of an earlier start)
+        if est[ES_VALID] == 0.0 or cs[CS_T_MODE] <= 1.5 * ts:
+            cs[CS_AG_C], cs[CS_AG_S], cs[CS_AG_W] = math.cos(d_th), math.sin(d_th), d_w
+        else:
+            a = pole(a_lpf, ts)
+            cs[CS_AG_C] = lowpass_step(cs[CS_AG_C], math.cos(d_th), a)
+            cs[CS_AG_S] = lowpass_step(cs[CS_AG_S], math.sin(d_th), a)
+            cs[CS_AG_W] = lowpass_step(cs[CS_AG_W], d_w, a)
+        d_th = math.atan2(cs[CS_AG_S], cs[CS_AG_C])
+        d_w = cs[CS_AG_W]
+    agree = abs(wrap_angle(d_th)) < 1.22 and abs(d_w) < 0.3 * abs(w_if)
     if abs(w_if) >= hand and est[ES_VALID] != 0.0 and agree:
         cs[CS_AGREE_T] += ts
     else:
@@ -716,6 +737,12 @@ class ControllerConfig:
     # the I-f ramp at the handover speed this long without a handover latches "start-up
     # failed" (0: wait for ever); 5 s is many handover dwells and I-f load-angle periods
     handover_timeout_s: float = 5.0
+    # handover criterion: 0 compares the estimate with the I-f ramp per sample (angle within
+    # 70 deg, speed within 30 %); > 0 compares them low-passed at this cut-off, so the rotor's
+    # undamped swing about the I-f vector (at light load) does not reset the dwell.  Keep it
+    # well below that swing's frequency sqrt(p K_t I_if / J)/(2 pi) (about 23 Hz on the default
+    # card at 0.6 pu) and its time constant below the dwell
+    handover_agree_lpf_hz: float = 0.0
     i2t_limit_pu2s: float = 10.0  # I2t trip: integral of ((i/I_rated)^2-1) dt (150 % for 8 s)
     r_hat_ohm: float | None = None
     l_hat_h: float | None = None
@@ -833,6 +860,7 @@ class ControllerConfig:
         cp[CP_INV_TIMEOUT] = self.invalid_timeout_s
         cp[CP_HANDOVER_DWELL] = self.handover_dwell_s
         cp[CP_HANDOVER_TIMEOUT] = self.handover_timeout_s
+        cp[CP_AGREE_LPF] = 2 * math.pi * self.handover_agree_lpf_hz
         cp[CP_I2T_LIMIT] = self.i2t_limit_pu2s
         cp[CP_IRATED] = card.rated_current_a
         return cp
@@ -848,6 +876,7 @@ CONTROL_RANGES: dict[str, tuple[float, float]] = {
     "overcurrent_pu": (0.1, 5.0), "overspeed_pu": (0.1, 5.0), "vdc_min_v": (0.0, 1e4),
     "vdc_max_v": (1.0, 1e4), "invalid_timeout_s": (1e-4, 10.0),
     "handover_dwell_s": (0.0, 10.0), "handover_timeout_s": (0.0, 600.0),
+    "handover_agree_lpf_hz": (0.0, 1000.0),
     "i2t_limit_pu2s": (0.01, 1e4),
     "r_hat_ohm": (0.0, 1e3), "l_hat_h": (1e-7, 10.0), "lambda_hat_vs": (1e-6, 10.0),
     "speed_observer_pll_hz": (0.1, 2000.0), "speed_observer_damping": (0.1, 5.0),

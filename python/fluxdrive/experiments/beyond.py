@@ -103,7 +103,7 @@ def descent(speed_rpm: float, load_pu: float, *, driving: str, observers: dict |
     w0 = t_at + settle_s
     dur = w0 + window_s
     ctrl = {"if_current_pu": 0.6, "handover_rpm": 40.0,
-            "handback_rpm": min(20.0, 0.5 * speed_rpm)}
+            "handback_rpm": min(20.0, 0.5 * speed_rpm), "handover_agree_lpf_hz": 2.0}
     load = [[0.0, 0.0], [t_load, 0.0], [t_full, load_pu]] if load_pu > 0 else 0.0
     return build(name=name, duration_s=round(dur, 4), seed=seed,
                  speed_rpm=[[0.0, s0], [round(t_dec, 4), s0], [round(t_at, 4), speed_rpm]],

@@ -91,6 +91,8 @@ DOCS = {
     "handback_rpm": ("observer -> I-f hand-back speed (below handover)", "rpm"),
     "handover_dwell_s": ("estimate valid and agreeing with the I-f ramp this long before "
                          "handover", "s"),
+    "handover_agree_lpf_hz": ("handover criterion: estimate vs I-f ramp compared low-passed at "
+                              "this cut-off (0 = per sample)", "Hz"),
     "handover_timeout_s": ("I-f ramp at the handover speed this long without a handover "
                            "latches 'start-up failed' (0 = wait for ever)", "s"),
     "encoder_pll_hz": ("encoder tracking-PLL bandwidth", "Hz"),
