@@ -135,6 +135,12 @@ def _x_hold(r, m):
             "fault": FAULT_NAMES.get(m["fault_code"], str(m["fault_code"]))}
 
 
+# the search loads the drive at 480 rpm, where the ramp's speed lag (rate/(K_t K_i), ≈90 rpm at
+# 0.5 pu/s) costs nothing: a faster ramp than the paper scenarios' 0.19 pu/s shortens every
+# run by 3-5 s of the ≈12-15 s it took (the experiment ran 5 min; the whole set must run in 3)
+LOW_RAMP_PU_S = 0.5
+
+
 def _search_lowest(ctx, cases, grid, seeds, bisect_steps):
     """Per case (variant, load): walk down the speed grid while every seed holds, then bisect
     (geometrically) between the lowest held and the first lost grid speed.  Each step runs
@@ -146,7 +152,8 @@ def _search_lowest(ctx, cases, grid, seeds, bisect_steps):
         for c, s in speeds_by_case.items():
             v, load = c
             for seed in seeds:
-                jobs.append((descent(s, load, driving=v, seed=seed, name=f"low_{v}"),
+                jobs.append((descent(s, load, driving=v, seed=seed, name=f"low_{v}",
+                                     ramp_pu_s=LOW_RAMP_PU_S),
                              _x_hold, None))
                 keys.append((c, s))
         for (c, s), res in zip(keys, ctx.run(jobs), strict=True):
@@ -181,7 +188,9 @@ def lowest_speed(ctx):
         names = ["flux_measured", "flux_commanded", "emf_measured", "emf_commanded",
                  "hl_measured", "ortega_measured", "flux_measured_rhat120"]
         cases = [(v, load) for v in names for load in (1.0, 1.5)]
-        grid, seeds, nbis = [480.0, 240.0, 120.0, 60.0, 30.0, 15.0, 7.5], [1, 2], 2
+        # one seed: a second one (last run) disagreed only at two bisection points (emf_measured
+        # 100 % at 35.7 rpm, hl_measured 150 % at 12.6 rpm), one bisection step, no verdict
+        grid, seeds, nbis = [480.0, 240.0, 120.0, 60.0, 30.0, 15.0, 7.5], [1], 2
     st = _search_lowest(ctx, cases, grid, seeds, nbis)
     lowest: dict = {}
     for (v, load), s in st.items():
@@ -301,7 +310,8 @@ def lowest_speed(ctx):
     return {"claims": claims, "figures": figs,
             "data": {"lowest": lowest, "grid_rpm": grid, "seeds": seeds,
                      "protocol": "sensorless start at 480 rpm unloaded, brake load ramp "
-                                 "0.19 pu/s, decel 200 rpm/s, 0.5 s settle, 1.5 s window"}}
+                                 f"{LOW_RAMP_PU_S} pu/s, decel 200 rpm/s, 0.5 s settle, "
+                                 "1.5 s window"}}
 
 
 def _plot_lowest(ctx, lowest, grid):
