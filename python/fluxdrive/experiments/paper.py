@@ -280,7 +280,8 @@ def fig13(ctx):
     nl, fl = res[0], res[1]
     ps = res[3] if len(res) > 3 else None
     hunt = "" if ps is None else (
-        f"  Without it (the per-sample handover criterion) the same start hands over only at "
+        f"  With the per-sample handover criterion (control.handover_agree_lpf_hz = 0) the "
+        f"same start hands over only at "
         f"{ps['handover_s']:.2f} s, inside the window (from {ps['window_s']:.2f} s): the "
         f"unloaded rotor still swings about the I-f vector (undamped, sqrt(p K_t I_if/J)/2π "
         f"= {ps['if_swing_hz']:.0f} Hz) and ω·|λ̂| spans {ps['flux_v'][0]:.3f}-"
