@@ -49,42 +49,46 @@ def _reference(path: Path):
     return run_scenario(sc, progress=False)
 
 
-def test_two_graphs_one_domain_each_bag_equals_its_solo_run(tmp_path):
+@pytest.mark.parametrize("layouts", [("composed", "separate"), ("separate", "separate")])
+def test_two_graphs_one_domain_each_bag_equals_its_solo_run(tmp_path, layouts):
     from fluxdrive.core.scenario import load_scenario
     from fluxdrive.drive.plant import FR_SEQ
     from fluxdrive.io.bagio import read_run_bag
     from fluxdrive_bringup.runs import result_from_bag
 
-    dom = domain(41)
+    dom = domain(41 if layouts[0] == "composed" else 43)
     env = {k: v for k, v in os.environ.items() if k != "FLUXDRIVE_GRAPH_KEY"}  # one per launch
-    runs = {"composed": _scenario(11), "separate": _scenario(22)}
+    runs = {f"{layouts[0]}_a": _scenario(11), f"{layouts[1]}_b": _scenario(22)}
     procs = {}
-    for layout, sp in runs.items():
+    for name, sp in runs.items():
+        layout = name[:-2]
         cmd = [str(ROOT / "fluxdrive"), "run", str(sp), "--layout", layout, "--duration",
                str(DURATION_S), "--domain-id", str(dom), "--shared-domain", "--no-plots",
-               "--timeout", "150", "--out", str(tmp_path / f"out_{layout}"),
-               "--bag", str(tmp_path / f"bag_{layout}")]
-        procs[layout] = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE,
+               "--timeout", "150", "--out", str(tmp_path / f"out_{name}"),
+               "--bag", str(tmp_path / f"bag_{name}")]
+        procs[name] = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE,
                                          stderr=subprocess.STDOUT, text=True)
-    logs = {layout: p.communicate(timeout=240)[0] for layout, p in procs.items()}
-    for layout, p in procs.items():
-        bag = tmp_path / f"bag_{layout}"
-        assert bag.exists(), logs[layout][-3000:]
+    logs = {run: p.communicate(timeout=240)[0] for run, p in procs.items()}
+    for run, p in procs.items():
+        bag = tmp_path / f"bag_{run}"
+        assert bag.exists(), logs[run][-3000:]
         rb = read_run_bag(bag)
         # nothing foreign was recorded: no duplicate seq, nothing for replay to drop
         assert not [pr for pr in rb.problems if "another graph" in pr or "duplicate" in pr], \
             rb.problems
         assert np.array_equal(rb.frames[:, FR_SEQ], np.arange(len(rb.frames)))
-        res, arr = result_from_bag(bag, load_scenario(runs[layout]), DURATION_S)
-        ref = _reference(runs[layout])
+        res, arr = result_from_bag(bag, load_scenario(runs[run]), DURATION_S)
+        ref = _reference(runs[run])
         assert arr["n"] == ref.frames.shape[0] == int(round(DURATION_S * 1e4))
-        assert all(v == 0 for v in arr["missing"].values()), (layout, arr["missing"])
-        for name in ("frames", "truth", "est", "ctrl"):
-            a, b = getattr(res, name), getattr(ref, name)
-            assert np.array_equal(a, b), (layout, name, np.argwhere(a != b)[:5])
-        assert p.returncode in (0, 1), (layout, logs[layout][-3000:])  # 1: report verdict
-    # the graphs did hear each other (so the check above means something): the nodes of the
-    # separate layout read the composed graph's samples over DDS and dropped them
-    both = logs["composed"] + logs["separate"]
+        assert all(v == 0 for v in arr["missing"].values()), (run, arr["missing"])
+        for field in ("frames", "truth", "est", "ctrl"):
+            a, b = getattr(res, field), getattr(ref, field)
+            assert np.array_equal(a, b), (run, field, np.argwhere(a != b)[:5])
+        assert p.returncode in (0, 1), (run, logs[run][-3000:])  # 1: report verdict
+        assert "the graph failed" not in logs[run] and "Traceback" not in logs[run], \
+            logs[run][-3000:]
+    # the graphs did hear each other (so the check above means something): the nodes of a
+    # separate layout read the other graph's samples over DDS and dropped them
+    both = "".join(logs.values())
     assert "message from another graph" in both, both[-4000:]
     assert "ignored" in both and "from other graphs" in both

@@ -49,8 +49,10 @@ INPUT_DURABILITY_CHOICES = ("transient_local", "volatile")
 # live watchers (inspection tools): volatile, shallow
 WATCH = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
                    history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.VOLATILE)
-# latched single events: /drive/done (last seq), /drive/start
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+# latched single events: /drive/done (last seq).  One message per writer; the depth is for
+# readers: with a second graph on the domain (fluxdrive_ros.graph) its /drive/done must not
+# displace this graph's own in a reader's one-sample history before the callback took it
+LATCHED = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                      history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 # operator markers (/drive/param_marker): rare, every one kept for a late recorder
 MARKERS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,

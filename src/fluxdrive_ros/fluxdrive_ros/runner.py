@@ -78,7 +78,14 @@ class FluxNode(Node):
     def log(self, text: str, level: str = "info") -> None:
         """Log through rosout while the context lives, else straight to stdout (close())."""
         if self.context.ok():
-            getattr(self.get_logger(), level)(text)
+            # one call site per severity: rclpy refuses a call site that logs at several
+            lg = self.get_logger()
+            if level == "error":
+                lg.error(text)
+            elif level == "warning":
+                lg.warning(text)
+            else:
+                lg.info(text)
         else:
             print(f"[{level.upper()}] [{self.get_logger().name}]: {text}", flush=True)
 
