@@ -117,24 +117,30 @@ def test_missing_estimate_trips_stale_input_after_the_sample_timeout():
 
 
 def test_wall_timeout_while_catching_up_after_a_stall_of_our_own():
-    """Behind (the newest frame shows the power stage's watchdog cut the PWM our last duty
-    asked for): an estimate the stalled reader dropped comes again only at the writer's
-    next DDS heartbeat -- the wall limit is catch_up_wall_s, not position_wall_timeout_s."""
-    sq, fr, got, lines = _bare(position_wall_timeout_s=2.0)
-    for k in range(10):
-        sq.on_frame(k, fr.copy())
-        sq.on_estimate(k, np.zeros(ES_N))
-    assert sorted(got) == list(range(10)) and got[9][CO_EN] == 1.0
-    off = fr.copy()
-    off[FR_EN] = 0.0
-    sq.on_frame(10, off)  # estimate 10 does not come
-    t0 = sq.t_wait
-    for i in range(1, 100):  # checked every 0.1 s (no stall of our own)
-        sq.check_wall(t0 + 0.1 * i)
-    assert not sq.tripped  # 9.9 s > 2 s: not blamed on the observer
-    for i in range(100, 103):
-        sq.check_wall(t0 + 0.1 * i)
-    assert sq.tripped and "for 10.1 s of wall time" in sq.fault_detail
+    """A stall of this process (check_wall called 3 s after the previous call): an estimate
+    its stalled DDS reader dropped comes again only at the writer's next heartbeat -- it is
+    waited for up to catch_up_wall_s after the stall, not position_wall_timeout_s; without
+    a stall of our own the observer is blamed after position_wall_timeout_s."""
+    for stalled in (False, True):
+        sq, fr, got, lines = _bare(position_wall_timeout_s=2.0)
+        for k in range(10):
+            sq.on_frame(k, fr.copy())
+            sq.on_estimate(k, np.zeros(ES_N))
+        sq.on_frame(10, fr.copy())  # estimate 10 does not come
+        t0 = sq.t_wait
+        sq.check_wall(t0 + 0.1)
+        t1 = t0 + (3.0 if stalled else 0.2)  # SIGSTOP for 3 s, or not
+        sq.check_wall(t1)
+        for i in range(1, 100):  # checked every 0.1 s from then on
+            sq.check_wall(t1 + 0.1 * i)
+            if sq.tripped:
+                break
+        if not stalled:  # 2 s of waiting: the observer is silent
+            assert sq.tripped and i == 19, i
+        else:  # 10 s after the stall was noticed
+            assert not sq.tripped
+            sq.check_wall(t1 + 10.05)
+            assert sq.tripped and "wall time" in sq.fault_detail
 
 
 def test_wall_timeout_and_repeated_frames_trip():

@@ -113,6 +113,7 @@ class ControlSequencer:
         # only at the writer's next heartbeat (seconds); the wall limit while catching up
         self.catch_up_wall_s = 10.0
         self._last_check = 0.0
+        self._caught_up_by = 0.0  # wall time until which a stall of our own excuses waiting
         self.set_timeouts(position_timeout_s, position_wall_timeout_s)
         self.cs = np.zeros(CS_N)
         controller_reset(self.cs)
@@ -194,12 +195,13 @@ class ControlSequencer:
         now = time.monotonic() if now is None else now
         if now - self._last_check > self.self_stall_s and self._last_check > 0.0:
             self.t_wait += now - self._last_check  # we were stalled ourselves: not counted
+            self._caught_up_by = now + self.catch_up_wall_s
         self._last_check = now
         lim = self.wall_timeout_s
         if lim > 0.0 and self.counts["estimates"] == 0:  # the first one may take a while
             lim = max(lim, self.first_estimate_wall_s)
-        if lim > 0.0 and self._behind():  # we are the ones behind: a repair is on its way
-            lim = max(lim, self.catch_up_wall_s)
+        if lim > 0.0 and now < self._caught_up_by:  # we stalled: a repair is on its way
+            lim = max(lim, self._caught_up_by - self.t_wait)
         if (self.tripped or self.wait_k != self.next_k or self.next_k not in self.frames
                 or self.next_k in self.ests):
             return
