@@ -147,8 +147,10 @@ def build_observer(vs: VariantSpec, bag: RunBag, card: MachineCard) -> Observer:
     obs = KernelObserver(cfg, card, name=vs.label)
     obs.reset()
     st = (bag.meta.get("observer_states") or {}).get(rec)
-    if st is not None and not vs.params and len(st) == OS_N:
-        obs.state[:] = np.array(st, dtype=np.float64)
+    # the state layout only grows at its end (new counters): a bag recorded before a new
+    # index restores its prefix, the new entries keep their reset values
+    if st is not None and not vs.params and len(st) <= OS_N:
+        obs.state[: len(st)] = np.array(st, dtype=np.float64)
     return obs
 
 
