@@ -178,7 +178,8 @@ def bench_study(argv: list[str]) -> dict[str, Any]:
     import tempfile
 
     ap = argparse.ArgumentParser(prog="fluxdrive benchmark study")
-    ap.add_argument("--tasks", type=int, default=12)
+    ap.add_argument("--tasks", type=int, default=60,
+                    help="tasks per worker count (fewer: fixed start-up costs dominate)")
     ap.add_argument("--duration-s", type=float, default=1.0)
     args = ap.parse_args(argv)
     spec_text = {
