@@ -21,7 +21,7 @@ import math
 from dataclasses import dataclass, fields, replace
 from typing import Any
 
-from fluxdrive.core.machine import ConfigError, MachineCard
+from fluxdrive.core.machine import ConfigError, MachineCard, refuse_unknown_keys
 
 
 @dataclass(frozen=True)
@@ -126,11 +126,7 @@ def _num(src: str, key: str, v: Any, lo: float, hi: float) -> float:
 def _section(src: str, key: str, cls, data: Any, ranges: dict[str, tuple[float, float]]):
     if not isinstance(data, dict):
         raise ConfigError(f"{src}: 'bench.{key}' must be a mapping")
-    known = [f.name for f in fields(cls)]
-    bad = sorted(set(data) - set(known))
-    if bad:
-        raise ConfigError(f"{src}: unknown key(s) {bad} under 'bench.{key}'; expected some of "
-                          f"{known}")
+    refuse_unknown_keys(src, data, [f.name for f in fields(cls)], f"bench.{key}")
     kw: dict[str, Any] = {}
     for k, v in data.items():
         lo, hi = ranges[k]
@@ -162,10 +158,7 @@ def parse_bench(src: str, raw: Any, card: MachineCard) -> BenchConfig:
         return BenchConfig()
     if not isinstance(raw, dict):
         raise ConfigError(f"{src}: 'bench' must be a mapping of effects ({', '.join(BENCH_KEYS)})")
-    bad = sorted(set(raw) - set(BENCH_KEYS))
-    if bad:
-        raise ConfigError(f"{src}: unknown key(s) {bad} under 'bench'; expected some of "
-                          f"{list(BENCH_KEYS)}")
+    refuse_unknown_keys(src, raw, list(BENCH_KEYS), "bench")
     kw: dict[str, Any] = {}
     if raw.get("voltage_capture") is not None:
         cap = _section(src, "voltage_capture", VoltageCapture, raw["voltage_capture"],

@@ -19,6 +19,15 @@ class ConfigError(ValueError):
     """A configuration file or value is invalid; the message names the file, key and rule."""
 
 
+def refuse_unknown_keys(src: str, data: dict, known: list[str], where: str) -> None:
+    """One line naming the file, the section and the keys it does not know (a typo is
+    refused, never silently ignored); `known` is listed in the order given."""
+    bad = sorted(set(data) - set(known))
+    if bad:
+        raise ConfigError(f"{src}: unknown key(s) {bad} under '{where}'; expected some of "
+                          f"{known}")
+
+
 def _require_range(src: str, key: str, value: Any, lo: float, hi: float) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ConfigError(f"{src}: '{key}' must be a number in [{lo}, {hi}], got {value!r}")

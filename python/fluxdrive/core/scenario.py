@@ -17,7 +17,7 @@ import numpy as np
 
 from fluxdrive.core import yamlio
 from fluxdrive.core.bench import BenchConfig, parse_bench
-from fluxdrive.core.machine import ConfigError, MachineCard, load_machine
+from fluxdrive.core.machine import ConfigError, MachineCard, load_machine, refuse_unknown_keys
 from fluxdrive.core.paths import CONFIG_DIR, ROOT, project_file
 from fluxdrive.drive.control import CARD_RULES, ControllerConfig
 from fluxdrive.drive.observers import ObserverConfig, observer_config
@@ -94,10 +94,7 @@ def _dataclass_from(src: str, key: str, cls, data: dict, base=None):
     if not isinstance(data, dict):
         raise ConfigError(f"{src}: '{key}' must be a mapping")
     known = {f.name for f in fields(cls)}
-    bad = sorted(set(data) - known)
-    if bad:
-        raise ConfigError(f"{src}: unknown key(s) {bad} under '{key}'; expected some of "
-                          f"{sorted(known)}")
+    refuse_unknown_keys(src, data, sorted(known), key)
     obj = base if base is not None else cls()
     for k, v in data.items():
         cur = getattr(obj, k)
@@ -334,28 +331,27 @@ def _load_band(src: str, raw: dict) -> float:
     return _num(src, "brake_band_rpm", raw.get("brake_band_rpm", 2.0), 1e-3, 1e4)
 
 
-def scenario_path(name_or_path: str) -> Path:
-    """Accept a path, or a bare scenario name under config/scenarios/."""
+def _config_file(name_or_path: str | Path, folder: str, what: str) -> Path:
+    """A path, or a bare name under config/<folder>/."""
     p = Path(name_or_path)
     if p.exists():
         return p
-    cand = CONFIG_DIR / "scenarios" / (p.name if p.suffix else p.name + ".yaml")
+    cand = CONFIG_DIR / folder / (p.name if p.suffix else p.name + ".yaml")
     if cand.exists():
         return cand
     if not CONFIG_DIR.is_dir():
         project_file(CONFIG_DIR, "config/")  # the package is not pointed at a checkout
-    raise ConfigError(f"scenario '{name_or_path}' not found (looked at {p} and {cand})")
+    raise ConfigError(f"{what} '{name_or_path}' not found (looked at {p} and {cand})")
+
+
+def scenario_path(name_or_path: str) -> Path:
+    """Accept a path, or a bare scenario name under config/scenarios/."""
+    return _config_file(name_or_path, "scenarios", "scenario")
 
 
 def machine_path(name_or_path: str | Path) -> Path:
     """Accept a path, or a bare machine-card name under config/machines/."""
-    p = Path(name_or_path)
-    if p.exists():
-        return p
-    cand = CONFIG_DIR / "machines" / (p.name if p.suffix else p.name + ".yaml")
-    if cand.exists():
-        return cand
-    raise ConfigError(f"machine card '{name_or_path}' not found (looked at {p} and {cand})")
+    return _config_file(name_or_path, "machines", "machine card")
 
 
 def scenario_to_raw(sc: Scenario, machine_path: str) -> dict[str, Any]:

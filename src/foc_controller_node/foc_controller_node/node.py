@@ -287,14 +287,7 @@ class ControllerNode(FluxNode):
             self.finished = True
 
     def _log(self, level: str, text: str) -> None:
-        # one call site per severity: rclpy refuses a second severity from the same line
-        lg = self.get_logger()
-        if level == "error":
-            lg.error(text)
-        elif level == "warning":
-            lg.warning(text)
-        else:
-            lg.info(text)
+        self.log(text, level)  # the sequencer's (level, text) onto FluxNode.log
 
     def _check_wall_timeout(self) -> None:
         self.seq.check_wall()
