@@ -9,8 +9,7 @@ import yaml
 from fluxdrive.core.machine import MachineCard
 from fluxdrive.core.scenario import CONFIG_DIR, load_scenario
 
-IDEAL_SENSORS = dict(current_noise_a=0.0, current_adc_bits=24, capture_bits=24,
-                     dc_bus_adc_bits=24)
+IDEAL_SENSORS = dict(current_noise_a=0.0, current_adc_bits=24, capture_bits=24, dc_bus_adc_bits=24)
 
 
 def make_scenario(tmp_path: Path, machine: MachineCard | None = None, **raw):

@@ -57,8 +57,11 @@ def test_replay_keeps_its_graph_and_names_the_other(tmp_path, short_run, setting
 
 def test_a_bag_from_before_graph_id_decodes_with_its_own_definition(short_run):
     # the recorded definition: today's PhaseFrame without the graph_id field
-    old = "\n".join(ln for ln in msg_text(T_FRAME).splitlines()
-                    if not ln.startswith("uint64 graph_id") and "Graph identity" not in ln)
+    old = "\n".join(
+        ln
+        for ln in msg_text(T_FRAME).splitlines()
+        if not ln.startswith("uint64 graph_id") and "Graph identity" not in ln
+    )
     lt = layout_type(T_FRAME, old + "\n================\nMSG: std_msgs/Header\n")
     assert lt != T_FRAME and layout_type(T_FRAME, msg_text(T_FRAME)) == T_FRAME
     codec = Codec(lt, {"header.frame_id": "drive"})
@@ -68,8 +71,11 @@ def test_a_bag_from_before_graph_id_decodes_with_its_own_definition(short_run):
     for k, fr in enumerate(res.frames):
         v = {"header.stamp.sec": 0, "header.stamp.nanosec": k * 100_000, "seq": k}
         for path, col in messages.FRAME_MAP:
-            v[path] = bool(fr[col] > 0.5) if path == "pwm_enabled" else (
-                int(fr[col]) if path == "status_flags" else fr[col])
+            v[path] = (
+                bool(fr[col] > 0.5)
+                if path == "pwm_enabled"
+                else (int(fr[col]) if path == "status_flags" else fr[col])
+            )
         raws.append(codec.pack(*[v[f] for f in codec.fields]))
     seq, rows, cols = decode_rows(T_FRAME, raws, definition=old)
     assert "graph_id" not in cols

@@ -74,8 +74,12 @@ def check_mcap(bag: Path) -> dict[str, int]:
 
 def doctor(bag: Path) -> str:
     """pymcap-cli doctor: an MCAP validator independent of the writer's library."""
-    r = subprocess.run([str(VENV_BIN / "pymcap-cli"), "doctor", str(mcap_file(bag))],
-                       capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [str(VENV_BIN / "pymcap-cli"), "doctor", str(mcap_file(bag))],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     out = r.stdout + r.stderr
     assert r.returncode == 0, out
     assert "passed MCAP doctor" in out, out
@@ -110,10 +114,18 @@ def test_converted_bag_replays_with_its_settings(short_bag, tmp_path):
     from /fluxdrive/settings; a bag with no settings says so in one line."""
     bag, res = short_bag
     conv = VENV_BIN / "rosbags-convert"
-    subprocess.run([str(conv), "--src", str(bag), "--dst", str(tmp_path / "r1.bag")],
-                   check=True, capture_output=True, timeout=300)
-    subprocess.run([str(conv), "--src", str(tmp_path / "r1.bag"), "--dst",
-                    str(tmp_path / "back")], check=True, capture_output=True, timeout=300)
+    subprocess.run(
+        [str(conv), "--src", str(bag), "--dst", str(tmp_path / "r1.bag")],
+        check=True,
+        capture_output=True,
+        timeout=300,
+    )
+    subprocess.run(
+        [str(conv), "--src", str(tmp_path / "r1.bag"), "--dst", str(tmp_path / "back")],
+        check=True,
+        capture_output=True,
+        timeout=300,
+    )
     assert "custom_data: null" in (tmp_path / "back" / "metadata.yaml").read_text()
     b = read_run_bag(tmp_path / "back")
     assert b.problems == [], b.problems
@@ -126,9 +138,20 @@ def test_converted_bag_replays_with_its_settings(short_bag, tmp_path):
     j = rr.names.index("flux_measured")
     assert np.array_equal(rr.est[j], res.est[i])  # same card, same configuration
     # no settings anywhere: one line says so
-    subprocess.run([str(conv), "--src", str(bag), "--dst", str(tmp_path / "bare"),
-                    "--exclude-topic", "/fluxdrive/settings"], check=True,
-                   capture_output=True, timeout=300)
+    subprocess.run(
+        [
+            str(conv),
+            "--src",
+            str(bag),
+            "--dst",
+            str(tmp_path / "bare"),
+            "--exclude-topic",
+            "/fluxdrive/settings",
+        ],
+        check=True,
+        capture_output=True,
+        timeout=300,
+    )
     bb = read_run_bag(tmp_path / "bare")
     assert any("no recorder settings" in p for p in bb.problems)
 
@@ -159,8 +182,13 @@ def test_decimated_capture_replays_like_the_live_bridge_run(tmp_path, layout, d)
 
 
 def _can_import(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "fluxdrive.cli", "can-import", *args],
-                          capture_output=True, text=True, timeout=300, cwd=str(REPO_ROOT))
+    return subprocess.run(
+        [sys.executable, "-m", "fluxdrive.cli", "can-import", *args],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=str(REPO_ROOT),
+    )
 
 
 def _one_line(r: subprocess.CompletedProcess) -> str:

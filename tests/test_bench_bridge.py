@@ -51,8 +51,12 @@ def short_2pct(duration: float = 2.0):
     observer can come late (an I-f swing), leaving the speed still settling at 2 s."""
     sc = load_scenario(
         CONFIG_DIR / "scenarios" / "paper_2pct_150load.yaml",
-        overrides={"duration_s": duration, "steady_window_s": [duration / 2, duration],
-                   "load_pu": [[0.0, 0.0]], "bench": {}},
+        overrides={
+            "duration_s": duration,
+            "steady_window_s": [duration / 2, duration],
+            "load_pu": [[0.0, 0.0]],
+            "bench": {},
+        },
     )
     sc.observers = {"flux_measured": sc.observers["flux_measured"]}
     return sc
@@ -75,8 +79,10 @@ def test_closed_loop_over_can_2pct_sensorless():
     can_rms = theta_rms_deg(res.est[0], res.truth, k0)
     speed = res.truth[k0:, TR_WM].mean() / RPM
     d = res.diagnostics
-    print(f"theta RMS: in-process {ref_rms:.3f} deg, over CAN {can_rms:.3f} deg; "
-          f"{speed:.1f} rpm; {n / res.wall_s:.0f} periods/s wall")
+    print(
+        f"theta RMS: in-process {ref_rms:.3f} deg, over CAN {can_rms:.3f} deg; "
+        f"{speed:.1f} rpm; {n / res.wall_s:.0f} periods/s wall"
+    )
     assert abs(speed - 60.0) < 6.0  # stable at 2 % speed
     assert np.all(res.ctrl[k0:, CO_MODE] == MODE_CLOSED_LOOP)  # closed loop throughout
     assert can_rms < max(1.5 * ref_rms, ref_rms + 0.3)
@@ -97,10 +103,17 @@ def test_malformed_frames_and_gaps_counted_loop_continues():
 
     def hook(bridge, k):
         if k % 500 == 250:
-            for data, fd, kind in ((good[:40], True, "length"), (bytes(bad_range), True, "range"),
-                                   (good, False, "not_fd")):
-                junk.send(can.Message(arbitration_id=ID_SAMPLE_FD, is_extended_id=False,
-                                      is_fd=fd, data=data), timeout=0.1)
+            for data, fd, kind in (
+                (good[:40], True, "length"),
+                (bytes(bad_range), True, "range"),
+                (good, False, "not_fd"),
+            ):
+                junk.send(
+                    can.Message(
+                        arbitration_id=ID_SAMPLE_FD, is_extended_id=False, is_fd=fd, data=data
+                    ),
+                    timeout=0.1,
+                )
                 injected[kind] += 1
 
     try:
@@ -122,11 +135,21 @@ def test_malformed_frames_and_gaps_counted_loop_continues():
     try:
         seqs = [65530 + i for i in range(6)] + [0, 1, 5, 6, 6, 7]  # wrap, gap of 3, dup
         for s in seqs:
-            tx.send(can.Message(arbitration_id=ID_SAMPLE_FD, is_extended_id=False, is_fd=True,
-                                data=proto.encode("SAMPLE_FD", {"seq": s % 65536, "vdc": 72.0})),
-                    timeout=0.1)
-        tx.send(can.Message(arbitration_id=ID_SAMPLE_FD, is_extended_id=False, is_fd=True,
-                            data=good[:8]), timeout=0.1)
+            tx.send(
+                can.Message(
+                    arbitration_id=ID_SAMPLE_FD,
+                    is_extended_id=False,
+                    is_fd=True,
+                    data=proto.encode("SAMPLE_FD", {"seq": s % 65536, "vdc": 72.0}),
+                ),
+                timeout=0.1,
+            )
+        tx.send(
+            can.Message(
+                arbitration_id=ID_SAMPLE_FD, is_extended_id=False, is_fd=True, data=good[:8]
+            ),
+            timeout=0.1,
+        )
         time.sleep(0.05)
         frames = br.poll(timeout=0.1)  # one burst -> numpy fast path
     finally:
@@ -148,8 +171,10 @@ def test_frames_stop_disable_within_timeout():
     tap = can.Bus(interface="virtual", channel=ch, fd=True)
     emu = DriveEmulator(ds, emu_bus, lockstep=False)
     timeout = 0.05
-    br = CanBridge(lambda: can.Bus(interface="virtual", channel=ch, fd=True),
-                   BridgeConfig(stale_timeout_s=timeout))
+    br = CanBridge(
+        lambda: can.Bus(interface="virtual", channel=ch, fd=True),
+        BridgeConfig(stale_timeout_s=timeout),
+    )
     br.connect()
     assert br.arm()[0]
     try:
@@ -172,8 +197,9 @@ def test_frames_stop_disable_within_timeout():
         msg = tap.recv(0.1)
         while msg is not None:
             if msg.arbitration_id in (ID_DUTY_CMD, ID_ARM_MODE):
-                got.append((msg.arbitration_id, get_protocol().decode(msg.arbitration_id,
-                                                                       msg.data)))
+                got.append(
+                    (msg.arbitration_id, get_protocol().decode(msg.arbitration_id, msg.data))
+                )
             msg = tap.recv(0.0)
         last_duty = [d for a, d in got if a == ID_DUTY_CMD][-1]
         last_arm = [d for a, d in got if a == ID_ARM_MODE][-1]
@@ -315,14 +341,26 @@ def test_shipped_capture_imports_into_a_bag(tmp_path):
     # independent reader
     from mcap_ros2.reader import read_ros2_messages
 
-    n = sum(1 for _ in read_ros2_messages(str(next(out.glob("*.mcap"))),
-                                          topics=["/drive/frame"]))
+    n = sum(1 for _ in read_ros2_messages(str(next(out.glob("*.mcap"))), topics=["/drive/frame"]))
     assert n == 10_000
     # the frames replay through the flux observer: it locks at 60 rpm by the end
     sc = short_2pct(1.0)
     obs = DriveSetup(sc).kernel_observer("flux_measured")
-    frames = np.array([[*m.i_abc, *m.v_ll, m.vdc, *m.duty_applied, float(m.pwm_enabled),
-                        m.encoder_counts, float(m.seq), 0.0] for m in msgs])
+    frames = np.array(
+        [
+            [
+                *m.i_abc,
+                *m.v_ll,
+                m.vdc,
+                *m.duty_applied,
+                float(m.pwm_enabled),
+                m.encoder_counts,
+                float(m.seq),
+                0.0,
+            ]
+            for m in msgs
+        ]
+    )
     est = obs.run(frames)
     w = est[-1000:, 1].mean() / sc.machine.pole_pairs / RPM
     assert abs(w - 60.0) < 10.0
@@ -375,8 +413,9 @@ def test_closed_loop_over_classic_can_2pct_sensorless():
     ch = new_virtual_channel()
     tap = can.Bus(interface="virtual", channel=ch, fd=False)
     try:  # plant as short_2pct(2.0); observers and controller at D*Ts, tuned for it
-        res = run_can_loop(decimated_2pct(), channel=ch, layout="classic",
-                           emulator_kw={"lockstep_wait_s": 5.0})
+        res = run_can_loop(
+            decimated_2pct(), channel=ch, layout="classic", emulator_kw={"lockstep_wait_s": 5.0}
+        )
         bits, counts = 0, {}
         msg = tap.recv(0.1)
         while msg is not None:
@@ -402,11 +441,13 @@ def test_closed_loop_over_classic_can_2pct_sensorless():
     can_rms = theta_rms_deg(res.est[0], truth, j0)
     speed = truth[j0:, TR_WM].mean() / RPM
     load = bits / (sc.duration_s * 1e6)
-    print(f"classic CAN, D={d} ({1e4 / d:.0f} Hz samples, control at D*Ts): theta RMS "
-          f"{can_rms:.3f} deg (FD in-process {ref_rms:.3f} deg), {speed:.1f} rpm; "
-          f"bus load at 1 Mbit/s {100 * load:.1f} % without stuffing (budget "
-          f"{100 * dec['load_none']:.1f}-{100 * dec['load_worst']:.1f} %), "
-          f"10 kHz would need {100 * full['load_none']:.0f} %; {m / res.wall_s:.0f} samples/s wall")
+    print(
+        f"classic CAN, D={d} ({1e4 / d:.0f} Hz samples, control at D*Ts): theta RMS "
+        f"{can_rms:.3f} deg (FD in-process {ref_rms:.3f} deg), {speed:.1f} rpm; "
+        f"bus load at 1 Mbit/s {100 * load:.1f} % without stuffing (budget "
+        f"{100 * dec['load_none']:.1f}-{100 * dec['load_worst']:.1f} %), "
+        f"10 kHz would need {100 * full['load_none']:.0f} %; {m / res.wall_s:.0f} samples/s wall"
+    )
     assert abs(speed - 60.0) < 6.0
     assert np.all(res.ctrl[j0:, 13] == 3)  # closed loop on the flux observer
     assert can_rms < max(1.5 * ref_rms, ref_rms + 0.3)
@@ -447,10 +488,18 @@ def test_classic_bridge_gaps_malformed_and_wire_seq():
             if i == 6:
                 parts[1] = (parts[1][0], parts[1][1][:5])  # short VLT part
             for aid, data in parts:
-                tx.send(can.Message(arbitration_id=aid, is_extended_id=False, data=data),
-                        timeout=0.1)
-        tx.send(can.Message(arbitration_id=ID_SAMPLE_FD, is_extended_id=False, is_fd=True,
-                            data=proto.encode("SAMPLE_FD", {"vdc": 72.0})), timeout=0.1)
+                tx.send(
+                    can.Message(arbitration_id=aid, is_extended_id=False, data=data), timeout=0.1
+                )
+        tx.send(
+            can.Message(
+                arbitration_id=ID_SAMPLE_FD,
+                is_extended_id=False,
+                is_fd=True,
+                data=proto.encode("SAMPLE_FD", {"vdc": 72.0}),
+            ),
+            timeout=0.1,
+        )
         time.sleep(0.05)
         frames = br.poll(timeout=0.1)
         assert br.send_duty(int(frames[-1, 12]), (0.5, 0.5, 0.5), False)
@@ -499,8 +548,13 @@ def test_closed_loop_over_fd_can_decimated_2pct_sensorless():
     ch = new_virtual_channel()
     tap = can.Bus(interface="virtual", channel=ch, fd=True)
     try:
-        res = run_can_loop(decimated_2pct(), channel=ch, layout="fd", decimation=d,
-                           emulator_kw={"lockstep_wait_s": 5.0})
+        res = run_can_loop(
+            decimated_2pct(),
+            channel=ch,
+            layout="fd",
+            decimation=d,
+            emulator_kw={"lockstep_wait_s": 5.0},
+        )
         wire_s, counts = 0.0, {}
         msg = tap.recv(0.1)
         while msg is not None:
@@ -521,19 +575,21 @@ def test_closed_loop_over_fd_can_decimated_2pct_sensorless():
     assert np.max(np.abs(rx[:, VLL] - win[:, VLL])) <= 0.0005 + 1e-9  # v_ll means, 1 mV
     assert np.max(np.abs(rx[:, DUTY] - win[:, DUTY])) <= 1e-5 + 1e-9  # duty means
     # PWM on in the window, encoder
-    assert np.array_equal(rx[:, FR_EN:FR_ENC + 1], win[:, FR_EN:FR_ENC + 1])
+    assert np.array_equal(rx[:, FR_EN : FR_ENC + 1], win[:, FR_EN : FR_ENC + 1])
     j0 = int(1.5 / (d * sc.machine.ts_s))
     truth = res.truth_at_samples
     can_rms = theta_rms_deg(res.est[0], truth, j0)
     speed = truth[j0:, TR_WM].mean() / RPM
     load = wire_s / sc.duration_s
-    print(f"CAN FD, D={d} ({1e4 / d:.0f} Hz samples, control at D*Ts): theta RMS "
-          f"{can_rms:.3f} deg (FD in-process {ref_rms:.3f} deg, classic D=8 "
-          f"{CLASSIC_D8_RMS_DEG} deg), {speed:.1f} rpm; bus load at 1/5 Mbit/s "
-          f"{100 * load:.1f} % without stuffing (budget {100 * budget['load_none']:.1f}-"
-          f"{100 * budget['load_worst']:.1f} %, host budget "
-          f"{budget['host_budget_us_worst']:.0f}-{budget['host_budget_us_none']:.0f} us); "
-          f"{m / res.wall_s:.0f} samples/s wall")
+    print(
+        f"CAN FD, D={d} ({1e4 / d:.0f} Hz samples, control at D*Ts): theta RMS "
+        f"{can_rms:.3f} deg (FD in-process {ref_rms:.3f} deg, classic D=8 "
+        f"{CLASSIC_D8_RMS_DEG} deg), {speed:.1f} rpm; bus load at 1/5 Mbit/s "
+        f"{100 * load:.1f} % without stuffing (budget {100 * budget['load_none']:.1f}-"
+        f"{100 * budget['load_worst']:.1f} %, host budget "
+        f"{budget['host_budget_us_worst']:.0f}-{budget['host_budget_us_none']:.0f} us); "
+        f"{m / res.wall_s:.0f} samples/s wall"
+    )
     assert abs(speed - 60.0) < 6.0
     assert np.all(res.ctrl[j0:, 13] == 3)  # closed loop on the flux observer
     # between the per-period loop and the classic D = 8 one
@@ -557,8 +613,9 @@ def test_fd_decimation_mismatch_refuses_arming_and_latches_a_fault():
     ch = new_virtual_channel()
     emu_bus = can.Bus(interface="virtual", channel=ch, fd=True)
     emu = DriveEmulator(DriveSetup(sc), emu_bus, lockstep=False)  # FD, D = 1 (default)
-    br = CanBridge(lambda: can.Bus(interface="virtual", channel=ch, fd=True),
-                   BridgeConfig(decimation=4))
+    br = CanBridge(
+        lambda: can.Bus(interface="virtual", channel=ch, fd=True), BridgeConfig(decimation=4)
+    )
     assert br.layout == "fd" and br.decimation == 4
     assert br.mcu_cmd_timeout_s >= 1.5 * 4e-4  # the drive's watchdog spans a sample
     br.connect()

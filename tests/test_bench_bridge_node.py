@@ -35,10 +35,15 @@ def test_bridge_node_smoke():
     emu = DriveEmulator(DriveSetup(short_2pct(0.5)), emu_bus, lockstep=True, lockstep_wait_s=0.2)
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "0")) % 100 + 1)
-    node = BenchBridgeNode(context=ctx, parameter_overrides=[
-        Parameter("channel", value=ch), Parameter("stale_timeout_s", value=30.0),
-        Parameter("diagnostics_period_s", value=0.2),
-        Parameter("allowed_commanders", value=["*"])])  # the probe plays the graph (access)
+    node = BenchBridgeNode(
+        context=ctx,
+        parameter_overrides=[
+            Parameter("channel", value=ch),
+            Parameter("stale_timeout_s", value=30.0),
+            Parameter("diagnostics_period_s", value=0.2),
+            Parameter("allowed_commanders", value=["*"]),
+        ],
+    )  # the probe plays the graph (access)
     probe = rclpy.create_node("probe", context=ctx)
     ex = rclpy.executors.SingleThreadedExecutor(context=ctx)
     ex.add_node(node)
@@ -108,12 +113,22 @@ def test_bridge_node_decimation_parameter_and_drive_check():
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "0")) % 100 + 1)
     with pytest.raises(InvalidParameterValueException, match="decimation out of range"):
-        BenchBridgeNode(context=ctx, parameter_overrides=[
-            Parameter("channel", value=ch), Parameter("decimation", value=300)])
-    node = BenchBridgeNode(context=ctx, parameter_overrides=[
-        Parameter("channel", value=ch), Parameter("decimation", value=4),
-        Parameter("diagnostics_period_s", value=0.1),
-        Parameter("allowed_commanders", value=["*"])])
+        BenchBridgeNode(
+            context=ctx,
+            parameter_overrides=[
+                Parameter("channel", value=ch),
+                Parameter("decimation", value=300),
+            ],
+        )
+    node = BenchBridgeNode(
+        context=ctx,
+        parameter_overrides=[
+            Parameter("channel", value=ch),
+            Parameter("decimation", value=4),
+            Parameter("diagnostics_period_s", value=0.1),
+            Parameter("allowed_commanders", value=["*"]),
+        ],
+    )
     probe = rclpy.create_node("probe", context=ctx)
     ex = rclpy.executors.SingleThreadedExecutor(context=ctx)
     ex.add_node(node)

@@ -76,22 +76,63 @@ def test_emulator_and_bridge_node_in_separate_processes(tmp_path):
     from fluxdrive_ros import qos, topics
 
     domain = int(os.environ.get("ROS_DOMAIN_ID", "0")) % 100 + 2
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain),
-               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-               CAN_CONFIG=json.dumps({"port": port, "hop_limit": 0}))
+    env = dict(
+        os.environ,
+        ROS_DOMAIN_ID=str(domain),
+        ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+        CAN_CONFIG=json.dumps({"port": port, "hop_limit": 0}),
+    )
     emu_log = open(tmp_path / "emulator.err", "w")  # noqa: SIM115 - closed below
     br_log = open(tmp_path / "bridge.out", "w")  # noqa: SIM115
     emu = subprocess.Popen(
-        [sys.executable, "-m", "fluxdrive.cli", "can-emulator", "paper_2pct_150load",
-         "--interface", "udp_multicast", "--channel", group, "--port", str(port),
-         "--periods", "1000000", "--lockstep-wait", "0.2", "--wait-for-host", "60"],
-        cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=emu_log, text=True)
+        [
+            sys.executable,
+            "-m",
+            "fluxdrive.cli",
+            "can-emulator",
+            "paper_2pct_150load",
+            "--interface",
+            "udp_multicast",
+            "--channel",
+            group,
+            "--port",
+            str(port),
+            "--periods",
+            "1000000",
+            "--lockstep-wait",
+            "0.2",
+            "--wait-for-host",
+            "60",
+        ],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=emu_log,
+        text=True,
+    )
     bridge = subprocess.Popen(
-        [sys.executable, "-m", "bench_bridge.bridge_node", "--ros-args",
-         "-p", "interface:=udp_multicast", "-p", f"channel:={group}",
-         "-p", "stale_timeout_s:=30.0", "-p", "diagnostics_period_s:=0.5",
-         "-p", "allowed_commanders:=['*']"],  # the probe plays the graph's controller
-        cwd=REPO, env=env, stdout=br_log, stderr=subprocess.STDOUT, text=True)
+        [
+            sys.executable,
+            "-m",
+            "bench_bridge.bridge_node",
+            "--ros-args",
+            "-p",
+            "interface:=udp_multicast",
+            "-p",
+            f"channel:={group}",
+            "-p",
+            "stale_timeout_s:=30.0",
+            "-p",
+            "diagnostics_period_s:=0.5",
+            "-p",
+            "allowed_commanders:=['*']",
+        ],  # the probe plays the graph's controller
+        cwd=REPO,
+        env=env,
+        stdout=br_log,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain)
     probe = rclpy.create_node("xproc_probe", context=ctx)
@@ -123,15 +164,16 @@ def test_emulator_and_bridge_node_in_separate_processes(tmp_path):
             time.sleep(0.05)
         frames = list(got)
         wall = time.monotonic() - t0
-        print(f"{len(frames)} frames across 3 processes, {len(frames) - n0} after arming in "
-              f"{wall:.2f} s")
+        print(
+            f"{len(frames)} frames across 3 processes, {len(frames) - n0} after arming in "
+            f"{wall:.2f} s"
+        )
         seqs = [g[0] for g in frames]
         assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))  # in order, no gaps
         on = [g for g in frames[n0:] if g[2]]
         assert len(on) >= 300, "PWM never came on at the drive"
         # the duties applied by the drive are the ones the ROS side sent (2e-5 resolution)
-        assert all(max(abs(a - b) for a, b in zip(g[1], DUTY, strict=True)) < 3e-5
-                   for g in on[2:])
+        assert all(max(abs(a - b) for a, b in zip(g[1], DUTY, strict=True)) < 3e-5 for g in on[2:])
         # stop the bridge node: it must disarm the drive on its way out
         br_rc = bridge.send_signal(signal.SIGINT) or bridge.wait(timeout=30.0)
         time.sleep(0.5)
@@ -149,8 +191,20 @@ def test_emulator_and_bridge_node_in_separate_processes(tmp_path):
     lines = [ln for ln in emu_out.splitlines() if ln.startswith("{")]
     assert lines, f"no emulator report; stderr: {(tmp_path / 'emulator.err').read_text()[-2000:]}"
     st = json.loads(lines[-1])
-    print({k: st[k] for k in ("periods", "duty_applied", "disarm_rx", "armed", "pwm_enabled",
-                              "fault_codes", "stale_periods")})
+    print(
+        {
+            k: st[k]
+            for k in (
+                "periods",
+                "duty_applied",
+                "disarm_rx",
+                "armed",
+                "pwm_enabled",
+                "fault_codes",
+                "stale_periods",
+            )
+        }
+    )
     assert br_rc == 0, (tmp_path / "bridge.out").read_text()[-3000:]
     assert st["duty_applied"] >= 300
     assert st["disarm_rx"] >= 1 and not st["armed"] and not st["pwm_enabled"]

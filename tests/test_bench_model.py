@@ -37,9 +37,15 @@ from helpers_engine import ideal_machine, make_scenario
 NO_LOAD = (np.array([0.0]), np.array([0.0]), load_config(0.0, 0.0))
 
 # the paper bench's capture numbers (config/benches/paper_lab.yaml), a fine timer, no jitter
-CAPTURE = VoltageCapture(threshold_pu=0.25, edge_time_s=50e-9, delay_rise_s=60e-9,
-                         delay_fall_s=25e-9, min_pulse_s=111e-9, jitter_s=0.0,
-                         resolution_bits=24)
+CAPTURE = VoltageCapture(
+    threshold_pu=0.25,
+    edge_time_s=50e-9,
+    delay_rise_s=60e-9,
+    delay_fall_s=25e-9,
+    min_pulse_s=111e-9,
+    jitter_s=0.0,
+    resolution_bits=24,
+)
 
 
 def _run_fixed_duty(mp, duty, n, seed=1, i_alpha0=0.0):
@@ -65,8 +71,9 @@ def test_capture_delay_gives_the_predicted_duty_dependent_error():
     (here 25 - 35 = -10 ns), so the captured voltage is off by 2 dw Vdc/Ts = -14.4 mV at any
     duty -- until a registered pulse is shorter than the 111 ns minimum, where the whole
     line voltage d Vdc vanishes."""
-    card = dataclasses.replace(MachineCard(), inertia_kgm2=1e3, current_noise_a=0.0,
-                               deadtime_s=0.0, dc_bus_adc_bits=24)
+    card = dataclasses.replace(
+        MachineCard(), inertia_kgm2=1e3, current_noise_a=0.0, deadtime_s=0.0, dc_bus_adc_bits=24
+    )
     mp = machine_params(card, bench=BenchConfig(voltage_capture=CAPTURE))
     ts = card.ts_s
     dw = CAPTURE.width_error_s()
@@ -88,8 +95,9 @@ def test_capture_threshold_on_slow_edges_and_jitter():
     lost, above it registers 2 (w - (V_th/Vdc) t_edge) wide; with jitter sigma on each of
     the 4 edges of a period the captured line voltage scatters by 2 sigma Vdc/Ts around
     the mean error."""
-    card = dataclasses.replace(MachineCard(), inertia_kgm2=1e3, current_noise_a=0.0,
-                               deadtime_s=0.0, dc_bus_adc_bits=24)
+    card = dataclasses.replace(
+        MachineCard(), inertia_kgm2=1e3, current_noise_a=0.0, deadtime_s=0.0, dc_bus_adc_bits=24
+    )
     slow = VoltageCapture(threshold_pu=0.5, edge_time_s=400e-9, resolution_bits=24)
     mp = machine_params(card, bench=BenchConfig(voltage_capture=slow))
     ts = card.ts_s
@@ -114,8 +122,13 @@ def test_thermal_model_rise_follows_i2r_over_its_time_constant():
     follows T_amb + P R_th (1 - exp(-t/tau)).  With the copper tempco the resistance is
     R_ref (1 + alpha (T - T_ref)) and the current falls as V/R(T)."""
     tau = 0.03
-    card = ideal_machine(inertia_kgm2=1e3, deadtime_s=0.0, thermal_resistance_k_per_w=10.0,
-                         thermal_time_constant_s=tau, copper_tempco_per_k=0.0)
+    card = ideal_machine(
+        inertia_kgm2=1e3,
+        deadtime_s=0.0,
+        thermal_resistance_k_per_w=10.0,
+        thermal_time_constant_s=tau,
+        copper_tempco_per_k=0.0,
+    )
     bench = BenchConfig(thermal=Thermal(ambient_c=25.0, initial_winding_c=25.0))
     mp = machine_params(card, bench=bench)
     duty = [0.53, 0.485, 0.485]  # v_alpha = 0.03 Vdc = 2.16 V -> i = 5.4 A
@@ -137,7 +150,7 @@ def test_thermal_model_rise_follows_i2r_over_its_time_constant():
     assert st[PS_TW] - 25.0 > 30.0
     assert truths[-1, TR_IA] == pytest.approx(2.16 / r_t, rel=0.01)
     # steady state: dT = 1.5 V^2/R(T) R_th
-    assert st[PS_TW] - 25.0 == pytest.approx(1.5 * 2.16 ** 2 / r_t * 10.0, rel=0.01)
+    assert st[PS_TW] - 25.0 == pytest.approx(1.5 * 2.16**2 / r_t * 10.0, rel=0.01)
 
 
 def test_current_sampling_skew_samples_earlier():
@@ -157,12 +170,19 @@ def _locus_h6(tmp_path, load_pu: float, h6: float) -> complex:
     encoder drive at 300 rpm under an active load."""
     card = ideal_machine(deadtime_s=0.0)
     bench = {"spatial_saturation_h6_pu": h6} if h6 else {}
-    sc = make_scenario(tmp_path, card, name=f"sat_{load_pu}_{h6}", duration_s=0.9,
-                       speed_rpm=[[0.0, 0.0], [0.2, 300.0]], load_type="active",
-                       load_pu=[[0.0, 0.0], [0.3, 0.0], [0.4, load_pu]],
-                       steady_window_s=[0.6, 0.9], driving="encoder", bench=bench,
-                       observers={"flux": {"variant": "lpf", "cutoff_hz": 2.0,
-                                           "voltage_source": "measured"}})
+    sc = make_scenario(
+        tmp_path,
+        card,
+        name=f"sat_{load_pu}_{h6}",
+        duration_s=0.9,
+        speed_rpm=[[0.0, 0.0], [0.2, 300.0]],
+        load_type="active",
+        load_pu=[[0.0, 0.0], [0.3, 0.0], [0.4, load_pu]],
+        steady_window_s=[0.6, 0.9],
+        driving="encoder",
+        bench=bench,
+        observers={"flux": {"variant": "lpf", "cutoff_hz": 2.0, "voltage_source": "measured"}},
+    )
     r = run_scenario(sc, progress=False)
     e = r.estimate("flux")[6000:9000]
     th = r.truth[6000:9000, TR_THETA_E]
@@ -180,7 +200,7 @@ def test_spatial_saturation_6th_order_of_flux_grows_with_load(tmp_path):
     got = []
     for load in (0.5, 1.0, 1.25):
         sat = abs(_locus_h6(tmp_path, load, s6) - _locus_h6(tmp_path, load, 0.0))
-        assert sat == pytest.approx(s6 * load ** 2, rel=0.15), load
+        assert sat == pytest.approx(s6 * load**2, rel=0.15), load
         got.append(sat)
     assert got[0] < got[1] < got[2]
     assert abs(_locus_h6(tmp_path, 0.0, s6)) < 0.002
@@ -191,11 +211,14 @@ def test_observer_model_errors_reach_the_observers(tmp_path):
     sets its own keeps it); the kernel parameter rows carry them; a saved scenario reloads
     the same."""
     card = MachineCard()
-    sc = make_scenario(tmp_path, None, name="om", duration_s=0.1,
-                       bench={"observer_model": {"r_pu": 0.97, "l_pu": 1.05,
-                                                 "lambda_pu": 1.02}},
-                       observers={"a": {"variant": "paper"},
-                                  "b": {"variant": "emf", "r_hat_ohm": 0.5}})
+    sc = make_scenario(
+        tmp_path,
+        None,
+        name="om",
+        duration_s=0.1,
+        bench={"observer_model": {"r_pu": 0.97, "l_pu": 1.05, "lambda_pu": 1.02}},
+        observers={"a": {"variant": "paper"}, "b": {"variant": "emf", "r_hat_ohm": 0.5}},
+    )
     ds = DriveSetup(sc)
     a, b = ds.obs_params
     assert a[OP_R] == pytest.approx(0.97 * card.resistance_ohm)
@@ -222,8 +245,7 @@ def test_paper_scenarios_run_on_the_paper_bench_and_bad_entries_are_refused(tmp_
         parse_bench("x.yaml", {"capture": {}}, card)
     # a card without a thermal model keeps its resistance
     cold = dataclasses.replace(card, thermal_resistance_k_per_w=0.0)
-    assert machine_params(cold, bench=parse_bench("x.yaml", {"thermal": {}}, cold))[
-        MP_TH_ON] == 0.0
+    assert machine_params(cold, bench=parse_bench("x.yaml", {"thermal": {}}, cold))[MP_TH_ON] == 0.0
     with pytest.raises(ConfigError, match="current_sample_skew_s"):
         parse_bench("x.yaml", {"current_sample_skew_s": [0.0, 1.0]}, card)
     # the ideal bench leaves the plant's parameter vector as it was
@@ -239,12 +261,12 @@ def test_rig_card_for_the_step_load_differs_from_the_default_only_in_inertia():
     default = load_machine(CONFIG_DIR / "machines" / "default_spm.yaml")
     rig = load_machine(CONFIG_DIR / "machines" / "paper_rig.yaml")
     assert default.inertia_kgm2 == 1.5e-4
-    assert dataclasses.replace(rig, name=default.name, inertia_kgm2=default.inertia_kgm2) \
-        == default
+    assert dataclasses.replace(rig, name=default.name, inertia_kgm2=default.inertia_kgm2) == default
     w_n = 2 * math.pi * 10.0 / 2.4826
     dip = 90.0 * 2 * math.pi / 60
-    assert rig.inertia_kgm2 == pytest.approx(default.rated_torque_nm / (math.e * w_n * dip),
-                                             rel=0.01)
+    assert rig.inertia_kgm2 == pytest.approx(
+        default.rated_torque_nm / (math.e * w_n * dip), rel=0.01
+    )
     # the well-damped loop is back within 10 % of 180 rpm (1/5 of the dip) inside 0.2 s
     x = np.linspace(1.0, 10.0, 90001)
     x_back = x[np.argmin(np.abs(x * np.exp(1.0 - x) - 0.2))]

@@ -24,10 +24,20 @@ def _domain() -> int:
 
 
 def fluxdrive(*args: str, env_extra: dict | None = None, timeout: float = 90.0):
-    env = {**os.environ, "ROS_DOMAIN_ID": str(_domain()),
-           "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", **(env_extra or {})}
-    return subprocess.run([sys.executable, "-m", "fluxdrive.cli", *args], cwd=ROOT, env=env,
-                          capture_output=True, text=True, timeout=timeout)
+    env = {
+        **os.environ,
+        "ROS_DOMAIN_ID": str(_domain()),
+        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+        **(env_extra or {}),
+    }
+    return subprocess.run(
+        [sys.executable, "-m", "fluxdrive.cli", *args],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
 
 
 def _one_line(r: subprocess.CompletedProcess) -> str:
@@ -75,8 +85,7 @@ def probe():
     p.close()
 
 
-def test_first_topic_list_shows_every_topic_and_unknown_parameters_are_one_line(probe,
-                                                                               tmp_path):
+def test_first_topic_list_shows_every_topic_and_unknown_parameters_are_one_line(probe, tmp_path):
     r = fluxdrive("topic", "list")  # at once: discovery of the new node still going on
     assert r.returncode == 0, r.stderr
     for t in ("/probe/a", "/probe/b", "/probe/c"):
@@ -90,20 +99,40 @@ def test_first_topic_list_shows_every_topic_and_unknown_parameters_are_one_line(
     assert r.returncode == 1
     assert "has no parameter 'no_such_param'" in _one_line(r)
     # a second graph on a domain in use is refused, naming what lives there
-    for cmd in (["launch", "sim_lockstep", "--domain-id", str(_domain())],
-                ["run", "paper_2pct_150load", "--duration", "0.1", "--out",
-                 str(tmp_path / "out"), "--bag", str(tmp_path / "bag")]):
+    for cmd in (
+        ["launch", "sim_lockstep", "--domain-id", str(_domain())],
+        [
+            "run",
+            "paper_2pct_150load",
+            "--duration",
+            "0.1",
+            "--out",
+            str(tmp_path / "out"),
+            "--bag",
+            str(tmp_path / "bag"),
+        ],
+    ):
         r = fluxdrive(*cmd)
         assert r.returncode == 2
         line = _one_line(r)
         assert f"ROS_DOMAIN_ID={_domain()} is in use by /harden_probe" in line, line
 
 
-@pytest.mark.parametrize("cmd", [["topic", "list"], ["param", "get", "/plant", "seed"],
-                                 ["launch", "sim_lockstep"], ["run", "paper_2pct_150load"]])
+@pytest.mark.parametrize(
+    "cmd",
+    [
+        ["topic", "list"],
+        ["param", "get", "/plant", "seed"],
+        ["launch", "sim_lockstep"],
+        ["run", "paper_2pct_150load"],
+    ],
+)
 def test_security_enforced_without_a_keystore_is_one_line(cmd, tmp_path):
-    env = {"ROS_SECURITY_ENABLE": "true", "ROS_SECURITY_STRATEGY": "Enforce",
-           "ROS_SECURITY_KEYSTORE": ""}
+    env = {
+        "ROS_SECURITY_ENABLE": "true",
+        "ROS_SECURITY_STRATEGY": "Enforce",
+        "ROS_SECURITY_KEYSTORE": "",
+    }
     if cmd[0] == "run":
         cmd = [*cmd, "--out", str(tmp_path / "out"), "--bag", str(tmp_path / "bag")]
     r = fluxdrive(*cmd, env_extra=env)

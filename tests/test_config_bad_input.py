@@ -23,19 +23,35 @@ SCENARIO = str(ROOT / "config" / "scenarios" / "paper_2pct_150load.yaml")
 
 
 def _env() -> dict[str, str]:
-    return dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-                ROS_DOMAIN_ID=str((os.getpid() * 23 + 5) % 100 + 100))
+    return dict(
+        os.environ,
+        ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+        ROS_DOMAIN_ID=str((os.getpid() * 23 + 5) % 100 + 100),
+    )
 
 
 def test_unknown_name_in_a_params_file_is_refused_with_file_and_key(tmp_path):
     f = tmp_path / "controller.yaml"
     f.write_text("/controller:\n  ros__parameters:\n    speed_bandwith_hz: 5.0\n")
-    spec = {"process": "p", "nodes": [{"class": "controller", "name": "controller",
-                                         "parameters": {"scenario": SCENARIO},
-                                         "params_files": [str(f)]}]}
-    r = subprocess.run([sys.executable, "-m", "fluxdrive_ros.runner", "--spec-json",
-                        json.dumps(spec)], env=_env(), capture_output=True, text=True,
-                       timeout=120, cwd=ROOT)
+    spec = {
+        "process": "p",
+        "nodes": [
+            {
+                "class": "controller",
+                "name": "controller",
+                "parameters": {"scenario": SCENARIO},
+                "params_files": [str(f)],
+            }
+        ],
+    }
+    r = subprocess.run(
+        [sys.executable, "-m", "fluxdrive_ros.runner", "--spec-json", json.dumps(spec)],
+        env=_env(),
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+    )
     err = r.stderr.strip()
     print(err)
     assert r.returncode == 2 and "Traceback" not in err
@@ -46,15 +62,25 @@ def test_unknown_name_in_a_params_file_is_refused_with_file_and_key(tmp_path):
 
 def test_exponent_numbers_in_a_params_file(tmp_path):
     f = tmp_path / "controller.yaml"
-    f.write_text("/controller:\n  ros__parameters:\n    deadtime_comp_s: 1e-6\n"
-                 "    current_bandwidth_hz: 1.2e3\n")
-    code = ("import json, rclpy\nfrom fluxdrive_ros.runner import build_node\nrclpy.init()\n"
-            f"n = build_node({{'class': 'controller', 'name': 'controller', 'parameters': "
-            f"{{'scenario': {SCENARIO!r}}}, 'params_files': [{str(f)!r}]}})\n"
-            "print(json.dumps([n.get_parameter(k).value for k in "
-            "('deadtime_comp_s', 'current_bandwidth_hz', 'vdc_max_v')]))\n")
-    r = subprocess.run([sys.executable, "-c", code], env=_env(), capture_output=True,
-                       text=True, timeout=120, cwd=ROOT)
+    f.write_text(
+        "/controller:\n  ros__parameters:\n    deadtime_comp_s: 1e-6\n"
+        "    current_bandwidth_hz: 1.2e3\n"
+    )
+    code = (
+        "import json, rclpy\nfrom fluxdrive_ros.runner import build_node\nrclpy.init()\n"
+        f"n = build_node({{'class': 'controller', 'name': 'controller', 'parameters': "
+        f"{{'scenario': {SCENARIO!r}}}, 'params_files': [{str(f)!r}]}})\n"
+        "print(json.dumps([n.get_parameter(k).value for k in "
+        "('deadtime_comp_s', 'current_bandwidth_hz', 'vdc_max_v')]))\n"
+    )
+    r = subprocess.run(
+        [sys.executable, "-c", code],
+        env=_env(),
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+    )
     assert r.returncode == 0, r.stderr
     td, bw, vmax = json.loads(r.stdout.strip().splitlines()[-1])
     assert td == 1e-6 and bw == 1200.0
@@ -70,8 +96,9 @@ def test_nan_sample_trip_is_logged_with_its_values(capfd):
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=(os.getpid() * 29 + 7) % 100 + 100)
     try:
-        node = ControllerNode("controller", context=ctx, parameter_overrides=[
-            Parameter("scenario", value=SCENARIO)])
+        node = ControllerNode(
+            "controller", context=ctx, parameter_overrides=[Parameter("scenario", value=SCENARIO)]
+        )
         try:
             fr = np.zeros(FR_N)
             fr[FR_VDC] = 72.0

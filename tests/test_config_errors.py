@@ -21,19 +21,26 @@ def test_all_shipped_scenarios_load():
         assert sc.n_periods > 0 and sc.machine.pole_pairs > 0
 
 
-@pytest.mark.parametrize("patch, words", [
-    ({"duration_s": -1.0}, ["duration_s"]),
-    ({"speedrpm": 5}, ["unknown", "speedrpm"]),
-    ({"driving": "nope"}, ["driving", "nope"]),
-    ({"observers": {"x": {"variant": "magic"}}}, ["magic", "variant"]),
-    ({"observers": {"x": {"cutoff_hz": "high"}}}, ["cutoff_hz"]),
-    ({"faults": {"current_offset_pu": [0, 1]}}, ["current_offset_pu", "3"]),
-    ({"control": {"current_bandwidth_hz": True}}, ["current_bandwidth_hz"]),
-    ({"load_type": "magnetic"}, ["load_type"]),
-])
+@pytest.mark.parametrize(
+    "patch, words",
+    [
+        ({"duration_s": -1.0}, ["duration_s"]),
+        ({"speedrpm": 5}, ["unknown", "speedrpm"]),
+        ({"driving": "nope"}, ["driving", "nope"]),
+        ({"observers": {"x": {"variant": "magic"}}}, ["magic", "variant"]),
+        ({"observers": {"x": {"cutoff_hz": "high"}}}, ["cutoff_hz"]),
+        ({"faults": {"current_offset_pu": [0, 1]}}, ["current_offset_pu", "3"]),
+        ({"control": {"current_bandwidth_hz": True}}, ["current_bandwidth_hz"]),
+        ({"load_type": "magnetic"}, ["load_type"]),
+    ],
+)
 def test_scenario_errors_name_file_and_key(tmp_path, patch, words):
-    raw = {"machine": str(CONFIG_DIR / "machines" / "default_spm.yaml"), "duration_s": 1.0,
-           "observers": {"x": {"variant": "paper"}}, **patch}
+    raw = {
+        "machine": str(CONFIG_DIR / "machines" / "default_spm.yaml"),
+        "duration_s": 1.0,
+        "observers": {"x": {"variant": "paper"}},
+        **patch,
+    }
     p = _write(tmp_path, "bad.yaml", raw)
     with pytest.raises(ConfigError) as ei:
         load_scenario(p)

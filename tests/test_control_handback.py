@@ -33,14 +33,20 @@ CARD = MachineCard()
 RPM = 2 * math.pi / 60
 
 
-@pytest.mark.parametrize("speed_rpm, iq_pu", [(30.0, 0.4), (-30.0, -0.4), (-30.0, 0.4),
-                                             (30.0, -0.4), (30.0, 1.5)])
+@pytest.mark.parametrize(
+    "speed_rpm, iq_pu", [(30.0, 0.4), (-30.0, -0.4), (-30.0, 0.4), (30.0, -0.4), (30.0, 1.5)]
+)
 def test_handback_keeps_the_torque_current_for_either_sign(speed_rpm, iq_pu):
     """At hand-back the I-f vector sits at theta^ + asin(i_q/I_if): its q-component in the
     estimated rotor frame is the torque current the speed loop was holding (clipped at
     sin = 0.9 when the I-f current cannot carry it); the ramp starts at the estimated speed."""
-    cfg = ControllerConfig(position_source="estimate", if_current_pu=1.0, handback_rpm=20.0,
-                           handover_rpm=40.0, speed_observer_pll_hz=25.0)
+    cfg = ControllerConfig(
+        position_source="estimate",
+        if_current_pu=1.0,
+        handback_rpm=20.0,
+        handover_rpm=40.0,
+        speed_observer_pll_hz=25.0,
+    )
     cp = cfg.to_params(CARD)
     cs = np.zeros(CS_N)
     controller_reset(cs)
@@ -62,8 +68,9 @@ def test_handback_keeps_the_torque_current_for_either_sign(speed_rpm, iq_pu):
     assert out[CO_ID_REF] == pytest.approx(i_if)
     assert out[CO_IQ_REF] == 0.0
     ld = float(wrap(np.array(out[CO_TH] - est[ES_TH])))
-    assert i_if * math.sin(ld) == pytest.approx(float(np.clip(iq, -0.9 * i_if, 0.9 * i_if)),
-                                                rel=1e-9)
+    assert i_if * math.sin(ld) == pytest.approx(
+        float(np.clip(iq, -0.9 * i_if, 0.9 * i_if)), rel=1e-9
+    )
     assert cs[CS_W_IF] == pytest.approx(est[ES_W])
     # the next period continues the ramp from that angle, in the direction of rotation
     th0 = out[CO_TH]
@@ -83,12 +90,18 @@ def test_sensorless_reversal_under_active_load_hands_back_without_a_swing(tmp_pa
     from fluxdrive.drive.sim import run_scenario
     from fluxdrive.experiments.registry import OBS4, build
 
-    sc = build(name="reversal_unit", duration_s=7.0, seed=1,
-               speed_rpm=[[0.0, 60.0], [3.6, 60.0], [4.8, -60.0]], load_type="active",
-               load_pu=[[0.0, 0.0], [0.6, 0.0], [2.6, 0.4]], steady_window_s=[6.0, 7.0],
-               driving="flux_measured",
-               control={"if_current_pu": 1.0, "handover_rpm": 40.0, "handback_rpm": 20.0},
-               observers={"flux_measured": OBS4["flux_measured"]})
+    sc = build(
+        name="reversal_unit",
+        duration_s=7.0,
+        seed=1,
+        speed_rpm=[[0.0, 60.0], [3.6, 60.0], [4.8, -60.0]],
+        load_type="active",
+        load_pu=[[0.0, 0.0], [0.6, 0.0], [2.6, 0.4]],
+        steady_window_s=[6.0, 7.0],
+        driving="flux_measured",
+        control={"if_current_pu": 1.0, "handover_rpm": 40.0, "handback_rpm": 20.0},
+        observers={"flux_measured": OBS4["flux_measured"]},
+    )
     r = run_scenario(sc, progress=False)
     m = compute(r)
     assert m["stable"] and m["speed"]["mean_rpm"] == pytest.approx(-60.0, abs=3.0)

@@ -26,10 +26,14 @@ def test_engine_has_no_ros_import():
                 names = [a.name for a in node.names]
             elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
                 names = [node.module]
-            elif (isinstance(node, ast.Call) and getattr(node.func, "attr",
-                  getattr(node.func, "id", "")) in ("import_module", "__import__")
-                  and node.args and isinstance(node.args[0], ast.Constant)
-                  and isinstance(node.args[0].value, str)):
+            elif (
+                isinstance(node, ast.Call)
+                and getattr(node.func, "attr", getattr(node.func, "id", ""))
+                in ("import_module", "__import__")
+                and node.args
+                and isinstance(node.args[0], ast.Constant)
+                and isinstance(node.args[0].value, str)
+            ):
                 names = [node.args[0].value]  # importlib.import_module("rclpy")
             else:
                 continue
@@ -39,16 +43,30 @@ def test_engine_has_no_ros_import():
     assert not offenders, offenders
 
 
-@pytest.mark.parametrize("mod, prefix", [
-    (plant, "MP"), (plant, "PS"), (plant, "FR"), (plant, "TR"), (plant, "LD"),
-    (observers, "OP"), (observers, "OS"), (observers, "ES"),
-    (control, "CP"), (control, "CS"), (control, "CO"),
-])
+@pytest.mark.parametrize(
+    "mod, prefix",
+    [
+        (plant, "MP"),
+        (plant, "PS"),
+        (plant, "FR"),
+        (plant, "TR"),
+        (plant, "LD"),
+        (observers, "OP"),
+        (observers, "OS"),
+        (observers, "ES"),
+        (control, "CP"),
+        (control, "CS"),
+        (control, "CO"),
+    ],
+)
 def test_kernel_layouts_are_dense(mod, prefix):
     """Every kernel array's constants are 0..N-1, each once, and N is the count."""
     ns = vars(mod)
-    idx = sorted(v for k, v in ns.items() if k.startswith(prefix + "_") and k != prefix + "_N"
-                 and isinstance(v, int))
+    idx = sorted(
+        v
+        for k, v in ns.items()
+        if k.startswith(prefix + "_") and k != prefix + "_N" and isinstance(v, int)
+    )
     assert idx == list(range(ns[prefix + "_N"]))
     assert len(ns["_" + prefix].names) == ns[prefix + "_N"]
 

@@ -111,20 +111,31 @@ def test_lowest_speed_flux_measured_holds_2pct_full_and_150pct_load(tmp_path):
         # the bound of measured voltages has no V_dt term: 0.2 R I / lambda (73 rpm at 100 %)
         i = float(load[:-1]) / 100 * card.rated_current_a
         assert f["bound_rpm"] == pytest.approx(
-            0.2 * card.resistance_ohm * i / card.flux_linkage_vs / card.pole_pairs * 60
-            / (2 * math.pi))
+            0.2
+            * card.resistance_ohm
+            * i
+            / card.flux_linkage_vs
+            / card.pole_pairs
+            * 60
+            / (2 * math.pi)
+        )
         assert f["lowest_rpm"] is not None and f["lowest_rpm"] < f["bound_rpm"]
     e = d["emf_commanded"]["100%"]
     # commanded voltages: V_dt = Vdc td/Ts (1.44 V) dominates, (0.2 R I + V_dt)/lambda = 219
     # rpm; below it the observer loses the rotor, not far below it (the bound is the rule of
     # thumb of a 0.2 R I margin) it still holds
     assert e["bound_rpm"] == pytest.approx(
-        (0.2 * card.resistance_ohm * card.rated_current_a + vdt) / card.flux_linkage_vs
-        / card.pole_pairs * 60 / (2 * math.pi))
+        (0.2 * card.resistance_ohm * card.rated_current_a + vdt)
+        / card.flux_linkage_vs
+        / card.pole_pairs
+        * 60
+        / (2 * math.pi)
+    )
     # (the Fig. 5 baseline -- 15 Hz PLL, 20 Hz speed LPF, a 7 Hz speed loop -- may already
     # lose the rotor on the way up: the I-f handover at 40 rpm is far below that bound)
-    assert e["lowest_rpm"] is None or (e["first_lost_rpm"] < e["bound_rpm"]
-                                       and e["lowest_rpm"] > 0.5 * e["bound_rpm"])
+    assert e["lowest_rpm"] is None or (
+        e["first_lost_rpm"] < e["bound_rpm"] and e["lowest_rpm"] > 0.5 * e["bound_rpm"]
+    )
     assert _holds(r, "With measured voltages and R^ = R")
     assert (tmp_path / "beyond_lowest_speed.png").exists()
 
@@ -141,8 +152,11 @@ def test_sensitivity_per_variant_follows_the_fundamental_model(tmp_path):
     assert _holds(r, "Cut-off: the uncompensated LPF")
     assert _holds(r, "Cut-off (equivalent gain")
     t = r["data"]["table"]
-    assert abs(t["hinkkanen_luomi"]["r0.85"]["mean_deg"] - t["hinkkanen_luomi"]["r0.85"]
-               ["pred_deg"]) < 2.0 and t["hinkkanen_luomi"]["r0.85"]["pred_deg"] > 20.0
+    assert (
+        abs(t["hinkkanen_luomi"]["r0.85"]["mean_deg"] - t["hinkkanen_luomi"]["r0.85"]["pred_deg"])
+        < 2.0
+        and t["hinkkanen_luomi"]["r0.85"]["pred_deg"] > 20.0
+    )
     assert abs(t["paper"]["r0.85"]["mean_deg"]) < 1.0
 
 
@@ -183,10 +197,16 @@ def test_graph_flag_runs_through_the_node_graph_with_the_same_numbers(tmp_path):
     from fluxdrive.experiments.registry import sensorless
     from fluxdrive_bringup.runs import graph_run
 
-    sc = sensorless(120.0, 0.3, name="exp_graph", ramp_pu_s=1.0, settle_s=0.1, window_s=0.2,
-                    observers={"flux_measured": {"variant": "paper"},
-                               "emf_measured": {"variant": "emf"}},
-                    machine_kw={"inertia_kgm2": 3.0e-4})
+    sc = sensorless(
+        120.0,
+        0.3,
+        name="exp_graph",
+        ramp_pu_s=1.0,
+        settle_s=0.1,
+        window_s=0.2,
+        observers={"flux_measured": {"variant": "paper"}, "emf_measured": {"variant": "emf"}},
+        machine_kw={"inertia_kgm2": 3.0e-4},
+    )
     p = save_scenario(sc, tmp_path / "s.yaml")
     assert scenario_differences(sc, load_scenario(p)) == []
     a = run_scenario(sc, progress=False)
@@ -197,5 +217,6 @@ def test_graph_flag_runs_through_the_node_graph_with_the_same_numbers(tmp_path):
         assert np.array_equal(a.estimate(o), b.estimate(o)), o
     ma, mb = compute(a), compute(b)
     assert ma["observers"] == mb["observers"]
-    print(sc.duration_s, "s simulated; θ̃ RMS", mb["observers"]["flux_measured"]
-          ["theta_err_rms_deg"])
+    print(
+        sc.duration_s, "s simulated; θ̃ RMS", mb["observers"]["flux_measured"]["theta_err_rms_deg"]
+    )

@@ -18,8 +18,9 @@ def test_fault_matrix_outcomes_and_the_documented_table():
     assert not bad, bad
     assert len(rows) >= 10
     doc = (ROOT / "docs" / "safety.md").read_text()
-    got = doc[doc.index(BEGIN) + len(BEGIN):doc.index(END)].strip()
+    got = doc[doc.index(BEGIN) + len(BEGIN) : doc.index(END)].strip()
     new = table(rows).strip()
     diff = [(a, b) for a, b in zip(got.splitlines(), new.splitlines(), strict=False) if a != b]
-    assert got == new, ("docs/safety.md is out of date (./fluxdrive fault-matrix --write "
-                        f"docs/safety.md): {diff}")
+    assert got == new, (
+        f"docs/safety.md is out of date (./fluxdrive fault-matrix --write docs/safety.md): {diff}"
+    )

@@ -55,9 +55,13 @@ def test_foxglove_client_receives_and_decodes_topics(tmp_path):
     launcher = Launcher(g, quiet=True, progress=False, log_dir=tmp_path / "logs")
     env = dict(os.environ, ROS_DOMAIN_ID=str(dom), PYTHONUNBUFFERED="1")
     launcher.start()
-    bridge = subprocess.Popen([sys.executable, "-m", "fluxdrive_bringup.foxglove_bridge",
-                               "--port", "0"], env=env, stdout=subprocess.PIPE,
-                              stderr=subprocess.STDOUT, text=True)
+    bridge = subprocess.Popen(
+        [sys.executable, "-m", "fluxdrive_bringup.foxglove_bridge", "--port", "0"],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     lines: list[str] = []
     threading.Thread(target=lambda: lines.extend(bridge.stdout), daemon=True).start()
     try:
@@ -75,8 +79,9 @@ def test_foxglove_client_receives_and_decodes_topics(tmp_path):
             ws_client.connect(url, subprotocols=["foxglove.websocket.v1"], open_timeout=5)
         assert "400" in str(exc.value) or "subprotocol" in str(exc.value).lower()
 
-        with ws_client.connect(url, subprotocols=["foxglove.sdk.v1"], max_size=None,
-                               open_timeout=10) as ws:
+        with ws_client.connect(
+            url, subprotocols=["foxglove.sdk.v1"], max_size=None, open_timeout=10
+        ) as ws:
             assert ws.subprotocol == "foxglove.sdk.v1"
             info = _recv_json(ws, "serverInfo", 10)
             assert "parameters" in info["capabilities"]
@@ -90,8 +95,17 @@ def test_foxglove_client_receives_and_decodes_topics(tmp_path):
             assert fr["encoding"] == "cdr" and fr["schemaEncoding"] == "ros2msg"
             assert fr["schemaName"] == topics.T_FRAME
             assert "float64[3] i_abc" in fr["schema"] and "MSG: std_msgs/Header" in fr["schema"]
-            ws.send(json.dumps({"op": "subscribe", "subscriptions": [
-                {"id": 1, "channelId": fr["id"]}, {"id": 2, "channelId": es["id"]}]}))
+            ws.send(
+                json.dumps(
+                    {
+                        "op": "subscribe",
+                        "subscriptions": [
+                            {"id": 1, "channelId": fr["id"]},
+                            {"id": 2, "channelId": es["id"]},
+                        ],
+                    }
+                )
+            )
             got: dict[int, list[bytes]] = {1: [], 2: []}
             t_end = time.monotonic() + 90  # a first run compiles the kernels first
             while (len(got[1]) < 200 or len(got[2]) < 200) and time.monotonic() < t_end:
@@ -117,13 +131,27 @@ def test_foxglove_client_receives_and_decodes_topics(tmp_path):
             assert all(-math.pi <= x < math.pi for x in th)
 
             # parameters: read one, a refused set comes back as a status with the reason
-            ws.send(json.dumps({"op": "getParameters", "id": "q1",
-                                "parameterNames": ["/controller.position_timeout_s"]}))
+            ws.send(
+                json.dumps(
+                    {
+                        "op": "getParameters",
+                        "id": "q1",
+                        "parameterNames": ["/controller.position_timeout_s"],
+                    }
+                )
+            )
             d = _recv_json(ws, "parameterValues", 20, lambda d: d.get("id") == "q1")
             assert d["parameters"][0]["name"] == "/controller.position_timeout_s"
             assert d["parameters"][0]["value"] == pytest.approx(0.05)
-            ws.send(json.dumps({"op": "setParameters", "id": "s1", "parameters": [
-                {"name": "/controller.position_timeout_s", "value": 99.0}]}))
+            ws.send(
+                json.dumps(
+                    {
+                        "op": "setParameters",
+                        "id": "s1",
+                        "parameters": [{"name": "/controller.position_timeout_s", "value": 99.0}],
+                    }
+                )
+            )
             st = _recv_json(ws, "status", 20)
             assert "out of range" in st["message"] and st["level"] == 1  # warning
             d = _recv_json(ws, "parameterValues", 20, lambda d: d.get("id") == "s1")

@@ -43,8 +43,13 @@ def test_plant_obeys_duty_commands_only_from_allowed_commanders(graph, tmp_path)
     from flux_drive_msgs.msg import DutyCommand, PhaseFrame
     from fluxdrive_ros import access, qos
 
-    sc = make_scenario(tmp_path, name="acc", duration_s=0.01, speed_rpm=0.0,
-                       observers={"flux": {"variant": "paper"}})
+    sc = make_scenario(
+        tmp_path,
+        name="acc",
+        duration_s=0.01,
+        speed_rpm=0.0,
+        observers={"flux": {"variant": "paper"}},
+    )
     rogue = rclpy.create_node("rogue", context=graph.ctx)
     graph.ex.add_node(rogue)
     graph.nodes.append(rogue)
@@ -52,8 +57,11 @@ def test_plant_obeys_duty_commands_only_from_allowed_commanders(graph, tmp_path)
     ppub = graph.publisher(DutyCommand, DUTY)
     diags = graph.listen(DiagnosticArray, "/diagnostics")
     frames: list = []
-    marks = {"rogue": access.mark("/rogue", DUTY), "unmarked": "",
-             "forged": access.mark("/probe", DUTY, key=b"another launch")}
+    marks = {
+        "rogue": access.mark("/rogue", DUTY),
+        "unmarked": "",
+        "forged": access.mark("/probe", DUTY, key=b"another launch"),
+    }
 
     def on_frame(m):
         frames.append(m)
@@ -66,8 +74,15 @@ def test_plant_obeys_duty_commands_only_from_allowed_commanders(graph, tmp_path)
         ppub.publish(d)
 
     graph.probe.create_subscription(PhaseFrame, "/drive/frame", on_frame, qos.reader("volatile"))
-    graph.add(PlantNode, "plant", scenario=str(sc.source), diagnostics_period_s=0.2,
-              exit_on_done=False, start_delay_s=0.5, allowed_commanders=["/probe"])
+    graph.add(
+        PlantNode,
+        "plant",
+        scenario=str(sc.source),
+        diagnostics_period_s=0.2,
+        exit_on_done=False,
+        start_delay_s=0.5,
+        allowed_commanders=["/probe"],
+    )
     wait_for(lambda: len(frames) >= 100, what="100 frames")
     assert all(m.pwm_enabled for m in frames[2:100]), [m.seq for m in frames if not m.pwm_enabled]
     mark = len(diags)
@@ -95,9 +110,13 @@ def test_bridge_arms_and_resets_only_for_allowed_nodes(graph):
     from flux_drive_msgs.srv import Arm, ResetFault
     from fluxdrive_ros import access
 
-    bridge = BenchBridgeNode(context=graph.ctx, parameter_overrides=[
-        Parameter("channel", value=new_virtual_channel()),
-        Parameter("stale_timeout_s", value=60.0)])
+    bridge = BenchBridgeNode(
+        context=graph.ctx,
+        parameter_overrides=[
+            Parameter("channel", value=new_virtual_channel()),
+            Parameter("stale_timeout_s", value=60.0),
+        ],
+    )
     graph.ex.add_node(bridge)
     try:
         ctl = rclpy.create_node("controller", context=graph.ctx)
@@ -128,8 +147,11 @@ def test_bridge_arms_and_resets_only_for_allowed_nodes(graph):
         res = call(arm_rogue, Arm.Request(arm=False))
         print("disarm from /rogue:", res.success, res.message)
         assert res.success and not bridge.bridge.armed  # stopping is never refused
-        wait_for(lambda: "/rogue" in access.service_clients(bridge, "/drive/arm"), 10.0,
-                 "discovery of the rogue client")
+        wait_for(
+            lambda: "/rogue" in access.service_clients(bridge, "/drive/arm"),
+            10.0,
+            "discovery of the rogue client",
+        )
         res = call(arm_rogue, Arm.Request(arm=True))
         print("arm from /rogue:", res.message)
         assert not res.success and "/rogue" in res.message and not bridge.bridge.armed
@@ -141,8 +163,11 @@ def test_bridge_arms_and_resets_only_for_allowed_nodes(graph):
         # duties: the rogue's (unmarked / its own mark) are dropped, the controller's obeyed
         rp = rogue.create_publisher(DutyCommand, DUTY, 10)
         cp = ctl.create_publisher(DutyCommand, DUTY, 10)
-        wait_for(lambda: rp.get_subscription_count() and cp.get_subscription_count(), 10.0,
-                 "duty subscription")
+        wait_for(
+            lambda: rp.get_subscription_count() and cp.get_subscription_count(),
+            10.0,
+            "duty subscription",
+        )
         time.sleep(0.3)
         tx0 = bridge.bridge.counters["duty_tx"]
         for k in range(5):
@@ -153,8 +178,11 @@ def test_bridge_arms_and_resets_only_for_allowed_nodes(graph):
             d.commander = access.mark("/controller", DUTY)
             d.duty = [1.5, 0.5, 0.5]  # out of range: clamped and counted
             cp.publish(d)
-        wait_for(lambda: bridge.guard.accepted >= 5 and bridge.guard.n_rejected >= 10, 10.0,
-                 "the bridge to take the duties")
+        wait_for(
+            lambda: bridge.guard.accepted >= 5 and bridge.guard.n_rejected >= 10,
+            10.0,
+            "the bridge to take the duties",
+        )
         print("bridge guard:", bridge.guard.values(), "out of range:", bridge.duty_out_of_range)
         assert bridge.guard.accepted == 5 and bridge.guard.n_rejected == 10
         assert bridge.duty_out_of_range == 5
@@ -187,19 +215,40 @@ def test_launcher_keeps_discovery_local_and_keys_each_launch(monkeypatch):
 
 
 def _start_plant(env_extra: dict[str, str]) -> subprocess.CompletedProcess:
-    spec = {"process": "drive", "nodes": [
-        {"class": "plant", "name": "plant",
-         "parameters": {"scenario": str(ROOT / "config/scenarios/paper_2pct_150load.yaml")}}]}
-    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-               ROS_DOMAIN_ID=str((os.getpid() * 29 + 1) % 100 + 100), **env_extra)
-    return subprocess.run([sys.executable, "-m", "fluxdrive_ros.runner", "--spec-json",
-                           json.dumps(spec)], env=env, capture_output=True, text=True,
-                          timeout=60, cwd=str(ROOT))
+    spec = {
+        "process": "drive",
+        "nodes": [
+            {
+                "class": "plant",
+                "name": "plant",
+                "parameters": {"scenario": str(ROOT / "config/scenarios/paper_2pct_150load.yaml")},
+            }
+        ],
+    }
+    env = dict(
+        os.environ,
+        ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+        ROS_DOMAIN_ID=str((os.getpid() * 29 + 1) % 100 + 100),
+        **env_extra,
+    )
+    return subprocess.run(
+        [sys.executable, "-m", "fluxdrive_ros.runner", "--spec-json", json.dumps(spec)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=str(ROOT),
+    )
 
 
 def test_security_enforced_without_a_keystore_refuses_to_start(tmp_path):
-    r = _start_plant({"ROS_SECURITY_ENABLE": "true", "ROS_SECURITY_STRATEGY": "Enforce",
-                      "ROS_SECURITY_KEYSTORE": str(tmp_path / "no_keystore")})
+    r = _start_plant(
+        {
+            "ROS_SECURITY_ENABLE": "true",
+            "ROS_SECURITY_STRATEGY": "Enforce",
+            "ROS_SECURITY_KEYSTORE": str(tmp_path / "no_keystore"),
+        }
+    )
     out = (r.stdout + r.stderr).strip()
     print(out.splitlines()[-1])
     assert r.returncode == 2 and "Traceback" not in out
@@ -216,15 +265,30 @@ def test_keystore_made_here_is_found_but_this_fast_dds_has_no_security(tmp_path)
     ks = tmp_path / "keystore"
     (enc,) = make_keystore(ks, ["/fluxdrive"])
     names = sorted(p.name for p in enc.iterdir())
-    assert names == ["cert.pem", "governance.p7s", "identity_ca.cert.pem", "key.pem",
-                     "permissions.p7s", "permissions.xml", "permissions_ca.cert.pem"]
-    v = subprocess.run(["openssl", "verify", "-CAfile", str(ks / "public/ca.cert.pem"),
-                        str(enc / "cert.pem")], capture_output=True, text=True)
+    assert names == [
+        "cert.pem",
+        "governance.p7s",
+        "identity_ca.cert.pem",
+        "key.pem",
+        "permissions.p7s",
+        "permissions.xml",
+        "permissions_ca.cert.pem",
+    ]
+    v = subprocess.run(
+        ["openssl", "verify", "-CAfile", str(ks / "public/ca.cert.pem"), str(enc / "cert.pem")],
+        capture_output=True,
+        text=True,
+    )
     assert v.returncode == 0, v.stderr
     for strategy in ("Enforce", "Permissive"):
-        r = _start_plant({"ROS_SECURITY_ENABLE": "true", "ROS_SECURITY_STRATEGY": strategy,
-                          "ROS_SECURITY_KEYSTORE": str(ks),
-                          "ROS_SECURITY_ENCLAVE_OVERRIDE": "/fluxdrive"})
+        r = _start_plant(
+            {
+                "ROS_SECURITY_ENABLE": "true",
+                "ROS_SECURITY_STRATEGY": strategy,
+                "ROS_SECURITY_KEYSTORE": str(ks),
+                "ROS_SECURITY_ENCLAVE_OVERRIDE": "/fluxdrive",
+            }
+        )
         out = (r.stdout + r.stderr).strip()
         print(strategy, "->", out.splitlines()[-1])
         assert r.returncode == 2 and "Traceback" not in out

@@ -28,8 +28,14 @@ def run(tmp_path_factory):
     from helpers_engine import make_scenario
 
     tmp = tmp_path_factory.mktemp("badin")
-    sc = make_scenario(tmp, name="badin", duration_s=0.6, speed_rpm=300.0,
-                       steady_window_s=[0.4, 0.6], observers={"flux": {"variant": "paper"}})
+    sc = make_scenario(
+        tmp,
+        name="badin",
+        duration_s=0.6,
+        speed_rpm=300.0,
+        steady_window_s=[0.4, 0.6],
+        observers={"flux": {"variant": "paper"}},
+    )
     return sc, run_scenario(sc, progress=False)
 
 
@@ -56,8 +62,12 @@ class Graph:
     def add(self, cls, name: str, namespace: str = "", **params):
         from rclpy.parameter import Parameter
 
-        node = cls(name, namespace=namespace, context=self.ctx,
-                   parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
+        node = cls(
+            name,
+            namespace=namespace,
+            context=self.ctx,
+            parameter_overrides=[Parameter(k, value=v) for k, v in params.items()],
+        )
         self.ex.add_node(node)
         self.nodes.append(node)
         return node
@@ -150,8 +160,12 @@ def test_observer_flags_holds_and_reports_bad_frames(graph, run):
     wait_for(lambda: len(ests) >= n_good, what="estimates of the good frames")
     assert ests[-1].valid, "the observer should have converged on 0.25 s of good frames"
     k = k0 + n_good
-    bad = {k: (FR_IA, np.nan), k + 1: (FR_VDC, np.inf), k + 2: (FR_VAB, -np.inf),
-           k + 3: (FR_IB, 10 * sc.machine.current_range_a)}
+    bad = {
+        k: (FR_IA, np.nan),
+        k + 1: (FR_VDC, np.inf),
+        k + 2: (FR_VAB, -np.inf),
+        k + 3: (FR_IB, 10 * sc.machine.current_range_a),
+    }
     # the four bad frames, a good one, its repeat, a backwards one, then k+5..k+14 lost
     seqs = [k, k + 1, k + 2, k + 3, k + 4, k + 4, k + 2]
     for i, s in enumerate(seqs):
@@ -166,18 +180,21 @@ def test_observer_flags_holds_and_reports_bad_frames(graph, run):
     n_all = n_good + len(seqs) + len(seqs_after)
     wait_for(lambda: len(ests) >= n_all, what="all estimates")
     mark = len(diags)
-    wait_for(lambda: diag_status(diags, "/obs/flux: input", mark) is not None,
-             what="a diagnostics report")
-    flagged = ests[n_good:n_good + len(seqs) + 1]
-    print("estimates (seq, valid, theta_e):",
-          [(e.seq, e.valid, round(e.theta_e, 4)) for e in flagged])
+    wait_for(
+        lambda: diag_status(diags, "/obs/flux: input", mark) is not None,
+        what="a diagnostics report",
+    )
+    flagged = ests[n_good : n_good + len(seqs) + 1]
+    print(
+        "estimates (seq, valid, theta_e):", [(e.seq, e.valid, round(e.theta_e, 4)) for e in flagged]
+    )
     assert [e.seq for e in flagged] == [*seqs, k + 15]
     # bad ones, the first good one after them (it follows a gap), repeat, backwards, gap
     assert not any(e.valid for e in flagged)
     th = np.array([e.theta_e for e in ests])
     assert np.all(np.isfinite(th)) and np.all(np.isfinite([e.omega_e for e in ests]))
     # held: between consecutive bad estimates the angle only coasts (w^ Ts, < 0.1 rad)
-    d = np.abs(np.angle(np.exp(1j * np.diff(th[n_good - 1:n_good + 4]))))
+    d = np.abs(np.angle(np.exp(1j * np.diff(th[n_good - 1 : n_good + 4]))))
     assert d.max() < 0.1, d
     assert ests[-1].valid, "valid again after good frames"
     st = diag_status(diags, "/obs/flux: input")
@@ -195,9 +212,15 @@ def test_observer_flags_holds_and_reports_bad_frames(graph, run):
 def _controller(graph, sc, **params):
     from foc_controller_node.node import ControllerNode
 
-    return graph.add(ControllerNode, "controller", scenario=str(sc.source),
-                     position_source="estimate", estimate_topic="/probe/estimate",
-                     diagnostics_period_s=0.2, **params)
+    return graph.add(
+        ControllerNode,
+        "controller",
+        scenario=str(sc.source),
+        position_source="estimate",
+        estimate_topic="/probe/estimate",
+        diagnostics_period_s=0.2,
+        **params,
+    )
 
 
 def _est_bytes(ew, seq: int, valid: bool = False) -> bytes:
@@ -247,11 +270,21 @@ def test_controller_pwm_off_when_position_source_goes_stale(graph, run):
     assert st[199].mode == 1 and st[199].fault_reason == ""
     assert st[399].mode == 4 and st[399].fault_code == 8
     assert st[399].fault_reason == "stale input"
-    print("first duty after the gap:", duties[200].seq, duties[200].enable,
-          "state:", st[205].fault_reason)
+    print(
+        "first duty after the gap:",
+        duties[200].seq,
+        duties[200].enable,
+        "state:",
+        st[205].fault_reason,
+    )
     mark = len(diags)
-    wait_for(lambda: diag_status(diags, "/controller: input", mark) is not None
-             and diag_status(diags, "/controller: state", mark) is not None, what="diagnostics")
+    wait_for(
+        lambda: (
+            diag_status(diags, "/controller: input", mark) is not None
+            and diag_status(diags, "/controller: state", mark) is not None
+        ),
+        what="diagnostics",
+    )
     s_in = diag_status(diags, "/controller: input")
     s_st = diag_status(diags, "/controller: state")
     print("diagnostics:", s_in.message, values(s_in), "|", s_st.level, s_st.message)
@@ -339,8 +372,13 @@ def test_plant_counts_and_neutralises_malformed_duty_commands(graph, tmp_path):
 
     from flux_drive_msgs.msg import DutyCommand, PhaseFrame
 
-    sc = make_scenario(tmp_path, name="plant_bad", duration_s=0.01, speed_rpm=0.0,
-                       observers={"flux": {"variant": "paper"}})
+    sc = make_scenario(
+        tmp_path,
+        name="plant_bad",
+        duration_s=0.01,
+        speed_rpm=0.0,
+        observers={"flux": {"variant": "paper"}},
+    )
     frames: list = []
     diags = graph.listen(DiagnosticArray, "/diagnostics")
     dpub = graph.publisher(DutyCommand, "/drive/duty")
@@ -364,8 +402,15 @@ def test_plant_counts_and_neutralises_malformed_duty_commands(graph, tmp_path):
         sent.append(k)
 
     graph.probe.create_subscription(PhaseFrame, "/drive/frame", on_frame, qos.reader("volatile"))
-    graph.add(PlantNode, "plant", scenario=str(sc.source), diagnostics_period_s=0.2,
-              exit_on_done=False, start_delay_s=0.3, allowed_commanders=["/probe"])
+    graph.add(
+        PlantNode,
+        "plant",
+        scenario=str(sc.source),
+        diagnostics_period_s=0.2,
+        exit_on_done=False,
+        start_delay_s=0.3,
+        allowed_commanders=["/probe"],
+    )
     wait_for(lambda: len(frames) >= 100, what="the plant's 100 frames")
     by = {m.seq: m for m in frames}
     assert by[6].pwm_enabled and not by[7].pwm_enabled  # duty(5) acts on period 6 -> 7

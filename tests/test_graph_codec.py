@@ -16,8 +16,16 @@ from rclpy.serialization import deserialize_message, serialize_message  # noqa: 
 
 import flux_drive_msgs.msg as fm  # noqa: E402
 
-MSGS = ["PhaseFrame", "PlantTruth", "RotorEstimate", "DutyCommand", "ControllerState",
-        "FreqResponsePoint", "DriveFault", "ParameterMarker"]
+MSGS = [
+    "PhaseFrame",
+    "PlantTruth",
+    "RotorEstimate",
+    "DutyCommand",
+    "ControllerState",
+    "FreqResponsePoint",
+    "DriveFault",
+    "ParameterMarker",
+]
 
 
 def _get(msg, path):
@@ -46,7 +54,7 @@ def _value(kind: str, rng: random.Random):
     if kind == "bool":
         return bool(rng.randrange(2))
     if kind == "int32":
-        return rng.randrange(-2**31, 2**31)
+        return rng.randrange(-(2**31), 2**31)
     bits = {"uint8": 8, "uint32": 32, "uint64": 64}[kind]
     return rng.randrange(0, 2**bits)
 
@@ -107,7 +115,8 @@ def test_rows_survive_messages_bit_for_bit():
         tr[TR_THETA_E] = abs(tr[TR_THETA_E]) % 6.28
         tw = TruthWire()
         got = row_codec("flux_drive_msgs/msg/PlantTruth").row(
-            tw.rc.decoder.decode(tw.pack(tr, k, *st(k))))
+            tw.rc.decoder.decode(tw.pack(tr, k, *st(k)))
+        )
         got[TR_T] = tr[TR_T]  # not on the wire (t = seq Ts)
         assert np.array_equal(got, tr)
         es = rng.normal(size=ES_N)
@@ -117,7 +126,7 @@ def test_rows_survive_messages_bit_for_bit():
         assert ew.unpack(ew.pack(es, k, *st(k)), row) == k
         assert np.array_equal(row, es)
         co = rng.normal(size=CO_N)
-        co[CO_DA:CO_DA + 3] = rng.uniform(size=3)
+        co[CO_DA : CO_DA + 3] = rng.uniform(size=3)
         co[CO_EN] = 1.0
         co[CO_MODE] = 3.0
         co[CO_FAULT] = float(k % 3 == 0) * 7 + float(k == 3) * 30  # 30: an unknown code
@@ -128,7 +137,11 @@ def test_rows_survive_messages_bit_for_bit():
         RowCodec("flux_drive_msgs/msg/ControllerState").unpack(sb, got)
         assert np.array_equal(got, co)
         # the fault travels as a number; its text is the name (one rule for unknown codes)
-        reason = RowCodec("flux_drive_msgs/msg/ControllerState").decoder.codec_for(
-            sb).strings["fault_reason"]
-        assert reason == {0: "", 7: "position estimate not finite",
-                          37: "fault 37"}[int(co[CO_FAULT])]
+        reason = (
+            RowCodec("flux_drive_msgs/msg/ControllerState")
+            .decoder.codec_for(sb)
+            .strings["fault_reason"]
+        )
+        assert (
+            reason == {0: "", 7: "position estimate not finite", 37: "fault 37"}[int(co[CO_FAULT])]
+        )

@@ -62,20 +62,37 @@ def test_two_graphs_one_domain_each_bag_equals_its_solo_run(tmp_path, layouts):
     procs = {}
     for name, sp in runs.items():
         layout = name[:-2]
-        cmd = [str(ROOT / "fluxdrive"), "run", str(sp), "--layout", layout, "--duration",
-               str(DURATION_S), "--domain-id", str(dom), "--shared-domain", "--no-plots",
-               "--timeout", "150", "--out", str(tmp_path / f"out_{name}"),
-               "--bag", str(tmp_path / f"bag_{name}")]
-        procs[name] = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE,
-                                         stderr=subprocess.STDOUT, text=True)
+        cmd = [
+            str(ROOT / "fluxdrive"),
+            "run",
+            str(sp),
+            "--layout",
+            layout,
+            "--duration",
+            str(DURATION_S),
+            "--domain-id",
+            str(dom),
+            "--shared-domain",
+            "--no-plots",
+            "--timeout",
+            "150",
+            "--out",
+            str(tmp_path / f"out_{name}"),
+            "--bag",
+            str(tmp_path / f"bag_{name}"),
+        ]
+        procs[name] = subprocess.Popen(
+            cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+        )
     logs = {run: p.communicate(timeout=240)[0] for run, p in procs.items()}
     for run, p in procs.items():
         bag = tmp_path / f"bag_{run}"
         assert bag.exists(), logs[run][-3000:]
         rb = read_run_bag(bag)
         # nothing foreign was recorded: no duplicate seq, nothing for replay to drop
-        assert not [pr for pr in rb.problems if "another graph" in pr or "duplicate" in pr], \
+        assert not [pr for pr in rb.problems if "another graph" in pr or "duplicate" in pr], (
             rb.problems
+        )
         assert np.array_equal(rb.frames[:, FR_SEQ], np.arange(len(rb.frames)))
         res, arr = result_from_bag(bag, load_scenario(runs[run]), DURATION_S)
         ref = _reference(runs[run])
@@ -85,8 +102,9 @@ def test_two_graphs_one_domain_each_bag_equals_its_solo_run(tmp_path, layouts):
             a, b = getattr(res, field), getattr(ref, field)
             assert np.array_equal(a, b), (run, field, np.argwhere(a != b)[:5])
         assert p.returncode in (0, 1), (run, logs[run][-3000:])  # 1: report verdict
-        assert "the graph failed" not in logs[run] and "Traceback" not in logs[run], \
-            logs[run][-3000:]
+        assert "the graph failed" not in logs[run] and "Traceback" not in logs[run], logs[run][
+            -3000:
+        ]
     # the graphs did hear each other (so the check above means something): the nodes of a
     # separate layout read the other graph's samples over DDS and dropped them
     both = "".join(logs.values())

@@ -63,8 +63,9 @@ def test_live_parameters_take_effect_exactly_and_bad_values_are_rejected(tmp_pat
         assert _get(s, "/obs/flux_measured", ["cutoff_hz"])[0][1] == 100.0
         assert _get(s, "/controller", ["current_bandwidth_hz"])[0][1] == 1000.0
         t_end = time.monotonic() + 60
-        while (launcher.progress is None or launcher.progress[0] < 5000) and \
-                time.monotonic() < t_end:
+        while (
+            launcher.progress is None or launcher.progress[0] < 5000
+        ) and time.monotonic() < t_end:
             time.sleep(0.02)
         assert launcher.progress is not None, "the graph did not start"
 
@@ -87,11 +88,12 @@ def test_live_parameters_take_effect_exactly_and_bad_values_are_rejected(tmp_pat
     finally:
         s.close()
         th.join(timeout=180)
-    assert codes == [0], (tmp_path / "logs")
+    assert codes == [0], tmp_path / "logs"
     log = (tmp_path / "logs" / "drive.log").read_text()
     k_obs = int(re.search(r"\{'cutoff_hz': 50.0\}: applied from frame (\d+)", log).group(1))
-    k_ctl = int(re.search(r"\{'current_bandwidth_hz': 500.0\}: applied from sample (\d+)",
-                          log).group(1))
+    k_ctl = int(
+        re.search(r"\{'current_bandwidth_hz': 500.0\}: applied from sample (\d+)", log).group(1)
+    )
     n = int(round(DURATION * 1e4))
     assert 5000 <= k_obs < n and 5000 <= k_ctl < n, (k_obs, k_ctl)
 
@@ -132,12 +134,32 @@ def test_paced_plant_watchdog_switches_pwm_off_without_a_controller(tmp_path):
 
     dom = 120 + (os.getpid() * 7 + 8) % 100
     bag = tmp_path / "bag"
-    g = Graph(name="paced", domain_id=dom, nodes=[
-        NodeSpec(name="plant", node="plant", process="drive", parameters={
-            "scenario": str(SCENARIO), "mode": "paced", "rate_factor": 0.2, "duration_s": 0.05,
-            "wait_frame_subscribers": 1, "wait_duty_publishers": 0, "start_delay_s": 0.0}),
-        NodeSpec(name="recorder", node="recorder", process="drive",
-                 parameters={"bag_dir": str(bag), "topics": ["/drive/frame"]})])
+    g = Graph(
+        name="paced",
+        domain_id=dom,
+        nodes=[
+            NodeSpec(
+                name="plant",
+                node="plant",
+                process="drive",
+                parameters={
+                    "scenario": str(SCENARIO),
+                    "mode": "paced",
+                    "rate_factor": 0.2,
+                    "duration_s": 0.05,
+                    "wait_frame_subscribers": 1,
+                    "wait_duty_publishers": 0,
+                    "start_delay_s": 0.0,
+                },
+            ),
+            NodeSpec(
+                name="recorder",
+                node="recorder",
+                process="drive",
+                parameters={"bag_dir": str(bag), "topics": ["/drive/frame"]},
+            ),
+        ],
+    )
     launcher = Launcher(g, quiet=True, progress=False, log_dir=tmp_path / "logs")
     t0 = time.monotonic()
     assert launcher.run(timeout=60) == 0

@@ -80,12 +80,22 @@ def test_graph_equals_in_process_runner(tmp_path, layout, duration):
 
     bag = tmp_path / "bag"
     t0 = time.perf_counter()
-    r = run_graph(SCENARIO, out=tmp_path / "run", bag=bag, layout=layout, duration_s=duration,
-                  domain_id=domain(1 if layout == "composed" else 2), quiet=True,
-                  timeout=240, progress=False)
-    assert r["code"] == 0, (tmp_path / "run" / "logs")
-    print(f"{layout}: {r['frames']} frames, lockstep RTF {r['lockstep_rtf']:.3f}, command "
-          f"{time.perf_counter() - t0:.1f} s")
+    r = run_graph(
+        SCENARIO,
+        out=tmp_path / "run",
+        bag=bag,
+        layout=layout,
+        duration_s=duration,
+        domain_id=domain(1 if layout == "composed" else 2),
+        quiet=True,
+        timeout=240,
+        progress=False,
+    )
+    assert r["code"] == 0, tmp_path / "run" / "logs"
+    print(
+        f"{layout}: {r['frames']} frames, lockstep RTF {r['lockstep_rtf']:.3f}, command "
+        f"{time.perf_counter() - t0:.1f} s"
+    )
     res, arr = graph_result(bag, duration)
     assert arr["n"] == int(round(duration * 1e4))
     assert all(v == 0 for v in arr["missing"].values()), arr["missing"]
@@ -115,8 +125,12 @@ def _bag_checks(bag: Path, complete_n: int | None = None) -> int:
     assert seqs == list(range(n)), "frames missing or out of order in the bag"
     if complete_n is not None:
         assert n == complete_n
-    for t in ("/drive/truth", "/drive/duty", "/drive/controller_state",
-              "/obs/flux_measured/estimate"):
+    for t in (
+        "/drive/truth",
+        "/drive/duty",
+        "/drive/controller_state",
+        "/obs/flux_measured/estimate",
+    ):
         assert topics.get(t, 0) >= n - 2, (t, topics.get(t), n)
 
     from mcap.reader import make_reader
@@ -169,24 +183,58 @@ def test_ctrl_c_finalises_the_bag(tmp_path, sig):
     graph = {
         "name": "interrupted",
         "nodes": [
-            {"name": "plant", "node": "plant", "process": "drive",
-             "parameters": {"scenario": str(SCENARIO), "duration_s": 60.0,
-                            "wait_frame_subscribers": 3, "start_delay_s": 0.2}},
-            {"name": "flux_measured", "namespace": "/obs", "node": "observer",
-             "process": "drive", "parameters": {"scenario": str(SCENARIO)}},
-            {"name": "controller", "node": "controller", "process": "drive",
-             "parameters": {"scenario": str(SCENARIO)}},
-            {"name": "recorder", "node": "recorder", "process": "drive",
-             "parameters": {"bag_dir": str(bag), "observers": ["flux_measured"]}},
+            {
+                "name": "plant",
+                "node": "plant",
+                "process": "drive",
+                "parameters": {
+                    "scenario": str(SCENARIO),
+                    "duration_s": 60.0,
+                    "wait_frame_subscribers": 3,
+                    "start_delay_s": 0.2,
+                },
+            },
+            {
+                "name": "flux_measured",
+                "namespace": "/obs",
+                "node": "observer",
+                "process": "drive",
+                "parameters": {"scenario": str(SCENARIO)},
+            },
+            {
+                "name": "controller",
+                "node": "controller",
+                "process": "drive",
+                "parameters": {"scenario": str(SCENARIO)},
+            },
+            {
+                "name": "recorder",
+                "node": "recorder",
+                "process": "drive",
+                "parameters": {"bag_dir": str(bag), "observers": ["flux_measured"]},
+            },
         ],
     }
     gpath = tmp_path / "graph.yaml"
     gpath.write_text(yaml.safe_dump(graph))
     env = dict(os.environ)
     env.pop("ROS_DOMAIN_ID", None)
-    proc = subprocess.Popen([sys.executable, "-m", "fluxdrive.cli", "launch", str(gpath),
-                             "--domain-id", str(domain(4))], cwd=ROOT, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "fluxdrive.cli",
+            "launch",
+            str(gpath),
+            "--domain-id",
+            str(domain(4)),
+        ],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     lines: list[str] = []
     reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)
     reader.start()
@@ -224,14 +272,26 @@ def test_tripped_run_records_the_fault(tmp_path):
     from fluxdrive_bringup.runs import result_from_bag, run_graph
 
     raw = yaml.safe_load(SCENARIO.read_text())
-    raw.update(name="tripped", duration_s=0.1, steady_window_s=[0.05, 0.1],
-               machine=str(ROOT / "config" / "machines" / "default_spm.yaml"))
+    raw.update(
+        name="tripped",
+        duration_s=0.1,
+        steady_window_s=[0.05, 0.1],
+        machine=str(ROOT / "config" / "machines" / "default_spm.yaml"),
+    )
     raw["control"] = {**raw["control"], "vdc_max_v": 50.0}
     sp = tmp_path / "tripped.yaml"
     sp.write_text(yaml.safe_dump(raw))
     bag = tmp_path / "bag"
-    r = run_graph(sp, out=tmp_path / "run", bag=bag, duration_s=0.1, domain_id=domain(6),
-                  quiet=True, timeout=120, progress=False)
+    r = run_graph(
+        sp,
+        out=tmp_path / "run",
+        bag=bag,
+        duration_s=0.1,
+        domain_id=domain(6),
+        quiet=True,
+        timeout=120,
+        progress=False,
+    )
     assert r["code"] == 0
     res, arr = result_from_bag(bag, load_scenario(sp), 0.1)
     assert all(v == 0 for v in arr["missing"].values()), arr["missing"]

@@ -38,29 +38,44 @@ def _make(kind: str, ctx, tmp: Path, **params):
     if kind == "plant":
         from spm_plant_sim.node import PlantNode
 
-        return PlantNode("plant", context=ctx, parameter_overrides=[
-            Parameter("scenario", value=SCENARIO), *ov])
+        return PlantNode(
+            "plant", context=ctx, parameter_overrides=[Parameter("scenario", value=SCENARIO), *ov]
+        )
     if kind == "observer":
         from flux_observer_node.node import ObserverNode
 
-        return ObserverNode("flux_measured", namespace="/obs", context=ctx, parameter_overrides=[
-            Parameter("scenario", value=SCENARIO), *ov])
+        return ObserverNode(
+            "flux_measured",
+            namespace="/obs",
+            context=ctx,
+            parameter_overrides=[Parameter("scenario", value=SCENARIO), *ov],
+        )
     if kind == "controller":
         from foc_controller_node.node import ControllerNode
 
-        return ControllerNode("controller", context=ctx, parameter_overrides=[
-            Parameter("scenario", value=SCENARIO), *ov])
+        return ControllerNode(
+            "controller",
+            context=ctx,
+            parameter_overrides=[Parameter("scenario", value=SCENARIO), *ov],
+        )
     if kind == "recorder":
         from fluxdrive_bringup.recorder import RecorderNode
 
-        return RecorderNode("recorder", context=ctx, parameter_overrides=[
-            Parameter("bag_dir", value=str(tmp / "bag")), Parameter("exit_on_done", value=False),
-            *ov])
+        return RecorderNode(
+            "recorder",
+            context=ctx,
+            parameter_overrides=[
+                Parameter("bag_dir", value=str(tmp / "bag")),
+                Parameter("exit_on_done", value=False),
+                *ov,
+            ],
+        )
     from bench_bridge.bridge_node import BenchBridgeNode
     from fluxdrive.can.loop import new_virtual_channel
 
-    return BenchBridgeNode(context=ctx, parameter_overrides=[
-        Parameter("channel", value=new_virtual_channel()), *ov])
+    return BenchBridgeNode(
+        context=ctx, parameter_overrides=[Parameter("channel", value=new_virtual_channel()), *ov]
+    )
 
 
 def _close(node) -> None:
@@ -73,8 +88,13 @@ def _close(node) -> None:
 def _wrong_type_value(ptype):
     from rcl_interfaces.msg import ParameterType as T
 
-    return {T.PARAMETER_DOUBLE: "fast", T.PARAMETER_INTEGER: "many", T.PARAMETER_BOOL: "yes",
-            T.PARAMETER_STRING: 2.5, T.PARAMETER_STRING_ARRAY: 7.0}[ptype]
+    return {
+        T.PARAMETER_DOUBLE: "fast",
+        T.PARAMETER_INTEGER: "many",
+        T.PARAMETER_BOOL: "yes",
+        T.PARAMETER_STRING: 2.5,
+        T.PARAMETER_STRING_ARRAY: 7.0,
+    }[ptype]
 
 
 def _outside(d) -> list:
@@ -120,8 +140,11 @@ def test_every_parameter_is_documented_and_refuses_bad_values(kind, ctx, tmp_pat
             checked["read_only"] += int(d.read_only)
         print(f"{kind}: {len(names)} parameters, refused: {checked}")
         # a live one: an in-range value is taken, an out-of-range one says why
-        live = [n for n in names if not node.describe_parameter(n).read_only
-                and _outside(node.describe_parameter(n))]
+        live = [
+            n
+            for n in names
+            if not node.describe_parameter(n).read_only and _outside(node.describe_parameter(n))
+        ]
         if live:
             d = node.describe_parameter(live[0])
             res = node.set_parameters([Parameter(live[0], value=_outside(d)[0])])[0]
@@ -130,13 +153,16 @@ def test_every_parameter_is_documented_and_refuses_bad_values(kind, ctx, tmp_pat
         _close(node)
 
 
-@pytest.mark.parametrize("kind, name, value, words", [
-    ("plant", "duration_s", -1.0, ["duration_s", "range"]),
-    ("plant", "seed", "one", ["seed", "type"]),
-    ("controller", "position_timeout_s", 99.0, ["position_timeout_s", "range"]),
-    ("observer", "variant", "magic", ["variant", "one of"]),
-    ("bridge", "bitrate", 5, ["bitrate", "range"]),
-])
+@pytest.mark.parametrize(
+    "kind, name, value, words",
+    [
+        ("plant", "duration_s", -1.0, ["duration_s", "range"]),
+        ("plant", "seed", "one", ["seed", "type"]),
+        ("controller", "position_timeout_s", 99.0, ["position_timeout_s", "range"]),
+        ("observer", "variant", "magic", ["variant", "one of"]),
+        ("bridge", "bitrate", 5, ["bitrate", "range"]),
+    ],
+)
 def test_bad_start_values_stop_the_node_with_the_reason(ctx, tmp_path, kind, name, value, words):
     from rclpy.exceptions import ParameterException
 
@@ -149,26 +175,46 @@ def test_bad_start_values_stop_the_node_with_the_reason(ctx, tmp_path, kind, nam
 
 
 def _run_node(args: list[str], timeout: float = 60.0) -> subprocess.CompletedProcess:
-    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-               ROS_DOMAIN_ID=str((os.getpid() * 19 + 11) % 100 + 100))
-    return subprocess.run([sys.executable, "-m", "fluxdrive_ros.runner", *args], env=env,
-                          capture_output=True, text=True, timeout=timeout, cwd=str(ROOT))
+    env = dict(
+        os.environ,
+        ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+        ROS_DOMAIN_ID=str((os.getpid() * 19 + 11) % 100 + 100),
+    )
+    return subprocess.run(
+        [sys.executable, "-m", "fluxdrive_ros.runner", *args],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=str(ROOT),
+    )
 
 
-@pytest.mark.parametrize("yaml_text, words", [
-    ("/plant:\n  ros__parameters:\n    duration_s: long\n", ["duration_s"]),
-    ("/plant:\n  ros__parameters:\n    duration_s: 99999.0\n", ["duration_s", "range"]),
-    ("/plant:\n  ros__parameters: [1, 2]\n", []),
-    ("/plant:\n  ros__parameters:\n    duration_s: [1.0\n", []),
-])
+@pytest.mark.parametrize(
+    "yaml_text, words",
+    [
+        ("/plant:\n  ros__parameters:\n    duration_s: long\n", ["duration_s"]),
+        ("/plant:\n  ros__parameters:\n    duration_s: 99999.0\n", ["duration_s", "range"]),
+        ("/plant:\n  ros__parameters: [1, 2]\n", []),
+        ("/plant:\n  ros__parameters:\n    duration_s: [1.0\n", []),
+    ],
+)
 def test_a_bad_parameter_file_names_the_file_and_the_key(tmp_path, yaml_text, words):
     import json
 
     f = tmp_path / "plant_bad.yaml"
     f.write_text(yaml_text)
-    spec = {"process": "p", "nodes": [{"class": "plant", "name": "plant",
-                                         "parameters": {"scenario": SCENARIO},
-                                         "params_files": [str(f)]}]}
+    spec = {
+        "process": "p",
+        "nodes": [
+            {
+                "class": "plant",
+                "name": "plant",
+                "parameters": {"scenario": SCENARIO},
+                "params_files": [str(f)],
+            }
+        ],
+    }
     r = _run_node(["--spec-json", json.dumps(spec)])
     out = (r.stdout + r.stderr).strip()
     print(out.splitlines()[-1] if out else "")

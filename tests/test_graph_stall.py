@@ -58,10 +58,17 @@ def _ideal_bench_scenario(tmp_path):
 
 def test_stalled_controller_recovers_in_a_paced_graph(tmp_path):
     bag = tmp_path / "bag"
-    g = graph_dict(bag, duration_s=0.0,
-                   processes={"controller": "controller", "recorder": "recorder"},
-                   plant={"mode": "paced", "rate_factor": RATE, "exit_on_done": False,
-                          "watchdog_periods": WATCHDOG_PERIODS})
+    g = graph_dict(
+        bag,
+        duration_s=0.0,
+        processes={"controller": "controller", "recorder": "recorder"},
+        plant={
+            "mode": "paced",
+            "rate_factor": RATE,
+            "exit_on_done": False,
+            "watchdog_periods": WATCHDOG_PERIODS,
+        },
+    )
     # this loaded 2-core machine also stalls the controller for 100 ms now and then by itself
     # (each a lost interval too): no limit on their number here
     # (a shorter start-up than the scenario's keeps the test short)
@@ -70,10 +77,12 @@ def test_stalled_controller_recovers_in_a_paced_graph(tmp_path):
         if "scenario" in nd["parameters"]:
             nd["parameters"]["scenario"] = sc
     next(nd for nd in g["nodes"] if nd["name"] == "controller")["parameters"].update(
-        max_resyncs=1000, align_time_s=0.1, handover_dwell_s=0.15)
+        max_resyncs=1000, align_time_s=0.1, handover_dwell_s=0.15
+    )
     run = Run(g, domain(11), tmp_path)
     run.thread = threading.Thread(
-        target=lambda: setattr(run, "code", run.launcher.run(timeout=400)), daemon=True)
+        target=lambda: setattr(run, "code", run.launcher.run(timeout=400)), daemon=True
+    )
     run.start()
     run.wait_frames(11000, timeout=180)  # closed loop from about frame 9000
     pid = run.pid("controller")
@@ -86,11 +95,16 @@ def test_stalled_controller_recovers_in_a_paced_graph(tmp_path):
         os.kill(pid, signal.SIGCONT)
         # the controller resumes flying on the estimate while the braked rotor still turns
         # above the handover speed, through align / I-f once it has slowed below it
-        run.wait_line(r"interval lost; (restarting through align / I-f|flying restart on "
-                      r"the estimate)", after=at)
-        run.wait_line(r"PWM back at frame \d+ after \d+ lost period\(s\) from frame \d+; "
-                      r"(restarting through align / I-f|flying restart on the estimate)",
-                      after=at)
+        run.wait_line(
+            r"interval lost; (restarting through align / I-f|flying restart on "
+            r"the estimate)",
+            after=at,
+        )
+        run.wait_line(
+            r"PWM back at frame \d+ after \d+ lost period\(s\) from frame \d+; "
+            r"(restarting through align / I-f|flying restart on the estimate)",
+            after=at,
+        )
         stalls.append((stall_s, k0))
         run.wait_line(r"closed loop again at frame \d+", after=at, timeout=120)
         run.wait_frames(run.frames() + 1000)
@@ -115,7 +129,7 @@ def test_stalled_controller_recovers_in_a_paced_graph(tmp_path):
     assert len(runs) >= 3, runs
     for stall_s, k0 in stalls:  # the stale interval each stall caused
         a, b = next(r for r in runs if r[1] >= k0)
-        assert not any(pwm[a:b + 1])
+        assert not any(pwm[a : b + 1])
         # the watchdog bridges WATCHDOG_PERIODS; the stall lasts stall_s * RATE * 1e4 periods
         assert (b - a + 1) >= 0.5 * stall_s * RATE * 1e4 - WATCHDOG_PERIODS, (stall_s, a, b)
         # closed loop before each stall (the machine's own hiccups may add stale

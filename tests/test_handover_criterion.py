@@ -33,10 +33,16 @@ ALIGN_S, ACCEL_RPM_S, HANDOVER_RPM, DWELL_S = 0.15, 300.0, 40.0, 0.3
 
 
 def _handover_time(lpf_hz: float, t_end_s: float = 2.0) -> float | None:
-    cfg = ControllerConfig(position_source="estimate", if_current_pu=0.6,
-                           align_time_s=ALIGN_S, if_accel_rpm_s=ACCEL_RPM_S,
-                           handover_rpm=HANDOVER_RPM, handback_rpm=20.0,
-                           handover_dwell_s=DWELL_S, handover_agree_lpf_hz=lpf_hz)
+    cfg = ControllerConfig(
+        position_source="estimate",
+        if_current_pu=0.6,
+        align_time_s=ALIGN_S,
+        if_accel_rpm_s=ACCEL_RPM_S,
+        handover_rpm=HANDOVER_RPM,
+        handback_rpm=20.0,
+        handover_dwell_s=DWELL_S,
+        handover_agree_lpf_hz=lpf_hz,
+    )
     cp = cfg.to_params(CARD)
     cs = np.zeros(CS_N)
     controller_reset(cs)

@@ -30,24 +30,37 @@ def test_identification_accuracy_and_the_identified_model_runs(name):
         assert abs(e[k]) <= tol, (k, e[k])
     # the identified model in the observer and the controller: 2 % / 150 % sensorless (on
     # the ideal bench, like the per-card test: the paper bench models the paper's rig)
-    sc = load_scenario(scenario_path("paper_2pct_150load"), machine=name,
-                       overrides={"bench": {}})
-    model = {"r_hat_ohm": ident.resistance_ohm, "l_hat_h": ident.inductance_h,
-             "lambda_hat_vs": ident.flux_linkage_vs}
-    sc.observers = {"flux_measured": dataclasses.replace(sc.observers["flux_measured"],
-                                                         **model)}
+    sc = load_scenario(scenario_path("paper_2pct_150load"), machine=name, overrides={"bench": {}})
+    model = {
+        "r_hat_ohm": ident.resistance_ohm,
+        "l_hat_h": ident.inductance_h,
+        "lambda_hat_vs": ident.flux_linkage_vs,
+    }
+    sc.observers = {"flux_measured": dataclasses.replace(sc.observers["flux_measured"], **model)}
     sc.control = dataclasses.replace(sc.control, **model)
     m = compute(run_scenario(sc, progress=False))
-    print(name, "identified model: theta RMS",
-          m["observers"]["flux_measured"]["theta_err_rms_deg"])
+    print(name, "identified model: theta RMS", m["observers"]["flux_measured"]["theta_err_rms_deg"])
     assert m["stable"] and m["observers"]["flux_measured"]["theta_err_rms_deg"] < 1.0
 
 
 def test_identify_command_writes_a_card(tmp_path):
     out = tmp_path / "card.yaml"
-    r = subprocess.run([sys.executable, "-m", "fluxdrive.cli", "identify", "--machine",
-                        "default_spm", "--out", str(out)], capture_output=True, text=True,
-                       cwd=ROOT, timeout=600)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "fluxdrive.cli",
+            "identify",
+            "--machine",
+            "default_spm",
+            "--out",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=600,
+    )
     assert r.returncode == 0, r.stderr
     assert "[identify] R = " in r.stderr  # progress shown
     card = load_machine(out)

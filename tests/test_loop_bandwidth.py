@@ -22,15 +22,25 @@ def test_current_loop_sweep_meets_a_400hz_design(tmp_path):
     card = ideal_machine(deadtime_s=0.0)
     kp, ki = design_current_loop(card, 400.0)
     assert ki / kp == pytest.approx(card.resistance_ohm / card.inductance_h)
-    sc = make_scenario(tmp_path, card, duration_s=0.7, speed_rpm=300.0, load_type="active",
-                       load_pu=0.0, steady_window_s=[0.5, 0.7], driving="encoder",
-                       control={"current_bandwidth_hz": 400.0, "speed_bandwidth_hz": 10.0},
-                       id_injection={"frequencies_hz": [100.0, 300.0, 360.0, 400.0, 440.0,
-                                                        500.0, 700.0],
-                                     "amplitude": 0.2, "start_s": 0.2, "cycles": 10})
+    sc = make_scenario(
+        tmp_path,
+        card,
+        duration_s=0.7,
+        speed_rpm=300.0,
+        load_type="active",
+        load_pu=0.0,
+        steady_window_s=[0.5, 0.7],
+        driving="encoder",
+        control={"current_bandwidth_hz": 400.0, "speed_bandwidth_hz": 10.0},
+        id_injection={
+            "frequencies_hz": [100.0, 300.0, 360.0, 400.0, 440.0, 500.0, 700.0],
+            "amplitude": 0.2,
+            "start_s": 0.2,
+            "cycles": 10,
+        },
+    )
     r = run_scenario(sc, progress=False)
-    fr = analyse(r.ctrl[:, CO_ID], r.ctrl[:, CO_ID_REF], r.segments["current_d"],
-                 sc.machine.ts_s)
+    fr = analyse(r.ctrl[:, CO_ID], r.ctrl[:, CO_ID_REF], r.segments["current_d"], sc.machine.ts_s)
     print(f"current loop: designed 400 Hz, measured {fr['bandwidth_hz']:.1f} Hz")
     assert min(fr["coherence"]) > 0.95, fr
     assert fr["bandwidth_hz"] == pytest.approx(400.0, rel=0.03), fr
@@ -43,14 +53,28 @@ def test_speed_loop_sweep_meets_its_design(tmp_path):
     first-order lag and the 150 Hz encoder PLL in the feedback: the swept w/w* (true speed
     over the reference) crosses -3 dB at 10 Hz within 15 %."""
     card = ideal_machine(deadtime_s=0.0)
-    sc = make_scenario(tmp_path, card, duration_s=5.5, speed_rpm=300.0, load_type="active",
-                       load_pu=0.0, steady_window_s=[5.0, 5.5], driving="encoder",
-                       control={"current_bandwidth_hz": 1000.0, "speed_bandwidth_hz": 10.0,
-                                "encoder_pll_hz": 150.0},
-                       speed_injection={"frequencies_hz": [4.0, 7.0, 9.0, 10.0, 11.0, 13.0,
-                                                           18.0],
-                                        "amplitude": 10.0, "start_s": 0.4, "cycles": 4,
-                                        "settle_cycles": 2})
+    sc = make_scenario(
+        tmp_path,
+        card,
+        duration_s=5.5,
+        speed_rpm=300.0,
+        load_type="active",
+        load_pu=0.0,
+        steady_window_s=[5.0, 5.5],
+        driving="encoder",
+        control={
+            "current_bandwidth_hz": 1000.0,
+            "speed_bandwidth_hz": 10.0,
+            "encoder_pll_hz": 150.0,
+        },
+        speed_injection={
+            "frequencies_hz": [4.0, 7.0, 9.0, 10.0, 11.0, 13.0, 18.0],
+            "amplitude": 10.0,
+            "start_s": 0.4,
+            "cycles": 4,
+            "settle_cycles": 2,
+        },
+    )
     r = run_scenario(sc, progress=False)
     segs = r.segments["speed"]
     assert len(segs) == 7  # every frequency fitted in the run

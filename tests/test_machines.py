@@ -43,7 +43,8 @@ def test_defaults_follow_the_card_and_explicit_values_win():
     fast = MachineCard(resistance_ohm=4.0, inductance_h=0.5e-3)
     corner = 4.0 / (2 * math.pi * 0.5e-3)
     assert ControllerConfig().resolved(fast).current_bandwidth_hz == pytest.approx(
-        min(3 * corner, 2000.0), rel=1e-6)
+        min(3 * corner, 2000.0), rel=1e-6
+    )
     assert ControllerConfig(vdc_max_v=95.0).resolved(card).vdc_max_v == 95.0
 
 
@@ -71,7 +72,8 @@ def test_observer_defaults_follow_the_card_rules(tmp_path):
             assert c.omega_floor_rad_s == pytest.approx(2 * math.pi * f_e / (80 * math.pi))
             assert c.speed_lpf_hz == 0.0
         assert observer_config("paper_robust", card=card).comp_freq_lpf_hz == pytest.approx(
-            0.01 * f_e)
+            0.01 * f_e
+        )
         assert observer_config("paper", card=card).comp_freq_lpf_hz == 0.0
         emf = observer_config("emf", card=card)
         assert emf.pll_bandwidth_hz == pytest.approx(min(0.075 * f_e, 0.015 * f_i))
@@ -82,11 +84,14 @@ def test_observer_defaults_follow_the_card_rules(tmp_path):
         # with the driving observer's derived PLL; a value the scenario sets still wins
         sc = load_scenario(scenario_path("paper_2pct_150load"), machine=name)
         assert sc.observers["emf_measured"].pll_bandwidth_hz == pytest.approx(
-            min(0.075 * f_e, 0.015 * f_i))
+            min(0.075 * f_e, 0.015 * f_i)
+        )
         assert sc.control.speed_observer_pll_hz == pytest.approx(pll)
         f = tmp_path / f"{name}.yaml"
-        f.write_text(f"machine: {CONFIG_DIR / 'machines' / (name + '.yaml')}\n"
-                     "observers:\n  x: {variant: paper, cutoff_hz: 50.0}\n")
+        f.write_text(
+            f"machine: {CONFIG_DIR / 'machines' / (name + '.yaml')}\n"
+            "observers:\n  x: {variant: paper, cutoff_hz: 50.0}\n"
+        )
         x = load_scenario(f).observers["x"]
         assert x.cutoff_hz == 50.0 and x.pll_bandwidth_hz == pytest.approx(pll)
 
@@ -96,8 +101,10 @@ def test_per_unit_speeds_scale_with_the_card(tmp_path):
     assert sc.speed_profile_rpm[0, 1] == pytest.approx(0.02 * 600.0)
     assert sc.control.handover_rpm == pytest.approx(600.0 * 0.0133333333333)
     f = tmp_path / "s.yaml"
-    f.write_text(f"machine: {CONFIG_DIR / 'machines' / 'default_spm.yaml'}\n"
-                 "speed_pu: 0.02\nspeed_rpm: 60.0\n")
+    f.write_text(
+        f"machine: {CONFIG_DIR / 'machines' / 'default_spm.yaml'}\n"
+        "speed_pu: 0.02\nspeed_rpm: 60.0\n"
+    )
     with pytest.raises(ConfigError, match="speed_rpm or speed_pu"):
         load_scenario(f)
 
@@ -111,14 +118,14 @@ def test_rpm_values_keep_their_per_unit_speed_on_another_card(monkeypatch):
     assert sc.speed_profile_rpm[0, 1] == pytest.approx(60.0 * k)  # 2 % of 1200 rpm
     c = sc.control
     assert (c.handover_rpm, c.handback_rpm, c.if_accel_rpm_s) == pytest.approx(
-        (40.0 * k, 20.0 * k, 300.0 * k))
+        (40.0 * k, 20.0 * k, 300.0 * k)
+    )
     same = load_scenario(scenario_path("can_2pct_decimated"))
     assert same.speed_profile_rpm[0, 1] == 60.0 and same.control.handover_rpm == 40.0
     # the experiments: the fig. 13/15 sensorless case at 60 rpm, `experiment --machine`
     from fluxdrive.experiments import registry
 
-    monkeypatch.setitem(registry._MACHINE, "path", str(CONFIG_DIR / "machines" /
-                                                       "gimbal_24v.yaml"))
+    monkeypatch.setitem(registry._MACHINE, "path", str(CONFIG_DIR / "machines" / "gimbal_24v.yaml"))
     sc = registry.sensorless(60.0, 1.5)
     assert sc.machine.name == "gimbal_24v"
     assert sc.speed_profile_rpm[-1, 1] == pytest.approx(0.02 * gimbal.rated_speed_rpm)
@@ -132,21 +139,35 @@ def test_rpm_values_keep_their_per_unit_speed_on_another_card(monkeypatch):
 
 def test_yaml_numbers_with_exponents_are_numbers(tmp_path):
     assert yamlio.loads("a: 1e-4\nb: 1.0e9\nc: 10\nd: '1e-4'") == {
-        "a": 1e-4, "b": 1e9, "c": 10, "d": "1e-4"}
+        "a": 1e-4,
+        "b": 1e9,
+        "c": 10,
+        "d": "1e-4",
+    }
     raw = (CONFIG_DIR / "machines" / "default_spm.yaml").read_text()
     f = tmp_path / "card.yaml"
-    f.write_text(raw.replace("inductance_h: 0.80e-3", "inductance_h: 8e-4")
-                 .replace("deadtime_s: 2.0e-6", "deadtime_s: 2e-6"))
+    f.write_text(
+        raw.replace("inductance_h: 0.80e-3", "inductance_h: 8e-4").replace(
+            "deadtime_s: 2.0e-6", "deadtime_s: 2e-6"
+        )
+    )
     card = load_machine(f)
     assert card.inductance_h == 8e-4 and card.deadtime_s == 2e-6
 
 
 def test_negative_bandwidth_in_a_scenario_names_the_file(tmp_path):
     f = tmp_path / "neg.yaml"
-    f.write_text(f"machine: {CONFIG_DIR / 'machines' / 'default_spm.yaml'}\n"
-                 "control: {speed_bandwidth_hz: -5.0}\n")
-    r = subprocess.run([sys.executable, "-m", "fluxdrive.cli", "sim", str(f)],
-                       capture_output=True, text=True, cwd=ROOT, timeout=120)
+    f.write_text(
+        f"machine: {CONFIG_DIR / 'machines' / 'default_spm.yaml'}\n"
+        "control: {speed_bandwidth_hz: -5.0}\n"
+    )
+    r = subprocess.run(
+        [sys.executable, "-m", "fluxdrive.cli", "sim", str(f)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=120,
+    )
     out = (r.stdout + r.stderr).strip()
     assert r.returncode == 2 and "Traceback" not in out and len(out.splitlines()) == 1
     assert str(f) in out and "speed_bandwidth_hz" in out
@@ -159,14 +180,15 @@ def test_every_shipped_card_runs_2pct_150pct_sensorless(card):
     shadow observers left out, for time, and on the ideal bench: the paper bench's numbers
     are the paper rig's, its effect on the default card is in docs/engine.md): sensorless on
     the paper's flux observer, stable, speed on target, sub-degree angle error."""
-    sc = load_scenario(scenario_path("paper_2pct_150load"), machine=card,
-                       overrides={"bench": {}})
+    sc = load_scenario(scenario_path("paper_2pct_150load"), machine=card, overrides={"bench": {}})
     sc.observers = {"flux_measured": sc.observers["flux_measured"]}
     r = run_scenario(sc, progress=False)
     m = compute(r)
     fm = m["observers"]["flux_measured"]
-    print(f"{card}: theta RMS {fm['theta_err_rms_deg']:.3f} deg, mean "
-          f"{m['speed']['mean_rpm']:.2f} rpm, i_q {m['currents']['i_q_mean_a']:.2f} A")
+    print(
+        f"{card}: theta RMS {fm['theta_err_rms_deg']:.3f} deg, mean "
+        f"{m['speed']['mean_rpm']:.2f} rpm, i_q {m['currents']['i_q_mean_a']:.2f} A"
+    )
     assert m["stable"] and m["trip"] is None
     assert abs(m["speed"]["mean_error_rpm"]) < 0.05 * sc.speed_profile_rpm[0, 1]
     # 150 % load is carried: i_q ~ 1.5 rated (plus friction)
@@ -181,8 +203,9 @@ def test_gimbal_on_the_paper_bench_runs_at_its_stated_lowest_speed():
     above; at 3 % the 150 % case runs sensorless on the shipped scenario and bench."""
     from fluxdrive.core import bench as benchmod
 
-    sc = load_scenario(scenario_path("paper_2pct_150load"), machine="gimbal_24v",
-                       overrides={"speed_pu": 0.03})
+    sc = load_scenario(
+        scenario_path("paper_2pct_150load"), machine="gimbal_24v", overrides={"speed_pu": 0.03}
+    )
     card = sc.machine
     assert isinstance(sc.bench, benchmod.BenchConfig) and sc.bench.observer_model is not None
     d_r = abs(1.0 - sc.bench.observer_model.r_pu) * card.resistance_ohm
@@ -192,8 +215,10 @@ def test_gimbal_on_the_paper_bench_runs_at_its_stated_lowest_speed():
     sc.observers = {"flux_measured": sc.observers["flux_measured"]}
     m = compute(run_scenario(sc, progress=False))
     fm = m["observers"]["flux_measured"]
-    print(f"gimbal_24v, paper bench, 3 %: theta RMS {fm['theta_err_rms_deg']:.2f} deg; bound "
-          f"{100 * n_min_pu:.2f} %")
+    print(
+        f"gimbal_24v, paper bench, 3 %: theta RMS {fm['theta_err_rms_deg']:.2f} deg; bound "
+        f"{100 * n_min_pu:.2f} %"
+    )
     assert m["stable"] and m["trip"] is None
     assert abs(m["speed"]["mean_error_rpm"]) < 0.05 * sc.speed_profile_rpm[0, 1]
     assert m["currents"]["i_q_mean_a"] > 1.4 * card.rated_current_a
@@ -203,10 +228,12 @@ def test_gimbal_on_the_paper_bench_runs_at_its_stated_lowest_speed():
 # ---------------------------------------------------------------- trips explain themselves
 def _trip_scenario(tmp_path: Path) -> Path:
     f = tmp_path / "trip.yaml"
-    f.write_text(f"name: trip_demo\nmachine: {CONFIG_DIR / 'machines' / 'servo_320v.yaml'}\n"
-                 "duration_s: 0.1\nspeed_pu: 0.02\ndriving: flux_measured\n"
-                 "control: {vdc_max_v: 95.0}\n"  # the old fixed default, on a 320 V bus
-                 "observers:\n  flux_measured: {variant: paper}\n  emf: {variant: emf}\n")
+    f.write_text(
+        f"name: trip_demo\nmachine: {CONFIG_DIR / 'machines' / 'servo_320v.yaml'}\n"
+        "duration_s: 0.1\nspeed_pu: 0.02\ndriving: flux_measured\n"
+        "control: {vdc_max_v: 95.0}\n"  # the old fixed default, on a 320 V bus
+        "observers:\n  flux_measured: {variant: paper}\n  emf: {variant: emf}\n"
+    )
     return f
 
 
@@ -226,9 +253,22 @@ def test_a_trip_says_what_when_and_why(tmp_path):
 
 def test_a_trip_in_the_sim_command_output_and_metrics_json(tmp_path):
     out = tmp_path / "run"
-    r = subprocess.run([sys.executable, "-m", "fluxdrive.cli", "sim",
-                        str(_trip_scenario(tmp_path)), "--out", str(out), "--no-plots"],
-                       capture_output=True, text=True, cwd=ROOT, timeout=120)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "fluxdrive.cli",
+            "sim",
+            str(_trip_scenario(tmp_path)),
+            "--out",
+            str(out),
+            "--no-plots",
+        ],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=120,
+    )
     assert r.returncode == 1 and "Traceback" not in r.stderr
     want = "tripped at 0.000 s: DC-bus over-voltage 320.0 V > 95.0 V (control.vdc_max_v)"
     assert want in r.stdout

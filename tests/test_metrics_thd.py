@@ -1,6 +1,7 @@
 """THD (orders 2..20) and THD+N (everything but the fundamental) on synthetic signals whose
 harmonics and noise are known: THD+N >= THD always, and both equal the known values, also when
 the angle is sampled unevenly in time (speed ripple)."""
+
 from __future__ import annotations
 
 import math
@@ -19,8 +20,13 @@ def _signal(ripple_rad: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
     w = 2 * math.pi * F_E_HZ
     # a 6th-order speed ripple: the rotor crosses some angles faster than others
     theta = w * t + ripple_rad * np.sin(6 * w * t)
-    x = (np.cos(theta) + A5 * np.cos(5 * theta + 0.3) + A7 * np.sin(7 * theta) + DC
-         + SIGMA * np.random.default_rng(seed).standard_normal(len(t)))
+    x = (
+        np.cos(theta)
+        + A5 * np.cos(5 * theta + 0.3)
+        + A7 * np.sin(7 * theta)
+        + DC
+        + SIGMA * np.random.default_rng(seed).standard_normal(len(t))
+    )
     sl = whole_periods(theta)
     return x[sl], theta[sl]
 
@@ -30,7 +36,7 @@ def test_thd_n_at_least_thd_and_both_known(ripple_rad):
     thd_known = math.hypot(A5, A7)  # harmonic amplitudes over the fundamental's
     # RMS of everything but the fundamental over the fundamental's RMS (1/√2):
     # DC² + A5²/2 + A7²/2 + σ² (white noise, fully outside the fundamental)
-    thdn_known = math.sqrt(DC ** 2 + (A5 ** 2 + A7 ** 2) / 2 + SIGMA ** 2) / (1 / math.sqrt(2))
+    thdn_known = math.sqrt(DC**2 + (A5**2 + A7**2) / 2 + SIGMA**2) / (1 / math.sqrt(2))
     for seed in range(3):
         x, th = _signal(ripple_rad, seed)
         a, b = thd(x, th), thd_n(x, th)

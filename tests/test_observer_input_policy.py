@@ -15,8 +15,13 @@ from helpers_engine import make_scenario
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
-    sc = make_scenario(tmp_path_factory.mktemp("pol"), duration_s=1.2, speed_rpm=300.0,
-                       steady_window_s=[0.8, 1.2], observers={"flux": {"variant": "paper"}})
+    sc = make_scenario(
+        tmp_path_factory.mktemp("pol"),
+        duration_s=1.2,
+        speed_rpm=300.0,
+        steady_window_s=[0.8, 1.2],
+        observers={"flux": {"variant": "paper"}},
+    )
     return sc, run_scenario(sc, progress=False)
 
 
@@ -46,10 +51,10 @@ def test_nan_and_inf_samples_are_flagged_held_and_counted(run):
 
 def test_repeated_and_backwards_frames_are_ignored(run):
     sc, r = run
-    frames = np.concatenate([r.frames[:9000], r.frames[8990:9000], r.frames[8999:9000],
-                             r.frames[9000:]])
-    truth = np.concatenate([r.truth[:9000], r.truth[8990:9000], r.truth[8999:9000],
-                            r.truth[9000:]])
+    frames = np.concatenate(
+        [r.frames[:9000], r.frames[8990:9000], r.frames[8999:9000], r.frames[9000:]]
+    )
+    truth = np.concatenate([r.truth[:9000], r.truth[8990:9000], r.truth[8999:9000], r.truth[9000:]])
     obs, out = _replay(sc, frames)
     assert obs.state[OS_STALE] == 11
     assert np.all(out[9000:9011, ES_VALID] == 0.0)
@@ -77,9 +82,11 @@ def test_sequence_gap_coasts_and_recovers(run):
 
 def test_controller_config_rejects_bad_values_with_the_key():
     card = MachineCard()
-    for kw, key in [({"current_bandwidth_hz": -5.0}, "current_bandwidth_hz"),
-                    ({"speed_bandwidth_hz": "fast"}, "speed_bandwidth_hz"),
-                    ({"current_limit_pu": 9.0}, "current_limit_pu"),
-                    ({"current_bandwidth_hz": 4000.0}, "quarter of the PWM")]:
+    for kw, key in [
+        ({"current_bandwidth_hz": -5.0}, "current_bandwidth_hz"),
+        ({"speed_bandwidth_hz": "fast"}, "speed_bandwidth_hz"),
+        ({"current_limit_pu": 9.0}, "current_limit_pu"),
+        ({"current_bandwidth_hz": 4000.0}, "quarter of the PWM"),
+    ]:
         with pytest.raises(ConfigError, match=key):
             ControllerConfig(**kw).to_params(card)

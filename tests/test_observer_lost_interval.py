@@ -74,7 +74,7 @@ def test_commanded_observers_coast_a_lost_interval_measured_ones_integrate_on():
         # the angle coasts at the PLL's frequency: Ts w^ per lost period, w^ frozen
         w = thw_t[K0, 1]
         assert np.allclose(thw_t[lost, 1], w)
-        dth = np.angle(np.exp(1j * np.diff(thw_t[K0:K0 + N_LOST + 1, 0])))
+        dth = np.angle(np.exp(1j * np.diff(thw_t[K0 : K0 + N_LOST + 1, 0])))
         assert np.allclose(dth, ds.ts * w, atol=1e-12)
         if name.startswith("emf_"):
             continue  # the EMF observer keeps no flux state
@@ -83,8 +83,10 @@ def test_commanded_observers_coast_a_lost_interval_measured_ones_integrate_on():
         assert abs(math.hypot(*eta_t[K0 + N_LOST - 1]) / n0 - 1.0) < 1e-9, name
         assert math.hypot(*eta_u[K0 + N_LOST - 1]) / n0 < 0.1, name
         e_t, e_u = err(est_t)[after].mean(), err(est_u)[after].mean()
-        print(f"{name}: mean angle error over 50 ms after the interval: told {e_t:.3f} rad, "
-              f"untold {e_u:.3f} rad")
+        print(
+            f"{name}: mean angle error over 50 ms after the interval: told {e_t:.3f} rad, "
+            f"untold {e_u:.3f} rad"
+        )
         assert e_t < 0.3, name
         if name == "paper_commanded":  # eq. (8) as written: loses the angle untold
             assert e_u > 1.0

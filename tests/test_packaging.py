@@ -43,8 +43,11 @@ def test_every_import_of_the_package_is_a_declared_dependency():
                 continue
             for m in mods:
                 top = m.split(".")[0]
-                if (top in sys.stdlib_module_names or top in STDLIB_LATER
-                        or top in ("fluxdrive", "__future__")):
+                if (
+                    top in sys.stdlib_module_names
+                    or top in STDLIB_LATER
+                    or top in ("fluxdrive", "__future__")
+                ):
                     continue
                 imported.setdefault(DIST.get(top, top).lower(), f"{f.relative_to(ENGINE)}")
     missing = {d: where for d, where in imported.items() if d not in declared}
@@ -63,26 +66,30 @@ def test_resources_found_outside_the_checkout_via_fluxdrive_root(tmp_path):
     FLUXDRIVE_ROOT, and without it says so in one line instead of a traceback."""
     site = tmp_path / "site"
     shutil.copytree(ENGINE, site / "fluxdrive", ignore=shutil.ignore_patterns("__pycache__"))
-    code = ("import sys\n"
-            "from fluxdrive.core.machine import ConfigError\n"
-            "from fluxdrive.core.scenario import load_scenario, scenario_path\n"
-            "from fluxdrive.can.protocol import default_dbc_path\n"
-            "try:\n"
-            "    sc = load_scenario(scenario_path('paper_2pct_150load'))\n"
-            "except ConfigError as exc:\n"
-            "    print(exc); sys.exit(2)\n"
-            "assert default_dbc_path().is_file()\n"
-            "print(sc.machine.name)\n")
+    code = (
+        "import sys\n"
+        "from fluxdrive.core.machine import ConfigError\n"
+        "from fluxdrive.core.scenario import load_scenario, scenario_path\n"
+        "from fluxdrive.can.protocol import default_dbc_path\n"
+        "try:\n"
+        "    sc = load_scenario(scenario_path('paper_2pct_150load'))\n"
+        "except ConfigError as exc:\n"
+        "    print(exc); sys.exit(2)\n"
+        "assert default_dbc_path().is_file()\n"
+        "print(sc.machine.name)\n"
+    )
     env = {k: v for k, v in os.environ.items() if k not in ("FLUXDRIVE_ROOT", "PYTHONPATH")}
     env.update(PYTHONPATH=str(site), NUMBA_CACHE_DIR=str(tmp_path / "numba"))
     run = tmp_path / "elsewhere"
     run.mkdir()
-    p = subprocess.run([sys.executable, "-c", code], cwd=run, env=env, capture_output=True,
-                       text=True, timeout=120)
+    p = subprocess.run(
+        [sys.executable, "-c", code], cwd=run, env=env, capture_output=True, text=True, timeout=120
+    )
     assert p.returncode == 2, p.stderr[-2000:]
     assert "FLUXDRIVE_ROOT" in p.stdout and len(p.stdout.strip().splitlines()) == 1
     assert "Traceback" not in p.stderr
     env["FLUXDRIVE_ROOT"] = str(REPO)
-    p = subprocess.run([sys.executable, "-c", code], cwd=run, env=env, capture_output=True,
-                       text=True, timeout=120)
+    p = subprocess.run(
+        [sys.executable, "-c", code], cwd=run, env=env, capture_output=True, text=True, timeout=120
+    )
     assert p.returncode == 0, p.stdout + p.stderr[-2000:]

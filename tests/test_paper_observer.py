@@ -29,9 +29,17 @@ CARD = MachineCard()
 TS = CARD.ts_s
 
 
-def synthetic_frames(n: int, w_e: float, lam: float, i_amp: float = 0.0, i_phase: float = 0.0,
-                     v_off=(0.0, 0.0), inj_amp: float = 0.0, inj_hz: float = 0.0,
-                     theta0: float = 0.3):
+def synthetic_frames(
+    n: int,
+    w_e: float,
+    lam: float,
+    i_amp: float = 0.0,
+    i_phase: float = 0.0,
+    v_off=(0.0, 0.0),
+    inj_amp: float = 0.0,
+    inj_hz: float = 0.0,
+    theta0: float = 0.3,
+):
     """Frames of a rotating magnet flux lam e^{j theta}, theta = theta0 + w_e t, with a
     current i_amp e^{j(theta + i_phase)} (plus an optional stationary-frame alpha current
     at inj_hz), measured voltages v = R i + d(lam_pm + L i)/dt + v_off as step averages
@@ -64,11 +72,14 @@ def locked(obs: KernelObserver, th0: float, w_e: float, i0: complex) -> None:
     st[OS_IPA], st[OS_IPB] = i0.real, i0.imag
 
 
-@pytest.mark.parametrize("f_e_hz,cutoff_hz,v_off", [
-    (4.0, 100.0, (0.0, 0.0)),       # 2 % speed, the paper's w_c
-    (4.0, 100.0, (0.05, -0.03)),    # with a voltage offset (what the HPF is for)
-    (20.0, 50.0, (0.02, 0.04)),     # 10 % speed, another cut-off
-])
+@pytest.mark.parametrize(
+    "f_e_hz,cutoff_hz,v_off",
+    [
+        (4.0, 100.0, (0.0, 0.0)),  # 2 % speed, the paper's w_c
+        (4.0, 100.0, (0.05, -0.03)),  # with a voltage offset (what the HPF is for)
+        (20.0, 50.0, (0.02, 0.04)),  # 10 % speed, another cut-off
+    ],
+)
 def test_paper_literal_returns_eq8_magnitude_and_phase(f_e_hz, cutoff_hz, v_off):
     """LPF 1/(s+w_c) x (1 - j w_c/w^e) = 1/s at w^e (eq. 8), then - L^ i (eq. 5): the rotating
     magnet flux comes back with its exact magnitude and phase; a DC offset V0 comes out as
@@ -78,8 +89,7 @@ def test_paper_literal_returns_eq8_magnitude_and_phase(f_e_hz, cutoff_hz, v_off)
     n = int(0.6 / TS)
     fr, th, i = synthetic_frames(n, w_e, lam, i_amp=9.0, i_phase=math.pi / 2, v_off=v_off)
     # a slow PLL: its frequency stays at w_e although the offset ripples theta^
-    obs = KernelObserver(observer_config("paper", cutoff_hz=cutoff_hz, pll_bandwidth_hz=0.2),
-                         CARD)
+    obs = KernelObserver(observer_config("paper", cutoff_hz=cutoff_hz, pll_bandwidth_hz=0.2), CARD)
     locked(obs, th[1], w_e, i[0])
     est = obs.run(fr[1:])
     assert obs.config.inductance_term == "after_integration"
@@ -94,8 +104,9 @@ def test_paper_literal_returns_eq8_magnitude_and_phase(f_e_hz, cutoff_hz, v_off)
     w_hat = np.concatenate([[w_e], est[:-1, ES_W]])[sl]
     comp = 1 - 1j * w_c / w_hat
     lam_s = lam * np.exp(1j * th[1:][sl]) + CARD.inductance_h * i[1:][sl]
-    pred = (lam_s * 1j * w_e / (1j * w_e + w_c) + complex(*v_off) / w_c) * comp \
-        - CARD.inductance_h * i[1:][sl]
+    pred = (
+        lam_s * 1j * w_e / (1j * w_e + w_c) + complex(*v_off) / w_c
+    ) * comp - CARD.inductance_h * i[1:][sl]
     ratio = lam_hat / pred
     # the implemented LPF (exact ZOH pole) is the continuous one delayed by Ts/2:
     # |error| <= w_e Ts/2 * w_e/w_c  (5e-5 at 2 % speed)
@@ -134,8 +145,9 @@ def test_paper_literal_vs_robust_under_current_at_another_frequency():
         sl = slice(int(0.4 / TS), None)
         lam_hat = est[sl, ES_LA] + 1j * est[sl, ES_LB]
         errs[variant] = float(np.max(np.abs(lam_hat / (lam * np.exp(1j * th[1:][sl])) - 1)))
-        errs[variant + "_theta"] = float(np.degrees(np.max(np.abs(
-            np.angle(np.exp(1j * (est[sl, ES_TH] - th[1:][sl])))))))
+        errs[variant + "_theta"] = float(
+            np.degrees(np.max(np.abs(np.angle(np.exp(1j * (est[sl, ES_TH] - th[1:][sl]))))))
+        )
     # the leak: L I_inj (1/(j w_inj + w_c)) ((j w_inj + w_c)... ) -- order L I / lam = 6 %
     assert errs["paper"] > 0.02
     assert errs["paper_robust"] < 2e-3

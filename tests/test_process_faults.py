@@ -35,25 +35,59 @@ def domain(offset: int) -> int:
     return 120 + (os.getpid() * 7 + 40 + offset) % 100
 
 
-def graph_dict(bag: Path | None, *, duration_s: float = 60.0, processes: dict[str, str],
-               observers: tuple[str, ...] = ("flux_measured",), policies: dict | None = None,
-               plant: dict | None = None, recorder: dict | None = None,
-               defaults: dict | None = None) -> dict:
+def graph_dict(
+    bag: Path | None,
+    *,
+    duration_s: float = 60.0,
+    processes: dict[str, str],
+    observers: tuple[str, ...] = ("flux_measured",),
+    policies: dict | None = None,
+    plant: dict | None = None,
+    recorder: dict | None = None,
+    defaults: dict | None = None,
+) -> dict:
     """A lockstep graph of the demo scenario: plant, observers (/obs/<name>), controller,
     recorder; `processes` = node name -> process name, `policies` = node name -> on_death
     keys."""
     n_subs = len(observers) + 1 + (bag is not None)
     common = {"scenario": SCENARIO, "input_durability": "transient_local"}
-    nodes = [{"name": "plant", "node": "plant", "parameters": {
-        **common, "duration_s": duration_s, "wait_frame_subscribers": n_subs,
-        "start_delay_s": 0.3, "progress_interval_s": 0.1, **(plant or {})}}]
+    nodes = [
+        {
+            "name": "plant",
+            "node": "plant",
+            "parameters": {
+                **common,
+                "duration_s": duration_s,
+                "wait_frame_subscribers": n_subs,
+                "start_delay_s": 0.3,
+                "progress_interval_s": 0.1,
+                **(plant or {}),
+            },
+        }
+    ]
     for o in observers:
-        nodes.append({"name": o, "namespace": "/obs", "node": "observer",
-                      "parameters": {**common, "observer": o}})
+        nodes.append(
+            {
+                "name": o,
+                "namespace": "/obs",
+                "node": "observer",
+                "parameters": {**common, "observer": o},
+            }
+        )
     nodes.append({"name": "controller", "node": "controller", "parameters": dict(common)})
     if bag is not None:
-        nodes.append({"name": "recorder", "node": "recorder", "parameters": {
-            **common, "bag_dir": str(bag), "observers": list(observers), **(recorder or {})}})
+        nodes.append(
+            {
+                "name": "recorder",
+                "node": "recorder",
+                "parameters": {
+                    **common,
+                    "bag_dir": str(bag),
+                    "observers": list(observers),
+                    **(recorder or {}),
+                },
+            }
+        )
     for nd in nodes:
         nd["process"] = processes.get(nd["name"], "drive")
         nd.update((policies or {}).get(nd["name"], {}))
@@ -69,8 +103,7 @@ class Run:
         graph = parse_graph(g, "faults.yaml")
         graph.domain_id = dom
         self.lines: list[str] = []
-        self.launcher = Launcher(graph, out=self, quiet=False, progress=False,
-                                 log_dir=tmp / "logs")
+        self.launcher = Launcher(graph, out=self, quiet=False, progress=False, log_dir=tmp / "logs")
         self.code: int | None = None
         self.thread = threading.Thread(target=self._run, daemon=True)
 
@@ -140,8 +173,9 @@ def read_frames(bag: Path) -> tuple[list[int], list[bool], list[int], dict[str, 
             pwm.append(bool(m.pwm_enabled))
             flags.append(int(m.status_flags))
         # what the recorder received (the bag writer adds the run's settings message)
-        counts = {c.topic: c.msgcount for c in reader.connections
-                  if c.topic != "/fluxdrive/settings"}
+        counts = {
+            c.topic: c.msgcount for c in reader.connections if c.topic != "/fluxdrive/settings"
+        }
     files = sorted(bag.glob("*.mcap"))
     assert len(files) == 1
     with open(files[0], "rb") as fh:
@@ -153,8 +187,15 @@ def read_frames(bag: Path) -> tuple[list[int], list[bool], list[int], dict[str, 
 
 def fluxdrive(*args: str, timeout: float = 120.0, **kw) -> subprocess.CompletedProcess:
     env = dict(os.environ)
-    return subprocess.run([sys.executable, "-m", "fluxdrive.cli", *args], cwd=ROOT, env=env,
-                          capture_output=True, text=True, timeout=timeout, **kw)
+    return subprocess.run(
+        [sys.executable, "-m", "fluxdrive.cli", *args],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        **kw,
+    )
 
 
 # ----------------------------------------------------------------------------- item 3
@@ -176,14 +217,18 @@ def test_kill_controller_stop_policy(tmp_path):
     out = run.text()
     print("\n".join(ln for ln in run.lines if ln.startswith("[launch]")))
     assert code == 1, out
-    assert (f"process 'controller' died (signal SIGKILL, pid {pid}); "
-            f"stopping the graph (on_death: stop)") in out
+    assert (
+        f"process 'controller' died (signal SIGKILL, pid {pid}); "
+        f"stopping the graph (on_death: stop)"
+    ) in out
     m = run.wait_line(r"stopped before the end of the run: PWM off from frame (\d+)")
     k_off = int(m.group(1))
     received = _recorder_counts(run)
     seqs, pwm, flags, counts = read_frames(bag)
-    print(f"killed at frame >= {k_kill}; plant stopped with PWM off at frame {k_off}; bag "
-          f"{len(seqs)} frames, {counts.get('/drive/duty')} duties; recorder got {received}")
+    print(
+        f"killed at frame >= {k_kill}; plant stopped with PWM off at frame {k_off}; bag "
+        f"{len(seqs)} frames, {counts.get('/drive/duty')} duties; recorder got {received}"
+    )
     assert seqs == list(range(len(seqs))) and seqs[-1] == k_off
     assert not pwm[-1] and flags[-1] & STATUS_STALE_COMMAND
     assert any(pwm) and not any(f & STATUS_STALE_COMMAND for f in flags[:-1])
@@ -197,9 +242,12 @@ def test_kill_controller_ignore_policy_plant_watchdog(tmp_path):
     more period with the PWM off, flagged stale -- until the graph is stopped (exit 0: the
     death was allowed)."""
     bag = tmp_path / "bag"
-    g = graph_dict(bag, processes={"controller": "controller", "recorder": "recorder"},
-                   policies={"controller": {"on_death": "ignore"}},
-                   plant={"duty_timeout_s": 0.3})
+    g = graph_dict(
+        bag,
+        processes={"controller": "controller", "recorder": "recorder"},
+        policies={"controller": {"on_death": "ignore"}},
+        plant={"duty_timeout_s": 0.3},
+    )
     run = Run(g, domain(2), tmp_path).start()
     run.wait_frames(3000)
     pid = run.pid("controller")
@@ -219,7 +267,7 @@ def test_kill_controller_ignore_policy_plant_watchdog(tmp_path):
     print(f"controller killed; no duty {j}: frames {j + 2}..{seqs[-1]} PWM off, flagged stale")
     assert seqs == list(range(len(seqs)))
     assert stale == list(range(j + 2, len(seqs))) and len(stale) >= 3
-    assert not any(pwm[j + 2:]) and pwm[j + 1]
+    assert not any(pwm[j + 2 :]) and pwm[j + 1]
 
 
 def test_restart_policy_controller(tmp_path):
@@ -230,10 +278,14 @@ def test_restart_policy_controller(tmp_path):
     lockstep resumes and the drive runs again; every frame is recorded; stopped by the
     test, exit 0."""
     bag = tmp_path / "bag"
-    g = graph_dict(bag, plant={"duty_timeout_s": 0.5},
-                   processes={"controller": "controller", "recorder": "recorder"},
-                   policies={"controller": {"on_death": "restart", "max_restarts": 2,
-                                            "restart_backoff_s": 0.2}})
+    g = graph_dict(
+        bag,
+        plant={"duty_timeout_s": 0.5},
+        processes={"controller": "controller", "recorder": "recorder"},
+        policies={
+            "controller": {"on_death": "restart", "max_restarts": 2, "restart_backoff_s": 0.2}
+        },
+    )
     run = Run(g, domain(3), tmp_path).start()
     k_kill = run.wait_frames(1000)
     pid = run.pid("controller")
@@ -253,20 +305,24 @@ def test_restart_policy_controller(tmp_path):
     out = run.text()
     assert code == 0, out
     assert run.launcher.restarts == {"controller": 1}
-    assert (f"process 'controller' died (signal SIGKILL, pid {pid}); restarting in 0.2 s "
-            f"(restart 1 of 2)") in out
+    assert (
+        f"process 'controller' died (signal SIGKILL, pid {pid}); restarting in 0.2 s "
+        f"(restart 1 of 2)"
+    ) in out
     assert re.search(r"process 'controller' restarted \(pid \d+, restart 1 of 2\)", out)
 
     seqs, pwm, flags, counts = read_frames(bag)
     n = len(seqs)
     stale = [k for k, f in zip(seqs, flags, strict=True) if f & STATUS_STALE_COMMAND]
     k_res = next(k for k in range(j + 2, n) if not flags[k] & STATUS_STALE_COMMAND)
-    print(f"killed at frame >= {k_kill}; {n} frames; controller back {t_ctl:.1f} s after "
-          f"the watchdog tripped: frames {j + 2}..{k_res - 1} PWM off (watchdog), lockstep "
-          f"from {k_res}, PWM on in {sum(pwm[k_res:])} of the {n - k_res} frames after")
+    print(
+        f"killed at frame >= {k_kill}; {n} frames; controller back {t_ctl:.1f} s after "
+        f"the watchdog tripped: frames {j + 2}..{k_res - 1} PWM off (watchdog), lockstep "
+        f"from {k_res}, PWM on in {sum(pwm[k_res:])} of the {n - k_res} frames after"
+    )
     assert seqs == list(range(n)) and n >= k_back > k_res
-    assert stale[: k_res - j - 2] == list(range(j + 2, k_res)) and not any(pwm[j + 2:k_res])
-    assert set(stale[k_res - j - 2:]) <= {n - 1}  # + the final PWM-off frame, if recorded
+    assert stale[: k_res - j - 2] == list(range(j + 2, k_res)) and not any(pwm[j + 2 : k_res])
+    assert set(stale[k_res - j - 2 :]) <= {n - 1}  # + the final PWM-off frame, if recorded
     assert sum(pwm[k_res:]) > 2000  # the restarted controller drives again
     assert counts["/drive/duty"] >= j  # (the recorder, too, hears the new writer late)
     assert counts["/obs/flux_measured/estimate"] >= n - 3
@@ -278,8 +334,11 @@ def test_kill_driving_observer_controller_goes_pwm_off(tmp_path):
     (latched, PWM off) and from then on answers every frame with the PWM off, so the
     lockstep run goes on with the bridge disabled (stopped by the test)."""
     bag = tmp_path / "bag"
-    g = graph_dict(bag, processes={"flux_measured": "obs_fm", "recorder": "recorder"},
-                   policies={"flux_measured": {"on_death": "ignore"}})
+    g = graph_dict(
+        bag,
+        processes={"flux_measured": "obs_fm", "recorder": "recorder"},
+        policies={"flux_measured": {"on_death": "ignore"}},
+    )
     run = Run(g, domain(8), tmp_path).start()
     k_kill = run.wait_frames(2000)
     os.kill(run.pid("obs_fm"), signal.SIGKILL)
@@ -301,12 +360,14 @@ def test_kill_driving_observer_controller_goes_pwm_off(tmp_path):
     seqs, pwm, _, _ = read_frames(bag)
     n = len(seqs)
     first_off = next(k for k, e in en if k > 100 and not e)
-    print(f"observer killed at frame >= {k_kill}; duties enabled until {first_off - 1}, "
-          f"PWM off from duty {first_off} on ({n} frames)")
+    print(
+        f"observer killed at frame >= {k_kill}; duties enabled until {first_off - 1}, "
+        f"PWM off from duty {first_off} on ({n} frames)"
+    )
     assert seqs == list(range(n)) and [k for k, _ in en] == list(range(len(en)))
     assert len(en) >= n - 3 and n > first_off + 2000
     assert first_off >= k_kill - 200 and not any(e for k, e in en if k >= first_off)
-    assert not any(pwm[first_off + 2:]) and any(pwm[:first_off])
+    assert not any(pwm[first_off + 2 :]) and any(pwm[:first_off])
 
 
 def test_launcher_killed_graph_stops_and_bag_is_finalised(tmp_path):
@@ -319,9 +380,22 @@ def test_launcher_killed_graph_stops_and_bag_is_finalised(tmp_path):
     gpath = tmp_path / "graph.yaml"
     gpath.write_text(yaml.safe_dump(graph_dict(bag, processes={"recorder": "recorder"})))
     env = dict(os.environ)
-    proc = subprocess.Popen([sys.executable, "-m", "fluxdrive.cli", "launch", str(gpath),
-                             "--domain-id", str(domain(9))], cwd=ROOT, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "fluxdrive.cli",
+            "launch",
+            str(gpath),
+            "--domain-id",
+            str(domain(9)),
+        ],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     lines: list[str] = []
     threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True).start()
     mcap = bag / "bag.mcap"
@@ -337,16 +411,18 @@ def test_launcher_killed_graph_stops_and_bag_is_finalised(tmp_path):
     alive = pids
     while alive and time.monotonic() < t_end:
         time.sleep(0.1)
-        alive = [p for p in pids if os.path.exists(f"/proc/{p}") and
-                 open(f"/proc/{p}/stat").read().split()[2] != "Z"]
+        alive = [
+            p
+            for p in pids
+            if os.path.exists(f"/proc/{p}") and open(f"/proc/{p}/stat").read().split()[2] != "Z"
+        ]
     assert not alive, f"graph processes outlived the launcher: {alive}"
     for _ in range(100):  # the bag writer finishes after the recorder
         if (bag / "metadata.yaml").exists():
             break
         time.sleep(0.1)
     seqs, _, _, _ = read_frames(bag)
-    print(f"launcher SIGKILLed; its processes {pids} ended; bag finalised with "
-          f"{len(seqs)} frames")
+    print(f"launcher SIGKILLed; its processes {pids} ended; bag finalised with {len(seqs)} frames")
     assert seqs == list(range(len(seqs))) and len(seqs) > 1000
 
 
@@ -356,30 +432,47 @@ def test_on_death_policy_errors_name_file_and_key():
     from fluxdrive_bringup.launch import parse_graph
 
     def bad(pol: dict, node: str = "controller", top: dict | None = None) -> str:
-        g = graph_dict(Path("/tmp/x"), processes={"controller": "ctl"},
-                       policies={node: pol}, defaults=top)
+        g = graph_dict(
+            Path("/tmp/x"), processes={"controller": "ctl"}, policies={node: pol}, defaults=top
+        )
         with pytest.raises(ConfigError) as ei:
             parse_graph(g, "g.yaml")
         return str(ei.value)
 
-    assert bad({"on_death": "explode"}) == ("g.yaml: nodes[2] (controller): 'on_death' must "
-                                            "be one of stop, restart, ignore, got 'explode'")
-    assert bad({"max_restarts": -1}) == ("g.yaml: nodes[2] (controller): 'max_restarts' must "
-                                         "be an integer 0..1000, got -1")
+    assert bad({"on_death": "explode"}) == (
+        "g.yaml: nodes[2] (controller): 'on_death' must "
+        "be one of stop, restart, ignore, got 'explode'"
+    )
+    assert bad({"max_restarts": -1}) == (
+        "g.yaml: nodes[2] (controller): 'max_restarts' must be an integer 0..1000, got -1"
+    )
     assert bad({"restart_backoff_s": "soon"}) == (
         "g.yaml: nodes[2] (controller): 'restart_backoff_s' must be a number of seconds "
-        "0..3600, got 'soon'")
+        "0..3600, got 'soon'"
+    )
     assert bad({}, top={"on_death": "retry"}) == (
-        "g.yaml: 'on_death' must be one of stop, restart, ignore, got 'retry'")
+        "g.yaml: 'on_death' must be one of stop, restart, ignore, got 'retry'"
+    )
     assert "'on_death: restart' is not supported for a recorder" in bad(
-        {"on_death": "restart"}, node="recorder")
+        {"on_death": "restart"}, node="recorder"
+    )
     assert "the nodes of process 'drive' disagree on on_death" in bad(
-        {"on_death": "ignore"}, node="plant")
-    g = parse_graph(graph_dict(None, processes={"plant": "plant"}, defaults={
-        "on_death": "ignore"}, policies={"plant": {"on_death": "stop"}}), "g.yaml")
+        {"on_death": "ignore"}, node="plant"
+    )
+    g = parse_graph(
+        graph_dict(
+            None,
+            processes={"plant": "plant"},
+            defaults={"on_death": "ignore"},
+            policies={"plant": {"on_death": "stop"}},
+        ),
+        "g.yaml",
+    )
     assert g.to_dict()["on_death"] == "ignore"
     assert {pn: g.policy(m)[0] for pn, m in g.processes().items()} == {
-        "plant": "stop", "drive": "ignore"}
+        "plant": "stop",
+        "drive": "ignore",
+    }
 
 
 # ----------------------------------------------------------------------------- item 4
@@ -388,8 +481,10 @@ def _duty_seqs(bag: Path) -> list[int]:
 
     with AnyReader([bag]) as reader:
         conns = [c for c in reader.connections if c.topic == "/drive/duty"]
-        return [int(reader.deserialize(raw, c.msgtype).seq)
-                for c, _, raw in reader.messages(connections=conns)]
+        return [
+            int(reader.deserialize(raw, c.msgtype).seq)
+            for c, _, raw in reader.messages(connections=conns)
+        ]
 
 
 def _recorder_counts(run: Run) -> dict[str, int]:
@@ -442,11 +537,15 @@ def test_sigkill_recorder_and_writer_then_bag_recover(tmp_path):
     out = run.text()
     print("\n".join(ln for ln in run.lines if ln.startswith("[launch]")))
     assert code == 1, out
-    assert (f"process 'drive' (/plant, /obs/flux_measured, /controller, /recorder) died "
-            f"(signal SIGKILL, pid {pid}); stopping the graph (on_death: stop)") in out
-    assert (f"bag {bag} was not finalised (process 'drive' (/plant, /obs/flux_measured, "
-            f"/controller, /recorder) ended with code -9); recover it with: ./fluxdrive bag "
-            f"recover {bag}") in out
+    assert (
+        f"process 'drive' (/plant, /obs/flux_measured, /controller, /recorder) died "
+        f"(signal SIGKILL, pid {pid}); stopping the graph (on_death: stop)"
+    ) in out
+    assert (
+        f"bag {bag} was not finalised (process 'drive' (/plant, /obs/flux_measured, "
+        f"/controller, /recorder) ended with code -9); recover it with: ./fluxdrive bag "
+        f"recover {bag}"
+    ) in out
     k_last, _, wall = run.launcher.progress
     published_max = k_last + int(k_last / wall * 0.05) + 1
     assert not (bag / "metadata.yaml").exists() and (bag / "recording.json").exists()
@@ -459,9 +558,11 @@ def test_sigkill_recorder_and_writer_then_bag_recover(tmp_path):
     seqs, _, _, counts = read_frames(out_dir)
     n = len(seqs)
     lost = published_max - n
-    print(f"killed after {k_last}..{published_max} published frames; recovered {n}: lost at "
-          f"most {lost} frames = {lost / FRAMES_PER_S:.3f} s of samples = "
-          f"{lost / (k_last / wall):.2f} s of wall time at this graph's rate")
+    print(
+        f"killed after {k_last}..{published_max} published frames; recovered {n}: lost at "
+        f"most {lost} frames = {lost / FRAMES_PER_S:.3f} s of samples = "
+        f"{lost / (k_last / wall):.2f} s of wall time at this graph's rate"
+    )
     assert seqs == list(range(n)) and n > 0
     assert lost <= FRAMES_PER_S
     assert counts["/drive/duty"] >= n - 10 and counts["/obs/flux_measured/estimate"] >= n - 10
@@ -504,9 +605,11 @@ def test_bag_target_refused_before_start(tmp_path):
     err = r.stderr.strip()
     print(err)
     assert r.returncode == 2 and "\n" not in err and "Traceback" not in err
-    assert err.startswith(f"fluxdrive launch: configuration error: {gpath}: recorder /recorder: "
-                          f"cannot record to {blocker}/bags/run1: {blocker}/bags is not a "
-                          f"writable directory (")
+    assert err.startswith(
+        f"fluxdrive launch: configuration error: {gpath}: recorder /recorder: "
+        f"cannot record to {blocker}/bags/run1: {blocker}/bags is not a "
+        f"writable directory ("
+    )
     assert "started (pid" not in r.stdout
 
     import shutil
@@ -514,9 +617,12 @@ def test_bag_target_refused_before_start(tmp_path):
     free_mb = shutil.disk_usage(tmp_path).free / 1e6
     g = graph_dict(tmp_path / "bag", processes={}, recorder={"min_free_mb": free_mb * 10})
     launcher = Launcher(parse_graph(g, "g.yaml"), quiet=True)
-    with pytest.raises(ConfigError, match=r"g.yaml: recorder /recorder: cannot record to "
-                       r".*/bag: \d+ MB free on its file system, the recorder's min_free_mb "
-                       r"is \d+ MB"):
+    with pytest.raises(
+        ConfigError,
+        match=r"g.yaml: recorder /recorder: cannot record to "
+        r".*/bag: \d+ MB free on its file system, the recorder's min_free_mb "
+        r"is \d+ MB",
+    ):
         launcher.start()
     assert launcher.procs == []  # nothing was started
 
@@ -534,9 +640,11 @@ def test_write_failure_midrun_stops_recording_cleanly(tmp_path):
     args = ["--ros-args", "-r", "__node:=recorder"]
     for k, v in rec["parameters"].items():
         args += ["-p", f"{k}:={v if not isinstance(v, list) else '[' + ','.join(v) + ']'}"]
-    code_ = ("import resource, sys; resource.setrlimit(resource.RLIMIT_FSIZE, "
-             f"({limit}, {limit})); from fluxdrive_bringup.recorder import main; "
-             "sys.exit(main(sys.argv))")
+    code_ = (
+        "import resource, sys; resource.setrlimit(resource.RLIMIT_FSIZE, "
+        f"({limit}, {limit})); from fluxdrive_bringup.recorder import main; "
+        "sys.exit(main(sys.argv))"
+    )
     g["nodes"].append({"name": "recorder", "cmd": [sys.executable, "-c", code_, *args]})
     run = Run(g, domain(7), tmp_path).start()
     m = run.wait_line(r"\[recorder\] \[ERROR\] \[recorder\]: recording stopped: (.*)")
@@ -545,11 +653,13 @@ def test_write_failure_midrun_stops_recording_cleanly(tmp_path):
     print(m.group(0))
     print("\n".join(ln for ln in run.lines if ln.startswith("[launch]")))
     assert code == 1
-    assert re.search(r"recording stopped: cannot write .*bag\.mcap: File too large \(after "
-                     r"\d+ messages\); the complete chunks can be recovered with \./fluxdrive "
-                     r"bag recover .*bag", out)
-    assert re.search(r"process 'recorder' died \(exit code 1, pid \d+\); stopping the graph",
-                     out)
+    assert re.search(
+        r"recording stopped: cannot write .*bag\.mcap: File too large \(after "
+        r"\d+ messages\); the complete chunks can be recovered with \./fluxdrive "
+        r"bag recover .*bag",
+        out,
+    )
+    assert re.search(r"process 'recorder' died \(exit code 1, pid \d+\); stopping the graph", out)
     assert "Traceback" not in out
     assert f"bag {bag} was not finalised" in out
     assert (bag / "bag.mcap").stat().st_size <= limit
@@ -558,6 +668,8 @@ def test_write_failure_midrun_stops_recording_cleanly(tmp_path):
 
     rec_ = recover(bag, tmp_path / "recovered")
     seqs, _, _, _ = read_frames(tmp_path / "recovered")
-    print(f"recovered {len(seqs)} frames, {rec_.messages} messages, {rec_.chunks} chunks "
-          f"of {limit} bytes allowed")
+    print(
+        f"recovered {len(seqs)} frames, {rec_.messages} messages, {rec_.chunks} chunks "
+        f"of {limit} bytes allowed"
+    )
     assert seqs == list(range(len(seqs))) and len(seqs) > 1000

@@ -56,12 +56,15 @@ def _step(cs, cp, fr, est=None, w_ref=0.0):
     return out
 
 
-@pytest.mark.parametrize("frame, code", [
-    (_frame(i_a=2.2 * CARD.rated_current_a), FAULT_OVERCURRENT),
-    (_frame(vdc=99.0), FAULT_OVERVOLTAGE),
-    (_frame(vdc=10.0), FAULT_UNDERVOLTAGE),
-    (_frame(i_a=float("nan")), FAULT_BAD_SAMPLE),
-])
+@pytest.mark.parametrize(
+    "frame, code",
+    [
+        (_frame(i_a=2.2 * CARD.rated_current_a), FAULT_OVERCURRENT),
+        (_frame(vdc=99.0), FAULT_OVERVOLTAGE),
+        (_frame(vdc=10.0), FAULT_UNDERVOLTAGE),
+        (_frame(i_a=float("nan")), FAULT_BAD_SAMPLE),
+    ],
+)
 def test_instant_trips_latch_pwm_off_until_reset(frame, code):
     cs, cp = _setup()
     out = _step(cs, cp, frame)
@@ -79,7 +82,7 @@ def test_i2t_trips_after_the_integral_limit():
     cs, cp = _setup()
     fr = _frame(i_a=1.8 * CARD.rated_current_a)
     ts = CARD.ts_s
-    expected = 10.0 / (1.8 ** 2 - 1.0)
+    expected = 10.0 / (1.8**2 - 1.0)
     tripped_at = None
     for k in range(int(6.0 / ts)):
         out = _step(cs, cp, fr)

@@ -39,8 +39,10 @@ def sample():
 
 @pytest.fixture(scope="module")
 def run():
-    sc = load_scenario(CONFIG_DIR / "scenarios" / "paper_2pct_150load.yaml",
-                       overrides={"duration_s": 0.6, "steady_window_s": [0.3, 0.6]})
+    sc = load_scenario(
+        CONFIG_DIR / "scenarios" / "paper_2pct_150load.yaml",
+        overrides={"duration_s": 0.6, "steady_window_s": [0.3, 0.6]},
+    )
     return run_scenario(sc, progress=False)
 
 
@@ -49,8 +51,14 @@ def bags(run, tmp_path_factory):
     d = tmp_path_factory.mktemp("bags")
     full = write_run_bag(run, d / "full")
     k0 = 2500
-    cut = write_run_bag(run, d / "cut", start_s=run.t[k0], observers=["flux_measured"],
-                        obs_states=observer_states_at(run, k0), duty=False)
+    cut = write_run_bag(
+        run,
+        d / "cut",
+        start_s=run.t[k0],
+        observers=["flux_measured"],
+        obs_states=observer_states_at(run, k0),
+        duty=False,
+    )
     return {"full": full, "cut": cut, "dir": d}
 
 
@@ -82,8 +90,11 @@ def test_variant_spec_parsing():
     v = parse_variant("paper:cutoff_hz=50,voltage_source=commanded")
     assert (v.target, v.params) == ("paper", {"cutoff_hz": 50.0, "voltage_source": "commanded"})
     v = parse_variant("mine=my_observer:ClampedFluxObserver:clamp=0.9")
-    assert (v.label, v.target, v.params) == ("mine", "my_observer:ClampedFluxObserver",
-                                             {"clamp": 0.9})
+    assert (v.label, v.target, v.params) == (
+        "mine",
+        "my_observer:ClampedFluxObserver",
+        {"clamp": 0.9},
+    )
     assert parse_variant("pkg.mod:Cls").target == "pkg.mod:Cls"
 
 
@@ -95,14 +106,21 @@ def test_user_variant_module_class_and_entry_point(sample, tmp_path, monkeypatch
     dist.mkdir()
     (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: my-observer\nVersion: 0.1.0\n")
     ep = "[fluxdrive.observers]\nclamped_flux = my_observer:ClampedFluxObserver\n"
-    assert 'clamped_flux = "my_observer:ClampedFluxObserver"' in (
-        EXAMPLE / "pyproject.toml").read_text()
+    assert (
+        'clamped_flux = "my_observer:ClampedFluxObserver"'
+        in (EXAMPLE / "pyproject.toml").read_text()
+    )
     (dist / "entry_points.txt").write_text(ep)
     monkeypatch.syspath_prepend(str(tmp_path))
     b = sample  # the worked example of docs/replay.md, over a shipped bag
-    res = replay_bag(b, [parse_variant("mc=my_observer:ClampedFluxObserver"),
-                         parse_variant("clamped_flux"),
-                         parse_variant("tight=clamped_flux:clamp=0.95,speed_lpf_hz=5")])
+    res = replay_bag(
+        b,
+        [
+            parse_variant("mc=my_observer:ClampedFluxObserver"),
+            parse_variant("clamped_flux"),
+            parse_variant("tight=clamped_flux:clamp=0.95,speed_lpf_hz=5"),
+        ],
+    )
     assert np.array_equal(res.est[0], res.est[1])
     assert not np.array_equal(res.est[1], res.est[2])
     from fluxdrive.analysis.metrics import compute
@@ -116,9 +134,21 @@ def test_user_variant_module_class_and_entry_point(sample, tmp_path, monkeypatch
 
 def test_cli_report_plots_and_augmented_bag(bags, tmp_path, capsys):
     out = tmp_path / "out"
-    rc = cli.main(["replay", str(bags["full"]), str(bags["cut"]), "-v", "@flux_measured",
-                   "-v", "paper:voltage_source=commanded",
-                   "--out", str(out), "--write-bag", str(tmp_path / "aug")])
+    rc = cli.main(
+        [
+            "replay",
+            str(bags["full"]),
+            str(bags["cut"]),
+            "-v",
+            "@flux_measured",
+            "-v",
+            "paper:voltage_source=commanded",
+            "--out",
+            str(out),
+            "--write-bag",
+            str(tmp_path / "aug"),
+        ]
+    )
     assert rc == 0
     txt = capsys.readouterr().out
     assert "max |replayed - recorded| = 0" in txt
@@ -147,8 +177,20 @@ def test_no_truth_uses_encoder(run, tmp_path):
 
 def test_sweep_parallel_with_progress_and_plot(bags, tmp_path, capsys):
     out = tmp_path / "sw"
-    rc = cli.main(["replay", str(bags["full"]), "-v", "paper", "--sweep",
-                   "cutoff_hz=20:200:3", "-j", "2", "--out", str(out)])
+    rc = cli.main(
+        [
+            "replay",
+            str(bags["full"]),
+            "-v",
+            "paper",
+            "--sweep",
+            "cutoff_hz=20:200:3",
+            "-j",
+            "2",
+            "--out",
+            str(out),
+        ]
+    )
     assert rc == 0
     cap = capsys.readouterr()
     assert "[sweep] 3/3" in cap.err
@@ -174,8 +216,9 @@ def _writer(path, topics):
         for tp, ty, msgs in topics:
             c = w.add_connection(tp, ty, typestore=store)
             for k, m in enumerate(msgs):
-                w.write(c, 1000 * (k + 1), m if isinstance(m, bytes)
-                        else store.serialize_cdr(m, ty))
+                w.write(
+                    c, 1000 * (k + 1), m if isinstance(m, bytes) else store.serialize_cdr(m, ty)
+                )
     return path
 
 
@@ -186,14 +229,15 @@ def test_bad_bags_one_line_errors(tmp_path, capsys, run):
     assert "empty" in _bad(capsys, _writer(tmp_path / "empty", []))
     store = typestore()
     s = store.types["std_msgs/msg/String"](data="hi")
-    err = _bad(capsys, _writer(tmp_path / "foreign", [("/chatter", "std_msgs/msg/String",
-                                                       [s])]))
+    err = _bad(capsys, _writer(tmp_path / "foreign", [("/chatter", "std_msgs/msg/String", [s])]))
     assert "foreign message types" in err and "std_msgs/msg/String" in err
     from fluxdrive.io.messages import TruthWire
 
     tr = [TruthWire().pack(run.truth[k], k, 0, 1000 * k) for k in range(3)]
-    err = _bad(capsys, _writer(tmp_path / "noframe", [("/drive/truth",
-                                                       "flux_drive_msgs/msg/PlantTruth", tr)]))
+    err = _bad(
+        capsys,
+        _writer(tmp_path / "noframe", [("/drive/truth", "flux_drive_msgs/msg/PlantTruth", tr)]),
+    )
     assert "no /drive/frame" in err
     # storage file replaced by garbage
     g = shutil.copytree(SAMPLE, tmp_path / "garbage")
@@ -230,7 +274,7 @@ def test_sample_bags_shipped_small_and_documented():
         assert nm in readme
         b = read_run_bag(d / nm)
         assert b.problems == [] and b.n >= 10000
-        assert est_topic("flux_measured")[len("/obs/"):-len("/estimate")] in b.est
+        assert est_topic("flux_measured")[len("/obs/") : -len("/estimate")] in b.est
     assert "seed" in readme and "make_sample_bags.py" in readme
 
 
@@ -250,10 +294,14 @@ def test_benchmark_replay(capsys):
 def test_live_replay_is_lazy_about_ros():
     import subprocess
 
-    code = ("import sys, fluxdrive.replay.lab, fluxdrive.io.bagio; "
-            "sys.exit(1 if 'rclpy' in sys.modules else 0)")
-    assert subprocess.call([sys.executable, "-c", code],
-                           env={"PYTHONPATH": str(REPO_ROOT / "python")}) == 0
+    code = (
+        "import sys, fluxdrive.replay.lab, fluxdrive.io.bagio; "
+        "sys.exit(1 if 'rclpy' in sys.modules else 0)"
+    )
+    assert (
+        subprocess.call([sys.executable, "-c", code], env={"PYTHONPATH": str(REPO_ROOT / "python")})
+        == 0
+    )
 
 
 def test_duplicate_frames_of_two_graphs_are_reported(run, tmp_path):
@@ -264,9 +312,11 @@ def test_duplicate_frames_of_two_graphs_are_reported(run, tmp_path):
     fw = FrameWire()
     one = [fw.pack(run.frames[k], 0, 1000 * k) for k in range(200)]
     mixed = [m for pair in zip(one, one, strict=True) for m in pair]
-    b = read_run_bag(_writer(tmp_path / "dup", [("/drive/frame",
-                                                   "flux_drive_msgs/msg/PhaseFrame", mixed)]))
+    b = read_run_bag(
+        _writer(tmp_path / "dup", [("/drive/frame", "flux_drive_msgs/msg/PhaseFrame", mixed)])
+    )
     assert b.n == 200
     dup = [p for p in b.problems if "duplicate frames" in p]
-    assert len(dup) == 1 and dup[0].startswith("200 duplicate frames (a seq recorded more "
-                                               "than once; 200 times the seq did not"), dup
+    assert len(dup) == 1 and dup[0].startswith(
+        "200 duplicate frames (a seq recorded more than once; 200 times the seq did not"
+    ), dup

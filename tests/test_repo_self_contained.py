@@ -10,13 +10,29 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 # a reference to the design brief, or "issue 7" / "issue #7" / "#7" after the word issue
 OUTSIDE = re.compile(r"\bBRIEF\b|\b[Ii]ssues? ?#?\d+\b")
-TEXT_SUFFIXES = {".py", ".md", ".yaml", ".yml", ".toml", ".cfg", ".sh", ".msg", ".srv", ".dbc",
-                 ".xml", ".txt", ".js", ".html", ".css"}
+TEXT_SUFFIXES = {
+    ".py",
+    ".md",
+    ".yaml",
+    ".yml",
+    ".toml",
+    ".cfg",
+    ".sh",
+    ".msg",
+    ".srv",
+    ".dbc",
+    ".xml",
+    ".txt",
+    ".js",
+    ".html",
+    ".css",
+}
 
 
 def test_no_reference_outside_the_repo():
-    files = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True,
-                           check=True).stdout.split()
+    files = subprocess.run(
+        ["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=True
+    ).stdout.split()
     hits = []
     for rel in files:
         p = ROOT / rel
@@ -34,6 +50,12 @@ def test_docs_the_code_points_to_exist():
         assert len(text.splitlines()) > 50, name
     engine = (ROOT / "docs" / "engine.md").read_text()
     # the anchors the code cites
-    for heading in ("## Timing convention", "## Observers", "## Metrics", "## PLL", "## Inverter",
-                    "## Default machine"):
+    for heading in (
+        "## Timing convention",
+        "## Observers",
+        "## Metrics",
+        "## PLL",
+        "## Inverter",
+        "## Default machine",
+    ):
         assert heading in engine, heading

@@ -27,7 +27,7 @@ def _param(node: str, name: str, domain_id: int):
 
     s = Session(domain_id=domain_id, wait_s=3.0)
     try:
-        (_, v), = _get(s, node, [name])
+        ((_, v),) = _get(s, node, [name])
         return v
     finally:
         s.close()
@@ -64,8 +64,9 @@ def test_scope_page_in_chromium(tmp_path):
             bad = page.goto(url.split("?")[0])
             assert bad is not None and bad.status == 403
             page.goto(url)
-            page.wait_for_function("window.scopeStats.envelopes > 10 && "
-                                   "window.scopeStats.lastSeq > 0", timeout=120_000)
+            page.wait_for_function(
+                "window.scopeStats.envelopes > 10 && window.scopeStats.lastSeq > 0", timeout=120_000
+            )
             s1 = page.evaluate("({...window.scopeStats})")
             page.wait_for_timeout(2000)
             s2 = page.evaluate("({...window.scopeStats})")
@@ -74,11 +75,19 @@ def test_scope_page_in_chromium(tmp_path):
             n_pts = page.evaluate("window.scopeDebug.points()")
             # every chart holds data: the driving observer's angle, error, speed, flux;
             # currents, speed, duty
-            for key in ("est/flux_measured:theta", "est/flux_measured:err", "state:i_q",
-                        "state:speed_fb", "duty:a", "truth:theta"):
+            for key in (
+                "est/flux_measured:theta",
+                "est/flux_measured:err",
+                "state:i_q",
+                "state:speed_fb",
+                "duty:a",
+                "truth:theta",
+            ):
                 assert n_pts.get(key, 0) > 10, (key, n_pts)
-            print(f"page: {s2['fps']} redraws/s ({s2.get('drawMs', 0):.1f} ms each), "
-                  f"{s2['dataRate']} envelopes/s; points {n_pts}")
+            print(
+                f"page: {s2['fps']} redraws/s ({s2.get('drawMs', 0):.1f} ms each), "
+                f"{s2['dataRate']} envelopes/s; points {n_pts}"
+            )
 
             # parameter panel: a live change reaches the node ...
             row = page.locator('tr[data-node="/controller"][data-name="position_timeout_s"]')
@@ -124,6 +133,8 @@ def test_scope_page_in_chromium(tmp_path):
         assert conns
         marks = [r.deserialize(raw, c.msgtype) for c, _, raw in r.messages(connections=conns)]
     assert [(m.name, m.value, m.successful) for m in marks] == [
-        ("position_timeout_s", "0.07", True), ("position_timeout_s", "99", False)]
+        ("position_timeout_s", "0.07", True),
+        ("position_timeout_s", "99", False),
+    ]
     assert "out of range" in marks[1].reason and marks[0].node == "/controller"
     assert 0 < marks[0].seq <= marks[1].seq

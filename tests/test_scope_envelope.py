@@ -25,14 +25,15 @@ def test_envelope_keeps_a_one_sample_spike():
     assert mn.min() == -3.0 and k[mn[:, 0].argmin()] == 777 // b
     # elsewhere the band is the sine's range over the bucket
     j = 100
-    seg = x[j * b:(j + 1) * b]
+    seg = x[j * b : (j + 1) * b]
     assert mn[j, 0] == seg.min() and mx[j, 0] == seg.max()
 
 
 def test_envelope_unsorted_partial_and_nan():
     seq = np.array([45, 41, 40, 60, 61, 44])
-    v = np.array([[1.0, np.nan], [5.0, np.nan], [-2.0, np.nan], [3.0, 1.0], [4.0, 2.0],
-                  [0.0, np.nan]])
+    v = np.array(
+        [[1.0, np.nan], [5.0, np.nan], [-2.0, np.nan], [3.0, 1.0], [4.0, 2.0], [0.0, np.nan]]
+    )
     k, mn, mx = scope_tap.envelope(seq, v, 20)
     assert k.tolist() == [2, 3]
     assert mn[:, 0].tolist() == [-2.0, 3.0] and mx[:, 0].tolist() == [5.0, 4.0]

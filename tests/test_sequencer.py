@@ -69,16 +69,20 @@ def test_any_arrival_order_gives_the_same_answers():
     outs = {}
     for order in ("in_order", "shuffled"):
         got: dict[int, np.ndarray] = {}
-        sq = ControlSequencer(ds.cp.copy(), ds.ts, True,
-                              lambda k, o, got=got: got.__setitem__(k, o.copy()),
-                              lambda *_: None, ds.w_ref, ds.id_inj)
+        sq = ControlSequencer(
+            ds.cp.copy(),
+            ds.ts,
+            True,
+            lambda k, o, got=got: got.__setitem__(k, o.copy()),
+            lambda *_: None,
+            ds.w_ref,
+            ds.id_inj,
+        )
         if order == "shuffled":  # each stream in order, estimates early or late by 0-30
             lag = np.sort(np.arange(n) + rng.uniform(-30, 30, n))
-            events = sorted([(k, "f", k) for k in range(n)]
-                            + [(lag[k], "e", k) for k in range(n)])
+            events = sorted([(k, "f", k) for k in range(n)] + [(lag[k], "e", k) for k in range(n)])
         else:
-            events = sorted([(k, "f", k) for k in range(n)] + [(k + 0.5, "e", k)
-                                                              for k in range(n)])
+            events = sorted([(k, "f", k) for k in range(n)] + [(k + 0.5, "e", k) for k in range(n)])
         for _, kind, k in events:
             (sq.on_frame(k, frames[k]) if kind == "f" else sq.on_estimate(k, ests[k]))
         assert sorted(got) == list(range(n))
@@ -90,8 +94,16 @@ def _bare(**kw):
     ds = DriveSetup(_scenario(0.05))
     lines: list[tuple[str, str]] = []
     got: dict[int, np.ndarray] = {}
-    sq = ControlSequencer(ds.cp.copy(), ds.ts, True, lambda k, o: got.__setitem__(k, o.copy()),
-                          lambda lvl, txt: lines.append((lvl, txt)), ds.w_ref, ds.id_inj, **kw)
+    sq = ControlSequencer(
+        ds.cp.copy(),
+        ds.ts,
+        True,
+        lambda k, o: got.__setitem__(k, o.copy()),
+        lambda lvl, txt: lines.append((lvl, txt)),
+        ds.w_ref,
+        ds.id_inj,
+        **kw,
+    )
     fr = np.zeros(FR_N)
     fr[FR_VDC] = 72.0
     fr[FR_EN] = 1.0  # the power stage switches as asked
@@ -108,8 +120,9 @@ def test_missing_estimate_trips_stale_input_after_the_sample_timeout():
     sq.on_frame(101, fr.copy())  # 100 periods later than frame 1
     assert sq.tripped
     assert sorted(got) == list(range(102))  # answered at once, PWM off
-    assert all(got[k][CO_EN] == 0.0 and got[k][CO_FAULT] == FAULT_STALE_INPUT
-               for k in range(1, 102))
+    assert all(
+        got[k][CO_EN] == 0.0 and got[k][CO_FAULT] == FAULT_STALE_INPUT for k in range(1, 102)
+    )
     errors = [t for lvl, t in lines if lvl == "error"]
     assert len(errors) == 1 and "no position estimate for frame 1" in errors[0]
     code, detail = sq.reset_fault()
@@ -200,8 +213,7 @@ def test_repeated_stalls_past_the_limit_latch_watchdog_with_the_reason():
     sc = _scenario(1.6)
     dr = Drive(sc, max_resyncs=2, resync_window_s=1.0)
     stalls = [(11000 + 1000 * j, 30) for j in range(3)]
-    dr.run(round(1.5 / dr.ds.ts),
-           stalled=lambda k: any(a <= k < a + n for a, n in stalls))
+    dr.run(round(1.5 / dr.ds.ts), stalled=lambda k: any(a <= k < a + n for a, n in stalls))
     assert dr.seq.tripped and int(dr.seq.cs[CS_FAULT]) == FAULT_WATCHDOG
     errors = [t for lvl, t in dr.lines if lvl == "error"]
     assert len(errors) == 1 and "3 lost intervals" in errors[0] and "limit 2" in errors[0]

@@ -20,9 +20,25 @@ REPO = Path(__file__).resolve().parents[1]
 
 def test_soak_and_burst_lose_nothing_and_do_not_grow():
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    p = subprocess.run([sys.executable, "-m", "fluxdrive.cli", "soak", "--wall-s", "6",
-                        "--sample-s", "1", "--burst-loops", "4"],
-                       cwd=REPO, env=env, capture_output=True, text=True, timeout=400)
+    p = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "fluxdrive.cli",
+            "soak",
+            "--wall-s",
+            "6",
+            "--sample-s",
+            "1",
+            "--burst-loops",
+            "4",
+        ],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=400,
+    )
     assert p.returncode == 0, p.stderr[-3000:] + p.stdout[-2000:]
     res = json.loads(p.stdout.strip().splitlines()[-1])
     print(res)
@@ -43,9 +59,16 @@ def test_recorder_backpressure_holds_the_graph_and_loses_nothing(tmp_path):
     from fluxdrive_bringup.soak import bag_counts
 
     bag = tmp_path / "bag"
-    r = run_graph(scenario_path("paper_4pct_fullload"), out=tmp_path / "run", bag=bag,
-                  duration_s=1.0, quiet=True, progress=False, timeout=300.0,
-                  extra={"recorder": {"max_backlog_mb": 0.5}})
+    r = run_graph(
+        scenario_path("paper_4pct_fullload"),
+        out=tmp_path / "run",
+        bag=bag,
+        duration_s=1.0,
+        quiet=True,
+        progress=False,
+        timeout=300.0,
+        extra={"recorder": {"max_backlog_mb": 0.5}},
+    )
     assert r["code"] == 0
     mc, meta = bag_counts(bag)
     n = 10_000

@@ -20,11 +20,21 @@ IF_PU, TIMEOUT_S, ALIGN_S = 0.6, 1.0, 0.15
 
 
 def _run(load_pu: float):
-    over = {"bench": {}, "duration_s": 1.8, "load_type": "brake",
-            "load_pu": [[0.0, load_pu], [10.0, load_pu]], "steady_window_s": [1.5, 1.8],
-            "control": {"if_current_pu": IF_PU, "if_accel_pu_s": 0.1,
-                        "handover_pu": 0.0133333333333, "handback_pu": 0.00666666666667,
-                        "align_time_s": ALIGN_S, "handover_timeout_s": TIMEOUT_S}}
+    over = {
+        "bench": {},
+        "duration_s": 1.8,
+        "load_type": "brake",
+        "load_pu": [[0.0, load_pu], [10.0, load_pu]],
+        "steady_window_s": [1.5, 1.8],
+        "control": {
+            "if_current_pu": IF_PU,
+            "if_accel_pu_s": 0.1,
+            "handover_pu": 0.0133333333333,
+            "handback_pu": 0.00666666666667,
+            "align_time_s": ALIGN_S,
+            "handover_timeout_s": TIMEOUT_S,
+        },
+    }
     sc = load_scenario(scenario_path("paper_2pct_150load.yaml"), overrides=over)
     return run_scenario(sc, progress=False)
 

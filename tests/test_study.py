@@ -25,24 +25,40 @@ from fluxdrive.study.spec import load_spec
 from fluxdrive.study.tasks import ALPHA_CU_PER_K, ALPHA_NDFEB_PER_K, build_task_scenario
 
 SCENARIO = {  # encoder-driven, 0.25 s: the variants run in shadow on a loaded drive
-    "name": "tiny", "machine": str(Path(__file__).resolve().parents[1] / "config" / "machines"
-                                   / "default_spm.yaml"),
-    "duration_s": 0.25, "seed": 1, "speed_rpm": 300.0, "load_type": "active",
-    "load_pu": [[0.0, 0.0], [0.05, 0.5]], "steady_window_s": [0.15, 0.25], "driving": "encoder",
+    "name": "tiny",
+    "machine": str(
+        Path(__file__).resolve().parents[1] / "config" / "machines" / "default_spm.yaml"
+    ),
+    "duration_s": 0.25,
+    "seed": 1,
+    "speed_rpm": 300.0,
+    "load_type": "active",
+    "load_pu": [[0.0, 0.0], [0.05, 0.5]],
+    "steady_window_s": [0.15, 0.25],
+    "driving": "encoder",
     "observers": {"x": {"variant": "paper"}},
 }
 
 
 def _spec(tmp_path: Path, **over) -> Path:
     (tmp_path / "tiny.yaml").write_text(yaml.safe_dump(SCENARIO))
-    spec = {"name": "t", "seed": 11, "draws": 3, "scenario": {"file": "tiny.yaml"},
-            "variants": {"flux": {"variant": "paper", "voltage_source": "measured"},
-                         "emf": {"variant": "emf", "voltage_source": "commanded"}},
-            "grid": {"speed_rpm": [150.0, 300.0], "load_pu": [0.5]},
-            "random": {"r_hat_err": {"dist": "uniform", "low": -0.2, "high": 0.2},
-                       "current_offset_pu": {"dist": "normal", "mean": 0.0, "std": 0.005},
-                       "temperature_c": {"dist": "uniform", "low": 20, "high": 100},
-                       "deadtime_s": {"dist": "choice", "values": [1.5e-6, 2e-6, 2.5e-6]}}}
+    spec = {
+        "name": "t",
+        "seed": 11,
+        "draws": 3,
+        "scenario": {"file": "tiny.yaml"},
+        "variants": {
+            "flux": {"variant": "paper", "voltage_source": "measured"},
+            "emf": {"variant": "emf", "voltage_source": "commanded"},
+        },
+        "grid": {"speed_rpm": [150.0, 300.0], "load_pu": [0.5]},
+        "random": {
+            "r_hat_err": {"dist": "uniform", "low": -0.2, "high": 0.2},
+            "current_offset_pu": {"dist": "normal", "mean": 0.0, "std": 0.005},
+            "temperature_c": {"dist": "uniform", "low": 20, "high": 100},
+            "deadtime_s": {"dist": "choice", "values": [1.5e-6, 2e-6, 2.5e-6]},
+        },
+    }
     spec.update(over)
     p = tmp_path / "spec.yaml"
     p.write_text(yaml.safe_dump(spec, sort_keys=False))
@@ -99,7 +115,8 @@ def test_resumed_study_skips_completed_tasks(tmp_path):
         full = run_study(spec, tmp_path / "full", r, echo=False)
     assert full["rows"] == 8
     assert _computed(pq.read_table(tmp_path / "s" / "results.parquet")).equals(
-        _computed(pq.read_table(tmp_path / "full" / "results.parquet")))
+        _computed(pq.read_table(tmp_path / "full" / "results.parquet"))
+    )
     assert not list((tmp_path / "s" / "parts").glob("*.parquet"))
     # an extended spec (one more draw) runs only the new tasks and keeps the old rows
     with Runner("serial") as r:
@@ -113,16 +130,21 @@ def test_resumed_study_skips_completed_tasks(tmp_path):
 
 def test_failed_task_retried_once_then_reported_with_inputs(tmp_path):
     # -400 degC: the plant's resistance would be negative -> the machine card refuses it
-    spec = load_spec(_spec(tmp_path, draws=1, random={},
-                           grid={"temperature_c": [20.0, -400.0]}))
+    spec = load_spec(_spec(tmp_path, draws=1, random={}, grid={"temperature_c": [20.0, -400.0]}))
     with Runner("serial") as r:
         s = run_study(spec, tmp_path / "f", r, echo=False)
     assert s["rows"] == 2 and s["failed"] == 2
     fails = [json.loads(x) for x in (tmp_path / "f" / "failures.jsonl").read_text().splitlines()]
-    assert {f["task_id"] for f in fails} == {"flux|temperature_c=-400|draw=0",
-                                            "emf|temperature_c=-400|draw=0"}
-    assert all(f["attempts"] == 2 and f["inputs"]["grid"] == {"temperature_c": -400.0}
-               and "resistance_ohm" in f["error"] for f in fails)
+    assert {f["task_id"] for f in fails} == {
+        "flux|temperature_c=-400|draw=0",
+        "emf|temperature_c=-400|draw=0",
+    }
+    assert all(
+        f["attempts"] == 2
+        and f["inputs"]["grid"] == {"temperature_c": -400.0}
+        and "resistance_ohm" in f["error"]
+        for f in fails
+    )
     assert "Failed tasks" in (tmp_path / "f" / "report.md").read_text()
     # the runner: a transient failure is retried and succeeds; a persistent one is reported
     calls = {"n": 0}
@@ -148,17 +170,44 @@ def test_dask_scheduler_and_two_workers_one_killed_mid_study(tmp_path):
     dask = str(Path(sys.executable).with_name("dask"))
     port = _free_port()
     addr = f"tcp://127.0.0.1:{port}"
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
-        [str(Path(__file__).resolve().parents[1] / "python"), os.environ.get("PYTHONPATH", "")]))
-    procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port),
-                               "--no-dashboard"], env=env, stdout=subprocess.DEVNULL,
-                              stderr=subprocess.DEVNULL, start_new_session=True)]
+    env = dict(
+        os.environ,
+        PYTHONPATH=os.pathsep.join(
+            [str(Path(__file__).resolve().parents[1] / "python"), os.environ.get("PYTHONPATH", "")]
+        ),
+    )
+    procs = [
+        subprocess.Popen(
+            [dask, "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"],
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            start_new_session=True,
+        )
+    ]
     try:
         for i in range(2):
-            procs.append(subprocess.Popen(
-                [dask, "worker", addr, "--nthreads", "1", "--no-nanny", "--no-dashboard",
-                 "--host", "127.0.0.1", "--name", f"w{i}"], env=env,
-                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True))
+            procs.append(
+                subprocess.Popen(
+                    [
+                        dask,
+                        "worker",
+                        addr,
+                        "--nthreads",
+                        "1",
+                        "--no-nanny",
+                        "--no-dashboard",
+                        "--host",
+                        "127.0.0.1",
+                        "--name",
+                        f"w{i}",
+                    ],
+                    env=env,
+                    stdout=subprocess.DEVNULL,
+                    stderr=subprocess.DEVNULL,
+                    start_new_session=True,
+                )
+            )
         spec = load_spec(_spec(tmp_path, draws=4))  # 16 tasks
         r = Runner(addr)
         r.client.wait_for_workers(2, timeout=60)
@@ -180,16 +229,14 @@ def test_dask_scheduler_and_two_workers_one_killed_mid_study(tmp_path):
         assert killed, "no worker was busy after the first result"
         assert s["rows"] == 16 and s["failed"] == 0
         t = pq.read_table(tmp_path / "c" / "results.parquet")
-        assert sorted(t.column("task_id").to_pylist()) == sorted(x["task_id"]
-                                                                for x in spec.tasks())
+        assert sorted(t.column("task_id").to_pylist()) == sorted(x["task_id"] for x in spec.tasks())
         workers = t.column("worker").to_pylist()
         survivor = [w for w in set(workers) if w != killed["addr"]]
         assert len(survivor) == 1 and workers.count(survivor[0]) >= 16 - 2
         # the same numbers as in-process
         with Runner("serial") as rs:
             run_study(spec, tmp_path / "ser", rs, echo=False)
-        assert _computed(t).equals(_computed(pq.read_table(tmp_path / "ser" /
-                                                           "results.parquet")))
+        assert _computed(t).equals(_computed(pq.read_table(tmp_path / "ser" / "results.parquet")))
     finally:
         for p in procs:
             if p.poll() is None:
@@ -202,7 +249,7 @@ def test_dask_scheduler_and_two_workers_one_killed_mid_study(tmp_path):
 
 
 def test_wilson_interval_limits():
-    z2 = 1.959963984540054 ** 2
+    z2 = 1.959963984540054**2
     lo, hi = wilson(0, 10)
     assert lo == 0.0 and hi == pytest.approx(z2 / (10 + z2), rel=1e-12)
     lo, hi = wilson(10, 10)

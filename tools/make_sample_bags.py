@@ -23,10 +23,13 @@ from fluxdrive.io.bagio import observer_states_at, write_run_bag  # noqa: E402
 
 # name -> (scenario file, window start, window end, observers recorded)
 SAMPLES = {
-    "paper_2pct_150load": ("paper_2pct_150load.yaml", 9.5, 11.0,
-                           ["flux_measured", "emf_measured"]),
-    "paper_6pct_stepload": ("paper_6pct_stepload.yaml", 1.8, 2.8,
-                            ["flux_measured", "emf_measured"]),
+    "paper_2pct_150load": ("paper_2pct_150load.yaml", 9.5, 11.0, ["flux_measured", "emf_measured"]),
+    "paper_6pct_stepload": (
+        "paper_6pct_stepload.yaml",
+        1.8,
+        2.8,
+        ["flux_measured", "emf_measured"],
+    ),
 }
 
 
@@ -40,9 +43,17 @@ def make(name: str, out: Path) -> Path:
     if path.exists():
         shutil.rmtree(path)
     # bag times on a fixed epoch (2026-01-01T00:00:00Z + sim time): the same bytes each run
-    write_run_bag(res, path, start_s=t0, end_s=t1, observers=obs, duty=False,
-                  epoch_offset_ns=1_767_225_600 * 10**9, obs_states=states,
-                  extra_meta={"made_by": "tools/make_sample_bags.py", "window_s": [t0, t1]})
+    write_run_bag(
+        res,
+        path,
+        start_s=t0,
+        end_s=t1,
+        observers=obs,
+        duty=False,
+        epoch_offset_ns=1_767_225_600 * 10**9,
+        obs_states=states,
+        extra_meta={"made_by": "tools/make_sample_bags.py", "window_s": [t0, t1]},
+    )
     size = sum(p.stat().st_size for p in path.iterdir())
     print(f"{path}: {sc.name} seed {sc.seed}, {t0}-{t1} s, {size / 1e6:.2f} MB")
     return path

@@ -14,8 +14,10 @@ setup(
     zip_safe=True,
     maintainer="fluxdrive",
     maintainer_email="fluxdrive@example.com",
-    description=("Sensorless rotor observer node wrapping the fluxdrive observer "
-                 "variants (PhaseFrame in, RotorEstimate out)."),
+    description=(
+        "Sensorless rotor observer node wrapping the fluxdrive observer "
+        "variants (PhaseFrame in, RotorEstimate out)."
+    ),
     license="Apache-2.0",
     entry_points={
         "console_scripts": ["observer = flux_observer_node.node:main"],

@@ -19,10 +19,12 @@ setup(
     description="Scripts and configuration to start the fluxdrive node graph.",
     license="Apache-2.0",
     entry_points={
-        "console_scripts": ["recorder = fluxdrive_bringup.recorder:main",
-                            "container = fluxdrive_ros.runner:container_main",
-                            "scope = fluxdrive_bringup.scope:main",
-                            "scope_tap = fluxdrive_bringup.scope_tap:main",
-                            "foxglove_bridge = fluxdrive_bringup.foxglove_bridge:main"],
+        "console_scripts": [
+            "recorder = fluxdrive_bringup.recorder:main",
+            "container = fluxdrive_ros.runner:container_main",
+            "scope = fluxdrive_bringup.scope:main",
+            "scope_tap = fluxdrive_bringup.scope_tap:main",
+            "foxglove_bridge = fluxdrive_bringup.foxglove_bridge:main",
+        ],
     },
 )

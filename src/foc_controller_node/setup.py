@@ -14,8 +14,10 @@ setup(
     zip_safe=True,
     maintainer="fluxdrive",
     maintainer_email="fluxdrive@example.com",
-    description=("Field-oriented controller node with sensorless start-up (PhaseFrame "
-                 "and RotorEstimate in, DutyCommand out)."),
+    description=(
+        "Field-oriented controller node with sensorless start-up (PhaseFrame "
+        "and RotorEstimate in, DutyCommand out)."
+    ),
     license="Apache-2.0",
     entry_points={
         "console_scripts": ["controller = foc_controller_node.node:main"],

@@ -14,8 +14,10 @@ setup(
     zip_safe=True,
     maintainer="fluxdrive",
     maintainer_email="fluxdrive@example.com",
-    description=("Switching-level SPM machine, inverter and sensor simulator node "
-                 "(publishes PhaseFrame, PlantTruth, /clock)."),
+    description=(
+        "Switching-level SPM machine, inverter and sensor simulator node "
+        "(publishes PhaseFrame, PlantTruth, /clock)."
+    ),
     license="Apache-2.0",
     entry_points={
         "console_scripts": ["plant = spm_plant_sim.node:main"],

@@ -22,9 +22,16 @@ class Segment:
     k_end: int  # one past the last
 
 
-def stepped_sine(freqs_hz: list[float], amplitude: float, ts_s: float, start_s: float,
-                 cycles: int = 8, settle_cycles: int = 3, min_segment_s: float = 0.02,
-                 settle_min_s: float = 0.01) -> tuple[np.ndarray, list[Segment], int]:
+def stepped_sine(
+    freqs_hz: list[float],
+    amplitude: float,
+    ts_s: float,
+    start_s: float,
+    cycles: int = 8,
+    settle_cycles: int = 3,
+    min_segment_s: float = 0.02,
+    settle_min_s: float = 0.01,
+) -> tuple[np.ndarray, list[Segment], int]:
     """Injection signal (length n) and the analysis segments.  Each burst lasts at least
     `cycles` cycles and `min_segment_s`; each is preceded by at least `settle_cycles`
     cycles and `settle_min_s` of the same sine."""
@@ -45,14 +52,15 @@ def stepped_sine(freqs_hz: list[float], amplitude: float, ts_s: float, start_s: 
     return np.concatenate(parts), segs, k
 
 
-def correlate(response: np.ndarray, reference: np.ndarray, seg: Segment,
-              ts_s: float) -> tuple[complex, float]:
+def correlate(
+    response: np.ndarray, reference: np.ndarray, seg: Segment, ts_s: float
+) -> tuple[complex, float]:
     """Complex gain response/reference at the segment's frequency, and the coherence-like
     ratio of the bin's power to the response's total AC power (1 = clean sine)."""
     k = np.arange(seg.k_start, seg.k_end)
     ph = np.exp(-1j * 2 * math.pi * seg.frequency_hz * k * ts_s)
-    y = response[seg.k_start:seg.k_end]
-    x = reference[seg.k_start:seg.k_end]
+    y = response[seg.k_start : seg.k_end]
+    x = reference[seg.k_start : seg.k_end]
     cy = np.mean((y - y.mean()) * ph)
     cx = np.mean((x - x.mean()) * ph)
     g = cy / cx if abs(cx) > 0 else complex("nan")
@@ -73,8 +81,9 @@ def bandwidth_hz(freqs: np.ndarray, gain: np.ndarray) -> float:
     return float("nan")
 
 
-def analyse(response: np.ndarray, reference: np.ndarray, segments: list[Segment],
-            ts_s: float) -> dict:
+def analyse(
+    response: np.ndarray, reference: np.ndarray, segments: list[Segment], ts_s: float
+) -> dict:
     freqs = np.array([s.frequency_hz for s in segments])
     res = [correlate(response, reference, s, ts_s) for s in segments]
     g = np.array([r[0] for r in res])

@@ -45,8 +45,9 @@ def whole_periods(theta_unwrapped: np.ndarray) -> slice:
     n_per = math.floor(span / (2 * math.pi))
     if n_per < 1:
         return slice(0, len(theta_unwrapped))
-    target = theta_unwrapped[0] + math.copysign(n_per * 2 * math.pi,
-                                                theta_unwrapped[-1] - theta_unwrapped[0])
+    target = theta_unwrapped[0] + math.copysign(
+        n_per * 2 * math.pi, theta_unwrapped[-1] - theta_unwrapped[0]
+    )
     end = int(np.argmin(np.abs(theta_unwrapped - target)))
     return slice(0, max(end, 2))
 
@@ -70,8 +71,9 @@ def angle_weights(theta: np.ndarray) -> np.ndarray:
     return w / s
 
 
-def harmonic(x: np.ndarray, theta: np.ndarray, order: int,
-             weights: np.ndarray | None = None) -> complex:
+def harmonic(
+    x: np.ndarray, theta: np.ndarray, order: int, weights: np.ndarray | None = None
+) -> complex:
     """Complex amplitude of order `order` of x against the angle theta (an average over the
     angle: angle_weights)."""
     w = angle_weights(theta) if weights is None else weights
@@ -103,11 +105,12 @@ def thd_n(x: np.ndarray, theta: np.ndarray) -> float:
     h1 = abs(c[1])
     if h1 <= 0:
         return float("nan")
-    fit = np.real(c[0]) / 2.0 + sum(np.real(c[n] * np.exp(1j * n * theta))
-                                     for n in range(1, len(c)))
+    fit = np.real(c[0]) / 2.0 + sum(
+        np.real(c[n] * np.exp(1j * n * theta)) for n in range(1, len(c))
+    )
     resid_ms = float(np.sum(w * (x - fit) ** 2))
     dc = np.real(c[0]) / 2.0
-    rest_ms = dc ** 2 + float(np.sum(np.abs(c[list(THD_ORDERS)]) ** 2)) / 2.0 + resid_ms
+    rest_ms = dc**2 + float(np.sum(np.abs(c[list(THD_ORDERS)]) ** 2)) / 2.0 + resid_ms
     return float(math.sqrt(rest_ms) / (h1 / math.sqrt(2.0)))
 
 
@@ -128,8 +131,9 @@ def steady_window(t: np.ndarray, window_s: tuple[float, float]) -> Window:
     return Window(k0, max(k1, k0 + 2))
 
 
-def observer_metrics(est: np.ndarray, theta_true: np.ndarray, theta_unwrapped: np.ndarray
-                     ) -> dict[str, float]:
+def observer_metrics(
+    est: np.ndarray, theta_true: np.ndarray, theta_unwrapped: np.ndarray
+) -> dict[str, float]:
     """est: (n, ES_N) over the steady window; theta_true wrapped, theta_unwrapped for orders."""
     err = wrap(est[:, ES_TH] - theta_true)
     sl = whole_periods(theta_unwrapped)
@@ -138,13 +142,14 @@ def observer_metrics(est: np.ndarray, theta_true: np.ndarray, theta_unwrapped: n
     flux_mag = np.hypot(est[:, ES_LA], est[:, ES_LB])
     mean_mag = float(np.mean(flux_mag))
     return {
-        "theta_err_rms_deg": float(np.degrees(np.sqrt(np.mean(err ** 2)))),
+        "theta_err_rms_deg": float(np.degrees(np.sqrt(np.mean(err**2)))),
         "theta_err_peak_deg": float(np.degrees(np.max(np.abs(err)))),
         "theta_err_mean_deg": float(np.degrees(np.mean(err))),
         "theta_err_h1_deg": float(np.degrees(abs(harmonic(e, th, 1)))),
         "theta_err_h6_deg": float(np.degrees(abs(harmonic(e, th, 6)))),
         "flux_radius_spread": float((flux_mag.max() - flux_mag.min()) / mean_mag)
-        if mean_mag > 0 else float("nan"),
+        if mean_mag > 0
+        else float("nan"),
         "flux_radius_mean_vs": mean_mag,
         "thd_flux_alpha": thd(est[sl, ES_LA], th),
         "thd_emf_alpha": thd(est[sl, ES_EA], th),
@@ -154,18 +159,19 @@ def observer_metrics(est: np.ndarray, theta_true: np.ndarray, theta_unwrapped: n
     }
 
 
-def speed_metrics(t: np.ndarray, w_true: np.ndarray, w_ref: np.ndarray, win: Window,
-                  step_time_s: float | None) -> dict[str, Any]:
+def speed_metrics(
+    t: np.ndarray, w_true: np.ndarray, w_ref: np.ndarray, win: Window, step_time_s: float | None
+) -> dict[str, Any]:
     rpm = w_true * RAD_S_TO_RPM
     ref = w_ref * RAD_S_TO_RPM
     # ripple: peak-to-peak of the speed smoothed over 1 ms (the PWM-rate jitter is not ripple)
     n_avg = max(1, int(round(1e-3 / (t[1] - t[0])))) if len(t) > 1 else 1
-    seg = rpm[win.k0:win.k1]
+    seg = rpm[win.k0 : win.k1]
     sm = np.convolve(seg, np.ones(n_avg) / n_avg, mode="valid") if len(seg) > n_avg else seg
     out: dict[str, Any] = {
         "ripple_rpm": float(sm.max() - sm.min()) if len(sm) else float("nan"),
         "mean_rpm": float(np.mean(seg)),
-        "mean_error_rpm": float(np.mean(seg - ref[win.k0:win.k1])),
+        "mean_error_rpm": float(np.mean(seg - ref[win.k0 : win.k1])),
         "dip_rpm": None,
         "recovery_s": None,
     }
@@ -194,8 +200,10 @@ def compute(result) -> dict[str, Any]:
     theta = result.truth[:, TR_THETA_E]
     theta_unw = np.unwrap(theta)
     sl = slice(win.k0, win.k1)
-    observers = {nm: observer_metrics(result.est[i, sl], theta[sl], theta_unw[sl])
-                 for i, nm in enumerate(result.names)}
+    observers = {
+        nm: observer_metrics(result.est[i, sl], theta[sl], theta_unw[sl])
+        for i, nm in enumerate(result.names)
+    }
     trip = trip_info(result)
     # after a trip in or before the window (PWM off, rotor coasting or stopped) an observer's
     # numbers describe a stopped drive: it has valid data only if it flagged some sample
@@ -203,7 +211,7 @@ def compute(result) -> dict[str, Any]:
     # its numbers: how wrong it is on a running drive is the point of running it.)
     k_run_end = win.k1 if trip is None else min(max(trip["k"], win.k0), win.k1)
     for i, nm in enumerate(result.names):
-        ok = trip is None or bool(np.any(result.est[i, win.k0:k_run_end, ES_VALID] > 0.5))
+        ok = trip is None or bool(np.any(result.est[i, win.k0 : k_run_end, ES_VALID] > 0.5))
         observers[nm]["valid_data"] = ok
     speed = speed_metrics(t, result.truth[:, TR_WM], result.w_ref, win, sc.step_load_time_s)
     faults = result.ctrl[:, CO_FAULT]
@@ -252,22 +260,37 @@ def trip_info(result) -> dict[str, Any] | None:
     except Exception:  # noqa: BLE001 - a replayed run may lack a controller model: name only
         pass
     t_s = float(result.t[k])
-    return {"code": code, "fault": FAULT_NAMES.get(code, str(code)), "k": k, "t_s": t_s,
-            "detail": detail, "message": trip_message(t_s, detail)}
+    return {
+        "code": code,
+        "fault": FAULT_NAMES.get(code, str(code)),
+        "k": k,
+        "t_s": t_s,
+        "detail": detail,
+        "message": trip_message(t_s, detail),
+    }
 
 
 def format_table(m: dict[str, Any]) -> str:
     """The metric table printed by sim/run/replay."""
-    cols = [("theta_err_rms_deg", "rms°", 7, 3), ("theta_err_peak_deg", "peak°", 7, 2),
-            ("theta_err_mean_deg", "mean°", 7, 3), ("theta_err_h1_deg", "h1°", 6, 3),
-            ("theta_err_h6_deg", "h6°", 7, 3), ("flux_radius_spread", "spread", 7, 3),
-            ("thd_flux_alpha", "THDλα", 7, 3), ("thd_emf_alpha", "THDeα", 7, 3),
-            ("thdn_flux_alpha", "THD+Nλ", 7, 3), ("thdn_emf_alpha", "THD+Ne", 7, 3),
-            ("valid_fraction", "valid", 6, 2)]
+    cols = [
+        ("theta_err_rms_deg", "rms°", 7, 3),
+        ("theta_err_peak_deg", "peak°", 7, 2),
+        ("theta_err_mean_deg", "mean°", 7, 3),
+        ("theta_err_h1_deg", "h1°", 6, 3),
+        ("theta_err_h6_deg", "h6°", 7, 3),
+        ("flux_radius_spread", "spread", 7, 3),
+        ("thd_flux_alpha", "THDλα", 7, 3),
+        ("thd_emf_alpha", "THDeα", 7, 3),
+        ("thdn_flux_alpha", "THD+Nλ", 7, 3),
+        ("thdn_emf_alpha", "THD+Ne", 7, 3),
+        ("valid_fraction", "valid", 6, 2),
+    ]
     name_w = max([len(n) for n in m["observers"]] + [10]) + 2
-    lines = [f"scenario {m['scenario']}: driving={m['driving']} stable={m['stable']} "
-             f"window={m['window_s'][0]:.2f}-{m['window_s'][1]:.2f} s",
-             "observer".ljust(name_w) + "".join(h.rjust(w + 1) for _, h, w, _ in cols)]
+    lines = [
+        f"scenario {m['scenario']}: driving={m['driving']} stable={m['stable']} "
+        f"window={m['window_s'][0]:.2f}-{m['window_s'][1]:.2f} s",
+        "observer".ljust(name_w) + "".join(h.rjust(w + 1) for _, h, w, _ in cols),
+    ]
     trip = m.get("trip")
     if trip:
         lines.insert(0, trip["message"])
@@ -275,24 +298,30 @@ def format_table(m: dict[str, Any]) -> str:
         tag = "*" if name == m["driving"] else " "
         row = (tag + name).ljust(name_w)
         if not om.get("valid_data", True):
-            lines.append(row + f"  -- no valid data in the window (drive tripped at "
-                               f"{trip['t_s']:.3f} s)")
+            lines.append(
+                row + f"  -- no valid data in the window (drive tripped at {trip['t_s']:.3f} s)"
+            )
             continue
         for key, _, w, p in cols:
             v = om[key]
-            row += (f"{v:{w}.{p}f}" if v is not None and not math.isnan(v) else "nan".rjust(w)
-                    ).rjust(w + 1)
+            row += (
+                f"{v:{w}.{p}f}" if v is not None and not math.isnan(v) else "nan".rjust(w)
+            ).rjust(w + 1)
         lines.append(row)
     s = m["speed"]
-    line = (f"speed: mean {s['mean_rpm']:.2f} rpm (error {s['mean_error_rpm']:+.2f}), "
-            f"ripple {s['ripple_rpm']:.2f} rpm p-p")
+    line = (
+        f"speed: mean {s['mean_rpm']:.2f} rpm (error {s['mean_error_rpm']:+.2f}), "
+        f"ripple {s['ripple_rpm']:.2f} rpm p-p"
+    )
     if s.get("dip_rpm") is not None:
         rec = "not within 10 %" if s["recovery_s"] is None else f"{s['recovery_s']:.3f} s"
         line += f", step-load dip {s['dip_rpm']:.1f} rpm, recovery {rec}"
     lines.append(line)
-    lines.append("(* driving; θ̃ = θ̂ − θ in electrical degrees over the window; h1/h6 orders "
-                 "of θ̃ vs the rotor angle; spread = (max−min)/mean |λ̂|; THD: orders 2..20; "
-                 "THD+N: all but the fundamental, noise and DC included)")
+    lines.append(
+        "(* driving; θ̃ = θ̂ − θ in electrical degrees over the window; h1/h6 orders "
+        "of θ̃ vs the rotor angle; spread = (max−min)/mean |λ̂|; THD: orders 2..20; "
+        "THD+N: all but the fundamental, noise and DC included)"
+    )
     return "\n".join(lines)
 
 

@@ -9,8 +9,9 @@ from fluxdrive.analysis.metrics import compute, format_table, write_json
 from fluxdrive.analysis.plots import plot_run
 
 
-def report(result, out_dir: Path | None, save_series: bool = True, plots: bool = True,
-           echo: bool = True) -> dict[str, Any]:
+def report(
+    result, out_dir: Path | None, save_series: bool = True, plots: bool = True, echo: bool = True
+) -> dict[str, Any]:
     m = compute(result)
     if echo:
         print(format_table(m))
@@ -23,6 +24,8 @@ def report(result, out_dir: Path | None, save_series: bool = True, plots: bool =
         if plots:
             plot_run(result, out_dir)
         if echo:
-            print(f"saved: {out_dir}/metrics.json, series.npz, theta_error.png, flux_locus.png, "
-                  f"speed_currents.png")
+            print(
+                f"saved: {out_dir}/metrics.json, series.npz, theta_error.png, flux_locus.png, "
+                f"speed_currents.png"
+            )
     return m

@@ -180,7 +180,8 @@ class CanBridge:
         self._msg_status = self.proto.message("STATUS")
         self._msg_hb = self.proto.message("HOST_HEARTBEAT")
         self._ranges = [
-            (s.name, s.minimum, s.maximum) for s in self._msg_fd.signals
+            (s.name, s.minimum, s.maximum)
+            for s in self._msg_fd.signals
             if s.minimum is not None or s.maximum is not None
         ]
         layout = self.cfg.layout
@@ -195,9 +196,11 @@ class CanBridge:
         self.decimation = d
         """PWM periods per sample (either layout)."""
         # the MCU's duty watchdog must outlast a sample period (D periods)
-        self.mcu_cmd_timeout_s = max(
-            self.cfg.cmd_timeout_s, 1.5 * self.decimation / self.proto.pwm_frequency
-        ) if self.decimation > 1 else self.cfg.cmd_timeout_s
+        self.mcu_cmd_timeout_s = (
+            max(self.cfg.cmd_timeout_s, 1.5 * self.decimation / self.proto.pwm_frequency)
+            if self.decimation > 1
+            else self.cfg.cmd_timeout_s
+        )
         self._reasm = ClassicReassembler(protocol=self.proto)
         self._wire: dict[int, int] = {}  # D > 1: sample index j -> wire seq (16 bit)
         # state
@@ -438,9 +441,11 @@ class CanBridge:
             elif aid == ID_FAULT:
                 d = self._msg_fault.decode(bytes(msg.data), decode_choices=False)
                 self.counters["fault_rx"] += 1
-                self.mcu.update(fault_code=int(d["fault_code"]),
-                                fault_latched=int(d["fault_latched"]),
-                                fault_count=int(d["fault_count"]))
+                self.mcu.update(
+                    fault_code=int(d["fault_code"]),
+                    fault_latched=int(d["fault_latched"]),
+                    fault_count=int(d["fault_count"]),
+                )
                 if d["fault_code"] and d["fault_latched"] and self.armed:
                     self.armed = False  # the MCU disarmed itself
                     self.counters["disarmed_by_mcu_fault"] += 1
@@ -530,7 +535,8 @@ class CanBridge:
         self.drive_mismatch = (
             f"layout mismatch: the drive runs the {'classic' if classic else 'fd'} layout "
             f"with D={decimation}, this bridge expects the {self.layout} layout with "
-            f"D={self.decimation}")
+            f"D={self.decimation}"
+        )
         if self._mismatch_run >= 2 and not self.fault:
             self._raise_fault(self.drive_mismatch)
 
@@ -637,8 +643,12 @@ class CanBridge:
         if now >= self._next_hb_t:
             self._next_hb_t = now + self.cfg.heartbeat_period_s
             self._hb_alive = (self._hb_alive + 1) % 256
-            self._send(ID_HOST_HEARTBEAT, self._msg_hb.encode(
-                {"hb_alive": self._hb_alive, "hb_protocol_version": PROTOCOL_VERSION}))
+            self._send(
+                ID_HOST_HEARTBEAT,
+                self._msg_hb.encode(
+                    {"hb_alive": self._hb_alive, "hb_protocol_version": PROTOCOL_VERSION}
+                ),
+            )
             with self._arm_lock:
                 if self.bus is not None:
                     self._send_arm(self.armed and not self.fault)
@@ -676,10 +686,23 @@ class CanBridge:
             "seq_out_of_order": st.out_of_order,
             "last_error": self.last_error,
         }
-        base = ("rx_samples", "frames_out", "malformed", "faults", "stale_faults", "bus_errors",
-                "connects", "connect_failures", "duty_tx", "duty_tx_enabled",
-                "enable_suppressed", "tx_timeouts", "error_frames", "fast_path_frames",
-                "layout_mismatch")
+        base = (
+            "rx_samples",
+            "frames_out",
+            "malformed",
+            "faults",
+            "stale_faults",
+            "bus_errors",
+            "connects",
+            "connect_failures",
+            "duty_tx",
+            "duty_tx_enabled",
+            "enable_suppressed",
+            "tx_timeouts",
+            "error_frames",
+            "fast_path_frames",
+            "layout_mismatch",
+        )
         out.update({k: 0 for k in base})
         out.update({k: int(v) for k, v in sorted(self.counters.items())})
         out.update({f"malformed_{k}": int(v) for k, v in sorted(self.malformed_reasons.items())})

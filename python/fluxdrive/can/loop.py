@@ -98,9 +98,16 @@ class _TapLogger(can.Listener):
 
     def on_message_received(self, msg: can.Message) -> None:
         self.writer.on_message_received(
-            can.Message(timestamp=msg.timestamp, arbitration_id=msg.arbitration_id,
-                        is_extended_id=msg.is_extended_id, is_fd=msg.is_fd,
-                        bitrate_switch=msg.bitrate_switch, data=msg.data, channel=1))
+            can.Message(
+                timestamp=msg.timestamp,
+                arbitration_id=msg.arbitration_id,
+                is_extended_id=msg.is_extended_id,
+                is_fd=msg.is_fd,
+                bitrate_switch=msg.bitrate_switch,
+                data=msg.data,
+                channel=1,
+            )
+        )
 
     def on_error(self, exc: Exception) -> None:
         self.errors.append(exc)
@@ -139,8 +146,9 @@ def run_can_loop(
     tap = can.Bus(interface="virtual", channel=ch, fd=True) if log_path else None
     logger = _TapLogger(log_path) if log_path else None
     notifier = can.Notifier(tap, [logger], timeout=0.05) if tap is not None else None
-    emu = DriveEmulator(ds, emu_bus, record=True, layout=layout, decimation=decimation,
-                        **(emulator_kw or {}))
+    emu = DriveEmulator(
+        ds, emu_bus, record=True, layout=layout, decimation=decimation, **(emulator_kw or {})
+    )
     d = emu.decimation
     cfg = bridge_config or BridgeConfig(stale_timeout_s=1.0)
     if decimation is not None and not cfg.decimation:
@@ -190,7 +198,7 @@ def run_can_loop(
                 controller_step(cs, dsc.cp, fr, est, dsc.w_ref[ki], dsc.id_inj[ki], ctrl)
                 ctrl_rows[m] = ctrl
                 m += 1
-                bridge.send_duty(kk, ctrl[CO_DA:CO_DC + 1], ctrl[CO_EN] > 0.5)
+                bridge.send_duty(kk, ctrl[CO_DA : CO_DC + 1], ctrl[CO_EN] > 0.5)
     finally:
         emu.stop()
         bridge.shutdown()
@@ -201,6 +209,16 @@ def run_can_loop(
             tap.shutdown()
     wall = time.perf_counter() - t0
     fs, tr = emu.recorded()
-    return CanLoopResult(ds, fs, tr, rx_rows[:m], est_rows[:, :m], ctrl_rows[:m],
-                         bridge.diagnostics(), emu.stats.as_dict(), wall,
-                         decimation=d, control_setup=dsc)
+    return CanLoopResult(
+        ds,
+        fs,
+        tr,
+        rx_rows[:m],
+        est_rows[:, :m],
+        ctrl_rows[:m],
+        bridge.diagnostics(),
+        emu.stats.as_dict(),
+        wall,
+        decimation=d,
+        control_setup=dsc,
+    )

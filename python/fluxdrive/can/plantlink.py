@@ -25,24 +25,33 @@ class CanPlantLink:
     """PlantLink over python-can through `CanBridge`.  `emulate=True` starts the drive
     emulator (the simulated plant of `card` as the MCU) on a virtual channel."""
 
-    def __init__(self, card: MachineCard, channel: str | None = None,
-                 interface: str = "virtual", emulate: bool = True, max_s: float = 600.0,
-                 timeout_s: float = 60.0):
+    def __init__(
+        self,
+        card: MachineCard,
+        channel: str | None = None,
+        interface: str = "virtual",
+        emulate: bool = True,
+        max_s: float = 600.0,
+        timeout_s: float = 60.0,
+    ):
         self.ts_s = card.ts_s
         self.timeout_s = timeout_s
         ch = channel or new_virtual_channel("identify")
         self.emu = self.emu_bus = None
         if emulate:
-            sc = copy.deepcopy(load_scenario(scenario_path("paper_2pct_150load"),
-                                             overrides={"bench": {}}))
+            sc = copy.deepcopy(
+                load_scenario(scenario_path("paper_2pct_150load"), overrides={"bench": {}})
+            )
             sc.machine = card
             sc.load_profile_pu = np.array([[0.0, 0.0]])
             sc.duration_s = max_s
-            self.emu_bus = can.Bus(interface="virtual", channel=ch, fd=True,
-                                   receive_own_messages=False)
+            self.emu_bus = can.Bus(
+                interface="virtual", channel=ch, fd=True, receive_own_messages=False
+            )
             self.emu = DriveEmulator(DriveSetup(sc), self.emu_bus, lockstep_wait_s=timeout_s)
-        self.bridge = CanBridge(bus_factory_from_params(interface, ch, fd=True),
-                                BridgeConfig(stale_timeout_s=timeout_s))
+        self.bridge = CanBridge(
+            bus_factory_from_params(interface, ch, fd=True), BridgeConfig(stale_timeout_s=timeout_s)
+        )
         self.bridge.connect()
         if self.emu is not None:
             self.emu.start(int(max_s / card.ts_s))
@@ -65,8 +74,10 @@ class CanPlantLink:
                 fr = frames[-1]
                 self.seq = int(fr[FR_SEQ])
                 return fr.copy()
-        raise IdentifyAbort(f"no sample from the drive within {self.timeout_s} s "
-                            f"({self.bridge.diagnostics().get('fault')})")
+        raise IdentifyAbort(
+            f"no sample from the drive within {self.timeout_s} s "
+            f"({self.bridge.diagnostics().get('fault')})"
+        )
 
     def step(self, duty: np.ndarray, enable: bool) -> np.ndarray:
         self.bridge.send_duty(self.seq, np.asarray(duty, dtype=float), bool(enable))

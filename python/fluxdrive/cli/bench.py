@@ -31,16 +31,27 @@ def bench_engine(argv: list[str]) -> dict:
 
     path = CONFIG_DIR / "scenarios" / "paper_2pct_150load.yaml"
     sc = load_scenario(path)
-    sc.observers = {"flux_measured": sc.observers["flux_measured"],
-                    "emf_commanded": sc.bench.apply_observer_model(
-                        observer_config("emf", voltage_source="commanded"), sc.machine)}
+    sc.observers = {
+        "flux_measured": sc.observers["flux_measured"],
+        "emf_commanded": sc.bench.apply_observer_model(
+            observer_config("emf", voltage_source="commanded"), sc.machine
+        ),
+    }
     ideal = load_scenario(path, overrides={"bench": {}})
-    ideal.observers = {"flux_measured": ideal.observers["flux_measured"],
-                       "emf_commanded": observer_config("emf", voltage_source="commanded")}
+    ideal.observers = {
+        "flux_measured": ideal.observers["flux_measured"],
+        "emf_commanded": observer_config("emf", voltage_source="commanded"),
+    }
     print("[bench] compiling / warming up ...", file=sys.stderr)
     for base in (sc, ideal):
-        warm = load_scenario(path, overrides={"duration_s": 0.05, "steady_window_s": [0.0, 0.05],
-                                              **({} if base is sc else {"bench": {}})})
+        warm = load_scenario(
+            path,
+            overrides={
+                "duration_s": 0.05,
+                "steady_window_s": [0.0, 0.05],
+                **({} if base is sc else {"bench": {}}),
+            },
+        )
         warm.observers = base.observers
         run_scenario(warm, progress=False)
     best = {"bench": 0.0, "ideal": 0.0}
@@ -50,16 +61,24 @@ def bench_engine(argv: list[str]) -> dict:
             res = run_scenario(case, progress=False)
             dt = time.perf_counter() - t0
             rate = case.n_periods / dt
-            print(f"[bench] run {rep + 1}/3 ({key} bench): {case.n_periods} periods in "
-                  f"{dt:.3f} s = {rate / 1e3:.0f} k periods/s, {case.duration_s / dt:.1f}x real "
-                  f"time", file=sys.stderr)
+            print(
+                f"[bench] run {rep + 1}/3 ({key} bench): {case.n_periods} periods in "
+                f"{dt:.3f} s = {rate / 1e3:.0f} k periods/s, {case.duration_s / dt:.1f}x real "
+                f"time",
+                file=sys.stderr,
+            )
             best[key] = max(best[key], rate)
             del res
     ts = sc.machine.ts_s
-    return {"periods_per_s": round(best["bench"]), "real_time_factor": round(best["bench"] * ts, 2),
-            "ideal_bench_periods_per_s": round(best["ideal"]),
-            "ideal_bench_real_time_factor": round(best["ideal"] * ts, 2),
-            "observers": 2, "plant": "switching-level", "scenario": sc.name}
+    return {
+        "periods_per_s": round(best["bench"]),
+        "real_time_factor": round(best["bench"] * ts, 2),
+        "ideal_bench_periods_per_s": round(best["ideal"]),
+        "ideal_bench_real_time_factor": round(best["ideal"] * ts, 2),
+        "observers": 2,
+        "plant": "switching-level",
+        "scenario": sc.name,
+    }
 
 
 def main(argv: list[str]) -> int:

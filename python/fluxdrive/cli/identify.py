@@ -24,22 +24,37 @@ from fluxdrive.drive.identify import TOLERANCE, _stderr, errors, identify_sim
 
 
 def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="fluxdrive identify", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--machine", action="append", default=[],
-                    help="card of the simulated motor (name under config/machines or path); "
-                         "repeatable with --check")
+    ap = argparse.ArgumentParser(
+        prog="fluxdrive identify",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    ap.add_argument(
+        "--machine",
+        action="append",
+        default=[],
+        help="card of the simulated motor (name under config/machines or path); "
+        "repeatable with --check",
+    )
     ap.add_argument("--out", type=Path, help="write the identified machine card here")
-    ap.add_argument("--check", action="store_true",
-                    help="accuracy table over the shipped cards (or --machine ones)")
+    ap.add_argument(
+        "--check",
+        action="store_true",
+        help="accuracy table over the shipped cards (or --machine ones)",
+    )
     ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--can", action="store_true",
-                    help="over the CAN bench bridge, to the drive emulator on a virtual bus "
-                         "(the same procedure; ~1 ms of wall time per PWM period)")
+    ap.add_argument(
+        "--can",
+        action="store_true",
+        help="over the CAN bench bridge, to the drive emulator on a virtual bus "
+        "(the same procedure; ~1 ms of wall time per PWM period)",
+    )
     args = ap.parse_args(argv)
     if args.check:
-        return _check(args.machine or sorted(p.stem for p in (CONFIG_DIR / "machines")
-                                             .glob("*.yaml")), args.seed)
+        return _check(
+            args.machine or sorted(p.stem for p in (CONFIG_DIR / "machines").glob("*.yaml")),
+            args.seed,
+        )
     card = load_machine(machine_path(args.machine[0] if args.machine else "default_spm"))
     t0 = time.perf_counter()
     if args.can:
@@ -55,10 +70,12 @@ def main(argv: list[str]) -> int:
         ident, _ = identify_sim(card, args.seed, progress=_stderr)
     out = args.out or Path(f"{card.name}_identified.yaml")
     save_machine(ident.card(card), out)
-    print(f"identified in {time.perf_counter() - t0:.1f} s: R {ident.resistance_ohm:.4f} ohm, "
-          f"L {ident.inductance_h * 1e3:.4f} mH, lambda {ident.flux_linkage_vs * 1e3:.4f} "
-          f"mV s, J {ident.inertia_kgm2:.4g} kg m^2, B {ident.viscous_nms:.3g} N m s/rad, "
-          f"deadtime {ident.deadtime_v:.3f} V per leg ({ident.deadtime_s * 1e6:.3f} us)")
+    print(
+        f"identified in {time.perf_counter() - t0:.1f} s: R {ident.resistance_ohm:.4f} ohm, "
+        f"L {ident.inductance_h * 1e3:.4f} mH, lambda {ident.flux_linkage_vs * 1e3:.4f} "
+        f"mV s, J {ident.inertia_kgm2:.4g} kg m^2, B {ident.viscous_nms:.3g} N m s/rad, "
+        f"deadtime {ident.deadtime_v:.3f} V per leg ({ident.deadtime_s * 1e6:.3f} us)"
+    )
     print(f"card: {out}")
     return 0
 
@@ -75,13 +92,28 @@ def _check(cards: list[str], seed: int) -> int:
         e = errors(ident, card)
         ok = all(abs(e[k]) <= TOLERANCE[k] for k in keys)
         wall = time.perf_counter() - t0
-        print(f"{card.name:18s}" + "".join(f"{e[k] * 100:+10.2f}%" for k in keys)
-              + f"  {'yes' if ok else 'NO':>3s} {wall:5.1f} s", flush=True)
-        rows[card.name] = {"errors_pct": {k: round(e[k] * 100, 3) for k in keys}, "ok": ok,
-                           "identified": asdict(ident), "wall_s": round(wall, 1)}
+        print(
+            f"{card.name:18s}"
+            + "".join(f"{e[k] * 100:+10.2f}%" for k in keys)
+            + f"  {'yes' if ok else 'NO':>3s} {wall:5.1f} s",
+            flush=True,
+        )
+        rows[card.name] = {
+            "errors_pct": {k: round(e[k] * 100, 3) for k in keys},
+            "ok": ok,
+            "identified": asdict(ident),
+            "wall_s": round(wall, 1),
+        }
     print("tolerance: " + ", ".join(f"{k} {v * 100:g} %" for k, v in TOLERANCE.items()))
-    print(json.dumps({"benchmark": "identify", "tolerance_pct": {k: v * 100 for k, v in
-                                                                  TOLERANCE.items()},
-                      "all_ok": all(r["ok"] for r in rows.values()), "cards": rows,
-                      "wall_s": round(time.perf_counter() - t_all, 1)}))
+    print(
+        json.dumps(
+            {
+                "benchmark": "identify",
+                "tolerance_pct": {k: v * 100 for k, v in TOLERANCE.items()},
+                "all_ok": all(r["ok"] for r in rows.values()),
+                "cards": rows,
+                "wall_s": round(time.perf_counter() - t_all, 1),
+            }
+        )
+    )
     return 0 if all(r["ok"] for r in rows.values()) else 1

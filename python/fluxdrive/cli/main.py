@@ -16,35 +16,65 @@ REPO = ROOT
 # subcommand -> (module, function, one-line help); each function takes argv (list[str])
 COMMANDS: dict[str, tuple[str, str, str]] = {
     "sim": ("fluxdrive.cli.sim", "main_sim", "run a scenario in-process (no ROS) and report"),
-    "benchmark": ("fluxdrive.cli.bench", "main",
-                  "benchmarks: engine | replay | graph | paced | can | study"),
-    "demo": ("fluxdrive_bringup.cli", "main_demo",
-             "the main job: 2 % / 150 % load scenario through the ROS graph, recorded"),
+    "benchmark": (
+        "fluxdrive.cli.bench",
+        "main",
+        "benchmarks: engine | replay | graph | paced | can | study",
+    ),
+    "demo": (
+        "fluxdrive_bringup.cli",
+        "main_demo",
+        "the main job: 2 % / 150 % load scenario through the ROS graph, recorded",
+    ),
     "run": ("fluxdrive_bringup.cli", "main_run", "run any scenario through the ROS graph"),
     "launch": ("fluxdrive_bringup.cli", "main_launch", "start a graph described in YAML"),
     "topic": ("fluxdrive_bringup.cli", "main_topic", "topic list|echo|hz"),
     "node": ("fluxdrive_bringup.cli", "main_node", "node list"),
     "param": ("fluxdrive_bringup.cli", "main_param", "param get|set|dump"),
-    "bag": ("fluxdrive_bringup.cli", "main_bag",
-            "bag recover BAG_DIR [--out DIR]: a valid bag from an unfinalised one"),
+    "bag": (
+        "fluxdrive_bringup.cli",
+        "main_bag",
+        "bag recover BAG_DIR [--out DIR]: a valid bag from an unfinalised one",
+    ),
     "fault": ("fluxdrive_bringup.cli", "main_fault", "fault reset: clear a latched drive fault"),
-    "scope": ("fluxdrive_bringup.cli", "main_scope",
-              "live scope of a running graph in the browser (plots, parameters, fault reset)"),
-    "foxglove": ("fluxdrive_bringup.cli", "main_foxglove",
-                 "serve a running graph's topics and parameters to Foxglove / Lichtblick"),
-    "soak": ("fluxdrive_bringup.cli", "main_soak",
-             "load check: long lockstep graph run + burst replay (memory, no loss)"),
+    "scope": (
+        "fluxdrive_bringup.cli",
+        "main_scope",
+        "live scope of a running graph in the browser (plots, parameters, fault reset)",
+    ),
+    "foxglove": (
+        "fluxdrive_bringup.cli",
+        "main_foxglove",
+        "serve a running graph's topics and parameters to Foxglove / Lichtblick",
+    ),
+    "soak": (
+        "fluxdrive_bringup.cli",
+        "main_soak",
+        "load check: long lockstep graph run + burst replay (memory, no loss)",
+    ),
     "replay": ("fluxdrive.replay.lab", "main", "replay bags through observer variants"),
     "can-import": ("fluxdrive.io.canimport", "main", "CAN capture (.log/.asc/.blf) -> bag"),
-    "can-emulator": ("fluxdrive.can.emulator", "main",
-                     "the drive emulator (plant as the MCU) on a CAN bus, as a process"),
-    "fault-matrix": ("fluxdrive.drive.faultmatrix", "main",
-                     "fault-injection matrix of the control path (--write docs/safety.md)"),
-    "identify": ("fluxdrive.cli.identify", "main",
-                 "measure R, L, lambda, J, B, deadtime of a motor -> machine card (--check)"),
+    "can-emulator": (
+        "fluxdrive.can.emulator",
+        "main",
+        "the drive emulator (plant as the MCU) on a CAN bus, as a process",
+    ),
+    "fault-matrix": (
+        "fluxdrive.drive.faultmatrix",
+        "main",
+        "fault-injection matrix of the control path (--write docs/safety.md)",
+    ),
+    "identify": (
+        "fluxdrive.cli.identify",
+        "main",
+        "measure R, L, lambda, J, B, deadtime of a motor -> machine card (--check)",
+    ),
     "experiment": ("fluxdrive.experiments.registry", "main", "reproduce the paper's figures"),
-    "study": ("fluxdrive.study.cli", "main",
-              "sweeps and Monte-Carlo robustness maps on dask (local cores or a cluster)"),
+    "study": (
+        "fluxdrive.study.cli",
+        "main",
+        "sweeps and Monte-Carlo robustness maps on dask (local cores or a cluster)",
+    ),
     "test": ("fluxdrive.cli.main", "main_test", "run the test suite"),
     "lint": ("fluxdrive.cli.main", "main_lint", "ruff over the project"),
 }
@@ -93,8 +123,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"fluxdrive {cmd}: not available ({exc})", file=sys.stderr)
             return 2
         # until the graph package is built: the same scenario, in-process
-        print(f"fluxdrive demo: the ROS graph is not available ({exc}); running the scenario "
-              f"in-process instead", file=sys.stderr)
+        print(
+            f"fluxdrive demo: the ROS graph is not available ({exc}); running the scenario "
+            f"in-process instead",
+            file=sys.stderr,
+        )
         from fluxdrive.cli.sim import main_sim
 
         func = lambda argv: main_sim(["paper_2pct_150load", *argv])  # noqa: E731

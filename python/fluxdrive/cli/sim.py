@@ -15,15 +15,20 @@ def main_sim(argv: list[str]) -> int:
     ap = argparse.ArgumentParser(prog="fluxdrive sim", description=__doc__)
     ap.add_argument("scenario", help="scenario YAML (path, or a name under config/scenarios)")
     ap.add_argument("--out", type=Path, help="output folder (default runs/<name>-sim-<time>)")
-    ap.add_argument("--machine", help="run on this machine card (a path or a name under "
-                    "config/machines); per-unit speeds and every unset default follow it")
+    ap.add_argument(
+        "--machine",
+        help="run on this machine card (a path or a name under "
+        "config/machines); per-unit speeds and every unset default follow it",
+    )
     ap.add_argument("--no-plots", action="store_true")
     args = ap.parse_args(argv)
     sc = load_scenario(scenario_path(args.scenario), machine=args.machine)
     out = args.out or REPO_ROOT / "runs" / f"{sc.name}-sim-{time.strftime('%Y%m%d-%H%M%S')}"
     res = run_scenario(sc, progress="always")
     rtf = sc.duration_s / res.wall_s if res.wall_s > 0 else float("inf")
-    print(f"simulated {sc.duration_s:.2f} s ({sc.n_periods} PWM periods, "
-          f"{len(res.names)} observers) in {res.wall_s:.2f} s wall: {rtf:.1f}x real time")
+    print(
+        f"simulated {sc.duration_s:.2f} s ({sc.n_periods} PWM periods, "
+        f"{len(res.names)} observers) in {res.wall_s:.2f} s wall: {rtf:.1f}x real time"
+    )
     m = report(res, out, plots=not args.no_plots)
     return 0 if m["stable"] else 1

@@ -78,9 +78,13 @@ class BenchConfig:
 
     @property
     def ideal(self) -> bool:
-        return (self.voltage_capture is None and self.current_sample_skew_s is None
-                and self.observer_model is None and self.thermal is None
-                and self.spatial_saturation_h6_pu == 0.0)
+        return (
+            self.voltage_capture is None
+            and self.current_sample_skew_s is None
+            and self.observer_model is None
+            and self.thermal is None
+            and self.spatial_saturation_h6_pu == 0.0
+        )
 
     def apply_observer_model(self, cfg, card: MachineCard):
         """`cfg` (an ObserverConfig) with R^, L^, lambda^ set from the card times the bench's
@@ -103,8 +107,9 @@ class BenchConfig:
 
         raw: dict[str, Any] = {}
         if self.voltage_capture is not None:
-            raw["voltage_capture"] = {k: v for k, v in asdict(self.voltage_capture).items()
-                                      if v is not None}
+            raw["voltage_capture"] = {
+                k: v for k, v in asdict(self.voltage_capture).items() if v is not None
+            }
         if self.current_sample_skew_s is not None:
             raw["current_sample_skew_s"] = [float(x) for x in self.current_sample_skew_s]
         if self.observer_model is not None:
@@ -117,8 +122,12 @@ class BenchConfig:
 
 
 def _num(src: str, key: str, v: Any, lo: float, hi: float) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not (lo <= float(v) <= hi) \
-            or math.isnan(float(v)):
+    if (
+        isinstance(v, bool)
+        or not isinstance(v, (int, float))
+        or not (lo <= float(v) <= hi)
+        or math.isnan(float(v))
+    ):
         raise ConfigError(f"{src}: 'bench.{key}' must be a number in [{lo}, {hi}], got {v!r}")
     return float(v)
 
@@ -134,22 +143,34 @@ def _section(src: str, key: str, cls, data: Any, ranges: dict[str, tuple[float, 
             if v is None:
                 continue
             if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
-                raise ConfigError(f"{src}: 'bench.{key}.{k}' must be an integer in "
-                                  f"[{int(lo)}, {int(hi)}], got {v!r}")
+                raise ConfigError(
+                    f"{src}: 'bench.{key}.{k}' must be an integer in "
+                    f"[{int(lo)}, {int(hi)}], got {v!r}"
+                )
             kw[k] = v
         else:
             kw[k] = _num(src, f"{key}.{k}", v, lo, hi)
     return cls(**kw)
 
 
-_CAPTURE_RANGES = {"threshold_pu": (0.0, 0.99), "edge_time_s": (0.0, 1e-5),
-                   "delay_rise_s": (0.0, 1e-5), "delay_fall_s": (0.0, 1e-5),
-                   "min_pulse_s": (0.0, 1e-5), "jitter_s": (0.0, 1e-6),
-                   "resolution_bits": (4, 30)}
+_CAPTURE_RANGES = {
+    "threshold_pu": (0.0, 0.99),
+    "edge_time_s": (0.0, 1e-5),
+    "delay_rise_s": (0.0, 1e-5),
+    "delay_fall_s": (0.0, 1e-5),
+    "min_pulse_s": (0.0, 1e-5),
+    "jitter_s": (0.0, 1e-6),
+    "resolution_bits": (4, 30),
+}
 _MODEL_RANGES = {"r_pu": (0.0, 10.0), "l_pu": (0.01, 10.0), "lambda_pu": (0.01, 10.0)}
 _THERMAL_RANGES = {"ambient_c": (-60.0, 200.0), "initial_winding_c": (-60.0, 250.0)}
-BENCH_KEYS = ("voltage_capture", "current_sample_skew_s", "observer_model", "thermal",
-              "spatial_saturation_h6_pu")
+BENCH_KEYS = (
+    "voltage_capture",
+    "current_sample_skew_s",
+    "observer_model",
+    "thermal",
+    "spatial_saturation_h6_pu",
+)
 
 
 def parse_bench(src: str, raw: Any, card: MachineCard) -> BenchConfig:
@@ -161,20 +182,25 @@ def parse_bench(src: str, raw: Any, card: MachineCard) -> BenchConfig:
     refuse_unknown_keys(src, raw, list(BENCH_KEYS), "bench")
     kw: dict[str, Any] = {}
     if raw.get("voltage_capture") is not None:
-        cap = _section(src, "voltage_capture", VoltageCapture, raw["voltage_capture"],
-                       _CAPTURE_RANGES)
+        cap = _section(
+            src, "voltage_capture", VoltageCapture, raw["voltage_capture"], _CAPTURE_RANGES
+        )
         kw["voltage_capture"] = cap
     if raw.get("current_sample_skew_s") is not None:
         v = raw["current_sample_skew_s"]
         if not isinstance(v, list) or len(v) != 3:
-            raise ConfigError(f"{src}: 'bench.current_sample_skew_s' must be a list of 3 "
-                              f"numbers (phases a, b, c) [s]")
+            raise ConfigError(
+                f"{src}: 'bench.current_sample_skew_s' must be a list of 3 "
+                f"numbers (phases a, b, c) [s]"
+            )
         half = 0.25 * card.ts_s
         kw["current_sample_skew_s"] = tuple(
-            _num(src, "current_sample_skew_s", x, 0.0, half) for x in v)
+            _num(src, "current_sample_skew_s", x, 0.0, half) for x in v
+        )
     if raw.get("observer_model") is not None:
-        kw["observer_model"] = _section(src, "observer_model", ObserverModel,
-                                        raw["observer_model"], _MODEL_RANGES)
+        kw["observer_model"] = _section(
+            src, "observer_model", ObserverModel, raw["observer_model"], _MODEL_RANGES
+        )
     if raw.get("thermal") is not None:
         th = raw["thermal"]
         th = {} if th is True else th
@@ -182,6 +208,7 @@ def parse_bench(src: str, raw: Any, card: MachineCard) -> BenchConfig:
         # thermal_time_constant_s 0) the winding stays at the start temperature
         kw["thermal"] = _section(src, "thermal", Thermal, th, _THERMAL_RANGES)
     if raw.get("spatial_saturation_h6_pu") is not None:
-        kw["spatial_saturation_h6_pu"] = _num(src, "spatial_saturation_h6_pu",
-                                              raw["spatial_saturation_h6_pu"], 0.0, 0.3)
+        kw["spatial_saturation_h6_pu"] = _num(
+            src, "spatial_saturation_h6_pu", raw["spatial_saturation_h6_pu"], 0.0, 0.3
+        )
     return BenchConfig(**kw)

@@ -55,8 +55,9 @@ def pi_output(kp: float, integ: float, err: float) -> float:
 
 
 @njit(cache=True, inline="always")
-def pi_update(integ: float, ki: float, ts_s: float, err: float, out_unsat: float,
-              out_sat: float) -> float:
+def pi_update(
+    integ: float, ki: float, ts_s: float, err: float, out_unsat: float, out_sat: float
+) -> float:
     """Integrate and back-calculate: the integrator absorbs the part the limiter cut off,
     so it never winds up beyond what the actuator realised."""
     return integ + ki * ts_s * err + (out_sat - out_unsat)
@@ -70,8 +71,9 @@ def pll_gains(bandwidth_hz: float, damping: float) -> tuple[float, float]:
 
 
 @njit(cache=True, inline="always")
-def pll_step(theta: float, integ: float, err: float, kp: float, ki: float,
-             ts_s: float) -> tuple[float, float, float]:
+def pll_step(
+    theta: float, integ: float, err: float, kp: float, ki: float, ts_s: float
+) -> tuple[float, float, float]:
     """One PLL step.  `theta` is the estimate for this sample (used to form `err`).
     Returns (omega for this sample, new integrator, theta predicted for the next sample)."""
     integ = integ + ki * ts_s * err

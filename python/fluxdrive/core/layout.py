@@ -45,14 +45,21 @@ class Layout:
     def close(self, namespace: Mapping[str, object]) -> int:
         """Check the module's `prefix`_* integers against the layout; return its length."""
         head = self.prefix + "_"
-        found = {k: v for k, v in namespace.items()
-                 if k.startswith(head) and k != head + "N" and isinstance(v, int)
-                 and not isinstance(v, bool)}
+        found = {
+            k: v
+            for k, v in namespace.items()
+            if k.startswith(head)
+            and k != head + "N"
+            and isinstance(v, int)
+            and not isinstance(v, bool)
+        }
         by_index = sorted(found, key=lambda k: found[k])
         if [found[k] for k in by_index] != list(range(self.n)):
-            raise RuntimeError(f"layout {self.prefix}: constants {found} are not exactly "
-                               f"0..{self.n - 1} from {self.prefix}.index()")
-        self.names = tuple(k[len(head):].lower() for k in by_index)
+            raise RuntimeError(
+                f"layout {self.prefix}: constants {found} are not exactly "
+                f"0..{self.n - 1} from {self.prefix}.index()"
+            )
+        self.names = tuple(k[len(head) :].lower() for k in by_index)
         self._closed = True
         return self.n
 

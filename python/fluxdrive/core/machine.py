@@ -24,8 +24,7 @@ def refuse_unknown_keys(src: str, data: dict, known: list[str], where: str) -> N
     refused, never silently ignored); `known` is listed in the order given."""
     bad = sorted(set(data) - set(known))
     if bad:
-        raise ConfigError(f"{src}: unknown key(s) {bad} under '{where}'; expected some of "
-                          f"{known}")
+        raise ConfigError(f"{src}: unknown key(s) {bad} under '{where}'; expected some of {known}")
 
 
 def _require_range(src: str, key: str, value: Any, lo: float, hi: float) -> float:
@@ -97,17 +96,33 @@ class MachineCard:
 
     def validate(self, src: str = "machine card") -> MachineCard:
         checks = {
-            "pole_pairs": (1, 64), "rated_speed_rpm": (1.0, 1e6), "flux_linkage_vs": (1e-6, 10.0),
-            "resistance_ohm": (0.0, 1e3), "inductance_h": (1e-7, 10.0),
-            "rated_current_a": (1e-3, 1e4), "inertia_kgm2": (1e-9, 1e3), "viscous_nms": (0.0, 1e3),
-            "dc_bus_v": (1.0, 1e4), "pwm_hz": (100.0, 1e6), "deadtime_s": (0.0, 1e-4),
-            "device_drop_v": (0.0, 10.0), "current_adc_bits": (4, 24),
-            "current_range_a": (1e-3, 1e5), "current_noise_a": (0.0, 1e3),
-            "capture_bits": (4, 24), "dc_bus_adc_bits": (4, 24), "dc_bus_range_v": (1.0, 1e5),
-            "dc_bus_noise_v": (0.0, 1e3), "encoder_lines": (1, 1 << 20),
-            "flux_h5": (-0.5, 0.5), "flux_h7": (-0.5, 0.5), "saturation": (0.0, 0.7),
-            "thermal_resistance_k_per_w": (0.0, 1e3), "thermal_time_constant_s": (0.0, 1e6),
-            "resistance_ref_c": (-60.0, 250.0), "copper_tempco_per_k": (0.0, 0.01),
+            "pole_pairs": (1, 64),
+            "rated_speed_rpm": (1.0, 1e6),
+            "flux_linkage_vs": (1e-6, 10.0),
+            "resistance_ohm": (0.0, 1e3),
+            "inductance_h": (1e-7, 10.0),
+            "rated_current_a": (1e-3, 1e4),
+            "inertia_kgm2": (1e-9, 1e3),
+            "viscous_nms": (0.0, 1e3),
+            "dc_bus_v": (1.0, 1e4),
+            "pwm_hz": (100.0, 1e6),
+            "deadtime_s": (0.0, 1e-4),
+            "device_drop_v": (0.0, 10.0),
+            "current_adc_bits": (4, 24),
+            "current_range_a": (1e-3, 1e5),
+            "current_noise_a": (0.0, 1e3),
+            "capture_bits": (4, 24),
+            "dc_bus_adc_bits": (4, 24),
+            "dc_bus_range_v": (1.0, 1e5),
+            "dc_bus_noise_v": (0.0, 1e3),
+            "encoder_lines": (1, 1 << 20),
+            "flux_h5": (-0.5, 0.5),
+            "flux_h7": (-0.5, 0.5),
+            "saturation": (0.0, 0.7),
+            "thermal_resistance_k_per_w": (0.0, 1e3),
+            "thermal_time_constant_s": (0.0, 1e6),
+            "resistance_ref_c": (-60.0, 250.0),
+            "copper_tempco_per_k": (0.0, 0.01),
         }
         for key, (lo, hi) in checks.items():
             _require_range(src, key, getattr(self, key), lo, hi)
@@ -134,8 +149,10 @@ def load_machine(path: str | Path) -> MachineCard:
     try:
         raw = yamlio.load_file(path)
     except (OSError, yamlio.YAMLError) as exc:
-        raise ConfigError(f"{path}: cannot read machine card{yamlio.problem_line(exc)}: "
-                          f"{getattr(exc, 'problem', None) or exc}") from exc
+        raise ConfigError(
+            f"{path}: cannot read machine card{yamlio.problem_line(exc)}: "
+            f"{getattr(exc, 'problem', None) or exc}"
+        ) from exc
     if not isinstance(raw, dict):
         raise ConfigError(f"{path}: a machine card must be a mapping")
     flat: dict[str, Any] = {}
@@ -147,8 +164,9 @@ def load_machine(path: str | Path) -> MachineCard:
     known = {f.name: f for f in fields(MachineCard)}
     unknown = sorted(set(flat) - set(known))
     if unknown:
-        raise ConfigError(f"{path}: unknown machine-card key(s) {unknown}; expected some of "
-                          f"{sorted(known)}")
+        raise ConfigError(
+            f"{path}: unknown machine-card key(s) {unknown}; expected some of {sorted(known)}"
+        )
     kwargs: dict[str, Any] = {}
     for key, value in flat.items():
         ftype = known[key].type

@@ -49,6 +49,8 @@ def project_file(path: Path, what: str) -> Path:
         return path
     from fluxdrive.core.machine import ConfigError
 
-    raise ConfigError(f"{what} not found at {path}: the package reads config/ and the message "
-                      f"definitions from the fluxdrive checkout ({ROOT}); set {ROOT_ENV} to "
-                      f"the checkout")
+    raise ConfigError(
+        f"{what} not found at {path}: the package reads config/ and the message "
+        f"definitions from the fluxdrive checkout ({ROOT}); set {ROOT_ENV} to "
+        f"the checkout"
+    )

@@ -62,8 +62,10 @@ class Scenario:
 
     def load_breakpoints_nm(self) -> tuple[np.ndarray, np.ndarray]:
         p = self.load_profile_pu
-        return (np.ascontiguousarray(p[:, 0], dtype=float),
-                np.ascontiguousarray(p[:, 1] * self.machine.rated_torque_nm, dtype=float))
+        return (
+            np.ascontiguousarray(p[:, 0], dtype=float),
+            np.ascontiguousarray(p[:, 1] * self.machine.rated_torque_nm, dtype=float),
+        )
 
     def dyno_nm_per_rad_s(self) -> float:
         return self.dyno_pu_per_rpm * self.machine.rated_torque_nm / RPM
@@ -81,8 +83,9 @@ def _profile(src: str, key: str, v: Any) -> np.ndarray:
     try:
         arr = np.array(v, dtype=float)
     except (TypeError, ValueError) as exc:
-        raise ConfigError(f"{src}: '{key}' must be a number or a list of [t_s, value] "
-                          f"pairs") from exc
+        raise ConfigError(
+            f"{src}: '{key}' must be a number or a list of [t_s, value] pairs"
+        ) from exc
     if arr.ndim != 2 or arr.shape[1] != 2 or arr.shape[0] < 1:
         raise ConfigError(f"{src}: '{key}' must be a list of [t_s, value] pairs, got {v!r}")
     if np.any(np.diff(arr[:, 0]) < 0) or not np.all(np.isfinite(arr)):
@@ -101,8 +104,9 @@ def _dataclass_from(src: str, key: str, cls, data: dict, base=None):
         if isinstance(cur, bool):
             if not isinstance(v, bool):
                 raise ConfigError(f"{src}: '{key}.{k}' must be true/false, got {v!r}")
-        elif isinstance(cur, (int, float)) or (cur is None and (
-                k.endswith(("_ohm", "_h", "_vs", "_hz", "_rad_s")) or k in CARD_RULES)):
+        elif isinstance(cur, (int, float)) or (
+            cur is None and (k.endswith(("_ohm", "_h", "_vs", "_hz", "_rad_s")) or k in CARD_RULES)
+        ):
             _num(src, f"{key}.{k}", v)
             v = float(v)
         elif isinstance(cur, str) and not isinstance(v, str):
@@ -112,27 +116,52 @@ def _dataclass_from(src: str, key: str, cls, data: dict, base=None):
 
 
 # control keys a scenario may give in per unit of the card's rated speed instead of rpm
-_CONTROL_PU = {"handover_pu": "handover_rpm", "handback_pu": "handback_rpm",
-               "if_accel_pu_s": "if_accel_rpm_s"}
+_CONTROL_PU = {
+    "handover_pu": "handover_rpm",
+    "handback_pu": "handback_rpm",
+    "if_accel_pu_s": "if_accel_rpm_s",
+}
 
-_TOP_KEYS = {"name", "description", "machine", "duration_s", "seed", "speed_rpm", "speed_pu",
-             "load_pu",
-             "dyno_pu_per_rpm", "load_type", "brake_band_rpm", "control", "observers", "driving",
-             "steady_window_s",
-             "step_load_time_s", "faults", "plant", "initial_angle_deg", "id_injection",
-             "speed_injection", "extra", "bench"}
+_TOP_KEYS = {
+    "name",
+    "description",
+    "machine",
+    "duration_s",
+    "seed",
+    "speed_rpm",
+    "speed_pu",
+    "load_pu",
+    "dyno_pu_per_rpm",
+    "load_type",
+    "brake_band_rpm",
+    "control",
+    "observers",
+    "driving",
+    "steady_window_s",
+    "step_load_time_s",
+    "faults",
+    "plant",
+    "initial_angle_deg",
+    "id_injection",
+    "speed_injection",
+    "extra",
+    "bench",
+}
 
 
-def load_scenario(path: str | Path, machine: str | Path | None = None,
-                  overrides: dict[str, Any] | None = None) -> Scenario:
+def load_scenario(
+    path: str | Path, machine: str | Path | None = None, overrides: dict[str, Any] | None = None
+) -> Scenario:
     """Load and validate a scenario; `machine` swaps the machine card."""
     path = Path(path)
     src = str(path)
     try:
         raw = yamlio.load_file(path)
     except (OSError, yamlio.YAMLError) as exc:
-        raise ConfigError(f"{src}: cannot read scenario{yamlio.problem_line(exc)}: "
-                          f"{getattr(exc, 'problem', None) or exc}") from exc
+        raise ConfigError(
+            f"{src}: cannot read scenario{yamlio.problem_line(exc)}: "
+            f"{getattr(exc, 'problem', None) or exc}"
+        ) from exc
     if not isinstance(raw, dict):
         raise ConfigError(f"{src}: a scenario must be a mapping")
     if machine is not None:  # --machine: the file's rpm values at the same per-unit speed
@@ -165,8 +194,10 @@ def load_scenario(path: str | Path, machine: str | Path | None = None,
         if key_pu in ctrl_raw:
             if key_rpm in ctrl_raw:
                 raise ConfigError(f"{src}: give control.{key_pu} or control.{key_rpm}, not both")
-            ctrl_raw[key_rpm] = _num(src, f"control.{key_pu}", ctrl_raw.pop(key_pu),
-                                     0.0, 100.0) * card.rated_speed_rpm
+            ctrl_raw[key_rpm] = (
+                _num(src, f"control.{key_pu}", ctrl_raw.pop(key_pu), 0.0, 100.0)
+                * card.rated_speed_rpm
+            )
     ctrl = _dataclass_from(src, "control", ControllerConfig, ctrl_raw)
     ctrl.check(card, f"{src}: control")  # on this card: a bad value names the file
     obs_raw = raw.get("observers", {}) or {}
@@ -186,8 +217,10 @@ def load_scenario(path: str | Path, machine: str | Path | None = None,
         observers[str(name)] = cfg.validate(f"{src}: observers.{name}").resolved(card)
     driving = str(raw.get("driving", "encoder"))
     if driving != "encoder" and driving not in observers:
-        raise ConfigError(f"{src}: 'driving' must be 'encoder' or one of the observers "
-                          f"{sorted(observers)}, got '{driving}'")
+        raise ConfigError(
+            f"{src}: 'driving' must be 'encoder' or one of the observers "
+            f"{sorted(observers)}, got '{driving}'"
+        )
     ctrl.position_source = "encoder" if driving == "encoder" else "estimate"
     if driving != "encoder" and ctrl.speed_observer_pll_hz is None:
         # the speed loop is designed with the driving observer's speed path, unless the
@@ -197,16 +230,20 @@ def load_scenario(path: str | Path, machine: str | Path | None = None,
         ctrl.speed_observer_damping = d.pll_damping
         ctrl.speed_observer_lpf_hz = d.speed_lpf_hz
     win = raw.get("steady_window_s", [0.5 * duration, duration])
-    if (not isinstance(win, (list, tuple)) or len(win) != 2
-            or not 0 <= float(win[0]) < float(win[1]) <= duration + 1e-9):
+    if (
+        not isinstance(win, (list, tuple))
+        or len(win) != 2
+        or not 0 <= float(win[0]) < float(win[1]) <= duration + 1e-9
+    ):
         raise ConfigError(f"{src}: 'steady_window_s' must be [start, end] within the duration")
     faults = raw.get("faults", {}) or {}
     if not isinstance(faults, dict):
         raise ConfigError(f"{src}: 'faults' must be a mapping")
     bad = sorted(set(faults) - {"current_offset_pu", "current_gain"})
     if bad:
-        raise ConfigError(f"{src}: unknown fault key(s) {bad}; expected current_offset_pu, "
-                          f"current_gain")
+        raise ConfigError(
+            f"{src}: unknown fault key(s) {bad}; expected current_offset_pu, current_gain"
+        )
     off = faults.get("current_offset_pu", [0.0, 0.0, 0.0])
     gain = faults.get("current_gain", [1.0, 1.0, 1.0])
     for key, val in (("faults.current_offset_pu", off), ("faults.current_gain", gain)):
@@ -262,8 +299,11 @@ def _rescale_rpm(src: str, path: Path, raw: dict, card: MachineCard) -> dict:
     ctrl = raw.get("control") or {}
     inj = raw.get("speed_injection") or {}
     keys = [k for k in ("speed_rpm", "brake_band_rpm", "dyno_pu_per_rpm") if k in raw]
-    ckeys = ([k for k in ("handover_rpm", "handback_rpm", "if_accel_rpm_s") if k in ctrl]
-             if isinstance(ctrl, dict) else [])
+    ckeys = (
+        [k for k in ("handover_rpm", "handback_rpm", "if_accel_rpm_s") if k in ctrl]
+        if isinstance(ctrl, dict)
+        else []
+    )
     has_inj = isinstance(inj, dict) and "amplitude" in inj
     if not (keys or ckeys or has_inj):
         return raw
@@ -271,8 +311,10 @@ def _rescale_rpm(src: str, path: Path, raw: dict, card: MachineCard) -> dict:
     try:
         ref = load_machine(own)
     except ConfigError as exc:
-        raise ConfigError(f"{src}: its rpm values are read per unit of the card it names "
-                          f"('machine'), which cannot be loaded: {exc}") from exc
+        raise ConfigError(
+            f"{src}: its rpm values are read per unit of the card it names "
+            f"('machine'), which cannot be loaded: {exc}"
+        ) from exc
     k = card.rated_speed_rpm / ref.rated_speed_rpm
     if k == 1.0:
         return raw
@@ -284,8 +326,10 @@ def _rescale_rpm(src: str, path: Path, raw: dict, card: MachineCard) -> dict:
         if isinstance(v, (int, float)):
             return float(v) * f
         if isinstance(v, list):  # a [[t_s, value], ...] profile: the values only
-            return [[row[0], scale(key, row[1], f)] if isinstance(row, list) and len(row) == 2
-                    else row for row in v]
+            return [
+                [row[0], scale(key, row[1], f)] if isinstance(row, list) and len(row) == 2 else row
+                for row in v
+            ]
         return v  # not a number: the loader refuses it with its own message
 
     for key in keys:
@@ -316,16 +360,19 @@ def _bench_raw(src: str, path: Path, v: Any) -> Any:
     try:
         raw = yamlio.load_file(bpath)
     except (OSError, yamlio.YAMLError) as exc:
-        raise ConfigError(f"{src}: 'bench': cannot read bench file {bpath}"
-                          f"{yamlio.problem_line(exc)}: {exc}") from exc
+        raise ConfigError(
+            f"{src}: 'bench': cannot read bench file {bpath}{yamlio.problem_line(exc)}: {exc}"
+        ) from exc
     return {} if raw is None else raw
 
 
 def _load_band(src: str, raw: dict) -> float:
     kind = raw.get("load_type", "brake")
     if kind not in ("brake", "active"):
-        raise ConfigError(f"{src}: 'load_type' must be 'brake' (passive, like the paper's "
-                          f"hysteresis dyno) or 'active', got {kind!r}")
+        raise ConfigError(
+            f"{src}: 'load_type' must be 'brake' (passive, like the paper's "
+            f"hysteresis dyno) or 'active', got {kind!r}"
+        )
     if kind == "active":
         return 0.0
     return _num(src, "brake_band_rpm", raw.get("brake_band_rpm", 2.0), 1e-3, 1e4)
@@ -360,23 +407,30 @@ def scenario_to_raw(sc: Scenario, machine_path: str) -> dict[str, Any]:
     from dataclasses import asdict
 
     rated = sc.machine.rated_current_a
+
     def set_fields(obj) -> dict[str, Any]:  # None = "the machine card's" = the default
         return {k: v for k, v in asdict(obj).items() if v is not None}
 
     ctrl = set_fields(sc.control)
     ctrl.pop("position_source")  # follows from `driving`
     raw: dict[str, Any] = {
-        "name": sc.name, "description": sc.description, "machine": machine_path,
-        "duration_s": float(sc.duration_s), "seed": int(sc.seed),
-        "speed_rpm": sc.speed_profile_rpm.tolist(), "load_pu": sc.load_profile_pu.tolist(),
+        "name": sc.name,
+        "description": sc.description,
+        "machine": machine_path,
+        "duration_s": float(sc.duration_s),
+        "seed": int(sc.seed),
+        "speed_rpm": sc.speed_profile_rpm.tolist(),
+        "load_pu": sc.load_profile_pu.tolist(),
         "dyno_pu_per_rpm": float(sc.dyno_pu_per_rpm),
         "load_type": "active" if sc.brake_band_rpm == 0.0 else "brake",
         "control": ctrl,
         "observers": {n: set_fields(c) for n, c in sc.observers.items()},
         "driving": sc.driving,
         "steady_window_s": [float(sc.steady_window_s[0]), float(sc.steady_window_s[1])],
-        "faults": {"current_offset_pu": [float(x) / rated for x in sc.current_offset_a],
-                   "current_gain": [float(x) for x in sc.current_gain]},
+        "faults": {
+            "current_offset_pu": [float(x) / rated for x in sc.current_offset_a],
+            "current_gain": [float(x) for x in sc.current_gain],
+        },
         "initial_angle_deg": float(sc.initial_angle_deg),
         "extra": dict(sc.extra),
     }
@@ -413,8 +467,9 @@ def save_scenario(sc: Scenario, path: str | Path) -> Path:
     back = load_scenario(path)
     diff = scenario_differences(sc, back)
     if diff:
-        raise ConfigError(f"{path}: the scenario file does not reproduce the scenario "
-                          f"({', '.join(diff)})")
+        raise ConfigError(
+            f"{path}: the scenario file does not reproduce the scenario ({', '.join(diff)})"
+        )
     return path
 
 

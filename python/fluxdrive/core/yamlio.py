@@ -18,9 +18,12 @@ YAMLError = yaml.YAMLError
 
 # YAML 1.2 core-schema floats: optional sign, digits with an optional fraction (or a
 # leading-dot fraction), optional exponent with an optional sign; plus .inf/.nan
-_FLOAT_12 = re.compile(r"""^(?:[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?
+_FLOAT_12 = re.compile(
+    r"""^(?:[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?
                          |[-+]?\.(?:inf|Inf|INF)
-                         |\.(?:nan|NaN|NAN))$""", re.X)
+                         |\.(?:nan|NaN|NAN))$""",
+    re.X,
+)
 
 
 class Loader(yaml.SafeLoader):
@@ -28,12 +31,15 @@ class Loader(yaml.SafeLoader):
 
 
 # rebuild the implicit resolvers: YAML 1.1 int first (so `10` stays an int), then 1.2 floats
-Loader.yaml_implicit_resolvers = {k: list(v) for k, v in
-                                  yaml.SafeLoader.yaml_implicit_resolvers.items()}
+Loader.yaml_implicit_resolvers = {
+    k: list(v) for k, v in yaml.SafeLoader.yaml_implicit_resolvers.items()
+}
 for _ch in list("-+.0123456789"):
     Loader.yaml_implicit_resolvers[_ch] = [
-        (tag, rx) for tag, rx in Loader.yaml_implicit_resolvers.get(_ch, [])
-        if tag != "tag:yaml.org,2002:float"]
+        (tag, rx)
+        for tag, rx in Loader.yaml_implicit_resolvers.get(_ch, [])
+        if tag != "tag:yaml.org,2002:float"
+    ]
 Loader.add_implicit_resolver("tag:yaml.org,2002:float", _FLOAT_12, list("-+.0123456789"))
 
 

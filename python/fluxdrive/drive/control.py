@@ -99,14 +99,34 @@ CS_N = _CS.close(globals())
 MODE_DISABLED, MODE_ALIGN, MODE_IF_RAMP, MODE_CLOSED_LOOP, MODE_FAULT = range(5)
 MODE_NAMES = {0: "disabled", 1: "align", 2: "if_ramp", 3: "closed_loop", 4: "fault"}
 # fault codes: the same numbers as flux_drive_msgs/msg/DriveFault
-(FAULT_NONE, FAULT_OVERCURRENT, FAULT_OVERCURRENT_I2T, FAULT_OVERVOLTAGE, FAULT_UNDERVOLTAGE,
- FAULT_OVERSPEED, FAULT_LOSS_OF_LOCK, FAULT_POSITION_INVALID, FAULT_STALE_INPUT, FAULT_WATCHDOG,
- FAULT_BAD_SAMPLE, FAULT_START_FAILED) = range(12)
-FAULT_NAMES = {0: "none", 1: "over-current (instantaneous)", 2: "over-current (I2t)",
-               3: "DC-bus over-voltage", 4: "DC-bus under-voltage", 5: "over-speed",
-               6: "loss of observer lock", 7: "position estimate not finite",
-               8: "stale input", 9: "watchdog", 10: "bad sample (NaN/inf)",
-               11: "start-up failed"}
+(
+    FAULT_NONE,
+    FAULT_OVERCURRENT,
+    FAULT_OVERCURRENT_I2T,
+    FAULT_OVERVOLTAGE,
+    FAULT_UNDERVOLTAGE,
+    FAULT_OVERSPEED,
+    FAULT_LOSS_OF_LOCK,
+    FAULT_POSITION_INVALID,
+    FAULT_STALE_INPUT,
+    FAULT_WATCHDOG,
+    FAULT_BAD_SAMPLE,
+    FAULT_START_FAILED,
+) = range(12)
+FAULT_NAMES = {
+    0: "none",
+    1: "over-current (instantaneous)",
+    2: "over-current (I2t)",
+    3: "DC-bus over-voltage",
+    4: "DC-bus under-voltage",
+    5: "over-speed",
+    6: "loss of observer lock",
+    7: "position estimate not finite",
+    8: "stale input",
+    9: "watchdog",
+    10: "bad sample (NaN/inf)",
+    11: "start-up failed",
+}
 
 # ---- controller output CO_*
 _CO = Layout("CO")
@@ -223,8 +243,9 @@ def _encoder_feedback(cs, cp, fr, p, ts):
         cs[CS_ENC_INIT] = 1.0
         cs[CS_ENC_TH] = th_enc_meas
     e_enc = math.sin(th_enc_meas - cs[CS_ENC_TH])
-    w_enc, cs[CS_ENC_I], th_next = pll_step(cs[CS_ENC_TH], cs[CS_ENC_I], e_enc, cp[CP_ENC_KP],
-                                            cp[CP_ENC_KI], ts)
+    w_enc, cs[CS_ENC_I], th_next = pll_step(
+        cs[CS_ENC_TH], cs[CS_ENC_I], e_enc, cp[CP_ENC_KP], cp[CP_ENC_KI], ts
+    )
     cs[CS_ENC_TH] = th_next
     return th_enc_meas, w_enc
 
@@ -453,8 +474,12 @@ def controller_step(cs, cp, fr, est, w_ref_m, id_inj, out):
             _trip(cs, out, FAULT_START_FAILED)
             return
     if mode == MODE_CLOSED_LOOP:
-        if (cp[CP_SRC] == SRC_ESTIMATE and abs(w_ref_m) < cp[CP_HANDBACK]
-                and cs[CS_MODE] == MODE_CLOSED_LOOP and cs[CS_T_MODE] > 0.05):
+        if (
+            cp[CP_SRC] == SRC_ESTIMATE
+            and abs(w_ref_m) < cp[CP_HANDBACK]
+            and cs[CS_MODE] == MODE_CLOSED_LOOP
+            and cs[CS_T_MODE] > 0.05
+        ):
             th, id_ref = _hand_back(cs, cp, th, we, id_inj, ts)
             iq_ref = 0.0
         else:
@@ -489,8 +514,9 @@ def _peak_db(tf_fn, f_lo: float, f_hi: float) -> float:
     return float(20.0 * np.log10(max(float(np.max(np.abs(tf_fn(f)))), 1e-300)))
 
 
-def _largest_gain(bw_of, peak_of, target_hz: float, peak_limit_db: float, lo: float,
-                  hi: float) -> tuple[float, bool]:
+def _largest_gain(
+    bw_of, peak_of, target_hz: float, peak_limit_db: float, lo: float, hi: float
+) -> tuple[float, bool]:
     """The one design rule of every loop: the gain scale g whose -3 dB bandwidth is the
     target, unless that peaks by more than the limit -- then the largest g that peaks by
     exactly the limit (the best the feedback path allows).  Returns (g, limited)."""
@@ -521,17 +547,26 @@ def _largest_gain(bw_of, peak_of, target_hz: float, peak_limit_db: float, lo: fl
     return a, True
 
 
-def design_current_loop(card: MachineCard, bandwidth_hz: float, r_hat: float | None = None,
-                        l_hat: float | None = None, peak_limit_db: float = 3.0
-                        ) -> tuple[float, float]:
+def design_current_loop(
+    card: MachineCard,
+    bandwidth_hz: float,
+    r_hat: float | None = None,
+    l_hat: float | None = None,
+    peak_limit_db: float = 3.0,
+) -> tuple[float, float]:
     """(K_p [V/A], K_i [V/(A s)]) giving the requested -3 dB bandwidth of i_d/i_d*, or the
     highest the peaking limit allows (see `design_loops`)."""
     d = _design_current(card, bandwidth_hz, r_hat, l_hat, peak_limit_db)
     return d[0], d[1]
 
 
-def _design_current(card: MachineCard, bandwidth_hz: float, r_hat: float | None,
-                    l_hat: float | None, peak_limit_db: float):
+def _design_current(
+    card: MachineCard,
+    bandwidth_hz: float,
+    r_hat: float | None,
+    l_hat: float | None,
+    peak_limit_db: float,
+):
     r = card.resistance_ohm if r_hat is None else r_hat
     lind = card.inductance_h if l_hat is None else l_hat
     ts = card.ts_s
@@ -543,13 +578,25 @@ def _design_current(card: MachineCard, bandwidth_hz: float, r_hat: float | None,
 
     hi = 2.0
     if _bandwidth_from_tf(tf(hi), 1.0, nyq) < bandwidth_hz:
-        raise ConfigError(f"current-loop bandwidth {bandwidth_hz} Hz is not reachable at "
-                          f"{card.pwm_hz} Hz PWM with the 1.5-period delay")
-    g, limited = _largest_gain(lambda g: _bandwidth_from_tf(tf(g), 1.0, nyq),
-                               lambda g: _peak_db(tf(g), 1.0, nyq), bandwidth_hz,
-                               peak_limit_db, 0.05, hi)
-    return (g * lind * w, g * r * w, _bandwidth_from_tf(tf(g), 1.0, nyq),
-            _peak_db(tf(g), 1.0, nyq), limited)
+        raise ConfigError(
+            f"current-loop bandwidth {bandwidth_hz} Hz is not reachable at "
+            f"{card.pwm_hz} Hz PWM with the 1.5-period delay"
+        )
+    g, limited = _largest_gain(
+        lambda g: _bandwidth_from_tf(tf(g), 1.0, nyq),
+        lambda g: _peak_db(tf(g), 1.0, nyq),
+        bandwidth_hz,
+        peak_limit_db,
+        0.05,
+        hi,
+    )
+    return (
+        g * lind * w,
+        g * r * w,
+        _bandwidth_from_tf(tf(g), 1.0, nyq),
+        _peak_db(tf(g), 1.0, nyq),
+        limited,
+    )
 
 
 def speed_feedback_tf(s: np.ndarray, pll_hz: float, damping: float, lpf_hz: float):
@@ -563,39 +610,79 @@ def speed_feedback_tf(s: np.ndarray, pll_hz: float, damping: float, lpf_hz: floa
     return h
 
 
-def speed_loop_tf(card: MachineCard, kp: float, ki: float, current_bw_hz: float,
-                  f_hz: np.ndarray, feedback_pll_hz: float | None = None,
-                  feedback_damping: float = 1.0, feedback_lpf_hz: float = 0.0,
-                  estimated: bool = False) -> np.ndarray:
+def speed_loop_tf(
+    card: MachineCard,
+    kp: float,
+    ki: float,
+    current_bw_hz: float,
+    f_hz: np.ndarray,
+    feedback_pll_hz: float | None = None,
+    feedback_damping: float = 1.0,
+    feedback_lpf_hz: float = 0.0,
+    estimated: bool = False,
+) -> np.ndarray:
     """Closed speed loop at f: plant K_t/(J s + B), current loop a first-order lag at its
     bandwidth, the PI acting on the speed estimate (the position source's PLL and LPF).
     True speed w/w* = F/(1 + F H); estimated speed w^/w* = F H/(1 + F H)."""
     s = 1j * 2 * np.pi * np.asarray(f_hz, dtype=float)
     wi = 2 * math.pi * current_bw_hz
-    fwd = (kp + ki / s) * card.torque_constant_nm_per_a / (card.inertia_kgm2 * s
-                                                           + card.viscous_nms) * wi / (s + wi)
-    h = (speed_feedback_tf(s, feedback_pll_hz, feedback_damping, feedback_lpf_hz)
-         if feedback_pll_hz else 1.0)
+    fwd = (
+        (kp + ki / s)
+        * card.torque_constant_nm_per_a
+        / (card.inertia_kgm2 * s + card.viscous_nms)
+        * wi
+        / (s + wi)
+    )
+    h = (
+        speed_feedback_tf(s, feedback_pll_hz, feedback_damping, feedback_lpf_hz)
+        if feedback_pll_hz
+        else 1.0
+    )
     return fwd * h / (1 + fwd * h) if estimated else fwd / (1 + fwd * h)
 
 
-def design_speed_loop(card: MachineCard, bandwidth_hz: float, current_bw_hz: float,
-                      zero_ratio: float = 0.25, feedback_pll_hz: float | None = None,
-                      feedback_damping: float = 1.0, feedback_lpf_hz: float = 0.0,
-                      peak_limit_db: float = 3.0) -> tuple[float, float]:
+def design_speed_loop(
+    card: MachineCard,
+    bandwidth_hz: float,
+    current_bw_hz: float,
+    zero_ratio: float = 0.25,
+    feedback_pll_hz: float | None = None,
+    feedback_damping: float = 1.0,
+    feedback_lpf_hz: float = 0.0,
+    peak_limit_db: float = 3.0,
+) -> tuple[float, float]:
     """(K_p [A s/rad], K_i [A/rad]) of the speed PI: see `design_loops`."""
-    d = _design_speed(card, bandwidth_hz, current_bw_hz, zero_ratio, feedback_pll_hz,
-                      feedback_damping, feedback_lpf_hz, peak_limit_db)
+    d = _design_speed(
+        card,
+        bandwidth_hz,
+        current_bw_hz,
+        zero_ratio,
+        feedback_pll_hz,
+        feedback_damping,
+        feedback_lpf_hz,
+        peak_limit_db,
+    )
     return d["kp"], d["ki"]
 
 
-def _design_speed(card, bandwidth_hz, current_bw_hz, zero_ratio, feedback_pll_hz,
-                  feedback_damping, feedback_lpf_hz, peak_limit_db) -> dict:
+def _design_speed(
+    card,
+    bandwidth_hz,
+    current_bw_hz,
+    zero_ratio,
+    feedback_pll_hz,
+    feedback_damping,
+    feedback_lpf_hz,
+    peak_limit_db,
+) -> dict:
     kt = card.torque_constant_nm_per_a
     j = card.inertia_kgm2
     wb = 2 * math.pi * bandwidth_hz
-    fb = dict(feedback_pll_hz=feedback_pll_hz, feedback_damping=feedback_damping,
-              feedback_lpf_hz=feedback_lpf_hz)
+    fb = dict(
+        feedback_pll_hz=feedback_pll_hz,
+        feedback_damping=feedback_damping,
+        feedback_lpf_hz=feedback_lpf_hz,
+    )
 
     def gains(g: float) -> tuple[float, float]:
         # the whole PI scales with g: crossover ~ g w_b, integral zero at zero_ratio times it
@@ -610,13 +697,19 @@ def _design_speed(card, bandwidth_hz, current_bw_hz, zero_ratio, feedback_pll_hz
         # the robustness limit holds for what the encoder sees and for what the loop sees
         return max(_peak_db(tf(g), 0.01, 5e3), _peak_db(tf(g, True), 0.01, 5e3))
 
-    g, limited = _largest_gain(lambda g: _bandwidth_from_tf(tf(g), 0.01, 5e3), peak,
-                               bandwidth_hz, peak_limit_db, 0.01, 5.0)
+    g, limited = _largest_gain(
+        lambda g: _bandwidth_from_tf(tf(g), 0.01, 5e3), peak, bandwidth_hz, peak_limit_db, 0.01, 5.0
+    )
     kp, ki = gains(g)
-    return {"kp": kp, "ki": ki, "bandwidth_hz": _bandwidth_from_tf(tf(g), 0.01, 5e3),
-            "peak_db": _peak_db(tf(g), 0.01, 5e3),
-            "est_bandwidth_hz": _bandwidth_from_tf(tf(g, True), 0.01, 5e3),
-            "est_peak_db": _peak_db(tf(g, True), 0.01, 5e3), "limited": limited}
+    return {
+        "kp": kp,
+        "ki": ki,
+        "bandwidth_hz": _bandwidth_from_tf(tf(g), 0.01, 5e3),
+        "peak_db": _peak_db(tf(g), 0.01, 5e3),
+        "est_bandwidth_hz": _bandwidth_from_tf(tf(g, True), 0.01, 5e3),
+        "est_peak_db": _peak_db(tf(g, True), 0.01, 5e3),
+        "limited": limited,
+    }
 
 
 @dataclass
@@ -639,18 +732,27 @@ class LoopDesign:
 
     def summary(self) -> str:
         lim = {True: " (peaking-limited)", False: ""}
-        return (f"current loop {self.current_bandwidth_hz:.0f} Hz, peak "
-                f"{self.current_peak_db:+.1f} dB{lim[self.current_limited]}; speed loop "
-                f"{self.speed_bandwidth_hz:.1f} Hz true / {self.speed_est_bandwidth_hz:.1f} Hz "
-                f"estimated, peak {max(self.speed_peak_db, self.speed_est_peak_db):+.1f} dB"
-                f"{lim[self.speed_limited]} (limit {self.peak_limit_db:g} dB)")
+        return (
+            f"current loop {self.current_bandwidth_hz:.0f} Hz, peak "
+            f"{self.current_peak_db:+.1f} dB{lim[self.current_limited]}; speed loop "
+            f"{self.speed_bandwidth_hz:.1f} Hz true / {self.speed_est_bandwidth_hz:.1f} Hz "
+            f"estimated, peak {max(self.speed_peak_db, self.speed_est_peak_db):+.1f} dB"
+            f"{lim[self.speed_limited]} (limit {self.peak_limit_db:g} dB)"
+        )
 
 
-def design_loops(card: MachineCard, current_bw_hz: float = 1000.0, speed_bw_hz: float = 10.0,
-                 feedback_pll_hz: float | None = None, feedback_damping: float = 1.0,
-                 feedback_lpf_hz: float = 0.0, peak_limit_db: float = 3.0,
-                 r_hat: float | None = None, l_hat: float | None = None,
-                 zero_ratio: float = 0.25) -> LoopDesign:
+def design_loops(
+    card: MachineCard,
+    current_bw_hz: float = 1000.0,
+    speed_bw_hz: float = 10.0,
+    feedback_pll_hz: float | None = None,
+    feedback_damping: float = 1.0,
+    feedback_lpf_hz: float = 0.0,
+    peak_limit_db: float = 3.0,
+    r_hat: float | None = None,
+    l_hat: float | None = None,
+    zero_ratio: float = 0.25,
+) -> LoopDesign:
     """The one design procedure for every drive's current and speed loops.
 
     Rule: each loop gets the gain that gives its target -3 dB bandwidth, unless the closed
@@ -666,13 +768,34 @@ def design_loops(card: MachineCard, current_bw_hz: float = 1000.0, speed_bw_hz: 
     position source's PLL (w_n^2/(s^2 + 2 zeta w_n s + w_n^2)) and speed LPF; the limit
     holds for both the true speed w/w* and the estimated speed w^/w*.  The -3 dB target
     is met on the true speed (what an encoder on the shaft measures)."""
-    kp_i, ki_i, bw_i, pk_i, lim_i = _design_current(card, current_bw_hz, r_hat, l_hat,
-                                                    peak_limit_db)
-    d = _design_speed(card, speed_bw_hz, bw_i, zero_ratio, feedback_pll_hz, feedback_damping,
-                      feedback_lpf_hz, peak_limit_db)
-    return LoopDesign(kp_i, ki_i, bw_i, pk_i, lim_i, d["kp"], d["ki"], d["bandwidth_hz"],
-                      d["peak_db"], d["est_bandwidth_hz"], d["est_peak_db"], d["limited"],
-                      peak_limit_db)
+    kp_i, ki_i, bw_i, pk_i, lim_i = _design_current(
+        card, current_bw_hz, r_hat, l_hat, peak_limit_db
+    )
+    d = _design_speed(
+        card,
+        speed_bw_hz,
+        bw_i,
+        zero_ratio,
+        feedback_pll_hz,
+        feedback_damping,
+        feedback_lpf_hz,
+        peak_limit_db,
+    )
+    return LoopDesign(
+        kp_i,
+        ki_i,
+        bw_i,
+        pk_i,
+        lim_i,
+        d["kp"],
+        d["ki"],
+        d["bandwidth_hz"],
+        d["peak_db"],
+        d["est_bandwidth_hz"],
+        d["est_peak_db"],
+        d["limited"],
+        peak_limit_db,
+    )
 
 
 # Per-unit rules that derive every unset ControllerConfig field from the machine card
@@ -682,9 +805,9 @@ def design_loops(card: MachineCard, current_bw_hz: float = 1000.0, speed_bw_hz: 
 # machine by its physics, not by numbers bound to one motor.
 CARD_RULES: dict[str, str] = {
     "current_bandwidth_hz": "PWM/10 (1.5-period delay), at least 3x the RL corner R/(2 pi L),"
-                            " at most PWM/5",
+    " at most PWM/5",
     "speed_bandwidth_hz": "0.015 x the card's current bandwidth (a target: the design's "
-                          "peaking limit may grant less)",
+    "peaking limit may grant less)",
     "encoder_pll_hz": "0.15 x the card's current bandwidth",
     "speed_feedback_lpf_hz": "0.02 x the card's current bandwidth",
     "vdc_min_v": "0.28 x dc_bus_v",
@@ -780,8 +903,10 @@ class ControllerConfig:
         """Every field checked for type and range; the message names the key and rule."""
         for key, (lo, hi) in CONTROL_RANGES.items():
             v = getattr(self, key)
-            if v is None and (key in CARD_RULES or key.startswith(
-                    ("r_hat", "l_hat", "lambda_hat", "speed_observer_pll"))):
+            if v is None and (
+                key in CARD_RULES
+                or key.startswith(("r_hat", "l_hat", "lambda_hat", "speed_observer_pll"))
+            ):
                 continue
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not lo <= v <= hi:
                 raise ConfigError(f"{src}: {key} must be a number in [{lo}, {hi}], got {v!r}")
@@ -798,27 +923,44 @@ class ControllerConfig:
         if self.position_source == "encoder":
             fb = (self.encoder_pll_hz, 1.0, 0.0)
         else:
-            fb = (self.speed_observer_pll_hz, self.speed_observer_damping,
-                  self.speed_observer_lpf_hz)
-        return _cached_design(card, self.current_bandwidth_hz, self.speed_bandwidth_hz, fb,
-                              self.peak_limit_db, r, lind)
+            fb = (
+                self.speed_observer_pll_hz,
+                self.speed_observer_damping,
+                self.speed_observer_lpf_hz,
+            )
+        return _cached_design(
+            card,
+            self.current_bandwidth_hz,
+            self.speed_bandwidth_hz,
+            fb,
+            self.peak_limit_db,
+            r,
+            lind,
+        )
 
     def check(self, card: MachineCard, src: str = "control") -> ControllerConfig:
         """The settings resolved on `card` and checked as a whole (ranges, and the rules
         that tie fields to each other or to the card); returns the resolved copy."""
         r = self.validate(src).resolved(card).validate(src)
         if r.vdc_min_v >= r.vdc_max_v:
-            raise ConfigError(f"{src}: vdc_min_v {r.vdc_min_v:g} V must be below vdc_max_v "
-                              f"{r.vdc_max_v:g} V (machine dc_bus_v {card.dc_bus_v:g} V)")
+            raise ConfigError(
+                f"{src}: vdc_min_v {r.vdc_min_v:g} V must be below vdc_max_v "
+                f"{r.vdc_max_v:g} V (machine dc_bus_v {card.dc_bus_v:g} V)"
+            )
         if r.current_bandwidth_hz >= 0.25 * card.pwm_hz:
-            raise ConfigError(f"{src}: current_bandwidth_hz {r.current_bandwidth_hz} must "
-                              f"be below a quarter of the PWM frequency ({card.pwm_hz} Hz)")
+            raise ConfigError(
+                f"{src}: current_bandwidth_hz {r.current_bandwidth_hz} must "
+                f"be below a quarter of the PWM frequency ({card.pwm_hz} Hz)"
+            )
         if r.position_source not in ("encoder", "estimate"):
-            raise ConfigError(f"{src}: position_source must be 'encoder' or 'estimate', got "
-                              f"'{r.position_source}'")
+            raise ConfigError(
+                f"{src}: position_source must be 'encoder' or 'estimate', got '{r.position_source}'"
+            )
         if r.handback_rpm >= r.handover_rpm:
-            raise ConfigError(f"{src}: handback_rpm ({r.handback_rpm:g}) must be below "
-                              f"handover_rpm ({r.handover_rpm:g}) (hysteresis)")
+            raise ConfigError(
+                f"{src}: handback_rpm ({r.handback_rpm:g}) must be below "
+                f"handover_rpm ({r.handover_rpm:g}) (hysteresis)"
+            )
         return r
 
     def to_params(self, card: MachineCard) -> np.ndarray:
@@ -867,45 +1009,105 @@ class ControllerConfig:
 
 
 CONTROL_RANGES: dict[str, tuple[float, float]] = {
-    "current_bandwidth_hz": (10.0, 5000.0), "speed_bandwidth_hz": (0.1, 200.0),
-    "current_limit_pu": (0.05, 3.0), "angle_advance_periods": (0.0, 3.0),
-    "deadtime_comp_s": (0.0, 1e-4), "align_time_s": (0.0, 10.0),
-    "align_current_pu": (0.0, 2.0), "if_current_pu": (0.0, 2.0),
-    "if_accel_rpm_s": (1.0, 1e5), "handover_rpm": (0.1, 1e5), "handback_rpm": (0.0, 1e5),
-    "encoder_pll_hz": (1.0, 2000.0), "speed_feedback_lpf_hz": (0.1, 2000.0),
-    "overcurrent_pu": (0.1, 5.0), "overspeed_pu": (0.1, 5.0), "vdc_min_v": (0.0, 1e4),
-    "vdc_max_v": (1.0, 1e4), "invalid_timeout_s": (1e-4, 10.0),
-    "handover_dwell_s": (0.0, 10.0), "handover_timeout_s": (0.0, 600.0),
+    "current_bandwidth_hz": (10.0, 5000.0),
+    "speed_bandwidth_hz": (0.1, 200.0),
+    "current_limit_pu": (0.05, 3.0),
+    "angle_advance_periods": (0.0, 3.0),
+    "deadtime_comp_s": (0.0, 1e-4),
+    "align_time_s": (0.0, 10.0),
+    "align_current_pu": (0.0, 2.0),
+    "if_current_pu": (0.0, 2.0),
+    "if_accel_rpm_s": (1.0, 1e5),
+    "handover_rpm": (0.1, 1e5),
+    "handback_rpm": (0.0, 1e5),
+    "encoder_pll_hz": (1.0, 2000.0),
+    "speed_feedback_lpf_hz": (0.1, 2000.0),
+    "overcurrent_pu": (0.1, 5.0),
+    "overspeed_pu": (0.1, 5.0),
+    "vdc_min_v": (0.0, 1e4),
+    "vdc_max_v": (1.0, 1e4),
+    "invalid_timeout_s": (1e-4, 10.0),
+    "handover_dwell_s": (0.0, 10.0),
+    "handover_timeout_s": (0.0, 600.0),
     "handover_agree_lpf_hz": (0.0, 1000.0),
     "i2t_limit_pu2s": (0.01, 1e4),
-    "r_hat_ohm": (0.0, 1e3), "l_hat_h": (1e-7, 10.0), "lambda_hat_vs": (1e-6, 10.0),
-    "speed_observer_pll_hz": (0.1, 2000.0), "speed_observer_damping": (0.1, 5.0),
-    "speed_observer_lpf_hz": (0.0, 2000.0), "peak_limit_db": (0.1, 20.0),
+    "r_hat_ohm": (0.0, 1e3),
+    "l_hat_h": (1e-7, 10.0),
+    "lambda_hat_vs": (1e-6, 10.0),
+    "speed_observer_pll_hz": (0.1, 2000.0),
+    "speed_observer_damping": (0.1, 5.0),
+    "speed_observer_lpf_hz": (0.0, 2000.0),
+    "peak_limit_db": (0.1, 20.0),
 }
 
 
 _DESIGNS: dict[tuple, LoopDesign] = {}
 
 
-def _cached_design(card: MachineCard, current_bw_hz: float, speed_bw_hz: float, fb: tuple,
-                   peak_limit_db: float, r: float, lind: float) -> LoopDesign:
+def _cached_design(
+    card: MachineCard,
+    current_bw_hz: float,
+    speed_bw_hz: float,
+    fb: tuple,
+    peak_limit_db: float,
+    r: float,
+    lind: float,
+) -> LoopDesign:
     """design_loops, memoised on everything it reads (a scenario sweep re-uses a few)."""
-    key = (card.ts_s, card.inertia_kgm2, card.viscous_nms, card.torque_constant_nm_per_a,
-           current_bw_hz, speed_bw_hz, fb, peak_limit_db, r, lind)
+    key = (
+        card.ts_s,
+        card.inertia_kgm2,
+        card.viscous_nms,
+        card.torque_constant_nm_per_a,
+        current_bw_hz,
+        speed_bw_hz,
+        fb,
+        peak_limit_db,
+        r,
+        lind,
+    )
     if key not in _DESIGNS:
-        _DESIGNS[key] = design_loops(card, current_bw_hz, speed_bw_hz, feedback_pll_hz=fb[0],
-                                     feedback_damping=fb[1], feedback_lpf_hz=fb[2],
-                                     peak_limit_db=peak_limit_db, r_hat=r, l_hat=lind)
+        _DESIGNS[key] = design_loops(
+            card,
+            current_bw_hz,
+            speed_bw_hz,
+            feedback_pll_hz=fb[0],
+            feedback_damping=fb[1],
+            feedback_lpf_hz=fb[2],
+            peak_limit_db=peak_limit_db,
+            r_hat=r,
+            l_hat=lind,
+        )
     return _DESIGNS[key]
 
 
 # ====================================================================== trips, explained
-_FRAME_FIELDS = ("i_a", "i_b", "i_c", "v_ab", "v_bc", "v_ca", "v_dc", "d_a", "d_b", "d_c",
-                 "enable", "encoder", "seq", "flags")
+_FRAME_FIELDS = (
+    "i_a",
+    "i_b",
+    "i_c",
+    "v_ab",
+    "v_bc",
+    "v_ca",
+    "v_dc",
+    "d_a",
+    "d_b",
+    "d_c",
+    "enable",
+    "encoder",
+    "seq",
+    "flags",
+)
 
 
-def trip_values(code: int, frame: np.ndarray, est: np.ndarray, cp: np.ndarray,
-                cs: np.ndarray | None = None, w_fb_prev_rad_s: float = float("nan")) -> str:
+def trip_values(
+    code: int,
+    frame: np.ndarray,
+    est: np.ndarray,
+    cp: np.ndarray,
+    cs: np.ndarray | None = None,
+    w_fb_prev_rad_s: float = float("nan"),
+) -> str:
     """What tripped fault `code` (the kernel records only the code): the value, the limit
     and the setting the limit comes from, e.g. '160.0 V > 95.0 V (control.vdc_max_v)'.
     `frame` is the frame the controller tripped on, `est` the driving estimate it saw
@@ -919,37 +1121,54 @@ def trip_values(code: int, frame: np.ndarray, est: np.ndarray, cp: np.ndarray,
     if code == FAULT_OVERCURRENT:
         i = (frame[FR_IA], frame[FR_IB], frame[FR_IC])
         j = int(np.argmax(np.abs(i)))
-        return (f"|i_{'abc'[j]}| {abs(i[j]):.2f} A > {cp[CP_OC_TRIP]:.2f} A (control."
-                f"overcurrent_pu {cp[CP_OC_TRIP] / cp[CP_IRATED]:g} x {cp[CP_IRATED]:g} A)")
+        return (
+            f"|i_{'abc'[j]}| {abs(i[j]):.2f} A > {cp[CP_OC_TRIP]:.2f} A (control."
+            f"overcurrent_pu {cp[CP_OC_TRIP] / cp[CP_IRATED]:g} x {cp[CP_IRATED]:g} A)"
+        )
     if code == FAULT_OVERCURRENT_I2T:
         val = f"{cs[CS_I2T]:.3g}" if cs is not None else "integral of ((i/I_rated)^2 - 1) dt"
-        return (f"{val} > {cp[CP_I2T_LIMIT]:g} pu^2 s (control.i2t_limit_pu2s, I_rated "
-                f"{cp[CP_IRATED]:g} A)")
+        return (
+            f"{val} > {cp[CP_I2T_LIMIT]:g} pu^2 s (control.i2t_limit_pu2s, I_rated "
+            f"{cp[CP_IRATED]:g} A)"
+        )
     if code == FAULT_OVERSPEED:
         rpm = 60.0 / (2 * math.pi)
         w = est[ES_W] / cp[CP_P] if cp[CP_SRC] == SRC_ESTIMATE else w_fb_prev_rad_s
         return f"{abs(w) * rpm:.0f} rpm > {cp[CP_OS_TRIP] * rpm:.0f} rpm (control.overspeed_pu)"
     if code == FAULT_LOSS_OF_LOCK:
-        return (f"estimate flagged invalid (PLL error or |flux| out of bounds) for more than "
-                f"{cp[CP_INV_TIMEOUT]:g} s in closed loop (control.invalid_timeout_s)")
+        return (
+            f"estimate flagged invalid (PLL error or |flux| out of bounds) for more than "
+            f"{cp[CP_INV_TIMEOUT]:g} s in closed loop (control.invalid_timeout_s)"
+        )
     if code == FAULT_START_FAILED:
         i_if = cp[CP_IF_I] / cp[CP_IRATED]
-        return (f"no handover after {cp[CP_HANDOVER_TIMEOUT]:g} s at the handover speed "
-                f"(control.handover_timeout_s): the estimate never agreed with the I-f ramp "
-                f"for control.handover_dwell_s (a load above the torque of the I-f current, "
-                f"{i_if:.2g} pu (control.if_current_pu), holds the rotor; or the observer "
-                f"cannot see the rotor at this speed)")
+        return (
+            f"no handover after {cp[CP_HANDOVER_TIMEOUT]:g} s at the handover speed "
+            f"(control.handover_timeout_s): the estimate never agreed with the I-f ramp "
+            f"for control.handover_dwell_s (a load above the torque of the I-f current, "
+            f"{i_if:.2g} pu (control.if_current_pu), holds the rotor; or the observer "
+            f"cannot see the rotor at this speed)"
+        )
     if code == FAULT_POSITION_INVALID:
         return f"estimate not finite (theta^ = {est[ES_TH]}, omega^ = {est[ES_W]})"
     if code == FAULT_BAD_SAMPLE:
-        bad = [f"{_FRAME_FIELDS[j]} = {frame[j]}" for j in (FR_IA, FR_IB, FR_IC, FR_VDC, FR_ENC)
-               if not math.isfinite(frame[j])]
+        bad = [
+            f"{_FRAME_FIELDS[j]} = {frame[j]}"
+            for j in (FR_IA, FR_IB, FR_IC, FR_VDC, FR_ENC)
+            if not math.isfinite(frame[j])
+        ]
         return ", ".join(bad) or "a value not finite"
     return "latched by the controller"
 
 
-def describe_trip(code: int, frame: np.ndarray, est: np.ndarray, cp: np.ndarray,
-                  cs: np.ndarray | None = None, w_fb_prev_rad_s: float = float("nan")) -> str:
+def describe_trip(
+    code: int,
+    frame: np.ndarray,
+    est: np.ndarray,
+    cp: np.ndarray,
+    cs: np.ndarray | None = None,
+    w_fb_prev_rad_s: float = float("nan"),
+) -> str:
     """The fault's name and `trip_values`, e.g. 'DC-bus over-voltage 160.0 V > 95.0 V
     (control.vdc_max_v)'."""
     what = trip_values(code, frame, est, cp, cs, w_fb_prev_rad_s)

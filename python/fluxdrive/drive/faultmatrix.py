@@ -80,9 +80,16 @@ class Drive:
         self.duties: dict[int, np.ndarray] = {}
         self.ctrl: dict[int, np.ndarray] = {}
         self.lines: list[tuple[str, str]] = []
-        self.seq = ControlSequencer(ds.cp.copy(), ds.ts, ds.driving_index >= 0, self._emit,
-                                    lambda lvl, txt: self.lines.append((lvl, txt)),
-                                    ds.w_ref, ds.id_inj, **kw)
+        self.seq = ControlSequencer(
+            ds.cp.copy(),
+            ds.ts,
+            ds.driving_index >= 0,
+            self._emit,
+            lambda lvl, txt: self.lines.append((lvl, txt)),
+            ds.w_ref,
+            ds.id_inj,
+            **kw,
+        )
         self.backlog: list[tuple[int, np.ndarray, np.ndarray | None]] = []
         self.speed_rpm: list[float] = []
         self.lost: list[int] = []  # frames produced with the watchdog's PWM off
@@ -125,8 +132,18 @@ class Drive:
                 duty = pwm_off_latch()
                 if k >= 1:
                     self.lost.append(k + 1)
-            plant_advance(self.pst, ds.mp, self.rng, duty[CO_DA:CO_DC + 1], duty[CO_EN] > 0.5,
-                          ds.load_t, ds.load_y, ds.load_cfg, self.fr, self.tr)
+            plant_advance(
+                self.pst,
+                ds.mp,
+                self.rng,
+                duty[CO_DA : CO_DC + 1],
+                duty[CO_EN] > 0.5,
+                ds.load_t,
+                ds.load_y,
+                ds.load_cfg,
+                self.fr,
+                self.tr,
+            )
             if watchdog:  # the frame says so, as the plant node's does (STATUS_STALE_COMMAND)
                 self.fr[FR_FLAGS] = float(int(self.fr[FR_FLAGS]) | FLAG_STALE)
             self.speed_rpm.append(self.tr[TR_WM] / RPM)
@@ -164,6 +181,7 @@ def _cases(k0: int, ds: DriveSetup) -> list[Case]:
             if k in k_set:
                 fn(fr, es)
             return [(k, fr, es)]
+
         return inj
 
     def nan_i(fr, es):
@@ -205,33 +223,80 @@ def _cases(k0: int, ds: DriveSetup) -> list[Case]:
         FAULT_UNDERVOLTAGE,
         FAULT_WATCHDOG,
     )
+
     one = {k0 + 10}
     return [
-        Case("bad sample", "i_a = NaN in one frame", "latched", FAULT_BAD_SAMPLE,
-             at(one, nan_i)),
-        Case("over-current", "i_a = 3 x the trip level in one frame", "latched",
-             FAULT_OVERCURRENT, at(one, oc)),
-        Case("DC-bus over-voltage", "V_dc = 1.3 x vdc_max_v in one frame", "latched",
-             FAULT_OVERVOLTAGE, at(one, ov)),
-        Case("DC-bus under-voltage", "V_dc = 0.5 x vdc_min_v in one frame", "latched",
-             FAULT_UNDERVOLTAGE, at(one, uv)),
-        Case("estimate not finite", "theta^ = NaN in one estimate", "latched",
-             FAULT_POSITION_INVALID, at(one, th_nan)),
-        Case("loss of observer lock", f"estimate flagged invalid for {inv_n} periods "
-             f"(2 x invalid_timeout_s)", "latched", FAULT_LOSS_OF_LOCK,
-             at(set(range(k0 + 10, k0 + 10 + inv_n)), invalid)),
-        Case("observer silent", "no estimate from frame k0+10 on", "latched",
-             FAULT_STALE_INPUT, silent, seq_kw={"min_wait_s": 0.0}),
-        Case("frame source restarted", "frames count from 0 again at k0+10", "latched",
-             FAULT_STALE_INPUT, restart),
-        Case("frames lost upstream", "50 consecutive frames never arrive", "recovers",
-             0, gap),
-        Case("controller stall 0.2 s", "controller gets nothing for 2000 periods, then "
-             "its backlog", "recovers", 0, None, lambda k: k0 <= k < k0 + 2000, 14000),
-        Case("repeated stalls", "3 stalls of 30 periods within 0.2 s (limit 2 in 1 s)",
-             "latched", FAULT_WATCHDOG, None,
-             lambda k: any(k0 + a <= k < k0 + a + 30 for a in (0, 1000, 2000)), 3000,
-             {"max_resyncs": 2, "resync_window_s": 1.0}),
+        Case("bad sample", "i_a = NaN in one frame", "latched", FAULT_BAD_SAMPLE, at(one, nan_i)),
+        Case(
+            "over-current",
+            "i_a = 3 x the trip level in one frame",
+            "latched",
+            FAULT_OVERCURRENT,
+            at(one, oc),
+        ),
+        Case(
+            "DC-bus over-voltage",
+            "V_dc = 1.3 x vdc_max_v in one frame",
+            "latched",
+            FAULT_OVERVOLTAGE,
+            at(one, ov),
+        ),
+        Case(
+            "DC-bus under-voltage",
+            "V_dc = 0.5 x vdc_min_v in one frame",
+            "latched",
+            FAULT_UNDERVOLTAGE,
+            at(one, uv),
+        ),
+        Case(
+            "estimate not finite",
+            "theta^ = NaN in one estimate",
+            "latched",
+            FAULT_POSITION_INVALID,
+            at(one, th_nan),
+        ),
+        Case(
+            "loss of observer lock",
+            f"estimate flagged invalid for {inv_n} periods (2 x invalid_timeout_s)",
+            "latched",
+            FAULT_LOSS_OF_LOCK,
+            at(set(range(k0 + 10, k0 + 10 + inv_n)), invalid),
+        ),
+        Case(
+            "observer silent",
+            "no estimate from frame k0+10 on",
+            "latched",
+            FAULT_STALE_INPUT,
+            silent,
+            seq_kw={"min_wait_s": 0.0},
+        ),
+        Case(
+            "frame source restarted",
+            "frames count from 0 again at k0+10",
+            "latched",
+            FAULT_STALE_INPUT,
+            restart,
+        ),
+        Case("frames lost upstream", "50 consecutive frames never arrive", "recovers", 0, gap),
+        Case(
+            "controller stall 0.2 s",
+            "controller gets nothing for 2000 periods, then its backlog",
+            "recovers",
+            0,
+            None,
+            lambda k: k0 <= k < k0 + 2000,
+            14000,
+        ),
+        Case(
+            "repeated stalls",
+            "3 stalls of 30 periods within 0.2 s (limit 2 in 1 s)",
+            "latched",
+            FAULT_WATCHDOG,
+            None,
+            lambda k: any(k0 + a <= k < k0 + a + 30 for a in (0, 1000, 2000)),
+            3000,
+            {"max_resyncs": 2, "resync_window_s": 1.0},
+        ),
     ]
 
 
@@ -267,12 +332,13 @@ def run_matrix(progress: bool = False) -> list[dict]:
         mode_end = int(dr.ctrl[ks[-1]][CO_MODE])
         c = dr.seq.counts
         if latched:
-            did = (f"PWM off from period k0{k_trip - k0:+d}, latched "
-                   f"'{FAULT_NAMES[latched]}'")
+            did = f"PWM off from period k0{k_trip - k0:+d}, latched '{FAULT_NAMES[latched]}'"
         elif mode_end == MODE_CLOSED_LOOP and c["lost_intervals"]:
-            did = (f"PWM off by the power stage for {len(dr.lost)} periods; restart through "
-                   f"align / I-f ({c['restarts']}), flying ({c['flying_restarts']}); closed "
-                   f"loop again")
+            did = (
+                f"PWM off by the power stage for {len(dr.lost)} periods; restart through "
+                f"align / I-f ({c['restarts']}), flying ({c['flying_restarts']}); closed "
+                f"loop again"
+            )
         elif mode_end == MODE_CLOSED_LOOP:
             did = "rides through; closed loop at the end"
         else:
@@ -283,28 +349,53 @@ def run_matrix(progress: bool = False) -> list[dict]:
         received = c["frames"] - k0
         answered = dr.n_emit - k0
         dropped = c["repeated_or_backwards"] + c["skipped_frames"]
-        recorded = (f"received {received}, answered {answered}, dropped {dropped}, missing "
-                    f"{c['missing_frames']}; lost intervals {c['lost_intervals']}")
-        ok = ((case.expect == "latched" and latched == case.code and pwm_off_after
-               and len(errors) == 1)
-              or (case.expect == "recovers" and not latched and mode_end == MODE_CLOSED_LOOP
-                  and not errors)) and answered + dropped >= received
-        rows.append({"fault": case.fault, "injected": case.injected, "drive": did,
-                     "log": errors[0] if errors else "", "recorded": recorded,
-                     "ok": bool(ok)})
+        recorded = (
+            f"received {received}, answered {answered}, dropped {dropped}, missing "
+            f"{c['missing_frames']}; lost intervals {c['lost_intervals']}"
+        )
+        ok = (
+            (
+                case.expect == "latched"
+                and latched == case.code
+                and pwm_off_after
+                and len(errors) == 1
+            )
+            or (
+                case.expect == "recovers"
+                and not latched
+                and mode_end == MODE_CLOSED_LOOP
+                and not errors
+            )
+        ) and answered + dropped >= received
+        rows.append(
+            {
+                "fault": case.fault,
+                "injected": case.injected,
+                "drive": did,
+                "log": errors[0] if errors else "",
+                "recorded": recorded,
+                "ok": bool(ok),
+            }
+        )
         if progress:
-            print(f"[fault-matrix] {case.fault}: {did} ({'ok' if ok else 'UNEXPECTED'})",
-                  file=sys.stderr)
+            print(
+                f"[fault-matrix] {case.fault}: {did} ({'ok' if ok else 'UNEXPECTED'})",
+                file=sys.stderr,
+            )
     return rows
 
 
 def table(rows: list[dict]) -> str:
-    out = ["| fault | injected | what the drive did | log line (detail) | frames | ok |",
-           "|---|---|---|---|---|---|"]
+    out = [
+        "| fault | injected | what the drive did | log line (detail) | frames | ok |",
+        "|---|---|---|---|---|---|",
+    ]
     for r in rows:
         log = re.sub(r"\s+", " ", r["log"]).replace("|", "/") or "--"
-        out.append(f"| {r['fault']} | {r['injected']} | {r['drive']} | {log} | "
-                   f"{r['recorded']} | {'yes' if r['ok'] else 'NO'} |")
+        out.append(
+            f"| {r['fault']} | {r['injected']} | {r['drive']} | {log} | "
+            f"{r['recorded']} | {'yes' if r['ok'] else 'NO'} |"
+        )
     return "\n".join(out) + "\n"
 
 
@@ -318,10 +409,15 @@ def write_doc(path: Path, text: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="fluxdrive fault-matrix", description=__doc__.split(
-        "\n\n")[0])
-    ap.add_argument("--write", type=Path, metavar="DOC",
-                    help="replace the generated table in DOC (e.g. docs/safety.md)")
+    ap = argparse.ArgumentParser(
+        prog="fluxdrive fault-matrix", description=__doc__.split("\n\n")[0]
+    )
+    ap.add_argument(
+        "--write",
+        type=Path,
+        metavar="DOC",
+        help="replace the generated table in DOC (e.g. docs/safety.md)",
+    )
     args = ap.parse_args(argv)
     rows = run_matrix(progress=True)
     text = table(rows)

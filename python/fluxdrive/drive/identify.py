@@ -109,9 +109,18 @@ class SimPlantLink:
         plant_initial_frame(self.pst, self.mp, self.rng, self.frame, self.truth)
 
     def step(self, duty: np.ndarray, enable: bool) -> np.ndarray:
-        plant_advance(self.pst, self.mp, self.rng, np.ascontiguousarray(duty, dtype=float),
-                      bool(enable), self.load_t, self.load_y, self.load_cfg, self.frame,
-                      self.truth)
+        plant_advance(
+            self.pst,
+            self.mp,
+            self.rng,
+            np.ascontiguousarray(duty, dtype=float),
+            bool(enable),
+            self.load_t,
+            self.load_y,
+            self.load_cfg,
+            self.frame,
+            self.truth,
+        )
         return self.frame.copy()
 
     def pwm_off(self) -> None:
@@ -130,10 +139,16 @@ class Identified:
 
     def card(self, template: MachineCard, name: str | None = None) -> MachineCard:
         """The template card (nameplate, inverter, sensors) with the measured values."""
-        return replace(template, name=name or template.name + "_identified",
-                       resistance_ohm=self.resistance_ohm, inductance_h=self.inductance_h,
-                       flux_linkage_vs=self.flux_linkage_vs, inertia_kgm2=self.inertia_kgm2,
-                       viscous_nms=self.viscous_nms, deadtime_s=self.deadtime_s).validate()
+        return replace(
+            template,
+            name=name or template.name + "_identified",
+            resistance_ohm=self.resistance_ohm,
+            inductance_h=self.inductance_h,
+            flux_linkage_vs=self.flux_linkage_vs,
+            inertia_kgm2=self.inertia_kgm2,
+            viscous_nms=self.viscous_nms,
+            deadtime_s=self.deadtime_s,
+        ).validate()
 
 
 def _v_ab(fr: np.ndarray) -> tuple[float, float]:
@@ -149,8 +164,14 @@ class Identifier:
     its R, L, lambda, J, B and deadtime are not used (only for nothing but defaults of the
     loop design before they are measured, which the steps replace in order)."""
 
-    def __init__(self, link: PlantLink, template: MachineCard, max_current_pu: float = 1.2,
-                 max_voltage_pu: float = 0.5, progress: Callable[[str], None] | None = None):
+    def __init__(
+        self,
+        link: PlantLink,
+        template: MachineCard,
+        max_current_pu: float = 1.2,
+        max_voltage_pu: float = 0.5,
+        progress: Callable[[str], None] | None = None,
+    ):
         self.link = link
         self.tpl = template
         self.i_max = max_current_pu * template.rated_current_a
@@ -182,15 +203,17 @@ class Identifier:
         voltage) points seen so far (the deadtime makes the line's intercept non-zero)."""
         ts = self.link.ts_s
         for _ in range(6):
-            good = sorted((p for p in pts if p[0] > 0.02 * self.tpl.rated_current_a),
-                          key=lambda p: abs(p[0] - i_target))[:2]
+            good = sorted(
+                (p for p in pts if p[0] > 0.02 * self.tpl.rated_current_a),
+                key=lambda p: abs(p[0] - i_target),
+            )[:2]
             if len(good) == 2 and abs(good[0][0] - good[1][0]) > 1e-3:
                 (i1, v1), (i2, v2) = good
                 v = v1 + (v2 - v1) * (i_target - i1) / (i2 - i1)
             else:
                 v = pts[-1][1] * 1.1
             v = min(v, self.v_max)
-            fr = self._hold_alpha(v, int(0.05 / ts))[-int(0.01 / ts):]
+            fr = self._hold_alpha(v, int(0.05 / ts))[-int(0.01 / ts) :]
             i = float(np.mean([_i_ab(f)[0] for f in fr]))
             pts.append((i, v))
             if abs(i - i_target) < 0.03 * self.tpl.rated_current_a:
@@ -223,8 +246,10 @@ class Identifier:
             v_meas = np.array([_v_ab(f)[0] for f in frs])
             rows.append((float(np.mean(i_a)), float(np.mean(v_meas)), float(vv)))
             pts.append((rows[-1][0], vv))
-            self.say(f"R: level {level:.1f} pu: i {rows[-1][0]:.3f} A, captured "
-                     f"{rows[-1][1]:.3f} V, commanded {vv:.3f} V")
+            self.say(
+                f"R: level {level:.1f} pu: i {rows[-1][0]:.3f} A, captured "
+                f"{rows[-1][1]:.3f} V, commanded {vv:.3f} V"
+            )
         i_l = np.array([r[0] for r in rows])
         r_meas = float(np.polyfit(i_l, [r[1] for r in rows], 1)[0])
         slope, icpt = np.polyfit(i_l, [r[2] for r in rows], 1)
@@ -232,8 +257,10 @@ class Identifier:
         # R: the slope of the commanded voltage over the current levels (the deadtime's
         # constant voltage error drops out of the slope); the captured voltages' slope is a
         # cross-check (their capture quantisation is not dithered at a steady duty)
-        self.say(f"R = {slope:.4f} ohm (commanded voltage over 4 current levels; captured "
-                 f"voltages give {r_meas:.4f} ohm), deadtime voltage {v_dt:.3f} V per leg")
+        self.say(
+            f"R = {slope:.4f} ohm (commanded voltage over 4 current levels; captured "
+            f"voltages give {r_meas:.4f} ohm), deadtime voltage {v_dt:.3f} V per leg"
+        )
         return float(slope), v_dt, r_meas
 
     def inductance(self, r: float, v_dt: float) -> float:
@@ -246,17 +273,23 @@ class Identifier:
         amp = 0.05 * r * i_r
         self._hold_alpha(bias, int(0.1 / ts))  # settle at the bias first
         for _ in range(12):  # find an amplitude that swings the current ~0.2 rated
-            frs = np.concatenate([self._hold_alpha(bias + amp, half),
-                                  self._hold_alpha(bias - amp, half)] * 3)
+            frs = np.concatenate(
+                [self._hold_alpha(bias + amp, half), self._hold_alpha(bias - amp, half)] * 3
+            )
             i_a = np.array([_i_ab(f)[0] for f in frs])
-            swing = float(np.ptp(i_a[-2 * half:]))
+            swing = float(np.ptp(i_a[-2 * half :]))
             if swing > 0.15 * i_r or amp >= 0.5 * self.v_max:
                 break
             amp = min(amp * 1.6, 0.5 * self.v_max)
         n_cycles = int(0.3 / ts / (2 * half))
-        frs = np.concatenate([np.concatenate([self._hold_alpha(bias + amp, half),
-                                              self._hold_alpha(bias - amp, half)])
-                              for _ in range(n_cycles)])
+        frs = np.concatenate(
+            [
+                np.concatenate(
+                    [self._hold_alpha(bias + amp, half), self._hold_alpha(bias - amp, half)]
+                )
+                for _ in range(n_cycles)
+            ]
+        )
         i_a = np.array([_i_ab(f)[0] for f in frs])
         v_a = np.array([_v_ab(f)[0] for f in frs])
         di = np.diff(i_a) / ts
@@ -284,8 +317,9 @@ class Identifier:
         ts = self.link.ts_s
         card = replace(self.tpl, resistance_ohm=r, inductance_h=lind)
         w_m = 0.2 * self.tpl.rated_speed_rad_s
-        cfg = ControllerConfig(position_source="estimate", if_current_pu=0.5,
-                               speed_observer_pll_hz=25.0)
+        cfg = ControllerConfig(
+            position_source="estimate", if_current_pu=0.5, speed_observer_pll_hz=25.0
+        )
         cs, cp, out = self._controller(card, cfg)
         est = np.zeros(ES_N)
         t_ramp = 0.15 + w_m / RPM / cfg.resolved(card).if_accel_rpm_s
@@ -295,7 +329,7 @@ class Identifier:
         i_prev = _i_ab(fr)
         for k in range(n_run):
             controller_step(cs, cp, fr, est, w_m, 0.0, out)
-            fr = self._apply(out[CO_DA:CO_DC + 1], out[CO_EN] > 0.5)
+            fr = self._apply(out[CO_DA : CO_DC + 1], out[CO_EN] > 0.5)
             i_now = _i_ab(fr)
             if k >= n_run - n_meas:
                 va, vb = _v_ab(fr)
@@ -316,8 +350,14 @@ class Identifier:
         ts = self.link.ts_s
         kt = 1.5 * self.tpl.pole_pairs * lam
         j_guess = kt * self.tpl.rated_current_a * 0.05 / self.tpl.rated_speed_rad_s
-        card = replace(self.tpl, resistance_ohm=r, inductance_h=lind, flux_linkage_vs=lam,
-                       inertia_kgm2=j_guess, viscous_nms=0.0)
+        card = replace(
+            self.tpl,
+            resistance_ohm=r,
+            inductance_h=lind,
+            flux_linkage_vs=lam,
+            inertia_kgm2=j_guess,
+            viscous_nms=0.0,
+        )
         lim_pu = 0.15
         cfg = ControllerConfig(position_source="encoder", current_limit_pu=lim_pu)
         cs, cp, out = self._controller(card, cfg)
@@ -331,9 +371,10 @@ class Identifier:
             nonlocal fr
             for _ in range(int(seconds / ts)):
                 controller_step(cs, cp, fr, est, w_ref, 0.0, out)
-                fr = self._apply(out[CO_DA:CO_DC + 1], out[CO_EN] > 0.5)
-                log.append((len(log) * ts, fr[FR_ENC] / cpr * 2 * math.pi, out[CO_IQ],
-                            out[CO_IQ_REF]))
+                fr = self._apply(out[CO_DA : CO_DC + 1], out[CO_EN] > 0.5)
+                log.append(
+                    (len(log) * ts, fr[FR_ENC] / cpr * 2 * math.pi, out[CO_IQ], out[CO_IQ_REF])
+                )
 
         def steady(t0: float, t1: float) -> tuple[float, float]:
             a = np.array([x for x in log if t0 <= x[0] < t1])
@@ -341,7 +382,7 @@ class Identifier:
             return float(w), float(np.mean(a[:, 2]))
 
         self.say("J, B: speed loop on the encoder, low speed")
-        t_acc = (w1 / (kt * lim_pu * self.tpl.rated_current_a / j_guess))
+        t_acc = w1 / (kt * lim_pu * self.tpl.rated_current_a / j_guess)
         run(w1, max(1.0, 3 * t_acc))
         t_a = log[-1][0]
         wa, iqa = steady(t_a - 0.4, t_a)
@@ -370,8 +411,10 @@ class Identifier:
         w_1, w_2 = speed_at(k1), speed_at(k2)
         impulse = kt * float(np.sum(a[k1:k2, 2])) * ts - b * (a[k2, 1] - a[k1, 1])
         j = impulse / (w_2 - w_1)
-        self.say(f"J: step {w_1:.2f} -> {w_2:.2f} rad/s in {(k2 - k1) * ts:.3f} s, "
-                 f"impulse {impulse:.4g} N m s")
+        self.say(
+            f"J: step {w_1:.2f} -> {w_2:.2f} rad/s in {(k2 - k1) * ts:.3f} s, "
+            f"impulse {impulse:.4g} N m s"
+        )
         self.say(f"J = {j:.4g} kg m^2, B = {b:.4g} N m s/rad")
         return float(j), float(max(b, 0.0))
 
@@ -397,11 +440,13 @@ def identify_sim(card: MachineCard, seed: int = 1, progress=None) -> tuple[Ident
 def errors(ident: Identified, card: MachineCard) -> dict[str, float]:
     """Relative errors against the true card."""
     vdt = card.dc_bus_v * card.deadtime_s * card.pwm_hz
-    return {"R": ident.resistance_ohm / card.resistance_ohm - 1,
-            "L": ident.inductance_h / card.inductance_h - 1,
-            "lambda": ident.flux_linkage_vs / card.flux_linkage_vs - 1,
-            "J": ident.inertia_kgm2 / card.inertia_kgm2 - 1,
-            "V_dt": ident.deadtime_v / vdt - 1 if vdt > 0 else float("nan")}
+    return {
+        "R": ident.resistance_ohm / card.resistance_ohm - 1,
+        "L": ident.inductance_h / card.inductance_h - 1,
+        "lambda": ident.flux_linkage_vs / card.flux_linkage_vs - 1,
+        "J": ident.inertia_kgm2 / card.inertia_kgm2 - 1,
+        "V_dt": ident.deadtime_v / vdt - 1 if vdt > 0 else float("nan"),
+    }
 
 
 TOLERANCE = {"R": 0.02, "L": 0.03, "lambda": 0.01, "J": 0.10, "V_dt": 0.10}
@@ -412,5 +457,14 @@ def _stderr(s: str) -> None:
     sys.stderr.flush()
 
 
-__all__ = ["Identified", "Identifier", "IdentifyAbort", "PlantLink", "SimPlantLink",
-           "identify_sim", "errors", "TOLERANCE", "asdict"]
+__all__ = [
+    "Identified",
+    "Identifier",
+    "IdentifyAbort",
+    "PlantLink",
+    "SimPlantLink",
+    "identify_sim",
+    "errors",
+    "TOLERANCE",
+    "asdict",
+]

@@ -90,8 +90,14 @@ from fluxdrive.drive.plant import (
 # ---- variant kinds
 K_PURE, K_LPF, K_PAPER, K_PLPF, K_HL, K_ORTEGA, K_EMF = range(7)
 VARIANT_KINDS = {
-    "pure_integrator": K_PURE, "lpf": K_LPF, "paper": K_PAPER, "paper_robust": K_PAPER,
-    "programmable_lpf": K_PLPF, "hinkkanen_luomi": K_HL, "ortega": K_ORTEGA, "emf": K_EMF,
+    "pure_integrator": K_PURE,
+    "lpf": K_LPF,
+    "paper": K_PAPER,
+    "paper_robust": K_PAPER,
+    "programmable_lpf": K_PLPF,
+    "hinkkanen_luomi": K_HL,
+    "ortega": K_ORTEGA,
+    "emf": K_EMF,
 }
 VS_MEASURED, VS_COMMANDED = 0, 1
 VOLTAGE_SOURCES = {"measured": VS_MEASURED, "commanded": VS_COMMANDED}
@@ -101,7 +107,8 @@ LT_BEFORE, LT_AFTER = 0, 1
 INDUCTANCE_TERMS = {"before_filter": LT_BEFORE, "after_integration": LT_AFTER}
 # the string-valued ObserverConfig fields and their choices (the ROS node declares them so)
 STRING_CHOICES: dict[str, tuple[str, ...]] = {
-    "voltage_source": tuple(VOLTAGE_SOURCES), "phase_detector": tuple(PHASE_DETECTORS),
+    "voltage_source": tuple(VOLTAGE_SOURCES),
+    "phase_detector": tuple(PHASE_DETECTORS),
     "inductance_term": tuple(INDUCTANCE_TERMS),
 }
 
@@ -254,8 +261,12 @@ def _input_policy(os_, op, fr, ia, ib, out):
         _hold(os_, out)
         os_[OS_TH] = wrap_angle(os_[OS_TH] + ts * os_[OS_PLL_I])
         return True
-    if (os_[OS_INIT] != 0.0 and fr[FR_EN] < 0.5 and op[OP_VSRC] != VS_MEASURED
-            and int(fr[FR_FLAGS]) & FLAG_STALE):
+    if (
+        os_[OS_INIT] != 0.0
+        and fr[FR_EN] < 0.5
+        and op[OP_VSRC] != VS_MEASURED
+        and int(fr[FR_FLAGS]) & FLAG_STALE
+    ):
         os_[OS_LOST] += 1.0
         dth = ts * os_[OS_PLL_I]
         c = math.cos(dth)
@@ -374,8 +385,7 @@ def _flux_rotation_rate(os_, op, xa, xb):
     a_c = pole(wc, ts)
     ea_new = leaky_integrator_step(ea_old, xa, a_c, wc, ts)
     eb_new = leaky_integrator_step(eb_old, xb, a_c, wc, ts)
-    w_rot = math.atan2(ea_old * eb_new - eb_old * ea_new,
-                       ea_old * ea_new + eb_old * eb_new) / ts
+    w_rot = math.atan2(ea_old * eb_new - eb_old * ea_new, ea_old * ea_new + eb_old * eb_new) / ts
     os_[OS_WCOMP] = lowpass_step(os_[OS_WCOMP], w_rot, pole(op[OP_COMP_LPF], ts))
     return os_[OS_WCOMP]
 
@@ -517,12 +527,15 @@ class ObserverConfig:
 
     def validate(self, src: str = "observer") -> ObserverConfig:
         if self.variant not in VARIANT_KINDS:
-            raise ConfigError(f"{src}: unknown variant '{self.variant}'; built-in variants are "
-                              f"{sorted(VARIANT_KINDS)}")
+            raise ConfigError(
+                f"{src}: unknown variant '{self.variant}'; built-in variants are "
+                f"{sorted(VARIANT_KINDS)}"
+            )
         for key, choices in STRING_CHOICES.items():
             if getattr(self, key) not in choices:
-                raise ConfigError(f"{src}: {key} must be one of {list(choices)}, got "
-                                  f"{getattr(self, key)!r}")
+                raise ConfigError(
+                    f"{src}: {key} must be one of {list(choices)}, got {getattr(self, key)!r}"
+                )
         for key, lo, hi in PARAM_RANGES:
             v = getattr(self, key)
             if v is None and (key.endswith(("_ohm", "_h", "_vs")) or key in OBSERVER_RULES):
@@ -543,8 +556,11 @@ class ObserverConfig:
         per unit of the card's current-loop bandwidth or rated electrical frequency)."""
         rules = {**_RULES_ALL, **VARIANT_RULES.get(self.variant, {})}
         f_i = card_current_bandwidth_hz(card)
-        basis = {"f_i": f_i, "f_e": card.rated_electrical_hz,
-                 "w_e": 2.0 * math.pi * card.rated_electrical_hz}
+        basis = {
+            "f_i": f_i,
+            "f_e": card.rated_electrical_hz,
+            "w_e": 2.0 * math.pi * card.rated_electrical_hz,
+        }
         kw = {}
         for k, (b, factor, cap) in rules.items():
             if getattr(self, k) is None:
@@ -581,10 +597,17 @@ class ObserverConfig:
 
 
 PARAM_RANGES: list[tuple[str, float, float]] = [
-    ("cutoff_hz", 0.0, 2000.0), ("pll_bandwidth_hz", 0.1, 2000.0), ("pll_damping", 0.1, 5.0),
-    ("speed_lpf_hz", 0.0, 2000.0), ("omega_floor_rad_s", 0.01, 1000.0),
-    ("deadtime_comp_s", 0.0, 1e-4), ("gamma_bw_rad_s", 0.0, 1e5), ("plpf_k", 0.01, 10.0),
-    ("cutoff_min_hz", 0.0, 1000.0), ("comp_freq_lpf_hz", 0.0, 1000.0), ("r_hat_ohm", 0.0, 1e3),
+    ("cutoff_hz", 0.0, 2000.0),
+    ("pll_bandwidth_hz", 0.1, 2000.0),
+    ("pll_damping", 0.1, 5.0),
+    ("speed_lpf_hz", 0.0, 2000.0),
+    ("omega_floor_rad_s", 0.01, 1000.0),
+    ("deadtime_comp_s", 0.0, 1e-4),
+    ("gamma_bw_rad_s", 0.0, 1e5),
+    ("plpf_k", 0.01, 10.0),
+    ("cutoff_min_hz", 0.0, 1000.0),
+    ("comp_freq_lpf_hz", 0.0, 1000.0),
+    ("r_hat_ohm", 0.0, 1e3),
     ("l_hat_h", 1e-7, 10.0),
     ("lambda_hat_vs", 1e-6, 10.0),
 ]
@@ -627,8 +650,11 @@ VARIANT_RULES: dict[str, dict[str, tuple[str, float, float | None]]] = {
     # of Fig. 18 (the flux path, 25 Hz PLL and no LPF, gets the full 10 Hz)
     "emf": {"pll_bandwidth_hz": ("f_e", 0.075, 0.015), "speed_lpf_hz": ("f_e", 0.1, 0.02)},
 }
-_BASIS_TEXT = {"f_i": "the card's current bandwidth", "f_e": "the rated electrical frequency",
-               "w_e": "the rated electrical speed [rad/s]"}
+_BASIS_TEXT = {
+    "f_i": "the card's current bandwidth",
+    "f_e": "the rated electrical frequency",
+    "w_e": "the rated electrical speed [rad/s]",
+}
 
 
 def _one_rule(rule: tuple[str, float, float | None]) -> str:
@@ -648,8 +674,9 @@ def _rule_text(field_name: str) -> str:
 
 
 OBSERVER_RULES: dict[str, str] = {k: _rule_text(k) for k in _RULES_ALL}
-OBSERVER_RULES["gamma_bw_rad_s"] = ("1 rad/s per Hz of the card's current bandwidth (gamma "
-                                    "lambda^2 = 1000 rad/s at 1 kHz)")
+OBSERVER_RULES["gamma_bw_rad_s"] = (
+    "1 rad/s per Hz of the card's current bandwidth (gamma lambda^2 = 1000 rad/s at 1 kHz)"
+)
 
 # Fixed settings per variant (structure, not frequencies).
 VARIANT_DEFAULTS: dict[str, dict[str, Any]] = {
@@ -657,8 +684,11 @@ VARIANT_DEFAULTS: dict[str, dict[str, Any]] = {
     # compensation at the PLL's w^e, L^ i after the modified integration, arctangent phase
     # detector; the PLL per the rule (the paper gives no number; the flux needs no
     # low-bandwidth PLL, Sec. III-C)
-    "paper": {"comp_freq_lpf_hz": 0.0, "phase_detector": "atan",
-              "inductance_term": "after_integration"},
+    "paper": {
+        "comp_freq_lpf_hz": 0.0,
+        "phase_detector": "atan",
+        "inductance_term": "after_integration",
+    },
     # the project's departures, each one option (reasons and measured effects: module
     # docstring, `./fluxdrive experiment paper_robust`)
     "paper_robust": {"phase_detector": "atan", "inductance_term": "before_filter"},
@@ -668,14 +698,16 @@ VARIANT_DEFAULTS: dict[str, dict[str, Any]] = {
 }
 
 
-def observer_config(variant: str, card: MachineCard | None = None,
-                    **overrides: Any) -> ObserverConfig:
+def observer_config(
+    variant: str, card: MachineCard | None = None, **overrides: Any
+) -> ObserverConfig:
     """An ObserverConfig with the variant's defaults, then the caller's overrides; with a
     `card`, every frequency left unset is derived from it (otherwise it stays None and is
     derived from the card the observer runs on)."""
     if variant not in VARIANT_KINDS:
-        raise ConfigError(f"unknown variant '{variant}'; built-in variants are "
-                          f"{sorted(VARIANT_KINDS)}")
+        raise ConfigError(
+            f"unknown variant '{variant}'; built-in variants are {sorted(VARIANT_KINDS)}"
+        )
     base = ObserverConfig(variant=variant, **VARIANT_DEFAULTS.get(variant, {}))
     cfg = base.with_overrides(**overrides) if overrides else base.validate()
     return cfg if card is None else cfg.resolved(card)
@@ -749,16 +781,19 @@ def load_observer_class(spec: str):
     return None
 
 
-def make_observer(spec: str, card: MachineCard, name: str | None = None,
-                  **overrides: Any) -> Observer:
+def make_observer(
+    spec: str, card: MachineCard, name: str | None = None, **overrides: Any
+) -> Observer:
     """Build an observer from a built-in variant name, an entry point, or module:Class."""
     if spec in VARIANT_KINDS:
         return KernelObserver(observer_config(spec, **overrides), card, name=name)
     cls = load_observer_class(spec)
     if cls is None:
-        raise ConfigError(f"unknown observer '{spec}': not a built-in variant "
-                          f"{sorted(VARIANT_KINDS)}, not an installed entry point, and not "
-                          f"'module:Class'")
+        raise ConfigError(
+            f"unknown observer '{spec}': not a built-in variant "
+            f"{sorted(VARIANT_KINDS)}, not an installed entry point, and not "
+            f"'module:Class'"
+        )
     obs = cls(card=card, **overrides)
     obs.name = name or getattr(obs, "name", spec)
     return obs

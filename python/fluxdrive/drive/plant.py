@@ -118,10 +118,16 @@ LEG_BOTTOM, LEG_TOP, LEG_DIODE = 0, 1, 2
 CAP_MAX_EDGES = 32  # line-level edges recorded per period (a line has <= ~10)
 
 
-def machine_params(card: MachineCard, current_offset_a=(0.0, 0.0, 0.0),
-                   current_gain=(1.0, 1.0, 1.0), dead_substeps: int = 4,
-                   deadtime_s: float | None = None, dc_bus_v: float | None = None,
-                   vdc_adc_gain: float = 1.0, bench: BenchConfig | None = None) -> np.ndarray:
+def machine_params(
+    card: MachineCard,
+    current_offset_a=(0.0, 0.0, 0.0),
+    current_gain=(1.0, 1.0, 1.0),
+    dead_substeps: int = 4,
+    deadtime_s: float | None = None,
+    dc_bus_v: float | None = None,
+    vdc_adc_gain: float = 1.0,
+    bench: BenchConfig | None = None,
+) -> np.ndarray:
     """Parameter vector for the plant kernels from a machine card, sensor faults and the
     non-ideal bench (None: ideal)."""
     mp = np.zeros(MP_N)
@@ -140,13 +146,13 @@ def machine_params(card: MachineCard, current_offset_a=(0.0, 0.0, 0.0),
     mp[MP_SAT] = card.saturation
     mp[MP_IRATED] = card.rated_current_a
     mp[MP_ADC_RANGE] = card.current_range_a
-    mp[MP_ADC_LSB] = 2.0 * card.current_range_a / 2 ** card.current_adc_bits
+    mp[MP_ADC_LSB] = 2.0 * card.current_range_a / 2**card.current_adc_bits
     mp[MP_NOISE] = card.current_noise_a
-    mp[MP_OFF_A:MP_OFF_C + 1] = current_offset_a
-    mp[MP_GAIN_A:MP_GAIN_C + 1] = current_gain
-    mp[MP_CAP_LEVELS] = 2.0 ** card.capture_bits
+    mp[MP_OFF_A : MP_OFF_C + 1] = current_offset_a
+    mp[MP_GAIN_A : MP_GAIN_C + 1] = current_gain
+    mp[MP_CAP_LEVELS] = 2.0**card.capture_bits
     mp[MP_VDC_RANGE] = card.dc_bus_range_v
-    mp[MP_VDC_LSB] = card.dc_bus_range_v / 2 ** card.dc_bus_adc_bits
+    mp[MP_VDC_LSB] = card.dc_bus_range_v / 2**card.dc_bus_adc_bits
     mp[MP_VDC_NOISE] = card.dc_bus_noise_v
     mp[MP_ENC_CPR] = 4.0 * card.encoder_lines
     mp[MP_DEAD_SUBSTEPS] = dead_substeps
@@ -167,12 +173,15 @@ def _bench_params(mp: np.ndarray, card: MachineCard, bench: BenchConfig) -> None
         mp[MP_CAP_DFALL] = cap.delay_fall_s
         mp[MP_CAP_MINPULSE] = cap.min_pulse_s
         mp[MP_CAP_JITTER] = cap.jitter_s
-        mp[MP_CAP_TICK] = card.ts_s / 2.0 ** bits
+        mp[MP_CAP_TICK] = card.ts_s / 2.0**bits
     if bench.current_sample_skew_s is not None and any(bench.current_sample_skew_s):
         mp[MP_SKEW_ON] = 1.0
-        mp[MP_SKEW_A:MP_SKEW_C + 1] = bench.current_sample_skew_s
-    if bench.thermal is not None and card.thermal_resistance_k_per_w > 0.0 \
-            and card.thermal_time_constant_s > 0.0:
+        mp[MP_SKEW_A : MP_SKEW_C + 1] = bench.current_sample_skew_s
+    if (
+        bench.thermal is not None
+        and card.thermal_resistance_k_per_w > 0.0
+        and card.thermal_time_constant_s > 0.0
+    ):
         mp[MP_TH_ON] = 1.0
         mp[MP_TH_RTH] = card.thermal_resistance_k_per_w
         mp[MP_TH_DECAY] = math.exp(-card.ts_s / card.thermal_time_constant_s)
@@ -182,8 +191,9 @@ def _bench_params(mp: np.ndarray, card: MachineCard, bench: BenchConfig) -> None
     mp[MP_H6_SAT] = bench.spatial_saturation_h6_pu
 
 
-def plant_state(theta_e0_rad: float = 0.0, omega_m0: float = 0.0, pole_pairs: int = 4,
-                winding_c: float = 25.0):
+def plant_state(
+    theta_e0_rad: float = 0.0, omega_m0: float = 0.0, pole_pairs: int = 4, winding_c: float = 25.0
+):
     st = np.zeros(PS_N)
     st[PS_THM] = theta_e0_rad / pole_pairs
     st[PS_WM] = omega_m0
@@ -333,8 +343,20 @@ def _switching_events(mp, ev, enabled, skew_on, t1a, t2a, t1b, t2b, t1c, t2c):
     ev[n] = 0.0
     n += 1
     if enabled:
-        for tx in (t1a, t1a + td, t2a, t2a + td, t1b, t1b + td, t2b, t2b + td,
-                   t1c, t1c + td, t2c, t2c + td):
+        for tx in (
+            t1a,
+            t1a + td,
+            t2a,
+            t2a + td,
+            t1b,
+            t1b + td,
+            t2b,
+            t2b + td,
+            t1c,
+            t1c + td,
+            t2c,
+            t2c + td,
+        ):
             if 0.0 < tx < ts:
                 ev[n] = tx
                 n += 1
@@ -590,8 +612,9 @@ def _sample(st, mp, rng, vs, da, db, dc, enabled, frame, truth, cap_t, cap_s, ca
     vdc = mp[MP_VDC]
     vn = rng_normal(rng) * mp[MP_VDC_NOISE] if mp[MP_VDC_NOISE] > 0.0 else 0.0
     vlsb = mp[MP_VDC_LSB]
-    vdc_meas = min(max(math.floor((vdc * mp[MP_VDC_GAIN] + vn) / vlsb + 0.5) * vlsb, 0.0),
-                   mp[MP_VDC_RANGE])
+    vdc_meas = min(
+        max(math.floor((vdc * mp[MP_VDC_GAIN] + vn) / vlsb + 0.5) * vlsb, 0.0), mp[MP_VDC_RANGE]
+    )
     frame[FR_VDC] = vdc_meas
     # capture timer: high time of each line-to-line PWM voltage, 2^bits counts a period,
     # scaled by the measured bus; device drops are invisible to it.
@@ -695,6 +718,13 @@ def deadtime_volt_second_loss(vdc_v: float, deadtime_s: float, ts_s: float) -> f
 
 
 __all__ = [n for n in dir() if n.isupper() and not n.startswith("_")] + [
-    "machine_params", "load_config", "plant_state", "winding_resistance", "plant_advance",
-    "plant_initial_frame", "load_torque", "deadtime_volt_second_loss", "SQRT3",
+    "machine_params",
+    "load_config",
+    "plant_state",
+    "winding_resistance",
+    "plant_advance",
+    "plant_initial_frame",
+    "load_torque",
+    "deadtime_volt_second_loss",
+    "SQRT3",
 ]

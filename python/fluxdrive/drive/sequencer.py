@@ -89,12 +89,23 @@ class ControlSequencer:
     `check_wall` now and then (e.g. every 0.1 s); it calls `emit(seq, CO_* row)` for every
     frame it answers, in order."""
 
-    def __init__(self, cp: np.ndarray, ts_s: float, sensorless: bool, emit: Emit, log: Log,
-                 w_ref_profile: np.ndarray | None = None, id_inj: np.ndarray | None = None,
-                 position_timeout_s: float = 0.05, position_wall_timeout_s: float = 2.0,
-                 first_estimate_wall_s: float = 30.0, depth: int = 10000,
-                 max_resyncs: int = 5, resync_window_s: float = 10.0,
-                 min_wait_s: float = 0.25):
+    def __init__(
+        self,
+        cp: np.ndarray,
+        ts_s: float,
+        sensorless: bool,
+        emit: Emit,
+        log: Log,
+        w_ref_profile: np.ndarray | None = None,
+        id_inj: np.ndarray | None = None,
+        position_timeout_s: float = 0.05,
+        position_wall_timeout_s: float = 2.0,
+        first_estimate_wall_s: float = 30.0,
+        depth: int = 10000,
+        max_resyncs: int = 5,
+        resync_window_s: float = 10.0,
+        min_wait_s: float = 0.25,
+    ):
         self.cp = cp
         self.ts = ts_s
         self.sensorless = sensorless
@@ -134,10 +145,23 @@ class ControlSequencer:
         self.recover_from = -1  # first lost frame of a recovery not yet back in closed loop
         self.resync_at: list[int] = []  # frames at which lost intervals began
         self.finished_k = -1  # last frame answered
-        self.counts = {n: 0 for n in ("frames", "estimates", "repeated_or_backwards",
-                                      "missing_frames", "late_estimates", "stale_trips",
-                                      "lost_frames", "lost_intervals", "skipped_frames",
-                                      "flying_restarts", "restarts", "faults_latched")}
+        self.counts = {
+            n: 0
+            for n in (
+                "frames",
+                "estimates",
+                "repeated_or_backwards",
+                "missing_frames",
+                "late_estimates",
+                "stale_trips",
+                "lost_frames",
+                "lost_intervals",
+                "skipped_frames",
+                "flying_restarts",
+                "restarts",
+                "faults_latched",
+            )
+        }
 
     # ------------------------------------------------------------------ settings
     def set_timeouts(self, position_timeout_s: float, position_wall_timeout_s: float) -> None:
@@ -157,11 +181,14 @@ class ControlSequencer:
             c["repeated_or_backwards"] += 1
             self.rejected_run += 1
             if self.rejected_run == 1 and c["repeated_or_backwards"] <= 10:
-                self.log("warning", f"frame {k} repeated or backwards (expected "
-                                    f"{self.next_k}): dropped")
+                self.log(
+                    "warning", f"frame {k} repeated or backwards (expected {self.next_k}): dropped"
+                )
             if self.rejected_run >= self.n_pos_timeout and not self.tripped:
-                self.trip_stale(f"{self.rejected_run} consecutive frames repeated or "
-                                f"backwards (last {k}, expected {self.next_k})")
+                self.trip_stale(
+                    f"{self.rejected_run} consecutive frames repeated or "
+                    f"backwards (last {k}, expected {self.next_k})"
+                )
             if self.tripped:
                 self._answer(k, fr, self.no_est)  # PWM off, whatever the seq
             return
@@ -202,16 +229,21 @@ class ControlSequencer:
             lim = max(lim, self.first_estimate_wall_s)
         if lim > 0.0 and now < self._caught_up_by:  # we stalled: a repair is on its way
             lim = max(lim, self._caught_up_by - self.t_wait)
-        if (self.tripped or self.wait_k != self.next_k or self.next_k not in self.frames
-                or self.next_k in self.ests):
+        if (
+            self.tripped
+            or self.wait_k != self.next_k
+            or self.next_k not in self.frames
+            or self.next_k in self.ests
+        ):
             return
         waited = now - self.t_wait
         if self._sample_timeout(self.next_k):
             self._run()
             return
         if lim > 0.0 and waited > lim:
-            self.trip_stale(f"no position estimate for frame {self.next_k} for "
-                            f"{waited:.1f} s of wall time")
+            self.trip_stale(
+                f"no position estimate for frame {self.next_k} for {waited:.1f} s of wall time"
+            )
             self._run()
 
     # ------------------------------------------------------------------ sequencing
@@ -241,7 +273,8 @@ class ControlSequencer:
                         late_ms = (self.max_seq - k) * self.ts * 1e3
                         self.trip_stale(
                             f"no position estimate for frame {k} while frames up to "
-                            f"{self.max_seq} arrived ({late_ms:.1f} ms of sample time)")
+                            f"{self.max_seq} arrived ({late_ms:.1f} ms of sample time)"
+                        )
                         es = self.no_est
                     else:
                         return
@@ -255,8 +288,9 @@ class ControlSequencer:
         """The newest frame says the power stage has cut the PWM although our last duty
         asked for it: this controller fell behind (stalled) and is catching up."""
         newest = self.frames.get(self.max_seq)
-        return (newest is not None and newest[FR_EN] < 0.5
-                and self.enables.get(self.next_k - 1, False))
+        return (
+            newest is not None and newest[FR_EN] < 0.5 and self.enables.get(self.next_k - 1, False)
+        )
 
     def _skip_to_newest_pair(self, k: int) -> bool:
         """Catching up after a stall, as a drive's control task does: go on with the newest
@@ -284,8 +318,12 @@ class ControlSequencer:
         if self.wait_k != k:
             self.wait_k = k
             self.t_wait = now
-        if self.max_seq - k < self.n_pos_timeout or self.lost_run or not self.counts[
-                "estimates"] or now - self.t_wait < self.min_wait_s:
+        if (
+            self.max_seq - k < self.n_pos_timeout
+            or self.lost_run
+            or not self.counts["estimates"]
+            or now - self.t_wait < self.min_wait_s
+        ):
             return False
         return not self._behind()  # we are the ones behind (stalled), not the observer
 
@@ -301,27 +339,37 @@ class ControlSequencer:
             elif self.lost_run:
                 # each lost frame re-decided flying vs. start-up (a braked rotor slows
                 # below the handover speed during a long gap): say which one resumes
-                how = ("flying restart on the estimate" if cs[CS_MODE] == MODE_CLOSED_LOOP
-                       else "restarting through align / I-f")
-                self.log("info", f"PWM back at frame {k} after {self.lost_run} lost "
-                                 f"period(s) from frame {self.lost_first}; {how}")
+                how = (
+                    "flying restart on the estimate"
+                    if cs[CS_MODE] == MODE_CLOSED_LOOP
+                    else "restarting through align / I-f"
+                )
+                self.log(
+                    "info",
+                    f"PWM back at frame {k} after {self.lost_run} lost "
+                    f"period(s) from frame {self.lost_first}; {how}",
+                )
                 self.lost_run = 0
         n = self.w_ref_profile.shape[0]
-        w_ref = self.const_ref if self.const_ref is not None else float(
-            self.w_ref_profile[min(max(k, 0), n - 1)])
+        w_ref = (
+            self.const_ref
+            if self.const_ref is not None
+            else float(self.w_ref_profile[min(max(k, 0), n - 1)])
+        )
         inj = float(self.id_inj[k]) if 0 <= k < self.id_inj.shape[0] else 0.0
         was_fault = self.tripped
         w_fb_prev = float(self.out[CO_W_FB])
         controller_step(cs, self.cp, fr, es, w_ref, inj, self.out)
         if self.tripped and not was_fault:
             code = int(cs[CS_FAULT])
-            self.fault_detail = (f"{trip_values(code, fr, es, self.cp, cs, w_fb_prev)} "
-                                 f"(frame {k})")
+            self.fault_detail = f"{trip_values(code, fr, es, self.cp, cs, w_fb_prev)} (frame {k})"
             self._log_fault(code)
-        if (self.recover_from >= 0 and self.out[CO_MODE] == MODE_CLOSED_LOOP
-                and not self.lost_run):
-            self.log("info", f"closed loop again at frame {k}, {k - self.recover_from} "
-                             f"period(s) after the lost interval began")
+        if self.recover_from >= 0 and self.out[CO_MODE] == MODE_CLOSED_LOOP and not self.lost_run:
+            self.log(
+                "info",
+                f"closed loop again at frame {k}, {k - self.recover_from} "
+                f"period(s) after the lost interval began",
+            )
             self.recover_from = -1
         self.enables[k] = bool(self.out[CO_EN] > 0.5)
         if len(self.enables) > 8:
@@ -347,13 +395,18 @@ class ControlSequencer:
                 self.fault_detail = (
                     f"{len(self.resync_at)} lost intervals (PWM switched off by the power "
                     f"stage's watchdog) within {self.resync_window_s:g} s of sample time, "
-                    f"limit {self.max_resyncs} (frame {k})")
+                    f"limit {self.max_resyncs} (frame {k})"
+                )
                 cs[CS_MODE] = MODE_FAULT
                 cs[CS_FAULT] = FAULT_WATCHDOG
                 self._log_fault(FAULT_WATCHDOG)
                 return
-        flying = (cs[CS_MODE] == MODE_CLOSED_LOOP and es[ES_VALID] != 0.0
-                  and math.isfinite(es[ES_W]) and abs(es[ES_W]) >= cp[CP_HANDOVER] * cp[CP_P])
+        flying = (
+            cs[CS_MODE] == MODE_CLOSED_LOOP
+            and es[ES_VALID] != 0.0
+            and math.isfinite(es[ES_W])
+            and abs(es[ES_W]) >= cp[CP_HANDOVER] * cp[CP_P]
+        )
         if flying:
             cs[CS_ID_I] = 0.0
             cs[CS_IQ_I] = 0.0
@@ -363,11 +416,18 @@ class ControlSequencer:
             controller_reset(cs)
             c["restarts"] += first
         if first:
-            self.log("warning", (
-                f"frame {k}: PWM was off although duty {k - 2} asked for it (the power "
-                f"stage's watchdog: this controller fell behind) -- interval lost; "
-                + ("flying restart on the estimate" if flying else
-                   "restarting through align / I-f")))
+            self.log(
+                "warning",
+                (
+                    f"frame {k}: PWM was off although duty {k - 2} asked for it (the power "
+                    f"stage's watchdog: this controller fell behind) -- interval lost; "
+                    + (
+                        "flying restart on the estimate"
+                        if flying
+                        else "restarting through align / I-f"
+                    )
+                ),
+            )
 
     # ------------------------------------------------------------------ faults
     def _log_fault(self, code: int) -> None:

@@ -57,15 +57,36 @@ LATCH_N = max(CO_DA, CO_DC, CO_EN) + 1
 def pwm_off_latch() -> np.ndarray:
     """The latch before the first period: PWM off, duties at 50 %."""
     latch = np.zeros(LATCH_N)
-    latch[CO_DA:CO_DC + 1] = 0.5
+    latch[CO_DA : CO_DC + 1] = 0.5
     latch[CO_EN] = 0.0
     return latch
 
 
 @njit(cache=True)
-def closed_loop_chunk(k0, k1, pst, mp, rng, load_t, load_y, load_cfg, cs, cp, w_ref, id_inj,
-                      obs_states, obs_params, driving, frame, truth, duty_prev,
-                      out_frames, out_truth, out_est, out_ctrl):
+def closed_loop_chunk(
+    k0,
+    k1,
+    pst,
+    mp,
+    rng,
+    load_t,
+    load_y,
+    load_cfg,
+    cs,
+    cp,
+    w_ref,
+    id_inj,
+    obs_states,
+    obs_params,
+    driving,
+    frame,
+    truth,
+    duty_prev,
+    out_frames,
+    out_truth,
+    out_est,
+    out_ctrl,
+):
     """Run periods k0..k1-1.  `frame`/`truth` hold frame k0 on entry and frame k1 on exit;
     `duty_prev` (the controller row's first LATCH_N fields: duties and enable) the duty
     latched for the next period."""
@@ -82,8 +103,18 @@ def closed_loop_chunk(k0, k1, pst, mp, rng, load_t, load_y, load_cfg, cs, cp, w_
         else:
             controller_step(cs, cp, frame, no_est, w_ref[k], id_inj[k], ctrl)
         out_ctrl[k, :] = ctrl
-        plant_advance(pst, mp, rng, duty_prev[CO_DA:CO_DC + 1], duty_prev[CO_EN] > 0.5, load_t,
-                      load_y, load_cfg, frame, truth)
+        plant_advance(
+            pst,
+            mp,
+            rng,
+            duty_prev[CO_DA : CO_DC + 1],
+            duty_prev[CO_EN] > 0.5,
+            load_t,
+            load_y,
+            load_cfg,
+            frame,
+            truth,
+        )
         for j in range(LATCH_N):
             duty_prev[j] = ctrl[j]
     return k1
@@ -108,9 +139,18 @@ class SimResult:
         return self.est[self.names.index(name)]
 
     def save_npz(self, path: Path) -> None:
-        np.savez_compressed(path, t=self.t, frames=self.frames, truth=self.truth, est=self.est,
-                            ctrl=self.ctrl, w_ref=self.w_ref, id_inj=self.id_inj,
-                            names=np.array(self.names), driving=self.driving)
+        np.savez_compressed(
+            path,
+            t=self.t,
+            frames=self.frames,
+            truth=self.truth,
+            est=self.est,
+            ctrl=self.ctrl,
+            w_ref=self.w_ref,
+            id_inj=self.id_inj,
+            names=np.array(self.names),
+            driving=self.driving,
+        )
 
 
 class DriveSetup:
@@ -123,8 +163,13 @@ class DriveSetup:
         self.card = card
         self.n = sc.n_periods
         self.ts = card.ts_s
-        self.mp = machine_params(card, sc.current_offset_a, sc.current_gain,
-                                 deadtime_s=sc.plant_deadtime_s, bench=sc.bench)
+        self.mp = machine_params(
+            card,
+            sc.current_offset_a,
+            sc.current_gain,
+            deadtime_s=sc.plant_deadtime_s,
+            bench=sc.bench,
+        )
         self.load_t, self.load_y = sc.load_breakpoints_nm()
         self.load_cfg = load_config(sc.dyno_nm_per_rad_s(), sc.brake_band_rpm * RPM)
         self.cp = sc.control.to_params(card)
@@ -151,9 +196,12 @@ class DriveSetup:
     # fresh states (a run or a node starts from these)
     def new_plant(self):
         th = self.sc.bench.thermal
-        pst = plant_state(math.radians(self.sc.initial_angle_deg), 0.0, self.card.pole_pairs,
-                          winding_c=self.card.resistance_ref_c if th is None
-                          else th.initial_winding_c)
+        pst = plant_state(
+            math.radians(self.sc.initial_angle_deg),
+            0.0,
+            self.card.pole_pairs,
+            winding_c=self.card.resistance_ref_c if th is None else th.initial_winding_c,
+        )
         return pst, rng_new(self.sc.seed)
 
     def new_controller(self):
@@ -176,9 +224,14 @@ def _injection(spec: dict, ts: float, unit: float):
     if freqs is None:
         f0, f1, n = spec.get("f_start_hz", 1.0), spec.get("f_stop_hz", 1000.0), spec.get("n", 20)
         freqs = np.geomspace(f0, f1, int(n)).tolist()
-    return stepped_sine(freqs, float(spec.get("amplitude", 1.0)) * unit, ts,
-                        float(spec.get("start_s", 0.5)), int(spec.get("cycles", 6)),
-                        int(spec.get("settle_cycles", 3)))
+    return stepped_sine(
+        freqs,
+        float(spec.get("amplitude", 1.0)) * unit,
+        ts,
+        float(spec.get("start_s", 0.5)),
+        int(spec.get("cycles", 6)),
+        int(spec.get("settle_cycles", 3)),
+    )
 
 
 class LoopRun:
@@ -212,18 +265,48 @@ class LoopRun:
         """Run periods k..k1-1 (k1 = k compiles, or loads from the cache, and runs nothing)."""
         ds = self.ds
         t0 = time.perf_counter()
-        self.k = closed_loop_chunk(self.k, k1, self.pst, ds.mp, self.rng, ds.load_t, ds.load_y,
-                                   ds.load_cfg, self.cs, self.cp, ds.w_ref, ds.id_inj,
-                                   self.obs_states, self.obs_params, self.driving, self.frame,
-                                   self.truth, self.latch, self.frames, self.truths, self.est,
-                                   self.ctrl)
+        self.k = closed_loop_chunk(
+            self.k,
+            k1,
+            self.pst,
+            ds.mp,
+            self.rng,
+            ds.load_t,
+            ds.load_y,
+            ds.load_cfg,
+            self.cs,
+            self.cp,
+            ds.w_ref,
+            ds.id_inj,
+            self.obs_states,
+            self.obs_params,
+            self.driving,
+            self.frame,
+            self.truth,
+            self.latch,
+            self.frames,
+            self.truths,
+            self.est,
+            self.ctrl,
+        )
         self.wall_s += time.perf_counter() - t0
 
     def result(self) -> SimResult:
         ds = self.ds
-        return SimResult(ds.sc, ds.names, ds.sc.driving, np.arange(self.n) * ds.ts, self.frames,
-                         self.truths, self.est, self.ctrl, ds.w_ref, ds.id_inj, ds.segments,
-                         self.wall_s)
+        return SimResult(
+            ds.sc,
+            ds.names,
+            ds.sc.driving,
+            np.arange(self.n) * ds.ts,
+            self.frames,
+            self.truths,
+            self.est,
+            self.ctrl,
+            ds.w_ref,
+            ds.id_inj,
+            ds.segments,
+            self.wall_s,
+        )
 
 
 def run_scenario(sc: Scenario, progress: bool = True, chunk_s: float = 0.25) -> SimResult:
@@ -241,8 +324,10 @@ def run_scenario(sc: Scenario, progress: bool = True, chunk_s: float = 0.25) -> 
         now = time.perf_counter()
         if show and (tty or now - last_print > 2.0 or run.k == n):
             last_print = now
-            msg = (f"[sim] {sc.name}: {run.k * ts:6.2f}/{sc.duration_s:.2f} s simulated, "
-                   f"{run.wall_s:5.1f} s wall")
+            msg = (
+                f"[sim] {sc.name}: {run.k * ts:6.2f}/{sc.duration_s:.2f} s simulated, "
+                f"{run.wall_s:5.1f} s wall"
+            )
             sys.stderr.write("\r" + msg if tty else msg + "\n")
             sys.stderr.flush()
     if show and tty:

@@ -63,8 +63,11 @@ VARIANTS = {
     "ortega_measured": {"variant": "ortega", "voltage_source": "measured"},
     "ortega_commanded": {"variant": "ortega", "voltage_source": "commanded"},
     # the bound's 0.2 R I term is a 20 % resistance error: the paper observer with R^ 20 % high
-    "flux_measured_rhat120": {"variant": "paper_robust", "voltage_source": "measured",
-                              "r_hat_pu": 1.2},
+    "flux_measured_rhat120": {
+        "variant": "paper_robust",
+        "voltage_source": "measured",
+        "r_hat_pu": 1.2,
+    },
 }
 
 
@@ -85,10 +88,21 @@ def speed_bound_rpm(load_pu: float, commanded: bool) -> float:
     return v / mc.lam / mc.p * RAD_S_TO_RPM
 
 
-def descent(speed_rpm: float, load_pu: float, *, driving: str, observers: dict | None = None,
-            start_rpm: float = 480.0, decel_rpm_s: float = 200.0, ramp_pu_s: float = 0.19,
-            settle_s: float = 0.5, window_s: float = 1.5, seed: int = 1,
-            name: str = "descent", **extra):
+def descent(
+    speed_rpm: float,
+    load_pu: float,
+    *,
+    driving: str,
+    observers: dict | None = None,
+    start_rpm: float = 480.0,
+    decel_rpm_s: float = 200.0,
+    ramp_pu_s: float = 0.19,
+    settle_s: float = 0.5,
+    window_s: float = 1.5,
+    seed: int = 1,
+    name: str = "descent",
+    **extra,
+):
     """Sensorless start (align, I-f, handover) at start_rpm unloaded -- every variant can hand
     over there -- then the brake load ramped in at that speed, then a closed-loop deceleration
     under load to `speed_rpm`, a settle and the steady window.  Loading at the target speed
@@ -102,13 +116,26 @@ def descent(speed_rpm: float, load_pu: float, *, driving: str, observers: dict |
     t_at = t_dec + (s0 - speed_rpm) / decel_rpm_s
     w0 = t_at + settle_s
     dur = w0 + window_s
-    ctrl = {"if_current_pu": 0.6, "handover_rpm": 40.0,
-            "handback_rpm": min(20.0, 0.5 * speed_rpm), "handover_agree_lpf_hz": 2.0}
+    ctrl = {
+        "if_current_pu": 0.6,
+        "handover_rpm": 40.0,
+        "handback_rpm": min(20.0, 0.5 * speed_rpm),
+        "handover_agree_lpf_hz": 2.0,
+    }
     load = [[0.0, 0.0], [t_load, 0.0], [t_full, load_pu]] if load_pu > 0 else 0.0
-    return build(name=name, duration_s=round(dur, 4), seed=seed,
-                 speed_rpm=[[0.0, s0], [round(t_dec, 4), s0], [round(t_at, 4), speed_rpm]],
-                 load_type="brake", load_pu=load, steady_window_s=[round(w0, 4), round(dur, 4)],
-                 driving=driving, control=ctrl, observers=obs, **extra)
+    return build(
+        name=name,
+        duration_s=round(dur, 4),
+        seed=seed,
+        speed_rpm=[[0.0, s0], [round(t_dec, 4), s0], [round(t_at, 4), speed_rpm]],
+        load_type="brake",
+        load_pu=load,
+        steady_window_s=[round(w0, 4), round(dur, 4)],
+        driving=driving,
+        control=ctrl,
+        observers=obs,
+        **extra,
+    )
 
 
 def _x_hold(r, m):
@@ -125,14 +152,21 @@ def _x_hold(r, m):
         if bad.size:
             k = k0 + int(bad[0])
             lp = r.scenario.load_profile_pu
-            lost = {"t_s": float(r.t[k]), "ref_rpm": float(r.w_ref[k] * RAD_S_TO_RPM),
-                    "load_pu": float(np.interp(r.t[k], lp[:, 0], lp[:, 1])),
-                    "fault": FAULT_NAMES.get(int(r.ctrl[:, CO_FAULT].max()), "none")}
+            lost = {
+                "t_s": float(r.t[k]),
+                "ref_rpm": float(r.w_ref[k] * RAD_S_TO_RPM),
+                "load_pu": float(np.interp(r.t[k], lp[:, 0], lp[:, 1])),
+                "fault": FAULT_NAMES.get(int(r.ctrl[:, CO_FAULT].max()), "none"),
+            }
     o = m["observers"][d]
-    return {"stable": m["stable"], "rms_deg": o["theta_err_rms_deg"],
-            "mean_rpm": m["speed"]["mean_rpm"],
-            "closed_at_s": float(r.t[kc[0]]) if kc.size else None, "lost": lost,
-            "fault": FAULT_NAMES.get(m["fault_code"], str(m["fault_code"]))}
+    return {
+        "stable": m["stable"],
+        "rms_deg": o["theta_err_rms_deg"],
+        "mean_rpm": m["speed"]["mean_rpm"],
+        "closed_at_s": float(r.t[kc[0]]) if kc.size else None,
+        "lost": lost,
+        "fault": FAULT_NAMES.get(m["fault_code"], str(m["fault_code"])),
+    }
 
 
 # the search loads the drive at 480 rpm, where the ramp's speed lag (rate/(K_t K_i), ≈90 rpm at
@@ -152,9 +186,15 @@ def _search_lowest(ctx, cases, grid, seeds, bisect_steps):
         for c, s in speeds_by_case.items():
             v, load = c
             for seed in seeds:
-                jobs.append((descent(s, load, driving=v, seed=seed, name=f"low_{v}",
-                                     ramp_pu_s=LOW_RAMP_PU_S),
-                             _x_hold, None))
+                jobs.append(
+                    (
+                        descent(
+                            s, load, driving=v, seed=seed, name=f"low_{v}", ramp_pu_s=LOW_RAMP_PU_S
+                        ),
+                        _x_hold,
+                        None,
+                    )
+                )
                 keys.append((c, s))
         for (c, s), res in zip(keys, ctx.run(jobs), strict=True):
             st[c]["runs"].setdefault(s, []).append(res)
@@ -171,8 +211,11 @@ def _search_lowest(ctx, cases, grid, seeds, bisect_steps):
                 st[c]["alive"] = False
                 st[c]["lo"] = s
     for _ in range(bisect_steps):
-        todo = {c: round(math.sqrt(v["hi"] * v["lo"]), 1) for c, v in st.items()
-                if v["hi"] is not None and v["lo"] is not None}
+        todo = {
+            c: round(math.sqrt(v["hi"] * v["lo"]), 1)
+            for c, v in st.items()
+            if v["hi"] is not None and v["lo"] is not None
+        }
         if not todo:
             break
         for c, ok in step(todo).items():
@@ -185,8 +228,15 @@ def lowest_speed(ctx):
         cases = [("flux_measured", 1.0), ("flux_measured", 1.5), ("emf_commanded", 1.0)]
         grid, seeds, nbis = [240.0, 60.0, 30.0], [1], 0
     else:
-        names = ["flux_measured", "flux_commanded", "emf_measured", "emf_commanded",
-                 "hl_measured", "ortega_measured", "flux_measured_rhat120"]
+        names = [
+            "flux_measured",
+            "flux_commanded",
+            "emf_measured",
+            "emf_commanded",
+            "hl_measured",
+            "ortega_measured",
+            "flux_measured_rhat120",
+        ]
         cases = [(v, load) for v in names for load in (1.0, 1.5)]
         # one seed: a second one (last run) disagreed only at two bisection points (emf_measured
         # 100 % at 35.7 rpm, hl_measured 150 % at 12.6 rpm), one bisection step, no verdict
@@ -199,20 +249,30 @@ def lowest_speed(ctx):
             lost_runs = [x for x in st[(v, load)]["runs"][s["lo"]] if not x["stable"]]
             x = lost_runs[0] if lost_runs else None
             if x is not None:
-                first_loss = {"lost": x["lost"], "fault": x["fault"],
-                              "closed_at_s": x["closed_at_s"], "rms_deg": x["rms_deg"]}
+                first_loss = {
+                    "lost": x["lost"],
+                    "fault": x["fault"],
+                    "closed_at_s": x["closed_at_s"],
+                    "rms_deg": x["rms_deg"],
+                }
         commanded = VARIANTS[v]["voltage_source"] == "commanded"
         lowest.setdefault(v, {})[f"{int(load * 100)}%"] = {
-            "lowest_rpm": s["hi"], "first_lost_rpm": s["lo"],
+            "lowest_rpm": s["hi"],
+            "first_lost_rpm": s["lo"],
             "tested": {str(k): [x["stable"] for x in runs] for k, runs in s["runs"].items()},
-            "rms_deg_at_lowest": (float(np.mean([x["rms_deg"] for x in s["runs"][s["hi"]]]))
-                                  if s["hi"] is not None else None),
-            "loss": first_loss, "bound_rpm": speed_bound_rpm(load, commanded)}
+            "rms_deg_at_lowest": (
+                float(np.mean([x["rms_deg"] for x in s["runs"][s["hi"]]]))
+                if s["hi"] is not None
+                else None
+            ),
+            "loss": first_loss,
+            "bound_rpm": speed_bound_rpm(load, commanded),
+        }
 
     def fmt(v, key):
         d = lowest[v][key]
         low = d["lowest_rpm"]
-        s = (f"{low:g} rpm" if low is not None else f"none (lost at {d['first_lost_rpm']:g})")
+        s = f"{low:g} rpm" if low is not None else f"none (lost at {d['first_lost_rpm']:g})"
         if d["first_lost_rpm"] is not None and low is not None:
             s += f", lost at {d['first_lost_rpm']:g}"
         elif d["first_lost_rpm"] is None:
@@ -220,45 +280,52 @@ def lowest_speed(ctx):
         s += f"; bound {d['bound_rpm']:.0f} rpm"
         if d["loss"] and d["loss"]["lost"]:
             lo = d["loss"]["lost"]
-            s += (f" (loss at ref {lo['ref_rpm']:.0f} rpm, load {lo['load_pu']:.2f} pu, "
-                  f"fault {lo['fault']})")
+            s += (
+                f" (loss at ref {lo['ref_rpm']:.0f} rpm, load {lo['load_pu']:.2f} pu, "
+                f"fault {lo['fault']})"
+            )
         elif d["loss"] and d["loss"]["closed_at_s"] is None:
             s += " (never handed over)"
         return s
 
     notes = {
         "flux_measured": "measured voltages carry the deadtime, and R^ = R: neither term of the "
-                         "bound applies.  What ends it near 12-15 rpm was not isolated; "
-                         "candidates are what the measured voltage still gets wrong (the "
-                         "≈3.6 mV deadtime residue of the sensitivity experiment) and noise, "
-                         "both amplified by the inverse HPF gain ω_c/ω (≈100 at 15 rpm)",
+        "bound applies.  What ends it near 12-15 rpm was not isolated; "
+        "candidates are what the measured voltage still gets wrong (the "
+        "≈3.6 mV deadtime residue of the sensitivity experiment) and noise, "
+        "both amplified by the inverse HPF gain ω_c/ω (≈100 at 15 rpm)",
         "flux_commanded": "the deadtime fundamental (4/π)V_dt = 1.83 V lies along the current, so "
-                          "it integrates into a flux-magnitude error (4/π)V_dt/ω (Fig. 4): |λ̂| "
-                          "leaves the 3λ validity band near 90-140 rpm and the drive trips on "
-                          "loss of lock",
+        "it integrates into a flux-magnitude error (4/π)V_dt/ω (Fig. 4): |λ̂| "
+        "leaves the 3λ validity band near 90-140 rpm and the drive trips on "
+        "loss of lock",
         "emf_measured": "no integration: the per-sample EMF carries L/Ts·σ_i ≈ 0.18 V of noise "
-                        "against ωλ (0.59 V at 60 rpm, 0.3 V at 30 rpm): the SNR runs out "
-                        "first (the paper's argument)",
+        "against ωλ (0.59 V at 60 rpm, 0.3 V at 30 rpm): the SNR runs out "
+        "first (the paper's argument)",
         "emf_commanded": "the deadtime error (4/π)V_dt follows the current; once the loop is "
-                         "closed on the estimate it rotates with the estimated frame and hides "
-                         "(4/π)V_dt/(ωλ+(4/π)V_dt) of every angle error from the PLL (peers_fail)",
+        "closed on the estimate it rotates with the estimated frame and hides "
+        "(4/π)V_dt/(ωλ+(4/π)V_dt) of every angle error from the PLL (peers_fail)",
         "hl_measured": "the modified integrator's angle-error pole is ω²/k for k = 2π·5 Hz: "
-                       "slow but unbiased with measured voltages (sensitivity)",
+        "slow but unbiased with measured voltages (sensitivity)",
         "ortega_measured": "its magnitude loop (γλ² = 1000 s⁻¹) turns any q-axis EMF residue δ "
-                           "into an angle error k δ/(ω² λ), ≈ 4° per mV at 60 rpm and "
-                           "growing as 1/ω² (the ≈3.6 mV deadtime residue: sensitivity "
-                           "experiment); its angle pole ω²/k is 0.6 s⁻¹ there",
+        "into an angle error k δ/(ω² λ), ≈ 4° per mV at 60 rpm and "
+        "growing as 1/ω² (the ≈3.6 mV deadtime residue: sensitivity "
+        "experiment); its angle pole ω²/k is 0.6 s⁻¹ there",
         "flux_measured_rhat120": "R^ 20 % high: |λ̂| = λ − 0.2 R I/ω, which leaves the 0.3λ "
-                                 "validity band at ω = 0.2 R I/(0.7 λ) = 1.43× the bound and "
-                                 "flips sign at the bound itself",
+        "validity band at ω = 0.2 R I/(0.7 λ) = 1.43× the bound and "
+        "flips sign at the bound itself",
     }
     claims = []
     for v in lowest:
         keys = list(lowest[v])
-        claims.append(claim(
-            f"{v}: lowest speed holding {' / '.join(keys)} load (sensorless, descent under "
-            "load from 480 rpm) vs ω_min ≈ (0.2 R I + V_dt)/λ",
-            "; ".join(f"{k}: {fmt(v, k)}" for k in keys), None, notes.get(v, "")))
+        claims.append(
+            claim(
+                f"{v}: lowest speed holding {' / '.join(keys)} load (sensorless, descent under "
+                "load from 480 rpm) vs ω_min ≈ (0.2 R I + V_dt)/λ",
+                "; ".join(f"{k}: {fmt(v, k)}" for k in keys),
+                None,
+                notes.get(v, ""),
+            )
+        )
 
     def low(v, key):
         d = lowest.get(v, {}).get(key)
@@ -266,59 +333,94 @@ def lowest_speed(ctx):
 
     loads = sorted({k for v in lowest.values() for k in v})
     if "flux_measured" in lowest:
-        fm = [(k, low("flux_measured", k), lowest["flux_measured"][k]["bound_rpm"])
-              for k in loads if k in lowest["flux_measured"]]
-        claims.append(claim(
-            "With measured voltages and R^ = R the flux observer holds the load well below the "
-            "bound (neither of its terms applies)",
-            "; ".join(f"{k}: {x:g} rpm vs bound {b:.0f}" if x is not None else f"{k}: none"
-                      for k, x, b in fm),
-            all(x is not None and x < 0.5 * b for _, x, b in fm)))
+        fm = [
+            (k, low("flux_measured", k), lowest["flux_measured"][k]["bound_rpm"])
+            for k in loads
+            if k in lowest["flux_measured"]
+        ]
+        claims.append(
+            claim(
+                "With measured voltages and R^ = R the flux observer holds the load well below the "
+                "bound (neither of its terms applies)",
+                "; ".join(
+                    f"{k}: {x:g} rpm vs bound {b:.0f}" if x is not None else f"{k}: none"
+                    for k, x, b in fm
+                ),
+                all(x is not None and x < 0.5 * b for _, x, b in fm),
+            )
+        )
     if "flux_measured_rhat120" in lowest:
-        rows = [(k, low("flux_measured_rhat120", k),
-                 lowest["flux_measured_rhat120"][k]["first_lost_rpm"],
-                 lowest["flux_measured_rhat120"][k]["bound_rpm"]) for k in loads]
-        claims.append(claim(
-            "The bound's 0.2 R I term is a 20 % R^ error: with R^ = 1.2 R the flux observer "
-            "fails between the bound and 2× the bound (predicted 1.43×: |λ̂| = λ − 0.2RI/ω "
-            "leaves the 0.3λ validity band)",
-            "; ".join(f"{k}: lost at {lo}, held at {hi} rpm (bound {b:.0f}, 1.43× = {1.43 * b:.0f})"
-                      for k, hi, lo, b in rows),
-            all(lo is not None and hi is not None and lo < 2.0 * b and hi > b
-                for _, hi, lo, b in rows),
-            "the search brackets the loss between two tested speeds; a bracket straddling "
-            "the predicted band edge counts"))
+        rows = [
+            (
+                k,
+                low("flux_measured_rhat120", k),
+                lowest["flux_measured_rhat120"][k]["first_lost_rpm"],
+                lowest["flux_measured_rhat120"][k]["bound_rpm"],
+            )
+            for k in loads
+        ]
+        claims.append(
+            claim(
+                "The bound's 0.2 R I term is a 20 % R^ error: with R^ = 1.2 R the flux observer "
+                "fails between the bound and 2× the bound (predicted 1.43×: |λ̂| = λ − 0.2RI/ω "
+                "leaves the 0.3λ validity band)",
+                "; ".join(
+                    f"{k}: lost at {lo}, held at {hi} rpm (bound {b:.0f}, 1.43× = {1.43 * b:.0f})"
+                    for k, hi, lo, b in rows
+                ),
+                all(
+                    lo is not None and hi is not None and lo < 2.0 * b and hi > b
+                    for _, hi, lo, b in rows
+                ),
+                "the search brackets the loss between two tested speeds; a bracket straddling "
+                "the predicted band edge counts",
+            )
+        )
     com = [v for v in ("flux_commanded", "emf_commanded") if v in lowest]
     if com and not ctx.quick:
         rows = [(v, k, low(v, k), lowest[v][k]["bound_rpm"]) for v in com for k in loads]
-        claims.append(claim(
-            "The bound's V_dt term: commanded-voltage observers stop holding the load near "
-            "(0.2 R I + V_dt)/λ (within a factor of 2)",
-            "; ".join(f"{v} {k}: {x} rpm vs {b:.0f}" for v, k, x, b in rows),
-            all(x is not None and 0.5 * b <= x <= 2.0 * b for _, _, x, b in rows),
-            "the bound is a rule of thumb: flux_commanded's loss is set by the flux-magnitude "
-            "validity band (3λ at ω ≈ (4/π)V_dt/2λ), emf_commanded's by the closed-loop "
-            "feedback of the deadtime error"))
+        claims.append(
+            claim(
+                "The bound's V_dt term: commanded-voltage observers stop holding the load near "
+                "(0.2 R I + V_dt)/λ (within a factor of 2)",
+                "; ".join(f"{v} {k}: {x} rpm vs {b:.0f}" for v, k, x, b in rows),
+                all(x is not None and 0.5 * b <= x <= 2.0 * b for _, _, x, b in rows),
+                "the bound is a rule of thumb: flux_commanded's loss is set by the flux-magnitude "
+                "validity band (3λ at ω ≈ (4/π)V_dt/2λ), emf_commanded's by the closed-loop "
+                "feedback of the deadtime error",
+            )
+        )
     if "emf_measured" in lowest:
         rows = [(k, low("flux_measured", k), low("emf_measured", k)) for k in loads]
-        claims.append(claim(
-            "The paper's SNR argument as a speed range: with measured voltages the flux "
-            "observer holds the load lower than the EMF observer",
-            "; ".join(f"{k}: flux {a} vs EMF {b} rpm" for k, a, b in rows),
-            all(a is not None and (b is None or a < b) for _, a, b in rows)))
+        claims.append(
+            claim(
+                "The paper's SNR argument as a speed range: with measured voltages the flux "
+                "observer holds the load lower than the EMF observer",
+                "; ".join(f"{k}: flux {a} vs EMF {b} rpm" for k, a, b in rows),
+                all(a is not None and (b is None or a < b) for _, a, b in rows),
+            )
+        )
     figs = [_plot_lowest(ctx, lowest, grid)]
-    return {"claims": claims, "figures": figs,
-            "data": {"lowest": lowest, "grid_rpm": grid, "seeds": seeds,
-                     "protocol": "sensorless start at 480 rpm unloaded, brake load ramp "
-                                 f"{LOW_RAMP_PU_S} pu/s, decel 200 rpm/s, 0.5 s settle, "
-                                 "1.5 s window"}}
+    return {
+        "claims": claims,
+        "figures": figs,
+        "data": {
+            "lowest": lowest,
+            "grid_rpm": grid,
+            "seeds": seeds,
+            "protocol": "sensorless start at 480 rpm unloaded, brake load ramp "
+            f"{LOW_RAMP_PU_S} pu/s, decel 200 rpm/s, 0.5 s settle, "
+            "1.5 s window",
+        },
+    }
 
 
 def _plot_lowest(ctx, lowest, grid):
     p = plt()
     loads = sorted({k for v in lowest.values() for k in v})
-    fig, axs = p.subplots(1, len(loads), figsize=(6 * len(loads), 0.55 * len(lowest) + 1.8),
-                          squeeze=False)
+    fig, axs = p.subplots(
+        1, len(loads), figsize=(6 * len(loads), 0.55 * len(lowest) + 1.8), squeeze=False
+    )
     names = list(lowest)
     for ax, key in zip(axs[0], loads, strict=True):
         for i, v in enumerate(names):
@@ -332,9 +434,13 @@ def _plot_lowest(ctx, lowest, grid):
             ax.plot([d["bound_rpm"]], [i], "|", color="k", ms=16, mew=2)
         lp = float(key.rstrip("%")) / 100
         for com, ls in ((False, "--"), (True, ":")):
-            ax.axvline(speed_bound_rpm(lp, com), color="0.4", ls=ls, lw=1,
-                       label=f"(0.2RI{'+V_dt' if com else ''})/λ = "
-                             f"{speed_bound_rpm(lp, com):.0f} rpm")
+            ax.axvline(
+                speed_bound_rpm(lp, com),
+                color="0.4",
+                ls=ls,
+                lw=1,
+                label=f"(0.2RI{'+V_dt' if com else ''})/λ = {speed_bound_rpm(lp, com):.0f} rpm",
+            )
         ax.set_yticks(range(len(names)))
         ax.set_yticklabels(names, fontsize=8)
         ax.set_ylim(-1.6, len(names) - 0.5)  # a free band at the bottom for the legend
@@ -359,10 +465,12 @@ def _x_mismatch(r, m):
     for i, nm in enumerate(r.names):
         e = r.est[i, sl]
         th_err = np.angle(np.exp(1j * (e[:, ES_TH] - r.truth[sl, TR_THETA_E])))
-        out["obs"][nm] = {"mag": float(np.mean(np.hypot(e[:, ES_LA], e[:, ES_LB]))),
-                          "mean_deg": float(np.degrees(np.mean(th_err))),
-                          "rms_deg": m["observers"][nm]["theta_err_rms_deg"],
-                          "valid": m["observers"][nm]["valid_fraction"]}
+        out["obs"][nm] = {
+            "mag": float(np.mean(np.hypot(e[:, ES_LA], e[:, ES_LB]))),
+            "mean_deg": float(np.degrees(np.mean(th_err))),
+            "rms_deg": m["observers"][nm]["theta_err_rms_deg"],
+            "valid": m["observers"][nm]["valid_fraction"],
+        }
     return out
 
 
@@ -385,14 +493,40 @@ def mismatch(ctx):
     # with the single error under study
     jobs = [(build(base="paper_2pct_150load", observers=obs, bench={}), _x_mismatch, None)]
     for o in offs:
-        jobs.append((build(base="paper_2pct_150load", bench={},
-                           faults={"current_offset_pu": [0.0, o, 0.0]},
-                           observers={"flux_measured": base}), _x_mismatch, None))
-    closed = [] if ctx.quick else [("r_hat_ohm", mc.r * 1.15), ("r_hat_ohm", mc.r * 0.85),
-                                   ("l_hat_h", mc.l * 1.5), ("l_hat_h", mc.l * 0.5)]
+        jobs.append(
+            (
+                build(
+                    base="paper_2pct_150load",
+                    bench={},
+                    faults={"current_offset_pu": [0.0, o, 0.0]},
+                    observers={"flux_measured": base},
+                ),
+                _x_mismatch,
+                None,
+            )
+        )
+    closed = (
+        []
+        if ctx.quick
+        else [
+            ("r_hat_ohm", mc.r * 1.15),
+            ("r_hat_ohm", mc.r * 0.85),
+            ("l_hat_h", mc.l * 1.5),
+            ("l_hat_h", mc.l * 0.5),
+        ]
+    )
     for key, val in closed:
-        jobs.append((build(base="paper_2pct_150load", bench={},
-                           observers={"flux_measured": {**base, key: val}}), _x_mismatch, None))
+        jobs.append(
+            (
+                build(
+                    base="paper_2pct_150load",
+                    bench={},
+                    observers={"flux_measured": {**base, key: val}},
+                ),
+                _x_mismatch,
+                None,
+            )
+        )
     res = ctx.run(jobs)
     r0 = res[0]
     we, iq = r0["we"], r0["iq"]
@@ -409,83 +543,131 @@ def mismatch(ctx):
     for k in lams:
         rows.append({"param": f"λ^={k}λ", **r0["obs"][f"lam{k}"], "pred_mean_deg": 0.0})
     rr = {x["param"]: x for x in rows}
-    claims.append(claim(
-        "R^ error (i_d = 0) is a flux-magnitude error |λ̂| = λ + (R − R^)|i_q|/ω, not an "
-        "angle error, at 2 %/150 %",
-        "; ".join(f"R^={k}R: |λ̂| {1e3 * rr[f'R^={k}R']['mag']:.1f} mV·s (pred "
-                  f"{1e3 * abs(rr[f'R^={k}R']['pred_mag']):.1f}), θ̃ mean "
-                  f"{rr[f'R^={k}R']['mean_deg']:.1f}°, valid {rr[f'R^={k}R']['valid']:.2f}"
-                  for k in rs),
-        all(abs(rr[f"R^={k}R"]["mag"] - abs(rr[f"R^={k}R"]["pred_mag"]))
-            < 0.2 * abs(rr[f"R^={k}R"]["pred_mag"]) + 2e-3 for k in rs),
-        f"R^ > {mc.r + mc.lam * we / iq:.3f} Ω ({100 * mc.lam * we / iq / mc.r:.0f} % high) "
-        "flips the "
-        "sign of λ̂ (a 180° estimate: the mean θ̃ of those rows is meaningless) at 150 % "
-        "load and 60 rpm; R^ ≤ 0.8 R leaves |λ̂| outside the 0.3-3 λ validity band"))
-    claims.append(claim(
-        "L^ error is an angle error atan((L − L^) i_q / λ)",
-        "; ".join(f"L^={k}L: θ̃ mean {rr[f'L^={k}L']['mean_deg']:.1f}° (pred "
-                  f"{rr[f'L^={k}L']['pred_mean_deg']:.1f}°)" for k in ls),
-        all(abs(rr[f"L^={k}L"]["mean_deg"] - rr[f"L^={k}L"]["pred_mean_deg"]) < 3.0
-            for k in ls)))
-    claims.append(claim(
-        "λ^ error does not move the angle (it only scales the PLL's normalisation/validity)",
-        "; ".join(f"λ^={k}λ: θ̃ mean {rr[f'λ^={k}λ']['mean_deg']:.2f}°" for k in lams),
-        all(abs(rr[f"λ^={k}λ"]["mean_deg"]) < 1.0 for k in lams)))
+    claims.append(
+        claim(
+            "R^ error (i_d = 0) is a flux-magnitude error |λ̂| = λ + (R − R^)|i_q|/ω, not an "
+            "angle error, at 2 %/150 %",
+            "; ".join(
+                f"R^={k}R: |λ̂| {1e3 * rr[f'R^={k}R']['mag']:.1f} mV·s (pred "
+                f"{1e3 * abs(rr[f'R^={k}R']['pred_mag']):.1f}), θ̃ mean "
+                f"{rr[f'R^={k}R']['mean_deg']:.1f}°, valid {rr[f'R^={k}R']['valid']:.2f}"
+                for k in rs
+            ),
+            all(
+                abs(rr[f"R^={k}R"]["mag"] - abs(rr[f"R^={k}R"]["pred_mag"]))
+                < 0.2 * abs(rr[f"R^={k}R"]["pred_mag"]) + 2e-3
+                for k in rs
+            ),
+            f"R^ > {mc.r + mc.lam * we / iq:.3f} Ω ({100 * mc.lam * we / iq / mc.r:.0f} % high) "
+            "flips the "
+            "sign of λ̂ (a 180° estimate: the mean θ̃ of those rows is meaningless) at 150 % "
+            "load and 60 rpm; R^ ≤ 0.8 R leaves |λ̂| outside the 0.3-3 λ validity band",
+        )
+    )
+    claims.append(
+        claim(
+            "L^ error is an angle error atan((L − L^) i_q / λ)",
+            "; ".join(
+                f"L^={k}L: θ̃ mean {rr[f'L^={k}L']['mean_deg']:.1f}° (pred "
+                f"{rr[f'L^={k}L']['pred_mean_deg']:.1f}°)"
+                for k in ls
+            ),
+            all(
+                abs(rr[f"L^={k}L"]["mean_deg"] - rr[f"L^={k}L"]["pred_mean_deg"]) < 3.0 for k in ls
+            ),
+        )
+    )
+    claims.append(
+        claim(
+            "λ^ error does not move the angle (it only scales the PLL's normalisation/validity)",
+            "; ".join(f"λ^={k}λ: θ̃ mean {rr[f'λ^={k}λ']['mean_deg']:.2f}°" for k in lams),
+            all(abs(rr[f"λ^={k}λ"]["mean_deg"]) < 1.0 for k in lams),
+        )
+    )
     off_rows = []
-    for o, r in zip(offs, res[1:1 + len(offs)], strict=True):
+    for o, r in zip(offs, res[1 : 1 + len(offs)], strict=True):
         d_ab = o * mc.i_rated * math.sqrt(1 / 9 + 1 / 3)
         ratio = mc.r * d_ab / (abs(r["we"]) * mc.lam) if abs(r["we"]) > 1.0 else 1.0
         pred = math.degrees(math.asin(min(1.0, ratio)))
         mm = r["metrics"]
-        off_rows.append({"offset_pu": o, "stable": mm["stable"],
-                         "h1_deg": mm["observers"]["flux_measured"]["theta_err_h1_deg"],
-                         "pred_h1_deg": pred,
-                         "ripple_rpm": mm["speed"]["ripple_rpm"]})
-    claims.append(claim(
-        "Current-sensor offset on i_b (closed loop, flux drive, 2 %/150 %): 1st-order θ̃ ≈ "
-        "asin(R|Δi_αβ|/(ωλ))",
-        "; ".join(f"{100 * x['offset_pu']:.1f} %: h1 {x['h1_deg']:.2f}° (pred "
-                  f"{x['pred_h1_deg']:.2f}°), stable {x['stable']}, ripple "
-                  f"{x['ripple_rpm']:.1f} rpm" for x in off_rows),
-        all(abs(x["h1_deg"] - x["pred_h1_deg"]) < 0.5 * x["pred_h1_deg"] + 0.3
-            for x in off_rows if x["stable"])))
+        off_rows.append(
+            {
+                "offset_pu": o,
+                "stable": mm["stable"],
+                "h1_deg": mm["observers"]["flux_measured"]["theta_err_h1_deg"],
+                "pred_h1_deg": pred,
+                "ripple_rpm": mm["speed"]["ripple_rpm"],
+            }
+        )
+    claims.append(
+        claim(
+            "Current-sensor offset on i_b (closed loop, flux drive, 2 %/150 %): 1st-order θ̃ ≈ "
+            "asin(R|Δi_αβ|/(ωλ))",
+            "; ".join(
+                f"{100 * x['offset_pu']:.1f} %: h1 {x['h1_deg']:.2f}° (pred "
+                f"{x['pred_h1_deg']:.2f}°), stable {x['stable']}, ripple "
+                f"{x['ripple_rpm']:.1f} rpm"
+                for x in off_rows
+            ),
+            all(
+                abs(x["h1_deg"] - x["pred_h1_deg"]) < 0.5 * x["pred_h1_deg"] + 0.3
+                for x in off_rows
+                if x["stable"]
+            ),
+        )
+    )
     cl_rows = []
-    for (key, val), r in zip(closed, res[1 + len(offs):], strict=True):
+    for (key, val), r in zip(closed, res[1 + len(offs) :], strict=True):
         cl_rows.append({"param": key, "value": val, "stable": r["metrics"]["stable"]})
     if cl_rows:
-        claims.append(claim(
-            "Driving with mismatched R^/L^ (2 %/150 %, flux drive, measured voltages)",
-            "; ".join(f"{x['param']}={x['value']:.4g}: stable {x['stable']}" for x in cl_rows),
-            None, "at 60 rpm / 150 % load the R̂ tolerance is tiny (the flux flips at "
-            f"{100 * mc.lam * we / iq / mc.r:.0f} % high; the start-up's I-f angle check also "
-            "fails), so R̂ must be tracked online (experiment rs_adapt); L̂ errors only tilt "
-            "the angle by atan((L−L̂)i_q/λ)"))
+        claims.append(
+            claim(
+                "Driving with mismatched R^/L^ (2 %/150 %, flux drive, measured voltages)",
+                "; ".join(f"{x['param']}={x['value']:.4g}: stable {x['stable']}" for x in cl_rows),
+                None,
+                "at 60 rpm / 150 % load the R̂ tolerance is tiny (the flux flips at "
+                f"{100 * mc.lam * we / iq / mc.r:.0f} % high; the start-up's I-f angle check also "
+                "fails), so R̂ must be tracked online (experiment rs_adapt); L̂ errors only tilt "
+                "the angle by atan((L−L̂)i_q/λ)",
+            )
+        )
     p = plt()
     fig, ax = p.subplots(1, 2, figsize=(10, 3.8))
-    ax[0].plot([x * 100 - 100 for x in rs], [1e3 * rr[f"R^={k}R"]["mag"] for k in rs], "o",
-               label="|λ̂| sim")
+    ax[0].plot(
+        [x * 100 - 100 for x in rs], [1e3 * rr[f"R^={k}R"]["mag"] for k in rs], "o", label="|λ̂| sim"
+    )
     kk = np.linspace(0.65, 1.35, 50)
-    ax[0].plot(kk * 100 - 100, [1e3 * abs(mc.lam + (mc.r - mc.r * k) * iq / we) for k in kk], "-",
-               label="λ + (R−R̂)i_q/ω")
+    ax[0].plot(
+        kk * 100 - 100,
+        [1e3 * abs(mc.lam + (mc.r - mc.r * k) * iq / we) for k in kk],
+        "-",
+        label="λ + (R−R̂)i_q/ω",
+    )
     ax[0].set_xlabel("R̂ error [%]")
     ax[0].set_ylabel("|λ̂| [mV·s]")
     ax[0].legend(fontsize=7)
-    ax[1].plot([x * 100 - 100 for x in ls], [rr[f"L^={k}L"]["mean_deg"] for k in ls], "o",
-               label="θ̃ mean sim")
+    ax[1].plot(
+        [x * 100 - 100 for x in ls],
+        [rr[f"L^={k}L"]["mean_deg"] for k in ls],
+        "o",
+        label="θ̃ mean sim",
+    )
     kk = np.linspace(0.45, 1.55, 50)
-    ax[1].plot(kk * 100 - 100,
-               [math.degrees(math.atan2((mc.l - mc.l * k) * iq, mc.lam)) for k in kk],
-               label="atan((L−L̂)i_q/λ)")
+    ax[1].plot(
+        kk * 100 - 100,
+        [math.degrees(math.atan2((mc.l - mc.l * k) * iq, mc.lam)) for k in kk],
+        label="atan((L−L̂)i_q/λ)",
+    )
     ax[1].set_xlabel("L̂ error [%]")
     ax[1].set_ylabel("θ̃ mean [deg]")
     ax[1].legend(fontsize=7)
-    fig.suptitle("Mismatch at 2 % speed, 150 % load (flux observer, measured voltages)",
-                 fontsize=9)
+    fig.suptitle("Mismatch at 2 % speed, 150 % load (flux observer, measured voltages)", fontsize=9)
     figs = [ctx.fig(fig, "beyond_mismatch")]
-    return {"claims": claims, "figures": figs,
-            "data": {"shadow": rows, "offsets": off_rows, "closed_loop": cl_rows,
-                     "we": we, "iq": iq}}
+    return {
+        "claims": claims,
+        "figures": figs,
+        "data": {"shadow": rows, "offsets": off_rows, "closed_loop": cl_rows, "we": we, "iq": iq},
+    }
 
 
 # ======================================================================== sensitivity
@@ -507,13 +689,14 @@ SENS_VARIANTS = ["paper", "lpf", "hinkkanen_luomi", "ortega", "emf"]
 SENS_RUN = {"paper": "paper_robust"}
 
 
-def _mag_forced_rhs(kind: str, eta: complex, x: complex, w: float, k: float,
-                    lam_hat: float) -> complex:
+def _mag_forced_rhs(
+    kind: str, eta: complex, x: complex, w: float, k: float, lam_hat: float
+) -> complex:
     m = abs(eta)
     if kind == "hinkkanen_luomi":
         c = k * (m - lam_hat) / max(m, 1e-12)
     else:  # ortega, gamma = k / lam^2
-        c = 0.5 * k / lam_hat ** 2 * (m * m - lam_hat ** 2)
+        c = 0.5 * k / lam_hat**2 * (m * m - lam_hat**2)
     return x - (1j * w + c) * eta
 
 
@@ -523,34 +706,45 @@ def _mag_forced_eq(kind: str, x: complex, w: float, k: float, lam_hat: float) ->
     xm = abs(x)
     if kind == "hinkkanen_luomi":
         # m^2 w^2 + k^2 (m - lam^)^2 = |x|^2: a quadratic in m
-        ms = np.roots([w * w + k * k, -2.0 * k * k * lam_hat, k * k * lam_hat ** 2 - xm ** 2])
+        ms = np.roots([w * w + k * k, -2.0 * k * k * lam_hat, k * k * lam_hat**2 - xm**2])
         ms = [float(r.real) for r in ms if abs(r.imag) < 1e-12 and r.real > 0]
         cs = [k * (m - lam_hat) / m for m in ms]
     else:
         # u = m^2: u (w^2 + g^2 (u - lam^2)^2) = |x|^2, g = k/(2 lam^2): a cubic in u
-        g = 0.5 * k / lam_hat ** 2
-        us = np.roots([g * g, -2 * g * g * lam_hat ** 2, w * w + g * g * lam_hat ** 4,
-                       -xm ** 2])
+        g = 0.5 * k / lam_hat**2
+        us = np.roots([g * g, -2 * g * g * lam_hat**2, w * w + g * g * lam_hat**4, -(xm**2)])
         us = [float(r.real) for r in us if abs(r.imag) < 1e-9 * max(1.0, abs(r)) and r.real > 0]
-        cs = [g * (u - lam_hat ** 2) for u in us]
+        cs = [g * (u - lam_hat**2) for u in us]
     best = None
     for c in cs:
         eta = x / (1j * w + c)
         h = 1e-7 * lam_hat  # numerical Jacobian of the real 2-state system
         jac = np.zeros((2, 2))
         for j, dz in enumerate((h, 1j * h)):
-            df = (_mag_forced_rhs(kind, eta + dz, x, w, k, lam_hat)
-                  - _mag_forced_rhs(kind, eta - dz, x, w, k, lam_hat)) / (2 * h)
+            df = (
+                _mag_forced_rhs(kind, eta + dz, x, w, k, lam_hat)
+                - _mag_forced_rhs(kind, eta - dz, x, w, k, lam_hat)
+            ) / (2 * h)
             jac[:, j] = [df.real, df.imag]
         if np.all(np.linalg.eigvals(jac).real < 0) and (
-                best is None or abs(eta - lam_hat) < abs(best - lam_hat)):
+            best is None or abs(eta - lam_hat) < abs(best - lam_hat)
+        ):
             best = eta
     return best
 
 
-def fundamental_estimate(kind: str, w: float, iq: float, *, r_err: float = 0.0,
-                         l_err: float = 0.0, lam_hat: float | None = None, wc: float = 0.0,
-                         k: float = 0.0, v_err_q: float = 0.0) -> complex | None:
+def fundamental_estimate(
+    kind: str,
+    w: float,
+    iq: float,
+    *,
+    r_err: float = 0.0,
+    l_err: float = 0.0,
+    lam_hat: float | None = None,
+    wc: float = 0.0,
+    k: float = 0.0,
+    v_err_q: float = 0.0,
+) -> complex | None:
     """Rotor-frame flux estimate (true magnet flux = lambda along +real) of a variant in steady
     state; r_err = R - R^, l_err = L - L^, v_err_q an extra EMF error along q [V] (e.g. the
     deadtime fundamental (4/pi) V_dt with commanded voltages).  None: no stable equilibrium."""
@@ -569,8 +763,9 @@ def predicted_angle_deg(kind: str, w: float, iq: float, **kw) -> float | None:
     return None if est is None else math.degrees(np.angle(est))
 
 
-def offset_h1_pred_deg(kind: str, w: float, d_ab: float, *, wc: float = 0.0,
-                       k: float = 0.0) -> float | None:
+def offset_h1_pred_deg(
+    kind: str, w: float, d_ab: float, *, wc: float = 0.0, k: float = 0.0
+) -> float | None:
     """First-order theta~ from a DC current-sensor offset |Delta i_ab| = d_ab: the observer
     sees a DC EMF error R^ d_ab; its DC response over the fundamental's magnitude.  For the
     magnitude-forcing observers the linearised (radial r, angle e) dynamics
@@ -580,7 +775,7 @@ def offset_h1_pred_deg(kind: str, w: float, d_ab: float, *, wc: float = 0.0,
     if kind == "pure_integrator":
         return None  # drifts (unbounded)
     if kind in ("paper", "programmable_lpf"):
-        ratio = d * math.sqrt(1 / wc ** 2 + 1 / w ** 2) / mc.lam
+        ratio = d * math.sqrt(1 / wc**2 + 1 / w**2) / mc.lam
     elif kind == "lpf":
         ratio = (d / wc) / (mc.lam * w / math.hypot(w, wc))
     elif kind == "emf":
@@ -600,8 +795,12 @@ def _x_sens(r, m):
 
     w = steady_window(r.t, r.scenario.steady_window_s)
     sl = slice(w.k0, w.k1)
-    out = {"we": float(np.mean(r.truth[sl, TR_WM])) * r.scenario.machine.pole_pairs,
-           "iq": float(np.mean(r.ctrl[sl, CO_IQ])), "speed": m["speed"], "obs": {}}
+    out = {
+        "we": float(np.mean(r.truth[sl, TR_WM])) * r.scenario.machine.pole_pairs,
+        "iq": float(np.mean(r.ctrl[sl, CO_IQ])),
+        "speed": m["speed"],
+        "obs": {},
+    }
     thu = np.unwrap(r.truth[sl, TR_THETA_E])
     ws = whole_periods(thu)
     for i, nm in enumerate(r.names):
@@ -612,28 +811,33 @@ def _x_sens(r, m):
         om = m["observers"][nm]
         # first order about the mean: a large mean (lpf: 51 deg) would otherwise leak into
         # order 1 through the speed ripple (time average != angle average)
-        out["obs"][nm] = {"mean_deg": math.degrees(cm),
-                          "rms_deg": om["theta_err_rms_deg"],
-                          "ac_rms_deg": float(np.degrees(np.sqrt(np.mean(ac ** 2)))),
-                          "mag": float(np.mean(np.hypot(e[:, ES_LA], e[:, ES_LB]))),
-                          "h1_deg": math.degrees(abs(harmonic(ac[ws], thu[ws], 1))),
-                          "valid": om["valid_fraction"]}
+        out["obs"][nm] = {
+            "mean_deg": math.degrees(cm),
+            "rms_deg": om["theta_err_rms_deg"],
+            "ac_rms_deg": float(np.degrees(np.sqrt(np.mean(ac**2)))),
+            "mag": float(np.mean(np.hypot(e[:, ES_LA], e[:, ES_LB]))),
+            "h1_deg": math.degrees(abs(harmonic(ac[ws], thu[ws], 1))),
+            "valid": om["valid_fraction"],
+        }
     return out
 
 
 def _sens_lists(quick: bool):
     if quick:
-        return ([0.85, 1.15], [0.7, 1.3], [0.9, 1.1], [5.0, 20.0, 100.0, 300.0],
-                [0.01])
-    return ([0.7, 0.85, 1.15, 1.3], [0.7, 0.85, 1.15, 1.3], [0.9, 0.95, 1.05, 1.1],
-            [2.0, 5.0, 10.0, 20.0, 50.0, 100.0, 200.0, 300.0], [0.0025, 0.005, 0.01, 0.02])
+        return ([0.85, 1.15], [0.7, 1.3], [0.9, 1.1], [5.0, 20.0, 100.0, 300.0], [0.01])
+    return (
+        [0.7, 0.85, 1.15, 1.3],
+        [0.7, 0.85, 1.15, 1.3],
+        [0.9, 0.95, 1.05, 1.1],
+        [2.0, 5.0, 10.0, 20.0, 50.0, 100.0, 200.0, 300.0],
+        [0.0025, 0.005, 0.01, 0.02],
+    )
 
 
 def _cut(kind: str, f_hz: float) -> dict:
     """The variant's cut-off knob at f_hz: w_c for paper/lpf/hinkkanen_luomi, the equivalent
     magnitude-loop rate gamma lam^2 = 2 pi f for ortega."""
-    return ({"gamma_bw_rad_s": 2 * math.pi * f_hz} if kind == "ortega"
-            else {"cutoff_hz": f_hz})
+    return {"gamma_bw_rad_s": 2 * math.pi * f_hz} if kind == "ortega" else {"cutoff_hz": f_hz}
 
 
 def _default_k(kind: str) -> tuple[float, float]:
@@ -641,8 +845,9 @@ def _default_k(kind: str) -> tuple[float, float]:
     from fluxdrive.drive.observers import observer_config
 
     c = observer_config(kind, card=build(duration_s=0.01).machine)  # the runs' card
-    return 2 * math.pi * c.cutoff_hz, (c.gamma_bw_rad_s if kind == "ortega"
-                                       else 2 * math.pi * c.cutoff_hz)
+    return 2 * math.pi * c.cutoff_hz, (
+        c.gamma_bw_rad_s if kind == "ortega" else 2 * math.pi * c.cutoff_hz
+    )
 
 
 STEADY_AC_DEG = 10.0  # an estimate whose theta~ wanders more than this about its mean slips
@@ -667,24 +872,62 @@ def sensitivity(ctx):
                 obs[f"{kind}_fc{round(10 * f):04d}"] = {**base, **_cut(kind, f)}
         jobs.append((encoder_run(speed, load, observers=obs, name=f"sens_{kind}"), _x_sens, None))
     for o in offs:
-        obs = {f"{kind}_nom": {"variant": SENS_RUN.get(kind, kind), "voltage_source": "measured"}
-               for kind in SENS_VARIANTS}
-        jobs.append((encoder_run(speed, load, observers=obs, name="sens_offset",
-                                 faults={"current_offset_pu": [0.0, o, 0.0]}), _x_sens, None))
+        obs = {
+            f"{kind}_nom": {"variant": SENS_RUN.get(kind, kind), "voltage_source": "measured"}
+            for kind in SENS_VARIANTS
+        }
+        jobs.append(
+            (
+                encoder_run(
+                    speed,
+                    load,
+                    observers=obs,
+                    name="sens_offset",
+                    faults={"current_offset_pu": [0.0, o, 0.0]},
+                ),
+                _x_sens,
+                None,
+            )
+        )
     # control: the magnitude-forcing observers' cut-off sweep with an ideal inverter
-    obs = {f"{kind}_fc{round(10 * f):04d}": {"variant": SENS_RUN.get(kind, kind), **_cut(kind, f)}
-           for kind in ("hinkkanen_luomi", "ortega") for f in cuts if f <= 20}
-    jobs.append((encoder_run(speed, load, observers=obs, name="sens_no_deadtime",
-                             plant={"deadtime_s": 0.0}), _x_sens, None))
+    obs = {
+        f"{kind}_fc{round(10 * f):04d}": {"variant": SENS_RUN.get(kind, kind), **_cut(kind, f)}
+        for kind in ("hinkkanen_luomi", "ortega")
+        for f in cuts
+        if f <= 20
+    }
+    jobs.append(
+        (
+            encoder_run(
+                speed, load, observers=obs, name="sens_no_deadtime", plant={"deadtime_s": 0.0}
+            ),
+            _x_sens,
+            None,
+        )
+    )
     # and with ideal sensors (no noise, 24-bit ADCs and capture) but the 2 us deadtime
-    jobs.append((encoder_run(speed, load, observers=obs, name="sens_ideal_sensors",
-                             machine_kw={"current_noise_a": 0.0, "current_adc_bits": 24,
-                                         "capture_bits": 24, "dc_bus_adc_bits": 24}),
-                 _x_sens, None))
+    jobs.append(
+        (
+            encoder_run(
+                speed,
+                load,
+                observers=obs,
+                name="sens_ideal_sensors",
+                machine_kw={
+                    "current_noise_a": 0.0,
+                    "current_adc_bits": 24,
+                    "capture_bits": 24,
+                    "dc_bus_adc_bits": 24,
+                },
+            ),
+            _x_sens,
+            None,
+        )
+    )
     res = ctx.run(jobs)
     nv = len(SENS_VARIANTS)
     per = dict(zip(SENS_VARIANTS, res[:nv], strict=True))
-    off_res = res[nv:nv + len(offs)]
+    off_res = res[nv : nv + len(offs)]
     no_dt, ideal = res[-2], res[-1]
     w, iq = per["paper"]["we"], per["paper"]["iq"]
     tab: dict = {}
@@ -694,9 +937,12 @@ def sensitivity(ctx):
 
         def row(obs_row, kind=kind, wc=wc, k=k, **x):
             est = fundamental_estimate(kind, w, iq, **{"wc": wc, "k": k, **x})
-            return {**obs_row, "steady": obs_row["ac_rms_deg"] < STEADY_AC_DEG,
-                    "pred_deg": None if est is None else math.degrees(np.angle(est)),
-                    "pred_mag": None if est is None else abs(est)}
+            return {
+                **obs_row,
+                "steady": obs_row["ac_rms_deg"] < STEADY_AC_DEG,
+                "pred_deg": None if est is None else math.degrees(np.angle(est)),
+                "pred_mag": None if est is None else abs(est),
+            }
 
         t = {"nom": row(o[f"{kind}_nom"])}
         for f in rs:
@@ -712,19 +958,39 @@ def sensitivity(ctx):
         for o_pu, rr in zip(offs, off_res, strict=True):
             d_ab = o_pu * mc.i_rated * math.sqrt(1 / 9 + 1 / 3)
             x = rr["obs"][f"{kind}_nom"]
-            t[f"off{o_pu}"] = {**x, "steady": x["ac_rms_deg"] < STEADY_AC_DEG + x["h1_deg"],
-                               "pred_h1_deg": offset_h1_pred_deg(kind, w, d_ab, wc=wc, k=k)}
+            t[f"off{o_pu}"] = {
+                **x,
+                "steady": x["ac_rms_deg"] < STEADY_AC_DEG + x["h1_deg"],
+                "pred_h1_deg": offset_h1_pred_deg(kind, w, d_ab, wc=wc, k=k),
+            }
         tab[kind] = t
-    nd = {f"{kind}_fc{f}": no_dt["obs"][f"{kind}_fc{round(10 * f):04d}"]["mean_deg"]
-          for kind in ("hinkkanen_luomi", "ortega") for f in cuts if f <= 20}
-    ids = {f"{kind}_fc{f}": ideal["obs"][f"{kind}_fc{round(10 * f):04d}"]["mean_deg"]
-           for kind in ("hinkkanen_luomi", "ortega") for f in cuts if f <= 20}
+    nd = {
+        f"{kind}_fc{f}": no_dt["obs"][f"{kind}_fc{round(10 * f):04d}"]["mean_deg"]
+        for kind in ("hinkkanen_luomi", "ortega")
+        for f in cuts
+        if f <= 20
+    }
+    ids = {
+        f"{kind}_fc{f}": ideal["obs"][f"{kind}_fc{round(10 * f):04d}"]["mean_deg"]
+        for kind in ("hinkkanen_luomi", "ortega")
+        for f in cuts
+        if f <= 20
+    }
     claims = _sens_claims(tab, rs, ls, lams, cuts, offs, w, iq, nd, ids)
     figs = [_plot_sens(ctx, tab, rs, ls, lams, cuts, offs, w, iq)]
-    return {"claims": claims, "figures": figs,
-            "data": {"table": tab, "no_deadtime_mean_deg": nd,
-                     "ideal_sensors_mean_deg": ids, "we_rad_s": w, "iq_a": iq,
-                     "speed_rpm": speed, "load_pu": load}}
+    return {
+        "claims": claims,
+        "figures": figs,
+        "data": {
+            "table": tab,
+            "no_deadtime_mean_deg": nd,
+            "ideal_sensors_mean_deg": ids,
+            "we_rad_s": w,
+            "iq_a": iq,
+            "speed_rpm": speed,
+            "load_pu": load,
+        },
+    }
 
 
 def _wrapdiff(a: float, b: float) -> float:
@@ -734,7 +1000,7 @@ def _wrapdiff(a: float, b: float) -> float:
 def _label(key: str) -> str:
     for pre, lab in (("lam", "λ̂="), ("r", "R̂="), ("l", "L̂="), ("fc", "f_c=")):
         if key.startswith(pre):
-            return lab + key[len(pre):]
+            return lab + key[len(pre) :]
     return key
 
 
@@ -743,11 +1009,11 @@ def _sens_claims(tab, rs, ls, lams, cuts, offs, w, iq, nd, ids):
     claims = []
     desc = {
         "paper": "R̂: magnitude only, |λ̂| = λ + ΔR i_q/ω (a 180° flip once ΔR i_q < −ωλ); "
-                 "L̂: angle atan(ΔL i_q/λ); λ̂: nothing",
+        "L̂: angle atan(ΔL i_q/λ); λ̂: nothing",
         "lpf": "a lead atan(ω_c/ω) whatever the parameters (no compensation); parameter "
-               "errors add on top as for paper",
+        "errors add on top as for paper",
         "hinkkanen_luomi": "magnitude errors (R̂, λ̂) become angle errors atan(c/ω), c the "
-                           "correction that pulls |η| back to λ̂; L̂: as paper",
+        "correction that pulls |η| back to λ̂; L̂: as paper",
         "ortega": "as hinkkanen_luomi with the stiffer default loop γλ² = 1000 s⁻¹",
         "emf": "the EMF angle: R̂ (along q) no angle, L̂ atan(ΔL i_q/λ), λ̂ unused",
     }
@@ -774,26 +1040,36 @@ def _sens_claims(tab, rs, ls, lams, cuts, offs, w, iq, nd, ids):
         nom = t["nom"]
         why = []
         if no_eq:
-            why.append(f"no stable equilibrium in the model at {', '.join(map(_label, no_eq))} "
-                       "(the magnitude loop cannot hold |η| at λ̂ with the |x| it is given: "
-                       "the estimate keeps turning)")
+            why.append(
+                f"no stable equilibrium in the model at {', '.join(map(_label, no_eq))} "
+                "(the magnitude loop cannot hold |η| at λ̂ with the |x| it is given: "
+                "the estimate keeps turning)"
+            )
         if slip:
-            why.append(f"the estimate slips (θ̃ wanders > {STEADY_AC_DEG:.0f}° about its mean) "
-                       f"at {', '.join(map(_label, slip))}")
+            why.append(
+                f"the estimate slips (θ̃ wanders > {STEADY_AC_DEG:.0f}° about its mean) "
+                f"at {', '.join(map(_label, slip))}"
+            )
         if bad:
             why.append(f"off the model at {', '.join(map(_label, bad))}")
         if kind == "ortega" and not nom["steady"]:
-            why.append("even with exact parameters the default γλ² = 1000 s⁻¹ slips at 60 rpm: "
-                       "its angle-error pole ω²/k = 0.6 s⁻¹ barely corrects, and a q-axis EMF "
-                       "residue δ gives k δ/(ω²λ) ≈ 4° per mV (cut-off row)")
-        claims.append(claim(
-            f"{kind} (measured voltages, 60 rpm, 150 %): mean θ̃ under R̂ ±30 %, L̂ ±30 %, "
-            f"λ̂ ±10 % follows the steady-state fundamental model where the estimate is "
-            f"steady — {desc[kind]}",
-            f"nominal {nom['mean_deg']:.2f}° (RMS {nom['rms_deg']:.2f}°); "
-            + "; ".join(fmt(k) for k in keys)
-            + f"; compared at {len(used)}/{len(keys)}",
-            bool(used) and not bad, "; ".join(why)))
+            why.append(
+                "even with exact parameters the default γλ² = 1000 s⁻¹ slips at 60 rpm: "
+                "its angle-error pole ω²/k = 0.6 s⁻¹ barely corrects, and a q-axis EMF "
+                "residue δ gives k δ/(ω²λ) ≈ 4° per mV (cut-off row)"
+            )
+        claims.append(
+            claim(
+                f"{kind} (measured voltages, 60 rpm, 150 %): mean θ̃ under R̂ ±30 %, L̂ ±30 %, "
+                f"λ̂ ±10 % follows the steady-state fundamental model where the estimate is "
+                f"steady — {desc[kind]}",
+                f"nominal {nom['mean_deg']:.2f}° (RMS {nom['rms_deg']:.2f}°); "
+                + "; ".join(fmt(k) for k in keys)
+                + f"; compared at {len(used)}/{len(keys)}",
+                bool(used) and not bad,
+                "; ".join(why),
+            )
+        )
     # offsets
     rows, ok = [], True
     for kind, t in tab.items():
@@ -801,38 +1077,55 @@ def _sens_claims(tab, rs, ls, lams, cuts, offs, w, iq, nd, ids):
         for o in offs:
             x = t[f"off{o}"]
             pr = x["pred_h1_deg"]
-            parts.append(f"{100 * o:g} %: {x['h1_deg']:.2f}° (model "
-                         f"{'drift' if pr is None else f'{pr:.2f}°'}"
-                         f"{'' if x['steady'] else ', slips'})")
+            parts.append(
+                f"{100 * o:g} %: {x['h1_deg']:.2f}° (model "
+                f"{'drift' if pr is None else f'{pr:.2f}°'}"
+                f"{'' if x['steady'] else ', slips'})"
+            )
             if pr is not None and x["steady"] and kind != "lpf":
                 ok = ok and abs(x["h1_deg"] - pr) < 0.35 * pr + 0.3
         rows.append(f"{kind}: " + ", ".join(parts))
-    claims.append(claim(
-        "Current-sensor offset on i_b: first-order θ̃ = the DC EMF error R̂|Δi_αβ| through each "
-        "variant's DC gain over its fundamental gain (paper √(1/ω_c² + 1/ω²), emf 1/ω, "
-        "hinkkanen_luomi/ortega their linearised magnitude loop r' = −k r + ωλe + Re u, "
-        "λe' = −ω r + Im u driven at the rotor frequency)",
-        "; ".join(rows), ok,
-        "paper/emf sit ~15 % under the model (the PLL and the compensation frequency, itself "
-        "rippling at the rotor frequency, smooth the first order a little); ortega slips at "
-        "its default gain with or without an offset (rows above).  lpf (model: 1/ω_c over "
-        "ω/√(ω²+ω_c²)) is 2× above: its uncompensated lead atan(ω_c/ω) also turns the "
-        "offset's first-order speed ripple (the encoder drive's torque ripple K_t|Δi|) into "
-        "angle, dθ̃/dω = −ω_c/(ω²+ω_c²)"))
+    claims.append(
+        claim(
+            "Current-sensor offset on i_b: first-order θ̃ = the DC EMF error R̂|Δi_αβ| through each "
+            "variant's DC gain over its fundamental gain (paper √(1/ω_c² + 1/ω²), emf 1/ω, "
+            "hinkkanen_luomi/ortega their linearised magnitude loop r' = −k r + ωλe + Re u, "
+            "λe' = −ω r + Im u driven at the rotor frequency)",
+            "; ".join(rows),
+            ok,
+            "paper/emf sit ~15 % under the model (the PLL and the compensation frequency, itself "
+            "rippling at the rotor frequency, smooth the first order a little); ortega slips at "
+            "its default gain with or without an offset (rows above).  lpf (model: 1/ω_c over "
+            "ω/√(ω²+ω_c²)) is 2× above: its uncompensated lead atan(ω_c/ω) also turns the "
+            "offset's first-order speed ripple (the encoder drive's torque ripple K_t|Δi|) into "
+            "angle, dθ̃/dω = −ω_c/(ω²+ω_c²)",
+        )
+    )
     # cut-off
     lpf_used = [f for f in cuts if tab["lpf"][f"fc{f}"]["steady"]]
-    lpf_ok = all(_wrapdiff(tab["lpf"][f"fc{f}"]["mean_deg"], tab["lpf"][f"fc{f}"]["pred_deg"])
-                 < 3.0 for f in lpf_used)
-    claims.append(claim(
-        "Cut-off: the uncompensated LPF leads by atan(ω_c/ω); LPF + inverse HPF removes that "
-        "(mean ≈ 0 at any ω_c)",
-        "; ".join(f"{kind}: " + ", ".join(
-            f"{f:g} Hz {tab[kind][f'fc{f}']['mean_deg']:.1f}° (RMS "
-            f"{tab[kind][f'fc{f}']['rms_deg']:.2f}°)" for f in cuts) for kind in ("lpf", "paper")),
-        lpf_ok and all(abs(tab["paper"][f"fc{f}"]["mean_deg"]) < 2.0 for f in cuts),
-        "the lpf's |λ̂| = λω/√(ω²+ω_c²) is 0.2λ at 20 Hz and 0.01λ at 300 Hz: far below the "
-        "0.3λ validity band, a drive could not use it; the paper's RMS rises slowly with ω_c "
-        "(the inverse HPF gain ω_c/ω amplifies what the LPF lets through)"))
+    lpf_ok = all(
+        _wrapdiff(tab["lpf"][f"fc{f}"]["mean_deg"], tab["lpf"][f"fc{f}"]["pred_deg"]) < 3.0
+        for f in lpf_used
+    )
+    claims.append(
+        claim(
+            "Cut-off: the uncompensated LPF leads by atan(ω_c/ω); LPF + inverse HPF removes that "
+            "(mean ≈ 0 at any ω_c)",
+            "; ".join(
+                f"{kind}: "
+                + ", ".join(
+                    f"{f:g} Hz {tab[kind][f'fc{f}']['mean_deg']:.1f}° (RMS "
+                    f"{tab[kind][f'fc{f}']['rms_deg']:.2f}°)"
+                    for f in cuts
+                )
+                for kind in ("lpf", "paper")
+            ),
+            lpf_ok and all(abs(tab["paper"][f"fc{f}"]["mean_deg"]) < 2.0 for f in cuts),
+            "the lpf's |λ̂| = λω/√(ω²+ω_c²) is 0.2λ at 20 Hz and 0.01λ at 300 Hz: far below the "
+            "0.3λ validity band, a drive could not use it; the paper's RMS rises slowly with ω_c "
+            "(the inverse HPF gain ω_c/ω amplifies what the LPF lets through)",
+        )
+    )
     hl, ot = tab["hinkkanen_luomi"], tab["ortega"]
     deltas = {}
     for name, t in (("hinkkanen_luomi", hl), ("ortega", ot)):
@@ -853,35 +1146,53 @@ def _sens_claims(tab, rs, ls, lams, cuts, offs, w, iq, nd, ids):
             # through the origin: e = k delta / (w^2 lam)
             slope = float(np.sum(kk * y) / np.sum(kk * kk))
             deltas[name] = (1e3 * slope * w * w * mc.lam, fs)
-    slips = {name: [f for f in cuts if not t[f"fc{f}"]["steady"]]
-             for name, t in (("hinkkanen_luomi", hl), ("ortega", ot))}
-    ok = (len(deltas) == 2 and abs(deltas["hinkkanen_luomi"][0] - deltas["ortega"][0])
-          < 0.3 * max(abs(v[0]) for v in deltas.values())
-          and all(abs(v) < 0.3 for v in nd.values()))
-    claims.append(claim(
-        "Cut-off (equivalent gain k = 2π f: w_c of hinkkanen_luomi, γλ² of ortega): both turn "
-        "a small q-axis EMF residue δ into θ̃ ≈ k δ/(ω²λ) (linearised angle pole ω²/k), so "
-        "they show the same δ, and θ̃ grows with k until the estimate slips",
-        "; ".join(f"{name}: " + ", ".join(f"{f:g} Hz {t[f'fc{f}']['mean_deg']:.2f}°"
-                                         f"{'' if t[f'fc{f}']['steady'] else ' (slips)'}"
-                                         for f in cuts)
-                  for name, t in (("hinkkanen_luomi", hl), ("ortega", ot)))
-        + "; fitted δ (low-gain end, |θ̃| < 5°): "
-        + ", ".join(f"{n} {v[0]:.2f} mV" for n, v in deltas.items())
-        + "; ideal inverter (no deadtime): " + ", ".join(f"{k.replace('_fc', ' ')} Hz "
-                                                         f"{v:.2f}°" for k, v in nd.items())
-        + "; ideal sensors, 2 µs deadtime: " + ", ".join(f"{k.replace('_fc', ' ')} Hz "
-                                                         f"{v:.2f}°" for k, v in ids.items()),
-        ok,
-        f"the residue "
-        f"({100 * abs(np.mean([v[0] for v in deltas.values()])) / (1e3 * w * mc.lam):.1f}"
-        " % of the back-EMF ωλ) comes with the deadtime: it vanishes with an ideal inverter "
-        "and stays with ideal sensors, so it is not quantisation or noise; the likely "
-        "mechanism is that the valley-sampled current no longer equals the period average "
-        "once deadtime distorts the PWM ripple (R × a few mA)."
-        + ("  Slips at " + ", ".join(f"{n}: {v} Hz" for n, v in slips.items() if v)
-           + ": the best k is of the order of ω (characteristic s² + k s + ω²), far below "
-           "the defaults meant for higher speeds" if any(slips.values()) else "")))
+    slips = {
+        name: [f for f in cuts if not t[f"fc{f}"]["steady"]]
+        for name, t in (("hinkkanen_luomi", hl), ("ortega", ot))
+    }
+    ok = (
+        len(deltas) == 2
+        and abs(deltas["hinkkanen_luomi"][0] - deltas["ortega"][0])
+        < 0.3 * max(abs(v[0]) for v in deltas.values())
+        and all(abs(v) < 0.3 for v in nd.values())
+    )
+    claims.append(
+        claim(
+            "Cut-off (equivalent gain k = 2π f: w_c of hinkkanen_luomi, γλ² of ortega): both turn "
+            "a small q-axis EMF residue δ into θ̃ ≈ k δ/(ω²λ) (linearised angle pole ω²/k), so "
+            "they show the same δ, and θ̃ grows with k until the estimate slips",
+            "; ".join(
+                f"{name}: "
+                + ", ".join(
+                    f"{f:g} Hz {t[f'fc{f}']['mean_deg']:.2f}°"
+                    f"{'' if t[f'fc{f}']['steady'] else ' (slips)'}"
+                    for f in cuts
+                )
+                for name, t in (("hinkkanen_luomi", hl), ("ortega", ot))
+            )
+            + "; fitted δ (low-gain end, |θ̃| < 5°): "
+            + ", ".join(f"{n} {v[0]:.2f} mV" for n, v in deltas.items())
+            + "; ideal inverter (no deadtime): "
+            + ", ".join(f"{k.replace('_fc', ' ')} Hz {v:.2f}°" for k, v in nd.items())
+            + "; ideal sensors, 2 µs deadtime: "
+            + ", ".join(f"{k.replace('_fc', ' ')} Hz {v:.2f}°" for k, v in ids.items()),
+            ok,
+            f"the residue "
+            f"({100 * abs(np.mean([v[0] for v in deltas.values()])) / (1e3 * w * mc.lam):.1f}"
+            " % of the back-EMF ωλ) comes with the deadtime: it vanishes with an ideal inverter "
+            "and stays with ideal sensors, so it is not quantisation or noise; the likely "
+            "mechanism is that the valley-sampled current no longer equals the period average "
+            "once deadtime distorts the PWM ripple (R × a few mA)."
+            + (
+                "  Slips at "
+                + ", ".join(f"{n}: {v} Hz" for n, v in slips.items() if v)
+                + ": the best k is of the order of ω (characteristic s² + k s + ω²), far below "
+                "the defaults meant for higher speeds"
+                if any(slips.values())
+                else ""
+            ),
+        )
+    )
     return claims
 
 
@@ -904,27 +1215,51 @@ def _plot_sens(ctx, tab, rs, ls, lams, cuts, offs, w, iq):
     for kind, t in tab.items():
         c = col[kind]
         for a, keys, xs, ttl in (
-                (ax[0, 0], [f"r{f}" for f in rs], [100 * f - 100 for f in rs], "R̂ error [%]"),
-                (ax[0, 2], [f"l{f}" for f in ls], [100 * f - 100 for f in ls], "L̂ error [%]"),
-                (ax[1, 0], [f"lam{f}" for f in lams], [100 * f - 100 for f in lams],
-                 "λ̂ error [%]")):
-            pts(a, xs, [t[k]["mean_deg"] for k in keys], [t[k]["steady"] for k in keys], c,
-                kind)
+            (ax[0, 0], [f"r{f}" for f in rs], [100 * f - 100 for f in rs], "R̂ error [%]"),
+            (ax[0, 2], [f"l{f}" for f in ls], [100 * f - 100 for f in ls], "L̂ error [%]"),
+            (ax[1, 0], [f"lam{f}" for f in lams], [100 * f - 100 for f in lams], "λ̂ error [%]"),
+        ):
+            pts(a, xs, [t[k]["mean_deg"] for k in keys], [t[k]["steady"] for k in keys], c, kind)
             line(a, xs, [t[k]["pred_deg"] for k in keys], c)
             a.set_xlabel(ttl)
             a.set_ylabel("circular mean θ̃ [deg]")
         xs = [100 * f - 100 for f in rs]
-        pts(ax[0, 1], xs, [t[f"r{f}"]["mag"] / mc.lam for f in rs],
-            [t[f"r{f}"]["steady"] for f in rs], c, kind)
-        line(ax[0, 1], xs, [None if t[f"r{f}"]["pred_mag"] is None
-                            else t[f"r{f}"]["pred_mag"] / mc.lam for f in rs], c)
+        pts(
+            ax[0, 1],
+            xs,
+            [t[f"r{f}"]["mag"] / mc.lam for f in rs],
+            [t[f"r{f}"]["steady"] for f in rs],
+            c,
+            kind,
+        )
+        line(
+            ax[0, 1],
+            xs,
+            [
+                None if t[f"r{f}"]["pred_mag"] is None else t[f"r{f}"]["pred_mag"] / mc.lam
+                for f in rs
+            ],
+            c,
+        )
         xs = [100 * o for o in offs]
-        pts(ax[1, 1], xs, [t[f"off{o}"]["h1_deg"] for o in offs],
-            [t[f"off{o}"]["steady"] for o in offs], c, kind)
+        pts(
+            ax[1, 1],
+            xs,
+            [t[f"off{o}"]["h1_deg"] for o in offs],
+            [t[f"off{o}"]["steady"] for o in offs],
+            c,
+            kind,
+        )
         line(ax[1, 1], xs, [t[f"off{o}"]["pred_h1_deg"] for o in offs], c)
         if kind != "emf":
-            pts(ax[1, 2], cuts, [abs(t[f"fc{f}"]["mean_deg"]) for f in cuts],
-                [t[f"fc{f}"]["steady"] for f in cuts], c, kind)
+            pts(
+                ax[1, 2],
+                cuts,
+                [abs(t[f"fc{f}"]["mean_deg"]) for f in cuts],
+                [t[f"fc{f}"]["steady"] for f in cuts],
+                c,
+                kind,
+            )
             ax[1, 2].plot(cuts, [t[f"fc{f}"]["rms_deg"] for f in cuts], ":", color=c, lw=1)
     kk = np.geomspace(min(cuts), max(cuts), 50)
     ax[1, 2].plot(kk, np.degrees(np.arctan(2 * np.pi * kk / w)), "-", color=col["lpf"], lw=1)
@@ -939,8 +1274,9 @@ def _plot_sens(ctx, tab, rs, ls, lams, cuts, offs, w, iq):
     ax[1, 1].set_xlabel("offset [% of rated]")
     ax[1, 1].set_ylabel("θ̃ 1st order [deg]")
     ax[1, 1].set_yscale("log")
-    ax[1, 2].set_title("cut-off (ortega: γλ² = 2π f): |mean θ̃| (o), RMS (:), lpf model —",
-                       fontsize=9)
+    ax[1, 2].set_title(
+        "cut-off (ortega: γλ² = 2π f): |mean θ̃| (o), RMS (:), lpf model —", fontsize=9
+    )
     ax[1, 2].set_xscale("log")
     ax[1, 2].set_yscale("log")
     ax[1, 2].set_xlabel("cut-off f [Hz]")
@@ -948,15 +1284,26 @@ def _plot_sens(ctx, tab, rs, ls, lams, cuts, offs, w, iq):
     for a in ax.flat:
         a.grid(alpha=0.3, which="both")
     ax[0, 0].legend(fontsize=7)
-    fig.suptitle(f"Sensitivity per variant: encoder drive at 60 rpm, 150 % load "
-                 f"(ω = {w:.1f} rad/s, i_q = {iq:.1f} A), observers in shadow, measured "
-                 "voltages", fontsize=10)
+    fig.suptitle(
+        f"Sensitivity per variant: encoder drive at 60 rpm, 150 % load "
+        f"(ω = {w:.1f} rad/s, i_q = {iq:.1f} A), observers in shadow, measured "
+        "voltages",
+        fontsize=10,
+    )
     return ctx.fig(fig, "beyond_sensitivity")
 
 
 # ======================================================================== speed reversal
-def reversal(load_pu: float, load_type: str, *, seed: int = 1, if_current_pu: float = 1.0,
-             speed_rpm: float = 60.0, reverse_s: float = 1.2, name: str = "reversal"):
+def reversal(
+    load_pu: float,
+    load_type: str,
+    *,
+    seed: int = 1,
+    if_current_pu: float = 1.0,
+    speed_rpm: float = 60.0,
+    reverse_s: float = 1.2,
+    name: str = "reversal",
+):
     """Sensorless flux drive (measured voltages): start, +speed_rpm, load ramped in, steady,
     then a reference ramp to -speed_rpm through zero (hand-back to I-f below handback_rpm,
     handover again past -handover_rpm), steady on the other side."""
@@ -964,14 +1311,19 @@ def reversal(load_pu: float, load_type: str, *, seed: int = 1, if_current_pu: fl
     t_rev = t_full + 1.5
     t_neg = t_rev + reverse_s
     dur = t_neg + 2.5
-    return build(name=name, duration_s=round(dur, 4), seed=seed,
-                 speed_rpm=[[0.0, speed_rpm], [t_rev, speed_rpm], [t_neg, -speed_rpm]],
-                 load_type=load_type, load_pu=[[0.0, 0.0], [0.6, 0.0], [t_full, load_pu]],
-                 steady_window_s=[round(dur - 1.0, 4), round(dur, 4)], driving="flux_measured",
-                 control={"if_current_pu": if_current_pu, "handover_rpm": 40.0,
-                          "handback_rpm": 20.0},
-                 observers={"flux_measured": VARIANTS["flux_measured"]},
-                 extra={"t_reverse_s": t_rev})
+    return build(
+        name=name,
+        duration_s=round(dur, 4),
+        seed=seed,
+        speed_rpm=[[0.0, speed_rpm], [t_rev, speed_rpm], [t_neg, -speed_rpm]],
+        load_type=load_type,
+        load_pu=[[0.0, 0.0], [0.6, 0.0], [t_full, load_pu]],
+        steady_window_s=[round(dur - 1.0, 4), round(dur, 4)],
+        driving="flux_measured",
+        control={"if_current_pu": if_current_pu, "handover_rpm": 40.0, "handback_rpm": 20.0},
+        observers={"flux_measured": VARIANTS["flux_measured"]},
+        extra={"t_reverse_s": t_rev},
+    )
 
 
 def _x_reversal(r, m):
@@ -987,8 +1339,13 @@ def _x_reversal(r, m):
     k_rev = int(t_rev / ts)
     after = np.arange(len(t)) >= k_rev
     k_back = np.nonzero(after & (mode == MODE_IF_RAMP))[0]
-    out = {"stable": False, "fault": FAULT_NAMES.get(m["fault_code"], "?"),
-           "handback_s": None, "handover_s": None, "if_time_s": 0.0}
+    out = {
+        "stable": False,
+        "fault": FAULT_NAMES.get(m["fault_code"], "?"),
+        "handback_s": None,
+        "handover_s": None,
+        "if_time_s": 0.0,
+    }
     pos = slice(k_rev - int(1.0 / ts), k_rev)
     out["rms_pos_deg"] = float(np.sqrt(np.mean(err[pos] ** 2)))
     neg = slice(len(t) - int(1.0 / ts), len(t))
@@ -1013,14 +1370,26 @@ def _x_reversal(r, m):
             post = slice(kh, min(kh + int(0.5 / ts), len(t)))
             out["peak_after_handover_deg"] = float(np.max(np.abs(err[post])))
             out["err_at_handover_deg"] = float(err[kh])
-        out["stable"] = bool(m["stable"] and k_ho.size and out["if_load_angle_max_deg"] < 90.0
-                             and mode[-1] == MODE_CLOSED_LOOP)
+        out["stable"] = bool(
+            m["stable"]
+            and k_ho.size
+            and out["if_load_angle_max_deg"] < 90.0
+            and mode[-1] == MODE_CLOSED_LOOP
+        )
     sl = slice(max(k_rev - int(0.5 / ts), 0), min(k_rev + int(3.0 / ts), len(t)), 20)
-    out["series"] = {"t": t[sl], "rpm": rpm[sl], "ref": ref[sl],
-                     "est_rpm": (r.estimate("flux_measured")[sl, ES_W] * RAD_S_TO_RPM
-                                 / r.scenario.machine.pole_pairs),
-                     "err": err[sl], "ang": ang[sl], "iq": r.ctrl[sl, CO_IQ],
-                     "id": r.ctrl[sl, CO_ID], "mode": mode[sl]}
+    out["series"] = {
+        "t": t[sl],
+        "rpm": rpm[sl],
+        "ref": ref[sl],
+        "est_rpm": (
+            r.estimate("flux_measured")[sl, ES_W] * RAD_S_TO_RPM / r.scenario.machine.pole_pairs
+        ),
+        "err": err[sl],
+        "ang": ang[sl],
+        "iq": r.ctrl[sl, CO_IQ],
+        "id": r.ctrl[sl, CO_ID],
+        "mode": mode[sl],
+    }
     return out
 
 
@@ -1037,8 +1406,9 @@ def speed_reversal(ctx):
     res = ctx.run(jobs)
     rows: dict = {}
     for (lt, lp, seed), x in zip(keys, res, strict=True):
-        rows.setdefault(f"{lt} {lp:g} pu", []).append({"seed": seed, **{
-            k: v for k, v in x.items() if k != "series"}})
+        rows.setdefault(f"{lt} {lp:g} pu", []).append(
+            {"seed": seed, **{k: v for k, v in x.items() if k != "series"}}
+        )
     claims = []
     i_if = 1.0
     for lt, lp, _ in cases:
@@ -1051,53 +1421,65 @@ def speed_reversal(ctx):
             return f(v) if v else float("nan")
 
         ld = math.degrees(math.asin(lp / i_if)) if lp < i_if else float("nan")
-        ours = (f"stable {n_ok}/{len(rr)} seeds; I-f {agg('if_time_s', min):.2f}-"
-                f"{agg('if_time_s'):.2f} s (hand-back at ref {agg('handback_ref_rpm'):.0f} rpm, "
-                f"handover at {agg('handover_ref_rpm', min):.0f} rpm); θ̃ RMS +side "
-                f"{agg('rms_pos_deg'):.2f}°, −side {agg('rms_neg_deg'):.2f}°; peak θ̃ "
-                f"{agg('peak_before_handback_deg'):.1f}° before hand-back, "
-                f"{agg('peak_after_handover_deg'):.1f}° in the 0.5 s after handover; I-f load "
-                f"angle ≤ {agg('if_load_angle_max_deg'):.0f}° (asin({lp:g}/{i_if:g}) = "
-                f"{ld:.0f}°)"
-                f", slip ≤ {agg('if_slip_max_rpm'):.0f} rpm; faults "
-                f"{sorted({x['fault'] for x in rr})}")
+        ours = (
+            f"stable {n_ok}/{len(rr)} seeds; I-f {agg('if_time_s', min):.2f}-"
+            f"{agg('if_time_s'):.2f} s (hand-back at ref {agg('handback_ref_rpm'):.0f} rpm, "
+            f"handover at {agg('handover_ref_rpm', min):.0f} rpm); θ̃ RMS +side "
+            f"{agg('rms_pos_deg'):.2f}°, −side {agg('rms_neg_deg'):.2f}°; peak θ̃ "
+            f"{agg('peak_before_handback_deg'):.1f}° before hand-back, "
+            f"{agg('peak_after_handover_deg'):.1f}° in the 0.5 s after handover; I-f load "
+            f"angle ≤ {agg('if_load_angle_max_deg'):.0f}° (asin({lp:g}/{i_if:g}) = "
+            f"{ld:.0f}°)"
+            f", slip ≤ {agg('if_slip_max_rpm'):.0f} rpm; faults "
+            f"{sorted({x['fault'] for x in rr})}"
+        )
         if lp < i_if:
-            claims.append(claim(
-                f"Sensorless reversal +60 → −60 rpm through zero under {lt} load "
-                f"({lp:g} pu, I-f current {i_if:g} pu): no loss of synchronism, hand-back to I-f "
-                "below 20 rpm and handover again past −40 rpm",
-                ours, n_ok == len(rr),
-                "the brake (the paper's hysteresis dyno) opposes the motion, so its torque "
-                "flips sign inside ±2 rpm: the I-f load angle swings from +asin(T/K_tI) to "
-                "−asin(T/K_tI) while the speed passes zero; an active load (a hoist) keeps "
-                "its sign, so the drive motors on one side and brakes (regenerates) on the "
-                "other, and the I-f vector must hold the load at standstill.  In I-f the "
-                "rotor swings about the vector at √(p K_t I_if cos δ/J) ≈ 28 Hz, undamped "
-                "by the current loop (the speed ripple in the figure)"
-                if n_ok == len(rr) else "see the figure"))
+            claims.append(
+                claim(
+                    f"Sensorless reversal +60 → −60 rpm through zero under {lt} load "
+                    f"({lp:g} pu, I-f current {i_if:g} pu): no loss of synchronism, "
+                    "hand-back to I-f below 20 rpm and handover again past −40 rpm",
+                    ours,
+                    n_ok == len(rr),
+                    "the brake (the paper's hysteresis dyno) opposes the motion, so its torque "
+                    "flips sign inside ±2 rpm: the I-f load angle swings from +asin(T/K_tI) to "
+                    "−asin(T/K_tI) while the speed passes zero; an active load (a hoist) keeps "
+                    "its sign, so the drive motors on one side and brakes (regenerates) on the "
+                    "other, and the I-f vector must hold the load at standstill.  In I-f the "
+                    "rotor swings about the vector at √(p K_t I_if cos δ/J) ≈ 28 Hz, undamped "
+                    "by the current loop (the speed ripple in the figure)"
+                    if n_ok == len(rr)
+                    else "see the figure",
+                )
+            )
         else:
             x0 = rr[0]
-            ours = (f"stable {n_ok}/{len(rr)}: hand-back at ref "
-                    f"{x0.get('handback_ref_rpm', float('nan')):.0f} rpm, then pulled out of "
-                    f"step (load angle up to {x0.get('if_load_angle_max_deg', float('nan')):.0f}°,"
-                    f" slip up to {x0.get('if_slip_max_rpm', float('nan')):.0f} rpm), fault "
-                    f"{x0['fault']}; θ̃ RMS on the + side {x0['rms_pos_deg']:.2f}°")
-            claims.append(claim(
-                f"Limit: an active load above what the I-f current carries ({lp:g} pu > "
-                f"K_t I_if = {i_if:g} pu) cannot be taken through zero open-loop",
-                ours, n_ok == 0,
-                "the I-f vector holds at most K_t I_if (load angle 90°); the hand-back places "
-                "it at asin(0.9) = 64° and the load pulls the rotor out of step: I-f through "
-                "zero needs I_if above the load, or a sensorless method that sees standstill "
-                "(signal injection)"))
+            ours = (
+                f"stable {n_ok}/{len(rr)}: hand-back at ref "
+                f"{x0.get('handback_ref_rpm', float('nan')):.0f} rpm, then pulled out of "
+                f"step (load angle up to {x0.get('if_load_angle_max_deg', float('nan')):.0f}°,"
+                f" slip up to {x0.get('if_slip_max_rpm', float('nan')):.0f} rpm), fault "
+                f"{x0['fault']}; θ̃ RMS on the + side {x0['rms_pos_deg']:.2f}°"
+            )
+            claims.append(
+                claim(
+                    f"Limit: an active load above what the I-f current carries ({lp:g} pu > "
+                    f"K_t I_if = {i_if:g} pu) cannot be taken through zero open-loop",
+                    ours,
+                    n_ok == 0,
+                    "the I-f vector holds at most K_t I_if (load angle 90°); the hand-back places "
+                    "it at asin(0.9) = 64° and the load pulls the rotor out of step: I-f through "
+                    "zero needs I_if above the load, or a sensorless method that sees standstill "
+                    "(signal injection)",
+                )
+            )
     figs = [_plot_reversal(ctx, cases, keys, res)]
     return {"claims": claims, "figures": figs, "data": {"runs": rows}}
 
 
 def _plot_reversal(ctx, cases, keys, res):
     p = plt()
-    fig, ax = p.subplots(4, len(cases), figsize=(5.5 * len(cases), 9), sharex="col",
-                         squeeze=False)
+    fig, ax = p.subplots(4, len(cases), figsize=(5.5 * len(cases), 9), sharex="col", squeeze=False)
     for c, (lt, lp, _) in enumerate(cases):
         x = next(r for (a, b, _), r in zip(keys, res, strict=True) if (a, b) == (lt, lp))
         s = x["series"]
@@ -1123,8 +1505,9 @@ def _plot_reversal(ctx, cases, keys, res):
         a.legend(fontsize=7)
     for a in ax.flat:
         a.grid(alpha=0.3)
-    fig.suptitle("Sensorless speed reversal through zero (flux observer, measured voltages)",
-                 fontsize=10)
+    fig.suptitle(
+        "Sensorless speed reversal through zero (flux observer, measured voltages)", fontsize=10
+    )
     return ctx.fig(fig, "beyond_speed_reversal")
 
 
@@ -1146,8 +1529,14 @@ def run_switched(sc, t_switch_s: float):
     return run.result()
 
 
-PEERS = ["flux_measured", "emf_commanded", "ortega_commanded", "flux_commanded",
-         "emf_measured", "ortega_measured"]
+PEERS = [
+    "flux_measured",
+    "emf_commanded",
+    "ortega_commanded",
+    "flux_commanded",
+    "emf_measured",
+    "ortega_measured",
+]
 
 
 def _switch_scenario(driving: str, seed: int, **extra):
@@ -1155,12 +1544,20 @@ def _switch_scenario(driving: str, seed: int, **extra):
     closed on `driving` at t_switch, 2.5 s later a 1.5 s window."""
     t_full = 0.3 + 1.0 / 0.19
     t_sw = t_full + 1.0
-    return build(name=f"peers_{driving}", duration_s=round(t_sw + 4.0, 4), seed=seed,
-                 speed_rpm=60.0, load_type="brake",
-                 load_pu=[[0.0, 0.0], [0.3, 0.0], [round(t_full, 4), 1.0]],
-                 steady_window_s=[round(t_sw + 2.5, 4), round(t_sw + 4.0, 4)],
-                 driving=driving, control={}, observers={driving: variant_spec(driving)},
-                 extra={"t_switch_s": round(t_sw, 4)}, **extra)
+    return build(
+        name=f"peers_{driving}",
+        duration_s=round(t_sw + 4.0, 4),
+        seed=seed,
+        speed_rpm=60.0,
+        load_type="brake",
+        load_pu=[[0.0, 0.0], [0.3, 0.0], [round(t_full, 4), 1.0]],
+        steady_window_s=[round(t_sw + 2.5, 4), round(t_sw + 4.0, 4)],
+        driving=driving,
+        control={},
+        observers={driving: variant_spec(driving)},
+        extra={"t_switch_s": round(t_sw, 4)},
+        **extra,
+    )
 
 
 def _switch_job(args):
@@ -1171,20 +1568,29 @@ def _switch_job(args):
     d = r.driving
     err = np.degrees(np.angle(np.exp(1j * (r.est[0, :, ES_TH] - r.truth[:, TR_THETA_E]))))
     ks = int(t_sw / sc.machine.ts_s)
-    pre = err[ks - int(1.0 / sc.machine.ts_s):ks]
+    pre = err[ks - int(1.0 / sc.machine.ts_s) : ks]
     cm = float(np.degrees(np.angle(np.mean(np.exp(1j * np.radians(pre))))))
     after = np.abs(err[ks:]) > 60.0
     k_lost = int(np.argmax(after)) if after.any() else None
     dec = slice(max(ks - int(0.5 / sc.machine.ts_s), 0), None, 20)
     zoom = slice(max(ks - int(0.02 / sc.machine.ts_s), 0), ks + int(0.06 / sc.machine.ts_s))
-    return {"stable": m["stable"], "fault": FAULT_NAMES.get(m["fault_code"], "?"),
-            "rms_deg": m["observers"][d]["theta_err_rms_deg"],
-            "mean_rpm": m["speed"]["mean_rpm"], "pre_mean_deg": cm,
-            "pre_rms_deg": float(np.sqrt(np.mean(pre ** 2))),
-            "lost_after_s": None if k_lost is None else k_lost * sc.machine.ts_s,
-            "series": {"t": r.t[dec] - t_sw, "rpm": r.truth[dec, TR_WM] * RAD_S_TO_RPM,
-                       "err": err[dec], "tz": r.t[zoom] - t_sw,
-                       "rpmz": r.truth[zoom, TR_WM] * RAD_S_TO_RPM, "errz": err[zoom]}}
+    return {
+        "stable": m["stable"],
+        "fault": FAULT_NAMES.get(m["fault_code"], "?"),
+        "rms_deg": m["observers"][d]["theta_err_rms_deg"],
+        "mean_rpm": m["speed"]["mean_rpm"],
+        "pre_mean_deg": cm,
+        "pre_rms_deg": float(np.sqrt(np.mean(pre**2))),
+        "lost_after_s": None if k_lost is None else k_lost * sc.machine.ts_s,
+        "series": {
+            "t": r.t[dec] - t_sw,
+            "rpm": r.truth[dec, TR_WM] * RAD_S_TO_RPM,
+            "err": err[dec],
+            "tz": r.t[zoom] - t_sw,
+            "rpmz": r.truth[zoom, TR_WM] * RAD_S_TO_RPM,
+            "errz": err[zoom],
+        },
+    }
 
 
 def peers_fail(ctx):
@@ -1193,8 +1599,11 @@ def peers_fail(ctx):
     drivers = PEERS[:3] if ctx.quick else PEERS
     sw_jobs = [(_switch_scenario(d, s), (d, s, "2us")) for d in drivers for s in seeds]
     if not ctx.quick:  # the causal check: an ideal inverter, same observers
-        sw_jobs += [(_switch_scenario(d, s, plant={"deadtime_s": 0.0}), (d, s, "0"))
-                    for d in PEERS[1:4] for s in seeds[:2]]
+        sw_jobs += [
+            (_switch_scenario(d, s, plant={"deadtime_s": 0.0}), (d, s, "0"))
+            for d in PEERS[1:4]
+            for s in seeds[:2]
+        ]
     t0 = time.perf_counter()
     scs = [j[0] for j in sw_jobs]
     sw_res = ctx.map(_switch_job, scs)
@@ -1204,20 +1613,22 @@ def peers_fail(ctx):
     shadow_obs["hl_commanded"] = {"variant": "hinkkanen_luomi", "voltage_source": "commanded"}
     jobs = [(encoder_run(60.0, 1.0, observers=shadow_obs, name="peers_shadow"), _x_sens, None)]
     if not ctx.quick:  # the same drivers closing the loop at 480 rpm and descending under load
-        jobs += [(descent(60.0, 1.0, driving=d, name=f"peers_descent_{d}"), _x_hold, None)
-                 for d in PEERS]
+        jobs += [
+            (descent(60.0, 1.0, driving=d, name=f"peers_descent_{d}"), _x_hold, None) for d in PEERS
+        ]
     res = ctx.run(jobs)
     shadow, desc = res[0], dict(zip(PEERS, res[1:], strict=False))
     rows: dict = {}
     for (_, (d, s, dt)), x in zip(sw_jobs, sw_res, strict=True):
-        rows.setdefault(f"{d}@{dt}", []).append({"seed": s, **{k: v for k, v in x.items()
-                                                             if k != "series"}})
+        rows.setdefault(f"{d}@{dt}", []).append(
+            {"seed": s, **{k: v for k, v in x.items() if k != "series"}}
+        )
     w, iq = shadow["we"], shadow["iq"]
     so = shadow["obs"]
-    pred_ortega = predicted_angle_deg("ortega", w, iq, k=_default_k("ortega")[1],
-                                      v_err_q=mc.v1_dt)
-    pred_hl = predicted_angle_deg("hinkkanen_luomi", w, iq, k=_default_k("hinkkanen_luomi")[1],
-                                  v_err_q=mc.v1_dt)
+    pred_ortega = predicted_angle_deg("ortega", w, iq, k=_default_k("ortega")[1], v_err_q=mc.v1_dt)
+    pred_hl = predicted_angle_deg(
+        "hinkkanen_luomi", w, iq, k=_default_k("hinkkanen_luomi")[1], v_err_q=mc.v1_dt
+    )
     pred_mag = mc.lam + mc.v1_dt / w
 
     def summ(key):
@@ -1226,59 +1637,85 @@ def peers_fail(ctx):
         rms = [x["rms_deg"] for x in rr if x["stable"]]
         lost = [x["lost_after_s"] for x in rr if x["lost_after_s"] is not None]
         faults = sorted({x["fault"] for x in rr if x["fault"] != "none"})
-        pre = (f" (θ̃ before closing: mean {np.mean([x['pre_mean_deg'] for x in rr]):.1f}°, "
-               f"RMS {np.mean([x['pre_rms_deg'] for x in rr]):.1f}°)") if rr else ""
-        return (f"{n_ok}/{len(rr)} held{pre}"
+        pre = (
+            (
+                f" (θ̃ before closing: mean {np.mean([x['pre_mean_deg'] for x in rr]):.1f}°, "
+                f"RMS {np.mean([x['pre_rms_deg'] for x in rr]):.1f}°)"
+            )
+            if rr
+            else ""
+        )
+        return (
+            (
+                f"{n_ok}/{len(rr)} held{pre}"
                 + (f", θ̃ RMS {np.mean(rms):.2f}°" if rms else "")
-                + (f", |θ̃| > 60° {min(lost):.2f}-{max(lost):.2f} s after closing" if lost
-                   else "")
-                + (f", trips: {', '.join(faults)}" if faults else "")), n_ok, len(rr)
+                + (f", |θ̃| > 60° {min(lost):.2f}-{max(lost):.2f} s after closing" if lost else "")
+                + (f", trips: {', '.join(faults)}" if faults else "")
+            ),
+            n_ok,
+            len(rr),
+        )
 
     claims = []
     s_fm, n_fm, t_fm = summ("flux_measured@2us")
     s_ec, n_ec, t_ec = summ("emf_commanded@2us")
     s_oc, n_oc, t_oc = summ("ortega_commanded@2us")
-    vdt_txt = (f"V_dt = Vdc·td/Ts = {mc.vdt:.2f} V per leg, fundamental (4/π)V_dt = "
-               f"{mc.v1_dt:.2f} V "
-               f"along the current, vs the back-EMF ωλ = {w * mc.lam:.2f} V")
-    claims.append(claim(
-        "60 rpm, rated load, 2 µs deadtime uncompensated: closing the loop on a reduced-order "
-        "observer driven by commanded voltages loses the rotor; the paper's flux observer on "
-        "measured voltages holds it",
-        f"flux_measured: {s_fm}; emf_commanded: {s_ec}; ortega_commanded: {s_oc} "
-        f"(loop closed at 60 rpm with the rated load carried, {len(seeds)} seeds)",
-        n_fm == t_fm and n_ec == 0 and n_oc == 0,
-        "" if n_fm == t_fm and n_ec == 0 and n_oc == 0 else "see the figure"))
-    o_c, h_c, f_c, e_c = (so["ortega_commanded"], so["hl_commanded"], so["flux_commanded"],
-                          so["emf_commanded"])
-    claims.append(claim(
-        "Mechanism, in shadow before closing (current on the true q axis): the deadtime error "
-        "is a magnitude error of the EMF (along the current = along q); what each observer "
-        "makes of it decides",
-        f"{vdt_txt}.  ortega_commanded θ̃ {o_c['mean_deg']:.1f}° (model acos(ωλ/(ωλ+(4/π)"
-        f"V_dt)) with γλ² = 1000: {pred_ortega:.1f}°); hinkkanen_luomi commanded "
-        f"{h_c['mean_deg']:.1f}° (model {pred_hl:.1f}°); paper commanded |λ̂| "
-        f"{1e3 * f_c['mag']:.1f} mV·s (model λ + (4/π)V_dt/ω = {1e3 * pred_mag:.1f}, 3λ "
-        f"validity limit {3e3 * mc.lam:.1f}), θ̃ mean {f_c['mean_deg']:.1f}°; emf_commanded θ̃ "
-        f"mean {e_c['mean_deg']:.1f}° (RMS {e_c['rms_deg']:.1f}°: the 6th order)",
-        bool(abs(o_c["mean_deg"] - pred_ortega) < 5.0 and abs(f_c["mag"] - pred_mag)
-             < 0.1 * pred_mag and abs(e_c["mean_deg"]) < 5.0),
-        "ortega forces |η| = λ̂: the correction c that shrinks |x|/ω ≈ 4λ back to λ rotates "
-        "the estimate by atan(c/ω) = acos(ωλ/|x|), so closing the loop on it puts the current "
-        "~75° off the q axis and the torque collapses at once.  The EMF and paper observers "
-        "keep the mean angle but carry the deadtime's 6th-order ripple (±16° at 60 rpm, "
-        "Fig. 14a).  What makes that fatal is the operating point: the default card's 1.5e-4 kg·m² "
-        "rotor under the rated brake decelerates at ΔT/J ≈ 400 rad/s² for a 5 % torque "
-        "deficit, so 60 rpm is gone in ~15 ms -- faster than the 10 Hz speed loop or the "
-        "25 Hz observer respond (the speed loop's 10 Hz design does not change this: "
-        "slower speed loops fail too).  As the rotor slows, (4/π)V_dt/(ωλ) (3.1 at 60 rpm) "
-        "grows and with it the error, and once the current follows θ̂ the deadtime error "
-        "turns with the estimate (the EMF observer then sees only ωλ/(ωλ+(4/π)V_dt) = "
-        f"{w * mc.lam / (w * mc.lam + mc.v1_dt):.2f} of its own angle error): a runaway that "
-        "ends at "
-        "standstill, where no back-EMF observer sees the rotor.  The paper's observer on "
-        "commanded voltages also has |λ̂| ≈ 4λ, outside the validity band: it trips on loss "
-        "of lock (next row) -- the measured voltages are what make it work"))
+    vdt_txt = (
+        f"V_dt = Vdc·td/Ts = {mc.vdt:.2f} V per leg, fundamental (4/π)V_dt = "
+        f"{mc.v1_dt:.2f} V "
+        f"along the current, vs the back-EMF ωλ = {w * mc.lam:.2f} V"
+    )
+    claims.append(
+        claim(
+            "60 rpm, rated load, 2 µs deadtime uncompensated: closing the loop on a reduced-order "
+            "observer driven by commanded voltages loses the rotor; the paper's flux observer on "
+            "measured voltages holds it",
+            f"flux_measured: {s_fm}; emf_commanded: {s_ec}; ortega_commanded: {s_oc} "
+            f"(loop closed at 60 rpm with the rated load carried, {len(seeds)} seeds)",
+            n_fm == t_fm and n_ec == 0 and n_oc == 0,
+            "" if n_fm == t_fm and n_ec == 0 and n_oc == 0 else "see the figure",
+        )
+    )
+    o_c, h_c, f_c, e_c = (
+        so["ortega_commanded"],
+        so["hl_commanded"],
+        so["flux_commanded"],
+        so["emf_commanded"],
+    )
+    claims.append(
+        claim(
+            "Mechanism, in shadow before closing (current on the true q axis): the deadtime error "
+            "is a magnitude error of the EMF (along the current = along q); what each observer "
+            "makes of it decides",
+            f"{vdt_txt}.  ortega_commanded θ̃ {o_c['mean_deg']:.1f}° (model acos(ωλ/(ωλ+(4/π)"
+            f"V_dt)) with γλ² = 1000: {pred_ortega:.1f}°); hinkkanen_luomi commanded "
+            f"{h_c['mean_deg']:.1f}° (model {pred_hl:.1f}°); paper commanded |λ̂| "
+            f"{1e3 * f_c['mag']:.1f} mV·s (model λ + (4/π)V_dt/ω = {1e3 * pred_mag:.1f}, 3λ "
+            f"validity limit {3e3 * mc.lam:.1f}), θ̃ mean {f_c['mean_deg']:.1f}°; emf_commanded θ̃ "
+            f"mean {e_c['mean_deg']:.1f}° (RMS {e_c['rms_deg']:.1f}°: the 6th order)",
+            bool(
+                abs(o_c["mean_deg"] - pred_ortega) < 5.0
+                and abs(f_c["mag"] - pred_mag) < 0.1 * pred_mag
+                and abs(e_c["mean_deg"]) < 5.0
+            ),
+            "ortega forces |η| = λ̂: the correction c that shrinks |x|/ω ≈ 4λ back to λ rotates "
+            "the estimate by atan(c/ω) = acos(ωλ/|x|), so closing the loop on it puts the current "
+            "~75° off the q axis and the torque collapses at once.  The EMF and paper observers "
+            "keep the mean angle but carry the deadtime's 6th-order ripple (±16° at 60 rpm, Fig. "
+            "14a).  What makes that fatal is the operating point: the default card's 1.5e-4 kg·m² "
+            "rotor under the rated brake decelerates at ΔT/J ≈ 400 rad/s² for a 5 % torque "
+            "deficit, so 60 rpm is gone in ~15 ms -- faster than the 10 Hz speed loop or the 25 "
+            "Hz observer respond (the speed loop's 10 Hz design does not change this: slower "
+            "speed loops fail too).  As the rotor slows, (4/π)V_dt/(ωλ) (3.1 at 60 rpm) grows and "
+            "with it the error, and once the current follows θ̂ the deadtime error turns with the "
+            "estimate (the EMF observer then sees only ωλ/(ωλ+(4/π)V_dt) = "
+            f"{w * mc.lam / (w * mc.lam + mc.v1_dt):.2f} of its own angle error): a runaway that "
+            "ends at "
+            "standstill, where no back-EMF observer sees the rotor.  The paper's observer on "
+            "commanded voltages also has |λ̂| ≈ 4λ, outside the validity band: it trips on loss "
+            "of lock (next row) -- the measured voltages are what make it work",
+        )
+    )
     ctrl_rows = []
     for d in PEERS[3:]:
         txt, n_ok, n_all = summ(f"{d}@2us")
@@ -1286,20 +1723,27 @@ def peers_fail(ctx):
             ctrl_rows.append(f"{d}: {txt}")
     if ctrl_rows:
         em_ok = all(x["stable"] for x in rows.get("emf_measured@2us", []))
-        claims.append(claim(
-            "Controls at the same point: the paper's observer on commanded voltages, and the "
-            "EMF / ortega observers on measured voltages",
-            "; ".join(ctrl_rows), None,
-            "flux_commanded: |λ̂| = λ + (4/π)V_dt/ω ≈ 4λ leaves the 3λ validity band → loss-of-"
-            "lock trip (the angle itself is fine).  emf_measured: no deadtime error; its per-"
-            "sample noise L/Ts·σ_i ≈ 0.18 V against 0.59 V "
-            + ("costs accuracy (θ̃ RMS ~1° vs 0.15° for the flux observer) but it holds here; "
-               "it fails at 30 rpm (lowest_speed).  " if em_ok else
-               "can make the estimate slip before or after the loop is closed.  ")
-            + "ortega_measured: measured voltages remove "
-            "the 1.83 V, but the ≈3.6 mV deadtime residue times k/(ω²λ) (sensitivity) and its "
-            "0.6 s⁻¹ angle pole still lose the rotor at its default gain: a structural limit "
-            "at low speed, not the voltage source"))
+        claims.append(
+            claim(
+                "Controls at the same point: the paper's observer on commanded voltages, and the "
+                "EMF / ortega observers on measured voltages",
+                "; ".join(ctrl_rows),
+                None,
+                "flux_commanded: |λ̂| = λ + (4/π)V_dt/ω ≈ 4λ leaves the 3λ validity band → loss-of-"
+                "lock trip (the angle itself is fine).  emf_measured: no deadtime error; its per-"
+                "sample noise L/Ts·σ_i ≈ 0.18 V against 0.59 V "
+                + (
+                    "costs accuracy (θ̃ RMS ~1° vs 0.15° for the flux observer) but it holds here; "
+                    "it fails at 30 rpm (lowest_speed).  "
+                    if em_ok
+                    else "can make the estimate slip before or after the loop is closed.  "
+                )
+                + "ortega_measured: measured voltages remove "
+                "the 1.83 V, but the ≈3.6 mV deadtime residue times k/(ω²λ) (sensitivity) and its "
+                "0.6 s⁻¹ angle pole still lose the rotor at its default gain: a structural limit "
+                "at low speed, not the voltage source",
+            )
+        )
     dt0 = []
     all0 = True
     for d in PEERS[1:4]:
@@ -1308,39 +1752,71 @@ def peers_fail(ctx):
             dt0.append(f"{d}: {txt}")
             all0 = all0 and n_ok == n_all
     if dt0:
-        claims.append(claim(
-            "The deadtime is the cause: with an ideal inverter (td = 0) the same commanded-"
-            "voltage observers close the loop at 60 rpm / rated load and hold it",
-            "; ".join(dt0), all0))
+        claims.append(
+            claim(
+                "The deadtime is the cause: with an ideal inverter (td = 0) the same commanded-"
+                "voltage observers close the loop at 60 rpm / rated load and hold it",
+                "; ".join(dt0),
+                all0,
+            )
+        )
     if desc:
         parts = []
         for d, x in desc.items():
             lo = x["lost"]
-            parts.append(f"{d}: " + ("held 60 rpm" if x["stable"] else
-                                     (f"lost at ref {lo['ref_rpm']:.0f} rpm, load "
-                                      f"{lo['load_pu']:.2f} pu ({lo['fault']})" if lo
-                                      else f"not held (mean {x['mean_rpm']:.0f} rpm, θ̃ RMS "
-                                      f"{x['rms_deg']:.0f}°)")))
-        claims.append(claim(
-            "The same drivers started sensorless at 480 rpm, rated load ramped in there, then "
-            "decelerated to 60 rpm (the lowest_speed protocol): where each loses the rotor",
-            "; ".join(parts), None,
-            "commanded-voltage observers are lost on the way down near their bound (0.2 R I + "
-            "V_dt)/λ ≈ 219 rpm (lowest_speed), ortega_commanded already when it first closes "
-            "the loop"))
-    claims.append(claim(
-        "R̂_s 30 % off at 2 % speed / 150 % load (the other peer-failure case of the issue)",
-        "see experiment rs_adapt: fixed R̂ = 1.3 R or 0.7 R loses the rotor, the online R_s "
-        "estimate (flux-magnitude law) keeps the flux drive running", None,
-        "voltage-model observers are most sensitive to R̂ at low speed: |λ̂| = λ + ΔR i_q/ω "
-        "(sensitivity / mismatch)"))
+            parts.append(
+                f"{d}: "
+                + (
+                    "held 60 rpm"
+                    if x["stable"]
+                    else (
+                        f"lost at ref {lo['ref_rpm']:.0f} rpm, load "
+                        f"{lo['load_pu']:.2f} pu ({lo['fault']})"
+                        if lo
+                        else f"not held (mean {x['mean_rpm']:.0f} rpm, θ̃ RMS {x['rms_deg']:.0f}°)"
+                    )
+                )
+            )
+        claims.append(
+            claim(
+                "The same drivers started sensorless at 480 rpm, rated load ramped in there, then "
+                "decelerated to 60 rpm (the lowest_speed protocol): where each loses the rotor",
+                "; ".join(parts),
+                None,
+                "commanded-voltage observers are lost on the way down near their bound (0.2 R I + "
+                "V_dt)/λ ≈ 219 rpm (lowest_speed), ortega_commanded already when it first closes "
+                "the loop",
+            )
+        )
+    claims.append(
+        claim(
+            "R̂_s 30 % off at 2 % speed / 150 % load (the other peer-failure case of the issue)",
+            "see experiment rs_adapt: fixed R̂ = 1.3 R or 0.7 R loses the rotor, the online R_s "
+            "estimate (flux-magnitude law) keeps the flux drive running",
+            None,
+            "voltage-model observers are most sensitive to R̂ at low speed: |λ̂| = λ + ΔR i_q/ω "
+            "(sensitivity / mismatch)",
+        )
+    )
     figs = [_plot_peers(ctx, sw_jobs, sw_res, drivers)]
-    return {"claims": claims, "figures": figs,
-            "data": {"switched": rows, "shadow": so, "we_rad_s": w, "iq_a": iq,
-                     "pred": {"ortega_commanded_deg": pred_ortega,
-                              "hl_commanded_deg": pred_hl,
-                              "flux_commanded_mag_vs": pred_mag},
-                     "descent": desc, "vdt_v": mc.vdt, "v1_dt_v": mc.v1_dt}}
+    return {
+        "claims": claims,
+        "figures": figs,
+        "data": {
+            "switched": rows,
+            "shadow": so,
+            "we_rad_s": w,
+            "iq_a": iq,
+            "pred": {
+                "ortega_commanded_deg": pred_ortega,
+                "hl_commanded_deg": pred_hl,
+                "flux_commanded_mag_vs": pred_mag,
+            },
+            "descent": desc,
+            "vdt_v": mc.vdt,
+            "v1_dt_v": mc.v1_dt,
+        },
+    }
 
 
 def _plot_peers(ctx, sw_jobs, sw_res, drivers):
@@ -1350,8 +1826,11 @@ def _plot_peers(ctx, sw_jobs, sw_res, drivers):
     ax = [fig.add_subplot(gs[0, :2]), fig.add_subplot(gs[1, :2])]
     az = [fig.add_subplot(gs[0, 2]), fig.add_subplot(gs[1, 2])]
     for i, d in enumerate(drivers):
-        x = next(r for (_, key), r in zip(sw_jobs, sw_res, strict=True)
-                 if key[0] == d and key[2] == "2us")
+        x = next(
+            r
+            for (_, key), r in zip(sw_jobs, sw_res, strict=True)
+            if key[0] == d and key[2] == "2us"
+        )
         s = x["series"]
         ax[0].plot(s["t"], s["rpm"], lw=0.7, color=f"C{i}", label=d)
         ax[1].plot(s["t"], s["err"], lw=0.5, color=f"C{i}")
@@ -1369,8 +1848,11 @@ def _plot_peers(ctx, sw_jobs, sw_res, drivers):
     az[1].set_ylim(-185, 185)
     ax[1].set_xlabel("time after closing the loop on the observer [s]")
     az[1].set_xlabel("the first 60 ms [ms]")
-    ax[0].set_title("60 rpm, rated brake load, 2 µs deadtime uncompensated: encoder until t = 0, "
-                    "then sensorless on each observer (seed 1)", fontsize=9)
+    ax[0].set_title(
+        "60 rpm, rated brake load, 2 µs deadtime uncompensated: encoder until t = 0, "
+        "then sensorless on each observer (seed 1)",
+        fontsize=9,
+    )
     az[0].set_title("zoom: the light rotor stalls in ~15 ms", fontsize=9)
     return ctx.fig(fig, "beyond_peers_fail")
 
@@ -1409,8 +1891,11 @@ def run_adaptive(sc, gain: float | None, chunk: int = 10, r0: float | None = Non
                 if abs(i_d) > i_min and abs(w_if) > 2 * math.pi * 1.0:
                     r_new = op[o, OP_R] - gain * dt * lq * w_if / i_d
                     op[o, OP_R] = min(max(r_new, 0.3 * r0), 3.0 * r0)
-            elif (np.all(ctl[k:k1, CO_MODE] == MODE_CLOSED_LOOP) and abs(iq) > i_min
-                    and abs(w) > 2 * math.pi * 1.0):
+            elif (
+                np.all(ctl[k:k1, CO_MODE] == MODE_CLOSED_LOOP)
+                and abs(iq) > i_min
+                and abs(w) > 2 * math.pi * 1.0
+            ):
                 mag = float(np.mean(np.hypot(e[:, ES_LA], e[:, ES_LB])))
                 dr = (mag - lam) * abs(w) / abs(iq)
                 r_new = op[o, OP_R] + gain * dt * dr
@@ -1425,10 +1910,15 @@ def _adaptive_job(args):
     res, r_hist = run_adaptive(sc, gain)
     m = compute(res)
     d = slice(0, len(res.t), 50)
-    return {"metrics": m, "t": res.t[d], "r_hat": r_hist[d],
-            "rpm": res.truth[d, TR_WM] * RAD_S_TO_RPM,
-            "th_err": np.degrees(np.angle(np.exp(1j * (res.est[0, d, ES_TH]
-                                                       - res.truth[d, TR_THETA_E]))))}
+    return {
+        "metrics": m,
+        "t": res.t[d],
+        "r_hat": r_hist[d],
+        "rpm": res.truth[d, TR_WM] * RAD_S_TO_RPM,
+        "th_err": np.degrees(
+            np.angle(np.exp(1j * (res.est[0, d, ES_TH] - res.truth[d, TR_THETA_E])))
+        ),
+    }
 
 
 def rs_adapt(ctx):
@@ -1440,8 +1930,11 @@ def rs_adapt(ctx):
     for f, g in cases:
         # ideal bench: only the R^ error under study (the paper bench adds its own R^ error
         # and a heating winding)
-        sc = build(base="paper_2pct_150load", bench={},
-                   observers={"flux_measured": {**OBS4["flux_measured"], "r_hat_ohm": mc.r * f}})
+        sc = build(
+            base="paper_2pct_150load",
+            bench={},
+            observers={"flux_measured": {**OBS4["flux_measured"], "r_hat_ohm": mc.r * f}},
+        )
         jobs.append((sc, g))
     t0 = time.perf_counter()
     res = ctx.map(_adaptive_job, jobs)
@@ -1457,14 +1950,23 @@ def rs_adapt(ctx):
         ax[2].plot(r["t"], r["th_err"], lw=0.5)
         m = r["metrics"]
         win = r["t"] >= m["window_s"][0]
-        rows.append({"r0_factor": f, "adaptive": bool(g), "stable": m["stable"],
-                     "r_hat_end": float(np.mean(r["r_hat"][win])),
-                     "rms_deg": m["observers"]["flux_measured"]["theta_err_rms_deg"]})
+        rows.append(
+            {
+                "r0_factor": f,
+                "adaptive": bool(g),
+                "stable": m["stable"],
+                "r_hat_end": float(np.mean(r["r_hat"][win])),
+                "rms_deg": m["observers"]["flux_measured"]["theta_err_rms_deg"],
+            }
+        )
     ax[0].axhline(mc.r, color="k", ls=":", lw=0.7)
     ax[0].set_ylabel("R̂ [Ω]")
     ax[0].legend(fontsize=7)
-    ax[0].set_title("R̂ 30 % off at 2 % speed, 150 % load ramp: fixed vs flux-magnitude "
-                    "adaptation (1 kHz, outside the kernels)", fontsize=9)
+    ax[0].set_title(
+        "R̂ 30 % off at 2 % speed, 150 % load ramp: fixed vs flux-magnitude "
+        "adaptation (1 kHz, outside the kernels)",
+        fontsize=9,
+    )
     ax[1].set_ylabel("speed [rpm]")
     ax[2].set_ylabel("θ̃ [deg]")
     ax[2].set_ylim(-180, 180)
@@ -1473,15 +1975,18 @@ def rs_adapt(ctx):
     for f in factors:
         fx = next(x for x in rows if x["r0_factor"] == f and not x["adaptive"])
         ad = next(x for x in rows if x["r0_factor"] == f and x["adaptive"])
-        claims.append(claim(
-            f"R̂ = {f}·R at 2 %/150 %: an online R_s estimate (flux-magnitude law) keeps the "
-            "flux drive running",
-            f"fixed R̂: stable {fx['stable']}; adaptive: stable {ad['stable']}, R̂ → "
-            f"{ad['r_hat_end']:.3f} Ω (true {mc.r}), θ̃ RMS {ad['rms_deg']:.2f}°",
-            bool(ad["stable"] and abs(ad["r_hat_end"] - mc.r) < 0.05 * mc.r),
-            "identifiable only with load (|i_q| > 10 %) and with λ_pm known: a λ_pm error is "
-            "indistinguishable from an R error at one operating point (magnet temperature "
-            "moves both)"))
+        claims.append(
+            claim(
+                f"R̂ = {f}·R at 2 %/150 %: an online R_s estimate (flux-magnitude law) keeps the "
+                "flux drive running",
+                f"fixed R̂: stable {fx['stable']}; adaptive: stable {ad['stable']}, R̂ → "
+                f"{ad['r_hat_end']:.3f} Ω (true {mc.r}), θ̃ RMS {ad['rms_deg']:.2f}°",
+                bool(ad["stable"] and abs(ad["r_hat_end"] - mc.r) < 0.05 * mc.r),
+                "identifiable only with load (|i_q| > 10 %) and with λ_pm known: a λ_pm error is "
+                "indistinguishable from an R error at one operating point (magnet temperature "
+                "moves both)",
+            )
+        )
     return {"claims": claims, "figures": figs, "data": {"runs": rows, "gain_per_s": gain}}
 
 
@@ -1490,8 +1995,13 @@ EXPERIMENTS = {
     "mismatch": (mismatch, "R̂, L̂, λ̂ mismatch and current offsets at 2 %/150 %"),
     "rs_adapt": (rs_adapt, "online R_s estimate for R̂ 30 % off at 2 %/150 %"),
     "sensitivity": (sensitivity, "θ̃ vs R̂, L̂, λ̂, current offset and cut-off, per variant"),
-    "speed_reversal": (speed_reversal, "sensorless reversal +60 → −60 rpm under load, I-f "
-                       "through zero"),
-    "peers_fail": (peers_fail, "60 rpm, rated load, 2 µs deadtime: where reduced-order "
-                   "observers on commanded voltages lose the rotor"),
+    "speed_reversal": (
+        speed_reversal,
+        "sensorless reversal +60 → −60 rpm under load, I-f through zero",
+    ),
+    "peers_fail": (
+        peers_fail,
+        "60 rpm, rated load, 2 µs deadtime: where reduced-order "
+        "observers on commanded voltages lose the rotor",
+    ),
 }

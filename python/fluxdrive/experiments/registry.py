@@ -93,18 +93,33 @@ def build(machine_kw: dict | None = None, base: str | None = None, **raw) -> Sce
     return sc
 
 
-def sensorless(speed_rpm: float, load_pu: float, *, driving: str = "flux_measured",
-               observers: dict | None = None, ramp_pu_s: float = 0.19, settle_s: float = 0.5,
-               window_s: float = 1.5, seed: int = 1, control: dict | None = None,
-               machine_kw: dict | None = None, name: str = "exp", **extra) -> Scenario:
+def sensorless(
+    speed_rpm: float,
+    load_pu: float,
+    *,
+    driving: str = "flux_measured",
+    observers: dict | None = None,
+    ramp_pu_s: float = 0.19,
+    settle_s: float = 0.5,
+    window_s: float = 1.5,
+    seed: int = 1,
+    control: dict | None = None,
+    machine_kw: dict | None = None,
+    name: str = "exp",
+    **extra,
+) -> Scenario:
     """Sensorless start (align -> I-f -> handover at up to 40 rpm), then the speed, then a
     slow brake-load ramp (the paper's hysteresis dyno), then a steady window."""
     obs = dict(observers or {driving: OBS6.get(driving, {"variant": "paper"})})
     # handover on the filtered agreement (2 Hz): the per-sample check is reset by the unloaded
     # rotor's swing about the I-f vector and, on the non-ideal bench, delays the handover by
     # up to 1.5 s (into the steady window at no load: the fig13 experiment)
-    ctrl = {"if_current_pu": 0.6, "handover_rpm": 35.0 if speed_rpm < 40 else 40.0,
-            "handback_rpm": min(20.0, 0.5 * speed_rpm), "handover_agree_lpf_hz": 2.0}
+    ctrl = {
+        "if_current_pu": 0.6,
+        "handover_rpm": 35.0 if speed_rpm < 40 else 40.0,
+        "handback_rpm": min(20.0, 0.5 * speed_rpm),
+        "handover_agree_lpf_hz": 2.0,
+    }
     ctrl.update(control or {})
     if speed_rpm < 40.0:
         speed = [[0.0, 40.0], [0.8, 40.0], [1.3, speed_rpm]]
@@ -117,26 +132,56 @@ def sensorless(speed_rpm: float, load_pu: float, *, driving: str = "flux_measure
     w0 = t_end_ramp + settle_s
     dur = w0 + window_s
     load = [[0.0, 0.0], [t_load, 0.0], [t_end_ramp, load_pu]] if load_pu > 0 else 0.0
-    return build(machine_kw=machine_kw, name=name, duration_s=round(dur, 4), seed=seed,
-                 speed_rpm=speed, load_type="brake", load_pu=load,
-                 steady_window_s=[round(w0, 4), round(dur, 4)], driving=driving,
-                 control=ctrl, observers=obs, **extra)
+    return build(
+        machine_kw=machine_kw,
+        name=name,
+        duration_s=round(dur, 4),
+        seed=seed,
+        speed_rpm=speed,
+        load_type="brake",
+        load_pu=load,
+        steady_window_s=[round(w0, 4), round(dur, 4)],
+        driving=driving,
+        control=ctrl,
+        observers=obs,
+        **extra,
+    )
 
 
-def encoder_run(speed_rpm: float, load_pu: float, *, observers: dict | None = None,
-                ramp_s: float = 3.0, settle_s: float = 0.7, window_s: float = 1.5,
-                seed: int = 1, control: dict | None = None, machine_kw: dict | None = None,
-                name: str = "exp", **extra) -> Scenario:
+def encoder_run(
+    speed_rpm: float,
+    load_pu: float,
+    *,
+    observers: dict | None = None,
+    ramp_s: float = 3.0,
+    settle_s: float = 0.7,
+    window_s: float = 1.5,
+    seed: int = 1,
+    control: dict | None = None,
+    machine_kw: dict | None = None,
+    name: str = "exp",
+    **extra,
+) -> Scenario:
     """Encoder-driven run (observers in shadow): speed, brake load ramp, steady window."""
     t_load = 0.3
     t1 = t_load + (ramp_s if load_pu > 0 else 0.0)
     w0 = t1 + settle_s
     dur = w0 + window_s
     load = [[0.0, 0.0], [t_load, 0.0], [t1, load_pu]] if load_pu > 0 else 0.0
-    return build(machine_kw=machine_kw, name=name, duration_s=round(dur, 4), seed=seed,
-                 speed_rpm=speed_rpm, load_type="brake", load_pu=load,
-                 steady_window_s=[round(w0, 4), round(dur, 4)], driving="encoder",
-                 control=control or {}, observers=observers or dict(OBS4), **extra)
+    return build(
+        machine_kw=machine_kw,
+        name=name,
+        duration_s=round(dur, 4),
+        seed=seed,
+        speed_rpm=speed_rpm,
+        load_type="brake",
+        load_pu=load,
+        steady_window_s=[round(w0, 4), round(dur, 4)],
+        driving="encoder",
+        control=control or {},
+        observers=observers or dict(OBS4),
+        **extra,
+    )
 
 
 # ---------------------------------------------------------------- machine values
@@ -161,10 +206,16 @@ class CardValues:
 
     @classmethod
     def of(cls, card: MachineCard) -> CardValues:
-        return cls(card.resistance_ohm, card.inductance_h, card.flux_linkage_vs,
-                   card.pole_pairs, card.rated_current_a,
-                   deadtime_volt_second_loss(card.dc_bus_v, card.deadtime_s, card.ts_s),
-                   card.ts_s, card.inertia_kgm2)
+        return cls(
+            card.resistance_ohm,
+            card.inductance_h,
+            card.flux_linkage_vs,
+            card.pole_pairs,
+            card.rated_current_a,
+            deadtime_volt_second_loss(card.dc_bus_v, card.deadtime_s, card.ts_s),
+            card.ts_s,
+            card.inertia_kgm2,
+        )
 
 
 def cv() -> CardValues:
@@ -228,8 +279,7 @@ class Ctx:
         from fluxdrive.study.runner import Progress, Runner
 
         runner = self.runner or Runner("serial")
-        return runner.map(fn, list(items), Progress(len(items), label=self.name,
-                                                    echo=self.echo))
+        return runner.map(fn, list(items), Progress(len(items), label=self.name, echo=self.echo))
 
     def fig(self, fig, name: str) -> str:
         self.out.mkdir(parents=True, exist_ok=True)
@@ -268,8 +318,9 @@ def _registry() -> dict[str, tuple[Callable, str]]:
     return {**p.EXPERIMENTS, **b.EXPERIMENTS}
 
 
-def run_experiment(name: str, out: Path, quick: bool = False, runner=None,
-                   echo: bool = True) -> dict:
+def run_experiment(
+    name: str, out: Path, quick: bool = False, runner=None, echo: bool = True
+) -> dict:
     fn, title = _registry()[name]
     ctx = Ctx(out=Path(out), quick=quick, runner=runner, name=name, echo=echo)
     t0 = time.perf_counter()
@@ -296,22 +347,31 @@ def write_report(out: Path, results: dict[str, dict]) -> None:
             allres = {}
     allres.update(results)
     order = list(_registry())
-    allres = {k: allres[k] for k in sorted(allres, key=lambda k: order.index(k)
-                                           if k in order else 999)}
+    allres = {
+        k: allres[k] for k in sorted(allres, key=lambda k: order.index(k) if k in order else 999)
+    }
     jpath.write_text(json.dumps({"experiments": allres}, indent=1, default=_json_default))
-    lines = ["# fluxdrive experiments: the paper's claims with our numbers", "",
-             "Chen, Chen, Yang, IEEE Access 2019, reproduced on the switching-level engine "
-             "(default machine card, docs/engine.md).  `holds`: does the paper's claim hold "
-             "with our numbers; `why` where it does not.", ""]
+    lines = [
+        "# fluxdrive experiments: the paper's claims with our numbers",
+        "",
+        "Chen, Chen, Yang, IEEE Access 2019, reproduced on the switching-level engine "
+        "(default machine card, docs/engine.md).  `holds`: does the paper's claim hold "
+        "with our numbers; `why` where it does not.",
+        "",
+    ]
     for name, r in allres.items():
-        lines += [f"## {name}: {r.get('title', '')}", "",
-                  f"runtime {r.get('runtime_s', 0):.1f} s{' (quick)' if r.get('quick') else ''}",
-                  ""]
+        lines += [
+            f"## {name}: {r.get('title', '')}",
+            "",
+            f"runtime {r.get('runtime_s', 0):.1f} s{' (quick)' if r.get('quick') else ''}",
+            "",
+        ]
         lines += ["| claim (paper) | ours | holds | why / note |", "|---|---|---|---|"]
         for c in r.get("claims", []):
             why = c.get("why", c.get("note", ""))
-            lines.append(f"| {_md(c['claim'])} | {_md(c['ours'])} | {_fmt_holds(c['holds'])} "
-                         f"| {_md(why)} |")
+            lines.append(
+                f"| {_md(c['claim'])} | {_md(c['ours'])} | {_fmt_holds(c['holds'])} | {_md(why)} |"
+            )
         lines.append("")
         for f in r.get("figures", []):
             lines.append(f"![{f}]({f})")
@@ -340,21 +400,34 @@ def _json_default(o):
 
 def main(argv: list[str]) -> int:
     reg = _registry()
-    ap = argparse.ArgumentParser(prog="fluxdrive experiment", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        prog="fluxdrive experiment",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     ap.add_argument("name", help="experiment name or 'all' or 'list': " + ", ".join(reg))
     ap.add_argument("--quick", action="store_true", help="fewer points, shorter runs")
     ap.add_argument("--out", type=Path, help="output folder (default results/experiments)")
-    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1,
-                    help="worker processes of the local dask cluster (1: in-process)")
+    ap.add_argument(
+        "--workers",
+        type=int,
+        default=os.cpu_count() or 1,
+        help="worker processes of the local dask cluster (1: in-process)",
+    )
     ap.add_argument("--scheduler", help="run on an existing dask cluster tcp://HOST:PORT")
-    ap.add_argument("--graph", action="store_true",
-                    help="run every scenario through the ROS 2 node graph (lockstep, "
-                    "recorded to a bag and read back) instead of in-process; same numbers, "
-                    "about real time, one run at a time")
-    ap.add_argument("--machine", help="run every scenario on this machine card (per-unit "
-                    "speeds scale with its rated speed, defaults derive from it; results go "
-                    "to results/experiments-<card> unless --out)")
+    ap.add_argument(
+        "--graph",
+        action="store_true",
+        help="run every scenario through the ROS 2 node graph (lockstep, "
+        "recorded to a bag and read back) instead of in-process; same numbers, "
+        "about real time, one run at a time",
+    )
+    ap.add_argument(
+        "--machine",
+        help="run every scenario on this machine card (per-unit "
+        "speeds scale with its rated speed, defaults derive from it; results go "
+        "to results/experiments-<card> unless --out)",
+    )
     args = ap.parse_args(argv)
     if args.machine:
         from fluxdrive.core.machine import load_machine
@@ -392,9 +465,20 @@ def main(argv: list[str]) -> int:
                 import traceback
 
                 traceback.print_exc()
-                res = {"title": n, "runtime_s": 0.0, "quick": args.quick, "figures": [],
-                       "claims": [claim("experiment ran", f"failed: {exc!r}", False,
-                                        "see the traceback on stderr")]}
+                res = {
+                    "title": n,
+                    "runtime_s": 0.0,
+                    "quick": args.quick,
+                    "figures": [],
+                    "claims": [
+                        claim(
+                            "experiment ran",
+                            f"failed: {exc!r}",
+                            False,
+                            "see the traceback on stderr",
+                        )
+                    ],
+                }
             write_report(out, {n: res})
             for c in res["claims"]:
                 print(f"[{n}] {_fmt_holds(c['holds']):6s} {c['claim']}  ->  {c['ours']}")

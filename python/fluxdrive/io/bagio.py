@@ -102,9 +102,12 @@ class _McapStorage:
         self.bio = self.path.open("xb")
         # chunks are cut here (`chunk_bytes`), the library's own limit is never reached
         # (no attachment index: the library would point a summary offset at an empty group)
-        self.w = McapWriter(self.bio, chunk_size=1 << 40, compression=CompressionType.ZSTD,
-                            index_types=IndexType.CHUNK | IndexType.MESSAGE
-                            | IndexType.METADATA)
+        self.w = McapWriter(
+            self.bio,
+            chunk_size=1 << 40,
+            compression=CompressionType.ZSTD,
+            index_types=IndexType.CHUNK | IndexType.MESSAGE | IndexType.METADATA,
+        )
         self.w.start(profile="ros2", library="fluxdrive")
         self.schema_ids: dict[str, int] = {}
         self.channel_ids: dict[int, int] = {}  # rosbags connection id -> MCAP channel id
@@ -118,13 +121,16 @@ class _McapStorage:
     def add_msgtype(self, connection: Any) -> None:
         fmt = "ros2msg" if connection.msgdef.format.name == "MSG" else "ros2idl"
         self.schema_ids[connection.msgtype] = self.w.register_schema(
-            name=connection.msgtype, encoding=fmt, data=connection.msgdef.data.encode())
+            name=connection.msgtype, encoding=fmt, data=connection.msgdef.data.encode()
+        )
 
     def add_connection(self, connection: Any, offered_qos_profiles: str) -> None:
         self.channel_ids[connection.id] = self.w.register_channel(
-            topic=connection.topic, message_encoding="cdr",
+            topic=connection.topic,
+            message_encoding="cdr",
             schema_id=self.schema_ids[connection.msgtype],
-            metadata={"offered_qos_profiles": offered_qos_profiles})
+            metadata={"offered_qos_profiles": offered_qos_profiles},
+        )
         self.seqno[connection.id] = 0
 
     def write(self, connection: Any, timestamp: int, data: bytes | memoryview) -> None:
@@ -140,8 +146,13 @@ class _McapStorage:
             add = self.w.add_message
             for t, _, cid, data in self.pending:
                 self.seqno[cid] += 1
-                add(channel_id=self.channel_ids[cid], log_time=t, data=data, publish_time=t,
-                    sequence=self.seqno[cid])
+                add(
+                    channel_id=self.channel_ids[cid],
+                    log_time=t,
+                    data=data,
+                    publish_time=t,
+                    sequence=self.seqno[cid],
+                )
             self.pending.clear()
             self.pending_bytes = 0
             self.w.flush()
@@ -183,9 +194,21 @@ def _qos(topic: str) -> list:
 
     depth, durability = offered_qos(topic)
     inf = QosTime(sec=9223372036, nsec=854775807)  # rmw's "infinite", as rosbag2 records it
-    return [Qos(QosHistory.KEEP_LAST, depth, QosReliability.RELIABLE,
-                QosDurability.TRANSIENT_LOCAL if durability == "transient_local"
-                else QosDurability.VOLATILE, inf, inf, QosLiveliness.AUTOMATIC, inf, False)]
+    return [
+        Qos(
+            QosHistory.KEEP_LAST,
+            depth,
+            QosReliability.RELIABLE,
+            QosDurability.TRANSIENT_LOCAL
+            if durability == "transient_local"
+            else QosDurability.VOLATILE,
+            inf,
+            inf,
+            QosLiveliness.AUTOMATIC,
+            inf,
+            False,
+        )
+    ]
 
 
 class BagWriter:
@@ -202,8 +225,13 @@ class BagWriter:
     latched std_msgs/String message on /fluxdrive/settings -- the last survives any
     conversion (rosbags-convert to rosbag1 and back keeps only messages)."""
 
-    def __init__(self, path: str | Path, settings: dict[str, Any] | None = None, *,
-                 epoch_offset_ns: int | None = None) -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        settings: dict[str, Any] | None = None,
+        *,
+        epoch_offset_ns: int | None = None,
+    ) -> None:
         from rosbags.rosbag2 import StoragePlugin, Writer
 
         class _Writer(Writer):
@@ -222,8 +250,11 @@ class BagWriter:
         self.storage.records[META_KEY] = {META_KEY: text}
         self.conns: list[Any] = []
         cid = self.add_connection(SETTINGS, T_STRING)
-        self.w.write(self.conns[cid], int(self.settings["epoch_offset_ns"]),  # at t = 0
-                     self.store.serialize_cdr(self.store.types[T_STRING](data=text), T_STRING))
+        self.w.write(
+            self.conns[cid],
+            int(self.settings["epoch_offset_ns"]),  # at t = 0
+            self.store.serialize_cdr(self.store.types[T_STRING](data=text), T_STRING),
+        )
 
     def add_connection(self, topic: str, msgtype: str, store: Any = None) -> int:
         """A topic (`store`: a typestore for a type that is not the project's); returns its
@@ -231,8 +262,11 @@ class BagWriter:
         for i, c in enumerate(self.conns):
             if c.topic == topic and c.msgtype == msgtype:
                 return i
-        self.conns.append(self.w.add_connection(topic, msgtype, typestore=store or self.store,
-                                                offered_qos_profiles=_qos(topic)))
+        self.conns.append(
+            self.w.add_connection(
+                topic, msgtype, typestore=store or self.store, offered_qos_profiles=_qos(topic)
+            )
+        )
         return len(self.conns) - 1
 
     def write(self, cid: int, t_ns: int, data: bytes | memoryview) -> None:
@@ -268,29 +302,46 @@ def _json_default(x):
     return str(x)
 
 
-def run_metadata(result, k0: int = 0, obs_states: dict[str, list[float]] | None = None,
-                 observers: list[str] | None = None) -> dict[str, Any]:
+def run_metadata(
+    result,
+    k0: int = 0,
+    obs_states: dict[str, list[float]] | None = None,
+    observers: list[str] | None = None,
+) -> dict[str, Any]:
     sc = result.scenario
     names = result.names if observers is None else observers
     return {
         "format": 1,
         "machine": asdict(sc.machine),
-        "observers": {nm: sc.observers[nm].to_dict() for nm in names
-                      if nm in sc.observers},
+        "observers": {nm: sc.observers[nm].to_dict() for nm in names if nm in sc.observers},
         "driving": result.driving,
-        "scenario": {"name": sc.name, "source": sc.source, "seed": sc.seed,
-                     "duration_s": sc.duration_s, "steady_window_s": list(sc.steady_window_s),
-                     "step_load_time_s": sc.step_load_time_s},
+        "scenario": {
+            "name": sc.name,
+            "source": sc.source,
+            "seed": sc.seed,
+            "duration_s": sc.duration_s,
+            "steady_window_s": list(sc.steady_window_s),
+            "step_load_time_s": sc.step_load_time_s,
+        },
         "first_seq": int(k0),
         "observer_states": obs_states or {},
     }
 
 
-def write_run_bag(result, path: str | Path, *, start_s: float = 0.0, end_s: float | None = None,
-                  observers: list[str] | None = None, truth: bool = True, ctrl: bool = True,
-                  duty: bool = True, epoch_offset_ns: int | None = None,
-                  obs_states: dict[str, list[float]] | None = None,
-                  extra_meta: dict[str, Any] | None = None) -> Path:
+def write_run_bag(
+    result,
+    path: str | Path,
+    *,
+    start_s: float = 0.0,
+    end_s: float | None = None,
+    observers: list[str] | None = None,
+    truth: bool = True,
+    ctrl: bool = True,
+    duty: bool = True,
+    epoch_offset_ns: int | None = None,
+    obs_states: dict[str, list[float]] | None = None,
+    extra_meta: dict[str, Any] | None = None,
+) -> Path:
     """Write a SimResult (or a replay's arrays with the same fields) as a rosbag2/mcap bag.
 
     start_s/end_s cut a window out of the run; `obs_states` (observer name -> OS_* state
@@ -312,8 +363,14 @@ def write_run_bag(result, path: str | Path, *, start_s: float = 0.0, end_s: floa
         c_tr = w.add_connection(TOPIC_TRUTH, T_TRUTH) if truth else None
         c_co = w.add_connection(TOPIC_CTRL, T_CTRL) if ctrl else None
         c_du = w.add_connection(TOPIC_DUTY, T_DUTY) if duty else None
-        c_es = [(result.names.index(nm), messages.EstimateWire(nm),
-                 w.add_connection(est_topic(nm), T_EST)) for nm in names]
+        c_es = [
+            (
+                result.names.index(nm),
+                messages.EstimateWire(nm),
+                w.add_connection(est_topic(nm), T_EST),
+            )
+            for nm in names
+        ]
         for k in range(k0, k1):
             t_ns = int(round(t[k] * 1e9))
             st = divmod(t_ns, 1_000_000_000)
@@ -365,8 +422,7 @@ class RunBag:
 
 
 def _bag_files(path: Path) -> list[Path]:
-    return sorted(path.glob("*.mcap")) + sorted(path.glob("*.db3")) + sorted(
-        path.glob("*.zstd"))
+    return sorted(path.glob("*.mcap")) + sorted(path.glob("*.db3")) + sorted(path.glob("*.zstd"))
 
 
 def _info(path: Path) -> dict[str, Any]:
@@ -452,20 +508,20 @@ def _stream_source(path: Path):
     def it():
         yield from msgs
         if err is not None:
-            raise EOFError(f"data ends after {len(msgs)} readable messages "
-                           f"({_one_line(err)})")
+            raise EOFError(f"data ends after {len(msgs)} readable messages ({_one_line(err)})")
 
     return topics, it(), lambda: None, defs
 
 
 def _wanted(topic: str, msgtype: str) -> bool:
-    return ((topic == TOPIC_FRAME and msgtype == T_FRAME)
-            or (topic == TOPIC_TRUTH and msgtype == T_TRUTH)
-            or (topic == TOPIC_CTRL and msgtype == T_CTRL)
-            or (topic == TOPIC_DUTY and msgtype == T_DUTY)
-            or (topic == SETTINGS and msgtype == T_STRING)
-            or (topic.startswith(EST_PREFIX) and topic.endswith(EST_SUFFIX)
-                and msgtype == T_EST))
+    return (
+        (topic == TOPIC_FRAME and msgtype == T_FRAME)
+        or (topic == TOPIC_TRUTH and msgtype == T_TRUTH)
+        or (topic == TOPIC_CTRL and msgtype == T_CTRL)
+        or (topic == TOPIC_DUTY and msgtype == T_DUTY)
+        or (topic == SETTINGS and msgtype == T_STRING)
+        or (topic.startswith(EST_PREFIX) and topic.endswith(EST_SUFFIX) and msgtype == T_EST)
+    )
 
 
 def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
@@ -510,13 +566,15 @@ def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
         except BagError:
             raise
         except Exception:  # noqa: BLE001
-            raise BagError(f"{path}: cannot open bag ({first}); not a readable rosbag2 "
-                           f"bag") from None
+            raise BagError(
+                f"{path}: cannot open bag ({first}); not a readable rosbag2 bag"
+            ) from None
         if not topics:
-            raise BagError(f"{path}: cannot open bag ({first}); storage holds no readable "
-                           f"records (truncated or damaged)") from None
-        problems.append(f"bag index unreadable ({first}): storage truncated, read "
-                        f"sequentially")
+            raise BagError(
+                f"{path}: cannot open bag ({first}); storage holds no readable "
+                f"records (truncated or damaged)"
+            ) from None
+        problems.append(f"bag index unreadable ({first}): storage truncated, read sequentially")
     counts: dict[str, int] = {}
     raws: dict[str, list[bytes]] = {}
     raw: list[tuple[int, bytes]] = []
@@ -526,12 +584,15 @@ def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
         if TOPIC_FRAME not in topics:
             ours = [tp for tp, ty in topics.items() if ty.startswith("flux_drive_msgs/")]
             if not ours:
-                raise BagError(f"{path}: no fluxdrive topics; bag holds foreign message types "
-                               f"{sorted(set(topics.values()))[:4]}")
+                raise BagError(
+                    f"{path}: no fluxdrive topics; bag holds foreign message types "
+                    f"{sorted(set(topics.values()))[:4]}"
+                )
             raise BagError(f"{path}: no {TOPIC_FRAME} topic (bag has {sorted(topics)})")
         if topics[TOPIC_FRAME] != T_FRAME:
-            raise BagError(f"{path}: {TOPIC_FRAME} has type {topics[TOPIC_FRAME]}, "
-                           f"expected {T_FRAME}")
+            raise BagError(
+                f"{path}: {TOPIC_FRAME} has type {topics[TOPIC_FRAME]}, expected {T_FRAME}"
+            )
         try:
             for tp, _msgtype, t_ns, data in messages_:
                 counts[tp] = counts.get(tp, 0) + 1
@@ -540,8 +601,10 @@ def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
                     raw.append((t_ns, raws[tp][-1]))
         except Exception as exc:  # noqa: BLE001
             got = sum(counts.values())
-            problems.append(f"bag truncated or damaged after {got} messages "
-                            f"({type(exc).__name__}: {_one_line(exc)})")
+            problems.append(
+                f"bag truncated or damaged after {got} messages "
+                f"({type(exc).__name__}: {_one_line(exc)})"
+            )
     finally:
         try:
             close()
@@ -550,35 +613,44 @@ def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
     if "machine" not in meta:  # converted bag: metadata.yaml lost custom_data
         meta = {**meta, **_settings_elsewhere(path, raws.get(SETTINGS))}
         if "machine" not in meta:
-            problems.append("bag carries no recorder settings (machine card, observers): "
-                            "replaying with the default machine card and observers")
+            problems.append(
+                "bag carries no recorder settings (machine card, observers): "
+                "replaying with the default machine card and observers"
+            )
     raws.pop(SETTINGS, None)
     # each topic decoded with the layout the bag recorded (a bag from before a field was
     # added still reads)
-    tables = {tp: decode_rows(topics[tp], r, problems, tp, defs.get(tp))
-              for tp, r in raws.items()}
+    tables = {tp: decode_rows(topics[tp], r, problems, tp, defs.get(tp)) for tp, r in raws.items()}
     graph_id, keep_frames = _own_graph(tables, meta, problems)
     if keep_raw and keep_frames is not None and len(raw) == len(keep_frames):
         raw = [r for r, k in zip(raw, keep_frames, strict=True) if k]
     if TOPIC_FRAME not in tables or not len(tables[TOPIC_FRAME][0]):
-        raise BagError(f"{path}: no readable {TOPIC_FRAME} messages "
-                       + (f"({problems[-1]})" if problems else "(topic is empty)"))
+        raise BagError(
+            f"{path}: no readable {TOPIC_FRAME} messages "
+            + (f"({problems[-1]})" if problems else "(topic is empty)")
+        )
     fseq, frows, fcols = tables[TOPIC_FRAME]
     seqs, last = _last_of_each(fseq)
     frames = frows[last]
     n = len(seqs)
-    t = (fcols["header.stamp.sec"][last].astype(np.int64) * 1_000_000_000
-         + fcols["header.stamp.nanosec"][last].astype(np.int64)).astype(np.float64) * 1e-9
+    t = (
+        fcols["header.stamp.sec"][last].astype(np.int64) * 1_000_000_000
+        + fcols["header.stamp.nanosec"][last].astype(np.int64)
+    ).astype(np.float64) * 1e-9
     if len(fseq) > n:  # one seq recorded more than once: not one graph's one run
         back = int(np.count_nonzero(np.diff(fseq.astype(np.int64)) <= 0))
-        problems.append(f"{len(fseq) - n} duplicate frames (a seq recorded more than once; "
-                        f"{back} times the seq did not advance in recording order): frames of "
-                        f"another graph on the same ROS domain, or a restarted source; the "
-                        f"last of each seq replayed")
+        problems.append(
+            f"{len(fseq) - n} duplicate frames (a seq recorded more than once; "
+            f"{back} times the seq did not advance in recording order): frames of "
+            f"another graph on the same ROS domain, or a restarted source; the "
+            f"last of each seq replayed"
+        )
     span = int(seqs[-1] - seqs[0] + 1)
     if span > n:
-        problems.append(f"{span - n} of {span} frames missing (seq gaps); replaying the "
-                        f"{n} present back to back")
+        problems.append(
+            f"{span - n} of {span} frames missing (seq gaps); replaying the "
+            f"{n} present back to back"
+        )
     for tp, want in expected.items():
         got = counts.get(tp, 0)
         if want > got:
@@ -598,8 +670,7 @@ def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
         have[pos[hit]] = True
         matched[tp] = int(have.sum())
         if report and not have.all():
-            problems.append(f"{tp}: {int(n - have.sum())} of {n} frames have no matching "
-                            f"message")
+            problems.append(f"{tp}: {int(n - have.sum())} of {n} frames have no matching message")
         return out, have
 
     truth = None
@@ -613,8 +684,10 @@ def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
         # other's columns (the replay reads mode/fault and the speed reference from it)
         ctrl = np.full((n, CO_N), np.nan)
         have = np.zeros(n, dtype=bool)
-        for part, cols in ((du, [c for _, c in messages.DUTY_MAP]),
-                           (st, [c for _, c in messages.STATE_MAP])):
+        for part, cols in (
+            (du, [c for _, c in messages.DUTY_MAP]),
+            (st, [c for _, c in messages.STATE_MAP]),
+        ):
             if part is not None:
                 ctrl[np.ix_(part[1], cols)] = part[0][np.ix_(part[1], cols)]
                 have |= part[1]
@@ -626,7 +699,7 @@ def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
         if tp.startswith(EST_PREFIX) and tp.endswith(EST_SUFFIX):
             e = align(tp, ES_N)
             if e is not None:
-                est[tp[len(EST_PREFIX):-len(EST_SUFFIX)]] = e[0]
+                est[tp[len(EST_PREFIX) : -len(EST_SUFFIX)]] = e[0]
     return RunBag(path, t, frames, truth, est, ctrl, meta, counts, problems, raw, matched)
 
 
@@ -651,8 +724,9 @@ def _settings_elsewhere(path: Path, settings_msgs: list[bytes] | None) -> dict[s
     return {}
 
 
-def _own_graph(tables: dict, meta: dict, problems: list[str]
-               ) -> tuple[int | None, np.ndarray | None]:
+def _own_graph(
+    tables: dict, meta: dict, problems: list[str]
+) -> tuple[int | None, np.ndarray | None]:
     """Keep only the messages of the bag's own graph (graph_id: the recorder's, from the
     settings; else the id most frames carry) -- a recorder on a shared domain of an older
     version, or a bag merged from two, may hold another graph's messages.  Drops the others
@@ -685,7 +759,9 @@ def _own_graph(tables: dict, meta: dict, problems: list[str]
             f"{sum(dropped.values())} messages of another graph dropped ("
             + ", ".join(f"{tp} {n}" for tp, n in dropped.items())
             + f"; this bag's graph_id {int(gid)}, others {others[:3]}"
-            + (" ..." if len(others) > 3 else "") + ")")
+            + (" ..." if len(others) > 3 else "")
+            + ")"
+        )
     return int(gid), keep_frames
 
 
@@ -718,21 +794,27 @@ def columns(mtype: str, raws: list[bytes]) -> dict[str, np.ndarray]:
             codecs[key] = c
         for key, g in layouts.items():
             codec = codecs[key]
-            arr = np.frombuffer(b"".join(raws[i] for i in g),
-                                dtype=codec.numpy_dtype(itemsize=size))
+            arr = np.frombuffer(
+                b"".join(raws[i] for i in g), dtype=codec.numpy_dtype(itemsize=size)
+            )
             sel = np.asarray(g)
             for j, fpath in enumerate(codec.fields):
                 col = cols.get(fpath)
                 if col is None:
-                    col = cols[fpath] = np.zeros(n, dtype=np.float64 if arr[f"f{j}"].dtype.kind
-                                                 == "f" else np.int64)
+                    col = cols[fpath] = np.zeros(
+                        n, dtype=np.float64 if arr[f"f{j}"].dtype.kind == "f" else np.int64
+                    )
                 col[sel] = arr[f"f{j}"]
     return cols
 
 
-def decode_rows(mtype: str, raws: list[bytes], problems: list[str] | None = None,
-                topic: str = "", definition: str | None = None
-                ) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+def decode_rows(
+    mtype: str,
+    raws: list[bytes],
+    problems: list[str] | None = None,
+    topic: str = "",
+    definition: str | None = None,
+) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     """Messages of one type -> (seq (M,), engine rows (M, width), columns), by the one
     mapping (fluxdrive.io.messages); unmapped row columns are NaN.  A message that does not
     decode is skipped and named in `problems`."""
@@ -767,8 +849,7 @@ def _columns_one_by_one(mtype, raws, problems, topic, first_exc):
     return columns(mtype, ok), ok
 
 
-def load_run_arrays(bag: str | Path, ts_s: float, names: list[str] | None = None
-                    ) -> dict[str, Any]:
+def load_run_arrays(bag: str | Path, ts_s: float, names: list[str] | None = None) -> dict[str, Any]:
     """A run's bag -> engine arrays indexed by seq (what fluxdrive.analysis.metrics takes,
     the layout of fluxdrive.drive.sim.SimResult): frames (N, FR_N), truth (N, TR_N),
     est (n_obs, N, ES_N), ctrl (N, CO_N); N = last frame seq + 1, rows of samples missing
@@ -788,17 +869,28 @@ def load_run_arrays(bag: str | Path, ts_s: float, names: list[str] | None = None
     truth = by_seq(rb.truth, TR_N)
     truth[:, TR_T] = np.arange(n) * ts_s
     truth[np.isnan(truth[:, TR_THETA_E]), TR_T] = np.nan  # a sample the bag lacks
-    est = np.stack([by_seq(rb.est.get(nm), ES_N) for nm in names]) if names else \
-        np.full((0, n, ES_N), np.nan)
+    est = (
+        np.stack([by_seq(rb.est.get(nm), ES_N) for nm in names])
+        if names
+        else np.full((0, n, ES_N), np.nan)
+    )
     ctrl = by_seq(rb.ctrl, CO_N)
     nf = len(seqs)
     have = rb.matched
     return {
-        "n": n, "frames": frames, "truth": truth, "est": est, "ctrl": ctrl, "names": names,
-        "missing": {"frame": n - nf, "truth": n - have.get(TOPIC_TRUTH, 0),
-                    **{f"estimate/{nm}": n - have.get(est_topic(nm), 0) for nm in names},
-                    "duty": n - have.get(TOPIC_DUTY, 0),
-                    "controller_state": n - have.get(TOPIC_CTRL, 0)},
+        "n": n,
+        "frames": frames,
+        "truth": truth,
+        "est": est,
+        "ctrl": ctrl,
+        "names": names,
+        "missing": {
+            "frame": n - nf,
+            "truth": n - have.get(TOPIC_TRUTH, 0),
+            **{f"estimate/{nm}": n - have.get(est_topic(nm), 0) for nm in names},
+            "duty": n - have.get(TOPIC_DUTY, 0),
+            "controller_state": n - have.get(TOPIC_CTRL, 0),
+        },
     }
 
 
@@ -828,8 +920,18 @@ def _one_line(exc: BaseException) -> str:
     return (s[0] if s else type(exc).__name__)[:200]
 
 
-__all__ = ["BagError", "RunBag", "read_run_bag", "write_run_bag", "typestore", "est_topic",
-           "TOPIC_FRAME", "TOPIC_TRUTH", "TOPIC_DUTY", "TOPIC_CTRL"]
+__all__ = [
+    "BagError",
+    "RunBag",
+    "read_run_bag",
+    "write_run_bag",
+    "typestore",
+    "est_topic",
+    "TOPIC_FRAME",
+    "TOPIC_TRUTH",
+    "TOPIC_DUTY",
+    "TOPIC_CTRL",
+]
 
 
 def observer_states_at(result, k0: int) -> dict[str, list[float]]:

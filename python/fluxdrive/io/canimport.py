@@ -33,9 +33,15 @@ __all__ = ["PHASE_FRAME_TOPIC", "import_capture", "main"]
 PHASE_FRAME_TOPIC = FRAME
 
 
-def import_capture(log: str | Path, out: str | Path, *, topic: str = PHASE_FRAME_TOPIC,
-                   frame_id: str = "drive", scenario: str | None = None,
-                   decimation: int | None = None) -> dict[str, Any]:
+def import_capture(
+    log: str | Path,
+    out: str | Path,
+    *,
+    topic: str = PHASE_FRAME_TOPIC,
+    frame_id: str = "drive",
+    scenario: str | None = None,
+    decimation: int | None = None,
+) -> dict[str, Any]:
     """Decode ``log`` and write the bag directory ``out`` (must not exist). Returns the
     capture counts plus ``written``.
 
@@ -60,12 +66,19 @@ def import_capture(log: str | Path, out: str | Path, *, topic: str = PHASE_FRAME
     card = sc.machine if sc is not None else MachineCard()
     sample_card = dataclasses.replace(card, pwm_hz=card.pwm_hz / d)
     settings: dict[str, Any] = {
-        "format": 1, "machine": dataclasses.asdict(sample_card),
+        "format": 1,
+        "machine": dataclasses.asdict(sample_card),
         "observers": {nm: o.to_dict() for nm, o in sc.observers.items()} if sc else {},
         "scenario": {"name": sc.name if sc else "", "source": str(sc.source) if sc else ""},
-        "first_seq": int(f[0, FR_SEQ]), "observer_states": {},
-        "can_import": {"source": str(log), "layout": cap.layout, "decimation": d,
-                       "pwm_hz": card.pwm_hz, "sample_period_s": d / card.pwm_hz},
+        "first_seq": int(f[0, FR_SEQ]),
+        "observer_states": {},
+        "can_import": {
+            "source": str(log),
+            "layout": cap.layout,
+            "decimation": d,
+            "pwm_hz": card.pwm_hz,
+            "sample_period_s": d / card.pwm_hz,
+        },
     }
     stamp = Stamp(sample_card.ts_s)
     fw = FrameWire(frame_id)  # FRAME_FIELDS are the engine's FR_* columns
@@ -78,26 +91,41 @@ def import_capture(log: str | Path, out: str | Path, *, topic: str = PHASE_FRAME
             t_ns = stamp.ns(int(f[j, FR_SEQ]))
             w.write(cid, t_ns, fw.pack(f[j], *divmod(t_ns, 1_000_000_000)))
     out_counts = dict(cap.counts)
-    out_counts.update(written=int(f.shape[0]), layout=cap.layout, decimation=d,
-                      sample_period_s=d / card.pwm_hz, topic=topic, bag=str(outp))
+    out_counts.update(
+        written=int(f.shape[0]),
+        layout=cap.layout,
+        decimation=d,
+        sample_period_s=d / card.pwm_hz,
+        topic=topic,
+        bag=str(outp),
+    )
     if cap.bad_lines:
-        out_counts["first_malformed_lines"] = [f"{Path(log).name}:{n}: {why}"
-                                               for n, why in cap.bad_lines[:5]]
+        out_counts["first_malformed_lines"] = [
+            f"{Path(log).name}:{n}: {why}" for n, why in cap.bad_lines[:5]
+        ]
     return out_counts
 
 
 def main(argv: list[str] | None = None) -> int:
     """CLI: ``can-import LOG --out BAG [--topic T] [--scenario S] [--decimation D]``;
     prints counts, last line JSON."""
-    ap = argparse.ArgumentParser(prog="fluxdrive can-import",
-                                 description="CAN capture (.log/.asc/.blf) -> bag of PhaseFrames")
+    ap = argparse.ArgumentParser(
+        prog="fluxdrive can-import",
+        description="CAN capture (.log/.asc/.blf) -> bag of PhaseFrames",
+    )
     ap.add_argument("log", help="capture file: candump .log, Vector .asc or .blf")
     ap.add_argument("--out", required=True, help="output bag directory (must not exist)")
     ap.add_argument("--topic", default=PHASE_FRAME_TOPIC)
-    ap.add_argument("--scenario", help="scenario the bench ran: its machine card and observer "
-                    "configurations go into the bag (default: the default machine card)")
-    ap.add_argument("--decimation", type=int, help="PWM periods per sample (default: the "
-                    "capture's sequence-counter step)")
+    ap.add_argument(
+        "--scenario",
+        help="scenario the bench ran: its machine card and observer "
+        "configurations go into the bag (default: the default machine card)",
+    )
+    ap.add_argument(
+        "--decimation",
+        type=int,
+        help="PWM periods per sample (default: the capture's sequence-counter step)",
+    )
     a = ap.parse_args(sys.argv[1:] if argv is None else argv)
     if Path(a.out).exists():
         print(f"can-import: {a.out} exists; choose a new bag directory", file=sys.stderr)
@@ -106,19 +134,26 @@ def main(argv: list[str] | None = None) -> int:
         print(f"can-import: --decimation {a.decimation}: must be >= 1", file=sys.stderr)
         return 2
     try:
-        res = import_capture(a.log, a.out, topic=a.topic, scenario=a.scenario,
-                             decimation=a.decimation)
+        res = import_capture(
+            a.log, a.out, topic=a.topic, scenario=a.scenario, decimation=a.decimation
+        )
     except (ValueError, OSError) as exc:  # CaptureError, ConfigError: one line
         print(f"can-import: {str(exc).splitlines()[0] if str(exc) else exc!r}", file=sys.stderr)
         return 2
     bad = res.get("malformed_lines", 0)
     if bad:
-        print(f"[can-import] skipped {bad} malformed line(s): "
-              + "; ".join(res["first_malformed_lines"]), file=sys.stderr)
-    print(f"[can-import] {res['decoded']} sample frames decoded ({res['layout']}, D = "
-          f"{res['decimation']}, sample period {res['sample_period_s'] * 1e3:g} ms), "
-          f"{res['malformed']} malformed, {res['gaps']} gaps -> {res['written']} PhaseFrames "
-          f"on {a.topic} in {a.out}", file=sys.stderr)
+        print(
+            f"[can-import] skipped {bad} malformed line(s): "
+            + "; ".join(res["first_malformed_lines"]),
+            file=sys.stderr,
+        )
+    print(
+        f"[can-import] {res['decoded']} sample frames decoded ({res['layout']}, D = "
+        f"{res['decimation']}, sample period {res['sample_period_s'] * 1e3:g} ms), "
+        f"{res['malformed']} malformed, {res['gaps']} gaps -> {res['written']} PhaseFrames "
+        f"on {a.topic} in {a.out}",
+        file=sys.stderr,
+    )
     print(json.dumps(res))
     return 0
 

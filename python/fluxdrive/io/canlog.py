@@ -30,8 +30,7 @@ from fluxdrive.can.protocol import (
     pack_payloads,
 )
 
-__all__ = ["SUPPORTED_SUFFIXES", "CaptureError", "CaptureResult", "read_capture",
-           "write_capture"]
+__all__ = ["SUPPORTED_SUFFIXES", "CaptureError", "CaptureResult", "read_capture", "write_capture"]
 
 SUPPORTED_SUFFIXES = (".log", ".asc", ".blf")
 """Capture formats that keep CAN FD frames."""
@@ -111,11 +110,19 @@ def read_capture(
             cl_msgs.append((aid, bytes(msg.data), msg.timestamp))
         else:
             other += 1
-    counts = {"total": total, "other": other, "error_frames": errors,
-              "malformed_lines": len(bad_lines)}
+    counts = {
+        "total": total,
+        "other": other,
+        "error_frames": errors,
+        "malformed_lines": len(bad_lines),
+    }
     if total == 0:
-        why = f" ({len(bad_lines)} malformed lines, first {p.name}:{bad_lines[0][0]}: " \
-              f"{bad_lines[0][1]})" if bad_lines else ""
+        why = (
+            f" ({len(bad_lines)} malformed lines, first {p.name}:{bad_lines[0][0]}: "
+            f"{bad_lines[0][1]})"
+            if bad_lines
+            else ""
+        )
         raise CaptureError(f"{p}: holds no CAN frames{why}")
     reasons: list[tuple[int, str]] = []
     if fd_data or not cl_msgs:
@@ -145,8 +152,9 @@ def read_capture(
                 tss.append(t)
         frames = np.vstack(rows) if rows else np.empty((0, len(FRAME_FIELDS)))
         ts = np.asarray(tss, dtype=np.float64)
-        step = classic_step or _infer_step(frames[:, FRAME_FIELDS.index("seq")],
-                                           proto.classic_decimation)
+        step = classic_step or _infer_step(
+            frames[:, FRAME_FIELDS.index("seq")], proto.classic_decimation
+        )
         layout = "classic"
         reasons = list(enumerate(ra.reasons))
         counts.update(
@@ -162,13 +170,20 @@ def read_capture(
         gaps=st.gaps, lost=st.lost, duplicates=st.duplicates, out_of_order=st.out_of_order
     )
     if not len(frames):
-        raise CaptureError(f"{p}: none of its {total} CAN frames is a valid sample frame "
-                           f"(SAMPLE_FD 0x{sample_id:03X} or the classic layout "
-                           f"{', '.join(f'0x{i:03X}' for i in classic_ids)}); "
-                           f"{counts.get('malformed', 0)} malformed")
+        raise CaptureError(
+            f"{p}: none of its {total} CAN frames is a valid sample frame "
+            f"(SAMPLE_FD 0x{sample_id:03X} or the classic layout "
+            f"{', '.join(f'0x{i:03X}' for i in classic_ids)}); "
+            f"{counts.get('malformed', 0)} malformed"
+        )
     return CaptureResult(
-        frames=frames, timestamps=ts, counts=counts, layout=layout, reasons=reasons,
-        bad_lines=bad_lines[:20], step=step,
+        frames=frames,
+        timestamps=ts,
+        counts=counts,
+        layout=layout,
+        reasons=reasons,
+        bad_lines=bad_lines[:20],
+        step=step,
     )
 
 
@@ -223,8 +238,10 @@ def _messages(p: Path, bad_lines: list[tuple[int, str]]) -> Iterable[can.Message
             with can.LogReader(str(p)) as reader:
                 yield from reader
         except Exception as exc:  # noqa: BLE001 - BLFParseError, struct/zlib errors, ...
-            raise CaptureError(f"{p}: not a readable BLF capture ({type(exc).__name__}: "
-                               f"{str(exc).strip()[:120] or 'damaged'})") from None
+            raise CaptureError(
+                f"{p}: not a readable BLF capture ({type(exc).__name__}: "
+                f"{str(exc).strip()[:120] or 'damaged'})"
+            ) from None
         return
     try:
         text = p.read_text(errors="replace")

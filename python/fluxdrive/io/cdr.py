@@ -35,10 +35,19 @@ from fluxdrive.io.topics import MSG_SRC_DIR
 ENCAPSULATION = b"\x00\x01\x00\x00"
 
 _PRIM = {  # ROS type -> (struct code, size)
-    "float64": ("d", 8), "float32": ("f", 4),
-    "int64": ("q", 8), "uint64": ("Q", 8), "int32": ("i", 4), "uint32": ("I", 4),
-    "int16": ("h", 2), "uint16": ("H", 2), "int8": ("b", 1), "uint8": ("B", 1),
-    "byte": ("B", 1), "char": ("B", 1), "bool": ("?", 1),
+    "float64": ("d", 8),
+    "float32": ("f", 4),
+    "int64": ("q", 8),
+    "uint64": ("Q", 8),
+    "int32": ("i", 4),
+    "uint32": ("I", 4),
+    "int16": ("h", 2),
+    "uint16": ("H", 2),
+    "int8": ("b", 1),
+    "uint8": ("B", 1),
+    "byte": ("B", 1),
+    "char": ("B", 1),
+    "bool": ("?", 1),
 }
 
 # Definitions of the few non-project types the project's messages use.
@@ -50,6 +59,7 @@ _BUILTIN = {
     "std_msgs/String": "string data\n",
     "std_msgs/Empty": "",
 }
+
 
 def msg_dir() -> Path:
     """Directory of flux_drive_msgs' .msg files (the one set of definitions; the engine's
@@ -234,11 +244,27 @@ class Codec:
         `itemsize`: the messages' length when it exceeds `size` (trailing padding)."""
         import numpy as np
 
-        np_codes = {"d": "<f8", "f": "<f4", "q": "<i8", "Q": "<u8", "i": "<i4", "I": "<u4",
-                    "h": "<i2", "H": "<u2", "b": "i1", "B": "u1", "?": "?"}
-        return np.dtype({"names": [f"f{j}" for j in range(len(self.fields))],
-                         "formats": [np_codes[c] for c in self.codes],
-                         "offsets": self.offsets, "itemsize": itemsize or self.size})
+        np_codes = {
+            "d": "<f8",
+            "f": "<f4",
+            "q": "<i8",
+            "Q": "<u8",
+            "i": "<i4",
+            "I": "<u4",
+            "h": "<i2",
+            "H": "<u2",
+            "b": "i1",
+            "B": "u1",
+            "?": "?",
+        }
+        return np.dtype(
+            {
+                "names": [f"f{j}" for j in range(len(self.fields))],
+                "formats": [np_codes[c] for c in self.codes],
+                "offsets": self.offsets,
+                "itemsize": itemsize or self.size,
+            }
+        )
 
     def index(self, path: str) -> int:
         """Position of a field in pack()/unpack() value tuples."""
@@ -276,7 +302,7 @@ def read_strings(type_name: str, data: bytes) -> dict[str, str]:
         if lf.kind == "string":
             off += (-off) % 4
             (n,) = struct.unpack_from("<I", body, off)
-            out[lf.path] = bytes(body[off + 4:off + 4 + n - 1]).decode()
+            out[lf.path] = bytes(body[off + 4 : off + 4 + n - 1]).decode()
             off += 4 + n
         else:
             code, size = _PRIM[lf.kind]

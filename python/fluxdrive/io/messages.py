@@ -94,29 +94,57 @@ TWO_PI = 2.0 * math.pi
 # ---------------------------------------------------------------- the mapping tables
 # (message field path, engine column); header.stamp and seq are handled by the codecs
 FRAME_MAP: tuple[tuple[str, int], ...] = (
-    ("i_abc[0]", pl.FR_IA), ("i_abc[1]", pl.FR_IB), ("i_abc[2]", pl.FR_IC),
-    ("v_ll[0]", pl.FR_VAB), ("v_ll[1]", pl.FR_VBC), ("v_ll[2]", pl.FR_VCA),
+    ("i_abc[0]", pl.FR_IA),
+    ("i_abc[1]", pl.FR_IB),
+    ("i_abc[2]", pl.FR_IC),
+    ("v_ll[0]", pl.FR_VAB),
+    ("v_ll[1]", pl.FR_VBC),
+    ("v_ll[2]", pl.FR_VCA),
     ("vdc", pl.FR_VDC),
-    ("duty_applied[0]", pl.FR_DA), ("duty_applied[1]", pl.FR_DB), ("duty_applied[2]", pl.FR_DC),
-    ("pwm_enabled", pl.FR_EN), ("encoder_counts", pl.FR_ENC), ("status_flags", FR_FLAGS),
+    ("duty_applied[0]", pl.FR_DA),
+    ("duty_applied[1]", pl.FR_DB),
+    ("duty_applied[2]", pl.FR_DC),
+    ("pwm_enabled", pl.FR_EN),
+    ("encoder_counts", pl.FR_ENC),
+    ("status_flags", FR_FLAGS),
 )
 TRUTH_MAP: tuple[tuple[str, int], ...] = (
-    ("theta_e", TR_THETA_E), ("omega_m", pl.TR_WM), ("torque_e", pl.TR_TE),
+    ("theta_e", TR_THETA_E),
+    ("omega_m", pl.TR_WM),
+    ("torque_e", pl.TR_TE),
     ("torque_load", pl.TR_TL),
-    ("i_abc_true[0]", pl.TR_IA), ("i_abc_true[1]", pl.TR_IB), ("i_abc_true[2]", pl.TR_IC),
+    ("i_abc_true[0]", pl.TR_IA),
+    ("i_abc_true[1]", pl.TR_IB),
+    ("i_abc_true[2]", pl.TR_IC),
 )
 ESTIMATE_MAP: tuple[tuple[str, int], ...] = (
-    ("theta_e", ES_TH), ("omega_e", ES_W), ("flux_ab[0]", ES_LA), ("flux_ab[1]", ES_LB),
-    ("emf_ab[0]", ES_EA), ("emf_ab[1]", ES_EB), ("pll_error", ES_ERR), ("valid", ES_VALID),
+    ("theta_e", ES_TH),
+    ("omega_e", ES_W),
+    ("flux_ab[0]", ES_LA),
+    ("flux_ab[1]", ES_LB),
+    ("emf_ab[0]", ES_EA),
+    ("emf_ab[1]", ES_EB),
+    ("pll_error", ES_ERR),
+    ("valid", ES_VALID),
 )
 DUTY_MAP: tuple[tuple[str, int], ...] = (
-    ("duty[0]", CO_DA), ("duty[1]", CO_DB), ("duty[2]", CO_DC), ("enable", CO_EN),
+    ("duty[0]", CO_DA),
+    ("duty[1]", CO_DB),
+    ("duty[2]", CO_DC),
+    ("enable", CO_EN),
 )
 STATE_MAP: tuple[tuple[str, int], ...] = (
-    ("i_dq[0]", CO_ID), ("i_dq[1]", CO_IQ), ("i_dq_ref[0]", CO_ID_REF),
-    ("i_dq_ref[1]", CO_IQ_REF), ("v_dq[0]", CO_VD), ("v_dq[1]", CO_VQ),
-    ("omega_ref_m", CO_W_REF), ("omega_fb_m", CO_W_FB), ("theta_used", CO_TH),
-    ("mode", CO_MODE), ("fault_code", CO_FAULT),
+    ("i_dq[0]", CO_ID),
+    ("i_dq[1]", CO_IQ),
+    ("i_dq_ref[0]", CO_ID_REF),
+    ("i_dq_ref[1]", CO_IQ_REF),
+    ("v_dq[0]", CO_VD),
+    ("v_dq[1]", CO_VQ),
+    ("omega_ref_m", CO_W_REF),
+    ("omega_fb_m", CO_W_FB),
+    ("theta_used", CO_TH),
+    ("mode", CO_MODE),
+    ("fault_code", CO_FAULT),
 )
 
 # message type -> (mapping, row width)
@@ -128,8 +156,18 @@ MAPS: dict[str, tuple[tuple[tuple[str, int], ...], int]] = {
     topics.T_STATE: (STATE_MAP, CO_N),
 }
 
-_INT_KINDS = {"int8", "uint8", "int16", "uint16", "int32", "uint32", "int64", "uint64",
-              "byte", "char"}
+_INT_KINDS = {
+    "int8",
+    "uint8",
+    "int16",
+    "uint16",
+    "int32",
+    "uint32",
+    "int64",
+    "uint64",
+    "byte",
+    "char",
+}
 
 
 def field_kinds(mtype: str) -> dict[str, str]:
@@ -180,8 +218,13 @@ class RowCodec:
     `row(values)` -> a new row from Decoder values.  Strings (the header's frame_id, an
     estimate's variant, ...) are fixed per codec."""
 
-    def __init__(self, mtype: str, strings: dict[str, str] | None = None,
-                 flags_or: int = 0, graph_id: int = 0):
+    def __init__(
+        self,
+        mtype: str,
+        strings: dict[str, str] | None = None,
+        flags_or: int = 0,
+        graph_id: int = 0,
+    ):
         mapping, self.width = MAPS[mtype]
         self.graph_id = int(graph_id)
         self.mtype = mtype
@@ -208,8 +251,10 @@ class RowCodec:
             else:
                 args.append(_pack_expr(kinds[f], cols[f]))
         env: dict = {"_P": self.codec.pack}
-        src = (f"def pack(row, seq, sec, nsec, xf=0):\n    v = row.tolist()\n"
-               f"    return _P({', '.join(args)})\n")
+        src = (
+            f"def pack(row, seq, sec, nsec, xf=0):\n    v = row.tolist()\n"
+            f"    return _P({', '.join(args)})\n"
+        )
         exec(src, env)  # noqa: S102 - generated from the mapping table only
         self.pack: Callable[..., bytes] = env["pack"]
         idx = {f: i for i, f in enumerate(self.codec.fields)}
@@ -220,10 +265,9 @@ class RowCodec:
             sets.append(f"    out[{FR_FLAGS}] = m[{idx['status_flags']}] & {FRAME_FLAGS_IN}")
         elif mtype == topics.T_TRUTH:
             th = idx["theta_e"]
-            sets[0] = (f"    out[{TR_THETA_E}] = m[{th}] + {TWO_PI!r} if m[{th}] < 0.0 "
-                       f"else m[{th}]")
+            sets[0] = f"    out[{TR_THETA_E}] = m[{th}] + {TWO_PI!r} if m[{th}] < 0.0 else m[{th}]"
         env = {}
-        src = ("def fill(m, out):\n" + "\n".join(sets) + f"\n    return m[{seq_i}]\n")
+        src = "def fill(m, out):\n" + "\n".join(sets) + f"\n    return m[{seq_i}]\n"
         exec(src, env)  # noqa: S102
         self.fill: Callable[[tuple, np.ndarray], int] = env["fill"]
 
@@ -257,8 +301,7 @@ class FrameWire:
     """PhaseFrame <-> FR_* row."""
 
     def __init__(self, frame_id: str = "", extra_flags: int = 0, graph_id: int = 0):
-        self.rc = RowCodec(topics.T_FRAME, {"header.frame_id": frame_id}, extra_flags,
-                           graph_id)
+        self.rc = RowCodec(topics.T_FRAME, {"header.frame_id": frame_id}, extra_flags, graph_id)
 
     def pack(self, fr: np.ndarray, sec: int, nsec: int, extra_flags: int = 0) -> bytes:
         return self.rc.pack(fr, int(fr[FR_SEQ]), sec, nsec, extra_flags)
@@ -282,8 +325,9 @@ class EstimateWire:
     """RotorEstimate <-> ES_* row."""
 
     def __init__(self, variant: str, frame_id: str = "", graph_id: int = 0):
-        self.rc = RowCodec(topics.T_ESTIMATE, {"header.frame_id": frame_id, "variant": variant},
-                           graph_id=graph_id)
+        self.rc = RowCodec(
+            topics.T_ESTIMATE, {"header.frame_id": frame_id, "variant": variant}, graph_id=graph_id
+        )
 
     def pack(self, es: np.ndarray, seq: int, sec: int, nsec: int) -> bytes:
         return self.rc.pack(es, seq, sec, nsec)
@@ -297,8 +341,9 @@ class ControlWire:
     (DutyCommand.commander)."""
 
     def __init__(self, frame_id: str = "", commander: str = "", graph_id: int = 0):
-        self.duty = RowCodec(topics.T_DUTY, {"header.frame_id": frame_id,
-                                             "commander": commander}, graph_id=graph_id)
+        self.duty = RowCodec(
+            topics.T_DUTY, {"header.frame_id": frame_id, "commander": commander}, graph_id=graph_id
+        )
         self.frame_id = frame_id
         self.graph_id = int(graph_id)
         self.state_codecs: dict[int, RowCodec] = {}
@@ -310,9 +355,11 @@ class ControlWire:
         code = int(co[CO_FAULT])
         c = self.state_codecs.get(code)
         if c is None:  # one codec per fault text (the string is part of the layout)
-            c = RowCodec(topics.T_STATE, {"header.frame_id": self.frame_id,
-                                          "fault_reason": fault_name(code)},
-                         graph_id=self.graph_id)
+            c = RowCodec(
+                topics.T_STATE,
+                {"header.frame_id": self.frame_id, "fault_reason": fault_name(code)},
+                graph_id=self.graph_id,
+            )
             self.state_codecs[code] = c
         return c.pack(co, seq, sec, nsec)
 
@@ -336,14 +383,23 @@ def duty_commander(data: bytes) -> bytes:
     off = 12 + n  # payload offset (after the 4-byte encapsulation header) past frame_id
     off += (-off) % 8 + 16 + 24 + 1  # seq aligned to 8, graph_id, duty[3], enable
     off += (-off) % 4
-    m = int.from_bytes(data[4 + off:8 + off], "little")
-    return bytes(data[8 + off:8 + off + m - 1]) if m > 0 else b""
+    m = int.from_bytes(data[4 + off : 8 + off], "little")
+    return bytes(data[8 + off : 8 + off + m - 1]) if m > 0 else b""
 
 
 # ---------------------------------------------------------------- graph identity
 # the message types that carry graph_id right after seq (Header, uint64 seq, uint64 graph_id)
-GRAPH_TYPES = frozenset({topics.T_FRAME, topics.T_TRUTH, topics.T_ESTIMATE, topics.T_DUTY,
-                         topics.T_STATE, topics.T_MARKER, topics.T_DONE})
+GRAPH_TYPES = frozenset(
+    {
+        topics.T_FRAME,
+        topics.T_TRUTH,
+        topics.T_ESTIMATE,
+        topics.T_DUTY,
+        topics.T_STATE,
+        topics.T_MARKER,
+        topics.T_DONE,
+    }
+)
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
 

@@ -123,8 +123,9 @@ def parse_variant(spec: str) -> VariantSpec:
         base = target.split(":")[-1] if ":" in target else target
         label = base.lstrip("@")
         if params:
-            label += "_" + "_".join(f"{k}_{v:g}" if isinstance(v, float) else f"{k}_{v}"
-                                    for k, v in params.items())
+            label += "_" + "_".join(
+                f"{k}_{v:g}" if isinstance(v, float) else f"{k}_{v}" for k, v in params.items()
+            )
     return VariantSpec(_slug(label), target, params)
 
 
@@ -138,8 +139,10 @@ def build_observer(vs: VariantSpec, bag: RunBag, card: MachineCard) -> Observer:
         return obs
     configs = bag.meta.get("observers") or {}
     if rec not in configs:
-        raise ConfigError(f"{bag.path}: no recorded configuration for observer '{rec}' "
-                          f"(bag records {sorted(configs) or 'none'})")
+        raise ConfigError(
+            f"{bag.path}: no recorded configuration for observer '{rec}' "
+            f"(bag records {sorted(configs) or 'none'})"
+        )
     known = {f.name for f in fields(ObserverConfig)}
     cfg = ObserverConfig(**{k: v for k, v in configs[rec].items() if k in known})
     if vs.params:
@@ -161,8 +164,9 @@ def expand_variants(specs: list[str], bag: RunBag) -> list[VariantSpec]:
         if vs.target == "@recorded":
             names = sorted(bag.meta.get("observers") or {})
             if not names:
-                raise ConfigError(f"{bag.path}: @recorded: the bag records no observer "
-                                  f"configurations")
+                raise ConfigError(
+                    f"{bag.path}: @recorded: the bag records no observer configurations"
+                )
             out += [VariantSpec(nm, "@" + nm, dict(vs.params)) for nm in names]
         else:
             out.append(vs)
@@ -236,9 +240,13 @@ def encoder_truth(bag: RunBag, card: MachineCard, offset_deg: float = 0.0) -> np
     return tr
 
 
-def replay_bag(bag: RunBag, variants: list[VariantSpec], machine: MachineCard | None = None,
-               window: tuple[float, float] | None = None, encoder_offset_deg: float = 0.0
-               ) -> ReplayResult:
+def replay_bag(
+    bag: RunBag,
+    variants: list[VariantSpec],
+    machine: MachineCard | None = None,
+    window: tuple[float, float] | None = None,
+    encoder_offset_deg: float = 0.0,
+) -> ReplayResult:
     card = bag.machine(machine)
     n = bag.n
     est = np.zeros((len(variants), n, ES_N))
@@ -251,8 +259,9 @@ def replay_bag(bag: RunBag, variants: list[VariantSpec], machine: MachineCard | 
         out = np.asarray(obs.run(frames), dtype=np.float64)
         walls[vs.label] = time.perf_counter() - t0
         if out.shape != (n, ES_N):
-            raise ConfigError(f"variant '{vs.label}': run() returned shape {out.shape}, "
-                              f"expected ({n}, {ES_N})")
+            raise ConfigError(
+                f"variant '{vs.label}': run() returned shape {out.shape}, expected ({n}, {ES_N})"
+            )
         est[i] = out
         rec_name = vs.recorded or vs.label
         if rec_name in bag.est and (vs.recorded is None or not vs.params):
@@ -281,17 +290,41 @@ def replay_bag(bag: RunBag, variants: list[VariantSpec], machine: MachineCard | 
     if step is not None and not (bag.t[0] <= step < bag.t[-1]):
         step = None
     sc = Scenario(
-        name=f"{bag.path.name}", machine=card, duration_s=float(bag.t[-1] - bag.t[0]),
-        seed=int(meta_sc.get("seed", 0)), speed_profile_rpm=np.array([[0.0, 0.0]]),
-        load_profile_pu=np.array([[0.0, 0.0]]), dyno_pu_per_rpm=0.0, brake_band_rpm=0.0,
-        control=ControllerConfig(), observers={}, driving="encoder", steady_window_s=win,
-        step_load_time_s=step, description=f"replay of {bag.path}",
-        source=str(meta_sc.get("source", "")))
+        name=f"{bag.path.name}",
+        machine=card,
+        duration_s=float(bag.t[-1] - bag.t[0]),
+        seed=int(meta_sc.get("seed", 0)),
+        speed_profile_rpm=np.array([[0.0, 0.0]]),
+        load_profile_pu=np.array([[0.0, 0.0]]),
+        dyno_pu_per_rpm=0.0,
+        brake_band_rpm=0.0,
+        control=ControllerConfig(),
+        observers={},
+        driving="encoder",
+        steady_window_s=win,
+        step_load_time_s=step,
+        description=f"replay of {bag.path}",
+        source=str(meta_sc.get("source", "")),
+    )
     # a recorded controller state would make the stability check about the recorded
     # controller mode; for replay the variants drive nothing
     ctrl[:, CO_MODE] = 0.0
-    return ReplayResult(sc, [v.label for v in variants], "encoder", bag.t.copy(), frames,
-                        truth, est, ctrl, w_ref, np.zeros(n), truth_source, diffs, walls, bag)
+    return ReplayResult(
+        sc,
+        [v.label for v in variants],
+        "encoder",
+        bag.t.copy(),
+        frames,
+        truth,
+        est,
+        ctrl,
+        w_ref,
+        np.zeros(n),
+        truth_source,
+        diffs,
+        walls,
+        bag,
+    )
 
 
 def estimate_difference(a: np.ndarray, b: np.ndarray) -> float:
@@ -349,8 +382,9 @@ def plot_replay(res: ReplayResult, out_dir: Path, orders: int = 12) -> dict[str,
     for i, nm in enumerate(res.names):
         e = wrap(res.est[i, sl, ES_TH] - th[sl])[wp]
         spec = harmonic_spectrum(e, unw[wp], range(1, orders + 1))
-        ax.bar(ords + (i - (nv - 1) / 2) * width, [np.degrees(spec[o]) for o in ords], width,
-               label=nm)
+        ax.bar(
+            ords + (i - (nv - 1) / 2) * width, [np.degrees(spec[o]) for o in ords], width, label=nm
+        )
     ax.set_xticks(ords)
     ax.set_xlabel("order of θ̃ against the electrical angle")
     ax.set_ylabel("amplitude [el. deg]")
@@ -402,44 +436,67 @@ def plot_replay(res: ReplayResult, out_dir: Path, orders: int = 12) -> dict[str,
     return paths
 
 
-MD_COLS = [("theta_err_rms_deg", "θ̃ rms °"), ("theta_err_peak_deg", "θ̃ peak °"),
-           ("theta_err_mean_deg", "θ̃ mean °"), ("theta_err_h1_deg", "h1 °"),
-           ("theta_err_h6_deg", "h6 °"), ("flux_radius_spread", "spread"),
-           ("thd_flux_alpha", "THD λα"), ("thd_emf_alpha", "THD eα"),
-           ("thdn_flux_alpha", "THD+N λα"), ("thdn_emf_alpha", "THD+N eα"),
-           ("valid_fraction", "valid")]
+MD_COLS = [
+    ("theta_err_rms_deg", "θ̃ rms °"),
+    ("theta_err_peak_deg", "θ̃ peak °"),
+    ("theta_err_mean_deg", "θ̃ mean °"),
+    ("theta_err_h1_deg", "h1 °"),
+    ("theta_err_h6_deg", "h6 °"),
+    ("flux_radius_spread", "spread"),
+    ("thd_flux_alpha", "THD λα"),
+    ("thd_emf_alpha", "THD eα"),
+    ("thdn_flux_alpha", "THD+N λα"),
+    ("thdn_emf_alpha", "THD+N eα"),
+    ("valid_fraction", "valid"),
+]
 
 
-def markdown_section(res: ReplayResult, m: dict[str, Any], plots: dict[str, Path],
-                     out_dir: Path) -> str:
+def markdown_section(
+    res: ReplayResult, m: dict[str, Any], plots: dict[str, Path], out_dir: Path
+) -> str:
     bag = res.bag
     w0, w1 = res.scenario.steady_window_s
-    lines = [f"## {bag.path.name}", "",
-             f"- bag: `{bag.path}` — {bag.n} frames, {res.t[0]:.3f}–{res.t[-1]:.3f} s; "
-             f"reference angle: {res.truth_source}; metrics window {w0:.3f}–{w1:.3f} s"]
+    lines = [
+        f"## {bag.path.name}",
+        "",
+        f"- bag: `{bag.path}` — {bag.n} frames, {res.t[0]:.3f}–{res.t[-1]:.3f} s; "
+        f"reference angle: {res.truth_source}; metrics window {w0:.3f}–{w1:.3f} s",
+    ]
     sc = bag.meta.get("scenario") or {}
     if sc:
         lines.append(f"- recorded from scenario `{sc.get('name')}` (seed {sc.get('seed')})")
     for pr in bag.problems:
         lines.append(f"- **partial bag**: {pr}")
-    lines += ["", "| variant | " + " | ".join(h for _, h in MD_COLS)
-              + " | replay s | vs recorded |",
-              "|---" * (len(MD_COLS) + 3) + "|"]
+    lines += [
+        "",
+        "| variant | " + " | ".join(h for _, h in MD_COLS) + " | replay s | vs recorded |",
+        "|---" * (len(MD_COLS) + 3) + "|",
+    ]
     for nm, om in m["observers"].items():
         cells = []
         for key, _ in MD_COLS:
             v = om.get(key)
-            cells.append("nan" if v is None or (isinstance(v, float) and math.isnan(v))
-                         else f"{v:.3f}")
+            cells.append(
+                "nan" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.3f}"
+            )
         d = res.recorded_diff.get(nm)
-        lines.append(f"| {nm} | " + " | ".join(cells) + f" | {res.wall_s.get(nm, 0):.3f} | "
-                     + ("—" if d is None else f"{d:.2e}") + " |")
+        lines.append(
+            f"| {nm} | "
+            + " | ".join(cells)
+            + f" | {res.wall_s.get(nm, 0):.3f} | "
+            + ("—" if d is None else f"{d:.2e}")
+            + " |"
+        )
     lines.append("")
     rel = {k: os.path.relpath(p, out_dir) for k, p in plots.items()}
-    lines += ["| position error | harmonic orders of θ̃ |", "|---|---|",
-              f"| ![θ̃]({rel['theta_error']}) | ![orders]({rel['theta_harmonics']}) |",
-              "| **flux locus** | **speed estimate** |",
-              f"| ![locus]({rel['flux_locus']}) | ![speed]({rel['speed']}) |", ""]
+    lines += [
+        "| position error | harmonic orders of θ̃ |",
+        "|---|---|",
+        f"| ![θ̃]({rel['theta_error']}) | ![orders]({rel['theta_harmonics']}) |",
+        "| **flux locus** | **speed estimate** |",
+        f"| ![locus]({rel['flux_locus']}) | ![speed]({rel['speed']}) |",
+        "",
+    ]
     return "\n".join(lines)
 
 
@@ -455,30 +512,50 @@ def parse_sweep(text: str) -> tuple[str, list[float]]:
         else:
             vals = [float(x) for x in rng.split(",") if x.strip()]
     except ValueError:
-        raise ConfigError(f"--sweep '{text}': expected KEY=START:STOP:N or KEY=V1,V2,...") \
-            from None
+        raise ConfigError(f"--sweep '{text}': expected KEY=START:STOP:N or KEY=V1,V2,...") from None
     if not vals:
         raise ConfigError(f"--sweep '{text}': no values")
     return key.strip(), vals
 
 
-def run_sweep(bag: RunBag, vs: VariantSpec, key: str, values: list[float], jobs: int,
-              out_dir: Path | None, machine: str | None = None,
-              window: tuple[float, float] | None = None, encoder_offset_deg: float = 0.0,
-              scheduler: str | None = None) -> list[dict[str, Any]]:
+def run_sweep(
+    bag: RunBag,
+    vs: VariantSpec,
+    key: str,
+    values: list[float],
+    jobs: int,
+    out_dir: Path | None,
+    machine: str | None = None,
+    window: tuple[float, float] | None = None,
+    encoder_offset_deg: float = 0.0,
+    scheduler: str | None = None,
+) -> list[dict[str, Any]]:
     """Each value is a task of the project's one runner (fluxdrive.study.runner): the
     study's replay task, on a dask LocalCluster of `jobs` workers (each reads the bag once),
     on an existing cluster, or in-process for -j 1."""
     from fluxdrive.study import tasks as study_tasks
     from fluxdrive.study.runner import runner_from_args
 
-    scen = {"bag": str(Path(bag.path).resolve()), "window_s": list(window) if window else None,
-            "encoder_offset_deg": encoder_offset_deg}
+    scen = {
+        "bag": str(Path(bag.path).resolve()),
+        "window_s": list(window) if window else None,
+        "encoder_offset_deg": encoder_offset_deg,
+    }
     if machine:
         scen["machine"] = str(Path(machine).resolve())
-    payloads = [{"task_id": f"{vs.label}|{key}={val:g}", "variant": vs.label,
-                 "variant_cfg": {"variant": vs.target, **vs.params}, "grid": {key: val},
-                 "random": {}, "draw": 0, "seed": 0, "scenario": scen} for val in values]
+    payloads = [
+        {
+            "task_id": f"{vs.label}|{key}={val:g}",
+            "variant": vs.label,
+            "variant_cfg": {"variant": vs.target, **vs.params},
+            "grid": {key: val},
+            "random": {},
+            "draw": 0,
+            "seed": 0,
+            "scenario": scen,
+        }
+        for val in values
+    ]
     rows: list[dict[str, Any]] = [None] * len(values)  # type: ignore[list-item]
     jobs = max(1, min(jobs, len(values)))
     t0 = time.perf_counter()
@@ -488,8 +565,9 @@ def run_sweep(bag: RunBag, vs: VariantSpec, key: str, values: list[float], jobs:
             items = enumerate(payloads)
             for done, o in enumerate(runner.run_unordered(study_tasks.run_task, items), 1):
                 if not o.ok:
-                    raise ConfigError(f"sweep {key}={values[o.key]:g} failed twice: "
-                                      f"{o.error.splitlines()[0]}")
+                    raise ConfigError(
+                        f"sweep {key}={values[o.key]:g} failed twice: {o.error.splitlines()[0]}"
+                    )
                 m = o.value["metrics"]
                 rows[o.key] = {key: values[o.key], **m, "replay_s": o.value["replay_s"]}
                 _progress(done, len(values), key, values[o.key], m, t0)
@@ -497,22 +575,43 @@ def run_sweep(bag: RunBag, vs: VariantSpec, key: str, values: list[float], jobs:
         study_tasks._BAGS.clear()
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
-        (out_dir / "sweep.json").write_text(json.dumps(
-            {"bag": str(bag.path), "variant": vs.target, "params": vs.params, "key": key,
-             "rows": rows}, indent=2, default=float))
+        (out_dir / "sweep.json").write_text(
+            json.dumps(
+                {
+                    "bag": str(bag.path),
+                    "variant": vs.target,
+                    "params": vs.params,
+                    "key": key,
+                    "rows": rows,
+                },
+                indent=2,
+                default=float,
+            )
+        )
         plot_sweep(rows, key, f"{vs.target} over {bag.path.name}", out_dir / "sweep.png")
     return rows
 
 
 def _progress(done: int, total: int, key: str, val: float, m: dict, t0: float) -> None:
-    print(f"[sweep] {done}/{total} {key}={val:g}: θ̃ rms {m['theta_err_rms_deg']:.3f}°, "
-          f"spread {m['flux_radius_spread']:.3f} ({time.perf_counter() - t0:.1f} s)",
-          file=sys.stderr, flush=True)
+    print(
+        f"[sweep] {done}/{total} {key}={val:g}: θ̃ rms {m['theta_err_rms_deg']:.3f}°, "
+        f"spread {m['flux_radius_spread']:.3f} ({time.perf_counter() - t0:.1f} s)",
+        file=sys.stderr,
+        flush=True,
+    )
 
 
-SWEEP_METRICS = ["theta_err_rms_deg", "theta_err_peak_deg", "theta_err_mean_deg",
-                 "theta_err_h1_deg", "theta_err_h6_deg", "flux_radius_spread",
-                 "thd_flux_alpha", "thd_emf_alpha", "valid_fraction"]
+SWEEP_METRICS = [
+    "theta_err_rms_deg",
+    "theta_err_peak_deg",
+    "theta_err_mean_deg",
+    "theta_err_h1_deg",
+    "theta_err_h6_deg",
+    "flux_radius_spread",
+    "thd_flux_alpha",
+    "thd_emf_alpha",
+    "valid_fraction",
+]
 
 
 def plot_sweep(rows: list[dict[str, Any]], key: str, title: str, path: Path) -> Path:
@@ -533,11 +632,19 @@ def plot_sweep(rows: list[dict[str, Any]], key: str, title: str, path: Path) -> 
 
 
 def format_sweep(rows: list[dict[str, Any]], key: str) -> str:
-    cols = ["theta_err_rms_deg", "theta_err_peak_deg", "theta_err_mean_deg", "theta_err_h6_deg",
-            "flux_radius_spread", "thd_flux_alpha", "valid_fraction"]
+    cols = [
+        "theta_err_rms_deg",
+        "theta_err_peak_deg",
+        "theta_err_mean_deg",
+        "theta_err_h6_deg",
+        "flux_radius_spread",
+        "thd_flux_alpha",
+        "valid_fraction",
+    ]
     head = f"{key:>12s}" + "".join(f"{c.replace('theta_err_', 'θ̃_')[:12]:>13s}" for c in cols)
-    return "\n".join([head] + [f"{r[key]:12.4g}" + "".join(f"{r[c]:13.4f}" for c in cols)
-                               for r in rows])
+    return "\n".join(
+        [head] + [f"{r[key]:12.4g}" + "".join(f"{r[c]:13.4f}" for c in cols) for r in rows]
+    )
 
 
 # ====================================================================== CLI
@@ -553,34 +660,65 @@ def _parse_window(s: str | None) -> tuple[float, float] | None:
 
 def build_parser() -> argparse.ArgumentParser:
     """`fluxdrive replay`'s options (the live publisher in fluxdrive_bringup shares them)."""
-    ap = argparse.ArgumentParser(prog="fluxdrive replay", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        prog="fluxdrive replay",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     ap.add_argument("bags", nargs="+", type=Path, help="rosbag2 folders (mcap)")
-    ap.add_argument("--variant", "-v", action="append", default=[],
-                    help="variant SPEC (repeatable); default: @recorded, else paper")
+    ap.add_argument(
+        "--variant",
+        "-v",
+        action="append",
+        default=[],
+        help="variant SPEC (repeatable); default: @recorded, else paper",
+    )
     ap.add_argument("--out", type=Path, help="output folder (default runs/replay-<time>)")
     ap.add_argument("--no-plots", action="store_true")
-    ap.add_argument("--write-bag", type=Path, help="write a new bag: frames, truth and the "
-                    "recorded estimates, plus every variant's estimates as /obs/<label>/estimate")
+    ap.add_argument(
+        "--write-bag",
+        type=Path,
+        help="write a new bag: frames, truth and the "
+        "recorded estimates, plus every variant's estimates as /obs/<label>/estimate",
+    )
     ap.add_argument("--machine", help="machine card (default: the one recorded in the bag)")
-    ap.add_argument("--window", help="metrics window START:END [s] (default: recorded, or the "
-                    "second half of the bag)")
-    ap.add_argument("--encoder-offset-deg", type=float, default=0.0,
-                    help="electrical offset of the encoder (bags without /drive/truth)")
+    ap.add_argument(
+        "--window",
+        help="metrics window START:END [s] (default: recorded, or the second half of the bag)",
+    )
+    ap.add_argument(
+        "--encoder-offset-deg",
+        type=float,
+        default=0.0,
+        help="electrical offset of the encoder (bags without /drive/truth)",
+    )
     ap.add_argument("--sweep", help="KEY=START:STOP:N or KEY=V1,V2,.. over the (single) variant")
-    ap.add_argument("--jobs", "-j", type=int, default=os.cpu_count() or 1,
-                    help="sweep: worker processes of the local dask cluster (1: in-process)")
+    ap.add_argument(
+        "--jobs",
+        "-j",
+        type=int,
+        default=os.cpu_count() or 1,
+        help="sweep: worker processes of the local dask cluster (1: in-process)",
+    )
     ap.add_argument("--scheduler", help="sweep: run on an existing dask cluster tcp://HOST:PORT")
     ap.add_argument("--live", action="store_true", help="publish the frames on /drive/frame")
     ap.add_argument("--rate", type=float, default=1.0, help="live: factor of real time")
     ap.add_argument("--loop", action="store_true", help="live: start again at the end")
     ap.add_argument("--start", type=float, default=0.0, help="live: offset into the bag [s]")
-    ap.add_argument("--wait-s", type=float, default=2.0,
-                    help="live: wait this long for a first subscriber before publishing")
+    ap.add_argument(
+        "--wait-s",
+        type=float,
+        default=2.0,
+        help="live: wait this long for a first subscriber before publishing",
+    )
     ap.add_argument("--max-frames", type=int, help=argparse.SUPPRESS)
-    ap.add_argument("--graph-id", type=int, help="live: graph_id stamped on the frames (the "
-                    "graph they feed: ./fluxdrive param get /plant graph_id; default: the "
-                    "launch's, else 0 = not in a launched graph)")
+    ap.add_argument(
+        "--graph-id",
+        type=int,
+        help="live: graph_id stamped on the frames (the "
+        "graph they feed: ./fluxdrive param get /plant graph_id; default: the "
+        "launch's, else 0 = not in a launched graph)",
+    )
     return ap
 
 
@@ -609,16 +747,32 @@ def _main(args) -> int:
             vs = expand_variants(args.variant or ["paper"], bag)[0]
             od = out / _slug(bag.path.name) if len(args.bags) > 1 else out
             where = args.scheduler or f"{args.jobs} processes"
-            print(f"sweep {vs.target} {key} over {len(values)} values on {bag.path} "
-                  f"({bag.n} frames, {where})")
-            rows = run_sweep(bag, vs, key, values, args.jobs, od, args.machine, window,
-                             args.encoder_offset_deg, args.scheduler)
+            print(
+                f"sweep {vs.target} {key} over {len(values)} values on {bag.path} "
+                f"({bag.n} frames, {where})"
+            )
+            rows = run_sweep(
+                bag,
+                vs,
+                key,
+                values,
+                args.jobs,
+                od,
+                args.machine,
+                window,
+                args.encoder_offset_deg,
+                args.scheduler,
+            )
             print(format_sweep(rows, key))
             print(f"saved: {od}/sweep.json, sweep.png")
         return status
     metrics_all: dict[str, Any] = {}
-    md = ["# Replay report", "",
-          f"variants: {', '.join('`' + v + '`' for v in (args.variant or ['(default)']))}", ""]
+    md = [
+        "# Replay report",
+        "",
+        f"variants: {', '.join('`' + v + '`' for v in (args.variant or ['(default)']))}",
+        "",
+    ]
     for bp in args.bags:
         bag = _read(bp)
         specs = args.variant or (["@recorded"] if bag.meta.get("observers") else ["paper"])
@@ -675,15 +829,28 @@ def write_augmented_bag(res: ReplayResult, bag: RunBag, path: Path) -> Path:
         est.append(res.est[i])
     sc = res.scenario
     sc.observers = {}
-    obj = ReplayResult(sc, names, "encoder", res.t, res.frames,
-                       bag.truth if bag.truth is not None else np.zeros((bag.n, TR_N)),
-                       np.array(est) if est else np.zeros((0, bag.n, ES_N)),
-                       bag.ctrl if bag.ctrl is not None else np.zeros((bag.n, CO_N)),
-                       res.w_ref, res.id_inj)
+    obj = ReplayResult(
+        sc,
+        names,
+        "encoder",
+        res.t,
+        res.frames,
+        bag.truth if bag.truth is not None else np.zeros((bag.n, TR_N)),
+        np.array(est) if est else np.zeros((0, bag.n, ES_N)),
+        bag.ctrl if bag.ctrl is not None else np.zeros((bag.n, CO_N)),
+        res.w_ref,
+        res.id_inj,
+    )
     meta = dict(bag.meta)
     meta["replayed_variants"] = res.names
-    return write_run_bag(obj, path, truth=bag.truth is not None, ctrl=bag.ctrl is not None,
-                         duty=False, extra_meta=meta)
+    return write_run_bag(
+        obj,
+        path,
+        truth=bag.truth is not None,
+        ctrl=bag.ctrl is not None,
+        duty=False,
+        extra_meta=meta,
+    )
 
 
 # ====================================================================== benchmark
@@ -704,8 +871,10 @@ def bench_replay(argv: list[str]) -> dict[str, Any]:
     bag = read_run_bag(bag_path)
     t_read = time.perf_counter() - t0
     msgs = sum(bag.counts.values())
-    print(f"[bench] read {bag_path.name}: {bag.n} frames, {msgs} messages in {t_read:.2f} s",
-          file=sys.stderr)
+    print(
+        f"[bench] read {bag_path.name}: {bag.n} frames, {msgs} messages in {t_read:.2f} s",
+        file=sys.stderr,
+    )
     card = bag.machine()
     reps = max(1, args.samples // bag.n)
     frames = np.ascontiguousarray(np.tile(bag.frames, (reps, 1)))
@@ -724,12 +893,28 @@ def bench_replay(argv: list[str]) -> dict[str, Any]:
             obs.run(frames)
             best = max(best, len(frames) / (time.perf_counter() - t1))
         out[v] = round(best)
-        print(f"[bench] {v:18s} {best / 1e6:6.2f} M samples/s "
-              f"({best * card.ts_s:.0f}x real time)", file=sys.stderr, flush=True)
-    return {"samples_per_s": out, "samples": len(frames), "bag": bag_path.name,
-            "bag_read_msgs_per_s": round(msgs / t_read) if t_read > 0 else None,
-            "goal_paper_samples_per_s": 2_000_000}
+        print(
+            f"[bench] {v:18s} {best / 1e6:6.2f} M samples/s ({best * card.ts_s:.0f}x real time)",
+            file=sys.stderr,
+            flush=True,
+        )
+    return {
+        "samples_per_s": out,
+        "samples": len(frames),
+        "bag": bag_path.name,
+        "bag_read_msgs_per_s": round(msgs / t_read) if t_read > 0 else None,
+        "goal_paper_samples_per_s": 2_000_000,
+    }
 
 
-__all__ = ["main", "bench_replay", "replay_bag", "parse_variant", "expand_variants",
-           "read_run_bag", "write_run_bag", "est_topic", "FR_N"]
+__all__ = [
+    "main",
+    "bench_replay",
+    "replay_bag",
+    "parse_variant",
+    "expand_variants",
+    "read_run_bag",
+    "write_run_bag",
+    "est_topic",
+    "FR_N",
+]

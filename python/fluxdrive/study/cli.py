@@ -27,8 +27,15 @@ from fluxdrive.study.spec import StudySpec, load_spec
 from fluxdrive.study.tasks import run_task, warm_kernels
 
 
-def run_study(spec: StudySpec, out: Path, runner: Runner, restart: bool = False,
-              echo: bool = True, on_result=None, flush_s: float = 10.0) -> dict[str, Any]:
+def run_study(
+    spec: StudySpec,
+    out: Path,
+    runner: Runner,
+    restart: bool = False,
+    echo: bool = True,
+    on_result=None,
+    flush_s: float = 10.0,
+) -> dict[str, Any]:
     """Run (or resume) a study into `out`; returns a summary (tasks, skipped, failures,
     lowest speeds).  `on_result(outcome)` is called after each finished task."""
     from fluxdrive.study import maps, store
@@ -45,22 +52,38 @@ def run_study(spec: StudySpec, out: Path, runner: Runner, restart: bool = False,
     done: dict[str, str] = {}
     if old_t is not None:
         if "input_hash" not in old_t.column_names:
-            raise ConfigError(f"{out} holds a table without input hashes; use another --out, "
-                              f"or --restart to discard it")
-        done = dict(zip(old_t.column("task_id").to_pylist(),
-                        old_t.column("input_hash").to_pylist(), strict=True))
-    changed = [t["task_id"] for t in tasks
-               if t["task_id"] in done and done[t["task_id"]] != t["input_hash"]]
+            raise ConfigError(
+                f"{out} holds a table without input hashes; use another --out, "
+                f"or --restart to discard it"
+            )
+        done = dict(
+            zip(
+                old_t.column("task_id").to_pylist(),
+                old_t.column("input_hash").to_pylist(),
+                strict=True,
+            )
+        )
+    changed = [
+        t["task_id"]
+        for t in tasks
+        if t["task_id"] in done and done[t["task_id"]] != t["input_hash"]
+    ]
     if changed:
-        raise ConfigError(f"{out} holds results of {len(changed)} task(s) computed from other "
-                          f"inputs (the spec changed, e.g. {changed[0]}); use another --out, or "
-                          f"--restart to discard them")
+        raise ConfigError(
+            f"{out} holds results of {len(changed)} task(s) computed from other "
+            f"inputs (the spec changed, e.g. {changed[0]}); use another --out, or "
+            f"--restart to discard them"
+        )
     todo = [t for t in tasks if t["task_id"] not in done]
     if echo:
-        print(f"study {spec.name}: {len(tasks)} tasks ({len(spec.variants)} variants x "
-              f"{len(tasks) // max(1, len(spec.variants) * spec.draws)} grid points x "
-              f"{spec.draws} draws), {len(tasks) - len(todo)} already done, {len(todo)} to run "
-              f"on {_describe(runner)}", file=sys.stderr, flush=True)
+        print(
+            f"study {spec.name}: {len(tasks)} tasks ({len(spec.variants)} variants x "
+            f"{len(tasks) // max(1, len(spec.variants) * spec.draws)} grid points x "
+            f"{spec.draws} draws), {len(tasks) - len(todo)} already done, {len(todo)} to run "
+            f"on {_describe(runner)}",
+            file=sys.stderr,
+            flush=True,
+        )
     schema = store.schema_for(list(spec.grid), spec.random_columns())
     w = store.TableWriter(out, schema, flush_s=flush_s)
     failures: list[dict[str, Any]] = []
@@ -71,13 +94,31 @@ def run_study(spec: StudySpec, out: Path, runner: Runner, restart: bool = False,
             if o.ok:
                 w.add(store.flat_row(o.payload, o.value, o.attempts, o.worker))
             else:
-                failures.append({"task_id": o.key, "attempts": o.attempts, "error": o.error,
-                                 "inputs": {k: o.payload[k] for k in
-                                            ("variant", "variant_cfg", "grid", "draw", "seed",
-                                             "random", "scenario")}})
+                failures.append(
+                    {
+                        "task_id": o.key,
+                        "attempts": o.attempts,
+                        "error": o.error,
+                        "inputs": {
+                            k: o.payload[k]
+                            for k in (
+                                "variant",
+                                "variant_cfg",
+                                "grid",
+                                "draw",
+                                "seed",
+                                "random",
+                                "scenario",
+                            )
+                        },
+                    }
+                )
                 if echo:
-                    print(f"[study] task {o.key} FAILED after {o.attempts} attempts: "
-                          f"{o.error.splitlines()[0] if o.error else '?'}", file=sys.stderr)
+                    print(
+                        f"[study] task {o.key} FAILED after {o.attempts} attempts: "
+                        f"{o.error.splitlines()[0] if o.error else '?'}",
+                        file=sys.stderr,
+                    )
             if on_result is not None:
                 on_result(o)
     finally:
@@ -85,18 +126,33 @@ def run_study(spec: StudySpec, out: Path, runner: Runner, restart: bool = False,
         store.write_failures(out, failures)
     elapsed = time.perf_counter() - t0
     table = store.compact(out, order)
-    info = {"tasks": len(tasks), "runner": _describe(runner), "elapsed_s": elapsed,
-            "commit": _commit()}
-    rep = (maps.write_report(table, spec, out, failures, info) if table is not None
-           else {"lowest": {}, "figures": []})
-    summary = {"study": spec.name, "tasks": len(tasks), "ran": len(todo),
-               "skipped": len(tasks) - len(todo), "rows": 0 if table is None else table.num_rows,
-               "failed": len(failures), "elapsed_s": round(elapsed, 2),
-               "runner": _describe(runner), "commit": info["commit"],
-               "cpu_s": None if table is None else round(sum(
-                   x for x in table.column("cpu_s").to_pylist() if x is not None), 1),
-               "lowest_speed": rep["lowest"],
-               "figures": rep["figures"]}
+    info = {
+        "tasks": len(tasks),
+        "runner": _describe(runner),
+        "elapsed_s": elapsed,
+        "commit": _commit(),
+    }
+    rep = (
+        maps.write_report(table, spec, out, failures, info)
+        if table is not None
+        else {"lowest": {}, "figures": []}
+    )
+    summary = {
+        "study": spec.name,
+        "tasks": len(tasks),
+        "ran": len(todo),
+        "skipped": len(tasks) - len(todo),
+        "rows": 0 if table is None else table.num_rows,
+        "failed": len(failures),
+        "elapsed_s": round(elapsed, 2),
+        "runner": _describe(runner),
+        "commit": info["commit"],
+        "cpu_s": None
+        if table is None
+        else round(sum(x for x in table.column("cpu_s").to_pylist() if x is not None), 1),
+        "lowest_speed": rep["lowest"],
+        "figures": rep["figures"],
+    }
     (out / "summary.json").write_text(json.dumps(summary, indent=1, default=str))
     return summary
 
@@ -110,11 +166,20 @@ def _commit() -> str:
     import subprocess
 
     try:
-        head = subprocess.run(["git", "rev-parse", "--short=10", "HEAD"], cwd=REPO_ROOT,
-                              capture_output=True, text=True, timeout=10).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "python", "config"],
-                               cwd=REPO_ROOT, capture_output=True, text=True,
-                               timeout=10).stdout.strip()
+        head = subprocess.run(
+            ["git", "rev-parse", "--short=10", "HEAD"],
+            cwd=REPO_ROOT,
+            capture_output=True,
+            text=True,
+            timeout=10,
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--", "python", "config"],
+            cwd=REPO_ROOT,
+            capture_output=True,
+            text=True,
+            timeout=10,
+        ).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         return "unknown"
     return (head or "unknown") + ("-dirty" if dirty else "")
@@ -128,18 +193,34 @@ def _describe(r: Runner) -> str:
 
 
 def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="fluxdrive study", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        prog="fluxdrive study",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     ap.add_argument("spec", help="study spec YAML (path, or a name under config/studies)")
-    ap.add_argument("--out", type=Path, help="output folder (default runs/study-<name>); "
-                    "an existing one is resumed (or extended: more draws, points, variants)")
-    ap.add_argument("--scheduler", help="run on an existing dask cluster: tcp://HOST:PORT "
-                    "(started with `dask scheduler` and `dask worker`)")
-    ap.add_argument("--workers", type=int, help="LocalCluster worker processes (default: "
-                    "every core; 1 runs in-process)")
+    ap.add_argument(
+        "--out",
+        type=Path,
+        help="output folder (default runs/study-<name>); "
+        "an existing one is resumed (or extended: more draws, points, variants)",
+    )
+    ap.add_argument(
+        "--scheduler",
+        help="run on an existing dask cluster: tcp://HOST:PORT "
+        "(started with `dask scheduler` and `dask worker`)",
+    )
+    ap.add_argument(
+        "--workers",
+        type=int,
+        help="LocalCluster worker processes (default: every core; 1 runs in-process)",
+    )
     ap.add_argument("--restart", action="store_true", help="discard what --out holds")
-    ap.add_argument("--maps-only", action="store_true",
-                    help="redo the maps and report from the table, run nothing")
+    ap.add_argument(
+        "--maps-only",
+        action="store_true",
+        help="redo the maps and report from the table, run nothing",
+    )
     args = ap.parse_args(argv)
     spec = load_spec(args.spec)
     out = args.out or REPO_ROOT / "runs" / f"study-{spec.name}"
@@ -152,10 +233,16 @@ def main(argv: list[str]) -> int:
         info: dict[str, Any] = {"tasks": len(spec.tasks())}
         if (out / "summary.json").exists():  # how the table was made: keep it in the report
             prev = json.loads((out / "summary.json").read_text())
-            info.update(runner=prev.get("runner", ""), elapsed_s=prev.get("elapsed_s", 0.0),
-                        commit=prev.get("commit", "?"))
-        fails = [json.loads(x) for x in (out / "failures.jsonl").read_text().splitlines()] \
-            if (out / "failures.jsonl").exists() else []
+            info.update(
+                runner=prev.get("runner", ""),
+                elapsed_s=prev.get("elapsed_s", 0.0),
+                commit=prev.get("commit", "?"),
+            )
+        fails = (
+            [json.loads(x) for x in (out / "failures.jsonl").read_text().splitlines()]
+            if (out / "failures.jsonl").exists()
+            else []
+        )
         rep = maps.write_report(t, spec, out, fails, info)
         print(json.dumps(rep["lowest"], default=str))
         return 0
@@ -164,10 +251,14 @@ def main(argv: list[str]) -> int:
     with runner_from_args(args.scheduler, args.workers) as runner:
         s = run_study(spec, out, runner, restart=args.restart)
     for v, r in s["lowest_speed"].items():
-        print(f"{v}: holds {r['load_pu']:g} pu with P^ >= {spec.probability:g} down to "
-              f"{r['point_rpm']} rpm (Wilson-confident: {r['confident_rpm']})")
-    print(f"{s['rows']}/{s['tasks']} rows, {s['failed']} failed, {s['elapsed_s']:.0f} s; "
-          f"report: {out / 'report.md'}")
+        print(
+            f"{v}: holds {r['load_pu']:g} pu with P^ >= {spec.probability:g} down to "
+            f"{r['point_rpm']} rpm (Wilson-confident: {r['confident_rpm']})"
+        )
+    print(
+        f"{s['rows']}/{s['tasks']} rows, {s['failed']} failed, {s['elapsed_s']:.0f} s; "
+        f"report: {out / 'report.md'}"
+    )
     return 1 if s["failed"] else 0
 
 
@@ -178,15 +269,25 @@ def bench_study(argv: list[str]) -> dict[str, Any]:
     import tempfile
 
     ap = argparse.ArgumentParser(prog="fluxdrive benchmark study")
-    ap.add_argument("--tasks", type=int, default=60,
-                    help="tasks per worker count (fewer: fixed start-up costs dominate)")
+    ap.add_argument(
+        "--tasks",
+        type=int,
+        default=60,
+        help="tasks per worker count (fewer: fixed start-up costs dominate)",
+    )
     ap.add_argument("--duration-s", type=float, default=1.0)
     args = ap.parse_args(argv)
     spec_text = {
-        "name": "bench", "seed": 7, "draws": args.tasks,
-        "scenario": {"file": "paper_2pct_150load",
-                     "params": {"duration_s": args.duration_s,
-                                "steady_window_s": [0.5 * args.duration_s, args.duration_s]}},
+        "name": "bench",
+        "seed": 7,
+        "draws": args.tasks,
+        "scenario": {
+            "file": "paper_2pct_150load",
+            "params": {
+                "duration_s": args.duration_s,
+                "steady_window_s": [0.5 * args.duration_s, args.duration_s],
+            },
+        },
         "variants": {"flux_measured": {"variant": "paper", "voltage_source": "measured"}},
         "random": {"r_hat_err": {"dist": "uniform", "low": -0.1, "high": 0.1}},
     }
@@ -221,31 +322,39 @@ def bench_study(argv: list[str]) -> dict[str, Any]:
             # the workers' share of a core while they ran: 1.0 on an idle machine; below it,
             # other processes took the rest (then speed-up figures measure the machine's load)
             share = sum(cpus) / (el * n)
-            res[n] = {"tasks_per_s": rate, "task_wall_s": task_s, "elapsed_s": el,
-                      "task_cpu_s": sum(cpus) / len(cpus), "core_share": share,
-                      "overhead_s": el * n / len(tasks) - task_s}
-            print(f"[bench] {n} worker(s): {len(tasks)} tasks of {args.duration_s:g} s "
-                  f"simulated in {el:.2f} s = {rate:.2f} tasks/s (task itself {task_s:.3f} s "
-                  f"wall, {res[n]['task_cpu_s']:.3f} s CPU; workers got {share:.0%} of a core "
-                  f"each; overhead {res[n]['overhead_s'] * 1e3:.1f} ms/task)", file=sys.stderr)
+            res[n] = {
+                "tasks_per_s": rate,
+                "task_wall_s": task_s,
+                "elapsed_s": el,
+                "task_cpu_s": sum(cpus) / len(cpus),
+                "core_share": share,
+                "overhead_s": el * n / len(tasks) - task_s,
+            }
+            print(
+                f"[bench] {n} worker(s): {len(tasks)} tasks of {args.duration_s:g} s "
+                f"simulated in {el:.2f} s = {rate:.2f} tasks/s (task itself {task_s:.3f} s "
+                f"wall, {res[n]['task_cpu_s']:.3f} s CPU; workers got {share:.0%} of a core "
+                f"each; overhead {res[n]['overhead_s'] * 1e3:.1f} ms/task)",
+                file=sys.stderr,
+            )
     load_after = os.getloadavg()
     ov = res[1]["overhead_s"]
-    return {"tasks_per_s_1": round(res[1]["tasks_per_s"], 3),
-            "tasks_per_s_2": round(res[2]["tasks_per_s"], 3),
-            "speedup": round(res[2]["tasks_per_s"] / res[1]["tasks_per_s"], 3),
-            "goal_speedup": 1.8,
-            "overhead_ms_per_task": round(ov * 1e3, 2),
-            "overhead_pct_of_1s_run": round(100 * ov / res[1]["task_wall_s"], 2),
-            # load-independent-ish: an empty task's round trip against the run's CPU time
-            # (= its wall time on an idle core)
-            "empty_task_ms": round(noop_s * 1e3, 2),
-            "empty_task_pct_of_1s_run_cpu": round(100 * noop_s / res[1]["task_cpu_s"], 2),
-            "goal_overhead_pct": 5.0,
-            "task_wall_s": round(res[1]["task_wall_s"], 3),
-            "task_cpu_s": round(res[1]["task_cpu_s"], 3),
-            "core_share_1_2": [round(res[1]["core_share"], 2), round(res[2]["core_share"], 2)],
-            "tasks": args.tasks,
-            "cores": os.cpu_count(),
-            "loadavg_1min_before_after": [round(load_before[0], 2), round(load_after[0], 2)]}
-
-
+    return {
+        "tasks_per_s_1": round(res[1]["tasks_per_s"], 3),
+        "tasks_per_s_2": round(res[2]["tasks_per_s"], 3),
+        "speedup": round(res[2]["tasks_per_s"] / res[1]["tasks_per_s"], 3),
+        "goal_speedup": 1.8,
+        "overhead_ms_per_task": round(ov * 1e3, 2),
+        "overhead_pct_of_1s_run": round(100 * ov / res[1]["task_wall_s"], 2),
+        # load-independent-ish: an empty task's round trip against the run's CPU time
+        # (= its wall time on an idle core)
+        "empty_task_ms": round(noop_s * 1e3, 2),
+        "empty_task_pct_of_1s_run_cpu": round(100 * noop_s / res[1]["task_cpu_s"], 2),
+        "goal_overhead_pct": 5.0,
+        "task_wall_s": round(res[1]["task_wall_s"], 3),
+        "task_cpu_s": round(res[1]["task_cpu_s"], 3),
+        "core_share_1_2": [round(res[1]["core_share"], 2), round(res[2]["core_share"], 2)],
+        "tasks": args.tasks,
+        "cores": os.cpu_count(),
+        "loadavg_1min_before_after": [round(load_before[0], 2), round(load_after[0], 2)],
+    }

@@ -41,19 +41,28 @@ def cells(table, spec: StudySpec) -> dict[str, Any]:
         grid = {}
         for j, yv in enumerate(ys):
             for i, xv in enumerate(xs):
-                rows = [r for r in range(n_rows) if d["variant"][r] == v
-                        and (ax not in d or d[ax][r] == xv) and (ay not in d or d[ay][r] == yv)]
+                rows = [
+                    r
+                    for r in range(n_rows)
+                    if d["variant"][r] == v
+                    and (ax not in d or d[ax][r] == xv)
+                    and (ay not in d or d[ay][r] == yv)
+                ]
                 st = [bool(d["stable"][r]) for r in rows]
                 rms = np.array([d["theta_err_rms_deg"][r] for r in rows if d["stable"][r]])
                 peak = [d["theta_err_peak_deg"][r] for r in rows if d["stable"][r]]
                 k, n = sum(st), len(st)
                 lo, hi = wilson(k, n)
-                grid[(i, j)] = {"n": n, "k": k, "p": k / n if n else math.nan, "lo": lo,
-                                "hi": hi,
-                                "rms_med": float(np.median(rms)) if rms.size else math.nan,
-                                "rms_p95": float(np.percentile(rms, 95)) if rms.size
-                                else math.nan,
-                                "peak_max": float(max(peak)) if peak else math.nan}
+                grid[(i, j)] = {
+                    "n": n,
+                    "k": k,
+                    "p": k / n if n else math.nan,
+                    "lo": lo,
+                    "hi": hi,
+                    "rms_med": float(np.median(rms)) if rms.size else math.nan,
+                    "rms_p95": float(np.percentile(rms, 95)) if rms.size else math.nan,
+                    "peak_max": float(max(peak)) if peak else math.nan,
+                }
         out["variants"][v] = grid
     return out
 
@@ -85,8 +94,12 @@ def lowest_speed(c: dict[str, Any], spec: StudySpec) -> dict[str, dict[str, Any]
         pt = lowest(lambda cell: cell["p"] >= q)
         cf = lowest(lambda cell: cell["lo"] >= q)
         at = row[c["x"].index(pt)] if pt is not None else None
-        res[v] = {"load_pu": ys[j], "point_rpm": pt, "confident_rpm": cf,
-                  "at": None if at is None else {k: at[k] for k in ("n", "k", "p", "lo", "hi")}}
+        res[v] = {
+            "load_pu": ys[j],
+            "point_rpm": pt,
+            "confident_rpm": cf,
+            "at": None if at is None else {k: at[k] for k in ("n", "k", "p", "lo", "hi")},
+        }
     return res
 
 
@@ -101,14 +114,23 @@ def plot_maps(c: dict[str, Any], spec: StudySpec, out: Path) -> list[str]:
     cols = min(2, len(names))
     rows = math.ceil(len(names) / cols)
     files = []
-    for what, title, cmap, vmax in (("p", "P(stable)", "RdYlGn", 1.0),
-                                    ("rms_med", "median θ̃ RMS of the stable runs [°el]",
-                                     "viridis", None)):
-        fig, axs = plt.subplots(rows, cols, figsize=(0.9 * nx * cols + 2.5, 0.75 * ny * rows
-                                                     + 1.6), squeeze=False,
-                                layout="constrained")
-        vals_all = [cell[what] for g in c["variants"].values() for cell in g.values()
-                    if not math.isnan(cell[what])]
+    for what, title, cmap, vmax in (
+        ("p", "P(stable)", "RdYlGn", 1.0),
+        ("rms_med", "median θ̃ RMS of the stable runs [°el]", "viridis", None),
+    ):
+        fig, axs = plt.subplots(
+            rows,
+            cols,
+            figsize=(0.9 * nx * cols + 2.5, 0.75 * ny * rows + 1.6),
+            squeeze=False,
+            layout="constrained",
+        )
+        vals_all = [
+            cell[what]
+            for g in c["variants"].values()
+            for cell in g.values()
+            if not math.isnan(cell[what])
+        ]
         top = vmax if vmax is not None else (max(vals_all) if vals_all else 1.0)
         im = None
         for k, ax in enumerate(axs.flat):
@@ -135,8 +157,12 @@ def plot_maps(c: dict[str, Any], spec: StudySpec, out: Path) -> list[str]:
             ax.set_xlabel(_label(c["x_axis"]), fontsize=8)
             ax.set_ylabel(_label(c["y_axis"]), fontsize=8)
             ax.set_title(v, fontsize=9)
-        fig.suptitle(f"{spec.name}: {title}  ({spec.draws} draws per cell"
-                     + ("; 95 % Wilson interval" if what == "p" else "") + ")", fontsize=9)
+        fig.suptitle(
+            f"{spec.name}: {title}  ({spec.draws} draws per cell"
+            + ("; 95 % Wilson interval" if what == "p" else "")
+            + ")",
+            fontsize=9,
+        )
         if im is not None:
             fig.colorbar(im, ax=axs.ravel().tolist(), shrink=0.8)
         name = f"{'p_stable' if what == 'p' else 'theta_rms'}.png"
@@ -164,32 +190,49 @@ def _dist(d: dict[str, Any]) -> str:
     return f"one of {d['values']}"
 
 
-def write_report(table, spec: StudySpec, out: Path, failures: list[dict[str, Any]],
-                 info: dict[str, Any]) -> dict[str, Any]:
+def write_report(
+    table, spec: StudySpec, out: Path, failures: list[dict[str, Any]], info: dict[str, Any]
+) -> dict[str, Any]:
     c = cells(table, spec)
     figs = plot_maps(c, spec, out)
     low = lowest_speed(c, spec)
     q = int(round(spec.probability * 100))
-    lines = [f"# Study {spec.name}", "", spec.description.strip(), "",
-             f"{len(spec.variants)} variants × {math.prod(len(v) for v in spec.grid.values())} "
-             f"grid points × {spec.draws} draws = {info.get('tasks', '?')} tasks; "
-             f"{table.num_rows} rows, {len(failures)} failed; "
-             f"{info.get('runner', '')}, {info.get('elapsed_s', 0):.0f} s wall, "
-             f"{_cpu(table):.0f} s of task CPU time; fluxdrive {info.get('commit', '?')}.", "",
-             "## Uncertainties (one draw per machine, shared by every variant and grid point)",
-             "", "| axis | distribution | what it sets |", "|---|---|---|"]
+    lines = [
+        f"# Study {spec.name}",
+        "",
+        spec.description.strip(),
+        "",
+        f"{len(spec.variants)} variants × {math.prod(len(v) for v in spec.grid.values())} "
+        f"grid points × {spec.draws} draws = {info.get('tasks', '?')} tasks; "
+        f"{table.num_rows} rows, {len(failures)} failed; "
+        f"{info.get('runner', '')}, {info.get('elapsed_s', 0):.0f} s wall, "
+        f"{_cpu(table):.0f} s of task CPU time; fluxdrive {info.get('commit', '?')}.",
+        "",
+        "## Uncertainties (one draw per machine, shared by every variant and grid point)",
+        "",
+        "| axis | distribution | what it sets |",
+        "|---|---|---|",
+    ]
     for a, d in spec.random.items():
         lines.append(f"| {a} | {_dist(d)} | {PERTURBATIONS[a][1]} |")
-    lines += ["", "Grid: " + "; ".join(f"{a} = {', '.join(f'{x:g}' for x in v)}"
-                                       for a, v in spec.grid.items()), ""]
+    lines += [
+        "",
+        "Grid: "
+        + "; ".join(f"{a} = {', '.join(f'{x:g}' for x in v)}" for a, v in spec.grid.items()),
+        "",
+    ]
     if low:
-        lines += [f"## Lowest speed holding {low[next(iter(low))]['load_pu']:g} pu load with "
-                  f"{q} % probability", "",
-                  f"point: the lowest tested speed from which every speed upwards has "
-                  f"P̂(stable) ≥ {spec.probability:g}; confident: the same with the 95 % Wilson "
-                  f"lower bound ≥ {spec.probability:g}.", "",
-                  "| variant | point [rpm] | stable/draws there | 95 % interval | "
-                  "confident [rpm] |", "|---|---|---|---|---|"]
+        lines += [
+            f"## Lowest speed holding {low[next(iter(low))]['load_pu']:g} pu load with "
+            f"{q} % probability",
+            "",
+            f"point: the lowest tested speed from which every speed upwards has "
+            f"P̂(stable) ≥ {spec.probability:g}; confident: the same with the 95 % Wilson "
+            f"lower bound ≥ {spec.probability:g}.",
+            "",
+            "| variant | point [rpm] | stable/draws there | 95 % interval | confident [rpm] |",
+            "|---|---|---|---|---|",
+        ]
         for v, r in low.items():
             at = r["at"]
             pt = "none" if r["point_rpm"] is None else f"{r['point_rpm']:g}"
@@ -201,13 +244,23 @@ def write_report(table, spec: StudySpec, out: Path, failures: list[dict[str, Any
     lines += ["## Maps", ""] + [f"![{f}]({f})" for f in figs] + [""]
     lines += ["## P(stable) per cell", ""]
     for v, grid in c["variants"].items():
-        lines += [f"### {v}", "", f"| {c['y_axis']} \\ {c['x_axis']} | "
-                  + " | ".join(f"{x:g}" for x in c["x"]) + " |",
-                  "|---|" + "---|" * len(c["x"])]
+        lines += [
+            f"### {v}",
+            "",
+            f"| {c['y_axis']} \\ {c['x_axis']} | " + " | ".join(f"{x:g}" for x in c["x"]) + " |",
+            "|---|" + "---|" * len(c["x"]),
+        ]
         for j, yv in enumerate(c["y"]):
-            lines.append(f"| {yv:g} | " + " | ".join(
-                f"{grid[(i, j)]['k']}/{grid[(i, j)]['n']} ({grid[(i, j)]['rms_med']:.2f}°)"
-                if grid[(i, j)]["n"] else "—" for i in range(len(c["x"]))) + " |")
+            lines.append(
+                f"| {yv:g} | "
+                + " | ".join(
+                    f"{grid[(i, j)]['k']}/{grid[(i, j)]['n']} ({grid[(i, j)]['rms_med']:.2f}°)"
+                    if grid[(i, j)]["n"]
+                    else "—"
+                    for i in range(len(c["x"]))
+                )
+                + " |"
+            )
         lines.append("")
     lines += ["Cells: stable runs / runs (median θ̃ RMS of the stable runs, electrical).", ""]
     if failures:

@@ -70,19 +70,25 @@ class Progress:
     def line(self) -> str:
         now = time.perf_counter()
         el = now - self.t0
-        rate = (self.done - 1) / (now - self._first) if self.done > 1 and now > self._first \
-            else 0.0
+        rate = (self.done - 1) / (now - self._first) if self.done > 1 and now > self._first else 0.0
         left = self.total - self.done
         eta = f"ETA {_hms(left / rate)}" if rate > 0 and left else "done" if not left else "ETA ?"
         fail = f", {self.failed} failed" if self.failed else ""
-        return (f"[{self.label}] {self.done}/{self.total}{fail}, {rate:.2f} tasks/s, "
-                f"{_hms(el)} elapsed, {eta}")
+        return (
+            f"[{self.label}] {self.done}/{self.total}{fail}, {rate:.2f} tasks/s, "
+            f"{_hms(el)} elapsed, {eta}"
+        )
 
 
 def _hms(s: float) -> str:
     s = int(round(s))
-    return f"{s // 3600}h{s // 60 % 60:02d}m{s % 60:02d}s" if s >= 3600 else \
-        f"{s // 60}m{s % 60:02d}s" if s >= 60 else f"{s}s"
+    return (
+        f"{s // 3600}h{s // 60 % 60:02d}m{s % 60:02d}s"
+        if s >= 3600
+        else f"{s // 60}m{s % 60:02d}s"
+        if s >= 60
+        else f"{s}s"
+    )
 
 
 def _call(fn: Callable[[Any], Any], payload: Any) -> tuple[bool, Any, str, str]:
@@ -90,8 +96,7 @@ def _call(fn: Callable[[Any], Any], payload: Any) -> tuple[bool, Any, str, str]:
     try:
         return True, fn(payload), "", _worker_name()
     except Exception as exc:  # reported with the payload by the caller
-        return False, None, f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}", \
-            _worker_name()
+        return False, None, f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}", _worker_name()
 
 
 def _worker_name() -> str:
@@ -107,8 +112,13 @@ class Runner:
     """Run tasks serially, on a LocalCluster, or on an existing dask cluster (see module doc).
     Use as a context manager; the cluster (if this runner started one) stops on exit."""
 
-    def __init__(self, mode: str = "local", workers: int | None = None,
-                 retries: int = RETRIES, quiet: bool = True):
+    def __init__(
+        self,
+        mode: str = "local",
+        workers: int | None = None,
+        retries: int = RETRIES,
+        quiet: bool = True,
+    ):
         self.mode = mode
         self.retries = retries
         self.client = None
@@ -124,14 +134,20 @@ class Runner:
                 self.mode, self.workers = "serial", 1
                 return
             self.cluster = LocalCluster(
-                n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                dashboard_address="127.0.0.1:0", silence_logs=40 if quiet else 30)
+                n_workers=n,
+                threads_per_worker=1,
+                processes=True,
+                host="127.0.0.1",
+                dashboard_address="127.0.0.1:0",
+                silence_logs=40 if quiet else 30,
+            )
             self.client = Client(self.cluster)
         elif mode.startswith("tcp://"):
             self.client = Client(mode, timeout="20s")
         else:
-            raise ValueError(f"runner mode must be 'serial', 'local' or tcp://HOST:PORT, "
-                             f"got {mode!r}")
+            raise ValueError(
+                f"runner mode must be 'serial', 'local' or tcp://HOST:PORT, got {mode!r}"
+            )
         self.workers = len(self.client.scheduler_info()["workers"]) or 1
 
     @property
@@ -153,8 +169,12 @@ class Runner:
         self.close()
 
     # ------------------------------------------------------------------ running
-    def run_unordered(self, fn: Callable[[Any], Any], items: Iterable[tuple[Any, Any]],
-                      progress: Progress | None = None) -> Iterator[Outcome]:
+    def run_unordered(
+        self,
+        fn: Callable[[Any], Any],
+        items: Iterable[tuple[Any, Any]],
+        progress: Progress | None = None,
+    ) -> Iterator[Outcome]:
         """(key, payload) items -> Outcomes as the tasks finish (any order)."""
         items = list(items)
         if self.client is None:
@@ -195,8 +215,9 @@ class Runner:
                 progress.update(ok)
             yield out
 
-    def map(self, fn: Callable[[Any], Any], payloads: list[Any],
-            progress: Progress | None = None) -> list[Any]:
+    def map(
+        self, fn: Callable[[Any], Any], payloads: list[Any], progress: Progress | None = None
+    ) -> list[Any]:
         """Values in the order of `payloads`; raises if a task failed after its retry (for
         callers that need every value, e.g. an experiment's search step)."""
         res: list[Any] = [None] * len(payloads)
@@ -209,8 +230,10 @@ class Runner:
 
 class TaskFailed(RuntimeError):
     def __init__(self, o: Outcome):
-        super().__init__(f"task {o.key} failed after {o.attempts} attempt(s): "
-                         f"{o.error.splitlines()[0] if o.error else '?'}")
+        super().__init__(
+            f"task {o.key} failed after {o.attempts} attempt(s): "
+            f"{o.error.splitlines()[0] if o.error else '?'}"
+        )
         self.outcome = o
 
 

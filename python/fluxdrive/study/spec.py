@@ -44,16 +44,30 @@ PERTURBATIONS: dict[str, tuple[bool, str]] = {
     "current_gain_err": (True, "current-sensor gain per phase, 1 + x"),
     "current_noise_a": (False, "current-sensor noise RMS [A] (plant)"),
     "deadtime_s": (False, "inverter deadtime of the plant [s]"),
-    "temperature_c": (False, "winding and magnet temperature [degC]: plant R (1 + 0.00393 dT), "
-                             "lambda (1 - 0.0012 dT), dT = T - 20; observer/controller keep "
-                             "the card's values"),
+    "temperature_c": (
+        False,
+        "winding and magnet temperature [degC]: plant R (1 + 0.00393 dT), "
+        "lambda (1 - 0.0012 dT), dT = T - 20; observer/controller keep "
+        "the card's values",
+    ),
 }
 PHASES = "abc"
 OBSERVER_KEYS = {f.name for f in fields(ObserverConfig)} - {"variant", "extra"}
 CONTROL_KEYS = {f.name for f in fields(ControllerConfig)} - {"position_source"}
 DISTS = {"uniform": ("low", "high"), "normal": ("mean", "std"), "choice": ("values",)}
-_TOP = {"name", "description", "seed", "scenario", "variants", "grid", "random", "draws",
-        "rated_load_pu", "probability", "map"}
+_TOP = {
+    "name",
+    "description",
+    "seed",
+    "scenario",
+    "variants",
+    "grid",
+    "random",
+    "draws",
+    "rated_load_pu",
+    "probability",
+    "map",
+}
 
 
 @dataclass
@@ -91,11 +105,19 @@ class StudySpec:
             for point in itertools.product(*(self.grid[a] for a in axes)):
                 gv = dict(zip(axes, point, strict=True))
                 for d, (seed, rv) in enumerate(draws):
-                    tid = "|".join([vname] + [f"{a}={_fmt(v)}" for a, v in gv.items()]
-                                   + [f"draw={d}"])
-                    t = {"task_id": tid, "variant": vname, "variant_cfg": dict(vcfg),
-                         "grid": gv, "draw": d, "seed": seed, "random": rv,
-                         "scenario": self.scenario}
+                    tid = "|".join(
+                        [vname] + [f"{a}={_fmt(v)}" for a, v in gv.items()] + [f"draw={d}"]
+                    )
+                    t = {
+                        "task_id": tid,
+                        "variant": vname,
+                        "variant_cfg": dict(vcfg),
+                        "grid": gv,
+                        "draw": d,
+                        "seed": seed,
+                        "random": rv,
+                        "scenario": self.scenario,
+                    }
                     t["input_hash"] = input_hash(t)
                     out.append(t)
         return out
@@ -166,8 +188,11 @@ def load_spec(path: str | Path) -> StudySpec:
     scen = _scenario(src, p.parent, raw.get("scenario"))
     variants = raw.get("variants")
     if not isinstance(variants, dict) or not variants:
-        raise _err(src, "'variants' must be a mapping name -> observer settings "
-                        "(e.g. paper: {variant: paper, voltage_source: measured})")
+        raise _err(
+            src,
+            "'variants' must be a mapping name -> observer settings "
+            "(e.g. paper: {variant: paper, voltage_source: measured})",
+        )
     vout: dict[str, dict[str, Any]] = {}
     for name, cfg in variants.items():
         cfg = dict(cfg or {})
@@ -176,8 +201,11 @@ def load_spec(path: str | Path) -> StudySpec:
         if scen.get("bag") is None:
             bad = sorted(set(cfg) - OBSERVER_KEYS - {"variant"})
             if bad:
-                raise _err(src, f"variants.{name}: unknown key(s) {bad}; expected 'variant' "
-                                f"and observer settings {sorted(OBSERVER_KEYS)}")
+                raise _err(
+                    src,
+                    f"variants.{name}: unknown key(s) {bad}; expected 'variant' "
+                    f"and observer settings {sorted(OBSERVER_KEYS)}",
+                )
         vout[str(name)] = cfg
     grid = raw.get("grid") or {}
     if not isinstance(grid, dict):
@@ -187,8 +215,11 @@ def load_spec(path: str | Path) -> StudySpec:
             raise _err(src, f"grid.{a} must be a non-empty list of values")
         _axis_kind(src, f"grid.{a}", a, scen)
         if a in PERTURBATIONS and PERTURBATIONS[a][0]:
-            raise _err(src, f"grid.{a}: a per-phase axis can only be random (or set it in "
-                            f"the scenario's faults)")
+            raise _err(
+                src,
+                f"grid.{a}: a per-phase axis can only be random (or set it in "
+                f"the scenario's faults)",
+            )
         for v in vals:
             if isinstance(v, bool) or not isinstance(v, (int, float)):
                 raise _err(src, f"grid.{a}: values must be numbers, got {v!r}")
@@ -198,8 +229,9 @@ def load_spec(path: str | Path) -> StudySpec:
         raise _err(src, "'random' must be a mapping axis -> distribution")
     for a, d in rnd.items():
         if a not in PERTURBATIONS:
-            raise _err(src, f"random.{a}: unknown random axis; expected one of "
-                            f"{sorted(PERTURBATIONS)}")
+            raise _err(
+                src, f"random.{a}: unknown random axis; expected one of {sorted(PERTURBATIONS)}"
+            )
         if a in grid:
             raise _err(src, f"random.{a}: also a grid axis")
         _axis_kind(src, f"random.{a}", a, scen)
@@ -220,18 +252,34 @@ def load_spec(path: str | Path) -> StudySpec:
     prob = raw.get("probability", 0.95)
     if isinstance(prob, bool) or not isinstance(prob, (int, float)) or not 0 < prob < 1:
         raise _err(src, f"'probability' must be in (0, 1), got {prob!r}")
-    axes = tuple(raw.get("map", {}).get("axes", ["speed_rpm", "load_pu"])) \
-        if isinstance(raw.get("map"), dict) else ("speed_rpm", "load_pu")
-    return StudySpec(name=str(raw.get("name", p.stem)), source=src, seed=seed, scenario=scen,
-                     variants=vout, grid=grid, random=rnd, draws=draws,
-                     description=str(raw.get("description", "")), rated_load_pu=float(rl),
-                     probability=float(prob), map_axes=axes, raw=raw)  # type: ignore[arg-type]
+    axes = (
+        tuple(raw.get("map", {}).get("axes", ["speed_rpm", "load_pu"]))
+        if isinstance(raw.get("map"), dict)
+        else ("speed_rpm", "load_pu")
+    )
+    return StudySpec(
+        name=str(raw.get("name", p.stem)),
+        source=src,
+        seed=seed,
+        scenario=scen,
+        variants=vout,
+        grid=grid,
+        random=rnd,
+        draws=draws,
+        description=str(raw.get("description", "")),
+        rated_load_pu=float(rl),
+        probability=float(prob),
+        map_axes=axes,
+        raw=raw,
+    )  # type: ignore[arg-type]
 
 
 def _scenario(src: str, base: Path, s: Any) -> dict[str, Any]:
     if not isinstance(s, dict):
-        raise _err(src, "'scenario' must be a mapping with one of builder: NAME, "
-                        "file: SCENARIO, bag: BAG_DIR")
+        raise _err(
+            src,
+            "'scenario' must be a mapping with one of builder: NAME, file: SCENARIO, bag: BAG_DIR",
+        )
     kinds = [k for k in ("builder", "file", "bag") if k in s]
     if len(kinds) != 1:
         raise _err(src, "'scenario' needs exactly one of builder, file, bag")
@@ -240,14 +288,16 @@ def _scenario(src: str, base: Path, s: Any) -> dict[str, Any]:
     if not isinstance(params, dict):
         raise _err(src, "scenario.params must be a mapping")
     out["params"] = params
-    bad = sorted(set(s) - {"builder", "file", "bag", "params", "machine", "window_s",
-                           "encoder_offset_deg"})
+    bad = sorted(
+        set(s) - {"builder", "file", "bag", "params", "machine", "window_s", "encoder_offset_deg"}
+    )
     if bad:
         raise _err(src, f"scenario: unknown key(s) {bad}")
     if "builder" in s:
         if s["builder"] not in BUILDERS:
-            raise _err(src, f"scenario.builder must be one of {sorted(BUILDERS)}, "
-                            f"got {s['builder']!r}")
+            raise _err(
+                src, f"scenario.builder must be one of {sorted(BUILDERS)}, got {s['builder']!r}"
+            )
     elif "file" in s:
         f = Path(str(s["file"]))
         cand = base / f
@@ -281,10 +331,14 @@ def _axis_kind(src: str, where: str, name: str, scen: dict[str, Any]) -> str:
         kind = "perturbation"
     else:
         kind = "scenario"
-    if "bag" in scen and not (kind == "perturbation" and name in ("r_hat_err", "l_hat_err",
-                                                                  "lambda_hat_err")):
-        raise _err(src, f"{where}: a replay study (scenario.bag) can vary observer settings "
-                        f"and R^/L^/lambda^ errors only; '{name}' changes the recorded drive")
+    if "bag" in scen and not (
+        kind == "perturbation" and name in ("r_hat_err", "l_hat_err", "lambda_hat_err")
+    ):
+        raise _err(
+            src,
+            f"{where}: a replay study (scenario.bag) can vary observer settings "
+            f"and R^/L^/lambda^ errors only; '{name}' changes the recorded drive",
+        )
     return kind
 
 

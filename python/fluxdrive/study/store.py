@@ -28,8 +28,11 @@ TIMING_COLUMNS = ["wall_s", "cpu_s"]
 
 
 def schema_for(grid_axes: list[str], random_cols: list[str]) -> pa.Schema:
-    f = [pa.field("task_id", pa.string()), pa.field("input_hash", pa.string()),
-         pa.field("variant", pa.string())]
+    f = [
+        pa.field("task_id", pa.string()),
+        pa.field("input_hash", pa.string()),
+        pa.field("variant", pa.string()),
+    ]
     f += [pa.field(a, pa.float64()) for a in grid_axes]
     f += [pa.field("draw", pa.int64()), pa.field("seed", pa.int64())]
     f += [pa.field(c, pa.float64()) for c in random_cols]
@@ -38,11 +41,16 @@ def schema_for(grid_axes: list[str], random_cols: list[str]) -> pa.Schema:
     return pa.schema(f)
 
 
-def flat_row(payload: dict[str, Any], value: dict[str, Any], attempts: int,
-             worker: str) -> dict[str, Any]:
-    row: dict[str, Any] = {"task_id": payload["task_id"], "input_hash": payload["input_hash"],
-                           "variant": payload["variant"],
-                           "draw": payload["draw"], "seed": payload["seed"]}
+def flat_row(
+    payload: dict[str, Any], value: dict[str, Any], attempts: int, worker: str
+) -> dict[str, Any]:
+    row: dict[str, Any] = {
+        "task_id": payload["task_id"],
+        "input_hash": payload["input_hash"],
+        "variant": payload["variant"],
+        "draw": payload["draw"],
+        "seed": payload["seed"],
+    }
     row.update(payload["grid"])
     for k, v in payload["random"].items():
         if isinstance(v, list):

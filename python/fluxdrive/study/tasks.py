@@ -26,15 +26,32 @@ T_CARD_C = 20.0  # the machine card's values are at this temperature
 
 # the row's outputs (besides the inputs): name -> arrow type name
 OUTPUTS: dict[str, str] = {
-    "stable": "bool_", "fault_code": "int64", "theta_err_rms_deg": "float64",
-    "theta_err_peak_deg": "float64", "theta_err_mean_deg": "float64",
-    "theta_err_h1_deg": "float64", "theta_err_h6_deg": "float64",
-    "flux_radius_spread": "float64", "valid_fraction": "float64", "mean_rpm": "float64",
-    "mean_error_rpm": "float64", "ripple_rpm": "float64", "i_q_mean_a": "float64",
-    "sim_s": "float64", "wall_s": "float64", "cpu_s": "float64",
+    "stable": "bool_",
+    "fault_code": "int64",
+    "theta_err_rms_deg": "float64",
+    "theta_err_peak_deg": "float64",
+    "theta_err_mean_deg": "float64",
+    "theta_err_h1_deg": "float64",
+    "theta_err_h6_deg": "float64",
+    "flux_radius_spread": "float64",
+    "valid_fraction": "float64",
+    "mean_rpm": "float64",
+    "mean_error_rpm": "float64",
+    "ripple_rpm": "float64",
+    "i_q_mean_a": "float64",
+    "sim_s": "float64",
+    "wall_s": "float64",
+    "cpu_s": "float64",
 }
-OBS_KEYS = ["theta_err_rms_deg", "theta_err_peak_deg", "theta_err_mean_deg", "theta_err_h1_deg",
-            "theta_err_h6_deg", "flux_radius_spread", "valid_fraction"]
+OBS_KEYS = [
+    "theta_err_rms_deg",
+    "theta_err_peak_deg",
+    "theta_err_mean_deg",
+    "theta_err_h1_deg",
+    "theta_err_h6_deg",
+    "flux_radius_spread",
+    "valid_fraction",
+]
 
 
 def run_task(p: dict[str, Any]) -> dict[str, Any]:
@@ -49,11 +66,16 @@ def run_task(p: dict[str, Any]) -> dict[str, Any]:
         r = run_scenario(sc, progress=False)
         m = compute(r)
         o = m["observers"][p["variant"]]
-        out = {"stable": bool(m["stable"]), "fault_code": int(m["fault_code"]),
-               **{k: float(o[k]) for k in OBS_KEYS},
-               "mean_rpm": m["speed"]["mean_rpm"], "mean_error_rpm": m["speed"]["mean_error_rpm"],
-               "ripple_rpm": m["speed"]["ripple_rpm"],
-               "i_q_mean_a": m["currents"]["i_q_mean_a"], "sim_s": sc.duration_s}
+        out = {
+            "stable": bool(m["stable"]),
+            "fault_code": int(m["fault_code"]),
+            **{k: float(o[k]) for k in OBS_KEYS},
+            "mean_rpm": m["speed"]["mean_rpm"],
+            "mean_error_rpm": m["speed"]["mean_error_rpm"],
+            "ripple_rpm": m["speed"]["ripple_rpm"],
+            "i_q_mean_a": m["currents"]["i_q_mean_a"],
+            "sim_s": sc.duration_s,
+        }
     out["wall_s"] = time.perf_counter() - t0
     out["cpu_s"] = time.process_time() - c0  # what the run costs on an idle core
     return out
@@ -65,8 +87,10 @@ def warm_kernels() -> None:
     from fluxdrive.core.scenario import CONFIG_DIR
     from fluxdrive.drive.sim import run_scenario
 
-    sc = load_scenario(CONFIG_DIR / "scenarios" / "paper_2pct_150load.yaml",
-                       overrides={"duration_s": 0.01, "steady_window_s": [0.0, 0.01]})
+    sc = load_scenario(
+        CONFIG_DIR / "scenarios" / "paper_2pct_150load.yaml",
+        overrides={"duration_s": 0.01, "steady_window_s": [0.0, 0.01]},
+    )
     run_scenario(sc, progress=False)
 
 
@@ -95,12 +119,20 @@ def build_task_scenario(p: dict[str, Any]) -> Scenario:
         kw = dict(scen_kw)
         speed, load = kw.pop("speed_rpm", None), kw.pop("load_pu", None)
         if speed is None or load is None:
-            raise ConfigError(f"builder {spec['builder']} needs speed_rpm and load_pu "
-                              f"(a grid axis or scenario.params)")
+            raise ConfigError(
+                f"builder {spec['builder']} needs speed_rpm and load_pu "
+                f"(a grid axis or scenario.params)"
+            )
         if spec["builder"] != "encoder_run":
             kw["driving"] = vname
-        sc = fn(float(speed), float(load), observers={vname: obs}, seed=p["seed"],
-                name=f"study_{vname}", **kw)
+        sc = fn(
+            float(speed),
+            float(load),
+            observers={vname: obs},
+            seed=p["seed"],
+            name=f"study_{vname}",
+            **kw,
+        )
     else:
         import yaml
 
@@ -123,15 +155,20 @@ def perturb(sc: Scenario, vname: str, values: dict[str, Any]) -> Scenario:
     r0 = card.resistance_ohm if cfg.r_hat_ohm is None else cfg.r_hat_ohm
     l0 = card.inductance_h if cfg.l_hat_h is None else cfg.l_hat_h
     lam0 = card.flux_linkage_vs if cfg.lambda_hat_vs is None else cfg.lambda_hat_vs
-    cfg = dataclasses.replace(cfg, r_hat_ohm=r0 * (1.0 + values.get("r_hat_err", 0.0)),
-                              l_hat_h=l0 * (1.0 + values.get("l_hat_err", 0.0)),
-                              lambda_hat_vs=lam0 * (1.0 + values.get("lambda_hat_err", 0.0)))
+    cfg = dataclasses.replace(
+        cfg,
+        r_hat_ohm=r0 * (1.0 + values.get("r_hat_err", 0.0)),
+        l_hat_h=l0 * (1.0 + values.get("l_hat_err", 0.0)),
+        lambda_hat_vs=lam0 * (1.0 + values.get("lambda_hat_err", 0.0)),
+    )
     sc.observers[vname] = cfg.validate(f"study variant {vname}")
     ctrl = sc.control
     sc.control = dataclasses.replace(
-        ctrl, r_hat_ohm=card.resistance_ohm if ctrl.r_hat_ohm is None else ctrl.r_hat_ohm,
+        ctrl,
+        r_hat_ohm=card.resistance_ohm if ctrl.r_hat_ohm is None else ctrl.r_hat_ohm,
         l_hat_h=card.inductance_h if ctrl.l_hat_h is None else ctrl.l_hat_h,
-        lambda_hat_vs=card.flux_linkage_vs if ctrl.lambda_hat_vs is None else ctrl.lambda_hat_vs)
+        lambda_hat_vs=card.flux_linkage_vs if ctrl.lambda_hat_vs is None else ctrl.lambda_hat_vs,
+    )
     rated = card.rated_current_a
     if "current_offset_pu" in values:
         sc.current_offset_a = tuple(float(x) * rated for x in values["current_offset_pu"])
@@ -182,17 +219,20 @@ def _bag_task(p: dict[str, Any]) -> dict[str, Any]:
     card = bag.machine(machine)
     params = {k: v for k, v in p["variant_cfg"].items() if k != "variant"}
     params.update(p["grid"])
-    for key, field_, base in (("r_hat_err", "r_hat_ohm", card.resistance_ohm),
-                              ("l_hat_err", "l_hat_h", card.inductance_h),
-                              ("lambda_hat_err", "lambda_hat_vs", card.flux_linkage_vs)):
+    for key, field_, base in (
+        ("r_hat_err", "r_hat_ohm", card.resistance_ohm),
+        ("l_hat_err", "l_hat_h", card.inductance_h),
+        ("lambda_hat_err", "lambda_hat_vs", card.flux_linkage_vs),
+    ):
         if key in params or key in p["random"]:
             x = params.pop(key, None)
             x = p["random"].get(key, x)
             params[field_] = float(params.get(field_, base)) * (1.0 + float(x))
     vs = VariantSpec(p["variant"], p["variant_cfg"].get("variant", "paper"), params)
     win = spec.get("window_s")
-    res = replay_bag(bag, [vs], machine, tuple(win) if win else None,
-                     float(spec.get("encoder_offset_deg", 0.0)))
+    res = replay_bag(
+        bag, [vs], machine, tuple(win) if win else None, float(spec.get("encoder_offset_deg", 0.0))
+    )
     w = steady_window(res.t, res.scenario.steady_window_s)
     th = res.truth[:, TR_THETA_E]
     sl = slice(w.k0, w.k1)

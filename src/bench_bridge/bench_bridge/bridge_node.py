@@ -52,36 +52,114 @@ _SOFTWARE_BUSES = ("virtual", "udp_multicast")  # no wire time: any layout and D
 def param_table() -> list[P]:
     """The bridge's declared parameters (description, unit, range; live ones marked)."""
     return [
-        P("interface", "virtual", "python-can interface (virtual, socketcan, pcan, ...)",
-          read_only=True),
-        P("channel", "fluxdrive", "python-can channel (virtual bus name, can0, ...)",
-          read_only=True),
-        P("bitrate", 1_000_000, "CAN (FD arbitration) bit rate", "bit/s", 10_000, 1_000_000,
-          read_only=True),
-        P("data_bitrate", 5_000_000, "CAN FD data-phase bit rate", "bit/s", 125_000,
-          12_000_000, read_only=True),
-        P("fd", True, "use CAN FD frames (and the SAMPLE_FD layout; false: the classic "
-          "4-frame layout)", read_only=True),
-        P("decimation", 0, "PWM periods per sample, either layout (0: the DBC's default, FD 1 "
-          "= every period, which only fits a virtual bus, classic 8; a real 1/5 Mbit/s FD "
-          "bus needs >= 4, see docs/can.md); sent in ARM_MODE, the drive must report it in "
-          "STATUS; observers and controller must then run at decimation * ts_s", "periods",
-          0, 255, read_only=True),
-        P("stale_timeout_s", 0.05, "no valid sample for this long (after the first): STALE "
-          "fault, PWM disabled (live)", "s", 1e-4, 60.0),
-        P("cmd_timeout_s", 0.001, "MCU duty-command watchdog sent in ARM_MODE (0: the MCU's "
-          "default, 1 ms)", "s", 0.0, 6.5535, read_only=True),
-        P("reconnect_initial_s", 0.05, "first reconnect delay after the bus is lost", "s",
-          1e-3, 60.0, read_only=True),
-        P("reconnect_max_s", 2.0, "longest reconnect delay (exponential back-off)", "s",
-          1e-3, 3600.0, read_only=True),
-        P("ts_s", 1e-4, "PWM period of the drive (header.stamp = seq * ts_s)", "s", 1e-6,
-          1e-2, read_only=True),
+        P(
+            "interface",
+            "virtual",
+            "python-can interface (virtual, socketcan, pcan, ...)",
+            read_only=True,
+        ),
+        P(
+            "channel",
+            "fluxdrive",
+            "python-can channel (virtual bus name, can0, ...)",
+            read_only=True,
+        ),
+        P(
+            "bitrate",
+            1_000_000,
+            "CAN (FD arbitration) bit rate",
+            "bit/s",
+            10_000,
+            1_000_000,
+            read_only=True,
+        ),
+        P(
+            "data_bitrate",
+            5_000_000,
+            "CAN FD data-phase bit rate",
+            "bit/s",
+            125_000,
+            12_000_000,
+            read_only=True,
+        ),
+        P(
+            "fd",
+            True,
+            "use CAN FD frames (and the SAMPLE_FD layout; false: the classic 4-frame layout)",
+            read_only=True,
+        ),
+        P(
+            "decimation",
+            0,
+            "PWM periods per sample, either layout (0: the DBC's default, FD 1 "
+            "= every period, which only fits a virtual bus, classic 8; a real 1/5 Mbit/s FD "
+            "bus needs >= 4, see docs/can.md); sent in ARM_MODE, the drive must report it in "
+            "STATUS; observers and controller must then run at decimation * ts_s",
+            "periods",
+            0,
+            255,
+            read_only=True,
+        ),
+        P(
+            "stale_timeout_s",
+            0.05,
+            "no valid sample for this long (after the first): STALE fault, PWM disabled (live)",
+            "s",
+            1e-4,
+            60.0,
+        ),
+        P(
+            "cmd_timeout_s",
+            0.001,
+            "MCU duty-command watchdog sent in ARM_MODE (0: the MCU's default, 1 ms)",
+            "s",
+            0.0,
+            6.5535,
+            read_only=True,
+        ),
+        P(
+            "reconnect_initial_s",
+            0.05,
+            "first reconnect delay after the bus is lost",
+            "s",
+            1e-3,
+            60.0,
+            read_only=True,
+        ),
+        P(
+            "reconnect_max_s",
+            2.0,
+            "longest reconnect delay (exponential back-off)",
+            "s",
+            1e-3,
+            3600.0,
+            read_only=True,
+        ),
+        P(
+            "ts_s",
+            1e-4,
+            "PWM period of the drive (header.stamp = seq * ts_s)",
+            "s",
+            1e-6,
+            1e-2,
+            read_only=True,
+        ),
         P("frame_id", "drive", "header.frame_id of published frames", read_only=True),
-        P("armed", False, "arm the drive (at start, and live: true arms, false disarms; "
-          "refused with the reason while a fault is latched)"),
-        P("diagnostics_period_s", 1.0, "period of the /diagnostics status", "s", 0.05, 60.0,
-          read_only=True),
+        P(
+            "armed",
+            False,
+            "arm the drive (at start, and live: true arms, false disarms; "
+            "refused with the reason while a fault is latched)",
+        ),
+        P(
+            "diagnostics_period_s",
+            1.0,
+            "period of the /diagnostics status",
+            "s",
+            0.05,
+            60.0,
+            read_only=True,
+        ),
         access.param(),
         graph.param(),
     ]
@@ -112,11 +190,19 @@ class BenchBridgeNode(Node):
         self.guard = access.CommandGuard(self.allowed, topics.DUTY)
         self.duty_out_of_range = 0
         self.service_refused = 0
-        factory = bus_factory_from_params(self.p_interface, self.p_channel, self.p_bitrate,
-                                          self.p_fd, self.p_data_bitrate)
-        self.bridge = CanBridge(factory, BridgeConfig(
-            stale_timeout_s=stale, cmd_timeout_s=cmd_to,
-            reconnect_initial_s=rc0, reconnect_max_s=rc1, decimation=self.p_decimation))
+        factory = bus_factory_from_params(
+            self.p_interface, self.p_channel, self.p_bitrate, self.p_fd, self.p_data_bitrate
+        )
+        self.bridge = CanBridge(
+            factory,
+            BridgeConfig(
+                stale_timeout_s=stale,
+                cmd_timeout_s=cmd_to,
+                reconnect_initial_s=rc0,
+                reconnect_max_s=rc1,
+                decimation=self.p_decimation,
+            ),
+        )
         self._report_link()
         self._mismatch_logged = ""
         # the simulated plant's QoS: every reader of /drive/frame matches (volatile ones and
@@ -126,9 +212,12 @@ class BenchBridgeNode(Node):
         self._stamp_d = 0
         self._stamp = Stamp(self.ts)
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.create_subscription(DutyCommand, topics.DUTY,
-                                 self.graph.typed(topics.DUTY, self._on_duty),
-                                 qos.reader("volatile"))
+        self.create_subscription(
+            DutyCommand,
+            topics.DUTY,
+            self.graph.typed(topics.DUTY, self._on_duty),
+            qos.reader("volatile"),
+        )
         self.create_service(Arm, "/drive/arm", self._on_arm)
         self.create_service(ResetFault, "/drive/reset_fault", self._on_reset)
         self.create_timer(diag_period, self._publish_diagnostics)
@@ -147,11 +236,15 @@ class BenchBridgeNode(Node):
         self.get_logger().info(
             f"{br.layout} layout, D={br.decimation}: a sample every "
             f"{br.decimation * self.ts * 1e3:g} ms (observers and controller must run at "
-            f"ts = {br.decimation * self.ts:g} s)")
+            f"ts = {br.decimation * self.ts:g} s)"
+        )
         if self.p_interface in _SOFTWARE_BUSES:
             return
-        kw = {"pwm_hz": 1.0 / self.ts, "nominal_bitrate": float(self.p_bitrate),
-              "data_bitrate": float(self.p_data_bitrate)}
+        kw = {
+            "pwm_hz": 1.0 / self.ts,
+            "nominal_bitrate": float(self.p_bitrate),
+            "data_bitrate": float(self.p_data_bitrate),
+        }
         lb = link_budget(br.layout, decimation=br.decimation, **kw)
         if not lb["fits"]:
             try:
@@ -162,7 +255,8 @@ class BenchBridgeNode(Node):
                 f"the {br.layout} layout at D={br.decimation} needs "
                 f"{100 * lb['load_none']:.0f}-{100 * lb['load_worst']:.0f} % of this "
                 f"{self.p_bitrate / 1e6:g}/{self.p_data_bitrate / 1e6:g} Mbit/s bus (host "
-                f"budget {lb['host_budget_us_worst']:.0f} us per sample): use {need}")
+                f"budget {lb['host_budget_us_worst']:.0f} us per sample): use {need}"
+            )
 
     # ---------------------------------------------------------------- CAN side
     def _can_loop(self) -> None:
@@ -189,8 +283,10 @@ class BenchBridgeNode(Node):
     def _on_duty(self, msg: DutyCommand) -> None:
         if not self.guard.accept_mark(msg.commander):
             if self.guard.n_rejected <= 3:
-                self.get_logger().warning(f"duty command dropped ({self.guard.last_rejected}); "
-                                          f"obeyed only from {self.allowed}")
+                self.get_logger().warning(
+                    f"duty command dropped ({self.guard.last_rejected}); "
+                    f"obeyed only from {self.allowed}"
+                )
             return
         d = list(msg.duty)
         if all(math.isfinite(x) for x in d) and not all(-1e-9 <= x <= 1.0 + 1e-9 for x in d):
@@ -224,8 +320,7 @@ class BenchBridgeNode(Node):
 
     def _apply_params(self, changes: dict) -> str | None:
         if "armed" in changes:
-            ok, why = (self.bridge.arm() if changes["armed"]
-                       else self.bridge.disarm("parameter"))
+            ok, why = self.bridge.arm() if changes["armed"] else self.bridge.disarm("parameter")
             if not ok:
                 raise ValueError(why)
         if "stale_timeout_s" in changes:
@@ -239,20 +334,32 @@ class BenchBridgeNode(Node):
         st.hardware_id = f"{self.p_interface}:{self.p_channel}"
         mismatch = d["drive_mismatch"]
         if mismatch and mismatch != self._mismatch_logged:
-            self.get_logger().error(f"{mismatch}: arming refused (set the decimation and "
-                                    f"fd parameters to what the drive runs, or reflash it)")
+            self.get_logger().error(
+                f"{mismatch}: arming refused (set the decimation and "
+                f"fd parameters to what the drive runs, or reflash it)"
+            )
         self._mismatch_logged = mismatch
         if d["state"] in ("fault", "disconnected"):
             st.level = DiagnosticStatus.ERROR
-        elif (d["malformed"] or d["seq_gaps"] or d["bus_errors"] or self.guard.n_rejected
-              or d["layout_mismatch"]
-              or self.duty_out_of_range or d.get("duty_nonfinite") or self.service_refused):
+        elif (
+            d["malformed"]
+            or d["seq_gaps"]
+            or d["bus_errors"]
+            or self.guard.n_rejected
+            or d["layout_mismatch"]
+            or self.duty_out_of_range
+            or d.get("duty_nonfinite")
+            or self.service_refused
+        ):
             st.level = DiagnosticStatus.WARN
         else:
             st.level = DiagnosticStatus.OK
         st.message = d["state"] + (f": {d['fault']}" if d["fault"] else "")
-        d.update(self.guard.values(), duty_out_of_range=self.duty_out_of_range,
-                 service_requests_refused=self.service_refused)
+        d.update(
+            self.guard.values(),
+            duty_out_of_range=self.duty_out_of_range,
+            service_requests_refused=self.service_refused,
+        )
         st.values = [KeyValue(key=k, value=str(v)) for k, v in d.items()]
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()

@@ -55,26 +55,39 @@ from fluxdrive_ros import params, qos, topics
 _CARD = "; default: from the machine card (OBSERVER_RULES)"
 # ObserverConfig field -> (description, unit)
 DOCS = {
-    "voltage_source": ("stator voltage the observer integrates: captured line voltages or "
-                       "duty x Vdc", ""),
-    "cutoff_hz": ("cut-off of the LPF replacing the integrator (lpf/paper); correction gain "
-                  "of hinkkanen_luomi" + _CARD, "Hz"),
+    "voltage_source": (
+        "stator voltage the observer integrates: captured line voltages or duty x Vdc",
+        "",
+    ),
+    "cutoff_hz": (
+        "cut-off of the LPF replacing the integrator (lpf/paper); correction gain "
+        "of hinkkanen_luomi" + _CARD,
+        "Hz",
+    ),
     "pll_bandwidth_hz": ("PLL natural frequency (Kp = 2 zeta wn, Ki = wn^2)" + _CARD, "Hz"),
     "pll_damping": ("PLL damping ratio", ""),
-    "speed_lpf_hz": ("extra low-pass on the speed output (EMF path, Fig. 5); 0 = off" + _CARD,
-                     "Hz"),
+    "speed_lpf_hz": (
+        "extra low-pass on the speed output (EMF path, Fig. 5); 0 = off" + _CARD,
+        "Hz",
+    ),
     "omega_floor_rad_s": ("floor on |w^| in the inverse-HPF compensation" + _CARD, "rad/s"),
     "deadtime_comp_s": ("deadtime feed-forward on commanded voltages (0 = off)", "s"),
     "gamma_bw_rad_s": ("ortega: observer gain gamma = gamma_bw / lambda^2" + _CARD, "rad/s"),
     "plpf_k": ("programmable LPF: w_c = |w^|/K", ""),
     "cutoff_min_hz": ("programmable LPF: floor on w_c" + _CARD, "Hz"),
-    "comp_freq_lpf_hz": ("paper/paper_robust: low-pass on the LPF output's own rotation "
-                         "used as the compensation frequency; 0 = the PLL's frequency (eq. 8)"
-                         + _CARD, "Hz"),
-    "phase_detector": ("PLL phase detector: atan (arctangent, Sec. III) or sin (normalised "
-                       "cross product)", ""),
-    "inductance_term": ("where L^ i is removed: after_integration (eq. 5) or before_filter "
-                        "(L^ di/dt in the EMF)", ""),
+    "comp_freq_lpf_hz": (
+        "paper/paper_robust: low-pass on the LPF output's own rotation "
+        "used as the compensation frequency; 0 = the PLL's frequency (eq. 8)" + _CARD,
+        "Hz",
+    ),
+    "phase_detector": (
+        "PLL phase detector: atan (arctangent, Sec. III) or sin (normalised cross product)",
+        "",
+    ),
+    "inductance_term": (
+        "where L^ i is removed: after_integration (eq. 5) or before_filter (L^ di/dt in the EMF)",
+        "",
+    ),
     "r_hat_ohm": ("observer's stator resistance R^", "ohm"),
     "l_hat_h": ("observer's stator inductance L^", "H"),
     "lambda_hat_vs": ("observer's magnet flux lambda^", "V s"),
@@ -84,21 +97,39 @@ RANGES = {k: (lo, hi) for k, lo, hi in PARAM_RANGES}
 
 def config_params(cfg, card) -> list[P]:
     """Declared parameters for every ObserverConfig field (defaults from cfg / the card)."""
-    return params.config_params(cfg, card, DOCS, RANGES, skip=("variant", "extra"),
-                                choices=STRING_CHOICES)
+    return params.config_params(
+        cfg, card, DOCS, RANGES, skip=("variant", "extra"), choices=STRING_CHOICES
+    )
 
 
 class ObserverNode(FluxNode):
     def __init__(self, name: str = "observer", namespace: str | None = None, **kw):
         super().__init__(name, namespace, **kw)
-        first = declare(self, [
-            P("scenario", "", "scenario YAML (path or a name under config/scenarios): the "
-              "machine card and this observer's defaults", read_only=True),
-            P("observer", name, "entry of the scenario's observers this node runs (default: "
-              "the node name); also the estimate's variant field", read_only=True),
-            P("machine", str(CONFIG_DIR / "machines" / "default_spm.yaml"), "machine card "
-              "YAML when no scenario is given", read_only=True),
-        ])
+        first = declare(
+            self,
+            [
+                P(
+                    "scenario",
+                    "",
+                    "scenario YAML (path or a name under config/scenarios): the "
+                    "machine card and this observer's defaults",
+                    read_only=True,
+                ),
+                P(
+                    "observer",
+                    name,
+                    "entry of the scenario's observers this node runs (default: "
+                    "the node name); also the estimate's variant field",
+                    read_only=True,
+                ),
+                P(
+                    "machine",
+                    str(CONFIG_DIR / "machines" / "default_spm.yaml"),
+                    "machine card YAML when no scenario is given",
+                    read_only=True,
+                ),
+            ],
+        )
         sp, obs_name, mpath = first["scenario"], first["observer"], first["machine"]
         base = None
         if sp:
@@ -109,8 +140,18 @@ class ObserverNode(FluxNode):
             card = load_machine(mpath)
         if base is None:
             base = observer_config("paper")
-        variant = declare(self, [P("variant", base.variant, "observer variant",
-                                   choices=tuple(sorted(VARIANT_KINDS)), read_only=True)])
+        variant = declare(
+            self,
+            [
+                P(
+                    "variant",
+                    base.variant,
+                    "observer variant",
+                    choices=tuple(sorted(VARIANT_KINDS)),
+                    read_only=True,
+                )
+            ],
+        )
         variant = variant["variant"]
         if variant != base.variant:
             base = observer_config(variant)
@@ -118,16 +159,25 @@ class ObserverNode(FluxNode):
         base = base.resolved(card)  # frequencies left unset: from the card (OBSERVER_RULES)
         self.specs = config_params(base, card)
         pv = declare(self, self.specs)
-        common = declare(self, [
-            P("frame_topic", topics.FRAME, "PhaseFrame input topic", read_only=True),
-            P("input_durability", "volatile", "durability of the sample-topic "
-              "subscriptions: volatile (matches any publisher) or transient_local (also receives "
-              "what was published before the match; the lockstep sim graphs use it)",
-              choices=qos.INPUT_DURABILITY_CHOICES, read_only=True),
-            P("exit_on_done", True, "exit once the frame named by /drive/done is processed"),
-            P("frame_id", "", "header.frame_id of published estimates", read_only=True),
-            diag.PARAM,
-        ])
+        common = declare(
+            self,
+            [
+                P("frame_topic", topics.FRAME, "PhaseFrame input topic", read_only=True),
+                P(
+                    "input_durability",
+                    "volatile",
+                    "durability of the sample-topic "
+                    "subscriptions: volatile (matches any publisher) or transient_local "
+                    "(also receives what was published before the match; the lockstep sim "
+                    "graphs use it)",
+                    choices=qos.INPUT_DURABILITY_CHOICES,
+                    read_only=True,
+                ),
+                P("exit_on_done", True, "exit once the frame named by /drive/done is processed"),
+                P("frame_id", "", "header.frame_id of published estimates", read_only=True),
+                diag.PARAM,
+            ],
+        )
         self.cfg = base.with_overrides(**pv)
         self.params = self.cfg.to_params(card)
         self.state = np.zeros(OS_N)
@@ -141,25 +191,39 @@ class ObserverNode(FluxNode):
         self.last_seq = -1
         self.done_seq: int | None = None
         self.limits = frame_limits(card)
-        self.counts = diag.Counters("frames", "good", "bad_samples", "out_of_range",
-                                    "repeated_or_backwards", "missing", "invalid_estimates",
-                                    "lost_interval_frames")
+        self.counts = diag.Counters(
+            "frames",
+            "good",
+            "bad_samples",
+            "out_of_range",
+            "repeated_or_backwards",
+            "missing",
+            "invalid_estimates",
+            "lost_interval_frames",
+        )
         self._lost_seen = 0.0
         self._lost_frame = -2  # seq of the last coasted lost-interval frame
         self._good_reported = 0
         self._frames_reported = 0
         self._logged = 0
         self.pub = RawPublisher(self, fm.RotorEstimate, "~/" + topics.ESTIMATE, qos.SAMPLES)
-        self.sub = RawSubscription(self, fm.PhaseFrame, common["frame_topic"], self._on_frame,
-                                   qos.reader(common["input_durability"]))
-        self.create_subscription(fm.RunDone, topics.DONE,
-                                 self.graph.typed(topics.DONE, self._on_done), qos.LATCHED)
+        self.sub = RawSubscription(
+            self,
+            fm.PhaseFrame,
+            common["frame_topic"],
+            self._on_frame,
+            qos.reader(common["input_durability"]),
+        )
+        self.create_subscription(
+            fm.RunDone, topics.DONE, self.graph.typed(topics.DONE, self._on_done), qos.LATCHED
+        )
         on_set(self, self.specs, self._apply)
         self.diag = diag.Diagnostics(self, common["diagnostics_period_s"])
         self.diag.add("input", self._diag_input)
         self.get_logger().info(
             f"{obs_name}: variant {self.cfg.variant}, {self.cfg.voltage_source} voltages, "
-            f"publishing {self.pub.topic_name}")
+            f"publishing {self.pub.topic_name}"
+        )
 
     def _apply(self, changes: dict) -> str:
         cfg = self.cfg.with_overrides(**changes)  # raises ConfigError with the reason
@@ -205,7 +269,8 @@ class ObserverNode(FluxNode):
             self.get_logger().warning(
                 f"frame {seq}: PWM off by the power stage's watchdog (a lost interval): the "
                 f"commanded voltage is not what the terminals saw -- coasting at w^ with the "
-                f"flux state kept in phase, estimates flagged invalid until PWM is back")
+                f"flux state kept in phase, estimates flagged invalid until PWM is back"
+            )
 
     def _count_bad(self, seq: int, oor: bool, before: tuple) -> None:
         st, c = self.state, self.counts.values
@@ -215,13 +280,19 @@ class ObserverNode(FluxNode):
         c["missing"] = int(st[OS_GAPS])
         if self._logged < 10:
             self._logged += 1
-            what = ("out of range (beyond the sensors' full scale)" if oor else
-                    "not finite" if st[OS_BAD] != before[0] else
-                    f"repeated/backwards after {self.last_seq}" if st[OS_STALE] != before[1]
-                    else f"{int(st[OS_GAPS] - before[2])} frame(s) missing before it")
+            what = (
+                "out of range (beyond the sensors' full scale)"
+                if oor
+                else "not finite"
+                if st[OS_BAD] != before[0]
+                else f"repeated/backwards after {self.last_seq}"
+                if st[OS_STALE] != before[1]
+                else f"{int(st[OS_GAPS] - before[2])} frame(s) missing before it"
+            )
             self.get_logger().warning(
                 f"frame {seq}: {what}; estimate held and flagged invalid"
-                + ("" if self._logged < 10 else " (further cases: /diagnostics only)"))
+                + ("" if self._logged < 10 else " (further cases: /diagnostics only)")
+            )
 
     def _diag_input(self) -> tuple[int, str, dict]:
         c = self.counts
@@ -230,19 +301,39 @@ class ObserverNode(FluxNode):
         frames_new = c["frames"] - self._frames_reported
         good_new = c["good"] - self._good_reported
         self._frames_reported, self._good_reported = c["frames"], c["good"]
-        values = {**c.report(), "last_seq": self.last_seq,
-                  "estimate_valid": bool(self.row[ES_VALID])}
+        values = {
+            **c.report(),
+            "last_seq": self.last_seq,
+            "estimate_valid": bool(self.row[ES_VALID]),
+        }
         if lost and not grew:
-            return diag.WARN, ("lost interval (the power stage's watchdog switched the PWM "
-                               "off): coasting, estimates flagged invalid"), values
+            return (
+                diag.WARN,
+                (
+                    "lost interval (the power stage's watchdog switched the PWM "
+                    "off): coasting, estimates flagged invalid"
+                ),
+                values,
+            )
         if frames_new and not good_new:
-            return diag.ERROR, (f"no usable frame among the last {frames_new}: estimate held, "
-                                f"flagged invalid"), values
+            return (
+                diag.ERROR,
+                (f"no usable frame among the last {frames_new}: estimate held, flagged invalid"),
+                values,
+            )
         if grew:
-            return diag.WARN, "bad input since the last report (" + ", ".join(
-                f"{k} {c[k]}" for k in grew) + "); estimates flagged invalid", values
-        return diag.OK, "input ok" + ("" if values["estimate_valid"] else
-                                      " (estimate not valid yet)"), values
+            return (
+                diag.WARN,
+                "bad input since the last report ("
+                + ", ".join(f"{k} {c[k]}" for k in grew)
+                + "); estimates flagged invalid",
+                values,
+            )
+        return (
+            diag.OK,
+            "input ok" + ("" if values["estimate_valid"] else " (estimate not valid yet)"),
+            values,
+        )
 
     def _on_done(self, msg) -> None:
         if not self.exit_on_done:

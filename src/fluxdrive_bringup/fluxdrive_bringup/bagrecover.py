@@ -51,8 +51,10 @@ def _mcap_file(bag: Path) -> Path:
         raise ConfigError(f"bag recover: {bag} is neither a bag directory nor an .mcap file")
     files = sorted(bag.glob("*.mcap"))
     if len(files) != 1:
-        raise ConfigError(f"bag recover: expected one .mcap file in {bag}, found "
-                          f"{[f.name for f in files] or 'none'}")
+        raise ConfigError(
+            f"bag recover: expected one .mcap file in {bag}, found "
+            f"{[f.name for f in files] or 'none'}"
+        )
     return files[0]
 
 
@@ -118,9 +120,11 @@ def recover(bag: Path, out: Path | None = None) -> Recovery:
                 except Exception as exc:  # noqa: BLE001 - any damage ends the readable part
                     what = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
                     if type(exc).__name__ == "EndOfFile":
-                        what = ("the data ends there, without the summary (not finalised)"
-                                if rec.bytes_read == rec.bytes_total else
-                                "the file ends inside a record (the writer stopped there)")
+                        what = (
+                            "the data ends there, without the summary (not finalised)"
+                            if rec.bytes_read == rec.bytes_total
+                            else "the file ends inside a record (the writer stopped there)"
+                        )
                     rec.stop_reason += f"stopped at byte {rec.bytes_read}: {what}"
                     break
                 rec.bytes_read = fh.tell()
@@ -169,9 +173,11 @@ def recover(bag: Path, out: Path | None = None) -> Recovery:
 
 
 def report(rec: Recovery) -> str:
-    lines = [f"bag recover: {rec.source}: read {rec.bytes_read} of {rec.bytes_total} bytes, "
-             f"{rec.chunks} complete chunks; {rec.stop_reason}",
-             f"recovered {rec.messages} messages into {rec.out} (rosbag2 v9, MCAP):"]
+    lines = [
+        f"bag recover: {rec.source}: read {rec.bytes_read} of {rec.bytes_total} bytes, "
+        f"{rec.chunks} complete chunks; {rec.stop_reason}",
+        f"recovered {rec.messages} messages into {rec.out} (rosbag2 v9, MCAP):",
+    ]
     w = max((len(t) for t in rec.counts), default=10)
     for t, c in rec.counts.items():
         lines.append(f"  {t:{w}s} {c:9d}")
@@ -180,33 +186,42 @@ def report(rec: Recovery) -> str:
         lines.append(f"time span {t0:.4f} .. {t1:.4f} s ({t1 - t0:.4f} s)")
     if rec.frame_seqs is not None:
         a, b, gaps = rec.frame_seqs
-        lines.append(f"/drive/frame seq {a}..{b}, " + (
-            "no gaps" if gaps == 0 else f"{gaps} frames missing inside"))
+        lines.append(
+            f"/drive/frame seq {a}..{b}, "
+            + ("no gaps" if gaps == 0 else f"{gaps} frames missing inside")
+        )
     return "\n".join(lines)
 
 
 def main(argv: list[str]) -> int:
     ap = argparse.ArgumentParser(prog="fluxdrive bag", description="bag maintenance")
     sub = ap.add_subparsers(dest="cmd", required=True)
-    rp = sub.add_parser("recover", help="rebuild a valid bag from one that was not finalised "
-                        "(recorder killed, disk full)")
+    rp = sub.add_parser(
+        "recover",
+        help="rebuild a valid bag from one that was not finalised (recorder killed, disk full)",
+    )
     rp.add_argument("bag", type=Path, help="bag directory (or its .mcap file)")
     rp.add_argument("--out", type=Path, help="new bag directory (default <BAG>-recovered)")
-    rp.add_argument("--force", action="store_true",
-                    help="rewrite even a bag that was finalised properly")
+    rp.add_argument(
+        "--force", action="store_true", help="rewrite even a bag that was finalised properly"
+    )
     args = ap.parse_args(argv)
     try:
         mcap = _mcap_file(args.bag)
         if is_finalised(mcap) and not args.force:
-            print(f"bag recover: {mcap.parent} was finalised properly (metadata.yaml, MCAP "
-                  f"footer); nothing to recover (--force rewrites it anyway)")
+            print(
+                f"bag recover: {mcap.parent} was finalised properly (metadata.yaml, MCAP "
+                f"footer); nothing to recover (--force rewrites it anyway)"
+            )
             return 0
         rec = recover(args.bag, args.out)
     except (ConfigError, OSError) as exc:
         import sys
 
-        print(f"fluxdrive {exc}" if isinstance(exc, ConfigError) else
-              f"fluxdrive bag recover: {exc}", file=sys.stderr)
+        print(
+            f"fluxdrive {exc}" if isinstance(exc, ConfigError) else f"fluxdrive bag recover: {exc}",
+            file=sys.stderr,
+        )
         return 2
     print(report(rec))
     return 0

@@ -54,8 +54,7 @@ def pack_json(kind: bytes, obj: dict) -> bytes:
     return kind + U32.pack(len(raw)) + raw
 
 
-def check_bag_target(bag_dir: Path, min_free_mb: float = 0.0, must_not_exist: bool = True
-                     ) -> float:
+def check_bag_target(bag_dir: Path, min_free_mb: float = 0.0, must_not_exist: bool = True) -> float:
     """Can a bag be written at bag_dir?  Creates its parent directories, checks that a file
     can be written there and that at least min_free_mb are free.  Returns the free space
     [MB]; raises ValueError with a one-line reason (before anything starts recording)."""
@@ -75,12 +74,16 @@ def check_bag_target(bag_dir: Path, min_free_mb: float = 0.0, must_not_exist: bo
             fh.write(b"x")
             fh.flush()
     except OSError as exc:
-        raise ValueError(f"cannot record to {bag_dir}: {parent} is not a writable "
-                         f"directory ({exc.strerror or exc})") from exc
+        raise ValueError(
+            f"cannot record to {bag_dir}: {parent} is not a writable "
+            f"directory ({exc.strerror or exc})"
+        ) from exc
     free_mb = shutil.disk_usage(parent).free / 1e6
     if free_mb < min_free_mb:
-        raise ValueError(f"cannot record to {bag_dir}: {free_mb:.0f} MB free on its file "
-                         f"system, the recorder's min_free_mb is {min_free_mb:g} MB")
+        raise ValueError(
+            f"cannot record to {bag_dir}: {free_mb:.0f} MB free on its file "
+            f"system, the recorder's min_free_mb is {min_free_mb:g} MB"
+        )
     return free_mb
 
 
@@ -142,17 +145,25 @@ def main() -> int:
                 settings = json.loads(cd[META_KEY]) if META_KEY in cd else {}
                 writer = BagWriter(path, settings, epoch_offset_ns=h.get("epoch_offset_ns"))
                 side = path / RECORDING_FILE
-                side.write_text(json.dumps({
-                    "note": "this bag is being written; without metadata.yaml it was not "
+                side.write_text(
+                    json.dumps(
+                        {
+                            "note": "this bag is being written; without metadata.yaml it was not "
                             "finalised: ./fluxdrive bag recover " + str(path),
-                    "custom_data": {META_KEY: json.dumps(writer.settings)}}))
+                            "custom_data": {META_KEY: json.dumps(writer.settings)},
+                        }
+                    )
+                )
                 _say("ready")
             else:
                 print(f"bagwriter: corrupt input (record type {kind!r})", file=sys.stderr)
                 break
     except OSError as exc:  # disk full, file too large, I/O error: stop recording
-        where = getattr(getattr(writer, "storage", None), "path", None) or exc.filename or (
-            writer.path if writer is not None else "the bag")
+        where = (
+            getattr(getattr(writer, "storage", None), "path", None)
+            or exc.filename
+            or (writer.path if writer is not None else "the bag")
+        )
         failed = f"cannot write {where}: {exc.strerror or exc} (after {n_msgs} messages)"
     finally:
         if writer is not None and not failed:
@@ -169,8 +180,10 @@ def main() -> int:
                     writer.abort()
                 except OSError:
                     pass
-                failed += (f"; the complete chunks can be recovered with "
-                           f"./fluxdrive bag recover {writer.path}")
+                failed += (
+                    f"; the complete chunks can be recovered with "
+                    f"./fluxdrive bag recover {writer.path}"
+                )
             _say(f"error {failed}")  # the recorder logs it
     return EXIT_WRITE_FAILED if failed else 0
 

@@ -47,15 +47,23 @@ def bench_graph(argv: list[str]) -> dict:
     ap = argparse.ArgumentParser(prog="fluxdrive benchmark graph", description=__doc__)
     ap.add_argument("--duration", type=float, default=3.0, help="simulated seconds (default 3)")
     ap.add_argument("--scenario", default=DEMO_SCENARIO)
-    ap.add_argument("--layouts", default="composed",
-                    help=f"comma-separated, of {','.join(LAYOUTS)} (first = lockstep_rtf)")
+    ap.add_argument(
+        "--layouts",
+        default="composed",
+        help=f"comma-separated, of {','.join(LAYOUTS)} (first = lockstep_rtf)",
+    )
     ap.add_argument("--repeat", type=int, default=1, help="best of N graph runs per layout")
     ap.add_argument("--domain-id", type=int)
-    ap.add_argument("--scope", action="store_true",
-                    help="also measure with the live scope attached (lockstep_rtf_scope)")
-    ap.add_argument("--scope-browser", action="store_true",
-                    help="with --scope: the page in headless chromium instead of a plain "
-                    "WebSocket client")
+    ap.add_argument(
+        "--scope",
+        action="store_true",
+        help="also measure with the live scope attached (lockstep_rtf_scope)",
+    )
+    ap.add_argument(
+        "--scope-browser",
+        action="store_true",
+        help="with --scope: the page in headless chromium instead of a plain WebSocket client",
+    )
     args = ap.parse_args(argv)
     if args.scope_browser:
         args.scope = True
@@ -78,8 +86,10 @@ def bench_graph(argv: list[str]) -> dict:
     run_scenario(sc, progress=False)
     wall_ip = time.perf_counter() - t0
     in_rtf = sc.duration_s / wall_ip
-    _say(f"in-process: {sc.n_periods} periods, {len(sc.observers)} observers in "
-         f"{wall_ip:.2f} s = real-time factor {in_rtf:.2f}")
+    _say(
+        f"in-process: {sc.n_periods} periods, {len(sc.observers)} observers in "
+        f"{wall_ip:.2f} s = real-time factor {in_rtf:.2f}"
+    )
 
     out: dict = {}
     page: dict = {}
@@ -89,13 +99,21 @@ def bench_graph(argv: list[str]) -> dict:
             best: dict[bool, float] = {}
             cpus: dict[bool, list[dict]] = {}
             for rep in range(args.repeat):
-                for with_scope in ([False, True] if args.scope else [False]):
+                for with_scope in [False, True] if args.scope else [False]:
                     tag = f"{lay}-{rep}" + ("-scope" if with_scope else "")
                     bag = tmp / f"bag-{tag}"
-                    what = (" with the scope" + (" (chromium)" if args.scope_browser else
-                                                 " (WebSocket client)")) if with_scope else ""
-                    _say(f"graph ({lay}){what}, run {rep + 1}/{args.repeat}: "
-                         f"{args.duration:g} s simulated ...")
+                    what = (
+                        (
+                            " with the scope"
+                            + (" (chromium)" if args.scope_browser else " (WebSocket client)")
+                        )
+                        if with_scope
+                        else ""
+                    )
+                    _say(
+                        f"graph ({lay}){what}, run {rep + 1}/{args.repeat}: "
+                        f"{args.duration:g} s simulated ..."
+                    )
                     watcher = ScopeWatcher(args.scope_browser) if with_scope else None
                     cpu = CpuWatcher()
 
@@ -106,14 +124,26 @@ def bench_graph(argv: list[str]) -> dict:
                         if watcher is not None:
                             watcher.run(launcher)
 
-                    r = run_graph(sp, out=tmp / f"run-{tag}", bag=bag, layout=lay,
-                                  duration_s=args.duration, domain_id=args.domain_id,
-                                  quiet=True, timeout=600.0, progress=False,
-                                  scope=with_scope, scope_port=0, watch=watch)
+                    r = run_graph(
+                        sp,
+                        out=tmp / f"run-{tag}",
+                        bag=bag,
+                        layout=lay,
+                        duration_s=args.duration,
+                        domain_id=args.domain_id,
+                        quiet=True,
+                        timeout=600.0,
+                        progress=False,
+                        scope=with_scope,
+                        scope_port=0,
+                        watch=watch,
+                    )
                     cpu.stop()
                     if r["code"] != 0 or r["lockstep_rtf"] is None:
-                        raise RuntimeError(f"graph run ({lay}) failed (exit {r['code']}); "
-                                           f"logs in {tmp / f'run-{tag}' / 'logs'}")
+                        raise RuntimeError(
+                            f"graph run ({lay}) failed (exit {r['code']}); "
+                            f"logs in {tmp / f'run-{tag}' / 'logs'}"
+                        )
                     sc2 = load_scenario(sp)
                     _, arr = result_from_bag(bag, sc2, args.duration)
                     missing = sum(arr["missing"].values())
@@ -121,26 +151,36 @@ def bench_graph(argv: list[str]) -> dict:
                     if watcher is not None:
                         watcher.stop()
                         page = watcher.summary(r["loop_wall_s"] or 1.0)
-                        extra = (f"; scope: {page['scope_envelopes']} envelopes to the page "
-                                 f"({page['scope_envelopes_per_s']:.1f}/s)" +
-                                 (f", page redraws {page['scope_page_fps']:.0f}/s"
-                                  if "scope_page_fps" in page else ""))
+                        extra = (
+                            f"; scope: {page['scope_envelopes']} envelopes to the page "
+                            f"({page['scope_envelopes_per_s']:.1f}/s)"
+                            + (
+                                f", page redraws {page['scope_page_fps']:.0f}/s"
+                                if "scope_page_fps" in page
+                                else ""
+                            )
+                        )
                         if page["scope_envelopes"] == 0:
-                            raise RuntimeError(f"the scope delivered nothing ({lay}); logs in "
-                                               f"{tmp / f'run-{tag}' / 'logs'}")
+                            raise RuntimeError(
+                                f"the scope delivered nothing ({lay}); logs in "
+                                f"{tmp / f'run-{tag}' / 'logs'}"
+                            )
                     c = cpu.per_sim_s(sc.machine.ts_s)
                     if c:
-                        extra += (f"; CPU per simulated second: graph process "
-                                  f"{c['graph']:.2f} s" + (f", scope server {c['scope']:.2f} s"
-                                                          if "scope" in c else ""))
+                        extra += f"; CPU per simulated second: graph process {c['graph']:.2f} s" + (
+                            f", scope server {c['scope']:.2f} s" if "scope" in c else ""
+                        )
                         cpus.setdefault(with_scope, []).append(c)
-                    _say(f"graph ({lay}){what}: {r['frames']} frames in "
-                         f"{r['loop_wall_s']:.2f} s = real-time factor "
-                         f"{r['lockstep_rtf']:.3f}; bag: {arr['n']} frames, {missing} samples "
-                         f"missing{extra}")
+                    _say(
+                        f"graph ({lay}){what}: {r['frames']} frames in "
+                        f"{r['loop_wall_s']:.2f} s = real-time factor "
+                        f"{r['lockstep_rtf']:.3f}; bag: {arr['n']} frames, {missing} samples "
+                        f"missing{extra}"
+                    )
                     if missing:
-                        raise RuntimeError(f"graph run ({lay}) lost {missing} samples: "
-                                           f"{arr['missing']}")
+                        raise RuntimeError(
+                            f"graph run ({lay}) lost {missing} samples: {arr['missing']}"
+                        )
                     best[with_scope] = max(best.get(with_scope, 0.0), r["lockstep_rtf"])
                     shutil.rmtree(bag, ignore_errors=True)
             out[f"lockstep_rtf_{lay}"] = round(best[False], 3)
@@ -159,16 +199,29 @@ def bench_graph(argv: list[str]) -> dict:
                         out[f"scope_server_cpu_s_per_sim_s_{lay}"] = round(min(sv), 3)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    res = {"lockstep_rtf": out[f"lockstep_rtf_{layouts[0]}"], "in_process_rtf": round(in_rtf, 2),
-           "layout": layouts[0], "pwm_hz": sc.machine.pwm_hz, "observers": len(sc.observers),
-           "simulated_s": args.duration, "recorded": True}
+    res = {
+        "lockstep_rtf": out[f"lockstep_rtf_{layouts[0]}"],
+        "in_process_rtf": round(in_rtf, 2),
+        "layout": layouts[0],
+        "pwm_hz": sc.machine.pwm_hz,
+        "observers": len(sc.observers),
+        "simulated_s": args.duration,
+        "recorded": True,
+    }
     if args.scope:
         rs = out[f"lockstep_rtf_scope_{layouts[0]}"]
-        res.update(lockstep_rtf_scope=rs,
-                   scope_cost_pct=round(100.0 * (1.0 - rs / res["lockstep_rtf"]), 1),
-                   scope_client="chromium" if args.scope_browser else "websocket", **page)
-        for k in ("graph_cpu_s_per_sim_s", "graph_cpu_s_per_sim_s_scope", "scope_cpu_cost_pct",
-                  "scope_server_cpu_s_per_sim_s"):
+        res.update(
+            lockstep_rtf_scope=rs,
+            scope_cost_pct=round(100.0 * (1.0 - rs / res["lockstep_rtf"]), 1),
+            scope_client="chromium" if args.scope_browser else "websocket",
+            **page,
+        )
+        for k in (
+            "graph_cpu_s_per_sim_s",
+            "graph_cpu_s_per_sim_s_scope",
+            "scope_cpu_cost_pct",
+            "scope_server_cpu_s_per_sim_s",
+        ):
             if f"{k}_{layouts[0]}" in out:
                 res[k] = out[f"{k}_{layouts[0]}"]
     if len(layouts) > 1:
@@ -222,8 +275,9 @@ class CpuWatcher:
             prog = launcher.progress
             if prog is None:
                 continue
-            self.samples.append((prog[0], self._cpu(graph),
-                                 self._cpu(scope) if scope is not None else float("nan")))
+            self.samples.append(
+                (prog[0], self._cpu(graph), self._cpu(scope) if scope is not None else float("nan"))
+            )
             if prog[0] >= prog[1]:
                 break
 
@@ -318,8 +372,10 @@ class ScopeWatcher:
         time.sleep(0.2)
 
     def summary(self, wall_s: float) -> dict:
-        out = {"scope_envelopes": self.n,
-               "scope_envelopes_per_s": round(self.n / max(wall_s, 1e-9), 1)}
+        out = {
+            "scope_envelopes": self.n,
+            "scope_envelopes_per_s": round(self.n / max(wall_s, 1e-9), 1),
+        }
         if self.bytes:
             out["scope_kb_per_s"] = round(self.bytes / 1e3 / max(wall_s, 1e-9), 1)
         if self.fps:
@@ -372,36 +428,55 @@ def bench_paced(argv: list[str]) -> dict:
     sp = scenario_path(args.scenario)
     tmp = Path(tempfile.mkdtemp(prefix="fluxdrive-bench-paced-"))
     try:
-        _say(f"paced graph ({args.layout}) at rate {args.rate:g}: {args.duration:g} s "
-             f"simulated ...")
-        r = run_graph(sp, out=tmp / "run", bag=tmp / "bag", layout=args.layout,
-                      duration_s=args.duration, domain_id=args.domain_id, quiet=True,
-                      timeout=600.0, progress=False,
-                      extra={"plant": {"mode": "paced", "rate_factor": args.rate}})
-        text = "\n".join(p.read_text(errors="replace")
-                         for p in sorted((tmp / "run" / "logs").glob("*.log")))
+        _say(
+            f"paced graph ({args.layout}) at rate {args.rate:g}: {args.duration:g} s simulated ..."
+        )
+        r = run_graph(
+            sp,
+            out=tmp / "run",
+            bag=tmp / "bag",
+            layout=args.layout,
+            duration_s=args.duration,
+            domain_id=args.domain_id,
+            quiet=True,
+            timeout=600.0,
+            progress=False,
+            extra={"plant": {"mode": "paced", "rate_factor": args.rate}},
+        )
+        text = "\n".join(
+            p.read_text(errors="replace") for p in sorted((tmp / "run" / "logs").glob("*.log"))
+        )
         m = re.search(r"pacing (\{.*\})", text)
         if r["code"] != 0 or m is None:
-            raise RuntimeError(f"paced graph failed (exit {r['code']}); logs in "
-                               f"{tmp / 'run' / 'logs'}")
+            raise RuntimeError(
+                f"paced graph failed (exit {r['code']}); logs in {tmp / 'run' / 'logs'}"
+            )
         p = json.loads(m.group(1))
     finally:
         if "p" in locals():
             shutil.rmtree(tmp, ignore_errors=True)
     wall_min = (r["loop_wall_s"] or r["wall_s"]) / 60.0
-    res = {"layout": args.layout, "rate_factor": args.rate, "observers": 4, "recorded": True,
-           "frames": p["frames"], "period_us": round(p["period_s"] * 1e6, 1),
-           "lateness_p50_periods": round(p["lateness_p50_periods"], 3),
-           "lateness_p99_periods": round(p["lateness_p99_periods"], 3),
-           "lateness_max_periods": round(p["lateness_max_periods"], 1),
-           "late_frames_per_min": round(p["late_frames"] / wall_min, 1),
-           "holds_per_min": round(p["holds"] / wall_min, 1),
-           "slips_per_min": round(p["slips"] / wall_min, 1),
-           "watchdog_trips": p["watchdog_trips"],
-           "rtf": round(r["lockstep_rtf"], 3) if r["lockstep_rtf"] else None}
-    _say(f"{res['frames']} frames: lateness p50 {res['lateness_p50_periods']} / p99 "
-         f"{res['lateness_p99_periods']} / max {res['lateness_max_periods']} periods; "
-         f"{res['late_frames_per_min']} late frames/min, {res['holds_per_min']} holds/min, "
-         f"{res['slips_per_min']} slips/min, {res['watchdog_trips']} watchdog trips; "
-         f"achieved real-time factor {res['rtf']}")
+    res = {
+        "layout": args.layout,
+        "rate_factor": args.rate,
+        "observers": 4,
+        "recorded": True,
+        "frames": p["frames"],
+        "period_us": round(p["period_s"] * 1e6, 1),
+        "lateness_p50_periods": round(p["lateness_p50_periods"], 3),
+        "lateness_p99_periods": round(p["lateness_p99_periods"], 3),
+        "lateness_max_periods": round(p["lateness_max_periods"], 1),
+        "late_frames_per_min": round(p["late_frames"] / wall_min, 1),
+        "holds_per_min": round(p["holds"] / wall_min, 1),
+        "slips_per_min": round(p["slips"] / wall_min, 1),
+        "watchdog_trips": p["watchdog_trips"],
+        "rtf": round(r["lockstep_rtf"], 3) if r["lockstep_rtf"] else None,
+    }
+    _say(
+        f"{res['frames']} frames: lateness p50 {res['lateness_p50_periods']} / p99 "
+        f"{res['lateness_p99_periods']} / max {res['lateness_max_periods']} periods; "
+        f"{res['late_frames_per_min']} late frames/min, {res['holds_per_min']} holds/min, "
+        f"{res['slips_per_min']} slips/min, {res['watchdog_trips']} watchdog trips; "
+        f"achieved real-time factor {res['rtf']}"
+    )
     return res

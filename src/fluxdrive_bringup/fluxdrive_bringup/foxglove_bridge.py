@@ -62,8 +62,7 @@ class Bridge:
         self.foxglove = foxglove
         self.ctx = rclpy.Context()
         rclpy.init(args=None, context=self.ctx, domain_id=args.domain_id)
-        self.node = rclpy.create_node(BRIDGE_NODE, context=self.ctx,
-                                      start_parameter_services=False)
+        self.node = rclpy.create_node(BRIDGE_NODE, context=self.ctx, start_parameter_services=False)
         self.ex = SingleThreadedExecutor(context=self.ctx)
         self.ex.add_node(self.node)
         self.lock = threading.Lock()  # channels / subscriptions (ROS thread + SDK threads)
@@ -72,13 +71,18 @@ class Bridge:
         self.subs: dict[str, Any] = {}  # topic -> rclpy subscription
         self.refs: dict[str, int] = {}  # topic -> subscribed viewers
         self.skipped: set[str] = set()
-        self.params = Session(domain_id=args.domain_id, wait_s=3.0,
-                              node_name="fluxdrive_foxglove_params")
+        self.params = Session(
+            domain_id=args.domain_id, wait_s=3.0, node_name="fluxdrive_foxglove_params"
+        )
         self.params_lock = threading.Lock()
         self.server = foxglove.start_server(
-            name="fluxdrive", host=args.host, port=args.port,
-            capabilities=[Capability.Parameters], server_listener=self,
-            supported_encodings=["cdr"])
+            name="fluxdrive",
+            host=args.host,
+            port=args.port,
+            capabilities=[Capability.Parameters],
+            server_listener=self,
+            supported_encodings=["cdr"],
+        )
         self.stop = threading.Event()
 
     # ------------------------------------------------------------------ channels
@@ -90,13 +94,17 @@ class Bridge:
                 schema = ros2msg_schema(types[0])
             except Exception as exc:  # noqa: BLE001 - a type the typestore does not know
                 self.skipped.add(topic)
-                print(f"foxglove: {topic} ({types[0]}) not served: no definition ({exc})",
-                      flush=True)
+                print(
+                    f"foxglove: {topic} ({types[0]}) not served: no definition ({exc})", flush=True
+                )
                 continue
-            ch = self.foxglove.Channel(topic, message_encoding="cdr",
-                                       schema=self.foxglove.Schema(
-                                           name=types[0], encoding="ros2msg",
-                                           data=schema.encode()))
+            ch = self.foxglove.Channel(
+                topic,
+                message_encoding="cdr",
+                schema=self.foxglove.Schema(
+                    name=types[0], encoding="ros2msg", data=schema.encode()
+                ),
+            )
             with self.lock:
                 self.channels[topic] = (ch, types[0])
                 self.by_id[ch.id()] = topic
@@ -106,15 +114,19 @@ class Bridge:
         from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
         infos = self.node.get_publishers_info_by_topic(topic)
-        best_effort = any(i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
-                          for i in infos)
+        best_effort = any(i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT for i in infos)
         latched = bool(infos) and all(
             i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
-            and 0 < i.qos_profile.depth <= 100 for i in infos)
-        return QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT if best_effort
-                          else ReliabilityPolicy.RELIABLE,
-                          durability=DurabilityPolicy.TRANSIENT_LOCAL if latched
-                          else DurabilityPolicy.VOLATILE)
+            and 0 < i.qos_profile.depth <= 100
+            for i in infos
+        )
+        return QoSProfile(
+            depth=1000,
+            reliability=ReliabilityPolicy.BEST_EFFORT
+            if best_effort
+            else ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE,
+        )
 
     # ServerListener (called from the SDK's threads)
     def on_subscribe(self, client, channel) -> None:
@@ -134,7 +146,8 @@ class Bridge:
                 log(data, log_time=time.time_ns())
 
             self.subs[topic] = self.node.create_subscription(
-                msg_class(mtype), topic, cb, self._qos(topic), raw=True)
+                msg_class(mtype), topic, cb, self._qos(topic), raw=True
+            )
 
     def on_unsubscribe(self, client, channel) -> None:
         topic = self.by_id.get(channel.id)
@@ -211,20 +224,28 @@ class Bridge:
                     ok, reason, _ = set_param(self.params, node, pname, text)
                 except (LookupError, TimeoutError) as exc:
                     ok, reason = False, str(exc)
-                print(f"foxglove: set {node} {pname} = {text}: "
-                      f"{'ok' if ok else 'REFUSED: ' + reason}", flush=True)
+                print(
+                    f"foxglove: set {node} {pname} = {text}: "
+                    f"{'ok' if ok else 'REFUSED: ' + reason}",
+                    flush=True,
+                )
                 if not ok:
-                    self.server.publish_status(f"{p.name} = {text} refused: {reason}",
-                                               self.foxglove.websocket.StatusLevel.Warning
-                                               if hasattr(self.foxglove.websocket, "StatusLevel")
-                                               else self.foxglove.StatusLevel.Warning)
+                    self.server.publish_status(
+                        f"{p.name} = {text} refused: {reason}",
+                        self.foxglove.websocket.StatusLevel.Warning
+                        if hasattr(self.foxglove.websocket, "StatusLevel")
+                        else self.foxglove.StatusLevel.Warning,
+                    )
             return self._values(names)
 
     # ------------------------------------------------------------------ run
     def run(self) -> int:
         port = self.server.port
-        print(f"foxglove: ws://{self.args.host}:{port} (WebSocket subprotocol {SUBPROTOCOL}; "
-              f"ROS_DOMAIN_ID={self.args.domain_id})", flush=True)
+        print(
+            f"foxglove: ws://{self.args.host}:{port} (WebSocket subprotocol {SUBPROTOCOL}; "
+            f"ROS_DOMAIN_ID={self.args.domain_id})",
+            flush=True,
+        )
         import signal
 
         def on_signal(*_a) -> None:
@@ -263,14 +284,17 @@ def main(argv: list[str] | None = None) -> int:
     try:
         import foxglove  # noqa: F401
     except ImportError:
-        print("foxglove: foxglove-sdk is not installed; run ./fluxdrive help (set-up) first",
-              file=sys.stderr)
+        print(
+            "foxglove: foxglove-sdk is not installed; run ./fluxdrive help (set-up) first",
+            file=sys.stderr,
+        )
         return 2
     try:
         b = Bridge(args)
     except RuntimeError as exc:  # the SDK cannot bind the port
-        print(f"foxglove: cannot start the server on {args.host}:{args.port}: {exc}",
-              file=sys.stderr)
+        print(
+            f"foxglove: cannot start the server on {args.host}:{args.port}: {exc}", file=sys.stderr
+        )
         return 1
     return b.run()
 

@@ -30,9 +30,12 @@ from fluxdrive.core import yamlio
 
 def _common(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID of the graph")
-    ap.add_argument("--wait", type=float, default=5.0,
-                    help="longest discovery wait [s] (default 5; `list` returns once "
-                    "discovery has settled)")
+    ap.add_argument(
+        "--wait",
+        type=float,
+        default=5.0,
+        help="longest discovery wait [s] (default 5; `list` returns once discovery has settled)",
+    )
 
 
 # A participant that missed another's first announcements learns of it from the next
@@ -45,8 +48,13 @@ class Session:
     """A private rclpy context with one helper node, spun with a plain executor (usable
     from tests next to other rclpy users: it never touches the default context)."""
 
-    def __init__(self, args=None, domain_id: int | None = None, wait_s: float = 3.0,
-                 node_name: str | None = None):
+    def __init__(
+        self,
+        args=None,
+        domain_id: int | None = None,
+        wait_s: float = 3.0,
+        node_name: str | None = None,
+    ):
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
 
@@ -66,9 +74,11 @@ class Session:
             raise SystemExit(2)
         self.ctx = rclpy.Context()
         rclpy.init(args=None, context=self.ctx, domain_id=domain_id)
-        self.node = rclpy.create_node(node_name or f"fluxdrive_inspect_{os.getpid()}",
-                                      context=self.ctx,
-                                      start_parameter_services=False)
+        self.node = rclpy.create_node(
+            node_name or f"fluxdrive_inspect_{os.getpid()}",
+            context=self.ctx,
+            start_parameter_services=False,
+        )
         self.ex = SingleThreadedExecutor(context=self.ctx)
         self.ex.add_node(self.node)
         self.wait_s = wait_s
@@ -99,12 +109,12 @@ class Session:
                 continue
             now = time.monotonic()
             nodes = sorted(self.node.get_node_names_and_namespaces())
-            snap = (nodes, sorted((n, tuple(t))
-                                  for n, t in self.node.get_topic_names_and_types()))
+            snap = (nodes, sorted((n, tuple(t)) for n, t in self.node.get_topic_names_and_types()))
             if snap != last:
                 last, t_last = snap, now
-            elif (now - t0 > SETTLE_MIN_S and now - t_last > 1.0
-                  and self._endpoints_known(nodes, me)):
+            elif (
+                now - t0 > SETTLE_MIN_S and now - t_last > 1.0 and self._endpoints_known(nodes, me)
+            ):
                 return
 
     def _endpoints_known(self, nodes: list[tuple[str, str]], me: str) -> bool:
@@ -179,16 +189,21 @@ def main_topic(argv: list[str]) -> int:
             rows = sorted(s.node.get_topic_names_and_types())
             for name, types in rows:
                 if args.verbose:
-                    print(f"{name} [{', '.join(types)}] publishers: "
-                          f"{s.node.count_publishers(name)}, subscribers: "
-                          f"{s.node.count_subscribers(name)}")
+                    print(
+                        f"{name} [{', '.join(types)}] publishers: "
+                        f"{s.node.count_publishers(name)}, subscribers: "
+                        f"{s.node.count_subscribers(name)}"
+                    )
                 else:
                     print(f"{name} [{', '.join(types)}]")
             return 0
         ty = _topic_type(s, args.topic)
         if ty is None:
-            print(f"fluxdrive topic: '{args.topic}' not found in the graph (ROS_DOMAIN_ID="
-                  f"{s.domain_id})", file=sys.stderr)
+            print(
+                f"fluxdrive topic: '{args.topic}' not found in the graph (ROS_DOMAIN_ID="
+                f"{s.domain_id})",
+                file=sys.stderr,
+            )
             return 1
         from fluxdrive_ros.topics import msg_class
 
@@ -231,8 +246,9 @@ def _hz(s: Session, args, cls) -> int:
     from fluxdrive_ros import qos
 
     n = [0]
-    sub = s.node.create_subscription(cls, args.topic, lambda d: n.__setitem__(0, n[0] + 1),
-                                     qos.WATCH, raw=True)
+    sub = s.node.create_subscription(
+        cls, args.topic, lambda d: n.__setitem__(0, n[0] + 1), qos.WATCH, raw=True
+    )
     s.discover(lambda: sub.get_publisher_count() > 0)
     s.spin_for(0.2)
     n[0] = 0
@@ -261,8 +277,9 @@ def main_node(argv: list[str]) -> int:
     try:
         s.discover()
         me = s.node.get_name()
-        names = sorted({f"{ns.rstrip('/')}/{n}" for n, ns in
-                        s.node.get_node_names_and_namespaces() if n != me})
+        names = sorted(
+            {f"{ns.rstrip('/')}/{n}" for n, ns in s.node.get_node_names_and_namespaces() if n != me}
+        )
         for n in names:
             print(n)
         return 0
@@ -281,8 +298,9 @@ def _call(s: Session, srv_type, name: str, req, timeout: float = 5.0):
     while not cli.service_is_ready() and time.monotonic() < t_end:
         s.spin_for(0.05)
     if not cli.service_is_ready():
-        raise LookupError(f"service {name} not available (is the node running, same "
-                          f"ROS_DOMAIN_ID={s.domain_id}?)")
+        raise LookupError(
+            f"service {name} not available (is the node running, same ROS_DOMAIN_ID={s.domain_id}?)"
+        )
     fut = cli.call_async(req)
     t_end = time.monotonic() + timeout
     while not fut.done() and time.monotonic() < t_end:
@@ -320,8 +338,12 @@ def _list(s: Session, node: str) -> list[str]:
 def _describe(s: Session, node: str, names: list[str]):
     from rcl_interfaces.srv import DescribeParameters
 
-    res = _call(s, DescribeParameters, f"{node}/describe_parameters",
-                DescribeParameters.Request(names=names))
+    res = _call(
+        s,
+        DescribeParameters,
+        f"{node}/describe_parameters",
+        DescribeParameters.Request(names=names),
+    )
     return res.descriptors
 
 
@@ -331,8 +353,11 @@ def parse_value(text: str, current_type: int | None):
     from rcl_interfaces.msg import ParameterType
 
     v = yamlio.loads(text)
-    if current_type == ParameterType.PARAMETER_DOUBLE and isinstance(v, int) and not isinstance(
-            v, bool):
+    if (
+        current_type == ParameterType.PARAMETER_DOUBLE
+        and isinstance(v, int)
+        and not isinstance(v, bool)
+    ):
         v = float(v)
     if current_type == ParameterType.PARAMETER_STRING and not isinstance(v, str):
         v = text
@@ -344,13 +369,12 @@ def set_param(s: Session, node: str, name: str, text: str) -> tuple[bool, str, A
     from rclpy.parameter import Parameter
 
     node = _node_fqn(node)
-    (typ, _cur), = _get(s, node, [name])
+    ((typ, _cur),) = _get(s, node, [name])
     if typ == 0:
         return False, f"{node} has no parameter '{name}'", None
     value = parse_value(text, typ)
     msg = Parameter(name, value=value).to_parameter_msg()
-    res = _call(s, SetParameters, f"{node}/set_parameters",
-                SetParameters.Request(parameters=[msg]))
+    res = _call(s, SetParameters, f"{node}/set_parameters", SetParameters.Request(parameters=[msg]))
     r = res.results[0]
     return r.successful, r.reason, value
 
@@ -384,7 +408,7 @@ def main_param(argv: list[str]) -> int:
                 print(n)
             return 0
         if args.cmd == "get":
-            (typ, val), = _get(s, node, [args.name])
+            ((typ, val),) = _get(s, node, [args.name])
             if typ == 0:
                 print(f"{node} has no parameter '{args.name}'", file=sys.stderr)
                 return 1
@@ -435,9 +459,13 @@ def main_fault(argv: list[str]) -> int:
     ap = argparse.ArgumentParser(prog="fluxdrive fault", description=main_fault.__doc__)
     sub = ap.add_subparsers(dest="cmd", required=True)
     p = sub.add_parser("reset", help="clear a latched fault")
-    p.add_argument("service", nargs="?", default="/controller/reset_fault",
-                   help="ResetFault service (default /controller/reset_fault; the bench "
-                   "bridge's is /drive/reset_fault)")
+    p.add_argument(
+        "service",
+        nargs="?",
+        default="/controller/reset_fault",
+        help="ResetFault service (default /controller/reset_fault; the bench "
+        "bridge's is /drive/reset_fault)",
+    )
     _common(p)
     args = ap.parse_args(argv)
     s = Session(args, node_name=OPERATOR_NODE)
@@ -463,7 +491,10 @@ def reset_fault(s: Session, service: str = "/controller/reset_fault") -> tuple[b
     while True:
         res = _call(s, ResetFault, service, ResetFault.Request())
         # the server checks its clients by discovery, which may not show us yet
-        if res.success or "not known to the graph yet" not in res.message \
-                or time.monotonic() > t_end:
+        if (
+            res.success
+            or "not known to the graph yet" not in res.message
+            or time.monotonic() > t_end
+        ):
             return bool(res.success), str(res.message)
         s.spin_for(0.3)

@@ -64,10 +64,26 @@ from fluxdrive_ros.runner import NODE_CLASSES
 
 _POLICY_KEYS = {"on_death", "max_restarts", "restart_backoff_s"}
 ON_DEATH = ("stop", "restart", "ignore")
-_NODE_KEYS = {"name", "node", "namespace", "process", "params", "parameters", "required",
-              "cmd"} | _POLICY_KEYS
-_TOP_KEYS = {"name", "description", "discovery_range", "domain_id", "env", "nodes",
-             "stop_timeout_s", "stop_grace_s"} | _POLICY_KEYS
+_NODE_KEYS = {
+    "name",
+    "node",
+    "namespace",
+    "process",
+    "params",
+    "parameters",
+    "required",
+    "cmd",
+} | _POLICY_KEYS
+_TOP_KEYS = {
+    "name",
+    "description",
+    "discovery_range",
+    "domain_id",
+    "env",
+    "nodes",
+    "stop_timeout_s",
+    "stop_grace_s",
+} | _POLICY_KEYS
 
 
 @dataclass
@@ -86,8 +102,9 @@ class NodeSpec:
 
     @property
     def is_recorder(self) -> bool:
-        return bool(self.node) and NODE_CLASSES.get(self.node, self.node) == NODE_CLASSES[
-            "recorder"]
+        return (
+            bool(self.node) and NODE_CLASSES.get(self.node, self.node) == NODE_CLASSES["recorder"]
+        )
 
     @property
     def fqn(self) -> str:
@@ -112,9 +129,11 @@ class Graph:
     def policy(self, members: list[NodeSpec]) -> tuple[str, int, float]:
         """(on_death, max_restarts, restart_backoff_s) of a process (its nodes agree)."""
         m = members[0]
-        return (m.on_death or self.on_death,
-                self.max_restarts if m.max_restarts is None else m.max_restarts,
-                self.restart_backoff_s if m.restart_backoff_s is None else m.restart_backoff_s)
+        return (
+            m.on_death or self.on_death,
+            self.max_restarts if m.max_restarts is None else m.max_restarts,
+            self.restart_backoff_s if m.restart_backoff_s is None else m.restart_backoff_s,
+        )
 
     def processes(self) -> dict[str, list[NodeSpec]]:
         out: dict[str, list[NodeSpec]] = {}
@@ -149,8 +168,11 @@ class Graph:
         if self.env:
             out["env"] = dict(self.env)
         if (self.on_death, self.max_restarts, self.restart_backoff_s) != ("stop", 3, 1.0):
-            out.update(on_death=self.on_death, max_restarts=self.max_restarts,
-                       restart_backoff_s=self.restart_backoff_s)
+            out.update(
+                on_death=self.on_death,
+                max_restarts=self.max_restarts,
+                restart_backoff_s=self.restart_backoff_s,
+            )
         out["nodes"] = nodes
         return out
 
@@ -171,8 +193,9 @@ def _policy(d: dict, where: str) -> dict[str, Any]:
     if "on_death" in d:
         v = d["on_death"]
         if v not in ON_DEATH:
-            raise ConfigError(f"{where}: 'on_death' must be one of {', '.join(ON_DEATH)}, "
-                              f"got {v!r}")
+            raise ConfigError(
+                f"{where}: 'on_death' must be one of {', '.join(ON_DEATH)}, got {v!r}"
+            )
         out["on_death"] = v
     if "max_restarts" in d:
         v = d["max_restarts"]
@@ -182,8 +205,9 @@ def _policy(d: dict, where: str) -> dict[str, Any]:
     if "restart_backoff_s" in d:
         v = d["restart_backoff_s"]
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v <= 3600.0:
-            raise ConfigError(f"{where}: 'restart_backoff_s' must be a number of seconds "
-                              f"0..3600, got {v!r}")
+            raise ConfigError(
+                f"{where}: 'restart_backoff_s' must be a number of seconds 0..3600, got {v!r}"
+            )
         out["restart_backoff_s"] = float(v)
     return out
 
@@ -205,23 +229,31 @@ def parse_graph(raw: Any, src: str = "graph", base: Path = REPO_ROOT) -> Graph:
             raise ConfigError(f"{where} must be a mapping")
         bad = sorted(set(nd) - _NODE_KEYS)
         if bad:
-            raise ConfigError(f"{where}: unknown key(s) {bad}; expected some of "
-                              f"{sorted(_NODE_KEYS)}")
+            raise ConfigError(
+                f"{where}: unknown key(s) {bad}; expected some of {sorted(_NODE_KEYS)}"
+            )
         name = nd.get("name")
         if not isinstance(name, str) or not name.replace("_", "a").isalnum():
-            raise ConfigError(f"{where}: 'name' must be a ROS name (letters, digits, _), "
-                              f"got {name!r}")
+            raise ConfigError(
+                f"{where}: 'name' must be a ROS name (letters, digits, _), got {name!r}"
+            )
         if ("node" in nd) == ("cmd" in nd):
-            raise ConfigError(f"{where} ({name}): give exactly one of 'node' (one of "
-                              f"{sorted(NODE_CLASSES)} or module:Class) and 'cmd'")
+            raise ConfigError(
+                f"{where} ({name}): give exactly one of 'node' (one of "
+                f"{sorted(NODE_CLASSES)} or module:Class) and 'cmd'"
+            )
         node = nd.get("node")
-        if node is not None and (not isinstance(node, str) or (
-                node not in NODE_CLASSES and ":" not in node)):
-            raise ConfigError(f"{where} ({name}): 'node' must be one of {sorted(NODE_CLASSES)} "
-                              f"or module:Class, got {node!r}")
+        if node is not None and (
+            not isinstance(node, str) or (node not in NODE_CLASSES and ":" not in node)
+        ):
+            raise ConfigError(
+                f"{where} ({name}): 'node' must be one of {sorted(NODE_CLASSES)} "
+                f"or module:Class, got {node!r}"
+            )
         cmd = nd.get("cmd")
-        if cmd is not None and (not isinstance(cmd, list) or not all(
-                isinstance(c, str) for c in cmd) or not cmd):
+        if cmd is not None and (
+            not isinstance(cmd, list) or not all(isinstance(c, str) for c in cmd) or not cmd
+        ):
             raise ConfigError(f"{where} ({name}): 'cmd' must be a list of strings")
         params = nd.get("params", []) or []
         if isinstance(params, str):
@@ -244,44 +276,64 @@ def parse_graph(raw: Any, src: str = "graph", base: Path = REPO_ROOT) -> Graph:
         ns = str(nd.get("namespace", "") or "")
         if ns and not ns.startswith("/"):
             ns = "/" + ns
-        spec = NodeSpec(name=name, node=node, namespace=ns.rstrip("/"),
-                        process=str(nd.get("process", "") or ""), params=files,
-                        parameters=dict(parameters), required=bool(nd.get("required", False)),
-                        cmd=cmd, **_policy(nd, f"{where} ({name})"))
+        spec = NodeSpec(
+            name=name,
+            node=node,
+            namespace=ns.rstrip("/"),
+            process=str(nd.get("process", "") or ""),
+            params=files,
+            parameters=dict(parameters),
+            required=bool(nd.get("required", False)),
+            cmd=cmd,
+            **_policy(nd, f"{where} ({name})"),
+        )
         if spec.is_recorder and spec.on_death == "restart":
-            raise ConfigError(f"{where} ({name}): 'on_death: restart' is not supported for a "
-                              f"recorder (its bag directory exists after the first start); "
-                              f"use stop or ignore")
+            raise ConfigError(
+                f"{where} ({name}): 'on_death: restart' is not supported for a "
+                f"recorder (its bag directory exists after the first start); "
+                f"use stop or ignore"
+            )
         if spec.fqn in seen:
             raise ConfigError(f"{where}: node {spec.fqn} appears twice")
         seen.add(spec.fqn)
         nodes.append(spec)
     dr = str(raw.get("discovery_range", "LOCALHOST")).upper()
     if dr not in ("LOCALHOST", "SUBNET", "SYSTEM_DEFAULT", "OFF"):
-        raise ConfigError(f"{src}: 'discovery_range' must be LOCALHOST, SUBNET, OFF or "
-                          f"SYSTEM_DEFAULT, got {dr!r}")
+        raise ConfigError(
+            f"{src}: 'discovery_range' must be LOCALHOST, SUBNET, OFF or SYSTEM_DEFAULT, got {dr!r}"
+        )
     dom = raw.get("domain_id")
     if dom is not None and (not isinstance(dom, int) or not 0 <= dom <= 232):
         raise ConfigError(f"{src}: 'domain_id' must be an integer 0..232")
     env = raw.get("env", {}) or {}
     if not isinstance(env, dict):
         raise ConfigError(f"{src}: 'env' must be a mapping")
-    g = Graph(name=str(raw.get("name", Path(src).stem)), nodes=nodes, discovery_range=dr,
-              domain_id=dom, env={str(k): str(v) for k, v in env.items()},
-              stop_timeout_s=float(raw.get("stop_timeout_s", 15.0)),
-              stop_grace_s=float(raw.get("stop_grace_s", 20.0)), source=src,
-              **_policy(raw, src))
+    g = Graph(
+        name=str(raw.get("name", Path(src).stem)),
+        nodes=nodes,
+        discovery_range=dr,
+        domain_id=dom,
+        env={str(k): str(v) for k, v in env.items()},
+        stop_timeout_s=float(raw.get("stop_timeout_s", 15.0)),
+        stop_grace_s=float(raw.get("stop_grace_s", 20.0)),
+        source=src,
+        **_policy(raw, src),
+    )
     for pname, members in g.processes().items():
         if len(members) > 1 and any(m.cmd for m in members):
             raise ConfigError(f"{src}: process '{pname}' mixes a 'cmd' with other nodes")
         pols = {m.name: g.policy([m]) for m in members}
         if len(set(pols.values())) > 1:
-            raise ConfigError(f"{src}: the nodes of process '{pname}' disagree on on_death/"
-                              f"max_restarts/restart_backoff_s ({pols}); give them one policy")
+            raise ConfigError(
+                f"{src}: the nodes of process '{pname}' disagree on on_death/"
+                f"max_restarts/restart_backoff_s ({pols}); give them one policy"
+            )
         if any(m.is_recorder for m in members) and pols[members[0].name][0] == "restart":
-            raise ConfigError(f"{src}: process '{pname}' holds a recorder: 'on_death: "
-                              f"restart' is not supported for it (its bag directory exists "
-                              f"after the first start); use stop or ignore")
+            raise ConfigError(
+                f"{src}: process '{pname}' holds a recorder: 'on_death: "
+                f"restart' is not supported for it (its bag directory exists "
+                f"after the first start); use stop or ignore"
+            )
     return g
 
 
@@ -342,8 +394,13 @@ def node_parameters(n: NodeSpec) -> dict[str, Any]:
 
 
 class Proc:
-    def __init__(self, name: str, nodes: list[NodeSpec], argv: list[str],
-                 policy: tuple[str, int, float] = ("stop", 3, 1.0)):
+    def __init__(
+        self,
+        name: str,
+        nodes: list[NodeSpec],
+        argv: list[str],
+        policy: tuple[str, int, float] = ("stop", 3, 1.0),
+    ):
         self.name = name
         self.nodes = nodes
         self.argv = argv
@@ -370,8 +427,14 @@ class Proc:
 class Launcher:
     """Runs a Graph: start, stream prefixed output, watch, stop."""
 
-    def __init__(self, graph: Graph, out=None, quiet: bool = False, progress: bool = True,
-                 log_dir: Path | None = None):
+    def __init__(
+        self,
+        graph: Graph,
+        out=None,
+        quiet: bool = False,
+        progress: bool = True,
+        log_dir: Path | None = None,
+    ):
         self.g = graph
         self.out = out or sys.stdout
         self.quiet = quiet
@@ -416,9 +479,19 @@ class Launcher:
     def _argv(self, pname: str, members: list[NodeSpec]) -> list[str]:
         if members[0].cmd:
             return list(members[0].cmd)
-        spec = {"process": pname, "nodes": [
-            {"class": m.node, "name": m.name, "namespace": m.namespace,
-             "parameters": m.parameters, "params_files": m.params} for m in members]}
+        spec = {
+            "process": pname,
+            "nodes": [
+                {
+                    "class": m.node,
+                    "name": m.name,
+                    "namespace": m.namespace,
+                    "parameters": m.parameters,
+                    "params_files": m.params,
+                }
+                for m in members
+            ],
+        }
         return [sys.executable, "-m", "fluxdrive_ros.runner", "--spec-json", json.dumps(spec)]
 
     def preflight(self) -> None:
@@ -438,16 +511,19 @@ class Launcher:
                 min_free = float(pv.get("min_free_mb", 100.0))
                 check_bag_target(target, min_free, must_not_exist=bool(bag))
             except (TypeError, ValueError) as exc:
-                raise ConfigError(f"{self.g.source or self.g.name}: recorder {n.fqn}: "
-                                  f"{exc}") from exc
+                raise ConfigError(
+                    f"{self.g.source or self.g.name}: recorder {n.fqn}: {exc}"
+                ) from exc
 
     def start(self) -> None:
         self.preflight()
         env = self.env()
         if self._restart_transport(dict(env)) and not self.quiet:
-            self._emit("[launch] on_death: restart in the graph: Fast DDS without shared "
-                       "memory (FASTDDS_BUILTIN_TRANSPORTS=UDPv4), which does not carry a "
-                       "restarted process's messages after a SIGKILL")
+            self._emit(
+                "[launch] on_death: restart in the graph: Fast DDS without shared "
+                "memory (FASTDDS_BUILTIN_TRANSPORTS=UDPv4), which does not carry a "
+                "restarted process's messages after a SIGKILL"
+            )
         for pname, members in self.g.processes().items():
             p = Proc(pname, members, self._argv(pname, members), self.g.policy(members))
             self._spawn(p, env)
@@ -475,10 +551,16 @@ class Launcher:
         if p.restarts:
             env["FLUXDRIVE_RESTART_COUNT"] = str(p.restarts)
         p.code = None
-        p.popen = subprocess.Popen(p.argv, env=env, stdout=subprocess.PIPE,
-                                   stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                   start_new_session=True, cwd=str(REPO_ROOT),
-                                   preexec_fn=_die_with_launcher)  # noqa: PLW1509
+        p.popen = subprocess.Popen(
+            p.argv,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,
+            cwd=str(REPO_ROOT),
+            preexec_fn=_die_with_launcher,
+        )  # noqa: PLW1509
         p.reader = threading.Thread(target=self._pump, args=(p,), daemon=True)
         p.reader.start()
 
@@ -531,8 +613,10 @@ class Launcher:
         sim = k * ts
         rtf = sim / wall if wall > 0 else 0.0
         total = f"/{n * ts:.2f}" if n < 2**62 else ""
-        text = (f"[progress] {sim:7.2f}{total} s simulated, {wall:6.1f} s wall, "
-                f"real-time factor {rtf:.3f}")
+        text = (
+            f"[progress] {sim:7.2f}{total} s simulated, {wall:6.1f} s wall, "
+            f"real-time factor {rtf:.3f}"
+        )
         with self.lock:
             if self.tty:
                 sys.stderr.write("\r\033[K" + text)
@@ -573,8 +657,10 @@ class Launcher:
             alive = [p for p in group if p.popen.poll() is None]
             if not alive:
                 break
-            self._emit(f"[launch] {', '.join(p.label for p in alive)} still running; "
-                       f"sending {signal.Signals(sig).name}")
+            self._emit(
+                f"[launch] {', '.join(p.label for p in alive)} still running; "
+                f"sending {signal.Signals(sig).name}"
+            )
             self.signal_all(sig, alive)
 
     @staticmethod
@@ -592,25 +678,31 @@ class Launcher:
         """A process died while the graph runs: apply its on_death.  True = stop the graph."""
         what = self.death_text(p, code)
         if p.on_death == "restart" and p.restarts < p.max_restarts:
-            delay = p.backoff_s * 2 ** p.restarts
+            delay = p.backoff_s * 2**p.restarts
             p.restarts += 1
             self.restarts[p.name] = p.restarts
             p.restart_at = now + delay
-            self._emit(f"[launch] WARNING: process {p.label} died ({what}); restarting in "
-                       f"{delay:g} s (restart {p.restarts} of {p.max_restarts})")
+            self._emit(
+                f"[launch] WARNING: process {p.label} died ({what}); restarting in "
+                f"{delay:g} s (restart {p.restarts} of {p.max_restarts})"
+            )
             return False
         if p.on_death == "ignore":
             p.done = p.ignored = True
             self.ignored.append(p)
-            self._emit(f"[launch] WARNING: process {p.label} died ({what}); on_death: "
-                       f"ignore, the graph runs on without it")
+            self._emit(
+                f"[launch] WARNING: process {p.label} died ({what}); on_death: "
+                f"ignore, the graph runs on without it"
+            )
             return False
         p.done = True
         self.failed.append(p)
-        why = (f"on_death: restart, {p.restarts} restarts used" if p.on_death == "restart"
-               else "on_death: stop")
-        self._emit(f"[launch] ERROR: process {p.label} died ({what}); stopping the graph "
-                   f"({why})")
+        why = (
+            f"on_death: restart, {p.restarts} restarts used"
+            if p.on_death == "restart"
+            else "on_death: stop"
+        )
+        self._emit(f"[launch] ERROR: process {p.label} died ({what}); stopping the graph ({why})")
         return True
 
     def wait(self, timeout: float | None = None) -> int:
@@ -633,8 +725,10 @@ class Launcher:
                                 continue
                             p.restart_at = None
                             self._spawn(p)
-                        self._emit(f"[launch] process {p.label} restarted (pid "
-                                   f"{p.popen.pid}, restart {p.restarts} of {p.max_restarts})")
+                        self._emit(
+                            f"[launch] process {p.label} restarted (pid "
+                            f"{p.popen.pid}, restart {p.restarts} of {p.max_restarts})"
+                        )
                     continue
                 code = p.popen.poll()
                 if code is None:
@@ -647,16 +741,23 @@ class Launcher:
                         return 1
                     continue
                 p.done = True
-                if code == 0 and any(n.required for n in p.nodes) and not self.stopping \
-                        and grace_end is None:
+                if (
+                    code == 0
+                    and any(n.required for n in p.nodes)
+                    and not self.stopping
+                    and grace_end is None
+                ):
                     # the others usually end by themselves (/drive/done); give them time
                     # to drain (the recorder) before stopping them
                     grace_end = time.monotonic() + self.g.stop_grace_s
-            if grace_end is not None and time.monotonic() > grace_end and not self.stopping \
-                    and not all(p.done for p in self.procs):
+            if (
+                grace_end is not None
+                and time.monotonic() > grace_end
+                and not self.stopping
+                and not all(p.done for p in self.procs)
+            ):
                 req = [p for p in self.procs if any(n.required for n in p.nodes)]
-                self._emit(f"[launch] required process {req[0].label} finished; stopping "
-                           f"the graph")
+                self._emit(f"[launch] required process {req[0].label} finished; stopping the graph")
                 self.stop()
             if all(p.done for p in self.procs):
                 break
@@ -667,8 +768,9 @@ class Launcher:
                 return 1
             time.sleep(0.05)
         self._join()
-        bad = [p for p in self.procs
-               if p.code not in (0, None) and not self.stopping and not p.ignored]
+        bad = [
+            p for p in self.procs if p.code not in (0, None) and not self.stopping and not p.ignored
+        ]
         return 1 if bad else 0
 
     def _join(self) -> None:
@@ -717,20 +819,31 @@ class Launcher:
         """Name every bag a recorder opened but did not finalise (killed with its writer,
         disk full) and the command that recovers it."""
         for p in self.procs:
-            if p.bag_open and Path(p.bag_open).is_dir() and not (
-                    Path(p.bag_open) / "metadata.yaml").exists():
-                self._emit(f"[launch] bag {p.bag_open} was not finalised (process {p.label} "
-                           f"ended with code {p.code}); recover it with: ./fluxdrive bag "
-                           f"recover {p.bag_open}")
+            if (
+                p.bag_open
+                and Path(p.bag_open).is_dir()
+                and not (Path(p.bag_open) / "metadata.yaml").exists()
+            ):
+                self._emit(
+                    f"[launch] bag {p.bag_open} was not finalised (process {p.label} "
+                    f"ended with code {p.code}); recover it with: ./fluxdrive bag "
+                    f"recover {p.bag_open}"
+                )
 
 
-def add_scope(g: Graph, port: int = 8765, token: str | None = None, exit_on_done: bool = False,
-              observers: list[str] | None = None) -> None:
+def add_scope(
+    g: Graph,
+    port: int = 8765,
+    token: str | None = None,
+    exit_on_done: bool = False,
+    observers: list[str] | None = None,
+) -> None:
     """Add the live scope to a graph: the scope tap (fluxdrive_bringup.scope_tap) in the
     plant's process -- so the samples reach it through the intra-process bus, not DDS -- and
     the scope's web server (fluxdrive_bringup.scope) as a process of its own."""
     host = next((n for n in g.nodes if n.node == "plant"), None) or next(
-        (n for n in g.nodes if n.node), None)
+        (n for n in g.nodes if n.node), None
+    )
     params: dict[str, Any] = {}
     if host is not None:
         sc = node_parameters(host).get("scenario")
@@ -738,11 +851,23 @@ def add_scope(g: Graph, port: int = 8765, token: str | None = None, exit_on_done
             params["scenario"] = str(sc)
     if observers:
         params["observers"] = list(observers)
-    g.nodes.append(NodeSpec(name="scope_tap", node="scope_tap",
-                            process=(host.process or host.name) if host else "scope_tap",
-                            parameters=params))
-    cmd = [sys.executable, "-m", "fluxdrive_bringup.scope", "--port", str(port),
-           "--attach-wait", "60"]
+    g.nodes.append(
+        NodeSpec(
+            name="scope_tap",
+            node="scope_tap",
+            process=(host.process or host.name) if host else "scope_tap",
+            parameters=params,
+        )
+    )
+    cmd = [
+        sys.executable,
+        "-m",
+        "fluxdrive_bringup.scope",
+        "--port",
+        str(port),
+        "--attach-wait",
+        "60",
+    ]
     if token:
         cmd += ["--token", token]
     if exit_on_done:
@@ -755,30 +880,49 @@ def launcher_env_discovery(g: Graph) -> str:
     value that is overridden."""
     env = os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "")
     if env and env.upper() != g.discovery_range:
-        return (f"{g.discovery_range} (ROS_AUTOMATIC_DISCOVERY_RANGE={env} from the environment "
-                f"ignored: set discovery_range in the graph file to change it)")
+        return (
+            f"{g.discovery_range} (ROS_AUTOMATIC_DISCOVERY_RANGE={env} from the environment "
+            f"ignored: set discovery_range in the graph file to change it)"
+        )
     return g.discovery_range
 
 
 def main(argv: list[str]) -> int:
     import argparse
 
-    ap = argparse.ArgumentParser(prog="fluxdrive launch",
-                                 description="start a graph described in YAML")
+    ap = argparse.ArgumentParser(
+        prog="fluxdrive launch", description="start a graph described in YAML"
+    )
     ap.add_argument("graph", help="graph YAML (path, or a name under config/graphs/)")
     ap.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID for every process")
     ap.add_argument("--timeout", type=float, help="stop the graph after this many seconds")
     ap.add_argument("--log-dir", type=Path, help="also write each process's output here")
-    ap.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE",
-                    help="override a node parameter (YAML value), e.g. plant.duration_s=0.5")
-    ap.add_argument("--scope", action="store_true",
-                    help="also start the live scope (the scope tap in the plant's process and "
-                    "the web page; see ./fluxdrive scope)")
-    ap.add_argument("--scope-port", type=int, default=8765, help="the scope's TCP port "
-                    "(default 8765; 0: any free port)")
-    ap.add_argument("--shared-domain", action="store_true", help="start even if other "
-                    "nodes live on the ROS domain (by default refused: graphs on one domain "
-                    "hear each other)")
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="NODE.PARAM=VALUE",
+        help="override a node parameter (YAML value), e.g. plant.duration_s=0.5",
+    )
+    ap.add_argument(
+        "--scope",
+        action="store_true",
+        help="also start the live scope (the scope tap in the plant's process and "
+        "the web page; see ./fluxdrive scope)",
+    )
+    ap.add_argument(
+        "--scope-port",
+        type=int,
+        default=8765,
+        help="the scope's TCP port (default 8765; 0: any free port)",
+    )
+    ap.add_argument(
+        "--shared-domain",
+        action="store_true",
+        help="start even if other "
+        "nodes live on the ROS domain (by default refused: graphs on one domain "
+        "hear each other)",
+    )
     args = ap.parse_args(argv)
     from fluxdrive_ros.security import precheck
 
@@ -794,8 +938,10 @@ def main(argv: list[str]) -> int:
         node, _, pname = key.partition(".")
         match = [n for n in g.nodes if n.name == node or n.fqn == node]
         if not match or not pname or not _:
-            raise ConfigError(f"--set {item!r}: expected NODE.PARAM=VALUE with NODE one of "
-                              f"{[n.name for n in g.nodes]}")
+            raise ConfigError(
+                f"--set {item!r}: expected NODE.PARAM=VALUE with NODE one of "
+                f"{[n.name for n in g.nodes]}"
+            )
         for n in match:
             n.parameters[pname] = yamlio.loads(val)
     if args.scope:
@@ -805,25 +951,24 @@ def main(argv: list[str]) -> int:
 
         # (the graph's domain_id, else ROS_DOMAIN_ID, else 0 -- where `param set` and
         # `topic echo` from another shell look by default)
-        dom, why = choose_domain(g.domain_id if g.domain_id is not None else int(
-            os.environ.get("ROS_DOMAIN_ID") or 0), "launch")
+        dom, why = choose_domain(
+            g.domain_id if g.domain_id is not None else int(os.environ.get("ROS_DOMAIN_ID") or 0),
+            "launch",
+        )
         if dom is None:
             print(f"[launch] {why}", file=sys.stderr)
             return 2
         g.domain_id = dom
     dom = g.domain_id if g.domain_id is not None else os.environ.get("ROS_DOMAIN_ID", "0")
-    procs = ", ".join(f"{pn}[{', '.join(m.fqn for m in ms)}]"
-                      for pn, ms in g.processes().items())
+    procs = ", ".join(f"{pn}[{', '.join(m.fqn for m in ms)}]" for pn, ms in g.processes().items())
     disc = launcher_env_discovery(g)
-    print(f"[launch] graph {g.name}: {procs}; ROS_DOMAIN_ID={dom}, discovery {disc}",
-          flush=True)
+    print(f"[launch] graph {g.name}: {procs}; ROS_DOMAIN_ID={dom}, discovery {disc}", flush=True)
     launcher = Launcher(g, log_dir=args.log_dir)
     code = launcher.run(args.timeout)
     for b in launcher.bags:
         print(f"[launch] bag: {b}")
     if launcher.restarts:
-        print("[launch] restarts: " + ", ".join(f"{k} {v}" for k, v in
-                                                 launcher.restarts.items()))
+        print("[launch] restarts: " + ", ".join(f"{k} {v}" for k, v in launcher.restarts.items()))
     for p in launcher.ignored:
         print(f"[launch] died and ignored: {p.label} ({launcher.death_text(p, p.code or 0)})")
     return code

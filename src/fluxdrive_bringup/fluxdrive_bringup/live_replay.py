@@ -30,8 +30,15 @@ def main(argv: list[str]) -> int:
     if args.rate <= 0:
         raise ConfigError("--rate must be > 0")
     try:
-        return live_replay(args.bags[0], args.rate, args.loop, args.start, args.max_frames,
-                           wait_s=args.wait_s, graph_id=args.graph_id)
+        return live_replay(
+            args.bags[0],
+            args.rate,
+            args.loop,
+            args.start,
+            args.max_frames,
+            wait_s=args.wait_s,
+            graph_id=args.graph_id,
+        )
     except BagError as exc:
         print(f"fluxdrive replay: {exc}", file=sys.stderr)
         return 2
@@ -49,7 +56,7 @@ def for_graph(bag, graph_id: int) -> list[tuple[int, bytes]]:
         out = []
         for t, b in raw:  # today's layout: graph_id right after seq
             off = seq_offset(b) + 8
-            out.append((t, b[:off] + gid + b[off + 8:]))
+            out.append((t, b[:off] + gid + b[off + 8 :]))
         return out
     # recorded before graph_id existed: encode the decoded rows with today's layout
     wire = FrameWire(graph_id=graph_id)
@@ -60,9 +67,16 @@ def for_graph(bag, graph_id: int) -> list[tuple[int, bytes]]:
     return out
 
 
-def live_replay(bag_path: Path, rate: float, loop: bool, start_s: float,
-                max_frames: int | None = None, topic: str = "/drive/frame",
-                wait_s: float = 2.0, graph_id: int | None = None) -> int:
+def live_replay(
+    bag_path: Path,
+    rate: float,
+    loop: bool,
+    start_s: float,
+    max_frames: int | None = None,
+    topic: str = "/drive/frame",
+    wait_s: float = 2.0,
+    graph_id: int | None = None,
+) -> int:
     """Publish the bag's frames (the recorded CDR bytes, graph_id set) at `rate` x real
     time."""
     bag = read_run_bag(bag_path, keep_raw=True)
@@ -87,8 +101,13 @@ def live_replay(bag_path: Path, rate: float, loop: bool, start_s: float,
     # KEEP_ALL + reliable: a reader that keeps all (a recorder, a counting probe) is
     # flow-controlled rather than overrun at high --rate (KEEP_LAST lost frames in bursts);
     # readers that keep only the last N still choose to drop on their side.
-    pub = node.create_publisher(PhaseFrame, topic, QoSProfile(
-        depth=100, history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE))
+    pub = node.create_publisher(
+        PhaseFrame,
+        topic,
+        QoSProfile(
+            depth=100, history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE
+        ),
+    )
     sent = 0
     try:
         t_wait = time.monotonic() + wait_s
@@ -109,16 +128,21 @@ def live_replay(bag_path: Path, rate: float, loop: bool, start_s: float,
                     return _live_done(sent, t0_wall)
                 if now - last_print > 2.0:
                     last_print = now
-                    print(f"[live] {sent} frames, bag t={(t_ns - t_first) * 1e-9:.2f} s",
-                          file=sys.stderr, flush=True)
+                    print(
+                        f"[live] {sent} frames, bag t={(t_ns - t_first) * 1e-9:.2f} s",
+                        file=sys.stderr,
+                        flush=True,
+                    )
             if not loop:
                 break
         return _live_done(sent, t0_wall)
     finally:
         # frames still in the writer's history would be lost with the process
         if sent and not pub.wait_for_all_acked(Duration(seconds=30.0)):
-            print("[live] warning: not every frame was acknowledged by the readers within "
-                  "30 s", file=sys.stderr)
+            print(
+                "[live] warning: not every frame was acknowledged by the readers within 30 s",
+                file=sys.stderr,
+            )
         node.destroy_node()
         rclpy.try_shutdown()
 
@@ -138,12 +162,12 @@ def _publish_flow_controlled(pub, data: bytes, rcl_error: type, give_up_s: float
             if t_end is None:
                 t_end = now + give_up_s
             elif now > t_end:
-                raise BagError(f"live replay: the readers took no frame for {give_up_s:g} s "
-                               f"({exc})") from None
+                raise BagError(
+                    f"live replay: the readers took no frame for {give_up_s:g} s ({exc})"
+                ) from None
             time.sleep(0.002)
 
 
 def _live_done(sent: int, t0_wall: float) -> int:
-    print(f"[live] published {sent} frames in {time.monotonic() - t0_wall:.2f} s",
-          file=sys.stderr)
+    print(f"[live] published {sent} frames in {time.monotonic() - t0_wall:.2f} s", file=sys.stderr)
     return 0

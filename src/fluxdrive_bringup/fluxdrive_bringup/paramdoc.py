@@ -24,18 +24,27 @@ def tables() -> str:
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "0") or 0))
     out = []
-    specs = [("spm_plant_sim (/plant)", "plant", "plant", "", {"scenario": sc}),
-             ("flux_observer_node (/obs/<name>)", "observer", "flux_measured", "/obs",
-              {"scenario": sc}),
-             ("foc_controller_node (/controller)", "controller", "controller", "",
-              {"scenario": sc}),
-             ("recorder (/recorder)", "recorder", "recorder", "",
-              {"bag_dir": "/tmp/fluxdrive-paramdoc-never-written/bag"})]
+    specs = [
+        ("spm_plant_sim (/plant)", "plant", "plant", "", {"scenario": sc}),
+        ("flux_observer_node (/obs/<name>)", "observer", "flux_measured", "/obs", {"scenario": sc}),
+        ("foc_controller_node (/controller)", "controller", "controller", "", {"scenario": sc}),
+        (
+            "recorder (/recorder)",
+            "recorder",
+            "recorder",
+            "",
+            {"bag_dir": "/tmp/fluxdrive-paramdoc-never-written/bag"},
+        ),
+    ]
     skip = {"use_sim_time", "start_type_description_service"}
     try:
         for title, cls, name, ns, params in specs:
-            node = load_class(cls)(name, namespace=ns, context=ctx, parameter_overrides=[
-                Parameter(k, value=v) for k, v in params.items()])
+            node = load_class(cls)(
+                name,
+                namespace=ns,
+                context=ctx,
+                parameter_overrides=[Parameter(k, value=v) for k, v in params.items()],
+            )
             try:
                 out.append(f"#### {title}\n")
                 out.append("| parameter | default (demo) | range / choices | live | description |")
@@ -58,8 +67,13 @@ def tables() -> str:
                         rng = d.additional_constraints.replace("one of: ", "")
                     live = "no" if d.read_only else "yes"
                     desc = d.description.replace(" (live)", "").replace("|", "\\|")
-                    val = f"{v:g}" if isinstance(v, float) else repr(v) if isinstance(
-                        v, (list, bool)) else str(v)
+                    val = (
+                        f"{v:g}"
+                        if isinstance(v, float)
+                        else repr(v)
+                        if isinstance(v, (list, bool))
+                        else str(v)
+                    )
                     out.append(f"| `{pname}` | {val} | {rng} | {live} | {desc} |")
                 out.append("")
             finally:

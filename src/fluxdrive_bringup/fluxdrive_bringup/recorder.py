@@ -60,8 +60,15 @@ from fluxdrive_ros import qos, topics
 
 from .bagwriter import check_bag_target, pack_json
 
-DEFAULT_TOPICS = [topics.FRAME, topics.TRUTH, topics.DUTY, topics.CONTROLLER_STATE,
-                  topics.DONE, topics.CLOCK, topics.MARKER]
+DEFAULT_TOPICS = [
+    topics.FRAME,
+    topics.TRUTH,
+    topics.DUTY,
+    topics.CONTROLLER_STATE,
+    topics.DONE,
+    topics.CLOCK,
+    topics.MARKER,
+]
 _HDR = struct.Struct("<iI")
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
@@ -69,10 +76,15 @@ _REC = struct.Struct("<cHqI")
 
 
 def conventional_type(topic: str) -> str | None:
-    known = {topics.FRAME: topics.T_FRAME, topics.TRUTH: topics.T_TRUTH,
-             topics.DUTY: topics.T_DUTY, topics.CONTROLLER_STATE: topics.T_STATE,
-             topics.DONE: topics.T_DONE, topics.CLOCK: topics.T_CLOCK,
-             topics.MARKER: topics.T_MARKER}
+    known = {
+        topics.FRAME: topics.T_FRAME,
+        topics.TRUTH: topics.T_TRUTH,
+        topics.DUTY: topics.T_DUTY,
+        topics.CONTROLLER_STATE: topics.T_STATE,
+        topics.DONE: topics.T_DONE,
+        topics.CLOCK: topics.T_CLOCK,
+        topics.MARKER: topics.T_MARKER,
+    }
     if topic in known:
         return known[topic]
     if re.fullmatch(r"/obs/[^/]+/estimate", topic):
@@ -82,8 +94,13 @@ def conventional_type(topic: str) -> str | None:
 
 def _has_seq(msgtype: str) -> bool:
     """flux_drive_msgs per-sample types: Header, then `uint64 seq`."""
-    return msgtype in (topics.T_FRAME, topics.T_TRUTH, topics.T_DUTY, topics.T_STATE,
-                       topics.T_ESTIMATE)
+    return msgtype in (
+        topics.T_FRAME,
+        topics.T_TRUTH,
+        topics.T_DUTY,
+        topics.T_STATE,
+        topics.T_ESTIMATE,
+    )
 
 
 def _seq(data: bytes) -> int:
@@ -95,35 +112,97 @@ class RecorderNode(FluxNode):
     def __init__(self, name: str = "recorder", namespace: str | None = None, **kw):
         super().__init__(name, namespace, **kw)
         stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
-        pv = declare(self, [
-            P("bag_dir", str(REPO_ROOT / "bags" / f"run-{stamp}"), "output bag directory "
-              "(must not exist yet)", read_only=True),
-            P("topics", list(DEFAULT_TOPICS), "topics to record", read_only=True),
-            P("observers", [""], "observer names whose /obs/<name>/estimate is recorded",
-              read_only=True),
-            P("timestamps", "header", "bag time stamps: header (sample instant) or receive "
-              "(wall clock)", choices=("header", "receive"), read_only=True),
-            P("exit_on_done", True, "finalise and exit once the run is done and drained"),
-            P("drain_timeout_s", 3.0, "after /drive/done: give up waiting for missing "
-              "samples after this long without new messages", "s", 0.0, 600.0),
-            P("scenario", "", "scenario of the run: its machine card and observer "
-              "configurations go into the bag's metadata (for replay)", read_only=True),
-            P("duration_s", 0.0, "run length for the metadata (0: the scenario's)", "s", 0.0,
-              3600.0, read_only=True),
-            P("input_durability", "volatile", "durability of the sample-topic "
-              "subscriptions: volatile (matches any publisher) or transient_local (also receives "
-              "what was published before the match; the lockstep sim graphs use it)",
-              choices=qos.INPUT_DURABILITY_CHOICES, read_only=True),
-            P("flush_interval_s", 0.5, "close the open MCAP chunk and flush the bag file this "
-              "often (bounds what a killed recorder loses)", "s", 0.05, 60.0),
-            P("max_backlog_mb", 8.0, "messages received but not yet handed to the bag "
-              "writer are held to this much; beyond it the recorder's callback waits for the "
-              "writer (backpressure: a lockstep graph slows to the disk's speed instead of "
-              "growing in memory; also bounds what a SIGKILL loses)", "MB", 0.5, 4096.0,
-              read_only=True),
-            P("min_free_mb", 100.0, "refuse to start unless the bag's file system has this "
-              "much free space", "MB", 0.0, 1e9, read_only=True),
-        ])
+        pv = declare(
+            self,
+            [
+                P(
+                    "bag_dir",
+                    str(REPO_ROOT / "bags" / f"run-{stamp}"),
+                    "output bag directory (must not exist yet)",
+                    read_only=True,
+                ),
+                P("topics", list(DEFAULT_TOPICS), "topics to record", read_only=True),
+                P(
+                    "observers",
+                    [""],
+                    "observer names whose /obs/<name>/estimate is recorded",
+                    read_only=True,
+                ),
+                P(
+                    "timestamps",
+                    "header",
+                    "bag time stamps: header (sample instant) or receive (wall clock)",
+                    choices=("header", "receive"),
+                    read_only=True,
+                ),
+                P("exit_on_done", True, "finalise and exit once the run is done and drained"),
+                P(
+                    "drain_timeout_s",
+                    3.0,
+                    "after /drive/done: give up waiting for missing "
+                    "samples after this long without new messages",
+                    "s",
+                    0.0,
+                    600.0,
+                ),
+                P(
+                    "scenario",
+                    "",
+                    "scenario of the run: its machine card and observer "
+                    "configurations go into the bag's metadata (for replay)",
+                    read_only=True,
+                ),
+                P(
+                    "duration_s",
+                    0.0,
+                    "run length for the metadata (0: the scenario's)",
+                    "s",
+                    0.0,
+                    3600.0,
+                    read_only=True,
+                ),
+                P(
+                    "input_durability",
+                    "volatile",
+                    "durability of the sample-topic "
+                    "subscriptions: volatile (matches any publisher) or transient_local "
+                    "(also receives what was published before the match; the lockstep sim "
+                    "graphs use it)",
+                    choices=qos.INPUT_DURABILITY_CHOICES,
+                    read_only=True,
+                ),
+                P(
+                    "flush_interval_s",
+                    0.5,
+                    "close the open MCAP chunk and flush the bag file this "
+                    "often (bounds what a killed recorder loses)",
+                    "s",
+                    0.05,
+                    60.0,
+                ),
+                P(
+                    "max_backlog_mb",
+                    8.0,
+                    "messages received but not yet handed to the bag "
+                    "writer are held to this much; beyond it the recorder's callback waits for the "
+                    "writer (backpressure: a lockstep graph slows to the disk's speed instead of "
+                    "growing in memory; also bounds what a SIGKILL loses)",
+                    "MB",
+                    0.5,
+                    4096.0,
+                    read_only=True,
+                ),
+                P(
+                    "min_free_mb",
+                    100.0,
+                    "refuse to start unless the bag's file system has this much free space",
+                    "MB",
+                    0.0,
+                    1e9,
+                    read_only=True,
+                ),
+            ],
+        )
         self.pv = pv
         want = [t for t in pv["topics"] if t]
         want += [topics.estimate_topic(o) for o in pv["observers"] if o]
@@ -159,31 +238,42 @@ class RecorderNode(FluxNode):
         if self.pending:
             self._discover_timer = self.create_timer(0.2, self._discover)
         if pv["exit_on_done"]:
-            self.create_subscription(fm.RunDone, topics.DONE,
-                                     self.graph.typed(topics.DONE, self._on_done), qos.LATCHED)
+            self.create_subscription(
+                fm.RunDone, topics.DONE, self.graph.typed(topics.DONE, self._on_done), qos.LATCHED
+            )
             self._done_timer = self.create_timer(0.1, self._check_done)
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self._feeder, name="bag-feeder", daemon=True)
         self.thread.start()
-        self.get_logger().info(f"recording {len(self.want)} topics to {self.bag_dir} "
-                               f"({free_mb:.0f} MB free)")
+        self.get_logger().info(
+            f"recording {len(self.want)} topics to {self.bag_dir} ({free_mb:.0f} MB free)"
+        )
 
     # ----------------------------------------------------------------- writer process
     def _start_writer(self, custom: dict) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "fluxdrive_bringup.bagwriter"], stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE, bufsize=0)
+            [sys.executable, "-m", "fluxdrive_bringup.bagwriter"],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            bufsize=0,
+        )
         self.pipe = self.proc.stdin
         # bag times on a real epoch: sample time + the wall clock at the start (header
         # stamps stay sim time; the offset is recorded in the bag's settings)
         offset = 0 if self.pv["timestamps"] == "receive" else time.time_ns()
-        self.pipe.write(pack_json(b"H", {"path": str(self.bag_dir), "custom_data": custom,
-                                         "epoch_offset_ns": offset}))
+        self.pipe.write(
+            pack_json(
+                b"H", {"path": str(self.bag_dir), "custom_data": custom, "epoch_offset_ns": offset}
+            )
+        )
         line = self.proc.stdout.readline().decode().strip()
         if line != "ready":
             self.proc.wait(timeout=10)
-            why = line[6:] if line.startswith("error ") else (
-                f"bag writer exited with {self.proc.returncode}")
+            why = (
+                line[6:]
+                if line.startswith("error ")
+                else (f"bag writer exited with {self.proc.returncode}")
+            )
             raise ValueError(f"cannot open bag {self.bag_dir}: {why}")
 
     def _run_metadata(self, pv) -> dict:
@@ -198,8 +288,9 @@ class RecorderNode(FluxNode):
         if pv["duration_s"] > 0:
             sc.duration_s = pv["duration_s"]
         names = [o for o in pv["observers"] if o and o in sc.observers]
-        meta = run_metadata(SimpleNamespace(scenario=sc, names=names, driving=sc.driving),
-                            0, None, names)
+        meta = run_metadata(
+            SimpleNamespace(scenario=sc, names=names, driving=sc.driving), 0, None, names
+        )
         meta["recorded_by"] = "graph"
         meta["graph_id"] = self.graph.id  # replay keeps this graph's messages only
         return {META_KEY: json.dumps(meta, default=_json_default)}
@@ -218,7 +309,8 @@ class RecorderNode(FluxNode):
         with self.lock:  # the connection record goes down the pipe before its messages
             self.buf.append(pack_json(b"C", {"id": cid, "topic": topic, "type": mtype}))
         prof = {topics.DONE: qos.LATCHED, topics.MARKER: qos.MARKERS}.get(
-            topic, qos.reader(self.pv["input_durability"]))
+            topic, qos.reader(self.pv["input_durability"])
+        )
         buf = self.buf
         counts = self.counts
         last = self.last_seq
@@ -283,9 +375,13 @@ class RecorderNode(FluxNode):
             self.get_logger().warning(
                 f"bag writer behind by {(self.bytes_in - self.bytes_out) / 1e6:.1f} MB "
                 f"(max_backlog_mb {self.max_backlog / 1e6:g}): holding the callbacks until it "
-                f"catches up (a lockstep graph slows down; nothing is dropped)")
-        while (self.bytes_in - self.bytes_out > self.max_backlog // 2 and not self.closed
-               and not self.stop.is_set()):
+                f"catches up (a lockstep graph slows down; nothing is dropped)"
+            )
+        while (
+            self.bytes_in - self.bytes_out > self.max_backlog // 2
+            and not self.closed
+            and not self.stop.is_set()
+        ):
             time.sleep(0.002)
 
     def _feeder(self) -> None:
@@ -316,9 +412,11 @@ class RecorderNode(FluxNode):
             self.proc.wait(timeout=30)
         except (OSError, subprocess.TimeoutExpired):
             out = ""
-        reason = next((ln[6:] for ln in out.splitlines() if ln.startswith("error ")),
-                      f"bag writer gone ({exc}); {self.bag_dir} may need "
-                      f"./fluxdrive bag recover {self.bag_dir}")
+        reason = next(
+            (ln[6:] for ln in out.splitlines() if ln.startswith("error ")),
+            f"bag writer gone ({exc}); {self.bag_dir} may need "
+            f"./fluxdrive bag recover {self.bag_dir}",
+        )
         self.write_failed = reason
         self.get_logger().error(f"recording stopped: {reason}")
         self.exit_code = 1
@@ -336,8 +434,11 @@ class RecorderNode(FluxNode):
         quiet = time.monotonic() - self.last_rx > self.pv["drain_timeout_s"]
         if complete or quiet:
             if not complete:
-                short = {t: self.last_seq.get(t, -1) for t in seen
-                         if self.last_seq.get(t, -1) < self.done_seq}
+                short = {
+                    t: self.last_seq.get(t, -1)
+                    for t in seen
+                    if self.last_seq.get(t, -1) < self.done_seq
+                }
                 self.get_logger().warning(f"finishing without the last samples of {short}")
             self.finished = True
 
@@ -346,8 +447,7 @@ class RecorderNode(FluxNode):
         self.thread.join(timeout=30.0)
         with self.lock:
             if self.write_failed:
-                self.log(f"bag {self.bag_dir} not finalised (recording stopped early)",
-                         "error")
+                self.log(f"bag {self.bag_dir} not finalised (recording stopped early)", "error")
                 return
             if self.closed:
                 return
@@ -364,15 +464,20 @@ class RecorderNode(FluxNode):
             self.proc.kill()
             out = ""
         if self.proc.returncode != 0 or "closed" not in out:
-            why = next((ln[6:] for ln in out.splitlines() if ln.startswith("error ")),
-                       f"bag writer failed (exit {self.proc.returncode}); {self.bag_dir} may "
-                       f"be incomplete: ./fluxdrive bag recover {self.bag_dir}")
+            why = next(
+                (ln[6:] for ln in out.splitlines() if ln.startswith("error ")),
+                f"bag writer failed (exit {self.proc.returncode}); {self.bag_dir} may "
+                f"be incomplete: ./fluxdrive bag recover {self.bag_dir}",
+            )
             self.log(why, "error")
             self.exit_code = 1
         total = sum(self.counts.values())
         detail = ", ".join(f"{t} {c}" for t, c in self.counts.items())
-        held = (f"; the writer's backpressure held the callbacks {self.holds} times"
-                if self.holds else "")
+        held = (
+            f"; the writer's backpressure held the callbacks {self.holds} times"
+            if self.holds
+            else ""
+        )
         foreign = f"; not recorded: {self.graph.summary()}" if self.graph.foreign else ""
         self.log(f"bag {self.bag_dir} finalised: {total} messages ({detail}){held}{foreign}")
         sys.stdout.write(f"@bag {self.bag_dir}\n")

@@ -41,9 +41,16 @@ LAYOUTS = ("composed", "split", "separate")
 DEMO_SCENARIO = "paper_2pct_150load"
 
 
-def graph_for_scenario(sc_path: Path, sc, bag_dir: Path | None, layout: str = "composed",
-                       duration_s: float | None = None, domain_id: int | None = None,
-                       start_delay_s: float = 0.5, extra: dict | None = None) -> Graph:
+def graph_for_scenario(
+    sc_path: Path,
+    sc,
+    bag_dir: Path | None,
+    layout: str = "composed",
+    duration_s: float | None = None,
+    domain_id: int | None = None,
+    start_delay_s: float = 0.5,
+    extra: dict | None = None,
+) -> Graph:
     """The lockstep graph of a scenario.  `extra` = {node name: {param: value}}."""
     if layout not in LAYOUTS:
         raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
@@ -53,24 +60,53 @@ def graph_for_scenario(sc_path: Path, sc, bag_dir: Path | None, layout: str = "c
     n_frame_subs = len(names) + 1 + (1 if bag_dir is not None else 0)
 
     def proc(name: str, group: str) -> str:
-        return {"composed": "drive",
-                "split": "recorder" if group == "rec" else "drive",
-                "separate": name}[layout]
+        return {
+            "composed": "drive",
+            "split": "recorder" if group == "rec" else "drive",
+            "separate": name,
+        }[layout]
 
-    nodes = [NodeSpec(name="plant", node="plant", process=proc("plant", "plant"),
-                      parameters={"scenario": sp, "wait_frame_subscribers": n_frame_subs,
-                                  "wait_duty_publishers": 1, "start_delay_s": start_delay_s,
-                                  **dur})]
+    nodes = [
+        NodeSpec(
+            name="plant",
+            node="plant",
+            process=proc("plant", "plant"),
+            parameters={
+                "scenario": sp,
+                "wait_frame_subscribers": n_frame_subs,
+                "wait_duty_publishers": 1,
+                "start_delay_s": start_delay_s,
+                **dur,
+            },
+        )
+    ]
     for nm in names:
-        nodes.append(NodeSpec(name=nm, node="observer", namespace="/obs",
-                              process=proc(f"obs_{nm}", "obs"),
-                              parameters={"scenario": sp, "observer": nm}))
-    nodes.append(NodeSpec(name="controller", node="controller",
-                          process=proc("controller", "ctrl"), parameters={"scenario": sp}))
+        nodes.append(
+            NodeSpec(
+                name=nm,
+                node="observer",
+                namespace="/obs",
+                process=proc(f"obs_{nm}", "obs"),
+                parameters={"scenario": sp, "observer": nm},
+            )
+        )
+    nodes.append(
+        NodeSpec(
+            name="controller",
+            node="controller",
+            process=proc("controller", "ctrl"),
+            parameters={"scenario": sp},
+        )
+    )
     if bag_dir is not None:
-        nodes.append(NodeSpec(name="recorder", node="recorder", process=proc("recorder", "rec"),
-                              parameters={"bag_dir": str(bag_dir), "observers": names,
-                                          "scenario": sp, **dur}))
+        nodes.append(
+            NodeSpec(
+                name="recorder",
+                node="recorder",
+                process=proc("recorder", "rec"),
+                parameters={"bag_dir": str(bag_dir), "observers": names, "scenario": sp, **dur},
+            )
+        )
     for n in nodes:
         # late-matched readers still get the first samples (lockstep must lose nothing)
         n.parameters["input_durability"] = "transient_local"
@@ -101,8 +137,13 @@ def domain_users(domain_id: int, wait_s: float | None = None) -> list[str]:
         me = s.node.get_name()
 
         def others() -> list[str]:
-            return sorted({f"{ns.rstrip('/')}/{n}" for n, ns in
-                           s.node.get_node_names_and_namespaces() if n != me})
+            return sorted(
+                {
+                    f"{ns.rstrip('/')}/{n}"
+                    for n, ns in s.node.get_node_names_and_namespaces()
+                    if n != me
+                }
+            )
 
         s.discover(lambda: bool(others()))
         return others()
@@ -113,17 +154,21 @@ def domain_users(domain_id: int, wait_s: float | None = None) -> list[str]:
 def choose_domain(domain_id: int | None, what: str) -> tuple[int | None, str]:
     """A domain no live node uses: the given one (--domain-id, else ROS_DOMAIN_ID) if it is
     free -- else (None, one line naming the clash); without either, a random free one."""
-    given = domain_id if domain_id is not None else (
-        int(os.environ["ROS_DOMAIN_ID"]) if os.environ.get("ROS_DOMAIN_ID") else None)
+    given = (
+        domain_id
+        if domain_id is not None
+        else (int(os.environ["ROS_DOMAIN_ID"]) if os.environ.get("ROS_DOMAIN_ID") else None)
+    )
     if given is not None:
         users = domain_users(given)
         if users:
-            shown = ", ".join(users[:6]) + (f" and {len(users) - 6} more" if len(users) > 6
-                                            else "")
-            return None, (f"ROS_DOMAIN_ID={given} is in use by {shown} (another graph?): two "
-                          f"graphs on one domain hear each other's samples; choose another "
-                          f"(--domain-id) or unset ROS_DOMAIN_ID for a free one, or "
-                          f"--shared-domain to {what} there anyway")
+            shown = ", ".join(users[:6]) + (f" and {len(users) - 6} more" if len(users) > 6 else "")
+            return None, (
+                f"ROS_DOMAIN_ID={given} is in use by {shown} (another graph?): two "
+                f"graphs on one domain hear each other's samples; choose another "
+                f"(--domain-id) or unset ROS_DOMAIN_ID for a free one, or "
+                f"--shared-domain to {what} there anyway"
+            )
         return given, ""
     for _ in range(8):
         dom = random.randint(110, 219)
@@ -154,16 +199,39 @@ def result_from_bag(bag: Path, sc, duration_s: float | None = None, wall_s: floa
     w_ref = ctrl[:, CO_W_REF].copy()
     bad = ~np.isfinite(w_ref)
     w_ref[bad] = ds.w_ref[:n][bad] if n <= len(ds.w_ref) else 0.0
-    res = SimResult(sc, list(sc.observers), sc.driving, np.arange(n) * ds.ts, arr["frames"],
-                    arr["truth"], arr["est"], ctrl, w_ref, ds.id_inj[:n], ds.segments, wall_s)
+    res = SimResult(
+        sc,
+        list(sc.observers),
+        sc.driving,
+        np.arange(n) * ds.ts,
+        arr["frames"],
+        arr["truth"],
+        arr["est"],
+        ctrl,
+        w_ref,
+        ds.id_inj[:n],
+        ds.segments,
+        wall_s,
+    )
     return res, arr
 
 
-def run_graph(sc_path: Path, *, out: Path, bag: Path, layout: str = "composed",
-              duration_s: float | None = None, domain_id: int | None = None,
-              quiet: bool = False, timeout: float | None = None, extra: dict | None = None,
-              progress: bool = True, scope: bool = False, scope_port: int = 8765,
-              watch=None) -> dict:
+def run_graph(
+    sc_path: Path,
+    *,
+    out: Path,
+    bag: Path,
+    layout: str = "composed",
+    duration_s: float | None = None,
+    domain_id: int | None = None,
+    quiet: bool = False,
+    timeout: float | None = None,
+    extra: dict | None = None,
+    progress: bool = True,
+    scope: bool = False,
+    scope_port: int = 8765,
+    watch=None,
+) -> dict:
     """Launch the lockstep graph of a scenario, wait for the end.  Returns a summary dict
     (exit code, wall time, real-time factor, bag path).  scope: with the live scope
     (launch.add_scope); watch: called in a thread with the Launcher once it starts."""
@@ -177,9 +245,12 @@ def run_graph(sc_path: Path, *, out: Path, bag: Path, layout: str = "composed",
         add_scope(g, port=scope_port, exit_on_done=True, observers=list(sc.observers))
     out.mkdir(parents=True, exist_ok=True)
     (out / "graph.yaml").write_text(yaml.safe_dump(g.to_dict(), sort_keys=False))
-    print(f"[run] {sc.name}: {sc.n_periods} periods ({sc.duration_s:g} s) through the graph, "
-          f"layout {layout} ({', '.join(g.processes())}), ROS_DOMAIN_ID={dom}; "
-          f"graph: {out / 'graph.yaml'}", flush=True)
+    print(
+        f"[run] {sc.name}: {sc.n_periods} periods ({sc.duration_s:g} s) through the graph, "
+        f"layout {layout} ({', '.join(g.processes())}), ROS_DOMAIN_ID={dom}; "
+        f"graph: {out / 'graph.yaml'}",
+        flush=True,
+    )
     launcher = Launcher(g, quiet=quiet, progress=progress, log_dir=out / "logs")
     if watch is not None:
         import threading
@@ -192,10 +263,19 @@ def run_graph(sc_path: Path, *, out: Path, bag: Path, layout: str = "composed",
     rtf = None
     if prog and prog[2] > 0:
         rtf = prog[0] * sc.machine.ts_s / prog[2]
-    return {"code": code, "wall_s": wall, "lockstep_rtf": rtf, "interrupted": launcher.interrupted,
-            "stop_signal": launcher.stop_signal,
-            "frames": prog[0] if prog else 0, "loop_wall_s": prog[2] if prog else None,
-            "bag": str(bag), "scenario": sc, "graph": g, "domain_id": dom}
+    return {
+        "code": code,
+        "wall_s": wall,
+        "lockstep_rtf": rtf,
+        "interrupted": launcher.interrupted,
+        "stop_signal": launcher.stop_signal,
+        "frames": prog[0] if prog else 0,
+        "loop_wall_s": prog[2] if prog else None,
+        "bag": str(bag),
+        "scenario": sc,
+        "graph": g,
+        "domain_id": dom,
+    }
 
 
 def interrupted_bag_note(bag: Path) -> str:
@@ -207,34 +287,52 @@ def interrupted_bag_note(bag: Path) -> str:
     try:
         n = topic_counts(bag).get(FRAME, 0)
     except Exception as exc:  # noqa: BLE001 - not finalised / damaged: say so
-        return (f"bag {bag} is not readable ({type(exc).__name__}); try "
-                f"./fluxdrive bag recover {bag}")
+        return (
+            f"bag {bag} is not readable ({type(exc).__name__}); try ./fluxdrive bag recover {bag}"
+        )
     return f"the bag holds {n} frames (finalised): {bag}"
 
 
 def main_run(argv: list[str], default_scenario: str | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="fluxdrive run" if default_scenario is None
-                                 else "fluxdrive demo", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(
+        prog="fluxdrive run" if default_scenario is None else "fluxdrive demo",
+        description=__doc__.split("\n\n")[0],
+    )
     if default_scenario is None:
-        ap.add_argument("scenario", help="scenario YAML (path, or a name under "
-                        "config/scenarios)")
+        ap.add_argument("scenario", help="scenario YAML (path, or a name under config/scenarios)")
     ap.add_argument("--out", type=Path, help="report folder (default runs/<name>-<time>)")
     ap.add_argument("--bag", type=Path, help="bag folder (default bags/<name>-<time>)")
     ap.add_argument("--duration", type=float, help="simulate only this long [s]")
-    ap.add_argument("--layout", choices=LAYOUTS, default="composed",
-                    help="process layout of the graph (default composed)")
-    ap.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default: environment's, "
-                    "else a random one)")
+    ap.add_argument(
+        "--layout",
+        choices=LAYOUTS,
+        default="composed",
+        help="process layout of the graph (default composed)",
+    )
+    ap.add_argument(
+        "--domain-id", type=int, help="ROS_DOMAIN_ID (default: environment's, else a random one)"
+    )
     ap.add_argument("--timeout", type=float, help="give up after this many seconds")
     ap.add_argument("--quiet", action="store_true", help="hide the nodes' log lines")
     ap.add_argument("--no-plots", action="store_true")
-    ap.add_argument("--scope", action="store_true", help="watch it live: start the scope "
-                    "(prints its URL; see ./fluxdrive scope)")
-    ap.add_argument("--scope-port", type=int, default=8765,
-                    help="the scope's TCP port (default 8765; 0: any free port)")
-    ap.add_argument("--shared-domain", action="store_true", help="run even if other nodes "
-                    "live on the ROS domain (by default refused: graphs on one domain hear "
-                    "each other)")
+    ap.add_argument(
+        "--scope",
+        action="store_true",
+        help="watch it live: start the scope (prints its URL; see ./fluxdrive scope)",
+    )
+    ap.add_argument(
+        "--scope-port",
+        type=int,
+        default=8765,
+        help="the scope's TCP port (default 8765; 0: any free port)",
+    )
+    ap.add_argument(
+        "--shared-domain",
+        action="store_true",
+        help="run even if other nodes "
+        "live on the ROS domain (by default refused: graphs on one domain hear "
+        "each other)",
+    )
     args = ap.parse_args(argv)
     sp = scenario_path(args.scenario if default_scenario is None else default_scenario)
     sc = load_scenario(sp)
@@ -243,8 +341,9 @@ def main_run(argv: list[str], default_scenario: str | None = None) -> int:
     bag = args.bag or REPO_ROOT / "bags" / f"{sc.name}-{stamp}"
     if Path(bag).exists():
         # before anything starts: a failed run must never be mistaken for this old bag
-        print(f"[run] bag directory {bag} exists already; choose a new one (--bag)",
-              file=sys.stderr)
+        print(
+            f"[run] bag directory {bag} exists already; choose a new one (--bag)", file=sys.stderr
+        )
         return 2
     from fluxdrive_ros.security import precheck
 
@@ -258,35 +357,54 @@ def main_run(argv: list[str], default_scenario: str | None = None) -> int:
         if dom is None:
             print(f"[run] {why}", file=sys.stderr)
             return 2
-    r = run_graph(sp, out=out, bag=bag, layout=args.layout, duration_s=args.duration,
-                  domain_id=dom, quiet=args.quiet, timeout=args.timeout,
-                  scope=args.scope, scope_port=args.scope_port,
-                  watch=_print_scope_url if args.scope and args.quiet else None)
+    r = run_graph(
+        sp,
+        out=out,
+        bag=bag,
+        layout=args.layout,
+        duration_s=args.duration,
+        domain_id=dom,
+        quiet=args.quiet,
+        timeout=args.timeout,
+        scope=args.scope,
+        scope_port=args.scope_port,
+        watch=_print_scope_url if args.scope and args.quiet else None,
+    )
     if r["interrupted"]:
         print(f"[run] interrupted: {interrupted_bag_note(bag)}", file=sys.stderr)
         return 128 + int(r.get("stop_signal") or 2)  # 130 (SIGINT) / 143 (SIGTERM)
     if r["code"] != 0:
-        print(f"[run] the graph failed (exit {r['code']}); logs in {out / 'logs'}",
-              file=sys.stderr)
+        print(f"[run] the graph failed (exit {r['code']}); logs in {out / 'logs'}", file=sys.stderr)
         if Path(bag).exists():
             print(f"[run] partial bag: {bag}", file=sys.stderr)
         return r["code"]
     if r["lockstep_rtf"] is not None:
-        print(f"[run] lockstep loop: {r['frames']} frames in {r['loop_wall_s']:.2f} s wall = "
-              f"real-time factor {r['lockstep_rtf']:.3f} (whole command {r['wall_s']:.1f} s "
-              f"incl. start-up and finalising)")
+        print(
+            f"[run] lockstep loop: {r['frames']} frames in {r['loop_wall_s']:.2f} s wall = "
+            f"real-time factor {r['lockstep_rtf']:.3f} (whole command {r['wall_s']:.1f} s "
+            f"incl. start-up and finalising)"
+        )
     from fluxdrive.analysis.report import report
 
     t0 = time.perf_counter()
     res, arr = result_from_bag(bag, r["scenario"], args.duration, r["loop_wall_s"] or 0.0)
     miss = {k: v for k, v in arr["missing"].items() if v}
-    print(f"[run] bag read back in {time.perf_counter() - t0:.1f} s: {arr['n']} frames"
-          + (f"; MISSING samples: {miss}" if miss else "; every sample of every topic present"))
+    print(
+        f"[run] bag read back in {time.perf_counter() - t0:.1f} s: {arr['n']} frames"
+        + (f"; MISSING samples: {miss}" if miss else "; every sample of every topic present")
+    )
     m = report(res, out, plots=not args.no_plots)
-    summary = {"scenario": r["scenario"].name, "bag": str(bag), "layout": args.layout,
-               "domain_id": r["domain_id"], "frames": arr["n"], "missing": arr["missing"],
-               "lockstep_rtf": r["lockstep_rtf"], "loop_wall_s": r["loop_wall_s"],
-               "command_wall_s": r["wall_s"]}
+    summary = {
+        "scenario": r["scenario"].name,
+        "bag": str(bag),
+        "layout": args.layout,
+        "domain_id": r["domain_id"],
+        "frames": arr["n"],
+        "missing": arr["missing"],
+        "lockstep_rtf": r["lockstep_rtf"],
+        "loop_wall_s": r["loop_wall_s"],
+        "command_wall_s": r["wall_s"],
+    }
     (out / "graph_run.json").write_text(json.dumps(summary, indent=2))
     print(f"[run] bag: {bag}")
     return 0 if m.get("stable", True) and not miss else 1
@@ -316,16 +434,24 @@ def graph_run(sc, keep: bool = False):
 
     d = Path(tempfile.mkdtemp(prefix=f"fluxdrive-exp-graph-{sc.name}-"))
     sp = save_scenario(sc, d / f"{sc.name}.yaml")
-    r = run_graph(sp, out=d / "run", bag=d / "bag", quiet=True, progress=False,
-                  timeout=max(600.0, 30.0 * sc.duration_s))
+    r = run_graph(
+        sp,
+        out=d / "run",
+        bag=d / "bag",
+        quiet=True,
+        progress=False,
+        timeout=max(600.0, 30.0 * sc.duration_s),
+    )
     if r["code"] != 0:
-        raise RuntimeError(f"graph run of {sc.name} failed (exit {r['code']}); logs in "
-                           f"{d / 'run' / 'logs'}")
+        raise RuntimeError(
+            f"graph run of {sc.name} failed (exit {r['code']}); logs in {d / 'run' / 'logs'}"
+        )
     res, arr = result_from_bag(d / "bag", load_scenario(sp), wall_s=r["loop_wall_s"] or 0.0)
     missing = {k: v for k, v in arr["missing"].items() if v}
     if missing:
-        raise RuntimeError(f"graph run of {sc.name}: samples missing from the bag {missing} "
-                           f"({d / 'bag'})")
+        raise RuntimeError(
+            f"graph run of {sc.name}: samples missing from the bag {missing} ({d / 'bag'})"
+        )
     if not keep:
         shutil.rmtree(d, ignore_errors=True)
     return res

@@ -63,8 +63,7 @@ class RosSide:
         self.rclpy = rclpy
         self.ctx = rclpy.Context()
         rclpy.init(args=None, context=self.ctx, domain_id=domain_id)
-        self.node = rclpy.create_node(SCOPE_NODE, context=self.ctx,
-                                      start_parameter_services=False)
+        self.node = rclpy.create_node(SCOPE_NODE, context=self.ctx, start_parameter_services=False)
         self.ex = SingleThreadedExecutor(context=self.ctx)
         self.ex.add_node(self.node)
         self.on_envelope = on_envelope
@@ -83,14 +82,17 @@ class RosSide:
                 text, seq, ts_s = page_json(data)
             except (ValueError, KeyError, struct.error) as exc:
                 if self.n_envelopes < 5:
-                    print(f"scope: bad envelope message ({exc}); is the tap another version?",
-                          flush=True)
+                    print(
+                        f"scope: bad envelope message ({exc}); is the tap another version?",
+                        flush=True,
+                    )
                 return
             self.note_envelope(seq, ts_s)
             on_envelope(text)
 
-        self.sub = self.node.create_subscription(UInt8MultiArray, topics.SCOPE_ENVELOPE,
-                                                 on_env, 10, raw=True)
+        self.sub = self.node.create_subscription(
+            UInt8MultiArray, topics.SCOPE_ENVELOPE, on_env, 10, raw=True
+        )
         # the graph's id when started by its launch (else 0: any graph's end, and markers
         # stamped 0, which every recorder accepts; fluxdrive_ros.graph)
         self.graph_id = graph.env_id()
@@ -99,12 +101,10 @@ class RosSide:
             if self.graph_id in (0, m.graph_id):
                 self.done.set()
 
-        self.node.create_subscription(msg_class(topics.T_DONE), topics.DONE, on_done,
-                                      qos.LATCHED)
+        self.node.create_subscription(msg_class(topics.T_DONE), topics.DONE, on_done, qos.LATCHED)
         self.marker_cls = msg_class(topics.T_MARKER)
         # reliable, transient-local: a recorder that matches late still gets the markers
-        self.pub_marker = self.node.create_publisher(self.marker_cls, topics.MARKER,
-                                                     qos.MARKERS)
+        self.pub_marker = self.node.create_publisher(self.marker_cls, topics.MARKER, qos.MARKERS)
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self._spin, name="scope-ros", daemon=True)
         self.thread.start()
@@ -131,8 +131,11 @@ class RosSide:
             return
         from .scope_tap import ScopeTapNode
 
-        print("scope: no scope tap in the graph (start it with --scope to keep the cost low); "
-              "tapping every sample topic from this process over DDS instead", flush=True)
+        print(
+            "scope: no scope tap in the graph (start it with --scope to keep the cost low); "
+            "tapping every sample topic from this process over DDS instead",
+            flush=True,
+        )
         self.local_tap = ScopeTapNode("scope_tap_local", context=self.ctx)
         self.ex.add_node(self.local_tap)
 
@@ -180,8 +183,9 @@ class ParamSide:
         from .inspect_cli import Session
 
         if self.session is None:
-            self.session = Session(domain_id=self.domain_id, wait_s=self.wait_s,
-                                   node_name="fluxdrive_scope_params")
+            self.session = Session(
+                domain_id=self.domain_id, wait_s=self.wait_s, node_name="fluxdrive_scope_params"
+            )
             self.session.spin_for(0.5)
         return self.session
 
@@ -219,9 +223,18 @@ class ParamSide:
             choices = []
             if d.additional_constraints.startswith("one of:"):
                 choices = [c.strip() for c in d.additional_constraints[7:].split(",")]
-            out.append({"name": n, "type": int(typ), "value": _plain(v),
-                        "description": d.description, "read_only": bool(d.read_only),
-                        "min": lo, "max": hi, "choices": choices})
+            out.append(
+                {
+                    "name": n,
+                    "type": int(typ),
+                    "value": _plain(v),
+                    "description": d.description,
+                    "read_only": bool(d.read_only),
+                    "min": lo,
+                    "max": hi,
+                    "choices": choices,
+                }
+            )
         return out
 
     def set(self, node: str, name: str, text: str) -> tuple[bool, str, Any]:
@@ -295,10 +308,11 @@ class Scope:
         from aiohttp import web
 
         if not self._authorised(request):
-            return web.Response(status=403, text="scope: missing or wrong token; use the URL "
-                                "that ./fluxdrive scope printed\n")
-        return web.FileResponse(WEB_DIR / "index.html",
-                                headers={"Cache-Control": "no-store"})
+            return web.Response(
+                status=403,
+                text="scope: missing or wrong token; use the URL that ./fluxdrive scope printed\n",
+            )
+        return web.FileResponse(WEB_DIR / "index.html", headers={"Cache-Control": "no-store"})
 
     async def ws(self, request):
         from aiohttp import WSMsgType, web
@@ -310,8 +324,9 @@ class Scope:
         q: asyncio.Queue = asyncio.Queue(maxsize=2)
         self.clients.add(q)
         self.sockets.add(sock)
-        await sock.send_str(json.dumps({"hello": {"domain_id": self.args.domain_id,
-                                                  "modes": MODE_NAMES}}))
+        await sock.send_str(
+            json.dumps({"hello": {"domain_id": self.args.domain_id, "modes": MODE_NAMES}})
+        )
         if self.latest:
             q.put_nowait(self.latest)
 
@@ -343,8 +358,9 @@ class Scope:
             for n in nodes:
                 for attempt in (1, 2):  # a node busy with a lockstep loop may answer late
                     try:
-                        out.append({"node": n, "params": await self.params.run(
-                            self.params.describe, n)})
+                        out.append(
+                            {"node": n, "params": await self.params.run(self.params.describe, n)}
+                        )
                         break
                     except (LookupError, TimeoutError) as exc:
                         if attempt == 2:
@@ -362,8 +378,9 @@ class Scope:
             body = await request.json()
             node, name, text = str(body["node"]), str(body["name"]), str(body["value"])
         except (ValueError, KeyError, TypeError):
-            return web.json_response({"ok": False, "reason": "expected JSON {node, name, "
-                                      "value}"}, status=400)
+            return web.json_response(
+                {"ok": False, "reason": "expected JSON {node, name, value}"}, status=400
+            )
         try:
             ok, reason, value = await self.params.run(self.params.set, node, name, text)
         except (LookupError, TimeoutError) as exc:
@@ -371,8 +388,11 @@ class Scope:
         except Exception as exc:  # noqa: BLE001 - a value rclpy cannot even form
             ok, reason, value = False, f"{type(exc).__name__}: {exc}", None
         self.ros.publish_marker(node, name, text, ok, reason)
-        print(f"scope: set {node} {name} = {text}: "
-              f"{'ok' if ok else 'REFUSED'}{': ' + reason if reason else ''}", flush=True)
+        print(
+            f"scope: set {node} {name} = {text}: "
+            f"{'ok' if ok else 'REFUSED'}{': ' + reason if reason else ''}",
+            flush=True,
+        )
         return web.json_response({"ok": ok, "reason": reason, "value": value})
 
     async def api_reset(self, request):
@@ -385,8 +405,7 @@ class Scope:
             ok, message = await self.params.run(self.params.reset, service)
         except (LookupError, TimeoutError) as exc:
             ok, message = False, str(exc)
-        print(f"scope: fault reset {service}: {'ok' if ok else 'REFUSED'}: {message}",
-              flush=True)
+        print(f"scope: fault reset {service}: {'ok' if ok else 'REFUSED'}: {message}", flush=True)
         return web.json_response({"ok": ok, "message": message})
 
     async def api_status(self, request):
@@ -395,10 +414,16 @@ class Scope:
         if not self._authorised(request):
             return web.json_response({"error": "wrong token"}, status=403)
         r = self.ros
-        return web.json_response({"envelopes": r.n_envelopes, "sent": self.sent,
-                                  "dropped": self.dropped, "clients": len(self.clients),
-                                  "local_tap": r.local_tap is not None,
-                                  "last_seq": r.last_seq})
+        return web.json_response(
+            {
+                "envelopes": r.n_envelopes,
+                "sent": self.sent,
+                "dropped": self.dropped,
+                "clients": len(self.clients),
+                "local_tap": r.local_tap is not None,
+                "last_seq": r.last_seq,
+            }
+        )
 
     def app(self):
         from aiohttp import web
@@ -426,8 +451,10 @@ class Scope:
         try:
             await site.start()
         except OSError as exc:
-            print(f"scope: cannot listen on {self.args.host}:{self.args.port}: "
-                  f"{exc.strerror or exc}", file=sys.stderr)
+            print(
+                f"scope: cannot listen on {self.args.host}:{self.args.port}: {exc.strerror or exc}",
+                file=sys.stderr,
+            )
             await runner.cleanup()
             self.ros.close()
             return 1
@@ -465,17 +492,24 @@ class Scope:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="fluxdrive scope", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: "
-                    "this machine only)")
-    ap.add_argument("--port", type=int, default=8765, help="TCP port (default 8765; 0: any "
-                    "free port)")
+    ap.add_argument(
+        "--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)"
+    )
+    ap.add_argument(
+        "--port", type=int, default=8765, help="TCP port (default 8765; 0: any free port)"
+    )
     ap.add_argument("--token", help="access token (default: a fresh random one per launch)")
     ap.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID of the graph")
-    ap.add_argument("--attach-wait", type=float, default=3.0,
-                    help="seconds to wait for the graph's scope tap before tapping the "
-                    "topics directly (default 3)")
-    ap.add_argument("--exit-on-done", action="store_true",
-                    help="exit a second after the graph's /drive/done")
+    ap.add_argument(
+        "--attach-wait",
+        type=float,
+        default=3.0,
+        help="seconds to wait for the graph's scope tap before tapping the "
+        "topics directly (default 3)",
+    )
+    ap.add_argument(
+        "--exit-on-done", action="store_true", help="exit a second after the graph's /drive/done"
+    )
     args = ap.parse_args(sys.argv[1:] if argv is None else argv)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     if args.domain_id is None:
@@ -483,8 +517,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         import aiohttp  # noqa: F401
     except ImportError:
-        print("scope: aiohttp is not installed; run ./fluxdrive help (set-up) first",
-              file=sys.stderr)
+        print(
+            "scope: aiohttp is not installed; run ./fluxdrive help (set-up) first", file=sys.stderr
+        )
         return 2
     return asyncio.run(Scope(args).serve())
 

@@ -71,8 +71,9 @@ def decode_batch(dec: Decoder, msgs: list[bytes], paths: list[str]) -> np.ndarra
         by_len: dict[int, list[int]] = {}
         for i, m in enumerate(msgs):
             by_len.setdefault(len(m), []).append(i)
-        groups = [(np.array(ix), msgs[ix[0]], b"".join(msgs[i] for i in ix))
-                  for ix in by_len.values()]
+        groups = [
+            (np.array(ix), msgs[ix[0]], b"".join(msgs[i] for i in ix)) for ix in by_len.values()
+        ]
     for ix, first, data in groups:
         # over DDS a message may carry trailing padding: the layout of its prefix, with
         # the message's own length as the record size
@@ -80,8 +81,11 @@ def decode_batch(dec: Decoder, msgs: list[bytes], paths: list[str]) -> np.ndarra
         key = (id(codec), len(first), tuple(paths))
         hit = _LAYOUTS.get(key)
         if hit is None or hit[0] is not codec:
-            hit = _LAYOUTS[key] = (codec, codec.numpy_dtype(itemsize=len(first)),
-                                   [f"f{codec.index(p)}" for p in paths])
+            hit = _LAYOUTS[key] = (
+                codec,
+                codec.numpy_dtype(itemsize=len(first)),
+                [f"f{codec.index(p)}" for p in paths],
+            )
         arr = np.frombuffer(data, dtype=hit[1])
         for j, name in enumerate(hit[2]):
             out[ix, j] = arr[name]
@@ -91,8 +95,9 @@ def decode_batch(dec: Decoder, msgs: list[bytes], paths: list[str]) -> np.ndarra
 _LAYOUTS: dict[tuple, tuple] = {}  # (codec, paths) -> (codec, numpy dtype, field names)
 
 
-def envelope(seq: np.ndarray, cols: np.ndarray, bucket: int
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def envelope(
+    seq: np.ndarray, cols: np.ndarray, bucket: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Bucket indices and per-bucket min, max of every column (NaNs ignored; an all-NaN
     bucket gives NaN).  seq need not be sorted."""
     if len(seq) == 0:
@@ -102,8 +107,7 @@ def envelope(seq: np.ndarray, cols: np.ndarray, bucket: int
         seq, cols = seq[order], cols[order]
     k = seq // bucket
     starts = np.flatnonzero(np.diff(k, prepend=k[0] - 1))
-    return k[starts], np.fmin.reduceat(cols, starts, axis=0), np.fmax.reduceat(cols, starts,
-                                                                                axis=0)
+    return k[starts], np.fmin.reduceat(cols, starts, axis=0), np.fmax.reduceat(cols, starts, axis=0)
 
 
 def wrap_deg(x: np.ndarray) -> np.ndarray:
@@ -143,7 +147,7 @@ def page_json(cdr: bytes) -> tuple[str, int, float]:
     field; NaN -> null), the newest seq and the sample period."""
     data = memoryview(cdr)[16:]
     (n,) = _U32.unpack_from(data, 0)
-    head = json.loads(bytes(data[4:4 + n]))
+    head = json.loads(bytes(data[4 : 4 + n]))
     off = 4 + n + (-(4 + n)) % 8
 
     def take(count: int) -> np.ndarray:
@@ -158,9 +162,12 @@ def page_json(cdr: bytes) -> tuple[str, int, float]:
         q = 10.0 ** np.array(st["dec"], dtype=float)
         k = take(nb)
         lo, hi = take(nb * nf).reshape(nb, nf), take(nb * nf).reshape(nb, nf)
-        streams[st["name"]] = {"k": k.astype(np.int64).tolist(), "n": st["n"],
-                               "lo": (np.round(lo * q) / q).tolist(),
-                               "hi": (np.round(hi * q) / q).tolist()}
+        streams[st["name"]] = {
+            "k": k.astype(np.int64).tolist(),
+            "n": st["n"],
+            "lo": (np.round(lo * q) / q).tolist(),
+            "hi": (np.round(hi * q) / q).tolist(),
+        }
     locus = {}
     for lc in head.pop("locus"):
         locus[lc["name"]] = (np.round(take(2 * lc["np"]).reshape(2, -1) * 1e4) / 1e4).tolist()
@@ -176,13 +183,23 @@ def _col(p: str, scale: float = 1.0) -> Callable[[dict], np.ndarray]:
 
 
 STATE_FIELDS = [
-    ("i_d", _col("i_dq[0]"), 3), ("i_q", _col("i_dq[1]"), 3),
-    ("i_d_ref", _col("i_dq_ref[0]"), 3), ("i_q_ref", _col("i_dq_ref[1]"), 3),
+    ("i_d", _col("i_dq[0]"), 3),
+    ("i_q", _col("i_dq[1]"), 3),
+    ("i_d_ref", _col("i_dq_ref[0]"), 3),
+    ("i_q_ref", _col("i_dq_ref[1]"), 3),
     ("speed_ref", _col("omega_ref_m", RPM_PER_RAD_S), 2),
     ("speed_fb", _col("omega_fb_m", RPM_PER_RAD_S), 2),
 ]
-STATE_PATHS = ["seq", "i_dq[0]", "i_dq[1]", "i_dq_ref[0]", "i_dq_ref[1]", "omega_ref_m",
-               "omega_fb_m", "mode"]
+STATE_PATHS = [
+    "seq",
+    "i_dq[0]",
+    "i_dq[1]",
+    "i_dq_ref[0]",
+    "i_dq_ref[1]",
+    "omega_ref_m",
+    "omega_fb_m",
+    "mode",
+]
 DUTY_FIELDS = [("a", _col("duty[0]"), 4), ("b", _col("duty[1]"), 4), ("c", _col("duty[2]"), 4)]
 DUTY_PATHS = ["seq", "duty[0]", "duty[1]", "duty[2]", "enable"]
 TRUTH_PATHS = ["seq", "theta_e", "omega_m"]
@@ -193,31 +210,87 @@ class ScopeTapNode(FluxNode):
     def __init__(self, name: str = "scope_tap", namespace: str | None = None, **kw):
         super().__init__(name, namespace, **kw)
         self.specs = [
-            P("period_s", 0.04, "publish the envelopes this often (the page's data "
-              "rate) (live)", "s", 0.01, 1.0),
-            P("bucket_samples", 20, "samples per envelope bucket (min/max over each bucket; "
-              "the page shows one bucket per pixel or so) (live)", "-", 1, 10000),
-            P("locus_points", 60, "flux-locus points per observer and period (every n-th "
-              "sample) (live)", "-", 1, 2000),
-            P("max_cpu_share", 0.04, "at most this share of its process's CPU time goes to "
-              "the envelopes: a period is skipped (its samples go into the next) while the "
-              "tap is over it, so a slow or loaded graph is not slowed further (live)", "-",
-              0.001, 1.0),
+            P(
+                "period_s",
+                0.04,
+                "publish the envelopes this often (the page's data rate) (live)",
+                "s",
+                0.01,
+                1.0,
+            ),
+            P(
+                "bucket_samples",
+                20,
+                "samples per envelope bucket (min/max over each bucket; "
+                "the page shows one bucket per pixel or so) (live)",
+                "-",
+                1,
+                10000,
+            ),
+            P(
+                "locus_points",
+                60,
+                "flux-locus points per observer and period (every n-th sample) (live)",
+                "-",
+                1,
+                2000,
+            ),
+            P(
+                "max_cpu_share",
+                0.04,
+                "at most this share of its process's CPU time goes to "
+                "the envelopes: a period is skipped (its samples go into the next) while the "
+                "tap is over it, so a slow or loaded graph is not slowed further (live)",
+                "-",
+                0.001,
+                1.0,
+            ),
         ]
         pv = declare(self, self.specs)
-        fixed = declare(self, [
-            P("observers", [""], "observer names to watch; empty: every /obs/<name>/estimate "
-              "topic the graph has (discovered)", read_only=True),
-            P("pole_pairs", 0, "pole pairs of the machine (truth speed in electrical rad/s "
-              "next to the estimates); 0: from `scenario`, else not shown", "-", 0, 64,
-              read_only=True),
-            P("scenario", "", "scenario YAML (for pole_pairs and the sample period)",
-              read_only=True),
-            P("ts_s", 1e-4, "sample period (overridden by the scenario's)", "s", 1e-7, 1.0,
-              read_only=True),
-            P("exit_on_done", True, "end with the run (/drive/done), like the drive nodes, so "
-              "that a process it shares with them can exit", read_only=True),
-        ])
+        fixed = declare(
+            self,
+            [
+                P(
+                    "observers",
+                    [""],
+                    "observer names to watch; empty: every /obs/<name>/estimate "
+                    "topic the graph has (discovered)",
+                    read_only=True,
+                ),
+                P(
+                    "pole_pairs",
+                    0,
+                    "pole pairs of the machine (truth speed in electrical rad/s "
+                    "next to the estimates); 0: from `scenario`, else not shown",
+                    "-",
+                    0,
+                    64,
+                    read_only=True,
+                ),
+                P(
+                    "scenario",
+                    "",
+                    "scenario YAML (for pole_pairs and the sample period)",
+                    read_only=True,
+                ),
+                P(
+                    "ts_s",
+                    1e-4,
+                    "sample period (overridden by the scenario's)",
+                    "s",
+                    1e-7,
+                    1.0,
+                    read_only=True,
+                ),
+                P(
+                    "exit_on_done",
+                    True,
+                    "end with the run (/drive/done), like the drive nodes, so "
+                    "that a process it shares with them can exit",
+                    read_only=True,
+                ),
+            ],
+        )
         self.pv = pv
         self.ts_s = fixed["ts_s"]
         self.pole_pairs = fixed["pole_pairs"]
@@ -239,8 +312,11 @@ class ScopeTapNode(FluxNode):
         self.cpu_proc0 = 0.0  # process CPU time when it became active
         self.skipped = 0
         self.pub = self.create_publisher(UInt8MultiArray, topics.SCOPE_ENVELOPE, ENVELOPE_QOS)
-        for topic, mtype in ((topics.CONTROLLER_STATE, topics.T_STATE),
-                             (topics.DUTY, topics.T_DUTY), (topics.TRUTH, topics.T_TRUTH)):
+        for topic, mtype in (
+            (topics.CONTROLLER_STATE, topics.T_STATE),
+            (topics.DUTY, topics.T_DUTY),
+            (topics.TRUTH, topics.T_TRUTH),
+        ):
             self._subscribe(topic, mtype)
         self.fixed_observers = [o for o in fixed["observers"] if o]
         for o in self.fixed_observers:
@@ -249,12 +325,18 @@ class ScopeTapNode(FluxNode):
             self._discover()
             self.create_timer(1.0, self._discover)
         if fixed["exit_on_done"]:
-            self.create_subscription(topics.msg_class(topics.T_DONE), topics.DONE,
-                                     self.graph.typed(topics.DONE, self._on_done), qos.LATCHED)
+            self.create_subscription(
+                topics.msg_class(topics.T_DONE),
+                topics.DONE,
+                self.graph.typed(topics.DONE, self._on_done),
+                qos.LATCHED,
+            )
         on_set(self, self.specs, self._apply)
         self.timer = self.create_timer(pv["period_s"], self._tick)
-        self.get_logger().info(f"scope tap on {len(self.subs)} topics, envelopes every "
-                               f"{pv['period_s'] * 1e3:.0f} ms on {topics.SCOPE_ENVELOPE}")
+        self.get_logger().info(
+            f"scope tap on {len(self.subs)} topics, envelopes every "
+            f"{pv['period_s'] * 1e3:.0f} ms on {topics.SCOPE_ENVELOPE}"
+        )
 
     def _apply(self, changes: dict) -> str:
         self.pv = {**self.pv, **changes}
@@ -325,9 +407,16 @@ class ScopeTapNode(FluxNode):
         """The envelope document of one period's messages (see the module doc)."""
         b = int(self.pv["bucket_samples"])
         streams: dict[str, dict] = {}
-        doc: dict = {"v": 1, "ts_s": self.ts_s, "bucket": b, "wall": time.time(),
-                     "rates": {t: round(len(m) / dt, 1) for t, m in msgs.items()},
-                     "observers": list(self.est_names), "streams": streams, "locus": {}}
+        doc: dict = {
+            "v": 1,
+            "ts_s": self.ts_s,
+            "bucket": b,
+            "wall": time.time(),
+            "rates": {t: round(len(m) / dt, 1) for t, m in msgs.items()},
+            "observers": list(self.est_names),
+            "streams": streams,
+            "locus": {},
+        }
         seq_max = -1
 
         def put(stream: str, seq: np.ndarray, fields: list[tuple[str, np.ndarray, int]]) -> None:
@@ -337,8 +426,7 @@ class ScopeTapNode(FluxNode):
             k, mn, mx = envelope(seq.astype(np.int64), cols, b)
             q = [f[2] for f in fields]
             # rows = buckets, columns = the fields in "n" order
-            streams[stream] = {"k": k, "n": [f[0] for f in fields], "dec": q, "lo": mn,
-                               "hi": mx}
+            streams[stream] = {"k": k, "n": [f[0] for f in fields], "dec": q, "lo": mn, "hi": mx}
 
         # controller state (+ the drive's mode and latched fault)
         st = msgs.get(topics.CONTROLLER_STATE, [])
@@ -388,9 +476,16 @@ class ScopeTapNode(FluxNode):
                 hit = self.truth_seq[ix] == s
                 err[hit] = wrap_deg((a[hit, 1] - self.truth_th[ix[hit]]) * DEG)
             fx, fy = a[:, 3], a[:, 4]
-            put(f"est/{name}", s, [("theta", wrap_deg(a[:, 1] * DEG), 2), ("err", err, 2),
-                                   ("omega_e", a[:, 2], 3),
-                                   ("flux_mag", np.hypot(fx, fy) * 1e3, 4)])
+            put(
+                f"est/{name}",
+                s,
+                [
+                    ("theta", wrap_deg(a[:, 1] * DEG), 2),
+                    ("err", err, 2),
+                    ("omega_e", a[:, 2], 3),
+                    ("flux_mag", np.hypot(fx, fy) * 1e3, 4),
+                ],
+            )
             n = max(1, len(s) // step)
             doc["locus"][name] = np.stack([fx[::n], fy[::n]]) * 1e3
         doc["seq"] = seq_max

@@ -160,8 +160,10 @@ def bag_counts(bag: Path) -> tuple[dict[str, int], dict[str, int]]:
                 topic = summ.channels[cid].topic
                 mcap_counts[topic] = mcap_counts.get(topic, 0) + n
     meta = yamlio.load_file(bag / "metadata.yaml")["rosbag2_bagfile_information"]
-    meta_counts = {t["topic_metadata"]["name"]: int(t["message_count"])
-                   for t in meta["topics_with_message_count"]}
+    meta_counts = {
+        t["topic_metadata"]["name"]: int(t["message_count"])
+        for t in meta["topics_with_message_count"]
+    }
     return mcap_counts, meta_counts
 
 
@@ -196,20 +198,24 @@ def _calibrate(sp: Path, tmp: Path, calib_s: float) -> float:
     return (late[-1][0] - late[0][0]) * sc.machine.ts_s / (late[-1][1] - late[0][1])
 
 
-def lockstep_soak(sp: Path, wall_s: float, sample_s: float, max_growth_mb: float,
-                  tmp: Path, calib_s: float = 4.0) -> dict:
+def lockstep_soak(
+    sp: Path, wall_s: float, sample_s: float, max_growth_mb: float, tmp: Path, calib_s: float = 4.0
+) -> dict:
     _say(f"calibration: {calib_s:g} s simulated through the graph ...")
     rtf = _calibrate(sp, tmp, calib_s)
     sim_s = max(1.0, round(wall_s * rtf, 1))
-    _say(f"calibration: steady real-time factor {rtf:.3f}; soak: {sim_s:g} s simulated "
-         f"(about {wall_s:g} s of wall time), RSS every {sample_s:g} s")
+    _say(
+        f"calibration: steady real-time factor {rtf:.3f}; soak: {sim_s:g} s simulated "
+        f"(about {wall_s:g} s of wall time), RSS every {sample_s:g} s"
+    )
     sc = load_scenario(sp)
     shorten(sc, sim_s)
     bag = tmp / "soak-bag"
     g = graph_for_scenario(sp, sc, bag, "composed", sim_s, pick_domain_id())
     launcher = Launcher(g, quiet=True, progress=False, log_dir=tmp / "soak-logs")
-    sampler = RssSampler(sample_s, groups=lambda: {p.popen.pid for p in launcher.procs
-                                                   if p.popen is not None})
+    sampler = RssSampler(
+        sample_s, groups=lambda: {p.popen.pid for p in launcher.procs if p.popen is not None}
+    )
     last = [0.0]
 
     def progress() -> None:
@@ -218,8 +224,10 @@ def lockstep_soak(sp: Path, wall_s: float, sample_s: float, max_growth_mb: float
             mib = sampler.samples[-1][1] if sampler.samples else float("nan")
             if pr and time.monotonic() - last[0] > 9.0:
                 last[0] = time.monotonic()
-                _say(f"{pr[0] * sc.machine.ts_s:7.1f}/{sim_s:g} s simulated, "
-                     f"{pr[2]:6.1f} s wall, graph RSS {mib:.1f} MiB")
+                _say(
+                    f"{pr[0] * sc.machine.ts_s:7.1f}/{sim_s:g} s simulated, "
+                    f"{pr[2]:6.1f} s wall, graph RSS {mib:.1f} MiB"
+                )
 
     t0 = time.monotonic()
     sampler.start()
@@ -233,23 +241,35 @@ def lockstep_soak(sp: Path, wall_s: float, sample_s: float, max_growth_mb: float
     mc, meta = bag_counts(bag)
     expect = [FRAME, TRUTH, CONTROLLER_STATE, *[estimate_topic(o) for o in sc.observers]]
     lost = {t: n - mc.get(t, 0) for t in expect if mc.get(t, 0) != n}
-    meta_diff = {t: (mc.get(t), meta.get(t)) for t in set(mc) | set(meta)
-                 if mc.get(t) != meta.get(t)}
+    meta_diff = {
+        t: (mc.get(t), meta.get(t)) for t in set(mc) | set(meta) if mc.get(t) != meta.get(t)
+    }
     start, end, growth = sampler.growth_mb()
     bag_mb = sum(f.stat().st_size for f in bag.iterdir()) / 2**20
-    res = {"soak_wall_s": round(wall, 1), "soak_simulated_s": sim_s, "periods": n,
-           "lockstep_rtf": round(n * sc.machine.ts_s / (launcher.progress[2] or wall), 3)
-           if launcher.progress else None,
-           "messages": int(sum(mc.values())), "lost": lost, "metadata_mismatch": meta_diff,
-           "bag_mb": round(bag_mb, 1), "rss_mb_after_warmup": round(start, 1),
-           "rss_mb_end": round(end, 1), "rss_growth_mb": round(growth, 1),
-           "rss_samples": len(sampler.samples),
-           "rss_mb_series": [round(m, 1) for _, m in sampler.samples],
-           "rss_mb_per_process": sampler.per_proc}
+    res = {
+        "soak_wall_s": round(wall, 1),
+        "soak_simulated_s": sim_s,
+        "periods": n,
+        "lockstep_rtf": round(n * sc.machine.ts_s / (launcher.progress[2] or wall), 3)
+        if launcher.progress
+        else None,
+        "messages": int(sum(mc.values())),
+        "lost": lost,
+        "metadata_mismatch": meta_diff,
+        "bag_mb": round(bag_mb, 1),
+        "rss_mb_after_warmup": round(start, 1),
+        "rss_mb_end": round(end, 1),
+        "rss_growth_mb": round(growth, 1),
+        "rss_samples": len(sampler.samples),
+        "rss_mb_series": [round(m, 1) for _, m in sampler.samples],
+        "rss_mb_per_process": sampler.per_proc,
+    }
     res["soak_ok"] = bool(not lost and not meta_diff and growth <= max_growth_mb)
-    _say(f"soak: {n} periods in {wall:.1f} s, {res['messages']} messages, lost {lost or 0}, "
-         f"RSS {start:.1f} -> {end:.1f} MiB (growth {growth:+.1f} MiB, limit "
-         f"{max_growth_mb:g}), bag {bag_mb:.0f} MiB")
+    _say(
+        f"soak: {n} periods in {wall:.1f} s, {res['messages']} messages, lost {lost or 0}, "
+        f"RSS {start:.1f} -> {end:.1f} MiB (growth {growth:+.1f} MiB, limit "
+        f"{max_growth_mb:g}), bag {bag_mb:.0f} MiB"
+    )
     shutil.rmtree(bag, ignore_errors=True)
     return res
 
@@ -285,18 +305,41 @@ def burst_replay(bag: Path, loops: int, sample_s: float, max_growth_mb: float) -
         state["got"] += 1
 
     # raw (no deserialisation) on the EventsExecutor, as the graph's own readers run
-    node.create_subscription(PhaseFrame, FRAME, on_frame, QoSProfile(
-        depth=1, history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE),
-        raw=True)
+    node.create_subscription(
+        PhaseFrame,
+        FRAME,
+        on_frame,
+        QoSProfile(depth=1, history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE),
+        raw=True,
+    )
     ex = EventsExecutor(context=ctx)
     ex.add_node(node)
     env = dict(os.environ, ROS_DOMAIN_ID=str(dom))
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    cmd = [sys.executable, "-m", "fluxdrive.cli", "replay", str(bag), "--live", "--rate", "1e9",
-           "--loop", "--max-frames", str(total), "--wait-s", "60"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "fluxdrive.cli",
+        "replay",
+        str(bag),
+        "--live",
+        "--rate",
+        "1e9",
+        "--loop",
+        "--max-frames",
+        str(total),
+        "--wait-s",
+        "60",
+    ]
     _say(f"burst: {n_bag} frames x {loops} passes, unpaced, into a KEEP_ALL reliable reader")
-    pub = subprocess.Popen(cmd, env=env, cwd=str(REPO_ROOT), stdout=subprocess.DEVNULL,
-                           stderr=subprocess.PIPE, text=True)
+    pub = subprocess.Popen(
+        cmd,
+        env=env,
+        cwd=str(REPO_ROOT),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     sink_rss = RssSampler(sample_s, pids=lambda: [os.getpid()])
     pub_rss = RssSampler(sample_s, pids=lambda: [pub.pid] if pub.poll() is None else [])
     sink_rss.start()
@@ -335,30 +378,46 @@ def burst_replay(bag: Path, loops: int, sample_s: float, max_growth_mb: float) -
     # the first half fills the middleware's pools (the writer history of a KEEP_ALL burst)
     _, _, sg = sink_rss.growth_mb(0.5)
     _, _, pg = pub_rss.growth_mb(0.5)
-    res = {"burst_frames_sent": total, "burst_frames_received": got,
-           "burst_order_errors": state["order_errors"], "burst_wall_s": round(wall, 2),
-           "burst_frames_per_s": round(got / wall) if wall > 0 else None,
-           "burst_sink_rss_growth_mb": round(sg, 1),
-           "burst_publisher_rss_growth_mb": round(pg, 1)}
+    res = {
+        "burst_frames_sent": total,
+        "burst_frames_received": got,
+        "burst_order_errors": state["order_errors"],
+        "burst_wall_s": round(wall, 2),
+        "burst_frames_per_s": round(got / wall) if wall > 0 else None,
+        "burst_sink_rss_growth_mb": round(sg, 1),
+        "burst_publisher_rss_growth_mb": round(pg, 1),
+    }
     growth_ok = all(not (g > max_growth_mb) for g in (sg, pg))
     res["burst_ok"] = bool(got == total and not state["order_errors"] and growth_ok)
-    _say(f"burst: sent {total}, received {got} in {wall:.1f} s ({res['burst_frames_per_s']} "
-         f"frames/s), order errors {state['order_errors']}; RSS growth sink {sg:+.1f} MiB, "
-         f"publisher {pg:+.1f} MiB")
+    _say(
+        f"burst: sent {total}, received {got} in {wall:.1f} s ({res['burst_frames_per_s']} "
+        f"frames/s), order errors {state['order_errors']}; RSS growth sink {sg:+.1f} MiB, "
+        f"publisher {pg:+.1f} MiB"
+    )
     return res
 
 
 def soak(argv: list[str]) -> dict:
-    ap = argparse.ArgumentParser(prog="fluxdrive soak", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        prog="fluxdrive soak",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     ap.add_argument("--wall-s", type=float, default=300.0, help="soak wall time (default 300)")
     ap.add_argument("--scenario", default=SOAK_SCENARIO)
     ap.add_argument("--sample-s", type=float, default=5.0, help="RSS sampling period [s]")
-    ap.add_argument("--max-growth-mb", type=float, default=20.0,
-                    help="allowed RSS growth after warm-up [MiB] (default 20)")
-    ap.add_argument("--burst-bag", type=Path,
-                    default=REPO_ROOT / "bags" / "samples" / "paper_2pct_150load",
-                    help="bag for the burst replay (default: the shipped 2 %% sample)")
+    ap.add_argument(
+        "--max-growth-mb",
+        type=float,
+        default=20.0,
+        help="allowed RSS growth after warm-up [MiB] (default 20)",
+    )
+    ap.add_argument(
+        "--burst-bag",
+        type=Path,
+        default=REPO_ROOT / "bags" / "samples" / "paper_2pct_150load",
+        help="bag for the burst replay (default: the shipped 2 %% sample)",
+    )
     ap.add_argument("--burst-loops", type=int, default=10)
     ap.add_argument("--skip-soak", action="store_true")
     ap.add_argument("--skip-burst", action="store_true")
@@ -367,11 +426,21 @@ def soak(argv: list[str]) -> dict:
     tmp = Path(tempfile.mkdtemp(prefix="fluxdrive-soak-"))
     try:
         if not args.skip_soak:
-            res.update(lockstep_soak(scenario_path(args.scenario), args.wall_s,
-                                     args.sample_s, args.max_growth_mb, tmp))
+            res.update(
+                lockstep_soak(
+                    scenario_path(args.scenario),
+                    args.wall_s,
+                    args.sample_s,
+                    args.max_growth_mb,
+                    tmp,
+                )
+            )
         if not args.skip_burst:
-            res.update(burst_replay(args.burst_bag, args.burst_loops,
-                                    min(args.sample_s, 0.25), args.max_growth_mb))
+            res.update(
+                burst_replay(
+                    args.burst_bag, args.burst_loops, min(args.sample_s, 0.25), args.max_growth_mb
+                )
+            )
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     res["ok"] = all(v for k, v in res.items() if k.endswith("_ok"))

@@ -50,10 +50,14 @@ DEFAULT_OPERATORS = ("/fluxdrive_operator",)
 
 
 def param(default: tuple[str, ...] = DEFAULT_ALLOWED) -> P:
-    return P("allowed_commanders", list(default), "nodes (fully qualified names) whose "
-             "duty commands -- and arm/reset requests -- are obeyed; '*' = any publisher "
-             "(messages must carry the graph's mark, see fluxdrive_ros.access)",
-             read_only=True)
+    return P(
+        "allowed_commanders",
+        list(default),
+        "nodes (fully qualified names) whose "
+        "duty commands -- and arm/reset requests -- are obeyed; '*' = any publisher "
+        "(messages must carry the graph's mark, see fluxdrive_ros.access)",
+        read_only=True,
+    )
 
 
 def graph_key() -> bytes:
@@ -117,10 +121,13 @@ class CommandGuard:
         return sum(self.rejected.values())
 
     def values(self) -> dict[str, Any]:
-        return {"commands_accepted": self.accepted, "commands_rejected": self.n_rejected,
-                **{f"rejected_{k.replace(' ', '_')}": v for k, v in sorted(self.rejected.items())},
-                "last_rejected": self.last_rejected,
-                "allowed_commanders": ",".join(self.allowed)}
+        return {
+            "commands_accepted": self.accepted,
+            "commands_rejected": self.n_rejected,
+            **{f"rejected_{k.replace(' ', '_')}": v for k, v in sorted(self.rejected.items())},
+            "last_rejected": self.last_rejected,
+            "allowed_commanders": ",".join(self.allowed),
+        }
 
 
 def node_fqn(name: str, namespace: str) -> str:
@@ -140,8 +147,9 @@ def service_clients(node, service: str) -> list[str]:
     return out
 
 
-def check_service_caller(node, service: str, allowed: list[str],
-                         list_name: str = "allowed_commanders") -> str | None:
+def check_service_caller(
+    node, service: str, allowed: list[str], list_name: str = "allowed_commanders"
+) -> str | None:
     """None if a request on `service` may be obeyed, else the reason it may not: every node
     with a client of the service must be allowed (rclpy does not say which one called)."""
     if ANYONE in allowed:
@@ -149,9 +157,10 @@ def check_service_caller(node, service: str, allowed: list[str],
     clients = service_clients(node, service)
     foreign = [c for c in clients if c not in allowed]
     if foreign:
-        return (f"refused: {', '.join(foreign)} (not in {list_name} {allowed}) holds a "
-                f"client of {service}, and a request cannot be attributed to its caller")
+        return (
+            f"refused: {', '.join(foreign)} (not in {list_name} {allowed}) holds a "
+            f"client of {service}, and a request cannot be attributed to its caller"
+        )
     if not clients:
-        return (f"refused: the caller of {service} is not known to the graph yet "
-                f"(discovery); retry")
+        return f"refused: the caller of {service} is not known to the graph yet (discovery); retry"
     return None

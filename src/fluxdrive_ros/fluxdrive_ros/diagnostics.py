@@ -27,23 +27,35 @@ from .params import P
 TOPIC = "/diagnostics"
 OK, WARN, ERROR = 0, 1, 2  # DiagnosticStatus.level (a byte in the message)
 LEVEL_NAMES = {OK: "OK", WARN: "WARN", ERROR: "ERROR"}
-QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
-                 history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.VOLATILE)
+QOS = QoSProfile(
+    depth=10,
+    reliability=ReliabilityPolicy.RELIABLE,
+    history=HistoryPolicy.KEEP_LAST,
+    durability=DurabilityPolicy.VOLATILE,
+)
 
 Source = Callable[[], tuple[int, str, dict[str, Any]]]
 
 
 def param(default_s: float = 1.0) -> P:
     """The `diagnostics_period_s` parameter every node declares."""
-    return P("diagnostics_period_s", float(default_s), "period of this node's /diagnostics "
-             "status (0: none)", "s", 0.0, 60.0, read_only=True)
+    return P(
+        "diagnostics_period_s",
+        float(default_s),
+        "period of this node's /diagnostics status (0: none)",
+        "s",
+        0.0,
+        60.0,
+        read_only=True,
+    )
 
 
 PARAM = param()
 
 
-def status(name: str, level: int, message: str, values: dict[str, Any],
-           hardware_id: str = "") -> DiagnosticStatus:
+def status(
+    name: str, level: int, message: str, values: dict[str, Any], hardware_id: str = ""
+) -> DiagnosticStatus:
     st = DiagnosticStatus()
     st.name = name
     st.level = bytes([level])
@@ -70,13 +82,20 @@ class Diagnostics:
 
     def _graph_status(self, member) -> tuple[int, str, dict[str, Any]]:
         total = member.total()
-        values = {"graph_id": member.id, "foreign_messages": total,
-                  **{f"foreign {t}": c for t, c in sorted(member.foreign.items())}}
+        values = {
+            "graph_id": member.id,
+            "foreign_messages": total,
+            **{f"foreign {t}": c for t, c in sorted(member.foreign.items())},
+        }
         grew, self._foreign_reported = total > self._foreign_reported, total
         if grew:
             return WARN, "messages of another graph on this domain dropped", values
-        return OK, f"graph_id {member.id}" + (f"; {total} foreign messages dropped so far"
-                                              if total else ""), values
+        return (
+            OK,
+            f"graph_id {member.id}"
+            + (f"; {total} foreign messages dropped so far" if total else ""),
+            values,
+        )
 
     def add(self, what: str, fn: Source) -> None:
         self.sources.append((f"{self.node.get_fully_qualified_name()}: {what}", fn))

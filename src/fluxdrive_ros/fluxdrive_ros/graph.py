@@ -59,10 +59,17 @@ def env_id() -> int:
 
 
 def param() -> P:
-    return P("graph_id", env_id(), "identity of this node's graph: stamped on every message "
-             "it publishes; messages with another id are dropped and counted (0: not in a "
-             "launched graph, accept any); default from the launch (FLUXDRIVE_GRAPH_KEY)",
-             "", 0, MAX_ID, read_only=True)
+    return P(
+        "graph_id",
+        env_id(),
+        "identity of this node's graph: stamped on every message "
+        "it publishes; messages with another id are dropped and counted (0: not in a "
+        "launched graph, accept any); default from the launch (FLUXDRIVE_GRAPH_KEY)",
+        "",
+        0,
+        MAX_ID,
+        read_only=True,
+    )
 
 
 def msg_type_of(msg_cls) -> str:
@@ -93,7 +100,8 @@ class Membership:
         if first:
             self.node.get_logger().warning(
                 f"{topic}: message from another graph (graph_id {other}, this graph's "
-                f"{self.id}) ignored; further ones are counted (summary at the end)")
+                f"{self.id}) ignored; further ones are counted (summary at the end)"
+            )
 
     def filter(self, topic: str, callback: Callable[[bytes], None]) -> Callable[[bytes], None]:
         """`callback` for raw GRAPH_TYPES bytes, called only for this graph's messages."""
@@ -117,6 +125,7 @@ class Membership:
 
     def typed(self, topic: str, callback: Callable) -> Callable:
         """`callback` for deserialised messages with a graph_id field (/drive/done)."""
+
         def cb(msg) -> None:
             if self.accepts(int(msg.graph_id)):
                 callback(msg)
@@ -134,5 +143,7 @@ class Membership:
             return ""
         per = ", ".join(f"{t} {c}" for t, c in sorted(self.foreign.items()))
         ids = ", ".join(str(i) for i in sorted(self.foreign_ids)[:4])
-        return (f"ignored {self.total()} messages from other graphs ({per}; graph_id "
-                f"{ids}{', ...' if len(self.foreign_ids) > 4 else ''})")
+        return (
+            f"ignored {self.total()} messages from other graphs ({per}; graph_id "
+            f"{ids}{', ...' if len(self.foreign_ids) > 4 else ''})"
+        )

@@ -57,12 +57,15 @@ class P:
         if self.choices:
             d.additional_constraints = "one of: " + ", ".join(self.choices)
         if self.lo is not None and isinstance(self.default, float):
-            d.floating_point_range = [FloatingPointRange(from_value=float(self.lo),
-                                                         to_value=float(self.hi), step=0.0)]
-        elif self.lo is not None and isinstance(self.default, int) and not isinstance(
-                self.default, bool):
-            d.integer_range = [IntegerRange(from_value=int(self.lo), to_value=int(self.hi),
-                                            step=1)]
+            d.floating_point_range = [
+                FloatingPointRange(from_value=float(self.lo), to_value=float(self.hi), step=0.0)
+            ]
+        elif (
+            self.lo is not None
+            and isinstance(self.default, int)
+            and not isinstance(self.default, bool)
+        ):
+            d.integer_range = [IntegerRange(from_value=int(self.lo), to_value=int(self.hi), step=1)]
         return d
 
     def check(self, value: Any) -> str | None:
@@ -71,20 +74,30 @@ class P:
             return f"{self.name} must be one of {list(self.choices)}, got {value!r}"
         if self.lo is not None and isinstance(value, (int, float)) and not isinstance(value, bool):
             if math.isnan(value) or not (self.lo <= value <= self.hi):
-                return (f"{self.name} = {value} is out of range [{self.lo}, {self.hi}]"
-                        + (f" {self.unit}" if self.unit else ""))
+                return f"{self.name} = {value} is out of range [{self.lo}, {self.hi}]" + (
+                    f" {self.unit}" if self.unit else ""
+                )
         return None
 
 
 # model fields of an engine config that default to the machine card (None in the config)
-MODEL_DEFAULTS = {"r_hat_ohm": "resistance_ohm", "l_hat_h": "inductance_h",
-                  "lambda_hat_vs": "flux_linkage_vs"}
+MODEL_DEFAULTS = {
+    "r_hat_ohm": "resistance_ohm",
+    "l_hat_h": "inductance_h",
+    "lambda_hat_vs": "flux_linkage_vs",
+}
 
 
-def config_params(cfg, card, docs: dict[str, tuple[str, str]],
-                  ranges: dict[str, tuple[float, float]], *, skip: tuple[str, ...] = (),
-                  choices: dict[str, tuple[str, ...]] | None = None,
-                  none_as_zero: frozenset[str] = frozenset()) -> list[P]:
+def config_params(
+    cfg,
+    card,
+    docs: dict[str, tuple[str, str]],
+    ranges: dict[str, tuple[float, float]],
+    *,
+    skip: tuple[str, ...] = (),
+    choices: dict[str, tuple[str, ...]] | None = None,
+    none_as_zero: frozenset[str] = frozenset(),
+) -> list[P]:
     """Live parameters for every field of an engine config dataclass (ObserverConfig,
     ControllerConfig): default from `cfg` (a model field left None: the card's value),
     description and unit from `docs`, range from the engine's `ranges`; `choices` for
@@ -182,25 +195,31 @@ def check_params_file(path: str | Path) -> dict[str, dict[str, Any]]:
     except yamlio.YAMLError as exc:
         where = getattr(exc, "problem_mark", None)
         line = f" (line {where.line + 1})" if where is not None else ""
-        raise ValueError(f"{path}: not valid YAML{line}: "
-                         f"{getattr(exc, 'problem', None) or exc}") from exc
+        raise ValueError(
+            f"{path}: not valid YAML{line}: {getattr(exc, 'problem', None) or exc}"
+        ) from exc
     if not isinstance(raw, dict):
-        raise ValueError(f"{path}: a parameter file is a mapping of node names to "
-                         f"{{ros__parameters: {{...}}}}, got {type(raw).__name__}")
+        raise ValueError(
+            f"{path}: a parameter file is a mapping of node names to "
+            f"{{ros__parameters: {{...}}}}, got {type(raw).__name__}"
+        )
     out: dict[str, dict[str, Any]] = {}
     for node_key, body in raw.items():
         if not isinstance(body, dict) or "ros__parameters" not in body:
             raise ValueError(f"{path}: '{node_key}' must hold a 'ros__parameters' mapping")
         params = body["ros__parameters"]
         if not isinstance(params, dict):
-            raise ValueError(f"{path}: '{node_key}.ros__parameters' must be a mapping of "
-                             f"parameter names to values, got {type(params).__name__}")
+            raise ValueError(
+                f"{path}: '{node_key}.ros__parameters' must be a mapping of "
+                f"parameter names to values, got {type(params).__name__}"
+            )
         out[str(node_key)] = _flatten(path, str(node_key), params, "", {})
     return out
 
 
-def _flatten(path: Path, node_key: str, d: dict, prefix: str,
-             flat: dict[str, Any]) -> dict[str, Any]:
+def _flatten(
+    path: Path, node_key: str, d: dict, prefix: str, flat: dict[str, Any]
+) -> dict[str, Any]:
     for name, value in d.items():
         key = f"{prefix}{name}"
         where = f"{path}: '{node_key}.ros__parameters.{key}'"
@@ -210,11 +229,14 @@ def _flatten(path: Path, node_key: str, d: dict, prefix: str,
         if isinstance(value, list):
             kinds = {type(v) for v in value}
             if not value or len(kinds) > 1 or not kinds <= {bool, int, float, str}:
-                raise ValueError(f"{where} must be a non-empty list of one type (bools, "
-                                 f"integers, doubles or strings), got {value!r}")
+                raise ValueError(
+                    f"{where} must be a non-empty list of one type (bools, "
+                    f"integers, doubles or strings), got {value!r}"
+                )
         elif value is None or not isinstance(value, (bool, int, float, str)):
-            raise ValueError(f"{where} must be a value (number, string, bool or list), "
-                             f"got {value!r}")
+            raise ValueError(
+                f"{where} must be a value (number, string, bool or list), got {value!r}"
+            )
         flat[key] = value
     return flat
 
@@ -232,6 +254,7 @@ def file_values_for(paths: list[str], node_fqn: str) -> list[tuple[str, str, str
 def blame(message: str, node_fqn: str, paths: list[str], inline: dict[str, Any]) -> str:
     """Where a parameter named in an error `message` was set: ' (set in FILE as
     NODE.ros__parameters.NAME)' or ' (set inline ...)'; '' if it cannot tell."""
+
     def named(name: str) -> bool:
         return re.search(rf"(?<![\w.]){re.escape(name)}(?![\w])", message) is not None
 

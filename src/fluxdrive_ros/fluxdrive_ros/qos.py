@@ -17,8 +17,12 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 SAMPLE_DEPTH = 10000
 
 # per-sample data written by the drive nodes (frames, truth, estimates, duty, state)
-SAMPLES = QoSProfile(depth=SAMPLE_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
-                     history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+SAMPLES = QoSProfile(
+    depth=SAMPLE_DEPTH,
+    reliability=ReliabilityPolicy.RELIABLE,
+    history=HistoryPolicy.KEEP_LAST,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
 # readers that want the writer's history (transient-local writers only)
 SAMPLES_READER = SAMPLES
 
@@ -39,24 +43,40 @@ def reader(durability: str = "volatile") -> QoSProfile:
     A process the launcher restarted reads volatile: it starts at the live samples instead
     of replaying (and answering) up to SAMPLE_DEPTH samples of the writers' history."""
     if durability == "volatile" or restarted():
-        return QoSProfile(depth=SAMPLE_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
-                          history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.VOLATILE)
+        return QoSProfile(
+            depth=SAMPLE_DEPTH,
+            reliability=ReliabilityPolicy.RELIABLE,
+            history=HistoryPolicy.KEEP_LAST,
+            durability=DurabilityPolicy.VOLATILE,
+        )
     return SAMPLES_READER
 
 
 INPUT_DURABILITY_CHOICES = ("transient_local", "volatile")
 
 # live watchers (inspection tools): volatile, shallow
-WATCH = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
-                   history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.VOLATILE)
+WATCH = QoSProfile(
+    depth=100,
+    reliability=ReliabilityPolicy.RELIABLE,
+    history=HistoryPolicy.KEEP_LAST,
+    durability=DurabilityPolicy.VOLATILE,
+)
 # latched single events: /drive/done (last seq).  One message per writer; the depth is for
 # readers: with a second graph on the domain (fluxdrive_ros.graph) its /drive/done must not
 # displace this graph's own in a reader's one-sample history before the callback took it
-LATCHED = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
-                     history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+LATCHED = QoSProfile(
+    depth=10,
+    reliability=ReliabilityPolicy.RELIABLE,
+    history=HistoryPolicy.KEEP_LAST,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
 # operator markers (/drive/param_marker): rare, every one kept for a late recorder
-MARKERS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
-                     history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+MARKERS = QoSProfile(
+    depth=100,
+    reliability=ReliabilityPolicy.RELIABLE,
+    history=HistoryPolicy.KEEP_LAST,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
 # /clock: written like the samples (reliable, deep, transient-local) so that the recorder
 # keeps every tick; compatible with the usual clock readers (best effort or reliable, depth 1)
 CLOCK = SAMPLES

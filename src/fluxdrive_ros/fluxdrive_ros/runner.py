@@ -137,6 +137,7 @@ def spin(nodes: list[FluxNode], executor=None, poll_s: float = 0.5) -> int:
             all_done.set_result(False)
 
     if bus is not None:
+
         def on_error(exc: BaseException) -> None:
             failed.append(exc)
             if not all_done.done():
@@ -206,8 +207,9 @@ def _config_problem(exc: BaseException) -> bool:
         from rclpy._rclpy_pybind11 import RCLInvalidROSArgsError as ArgsError
     except ImportError:  # pragma: no cover - other rclpy builds
         ArgsError = ValueError  # noqa: N806
-    return isinstance(exc, (ValueError, TypeError, KeyError, FileNotFoundError,
-                            ParameterException, ArgsError))
+    return isinstance(
+        exc, (ValueError, TypeError, KeyError, FileNotFoundError, ParameterException, ArgsError)
+    )
 
 
 def _describe(exc: BaseException) -> str:
@@ -269,8 +271,12 @@ def build_node(spec: dict) -> FluxNode:
     ns = (spec.get("namespace", "") or "").rstrip("/")
     fqn = f"{ns}/{spec['name']}" if ns.startswith("/") else f"/{spec['name']}"
     try:
-        node = cls(spec["name"], namespace=spec.get("namespace", ""),
-                   parameter_overrides=_param_overrides(inline), **kw)
+        node = cls(
+            spec["name"],
+            namespace=spec.get("namespace", ""),
+            parameter_overrides=_param_overrides(inline),
+            **kw,
+        )
     except Exception as exc:
         if not _config_problem(exc):
             raise
@@ -283,8 +289,7 @@ def build_node(spec: dict) -> FluxNode:
     return node
 
 
-def unknown_parameter(node: Node, fqn: str, files: list[str], inline: dict[str, Any]
-                      ) -> str | None:
+def unknown_parameter(node: Node, fqn: str, files: list[str], inline: dict[str, Any]) -> str | None:
     """A parameter the files (or the graph's inline values) set for this node that the node
     does not declare -- a typo rcl would silently ignore -- as one line naming the file and
     key, with the closest declared name; None if every name is known.  Sections for every
@@ -368,8 +373,10 @@ def container_main(argv: list[str] | None = None) -> int:
     else:
         code = spin(nodes)
     if os.environ.get("FLUXDRIVE_DEBUG"):
-        print(f"[{spec.get('process')}] exit {code} after {time.perf_counter() - t0:.1f} s",
-              file=sys.stderr)
+        print(
+            f"[{spec.get('process')}] exit {code} after {time.perf_counter() - t0:.1f} s",
+            file=sys.stderr,
+        )
     return code
 
 

@@ -84,10 +84,12 @@ def precheck() -> str | None:
         return None
     if os.environ.get("ROS_SECURITY_KEYSTORE", ""):  # (a wrong one: rcl says which file)
         return None
-    return ("ROS 2 security is enforced (ROS_SECURITY_ENABLE=true, ROS_SECURITY_STRATEGY="
-            "Enforce) but ROS_SECURITY_KEYSTORE is not set: create a keystore with "
-            "`python -m fluxdrive_ros.security keystore DIR` and set "
-            "ROS_SECURITY_KEYSTORE=DIR, or unset ROS_SECURITY_ENABLE")
+    return (
+        "ROS 2 security is enforced (ROS_SECURITY_ENABLE=true, ROS_SECURITY_STRATEGY="
+        "Enforce) but ROS_SECURITY_KEYSTORE is not set: create a keystore with "
+        "`python -m fluxdrive_ros.security keystore DIR` and set "
+        "ROS_SECURITY_KEYSTORE=DIR, or unset ROS_SECURITY_ENABLE"
+    )
 
 
 def describe_error(exc: BaseException) -> str | None:
@@ -97,16 +99,20 @@ def describe_error(exc: BaseException) -> str | None:
     clean = re.sub(r",? at /\S+:\d+", "", text).replace("\n", " ").strip()
     ks = os.environ.get("ROS_SECURITY_KEYSTORE", "(ROS_SECURITY_KEYSTORE not set)")
     if "security libraries" in text:
-        return (f"ROS 2 security is on (ROS_SECURITY_ENABLE=true, enclave found in {ks}) but "
-                f"the installed Fast DDS is built without DDS-Security, so a secured node "
-                f"cannot run here; unset ROS_SECURITY_ENABLE or use a Fast DDS built with "
-                f"SECURITY=ON (docs/safety.md)")
+        return (
+            f"ROS 2 security is on (ROS_SECURITY_ENABLE=true, enclave found in {ks}) but "
+            f"the installed Fast DDS is built without DDS-Security, so a secured node "
+            f"cannot run here; unset ROS_SECURITY_ENABLE or use a Fast DDS built with "
+            f"SECURITY=ON (docs/safety.md)"
+        )
     if "SECURITY ERROR" in text:
         detail = clean.split("SECURITY ERROR:", 1)[1].strip()
         strategy = os.environ.get("ROS_SECURITY_STRATEGY", "Permissive")
-        return (f"ROS 2 security is on (ROS_SECURITY_ENABLE=true, ROS_SECURITY_STRATEGY="
-                f"{strategy}) and the keystore is not usable: {detail} -- create it with "
-                f"`python -m fluxdrive_ros.security keystore {ks}` or unset ROS_SECURITY_ENABLE")
+        return (
+            f"ROS 2 security is on (ROS_SECURITY_ENABLE=true, ROS_SECURITY_STRATEGY="
+            f"{strategy}) and the keystore is not usable: {detail} -- create it with "
+            f"`python -m fluxdrive_ros.security keystore {ks}` or unset ROS_SECURITY_ENABLE"
+        )
     return None
 
 
@@ -126,20 +132,47 @@ def make_keystore(root: Path, enclaves: list[str], days: int = 3650) -> list[Pat
         (root / d).mkdir(parents=True, exist_ok=True)
     ca_key, ca_cert = root / "private" / "ca.key.pem", root / "public" / "ca.cert.pem"
     if not ca_key.exists():
-        _openssl("ecparam", "-name", "prime256v1", "-genkey", "-noout", "-out", str(ca_key),
-                 cwd=root)
-        _openssl("req", "-new", "-x509", "-key", str(ca_key), "-out", str(ca_cert), "-days",
-                 str(days), "-subj", "/CN=fluxdrive_keystore_ca", "-addext",
-                 "basicConstraints=critical,CA:true", "-addext", "keyUsage=keyCertSign,cRLSign",
-                 cwd=root)
+        _openssl(
+            "ecparam", "-name", "prime256v1", "-genkey", "-noout", "-out", str(ca_key), cwd=root
+        )
+        _openssl(
+            "req",
+            "-new",
+            "-x509",
+            "-key",
+            str(ca_key),
+            "-out",
+            str(ca_cert),
+            "-days",
+            str(days),
+            "-subj",
+            "/CN=fluxdrive_keystore_ca",
+            "-addext",
+            "basicConstraints=critical,CA:true",
+            "-addext",
+            "keyUsage=keyCertSign,cRLSign",
+            cwd=root,
+        )
         for name in ("identity_ca.cert.pem", "permissions_ca.cert.pem"):
             shutil.copy(ca_cert, root / "public" / name)
         for name in ("identity_ca.key.pem", "permissions_ca.key.pem"):
             shutil.copy(ca_key, root / "private" / name)
     gov = root / "enclaves" / "governance.xml"
     gov.write_text(_GOVERNANCE)
-    _openssl("smime", "-sign", "-in", str(gov), "-text", "-out", str(gov.with_suffix(".p7s")),
-             "-signer", str(ca_cert), "-inkey", str(ca_key), cwd=root)
+    _openssl(
+        "smime",
+        "-sign",
+        "-in",
+        str(gov),
+        "-text",
+        "-out",
+        str(gov.with_suffix(".p7s")),
+        "-signer",
+        str(ca_cert),
+        "-inkey",
+        str(ca_key),
+        cwd=root,
+    )
     out = []
     for enclave in enclaves:
         if not enclave.startswith("/") or "//" in enclave:
@@ -147,16 +180,40 @@ def make_keystore(root: Path, enclaves: list[str], days: int = 3650) -> list[Pat
         d = root / "enclaves" / enclave.strip("/")
         d.mkdir(parents=True, exist_ok=True)
         cn = enclave.strip("/").replace("/", ".") or "root"
-        _openssl("ecparam", "-name", "prime256v1", "-genkey", "-noout", "-out", "key.pem",
-                 cwd=d)
-        _openssl("req", "-new", "-key", "key.pem", "-out", "req.csr", "-subj", f"/CN={cn}",
-                 cwd=d)
-        _openssl("x509", "-req", "-in", "req.csr", "-CA", str(ca_cert), "-CAkey", str(ca_key),
-                 "-CAcreateserial", "-out", "cert.pem", "-days", str(days), cwd=d)
+        _openssl("ecparam", "-name", "prime256v1", "-genkey", "-noout", "-out", "key.pem", cwd=d)
+        _openssl("req", "-new", "-key", "key.pem", "-out", "req.csr", "-subj", f"/CN={cn}", cwd=d)
+        _openssl(
+            "x509",
+            "-req",
+            "-in",
+            "req.csr",
+            "-CA",
+            str(ca_cert),
+            "-CAkey",
+            str(ca_key),
+            "-CAcreateserial",
+            "-out",
+            "cert.pem",
+            "-days",
+            str(days),
+            cwd=d,
+        )
         (d / "req.csr").unlink()
         (d / "permissions.xml").write_text(_PERMISSIONS.format(enclave=enclave, cn=cn))
-        _openssl("smime", "-sign", "-in", "permissions.xml", "-text", "-out",
-                 "permissions.p7s", "-signer", str(ca_cert), "-inkey", str(ca_key), cwd=d)
+        _openssl(
+            "smime",
+            "-sign",
+            "-in",
+            "permissions.xml",
+            "-text",
+            "-out",
+            "permissions.p7s",
+            "-signer",
+            str(ca_cert),
+            "-inkey",
+            str(ca_key),
+            cwd=d,
+        )
         shutil.copy(gov.with_suffix(".p7s"), d / "governance.p7s")
         shutil.copy(ca_cert, d / "identity_ca.cert.pem")
         shutil.copy(ca_cert, d / "permissions_ca.cert.pem")
@@ -165,13 +222,19 @@ def make_keystore(root: Path, enclaves: list[str], days: int = 3650) -> list[Pat
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m fluxdrive_ros.security",
-                                 description="SROS2 keystore for the fluxdrive graph (openssl)")
+    ap = argparse.ArgumentParser(
+        prog="python -m fluxdrive_ros.security",
+        description="SROS2 keystore for the fluxdrive graph (openssl)",
+    )
     sub = ap.add_subparsers(dest="cmd", required=True)
     k = sub.add_parser("keystore", help="create a keystore (or add enclaves to one)")
     k.add_argument("dir", type=Path)
-    k.add_argument("--enclave", action="append", default=[],
-                   help="enclave name, repeatable (default /fluxdrive)")
+    k.add_argument(
+        "--enclave",
+        action="append",
+        default=[],
+        help="enclave name, repeatable (default /fluxdrive)",
+    )
     args = ap.parse_args(argv)
     try:
         dirs = make_keystore(args.dir, args.enclave or ["/fluxdrive"])
@@ -180,9 +243,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     for d in dirs:
         print(f"enclave {d}")
-    print(f"use: ROS_SECURITY_ENABLE=true ROS_SECURITY_STRATEGY=Enforce "
-          f"ROS_SECURITY_KEYSTORE={args.dir.resolve()} "
-          f"ROS_SECURITY_ENCLAVE_OVERRIDE={args.enclave[0] if args.enclave else '/fluxdrive'}")
+    print(
+        f"use: ROS_SECURITY_ENABLE=true ROS_SECURITY_STRATEGY=Enforce "
+        f"ROS_SECURITY_KEYSTORE={args.dir.resolve()} "
+        f"ROS_SECURITY_ENCLAVE_OVERRIDE={args.enclave[0] if args.enclave else '/fluxdrive'}"
+    )
     return 0
 
 

@@ -73,12 +73,16 @@ from fluxdrive_ros import diagnostics as diag
 
 # ControllerConfig field -> (description, unit); ranges from fluxdrive.drive.control.CONTROL_RANGES
 DOCS = {
-    "current_bandwidth_hz": ("-3 dB bandwidth of the dq current loops (gains re-designed)",
-                             "Hz"),
-    "speed_bandwidth_hz": ("target -3 dB bandwidth of the speed loop (gains re-designed; "
-                           "lower if the peaking limit binds)", "Hz"),
-    "peak_limit_db": ("robustness limit of the loop design: closed-loop peaking of the "
-                      "current and speed loops", "dB"),
+    "current_bandwidth_hz": ("-3 dB bandwidth of the dq current loops (gains re-designed)", "Hz"),
+    "speed_bandwidth_hz": (
+        "target -3 dB bandwidth of the speed loop (gains re-designed; "
+        "lower if the peaking limit binds)",
+        "Hz",
+    ),
+    "peak_limit_db": (
+        "robustness limit of the loop design: closed-loop peaking of the current and speed loops",
+        "dB",
+    ),
     "current_limit_pu": ("|i_q*| limit, per unit of rated current", "pu"),
     "angle_advance_periods": ("inverse-Park angle advance, in periods of w^", "periods"),
     "deadtime_comp_s": ("deadtime feed-forward on the duties (0 = off)", "s"),
@@ -89,16 +93,26 @@ DOCS = {
     "if_accel_rpm_s": ("sensorless start: I-f ramp acceleration", "rpm/s"),
     "handover_rpm": ("I-f -> observer handover speed", "rpm"),
     "handback_rpm": ("observer -> I-f hand-back speed (below handover)", "rpm"),
-    "handover_dwell_s": ("estimate valid and agreeing with the I-f ramp this long before "
-                         "handover", "s"),
-    "handover_agree_lpf_hz": ("handover criterion: estimate vs I-f ramp compared low-passed at "
-                              "this cut-off (0 = per sample)", "Hz"),
-    "handover_timeout_s": ("I-f ramp at the handover speed this long without a handover "
-                           "latches 'start-up failed' (0 = wait for ever)", "s"),
+    "handover_dwell_s": (
+        "estimate valid and agreeing with the I-f ramp this long before handover",
+        "s",
+    ),
+    "handover_agree_lpf_hz": (
+        "handover criterion: estimate vs I-f ramp compared low-passed at "
+        "this cut-off (0 = per sample)",
+        "Hz",
+    ),
+    "handover_timeout_s": (
+        "I-f ramp at the handover speed this long without a handover "
+        "latches 'start-up failed' (0 = wait for ever)",
+        "s",
+    ),
     "encoder_pll_hz": ("encoder tracking-PLL bandwidth", "Hz"),
     "speed_feedback_lpf_hz": ("display low-pass of the speed feedback", "Hz"),
-    "speed_observer_pll_hz": ("driving observer's PLL bandwidth assumed by the speed-loop "
-                              "design; 0 = ideal feedback", "Hz"),
+    "speed_observer_pll_hz": (
+        "driving observer's PLL bandwidth assumed by the speed-loop design; 0 = ideal feedback",
+        "Hz",
+    ),
     "speed_observer_damping": ("driving observer's PLL damping assumed by the design", ""),
     "speed_observer_lpf_hz": ("driving observer's speed LPF assumed by the design", "Hz"),
     "overcurrent_pu": ("instantaneous over-current trip, per unit of rated current", "pu"),
@@ -114,15 +128,22 @@ DOCS = {
 # wall-clock grace for the very first estimate (a starting observer process, compilation)
 FIRST_ESTIMATE_WALL_S = 30.0
 # parameters of the node, not of ControllerConfig
-NODE_LEVEL = {"speed_ref_mode", "speed_ref_rpm", "position_timeout_s", "position_wall_timeout_s",
-              "max_resyncs", "resync_window_s"}
+NODE_LEVEL = {
+    "speed_ref_mode",
+    "speed_ref_rpm",
+    "position_timeout_s",
+    "position_wall_timeout_s",
+    "max_resyncs",
+    "resync_window_s",
+}
 # None-able fields: ROS parameters cannot be None; 0.0 stands for None
 NONE_AS_ZERO = {"speed_observer_pll_hz"}
 
 
 def config_params(cfg: ControllerConfig, card) -> list[P]:
-    return params.config_params(cfg, card, DOCS, CONTROL_RANGES, skip=("position_source",),
-                                none_as_zero=NONE_AS_ZERO)
+    return params.config_params(
+        cfg, card, DOCS, CONTROL_RANGES, skip=("position_source",), none_as_zero=NONE_AS_ZERO
+    )
 
 
 def to_config(cfg: ControllerConfig, values: dict) -> ControllerConfig:
@@ -141,12 +162,24 @@ def to_config(cfg: ControllerConfig, values: dict) -> ControllerConfig:
 class ControllerNode(FluxNode):
     def __init__(self, name: str = "controller", namespace: str | None = None, **kw):
         super().__init__(name, namespace, **kw)
-        first = declare(self, [
-            P("scenario", "", "scenario YAML (path or a name under config/scenarios): machine "
-              "card, controller defaults, speed profile and injections", read_only=True),
-            P("machine", str(CONFIG_DIR / "machines" / "default_spm.yaml"), "machine card "
-              "YAML when no scenario is given", read_only=True),
-        ])
+        first = declare(
+            self,
+            [
+                P(
+                    "scenario",
+                    "",
+                    "scenario YAML (path or a name under config/scenarios): machine "
+                    "card, controller defaults, speed profile and injections",
+                    read_only=True,
+                ),
+                P(
+                    "machine",
+                    str(CONFIG_DIR / "machines" / "default_spm.yaml"),
+                    "machine card YAML when no scenario is given",
+                    read_only=True,
+                ),
+            ],
+        )
         sp, mpath = first["scenario"], first["machine"]
         if sp:
             sc = load_scenario(scenario_path(sp))
@@ -160,51 +193,110 @@ class ControllerNode(FluxNode):
             cfg = ControllerConfig()
             self.w_ref_profile, self.id_inj = np.zeros(1), np.zeros(1)
             driving = "encoder"
-        src = declare(self, [
-            P("position_source", cfg.position_source, "angle/speed feedback: the encoder or "
-              "an observer's estimate topic", choices=("encoder", "estimate"), read_only=True),
-            P("estimate_topic", topics.estimate_topic(driving if driving != "encoder" else
-                                                      "flux_measured"),
-              "RotorEstimate topic of the driving observer (position_source = estimate)",
-              read_only=True),
-        ])
+        src = declare(
+            self,
+            [
+                P(
+                    "position_source",
+                    cfg.position_source,
+                    "angle/speed feedback: the encoder or an observer's estimate topic",
+                    choices=("encoder", "estimate"),
+                    read_only=True,
+                ),
+                P(
+                    "estimate_topic",
+                    topics.estimate_topic(driving if driving != "encoder" else "flux_measured"),
+                    "RotorEstimate topic of the driving observer (position_source = estimate)",
+                    read_only=True,
+                ),
+            ],
+        )
         # every card-derived default (bus window, bandwidths, handover) as a concrete value:
         # ROS parameters cannot say "derive it"
         cfg = dataclasses.replace(cfg, position_source=src["position_source"]).resolved(card)
         self.card = card
         self.specs = config_params(cfg, card) + [
-            P("speed_ref_mode", "profile", "speed reference: the scenario's profile or the "
-              "constant speed_ref_rpm (live)", choices=("profile", "constant")),
-            P("speed_ref_rpm", 0.0, "constant mechanical speed reference (live)", "rpm",
-              -1e5, 1e5),
-            P("position_timeout_s", 0.05, "safe state (PWM off, latched 'stale input') when "
-              "the driving estimate of a frame has not come while frames this much sample "
-              "time later have (live)", "s", 1e-4, 10.0),
-            P("position_wall_timeout_s", 2.0, "safe state when the driving estimate of a "
-              "waiting frame has not come for this much wall time (lockstep graphs, where "
-              "the plant waits for us; 0: off) (live)", "s", 0.0, 3600.0),
-            P("max_resyncs", 5, "lost intervals (PWM switched off by the power stage's "
-              "watchdog while this controller fell behind) tolerated within "
-              "resync_window_s; one more latches the fault 'watchdog'", "", 0, 1000,
-              read_only=True),
-            P("resync_window_s", 10.0, "sample-time window of max_resyncs", "s", 0.01,
-              3600.0, read_only=True),
+            P(
+                "speed_ref_mode",
+                "profile",
+                "speed reference: the scenario's profile or the constant speed_ref_rpm (live)",
+                choices=("profile", "constant"),
+            ),
+            P("speed_ref_rpm", 0.0, "constant mechanical speed reference (live)", "rpm", -1e5, 1e5),
+            P(
+                "position_timeout_s",
+                0.05,
+                "safe state (PWM off, latched 'stale input') when "
+                "the driving estimate of a frame has not come while frames this much sample "
+                "time later have (live)",
+                "s",
+                1e-4,
+                10.0,
+            ),
+            P(
+                "position_wall_timeout_s",
+                2.0,
+                "safe state when the driving estimate of a "
+                "waiting frame has not come for this much wall time (lockstep graphs, where "
+                "the plant waits for us; 0: off) (live)",
+                "s",
+                0.0,
+                3600.0,
+            ),
+            P(
+                "max_resyncs",
+                5,
+                "lost intervals (PWM switched off by the power stage's "
+                "watchdog while this controller fell behind) tolerated within "
+                "resync_window_s; one more latches the fault 'watchdog'",
+                "",
+                0,
+                1000,
+                read_only=True,
+            ),
+            P(
+                "resync_window_s",
+                10.0,
+                "sample-time window of max_resyncs",
+                "s",
+                0.01,
+                3600.0,
+                read_only=True,
+            ),
         ]
         pv = declare(self, self.specs)
-        common = declare(self, [
-            P("frame_topic", topics.FRAME, "PhaseFrame input topic", read_only=True),
-            P("input_durability", "volatile", "durability of the sample-topic "
-              "subscriptions: volatile (matches any publisher) or transient_local (also receives "
-              "what was published before the match; the lockstep sim graphs use it)",
-              choices=qos.INPUT_DURABILITY_CHOICES, read_only=True),
-            P("exit_on_done", True, "exit once the frame named by /drive/done is processed"),
-            P("frame_id", "", "header.frame_id of ControllerState and DutyCommand (the access "
-              "mark travels in DutyCommand.commander)", read_only=True),
-            diag.PARAM,
-            P("allowed_operators", list(access.DEFAULT_OPERATORS), "nodes (fully qualified "
-              "names) whose ~/reset_fault requests are obeyed; '*' = anyone",
-              read_only=True),
-        ])
+        common = declare(
+            self,
+            [
+                P("frame_topic", topics.FRAME, "PhaseFrame input topic", read_only=True),
+                P(
+                    "input_durability",
+                    "volatile",
+                    "durability of the sample-topic "
+                    "subscriptions: volatile (matches any publisher) or transient_local "
+                    "(also receives what was published before the match; the lockstep sim "
+                    "graphs use it)",
+                    choices=qos.INPUT_DURABILITY_CHOICES,
+                    read_only=True,
+                ),
+                P("exit_on_done", True, "exit once the frame named by /drive/done is processed"),
+                P(
+                    "frame_id",
+                    "",
+                    "header.frame_id of ControllerState and DutyCommand (the access "
+                    "mark travels in DutyCommand.commander)",
+                    read_only=True,
+                ),
+                diag.PARAM,
+                P(
+                    "allowed_operators",
+                    list(access.DEFAULT_OPERATORS),
+                    "nodes (fully qualified "
+                    "names) whose ~/reset_fault requests are obeyed; '*' = anyone",
+                    read_only=True,
+                ),
+            ],
+        )
         self.allowed_operators = list(common["allowed_operators"])
         self.pv = pv
         self.cfg = to_config(cfg, pv)
@@ -215,30 +307,55 @@ class ControllerNode(FluxNode):
         self.ew = EstimateWire("")
         # DutyCommand.commander = this node's mark: the plant / bench bridge obey
         # only marked commands of their allowed_commanders (fluxdrive_ros.access)
-        self.cw = ControlWire(common["frame_id"], commander=access.mark(
-            self.get_fully_qualified_name(), topics.DUTY), graph_id=self.graph.id)
+        self.cw = ControlWire(
+            common["frame_id"],
+            commander=access.mark(self.get_fully_qualified_name(), topics.DUTY),
+            graph_id=self.graph.id,
+        )
         # pairing, stale-input trips, lost-interval re-synchronisation: the engine's
         self.seq = ControlSequencer(
-            self.cp, card.ts_s, self.sensorless, self._publish, self._log,
-            self.w_ref_profile, self.id_inj, pv["position_timeout_s"],
-            pv["position_wall_timeout_s"], FIRST_ESTIMATE_WALL_S, qos.SAMPLE_DEPTH,
-            pv["max_resyncs"], pv["resync_window_s"])
+            self.cp,
+            card.ts_s,
+            self.sensorless,
+            self._publish,
+            self._log,
+            self.w_ref_profile,
+            self.id_inj,
+            pv["position_timeout_s"],
+            pv["position_wall_timeout_s"],
+            FIRST_ESTIMATE_WALL_S,
+            qos.SAMPLE_DEPTH,
+            pv["max_resyncs"],
+            pv["resync_window_s"],
+        )
         self.counts = diag.Counters(*self.seq.counts)
         self.counts.values = self.seq.counts
         self.done_seq: int | None = None
         self.exit_on_done = common["exit_on_done"]
         self._set_ref(pv)
         self.pub_duty = RawPublisher(self, fm.DutyCommand, topics.DUTY, qos.SAMPLES)
-        self.pub_state = RawPublisher(self, fm.ControllerState, topics.CONTROLLER_STATE,
-                                      qos.SAMPLES)
-        self.sub_frame = RawSubscription(self, fm.PhaseFrame, common["frame_topic"],
-                                         self._on_frame, qos.reader(common["input_durability"]))
+        self.pub_state = RawPublisher(
+            self, fm.ControllerState, topics.CONTROLLER_STATE, qos.SAMPLES
+        )
+        self.sub_frame = RawSubscription(
+            self,
+            fm.PhaseFrame,
+            common["frame_topic"],
+            self._on_frame,
+            qos.reader(common["input_durability"]),
+        )
         self.sub_est = None
         if self.sensorless:
-            self.sub_est = RawSubscription(self, fm.RotorEstimate, src["estimate_topic"],
-                                           self._on_est, qos.reader(common["input_durability"]))
-        self.create_subscription(fm.RunDone, topics.DONE,
-                                 self.graph.typed(topics.DONE, self._on_done), qos.LATCHED)
+            self.sub_est = RawSubscription(
+                self,
+                fm.RotorEstimate,
+                src["estimate_topic"],
+                self._on_est,
+                qos.reader(common["input_durability"]),
+            )
+        self.create_subscription(
+            fm.RunDone, topics.DONE, self.graph.typed(topics.DONE, self._on_done), qos.LATCHED
+        )
         self.reset_service = self.resolve_service_name("~/reset_fault")
         self.create_service(ResetFault, self.reset_service, self._on_reset)
         on_set(self, self.specs, self._apply)
@@ -248,15 +365,18 @@ class ControllerNode(FluxNode):
         if self.sensorless:
             self.create_timer(0.1, self._check_wall_timeout)
         self.get_logger().info(
-            "position from " + (src["estimate_topic"] if self.sensorless else "the encoder")
+            "position from "
+            + (src["estimate_topic"] if self.sensorless else "the encoder")
             + f"; current loop {self.cfg.current_bandwidth_hz:g} Hz, speed loop "
-            f"{self.cfg.speed_bandwidth_hz:g} Hz")
+            f"{self.cfg.speed_bandwidth_hz:g} Hz"
+        )
 
     # ----------------------------------------------------------------- parameters
     def _set_ref(self, pv) -> None:
         self.seq.set_timeouts(pv["position_timeout_s"], pv["position_wall_timeout_s"])
-        self.seq.const_ref = (pv["speed_ref_rpm"] * RPM if pv["speed_ref_mode"] == "constant"
-                              else None)
+        self.seq.const_ref = (
+            pv["speed_ref_rpm"] * RPM if pv["speed_ref_mode"] == "constant" else None
+        )
 
     def _apply(self, changes: dict) -> str:
         new = {**self.pv, **changes}
@@ -294,8 +414,9 @@ class ControllerNode(FluxNode):
 
     def _on_reset(self, req, resp):  # noqa: ARG002 - the request is empty
         """Explicit reset of a latched fault (the only way one is cleared)."""
-        why = access.check_service_caller(self, self.reset_service, self.allowed_operators,
-                                          "allowed_operators")
+        why = access.check_service_caller(
+            self, self.reset_service, self.allowed_operators, "allowed_operators"
+        )
         if why:
             self.get_logger().warning(f"reset_fault {why}")
             resp.success, resp.message = False, why
@@ -306,8 +427,10 @@ class ControllerNode(FluxNode):
         code, detail = self.seq.reset_fault()
         name = FAULT_NAMES.get(code, str(code))
         detail = f" ({detail})" if detail else ""
-        msg = (f"cleared latched fault '{name}'{detail}; from sample {self.seq.next_k} the drive "
-               f"starts again (align, I-f, handover)")
+        msg = (
+            f"cleared latched fault '{name}'{detail}; from sample {self.seq.next_k} the drive "
+            f"starts again (align, I-f, handover)"
+        )
         self.get_logger().warning(msg)
         resp.success, resp.message = True, msg
         return resp
@@ -315,13 +438,19 @@ class ControllerNode(FluxNode):
     # ----------------------------------------------------------------- diagnostics
     def _diag_input(self) -> tuple[int, str, dict]:
         c, sq = self.counts, self.seq
-        grew = c.grew("repeated_or_backwards", "missing_frames", "late_estimates",
-                      "lost_frames")
-        values = {**c.report(), "next_sample": sq.next_k, "last_frame_seq": sq.max_seq,
-                  "pending_frames": len(sq.frames)}
+        grew = c.grew("repeated_or_backwards", "missing_frames", "late_estimates", "lost_frames")
+        values = {
+            **c.report(),
+            "next_sample": sq.next_k,
+            "last_frame_seq": sq.max_seq,
+            "pending_frames": len(sq.frames),
+        }
         if grew:
-            return diag.WARN, "bad input since the last report (" + ", ".join(
-                f"{k} {c[k]}" for k in grew) + ")", values
+            return (
+                diag.WARN,
+                "bad input since the last report (" + ", ".join(f"{k} {c[k]}" for k in grew) + ")",
+                values,
+            )
         return diag.OK, "input ok", values
 
     def _diag_state(self) -> tuple[int, str, dict]:
@@ -329,17 +458,26 @@ class ControllerNode(FluxNode):
         out, cs = sq.out, sq.cs
         code = int(out[CO_FAULT]) if sq.next_k > 0 else int(cs[CS_FAULT])
         mode = MODE_NAMES.get(int(out[CO_MODE]), "?")
-        values = {"mode": mode, "pwm_enabled": bool(out[CO_EN] > 0.5), "fault_code": code,
-                  "fault": FAULT_NAMES.get(code, "?") if code else "",
-                  "fault_detail": sq.fault_detail if code else "",
-                  "position_source": (self.sub_est.topic if self.sub_est is not None
-                                      else "encoder")}
+        values = {
+            "mode": mode,
+            "pwm_enabled": bool(out[CO_EN] > 0.5),
+            "fault_code": code,
+            "fault": FAULT_NAMES.get(code, "?") if code else "",
+            "fault_detail": sq.fault_detail if code else "",
+            "position_source": (self.sub_est.topic if self.sub_est is not None else "encoder"),
+        }
         if sq.tripped:
             code = int(cs[CS_FAULT])
-            values.update(fault_code=code, fault=FAULT_NAMES.get(code, "?"), mode="fault",
-                          pwm_enabled=False, fault_detail=sq.fault_detail)
-            text = FAULT_NAMES.get(code, "fault") + (f": {sq.fault_detail}"
-                                                     if sq.fault_detail else "")
+            values.update(
+                fault_code=code,
+                fault=FAULT_NAMES.get(code, "?"),
+                mode="fault",
+                pwm_enabled=False,
+                fault_detail=sq.fault_detail,
+            )
+            text = FAULT_NAMES.get(code, "fault") + (
+                f": {sq.fault_detail}" if sq.fault_detail else ""
+            )
             return diag.ERROR, f"PWM off, latched fault: {text}", values
         return diag.OK, f"{mode}, PWM {'on' if values['pwm_enabled'] else 'off'}", values
 

@@ -72,42 +72,123 @@ def param_table(sc) -> list[P]:
     card = sc.machine
     td = card.deadtime_s if sc.plant_deadtime_s is None else sc.plant_deadtime_s
     return [
-        P("mode", "lockstep", "lockstep: sim time, one period per duty command; paced: wall "
-          "clock at rate_factor", choices=("lockstep", "paced"), read_only=True),
+        P(
+            "mode",
+            "lockstep",
+            "lockstep: sim time, one period per duty command; paced: wall clock at rate_factor",
+            choices=("lockstep", "paced"),
+            read_only=True,
+        ),
         P("seed", int(sc.seed), "sensor-noise random seed", "", 0, 2**62, read_only=True),
-        P("duration_s", float(sc.duration_s), "run length (paced: 0 = until stopped)", "s",
-          0.0, 3600.0, read_only=True),
-        P("deadtime_s", float(td), "inverter deadtime of the simulated bridge (live)", "s",
-          0.0, 1e-4),
-        P("load_mode", "profile", "load torque: the scenario's profile (times load_scale) or "
-          "a constant load_constant_nm (live)", choices=("profile", "constant")),
+        P(
+            "duration_s",
+            float(sc.duration_s),
+            "run length (paced: 0 = until stopped)",
+            "s",
+            0.0,
+            3600.0,
+            read_only=True,
+        ),
+        P(
+            "deadtime_s",
+            float(td),
+            "inverter deadtime of the simulated bridge (live)",
+            "s",
+            0.0,
+            1e-4,
+        ),
+        P(
+            "load_mode",
+            "profile",
+            "load torque: the scenario's profile (times load_scale) or "
+            "a constant load_constant_nm (live)",
+            choices=("profile", "constant"),
+        ),
         P("load_scale", 1.0, "factor on the scenario's load profile (live)", "", 0.0, 10.0),
-        P("load_constant_nm", 0.0, "load torque when load_mode = constant (live)", "N m",
-          -100.0, 100.0),
-        P("rate_factor", 1.0, "paced mode: simulated seconds per wall second (live)", "",
-          1e-3, 10.0),
-        P("watchdog_periods", 20, "paced mode: PWM off when no duty command came for this "
-          "many periods of (paced) wall time", "periods", 1, 10_000_000),
-        P("duty_timeout_s", 5.0, "lockstep mode: simulate the next period with the PWM off "
-          "when its duty command has not come for this much wall time (controller dead or "
-          "hung), then one period per timeout until commands come back; 0 = wait forever "
-          "(live)", "s", 0.0, 3600.0),
-        P("clock_decimation", 10, "publish /clock every N frames (0: never)", "frames", 0,
-          1_000_000),
-        P("wait_frame_subscribers", 1, "matched /drive/frame subscribers needed before the "
-          "first frame", "", 0, 1000, read_only=True),
-        P("wait_duty_publishers", 1, "matched /drive/duty publishers needed before the first "
-          "frame", "", 0, 100, read_only=True),
-        P("start_delay_s", 0.5, "wait this long after matching before the first frame (lets "
-          "the rest of the graph finish discovery)", "s", 0.0, 60.0, read_only=True),
-        P("progress_interval_s", 0.5, "progress line period on stdout (0: none)", "s", 0.0,
-          3600.0),
+        P(
+            "load_constant_nm",
+            0.0,
+            "load torque when load_mode = constant (live)",
+            "N m",
+            -100.0,
+            100.0,
+        ),
+        P(
+            "rate_factor",
+            1.0,
+            "paced mode: simulated seconds per wall second (live)",
+            "",
+            1e-3,
+            10.0,
+        ),
+        P(
+            "watchdog_periods",
+            20,
+            "paced mode: PWM off when no duty command came for this "
+            "many periods of (paced) wall time",
+            "periods",
+            1,
+            10_000_000,
+        ),
+        P(
+            "duty_timeout_s",
+            5.0,
+            "lockstep mode: simulate the next period with the PWM off "
+            "when its duty command has not come for this much wall time (controller dead or "
+            "hung), then one period per timeout until commands come back; 0 = wait forever "
+            "(live)",
+            "s",
+            0.0,
+            3600.0,
+        ),
+        P(
+            "clock_decimation",
+            10,
+            "publish /clock every N frames (0: never)",
+            "frames",
+            0,
+            1_000_000,
+        ),
+        P(
+            "wait_frame_subscribers",
+            1,
+            "matched /drive/frame subscribers needed before the first frame",
+            "",
+            0,
+            1000,
+            read_only=True,
+        ),
+        P(
+            "wait_duty_publishers",
+            1,
+            "matched /drive/duty publishers needed before the first frame",
+            "",
+            0,
+            100,
+            read_only=True,
+        ),
+        P(
+            "start_delay_s",
+            0.5,
+            "wait this long after matching before the first frame (lets "
+            "the rest of the graph finish discovery)",
+            "s",
+            0.0,
+            60.0,
+            read_only=True,
+        ),
+        P("progress_interval_s", 0.5, "progress line period on stdout (0: none)", "s", 0.0, 3600.0),
         P("exit_on_done", True, "exit after the run's last frame (after /drive/done)"),
         P("frame_id", "", "header.frame_id of published frames", read_only=True),
-        P("input_durability", "volatile", "durability of the sample-topic "
-          "subscriptions: volatile (matches any publisher) or transient_local (also receives "
-          "what was published before the match; the lockstep sim graphs use it)",
-          choices=qos.INPUT_DURABILITY_CHOICES, read_only=True),
+        P(
+            "input_durability",
+            "volatile",
+            "durability of the sample-topic "
+            "subscriptions: volatile (matches any publisher) or transient_local (also receives "
+            "what was published before the match; the lockstep sim graphs use it)",
+            choices=qos.INPUT_DURABILITY_CHOICES,
+            read_only=True,
+        ),
         diag.PARAM,
         access.param(),
     ]
@@ -120,9 +201,18 @@ MAX_CATCH_UP = 50
 class PlantNode(FluxNode):
     def __init__(self, name: str = "plant", namespace: str | None = None, **kw):
         super().__init__(name, namespace, **kw)
-        sp = declare(self, [P("scenario", "", "scenario YAML (path or a name under "
-                                "config/scenarios): machine card, load, seed, faults",
-                                read_only=True)])["scenario"]
+        sp = declare(
+            self,
+            [
+                P(
+                    "scenario",
+                    "",
+                    "scenario YAML (path or a name under "
+                    "config/scenarios): machine card, load, seed, faults",
+                    read_only=True,
+                )
+            ],
+        )["scenario"]
         if not sp:
             raise ValueError("parameter 'scenario' (path of a scenario YAML) is required")
         sc = load_scenario(scenario_path(sp))
@@ -152,8 +242,9 @@ class PlantNode(FluxNode):
         self.pub_truth = RawPublisher(self, fm.PlantTruth, topics.TRUTH, qos.SAMPLES)
         self.pub_clock = RawPublisher(self, Clock, topics.CLOCK, qos.CLOCK)
         self.pub_done = self.create_publisher(fm.RunDone, topics.DONE, qos.LATCHED)
-        self.sub_duty = RawSubscription(self, fm.DutyCommand, topics.DUTY, self._on_duty,
-                                        qos.reader(pv["input_durability"]))
+        self.sub_duty = RawSubscription(
+            self, fm.DutyCommand, topics.DUTY, self._on_duty, qos.reader(pv["input_durability"])
+        )
         self.k = -1  # index of the last frame published
         self.next_duty = 0  # lockstep: seq of the duty command expected next
         self.pending: dict[int, tuple] = {}
@@ -174,8 +265,14 @@ class PlantNode(FluxNode):
         self.lateness: list[float] = []  # paced: publish time - due time of every frame [s]
         self._wd_k = -1  # lockstep watchdog: frame index and wall time of the last progress
         self._wd_t = 0.0
-        self.counts = diag.Counters("duty_received", "duty_nonfinite", "duty_out_of_range",
-                                    "repeated_or_backwards", "unexpected_seq", "watchdog_trips")
+        self.counts = diag.Counters(
+            "duty_received",
+            "duty_nonfinite",
+            "duty_out_of_range",
+            "repeated_or_backwards",
+            "unexpected_seq",
+            "watchdog_trips",
+        )
         self._logged = 0
         on_set(self, self.specs, self._apply)
         self.guard = access.CommandGuard(pv["allowed_commanders"], topics.DUTY)
@@ -183,7 +280,8 @@ class PlantNode(FluxNode):
         self.diag.add("commands", self._diag_commands)
         self.get_logger().info(
             f"scenario {sc.name} ({self.sc.source}): {self.n if self.n < 2**62 else 'inf'} "
-            f"periods of {ds.ts * 1e6:.0f} us, seed {sc.seed}, {pv['mode']}")
+            f"periods of {ds.ts * 1e6:.0f} us, seed {sc.seed}, {pv['mode']}"
+        )
         self._start_timer = self.create_timer(0.05, self._try_start)
         self._pace_timer = None
 
@@ -213,8 +311,10 @@ class PlantNode(FluxNode):
     def _try_start(self) -> None:
         if self.started:
             return
-        ok = (self.pub_frame.subscription_count() >= self.pv["wait_frame_subscribers"]
-              and self.sub_duty.publisher_count() >= self.pv["wait_duty_publishers"])
+        ok = (
+            self.pub_frame.subscription_count() >= self.pv["wait_frame_subscribers"]
+            and self.sub_duty.publisher_count() >= self.pv["wait_duty_publishers"]
+        )
         now = time.monotonic()
         if not ok:
             self.t_matched = None
@@ -228,8 +328,8 @@ class PlantNode(FluxNode):
         self.t_wall0 = time.perf_counter()
         self.t_last_duty = self.t_wall0
         self.get_logger().info(
-            f"graph matched ({self.pub_frame.subscription_count()} frame subscribers); "
-            f"starting")
+            f"graph matched ({self.pub_frame.subscription_count()} frame subscribers); starting"
+        )
         plant_initial_frame(self.pst, self.mp, self.rng, self.frame, self.truth)
         self._publish(0)
         if self.paced:
@@ -243,8 +343,18 @@ class PlantNode(FluxNode):
 
     # ----------------------------------------------------------------- stepping
     def _advance(self, duty, enabled: bool, k: int, flags: int = 0) -> None:
-        plant_advance(self.pst, self.mp, self.rng, duty, enabled, self.load_t, self.load_y,
-                      self.ds.load_cfg, self.frame, self.truth)
+        plant_advance(
+            self.pst,
+            self.mp,
+            self.rng,
+            duty,
+            enabled,
+            self.load_t,
+            self.load_y,
+            self.ds.load_cfg,
+            self.frame,
+            self.truth,
+        )
         self._publish(k, flags)
 
     def _publish(self, k: int, flags: int = 0) -> None:
@@ -264,15 +374,17 @@ class PlantNode(FluxNode):
         self.counts.add(kind)
         if self._logged < 10:
             self._logged += 1
-            self.get_logger().warning(text + ("" if self._logged < 10 else
-                                              " (further cases: /diagnostics only)"))
+            self.get_logger().warning(
+                text + ("" if self._logged < 10 else " (further cases: /diagnostics only)")
+            )
 
     def _on_duty(self, data: bytes) -> None:
         if not self.guard.accept_raw(data):  # not from an allowed commander: ignored
             if self.guard.n_rejected <= 3:
                 self.get_logger().warning(
                     f"duty command dropped ({self.guard.last_rejected}); obeyed only from "
-                    f"{self.guard.allowed}")
+                    f"{self.guard.allowed}"
+                )
             return
         v = self.duty_dec.decode(data)
         v = v[:3] + v[4:]  # (sec, nsec, seq, da, db, dc, enable): graph_id checked already
@@ -281,15 +393,21 @@ class PlantNode(FluxNode):
         c["duty_received"] += 1
         da, db, dc = v[3], v[4], v[5]
         if not (math.isfinite(da) and math.isfinite(db) and math.isfinite(dc)):
-            self._bad_duty("duty_nonfinite", f"duty command {seq}: non-finite duty "
-                           f"({da}, {db}, {dc}): PWM off for that period")
+            self._bad_duty(
+                "duty_nonfinite",
+                f"duty command {seq}: non-finite duty ({da}, {db}, {dc}): PWM off for that period",
+            )
             v = (v[0], v[1], seq, 0.5, 0.5, 0.5, False)
         elif not (-1e-9 <= min(da, db, dc) and max(da, db, dc) <= 1.0 + 1e-9):
-            self._bad_duty("duty_out_of_range", f"duty command {seq}: duty ({da:g}, {db:g}, "
-                           f"{dc:g}) outside [0, 1]: clamped")
+            self._bad_duty(
+                "duty_out_of_range",
+                f"duty command {seq}: duty ({da:g}, {db:g}, {dc:g}) outside [0, 1]: clamped",
+            )
         if seq > self.k:
-            self._bad_duty("unexpected_seq", f"duty command {seq} answers no published frame "
-                           f"(last {self.k}): dropped")
+            self._bad_duty(
+                "unexpected_seq",
+                f"duty command {seq} answers no published frame (last {self.k}): dropped",
+            )
             return
         if self.paced:
             d = (v[3], v[4], v[5], bool(v[6]))
@@ -305,8 +423,10 @@ class PlantNode(FluxNode):
         if self.done:
             return
         if seq < self.next_duty or seq in self.pending:
-            self._bad_duty("repeated_or_backwards", f"duty command {seq} repeated or "
-                           f"backwards (expected {self.next_duty}): dropped")
+            self._bad_duty(
+                "repeated_or_backwards",
+                f"duty command {seq} repeated or backwards (expected {self.next_duty}): dropped",
+            )
             return
         if seq > self.next_duty:
             self.pending[seq] = v
@@ -339,8 +459,9 @@ class PlantNode(FluxNode):
         if self.k != self._wd_k:  # the loop moved: a duty command came
             if self.watchdog_tripped:
                 self.watchdog_tripped = False
-                self.get_logger().info(f"duty commands back (seq {self.next_duty - 1}); "
-                                       f"lockstep resumes")
+                self.get_logger().info(
+                    f"duty commands back (seq {self.next_duty - 1}); lockstep resumes"
+                )
             self._wd_k, self._wd_t = self.k, now
             return
         lim = float(self.pv["duty_timeout_s"])
@@ -355,7 +476,8 @@ class PlantNode(FluxNode):
             self.get_logger().warning(
                 f"watchdog: no duty command {j} for {lim:g} s of wall time (controller gone?); "
                 f"PWM off from frame {j + 2}, one period per {lim:g} s until duty commands "
-                f"come back")
+                f"come back"
+            )
         self.next_duty = j + 1
         if j + 2 < self.n:
             self._advance(np.array([0.5, 0.5, 0.5]), False, j + 2, STATUS_STALE_COMMAND)
@@ -414,7 +536,8 @@ class PlantNode(FluxNode):
                     self.counts.add("watchdog_trips")
                     self.get_logger().warning(
                         f"watchdog: no duty command for {wd_wall * 1e3:.1f} ms of wall time; "
-                        f"PWM off from frame {k}")
+                        f"PWM off from frame {k}"
+                    )
                 if self.held:  # time slips by the wait: frame k is due now
                     self.held = False
                     self.t_wall0 = now - k * ts / rate
@@ -435,26 +558,44 @@ class PlantNode(FluxNode):
         if lat.size == 0:
             return {"frames": 0}
         p50, p99 = np.percentile(lat, [50, 99])
-        return {"frames": int(lat.size), "period_s": per,
-                "lateness_p50_periods": float(p50 / per),
-                "lateness_p99_periods": float(p99 / per),
-                "lateness_max_periods": float(lat.max() / per),
-                "late_frames": int((lat > per).sum()), "holds": self.n_holds,
-                "slips": self.n_slips,
-                "watchdog_trips": self.counts["watchdog_trips"]}
+        return {
+            "frames": int(lat.size),
+            "period_s": per,
+            "lateness_p50_periods": float(p50 / per),
+            "lateness_p99_periods": float(p99 / per),
+            "lateness_max_periods": float(lat.max() / per),
+            "late_frames": int((lat > per).sum()),
+            "holds": self.n_holds,
+            "slips": self.n_slips,
+            "watchdog_trips": self.counts["watchdog_trips"],
+        }
 
     def _diag_commands(self) -> tuple[int, str, dict]:
         c = self.counts
         c.set("commands_rejected", self.guard.n_rejected)
-        grew = c.grew("duty_nonfinite", "duty_out_of_range", "repeated_or_backwards",
-                      "unexpected_seq", "commands_rejected")
-        values = {**c.report(), **self.guard.values(), "last_frame": self.k,
-                  "mode": self.pv["mode"]}
+        grew = c.grew(
+            "duty_nonfinite",
+            "duty_out_of_range",
+            "repeated_or_backwards",
+            "unexpected_seq",
+            "commands_rejected",
+        )
+        values = {
+            **c.report(),
+            **self.guard.values(),
+            "last_frame": self.k,
+            "mode": self.pv["mode"],
+        }
         if self.watchdog_tripped:
             return diag.ERROR, "watchdog: no duty command in time, PWM off", values
         if grew:
-            return diag.WARN, "bad duty commands since the last report (" + ", ".join(
-                f"{k} {c[k]}" for k in grew) + ")", values
+            return (
+                diag.WARN,
+                "bad duty commands since the last report ("
+                + ", ".join(f"{k} {c[k]}" for k in grew)
+                + ")",
+                values,
+            )
         return diag.OK, "commands ok", values
 
     # ----------------------------------------------------------------- end
@@ -469,7 +610,8 @@ class PlantNode(FluxNode):
         self.progress(f"{self.k + 1} {self.n} {el:.3f}")
         self.get_logger().info(
             f"done: {self.k + 1} frames, {sim:.3f} s simulated in {el:.2f} s wall "
-            f"(real-time factor {sim / max(el, 1e-9):.3f})")
+            f"(real-time factor {sim / max(el, 1e-9):.3f})"
+        )
         if self.paced:
             self._log_pacing()
         msg = fm.RunDone()
@@ -506,8 +648,10 @@ class PlantNode(FluxNode):
                     p.wait_for_all_acked(Duration(seconds=2.0))
             except Exception as exc:  # noqa: BLE001 - shutting down anyway
                 self.log(f"could not publish the final PWM-off frame: {exc}", "warning")
-        self.log(f"stopped before the end of the run: PWM off from frame {self.k} "
-                 f"(t = {self.k * ts:.4f} s); {self.k + 1} frames published")
+        self.log(
+            f"stopped before the end of the run: PWM off from frame {self.k} "
+            f"(t = {self.k * ts:.4f} s); {self.k + 1} frames published"
+        )
         if self.paced:
             self._log_pacing()
 
