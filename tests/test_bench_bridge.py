@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from fluxdrive.analysis.metrics import wrap
 from fluxdrive.can.bridge import BridgeConfig, CanBridge
-from fluxdrive.can.emulator import DriveEmulator
+from fluxdrive.can.emulator import FAULT_CMD_TIMEOUT, DriveEmulator
 from fluxdrive.can.loop import new_virtual_channel, run_can_loop
 from fluxdrive.can.protocol import ID_ARM_MODE, ID_DUTY_CMD, ID_SAMPLE_FD, get_protocol
 from fluxdrive.core.scenario import CONFIG_DIR, RPM, load_scenario, scenario_path
@@ -233,9 +233,9 @@ def test_mcu_command_watchdog_disables_pwm():
         assert emu.pwm_enabled
         for _ in range(12):  # the bridge stops answering: 1 ms = 10 periods
             emu.step()
-        assert not emu.pwm_enabled and emu.fault_latched and emu.stats.fault_codes == [5]
+        assert not emu.pwm_enabled and emu.fault_latched and emu.stats.fault_codes == [FAULT_CMD_TIMEOUT]
         br.poll(timeout=0.05)
-        assert br.diagnostics().get("mcu_fault_code") == 5 and not br.armed
+        assert br.diagnostics().get("mcu_fault_code") == FAULT_CMD_TIMEOUT and not br.armed
     finally:
         br.shutdown()
         emu_bus.shutdown()

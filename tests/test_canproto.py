@@ -71,12 +71,17 @@ def test_dbc_messages_and_priorities(proto):
         "FAULT": 0x010, "ARM_MODE": 0x020, "DUTY_CMD": 0x040, "SAMPLE_FD": 0x080,
         "SAMPLE_C_CUR": 0x100, "SAMPLE_C_VLT": 0x101, "SAMPLE_C_DUTY": 0x102,
         "SAMPLE_C_AUX": 0x103, "STATUS": 0x700, "HOST_HEARTBEAT": 0x701,
+        "HOST_REF": 0x041, "DRIVE_PARAM": 0x680, "DRIVE_PARAM_ACK": 0x681,
     }  # fmt: skip
-    # safety > duty deadline > telemetry > housekeeping (lower ID wins arbitration)
+    # safety > duty/reference deadline > telemetry > housekeeping (lower ID wins)
     assert ids["FAULT"] < ids["ARM_MODE"] < ids["DUTY_CMD"] < ids["SAMPLE_FD"] < ids["STATUS"]
+    assert ids["DUTY_CMD"] < ids["HOST_REF"] < ids["SAMPLE_FD"]
     fd = proto.sample_fd
     assert fd.is_fd and fd.length == 64
-    assert all(not m.is_fd and m.length <= 8 for m in proto.db.messages if m is not fd)
+    ref = proto.message("HOST_REF")
+    assert ref.is_fd and ref.length == 12
+    fd_msgs = (fd, ref)
+    assert all(not m.is_fd and m.length <= 8 for m in proto.db.messages if m not in fd_msgs)
     for m in proto.db.messages:
         assert m.comment, m.name
         for s in m.signals:

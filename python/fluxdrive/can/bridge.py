@@ -334,7 +334,7 @@ class CanBridge:
         self._arm_counter = (self._arm_counter + 1) % 256
         data = self._msg_arm.encode(
             {"arm": int(arm), "reset_fault": int(reset_fault),
-             "sample_layout": int(self.layout == "classic"),
+             "sample_layout": int(self.layout == "classic"), "control_split": 0,
              "mode": 1 if arm else 0, "arm_key": ARM_KEY if arm else 0,
              "cmd_timeout": min(self.mcu_cmd_timeout_s, 6.5535),
              "decimation": self.decimation, "arm_counter": self._arm_counter},

@@ -80,8 +80,9 @@ __all__ = [
 ]
 
 # DBC value tables
-FAULT_NONE, FAULT_OVERCURRENT, FAULT_CMD_TIMEOUT, FAULT_HOST_HEARTBEAT_LOST = 0, 1, 5, 6
-FAULT_BAD_COMMAND = 10
+# the engine's codes (fluxdrive.drive.control FAULT_*) where it has one; 16+ drive-only
+FAULT_NONE, FAULT_OVERCURRENT, FAULT_CMD_TIMEOUT, FAULT_HOST_HEARTBEAT_LOST = 0, 1, 9, 16
+FAULT_BAD_COMMAND = 20
 ST_BOOT, ST_IDLE, ST_ARMED, ST_RUNNING, ST_FAULT = 0, 1, 2, 3, 4
 MODE_IDLE, MODE_RUN = 0, 1
 
@@ -347,6 +348,7 @@ class DriveEmulator:
             "adc_clip": int(int(f[13]) & FRAME_FLAG_ADC_CLIP),
             "cmd_stale": int(self._stale_prev),
             "capture_valid": int(self._win_pwm),
+            "control_split": 0,
             "mode": self.mode,
             "fault_code": self.fault_code,
         }  # fmt: skip
@@ -393,6 +395,7 @@ class DriveEmulator:
             "c_fault_active": int(self.fault_latched),
             "c_cmd_stale": int(self._stale_prev),
             "c_capture_valid": int(self._win_pwm),
+            "c_control_split": 0,
         }
         return self.proto.frame_to_classic_payloads(f, flags)
 

@@ -96,7 +96,7 @@ __all__ = [
     "unwrap_counter",
 ]
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
 """Protocol version carried in STATUS / HOST_HEARTBEAT."""
 ARM_KEY = 0xA5
 """ARM_MODE.arm_key value required for arm=1 to take effect."""
