@@ -233,7 +233,11 @@ def test_mcu_command_watchdog_disables_pwm():
         assert emu.pwm_enabled
         for _ in range(12):  # the bridge stops answering: 1 ms = 10 periods
             emu.step()
-        assert not emu.pwm_enabled and emu.fault_latched and emu.stats.fault_codes == [FAULT_CMD_TIMEOUT]
+        assert (
+            not emu.pwm_enabled
+            and emu.fault_latched
+            and emu.stats.fault_codes == [FAULT_CMD_TIMEOUT]
+        )
         br.poll(timeout=0.05)
         assert br.diagnostics().get("mcu_fault_code") == FAULT_CMD_TIMEOUT and not br.armed
     finally:
