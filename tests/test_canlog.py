@@ -130,7 +130,7 @@ def test_sample_without_fd_flag_rejected(tmp_path, suffix):
 
 
 def test_unsupported_format_refused(tmp_path):
-    with pytest.raises(ValueError, match="trc"):
-        canlog.read_capture(tmp_path / "x.trc")
+    with pytest.raises(ValueError, match="pcap"):
+        canlog.read_capture(tmp_path / "x.pcap")
     with pytest.raises(ValueError, match="trc"):
         canlog.write_capture(tmp_path / "x.trc", [bytes(64)])

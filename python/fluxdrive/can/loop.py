@@ -89,11 +89,14 @@ class CanLoopResult:
 
 
 class _TapLogger(can.Listener):
-    """Records bus traffic with python-can's Logger; numeric channel (BLF needs one),
-    errors kept (a Notifier thread otherwise dies silently)."""
+    """Records bus traffic with the project's capture writer (fluxdrive.io.canlog: python-can's,
+    FD frames in .blf as the format defines them); numeric channel (BLF needs one), errors
+    kept (a Notifier thread otherwise dies silently)."""
 
     def __init__(self, path: str) -> None:
-        self.writer = can.Logger(path)
+        from fluxdrive.io.canlog import open_writer
+
+        self.writer = open_writer(path)
         self.errors: list[BaseException] = []
 
     def on_message_received(self, msg: can.Message) -> None:

@@ -1,11 +1,26 @@
-"""CAN log import core: candump ``.log``, Vector ``.asc`` and ``.blf`` -> numpy frames.
+"""CAN log import core: candump ``.log``, Vector ``.asc``, ``.blf`` and PCAN ``.trc`` ->
+numpy frames.
 
-Reads a bench capture with python-can's readers (CAN FD frames survive in all three
-formats; ``.trc`` would drop them), picks the sample frames by arbitration ID, decodes
+Reads a bench capture with python-can's readers (CAN FD frames survive in all four
+formats: ``.trc`` from version 2.0 on, frame types FD/FB/FE/BI), picks the sample frames
+by arbitration ID, decodes
 them with the vectorised SAMPLE_FD codec (or reassembles the classic 4-frame layout)
 and returns engine frames (:data:`fluxdrive.can.protocol.FRAME_FIELDS` columns) plus
 counts. Writing a ROS bag from the result is the job of the ``can-import`` command.
 No ROS imports.
+
+Captures the project writes (``write_capture``, the CAN loop's tap: ``open_writer``)
+follow the formats' specifications for CAN FD:
+
+- candump ``.log``: ``(time) can0 123##<flags><data>`` -- ``##`` marks an FD frame, one hex
+  digit of flags (BRS 1, ESI 2), then up to 64 data bytes (can-utils ``lib.h``,
+  ``parse_canframe``); classic frames ``123#<data>``;
+- ``.blf``: an FD frame is a CAN_FD_MESSAGE object (type 100) of the full size the format
+  defines -- channel, flags, DLC code, id, frame length, bit count, FD flags (EDL 1, BRS 2,
+  ESI 4), valid data bytes, reserved, 64 data bytes, and the trailing reserved DWORD
+  python-can's writer leaves out (116 instead of 120 bytes; a reader walking the object
+  by its declared fields then reads 4 bytes of the next object);
+- ``.trc`` is read only: python-can's TRC writer drops FD frames.
 """
 
 from __future__ import annotations
@@ -30,10 +45,20 @@ from fluxdrive.can.protocol import (
     pack_payloads,
 )
 
-__all__ = ["SUPPORTED_SUFFIXES", "CaptureError", "CaptureResult", "read_capture", "write_capture"]
+__all__ = [
+    "SUPPORTED_SUFFIXES",
+    "WRITE_SUFFIXES",
+    "CaptureError",
+    "CaptureResult",
+    "open_writer",
+    "read_capture",
+    "write_capture",
+]
 
-SUPPORTED_SUFFIXES = (".log", ".asc", ".blf")
-"""Capture formats that keep CAN FD frames."""
+SUPPORTED_SUFFIXES = (".log", ".asc", ".blf", ".trc")
+"""Capture formats that keep CAN FD frames (read)."""
+WRITE_SUFFIXES = (".log", ".asc", ".blf")
+"""Capture formats written with CAN FD frames (python-can's .trc writer drops them)."""
 
 
 @dataclass
@@ -62,12 +87,57 @@ class CaptureResult:
         return self.frames[:, FRAME_FIELDS.index(name)]
 
 
-def _check_suffix(path: Path) -> None:
-    if path.suffix.lower() not in SUPPORTED_SUFFIXES:
+def _check_suffix(path: Path, allowed: tuple[str, ...] = SUPPORTED_SUFFIXES) -> None:
+    if path.suffix.lower() not in allowed:
+        why = "" if ".trc" in allowed else "; python-can's .trc writer drops CAN FD frames"
         raise ValueError(
             f"{path.name}: unsupported capture format {path.suffix!r} "
-            f"(use one of {', '.join(SUPPORTED_SUFFIXES)}; .trc drops CAN FD frames)"
+            f"(use one of {', '.join(allowed)}{why})"
         )
+
+
+class _BLFWriter(can.BLFWriter):
+    """python-can's BLF writer with CAN FD frames as full-size CAN_FD_MESSAGE objects
+    (the format's trailing reserved DWORD included, see the module notes), and every log
+    container holding whole objects: python-can cuts its containers at a fixed size, so an
+    object may continue in the next container -- the format allows it, but readers that
+    walk each container on its own (SavvyCAN's) lose the frame at every cut."""
+
+    def _add_object(self, obj_type: int, data: bytes, timestamp: float | None = None) -> None:
+        size = 32 + len(data) + len(data) % 4  # V1 object header + body + python-can's padding
+        if self._buffer_size and self._buffer_size + size > self.max_container_size:
+            self._flush()  # the buffer holds whole objects only: one container, no tail
+        super()._add_object(obj_type, data, timestamp)
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if not msg.is_fd or msg.is_error_frame:
+            super().on_message_received(msg)
+            return
+        from can.io import blf
+
+        channel = blf.channel2int(msg.channel)
+        channel = self.channel if channel is None else channel + 1  # BLF counts from 1
+        arb_id = msg.arbitration_id | (blf.CAN_MSG_EXT if msg.is_extended_id else 0)
+        flags = (blf.REMOTE_FLAG if msg.is_remote_frame else 0) | (0 if msg.is_rx else blf.DIR)
+        fd_flags = (
+            blf.EDL
+            | (blf.BRS if msg.bitrate_switch else 0)
+            | (blf.ESI if msg.error_state_indicator else 0)
+        )
+        data = bytes(msg.data)
+        body = blf.CAN_FD_MSG_STRUCT.pack(
+            channel, flags, blf.len2dlc(len(data)), arb_id, 0, 0, fd_flags, len(data), data
+        )
+        self._add_object(blf.CAN_FD_MESSAGE, body + bytes(4), msg.timestamp)
+
+
+def open_writer(path: str | os.PathLike[str]) -> can.io.generic.MessageWriter:
+    """A capture writer for `path` (format from the suffix, as python-can's Logger): python-
+    can's, with FD frames in .blf as the format defines them."""
+    p = Path(path)
+    if p.suffix.lower() == ".blf":
+        return _BLFWriter(str(p))
+    return can.Logger(str(p))
 
 
 def read_capture(
@@ -78,7 +148,7 @@ def read_capture(
     classic_step: int | None = None,
     protocol: FluxdriveProtocol | None = None,
 ) -> CaptureResult:
-    """Read a .log/.asc/.blf capture and decode its sample frames.
+    """Read a .log/.asc/.blf/.trc capture and decode its sample frames.
 
     FD samples (``sample_id``, 64 bytes) go through the vectorised decoder; if the log
     holds no FD samples but classic-layout frames (``classic_ids``) they are
@@ -229,7 +299,7 @@ class _Lines:
 
 
 def _messages(p: Path, bad_lines: list[tuple[int, str]]) -> Iterable[can.Message]:
-    """python-can's reader for the capture; a text capture (.log/.asc) goes line by line:
+    """python-can's reader for the capture; a text capture (.log/.asc/.trc) goes line by line:
     a line the reader cannot parse is skipped and noted (line number, reason) and reading
     goes on after it.  A binary capture (.blf) that python-can cannot read is one error."""
     suffix = p.suffix.lower()
@@ -281,7 +351,7 @@ def write_capture(
     ID for all frames or one per frame; timestamps default to ``t0 + k*period`` [s];
     ``is_fd`` defaults to "payload longer than 8 bytes". Returns the frame count."""
     p = Path(path)
-    _check_suffix(p)
+    _check_suffix(p, WRITE_SUFFIXES)
     if isinstance(payloads, np.ndarray):
         rows = [r.tobytes() for r in np.asarray(payloads, dtype=np.uint8)]
     else:
@@ -294,7 +364,7 @@ def write_capture(
     ch: str | int = channel
     if p.suffix.lower() == ".blf" and isinstance(channel, str):
         ch = 1  # BLF stores numeric channels
-    with can.Logger(str(p)) as writer:
+    with open_writer(p) as writer:
         for i, data in enumerate(rows):
             fd = len(data) > 8 if is_fd is None else is_fd
             writer.on_message_received(
