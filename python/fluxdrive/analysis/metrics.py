@@ -200,8 +200,12 @@ def compute(result) -> dict[str, Any]:
     theta = result.truth[:, TR_THETA_E]
     theta_unw = np.unwrap(theta)
     sl = slice(win.k0, win.k1)
+    # split mode: the host estimates every D periods (the rows between hold the sample's):
+    # each estimate against the angle at its own sample instant
+    dec = int(getattr(result, "decimation", 1))
+    sl_est = sl if dec == 1 else slice(win.k0 + (-win.k0) % dec, win.k1, dec)
     observers = {
-        nm: observer_metrics(result.est[i, sl], theta[sl], theta_unw[sl])
+        nm: observer_metrics(result.est[i, sl_est], theta[sl_est], theta_unw[sl_est])
         for i, nm in enumerate(result.names)
     }
     trip = trip_info(result)

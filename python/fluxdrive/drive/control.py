@@ -70,6 +70,7 @@ CP_I2T_LIMIT = _CP.index()  # I2t trip [pu^2 s]
 CP_IRATED = _CP.index()  # rated current [A]
 CP_HANDOVER_TIMEOUT = _CP.index()  # at handover speed this long without handover -> trip [s]
 CP_AGREE_LPF = _CP.index()  # handover agreement low-pass pole [rad/s]; 0: per sample
+CP_REF_TIMEOUT = _CP.index()  # split mode: no reference this long with PWM on -> trip [s]
 CP_N = _CP.close(globals())
 SRC_ENCODER, SRC_ESTIMATE = 0, 1
 
@@ -141,6 +142,31 @@ CO_TH = _CO.index()  # angle the controller used [rad]
 CO_MODE = _CO.index()  # MODE_*
 CO_FAULT = _CO.index()  # fault code (FAULT_*)
 CO_N = _CO.close(globals())
+
+# ---- split mode (docs/can.md, split mode): the host's answer to sample j, RF_* -- what
+# HOST_REF carries (current references, the angle at t_j and the speed) plus the host's
+# mode and fault for the drive's record
+_RF = Layout("RF")
+RF_ID_REF, RF_IQ_REF = _RF.indices(2)  # dq current references [A]
+RF_TH = _RF.index()  # electrical angle of the current frame at t_j [rad]
+RF_W = _RF.index()  # electrical speed of the current frame [rad/s]
+RF_EN = _RF.index()  # 1.0: PWM on
+RF_MODE = _RF.index()  # the host's MODE_*
+RF_FAULT = _RF.index()  # the host's latched FAULT_* (0: none)
+RF_N = _RF.close(globals())
+
+# ---- the drive's copy of the newest reference, DR_*
+_DR = Layout("DR")
+DR_ID_REF, DR_IQ_REF = _DR.indices(2)  # [A]
+DR_TH = _DR.index()  # angle at the reference's sample instant t_j [rad]
+DR_W = _DR.index()  # electrical speed [rad/s]
+DR_EN = _DR.index()  # 1.0: PWM on
+DR_MODE = _DR.index()  # the host's mode (recorded in CO_MODE)
+DR_FAULT = _DR.index()  # the host's fault (recorded in CO_FAULT while PWM is off)
+DR_DT = _DR.index()  # time from t_j to the current period's sample instant [s]
+DR_AGE = _DR.index()  # time since the reference was taken [s]
+DR_HAVE = _DR.index()  # 1.0 once a reference was taken
+DR_N = _DR.close(globals())
 
 
 @njit(cache=True)
@@ -420,20 +446,18 @@ def _current_loops(cs, cp, ia, ib, th, we, id_ref, iq_ref, vdc, ts, out):
     out[CO_FAULT] = 0.0
 
 
-@njit(cache=True)
-def controller_step(cs, cp, fr, est, w_ref_m, id_inj, out):
-    """One control period.  `est` is the driving observer's ES_* row (ignored in encoder
-    mode); `w_ref_m` the mechanical speed reference [rad/s]; `id_inj` an additive i_d*
-    injection [A] (frequency-response sweeps).  Writes CO_* into `out`.
-    measure + protect -> position feedback -> references (align / I-f / closed loop) ->
-    current loops."""
+@njit(cache=True, inline="always")
+def _references(cs, cp, fr, est, w_ref_m, id_inj, out):
+    """Everything a control period does before the current loops: measure + protect ->
+    position feedback -> references (align / I-f / closed loop).  Returns (run, i_alpha,
+    i_beta, theta, w_e, i_d*, i_q*); run False: tripped, the PWM-off row is written."""
     ts = cp[CP_TS]
     p = cp[CP_P]
     cs[CS_T_MODE] += ts
     out[CO_W_REF] = w_ref_m
     ia, ib = clarke(fr[FR_IA], fr[FR_IB], fr[FR_IC])
     if _protect(cs, cp, fr, out, ia, ib, ts):
-        return
+        return False, ia, ib, 0.0, 0.0, 0.0, 0.0
     th_enc, w_enc = _encoder_feedback(cs, cp, fr, p, ts)
     # ---------------------------------------------------------------- position feedback
     mode = cs[CS_MODE]
@@ -446,20 +470,20 @@ def controller_step(cs, cp, fr, est, w_ref_m, id_inj, out):
         we = est[ES_W]
         if not math.isfinite(th) or not math.isfinite(we):
             _trip(cs, out, FAULT_POSITION_INVALID)
-            return
+            return False, ia, ib, 0.0, 0.0, 0.0, 0.0
         if mode == MODE_CLOSED_LOOP:
             if est[ES_VALID] == 0.0:
                 cs[CS_INV_T] += ts
                 if cs[CS_INV_T] > cp[CP_INV_TIMEOUT]:
                     # PLL error or flux magnitude out of bounds for too long
                     _trip(cs, out, FAULT_LOSS_OF_LOCK)
-                    return
+                    return False, ia, ib, 0.0, 0.0, 0.0, 0.0
             else:
                 cs[CS_INV_T] = 0.0
     w_m_fb = we / p
     if abs(w_m_fb) > cp[CP_OS_TRIP]:
         _trip(cs, out, FAULT_OVERSPEED)
-        return
+        return False, ia, ib, 0.0, 0.0, 0.0, 0.0
     cs[CS_WFB_F] = lowpass_step(cs[CS_WFB_F], w_m_fb, pole(cp[CP_WFB_LPF], ts))
     # ---------------------------------------------------------------- references
     iq_ref = 0.0
@@ -472,7 +496,7 @@ def controller_step(cs, cp, fr, est, w_ref_m, id_inj, out):
         th, we, id_ref, mode = _if_ramp(cs, cp, est, w_ref_m, id_inj, ia, ib, p, ts)
         if mode == MODE_FAULT:
             _trip(cs, out, FAULT_START_FAILED)
-            return
+            return False, ia, ib, 0.0, 0.0, 0.0, 0.0
     if mode == MODE_CLOSED_LOOP:
         if (
             cp[CP_SRC] == SRC_ESTIMATE
@@ -485,7 +509,136 @@ def controller_step(cs, cp, fr, est, w_ref_m, id_inj, out):
         else:
             iq_ref = _speed_loop(cs, cp, w_ref_m, w_m_fb, ts)
     out[CO_W_FB] = w_m_fb
-    _current_loops(cs, cp, ia, ib, th, we, id_ref, iq_ref, fr[FR_VDC], ts, out)
+    return True, ia, ib, th, we, id_ref, iq_ref
+
+
+@njit(cache=True)
+def controller_step(cs, cp, fr, est, w_ref_m, id_inj, out):
+    """One control period.  `est` is the driving observer's ES_* row (ignored in encoder
+    mode); `w_ref_m` the mechanical speed reference [rad/s]; `id_inj` an additive i_d*
+    injection [A] (frequency-response sweeps).  Writes CO_* into `out`.
+    measure + protect -> position feedback -> references (align / I-f / closed loop) ->
+    current loops."""
+    run, ia, ib, th, we, id_ref, iq_ref = _references(cs, cp, fr, est, w_ref_m, id_inj, out)
+    if run:
+        _current_loops(cs, cp, ia, ib, th, we, id_ref, iq_ref, fr[FR_VDC], cp[CP_TS], out)
+
+
+# ====================================================================== split mode
+# The host runs `host_reference_step` on every (decimated) sample j at D*Ts: everything
+# `controller_step` does except the current loops.  Its answer (RF_*) reaches the drive,
+# which takes it at a PWM period boundary (`split_drive_take_reference`) and then runs
+# `split_drive_step` every period at Ts: the current loops on the angle extrapolated from
+# the reference, theta_k = theta_j + omega_j (t_k - t_j).  The C firmware core implements
+# the same two drive-side functions.
+
+
+@njit(cache=True)
+def host_reference_step(cs, cp, fr, est, w_ref_m, id_inj, out, ref):
+    """The host's half of split mode, one sample (`cp` with CP_TS = D*Ts: the host's sample
+    period).  Writes the reference row `ref` (RF_*) and the host's part of the CO_* row:
+    references, measured dq current at the angle used, angle, mode, fault, speeds; duties
+    and voltages belong to the drive (0.5 and 0 here)."""
+    run, ia, ib, th, we, id_ref, iq_ref = _references(cs, cp, fr, est, w_ref_m, id_inj, out)
+    if run:
+        i_d, i_q = park(ia, ib, math.cos(th), math.sin(th))
+        out[CO_DA] = 0.5
+        out[CO_DB] = 0.5
+        out[CO_DC] = 0.5
+        out[CO_EN] = 1.0
+        out[CO_ID] = i_d
+        out[CO_IQ] = i_q
+        out[CO_ID_REF] = id_ref
+        out[CO_IQ_REF] = iq_ref
+        out[CO_VD] = 0.0
+        out[CO_VQ] = 0.0
+        out[CO_TH] = th
+        out[CO_MODE] = cs[CS_MODE]
+        out[CO_FAULT] = 0.0
+    ref[RF_ID_REF] = out[CO_ID_REF]
+    ref[RF_IQ_REF] = out[CO_IQ_REF]
+    ref[RF_TH] = wrap_angle(th) if run else 0.0
+    ref[RF_W] = we if run else 0.0
+    ref[RF_EN] = out[CO_EN]
+    ref[RF_MODE] = out[CO_MODE]
+    ref[RF_FAULT] = out[CO_FAULT]
+
+
+@njit(cache=True)
+def split_drive_reset(cs, dr):
+    """The drive side before its first reference: no reference, PWM off, no fault."""
+    controller_reset(cs)
+    for j in range(DR_N):
+        dr[j] = 0.0
+
+
+@njit(cache=True)
+def split_drive_take_reference(cs, dr, ref, since_sample_s):
+    """The drive takes a new reference at a PWM period boundary; `since_sample_s` is the
+    time from the reference's sample instant t_j to this boundary's sample instant
+    (lockstep: D*Ts, the same timing as a duty in host mode; a late reference: more).  The
+    current integrators are rotated from the old extrapolated frame to the new one at this
+    instant (what the handover does in `_if_ramp`); with PWM off they restart from zero."""
+    th_new = ref[RF_TH] + ref[RF_W] * since_sample_s
+    if ref[RF_EN] > 0.5 and dr[DR_HAVE] > 0.5 and dr[DR_EN] > 0.5:
+        th_old = dr[DR_TH] + dr[DR_W] * dr[DR_DT]
+        _rotate_current_integrators(cs, wrap_angle(th_old - th_new))
+    else:
+        cs[CS_ID_I] = 0.0
+        cs[CS_IQ_I] = 0.0
+    dr[DR_ID_REF] = ref[RF_ID_REF]
+    dr[DR_IQ_REF] = ref[RF_IQ_REF]
+    dr[DR_TH] = ref[RF_TH]
+    dr[DR_W] = ref[RF_W]
+    dr[DR_EN] = ref[RF_EN]
+    dr[DR_MODE] = ref[RF_MODE]
+    dr[DR_FAULT] = ref[RF_FAULT]
+    dr[DR_DT] = since_sample_s
+    dr[DR_AGE] = 0.0
+    dr[DR_HAVE] = 1.0
+
+
+@njit(cache=True)
+def split_drive_step(cs, cp, dr, fr, out):
+    """The drive's half of split mode, one PWM period at Ts (`cp`: the drive's parameters,
+    CP_TS = Ts): the drive's protections (bad sample, over-current, I2t, bus voltage), the
+    reference timeout (no new reference for CP_REF_TIMEOUT with PWM on: PWM off, WATCHDOG
+    latched), then `_current_loops` on theta_j + omega_j (t_k - t_j) with the references
+    limited to +-CP_IMAX.  Writes the CO_* row (the speeds are the host's: left as they are)."""
+    ts = cp[CP_TS]
+    ia, ib = clarke(fr[FR_IA], fr[FR_IB], fr[FR_IC])
+    if _protect(cs, cp, fr, out, ia, ib, ts):
+        return
+    if dr[DR_HAVE] < 0.5 or dr[DR_EN] < 0.5:
+        # no reference yet, or the host switched the PWM off (its fault, if any, recorded)
+        i_d, i_q = park(ia, ib, math.cos(dr[DR_TH]), math.sin(dr[DR_TH]))
+        out[CO_DA] = 0.5
+        out[CO_DB] = 0.5
+        out[CO_DC] = 0.5
+        out[CO_EN] = 0.0
+        out[CO_ID] = i_d
+        out[CO_IQ] = i_q
+        out[CO_ID_REF] = 0.0
+        out[CO_IQ_REF] = 0.0
+        out[CO_VD] = 0.0
+        out[CO_VQ] = 0.0
+        out[CO_TH] = dr[DR_TH]
+        out[CO_MODE] = dr[DR_MODE] if dr[DR_HAVE] > 0.5 else MODE_DISABLED
+        out[CO_FAULT] = dr[DR_FAULT]
+        dr[DR_DT] += ts
+        dr[DR_AGE] += ts
+        return
+    if cp[CP_REF_TIMEOUT] > 0.0 and dr[DR_AGE] > cp[CP_REF_TIMEOUT] * (1.0 + 1e-9):
+        _trip(cs, out, FAULT_WATCHDOG)
+        return
+    lim = cp[CP_IMAX]
+    id_ref = min(max(dr[DR_ID_REF], -lim), lim)
+    iq_ref = min(max(dr[DR_IQ_REF], -lim), lim)
+    th = wrap_angle(dr[DR_TH] + dr[DR_W] * dr[DR_DT])
+    _current_loops(cs, cp, ia, ib, th, dr[DR_W], id_ref, iq_ref, fr[FR_VDC], ts, out)
+    out[CO_MODE] = dr[DR_MODE]
+    dr[DR_DT] += ts
+    dr[DR_AGE] += ts
 
 
 # ====================================================================== design
@@ -870,6 +1023,16 @@ class ControllerConfig:
     r_hat_ohm: float | None = None
     l_hat_h: float | None = None
     lambda_hat_vs: float | None = None
+    # where the current loop runs: 'host' (the controller closes it on every sample and
+    # sends duties) or 'split' (the drive closes it every PWM period on the host's current
+    # references and angle; the host runs observers and speed loop at decimation x Ts)
+    mode: str = "host"
+    decimation: int = 1  # PWM periods per sample the host sees (split mode)
+    # split mode, in-process: the host's answer to sample j reaches the drive this many
+    # samples late (0: at the next sample boundary, the lockstep timing)
+    host_delay_samples: int = 0
+    # split mode: no reference this long while PWM is on -> PWM off, fault 'watchdog'
+    reference_timeout_s: float = 0.01
 
     def resolved(self, card: MachineCard) -> ControllerConfig:
         """A copy with every unset card-derived field filled in from `card` (CARD_RULES)."""
@@ -961,6 +1124,22 @@ class ControllerConfig:
                 f"{src}: handback_rpm ({r.handback_rpm:g}) must be below "
                 f"handover_rpm ({r.handover_rpm:g}) (hysteresis)"
             )
+        if r.mode not in CONTROL_MODES:
+            raise ConfigError(f"{src}: mode must be one of {list(CONTROL_MODES)}, got {r.mode!r}")
+        for key in ("decimation", "host_delay_samples"):
+            if float(getattr(r, key)) != int(getattr(r, key)):
+                raise ConfigError(f"{src}: {key} must be an integer, got {getattr(r, key)!r}")
+        if r.mode == "host" and (r.decimation != 1 or r.host_delay_samples != 0):
+            raise ConfigError(
+                f"{src}: decimation and host_delay_samples apply to mode 'split' "
+                f"(mode is 'host'; a decimated host-mode bench runs over CAN: docs/can.md)"
+            )
+        d = int(r.decimation)
+        if r.reference_timeout_s < 2 * d * card.ts_s:
+            raise ConfigError(
+                f"{src}: reference_timeout_s {r.reference_timeout_s:g} s must be at least "
+                f"two samples ({2 * d} PWM periods at decimation {d})"
+            )
         return r
 
     def to_params(self, card: MachineCard) -> np.ndarray:
@@ -1005,6 +1184,7 @@ class ControllerConfig:
         cp[CP_AGREE_LPF] = 2 * math.pi * self.handover_agree_lpf_hz
         cp[CP_I2T_LIMIT] = self.i2t_limit_pu2s
         cp[CP_IRATED] = card.rated_current_a
+        cp[CP_REF_TIMEOUT] = self.reference_timeout_s
         return cp
 
 
@@ -1038,7 +1218,46 @@ CONTROL_RANGES: dict[str, tuple[float, float]] = {
     "speed_observer_damping": (0.1, 5.0),
     "speed_observer_lpf_hz": (0.0, 2000.0),
     "peak_limit_db": (0.1, 20.0),
+    "decimation": (1, 64),
+    "host_delay_samples": (0, 1000),
+    "reference_timeout_s": (1e-4, 10.0),
 }
+CONTROL_MODES = ("host", "split")
+
+
+def host_params(cp: np.ndarray, decimation: int) -> np.ndarray:
+    """The host's parameter row in split mode: the controller's, stepping at decimation x Ts
+    (speed loop, start-up, protections on the decimated samples; the current gains stay the
+    PWM-rate design the drive runs)."""
+    out = cp.copy()
+    out[CP_TS] = cp[CP_TS] * int(decimation)
+    return out
+
+
+# the drive-side parameters of split mode: DRIVE_PARAM prm_id name (config/can/fluxdrive.dbc)
+# -> the controller row's field the drive reads (HEARTBEAT_TIMEOUT_S is the bridge's own)
+DRIVE_PARAM_FIELDS: dict[str, int] = {
+    "CUR_KP": CP_KP_I,
+    "CUR_KI": CP_KI_I,
+    "L_HAT": CP_L,
+    "LAMBDA_HAT": CP_LAM,
+    "DECOUPLE": CP_DECOUPLE,
+    "VOLTAGE_ADVANCE": CP_ADV,
+    "DEADTIME_COMP_S": CP_TDCOMP,
+    "CUR_LIMIT_A": CP_IMAX,
+    "REF_TIMEOUT_S": CP_REF_TIMEOUT,
+    "OVERCURRENT_A": CP_OC_TRIP,
+    "I2T_LIMIT_PU2S": CP_I2T_LIMIT,
+    "RATED_CURRENT_A": CP_IRATED,
+    "VDC_MIN_V": CP_VDC_MIN,
+    "VDC_MAX_V": CP_VDC_MAX,
+    "POLE_PAIRS": CP_P,
+}
+
+
+def drive_param_values(cp: np.ndarray) -> dict[str, float]:
+    """{DRIVE_PARAM name: value} the host sends a split-mode drive from its row `cp`."""
+    return {name: float(cp[j]) for name, j in DRIVE_PARAM_FIELDS.items()}
 
 
 _DESIGNS: dict[tuple, LoopDesign] = {}

@@ -7,6 +7,12 @@ Per period k (docs/engine.md, timing convention), exactly the order the ROS grap
   4. duty(k) is latched for the next period.
 The kernels are the same compiled functions the nodes call one message at a time, so a
 graph run of the same scenario and seed reproduces these numbers bit for bit.
+
+Split mode (`control.mode: split`, docs/can.md): the drive side (`split_drive_step`, the
+current loops) runs every period on frame k; the host side (observers and
+`host_reference_step`) runs every D periods on the decimated sample (line voltages and
+duties averaged over the window, as `fluxdrive.can.protocol.decimate_frames`), and its
+answer to sample j is taken by the drive at period (j + 1 + host_delay_samples) D.
 """
 
 from __future__ import annotations
@@ -28,20 +34,38 @@ from fluxdrive.drive.control import (
     CO_DC,
     CO_EN,
     CO_N,
+    CO_W_FB,
+    CO_W_REF,
+    CP_TS,
     CS_N,
+    DR_N,
+    RF_N,
     controller_reset,
     controller_step,
+    host_params,
+    host_reference_step,
+    split_drive_reset,
+    split_drive_step,
+    split_drive_take_reference,
 )
 from fluxdrive.drive.observers import (
     ES_N,
     OP_N,
+    OP_TS,
     OS_N,
     KernelObserver,
     observer_reset,
     observer_step,
 )
 from fluxdrive.drive.plant import (
+    FR_DA,
+    FR_DC,
+    FR_EN,
+    FR_FLAGS,
     FR_N,
+    FR_SEQ,
+    FR_VAB,
+    FR_VCA,
     TR_N,
     load_config,
     machine_params,
@@ -120,6 +144,126 @@ def closed_loop_chunk(
     return k1
 
 
+# the decimation window's accumulator (split mode): sums of the averaged fields, the
+# minimum enable, the OR of the flags, the number of periods
+_AVG_FIELDS = (FR_VAB, FR_VAB + 1, FR_VCA, FR_DA, FR_DA + 1, FR_DC)
+WIN_N = len(_AVG_FIELDS) + 3
+
+
+@njit(cache=True)
+def window_add(win, frame):
+    """Add period `frame` to the decimation window `win` (WIN_N; all zeros when empty)."""
+    n = win[WIN_N - 1]
+    for j in range(6):
+        win[j] += frame[_AVG_FIELDS[j]]
+    win[6] = frame[FR_EN] if n == 0.0 else min(win[6], frame[FR_EN])
+    win[7] = float(int(win[7]) | int(frame[FR_FLAGS]))
+    win[WIN_N - 1] = n + 1.0
+
+
+@njit(cache=True)
+def window_sample(win, frame, out):
+    """The decimated sample of the window ending at `frame` (its last period) into `out`:
+    currents, bus voltage, encoder, seq of the last period; line voltages and duties the
+    window's means; enable only if on in every period; flags OR-ed.  Empties `win`."""
+    n = win[WIN_N - 1]
+    for j in range(FR_N):
+        out[j] = frame[j]
+    for j in range(6):
+        out[_AVG_FIELDS[j]] = win[j] / n
+    out[FR_EN] = win[6]
+    out[FR_FLAGS] = win[7]
+    for j in range(WIN_N):
+        win[j] = 0.0
+
+
+@njit(cache=True)
+def split_loop_chunk(
+    k0,
+    k1,
+    decimation,
+    delay,
+    pst,
+    mp,
+    rng,
+    load_t,
+    load_y,
+    load_cfg,
+    cs_host,
+    cp_host,
+    cs_drive,
+    cp,
+    dr,
+    w_ref,
+    id_inj,
+    obs_states,
+    obs_params,
+    driving,
+    frame,
+    truth,
+    duty_prev,
+    win,
+    refs,
+    host_row,
+    out_frames,
+    out_truth,
+    out_est,
+    out_ctrl,
+):
+    """Split mode, periods k0..k1-1 (state as in `closed_loop_chunk`, plus the host's and
+    the drive's controller states, the drive's reference `dr`, the decimation window `win`
+    and the references in flight `refs` (a ring of delay + 2 RF_* rows); `host_row` holds
+    the host's newest CO_* row).  The estimate rows between two samples hold the sample's."""
+    n_obs = obs_states.shape[0]
+    no_est = np.zeros(ES_N)
+    fdec = np.zeros(FR_N)
+    ref = np.zeros(RF_N)
+    ctrl = np.zeros(CO_N)
+    n_ring = refs.shape[0]
+    ts = cp[CP_TS]
+    for k in range(k0, k1):
+        out_frames[k, :] = frame
+        out_truth[k, :] = truth
+        window_add(win, frame)
+        # the drive takes the host's answer to sample j = k/D - 1 - delay at this boundary
+        if k % decimation == 0:
+            j = k // decimation - 1 - delay
+            if j >= 0:
+                since_s = (k - j * decimation) * ts
+                split_drive_take_reference(cs_drive, dr, refs[j % n_ring], since_s)
+        split_drive_step(cs_drive, cp, dr, frame, ctrl)
+        if k % decimation == 0:
+            # the host: observers and references on the decimated sample k / D
+            window_sample(win, frame, fdec)
+            fdec[FR_SEQ] = k // decimation  # the host counts samples (as over CAN)
+            for o in range(n_obs):
+                observer_step(obs_states[o], obs_params[o], fdec, out_est[o, k])
+            est = out_est[driving, k] if driving >= 0 else no_est
+            host_reference_step(cs_host, cp_host, fdec, est, w_ref[k], id_inj[k], host_row, ref)
+            refs[(k // decimation) % n_ring, :] = ref
+        else:
+            for o in range(n_obs):
+                out_est[o, k, :] = out_est[o, k - 1, :]
+        ctrl[CO_W_REF] = host_row[CO_W_REF]
+        ctrl[CO_W_FB] = host_row[CO_W_FB]
+        out_ctrl[k, :] = ctrl
+        plant_advance(
+            pst,
+            mp,
+            rng,
+            duty_prev[CO_DA : CO_DC + 1],
+            duty_prev[CO_EN] > 0.5,
+            load_t,
+            load_y,
+            load_cfg,
+            frame,
+            truth,
+        )
+        for j in range(LATCH_N):
+            duty_prev[j] = ctrl[j]
+    return k1
+
+
 @dataclass
 class SimResult:
     scenario: Scenario
@@ -134,6 +278,9 @@ class SimResult:
     id_inj: np.ndarray
     segments: dict[str, list[Segment]] = field(default_factory=dict)
     wall_s: float = 0.0
+    # split mode: the host's samples are every `decimation` periods (the estimate rows
+    # between two hold the sample's); 1: every period
+    decimation: int = 1
 
     def estimate(self, name: str) -> np.ndarray:
         return self.est[self.names.index(name)]
@@ -177,6 +324,13 @@ class DriveSetup:
         self.obs_params = np.zeros((len(self.names), OP_N))
         for o, nm in enumerate(self.names):
             self.obs_params[o] = sc.observers[nm].to_params(card)
+        # split mode: the host (observers, speed loop, start-up) steps at D*Ts
+        self.split = sc.control.mode == "split"
+        self.decimation = int(sc.control.decimation)
+        self.host_delay_samples = int(sc.control.host_delay_samples)
+        self.cp_host = host_params(self.cp, self.decimation) if self.split else self.cp
+        if self.split:
+            self.obs_params[:, OP_TS] = self.decimation * self.ts
         self.driving_index = -1 if sc.driving == "encoder" else self.names.index(sc.driving)
         t = np.arange(self.n) * self.ts
         self.w_ref = sc.speed_ref_rad_s(t)
@@ -239,7 +393,8 @@ class LoopRun:
     states, frame 0 sampled, the PWM-off latch, and output rows for every period.  `advance`
     runs the compiled loop up to a period; between calls a caller may change `cp` or
     `obs_params` (copies of the setup's rows), so experiments that switch a source or adapt
-    a parameter mid-run use the very loop `run_scenario` uses."""
+    a parameter mid-run use the very loop `run_scenario` uses.  In split mode `cp` is the
+    drive's row and `cp_host` the host's (CP_TS = D*Ts); `cs` is the host's state."""
 
     def __init__(self, ds: DriveSetup):
         self.ds = ds
@@ -260,11 +415,56 @@ class LoopRun:
         self.ctrl = np.zeros((n, CO_N))
         self.k = 0
         self.wall_s = 0.0
+        if ds.split:
+            # the host's controller state is `cs`; the drive's, its reference, the
+            # decimation window and the references in flight
+            self.cp_host = ds.cp_host.copy()
+            self.cs_drive = np.zeros(CS_N)
+            self.dr = np.zeros(DR_N)
+            split_drive_reset(self.cs_drive, self.dr)
+            self.win = np.zeros(WIN_N)
+            self.refs = np.zeros((ds.host_delay_samples + 2, RF_N))
+            self.host_row = np.zeros(CO_N)
 
     def advance(self, k1: int) -> None:
         """Run periods k..k1-1 (k1 = k compiles, or loads from the cache, and runs nothing)."""
         ds = self.ds
         t0 = time.perf_counter()
+        if ds.split:
+            self.k = split_loop_chunk(
+                self.k,
+                k1,
+                ds.decimation,
+                ds.host_delay_samples,
+                self.pst,
+                ds.mp,
+                self.rng,
+                ds.load_t,
+                ds.load_y,
+                ds.load_cfg,
+                self.cs,
+                self.cp_host,
+                self.cs_drive,
+                self.cp,
+                self.dr,
+                ds.w_ref,
+                ds.id_inj,
+                self.obs_states,
+                self.obs_params,
+                self.driving,
+                self.frame,
+                self.truth,
+                self.latch,
+                self.win,
+                self.refs,
+                self.host_row,
+                self.frames,
+                self.truths,
+                self.est,
+                self.ctrl,
+            )
+            self.wall_s += time.perf_counter() - t0
+            return
         self.k = closed_loop_chunk(
             self.k,
             k1,
@@ -306,6 +506,7 @@ class LoopRun:
             ds.id_inj,
             ds.segments,
             self.wall_s,
+            ds.decimation if ds.split else 1,
         )
 
 

@@ -124,7 +124,14 @@ DOCS = {
     "r_hat_ohm": ("controller's stator resistance R^", "ohm"),
     "l_hat_h": ("controller's stator inductance L^", "H"),
     "lambda_hat_vs": ("controller's magnet flux lambda^", "V s"),
+    "reference_timeout_s": (
+        "split mode: the drive turns PWM off and latches 'watchdog' when no current "
+        "reference comes for this long",
+        "s",
+    ),
 }
+# ControllerConfig fields that are not live kernel parameters: where the loop runs
+SPLIT_FIELDS = ("mode", "decimation", "host_delay_samples")
 # wall-clock grace for the very first estimate (a starting observer process, compilation)
 FIRST_ESTIMATE_WALL_S = 30.0
 # parameters of the node, not of ControllerConfig
@@ -142,7 +149,12 @@ NONE_AS_ZERO = {"speed_observer_pll_hz"}
 
 def config_params(cfg: ControllerConfig, card) -> list[P]:
     return params.config_params(
-        cfg, card, DOCS, CONTROL_RANGES, skip=("position_source",), none_as_zero=NONE_AS_ZERO
+        cfg,
+        card,
+        DOCS,
+        CONTROL_RANGES,
+        skip=("position_source", *SPLIT_FIELDS),
+        none_as_zero=NONE_AS_ZERO,
     )
 
 
