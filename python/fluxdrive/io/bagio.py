@@ -38,12 +38,14 @@ from fluxdrive.io.topics import (
     DUTY,
     ESTIMATE,
     FRAME,
+    MARKER,
     MSG_SRC_DIR,
     OBS_NAMESPACE,
     SETTINGS,
     T_DUTY,
     T_ESTIMATE,
     T_FRAME,
+    T_MARKER,
     T_STATE,
     T_STRING,
     T_TRUTH,
@@ -401,6 +403,8 @@ class RunBag:
     problems: list[str] = field(default_factory=list)  # what was missing / damaged
     raw_frames: list[tuple[int, bytes]] = field(default_factory=list)  # (t_ns, CDR) for --live
     matched: dict[str, int] = field(default_factory=dict)  # topic -> frames it has a message for
+    # the parameter markers of the bag's graph, in recording order (read_markers)
+    markers: list[dict[str, Any]] = field(default_factory=list)
 
     @property
     def n(self) -> int:
@@ -520,6 +524,7 @@ def _wanted(topic: str, msgtype: str) -> bool:
         or (topic == TOPIC_CTRL and msgtype == T_CTRL)
         or (topic == TOPIC_DUTY and msgtype == T_DUTY)
         or (topic == SETTINGS and msgtype == T_STRING)
+        or (topic == MARKER and msgtype == T_MARKER)
         or (topic.startswith(EST_PREFIX) and topic.endswith(EST_SUFFIX) and msgtype == T_EST)
     )
 
@@ -618,6 +623,7 @@ def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
                 "replaying with the default machine card and observers"
             )
     raws.pop(SETTINGS, None)
+    marker_raws = raws.pop(MARKER, [])
     # each topic decoded with the layout the bag recorded (a bag from before a field was
     # added still reads)
     tables = {tp: decode_rows(topics[tp], r, problems, tp, defs.get(tp)) for tp, r in raws.items()}
@@ -700,7 +706,47 @@ def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
             e = align(tp, ES_N)
             if e is not None:
                 est[tp[len(EST_PREFIX) : -len(EST_SUFFIX)]] = e[0]
-    return RunBag(path, t, frames, truth, est, ctrl, meta, counts, problems, raw, matched)
+    markers = read_markers(marker_raws, graph_id, problems, defs.get(MARKER))
+    return RunBag(path, t, frames, truth, est, ctrl, meta, counts, problems, raw, matched, markers)
+
+
+def read_markers(
+    raws: list[bytes],
+    graph_id: int | None = None,
+    problems: list[str] | None = None,
+    definition: str | None = None,
+) -> list[dict[str, Any]]:
+    """ParameterMarker messages -> dicts (seq, graph_id, node, name, value, successful,
+    reason, source), those of another graph than `graph_id` left out (id 0: a tool outside
+    any launch, kept).  A marker that does not decode is named in `problems`."""
+    layout = layout_type(T_MARKER, definition)
+    dec = Decoder(layout)
+    out = []
+    for data in raws:
+        try:
+            strings = read_strings(layout, data)
+            c = dec.codec_for(data)
+            nums = dict(zip(c.fields, c.unpack(data), strict=True))
+        except Exception as exc:  # noqa: BLE001 - a damaged marker: name it, keep the rest
+            if problems is not None:
+                problems.append(f"undecodable {MARKER} message ({_one_line(exc)})")
+            continue
+        gid = int(nums.get("graph_id", 0))
+        if graph_id is not None and gid not in (0, graph_id):
+            continue
+        out.append(
+            {
+                "seq": int(nums.get("seq", 0)),
+                "graph_id": gid,
+                "node": strings.get("node", ""),
+                "name": strings.get("name", ""),
+                "value": strings.get("value", ""),
+                "successful": bool(nums.get("successful", False)),
+                "reason": strings.get("reason", ""),
+                "source": strings.get("source", ""),
+            }
+        )
+    return out
 
 
 def _settings_elsewhere(path: Path, settings_msgs: list[bytes] | None) -> dict[str, Any]:

@@ -12,6 +12,8 @@ Variant SPEC:
   my_pkg.mod:MyObserver[:k=v,...]  a user class (module:Class)
   my_variant[:k=v,...]           an entry point in group "fluxdrive.observers"
   @recorded                      every observer recorded in the bag, with its recorded config
+                                 and every live change of it (the bag's parameter markers)
+                                 applied from the sample it took effect at
   @NAME                          one recorded observer (e.g. @flux_measured)
   label=SPEC                     give the variant a name of your own
 
@@ -256,7 +258,8 @@ def replay_bag(
     for i, vs in enumerate(variants):
         obs = build_observer(vs, bag, card)
         t0 = time.perf_counter()
-        out = np.asarray(obs.run(frames), dtype=np.float64)
+        changes = live_changes(bag, vs) if isinstance(obs, KernelObserver) else []
+        out = run_with_changes(obs, frames, changes)
         walls[vs.label] = time.perf_counter() - t0
         if out.shape != (n, ES_N):
             raise ConfigError(
@@ -325,6 +328,57 @@ def replay_bag(
         walls,
         bag,
     )
+
+
+def live_changes(bag: RunBag, vs: VariantSpec) -> list[tuple[int, dict[str, Any]]]:
+    """The recorded live changes of a @recorded observer: [(row, {name: value})], row = the
+    index of the first frame the change held for, from the markers its node published
+    (source "node": exact sample; a change the variant spec overrides is left out)."""
+    rec = vs.recorded
+    if rec is None or not bag.markers or not bag.n:
+        return []
+    known = {f.name for f in fields(ObserverConfig)}
+    seqs = bag.frames[:, FR_SEQ]
+    out: dict[int, dict[str, Any]] = {}
+    for m in bag.markers:
+        node = m["node"].rstrip("/")
+        if not (
+            m["successful"]
+            and m["source"] == "node"
+            and node.endswith(f"/obs/{rec}")
+            and m["name"] in known
+            and m["name"] not in vs.params
+        ):
+            continue
+        try:
+            value = json.loads(m["value"])
+        except ValueError:
+            raise ConfigError(
+                f"{bag.path}: parameter marker {node} {m['name']} = {m['value']!r} is not a value"
+            ) from None
+        row = int(np.searchsorted(seqs, m["seq"]))
+        out.setdefault(row, {})[m["name"]] = value
+    return sorted(out.items())
+
+
+def run_with_changes(
+    obs: Observer, frames: np.ndarray, changes: list[tuple[int, dict[str, Any]]]
+) -> np.ndarray:
+    """obs.run over the frames, its parameters updated (state kept) at the given rows, as
+    the node did when the change came (fluxdrive_ros.params)."""
+    if not changes:
+        return np.asarray(obs.run(frames), dtype=np.float64)
+    out = np.zeros((len(frames), ES_N))
+    start = 0
+    for row, ch in changes:
+        row = min(row, len(frames))
+        if row > start:
+            out[start:row] = obs.run(frames[start:row])
+            start = row
+        obs.update(**ch)  # KernelObserver: config re-validated, state kept
+    if start < len(frames):
+        out[start:] = obs.run(frames[start:])
+    return out
 
 
 def estimate_difference(a: np.ndarray, b: np.ndarray) -> float:
@@ -788,6 +842,16 @@ def _main(args) -> int:
         print(format_table(m))
         for nm, d in res.recorded_diff.items():
             print(f"   {nm}: max |replayed - recorded| = {d:.3g}")
+        applied = {
+            v.label: len(live_changes(bag, v))
+            for v in variants
+            if v.recorded is not None and live_changes(bag, v)
+        }
+        if applied:
+            print(
+                "   live parameter changes applied from the bag's markers: "
+                + ", ".join(f"{k} {n}" for k, n in applied.items())
+            )
         key = _slug(bag.path.name)
         while key in metrics_all:
             key += "_"

@@ -217,7 +217,7 @@ class ObserverNode(FluxNode):
         self.create_subscription(
             fm.RunDone, topics.DONE, self.graph.typed(topics.DONE, self._on_done), qos.LATCHED
         )
-        on_set(self, self.specs, self._apply)
+        on_set(self, self.specs, self._apply, lambda: self.last_seq + 1, card.ts_s)
         self.diag = diag.Diagnostics(self, common["diagnostics_period_s"])
         self.diag.add("input", self._diag_input)
         self.get_logger().info(

@@ -11,8 +11,10 @@ Parts (one process):
   envelopes of the scope tap (/scope/envelope, fluxdrive_bringup.scope_tap: binary, so that
   the graph's process does not pay for JSON), turns each into the page's JSON and forwards
   it to every open page over a WebSocket; publishes a ParameterMarker on
-  /drive/param_marker for every parameter set from the page (the recorder records it, so
-  the bag shows when the operator changed what); if no tap publishes within --attach-wait,
+  /drive/param_marker for every parameter set from the page that the node refused (an
+  accepted change is marked by the node itself, at the sample it took effect:
+  fluxdrive_ros.params), so the bag shows when the operator changed what; if no tap
+  publishes within --attach-wait,
   it starts one in this process (every sample then crosses DDS: works, costs the graph
   more -- see docs/scope.md);
 - a worker thread for the parameter services (the same helpers as `./fluxdrive param`):
@@ -387,7 +389,8 @@ class Scope:
             ok, reason, value = False, str(exc), None
         except Exception as exc:  # noqa: BLE001 - a value rclpy cannot even form
             ok, reason, value = False, f"{type(exc).__name__}: {exc}", None
-        self.ros.publish_marker(node, name, text, ok, reason)
+        if not ok:  # an accepted change is marked by the node itself (exact sample)
+            self.ros.publish_marker(node, name, text, ok, reason)
         print(
             f"scope: set {node} {name} = {text}: "
             f"{'ok' if ok else 'REFUSED'}{': ' + reason if reason else ''}",

@@ -11,11 +11,17 @@ Conventions
   (rclpy itself refuses it at declare time);
 - a node's `apply(changes)` is called with {name: value} of a proposed change; it raises
   ValueError (or fluxdrive's ConfigError) with the reason to reject, or returns a short
-  note for the successful result (e.g. the sample at which the change took effect).
+  note for the successful result (e.g. the sample at which the change took effect);
+- every change a node accepts is published by the node itself as a ParameterMarker on
+  drive/param_marker (seq = the first sample the new value holds for, source "node"), so
+  a change from any client (`./fluxdrive param set`, the scope, Foxglove, a foreign node)
+  is in the bag where it took effect and replay can apply it there
+  (fluxdrive.io.bagio.RunBag.markers).
 """
 
 from __future__ import annotations
 
+import json
 import math
 import re
 from collections.abc import Callable
@@ -142,9 +148,29 @@ def declare(node, specs: list[P]) -> dict[str, Any]:
     return out
 
 
-def on_set(node, specs: list[P], apply: Callable[[dict[str, Any]], str | None]) -> None:
-    """Install the validating set-parameters callback."""
+MARKER_SOURCE = "node"  # ParameterMarker.source of a marker the changed node published
+
+
+def value_text(value: Any) -> str:
+    """A parameter value as marker text: JSON (also YAML), floats exact (repr)."""
+    if isinstance(value, (list, tuple)):
+        value = list(value)
+    return json.dumps(value)
+
+
+def on_set(
+    node,
+    specs: list[P],
+    apply: Callable[[dict[str, Any]], str | None],
+    sample: Callable[[], int] | None = None,
+    ts_s: float = 0.0,
+) -> None:
+    """Install the validating set-parameters callback.  With `sample` (the seq of the
+    first sample a change applied now holds for) and the sample period `ts_s`, every
+    accepted change is also published as a ParameterMarker (one per parameter) on the
+    node's relative drive/param_marker topic, stamped with that sample's instant."""
     table = {s.name: s for s in specs}
+    marker = _MarkerPublisher(node, ts_s) if sample is not None else None
 
     def cb(params: list[Parameter]) -> SetParametersResult:
         changes = {}
@@ -167,9 +193,44 @@ def on_set(node, specs: list[P], apply: Callable[[dict[str, Any]], str | None]) 
             return SetParametersResult(successful=False, reason=str(exc))
         if note:
             node.get_logger().info(f"parameters {changes}: {note}")
+        if marker is not None:
+            marker.publish(sample(), changes, note or "")
         return SetParametersResult(successful=True, reason=note or "")
 
     node.add_on_set_parameters_callback(cb)
+
+
+class _MarkerPublisher:
+    """The node's own ParameterMarker writer (a plain rclpy publisher, not the intra-process
+    bus: several nodes of a process and tools elsewhere publish the same topic)."""
+
+    def __init__(self, node, ts_s: float):
+        from fluxdrive.io.messages import Stamp
+
+        import flux_drive_msgs.msg as fm
+
+        from . import qos, topics
+
+        self.node = node
+        self.cls = fm.ParameterMarker
+        self.stamp = Stamp(ts_s)
+        self.pub = node.create_publisher(
+            self.cls, topics.in_drive(node, topics.MARKER.lstrip("/")), qos.MARKERS
+        )
+        self.fqn = node.get_fully_qualified_name()
+        graph = getattr(node, "graph", None)
+        self.graph_id = int(getattr(graph, "id", 0))
+
+    def publish(self, seq: int, changes: dict[str, Any], note: str) -> None:
+        seq = max(int(seq), 0)
+        sec, nsec = self.stamp(seq)
+        for name, value in changes.items():
+            m = self.cls()
+            m.header.stamp.sec, m.header.stamp.nanosec = sec, nsec
+            m.seq, m.graph_id = seq, self.graph_id
+            m.node, m.name, m.value = self.fqn, name, value_text(value)
+            m.successful, m.reason, m.source = True, note, MARKER_SOURCE
+            self.pub.publish(m)
 
 
 # --------------------------------------------------------------- ros__parameters files

@@ -35,3 +35,23 @@ def msg_class(type_name: str):
 
     pkg, _, name = type_name.replace("/msg/", "/").partition("/")
     return getattr(importlib.import_module(f"{pkg}.msg"), name)
+
+
+def drive_namespace(node) -> str:
+    """The namespace of the drive a node belongs to: its own namespace, without the
+    observers' trailing /obs (an observer /a/obs/flux_measured belongs to drive /a)."""
+    ns = node.get_namespace().rstrip("/")
+    if ns == OBS_NAMESPACE or ns.endswith(OBS_NAMESPACE):
+        ns = ns[: -len(OBS_NAMESPACE)]
+    return ns or "/"
+
+
+def in_drive(node, topic: str) -> str:
+    """A graph topic for `node`: a relative name (`drive/frame`) resolves in the node's
+    drive namespace (so `__ns:=/a` moves the whole drive to /a/drive/frame); an absolute
+    name is kept (a user's `frame_topic: /elsewhere/frame`).  The canonical names of
+    fluxdrive.io.topics (`/drive/frame`) are the drive-relative names with a leading /."""
+    if topic.startswith("/") or topic.startswith("~"):
+        return topic
+    ns = drive_namespace(node)
+    return (ns.rstrip("/") + "/" + topic) if ns != "/" else "/" + topic

@@ -370,7 +370,7 @@ class ControllerNode(FluxNode):
         )
         self.reset_service = self.resolve_service_name("~/reset_fault")
         self.create_service(ResetFault, self.reset_service, self._on_reset)
-        on_set(self, self.specs, self._apply)
+        on_set(self, self.specs, self._apply, lambda: self.seq.next_k, card.ts_s)
         self.diag = diag.Diagnostics(self, common["diagnostics_period_s"])
         self.diag.add("input", self._diag_input)
         self.diag.add("state", self._diag_state)

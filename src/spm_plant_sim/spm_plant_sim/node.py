@@ -274,7 +274,7 @@ class PlantNode(FluxNode):
             "watchdog_trips",
         )
         self._logged = 0
-        on_set(self, self.specs, self._apply)
+        on_set(self, self.specs, self._apply, lambda: self.k + 1, ds.ts)
         self.guard = access.CommandGuard(pv["allowed_commanders"], topics.DUTY)
         self.diag = diag.Diagnostics(self, pv["diagnostics_period_s"])
         self.diag.add("commands", self._diag_commands)
