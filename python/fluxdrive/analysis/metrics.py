@@ -302,8 +302,9 @@ def format_table(m: dict[str, Any]) -> str:
         tag = "*" if name == m["driving"] else " "
         row = (tag + name).ljust(name_w)
         if not om.get("valid_data", True):
+            t_trip_s = trip["t_s"] if trip else float("nan")
             lines.append(
-                row + f"  -- no valid data in the window (drive tripped at {trip['t_s']:.3f} s)"
+                row + f"  -- no valid data in the window (drive tripped at {t_trip_s:.3f} s)"
             )
             continue
         for key, _, w, p in cols:

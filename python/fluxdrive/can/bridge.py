@@ -298,7 +298,7 @@ class CanBridge:
         self.counters["tx_frames"] += 1
         return True
 
-    def send_duty(self, seq: int, duty: Sequence[float], enable: bool) -> bool:
+    def send_duty(self, seq: int, duty: Sequence[float] | np.ndarray, enable: bool) -> bool:
         """DUTY_CMD answering sample ``seq``. ``enable`` only reaches the wire while armed
         and unfaulted (else forced to 0, counted in ``enable_suppressed``); duties are
         clamped to [0, 1], non-finite ones replaced by 0.5 with PWM off."""
@@ -483,8 +483,8 @@ class CanBridge:
                 if not ok_fd[i] and valid[i]:
                     valid[i] = False
                     reasons[i] = "sent as a classic CAN frame (FD flag clear)"
-            for i in np.flatnonzero(~valid):
-                self._malformed(_reason_kind(reasons[int(i)]), reasons[int(i)])
+            for bad in np.flatnonzero(~valid).tolist():
+                self._malformed(_reason_kind(reasons[bad]), reasons[bad])
             frames = frames[valid]
             frames[:, _I_FLAGS] = (frames[:, _I_FLAGS].astype(np.int64) & FRAME_FLAG_ADC_CLIP) | (
                 np.where(stale[valid] > 0.5, FRAME_FLAG_STALE_COMMAND, 0)

@@ -148,7 +148,11 @@ def run_can_loop(
     emu_bus = can.Bus(interface="virtual", channel=ch, fd=fd, receive_own_messages=False)
     tap = can.Bus(interface="virtual", channel=ch, fd=True) if log_path else None
     logger = _TapLogger(log_path) if log_path else None
-    notifier = can.Notifier(tap, [logger], timeout=0.05) if tap is not None else None
+    notifier = (
+        can.Notifier(tap, [logger], timeout=0.05)
+        if tap is not None and logger is not None
+        else None
+    )
     emu = DriveEmulator(
         ds, emu_bus, record=True, layout=layout, decimation=decimation, **(emulator_kw or {})
     )
@@ -182,7 +186,7 @@ def run_can_loop(
         while True:
             frames = bridge.poll(timeout=0.2)
             if frames.shape[0] == 0:
-                if not emu._thread.is_alive():
+                if emu._thread is None or not emu._thread.is_alive():
                     idle_since = idle_since or time.perf_counter()
                     if time.perf_counter() - idle_since > 0.3:
                         break
@@ -209,6 +213,7 @@ def run_can_loop(
         if notifier is not None:
             time.sleep(0.05)
             notifier.stop()  # also stops (closes) the logger
+        if tap is not None:
             tap.shutdown()
     wall = time.perf_counter() - t0
     fs, tr = emu.recorded()

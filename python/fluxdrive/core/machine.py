@@ -19,6 +19,14 @@ class ConfigError(ValueError):
     """A configuration file or value is invalid; the message names the file, key and rule."""
 
 
+def required(value: float | None, key: str) -> float:
+    """A setting that `resolved(card)` has filled in: its value, or an error naming the key
+    when it is still unset (used before it was resolved against a card)."""
+    if value is None:
+        raise ConfigError(f"{key} is unset: resolve the settings against a machine card first")
+    return value
+
+
 def refuse_unknown_keys(src: str, data: dict, known: list[str], where: str) -> None:
     """One line naming the file, the section and the keys it does not know (a typo is
     refused, never silently ignored); `known` is listed in the order given."""

@@ -41,8 +41,8 @@ class Scenario:
     driving: str  # 'encoder' or an observer name
     steady_window_s: tuple[float, float]
     step_load_time_s: float | None = None
-    current_offset_a: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    current_gain: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    current_offset_a: tuple[float, ...] = (0.0, 0.0, 0.0)  # phases a, b, c
+    current_gain: tuple[float, ...] = (1.0, 1.0, 1.0)  # phases a, b, c
     plant_deadtime_s: float | None = None
     initial_angle_deg: float = 0.0
     id_injection: dict[str, Any] | None = None

@@ -24,13 +24,19 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numba import njit
 
 from fluxdrive.core.blocks import lowpass_step, pi_output, pi_update, pll_gains, pll_step, pole
 from fluxdrive.core.layout import Layout
-from fluxdrive.core.machine import ConfigError, MachineCard, card_current_bandwidth_hz
+from fluxdrive.core.machine import (
+    ConfigError,
+    MachineCard,
+    card_current_bandwidth_hz,
+    required,
+)
 from fluxdrive.core.transforms import TWO_PI, clarke, inv_clarke, inv_park, park, wrap_angle
 from fluxdrive.drive.observers import ES_TH, ES_VALID, ES_W
 from fluxdrive.drive.plant import FR_ENC, FR_IA, FR_IB, FR_IC, FR_VDC
@@ -1038,7 +1044,7 @@ class ControllerConfig:
         """A copy with every unset card-derived field filled in from `card` (CARD_RULES)."""
         from dataclasses import replace
 
-        kw: dict[str, float] = {}
+        kw: dict[str, Any] = {}
         # every rule reads the card only (never another field's explicit value), so setting
         # one bandwidth does not move the others
         cur = round(card_current_bandwidth_hz(card), 6)
@@ -1093,8 +1099,8 @@ class ControllerConfig:
             )
         return _cached_design(
             card,
-            self.current_bandwidth_hz,
-            self.speed_bandwidth_hz,
+            required(self.current_bandwidth_hz, "current_bandwidth_hz"),
+            required(self.speed_bandwidth_hz, "speed_bandwidth_hz"),
             fb,
             self.peak_limit_db,
             r,
@@ -1105,12 +1111,16 @@ class ControllerConfig:
         """The settings resolved on `card` and checked as a whole (ranges, and the rules
         that tie fields to each other or to the card); returns the resolved copy."""
         r = self.validate(src).resolved(card).validate(src)
-        if r.vdc_min_v >= r.vdc_max_v:
+        vdc_min_v, vdc_max_v = (
+            required(r.vdc_min_v, "vdc_min_v"),
+            required(r.vdc_max_v, "vdc_max_v"),
+        )
+        if vdc_min_v >= vdc_max_v:
             raise ConfigError(
                 f"{src}: vdc_min_v {r.vdc_min_v:g} V must be below vdc_max_v "
                 f"{r.vdc_max_v:g} V (machine dc_bus_v {card.dc_bus_v:g} V)"
             )
-        if r.current_bandwidth_hz >= 0.25 * card.pwm_hz:
+        if required(r.current_bandwidth_hz, "current_bandwidth_hz") >= 0.25 * card.pwm_hz:
             raise ConfigError(
                 f"{src}: current_bandwidth_hz {r.current_bandwidth_hz} must "
                 f"be below a quarter of the PWM frequency ({card.pwm_hz} Hz)"
@@ -1119,7 +1129,7 @@ class ControllerConfig:
             raise ConfigError(
                 f"{src}: position_source must be 'encoder' or 'estimate', got '{r.position_source}'"
             )
-        if r.handback_rpm >= r.handover_rpm:
+        if required(r.handback_rpm, "handback_rpm") >= required(r.handover_rpm, "handover_rpm"):
             raise ConfigError(
                 f"{src}: handback_rpm ({r.handback_rpm:g}) must be below "
                 f"handover_rpm ({r.handover_rpm:g}) (hysteresis)"
@@ -1165,10 +1175,10 @@ class ControllerConfig:
         cp[CP_ALIGN_T] = self.align_time_s
         cp[CP_ALIGN_I] = self.align_current_pu * card.rated_current_a
         cp[CP_IF_I] = self.if_current_pu * card.rated_current_a
-        cp[CP_IF_ACC] = self.if_accel_rpm_s * rpm
-        cp[CP_HANDOVER] = self.handover_rpm * rpm
-        cp[CP_HANDBACK] = self.handback_rpm * rpm
-        kp, ki = pll_gains(self.encoder_pll_hz, 1.0)
+        cp[CP_IF_ACC] = required(self.if_accel_rpm_s, "if_accel_rpm_s") * rpm
+        cp[CP_HANDOVER] = required(self.handover_rpm, "handover_rpm") * rpm
+        cp[CP_HANDBACK] = required(self.handback_rpm, "handback_rpm") * rpm
+        kp, ki = pll_gains(required(self.encoder_pll_hz, "encoder_pll_hz"), 1.0)
         cp[CP_ENC_KP] = kp
         cp[CP_ENC_KI] = ki
         cp[CP_ENC_CPR] = 4.0 * card.encoder_lines
@@ -1177,7 +1187,7 @@ class ControllerConfig:
         cp[CP_VDC_MIN] = self.vdc_min_v
         cp[CP_VDC_MAX] = self.vdc_max_v
         cp[CP_DECOUPLE] = 1.0 if self.decoupling else 0.0
-        cp[CP_WFB_LPF] = 2 * math.pi * self.speed_feedback_lpf_hz
+        cp[CP_WFB_LPF] = 2 * math.pi * required(self.speed_feedback_lpf_hz, "speed_feedback_lpf_hz")
         cp[CP_INV_TIMEOUT] = self.invalid_timeout_s
         cp[CP_HANDOVER_DWELL] = self.handover_dwell_s
         cp[CP_HANDOVER_TIMEOUT] = self.handover_timeout_s

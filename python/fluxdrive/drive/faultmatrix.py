@@ -128,7 +128,7 @@ class Drive:
                 self.backlog.clear()
             duty = self.duties.pop(k - 1, None)
             watchdog = duty is None
-            if watchdog:  # not answered in time: the watchdog's PWM off
+            if duty is None:  # not answered in time: the watchdog's PWM off
                 duty = pwm_off_latch()
                 if k >= 1:
                     self.lost.append(k + 1)
@@ -331,7 +331,7 @@ def run_matrix(progress: bool = False) -> list[dict]:
         errors = [t for lvl, t in dr.lines if lvl == "error"]
         mode_end = int(dr.ctrl[ks[-1]][CO_MODE])
         c = dr.seq.counts
-        if latched:
+        if latched and k_trip is not None:
             did = f"PWM off from period k0{k_trip - k0:+d}, latched '{FAULT_NAMES[latched]}'"
         elif mode_end == MODE_CLOSED_LOOP and c["lost_intervals"]:
             did = (

@@ -39,7 +39,7 @@ from typing import Protocol
 import numpy as np
 
 from fluxdrive.core.blocks import rng_new
-from fluxdrive.core.machine import MachineCard
+from fluxdrive.core.machine import MachineCard, required
 from fluxdrive.core.transforms import clarke, line_to_phase
 from fluxdrive.drive.control import (
     CO_DA,
@@ -322,7 +322,7 @@ class Identifier:
         )
         cs, cp, out = self._controller(card, cfg)
         est = np.zeros(ES_N)
-        t_ramp = 0.15 + w_m / RPM / cfg.resolved(card).if_accel_rpm_s
+        t_ramp = 0.15 + w_m / RPM / required(cfg.resolved(card).if_accel_rpm_s, "if_accel_rpm_s")
         n_run, n_meas = int((t_ramp + 0.6) / ts), int(0.4 / ts)
         fr = self._apply(np.full(3, 0.5), False)
         e_mag = []

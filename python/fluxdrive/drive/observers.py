@@ -67,7 +67,12 @@ from fluxdrive.core.blocks import (
     sign,
 )
 from fluxdrive.core.layout import Layout
-from fluxdrive.core.machine import ConfigError, MachineCard, card_current_bandwidth_hz
+from fluxdrive.core.machine import (
+    ConfigError,
+    MachineCard,
+    card_current_bandwidth_hz,
+    required,
+)
 from fluxdrive.core.transforms import clarke, inv_clarke, line_to_phase, wrap_angle
 from fluxdrive.drive.plant import (
     FLAG_STALE,
@@ -561,7 +566,7 @@ class ObserverConfig:
             "f_e": card.rated_electrical_hz,
             "w_e": 2.0 * math.pi * card.rated_electrical_hz,
         }
-        kw = {}
+        kw: dict[str, Any] = {}
         for k, (b, factor, cap) in rules.items():
             if getattr(self, k) is None:
                 v = factor * basis[b]
@@ -576,18 +581,18 @@ class ObserverConfig:
         op[OP_R] = card.resistance_ohm if self.r_hat_ohm is None else self.r_hat_ohm
         op[OP_L] = card.inductance_h if self.l_hat_h is None else self.l_hat_h
         op[OP_LAM] = card.flux_linkage_vs if self.lambda_hat_vs is None else self.lambda_hat_vs
-        op[OP_WC] = 2.0 * math.pi * self.cutoff_hz
-        kp, ki = pll_gains(self.pll_bandwidth_hz, self.pll_damping)
+        op[OP_WC] = 2.0 * math.pi * required(self.cutoff_hz, "cutoff_hz")
+        kp, ki = pll_gains(required(self.pll_bandwidth_hz, "pll_bandwidth_hz"), self.pll_damping)
         op[OP_PLL_KP] = kp
         op[OP_PLL_KI] = ki
-        op[OP_SPEED_LPF] = 2.0 * math.pi * self.speed_lpf_hz
+        op[OP_SPEED_LPF] = 2.0 * math.pi * required(self.speed_lpf_hz, "speed_lpf_hz")
         op[OP_WFLOOR] = self.omega_floor_rad_s
         op[OP_GAMMA] = self.gamma_bw_rad_s / op[OP_LAM] ** 2
         op[OP_VSRC] = VOLTAGE_SOURCES[self.voltage_source]
         op[OP_TD] = self.deadtime_comp_s
         op[OP_K] = self.plpf_k
-        op[OP_WC_MIN] = 2.0 * math.pi * self.cutoff_min_hz
-        op[OP_COMP_LPF] = 2.0 * math.pi * self.comp_freq_lpf_hz
+        op[OP_WC_MIN] = 2.0 * math.pi * required(self.cutoff_min_hz, "cutoff_min_hz")
+        op[OP_COMP_LPF] = 2.0 * math.pi * required(self.comp_freq_lpf_hz, "comp_freq_lpf_hz")
         op[OP_PD] = PHASE_DETECTORS[self.phase_detector]
         op[OP_LTERM] = INDUCTANCE_TERMS[self.inductance_term]
         return op

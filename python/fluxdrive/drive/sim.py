@@ -22,6 +22,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 from numba import njit
@@ -510,7 +511,9 @@ class LoopRun:
         )
 
 
-def run_scenario(sc: Scenario, progress: bool = True, chunk_s: float = 0.25) -> SimResult:
+def run_scenario(
+    sc: Scenario, progress: bool | Literal["always"] = True, chunk_s: float = 0.25
+) -> SimResult:
     """Run a scenario headless in-process.  Shows progress on stderr for long runs."""
     run = LoopRun(DriveSetup(sc))
     n, ts = run.n, run.ds.ts

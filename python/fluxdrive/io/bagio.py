@@ -695,7 +695,8 @@ def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
             (st, [c for _, c in messages.STATE_MAP]),
         ):
             if part is not None:
-                ctrl[np.ix_(part[1], cols)] = part[0][np.ix_(part[1], cols)]
+                idx = np.ix_(part[1], np.asarray(cols))
+                ctrl[idx] = part[0][idx]
                 have |= part[1]
         ctrl[have] = np.nan_to_num(ctrl[have])
         if st is None:

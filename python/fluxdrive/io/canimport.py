@@ -90,7 +90,7 @@ def import_capture(
         for j in range(f.shape[0]):
             t_ns = stamp.ns(int(f[j, FR_SEQ]))
             w.write(cid, t_ns, fw.pack(f[j], *divmod(t_ns, 1_000_000_000)))
-    out_counts = dict(cap.counts)
+    out_counts: dict[str, Any] = dict(cap.counts)
     out_counts.update(
         written=int(f.shape[0]),
         layout=cap.layout,

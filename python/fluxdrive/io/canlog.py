@@ -29,6 +29,7 @@ import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import can
 import numpy as np
@@ -262,7 +263,7 @@ def _infer_step(wire_seq: np.ndarray, default: int) -> int:
     (a sample every D PWM periods carries seq k = j D)."""
     if len(wire_seq) < 3:
         return default
-    d = np.diff(wire_seq.astype(np.int64)) % (1 << SEQ_BITS)
+    d = np.mod(np.diff(wire_seq.astype(np.int64)), 1 << SEQ_BITS)
     d = d[(d > 0) & (d < 256)]
     if not len(d):
         return default
@@ -305,8 +306,8 @@ def _messages(p: Path, bad_lines: list[tuple[int, str]]) -> Iterable[can.Message
     suffix = p.suffix.lower()
     if suffix == ".blf":
         try:
-            with can.LogReader(str(p)) as reader:
-                yield from reader
+            with can.LogReader(str(p)) as blf:
+                yield from blf
         except Exception as exc:  # noqa: BLE001 - BLFParseError, struct/zlib errors, ...
             raise CaptureError(
                 f"{p}: not a readable BLF capture ({type(exc).__name__}: "
@@ -319,7 +320,8 @@ def _messages(p: Path, bad_lines: list[tuple[int, str]]) -> Iterable[can.Message
         raise CaptureError(f"{p}: cannot read ({exc.strerror or exc})") from None
     src = _Lines(text.splitlines(keepends=True))
     kw = {"relative_timestamp": False} if suffix == ".asc" else {}  # .asc: absolute times
-    reader = can.LogReader(str(p), **kw)
+    # the format readers are file-based: .file is theirs, not the MessageReader interface's
+    reader: Any = can.LogReader(str(p), **kw)
     reader.file.close()
     reader.file = src
     while True:

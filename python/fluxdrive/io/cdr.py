@@ -29,6 +29,7 @@ import struct
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
+from typing import Any
 
 from fluxdrive.io.topics import MSG_SRC_DIR
 
@@ -86,7 +87,8 @@ def _shape(text: str) -> list[tuple[str, str]]:
     for line in text.splitlines():
         line = line.split("#", 1)[0].strip()
         if line and "=" not in line:
-            rows.append(tuple(line.split()[:2]))
+            typ, name = line.split()[:2]
+            rows.append((typ, name))
     return rows
 
 
@@ -187,7 +189,7 @@ class Codec:
         self.strings = {p: strings.get(p, "") for p in str_paths}
         fmt = ["<"]
         off = 0
-        self._consts: list[tuple[int, bytes]] = []  # (struct arg index, value) of strings
+        self._consts: list[tuple[int, int | bytes]] = []  # (struct arg index, value) of strings
         self.fields: list[str] = []
         self.offsets: list[int] = []  # byte offset of each numeric field in the message
         self.codes: list[str] = []  # its struct code
@@ -225,7 +227,7 @@ class Codec:
         args = []
         it = 0
         consts = dict(self._consts)
-        env = {"_S": self.struct.pack, "_H": ENCAPSULATION}
+        env: dict[str, Any] = {"_S": self.struct.pack, "_H": ENCAPSULATION}
         for i in range(self._n_args):
             if i in consts:
                 env[f"_c{i}"] = consts[i]

@@ -19,7 +19,7 @@ Variant SPEC:
 
 Sweeps: --sweep KEY=START:STOP:N (linspace) or KEY=V1,V2,... over one variant, in parallel
         (the project's dask runner: -j N local workers, or --scheduler tcp://HOST:PORT).
-Live:   --live [--rate R] [--loop] [--start S] publishes the frames on /drive/frame (ROS).
+Live:   `--live [--rate R] [--loop] [--start S]` publishes the frames on /drive/frame (ROS).
 See docs/replay.md.
 """
 
@@ -437,7 +437,10 @@ def plot_replay(res: ReplayResult, out_dir: Path, orders: int = 12) -> dict[str,
         e = wrap(res.est[i, sl, ES_TH] - th[sl])[wp]
         spec = harmonic_spectrum(e, unw[wp], range(1, orders + 1))
         ax.bar(
-            ords + (i - (nv - 1) / 2) * width, [np.degrees(spec[o]) for o in ords], width, label=nm
+            ords + (i - (nv - 1) / 2) * width,
+            [np.degrees(spec[o]) for o in range(1, orders + 1)],
+            width,
+            label=nm,
         )
     ax.set_xticks(ords)
     ax.set_xlabel("order of θ̃ against the electrical angle")
@@ -509,6 +512,8 @@ def markdown_section(
     res: ReplayResult, m: dict[str, Any], plots: dict[str, Path], out_dir: Path
 ) -> str:
     bag = res.bag
+    if bag is None:
+        raise ValueError("a report section needs the replayed bag (ReplayResult.bag)")
     w0, w1 = res.scenario.steady_window_s
     lines = [
         f"## {bag.path.name}",
@@ -590,7 +595,7 @@ def run_sweep(
     from fluxdrive.study import tasks as study_tasks
     from fluxdrive.study.runner import runner_from_args
 
-    scen = {
+    scen: dict[str, Any] = {
         "bag": str(Path(bag.path).resolve()),
         "window_s": list(window) if window else None,
         "encoder_offset_deg": encoder_offset_deg,

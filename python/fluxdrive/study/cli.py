@@ -293,7 +293,7 @@ def bench_study(argv: list[str]) -> dict[str, Any]:
     }
     warm_kernels()
     load_before = os.getloadavg()
-    res: dict[str, Any] = {}
+    res: dict[int, dict[str, float]] = {}
     with tempfile.TemporaryDirectory(prefix="fluxdrive-bench-study-") as d:
         sp = Path(d) / "bench.yaml"
         import yaml
@@ -303,6 +303,7 @@ def bench_study(argv: list[str]) -> dict[str, Any]:
         tasks = spec.tasks()
         for n in (1, 2):
             with Runner("local", workers=n) as r:
+                assert r.client is not None  # "local": a LocalCluster's client
                 # warm every worker (imports, kernel cache) before timing
                 r.client.run(warm_kernels)
                 t0 = time.perf_counter()

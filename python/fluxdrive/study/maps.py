@@ -71,7 +71,7 @@ def lowest_speed(c: dict[str, Any], spec: StudySpec) -> dict[str, dict[str, Any]
     """Per variant at the rated load: the lowest speed from which every tested speed upwards
     has P^(stable) >= the spec's probability ('point'), and the same with the Wilson lower
     bound >= it ('confident': needs enough draws -- n >= 59 even with no loss)."""
-    res = {}
+    res: dict[str, Any] = {}
     if c["x_axis"] != "speed_rpm" or c["y_axis"] != "load_pu":
         return res
     ys = c["y"]

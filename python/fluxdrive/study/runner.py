@@ -179,12 +179,13 @@ class Runner:
         items = list(items)
         if self.client is None:
             for key, payload in items:
-                out = None
+                out: Outcome | None = None
                 for attempt in range(1, self.retries + 2):
                     ok, val, err, who = _call(fn, payload)
                     out = Outcome(key, payload, ok, val, err, attempt, who)
                     if ok:
                         break
+                assert out is not None  # the loop runs at least once
                 if progress is not None:
                     progress.update(out.ok)
                 yield out

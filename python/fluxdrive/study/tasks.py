@@ -176,7 +176,7 @@ def perturb(sc: Scenario, vname: str, values: dict[str, Any]) -> Scenario:
         sc.current_gain = tuple(1.0 + float(x) for x in values["current_gain_err"])
     if "deadtime_s" in values:
         sc.plant_deadtime_s = float(values["deadtime_s"])
-    new: dict[str, float] = {}
+    new: dict[str, Any] = {}
     if "current_noise_a" in values:
         new["current_noise_a"] = float(values["current_noise_a"])
     if "temperature_c" in values:

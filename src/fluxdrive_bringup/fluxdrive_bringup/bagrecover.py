@@ -96,9 +96,10 @@ def recover(bag: Path, out: Path | None = None) -> Recovery:
 
     store = typestore()
     schemas: dict[int, Schema] = {}
-    conns: dict[int, object] = {}
+    conns: dict[int, int] = {}
     topic_of: dict[int, str] = {}
-    first_seq = last_seq = None
+    first_seq: int | None = None
+    last_seq = 0  # set with first_seq
     gaps = 0
     try:
         settings = json.loads(custom[META_KEY]) if META_KEY in custom else {}

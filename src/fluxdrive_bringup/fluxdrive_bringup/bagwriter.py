@@ -108,9 +108,9 @@ def main() -> int:
 
     inp = sys.stdin.buffer
     read = inp.read
-    writer = None
+    writer: BagWriter | None = None
     side: Path | None = None
-    conns: dict[int, object] = {}
+    conns: dict[int, int] = {}
     n_msgs = 0
     failed = ""
 
@@ -131,12 +131,16 @@ def main() -> int:
                 data = read(n)
                 if len(data) < n:
                     break
+                if writer is None:
+                    raise RuntimeError("bag writer: a message before the bag's header")
                 writer.write(conns[cid], t, data)
                 n_msgs += 1
             elif kind == b"F":
                 flush_chunk(writer)
             elif kind == b"C":
                 c = read_json()
+                if writer is None:
+                    raise RuntimeError("bag writer: a connection before the bag's header")
                 conns[c["id"]] = writer.add_connection(c["topic"], c["type"])
             elif kind == b"H":
                 h = read_json()

@@ -343,7 +343,7 @@ class ScopeWatcher:
                     continue
                 except ConnectionClosed:  # the scope ends with the run
                     return
-                if m.startswith('{"hello"'):
+                if isinstance(m, str) and m.startswith('{"hello"'):
                     continue
                 self.n += 1
                 self.bytes += len(m)

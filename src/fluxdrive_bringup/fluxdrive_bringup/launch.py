@@ -102,9 +102,9 @@ class NodeSpec:
 
     @property
     def is_recorder(self) -> bool:
-        return (
-            bool(self.node) and NODE_CLASSES.get(self.node, self.node) == NODE_CLASSES["recorder"]
-        )
+        if not self.node:
+            return False
+        return NODE_CLASSES.get(self.node, self.node) == NODE_CLASSES["recorder"]
 
     @property
     def fqn(self) -> str:
@@ -415,6 +415,13 @@ class Proc:
         self.bag_open: str | None = None  # bag directory its recorder opened
 
     @property
+    def process(self) -> subprocess.Popen:
+        """The running (or ended) process; only asked for once it has been spawned."""
+        if self.popen is None:
+            raise RuntimeError(f"process {self.name} was never started")
+        return self.popen
+
+    @property
     def has_recorder(self) -> bool:
         return any(n.is_recorder for n in self.nodes)
 
@@ -529,7 +536,7 @@ class Launcher:
             self._spawn(p, env)
             self.procs.append(p)
             if not self.quiet:
-                self._emit(f"[launch] process {p.label} started (pid {p.popen.pid})")
+                self._emit(f"[launch] process {p.label} started (pid {p.process.pid})")
 
     def _restart_transport(self, env: dict[str, str]) -> bool:
         """Graphs with on_death: restart run Fast DDS without its shared-memory transport
@@ -602,8 +609,8 @@ class Launcher:
 
     def _on_progress(self, line: str) -> None:
         try:
-            k, n, wall = line.split()[1:4]
-            self.progress = (int(k), int(n), float(wall))
+            k_text, n_text, wall_text = line.split()[1:4]
+            self.progress = (int(k_text), int(n_text), float(wall_text))
         except ValueError:
             return
         if not self.show_progress:
@@ -646,15 +653,15 @@ class Launcher:
         for group in (first, last):
             self._stop_group(group, timeout)
         for p in self.procs:
-            p.popen.wait()
+            p.process.wait()
 
     def _stop_group(self, group: list[Proc], timeout: float) -> None:
         self.signal_all(signal.SIGINT, group)
         for sig, wait in ((signal.SIGTERM, timeout), (signal.SIGKILL, 5.0)):
             t_end = time.monotonic() + wait
-            while time.monotonic() < t_end and any(p.popen.poll() is None for p in group):
+            while time.monotonic() < t_end and any(p.process.poll() is None for p in group):
                 time.sleep(0.05)
-            alive = [p for p in group if p.popen.poll() is None]
+            alive = [p for p in group if p.process.poll() is None]
             if not alive:
                 break
             self._emit(
@@ -672,7 +679,7 @@ class Launcher:
                 what = f"signal {-code}"
         else:
             what = f"exit code {code}"
-        return f"{what}, pid {p.popen.pid}"
+        return f"{what}, pid {p.process.pid}"
 
     def _on_death(self, p: Proc, code: int, now: float) -> bool:
         """A process died while the graph runs: apply its on_death.  True = stop the graph."""
@@ -727,10 +734,10 @@ class Launcher:
                             self._spawn(p)
                         self._emit(
                             f"[launch] process {p.label} restarted (pid "
-                            f"{p.popen.pid}, restart {p.restarts} of {p.max_restarts})"
+                            f"{p.process.pid}, restart {p.restarts} of {p.max_restarts})"
                         )
                     continue
-                code = p.popen.poll()
+                code = p.process.poll()
                 if code is None:
                     continue
                 p.code = code
@@ -959,10 +966,12 @@ def main(argv: list[str]) -> int:
             print(f"[launch] {why}", file=sys.stderr)
             return 2
         g.domain_id = dom
-    dom = g.domain_id if g.domain_id is not None else os.environ.get("ROS_DOMAIN_ID", "0")
+    dom_shown = g.domain_id if g.domain_id is not None else os.environ.get("ROS_DOMAIN_ID", "0")
     procs = ", ".join(f"{pn}[{', '.join(m.fqn for m in ms)}]" for pn, ms in g.processes().items())
     disc = launcher_env_discovery(g)
-    print(f"[launch] graph {g.name}: {procs}; ROS_DOMAIN_ID={dom}, discovery {disc}", flush=True)
+    print(
+        f"[launch] graph {g.name}: {procs}; ROS_DOMAIN_ID={dom_shown}, discovery {disc}", flush=True
+    )
     launcher = Launcher(g, log_dir=args.log_dir)
     code = launcher.run(args.timeout)
     for b in launcher.bags:

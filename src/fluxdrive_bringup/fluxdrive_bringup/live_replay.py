@@ -147,7 +147,9 @@ def live_replay(
         rclpy.try_shutdown()
 
 
-def _publish_flow_controlled(pub, data: bytes, rcl_error: type, give_up_s: float = 30.0):
+def _publish_flow_controlled(
+    pub, data: bytes, rcl_error: type[BaseException], give_up_s: float = 30.0
+):
     """Publish, waiting while a KEEP_ALL reader is behind: the middleware blocks a full
     writer history for its max_blocking_time and then refuses the sample, so retry until
     the readers have caught up (a reader that stops acknowledging for `give_up_s` ends the

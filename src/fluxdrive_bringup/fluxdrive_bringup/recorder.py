@@ -257,7 +257,10 @@ class RecorderNode(FluxNode):
             stdout=subprocess.PIPE,
             bufsize=0,
         )
+        if self.proc.stdin is None or self.proc.stdout is None:  # both were asked for: PIPE
+            raise RuntimeError("bag writer process started without its pipes")
         self.pipe = self.proc.stdin
+        self.pipe_out = self.proc.stdout
         # bag times on a real epoch: sample time + the wall clock at the start (header
         # stamps stay sim time; the offset is recorded in the bag's settings)
         offset = 0 if self.pv["timestamps"] == "receive" else time.time_ns()
@@ -266,7 +269,7 @@ class RecorderNode(FluxNode):
                 b"H", {"path": str(self.bag_dir), "custom_data": custom, "epoch_offset_ns": offset}
             )
         )
-        line = self.proc.stdout.readline().decode().strip()
+        line = self.pipe_out.readline().decode().strip()
         if line != "ready":
             self.proc.wait(timeout=10)
             why = (
@@ -408,7 +411,7 @@ class RecorderNode(FluxNode):
         recorder's on_death policy; the rest of the graph is stopped cleanly by default)."""
         self.closed = True
         try:
-            out = self.proc.stdout.read().decode()
+            out = self.pipe_out.read().decode()
             self.proc.wait(timeout=30)
         except (OSError, subprocess.TimeoutExpired):
             out = ""
@@ -458,7 +461,7 @@ class RecorderNode(FluxNode):
             except OSError:
                 pass
         try:
-            out = self.proc.stdout.read().decode().strip()
+            out = self.pipe_out.read().decode().strip()
             self.proc.wait(timeout=120)
         except subprocess.TimeoutExpired:
             self.proc.kill()

@@ -73,7 +73,7 @@ class RosSide:
         self.ts_s = 1e-4
         self.n_envelopes = 0
         self.done = threading.Event()
-        self.local_tap = None
+        self.local_tap: Any = None  # a ScopeTapNode when the graph has no tap of its own
         self.quiet = quiet
 
         from .scope_tap import page_json

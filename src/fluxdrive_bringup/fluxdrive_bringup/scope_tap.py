@@ -39,6 +39,7 @@ import re
 import struct
 import time
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from fluxdrive_ros.cdr import Decoder
@@ -66,7 +67,7 @@ def decode_batch(dec: Decoder, msgs: list[bytes], paths: list[str]) -> np.ndarra
     buf = b"".join(msgs)
     n0 = len(msgs[0])
     if len(buf) == n0 * len(msgs) and len(msgs[-1]) == n0:
-        groups = [(slice(None), msgs[0], buf)]
+        groups: list[tuple[Any, bytes, bytes]] = [(slice(None), msgs[0], buf)]
     else:
         by_len: dict[int, list[int]] = {}
         for i, m in enumerate(msgs):

@@ -193,6 +193,10 @@ def _calibrate(sp: Path, tmp: Path, calib_s: float) -> float:
         raise RuntimeError(f"calibration run failed (exit {code}); logs in {tmp / 'calib-logs'}")
     late = [t for t in ticks if t[0] >= 0.5 * sc.n_periods] or ticks[-2:]
     if len(late) < 2 or late[-1][1] <= late[0][1]:
+        if launcher.progress is None:
+            raise RuntimeError(
+                f"calibration run reported no progress; logs in {tmp / 'calib-logs'}"
+            )
         k, _, wall = launcher.progress
         return k * sc.machine.ts_s / wall
     return (late[-1][0] - late[0][0]) * sc.machine.ts_s / (late[-1][1] - late[0][1])

@@ -136,7 +136,7 @@ class RawPublisher:
 
     def publish(self, data: bytes) -> None:
         local = False
-        if self._post is not None:
+        if self._post is not None and self.bus is not None:
             local = bool(self.bus.callbacks.get(self.topic))
             if local:
                 self._post(self.topic, data)

@@ -62,12 +62,13 @@ class P:
         d = ParameterDescriptor(description=text, read_only=self.read_only)
         if self.choices:
             d.additional_constraints = "one of: " + ", ".join(self.choices)
-        if self.lo is not None and isinstance(self.default, float):
+        if self.lo is not None and self.hi is not None and isinstance(self.default, float):
             d.floating_point_range = [
                 FloatingPointRange(from_value=float(self.lo), to_value=float(self.hi), step=0.0)
             ]
         elif (
             self.lo is not None
+            and self.hi is not None
             and isinstance(self.default, int)
             and not isinstance(self.default, bool)
         ):
@@ -78,7 +79,12 @@ class P:
         """Reason why `value` is not acceptable, or None."""
         if self.choices and value not in self.choices:
             return f"{self.name} must be one of {list(self.choices)}, got {value!r}"
-        if self.lo is not None and isinstance(value, (int, float)) and not isinstance(value, bool):
+        if (
+            self.lo is not None
+            and self.hi is not None
+            and isinstance(value, (int, float))
+            and not isinstance(value, bool)
+        ):
             if math.isnan(value) or not (self.lo <= value <= self.hi):
                 return f"{self.name} = {value} is out of range [{self.lo}, {self.hi}]" + (
                     f" {self.unit}" if self.unit else ""

@@ -30,6 +30,7 @@ import os
 import sys
 import time
 import traceback
+from collections.abc import Callable
 from typing import Any
 
 import rclpy
@@ -52,7 +53,7 @@ class FluxNode(Node):
 
     def __init__(self, name: str, namespace: str | None = None, **kw: Any):
         self._finished = False
-        self._finish_hook = None
+        self._finish_hook: Callable[[], None] | None = None
         super().__init__(name, namespace=namespace or "", **kw)
         self.exit_code = 0
         # graph identity (fluxdrive_ros.graph): stamped on what it publishes, checked on

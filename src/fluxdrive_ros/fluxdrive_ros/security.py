@@ -128,8 +128,8 @@ def make_keystore(root: Path, enclaves: list[str], days: int = 3650) -> list[Pat
     if shutil.which("openssl") is None:
         raise RuntimeError("the openssl command is needed to make a keystore")
     root = Path(root)
-    for d in ("public", "private", "enclaves"):
-        (root / d).mkdir(parents=True, exist_ok=True)
+    for sub in ("public", "private", "enclaves"):
+        (root / sub).mkdir(parents=True, exist_ok=True)
     ca_key, ca_cert = root / "private" / "ca.key.pem", root / "public" / "ca.cert.pem"
     if not ca_key.exists():
         _openssl(

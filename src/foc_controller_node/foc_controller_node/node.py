@@ -144,7 +144,7 @@ NODE_LEVEL = {
     "resync_window_s",
 }
 # None-able fields: ROS parameters cannot be None; 0.0 stands for None
-NONE_AS_ZERO = {"speed_observer_pll_hz"}
+NONE_AS_ZERO = frozenset({"speed_observer_pll_hz"})
 
 
 def config_params(cfg: ControllerConfig, card) -> list[P]:

@@ -50,6 +50,7 @@ from __future__ import annotations
 import math
 import sys
 import time
+from typing import Any
 
 import numpy as np
 from fluxdrive.core.scenario import load_scenario, scenario_path
@@ -252,7 +253,7 @@ class PlantNode(FluxNode):
         self.done = False
         self.t_wall0 = 0.0
         self.t_last_progress = 0.0
-        self.t_matched = None
+        self.t_matched: float | None = None
         self.clock_dec = int(pv["clock_decimation"])
         # paced mode state
         self.duties: dict[int, tuple] = {}  # seq -> (da, db, dc, enable), recent ones
@@ -283,7 +284,7 @@ class PlantNode(FluxNode):
             f"periods of {ds.ts * 1e6:.0f} us, seed {sc.seed}, {pv['mode']}"
         )
         self._start_timer = self.create_timer(0.05, self._try_start)
-        self._pace_timer = None
+        self._pace_timer: Any = None  # an rclpy Timer once paced
 
     # ----------------------------------------------------------------- parameters
     def _set_load(self, pv) -> None:
@@ -445,9 +446,10 @@ class PlantNode(FluxNode):
             if seq >= self.n - 1:
                 self._finish()
                 return
-            v = self.pending.pop(self.next_duty, None)
-            if v is None:
+            queued = self.pending.pop(self.next_duty, None)
+            if queued is None:
                 return
+            v = queued
             seq = v[2]
 
     def _lockstep_watchdog(self) -> None:
