@@ -287,7 +287,6 @@ def test_sample_bag_replay_reproduces_live_estimates(sample):
 def test_benchmark_replay(capsys):
     out = bench_replay(["--samples", "300000", "--variant", "paper", "--variant", "emf"])
     assert set(out["samples_per_s"]) == {"paper", "emf"}
-    assert out["samples_per_s"]["paper"] > 1e5  # sanity only: the figure is a benchmark
     assert "[bench]" in capsys.readouterr().err
 
 
