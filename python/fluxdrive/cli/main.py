@@ -75,7 +75,16 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
         "main",
         "sweeps and Monte-Carlo robustness maps on dask (local cores or a cluster)",
     ),
-    "test": ("fluxdrive.cli.main", "main_test", "run the test suite"),
+    "docs": (
+        "fluxdrive.cli.docs",
+        "main",
+        "docs build | serve | quotes: the docs site (mkdocs) and the figures it quotes",
+    ),
+    "test": (
+        "fluxdrive.cli.main",
+        "main_test",
+        "run the test suite (with ruff, mypy and the docs build)",
+    ),
     "lint": ("fluxdrive.cli.main", "main_lint", "ruff over the project"),
 }
 

@@ -1,0 +1,71 @@
+"""`./fluxdrive docs build|serve|quotes`: the docs site and the figures it quotes.
+
+./fluxdrive docs build [--out DIR]   mkdocs build --strict (links and anchors checked) into
+                                     DIR (default .ws/site)
+./fluxdrive docs serve               mkdocs serve on 127.0.0.1:8000 (live reload)
+./fluxdrive docs quotes [--check]    fill the quoted figures of README.md and docs/*.md from
+                                     results/ (--check: only say which files are stale)
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+
+from fluxdrive.analysis.quotes import QuoteError, count, fill, quoted_files, stale
+from fluxdrive.core.paths import ROOT
+
+
+def build(out: str, quiet: bool = False) -> int:
+    cmd = [sys.executable, "-m", "mkdocs", "build", "--strict", "-f", str(ROOT / "mkdocs.yml")]
+    return subprocess.call([*cmd, "-d", out, *(["-q"] if quiet else [])], cwd=ROOT)
+
+
+def quotes(check: bool) -> int:
+    files = quoted_files()
+    try:
+        if check:
+            bad = stale(files)
+            for p in bad:
+                print(
+                    f"{p.relative_to(ROOT)}: quoted figures differ from results/ "
+                    "(run ./fluxdrive docs quotes)",
+                    file=sys.stderr,
+                )
+            print(f"{count(files)} quoted figures in {len(files)} files; {len(bad)} stale")
+            return 1 if bad else 0
+        changed = 0
+        for p in files:
+            text = p.read_text()
+            new = fill(text, str(p.relative_to(ROOT)))
+            if new != text:
+                p.write_text(new)
+                changed += 1
+                print(f"updated {p.relative_to(ROOT)}")
+        print(f"{count(files)} quoted figures in {len(files)} files; {changed} files updated")
+        return 0
+    except QuoteError as exc:
+        print(f"docs quotes: {exc}", file=sys.stderr)
+        return 1
+
+
+def main(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(
+        prog="fluxdrive docs",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    b = sub.add_parser("build", help="build the site (strict: links and anchors checked)")
+    b.add_argument("--out", default=str(ROOT / ".ws" / "site"))
+    sub.add_parser("serve", help="serve the site on 127.0.0.1:8000 while editing")
+    q = sub.add_parser("quotes", help="fill quoted figures from results/")
+    q.add_argument("--check", action="store_true", help="only report stale files (exit 1)")
+    args = ap.parse_args(argv)
+    if args.cmd == "build":
+        return build(args.out)
+    if args.cmd == "serve":
+        cmd = [sys.executable, "-m", "mkdocs", "serve", "-a", "127.0.0.1:8000"]
+        return subprocess.call(cmd, cwd=ROOT)
+    return quotes(args.check)
