@@ -368,6 +368,8 @@ def run_with_changes(
     the node did when the change came (fluxdrive_ros.params)."""
     if not changes:
         return np.asarray(obs.run(frames), dtype=np.float64)
+    if not isinstance(obs, KernelObserver):  # only the built-in kernels take live changes
+        raise ConfigError(f"{obs.name}: the bag's parameter changes need a built-in variant")
     out = np.zeros((len(frames), ES_N))
     start = 0
     for row, ch in changes:

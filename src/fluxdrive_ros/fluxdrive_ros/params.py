@@ -199,7 +199,7 @@ def on_set(
             return SetParametersResult(successful=False, reason=str(exc))
         if note:
             node.get_logger().info(f"parameters {changes}: {note}")
-        if marker is not None:
+        if marker is not None and sample is not None:
             marker.publish(sample(), changes, note or "")
         return SetParametersResult(successful=True, reason=note or "")
 
