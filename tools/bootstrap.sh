@@ -12,7 +12,10 @@
 #      definitions and resource markers is unchanged;
 #   5. Debian's chromium package (the scope page's browser test drives it with playwright;
 #      no browser build is ever downloaded) when missing: apt-get update + install as root;
-#      not root / no apt-get / FLUXDRIVE_NO_BROWSER=1: a note, and the browser test skips.
+#      not root / no apt-get / FLUXDRIVE_NO_BROWSER=1: a note, and the browser test skips;
+#   6. the firmware's target toolchain (Debian's gcc-arm-none-eabi + libnewlib-arm-none-eabi
+#      for the Cortex-M4F build, qemu-system-arm for its instruction count) when missing,
+#      the same way (FLUXDRIVE_NO_ARM=1: a note, and those tests skip).
 #
 # Needs only python3.11 (with headers), cmake and g++ on the machine; pip reaches the
 # package index. Progress on stderr, prefixed "[bootstrap]". Exits non-zero on any failure.
@@ -87,9 +90,18 @@ colcon_current() {
 BROWSER_NOTE="$WS/.fluxdrive-no-browser"
 browser_done() { command -v chromium >/dev/null 2>&1 || [ -f "$BROWSER_NOTE" ]; }
 
+# The firmware's Cortex-M4F cross toolchain and emulator, or a note that they cannot be had.
+ARM_NOTE="$WS/.fluxdrive-no-arm"
+ARM_PKGS="gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm"
+arm_present() {
+  command -v arm-none-eabi-gcc >/dev/null 2>&1 && command -v qemu-system-arm >/dev/null 2>&1 &&
+    [ -d /usr/lib/arm-none-eabi/newlib ]
+}
+arm_done() { arm_present || [ -f "$ARM_NOTE" ]; }
+
 # ------------------------------------------------------------------------- fast path
 if [ "${FLUXDRIVE_BOOTSTRAP_FORCE:-0}" != 1 ] && ! moved && pip_current && colcon_current &&
-  browser_done; then
+  browser_done && arm_done; then
   exit 0
 fi
 
@@ -238,5 +250,28 @@ if ! command -v chromium >/dev/null 2>&1 && [ ! -f "$BROWSER_NOTE" ]; then
   else
     echo "not root or no apt-get" >"$BROWSER_NOTE"
     log "chromium missing and cannot be installed here (not root / no apt-get): install Debian's chromium package for the scope's browser test; it skips meanwhile"
+  fi
+fi
+
+# ---------------------------------------------------------------- firmware toolchain
+if ! arm_present && [ ! -f "$ARM_NOTE" ]; then
+  if [ "${FLUXDRIVE_NO_ARM:-0}" = 1 ]; then
+    echo "FLUXDRIVE_NO_ARM=1" >"$ARM_NOTE"
+    log "ARM toolchain not installed (FLUXDRIVE_NO_ARM=1): the firmware's target tests skip"
+  elif [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+    ALOG="$WS/apt-arm.log"
+    log "installing Debian's $ARM_PKGS for the firmware target build (log: .ws/apt-arm.log)..."
+    # shellcheck disable=SC2086
+    if ! { apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q \
+      --no-install-recommends $ARM_PKGS; } >"$ALOG" 2>&1; then
+      tail -n 5 "$ALOG" >&2 || true
+      echo "apt-get failed" >"$ARM_NOTE"
+      log "WARNING: apt-get install of the ARM toolchain failed (log: .ws/apt-arm.log); the firmware's target tests skip until it is installed (remove $ARM_NOTE to retry)"
+    else
+      log "ARM toolchain installed: $(command -v arm-none-eabi-gcc), $(command -v qemu-system-arm)"
+    fi
+  else
+    echo "not root or no apt-get" >"$ARM_NOTE"
+    log "ARM toolchain missing and cannot be installed here (not root / no apt-get): install Debian's $ARM_PKGS; the firmware's target tests skip meanwhile"
   fi
 fi

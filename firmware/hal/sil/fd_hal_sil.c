@@ -1,0 +1,114 @@
+/* Software-in-the-loop implementation of fd_hal.h: raw readings and PWM in memory, CAN as
+ * two bounded queues (see fd_sil.h). */
+#include <string.h>
+
+#include "fd_sil.h"
+
+size_t fd_sil_sizeof(void) { return sizeof(fd_sil_t); }
+size_t fd_core_sizeof(void) { return sizeof(fd_core_t); }
+
+void fd_sil_init(fd_sil_t *s) { memset(s, 0, sizeof(*s)); }
+
+void fd_sil_set_inputs(fd_sil_t *s, const int32_t current_counts[3], int32_t vdc_counts,
+                       const int32_t high_ticks[3], int32_t period_ticks, int32_t encoder_counts,
+                       int32_t temp_c, uint32_t time_us)
+{
+    for (int j = 0; j < 3; ++j) {
+        s->adc.current_counts[j] = current_counts[j];
+        s->cap.high_ticks[j] = high_ticks[j];
+    }
+    s->adc.vdc_counts = vdc_counts;
+    s->adc.temp_c = temp_c;
+    s->cap.period_ticks = period_ticks;
+    s->cap.encoder_counts = encoder_counts;
+    s->time_us = time_us;
+}
+
+void fd_sil_set_time(fd_sil_t *s, uint32_t time_us) { s->time_us = time_us; }
+
+void fd_sil_get_pwm(const fd_sil_t *s, uint32_t compare[3], int32_t *enable)
+{
+    for (int j = 0; j < 3; ++j) {
+        compare[j] = s->pwm_compare[j];
+    }
+    *enable = s->pwm_enable;
+}
+
+int fd_sil_rx_push(fd_sil_t *s, uint32_t id, const uint8_t *data, uint32_t len, uint32_t fd)
+{
+    if (s->rx_head - s->rx_tail >= FD_SIL_QUEUE || len > 64u) {
+        return 0;
+    }
+    fd_can_frame_t *f = &s->rx[s->rx_head % FD_SIL_QUEUE];
+    f->id = id;
+    f->len = (uint8_t)len;
+    f->fd = (uint8_t)(fd != 0u);
+    memset(f->data, 0, sizeof(f->data));
+    memcpy(f->data, data, len);
+    s->rx_head++;
+    return 1;
+}
+
+int fd_sil_tx_pop(fd_sil_t *s, uint32_t *id, uint8_t data[64], uint32_t *len, uint32_t *fd)
+{
+    if (s->tx_head == s->tx_tail) {
+        return 0;
+    }
+    const fd_can_frame_t *f = &s->tx[s->tx_tail % FD_SIL_QUEUE];
+    *id = f->id;
+    *len = f->len;
+    *fd = f->fd;
+    memcpy(data, f->data, f->len);
+    s->tx_tail++;
+    return 1;
+}
+
+uint32_t fd_core_flags(const fd_core_t *c)
+{
+    return (uint32_t)c->armed | ((uint32_t)c->pwm_enabled << 1) |
+           ((uint32_t)c->fault_latched << 2) | ((uint32_t)c->split << 3) |
+           ((uint32_t)c->fault_code << 8) | ((uint32_t)(c->mode & 0xFu) << 16);
+}
+
+const fd_stats_t *fd_core_stats(const fd_core_t *c) { return &c->stats; }
+
+uint32_t fd_core_period_index(const fd_core_t *c) { return c->k; }
+
+/* ---- fd_hal.h */
+
+void fd_hal_adc_read(void *hal, fd_adc_raw_t *out) { *out = ((fd_sil_t *)hal)->adc; }
+
+void fd_hal_capture_read(void *hal, fd_capture_raw_t *out) { *out = ((fd_sil_t *)hal)->cap; }
+
+void fd_hal_pwm_write(void *hal, const uint32_t compare[3], bool enable)
+{
+    fd_sil_t *s = (fd_sil_t *)hal;
+    for (int j = 0; j < 3; ++j) {
+        s->pwm_compare[j] = compare[j];
+    }
+    s->pwm_enable = enable ? 1 : 0;
+}
+
+bool fd_hal_can_tx(void *hal, const fd_can_frame_t *frame)
+{
+    fd_sil_t *s = (fd_sil_t *)hal;
+    if (s->tx_head - s->tx_tail >= FD_SIL_QUEUE) {
+        return false;
+    }
+    s->tx[s->tx_head % FD_SIL_QUEUE] = *frame;
+    s->tx_head++;
+    return true;
+}
+
+bool fd_hal_can_rx(void *hal, fd_can_frame_t *frame)
+{
+    fd_sil_t *s = (fd_sil_t *)hal;
+    if (s->rx_head == s->rx_tail) {
+        return false;
+    }
+    *frame = s->rx[s->rx_tail % FD_SIL_QUEUE];
+    s->rx_tail++;
+    return true;
+}
+
+uint32_t fd_hal_time_us(void *hal) { return ((fd_sil_t *)hal)->time_us; }

@@ -1,0 +1,245 @@
+/* fluxdrive drive firmware core: the drive side of config/can/fluxdrive.dbc.
+ *
+ * C11, no heap, no OS, float32 arithmetic. One fd_core_t per drive, owned by the caller
+ * (static storage on a target). fd_core_period() is the whole per-PWM-period interrupt:
+ *
+ *   sample    raw ADC/capture (HAL) -> SI units (calibration in fd_config_t)
+ *   window    per-period accumulation; every D-th period a sample (SAMPLE_FD or the four
+ *             SAMPLE_C_* frames) with line voltages and duties averaged over the window
+ *   protect   over-current (instantaneous), I2t, DC-bus over/under-voltage (engine codes)
+ *   protocol  STATUS and latched-FAULT repeats at 10 Hz; received ARM_MODE, DUTY_CMD,
+ *             HOST_REF, DRIVE_PARAM (answered by DRIVE_PARAM_ACK), HOST_HEARTBEAT
+ *   command   host mode: the DUTY_CMD answering sample k-D at each sample boundary, duty
+ *             watchdog; split mode: the newest HOST_REF, reference timeout, and the dq
+ *             current loop on the extrapolated angle (fd_current_loop)
+ *   output    PWM compare values + enable (HAL)
+ *
+ * The Python emulator's MCU logic (python/fluxdrive/can/emulator.py) is the reference for
+ * host mode; the engine's _current_loops / _protect (python/fluxdrive/drive/control.py) for
+ * the current loop and the protections. docs/firmware.md describes the whole.
+ */
+#ifndef FD_CORE_H
+#define FD_CORE_H
+
+#include <stdbool.h>
+#include <stdint.h>
+
+#include "fd_hal.h"
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+#define FD_PROTOCOL_VERSION 2u
+#define FD_ARM_KEY 0xA5u
+
+/* fault codes: the engine's FAULT_* (fluxdrive.drive.control) and the DBC's drive-only 16+ */
+enum {
+    FD_FAULT_NONE = 0,
+    FD_FAULT_OVERCURRENT = 1,
+    FD_FAULT_OVERCURRENT_I2T = 2,
+    FD_FAULT_OVERVOLTAGE = 3,
+    FD_FAULT_UNDERVOLTAGE = 4,
+    FD_FAULT_WATCHDOG = 9,
+    FD_FAULT_HOST_HEARTBEAT_LOST = 16,
+    FD_FAULT_BAD_COMMAND = 20
+};
+
+/* STATUS.st_state */
+enum { FD_ST_BOOT = 0, FD_ST_IDLE = 1, FD_ST_ARMED = 2, FD_ST_RUNNING = 3, FD_ST_FAULT = 4 };
+/* ARM_MODE.mode / SAMPLE_FD.mode */
+enum { FD_MODE_IDLE = 0, FD_MODE_RUN = 1 };
+
+/* DRIVE_PARAM prm_id (DBC value table) */
+enum {
+    FD_PRM_CUR_KP = 1,
+    FD_PRM_CUR_KI = 2,
+    FD_PRM_L_HAT = 3,
+    FD_PRM_LAMBDA_HAT = 4,
+    FD_PRM_DECOUPLE = 5,
+    FD_PRM_VOLTAGE_ADVANCE = 6,
+    FD_PRM_DEADTIME_COMP_S = 7,
+    FD_PRM_CUR_LIMIT_A = 8,
+    FD_PRM_REF_TIMEOUT_S = 9,
+    FD_PRM_OVERCURRENT_A = 10,
+    FD_PRM_I2T_LIMIT_PU2S = 11,
+    FD_PRM_RATED_CURRENT_A = 12,
+    FD_PRM_VDC_MIN_V = 13,
+    FD_PRM_VDC_MAX_V = 14,
+    FD_PRM_HEARTBEAT_TIMEOUT_S = 15,
+    FD_PRM_POLE_PAIRS = 16,
+    FD_PRM_COUNT = 17 /* ids 1..16; index 0 unused */
+};
+/* DRIVE_PARAM_ACK pa_status */
+enum {
+    FD_PA_OK = 0,
+    FD_PA_UNKNOWN_PARAM = 1,
+    FD_PA_OUT_OF_RANGE = 2,
+    FD_PA_NOT_WHILE_RUNNING = 3,
+    FD_PA_NOT_FINITE = 4,
+    FD_PA_READ_ONLY = 5
+};
+
+/** Build-time configuration of a board: what a real firmware fixes at compile time. */
+typedef struct {
+    uint32_t period_us;          /* PWM period [us] (10 kHz: 100) */
+    float ts_s;                  /* PWM period [s] */
+    uint8_t decimation;          /* D, periods per sample */
+    uint8_t classic_layout;      /* 0: SAMPLE_FD, 1: SAMPLE_C_CUR/VLT/DUTY/AUX */
+    float current_lsb_a;         /* current ADC step [A/count] */
+    int32_t current_offset_counts[3]; /* ADC result at 0 A per phase */
+    int32_t current_clip_counts; /* |count - offset| at or beyond this: clipped */
+    float vdc_lsb_v;             /* bus ADC step [V/count] */
+    uint32_t pwm_period_ticks;   /* compare value of 100 % duty */
+    uint32_t cmd_timeout_us;     /* default duty watchdog (ARM_MODE.cmd_timeout = 0) */
+    uint32_t status_period;      /* periods between STATUS frames (10 Hz) */
+} fd_config_t;
+
+/** dq current-loop state (the engine's CS_ID_I / CS_IQ_I). */
+typedef struct {
+    float id_i; /* d-axis PI integrator [V] */
+    float iq_i; /* q-axis PI integrator [V] */
+} fd_cur_state_t;
+
+/** dq current-loop parameters (the engine's CP_* of the same names). */
+typedef struct {
+    float kp;         /* CP_KP_I [V/A] */
+    float ki;         /* CP_KI_I [V/(A s)] */
+    float l_hat;      /* CP_L [H] */
+    float lambda_hat; /* CP_LAM [V s] */
+    float decouple;   /* CP_DECOUPLE, 0 or 1 */
+    float advance;    /* CP_ADV [periods] */
+    float tdcomp_s;   /* CP_TDCOMP [s] */
+} fd_cur_params_t;
+
+/** dq current-loop output (the engine's CO_* of the same names). */
+typedef struct {
+    float duty[3];
+    float i_d, i_q; /* measured [A] */
+    float v_d, v_q; /* realised (after the hexagon limit) [V] */
+} fd_cur_out_t;
+
+/** One step of the dq current loop: exactly the engine's _current_loops in float32.
+ *  i_alpha/i_beta: Clarke of the sampled currents [A]; th: angle [rad]; we: electrical
+ *  speed [rad/s]; id_ref/iq_ref [A]; vdc [V]; ts [s]. */
+void fd_current_loop(fd_cur_state_t *st, const fd_cur_params_t *p, float i_alpha, float i_beta,
+                     float th, float we, float id_ref, float iq_ref, float vdc, float ts,
+                     fd_cur_out_t *out);
+
+/** I2t integral update: the engine's _protect formula. Returns the new integral [pu^2 s]. */
+float fd_i2t_step(float i2t, float i_alpha, float i_beta, float rated_a, float ts);
+
+#define FD_CMD_SLOTS 8u
+
+typedef struct {
+    uint16_t seq;
+    uint8_t valid;
+    uint8_t enable;
+    float duty[3];
+} fd_duty_cmd_t;
+
+typedef struct {
+    uint16_t seq;
+    uint8_t valid;
+    uint8_t enable;
+    float id, iq, theta, omega;
+} fd_host_ref_t;
+
+/** Counters (what the emulator's EmulatorStats counts). */
+typedef struct {
+    uint32_t periods;
+    uint32_t samples_sent;
+    uint32_t duty_rx;
+    uint32_t duty_applied;
+    uint32_t duty_late;
+    uint32_t stale_periods;
+    uint32_t ref_rx;
+    uint32_t arm_rx;
+    uint32_t bad_rx;
+    uint32_t tx_overruns;
+    uint32_t layout_mismatch;
+    uint32_t disarm_rx;
+    uint32_t faults;
+    uint32_t param_rx;
+} fd_stats_t;
+
+/** The whole drive state. Fields are public for tests and the SIL binding; firmware code
+ *  outside fd_core.c only reads them. */
+typedef struct {
+    fd_config_t cfg;
+    void *hal;
+    float prm[FD_PRM_COUNT]; /* DRIVE_PARAM values by prm_id */
+    /* period counter and the sample of this period, SI */
+    uint32_t k;
+    uint32_t t_us; /* SAMPLE_FD.t_mcu of sample k [us] */
+    float i_abc[3], v_ll[3], vdc;
+    int32_t encoder;
+    uint8_t clip;
+    /* what the PWM held over the period just ended */
+    float duty_applied[3];
+    uint8_t pwm_applied;
+    /* sample window */
+    float win_v[3], win_duty[3];
+    uint32_t win_n;
+    uint8_t win_pwm, win_flags;
+    /* state machine */
+    uint8_t armed, pwm_enabled, fault_latched, fault_code, fault_count, mode, split;
+    uint8_t reset_prev, stale_prev, status_alive, hb_seen;
+    uint16_t applied_seq;
+    uint32_t last_cmd_k, last_ref_k;
+    uint32_t next_status_k, next_fault_k;
+    uint32_t cmd_timeout_us;
+    uint32_t hb_last_us;
+    float duty[3]; /* host mode: duties for the period now starting */
+    fd_duty_cmd_t cmds[FD_CMD_SLOTS];
+    /* protections */
+    float i2t;
+    /* split mode */
+    fd_host_ref_t ref_new;    /* newest received, not yet taken */
+    fd_host_ref_t ref;        /* in use */
+    fd_cur_state_t cur;
+    fd_cur_out_t cur_out;     /* output of the last current-loop step */
+    float split_duty[3];      /* computed from the last sample, applied this period */
+    uint8_t split_duty_valid;
+    float theta_used;         /* angle of the last current-loop step [rad] */
+    fd_stats_t stats;
+} fd_core_t;
+
+/** Defaults of a 10 kHz board (fd_config_t) and of the DRIVE_PARAMs. */
+void fd_config_default(fd_config_t *cfg);
+/** Initialise (PWM off, disarmed, parameters at their defaults). */
+void fd_core_init(fd_core_t *c, const fd_config_t *cfg, void *hal);
+/** The per-PWM-period interrupt body (see the file comment). */
+void fd_core_period(fd_core_t *c);
+/** DRIVE_PARAM access (what a received DRIVE_PARAM does); returns a FD_PA_* status. */
+int fd_core_param_write(fd_core_t *c, int prm_id, float value);
+int fd_core_param_read(const fd_core_t *c, int prm_id, float *value);
+/** 1 if the host's answer to sample `seq` (a DUTY_CMD in host mode, a HOST_REF in split
+ *  mode) has been received and not yet taken (lockstep drivers wait for it). */
+int fd_core_has_answer(const fd_core_t *c, uint16_t seq);
+/** Handle one received frame (fd_core_period polls the HAL and calls this). */
+void fd_core_handle_frame(fd_core_t *c, const fd_can_frame_t *f);
+
+/* ---- frame encoders (the DBC's scaling through the generated codec; exposed for the
+ * byte-for-byte test against cantools). Each returns the payload length, < 0 on error. */
+int fd_encode_fault(uint8_t out[8], uint8_t code, uint8_t latched, uint8_t active,
+                    uint8_t pwm_disabled, uint16_t detail, uint16_t seq, uint8_t count);
+int fd_encode_status(uint8_t out[8], uint8_t alive, uint8_t state, uint8_t armed,
+                     uint8_t pwm_enabled, uint8_t fault_latched, uint8_t layout,
+                     uint8_t decimation, uint16_t tx_overruns, int8_t temp_c,
+                     uint8_t rx_errors);
+/** SAMPLE_FD. f: i_a, i_b, i_c, v_ab, v_bc, v_ca, vdc, duty_a, duty_b, duty_c [SI];
+ *  flags bit 0 pwm_enabled, 1 armed, 2 fault_active, 3 adc_clip, 4 cmd_stale,
+ *  5 capture_valid, 6 control_split. */
+int fd_encode_sample_fd(uint8_t out[64], uint16_t seq, const float f[10], int32_t encoder,
+                        uint16_t cmd_seq_applied, uint32_t t_mcu_us, uint8_t flags, uint8_t mode,
+                        uint8_t fault_code);
+/** SAMPLE_C_CUR, _VLT, _DUTY, _AUX into out[4][8] (same f and flags as SAMPLE_FD). */
+int fd_encode_sample_classic(uint8_t out[4][8], uint16_t seq, const float f[10], int32_t encoder,
+                             uint8_t flags);
+int fd_encode_param_ack(uint8_t out[8], uint8_t id, uint8_t seq, uint8_t status, float value);
+
+#ifdef __cplusplus
+}
+#endif
+#endif /* FD_CORE_H */

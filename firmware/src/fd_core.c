@@ -1,0 +1,846 @@
+/* fluxdrive drive firmware core: state machine, protections, sample window and protocol
+ * (see fd_core.h). Frame layouts and scalings come only from the codec cantools generates
+ * from config/can/fluxdrive.dbc at build time (fd_can.h / fd_can.c). */
+#include "fd_core.h"
+
+#include <math.h>
+#include <string.h>
+
+#include "fd_can.h"
+
+#define FD_SEQ_MASK 0xFFFFu
+#define FD_T_MCU_MOD 4294967295u /* t_mcu wraps after 4294.967295 s (the DBC's range) */
+#define FD_PI 3.14159265358979f
+#define FD_TWO_PI 6.28318530717959f
+
+/* signal ranges of the DBC's sample messages: a saturated reading is sent at the range
+ * limit instead of wrapping (the classic layout's converters in the Python emulator clip
+ * the same way) */
+#define FD_I_RANGE_A 25.0f
+#define FD_V_RANGE_V 100.0f
+#define FD_VDC_RANGE_V 100.0f
+
+static float clampf(float x, float lo, float hi) { return x < lo ? lo : (x > hi ? hi : x); }
+
+/* Unsigned scaled signals: cantools' generated encoders for these convert through double
+ * (its unsigned helper), a soft-float library call on a single-precision FPU. The same
+ * rounding in float32, with the generated decoder's own scale (the value of raw 1;
+ * offsets are 0 in this DBC). */
+static uint16_t encode_unsigned(float value, float scale)
+{
+    float r = roundf(value / scale);
+    return r <= 0.0f ? 0u : (r >= 65535.0f ? 65535u : (uint16_t)r);
+}
+
+/* ------------------------------------------------------------------ parameters */
+
+typedef struct {
+    float lo, hi, dflt;
+    uint8_t not_while_running;
+} prm_spec_t;
+
+/* ranges in SI units (DBC prm_id value table); defaults: the paper bench's card */
+static const prm_spec_t PRM_SPEC[FD_PRM_COUNT] = {
+    [FD_PRM_CUR_KP] = {0.0f, 1.0e3f, 0.0f, 0},
+    [FD_PRM_CUR_KI] = {0.0f, 1.0e7f, 0.0f, 0},
+    [FD_PRM_L_HAT] = {0.0f, 1.0f, 0.0f, 0},
+    [FD_PRM_LAMBDA_HAT] = {0.0f, 10.0f, 0.0f, 0},
+    [FD_PRM_DECOUPLE] = {0.0f, 1.0f, 1.0f, 0},
+    [FD_PRM_VOLTAGE_ADVANCE] = {0.0f, 4.0f, 1.5f, 0},
+    [FD_PRM_DEADTIME_COMP_S] = {0.0f, 1.0e-5f, 0.0f, 0},
+    [FD_PRM_CUR_LIMIT_A] = {0.0f, 25.0f, 10.0f, 0},
+    [FD_PRM_REF_TIMEOUT_S] = {1.0e-4f, 1.0f, 1.0e-2f, 0},
+    [FD_PRM_OVERCURRENT_A] = {0.1f, 1.0e3f, 20.0f, 0},
+    [FD_PRM_I2T_LIMIT_PU2S] = {0.01f, 1.0e4f, 10.0f, 0},
+    [FD_PRM_RATED_CURRENT_A] = {0.01f, 1.0e3f, 10.0f, 1},
+    [FD_PRM_VDC_MIN_V] = {0.0f, 1.0e4f, 0.0f, 0},
+    [FD_PRM_VDC_MAX_V] = {1.0f, 1.0e4f, 1.0e4f, 0},
+    [FD_PRM_HEARTBEAT_TIMEOUT_S] = {0.0f, 10.0f, 0.5f, 0},
+    [FD_PRM_POLE_PAIRS] = {1.0f, 64.0f, 4.0f, 1},
+};
+
+static uint32_t seconds_to_us(float s) { return (uint32_t)(s * 1.0e6f + 0.5f); }
+
+int fd_core_param_read(const fd_core_t *c, int prm_id, float *value)
+{
+    if (prm_id < 1 || prm_id >= (int)FD_PRM_COUNT) {
+        *value = 0.0f;
+        return FD_PA_UNKNOWN_PARAM;
+    }
+    *value = c->prm[prm_id];
+    return FD_PA_OK;
+}
+
+int fd_core_param_write(fd_core_t *c, int prm_id, float value)
+{
+    if (prm_id < 1 || prm_id >= (int)FD_PRM_COUNT) {
+        return FD_PA_UNKNOWN_PARAM;
+    }
+    const prm_spec_t *s = &PRM_SPEC[prm_id];
+    if (!isfinite(value)) {
+        return FD_PA_NOT_FINITE;
+    }
+    if (value < s->lo || value > s->hi) {
+        return FD_PA_OUT_OF_RANGE;
+    }
+    if (s->not_while_running && c->pwm_enabled) {
+        return FD_PA_NOT_WHILE_RUNNING;
+    }
+    c->prm[prm_id] = value;
+    return FD_PA_OK;
+}
+
+/* ------------------------------------------------------------------ encoders */
+
+int fd_encode_fault(uint8_t out[8], uint8_t code, uint8_t latched, uint8_t active,
+                    uint8_t pwm_disabled, uint16_t detail, uint16_t seq, uint8_t count)
+{
+    struct fd_can_fault_t m;
+    fd_can_fault_init(&m);
+    m.fault_code = code;
+    m.fault_latched = latched;
+    m.fault_active = active;
+    m.fault_pwm_disabled = pwm_disabled;
+    m.fault_detail = detail;
+    m.fault_seq = seq;
+    m.fault_count = count;
+    return fd_can_fault_pack(out, &m, 8);
+}
+
+int fd_encode_status(uint8_t out[8], uint8_t alive, uint8_t state, uint8_t armed,
+                     uint8_t pwm_enabled, uint8_t fault_latched, uint8_t layout,
+                     uint8_t decimation, uint16_t tx_overruns, int8_t temp_c, uint8_t rx_errors)
+{
+    struct fd_can_status_t m;
+    fd_can_status_init(&m);
+    m.st_alive = alive;
+    m.st_state = state;
+    m.st_armed = armed;
+    m.st_pwm_enabled = pwm_enabled;
+    m.st_fault_latched = fault_latched;
+    m.st_sample_layout = layout;
+    m.st_protocol_version = (uint8_t)FD_PROTOCOL_VERSION;
+    m.st_decimation = decimation;
+    m.st_tx_overruns = tx_overruns;
+    m.st_temp = temp_c;
+    m.st_rx_errors = rx_errors;
+    return fd_can_status_pack(out, &m, 8);
+}
+
+/* the values a sample carries, saturated to the DBC ranges */
+static void sample_values(const float f[10], float g[10])
+{
+    for (int j = 0; j < 3; ++j) {
+        g[j] = clampf(f[j], -FD_I_RANGE_A, FD_I_RANGE_A);
+        g[3 + j] = clampf(f[3 + j], -FD_V_RANGE_V, FD_V_RANGE_V);
+        g[7 + j] = clampf(f[7 + j], 0.0f, 1.0f);
+    }
+    g[6] = clampf(f[6], 0.0f, FD_VDC_RANGE_V);
+}
+
+int fd_encode_sample_fd(uint8_t out[64], uint16_t seq, const float f[10], int32_t encoder,
+                        uint16_t cmd_seq_applied, uint32_t t_mcu_us, uint8_t flags, uint8_t mode,
+                        uint8_t fault_code)
+{
+    float g[10];
+    sample_values(f, g);
+    struct fd_can_sample_fd_t m;
+    fd_can_sample_fd_init(&m);
+    m.seq = seq;
+    m.i_a = fd_can_sample_fd_i_a_encode(g[0]);
+    m.i_b = fd_can_sample_fd_i_b_encode(g[1]);
+    m.i_c = fd_can_sample_fd_i_c_encode(g[2]);
+    m.v_ab = fd_can_sample_fd_v_ab_encode(g[3]);
+    m.v_bc = fd_can_sample_fd_v_bc_encode(g[4]);
+    m.v_ca = fd_can_sample_fd_v_ca_encode(g[5]);
+    m.vdc = encode_unsigned(g[6], fd_can_sample_fd_vdc_decode(1u));
+    m.duty_a = encode_unsigned(g[7], fd_can_sample_fd_duty_a_decode(1u));
+    m.duty_b = encode_unsigned(g[8], fd_can_sample_fd_duty_b_decode(1u));
+    m.duty_c = encode_unsigned(g[9], fd_can_sample_fd_duty_c_decode(1u));
+    m.encoder = encoder;          /* scale 1: the raw value is the count */
+    m.cmd_seq_applied = cmd_seq_applied;
+    m.t_mcu = t_mcu_us;           /* scale 1 us: the raw value is the timer */
+    m.pwm_enabled = (uint8_t)(flags & 1u);
+    m.armed = (uint8_t)((flags >> 1) & 1u);
+    m.fault_active = (uint8_t)((flags >> 2) & 1u);
+    m.adc_clip = (uint8_t)((flags >> 3) & 1u);
+    m.cmd_stale = (uint8_t)((flags >> 4) & 1u);
+    m.capture_valid = (uint8_t)((flags >> 5) & 1u);
+    m.control_split = (uint8_t)((flags >> 6) & 1u);
+    m.mode = mode;
+    m.fault_code = fault_code;
+    return fd_can_sample_fd_pack(out, &m, 64);
+}
+
+int fd_encode_sample_classic(uint8_t out[4][8], uint16_t seq, const float f[10], int32_t encoder,
+                             uint8_t flags)
+{
+    float g[10];
+    sample_values(f, g);
+    struct fd_can_sample_c_cur_t cur;
+    struct fd_can_sample_c_vlt_t vlt;
+    struct fd_can_sample_c_duty_t dut;
+    struct fd_can_sample_c_aux_t aux;
+    fd_can_sample_c_cur_init(&cur);
+    fd_can_sample_c_vlt_init(&vlt);
+    fd_can_sample_c_duty_init(&dut);
+    fd_can_sample_c_aux_init(&aux);
+    cur.c_seq = vlt.c_seq = dut.c_seq = aux.c_seq = seq;
+    cur.c_i_a = fd_can_sample_c_cur_c_i_a_encode(g[0]);
+    cur.c_i_b = fd_can_sample_c_cur_c_i_b_encode(g[1]);
+    cur.c_i_c = fd_can_sample_c_cur_c_i_c_encode(g[2]);
+    vlt.c_v_ab = fd_can_sample_c_vlt_c_v_ab_encode(g[3]);
+    vlt.c_v_bc = fd_can_sample_c_vlt_c_v_bc_encode(g[4]);
+    vlt.c_v_ca = fd_can_sample_c_vlt_c_v_ca_encode(g[5]);
+    dut.c_duty_a = encode_unsigned(g[7], fd_can_sample_c_duty_c_duty_a_decode(1u));
+    dut.c_duty_b = encode_unsigned(g[8], fd_can_sample_c_duty_c_duty_b_decode(1u));
+    dut.c_duty_c = encode_unsigned(g[9], fd_can_sample_c_duty_c_duty_c_decode(1u));
+    aux.c_vdc = encode_unsigned(g[6], fd_can_sample_c_aux_c_vdc_decode(1u));
+    /* low 24 bits, two's complement (the receiver unwraps) */
+    uint32_t low = ((uint32_t)encoder + 0x800000u) & 0xFFFFFFu;
+    aux.c_encoder = (int32_t)low - 0x800000;
+    aux.c_pwm_enabled = (uint8_t)(flags & 1u);
+    aux.c_armed = (uint8_t)((flags >> 1) & 1u);
+    aux.c_fault_active = (uint8_t)((flags >> 2) & 1u);
+    aux.c_adc_clip = (uint8_t)((flags >> 3) & 1u);
+    aux.c_cmd_stale = (uint8_t)((flags >> 4) & 1u);
+    aux.c_capture_valid = (uint8_t)((flags >> 5) & 1u);
+    aux.c_control_split = (uint8_t)((flags >> 6) & 1u);
+    if (fd_can_sample_c_cur_pack(out[0], &cur, 8) < 0 || fd_can_sample_c_vlt_pack(out[1], &vlt, 8) < 0 ||
+        fd_can_sample_c_duty_pack(out[2], &dut, 8) < 0 || fd_can_sample_c_aux_pack(out[3], &aux, 8) < 0) {
+        return -1;
+    }
+    return 32;
+}
+
+int fd_encode_param_ack(uint8_t out[8], uint8_t id, uint8_t seq, uint8_t status, float value)
+{
+    struct fd_can_drive_param_ack_t m;
+    fd_can_drive_param_ack_init(&m);
+    m.pa_id = id;
+    m.pa_seq = seq;
+    m.pa_status = status;
+    m.pa_value = value;
+    return fd_can_drive_param_ack_pack(out, &m, 8);
+}
+
+/* ------------------------------------------------------------------ transmit */
+
+static void send(fd_core_t *c, uint32_t id, const uint8_t *data, int len, uint8_t fd)
+{
+    if (len < 0) {
+        return;
+    }
+    fd_can_frame_t f;
+    f.id = id;
+    f.len = (uint8_t)len;
+    f.fd = fd;
+    memcpy(f.data, data, (size_t)len);
+    if (!fd_hal_can_tx(c->hal, &f)) {
+        c->stats.tx_overruns++;
+    }
+}
+
+static void send_fault(fd_core_t *c, uint16_t detail)
+{
+    uint8_t b[8];
+    uint8_t l = c->fault_latched;
+    int n = fd_encode_fault(b, c->fault_code, l, l, l, detail, (uint16_t)(c->k & FD_SEQ_MASK),
+                            c->fault_count);
+    send(c, FD_CAN_FAULT_FRAME_ID, b, n, 0);
+}
+
+static void send_status(fd_core_t *c, int32_t temp_c)
+{
+    uint8_t state = FD_ST_IDLE;
+    if (c->fault_latched) {
+        state = FD_ST_FAULT;
+    } else if (c->pwm_enabled) {
+        state = FD_ST_RUNNING;
+    } else if (c->armed) {
+        state = FD_ST_ARMED;
+    }
+    uint8_t b[8];
+    int8_t t = (int8_t)(temp_c < -128 ? -128 : (temp_c > 127 ? 127 : temp_c));
+    int n = fd_encode_status(b, c->status_alive, state, c->armed, c->pwm_enabled, c->fault_latched,
+                             c->cfg.classic_layout, c->cfg.decimation,
+                             (uint16_t)(c->stats.tx_overruns & 0xFFFFu), t, 0);
+    c->status_alive = (uint8_t)(c->status_alive + 1u);
+    send(c, FD_CAN_STATUS_FRAME_ID, b, n, 0);
+}
+
+static void send_sample(fd_core_t *c)
+{
+    float f[10];
+    float inv_n = c->win_n > 0u ? 1.0f / (float)c->win_n : 1.0f;
+    for (int j = 0; j < 3; ++j) {
+        f[j] = c->i_abc[j];
+        f[3 + j] = c->win_n > 1u ? c->win_v[j] * inv_n : c->v_ll[j];
+        f[7 + j] = c->win_n > 1u ? c->win_duty[j] * inv_n : c->duty_applied[j];
+    }
+    f[6] = c->vdc;
+    uint8_t flags = (uint8_t)((c->win_pwm ? 1u : 0u) | (c->armed ? 2u : 0u) |
+                              (c->fault_latched ? 4u : 0u) | ((c->win_flags & 1u) ? 8u : 0u) |
+                              (c->stale_prev ? 16u : 0u) | (c->win_pwm ? 32u : 0u) |
+                              (c->split ? 64u : 0u));
+    uint16_t seq = (uint16_t)(c->k & FD_SEQ_MASK);
+    if (c->cfg.classic_layout) {
+        uint8_t b[4][8];
+        if (fd_encode_sample_classic(b, seq, f, c->encoder, flags) > 0) {
+            send(c, FD_CAN_SAMPLE_C_CUR_FRAME_ID, b[0], 8, 0);
+            send(c, FD_CAN_SAMPLE_C_VLT_FRAME_ID, b[1], 8, 0);
+            send(c, FD_CAN_SAMPLE_C_DUTY_FRAME_ID, b[2], 8, 0);
+            send(c, FD_CAN_SAMPLE_C_AUX_FRAME_ID, b[3], 8, 0);
+        }
+    } else {
+        uint8_t b[64];
+        int n = fd_encode_sample_fd(b, seq, f, c->encoder, c->applied_seq, c->t_us, flags,
+                                    c->mode, c->fault_code);
+        send(c, FD_CAN_SAMPLE_FD_FRAME_ID, b, n, 1);
+    }
+    c->stats.samples_sent++;
+}
+
+static void reset_window(fd_core_t *c)
+{
+    for (int j = 0; j < 3; ++j) {
+        c->win_v[j] = 0.0f;
+        c->win_duty[j] = 0.0f;
+    }
+    c->win_n = 0;
+    c->win_pwm = 1;
+    c->win_flags = 0;
+}
+
+/* ------------------------------------------------------------------ faults */
+
+static void raise_fault(fd_core_t *c, uint8_t code, uint16_t detail)
+{
+    c->pwm_enabled = 0;
+    int is_new = !c->fault_latched || c->fault_code != code;
+    c->fault_code = code;
+    c->fault_latched = 1;
+    c->armed = 0;
+    c->split_duty_valid = 0;
+    if (is_new) {
+        c->fault_count = (uint8_t)(c->fault_count < 255u ? c->fault_count + 1u : 255u);
+        c->stats.faults++;
+        send_fault(c, detail);
+        c->next_fault_k = c->k + c->cfg.status_period;
+    }
+}
+
+static float max_abs_current(const fd_core_t *c, int *phase)
+{
+    float m = -1.0f;
+    for (int j = 0; j < 3; ++j) {
+        float a = fabsf(c->i_abc[j]);
+        if (a > m) {
+            m = a;
+            *phase = j;
+        }
+    }
+    return m;
+}
+
+/* is the cause of the latched fault gone (reset allowed)? */
+static int cause_gone(const fd_core_t *c)
+{
+    int ph = 0;
+    switch (c->fault_code) {
+    case FD_FAULT_OVERCURRENT:
+        return max_abs_current(c, &ph) <= c->prm[FD_PRM_OVERCURRENT_A];
+    case FD_FAULT_OVERCURRENT_I2T:
+        return c->i2t <= c->prm[FD_PRM_I2T_LIMIT_PU2S];
+    case FD_FAULT_OVERVOLTAGE:
+        return c->vdc <= c->prm[FD_PRM_VDC_MAX_V];
+    case FD_FAULT_UNDERVOLTAGE:
+        return c->vdc >= c->prm[FD_PRM_VDC_MIN_V];
+    default:
+        return 1; /* timeouts and bad commands: nothing persists once PWM is off */
+    }
+}
+
+static void clear_fault(fd_core_t *c)
+{
+    if (c->fault_latched && cause_gone(c)) {
+        c->fault_latched = 0;
+        c->fault_code = FD_FAULT_NONE;
+        send_fault(c, 0);
+    }
+}
+
+/* over-current, I2t, bus over/under-voltage on the sample just taken (engine's order) */
+static void protect(fd_core_t *c)
+{
+    const float sq3 = 1.7320508075688772f;
+    float ia = (2.0f * c->i_abc[0] - c->i_abc[1] - c->i_abc[2]) / 3.0f;
+    float ib = (c->i_abc[1] - c->i_abc[2]) / sq3;
+    c->i2t = fd_i2t_step(c->i2t, ia, ib, c->prm[FD_PRM_RATED_CURRENT_A], c->cfg.ts_s);
+    if (c->fault_latched) {
+        return;
+    }
+    int ph = 0;
+    float imax = max_abs_current(c, &ph);
+    if (imax > c->prm[FD_PRM_OVERCURRENT_A]) {
+        int a10 = (int)(imax * 10.0f);
+        if (a10 > 16383) {
+            a10 = 16383;
+        }
+        raise_fault(c, FD_FAULT_OVERCURRENT, (uint16_t)(ph | (a10 << 2)));
+        return;
+    }
+    if (c->i2t > c->prm[FD_PRM_I2T_LIMIT_PU2S]) {
+        float d = c->i2t * 100.0f;
+        raise_fault(c, FD_FAULT_OVERCURRENT_I2T, (uint16_t)(d > 65535.0f ? 65535.0f : d));
+        return;
+    }
+    uint16_t vdet = (uint16_t)clampf(c->vdc * 100.0f, 0.0f, 65535.0f);
+    if (c->vdc > c->prm[FD_PRM_VDC_MAX_V]) {
+        raise_fault(c, FD_FAULT_OVERVOLTAGE, vdet);
+        return;
+    }
+    /* under-voltage only while armed: an unpowered bus at boot is no fault */
+    if (c->armed && c->vdc < c->prm[FD_PRM_VDC_MIN_V]) {
+        raise_fault(c, FD_FAULT_UNDERVOLTAGE, vdet);
+    }
+}
+
+/* ------------------------------------------------------------------ receive */
+
+static void disarm(fd_core_t *c)
+{
+    c->armed = 0;
+    c->pwm_enabled = 0;
+    c->mode = FD_MODE_IDLE;
+}
+
+static void on_arm_mode(fd_core_t *c, const fd_can_frame_t *f)
+{
+    struct fd_can_arm_mode_t m;
+    if (fd_can_arm_mode_unpack(&m, f->data, f->len) != 0) {
+        c->stats.bad_rx++;
+        return;
+    }
+    c->stats.arm_rx++;
+    if (m.reset_fault && !c->reset_prev) {
+        clear_fault(c);
+    }
+    c->reset_prev = m.reset_fault;
+    if (m.sample_layout != c->cfg.classic_layout || m.decimation != c->cfg.decimation) {
+        c->stats.layout_mismatch++;
+    }
+    if (m.control_split != c->split) {
+        if (c->pwm_enabled) {
+            raise_fault(c, FD_FAULT_BAD_COMMAND, m.control_split); /* no switch while running */
+            return;
+        }
+        c->split = m.control_split;
+        c->ref.valid = 0;
+        c->ref_new.valid = 0;
+    }
+    if (m.arm && m.arm_key == FD_ARM_KEY && !c->fault_latched) {
+        c->armed = 1;
+        c->mode = m.mode;
+    } else {
+        if (c->armed) {
+            c->stats.disarm_rx++;
+        }
+        disarm(c);
+    }
+    if (m.cmd_timeout > 0u) {
+        c->cmd_timeout_us = (uint32_t)m.cmd_timeout * 100u; /* raw unit 0.1 ms */
+    }
+}
+
+static void on_duty_cmd(fd_core_t *c, const fd_can_frame_t *f)
+{
+    struct fd_can_duty_cmd_t m;
+    if (fd_can_duty_cmd_unpack(&m, f->data, f->len) != 0) {
+        c->stats.bad_rx++;
+        return;
+    }
+    float d[3] = {fd_can_duty_cmd_cmd_duty_a_decode(m.cmd_duty_a),
+                  fd_can_duty_cmd_cmd_duty_b_decode(m.cmd_duty_b),
+                  fd_can_duty_cmd_cmd_duty_c_decode(m.cmd_duty_c)};
+    for (int j = 0; j < 3; ++j) {
+        if (!(d[j] >= 0.0f && d[j] <= 1.0f)) {
+            c->stats.bad_rx++;
+            return;
+        }
+    }
+    /* replace the same seq, else a free slot, else the oldest (furthest behind) */
+    unsigned slot = FD_CMD_SLOTS;
+    unsigned oldest = 0;
+    uint16_t worst = 0;
+    for (unsigned s = 0; s < FD_CMD_SLOTS; ++s) {
+        if (c->cmds[s].valid && c->cmds[s].seq == m.cmd_seq) {
+            slot = s;
+            break;
+        }
+        if (!c->cmds[s].valid && slot == FD_CMD_SLOTS) {
+            slot = s;
+        }
+        uint16_t behind = (uint16_t)(m.cmd_seq - c->cmds[s].seq);
+        if (c->cmds[s].valid && behind >= worst) {
+            worst = behind;
+            oldest = s;
+        }
+    }
+    if (slot == FD_CMD_SLOTS) {
+        slot = oldest;
+    }
+    c->cmds[slot].valid = 1;
+    c->cmds[slot].seq = m.cmd_seq;
+    c->cmds[slot].enable = m.cmd_enable;
+    for (int j = 0; j < 3; ++j) {
+        c->cmds[slot].duty[j] = d[j];
+    }
+    c->stats.duty_rx++;
+}
+
+static void on_host_ref(fd_core_t *c, const fd_can_frame_t *f)
+{
+    struct fd_can_host_ref_t m;
+    if (fd_can_host_ref_unpack(&m, f->data, f->len) != 0) {
+        c->stats.bad_rx++;
+        return;
+    }
+    fd_host_ref_t r;
+    r.seq = m.ref_seq;
+    r.valid = 1;
+    r.enable = m.ref_enable;
+    r.id = fd_can_host_ref_ref_id_decode(m.ref_id);
+    r.iq = fd_can_host_ref_ref_iq_decode(m.ref_iq);
+    r.theta = fd_can_host_ref_ref_theta_decode(m.ref_theta);
+    r.omega = fd_can_host_ref_ref_omega_decode(m.ref_omega);
+    /* a reference older than the one in use arrived too late */
+    if (c->ref.valid && (int16_t)(uint16_t)(r.seq - c->ref.seq) <= 0) {
+        c->stats.duty_late++;
+        return;
+    }
+    c->ref_new = r;
+    c->stats.ref_rx++;
+}
+
+static void on_drive_param(fd_core_t *c, const fd_can_frame_t *f)
+{
+    struct fd_can_drive_param_t m;
+    if (fd_can_drive_param_unpack(&m, f->data, f->len) != 0) {
+        c->stats.bad_rx++;
+        return;
+    }
+    c->stats.param_rx++;
+    int status = m.prm_write ? fd_core_param_write(c, m.prm_id, m.prm_value) : FD_PA_OK;
+    float value = 0.0f;
+    int rs = fd_core_param_read(c, m.prm_id, &value);
+    if (rs != FD_PA_OK) {
+        status = rs;
+    }
+    uint8_t b[8];
+    int n = fd_encode_param_ack(b, m.prm_id, m.prm_seq, (uint8_t)status, value);
+    send(c, FD_CAN_DRIVE_PARAM_ACK_FRAME_ID, b, n, 0);
+}
+
+void fd_core_handle_frame(fd_core_t *c, const fd_can_frame_t *f)
+{
+    switch (f->id) {
+    case FD_CAN_ARM_MODE_FRAME_ID:
+        on_arm_mode(c, f);
+        break;
+    case FD_CAN_DUTY_CMD_FRAME_ID:
+        on_duty_cmd(c, f);
+        break;
+    case FD_CAN_HOST_REF_FRAME_ID:
+        on_host_ref(c, f);
+        break;
+    case FD_CAN_DRIVE_PARAM_FRAME_ID:
+        on_drive_param(c, f);
+        break;
+    case FD_CAN_HOST_HEARTBEAT_FRAME_ID:
+        c->hb_seen = 1;
+        c->hb_last_us = fd_hal_time_us(c->hal);
+        break;
+    default:
+        break;
+    }
+}
+
+int fd_core_has_answer(const fd_core_t *c, uint16_t seq)
+{
+    if (c->split) {
+        return c->ref_new.valid && c->ref_new.seq == seq;
+    }
+    for (unsigned s = 0; s < FD_CMD_SLOTS; ++s) {
+        if (c->cmds[s].valid && c->cmds[s].seq == seq) {
+            return 1;
+        }
+    }
+    return 0;
+}
+
+/* ------------------------------------------------------------------ commands */
+
+/* host mode, at a sample boundary: the DUTY_CMD answering the previous sample (k-D) */
+static void take_command(fd_core_t *c)
+{
+    uint32_t d = c->cfg.decimation;
+    if (c->k < d) {
+        return;
+    }
+    uint16_t want = (uint16_t)((c->k - d) & FD_SEQ_MASK);
+    fd_duty_cmd_t *cmd = 0;
+    for (unsigned s = 0; s < FD_CMD_SLOTS; ++s) {
+        fd_duty_cmd_t *x = &c->cmds[s];
+        if (!x->valid) {
+            continue;
+        }
+        uint16_t behind = (uint16_t)(want - x->seq);
+        if (behind == 0u) {
+            cmd = x;
+        } else if (behind < 0x8000u) { /* answers an older sample: too late, dropped */
+            x->valid = 0;
+            c->stats.duty_late++;
+        }
+    }
+    if (cmd != 0) {
+        cmd->valid = 0;
+        for (int j = 0; j < 3; ++j) {
+            c->duty[j] = clampf(cmd->duty[j], 0.0f, 1.0f);
+        }
+        c->applied_seq = want;
+        c->last_cmd_k = c->k;
+        c->stale_prev = 0;
+        c->stats.duty_applied++;
+        if (cmd->enable && c->armed && !c->fault_latched) {
+            c->pwm_enabled = 1;
+            c->mode = FD_MODE_RUN;
+        } else if (!cmd->enable) {
+            c->pwm_enabled = 0;
+        }
+    } else {
+        c->stale_prev = 1;
+        c->stats.stale_periods++;
+        uint32_t elapsed_us = (c->k - c->last_cmd_k) * c->cfg.period_us;
+        if (c->pwm_enabled && elapsed_us >= c->cmd_timeout_us) {
+            raise_fault(c, FD_FAULT_WATCHDOG, (uint16_t)(elapsed_us / 100u));
+        }
+    }
+}
+
+/* angle of reference r extrapolated to this period: theta_j + omega_j (t_k - t_j) */
+static float ref_angle(const fd_core_t *c, const fd_host_ref_t *r)
+{
+    uint16_t n = (uint16_t)((c->k - r->seq) & FD_SEQ_MASK);
+    return r->theta + r->omega * ((float)n * c->cfg.ts_s);
+}
+
+/* split mode, every period: the newest HOST_REF, the reference timeout */
+static void take_reference(fd_core_t *c)
+{
+    if (c->ref_new.valid) {
+        if (c->ref.valid && c->pwm_enabled) {
+            /* keep the current PIs' integrators in the new frame: a fixed voltage vector
+             * seen from a frame advanced by (new - old) turns by (old - new) */
+            float dth = ref_angle(c, &c->ref) - ref_angle(c, &c->ref_new);
+            dth = dth - FD_TWO_PI * floorf((dth + FD_PI) / FD_TWO_PI);
+            float cs = cosf(dth);
+            float sn = sinf(dth);
+            float cid = c->cur.id_i;
+            float ciq = c->cur.iq_i;
+            c->cur.id_i = cid * cs - ciq * sn;
+            c->cur.iq_i = cid * sn + ciq * cs;
+        }
+        c->ref = c->ref_new;
+        c->ref_new.valid = 0;
+        c->last_ref_k = c->k;
+        if (c->ref.enable && c->armed && !c->fault_latched) {
+            c->pwm_enabled = 1;
+            c->mode = FD_MODE_RUN;
+        } else if (!c->ref.enable) {
+            c->pwm_enabled = 0;
+        }
+    } else if (c->pwm_enabled) {
+        uint32_t elapsed_us = (c->k - c->last_ref_k) * c->cfg.period_us;
+        if (elapsed_us > seconds_to_us(c->prm[FD_PRM_REF_TIMEOUT_S])) {
+            raise_fault(c, FD_FAULT_WATCHDOG, (uint16_t)(elapsed_us / 100u));
+        }
+    }
+}
+
+/* split mode: the current loop on this sample; its duty is applied over the next period */
+static void run_current_loop(fd_core_t *c)
+{
+    const float sq3 = 1.7320508075688772f;
+    fd_cur_params_t p;
+    p.kp = c->prm[FD_PRM_CUR_KP];
+    p.ki = c->prm[FD_PRM_CUR_KI];
+    p.l_hat = c->prm[FD_PRM_L_HAT];
+    p.lambda_hat = c->prm[FD_PRM_LAMBDA_HAT];
+    p.decouple = c->prm[FD_PRM_DECOUPLE];
+    p.advance = c->prm[FD_PRM_VOLTAGE_ADVANCE];
+    p.tdcomp_s = c->prm[FD_PRM_DEADTIME_COMP_S];
+    float lim = c->prm[FD_PRM_CUR_LIMIT_A];
+    float ia = (2.0f * c->i_abc[0] - c->i_abc[1] - c->i_abc[2]) / 3.0f;
+    float ib = (c->i_abc[1] - c->i_abc[2]) / sq3;
+    float th = ref_angle(c, &c->ref);
+    th = th - FD_TWO_PI * floorf((th + FD_PI) / FD_TWO_PI); /* [-pi, pi) */
+    c->theta_used = th;
+    fd_current_loop(&c->cur, &p, ia, ib, th, c->ref.omega, clampf(c->ref.id, -lim, lim),
+                    clampf(c->ref.iq, -lim, lim), c->vdc, c->cfg.ts_s, &c->cur_out);
+    for (int j = 0; j < 3; ++j) {
+        c->split_duty[j] = c->cur_out.duty[j];
+    }
+    c->split_duty_valid = 1;
+}
+
+/* ------------------------------------------------------------------ the interrupt */
+
+static void read_sample(fd_core_t *c, int32_t *temp_c)
+{
+    fd_adc_raw_t adc;
+    fd_capture_raw_t cap;
+    fd_hal_adc_read(c->hal, &adc);
+    fd_hal_capture_read(c->hal, &cap);
+    uint8_t clip = 0;
+    for (int j = 0; j < 3; ++j) {
+        int32_t x = adc.current_counts[j] - c->cfg.current_offset_counts[j];
+        if (x >= c->cfg.current_clip_counts || x <= -c->cfg.current_clip_counts) {
+            clip = 1;
+        }
+        c->i_abc[j] = (float)x * c->cfg.current_lsb_a;
+    }
+    c->clip = clip;
+    c->vdc = (float)adc.vdc_counts * c->cfg.vdc_lsb_v;
+    float per = cap.period_ticks > 0 ? (float)cap.period_ticks : 1.0f;
+    for (int j = 0; j < 3; ++j) {
+        c->v_ll[j] = (float)cap.high_ticks[j] / per * c->vdc;
+    }
+    c->encoder = cap.encoder_counts;
+    *temp_c = adc.temp_c;
+}
+
+void fd_core_period(fd_core_t *c)
+{
+    int32_t temp_c = 0;
+    read_sample(c, &temp_c);
+    /* window: the period [t_(k-1), t_k] just ended (frame 0 opens the first window) */
+    for (int j = 0; j < 3; ++j) {
+        c->win_v[j] += c->v_ll[j];
+        c->win_duty[j] += c->duty_applied[j];
+    }
+    c->win_n++;
+    c->win_pwm = (uint8_t)(c->win_pwm && c->pwm_applied);
+    c->win_flags = (uint8_t)(c->win_flags | c->clip);
+    protect(c);
+
+    int boundary = (c->k % c->cfg.decimation) == 0u;
+    if (boundary) {
+        send_sample(c);
+        reset_window(c);
+    }
+    if (c->k >= c->next_status_k) {
+        send_status(c, temp_c);
+        c->next_status_k = c->k + c->cfg.status_period;
+    }
+    if (c->fault_latched && c->k >= c->next_fault_k) {
+        send_fault(c, 0);
+        c->next_fault_k = c->k + c->cfg.status_period;
+    }
+    fd_can_frame_t f;
+    while (fd_hal_can_rx(c->hal, &f)) {
+        fd_core_handle_frame(c, &f);
+    }
+    if (c->split) {
+        take_reference(c);
+    } else if (boundary) {
+        take_command(c);
+    }
+    float hb_s = c->prm[FD_PRM_HEARTBEAT_TIMEOUT_S];
+    if (hb_s > 0.0f && c->armed && c->hb_seen) {
+        uint32_t since = fd_hal_time_us(c->hal) - c->hb_last_us;
+        if (since > seconds_to_us(hb_s)) {
+            uint32_t d = since / 100u;
+            raise_fault(c, FD_FAULT_HOST_HEARTBEAT_LOST, (uint16_t)(d > 65535u ? 65535u : d));
+        }
+    }
+    if (!c->armed) {
+        c->pwm_enabled = 0;
+    }
+
+    /* output for the period [t_k, t_(k+1)] now starting */
+    uint8_t enable = c->pwm_enabled;
+    if (c->split) {
+        /* the duty computed from the previous sample (one period of computation delay,
+         * as the engine's convention); none yet: PWM stays off this period */
+        if (c->pwm_enabled && c->split_duty_valid) {
+            for (int j = 0; j < 3; ++j) {
+                c->duty[j] = c->split_duty[j];
+            }
+        } else {
+            enable = 0;
+            for (int j = 0; j < 3; ++j) {
+                c->duty[j] = 0.5f;
+            }
+        }
+        if (c->pwm_enabled) {
+            run_current_loop(c);
+        } else {
+            c->split_duty_valid = 0;
+            c->cur.id_i = 0.0f;
+            c->cur.iq_i = 0.0f;
+        }
+    }
+    uint32_t cmp[3];
+    for (int j = 0; j < 3; ++j) {
+        cmp[j] = (uint32_t)(c->duty[j] * (float)c->cfg.pwm_period_ticks + 0.5f);
+        c->duty_applied[j] = (float)cmp[j] / (float)c->cfg.pwm_period_ticks;
+    }
+    c->pwm_applied = enable;
+    fd_hal_pwm_write(c->hal, cmp, enable);
+    c->k++;
+    /* t_mcu of the next sample: k * period mod (2^32 - 1) us, kept without a 64-bit product */
+    uint32_t p = c->cfg.period_us;
+    c->t_us = c->t_us >= FD_T_MCU_MOD - p ? c->t_us - (FD_T_MCU_MOD - p) : c->t_us + p;
+    c->stats.periods++;
+}
+
+/* ------------------------------------------------------------------ init */
+
+void fd_config_default(fd_config_t *cfg)
+{
+    memset(cfg, 0, sizeof(*cfg));
+    cfg->period_us = 100u;
+    cfg->ts_s = 1.0e-4f;
+    cfg->decimation = 1u;
+    cfg->classic_layout = 0u;
+    cfg->current_lsb_a = 40.0f / 4096.0f; /* 12 bit over +-20 A */
+    for (int j = 0; j < 3; ++j) {
+        cfg->current_offset_counts[j] = 2048;
+    }
+    cfg->current_clip_counts = 2048;
+    cfg->vdc_lsb_v = 100.0f / 4096.0f;
+    cfg->pwm_period_ticks = 50000u;
+    cfg->cmd_timeout_us = 1000u;
+    cfg->status_period = 1000u;
+}
+
+void fd_core_init(fd_core_t *c, const fd_config_t *cfg, void *hal)
+{
+    memset(c, 0, sizeof(*c));
+    c->cfg = *cfg;
+    if (c->cfg.decimation == 0u) {
+        c->cfg.decimation = 1u;
+    }
+    c->hal = hal;
+    for (int i = 1; i < (int)FD_PRM_COUNT; ++i) {
+        c->prm[i] = PRM_SPEC[i].dflt;
+    }
+    c->cmd_timeout_us = cfg->cmd_timeout_us;
+    for (int j = 0; j < 3; ++j) {
+        c->duty[j] = 0.5f;
+        c->duty_applied[j] = 0.5f;
+    }
+    c->win_pwm = 1;
+    c->mode = FD_MODE_IDLE;
+}

@@ -1,0 +1,324 @@
+/* C unit tests of the drive core on the software-in-the-loop HAL: arm key, duty watchdog,
+ * fault latch and reset, decimation averages, protections, DRIVE_PARAM, reference timeout.
+ * Expected values follow from the DBC's rules (CM_ comments) and the configuration; the
+ * comparisons with the engine's Python reference (I2t, current loop, codec, emulator) are
+ * in tests/test_firmware.py. Exit status 0 = all passed. */
+#include <math.h>
+#include <stdio.h>
+#include <string.h>
+
+#include "fd_can.h"
+#include "fd_core.h"
+#include "fd_sil.h"
+
+static int failures = 0;
+#define CHECK(cond)                                                                        \
+    do {                                                                                   \
+        if (!(cond)) {                                                                     \
+            fprintf(stderr, "%s:%d: CHECK failed: %s\n", __FILE__, __LINE__, #cond);       \
+            failures++;                                                                    \
+        }                                                                                  \
+    } while (0)
+
+static fd_core_t core;
+static fd_sil_t sil;
+static int32_t cur_counts[3] = {2048, 2048, 2048};
+static int32_t ticks[3] = {0, 0, 0};
+static int32_t vdc_counts = 983; /* 24.0 V at 100/4096 V per count */
+
+static void setup(uint8_t decimation)
+{
+    fd_config_t cfg;
+    fd_config_default(&cfg);
+    cfg.decimation = decimation;
+    fd_sil_init(&sil);
+    fd_core_init(&core, &cfg, &sil);
+}
+
+static void period(void)
+{
+    fd_sil_set_inputs(&sil, cur_counts, vdc_counts, ticks, 4096, 0, 35,
+                      core.k * core.cfg.period_us);
+    fd_core_period(&core);
+}
+
+static void push(uint32_t id, const uint8_t *data, uint32_t len, uint32_t fd)
+{
+    CHECK(fd_sil_rx_push(&sil, id, data, len, fd) == 1);
+}
+
+static void send_arm(uint8_t arm, uint8_t key, uint8_t reset, uint8_t split)
+{
+    struct fd_can_arm_mode_t m;
+    uint8_t b[8];
+    fd_can_arm_mode_init(&m);
+    m.arm = arm;
+    m.arm_key = key;
+    m.reset_fault = reset;
+    m.control_split = split;
+    m.mode = 1;
+    m.decimation = core.cfg.decimation;
+    CHECK(fd_can_arm_mode_pack(b, &m, 8) == 8);
+    push(FD_CAN_ARM_MODE_FRAME_ID, b, 8, 0);
+}
+
+static void send_duty(uint16_t seq, float d, uint8_t enable)
+{
+    struct fd_can_duty_cmd_t m;
+    uint8_t b[8];
+    fd_can_duty_cmd_init(&m);
+    m.cmd_seq = seq;
+    m.cmd_duty_a = m.cmd_duty_b = m.cmd_duty_c = fd_can_duty_cmd_cmd_duty_a_encode(d);
+    m.cmd_enable = enable;
+    CHECK(fd_can_duty_cmd_pack(b, &m, 8) == 8);
+    push(FD_CAN_DUTY_CMD_FRAME_ID, b, 8, 0);
+}
+
+/* pop every sent frame; remember the last FAULT / SAMPLE_FD / ACK */
+static struct fd_can_fault_t last_fault;
+static int n_fault;
+static struct fd_can_sample_fd_t last_sample;
+static int n_sample;
+static struct fd_can_drive_param_ack_t last_ack;
+static int n_ack;
+
+static void drain(void)
+{
+    uint32_t id, len, fd;
+    uint8_t b[64];
+    while (fd_sil_tx_pop(&sil, &id, b, &len, &fd)) {
+        if (id == FD_CAN_FAULT_FRAME_ID) {
+            CHECK(fd_can_fault_unpack(&last_fault, b, len) == 0);
+            n_fault++;
+        } else if (id == FD_CAN_SAMPLE_FD_FRAME_ID) {
+            CHECK(fd == 1 && len == 64);
+            CHECK(fd_can_sample_fd_unpack(&last_sample, b, len) == 0);
+            n_sample++;
+        } else if (id == FD_CAN_DRIVE_PARAM_ACK_FRAME_ID) {
+            CHECK(fd_can_drive_param_ack_unpack(&last_ack, b, len) == 0);
+            n_ack++;
+        }
+    }
+}
+
+/* arm, and run host mode with PWM on for a few periods answering every sample */
+static void run_armed(void)
+{
+    send_arm(1, FD_ARM_KEY, 0, 0);
+    for (int i = 0; i < 5; ++i) {
+        if (core.k >= 1) {
+            send_duty((uint16_t)(core.k - 1), 0.5f, 1);
+        }
+        period();
+    }
+    drain();
+}
+
+static void test_arm_key(void)
+{
+    setup(1);
+    period();
+    send_arm(1, 0x5A, 0, 0); /* wrong key: stays disarmed */
+    period();
+    CHECK(!core.armed);
+    send_duty(1, 0.6f, 1); /* enable while disarmed: ignored */
+    period();
+    CHECK(!core.pwm_enabled && sil.pwm_enable == 0);
+    send_arm(1, FD_ARM_KEY, 0, 0);
+    send_duty(2, 0.6f, 1);
+    period();
+    CHECK(core.armed && core.pwm_enabled && sil.pwm_enable == 1);
+    CHECK(sil.pwm_compare[0] == 30000u); /* 0.6 of 50000 ticks */
+    send_arm(0, FD_ARM_KEY, 0, 0); /* disarm: PWM off in this very period */
+    period();
+    CHECK(!core.armed && !core.pwm_enabled && sil.pwm_enable == 0);
+}
+
+static void test_watchdog(void)
+{
+    setup(1);
+    run_armed();
+    CHECK(core.pwm_enabled);
+    uint32_t last = core.k; /* the last command was taken in period last-1 */
+    n_fault = 0;
+    int tripped_at = -1;
+    for (int i = 0; i < 20 && tripped_at < 0; ++i) {
+        period();
+        if (core.fault_latched) {
+            tripped_at = (int)(core.k - 1u);
+        }
+    }
+    drain();
+    /* default cmd_timeout 1 ms = 10 periods after the last fresh command */
+    CHECK(tripped_at == (int)(last - 1u + 10u));
+    CHECK(core.fault_code == FD_FAULT_WATCHDOG && !core.pwm_enabled && sil.pwm_enable == 0);
+    CHECK(n_fault == 1 && last_fault.fault_code == 9 && last_fault.fault_latched == 1);
+    CHECK(last_fault.fault_detail == 10); /* elapsed 1.0 ms in 0.1 ms */
+    CHECK(last_fault.fault_seq == (uint16_t)tripped_at);
+    /* FAULT repeated at 10 Hz while latched */
+    n_fault = 0;
+    for (int i = 0; i < 2000; ++i) {
+        period();
+        drain();
+    }
+    CHECK(n_fault == 2); /* at trip + 1000 and trip + 2000 periods */
+}
+
+static void test_fault_latch_reset(void)
+{
+    setup(1);
+    fd_core_param_write(&core, FD_PRM_OVERCURRENT_A, 10.0f);
+    run_armed();
+    cur_counts[1] = 2048 - 1100; /* -10.74 A on phase b */
+    period();
+    drain();
+    CHECK(core.fault_latched && core.fault_code == FD_FAULT_OVERCURRENT && !core.armed);
+    CHECK(last_fault.fault_code == 1);
+    CHECK((last_fault.fault_detail & 3u) == 1u);           /* phase b */
+    CHECK((last_fault.fault_detail >> 2) == 107u);         /* 10.7 A in 0.1 A */
+    send_arm(1, FD_ARM_KEY, 1, 0); /* reset while the cause persists: refused, stays off */
+    period();
+    CHECK(core.fault_latched && !core.armed);
+    cur_counts[1] = 2048;
+    send_arm(1, FD_ARM_KEY, 1, 0); /* no rising edge: nothing */
+    period();
+    CHECK(core.fault_latched);
+    send_arm(0, FD_ARM_KEY, 0, 0);
+    period();
+    n_fault = 0;
+    send_arm(0, FD_ARM_KEY, 1, 0); /* rising edge, cause gone: cleared, FAULT code 0 */
+    period();
+    drain();
+    CHECK(!core.fault_latched && core.fault_code == 0);
+    CHECK(n_fault == 1 && last_fault.fault_code == 0 && last_fault.fault_latched == 0);
+}
+
+static void test_decimation_average(void)
+{
+    setup(4);
+    n_sample = 0;
+    period(); /* k = 0: a sample of frame 0 alone */
+    drain();
+    CHECK(n_sample == 1 && last_sample.seq == 0);
+    const int32_t t[4] = {100, 300, -200, 1000};
+    for (int i = 0; i < 4; ++i) {
+        ticks[0] = t[i];
+        ticks[1] = 2 * t[i];
+        period();
+    }
+    drain();
+    ticks[0] = ticks[1] = 0;
+    CHECK(n_sample == 2 && last_sample.seq == 4);
+    /* v_ab = mean(ticks) / 4096 * vdc, vdc = 983 * 100/4096 V */
+    double vdc = 983.0 * 100.0 / 4096.0;
+    double v_ab = (100.0 + 300.0 - 200.0 + 1000.0) / 4.0 / 4096.0 * vdc;
+    CHECK(last_sample.v_ab == (int32_t)lround(v_ab / 0.001));
+    CHECK(last_sample.v_bc == (int32_t)lround(2.0 * v_ab / 0.001));
+    CHECK(last_sample.vdc == (uint16_t)lround(vdc / 0.002));
+    CHECK(last_sample.capture_valid == 0 && last_sample.pwm_enabled == 0);
+    CHECK(last_sample.t_mcu == 400u);
+}
+
+static void test_bus_voltage(void)
+{
+    setup(1);
+    fd_core_param_write(&core, FD_PRM_VDC_MIN_V, 20.0f);
+    fd_core_param_write(&core, FD_PRM_VDC_MAX_V, 30.0f);
+    vdc_counts = 700; /* 17.1 V: below the minimum, but not armed: no fault */
+    period();
+    CHECK(!core.fault_latched);
+    vdc_counts = 983;
+    run_armed();
+    vdc_counts = 700;
+    period();
+    drain();
+    CHECK(core.fault_code == FD_FAULT_UNDERVOLTAGE && last_fault.fault_detail == 1708u);
+    vdc_counts = 1300; /* 31.7 V */
+    send_arm(0, FD_ARM_KEY, 1, 0);
+    period(); /* the reset clears UV (the bus is above its minimum) ... */
+    CHECK(!core.fault_latched);
+    period(); /* ... and the next sample trips OV */
+    CHECK(core.fault_code == FD_FAULT_OVERVOLTAGE);
+    vdc_counts = 983;
+}
+
+static void test_params(void)
+{
+    setup(1);
+    CHECK(fd_core_param_write(&core, 0, 1.0f) == FD_PA_UNKNOWN_PARAM);
+    CHECK(fd_core_param_write(&core, 17, 1.0f) == FD_PA_UNKNOWN_PARAM);
+    CHECK(fd_core_param_write(&core, FD_PRM_CUR_KP, NAN) == FD_PA_NOT_FINITE);
+    CHECK(fd_core_param_write(&core, FD_PRM_CUR_KP, -1.0f) == FD_PA_OUT_OF_RANGE);
+    CHECK(fd_core_param_write(&core, FD_PRM_CUR_KP, 2.5f) == FD_PA_OK && core.prm[1] == 2.5f);
+    run_armed();
+    CHECK(fd_core_param_write(&core, FD_PRM_POLE_PAIRS, 5.0f) == FD_PA_NOT_WHILE_RUNNING);
+    CHECK(fd_core_param_write(&core, FD_PRM_CUR_KI, 100.0f) == FD_PA_OK); /* live */
+    /* over the bus: a write answered by one ACK with the value in effect */
+    struct fd_can_drive_param_t m;
+    uint8_t b[8];
+    fd_can_drive_param_init(&m);
+    m.prm_id = FD_PRM_REF_TIMEOUT_S;
+    m.prm_seq = 7;
+    m.prm_write = 1;
+    m.prm_value = 5.0f; /* beyond 1 s */
+    CHECK(fd_can_drive_param_pack(b, &m, 8) == 8);
+    push(FD_CAN_DRIVE_PARAM_FRAME_ID, b, 8, 0);
+    n_ack = 0;
+    period();
+    drain();
+    CHECK(n_ack == 1 && last_ack.pa_seq == 7 && last_ack.pa_status == FD_PA_OUT_OF_RANGE);
+    CHECK(last_ack.pa_value == 1.0e-2f);
+}
+
+static void send_ref(uint16_t seq, float iq, uint8_t enable)
+{
+    struct fd_can_host_ref_t m;
+    uint8_t b[12];
+    fd_can_host_ref_init(&m);
+    m.ref_seq = seq;
+    m.ref_iq = fd_can_host_ref_ref_iq_encode(iq);
+    m.ref_enable = enable;
+    CHECK(fd_can_host_ref_pack(b, &m, 12) == 12);
+    push(FD_CAN_HOST_REF_FRAME_ID, b, 12, 1);
+}
+
+static void test_reference_timeout(void)
+{
+    setup(1);
+    send_arm(1, FD_ARM_KEY, 0, 1);
+    period();
+    CHECK(core.armed && core.split);
+    send_ref(0, 1.0f, 1);
+    period(); /* reference taken, PWM on; the first duty is applied from the next period */
+    CHECK(core.pwm_enabled && sil.pwm_enable == 0);
+    period();
+    CHECK(sil.pwm_enable == 1);
+    uint32_t taken = core.k - 2u;
+    n_fault = 0;
+    while (!core.fault_latched && core.k < 200u) {
+        period();
+        drain();
+    }
+    drain();
+    /* REF_TIMEOUT_S default 10 ms: the first period more than 100 periods after the
+     * reference was taken */
+    CHECK(core.k - 1u == taken + 101u);
+    CHECK(core.fault_code == FD_FAULT_WATCHDOG && sil.pwm_enable == 0 && n_fault == 1);
+}
+
+int main(void)
+{
+    test_arm_key();
+    test_watchdog();
+    test_fault_latch_reset();
+    test_decimation_average();
+    test_bus_voltage();
+    test_params();
+    test_reference_timeout();
+    if (failures) {
+        fprintf(stderr, "fd_core_test: %d check(s) failed\n", failures);
+        return 1;
+    }
+    printf("fd_core_test: all checks passed\n");
+    return 0;
+}

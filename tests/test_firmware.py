@@ -1,0 +1,374 @@
+"""The C drive firmware (firmware/) on this machine: its C unit tests, its DBC codec against
+cantools, its protections and current loop against the engine, and the software-in-the-loop
+drive (DriveEmulator(mcu="c")) against the Python emulator. No ROS."""
+
+from __future__ import annotations
+
+import ctypes
+import math
+import subprocess
+
+import can
+import numpy as np
+import pytest
+from fluxdrive.can import firmware as fw
+from fluxdrive.can.protocol import ARM_KEY, load_database
+from fluxdrive.drive import control as ctl
+from fluxdrive.drive import plant as pl
+
+U8_64 = ctypes.c_uint8 * 64
+
+
+@pytest.fixture(scope="module")
+def lib():
+    return fw.load_library()
+
+
+@pytest.fixture(scope="module")
+def db():
+    return load_database()
+
+
+def test_c_unit_tests_pass_and_core_uses_no_heap(lib):
+    bdir = fw.host_build_dir()
+    r = subprocess.run(
+        ["ctest", "--test-dir", str(bdir), "--output-on-failure"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    print(r.stdout[-2000:])
+    assert r.returncode == 0, r.stdout + r.stderr
+    undefined = subprocess.run(
+        ["nm", "-u", str(bdir / "libfdcore.a")], capture_output=True, text=True, check=True
+    ).stdout.split()
+    assert not {"malloc", "calloc", "realloc", "free"} & set(undefined)
+
+
+def _on_grid(rng, lo, hi, scale, n):
+    """n float32 values in [lo, hi] at least 0.1 LSB away from a rounding boundary: a value
+    within float32 rounding of x.5 LSB could round either way in float32 and float64."""
+    raw = rng.integers(round(lo / scale), round(hi / scale), n, endpoint=True)
+    return (raw + rng.uniform(-0.4, 0.4, n)).clip(lo / scale, hi / scale) * scale
+
+
+def _f32(x):
+    return float(np.float32(x))
+
+
+def test_encoders_are_cantools_byte_for_byte(lib, db):
+    """Every message the core sends, over many seeded random in-range values."""
+    rng = np.random.default_rng(20261125)
+    buf = U8_64()
+    n = 400
+    fault = db.get_message_by_name("FAULT")
+    status = db.get_message_by_name("STATUS")
+    ack = db.get_message_by_name("DRIVE_PARAM_ACK")
+    sfd = db.get_message_by_name("SAMPLE_FD")
+    classic = [db.get_message_by_name(f"SAMPLE_C_{p}") for p in ("CUR", "VLT", "DUTY", "AUX")]
+    for _ in range(n):
+        v = {
+            "fault_code": int(rng.choice([0, 1, 2, 3, 4, 9, 16, 20])),
+            "fault_latched": int(rng.integers(2)),
+            "fault_active": int(rng.integers(2)),
+            "fault_pwm_disabled": int(rng.integers(2)),
+            "fault_detail": int(rng.integers(65536)),
+            "fault_seq": int(rng.integers(65536)),
+            "fault_count": int(rng.integers(256)),
+        }
+        ln = lib.fd_encode_fault(buf, *v.values())
+        assert bytes(buf[:ln]) == fault.encode(v)
+
+        v = {
+            "st_alive": int(rng.integers(256)),
+            "st_state": int(rng.integers(5)),
+            "st_armed": int(rng.integers(2)),
+            "st_pwm_enabled": int(rng.integers(2)),
+            "st_fault_latched": int(rng.integers(2)),
+            "st_sample_layout": int(rng.integers(2)),
+            "st_decimation": int(rng.integers(1, 256)),
+            "st_tx_overruns": int(rng.integers(65536)),
+            "st_temp": int(rng.integers(-128, 128)),
+            "st_rx_errors": 0,
+        }
+        args = list(v.values())
+        ln = lib.fd_encode_status(buf, *args)
+        assert bytes(buf[:ln]) == status.encode({**v, "st_protocol_version": 2})
+
+        pv = _f32(rng.normal() * 10.0 ** rng.integers(-6, 6))
+        v = {
+            "pa_id": int(rng.integers(1, 17)),
+            "pa_seq": int(rng.integers(256)),
+            "pa_status": int(rng.integers(6)),
+            "pa_value": pv,
+        }
+        ln = lib.fd_encode_param_ack(buf, *v.values())
+        assert bytes(buf[:ln]) == ack.encode(v)
+
+        f = np.concatenate(
+            [
+                _on_grid(rng, -25.0, 25.0, 0.001, 3),
+                _on_grid(rng, -100.0, 100.0, 0.004, 3),  # on the classic 4 mV grid too
+                _on_grid(rng, 0.0, 100.0, 0.002, 1),
+                _on_grid(rng, 0.0, 1.0, 2e-5, 3),
+            ]
+        ).astype(np.float32)
+        fp = f.ctypes.data_as(ctypes.POINTER(ctypes.c_float))
+        enc = int(rng.integers(-(2**31), 2**31))
+        flags = int(rng.integers(128))
+        seq, applied = int(rng.integers(65536)), int(rng.integers(65536))
+        t_us, mode, code = int(rng.integers(2**32 - 1)), int(rng.integers(3)), 9
+        ln = lib.fd_encode_sample_fd(buf, seq, fp, enc, applied, t_us, flags, mode, code)
+        x = [float(a) for a in f]
+        bit = [(flags >> b) & 1 for b in range(7)]
+        want = sfd.encode(
+            {
+                "seq": seq, "i_a": x[0], "i_b": x[1], "i_c": x[2], "v_ab": x[3],
+                "v_bc": x[4], "v_ca": x[5], "vdc": x[6], "duty_a": x[7], "duty_b": x[8],
+                "duty_c": x[9], "encoder": enc, "cmd_seq_applied": applied,
+                "t_mcu": t_us * 1e-6, "pwm_enabled": bit[0], "armed": bit[1],
+                "fault_active": bit[2], "adc_clip": bit[3], "cmd_stale": bit[4],
+                "capture_valid": bit[5], "control_split": bit[6], "mode": mode,
+                "fault_code": code,
+            }
+        )  # fmt: skip
+        assert ln == 64 and bytes(buf[:64]) == want
+
+        out = (ctypes.c_uint8 * 32)()
+        assert lib.fd_encode_sample_classic(out, seq, fp, enc, flags) == 32
+        enc24 = (enc + 2**23) % 2**24 - 2**23
+        want4 = [
+            classic[0].encode({"c_seq": seq, "c_i_a": x[0], "c_i_b": x[1], "c_i_c": x[2]}),
+            classic[1].encode({"c_seq": seq, "c_v_ab": x[3], "c_v_bc": x[4], "c_v_ca": x[5]}),
+            classic[2].encode(
+                {"c_seq": seq, "c_duty_a": x[7], "c_duty_b": x[8], "c_duty_c": x[9]}
+            ),
+            classic[3].encode(
+                {
+                    "c_seq": seq, "c_vdc": x[6], "c_encoder": enc24, "c_pwm_enabled": bit[0],
+                    "c_armed": bit[1], "c_fault_active": bit[2], "c_adc_clip": bit[3],
+                    "c_cmd_stale": bit[4], "c_capture_valid": bit[5], "c_control_split": bit[6],
+                }
+            ),
+        ]  # fmt: skip
+        assert bytes(out) == b"".join(want4)
+
+
+def test_host_frames_decode_like_cantools(lib, db):
+    """What the host sends, decoded by the generated codec = cantools' decoding."""
+    rng = np.random.default_rng(7)
+    out = (ctypes.c_float * 10)()
+    names = ("ARM_MODE", "DUTY_CMD", "HOST_REF", "DRIVE_PARAM", "HOST_HEARTBEAT")
+    for name in names:
+        msg = db.get_message_by_name(name)
+        for _ in range(200):
+            vals = {}
+            for s in msg.signals:
+                if s.is_float:
+                    vals[s.name] = _f32(rng.normal() * 10.0 ** rng.integers(-4, 5))
+                    continue
+                lo = int(round(((s.minimum or 0.0) - s.offset) / s.scale))
+                hi = int(round(((s.maximum or 0.0) - s.offset) / s.scale))
+                vals[s.name] = int(rng.integers(lo, hi, endpoint=True)) * s.scale + s.offset
+            data = msg.encode(vals)
+            n = lib.fd_sil_decode_host(msg.frame_id, (ctypes.c_uint8 * len(data))(*data),
+                                       len(data), out)  # fmt: skip
+            assert n == len(msg.signals)
+            ref = msg.decode(data, decode_choices=False, scaling=True)
+            for j, s in enumerate(msg.signals):
+                # C decodes raw * scale in float32
+                assert out[j] == pytest.approx(float(ref[s.name]), rel=2e-7, abs=1e-30), s.name
+
+
+def test_param_ids_are_the_dbc_table(lib, db):
+    table = db.get_message_by_name("DRIVE_PARAM").get_signal_by_name("prm_id").choices
+    assert {str(v): int(k) for k, v in table.items()} == fw.PARAM_IDS
+
+
+# ---------------------------------------------------------------- engine reference values
+
+
+def _card_mp():
+    from fluxdrive.core.machine import MachineCard
+
+    card = MachineCard()
+    return card, pl.machine_params(card)
+
+
+class _Drive:
+    """A C core armed in host mode (D = 1), answering every sample with PWM on; samples
+    built from SI values quantised like the plant's sensors."""
+
+    def __init__(self, mp, cp):
+        self.core = fw.FirmwareCore(mp)
+        self.mp = mp
+        for name, idx in (
+            ("OVERCURRENT_A", ctl.CP_OC_TRIP),
+            ("RATED_CURRENT_A", ctl.CP_IRATED),
+            ("I2T_LIMIT_PU2S", ctl.CP_I2T_LIMIT),
+            ("VDC_MIN_V", ctl.CP_VDC_MIN),
+            ("VDC_MAX_V", ctl.CP_VDC_MAX),
+        ):
+            assert self.core.param_write(name, float(cp[idx])) == "OK"
+        self.frame = np.zeros(pl.FR_N)
+        self.db = load_database()
+        self.arm = self.db.get_message_by_name("ARM_MODE")
+        self.duty = self.db.get_message_by_name("DUTY_CMD")
+        self.core.push(self._arm_msg())
+
+    def _arm_msg(self):
+        data = self.arm.encode(
+            {"arm": 1, "arm_key": ARM_KEY, "reset_fault": 0, "sample_layout": 0,
+             "control_split": 0, "mode": 1, "cmd_timeout": 0, "decimation": 1,
+             "arm_counter": 0}
+        )  # fmt: skip
+        return can.Message(arbitration_id=self.arm.frame_id, data=data, is_extended_id=False)
+
+    def sample(self, i_abc, vdc):
+        """One period on these readings; returns the core's fault code."""
+        k = self.core.k
+        if k >= 1:
+            data = self.duty.encode(
+                {"cmd_seq": k - 1, "cmd_duty_a": 0.5, "cmd_duty_b": 0.5, "cmd_duty_c": 0.5,
+                 "cmd_enable": 1}
+            )  # fmt: skip
+            self.core.push(
+                can.Message(arbitration_id=self.duty.frame_id, data=data, is_extended_id=False)
+            )
+        self.frame[pl.FR_IA : pl.FR_IC + 1] = i_abc
+        self.frame[pl.FR_VDC] = vdc
+        self.core.set_sample(self.frame, k * 100)
+        self.core.period()
+        self.core.pop_tx()
+        return self.core.state()["fault_code"]
+
+
+def _quantise(x, lsb):
+    return np.floor(np.asarray(x) / lsb + 0.5) * lsb
+
+
+def _engine_protect(cs, cp, i_abc, vdc, ts):
+    fr = np.zeros(pl.FR_N)
+    fr[pl.FR_IA : pl.FR_IC + 1] = i_abc
+    fr[pl.FR_VDC] = vdc
+    out = np.zeros(ctl.CO_N)
+    ia, ib = (2 * i_abc[0] - i_abc[1] - i_abc[2]) / 3.0, (i_abc[1] - i_abc[2]) / math.sqrt(3.0)
+    ctl._protect(cs, cp, fr, out, ia, ib, ts)
+    return int(cs[ctl.CS_FAULT]) if cs[ctl.CS_MODE] == ctl.MODE_FAULT else 0
+
+
+@pytest.mark.parametrize("case", ["i2t", "overcurrent", "overvoltage", "undervoltage"])
+def test_protections_trip_where_the_engine_trips(lib, case):
+    """Same samples into the engine's _protect and into the C core (armed, PWM on): the
+    same fault code at the same period; the I2t integral agrees to float32 rounding."""
+    card, mp = _card_mp()
+    cfg = ctl.ControllerConfig(i2t_limit_pu2s=0.05 if case == "i2t" else 10.0)
+    cp = cfg.to_params(card)
+    ts = card.ts_s
+    irated = card.rated_current_a
+    lsb = float(mp[pl.MP_ADC_LSB])
+    vlsb = float(mp[pl.MP_VDC_LSB])
+    n = 2000
+    t = np.arange(n) * ts
+    amp = np.full(n, 0.5 * irated)
+    vdc = np.full(n, card.dc_bus_v)
+    if case == "i2t":
+        amp[100:] = 1.6 * irated  # 1.56 pu^2 over rated: trips after ~0.032 s
+    elif case == "overcurrent":
+        amp[300:] = np.linspace(1.9, 2.3, n - 300) * irated
+    elif case == "overvoltage":
+        vdc[200:] = np.linspace(card.dc_bus_v, 1.5 * card.dc_bus_v, n - 200)
+    else:
+        vdc[200:] = np.linspace(card.dc_bus_v, 0.1 * card.dc_bus_v, n - 200)
+    th = 2 * np.pi * 5.0 * t
+    i_abc = np.stack([amp * np.cos(th - j * 2 * np.pi / 3) for j in range(3)], axis=1)
+    i_abc = _quantise(i_abc, lsb)
+    vdc = _quantise(vdc, vlsb)
+    cs = np.zeros(ctl.CS_N)
+    cs[ctl.CS_MODE] = ctl.MODE_CLOSED_LOOP
+    drive = _Drive(mp, cp)
+    drive.sample(i_abc[0], vdc[0])  # period 0 arms; the engine starts with sample 1
+    i2t_c = np.float32(0.0)
+    trip_engine = trip_c = None
+    for k in range(1, n):
+        code_e = _engine_protect(cs, cp, i_abc[k], vdc[k], ts)
+        code_c = drive.sample(i_abc[k], vdc[k])
+        if trip_engine is None and code_e:
+            trip_engine = (k, code_e)
+        if trip_c is None and code_c:
+            trip_c = (k, code_c)
+        if trip_engine is None:
+            ia = (2 * i_abc[k, 0] - i_abc[k, 1] - i_abc[k, 2]) / 3.0
+            ib = (i_abc[k, 1] - i_abc[k, 2]) / math.sqrt(3.0)
+            i2t_c = lib.fd_i2t_step(i2t_c, ia, ib, irated, ts)
+            assert i2t_c == pytest.approx(cs[ctl.CS_I2T], rel=1e-4, abs=1e-6)
+        if trip_engine and trip_c:
+            break
+    want = {"i2t": 2, "overcurrent": 1, "overvoltage": 3, "undervoltage": 4}[case]
+    print(f"{case}: engine trips at {trip_engine}, C core at {trip_c}")
+    assert trip_engine is not None and trip_engine[1] == want
+    assert trip_c == trip_engine
+    st = drive.core.state()
+    assert st["fault_latched"] and not st["pwm_enabled"] and drive.core.pwm()[1] is False
+
+
+def test_current_loop_is_the_engines_in_float32(lib):
+    """fd_current_loop against _current_loops: 300 chained steps on seeded random inputs
+    (integrators carried on both sides), hexagon limit and deadtime feed-forward included."""
+    rng = np.random.default_rng(3)
+    card, _ = _card_mp()
+    cp = ctl.ControllerConfig().to_params(card)
+    cp[ctl.CP_TDCOMP] = 1.0e-6
+    ts = card.ts_s
+    p = fw.CurParams(
+        cp[ctl.CP_KP_I], cp[ctl.CP_KI_I], cp[ctl.CP_L], cp[ctl.CP_LAM],
+        cp[ctl.CP_DECOUPLE], cp[ctl.CP_ADV], cp[ctl.CP_TDCOMP],
+    )  # fmt: skip
+    cs = np.zeros(ctl.CS_N)
+    st = fw.CurState(0.0, 0.0)
+    out = np.zeros(ctl.CO_N)
+    o = fw.CurOut()
+    saturated = 0
+    for _k in range(300):
+        ia, ib = rng.normal(0, 3, 2)
+        th = rng.uniform(-np.pi, np.pi)
+        we = rng.normal(0, 300)
+        idr, iqr = rng.normal(0, 2), rng.normal(0, 6)
+        vdc = card.dc_bus_v * rng.uniform(0.9, 1.1)
+        args = [_f32(a) for a in (ia, ib, th, we, idr, iqr, vdc)]
+        ctl._current_loops(cs, cp, *args[:6], args[6], ts, out)
+        lib.fd_current_loop(ctypes.byref(st), ctypes.byref(p), *args, ts, ctypes.byref(o))
+        vmag = math.hypot(out[ctl.CO_VD], out[ctl.CO_VQ])
+        saturated += vmag > 0.5 * args[6]
+        tol_v = 2e-5 * card.dc_bus_v
+        np.testing.assert_allclose(list(o.duty), out[ctl.CO_DA : ctl.CO_DC + 1], atol=2e-6)
+        assert o.i_d == pytest.approx(out[ctl.CO_ID], abs=1e-5)
+        assert o.i_q == pytest.approx(out[ctl.CO_IQ], abs=1e-5)
+        assert o.v_d == pytest.approx(out[ctl.CO_VD], abs=tol_v)
+        assert o.v_q == pytest.approx(out[ctl.CO_VQ], abs=tol_v)
+        assert st.id_i == pytest.approx(cs[ctl.CS_ID_I], abs=tol_v)
+        assert st.iq_i == pytest.approx(cs[ctl.CS_IQ_I], abs=tol_v)
+    assert saturated > 10  # the hexagon limit and the back-calculation were exercised
+
+
+# ---------------------------------------------------------------- Cortex-M4F target
+
+
+def test_cross_compiles_for_cortex_m4f_and_fits_the_g474():
+    """The core cross-compiled with arm-none-eabi-gcc (hard float, -O2, -Werror) into the
+    STM32G474 image; it fits the part's flash and SRAM, and no double-precision helper
+    (soft-float __aeabi_d*) is linked: the float32 path stays on the FPU."""
+    from fluxdrive.can import firmware_target as ft
+
+    missing = ft.target_available()
+    if missing:
+        pytest.skip(f"no ARM toolchain ({missing}); tools/bootstrap.sh installs it")
+    bdir = ft.build_target()
+    size = ft.target_sizes(bdir / "fd_g474.elf")
+    print(f"STM32G474 image: flash {size['flash']} B, RAM {size['ram']} B")
+    assert size["flash"] < 512 * 1024 and size["ram"] < 96 * 1024
+    syms = subprocess.run(
+        ["arm-none-eabi-nm", str(bdir / "fd_g474.elf")], capture_output=True, text=True, check=True
+    ).stdout
+    assert "__aeabi_dadd" not in syms and "__aeabi_dmul" not in syms
+    assert " malloc" not in syms
