@@ -1,5 +1,5 @@
-"""`./fluxdrive benchmark engine|replay|graph|paced|can|study`: throughput figures; the last line of
-each is a JSON object."""
+"""`./fluxdrive benchmark engine|replay|graph|paced|can|study|firmware`: throughput figures;
+the last line of each is a JSON object."""
 
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ BENCHES = {
     "paced": ("fluxdrive_bringup.bench", "bench_paced"),
     "can": ("fluxdrive.can.benchmark", "bench_can_cli"),
     "study": ("fluxdrive.study.cli", "bench_study"),
+    "firmware": ("fluxdrive.can.firmware_target", "bench_firmware"),
 }
 
 

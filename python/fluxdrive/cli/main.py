@@ -19,7 +19,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "benchmark": (
         "fluxdrive.cli.bench",
         "main",
-        "benchmarks: engine | replay | graph | paced | can | study",
+        "benchmarks: engine | replay | graph | paced | can | study | firmware",
     ),
     "demo": (
         "fluxdrive_bringup.cli",
