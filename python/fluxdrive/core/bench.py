@@ -125,8 +125,8 @@ def _num(src: str, key: str, v: Any, lo: float, hi: float) -> float:
     if (
         isinstance(v, bool)
         or not isinstance(v, (int, float))
+        or not math.isfinite(float(v))
         or not (lo <= float(v) <= hi)
-        or math.isnan(float(v))
     ):
         raise ConfigError(f"{src}: 'bench.{key}' must be a number in [{lo}, {hi}], got {v!r}")
     return float(v)

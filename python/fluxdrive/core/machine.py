@@ -30,7 +30,7 @@ def required(value: float | None, key: str) -> float:
 def refuse_unknown_keys(src: str, data: dict, known: list[str], where: str) -> None:
     """One line naming the file, the section and the keys it does not know (a typo is
     refused, never silently ignored); `known` is listed in the order given."""
-    bad = sorted(set(data) - set(known))
+    bad = sorted(set(data) - set(known), key=str)
     if bad:
         raise ConfigError(f"{src}: unknown key(s) {bad} under '{where}'; expected some of {known}")
 
@@ -39,7 +39,7 @@ def _require_range(src: str, key: str, value: Any, lo: float, hi: float) -> floa
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ConfigError(f"{src}: '{key}' must be a number in [{lo}, {hi}], got {value!r}")
     v = float(value)
-    if not (lo <= v <= hi) or math.isnan(v):
+    if not (lo <= v <= hi) or not math.isfinite(v):
         raise ConfigError(f"{src}: '{key}' = {v} is out of range [{lo}, {hi}]")
     return v
 
@@ -157,10 +157,7 @@ def load_machine(path: str | Path) -> MachineCard:
     try:
         raw = yamlio.load_file(path)
     except (OSError, yamlio.YAMLError) as exc:
-        raise ConfigError(
-            f"{path}: cannot read machine card{yamlio.problem_line(exc)}: "
-            f"{getattr(exc, 'problem', None) or exc}"
-        ) from exc
+        raise ConfigError(f"{path}: cannot read machine card: {yamlio.describe(exc)}") from exc
     if not isinstance(raw, dict):
         raise ConfigError(f"{path}: a machine card must be a mapping")
     flat: dict[str, Any] = {}
@@ -170,7 +167,7 @@ def load_machine(path: str | Path) -> MachineCard:
         else:
             flat[key] = value
     known = {f.name: f for f in fields(MachineCard)}
-    unknown = sorted(set(flat) - set(known))
+    unknown = sorted(set(flat) - set(known), key=str)
     if unknown:
         raise ConfigError(
             f"{path}: unknown machine-card key(s) {unknown}; expected some of {sorted(known)}"
@@ -183,7 +180,9 @@ def load_machine(path: str | Path) -> MachineCard:
                 raise ConfigError(f"{path}: '{key}' must be an integer, got {value!r}")
             kwargs[key] = value
         elif ftype in ("str", str):
-            kwargs[key] = str(value)
+            if not isinstance(value, str):
+                raise ConfigError(f"{path}: '{key}' must be a string, got {value!r}")
+            kwargs[key] = value
         else:
             kwargs[key] = _require_range(str(path), key, value, -math.inf, math.inf)
     return MachineCard(**kwargs).validate(str(path))

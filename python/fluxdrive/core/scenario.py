@@ -72,9 +72,63 @@ class Scenario:
 
 
 def _num(src: str, key: str, v: Any, lo: float = -math.inf, hi: float = math.inf) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not (lo <= float(v) <= hi):
-        raise ConfigError(f"{src}: '{key}' must be a number in [{lo}, {hi}], got {v!r}")
+    """A finite number in [lo, hi] (yamlio keeps integers within int64, so float() holds)."""
+    if (
+        isinstance(v, bool)
+        or not isinstance(v, (int, float))
+        or not math.isfinite(float(v))
+        or not (lo <= float(v) <= hi)
+    ):
+        where = f" in [{lo}, {hi}]" if math.isfinite(lo) or math.isfinite(hi) else ""
+        raise ConfigError(f"{src}: '{key}' must be a finite number{where}, got {v!r}")
     return float(v)
+
+
+def _int(src: str, key: str, v: Any, lo: int, hi: int) -> int:
+    if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+        raise ConfigError(f"{src}: '{key}' must be an integer in [{lo}, {hi}], got {v!r}")
+    return v
+
+
+def _mapping(src: str, key: str, v: Any) -> dict:
+    """`v` as a mapping (absent/null: empty), or one line naming the key."""
+    if v is None:
+        return {}
+    if not isinstance(v, dict):
+        raise ConfigError(f"{src}: '{key}' must be a mapping, got {type(v).__name__}")
+    return v
+
+
+# stepped-sine injections (drive.sim._injection): key -> (kind, lo, hi)
+_INJECTION_KEYS: dict[str, tuple[str, float, float]] = {
+    "frequencies_hz": ("list", 1e-3, 1e6),
+    "f_start_hz": ("num", 1e-3, 1e6),
+    "f_stop_hz": ("num", 1e-3, 1e6),
+    "n": ("int", 1, 1000),
+    "amplitude": ("num", -1e6, 1e6),
+    "start_s": ("num", 0.0, 3600.0),
+    "cycles": ("int", 1, 10_000),
+    "settle_cycles": ("int", 0, 10_000),
+}
+
+
+def _injection(src: str, key: str, v: Any) -> dict[str, Any] | None:
+    if v is None:
+        return None
+    v = _mapping(src, key, v)
+    refuse_unknown_keys(src, v, list(_INJECTION_KEYS), key)
+    for k, x in v.items():
+        kind, lo, hi = _INJECTION_KEYS[k]
+        if kind == "int":
+            _int(src, f"{key}.{k}", x, int(lo), int(hi))
+        elif kind == "num":
+            _num(src, f"{key}.{k}", x, lo, hi)
+        else:
+            if not isinstance(x, list) or not 1 <= len(x) <= 1000:
+                raise ConfigError(f"{src}: '{key}.{k}' must be a list of 1..1000 frequencies")
+            for f in x:
+                _num(src, f"{key}.{k}", f, lo, hi)
+    return v
 
 
 def _profile(src: str, key: str, v: Any) -> np.ndarray:
@@ -98,6 +152,9 @@ def _dataclass_from(src: str, key: str, cls, data: dict, base=None):
         raise ConfigError(f"{src}: '{key}' must be a mapping")
     known = {f.name for f in fields(cls)}
     refuse_unknown_keys(src, data, sorted(known), key)
+    for k in data:
+        if not isinstance(k, str):
+            raise ConfigError(f"{src}: '{key}': key {k!r} is not a name")
     obj = base if base is not None else cls()
     for k, v in data.items():
         cur = getattr(obj, k)
@@ -158,10 +215,7 @@ def load_scenario(
     try:
         raw = yamlio.load_file(path)
     except (OSError, yamlio.YAMLError) as exc:
-        raise ConfigError(
-            f"{src}: cannot read scenario{yamlio.problem_line(exc)}: "
-            f"{getattr(exc, 'problem', None) or exc}"
-        ) from exc
+        raise ConfigError(f"{src}: cannot read scenario: {yamlio.describe(exc)}") from exc
     if not isinstance(raw, dict):
         raise ConfigError(f"{src}: a scenario must be a mapping")
     if machine is not None:  # --machine: the file's rpm values at the same per-unit speed
@@ -172,24 +226,23 @@ def load_scenario(
             if pair[0] in overrides and pair[0] not in raw:
                 raw.pop(pair[1], None)  # an override in the other unit replaces the profile
         raw.update(overrides)
-    unknown = sorted(set(raw) - _TOP_KEYS)
+    unknown = sorted(set(raw) - _TOP_KEYS, key=str)
     if unknown:
         raise ConfigError(f"{src}: unknown key(s) {unknown}; expected some of {sorted(_TOP_KEYS)}")
     if machine is not None:  # --machine: a path, or a card name under config/machines
         mpath = machine_path(machine)
     else:
         mpath = _own_card_path(path, raw)
-    card = load_machine(mpath)
+    try:
+        card = load_machine(mpath)
+    except ConfigError as exc:  # the card's own line, said to belong to this scenario
+        raise ConfigError(f"{src}: 'machine': {exc}") from exc
 
     duration = _num(src, "duration_s", raw.get("duration_s", 2.0), 1e-3, 3600.0)
-    seed = raw.get("seed", 0)
-    if isinstance(seed, bool) or not isinstance(seed, int):
-        raise ConfigError(f"{src}: 'seed' must be an integer, got {seed!r}")
-    bench = parse_bench(src, _bench_raw(src, path, raw.get("bench")), card)
-    ctrl_raw = raw.get("control", {}) or {}
-    if not isinstance(ctrl_raw, dict):
-        raise ConfigError(f"{src}: 'control' must be a mapping")
-    ctrl_raw = dict(ctrl_raw)
+    seed = _int(src, "seed", raw.get("seed", 0), 0, (1 << 63) - 1)  # numpy seeds are >= 0
+    bench_raw, bench_src = _bench_raw(src, path, raw.get("bench"))
+    bench = parse_bench(bench_src, bench_raw, card)
+    ctrl_raw = dict(_mapping(src, "control", raw.get("control")))
     for key_pu, key_rpm in _CONTROL_PU.items():
         if key_pu in ctrl_raw:
             if key_rpm in ctrl_raw:
@@ -205,8 +258,10 @@ def load_scenario(
         raise ConfigError(f"{src}: 'observers' must be a mapping name -> settings")
     observers: dict[str, ObserverConfig] = {}
     for name, spec in obs_raw.items():
-        spec = dict(spec or {})
+        spec = dict(_mapping(src, f"observers.{name}", spec))
         variant = spec.pop("variant", "paper")
+        if not isinstance(variant, str):
+            raise ConfigError(f"{src}: 'observers.{name}.variant' must be a name, got {variant!r}")
         try:
             base = observer_config(variant)
         except ConfigError as exc:
@@ -233,13 +288,14 @@ def load_scenario(
     if (
         not isinstance(win, (list, tuple))
         or len(win) != 2
-        or not 0 <= float(win[0]) < float(win[1]) <= duration + 1e-9
+        or not 0
+        <= _num(src, "steady_window_s", win[0])
+        < _num(src, "steady_window_s", win[1])
+        <= duration + 1e-9
     ):
         raise ConfigError(f"{src}: 'steady_window_s' must be [start, end] within the duration")
-    faults = raw.get("faults", {}) or {}
-    if not isinstance(faults, dict):
-        raise ConfigError(f"{src}: 'faults' must be a mapping")
-    bad = sorted(set(faults) - {"current_offset_pu", "current_gain"})
+    faults = _mapping(src, "faults", raw.get("faults"))
+    bad = sorted(set(faults) - {"current_offset_pu", "current_gain"}, key=str)
     if bad:
         raise ConfigError(
             f"{src}: unknown fault key(s) {bad}; expected current_offset_pu, current_gain"
@@ -251,8 +307,8 @@ def load_scenario(
             raise ConfigError(f"{src}: '{key}' must be a list of 3 numbers (phases a, b, c)")
         for x in val:
             _num(src, key, x)
-    plant = raw.get("plant", {}) or {}
-    bad = sorted(set(plant) - {"deadtime_s"})
+    plant = _mapping(src, "plant", raw.get("plant"))
+    bad = sorted(set(plant) - {"deadtime_s"}, key=str)
     if bad:
         raise ConfigError(f"{src}: unknown plant key(s) {bad}; expected deadtime_s")
     td = plant.get("deadtime_s")
@@ -276,17 +332,23 @@ def load_scenario(
         current_gain=tuple(float(x) for x in gain),
         plant_deadtime_s=None if td is None else _num(src, "plant.deadtime_s", td, 0.0, 1e-4),
         initial_angle_deg=_num(src, "initial_angle_deg", raw.get("initial_angle_deg", 0.0)),
-        id_injection=raw.get("id_injection"),
-        speed_injection=raw.get("speed_injection"),
+        id_injection=_injection(src, "id_injection", raw.get("id_injection")),
+        speed_injection=_injection(src, "speed_injection", raw.get("speed_injection")),
         source=src,
-        extra=raw.get("extra", {}) or {},
+        extra=dict(_mapping(src, "extra", raw.get("extra"))),
         bench=bench,
     )
 
 
 def _own_card_path(path: Path, raw: dict) -> Path:
     """The machine card a scenario file names (default: the default card)."""
-    mpath = Path(raw.get("machine", "../machines/default_spm.yaml"))
+    name = raw.get("machine", "../machines/default_spm.yaml")
+    if not isinstance(name, str) or not name or "\0" in name:
+        raise ConfigError(
+            f"{path}: 'machine' must be the path of a machine card (relative to the "
+            f"scenario file), got {name!r}"
+        )
+    mpath = Path(name)
     return mpath if mpath.is_absolute() else path.parent / mpath
 
 
@@ -352,18 +414,21 @@ def _speed_profile(src: str, raw: dict, card: MachineCard) -> np.ndarray:
     return _profile(src, "speed_rpm", raw.get("speed_rpm", 60.0))
 
 
-def _bench_raw(src: str, path: Path, v: Any) -> Any:
-    """The `bench:` entry: a mapping, or the path of a bench file (relative to the scenario)."""
+def _bench_raw(src: str, path: Path, v: Any) -> tuple[Any, str]:
+    """The `bench:` entry: a mapping, or the path of a bench file (relative to the scenario);
+    with the source its errors name (the scenario, and the bench file if there is one)."""
     if not isinstance(v, str):
-        return v
+        return v, src
+    if not v or "\0" in v:
+        raise ConfigError(f"{src}: 'bench' must be a mapping or a bench file's path, got {v!r}")
     bpath = Path(v) if Path(v).is_absolute() else path.parent / v
     try:
         raw = yamlio.load_file(bpath)
     except (OSError, yamlio.YAMLError) as exc:
         raise ConfigError(
-            f"{src}: 'bench': cannot read bench file {bpath}{yamlio.problem_line(exc)}: {exc}"
+            f"{src}: 'bench': cannot read bench file {bpath}: {yamlio.describe(exc)}"
         ) from exc
-    return {} if raw is None else raw
+    return ({} if raw is None else raw), f"{src}: bench file {bpath}"
 
 
 def _load_band(src: str, raw: dict) -> float:

@@ -17,8 +17,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
+from fluxdrive.core import yamlio
 from fluxdrive.core.machine import ConfigError
 from fluxdrive.core.scenario import CONFIG_DIR, REPO_ROOT, scenario_path
 from fluxdrive.drive.control import ControllerConfig
@@ -164,6 +164,21 @@ def _err(src: str, msg: str) -> ConfigError:
     return ConfigError(f"{src}: {msg}")
 
 
+MAX_TASKS = 1_000_000  # variants x grid points x draws: beyond this a spec is a typo
+
+
+def _finite(src: str, key: str, v: Any) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise _err(src, f"{key} must be a finite number, got {v!r}")
+    return float(v)
+
+
+def _path_text(src: str, key: str, v: Any) -> str:
+    if not isinstance(v, str) or not v or "\0" in v:
+        raise _err(src, f"{key} must be a path, got {v!r}")
+    return v
+
+
 def load_spec(path: str | Path) -> StudySpec:
     """Load and validate a study spec; errors name the file and key."""
     p = Path(path)
@@ -171,12 +186,12 @@ def load_spec(path: str | Path) -> StudySpec:
         p = STUDY_DIR / f"{p.name}.yaml"
     src = str(p)
     try:
-        raw = yaml.safe_load(p.read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        raise _err(src, f"cannot read study spec: {exc}") from exc
+        raw = yamlio.load_file(p)
+    except (OSError, yamlio.YAMLError) as exc:
+        raise _err(src, f"cannot read study spec: {yamlio.describe(exc)}") from exc
     if not isinstance(raw, dict):
         raise _err(src, "a study spec must be a mapping")
-    bad = sorted(set(raw) - _TOP)
+    bad = sorted(set(raw) - _TOP, key=str)
     if bad:
         raise _err(src, f"unknown key(s) {bad}; expected some of {sorted(_TOP)}")
     seed = raw.get("seed", 0)
@@ -195,11 +210,13 @@ def load_spec(path: str | Path) -> StudySpec:
         )
     vout: dict[str, dict[str, Any]] = {}
     for name, cfg in variants.items():
+        if cfg is not None and not isinstance(cfg, dict):
+            raise _err(src, f"variants.{name} must be a mapping of observer settings")
         cfg = dict(cfg or {})
         if not isinstance(cfg.get("variant", "paper"), str):
             raise _err(src, f"variants.{name}.variant must be a string")
         if scen.get("bag") is None:
-            bad = sorted(set(cfg) - OBSERVER_KEYS - {"variant"})
+            bad = sorted(set(cfg) - OBSERVER_KEYS - {"variant"}, key=str)
             if bad:
                 raise _err(
                     src,
@@ -211,6 +228,8 @@ def load_spec(path: str | Path) -> StudySpec:
     if not isinstance(grid, dict):
         raise _err(src, "'grid' must be a mapping axis -> list of values")
     for a, vals in grid.items():
+        if not isinstance(a, str):
+            raise _err(src, f"grid: axis {a!r} must be a name")
         if not isinstance(vals, list) or not vals:
             raise _err(src, f"grid.{a} must be a non-empty list of values")
         _axis_kind(src, f"grid.{a}", a, scen)
@@ -221,42 +240,62 @@ def load_spec(path: str | Path) -> StudySpec:
                 f"the scenario's faults)",
             )
         for v in vals:
-            if isinstance(v, bool) or not isinstance(v, (int, float)):
-                raise _err(src, f"grid.{a}: values must be numbers, got {v!r}")
+            _finite(src, f"grid.{a} values", v)
     grid = {a: [float(v) for v in vals] for a, vals in grid.items()}
     rnd = raw.get("random") or {}
     if not isinstance(rnd, dict):
         raise _err(src, "'random' must be a mapping axis -> distribution")
     for a, d in rnd.items():
-        if a not in PERTURBATIONS:
+        if not isinstance(a, str) or a not in PERTURBATIONS:
             raise _err(
                 src, f"random.{a}: unknown random axis; expected one of {sorted(PERTURBATIONS)}"
             )
         if a in grid:
             raise _err(src, f"random.{a}: also a grid axis")
         _axis_kind(src, f"random.{a}", a, scen)
-        if not isinstance(d, dict) or d.get("dist") not in DISTS:
+        if not isinstance(d, dict) or not isinstance(d.get("dist"), str) or d["dist"] not in DISTS:
             raise _err(src, f"random.{a} must be {{dist: uniform|normal|choice, ...}}")
         need = DISTS[d["dist"]]
         miss = [k for k in need if k not in d]
         if miss:
             raise _err(src, f"random.{a}: dist {d['dist']} needs {list(need)}")
+        bad = sorted(set(d) - set(need) - {"dist", "clip_low", "clip_high"}, key=str)
+        if bad:
+            raise _err(src, f"random.{a}: unknown key(s) {bad} for dist {d['dist']}")
         if d["dist"] == "choice":
-            if not isinstance(d["values"], list) or not d["values"]:
-                raise _err(src, f"random.{a}.values must be a non-empty list")
+            if not isinstance(d["values"], list) or not 1 <= len(d["values"]) <= 10_000:
+                raise _err(src, f"random.{a}.values must be a list of 1..10000 numbers")
+            for v in d["values"]:
+                _finite(src, f"random.{a}.values", v)
         else:
-            for k in need:
-                if isinstance(d[k], bool) or not isinstance(d[k], (int, float)):
-                    raise _err(src, f"random.{a}.{k} must be a number, got {d[k]!r}")
-    rl = raw.get("rated_load_pu", 1.0)
+            for k in (*need, *(c for c in ("clip_low", "clip_high") if c in d)):
+                _finite(src, f"random.{a}.{k}", d[k])
+            if d["dist"] == "uniform" and d["low"] > d["high"]:
+                raise _err(src, f"random.{a}: low {d['low']} is above high {d['high']}")
+            if d["dist"] == "normal" and d["std"] < 0:
+                raise _err(src, f"random.{a}.std must be >= 0, got {d['std']}")
+    rl = _finite(src, "'rated_load_pu'", raw.get("rated_load_pu", 1.0))
+    if not 0 < rl <= 100:
+        raise _err(src, f"'rated_load_pu' must be in (0, 100], got {rl!r}")
     prob = raw.get("probability", 0.95)
     if isinstance(prob, bool) or not isinstance(prob, (int, float)) or not 0 < prob < 1:
         raise _err(src, f"'probability' must be in (0, 1), got {prob!r}")
-    axes = (
-        tuple(raw.get("map", {}).get("axes", ["speed_rpm", "load_pu"]))
-        if isinstance(raw.get("map"), dict)
-        else ("speed_rpm", "load_pu")
-    )
+    for key in ("name", "description"):
+        if not isinstance(raw.get(key, ""), str):
+            raise _err(src, f"'{key}' must be a string, got {raw[key]!r}")
+    mp = raw.get("map", {}) or {}
+    axes = mp.get("axes", ["speed_rpm", "load_pu"]) if isinstance(mp, dict) else None
+    if (
+        not isinstance(axes, list)
+        or len(axes) != 2
+        or not all(isinstance(a, str) for a in axes)
+        or (isinstance(mp, dict) and sorted(set(mp) - {"axes"}, key=str))
+    ):
+        raise _err(src, "'map' must be {axes: [X_AXIS, Y_AXIS]} (two axis names)")
+    axes = tuple(axes)
+    n_tasks = len(vout) * draws * math.prod(len(v) for v in grid.values())
+    if n_tasks > MAX_TASKS:
+        raise _err(src, f"{n_tasks} tasks (variants x grid points x draws), more than {MAX_TASKS}")
     return StudySpec(
         name=str(raw.get("name", p.stem)),
         source=src,
@@ -287,34 +326,45 @@ def _scenario(src: str, base: Path, s: Any) -> dict[str, Any]:
     params = s.get("params", {}) or {}
     if not isinstance(params, dict):
         raise _err(src, "scenario.params must be a mapping")
+    if not all(isinstance(k, str) for k in params):
+        raise _err(src, "scenario.params keys must be names")
     out["params"] = params
     bad = sorted(
-        set(s) - {"builder", "file", "bag", "params", "machine", "window_s", "encoder_offset_deg"}
+        set(s) - {"builder", "file", "bag", "params", "machine", "window_s", "encoder_offset_deg"},
+        key=str,
     )
     if bad:
         raise _err(src, f"scenario: unknown key(s) {bad}")
     if "builder" in s:
-        if s["builder"] not in BUILDERS:
+        if not isinstance(s["builder"], str) or s["builder"] not in BUILDERS:
             raise _err(
                 src, f"scenario.builder must be one of {sorted(BUILDERS)}, got {s['builder']!r}"
             )
     elif "file" in s:
-        f = Path(str(s["file"]))
+        f = Path(_path_text(src, "scenario.file", s["file"]))
         cand = base / f
         try:
             out["file"] = str((cand if cand.exists() else scenario_path(str(f))).resolve())
         except ConfigError as exc:
             raise _err(src, f"scenario.file: {exc}") from exc
     else:
-        b = Path(str(s["bag"]))
+        b = Path(_path_text(src, "scenario.bag", s["bag"]))
         for cand in (base / b, REPO_ROOT / b, b):
             if cand.exists():
                 out["bag"] = str(cand.resolve())
                 break
         else:
             raise _err(src, f"scenario.bag: no bag at {b}")
+    if "window_s" in s and s["window_s"] is not None:
+        w = s["window_s"]
+        if not isinstance(w, list) or len(w) != 2:
+            raise _err(src, "scenario.window_s must be [start_s, end_s]")
+        for x in w:
+            _finite(src, "scenario.window_s", x)
+    if "encoder_offset_deg" in s:
+        _finite(src, "scenario.encoder_offset_deg", s["encoder_offset_deg"])
     if "machine" in s:
-        m = base / str(s["machine"])
+        m = base / _path_text(src, "scenario.machine", s["machine"])
         out["machine"] = str(m.resolve() if m.exists() else Path(str(s["machine"])).resolve())
     return out
 

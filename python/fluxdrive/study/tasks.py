@@ -134,9 +134,9 @@ def build_task_scenario(p: dict[str, Any]) -> Scenario:
             **kw,
         )
     else:
-        import yaml
+        from fluxdrive.core import yamlio
 
-        raw = yaml.safe_load(Path(spec["file"]).read_text()) or {}
+        raw = yamlio.load_file(spec["file"]) or {}
         driving = "encoder" if raw.get("driving", "encoder") == "encoder" else vname
         over = {**scen_kw, "observers": {vname: obs}, "driving": driving, "seed": p["seed"]}
         sc = load_scenario(spec["file"], machine=spec.get("machine"), overrides=over)

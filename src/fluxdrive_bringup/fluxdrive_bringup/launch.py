@@ -212,12 +212,23 @@ def _policy(d: dict, where: str) -> dict[str, Any]:
     return out
 
 
+_ENV_VALUE_MAX = 32_768
+
+
+def _seconds(src: str, key: str, v: Any, lo: float, hi: float) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not lo <= v <= hi:
+        raise ConfigError(f"{src}: '{key}' must be a number of seconds {lo}..{hi}, got {v!r}")
+    return float(v)
+
+
 def parse_graph(raw: Any, src: str = "graph", base: Path = REPO_ROOT) -> Graph:
     if not isinstance(raw, dict):
         raise ConfigError(f"{src}: a graph must be a mapping with a 'nodes' list")
-    bad = sorted(set(raw) - _TOP_KEYS)
+    bad = sorted(set(raw) - _TOP_KEYS, key=str)
     if bad:
         raise ConfigError(f"{src}: unknown key(s) {bad}; expected some of {sorted(_TOP_KEYS)}")
+    if "name" in raw and not isinstance(raw["name"], str):
+        raise ConfigError(f"{src}: 'name' must be a string, got {raw['name']!r}")
     nodes_raw = raw.get("nodes")
     if not isinstance(nodes_raw, list) or not nodes_raw:
         raise ConfigError(f"{src}: 'nodes' must be a non-empty list")
@@ -227,7 +238,7 @@ def parse_graph(raw: Any, src: str = "graph", base: Path = REPO_ROOT) -> Graph:
         where = f"{src}: nodes[{i}]"
         if not isinstance(nd, dict):
             raise ConfigError(f"{where} must be a mapping")
-        bad = sorted(set(nd) - _NODE_KEYS)
+        bad = sorted(set(nd) - _NODE_KEYS, key=str)
         if bad:
             raise ConfigError(
                 f"{where}: unknown key(s) {bad}; expected some of {sorted(_NODE_KEYS)}"
@@ -262,17 +273,28 @@ def parse_graph(raw: Any, src: str = "graph", base: Path = REPO_ROOT) -> Graph:
             raise ConfigError(f"{where} ({name}): 'params' must be a list of files")
         files = []
         for p in params:
+            if not isinstance(p, str) or not p or "\0" in p:
+                raise ConfigError(
+                    f"{where} ({name}): 'params' entries must be file paths, got {p!r}"
+                )
             f = _resolve(p, base)
             if not f.exists():
                 raise ConfigError(f"{where} ({name}): parameter file {p} not found")
             try:
                 yamlio.load_file(f)
-            except yamlio.YAMLError as exc:
-                raise ConfigError(f"{f}: not valid YAML: {exc}") from exc
+            except (OSError, yamlio.YAMLError) as exc:
+                raise ConfigError(f"{f}: not valid YAML: {yamlio.describe(exc)}") from exc
             files.append(str(f))
         parameters = nd.get("parameters", {}) or {}
-        if not isinstance(parameters, dict):
-            raise ConfigError(f"{where} ({name}): 'parameters' must be a mapping")
+        if not isinstance(parameters, dict) or not all(isinstance(k, str) for k in parameters):
+            raise ConfigError(f"{where} ({name}): 'parameters' must be a mapping name -> value")
+        for s_key in ("namespace", "process"):
+            if not isinstance(nd.get(s_key, "") or "", str):
+                raise ConfigError(
+                    f"{where} ({name}): '{s_key}' must be a string, got {nd[s_key]!r}"
+                )
+        if not isinstance(nd.get("required", False), bool):
+            raise ConfigError(f"{where} ({name}): 'required' must be true/false")
         ns = str(nd.get("namespace", "") or "")
         if ns and not ns.startswith("/"):
             ns = "/" + ns
@@ -308,14 +330,29 @@ def parse_graph(raw: Any, src: str = "graph", base: Path = REPO_ROOT) -> Graph:
     env = raw.get("env", {}) or {}
     if not isinstance(env, dict):
         raise ConfigError(f"{src}: 'env' must be a mapping")
+    for k, v in env.items():
+        # an environment variable is a name and a scalar; Linux takes at most 128 kB each
+        if not isinstance(k, str) or not k or "=" in k or "\0" in k:
+            raise ConfigError(f"{src}: 'env': {k!r} is not an environment variable name")
+        if isinstance(v, (dict, list)) or v is None:
+            raise ConfigError(
+                f"{src}: 'env.{k}' must be a string or number, got {type(v).__name__}"
+            )
+        if len(str(v)) > _ENV_VALUE_MAX or "\0" in str(v):
+            raise ConfigError(
+                f"{src}: 'env.{k}' is {len(str(v))} characters (at most {_ENV_VALUE_MAX}, no NUL)"
+            )
+    stop_s = {
+        k: _seconds(src, k, raw.get(k, d), 0.1, 3600.0)
+        for k, d in (("stop_timeout_s", 15.0), ("stop_grace_s", 20.0))
+    }
     g = Graph(
         name=str(raw.get("name", Path(src).stem)),
         nodes=nodes,
         discovery_range=dr,
         domain_id=dom,
         env={str(k): str(v) for k, v in env.items()},
-        stop_timeout_s=float(raw.get("stop_timeout_s", 15.0)),
-        stop_grace_s=float(raw.get("stop_grace_s", 20.0)),
+        **stop_s,
         source=src,
         **_policy(raw, src),
     )
@@ -348,7 +385,7 @@ def load_graph(path: str | Path) -> Graph:
     try:
         raw = yamlio.load_file(path)
     except (OSError, yamlio.YAMLError) as exc:
-        raise ConfigError(f"{path}: cannot read graph: {exc}") from exc
+        raise ConfigError(f"{path}: cannot read graph: {yamlio.describe(exc)}") from exc
     return parse_graph(raw, str(path), path.parent)
 
 

@@ -249,6 +249,11 @@ def _key_regex(key: str) -> re.Pattern:
     return re.compile(out.replace("/.*", "(/.*)?") + "$")
 
 
+def _esc(name: Any) -> str:
+    """A name from a file as one line (a key may hold a newline or control characters)."""
+    return str(name).encode("unicode_escape").decode("ascii")
+
+
 def check_params_file(path: str | Path) -> dict[str, dict[str, Any]]:
     """Read a ros__parameters file; raise ValueError naming the file (and the key) if it
     is not what rcl accepts: {node pattern: {ros__parameters: {name: value}}} with scalar
@@ -273,11 +278,11 @@ def check_params_file(path: str | Path) -> dict[str, dict[str, Any]]:
     out: dict[str, dict[str, Any]] = {}
     for node_key, body in raw.items():
         if not isinstance(body, dict) or "ros__parameters" not in body:
-            raise ValueError(f"{path}: '{node_key}' must hold a 'ros__parameters' mapping")
+            raise ValueError(f"{path}: '{_esc(node_key)}' must hold a 'ros__parameters' mapping")
         params = body["ros__parameters"]
         if not isinstance(params, dict):
             raise ValueError(
-                f"{path}: '{node_key}.ros__parameters' must be a mapping of "
+                f"{path}: '{_esc(node_key)}.ros__parameters' must be a mapping of "
                 f"parameter names to values, got {type(params).__name__}"
             )
         out[str(node_key)] = _flatten(path, str(node_key), params, "", {})
@@ -289,7 +294,7 @@ def _flatten(
 ) -> dict[str, Any]:
     for name, value in d.items():
         key = f"{prefix}{name}"
-        where = f"{path}: '{node_key}.ros__parameters.{key}'"
+        where = f"{path}: '{_esc(node_key)}.ros__parameters.{_esc(key)}'"
         if isinstance(value, dict):
             _flatten(path, node_key, value, key + ".", flat)
             continue
