@@ -342,17 +342,16 @@ def parse_graph(raw: Any, src: str = "graph", base: Path = REPO_ROOT) -> Graph:
             raise ConfigError(
                 f"{src}: 'env.{k}' is {len(str(v))} characters (at most {_ENV_VALUE_MAX}, no NUL)"
             )
-    stop_s = {
-        k: _seconds(src, k, raw.get(k, d), 0.1, 3600.0)
-        for k, d in (("stop_timeout_s", 15.0), ("stop_grace_s", 20.0))
-    }
+    stop_timeout_s = _seconds(src, "stop_timeout_s", raw.get("stop_timeout_s", 15.0), 0.1, 3600.0)
+    stop_grace_s = _seconds(src, "stop_grace_s", raw.get("stop_grace_s", 20.0), 0.1, 3600.0)
     g = Graph(
         name=str(raw.get("name", Path(src).stem)),
         nodes=nodes,
         discovery_range=dr,
         domain_id=dom,
         env={str(k): str(v) for k, v in env.items()},
-        **stop_s,
+        stop_timeout_s=stop_timeout_s,
+        stop_grace_s=stop_grace_s,
         source=src,
         **_policy(raw, src),
     )
