@@ -1,19 +1,8 @@
 """A new observer variant in under 50 lines: VESC-style flux integrator, rotor flux clamped."""
-
 import math
 
 import numpy as np
-from fluxdrive.drive.observers import (
-    ES_EA,
-    ES_EB,
-    ES_LA,
-    ES_LB,
-    ES_N,
-    ES_TH,
-    ES_VALID,
-    ES_W,
-    Observer,
-)
+from fluxdrive.drive.observers import ES_EA, ES_EB, ES_LA, ES_LB, ES_N, ES_TH, ES_VALID, ES_W, Observer
 from fluxdrive.drive.plant import FR_IA, FR_IB, FR_IC, FR_VAB, FR_VBC, FR_VCA
 
 
@@ -32,9 +21,9 @@ class ClampedFluxObserver(Observer):
         self.ip, self.eta, self.th, self.w = None, np.zeros(2), 0.0, 0.0
 
     def step(self, fr):
-        ia = (2 * fr[FR_IA] - fr[FR_IB] - fr[FR_IC]) / 3  # Clarke
+        ia = (2 * fr[FR_IA] - fr[FR_IB] - fr[FR_IC]) / 3          # Clarke
         ib = (fr[FR_IB] - fr[FR_IC]) / math.sqrt(3)
-        va = (fr[FR_VAB] - fr[FR_VCA]) / 3  # line -> alpha/beta
+        va = (fr[FR_VAB] - fr[FR_VCA]) / 3                          # line -> alpha/beta
         vb = fr[FR_VBC] / math.sqrt(3)
         out = np.zeros(ES_N)
         i = np.array([ia, ib])
