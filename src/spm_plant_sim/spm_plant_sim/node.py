@@ -20,9 +20,13 @@ Modes
   `watchdog_periods` periods of wall time, after which the plant runs on with the PWM off
   (frames flagged STATUS_STALE_COMMAND) until duty commands come back.  Time slips by every
   hold (the next frame is due when the plant goes on, no burst of frames to catch up with
-  the wall clock); the clock starts with the first duty command (up to 30 s: processes
-  starting).  The pacing record (lateness of every frame against its due time, holds,
-  watchdog trips) is logged as one "pacing {json}" line when the plant stops.
+  the wall clock); the clock starts with the first duty command (up to
+  `first_duty_timeout_s`, 30 s: processes starting).  The pacing record (lateness of every
+  frame against its due time, holds, watchdog trips) is logged as one "pacing {json}" line
+  when the plant stops.  A live `rate_factor` change re-anchors the pacing clock at the
+  sample it takes effect (the simulated time reached so far is kept), so the next frame
+  follows at the new rate without a gap; a paced plant that publishes no frame for
+  `stall_warn_s` of wall time says so in one line.
 
 Safe state when the controller is gone (watchdogs):
 - lockstep: a duty command that has not come after `duty_timeout_s` of wall time (the
@@ -121,6 +125,25 @@ def param_table(sc) -> list[P]:
             "",
             1e-3,
             10.0,
+        ),
+        P(
+            "first_duty_timeout_s",
+            30.0,
+            "paced mode: how long the plant waits for the first duty command (processes "
+            "starting, code loading) before it runs on with the PWM off",
+            "s",
+            0.0,
+            3600.0,
+        ),
+        P(
+            "stall_warn_s",
+            2.0,
+            "paced mode: one warning line when no frame has been published for this much "
+            "wall time beyond its due time (the plant waits for a duty command, or its "
+            "loop is starved), one more when frames come again (live)",
+            "s",
+            0.01,
+            3600.0,
         ),
         P(
             "watchdog_periods",
@@ -264,6 +287,8 @@ class PlantNode(FluxNode):
         self.n_holds = 0
         self.n_slips = 0
         self.lateness: list[float] = []  # paced: publish time - due time of every frame [s]
+        self.t_last_frame = 0.0  # paced: wall time of the last frame published
+        self.stalled_since: float | None = None  # paced: the stall line was said
         self._wd_k = -1  # lockstep watchdog: frame index and wall time of the last progress
         self._wd_t = 0.0
         self.counts = diag.Counters(
@@ -299,6 +324,13 @@ class PlantNode(FluxNode):
 
     def _apply(self, changes: dict) -> str:
         new = {**self.pv, **changes}
+        if "rate_factor" in changes and self.paced and self.started:
+            # re-anchor the pacing clock: the simulated time reached at this instant stays
+            # where it is, and from here on wall time counts at the new rate (with the old
+            # anchor a lower rate put the next frame's due time far in the future)
+            now = time.perf_counter()
+            sim_s = (now - self.t_wall0) * float(self.pv["rate_factor"])
+            self.t_wall0 = now - sim_s / float(new["rate_factor"])
         self.pv = new
         if "deadtime_s" in changes:
             self.mp[MP_TD] = float(new["deadtime_s"])
@@ -359,6 +391,13 @@ class PlantNode(FluxNode):
         self._publish(k, flags)
 
     def _publish(self, k: int, flags: int = 0) -> None:
+        self.t_last_frame = time.perf_counter()
+        if self.stalled_since is not None:
+            self.get_logger().info(
+                f"pacing: frames again (frame {k}) after "
+                f"{self.t_last_frame - self.stalled_since:.2f} s without one"
+            )
+            self.stalled_since = None
         sec, nsec = self.stamp(k)
         self.pub_frame.publish(self.fw.pack(self.frame, sec, nsec, flags))
         self.pub_truth.publish(self.tw.pack(self.truth, k, sec, nsec))
@@ -493,6 +532,22 @@ class PlantNode(FluxNode):
 
     def _on_pace(self) -> None:
         self._pace_step()
+        if self.done or self.stalled_since is not None:
+            return
+        now = time.perf_counter()
+        rate = float(self.pv["rate_factor"])
+        silent = now - self.t_last_frame - self.ds.ts / rate  # beyond the next frame's period
+        if silent >= self.pv["stall_warn_s"]:
+            self.stalled_since = self.t_last_frame
+            why = (
+                f"waiting for duty command {self.k - 1}"
+                if self.held or self.last_duty is None
+                else "its loop is starved"
+            )
+            self.get_logger().warning(
+                f"pacing: no frame for {now - self.t_last_frame:.2f} s of wall time after frame "
+                f"{self.k} (rate_factor {rate:g}, stall_warn_s {self.pv['stall_warn_s']:g}): {why}"
+            )
 
     def _pace_step(self) -> None:
         """Advance every period that is due and whose duty(k-2) is here (or whose wait for
@@ -509,7 +564,8 @@ class PlantNode(FluxNode):
             due = self.k + 1
         wd_wall = self.pv["watchdog_periods"] * ts / rate
         if self.last_duty is None:  # the first answer may take a while (processes
-            wd_wall = max(wd_wall, 30.0)  # starting, code loading): the clock starts with it
+            # starting, code loading): the clock starts with it
+            wd_wall = max(wd_wall, float(self.pv["first_duty_timeout_s"]))
         steps = 0
         while self.k < due and steps < 5000:
             k = self.k + 1
