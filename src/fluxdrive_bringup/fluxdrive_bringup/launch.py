@@ -990,7 +990,7 @@ def main(argv: list[str]) -> int:
     if args.scope:
         add_scope(g, port=args.scope_port)
     if not args.shared_domain:  # a domain no live node uses (or refused, naming them)
-        from .runs import choose_domain
+        from .domains import choose_domain
 
         # (the graph's domain_id, else ROS_DOMAIN_ID, else 0 -- where `param set` and
         # `topic echo` from another shell look by default)

@@ -38,8 +38,9 @@ from fluxdrive.core import yamlio
 from fluxdrive.core.scenario import REPO_ROOT, load_scenario, scenario_path
 from fluxdrive_ros.topics import CONTROLLER_STATE, FRAME, TRUTH, estimate_topic
 
+from .domains import pick_domain_id
 from .launch import Launcher
-from .runs import graph_for_scenario, pick_domain_id, shorten
+from .runs import graph_for_scenario, shorten
 
 SOAK_SCENARIO = "paper_4pct_fullload"
 
