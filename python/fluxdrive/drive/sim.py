@@ -27,8 +27,8 @@ from typing import Literal
 import numpy as np
 from numba import njit
 
-from fluxdrive.analysis.freqresp import Segment, stepped_sine
 from fluxdrive.core.blocks import rng_new
+from fluxdrive.core.excitation import Segment, stepped_sine
 from fluxdrive.core.scenario import RPM, Scenario
 from fluxdrive.drive.control import (
     CO_DA,
