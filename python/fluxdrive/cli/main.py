@@ -52,7 +52,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
         "main_soak",
         "load check: long lockstep graph run + burst replay (memory, no loss)",
     ),
-    "replay": ("fluxdrive.replay.lab", "main", "replay bags through observer variants"),
+    "replay": ("fluxdrive.cli.replay", "main", "replay bags through observer variants"),
     "can-import": ("fluxdrive.io.canimport", "main", "CAN capture (.log/.asc/.blf) -> bag"),
     "can-emulator": (
         "fluxdrive.can.emulator",

@@ -20,6 +20,8 @@ Variant SPEC:
 Sweeps: --sweep KEY=START:STOP:N (linspace) or KEY=V1,V2,... over one variant, in parallel
         (the project's dask runner: -j N local workers, or --scheduler tcp://HOST:PORT).
 Live:   `--live [--rate R] [--loop] [--start S]` publishes the frames on /drive/frame (ROS).
+
+The command line is fluxdrive.cli.replay; sweeps run in fluxdrive.study.bagsweep.
 See docs/replay.md.
 """
 
@@ -40,15 +42,12 @@ import numpy as np
 
 from fluxdrive.analysis.metrics import (
     RAD_S_TO_RPM,
-    compute,
-    format_table,
     harmonic_spectrum,
     steady_window,
     whole_periods,
     wrap,
-    write_json,
 )
-from fluxdrive.core.machine import ConfigError, MachineCard, load_machine
+from fluxdrive.core.machine import ConfigError, MachineCard
 from fluxdrive.core.scenario import REPO_ROOT, Scenario
 from fluxdrive.drive.control import CO_MODE, CO_N, CO_W_REF, ControllerConfig
 from fluxdrive.drive.observers import (
@@ -64,7 +63,7 @@ from fluxdrive.drive.observers import (
     make_observer,
 )
 from fluxdrive.drive.plant import FR_ENC, FR_N, FR_SEQ, TR_N, TR_T, TR_THETA_E, TR_WM
-from fluxdrive.io.bagio import BagError, RunBag, est_topic, read_run_bag, write_run_bag
+from fluxdrive.io.bagio import RunBag, est_topic, read_run_bag, write_run_bag
 
 SAMPLES_DIR = REPO_ROOT / "bags" / "samples"
 
@@ -103,7 +102,7 @@ def parse_params(text: str, src: str) -> dict[str, Any]:
     return out
 
 
-def _slug(s: str) -> str:
+def slug(s: str) -> str:
     return re.sub(r"[^A-Za-z0-9_]+", "_", s).strip("_") or "variant"
 
 
@@ -128,7 +127,7 @@ def parse_variant(spec: str) -> VariantSpec:
             label += "_" + "_".join(
                 f"{k}_{v:g}" if isinstance(v, float) else f"{k}_{v}" for k, v in params.items()
             )
-    return VariantSpec(_slug(label), target, params)
+    return VariantSpec(slug(label), target, params)
 
 
 def build_observer(vs: VariantSpec, bag: RunBag, card: MachineCard) -> Observer:
@@ -579,89 +578,6 @@ def parse_sweep(text: str) -> tuple[str, list[float]]:
     return key.strip(), vals
 
 
-def run_sweep(
-    bag: RunBag,
-    vs: VariantSpec,
-    key: str,
-    values: list[float],
-    jobs: int,
-    out_dir: Path | None,
-    machine: str | None = None,
-    window: tuple[float, float] | None = None,
-    encoder_offset_deg: float = 0.0,
-    scheduler: str | None = None,
-) -> list[dict[str, Any]]:
-    """Each value is a task of the project's one runner (fluxdrive.study.runner): the
-    study's replay task, on a dask LocalCluster of `jobs` workers (each reads the bag once),
-    on an existing cluster, or in-process for -j 1."""
-    from fluxdrive.study import tasks as study_tasks
-    from fluxdrive.study.runner import runner_from_args
-
-    scen: dict[str, Any] = {
-        "bag": str(Path(bag.path).resolve()),
-        "window_s": list(window) if window else None,
-        "encoder_offset_deg": encoder_offset_deg,
-    }
-    if machine:
-        scen["machine"] = str(Path(machine).resolve())
-    payloads = [
-        {
-            "task_id": f"{vs.label}|{key}={val:g}",
-            "variant": vs.label,
-            "variant_cfg": {"variant": vs.target, **vs.params},
-            "grid": {key: val},
-            "random": {},
-            "draw": 0,
-            "seed": 0,
-            "scenario": scen,
-        }
-        for val in values
-    ]
-    rows: list[dict[str, Any]] = [None] * len(values)  # type: ignore[list-item]
-    jobs = max(1, min(jobs, len(values)))
-    t0 = time.perf_counter()
-    study_tasks._BAGS[scen["bag"]] = bag  # in-process runs reuse the bag already read
-    try:
-        with runner_from_args(scheduler, jobs) as runner:
-            items = enumerate(payloads)
-            for done, o in enumerate(runner.run_unordered(study_tasks.run_task, items), 1):
-                if not o.ok:
-                    raise ConfigError(
-                        f"sweep {key}={values[o.key]:g} failed twice: {o.error.splitlines()[0]}"
-                    )
-                m = o.value["metrics"]
-                rows[o.key] = {key: values[o.key], **m, "replay_s": o.value["replay_s"]}
-                _progress(done, len(values), key, values[o.key], m, t0)
-    finally:
-        study_tasks._BAGS.clear()
-    if out_dir is not None:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        (out_dir / "sweep.json").write_text(
-            json.dumps(
-                {
-                    "bag": str(bag.path),
-                    "variant": vs.target,
-                    "params": vs.params,
-                    "key": key,
-                    "rows": rows,
-                },
-                indent=2,
-                default=float,
-            )
-        )
-        plot_sweep(rows, key, f"{vs.target} over {bag.path.name}", out_dir / "sweep.png")
-    return rows
-
-
-def _progress(done: int, total: int, key: str, val: float, m: dict, t0: float) -> None:
-    print(
-        f"[sweep] {done}/{total} {key}={val:g}: θ̃ rms {m['theta_err_rms_deg']:.3f}°, "
-        f"spread {m['flux_radius_spread']:.3f} ({time.perf_counter() - t0:.1f} s)",
-        file=sys.stderr,
-        flush=True,
-    )
-
-
 SWEEP_METRICS = [
     "theta_err_rms_deg",
     "theta_err_peak_deg",
@@ -706,186 +622,6 @@ def format_sweep(rows: list[dict[str, Any]], key: str) -> str:
     return "\n".join(
         [head] + [f"{r[key]:12.4g}" + "".join(f"{r[c]:13.4f}" for c in cols) for r in rows]
     )
-
-
-# ====================================================================== CLI
-def _parse_window(s: str | None) -> tuple[float, float] | None:
-    if not s:
-        return None
-    try:
-        a, b = (float(x) for x in s.split(":"))
-    except ValueError:
-        raise ConfigError(f"--window '{s}': expected START:END in seconds") from None
-    return (a, b)
-
-
-def build_parser() -> argparse.ArgumentParser:
-    """`fluxdrive replay`'s options (the live publisher in fluxdrive_bringup shares them)."""
-    ap = argparse.ArgumentParser(
-        prog="fluxdrive replay",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    ap.add_argument("bags", nargs="+", type=Path, help="rosbag2 folders (mcap)")
-    ap.add_argument(
-        "--variant",
-        "-v",
-        action="append",
-        default=[],
-        help="variant SPEC (repeatable); default: @recorded, else paper",
-    )
-    ap.add_argument("--out", type=Path, help="output folder (default runs/replay-<time>)")
-    ap.add_argument("--no-plots", action="store_true")
-    ap.add_argument(
-        "--write-bag",
-        type=Path,
-        help="write a new bag: frames, truth and the "
-        "recorded estimates, plus every variant's estimates as /obs/<label>/estimate",
-    )
-    ap.add_argument("--machine", help="machine card (default: the one recorded in the bag)")
-    ap.add_argument(
-        "--window",
-        help="metrics window START:END [s] (default: recorded, or the second half of the bag)",
-    )
-    ap.add_argument(
-        "--encoder-offset-deg",
-        type=float,
-        default=0.0,
-        help="electrical offset of the encoder (bags without /drive/truth)",
-    )
-    ap.add_argument("--sweep", help="KEY=START:STOP:N or KEY=V1,V2,.. over the (single) variant")
-    ap.add_argument(
-        "--jobs",
-        "-j",
-        type=int,
-        default=os.cpu_count() or 1,
-        help="sweep: worker processes of the local dask cluster (1: in-process)",
-    )
-    ap.add_argument("--scheduler", help="sweep: run on an existing dask cluster tcp://HOST:PORT")
-    ap.add_argument("--live", action="store_true", help="publish the frames on /drive/frame")
-    ap.add_argument("--rate", type=float, default=1.0, help="live: factor of real time")
-    ap.add_argument("--loop", action="store_true", help="live: start again at the end")
-    ap.add_argument("--start", type=float, default=0.0, help="live: offset into the bag [s]")
-    ap.add_argument(
-        "--wait-s",
-        type=float,
-        default=2.0,
-        help="live: wait this long for a first subscriber before publishing",
-    )
-    ap.add_argument("--max-frames", type=int, help=argparse.SUPPRESS)
-    ap.add_argument(
-        "--graph-id",
-        type=int,
-        help="live: graph_id stamped on the frames (the "
-        "graph they feed: ./fluxdrive param get /plant graph_id; default: the "
-        "launch's, else 0 = not in a launched graph)",
-    )
-    return ap
-
-
-def main(argv: list[str]) -> int:
-    args = build_parser().parse_args(argv)
-    try:
-        return _main(args)
-    except BagError as exc:
-        print(f"fluxdrive replay: {exc}", file=sys.stderr)
-        return 2
-
-
-def _main(args) -> int:
-    if args.live:  # the command line sends --live to fluxdrive_bringup.live_replay (ROS)
-        raise ConfigError("--live publishes on the ROS graph: run it as ./fluxdrive replay")
-    machine = load_machine(args.machine) if args.machine else None
-    window = _parse_window(args.window)
-    out = args.out or REPO_ROOT / "runs" / f"replay-{time.strftime('%Y%m%d-%H%M%S')}"
-    if args.sweep:
-        if len(args.variant) > 1:
-            raise ConfigError("--sweep takes one --variant")
-        key, values = parse_sweep(args.sweep)
-        status = 0
-        for bp in args.bags:
-            bag = _read(bp)
-            vs = expand_variants(args.variant or ["paper"], bag)[0]
-            od = out / _slug(bag.path.name) if len(args.bags) > 1 else out
-            where = args.scheduler or f"{args.jobs} processes"
-            print(
-                f"sweep {vs.target} {key} over {len(values)} values on {bag.path} "
-                f"({bag.n} frames, {where})"
-            )
-            rows = run_sweep(
-                bag,
-                vs,
-                key,
-                values,
-                args.jobs,
-                od,
-                args.machine,
-                window,
-                args.encoder_offset_deg,
-                args.scheduler,
-            )
-            print(format_sweep(rows, key))
-            print(f"saved: {od}/sweep.json, sweep.png")
-        return status
-    metrics_all: dict[str, Any] = {}
-    md = [
-        "# Replay report",
-        "",
-        f"variants: {', '.join('`' + v + '`' for v in (args.variant or ['(default)']))}",
-        "",
-    ]
-    for bp in args.bags:
-        bag = _read(bp)
-        specs = args.variant or (["@recorded"] if bag.meta.get("observers") else ["paper"])
-        variants = expand_variants(specs, bag)
-        res = replay_bag(bag, variants, machine, window, args.encoder_offset_deg)
-        m = compute(res)
-        m["truth_source"] = res.truth_source
-        m["frames"] = bag.n
-        m["problems"] = bag.problems
-        m["recorded_max_abs_diff"] = res.recorded_diff
-        m["replay_wall_s"] = res.wall_s
-        print(f"== {bag.path} ({bag.n} frames, reference: {res.truth_source})")
-        print(format_table(m))
-        for nm, d in res.recorded_diff.items():
-            print(f"   {nm}: max |replayed - recorded| = {d:.3g}")
-        applied = {
-            v.label: len(live_changes(bag, v))
-            for v in variants
-            if v.recorded is not None and live_changes(bag, v)
-        }
-        if applied:
-            print(
-                "   live parameter changes applied from the bag's markers: "
-                + ", ".join(f"{k} {n}" for k, n in applied.items())
-            )
-        key = _slug(bag.path.name)
-        while key in metrics_all:
-            key += "_"
-        metrics_all[key] = m
-        od = out / key
-        if not args.no_plots:
-            plots = plot_replay(res, od)
-            md.append(markdown_section(res, m, plots, out))
-        if args.write_bag is not None:
-            wb = args.write_bag if len(args.bags) == 1 else args.write_bag / key
-            write_augmented_bag(res, bag, wb)
-            print(f"wrote {wb} (+ {len(res.names)} estimate topics)")
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(metrics_all, out / "metrics.json")
-    if not args.no_plots:
-        (out / "report.md").write_text("\n".join(md) + "\n")
-        print(f"saved: {out}/report.md, metrics.json, <bag>/*.png")
-    else:
-        print(f"saved: {out}/metrics.json")
-    return 0
-
-
-def _read(path: Path) -> RunBag:
-    bag = read_run_bag(path)
-    for pr in bag.problems:
-        print(f"fluxdrive replay: {path}: partial bag: {pr}", file=sys.stderr)
-    return bag
 
 
 def write_augmented_bag(res: ReplayResult, bag: RunBag, path: Path) -> Path:
@@ -979,7 +715,6 @@ def bench_replay(argv: list[str]) -> dict[str, Any]:
 
 
 __all__ = [
-    "main",
     "bench_replay",
     "replay_bag",
     "parse_variant",

@@ -198,12 +198,23 @@ def perturb(sc: Scenario, vname: str, values: dict[str, Any]) -> Scenario:
 _BAGS: dict[str, Any] = {}  # per worker process: a bag is read once
 
 
+def cache_bag(path: str, bag: Any) -> None:
+    """Hand the bag tasks of this process a bag already read (an in-process sweep reads it
+    once); worker processes read theirs on first use."""
+    _BAGS.clear()
+    _BAGS[path] = bag
+
+
+def clear_bag_cache() -> None:
+    """Forget the bag this process holds (the end of a sweep)."""
+    _BAGS.clear()
+
+
 def _bag(path: str):
     from fluxdrive.io.bagio import read_run_bag
 
     if path not in _BAGS:
-        _BAGS.clear()
-        _BAGS[path] = read_run_bag(Path(path))
+        cache_bag(path, read_run_bag(Path(path)))
     return _BAGS[path]
 
 

@@ -15,9 +15,9 @@ import time
 from pathlib import Path
 
 import rclpy
+from fluxdrive.cli.replay import build_parser
 from fluxdrive.core.machine import ConfigError
 from fluxdrive.io.bagio import BagError, read_run_bag
-from fluxdrive.replay.lab import build_parser
 from rclpy.duration import Duration
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
