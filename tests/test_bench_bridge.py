@@ -328,7 +328,7 @@ def test_never_enabled_while_disarmed():
 
 def test_shipped_capture_imports_into_a_bag(tmp_path):
     pytest.importorskip("rosbags")
-    from fluxdrive.io.canimport import main
+    from fluxdrive.cli.canimport import main
     from rosbags.highlevel import AnyReader
 
     assert SAMPLE_LOG.is_file() and SAMPLE_LOG.stat().st_size < 2_000_000

@@ -53,14 +53,14 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
         "load check: long lockstep graph run + burst replay (memory, no loss)",
     ),
     "replay": ("fluxdrive.cli.replay", "main", "replay bags through observer variants"),
-    "can-import": ("fluxdrive.io.canimport", "main", "CAN capture (.log/.asc/.blf) -> bag"),
+    "can-import": ("fluxdrive.cli.canimport", "main", "CAN capture (.log/.asc/.blf) -> bag"),
     "can-emulator": (
-        "fluxdrive.can.emulator",
+        "fluxdrive.cli.canemulator",
         "main",
         "the drive emulator (plant as the MCU) on a CAN bus, as a process",
     ),
     "fault-matrix": (
-        "fluxdrive.drive.faultmatrix",
+        "fluxdrive.cli.faultmatrix",
         "main",
         "fault-injection matrix of the control path (--write docs/safety.md)",
     ),

@@ -16,7 +16,6 @@ frames and estimates at once, as a stopped process does when it resumes.
 
 from __future__ import annotations
 
-import argparse
 import copy
 import math
 import re
@@ -406,32 +405,3 @@ def write_doc(path: Path, text: str) -> None:
     a = doc.index(BEGIN) + len(BEGIN)
     b = doc.index(END)
     path.write_text(doc[:a] + "\n" + text + doc[b:])
-
-
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(
-        prog="fluxdrive fault-matrix", description=__doc__.split("\n\n")[0]
-    )
-    ap.add_argument(
-        "--write",
-        type=Path,
-        metavar="DOC",
-        help="replace the generated table in DOC (e.g. docs/safety.md)",
-    )
-    args = ap.parse_args(argv)
-    rows = run_matrix(progress=True)
-    text = table(rows)
-    if args.write:
-        write_doc(args.write, text)
-        print(f"wrote the table into {args.write}", file=sys.stderr)
-    else:
-        print(text, end="")
-    bad = [r["fault"] for r in rows if not r["ok"]]
-    if bad:
-        print(f"fault-matrix: unexpected outcome for {', '.join(bad)}", file=sys.stderr)
-        return 1
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
