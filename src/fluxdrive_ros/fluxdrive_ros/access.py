@@ -85,6 +85,7 @@ class CommandGuard:
         self.accepted = 0
         self.rejected: Counter[str] = Counter()  # reason -> count
         self.last_rejected = ""
+        self._verdicts: dict[bytes, tuple[str, str]] = {}  # mark -> (reason, text), cached
 
     def accept_raw(self, data: bytes) -> bool:
         """A serialised DutyCommand (its commander field, read without decoding the rest)."""
@@ -95,7 +96,14 @@ class CommandGuard:
         if fid in self.valid:
             self.accepted += 1
             return True
-        self._reject(fid.decode(errors="replace"))
+        # a flood repeats one mark: its verdict is worked out once
+        verdict = self._verdicts.get(fid)
+        if verdict is None:
+            verdict = self._verdict(fid.decode(errors="replace"))
+            if len(self._verdicts) < 1024:
+                self._verdicts[fid] = verdict
+        self.rejected[verdict[0]] += 1
+        self.last_rejected = verdict[1]
         return False
 
     def accept_mark(self, frame_id: str) -> bool:
@@ -105,7 +113,7 @@ class CommandGuard:
         self._reject(frame_id)
         return False
 
-    def _reject(self, frame_id: str) -> None:
+    def _verdict(self, frame_id: str) -> tuple[str, str]:
         name, sep, _ = frame_id.partition("#")
         if not sep:
             why = "unmarked"
@@ -113,8 +121,12 @@ class CommandGuard:
             why = "not allowed"
         else:
             why = "bad mark"  # right name, wrong key: another launch, an old bag, a forgery
+        return why, f"{why}: {frame_id[:60]!r}"
+
+    def _reject(self, frame_id: str) -> None:
+        why, text = self._verdict(frame_id)
         self.rejected[why] += 1
-        self.last_rejected = f"{why}: {frame_id[:60]!r}"
+        self.last_rejected = text
 
     @property
     def n_rejected(self) -> int:

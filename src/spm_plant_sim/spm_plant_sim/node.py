@@ -266,8 +266,15 @@ class PlantNode(FluxNode):
         self.pub_truth = RawPublisher(self, fm.PlantTruth, topics.TRUTH, qos.SAMPLES)
         self.pub_clock = RawPublisher(self, Clock, topics.CLOCK, qos.CLOCK)
         self.pub_done = self.create_publisher(fm.RunDone, topics.DONE, qos.LATCHED)
+        # drained: a flood of foreign duty commands is refused in a row, not one executor
+        # round each (fluxdrive_ros.intra), so it does not cost the paced loop its deadline
         self.sub_duty = RawSubscription(
-            self, fm.DutyCommand, topics.DUTY, self._on_duty, qos.reader(pv["input_durability"])
+            self,
+            fm.DutyCommand,
+            topics.DUTY,
+            self._on_duty,
+            qos.reader(pv["input_durability"]),
+            drain=256,
         )
         self.k = -1  # index of the last frame published
         self.next_duty = 0  # lockstep: seq of the duty command expected next
