@@ -34,6 +34,7 @@ import argparse
 import asyncio
 import concurrent.futures
 import json
+import logging
 import os
 import secrets
 import struct
@@ -428,10 +429,28 @@ class Scope:
             }
         )
 
+    @staticmethod
+    def _page_guard(scope: Scope):
+        """Middleware: the page itself (index.html) is served only with the token, also
+        under /static/ (the scripts and styles it loads carry no token and no secret)."""
+        from aiohttp import web
+
+        @web.middleware
+        async def guard(request, handler):
+            if (
+                request.path.startswith("/static/")
+                and Path(request.path).name.lower() == "index.html"
+                and not scope._authorised(request)
+            ):
+                return web.Response(status=403, text="scope: the page needs its token\n")
+            return await handler(request)
+
+        return guard
+
     def app(self):
         from aiohttp import web
 
-        app = web.Application()
+        app = web.Application(middlewares=[self._page_guard(self)])
         app.router.add_get("/", self.index)
         app.router.add_get("/ws", self.ws)
         app.router.add_get("/api/nodes", self.api_nodes)
@@ -448,6 +467,7 @@ class Scope:
         dom = self.args.domain_id
         self.ros = RosSide(dom, self.on_envelope, self.args.attach_wait)
         self.params = ParamSide(dom)
+        quiet_bad_requests()
         runner = web.AppRunner(self.app(), access_log=None)
         await runner.setup()
         site = web.TCPSite(runner, self.args.host, self.args.port)
@@ -491,6 +511,31 @@ class Scope:
             self.params.close()
             self.ros.close()
         return 0
+
+
+class _OneLineBadRequest(logging.Filter):
+    """aiohttp logs a request it cannot parse (an oversized header, garbage on the port) with
+    a full traceback; a client's bad request is one line naming the client and the reason."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        from aiohttp.http_exceptions import HttpProcessingError
+
+        exc = record.exc_info[1] if record.exc_info else None
+        if isinstance(exc, HttpProcessingError):
+            remote = record.args[0] if isinstance(record.args, tuple) and record.args else "?"
+            why = (exc.message or type(exc).__name__).splitlines()[0][:200]
+            record.msg = "scope: refused a bad request from %s: %s %s"
+            record.args = (remote, exc.code, why)
+            record.exc_info = None
+            record.exc_text = None
+            record.levelno, record.levelname = logging.WARNING, "WARNING"
+        return True
+
+
+def quiet_bad_requests() -> None:
+    log = logging.getLogger("aiohttp.server")
+    if not any(isinstance(f, _OneLineBadRequest) for f in log.filters):
+        log.addFilter(_OneLineBadRequest())
 
 
 def main(argv: list[str] | None = None) -> int:
