@@ -25,6 +25,7 @@ MSGS = [
     "FreqResponsePoint",
     "DriveFault",
     "ParameterMarker",
+    "CurrentReference",
 ]
 
 

@@ -28,6 +28,14 @@
 * **bus errors / bus-off**: an exception from the bus (or a bus reporting
   ``BusState.ERROR``) closes it; reconnects are attempted through the injectable
   ``bus_factory`` with exponential back-off. The bridge comes back disarmed;
+* **split mode** (``BridgeConfig.control_split``): ARM_MODE.control_split = 1; the graph's
+  current references go out as HOST_REF (:meth:`send_reference`, ref_seq = the wire seq of
+  the sample answered, enable forced to 0 unless armed and unfaulted, like duties); the
+  drive-side parameters (current gains from ``design_loops``, limits, timeouts) are written
+  as DRIVE_PARAM and each waits for its DRIVE_PARAM_ACK (:meth:`set_drive_param`: a
+  timeout or the drive's refusal comes back as the reason);
+* the drive's **FAULT** frames are kept (code, name, detail) for diagnostics
+  (:meth:`drive_fault_text`), including the split-mode reference timeout (WATCHDOG);
 * **counters** for diagnostics (:meth:`diagnostics`).
 
 The bridge is single-threaded: call :meth:`poll` from one thread (the node's CAN
@@ -54,9 +62,12 @@ from fluxdrive.can.protocol import (
     FRAME_FIELDS,
     FRAME_FLAG_ADC_CLIP,
     ID_ARM_MODE,
+    ID_DRIVE_PARAM,
+    ID_DRIVE_PARAM_ACK,
     ID_DUTY_CMD,
     ID_FAULT,
     ID_HOST_HEARTBEAT,
+    ID_HOST_REF,
     ID_SAMPLE_FD,
     ID_STATUS,
     PROTOCOL_VERSION,
@@ -66,6 +77,7 @@ from fluxdrive.can.protocol import (
     SeqTracker,
     get_protocol,
 )
+from fluxdrive.drive.control import FAULT_NAMES
 
 __all__ = [
     "FRAME_FLAG_STALE_COMMAND",
@@ -113,6 +125,10 @@ class BridgeConfig:
     """PWM periods per sample, either layout (0: the DBC's default for the layout,
     FdDecimation = 1 / ClassicDecimation = 8; a real 1/5 Mbit/s FD bus needs
     FdDecimationRealBus = 4)."""
+    control_split: bool = False
+    """Split mode: the drive closes the current loop; HOST_REF instead of DUTY_CMD."""
+    param_ack_timeout_s: float = 0.2
+    """How long :meth:`CanBridge.set_drive_param` waits for the DRIVE_PARAM_ACK."""
 
 
 # python-can interfaces that take no bit-rate arguments (software buses)
@@ -179,6 +195,22 @@ class CanBridge:
         self._msg_fault = self.proto.message("FAULT")
         self._msg_status = self.proto.message("STATUS")
         self._msg_hb = self.proto.message("HOST_HEARTBEAT")
+        self._msg_ref = self.proto.message("HOST_REF")
+        self._msg_prm = self.proto.message("DRIVE_PARAM")
+        self._msg_ack = self.proto.message("DRIVE_PARAM_ACK")
+        # DRIVE_PARAM ids and ACK statuses by name, from the DBC's value tables
+        self.param_ids = {
+            str(v): int(k) for k, v in self._msg_prm.get_signal_by_name("prm_id").choices.items()
+        }
+        self._ack_status = {
+            int(k): str(v) for k, v in self._msg_ack.get_signal_by_name("pa_status").choices.items()
+        }
+        self._prm_seq = 0
+        self._acks: dict[tuple[int, int], tuple[int, float]] = {}  # (id, seq) -> status, value
+        self._ack_cv = threading.Condition()
+        self._poll_thread: int | None = None  # ident of the thread polling the bus
+        self._backlog: list[np.ndarray] = []  # samples polled while waiting for an ACK
+        self.drive_fault: dict[str, Any] = {}  # the drive's last FAULT frame
         self._ranges = [
             (s.name, s.minimum, s.maximum)
             for s in self._msg_fd.signals
@@ -330,11 +362,107 @@ class CanBridge:
             return self._wire.get(seq, (seq * self.decimation) % _SEQ_MOD)
         return seq % _SEQ_MOD
 
+    def send_reference(
+        self, seq: int, id_ref: float, iq_ref: float, theta: float, omega: float, enable: bool
+    ) -> bool:
+        """HOST_REF answering sample ``seq`` (split mode): current references [A], the frame's
+        electrical angle at the sample instant [rad] and speed [rad/s]. ``enable`` reaches
+        the wire only while armed and unfaulted (else 0, counted in ``enable_suppressed``);
+        non-finite values go out as PWM off (``ref_nonfinite``)."""
+        vals = [float(id_ref), float(iq_ref), float(theta), float(omega)]
+        en = bool(enable)
+        if not all(math.isfinite(x) for x in vals):
+            vals = [0.0, 0.0, 0.0, 0.0]
+            en = False
+            self.counters["ref_nonfinite"] += 1
+        if en and (not self.armed or self.fault):
+            en = False
+            self.counters["enable_suppressed"] += 1
+        data = self._msg_ref.encode(
+            {"ref_seq": self._wire_seq(int(seq)), "ref_id": vals[0], "ref_iq": vals[1],
+             "ref_theta": vals[2] % (2.0 * math.pi), "ref_omega": vals[3],
+             "ref_enable": int(en)},
+            strict=False,
+        )  # fmt: skip
+        ok = self._send(ID_HOST_REF, data, fd=True)
+        if ok:
+            self.counters["ref_tx"] += 1
+            if en:
+                self.counters["ref_tx_enabled"] += 1
+        return ok
+
+    def set_drive_param(
+        self, name: str, value: float, timeout_s: float | None = None
+    ) -> tuple[bool, str, float]:
+        """Write drive parameter ``name`` (DRIVE_PARAM value table) and wait for its
+        DRIVE_PARAM_ACK: (accepted, reason, value in effect). Refused without sending if
+        the name is unknown or the value not finite; a refusal names the drive's status.
+        Another thread may be polling the bus (the node's CAN thread); otherwise this
+        polls it itself, keeping the samples for the next :meth:`poll`."""
+        pid = self.param_ids.get(name)
+        if pid is None:
+            return False, f"unknown drive parameter {name!r}; known: {sorted(self.param_ids)}", 0.0
+        if not math.isfinite(float(value)):
+            return False, f"{name}: value {value!r} is not finite", 0.0
+        with self._ack_cv:
+            self._prm_seq = (self._prm_seq + 1) % 256
+            seq = self._prm_seq
+            self._acks.pop((pid, seq), None)
+        data = self._msg_prm.encode(
+            {"prm_id": pid, "prm_seq": seq, "prm_write": 1, "prm_value": float(value)}
+        )
+        if not self._send(ID_DRIVE_PARAM, data):
+            return False, f"{name}: DRIVE_PARAM could not be sent ({self.last_error})", 0.0
+        self.counters["param_tx"] += 1
+        wait = self.cfg.param_ack_timeout_s if timeout_s is None else timeout_s
+        deadline = time.monotonic() + wait
+        other_polls = self._poll_thread not in (None, threading.get_ident())
+        while True:
+            with self._ack_cv:
+                ack = self._acks.pop((pid, seq), None)
+                left = deadline - time.monotonic()
+                if ack is None and left > 0 and other_polls:
+                    self._ack_cv.wait(min(left, 0.05))
+                    ack = self._acks.pop((pid, seq), None)
+            if ack is not None:
+                break
+            if left <= 0:
+                self.counters["param_ack_timeouts"] += 1
+                return False, f"{name}: no DRIVE_PARAM_ACK within {wait:g} s", 0.0
+            if not other_polls:
+                frames = self._poll_bus(min(left, 0.01))
+                if frames.shape[0]:
+                    self._backlog.append(frames)
+        status, v = ack
+        text = self._ack_status.get(status, f"status {status}")
+        if status != 0:
+            self.counters["param_refused"] += 1
+            return False, f"the drive refused {name} = {value:g}: {text} (in effect: {v:g})", v
+        self.counters["param_ok"] += 1
+        return True, f"{name} = {v:g} on the drive", v
+
+    def drive_fault_text(self) -> str:
+        """The drive's latched fault as one line ("" when none): name, code, detail."""
+        f = self.drive_fault
+        if not f or not f.get("code") or not f.get("latched"):
+            return ""
+        code = int(f["code"])
+        name = FAULT_NAMES.get(code, f"drive fault {code}")
+        detail = int(f.get("detail", 0))
+        extra = ""
+        if code == 9:  # WATCHDOG: duty (host mode) or reference (split mode) timeout
+            what = "reference" if self.cfg.control_split else "duty command"
+            extra = f" ({what} timeout: {detail * 0.1:.1f} ms without one)"
+        elif detail:
+            extra = f" (detail {detail})"
+        return f"drive fault {code} {name}{extra}, PWM off (latched at sample {f.get('seq')})"
+
     def _send_arm(self, arm: bool, reset_fault: bool = False) -> bool:
         self._arm_counter = (self._arm_counter + 1) % 256
         data = self._msg_arm.encode(
             {"arm": int(arm), "reset_fault": int(reset_fault),
-             "sample_layout": int(self.layout == "classic"), "control_split": 0,
+             "sample_layout": int(self.layout == "classic"),
+             "control_split": int(self.cfg.control_split),
              "mode": 1 if arm else 0, "arm_key": ARM_KEY if arm else 0,
              "cmd_timeout": min(self.mcu_cmd_timeout_s, 6.5535),
              "decimation": self.decimation, "arm_counter": self._arm_counter},
@@ -388,6 +516,14 @@ class CanBridge:
     def poll(self, timeout: float = 0.0, max_frames: int = 4096) -> np.ndarray:
         """Receive what is there (waiting up to ``timeout`` for the first message),
         run the supervisor checks and return the valid samples as (N, 14) frames."""
+        self._poll_thread = threading.get_ident()
+        frames = self._poll_bus(timeout, max_frames)
+        if self._backlog:
+            frames = np.vstack([*self._backlog, frames])
+            self._backlog.clear()
+        return frames
+
+    def _poll_bus(self, timeout: float = 0.0, max_frames: int = 4096) -> np.ndarray:
         now = self.clock()
         if self.bus is None:
             if now >= self._next_connect_t:
@@ -446,10 +582,27 @@ class CanBridge:
                     fault_latched=int(d["fault_latched"]),
                     fault_count=int(d["fault_count"]),
                 )
+                self.drive_fault = {
+                    "code": int(d["fault_code"]),
+                    "latched": int(d["fault_latched"]),
+                    "detail": int(d["fault_detail"]),
+                    "seq": int(d["fault_seq"]),
+                }
+                if d["fault_code"] and d["fault_latched"]:
+                    self.counters["drive_faults_rx"] += 1
                 if d["fault_code"] and d["fault_latched"] and self.armed:
                     self.armed = False  # the MCU disarmed itself
                     self.counters["disarmed_by_mcu_fault"] += 1
-            elif aid in (ID_DUTY_CMD, ID_ARM_MODE, ID_HOST_HEARTBEAT):
+            elif aid == ID_DRIVE_PARAM_ACK:
+                d = self._msg_ack.decode(bytes(msg.data), decode_choices=False)
+                self.counters["param_ack_rx"] += 1
+                with self._ack_cv:
+                    key = (int(d["pa_id"]), int(d["pa_seq"]))
+                    self._acks[key] = (int(d["pa_status"]), float(d["pa_value"]))
+                    while len(self._acks) > 64:
+                        del self._acks[next(iter(self._acks))]
+                    self._ack_cv.notify_all()
+            elif aid in (ID_DUTY_CMD, ID_ARM_MODE, ID_HOST_HEARTBEAT, ID_HOST_REF, ID_DRIVE_PARAM):
                 self.counters["rx_own_traffic"] += 1
             elif aid == ID_SAMPLE_FD or aid in CLASSIC_SAMPLE_IDS:
                 self.counters["layout_mismatch"] += 1  # samples of the other layout
@@ -679,6 +832,8 @@ class CanBridge:
             "fault": self.fault,
             "layout": self.layout,
             "decimation": self.decimation,
+            "control_split": bool(self.cfg.control_split),
+            "drive_fault": self.drive_fault_text(),
             "drive_mismatch": self.drive_mismatch,
             "seq_gaps": st.gaps,
             "seq_lost": st.lost,

@@ -37,6 +37,15 @@ duties averaged over the D periods (t_(k-D), t_k], pwm_enabled only if on in all
 decimated rate: the DUTY_CMD answering sample k (cmd_seq = its seq) is held over
 [t_(k+D), t_(k+2D)], i.e. the D = 1 timing with Ts -> D*Ts.
 
+Split mode (ARM_MODE.control_split = 1): the MCU closes the dq current loop every PWM period
+with the engine's own drive-side kernels (``split_drive_take_reference`` /
+``split_drive_step`` in fluxdrive.drive.control) on the newest HOST_REF (lockstep: the one
+answering sample k-D, taken at sample boundary k; free-running: whatever arrived last, at
+each period boundary); the duty computed from frame k is applied over [t_(k+1), t_(k+2)].
+No HOST_REF for REF_TIMEOUT_S while PWM is on: PWM off, WATCHDOG latched, FAULT frame.
+DRIVE_PARAM writes/reads the drive-side parameters (``DRIVE_PARAM_FIELDS``, ranges
+``DRIVE_PARAM_RANGES``) and answers each with a DRIVE_PARAM_ACK.
+
 No ROS imports. Sends always use a timeout (python-can's ``virtual`` bus blocks forever on
 a full receive queue otherwise).
 """
@@ -55,15 +64,44 @@ from fluxdrive.can.protocol import (
     ARM_KEY,
     FRAME_FLAG_ADC_CLIP,
     ID_ARM_MODE,
+    ID_DRIVE_PARAM,
+    ID_DRIVE_PARAM_ACK,
     ID_DUTY_CMD,
     ID_FAULT,
     ID_HOST_HEARTBEAT,
+    ID_HOST_REF,
     ID_SAMPLE_FD,
     ID_STATUS,
     PROTOCOL_VERSION,
     SEQ_BITS,
     FluxdriveProtocol,
     get_protocol,
+)
+from fluxdrive.drive.control import (
+    CO_DA,
+    CO_DC,
+    CO_EN,
+    CO_N,
+    CP_REF_TIMEOUT,
+    CS_FAULT,
+    CS_MODE,
+    CS_N,
+    DR_AGE,
+    DR_N,
+    DRIVE_PARAM_FIELDS,
+    DRIVE_PARAM_RANGES,
+    DRIVE_PARAMS_STOPPED,
+    MODE_FAULT,
+    RF_EN,
+    RF_ID_REF,
+    RF_IQ_REF,
+    RF_MODE,
+    RF_N,
+    RF_TH,
+    RF_W,
+    split_drive_reset,
+    split_drive_step,
+    split_drive_take_reference,
 )
 from fluxdrive.drive.plant import FR_IA, FR_IC, FR_N, TR_N, plant_advance, plant_initial_frame
 
@@ -107,6 +145,9 @@ class EmulatorStats:
     disarm_rx: int = 0
     faults: int = 0
     fault_codes: list[int] = field(default_factory=list)
+    ref_rx: int = 0  # split mode: HOST_REF received
+    refs_applied: int = 0  # HOST_REF taken by the current loop
+    param_rx: int = 0  # DRIVE_PARAM requests answered
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -195,6 +236,27 @@ class DriveEmulator:
         self._win_pwm = True
         self._win_flags = 0
         self._accumulate()
+        # split mode: the drive-side controller (engine kernels), its parameters (the
+        # scenario's design until the host writes DRIVE_PARAMs), references by wire seq
+        self.control_split = False
+        self.split_cp = np.array(setup.cp, dtype=float)
+        self.split_cs = np.zeros(CS_N)
+        self.split_dr = np.zeros(DR_N)
+        split_drive_reset(self.split_cs, self.split_dr)
+        self._split_out = np.zeros(CO_N)
+        # compile (or load) the drive-side kernels now, not in the first split period
+        cs, dr = np.zeros(CS_N), np.zeros(DR_N)
+        split_drive_reset(cs, dr)
+        split_drive_take_reference(cs, dr, np.zeros(RF_N), 0.0)
+        split_drive_step(cs, self.split_cp, dr, self.frame.copy(), np.zeros(CO_N))
+        self._refs: dict[int, np.ndarray] = {}  # ref_seq (16 bit) -> RF_* row
+        self._ref_newest: int | None = None  # ref_seq of the newest HOST_REF not yet taken
+        self._msg_ref = self.proto.message("HOST_REF")
+        self._msg_prm = self.proto.message("DRIVE_PARAM")
+        self._msg_ack = self.proto.message("DRIVE_PARAM_ACK")
+        self._prm_names = {
+            int(k): str(v) for k, v in self._msg_prm.get_signal_by_name("prm_id").choices.items()
+        }
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -229,9 +291,26 @@ class DriveEmulator:
                 if len(self._cmds) > 64:  # forget very old ones
                     for key in list(self._cmds)[:-32]:
                         del self._cmds[key]
+            elif aid == ID_HOST_REF:
+                d = self._msg_ref.decode(bytes(msg.data), decode_choices=False)
+                ref = np.zeros(RF_N)
+                ref[RF_ID_REF], ref[RF_IQ_REF] = d["ref_id"], d["ref_iq"]
+                ref[RF_TH], ref[RF_W] = d["ref_theta"], d["ref_omega"]
+                ref[RF_EN] = float(d["ref_enable"])
+                ref[RF_MODE] = 3.0  # closed loop, as far as the drive knows
+                seq = int(d["ref_seq"])
+                self._refs[seq] = ref
+                self._ref_newest = seq
+                self.stats.ref_rx += 1
+                if len(self._refs) > 64:
+                    for key in list(self._refs)[:-32]:
+                        del self._refs[key]
+            elif aid == ID_DRIVE_PARAM:
+                self._on_param(self._msg_prm.decode(bytes(msg.data), decode_choices=False))
             elif aid == ID_ARM_MODE:
                 d = self._msg_arm.decode(bytes(msg.data), decode_choices=False)
                 self.stats.arm_rx += 1
+                self.control_split = bool(d["control_split"])
                 if d["reset_fault"] and not self._reset_prev:
                     self._clear_fault()
                 self._reset_prev = int(d["reset_fault"])
@@ -254,6 +333,42 @@ class DriveEmulator:
                 self._hb_last = time.monotonic()
         except (ValueError, KeyError, can.CanError, Exception):  # noqa: BLE001 - bad frame
             self.stats.bad_rx += 1
+
+    def _on_param(self, d: dict) -> None:
+        """DRIVE_PARAM: write (range-checked) or read, answered by DRIVE_PARAM_ACK with the
+        value in effect; statuses as the DBC's pa_status table."""
+        pid, seq = int(d["prm_id"]), int(d["prm_seq"])
+        name = self._prm_names.get(pid)
+        status = 0
+        if name is None:
+            status, value = 1, 0.0  # UNKNOWN_PARAM
+        else:
+            value = self._param_value(name)
+            if d["prm_write"]:
+                v = float(d["prm_value"])
+                lo, hi = DRIVE_PARAM_RANGES[name]
+                if not np.isfinite(v):
+                    status = 4  # NOT_FINITE
+                elif not lo <= v <= hi:
+                    status = 2  # OUT_OF_RANGE
+                elif name in DRIVE_PARAMS_STOPPED and self.pwm_enabled:
+                    status = 3  # NOT_WHILE_RUNNING
+                else:
+                    if name == "HEARTBEAT_TIMEOUT_S":
+                        self.heartbeat_timeout_s = v if v > 0.0 else None
+                    else:
+                        self.split_cp[DRIVE_PARAM_FIELDS[name]] = v
+                    value = self._param_value(name)
+        self.stats.param_rx += 1
+        data = self._msg_ack.encode(
+            {"pa_id": pid, "pa_seq": seq, "pa_status": status, "pa_value": float(value)}
+        )
+        self._send(ID_DRIVE_PARAM_ACK, data, False)
+
+    def _param_value(self, name: str) -> float:
+        if name == "HEARTBEAT_TIMEOUT_S":
+            return float(self.heartbeat_timeout_s or 0.0)
+        return float(self.split_cp[DRIVE_PARAM_FIELDS[name]])
 
     def _drain(self, timeout: float = 0.0) -> None:
         """Handle everything already received; wait at most ``timeout`` for the first."""
@@ -284,6 +399,7 @@ class DriveEmulator:
 
     def _clear_fault(self) -> None:
         if self.fault_latched:
+            split_drive_reset(self.split_cs, self.split_dr)
             self.fault_latched = False
             self.fault_code = FAULT_NONE
             self._send_fault(0)
@@ -348,7 +464,7 @@ class DriveEmulator:
             "adc_clip": int(int(f[13]) & FRAME_FLAG_ADC_CLIP),
             "cmd_stale": int(self._stale_prev),
             "capture_valid": int(self._win_pwm),
-            "control_split": 0,
+            "control_split": int(self.control_split),
             "mode": self.mode,
             "fault_code": self.fault_code,
         }  # fmt: skip
@@ -395,7 +511,7 @@ class DriveEmulator:
             "c_fault_active": int(self.fault_latched),
             "c_cmd_stale": int(self._stale_prev),
             "c_capture_valid": int(self._win_pwm),
-            "c_control_split": 0,
+            "c_control_split": int(self.control_split),
         }
         return self.proto.frame_to_classic_payloads(f, flags)
 
@@ -435,7 +551,10 @@ class DriveEmulator:
             self._send_fault(0)
             self._next_fault_repeat_k = k + int(round(0.1 / self.ts))
         self._drain(0.0)
-        if boundary:
+        split_next = None
+        if self.control_split:
+            split_next = self._split_step(k, boundary)
+        elif boundary:
             self._take_command(k)
         if self.heartbeat_timeout_s is not None and self.armed and self._hb_last is not None:
             if time.monotonic() - self._hb_last > self.heartbeat_timeout_s:
@@ -455,10 +574,51 @@ class DriveEmulator:
             self.frame,
             self.truth,
         )
+        if split_next is not None:  # the split drive's duty from frame k: next period
+            self.duty, self.pwm_enabled = split_next
         self.k = k + 1
         self.stats.periods += 1
         self._accumulate()
         self._protect()
+
+    def _split_step(self, k: int, boundary: bool) -> tuple[np.ndarray, bool]:
+        """Split mode, period k: take the newest reference (lockstep: the one answering
+        sample k-D, waited for at a sample boundary), run the drive-side current loop on
+        frame k; returns (duties, enable) for [t_(k+1), t_(k+2)]."""
+        d = self.decimation
+        want = None
+        if self.lockstep:
+            if boundary and k >= d:
+                want = (k - d) % _SEQ_MOD
+                deadline = time.monotonic() + self.lockstep_wait_s
+                while want not in self._refs and not self._stop.is_set():
+                    left = deadline - time.monotonic()
+                    if left <= 0.0:
+                        self.stats.lockstep_timeouts += 1
+                        break
+                    self._drain(min(left, 0.05))
+                if want not in self._refs:
+                    want = None
+        elif self._ref_newest is not None:
+            want = self._ref_newest
+        if want is not None:
+            ref = self._refs.pop(want)
+            self._ref_newest = None
+            since = ((k - want) % _SEQ_MOD) * self.ts
+            split_drive_take_reference(self.split_cs, self.split_dr, ref, since)
+            self._applied_seq = want
+            self.stats.refs_applied += 1
+        cs, out = self.split_cs, self._split_out
+        age = self.split_dr[DR_AGE]
+        split_drive_step(cs, self.split_cp, self.split_dr, self.frame, out)
+        if cs[CS_MODE] == MODE_FAULT and not self.fault_latched:
+            code = int(cs[CS_FAULT])
+            detail = int(age * 1e4) if self.split_cp[CP_REF_TIMEOUT] > 0 and code == 9 else 0
+            self._raise_fault(code, detail)
+        on = bool(out[CO_EN] > 0.5) and self.armed and not self.fault_latched
+        if on:
+            self.mode = MODE_RUN
+        return out[CO_DA : CO_DC + 1].copy(), on
 
     def _take_command(self, k: int) -> None:
         """At a sample boundary k: take the DUTY_CMD answering the previous sample (k-D);

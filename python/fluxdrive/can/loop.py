@@ -13,6 +13,11 @@ a non-FD bus, by default with the DBC's D = 8) sends a sample every D PWM period
 observers and the controller run at D*Ts (:func:`decimated_scenario`) while the plant
 keeps switching at Ts. Control at D*Ts needs its own tuning: the scenario
 ``config/scenarios/can_2pct_decimated.yaml`` carries one for D = 4..8.
+
+A scenario in split mode (``control.mode: split``, its ``control.decimation`` D) runs split
+over the bus: the bridge sends ARM_MODE.control_split and the drive-side parameters as
+DRIVE_PARAMs (each acknowledged), the observers and ``host_reference_step`` answer every
+sample with a HOST_REF, and the emulated drive closes the current loop every period.
 """
 
 from __future__ import annotations
@@ -30,7 +35,21 @@ import numpy as np
 
 from fluxdrive.can.bridge import BridgeConfig, CanBridge, bus_factory_from_params
 from fluxdrive.can.emulator import DriveEmulator
-from fluxdrive.drive.control import CO_DA, CO_DC, CO_EN, CO_N
+from fluxdrive.drive.control import (
+    CO_DA,
+    CO_DC,
+    CO_EN,
+    CO_N,
+    RF_EN,
+    RF_ID_REF,
+    RF_IQ_REF,
+    RF_N,
+    RF_TH,
+    RF_W,
+    controller_step,
+    drive_param_values,
+    host_reference_step,
+)
 from fluxdrive.drive.observers import ES_N, observer_step
 from fluxdrive.drive.plant import FR_SEQ
 from fluxdrive.drive.sim import DriveSetup
@@ -140,8 +159,13 @@ def run_can_loop(
     layout. ``decimation``: PWM periods per sample, either layout (default: the DBC's for
     the layout, FD 1, classic 8); with D > 1 the observers and the controller run from
     ``control_scenario`` (default ``decimated_scenario(scenario, D)``, i.e. the
-    scenario's own control section at ts = D*Ts)."""
+    scenario's own control section at ts = D*Ts). In split mode (the scenario's
+    ``control.mode``) D is the scenario's ``control.decimation``. A ``frame_hook`` returning
+    False leaves that sample unanswered (host silence)."""
     ds = DriveSetup(scenario)
+    split = ds.split
+    if split:
+        decimation = ds.decimation
     n = ds.n if n_periods is None else int(n_periods)
     ch = channel or new_virtual_channel()
     fd = layout == "fd"
@@ -160,12 +184,14 @@ def run_can_loop(
     cfg = bridge_config or BridgeConfig(stale_timeout_s=1.0)
     if decimation is not None and not cfg.decimation:
         cfg = dataclasses.replace(cfg, decimation=d)
+    if split:
+        cfg = dataclasses.replace(cfg, control_split=True)
     bridge = CanBridge(bus_factory_from_params("virtual", ch, fd=fd), cfg)
     bridge.connect()
     if arm:
         bridge.arm()
     if control_scenario is None:
-        control_scenario = decimated_scenario(scenario, d) if d > 1 else scenario
+        control_scenario = decimated_scenario(scenario, d) if d > 1 and not split else scenario
     dsc = DriveSetup(control_scenario) if control_scenario is not scenario else ds
     n_smp = math.ceil(n / d)
     cs = dsc.new_controller()
@@ -176,11 +202,18 @@ def run_can_loop(
     rx_rows = np.zeros((n_smp, 14))
     no_est = np.zeros(ES_N)
     ctrl = np.zeros(CO_N)
-    from fluxdrive.drive.control import controller_step
+    ref = np.zeros(RF_N)
+    # split: the host's rows step at D*Ts, the profiles are per PWM period
+    k_of_sample = d if split else 1
 
     m = 0
     t0 = time.perf_counter()
     emu.start(n)
+    if split:  # the drive-side parameters of this scenario's design, each acknowledged
+        for name, value in drive_param_values(ds.cp).items():
+            ok, why, _ = bridge.set_drive_param(name, value, timeout_s=5.0)
+            if not ok:
+                raise RuntimeError(f"drive parameter refused: {why}")
     idle_since = None
     try:
         while True:
@@ -193,19 +226,31 @@ def run_can_loop(
                 continue
             for fr in frames:
                 kk = int(fr[FR_SEQ])
+                answer = True
                 if frame_hook is not None:
-                    frame_hook(bridge, kk)
+                    answer = frame_hook(bridge, kk) is not False
                 if m >= n_smp:
                     break
                 rx_rows[m] = fr
                 for o in range(n_obs):
                     observer_step(obs[o], dsc.obs_params[o], fr, est_rows[o, m])
-                ki = min(max(kk, 0), dsc.n - 1)
+                ki = min(max(kk * k_of_sample, 0), dsc.n - 1)
                 est = est_rows[dsc.driving_index, m] if dsc.driving_index >= 0 else no_est
-                controller_step(cs, dsc.cp, fr, est, dsc.w_ref[ki], dsc.id_inj[ki], ctrl)
+                w_ref, inj = dsc.w_ref[ki], dsc.id_inj[ki]
+                if split:
+                    host_reference_step(cs, dsc.cp_host, fr, est, w_ref, inj, ctrl, ref)
+                else:
+                    controller_step(cs, dsc.cp, fr, est, w_ref, inj, ctrl)
                 ctrl_rows[m] = ctrl
                 m += 1
-                bridge.send_duty(kk, ctrl[CO_DA : CO_DC + 1], ctrl[CO_EN] > 0.5)
+                if not answer:
+                    continue
+                if split:
+                    bridge.send_reference(
+                        kk, ref[RF_ID_REF], ref[RF_IQ_REF], ref[RF_TH], ref[RF_W], ref[RF_EN] > 0.5
+                    )
+                else:
+                    bridge.send_duty(kk, ctrl[CO_DA : CO_DC + 1], ctrl[CO_EN] > 0.5)
     finally:
         emu.stop()
         bridge.shutdown()

@@ -1265,6 +1265,29 @@ DRIVE_PARAM_FIELDS: dict[str, int] = {
 }
 
 
+# what a split-mode drive accepts per DRIVE_PARAM ([lo, hi]; else OUT_OF_RANGE); the ones in
+# DRIVE_PARAMS_STOPPED only while PWM is off (else NOT_WHILE_RUNNING)
+DRIVE_PARAM_RANGES: dict[str, tuple[float, float]] = {
+    "CUR_KP": (0.0, 1e4),
+    "CUR_KI": (0.0, 1e8),
+    "L_HAT": (1e-7, 10.0),
+    "LAMBDA_HAT": (0.0, 10.0),
+    "DECOUPLE": (0.0, 1.0),
+    "VOLTAGE_ADVANCE": (0.0, 3.0),
+    "DEADTIME_COMP_S": (0.0, 1e-4),
+    "CUR_LIMIT_A": (0.01, 1e3),
+    "REF_TIMEOUT_S": (1e-4, 10.0),
+    "OVERCURRENT_A": (0.01, 1e3),
+    "I2T_LIMIT_PU2S": (0.01, 1e4),
+    "RATED_CURRENT_A": (0.01, 1e3),
+    "VDC_MIN_V": (0.0, 1e4),
+    "VDC_MAX_V": (1.0, 1e4),
+    "HEARTBEAT_TIMEOUT_S": (0.0, 60.0),
+    "POLE_PAIRS": (1.0, 64.0),
+}
+DRIVE_PARAMS_STOPPED = ("POLE_PAIRS", "RATED_CURRENT_A")
+
+
 def drive_param_values(cp: np.ndarray) -> dict[str, float]:
     """{DRIVE_PARAM name: value} the host sends a split-mode drive from its row `cp`."""
     return {name: float(cp[j]) for name, j in DRIVE_PARAM_FIELDS.items()}

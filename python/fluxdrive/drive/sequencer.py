@@ -71,9 +71,11 @@ from fluxdrive.drive.control import (
     FAULT_WATCHDOG,
     MODE_CLOSED_LOOP,
     MODE_FAULT,
+    RF_N,
     controller_clear_fault,
     controller_reset,
     controller_step,
+    host_reference_step,
     trip_values,
 )
 from fluxdrive.drive.observers import ES_N, ES_VALID, ES_W
@@ -105,8 +107,13 @@ class ControlSequencer:
         max_resyncs: int = 5,
         resync_window_s: float = 10.0,
         min_wait_s: float = 0.25,
+        split: bool = False,
     ):
         self.cp = cp
+        # split mode: answer with the host's reference (`ref`, RF_*; host_reference_step at
+        # the sample time ts_s) instead of duties; `out` keeps the host's CO_* row
+        self.split = split
+        self.ref = np.zeros(RF_N)
         self.ts = ts_s
         self.sensorless = sensorless
         self.emit = emit
@@ -359,7 +366,10 @@ class ControlSequencer:
         inj = float(self.id_inj[k]) if 0 <= k < self.id_inj.shape[0] else 0.0
         was_fault = self.tripped
         w_fb_prev = float(self.out[CO_W_FB])
-        controller_step(cs, self.cp, fr, es, w_ref, inj, self.out)
+        if self.split:
+            host_reference_step(cs, self.cp, fr, es, w_ref, inj, self.out, self.ref)
+        else:
+            controller_step(cs, self.cp, fr, es, w_ref, inj, self.out)
         if self.tripped and not was_fault:
             code = int(cs[CS_FAULT])
             self.fault_detail = f"{trip_values(code, fr, es, self.cp, cs, w_fb_prev)} (frame {k})"

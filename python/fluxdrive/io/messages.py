@@ -9,6 +9,7 @@ bytes), the bag writer and reader (fluxdrive.io.bagio), the CAN-capture import
   RotorEstimate   <-> ES_* row (fluxdrive.drive.observers)   ESTIMATE_MAP
   DutyCommand     <-> CO_* row (fluxdrive.drive.control)     DUTY_MAP
   ControllerState <-> CO_* row (fluxdrive.drive.control)     STATE_MAP
+  CurrentReference <-> RF_* row (fluxdrive.drive.control)    REFERENCE_MAP (split mode)
 
 The rows and the message fields are float64 alike, so a row survives a trip through a
 message bit for bit (booleans are 0.0/1.0 in the rows, integers are exact below 2^53).
@@ -61,6 +62,12 @@ from fluxdrive.drive.control import (
     CO_W_FB,
     CO_W_REF,
     FAULT_NAMES,
+    RF_EN,
+    RF_ID_REF,
+    RF_IQ_REF,
+    RF_N,
+    RF_TH,
+    RF_W,
 )
 from fluxdrive.drive.observers import (
     ES_EA,
@@ -147,6 +154,14 @@ STATE_MAP: tuple[tuple[str, int], ...] = (
     ("fault_code", CO_FAULT),
 )
 
+REFERENCE_MAP: tuple[tuple[str, int], ...] = (
+    ("id_ref", RF_ID_REF),
+    ("iq_ref", RF_IQ_REF),
+    ("theta_e", RF_TH),
+    ("omega_e", RF_W),
+    ("enable", RF_EN),
+)
+
 # message type -> (mapping, row width)
 MAPS: dict[str, tuple[tuple[tuple[str, int], ...], int]] = {
     topics.T_FRAME: (FRAME_MAP, FR_N),
@@ -154,6 +169,7 @@ MAPS: dict[str, tuple[tuple[tuple[str, int], ...], int]] = {
     topics.T_ESTIMATE: (ESTIMATE_MAP, ES_N),
     topics.T_DUTY: (DUTY_MAP, CO_N),
     topics.T_STATE: (STATE_MAP, CO_N),
+    topics.T_REFERENCE: (REFERENCE_MAP, RF_N),
 }
 
 _INT_KINDS = {
@@ -364,6 +380,24 @@ class ControlWire:
         return c.pack(co, seq, sec, nsec)
 
 
+class ReferenceWire:
+    """CurrentReference <-> RF_* row (split mode).  `commander`: the sender's access mark."""
+
+    def __init__(self, frame_id: str = "", commander: str = "", graph_id: int = 0):
+        self.rc = RowCodec(
+            topics.T_REFERENCE,
+            {"header.frame_id": frame_id, "commander": commander},
+            graph_id=graph_id,
+        )
+
+    def pack(self, ref: np.ndarray, seq: int, sec: int, nsec: int) -> bytes:
+        return self.rc.pack(ref, seq, sec, nsec)
+
+    def unpack(self, data: bytes, out: np.ndarray) -> int:
+        """Fill an RF_* row (RF_MODE/RF_FAULT are not on the wire); returns seq."""
+        return self.rc.unpack(data, out)
+
+
 _ROW_CODECS: dict[str, RowCodec] = {}
 
 
@@ -396,6 +430,7 @@ GRAPH_TYPES = frozenset(
         topics.T_ESTIMATE,
         topics.T_DUTY,
         topics.T_STATE,
+        topics.T_REFERENCE,
         topics.T_MARKER,
         topics.T_DONE,
     }

@@ -10,6 +10,8 @@ FRAME = "/drive/frame"  # flux_drive_msgs/PhaseFrame, plant (or bench bridge) ->
 TRUTH = "/drive/truth"  # flux_drive_msgs/PlantTruth, simulation only
 DUTY = "/drive/duty"  # flux_drive_msgs/DutyCommand, controller -> plant
 CONTROLLER_STATE = "/drive/controller_state"  # flux_drive_msgs/ControllerState
+# flux_drive_msgs/CurrentReference, controller -> bench bridge (split mode, instead of duties)
+CURRENT_REF = "/drive/current_ref"
 DONE = "/drive/done"  # flux_drive_msgs/RunDone: last seq of a finished run (latched)
 CLOCK = "/clock"  # rosgraph_msgs/Clock: sim time of the plant
 ESTIMATE = "estimate"  # relative: /obs/<name>/estimate (flux_drive_msgs/RotorEstimate)
@@ -21,6 +23,7 @@ T_FRAME = "flux_drive_msgs/msg/PhaseFrame"
 T_TRUTH = "flux_drive_msgs/msg/PlantTruth"
 T_DUTY = "flux_drive_msgs/msg/DutyCommand"
 T_STATE = "flux_drive_msgs/msg/ControllerState"
+T_REFERENCE = "flux_drive_msgs/msg/CurrentReference"
 T_ESTIMATE = "flux_drive_msgs/msg/RotorEstimate"
 T_UINT64 = "std_msgs/msg/UInt64"
 T_DONE = "flux_drive_msgs/msg/RunDone"

@@ -14,6 +14,15 @@ Thin wrapper over :class:`fluxdrive.can.bridge.CanBridge` (all supervisor logic 
   latched), subscribes ``/drive/duty``
   (DutyCommand) -> DUTY_CMD frames, service ``/drive/arm`` (flux_drive_msgs/srv/Arm) and
   ``/drive/reset_fault`` (ResetFault), diagnostics on ``/diagnostics``;
+* split mode (``control_split``, read-only): ARM_MODE.control_split = 1, subscribes
+  ``/drive/current_ref`` (CurrentReference) -> HOST_REF instead of duties; the drive-side
+  parameters are ROS parameters ``drive.<name>`` (the DBC's DRIVE_PARAM table, lower case:
+  ``drive.cur_kp``, ``drive.ref_timeout_s``, ...; defaults from the ``scenario``'s controller
+  design, ``design_loops`` at the PWM rate), written to the drive as DRIVE_PARAMs before
+  every arming (arming is refused with the drive's reason if one is not acknowledged) and
+  whenever one is set (live: the set is refused with the drive's reason on a refusal or
+  without an acknowledgement); the drive's FAULT frames (e.g. the reference timeout) are
+  reported on /diagnostics (level ERROR, the fault named in the message);
 * a CAN thread polls the bus; the node disarms on shutdown;
 * access (fluxdrive_ros.access): duty commands are obeyed only from `allowed_commanders`
   (default /controller; others dropped and counted on /diagnostics); /drive/arm (arm) and
@@ -37,16 +46,73 @@ from fluxdrive.can.bridge import (
     bus_factory_from_params,
 )
 from fluxdrive.can.protocol import link_budget, smallest_fitting_decimation
+from fluxdrive.drive.control import (
+    DRIVE_PARAM_RANGES,
+    ControllerConfig,
+    drive_param_values,
+)
 from fluxdrive.drive.plant import FR_SEQ
 from fluxdrive_ros.params import P, declare, on_set
 from fluxdrive_ros.wire import FrameWire, Stamp
 from rclpy.node import Node
 
-from flux_drive_msgs.msg import DutyCommand, PhaseFrame
+from flux_drive_msgs.msg import CurrentReference, DutyCommand, PhaseFrame
 from flux_drive_msgs.srv import Arm, ResetFault
 from fluxdrive_ros import access, graph, qos, topics
 
 _SOFTWARE_BUSES = ("virtual", "udp_multicast")  # no wire time: any layout and D "fit"
+# DRIVE_PARAM name -> (description, unit) of its ROS parameter drive.<name lower case>
+DRIVE_DOCS = {
+    "CUR_KP": ("current PI proportional gain", "V/A"),
+    "CUR_KI": ("current PI integral gain", "V/(A s)"),
+    "L_HAT": ("inductance of the drive's decoupling model", "H"),
+    "LAMBDA_HAT": ("magnet flux of the drive's back-EMF feed-forward", "V s"),
+    "DECOUPLE": ("1: cross-coupling and back-EMF feed-forward on, 0: off", ""),
+    "VOLTAGE_ADVANCE": ("inverse-Park angle advance", "periods"),
+    "DEADTIME_COMP_S": ("deadtime feed-forward (0: off)", "s"),
+    "CUR_LIMIT_A": ("limit of the current references the drive follows", "A"),
+    "REF_TIMEOUT_S": ("no HOST_REF this long with PWM on: PWM off, fault 'watchdog'", "s"),
+    "OVERCURRENT_A": ("instantaneous over-current trip", "A"),
+    "I2T_LIMIT_PU2S": ("I2t trip: integral of ((i/I_rated)^2 - 1) dt", "pu^2 s"),
+    "RATED_CURRENT_A": ("rated current of the I2t protection (only with PWM off)", "A"),
+    "VDC_MIN_V": ("DC-bus under-voltage trip", "V"),
+    "VDC_MAX_V": ("DC-bus over-voltage trip", "V"),
+    "HEARTBEAT_TIMEOUT_S": ("host heartbeat timeout (0: off)", "s"),
+    "POLE_PAIRS": ("pole pairs (only with PWM off)", ""),
+}
+
+
+def drive_param_name(prm: str) -> str:
+    """The ROS parameter of a DRIVE_PARAM: drive.<name in lower case>."""
+    return "drive." + prm.lower()
+
+
+def drive_param_table(values: dict[str, float]) -> list[P]:
+    """Split mode: one live parameter per drive-side parameter (default `values`)."""
+    out = []
+    for prm, (desc, unit) in DRIVE_DOCS.items():
+        lo, hi = DRIVE_PARAM_RANGES[prm]
+        v = float(values.get(prm, 0.0))
+        out.append(
+            P(drive_param_name(prm), v, f"drive: {desc} (DRIVE_PARAM {prm}; live)", unit, lo, hi)
+        )
+    return out
+
+
+def drive_defaults(scenario: str) -> dict[str, float]:
+    """The drive-side parameters of a scenario's controller design (or the default card's)."""
+    from fluxdrive.core.machine import load_machine
+    from fluxdrive.core.scenario import CONFIG_DIR, load_scenario, scenario_path
+
+    if scenario:
+        sc = load_scenario(scenario_path(scenario))
+        cfg, card = sc.control, sc.machine
+    else:
+        card = load_machine(CONFIG_DIR / "machines" / "default_spm.yaml")
+        cfg = ControllerConfig()
+    vals = drive_param_values(cfg.to_params(card))
+    vals["HEARTBEAT_TIMEOUT_S"] = 0.0
+    return vals
 
 
 def param_table() -> list[P]:
@@ -160,6 +226,20 @@ def param_table() -> list[P]:
             60.0,
             read_only=True,
         ),
+        P(
+            "control_split",
+            False,
+            "split mode: the drive closes the current loop on the graph's current references "
+            "(/drive/current_ref -> HOST_REF) and its drive.* parameters",
+            read_only=True,
+        ),
+        P(
+            "scenario",
+            "",
+            "scenario YAML (path or name) whose controller design gives the drive.* defaults "
+            "(split mode; empty: the default machine card's)",
+            read_only=True,
+        ),
         access.param(),
         graph.param(),
     ]
@@ -182,12 +262,17 @@ class BenchBridgeNode(Node):
         self.ts = pv["ts_s"]
         self.frame_id = pv["frame_id"]
         arm_at_start = pv["armed"]
+        self.split = bool(pv["control_split"])
+        self.drive_specs = drive_param_table(drive_defaults(pv["scenario"])) if self.split else []
+        self.drive_values = declare(self, self.drive_specs) if self.split else {}
         diag_period = pv["diagnostics_period_s"]
         self.allowed = list(pv["allowed_commanders"])
         # graph identity (fluxdrive_ros.graph): its frames carry the graph's id, duties of
         # another graph are dropped and counted
         self.graph = graph.Membership(self, pv["graph_id"])
-        self.guard = access.CommandGuard(self.allowed, topics.DUTY)
+        self.guard = access.CommandGuard(
+            self.allowed, topics.CURRENT_REF if self.split else topics.DUTY
+        )
         self.duty_out_of_range = 0
         self.service_refused = 0
         factory = bus_factory_from_params(
@@ -201,10 +286,12 @@ class BenchBridgeNode(Node):
                 reconnect_initial_s=rc0,
                 reconnect_max_s=rc1,
                 decimation=self.p_decimation,
+                control_split=self.split,
             ),
         )
         self._report_link()
         self._mismatch_logged = ""
+        self._drive_fault_logged = ""
         # the simulated plant's QoS: every reader of /drive/frame matches (volatile ones and
         # the transient-local ones of lockstep graphs); duties read like the plant reads them
         self.pub = self.create_publisher(PhaseFrame, topics.FRAME, qos.SAMPLES)
@@ -212,23 +299,31 @@ class BenchBridgeNode(Node):
         self._stamp_d = 0
         self._stamp = Stamp(self.ts)
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.create_subscription(
-            DutyCommand,
-            topics.DUTY,
-            self.graph.typed(topics.DUTY, self._on_duty),
-            qos.reader("volatile"),
-        )
+        if self.split:
+            self.create_subscription(
+                CurrentReference,
+                topics.CURRENT_REF,
+                self.graph.typed(topics.CURRENT_REF, self._on_reference),
+                qos.reader("volatile"),
+            )
+        else:
+            self.create_subscription(
+                DutyCommand,
+                topics.DUTY,
+                self.graph.typed(topics.DUTY, self._on_duty),
+                qos.reader("volatile"),
+            )
         self.create_service(Arm, "/drive/arm", self._on_arm)
         self.create_service(ResetFault, "/drive/reset_fault", self._on_reset)
         self.create_timer(diag_period, self._publish_diagnostics)
-        on_set(self, param_table(), self._apply_params)
+        on_set(self, param_table() + self.drive_specs, self._apply_params)
         self.bridge.connect()
-        if arm_at_start:
-            ok, why = self.bridge.arm()
-            self.get_logger().info(f"arm at start: {ok} ({why})")
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._can_loop, name="can-rx", daemon=True)
         self._thread.start()
+        if arm_at_start:
+            ok, why = self._arm()
+            self.get_logger().info(f"arm at start: {ok} ({why})")
 
     def _report_link(self) -> None:
         """Log the layout and D; warn when they do not fit the configured bus."""
@@ -293,6 +388,35 @@ class BenchBridgeNode(Node):
             self.duty_out_of_range += 1  # clamped by send_duty; non-finite counted there
         self.bridge.send_duty(int(msg.seq), d, bool(msg.enable))
 
+    def _on_reference(self, msg: CurrentReference) -> None:
+        if not self.guard.accept_mark(msg.commander):
+            if self.guard.n_rejected <= 3:
+                self.get_logger().warning(
+                    f"current reference dropped ({self.guard.last_rejected}); "
+                    f"obeyed only from {self.allowed}"
+                )
+            return
+        self.bridge.send_reference(
+            int(msg.seq), msg.id_ref, msg.iq_ref, msg.theta_e, msg.omega_e, bool(msg.enable)
+        )
+
+    def _push_drive_params(self, values: dict[str, float]) -> str:
+        """Write drive parameters (DRIVE_PARAM name -> value); '' or the first refusal."""
+        for prm, v in values.items():
+            ok, why, _ = self.bridge.set_drive_param(prm, float(v))
+            if not ok:
+                return why
+        return ""
+
+    def _arm(self) -> tuple[bool, str]:
+        """Arm; in split mode the drive first gets (and acknowledges) every drive.* value."""
+        if self.split:
+            vals = {prm: self.drive_values[drive_param_name(prm)] for prm in DRIVE_DOCS}
+            why = self._push_drive_params(vals)
+            if why:
+                return False, f"drive parameters not taken: {why}"
+        return self.bridge.arm()
+
     def _refused(self, service: str) -> str | None:
         why = access.check_service_caller(self, service, self.allowed)
         if why:
@@ -305,7 +429,7 @@ class BenchBridgeNode(Node):
         if why:
             resp.success, resp.message = False, why
             return resp
-        ok, why = self.bridge.arm() if req.arm else self.bridge.disarm("service")
+        ok, why = self._arm() if req.arm else self.bridge.disarm("service")
         resp.success, resp.message = bool(ok), why
         return resp
 
@@ -319,8 +443,16 @@ class BenchBridgeNode(Node):
         return resp
 
     def _apply_params(self, changes: dict) -> str | None:
+        drive = {
+            p: changes[drive_param_name(p)] for p in DRIVE_DOCS if drive_param_name(p) in changes
+        }
+        if drive:  # the drive must acknowledge, else the set is refused with its reason
+            why = self._push_drive_params(drive)
+            if why:
+                raise ValueError(why)
+            self.drive_values.update({drive_param_name(p): v for p, v in drive.items()})
         if "armed" in changes:
-            ok, why = self.bridge.arm() if changes["armed"] else self.bridge.disarm("parameter")
+            ok, why = self._arm() if changes["armed"] else self.bridge.disarm("parameter")
             if not ok:
                 raise ValueError(why)
         if "stale_timeout_s" in changes:
@@ -339,7 +471,7 @@ class BenchBridgeNode(Node):
                 f"fd parameters to what the drive runs, or reflash it)"
             )
         self._mismatch_logged = mismatch
-        if d["state"] in ("fault", "disconnected"):
+        if d["state"] in ("fault", "disconnected") or d["drive_fault"]:
             st.level = DiagnosticStatus.ERROR
         elif (
             d["malformed"]
@@ -355,6 +487,11 @@ class BenchBridgeNode(Node):
         else:
             st.level = DiagnosticStatus.OK
         st.message = d["state"] + (f": {d['fault']}" if d["fault"] else "")
+        if d["drive_fault"]:
+            st.message += f"; {d['drive_fault']}"
+            if d["drive_fault"] != self._drive_fault_logged:
+                self.get_logger().error(d["drive_fault"])
+        self._drive_fault_logged = d["drive_fault"]
         d.update(
             self.guard.values(),
             duty_out_of_range=self.duty_out_of_range,

@@ -13,6 +13,9 @@ ObserverConfig.with_overrides and rebuild the kernel's parameter row in place; t
 observer's state is kept.  The change takes effect from the next frame processed (the
 successful result says which).
 
+`decimation` (read-only): the frames come every D-th PWM period (a decimated CAN link, split
+mode); the observer steps at the sample time D * the card's Ts and stamps its estimates so.
+
 With `scenario` set, the defaults come from that scenario's `observers.<observer>` entry
 (`observer` defaults to the node's name) and its machine card; without it, from
 `machine` (a machine card YAML) and the variant's defaults.
@@ -28,6 +31,7 @@ from fluxdrive.core.scenario import CONFIG_DIR, load_scenario, scenario_path
 from fluxdrive.drive.observers import (
     ES_N,
     ES_VALID,
+    OP_TS,
     OS_BAD,
     OS_GAPS,
     OS_LOST,
@@ -132,10 +136,12 @@ class ObserverNode(FluxNode):
         )
         sp, obs_name, mpath = first["scenario"], first["observer"], first["machine"]
         base = None
+        decimation = 1
         if sp:
             sc = load_scenario(scenario_path(sp))
             card = sc.machine
             base = sc.observers.get(obs_name)
+            decimation = int(sc.control.decimation)
         else:
             card = load_machine(mpath)
         if base is None:
@@ -175,16 +181,27 @@ class ObserverNode(FluxNode):
                 ),
                 P("exit_on_done", True, "exit once the frame named by /drive/done is processed"),
                 P("frame_id", "", "header.frame_id of published estimates", read_only=True),
+                P(
+                    "decimation",
+                    decimation,
+                    "PWM periods per frame (a decimated CAN link, split mode): the observer "
+                    "steps at decimation x the machine card's PWM period",
+                    "",
+                    1,
+                    64,
+                    read_only=True,
+                ),
                 diag.PARAM,
             ],
         )
+        self.sample_s = card.ts_s * int(common["decimation"])
         self.cfg = base.with_overrides(**pv)
-        self.params = self.cfg.to_params(card)
+        self.params = self._params(self.cfg)
         self.state = np.zeros(OS_N)
         observer_reset(self.state)
         self.frame = np.zeros(FR_N)
         self.row = np.zeros(ES_N)
-        self.stamp = Stamp(card.ts_s)
+        self.stamp = Stamp(self.sample_s)
         self.fw = FrameWire()
         self.ew = EstimateWire(obs_name, common["frame_id"], graph_id=self.graph.id)
         self.exit_on_done = common["exit_on_done"]
@@ -225,9 +242,15 @@ class ObserverNode(FluxNode):
             f"publishing {self.pub.topic_name}"
         )
 
+    def _params(self, cfg) -> np.ndarray:
+        """The kernel's parameter row at this node's sample time."""
+        op = cfg.to_params(self.card)
+        op[OP_TS] = self.sample_s
+        return op
+
     def _apply(self, changes: dict) -> str:
         cfg = self.cfg.with_overrides(**changes)  # raises ConfigError with the reason
-        self.params[:] = cfg.to_params(self.card)
+        self.params[:] = self._params(cfg)
         self.cfg = cfg
         return f"applied from frame {self.last_seq + 1}"
 

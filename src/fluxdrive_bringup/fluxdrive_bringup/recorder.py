@@ -81,6 +81,7 @@ def conventional_type(topic: str) -> str | None:
         topics.TRUTH: topics.T_TRUTH,
         topics.DUTY: topics.T_DUTY,
         topics.CONTROLLER_STATE: topics.T_STATE,
+        topics.CURRENT_REF: topics.T_REFERENCE,
         topics.DONE: topics.T_DONE,
         topics.CLOCK: topics.T_CLOCK,
         topics.MARKER: topics.T_MARKER,
@@ -99,6 +100,7 @@ def _has_seq(msgtype: str) -> bool:
         topics.T_TRUTH,
         topics.T_DUTY,
         topics.T_STATE,
+        topics.T_REFERENCE,
         topics.T_ESTIMATE,
     )
 

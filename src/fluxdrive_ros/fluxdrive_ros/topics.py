@@ -7,6 +7,7 @@ from __future__ import annotations
 from fluxdrive.io.topics import (  # noqa: F401 - re-exported: the one definition
     CLOCK,
     CONTROLLER_STATE,
+    CURRENT_REF,
     DONE,
     DUTY,
     ESTIMATE,
@@ -20,6 +21,7 @@ from fluxdrive.io.topics import (  # noqa: F401 - re-exported: the one definitio
     T_ESTIMATE,
     T_FRAME,
     T_MARKER,
+    T_REFERENCE,
     T_STATE,
     T_STRING,
     T_TRUTH,

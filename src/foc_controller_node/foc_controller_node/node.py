@@ -14,6 +14,13 @@ replaces the kernel's parameter row from the next sample.  A change the design r
 rejected with the reason.  The speed reference follows the scenario's profile (with its
 injection) unless speed_ref_mode = constant (speed_ref_rpm).
 
+Split mode (`control_mode` = split, read-only; default the scenario's control.mode): the
+drive closes the current loop; this node runs `host_reference_step` (everything but the
+current loops) and publishes CurrentReference(seq=k) on /drive/current_ref instead of
+duties.  `decimation` (read-only): the frames come every D-th PWM period, the node steps at
+D * the card's Ts (split: the drive's current gains stay the PWM-rate design; host mode: the
+loops are designed for the sample rate).
+
 The sequencing -- frame/estimate pairing, stale-input trips, the drive picking up after the
 power stage's watchdog switched the PWM off, one log line per latched fault -- is the
 engine's fluxdrive.drive.sequencer.ControlSequencer; this node feeds it and publishes.
@@ -56,11 +63,13 @@ from fluxdrive.drive.control import (
     FAULT_NAMES,
     MODE_NAMES,
     ControllerConfig,
+    host_params,
 )
 from fluxdrive.drive.observers import ES_N
 from fluxdrive.drive.plant import FR_N
 from fluxdrive.drive.sequencer import ControlSequencer
 from fluxdrive.drive.sim import DriveSetup
+from fluxdrive.io.messages import ReferenceWire
 from fluxdrive_ros.intra import RawPublisher, RawSubscription
 from fluxdrive_ros.params import P, declare, on_set
 from fluxdrive_ros.runner import FluxNode, main_node
@@ -136,6 +145,8 @@ SPLIT_FIELDS = ("mode", "decimation", "host_delay_samples")
 FIRST_ESTIMATE_WALL_S = 30.0
 # parameters of the node, not of ControllerConfig
 NODE_LEVEL = {
+    "control_mode",
+    "decimation",
     "speed_ref_mode",
     "speed_ref_rpm",
     "position_timeout_s",
@@ -221,8 +232,29 @@ class ControllerNode(FluxNode):
                     "RotorEstimate topic of the driving observer (position_source = estimate)",
                     read_only=True,
                 ),
+                P(
+                    "control_mode",
+                    cfg.mode,
+                    "where the current loop runs: host (this node, duties out) or split "
+                    "(the drive, current references out on /drive/current_ref)",
+                    choices=("host", "split"),
+                    read_only=True,
+                ),
+                P(
+                    "decimation",
+                    int(cfg.decimation),
+                    "PWM periods per frame: the node steps at decimation x the card's PWM period",
+                    "",
+                    1,
+                    64,
+                    read_only=True,
+                ),
             ],
         )
+        self.split = src["control_mode"] == "split"
+        self.decimation = int(src["decimation"])
+        d = self.decimation
+        self.w_ref_profile, self.id_inj = self.w_ref_profile[::d], self.id_inj[::d]
         # every card-derived default (bus window, bandwidths, handover) as a concrete value:
         # ROS parameters cannot say "derive it"
         cfg = dataclasses.replace(cfg, position_source=src["position_source"]).resolved(card)
@@ -312,9 +344,9 @@ class ControllerNode(FluxNode):
         self.allowed_operators = list(common["allowed_operators"])
         self.pv = pv
         self.cfg = to_config(cfg, pv)
-        self.cp = self.cfg.to_params(card)
+        self.cp = self._params(self.cfg)
         self.sensorless = self.cfg.position_source == "estimate"
-        self.stamp = Stamp(card.ts_s)
+        self.stamp = Stamp(card.ts_s * self.decimation)
         self.fw = FrameWire()
         self.ew = EstimateWire("")
         # DutyCommand.commander = this node's mark: the plant / bench bridge obey
@@ -325,9 +357,14 @@ class ControllerNode(FluxNode):
             graph_id=self.graph.id,
         )
         # pairing, stale-input trips, lost-interval re-synchronisation: the engine's
+        self.rw = ReferenceWire(
+            common["frame_id"],
+            commander=access.mark(self.get_fully_qualified_name(), topics.CURRENT_REF),
+            graph_id=self.graph.id,
+        )
         self.seq = ControlSequencer(
             self.cp,
-            card.ts_s,
+            card.ts_s * self.decimation,
             self.sensorless,
             self._publish,
             self._log,
@@ -339,13 +376,17 @@ class ControllerNode(FluxNode):
             qos.SAMPLE_DEPTH,
             pv["max_resyncs"],
             pv["resync_window_s"],
+            split=self.split,
         )
         self.counts = diag.Counters(*self.seq.counts)
         self.counts.values = self.seq.counts
         self.done_seq: int | None = None
         self.exit_on_done = common["exit_on_done"]
         self._set_ref(pv)
-        self.pub_duty = RawPublisher(self, fm.DutyCommand, topics.DUTY, qos.SAMPLES)
+        if self.split:
+            self.pub_duty = RawPublisher(self, fm.CurrentReference, topics.CURRENT_REF, qos.SAMPLES)
+        else:
+            self.pub_duty = RawPublisher(self, fm.DutyCommand, topics.DUTY, qos.SAMPLES)
         self.pub_state = RawPublisher(
             self, fm.ControllerState, topics.CONTROLLER_STATE, qos.SAMPLES
         )
@@ -384,6 +425,17 @@ class ControllerNode(FluxNode):
         )
 
     # ----------------------------------------------------------------- parameters
+    def _params(self, cfg: ControllerConfig) -> np.ndarray:
+        """The kernel's row at this node's sample time: split, the host's half of the
+        PWM-rate design; host mode at D > 1, the loops designed for the sample rate."""
+        d = self.decimation
+        if self.split:
+            return host_params(dataclasses.replace(cfg, mode="split").to_params(self.card), d)
+        if d > 1:
+            card = dataclasses.replace(self.card, pwm_hz=self.card.pwm_hz / d)
+            return dataclasses.replace(cfg, mode="host", decimation=1).to_params(card)
+        return cfg.to_params(self.card)
+
     def _set_ref(self, pv) -> None:
         self.seq.set_timeouts(pv["position_timeout_s"], pv["position_wall_timeout_s"])
         self.seq.const_ref = (
@@ -395,7 +447,7 @@ class ControllerNode(FluxNode):
         ctrl = {k: v for k, v in changes.items() if k not in NODE_LEVEL}
         if ctrl:
             cfg = to_config(self.cfg, ctrl)
-            cp = cfg.to_params(self.card)  # ConfigError (a ValueError) -> rejected
+            cp = self._params(cfg)  # ConfigError (a ValueError) -> rejected
             self.cp[:] = cp
             self.cfg = cfg
         self.pv = new
@@ -413,7 +465,10 @@ class ControllerNode(FluxNode):
 
     def _publish(self, k: int, out: np.ndarray) -> None:
         sec, nsec = self.stamp(k)
-        self.pub_duty.publish(self.cw.pack_duty(out, k, sec, nsec))
+        if self.split:
+            self.pub_duty.publish(self.rw.pack(self.seq.ref, k, sec, nsec))
+        else:
+            self.pub_duty.publish(self.cw.pack_duty(out, k, sec, nsec))
         self.pub_state.publish(self.cw.pack_state(out, k, sec, nsec))
         if self.done_seq is not None and k >= self.done_seq:
             self.finished = True
