@@ -13,7 +13,9 @@ from fluxdrive.io.canimport import PHASE_FRAME_TOPIC, import_capture
 
 def main(argv: list[str] | None = None) -> int:
     """CLI: ``can-import LOG --out BAG [--topic T] [--scenario S] [--decimation D]``;
-    prints counts, last line JSON."""
+    prints counts, last line JSON.  Exit 2: nothing imported (one line why); 1: imported,
+    but the capture is truncated (the bag holds the frames before the cut, and says so in
+    its metadata); 0: imported whole."""
     ap = argparse.ArgumentParser(
         prog="fluxdrive can-import",
         description="CAN capture (.log/.asc/.blf) -> bag of PhaseFrames",
@@ -43,7 +45,9 @@ def main(argv: list[str] | None = None) -> int:
             a.log, a.out, topic=a.topic, scenario=a.scenario, decimation=a.decimation
         )
     except (ValueError, OSError) as exc:  # CaptureError, ConfigError: one line
-        print(f"can-import: {str(exc).splitlines()[0] if str(exc) else exc!r}", file=sys.stderr)
+        # (the first line only: a message is one line; `!r` would quote it)
+        why = str(exc).splitlines()[0] if str(exc) else repr(exc)
+        print(f"can-import: {why}", file=sys.stderr)
         return 2
     bad = res.get("malformed_lines", 0)
     if bad:
@@ -60,6 +64,13 @@ def main(argv: list[str] | None = None) -> int:
         file=sys.stderr,
     )
     print(json.dumps(res))
+    if res.get("truncated"):
+        print(
+            f"can-import: WARNING: {a.log}: {res['truncated']}; the bag holds the "
+            f"{res['written']} sample frames before it",
+            file=sys.stderr,
+        )
+        return 1
     return 0
 
 

@@ -75,6 +75,7 @@ def import_capture(
             "decimation": d,
             "pwm_hz": card.pwm_hz,
             "sample_period_s": d / card.pwm_hz,
+            **({"truncated": cap.truncated} if cap.truncated else {}),
         },
     }
     stamp = Stamp(sample_card.ts_s)
@@ -96,6 +97,8 @@ def import_capture(
         topic=topic,
         bag=str(outp),
     )
+    if cap.truncated:
+        out_counts["truncated"] = cap.truncated
     if cap.bad_lines:
         out_counts["first_malformed_lines"] = [
             f"{Path(log).name}:{n}: {why}" for n, why in cap.bad_lines[:5]

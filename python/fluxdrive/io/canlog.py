@@ -73,7 +73,8 @@ class CaptureResult:
     ``malformed`` (wrong length / out of range / wrong FD flag), ``other`` (non-sample
     messages), ``error_frames``, ``gaps`` / ``lost`` / ``duplicates`` / ``out_of_order``
     (sequence counter over the decoded samples); ``layout``: "fd", "classic" or "none";
-    ``reasons``: up to 100 examples of why frames were rejected (index, reason)."""
+    ``reasons``: up to 100 examples of why frames were rejected (index, reason);
+    ``truncated``: why the capture ends early ("" if it does not; a .blf only)."""
 
     frames: np.ndarray
     timestamps: np.ndarray
@@ -82,6 +83,7 @@ class CaptureResult:
     reasons: list[tuple[int, str]] = field(default_factory=list)
     bad_lines: list[tuple[int, str]] = field(default_factory=list)  # (line, why), first 20
     step: int = 1  # wire seq step between samples (the layout's decimation D)
+    truncated: str = ""
 
     def column(self, name: str) -> np.ndarray:
         """One frame column by name (see FRAME_FIELDS)."""
@@ -165,9 +167,11 @@ def read_capture(
     fd_isfd: list[bool] = []
     cl_msgs: list[tuple[int, bytes, float]] = []
     bad_lines: list[tuple[int, str]] = []
+    notes: dict[str, str] = {}
+    foreign_ids: list[int] = []
     if not p.is_file():
         raise CaptureError(f"{p}: no such capture file")
-    for msg in _messages(p, bad_lines):
+    for msg in _messages(p, bad_lines, notes):
         total += 1
         if msg.is_error_frame:
             errors += 1
@@ -181,6 +185,8 @@ def read_capture(
             cl_msgs.append((aid, bytes(msg.data), msg.timestamp))
         else:
             other += 1
+            if len(foreign_ids) < 3 and aid not in foreign_ids:
+                foreign_ids.append(aid)
     counts = {
         "total": total,
         "other": other,
@@ -194,7 +200,15 @@ def read_capture(
             if bad_lines
             else ""
         )
-        raise CaptureError(f"{p}: holds no CAN frames{why}")
+        raise CaptureError(f"{p}: holds no CAN frames{why}{_note(notes)}")
+    if not fd_data and not cl_msgs:
+        ids = ", ".join(f"0x{i:X}" for i in foreign_ids)
+        raise CaptureError(
+            f"{p}: none of its {total} CAN frames is a sample frame (SAMPLE_FD "
+            f"0x{sample_id:03X} or the classic layout "
+            f"{', '.join(f'0x{i:03X}' for i in classic_ids)}); {other} have other IDs "
+            f"(e.g. {ids}){_note(notes)}"
+        )
     reasons: list[tuple[int, str]] = []
     if fd_data or not cl_msgs:
         payloads, lens = pack_payloads(fd_data, proto.fd_codec.length)
@@ -255,6 +269,7 @@ def read_capture(
         reasons=reasons,
         bad_lines=bad_lines[:20],
         step=step,
+        truncated=notes.get("truncated", ""),
     )
 
 
@@ -299,20 +314,46 @@ class _Lines:
         return self.lines[self.i - 1]
 
 
-def _messages(p: Path, bad_lines: list[tuple[int, str]]) -> Iterable[can.Message]:
+def _note(notes: dict[str, str]) -> str:
+    return f"; {notes['truncated']}" if notes.get("truncated") else ""
+
+
+def _messages(
+    p: Path, bad_lines: list[tuple[int, str]], notes: dict[str, str] | None = None
+) -> Iterable[can.Message]:
     """python-can's reader for the capture; a text capture (.log/.asc/.trc) goes line by line:
     a line the reader cannot parse is skipped and noted (line number, reason) and reading
-    goes on after it.  A binary capture (.blf) that python-can cannot read is one error."""
+    goes on after it.  A binary capture (.blf) that python-can cannot read is one error; one
+    that ends before the size its header records (a copy cut short, a logger that did not
+    finish), or breaks off after some frames, gives the frames before the cut and a note
+    in notes["truncated"]."""
+    notes = {} if notes is None else notes
     suffix = p.suffix.lower()
     if suffix == ".blf":
+        n = 0
+        size = p.stat().st_size
         try:
             with can.LogReader(str(p)) as blf:
-                yield from blf
+                recorded = int(getattr(blf, "file_size", 0) or 0)
+                for msg in blf:
+                    n += 1
+                    yield msg
         except Exception as exc:  # noqa: BLE001 - BLFParseError, struct/zlib errors, ...
-            raise CaptureError(
-                f"{p}: not a readable BLF capture ({type(exc).__name__}: "
-                f"{str(exc).strip()[:120] or 'damaged'})"
-            ) from None
+            why = f"{type(exc).__name__}: {str(exc).strip()[:120] or 'damaged'}"
+            if n == 0:
+                raise CaptureError(f"{p}: not a readable BLF capture ({why})") from None
+            notes["truncated"] = f"truncated or damaged after {n} CAN frames ({why})"
+            return
+        if recorded == 0:
+            notes["truncated"] = (
+                "its header records no file size (the logger did not finish the file): "
+                "it may end early"
+            )
+        elif size < recorded:
+            notes["truncated"] = (
+                f"truncated: {size} of the {recorded} bytes its header records "
+                f"({n} CAN frames before the cut)"
+            )
         return
     try:
         text = p.read_text(errors="replace")
