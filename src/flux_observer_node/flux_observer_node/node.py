@@ -168,7 +168,12 @@ class ObserverNode(FluxNode):
         common = declare(
             self,
             [
-                P("frame_topic", topics.FRAME, "PhaseFrame input topic", read_only=True),
+                P(
+                    "frame_topic",
+                    topics.rel(topics.FRAME),
+                    "PhaseFrame input topic (relative: in the drive's namespace)",
+                    read_only=True,
+                ),
                 P(
                     "input_durability",
                     "volatile",
@@ -227,12 +232,15 @@ class ObserverNode(FluxNode):
         self.sub = RawSubscription(
             self,
             fm.PhaseFrame,
-            common["frame_topic"],
+            topics.in_drive(self, common["frame_topic"]),
             self._on_frame,
             qos.reader(common["input_durability"]),
         )
         self.create_subscription(
-            fm.RunDone, topics.DONE, self.graph.typed(topics.DONE, self._on_done), qos.LATCHED
+            fm.RunDone,
+            topics.drive_topic(self, topics.DONE),
+            self.graph.typed(topics.DONE, self._on_done),
+            qos.LATCHED,
         )
         on_set(self, self.specs, self._apply, lambda: self.last_seq + 1, card.ts_s)
         self.diag = diag.Diagnostics(self, common["diagnostics_period_s"])

@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -76,6 +77,7 @@ _NODE_KEYS = {
 } | _POLICY_KEYS
 _TOP_KEYS = {
     "name",
+    "namespace",
     "description",
     "discovery_range",
     "domain_id",
@@ -125,6 +127,7 @@ class Graph:
     on_death: str = "stop"
     max_restarts: int = 3
     restart_backoff_s: float = 1.0
+    namespace: str = ""  # the drive's namespace: every node under it (`__ns:=`), e.g. /a
 
     def policy(self, members: list[NodeSpec]) -> tuple[str, int, float]:
         """(on_death, max_restarts, restart_backoff_s) of a process (its nodes agree)."""
@@ -163,6 +166,8 @@ class Graph:
                     d[k] = getattr(n, k)
             nodes.append(d)
         out: dict[str, Any] = {"name": self.name, "discovery_range": self.discovery_range}
+        if self.namespace:
+            out["namespace"] = self.namespace
         if self.domain_id is not None:
             out["domain_id"] = self.domain_id
         if self.env:
@@ -175,6 +180,21 @@ class Graph:
             )
         out["nodes"] = nodes
         return out
+
+
+def check_namespace(value: Any, where: str) -> str:
+    """A drive namespace ('/a', 'a/b' -> '/a/b'; None or '' -> ''), or ConfigError naming
+    `where`."""
+    if value is None or value == "":
+        return ""
+    text = str(value).strip("/")
+    if not isinstance(value, str) or not re.fullmatch(
+        r"[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*", text
+    ):
+        raise ConfigError(
+            f"{where} must be a ROS namespace like /bench_a (letters, digits, _), got {value!r}"
+        )
+    return "/" + text
 
 
 def _resolve(p: str | Path, base: Path) -> Path:
@@ -346,6 +366,7 @@ def parse_graph(raw: Any, src: str = "graph", base: Path = REPO_ROOT) -> Graph:
     stop_grace_s = _seconds(src, "stop_grace_s", raw.get("stop_grace_s", 20.0), 0.1, 3600.0)
     g = Graph(
         name=str(raw.get("name", Path(src).stem)),
+        namespace=check_namespace(raw.get("namespace"), f"{src}: 'namespace'"),
         nodes=nodes,
         discovery_range=dr,
         domain_id=dom,
@@ -535,7 +556,10 @@ class Launcher:
                 for m in members
             ],
         }
-        return [sys.executable, "-m", "fluxdrive_ros.runner", "--spec-json", json.dumps(spec)]
+        argv = [sys.executable, "-m", "fluxdrive_ros.runner", "--spec-json", json.dumps(spec)]
+        if self.g.namespace:  # the whole drive under it (fluxdrive_ros.runner)
+            argv += ["--ros-args", "-r", f"__ns:={self.g.namespace}"]
+        return argv
 
     def preflight(self) -> None:
         """Before anything starts: every recorder's bag directory must be new and writable,
@@ -939,6 +963,10 @@ def main(argv: list[str]) -> int:
     ap.add_argument("graph", help="graph YAML (path, or a name under config/graphs/)")
     ap.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID for every process")
     ap.add_argument("--timeout", type=float, help="stop the graph after this many seconds")
+    ap.add_argument(
+        "--namespace",
+        help="put the whole drive in this ROS namespace (e.g. /bench_a: /bench_a/drive/frame)",
+    )
     ap.add_argument("--log-dir", type=Path, help="also write each process's output here")
     ap.add_argument(
         "--set",
@@ -976,6 +1004,8 @@ def main(argv: list[str]) -> int:
     g = load_graph(args.graph)
     if args.domain_id is not None:
         g.domain_id = args.domain_id
+    if args.namespace:
+        g.namespace = check_namespace(args.namespace, "--namespace")
     for item in args.set:
         key, _, val = item.partition("=")
         node, _, pname = key.partition(".")

@@ -60,15 +60,27 @@ from fluxdrive_ros import qos, topics
 
 from .bagwriter import check_bag_target, pack_json
 
+# the domain-wide topics of every ROS graph: the recorder keeps what its own drive's nodes
+# published (namespaced drive: names under its namespace; see _own_drive)
+DIAGNOSTICS = "/diagnostics"  # diagnostic_msgs/DiagnosticArray, every node, 1 Hz
+ROSOUT = "/rosout"  # rcl_interfaces/Log: every node's log lines
+T_DIAGNOSTICS = "diagnostic_msgs/msg/DiagnosticArray"
+T_LOG = "rcl_interfaces/msg/Log"
+# relative names: the recorder's drive namespace (`__ns:=/a` records /a/drive/frame); the
+# bag names them as a drive in the root namespace would (/drive/frame), so a namespaced
+# drive's bag is the bag of its solo run.  Absolute names are recorded as they are.
 DEFAULT_TOPICS = [
-    topics.FRAME,
-    topics.TRUTH,
-    topics.DUTY,
-    topics.CONTROLLER_STATE,
-    topics.DONE,
-    topics.CLOCK,
-    topics.MARKER,
-]
+    topics.rel(t)
+    for t in (
+        topics.FRAME,
+        topics.TRUTH,
+        topics.DUTY,
+        topics.CONTROLLER_STATE,
+        topics.DONE,
+        topics.CLOCK,
+        topics.MARKER,
+    )
+] + [DIAGNOSTICS, ROSOUT]
 _HDR = struct.Struct("<iI")
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
@@ -85,6 +97,8 @@ def conventional_type(topic: str) -> str | None:
         topics.DONE: topics.T_DONE,
         topics.CLOCK: topics.T_CLOCK,
         topics.MARKER: topics.T_MARKER,
+        DIAGNOSTICS: T_DIAGNOSTICS,
+        ROSOUT: T_LOG,
     }
     if topic in known:
         return known[topic]
@@ -207,8 +221,12 @@ class RecorderNode(FluxNode):
         )
         self.pv = pv
         want = [t for t in pv["topics"] if t]
-        want += [topics.estimate_topic(o) for o in pv["observers"] if o]
-        self.want = list(dict.fromkeys(want))
+        want += [topics.rel(topics.estimate_topic(o)) for o in pv["observers"] if o]
+        # bag topic name -> the name subscribed (relative ones: in this drive's namespace)
+        self.sub_name = {
+            (t if t.startswith("/") else "/" + t): topics.in_drive(self, t) for t in want
+        }
+        self.want = list(self.sub_name)
         self.bag_dir = Path(pv["bag_dir"]).resolve()
         free_mb = check_bag_target(self.bag_dir, pv["min_free_mb"])
         self.write_failed = ""
@@ -241,7 +259,10 @@ class RecorderNode(FluxNode):
             self._discover_timer = self.create_timer(0.2, self._discover)
         if pv["exit_on_done"]:
             self.create_subscription(
-                fm.RunDone, topics.DONE, self.graph.typed(topics.DONE, self._on_done), qos.LATCHED
+                fm.RunDone,
+                topics.drive_topic(self, topics.DONE),
+                self.graph.typed(topics.DONE, self._on_done),
+                qos.LATCHED,
             )
             self._done_timer = self.create_timer(0.1, self._check_done)
         self.stop = threading.Event()
@@ -313,9 +334,12 @@ class RecorderNode(FluxNode):
         self.counts[topic] = 0
         with self.lock:  # the connection record goes down the pipe before its messages
             self.buf.append(pack_json(b"C", {"id": cid, "topic": topic, "type": mtype}))
-        prof = {topics.DONE: qos.LATCHED, topics.MARKER: qos.MARKERS}.get(
-            topic, qos.reader(self.pv["input_durability"])
-        )
+        prof = {
+            topics.DONE: qos.LATCHED,
+            topics.MARKER: qos.MARKERS,
+            DIAGNOSTICS: qos.WATCH,
+            ROSOUT: qos.WATCH,
+        }.get(topic, qos.reader(self.pv["input_durability"]))
         buf = self.buf
         counts = self.counts
         last = self.last_seq
@@ -343,14 +367,39 @@ class RecorderNode(FluxNode):
                 last[topic] = _seq(data)
             self.last_rx = time.monotonic()
 
-        self.subs.append(RawSubscription(self, cls, topic, cb, prof))
+        if topic in (DIAGNOSTICS, ROSOUT):
+            cb = self._own_drive(topic, cls, cb)
+        self.subs.append(RawSubscription(self, cls, self.sub_name.get(topic, topic), cb, prof))
         return True
+
+    def _own_drive(self, topic: str, cls, cb):
+        """/diagnostics and /rosout are shared by every graph on the domain: a recorder of
+        a namespaced drive keeps the messages of its drive's nodes (status names and logger
+        names under its namespace).  In the root namespace everything is kept (two graphs
+        sharing a domain there are told apart by graph_id, which these messages lack)."""
+        ns = topics.drive_namespace(self)
+        if ns == "/":
+            return cb
+        from rclpy.serialization import deserialize_message
+
+        prefix, dotted = ns + "/", ns.strip("/").replace("/", ".") + "."
+
+        def mine(data: bytes) -> None:
+            m = deserialize_message(data, cls)
+            if topic == ROSOUT:
+                ok = m.name.startswith(dotted)
+            else:
+                ok = any(s.name.startswith(prefix) for s in m.status)
+            if ok:
+                cb(data)
+
+        return mine
 
     def _discover(self) -> None:
         names = dict(self.get_topic_names_and_types())
         still = []
         for t in self.pending:
-            ts = names.get(t)
+            ts = names.get(self.sub_name.get(t, t))
             if ts:
                 self._subscribe(t, ts[0])
                 self.get_logger().info(f"recording {t} ({ts[0]})")

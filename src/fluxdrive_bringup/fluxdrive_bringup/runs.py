@@ -34,7 +34,7 @@ import yaml
 from fluxdrive.core.scenario import REPO_ROOT, load_scenario, scenario_path
 
 from .domains import choose_domain, pick_domain_id
-from .launch import Graph, Launcher, NodeSpec
+from .launch import Graph, Launcher, NodeSpec, check_namespace
 
 LAYOUTS = ("composed", "split", "separate")
 DEMO_SCENARIO = "paper_2pct_150load"
@@ -49,8 +49,10 @@ def graph_for_scenario(
     domain_id: int | None = None,
     start_delay_s: float = 0.5,
     extra: dict | None = None,
+    namespace: str = "",
 ) -> Graph:
-    """The lockstep graph of a scenario.  `extra` = {node name: {param: value}}."""
+    """The lockstep graph of a scenario.  `extra` = {node name: {param: value}};
+    `namespace`: the whole drive in it (/a: /a/drive/frame, /a/obs/<name>, ...)."""
     if layout not in LAYOUTS:
         raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
     names = list(sc.observers)
@@ -109,8 +111,11 @@ def graph_for_scenario(
     for n in nodes:
         # late-matched readers still get the first samples (lockstep must lose nothing)
         n.parameters["input_durability"] = "transient_local"
+        # ROS time = the drive's sim time, the plant's /clock (the plant included: its own
+        # stamps, e.g. of /diagnostics, then agree with the samples)
+        n.parameters["use_sim_time"] = True
         n.parameters.update((extra or {}).get(n.name, {}))
-    return Graph(name=f"{sc.name}-lockstep", nodes=nodes, domain_id=domain_id)
+    return Graph(name=f"{sc.name}-lockstep", nodes=nodes, domain_id=domain_id, namespace=namespace)
 
 
 def shorten(sc, duration_s: float | None) -> None:
@@ -170,6 +175,7 @@ def run_graph(
     scope: bool = False,
     scope_port: int = 8765,
     watch=None,
+    namespace: str = "",
 ) -> dict:
     """Launch the lockstep graph of a scenario, wait for the end.  Returns a summary dict
     (exit code, wall time, real-time factor, bag path).  scope: with the live scope
@@ -177,7 +183,9 @@ def run_graph(
     sc = load_scenario(sc_path)
     shorten(sc, duration_s)
     dom = pick_domain_id() if domain_id is None else domain_id
-    g = graph_for_scenario(sc_path, sc, bag, layout, duration_s, dom, extra=extra)
+    g = graph_for_scenario(
+        sc_path, sc, bag, layout, duration_s, dom, extra=extra, namespace=namespace
+    )
     if scope:
         from .launch import add_scope
 
@@ -252,6 +260,12 @@ def main_run(argv: list[str], default_scenario: str | None = None) -> int:
         "--domain-id", type=int, help="ROS_DOMAIN_ID (default: environment's, else a random one)"
     )
     ap.add_argument("--timeout", type=float, help="give up after this many seconds")
+    ap.add_argument(
+        "--namespace",
+        default="",
+        help="put the whole drive in this ROS namespace (e.g. /bench_a); the bag reads as "
+        "a root-namespace run's",
+    )
     ap.add_argument("--quiet", action="store_true", help="hide the nodes' log lines")
     ap.add_argument("--no-plots", action="store_true")
     ap.add_argument(
@@ -308,6 +322,7 @@ def main_run(argv: list[str], default_scenario: str | None = None) -> int:
         scope=args.scope,
         scope_port=args.scope_port,
         watch=_print_scope_url if args.scope and args.quiet else None,
+        namespace=check_namespace(args.namespace, "--namespace"),
     )
     if r["interrupted"]:
         print(f"[run] interrupted: {interrupted_bag_note(bag)}", file=sys.stderr)

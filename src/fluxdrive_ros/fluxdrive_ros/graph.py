@@ -108,7 +108,7 @@ class Membership:
         if self.id == 0:
             return callback
         mine = self.id
-        zero_ok = topic in ZERO_OK_TOPICS
+        zero_ok = any(topic == t or topic.endswith(t) for t in ZERO_OK_TOPICS)
         u32, u64 = _U32.unpack_from, _U64.unpack_from
         reject = self.reject
 

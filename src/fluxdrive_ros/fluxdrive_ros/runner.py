@@ -15,6 +15,13 @@ A node class derives from `FluxNode`; it sets `self.finished = True` when its wo
 (the container exits when all its nodes are finished) and may override `close()` (called
 once on exit, also after Ctrl-C / SIGTERM, e.g. to finalise a bag).
 
+A drive in a namespace: `--ros-args -r __ns:=/a` (what `launch`/`run --namespace /a` pass)
+puts every node of the container under /a, keeping each node's own namespace below it (the
+observers: /a/obs/<name>); rcl's own `__ns` would replace it.  Parameter files keep naming
+the nodes as in a root-namespace drive (`/plant`, `/obs/**`), and `/clock` is remapped to
+the drive's clock (/a/clock) for the nodes' time sources.  Topics are relative to the
+drive (fluxdrive_ros.topics.in_drive), so the whole drive moves.
+
 Container spec (JSON, given as `--spec FILE` or `--spec-json TEXT`):
   {"process": "drive",
    "nodes": [{"class": "spm_plant_sim.node:PlantNode", "name": "plant", "namespace": "/",
@@ -72,6 +79,26 @@ class FluxNode(Node):
         self._finished = bool(value)
         if value and self._finish_hook is not None:
             self._finish_hook()
+
+    def create_timer(
+        self,
+        timer_period_sec: float,
+        callback,
+        callback_group=None,
+        clock=None,
+        autostart: bool = True,
+    ):
+        """A timer on the wall (steady) clock unless a clock is given: the nodes' timers are
+        watchdogs, pacing and housekeeping, which must run on wall time also when the node
+        follows the drive's /clock (use_sim_time, as in the sim graphs) -- ROS time there
+        stands still until the first frame and then runs at the graph's pace."""
+        if clock is None:
+            from rclpy.clock import Clock, ClockType
+
+            clock = Clock(clock_type=ClockType.STEADY_TIME)
+        return super().create_timer(
+            timer_period_sec, callback, callback_group, clock=clock, autostart=autostart
+        )
 
     def close(self) -> None:
         """Called once when the process ends (normally or on a signal)."""
@@ -253,29 +280,57 @@ def _param_overrides(params: dict[str, Any]) -> list[Parameter]:
     return [Parameter(k, value=v) for k, v in params.items()]
 
 
-def build_node(spec: dict) -> FluxNode:
-    """Construct a node from a container spec entry.  A bad parameter file or value ends
-    in a ValueError naming the parameter and where it was set (file and key, or inline)."""
-    from .params import blame, check_params_file
+def split_namespace(args: list[str]) -> tuple[str, list[str]]:
+    """The drive namespace of a `__ns:=NS` remapping among ROS arguments ('' if none) and
+    the arguments without it (the container applies it itself, see the module notes)."""
+    out: list[str] = []
+    ns = ""
+    i = 0
+    while i < len(args):
+        a = args[i]
+        if a in ("-r", "--remap") and i + 1 < len(args) and args[i + 1].startswith("__ns:="):
+            ns = args[i + 1][len("__ns:=") :]
+            i += 2
+            continue
+        out.append(a)
+        i += 1
+    if out and out[-1] == "--ros-args":
+        out.pop()
+    ns = ns.rstrip("/")
+    if ns and not ns.startswith("/"):
+        ns = "/" + ns
+    return ns, out
+
+
+def build_node(spec: dict, drive_ns: str = "") -> FluxNode:
+    """Construct a node from a container spec entry (under the drive namespace `drive_ns`,
+    if any).  A bad parameter file or value ends in a ValueError naming the parameter and
+    where it was set (file and key, or inline)."""
+    from .params import blame, check_params_file, file_values_for
 
     cls = load_class(spec["class"])
     files = [str(f) for f in spec.get("params_files", []) or []]
     for f in files:
         check_params_file(f)  # rcl's own parser reports C source lines, not the key
-    cli = ["--ros-args"]
-    for f in files:
-        cli += ["--params-file", f]
-    kw = {}
-    if len(cli) > 1:
-        kw["cli_args"] = cli
     inline = spec.get("parameters", {}) or {}
     ns = (spec.get("namespace", "") or "").rstrip("/")
     fqn = f"{ns}/{spec['name']}" if ns.startswith("/") else f"/{spec['name']}"
+    kw = {}
+    overrides = dict(inline)
+    if drive_ns:
+        # the files name the node as in a root-namespace drive: their values for it, in
+        # rcl's order (later files and entries win), under the inline values
+        from_files: dict[str, Any] = {}
+        for _f, _key, name, value in file_values_for(files, fqn):
+            from_files[name] = value
+        overrides = {**from_files, **inline}
+    elif files:
+        kw["cli_args"] = ["--ros-args"] + [a for f in files for a in ("--params-file", f)]
     try:
         node = cls(
             spec["name"],
-            namespace=spec.get("namespace", ""),
-            parameter_overrides=_param_overrides(inline),
+            namespace=drive_ns + (("/" + ns.lstrip("/")) if ns.strip("/") else ""),
+            parameter_overrides=_param_overrides(overrides),
             **kw,
         )
     except Exception as exc:
@@ -341,6 +396,9 @@ def container_main(argv: list[str] | None = None) -> int:
         spec = json.loads(args.spec_json)
     else:
         ap.error("--spec or --spec-json is required")
+    drive_ns, rest = split_namespace(rest)
+    if drive_ns:  # the nodes' time sources read the drive's own clock
+        rest = [*rest, "--ros-args", "-r", f"/clock:={drive_ns}/clock"]
     if not _init(["fluxdrive-container", *rest], str(spec.get("process", "container"))):
         return 2
     import signal
@@ -350,7 +408,7 @@ def container_main(argv: list[str] | None = None) -> int:
     nodes = []
     try:
         for ns in spec["nodes"]:
-            nodes.append(build_node(ns))
+            nodes.append(build_node(ns, drive_ns))
     except Exception as exc:  # noqa: BLE001
         why = _describe(exc)
         name = ns.get("name", "?") if isinstance(ns, dict) else "?"

@@ -48,6 +48,23 @@ def drive_namespace(node) -> str:
     return ns or "/"
 
 
+def rel(topic: str) -> str:
+    """The drive-relative name of a canonical graph topic: '/drive/frame' -> 'drive/frame'."""
+    return topic.lstrip("/")
+
+
+def drive_topic(node, canonical: str) -> str:
+    """A canonical graph topic (fluxdrive.io.topics, e.g. FRAME) in `node`'s drive."""
+    return in_drive(node, rel(canonical))
+
+
+def drive_names(node, names: list[str]) -> list[str]:
+    """Node names of a drive-relative allow-list (`/controller`) in `node`'s drive
+    (`/a/controller` in drive /a); '*' and '' stay."""
+    ns = drive_namespace(node).rstrip("/")
+    return [n if (not n or n == "*" or not ns) else ns + "/" + n.lstrip("/") for n in names]
+
+
 def in_drive(node, topic: str) -> str:
     """A graph topic for `node`: a relative name (`drive/frame`) resolves in the node's
     drive namespace (so `__ns:=/a` moves the whole drive to /a/drive/frame); an absolute

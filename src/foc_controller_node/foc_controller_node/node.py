@@ -228,8 +228,11 @@ class ControllerNode(FluxNode):
                 ),
                 P(
                     "estimate_topic",
-                    topics.estimate_topic(driving if driving != "encoder" else "flux_measured"),
-                    "RotorEstimate topic of the driving observer (position_source = estimate)",
+                    topics.rel(
+                        topics.estimate_topic(driving if driving != "encoder" else "flux_measured")
+                    ),
+                    "RotorEstimate topic of the driving observer (position_source = estimate; "
+                    "relative: in the drive's namespace)",
                     read_only=True,
                 ),
                 P(
@@ -312,7 +315,12 @@ class ControllerNode(FluxNode):
         common = declare(
             self,
             [
-                P("frame_topic", topics.FRAME, "PhaseFrame input topic", read_only=True),
+                P(
+                    "frame_topic",
+                    topics.rel(topics.FRAME),
+                    "PhaseFrame input topic (relative: in the drive's namespace)",
+                    read_only=True,
+                ),
                 P(
                     "input_durability",
                     "volatile",
@@ -383,17 +391,22 @@ class ControllerNode(FluxNode):
         self.done_seq: int | None = None
         self.exit_on_done = common["exit_on_done"]
         self._set_ref(pv)
+        in_drive = topics.drive_topic
         if self.split:
-            self.pub_duty = RawPublisher(self, fm.CurrentReference, topics.CURRENT_REF, qos.SAMPLES)
+            self.pub_duty = RawPublisher(
+                self, fm.CurrentReference, in_drive(self, topics.CURRENT_REF), qos.SAMPLES
+            )
         else:
-            self.pub_duty = RawPublisher(self, fm.DutyCommand, topics.DUTY, qos.SAMPLES)
+            self.pub_duty = RawPublisher(
+                self, fm.DutyCommand, in_drive(self, topics.DUTY), qos.SAMPLES
+            )
         self.pub_state = RawPublisher(
-            self, fm.ControllerState, topics.CONTROLLER_STATE, qos.SAMPLES
+            self, fm.ControllerState, in_drive(self, topics.CONTROLLER_STATE), qos.SAMPLES
         )
         self.sub_frame = RawSubscription(
             self,
             fm.PhaseFrame,
-            common["frame_topic"],
+            topics.in_drive(self, common["frame_topic"]),
             self._on_frame,
             qos.reader(common["input_durability"]),
         )
@@ -402,12 +415,15 @@ class ControllerNode(FluxNode):
             self.sub_est = RawSubscription(
                 self,
                 fm.RotorEstimate,
-                src["estimate_topic"],
+                topics.in_drive(self, src["estimate_topic"]),
                 self._on_est,
                 qos.reader(common["input_durability"]),
             )
         self.create_subscription(
-            fm.RunDone, topics.DONE, self.graph.typed(topics.DONE, self._on_done), qos.LATCHED
+            fm.RunDone,
+            in_drive(self, topics.DONE),
+            self.graph.typed(topics.DONE, self._on_done),
+            qos.LATCHED,
         )
         self.reset_service = self.resolve_service_name("~/reset_fault")
         self.create_service(ResetFault, self.reset_service, self._on_reset)

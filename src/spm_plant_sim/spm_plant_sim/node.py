@@ -262,16 +262,22 @@ class PlantNode(FluxNode):
         self.tw = TruthWire(pv["frame_id"], graph_id=gid)
         self.clock_codec = Codec(topics.T_CLOCK)
         self.duty_dec = Decoder(topics.T_DUTY)
-        self.pub_frame = RawPublisher(self, fm.PhaseFrame, topics.FRAME, qos.SAMPLES)
-        self.pub_truth = RawPublisher(self, fm.PlantTruth, topics.TRUTH, qos.SAMPLES)
-        self.pub_clock = RawPublisher(self, Clock, topics.CLOCK, qos.CLOCK)
-        self.pub_done = self.create_publisher(fm.RunDone, topics.DONE, qos.LATCHED)
+        # every topic relative to the drive's namespace (`__ns:=/a`: /a/drive/frame, /a/clock)
+        in_drive = topics.drive_topic
+        self.pub_frame = RawPublisher(
+            self, fm.PhaseFrame, in_drive(self, topics.FRAME), qos.SAMPLES
+        )
+        self.pub_truth = RawPublisher(
+            self, fm.PlantTruth, in_drive(self, topics.TRUTH), qos.SAMPLES
+        )
+        self.pub_clock = RawPublisher(self, Clock, in_drive(self, topics.CLOCK), qos.CLOCK)
+        self.pub_done = self.create_publisher(fm.RunDone, in_drive(self, topics.DONE), qos.LATCHED)
         # drained: a flood of foreign duty commands is refused in a row, not one executor
         # round each (fluxdrive_ros.intra), so it does not cost the paced loop its deadline
         self.sub_duty = RawSubscription(
             self,
             fm.DutyCommand,
-            topics.DUTY,
+            in_drive(self, topics.DUTY),
             self._on_duty,
             qos.reader(pv["input_durability"]),
             drain=256,
@@ -308,7 +314,9 @@ class PlantNode(FluxNode):
         )
         self._logged = 0
         on_set(self, self.specs, self._apply, lambda: self.k + 1, ds.ts)
-        self.guard = access.CommandGuard(pv["allowed_commanders"], topics.DUTY)
+        self.guard = access.CommandGuard(
+            topics.drive_names(self, list(pv["allowed_commanders"])), topics.DUTY
+        )
         self.diag = diag.Diagnostics(self, pv["diagnostics_period_s"])
         self.diag.add("commands", self._diag_commands)
         self.get_logger().info(
