@@ -1,10 +1,11 @@
-"""`./fluxdrive benchmark engine|replay|graph|paced|can|study|firmware`: throughput figures;
-the last line of each is a JSON object."""
+"""`./fluxdrive benchmark engine|replay|graph|paced|can|study|firmware|plugin`: throughput
+figures; the last line of each is a JSON object."""
 
 from __future__ import annotations
 
 import importlib
 import json
+import math
 import sys
 import time
 
@@ -19,6 +20,7 @@ BENCHES = {
     "can": ("fluxdrive.can.benchmark", "bench_can_cli"),
     "study": ("fluxdrive.study.cli", "bench_study"),
     "firmware": ("fluxdrive.can.firmware_target", "bench_firmware"),
+    "plugin": ("fluxdrive.cli.bench", "bench_plugin"),
 }
 
 
@@ -80,6 +82,117 @@ def bench_engine(argv: list[str]) -> dict:
         "plant": "switching-level",
         "scenario": sc.name,
     }
+
+
+EXAMPLE_PLUGIN = "my_observer.flux_pll:FluxPllObserver"
+
+
+def _importable_example(spec: str) -> None:
+    """The shipped example (examples/my_observer) without installing it."""
+    from fluxdrive.core.scenario import REPO_ROOT
+
+    if spec.split(":")[0].split(".")[0] == "my_observer":
+        path = str(REPO_ROOT / "examples" / "my_observer")
+        if path not in sys.path:
+            sys.path.insert(0, path)
+
+
+def _plugin_case(spec: str, kwargs: dict, driving: str, seconds: float):
+    """The 2 %/150 % scenario cut to `seconds`, the ideal bench, one observer: `driving`
+    'user' (the plugin) or 'kernel' (paper_robust)."""
+    from fluxdrive.core.scenario import CONFIG_DIR, load_scenario
+
+    obs = (
+        {"user": {"variant": spec, "extra": kwargs}}
+        if driving == "user"
+        else {"kernel": {"variant": "paper_robust"}}
+    )
+    return load_scenario(
+        CONFIG_DIR / "scenarios" / "paper_2pct_150load.yaml",
+        overrides={
+            "bench": {},
+            "duration_s": seconds,
+            "steady_window_s": [0.0, seconds],
+            "observers": obs,
+            "driving": driving,
+        },
+    )
+
+
+def bench_plugin(argv: list[str]) -> dict:
+    """What a user variant (a Python class) costs per sample: its step() over recorded
+    frames (replay), and a closed loop it drives in-process (the per-period Python loop)
+    against the built-in flux observer (paper_robust) in the compiled loop."""
+    import argparse
+
+    from fluxdrive.core.scenario import REPO_ROOT
+    from fluxdrive.drive.observers import make_observer
+    from fluxdrive.drive.plant import FR_SEQ
+    from fluxdrive.drive.sim import run_scenario
+    from fluxdrive.io.bagio import read_run_bag
+    from fluxdrive.replay.lab import SAMPLES_DIR, parse_variant
+
+    ap = argparse.ArgumentParser(prog="fluxdrive benchmark plugin")
+    ap.add_argument("spec", nargs="?", default=EXAMPLE_PLUGIN, help="module:Class[:k=v,...]")
+    ap.add_argument("--samples", type=int, default=100_000, help="replay: frames stepped")
+    ap.add_argument("--seconds", type=float, default=1.0, help="closed loop: simulated time")
+    ap.add_argument(
+        "--write", action="store_true", help="also write results/benchmarks/plugin_observer.json"
+    )
+    args = ap.parse_args(argv)
+    vs = parse_variant(args.spec)
+    target, kwargs = vs.target, vs.params
+    _importable_example(target)
+    bag = read_run_bag(SAMPLES_DIR / "paper_2pct_150load")
+    card = bag.machine()
+    reps = max(1, args.samples // bag.n)
+    frames = np.ascontiguousarray(np.tile(bag.frames, (reps, 1))[: args.samples])
+    frames[:, FR_SEQ] = np.arange(len(frames), dtype=float)
+    replay_us = {}
+    for label, spec in (("user", target), ("kernel", "paper_robust")):
+        obs = make_observer(spec, card, **(kwargs if label == "user" else {}))
+        obs.run(frames[:16])  # import / compile
+        best = math.inf
+        for _ in range(3):
+            obs.reset()
+            t0 = time.perf_counter()
+            obs.run(frames)
+            best = min(best, (time.perf_counter() - t0) / len(frames))
+        replay_us[label] = best * 1e6
+        print(f"[bench] replay {label:6s} {spec}: {best * 1e6:8.3f} us/sample", file=sys.stderr)
+    loop_us = {}
+    for label in ("user", "kernel"):
+        sc = _plugin_case(target, kwargs, label, args.seconds)
+        warm = _plugin_case(target, kwargs, label, 0.01)
+        run_scenario(warm, progress=False)
+        best = math.inf
+        for _ in range(3):
+            res = run_scenario(sc, progress=False)
+            best = min(best, res.wall_s / sc.n_periods)
+        loop_us[label] = best * 1e6
+        print(
+            f"[bench] closed loop, {label} observer driving: {best * 1e6:8.2f} us/period "
+            f"({card.ts_s / best:.2f}x real time)",
+            file=sys.stderr,
+        )
+    out = {
+        "plugin": target,
+        "plugin_kwargs": kwargs,
+        "replay_us_per_sample": round(replay_us["user"], 3),
+        "kernel_replay_us_per_sample": round(replay_us["kernel"], 4),
+        "closed_loop_us_per_period": round(loop_us["user"], 2),
+        "kernel_closed_loop_us_per_period": round(loop_us["kernel"], 2),
+        "closed_loop_real_time_factor": round(card.ts_s * 1e6 / loop_us["user"], 3),
+        "pwm_period_us": round(card.ts_s * 1e6, 3),
+        "samples": len(frames),
+        "closed_loop_s": args.seconds,
+    }
+    if args.write:
+        path = REPO_ROOT / "results" / "benchmarks" / "plugin_observer.json"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(out, indent=2) + "\n")
+        print(f"[bench] wrote {path}", file=sys.stderr)
+    return out
 
 
 def main(argv: list[str]) -> int:

@@ -19,7 +19,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "benchmark": (
         "fluxdrive.cli.bench",
         "main",
-        "benchmarks: engine | replay | graph | paced | can | study | firmware",
+        "benchmarks: engine | replay | graph | paced | can | study | firmware | plugin",
     ),
     "demo": (
         "fluxdrive_bringup.cli",

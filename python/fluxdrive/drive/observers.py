@@ -50,6 +50,7 @@ normalised cross product sin(theta - theta^) (`phase_detector`).
 
 from __future__ import annotations
 
+import functools
 import importlib
 import math
 from dataclasses import asdict, dataclass, field, fields, replace
@@ -530,12 +531,21 @@ class ObserverConfig:
     lambda_hat_vs: float | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
+    @property
+    def is_plugin(self) -> bool:
+        """A user variant (module:Class or an entry point): a Python class, not the kernel."""
+        return self.variant not in VARIANT_KINDS
+
     def validate(self, src: str = "observer") -> ObserverConfig:
-        if self.variant not in VARIANT_KINDS:
-            raise ConfigError(
-                f"{src}: unknown variant '{self.variant}'; built-in variants are "
-                f"{sorted(VARIANT_KINDS)}"
-            )
+        if self.is_plugin:
+            try:
+                found = load_observer_class(self.variant)
+            except ConfigError as exc:
+                raise ConfigError(f"{src}: {exc}") from None
+            if found is None:
+                raise ConfigError(f"{src}: {_unknown_variant_text(self.variant)}")
+        if not isinstance(self.extra, dict):
+            raise ConfigError(f"{src}: extra must be a mapping (a plugin's constructor keywords)")
         for key, choices in STRING_CHOICES.items():
             if getattr(self, key) not in choices:
                 raise ConfigError(
@@ -574,6 +584,11 @@ class ObserverConfig:
         return replace(self, **kw) if kw else self
 
     def to_params(self, card: MachineCard) -> np.ndarray:
+        if self.is_plugin:
+            raise ConfigError(
+                f"variant '{self.variant}' is a plugin (a Python class): it has no kernel "
+                f"parameter row; build it with build_observer()"
+            )
         self = self.validate().resolved(card)  # noqa: PLW0642 - the card fills what is unset
         op = np.zeros(OP_N)
         op[OP_KIND] = VARIANT_KINDS[self.variant]
@@ -709,11 +724,8 @@ def observer_config(
     """An ObserverConfig with the variant's defaults, then the caller's overrides; with a
     `card`, every frequency left unset is derived from it (otherwise it stays None and is
     derived from the card the observer runs on)."""
-    if variant not in VARIANT_KINDS:
-        raise ConfigError(
-            f"unknown variant '{variant}'; built-in variants are {sorted(VARIANT_KINDS)}"
-        )
     base = ObserverConfig(variant=variant, **VARIANT_DEFAULTS.get(variant, {}))
+    base.validate("observer")  # an unknown name or a plugin that does not load: one line
     cfg = base.with_overrides(**overrides) if overrides else base.validate()
     return cfg if card is None else cfg.resolved(card)
 
@@ -770,8 +782,18 @@ class KernelObserver(Observer):
         return out
 
 
+def _unknown_variant_text(spec: str) -> str:
+    return (
+        f"unknown variant '{spec}': expected one of the built-in variants "
+        f"{sorted(VARIANT_KINDS)}, an installed entry point (group fluxdrive.observers) "
+        f"or 'module:Class'"
+    )
+
+
+@functools.lru_cache(maxsize=64)
 def load_observer_class(spec: str):
-    """Resolve 'module.path:ClassName' or an entry point in group 'fluxdrive.observers'."""
+    """Resolve 'module.path:ClassName' or an entry point in group 'fluxdrive.observers'
+    (None: no such entry point).  Cached: configs validate often."""
     if ":" in spec:
         mod, _, cls = spec.partition(":")
         try:
@@ -786,19 +808,60 @@ def load_observer_class(spec: str):
     return None
 
 
-def make_observer(
-    spec: str, card: MachineCard, name: str | None = None, **overrides: Any
-) -> Observer:
-    """Build an observer from a built-in variant name, an entry point, or module:Class."""
-    if spec in VARIANT_KINDS:
-        return KernelObserver(observer_config(spec, **overrides), card, name=name)
-    cls = load_observer_class(spec)
+def model_card(config: ObserverConfig, card: MachineCard) -> MachineCard:
+    """`card` with its R, L and lambda replaced by the observer's model R^, L^, lambda^ where
+    `config` sets them (a bench's model errors, a bag's recorded model): what a plugin
+    observer is built with, so it sees the same model a built-in variant would."""
+    kw = {}
+    if config.r_hat_ohm is not None:
+        kw["resistance_ohm"] = float(config.r_hat_ohm)
+    if config.l_hat_h is not None:
+        kw["inductance_h"] = float(config.l_hat_h)
+    if config.lambda_hat_vs is not None:
+        kw["flux_linkage_vs"] = float(config.lambda_hat_vs)
+    return replace(card, **kw) if kw else card
+
+
+def plugin_observer(config: ObserverConfig, card: MachineCard, name: str | None = None):
+    """A user variant from its config: `cls(card=model_card(config, card), **config.extra)`,
+    reset.  A constructor that refuses the keywords gives one line naming them."""
+    cls = load_observer_class(config.variant)
     if cls is None:
+        raise ConfigError(_unknown_variant_text(config.variant))
+    try:
+        obs = cls(card=model_card(config, card), **config.extra)
+    except TypeError as exc:
         raise ConfigError(
-            f"unknown observer '{spec}': not a built-in variant "
-            f"{sorted(VARIANT_KINDS)}, not an installed entry point, and not "
-            f"'module:Class'"
-        )
-    obs = cls(card=card, **overrides)
-    obs.name = name or getattr(obs, "name", spec)
+            f"observer '{name or config.variant}' ({config.variant}): {exc} "
+            f"(keywords given: {sorted(config.extra)})"
+        ) from None
+    obs.name = name or getattr(obs, "name", config.variant)
+    obs.reset()
     return obs
+
+
+def build_observer(config: ObserverConfig, card: MachineCard, name: str | None = None):
+    """One observer of any kind from its config: the compiled kernel for a built-in variant,
+    the user's class for a plugin."""
+    if config.is_plugin:
+        return plugin_observer(config, card, name)
+    return KernelObserver(config, card, name=name)
+
+
+def make_observer(
+    spec: str,
+    card: MachineCard,
+    name: str | None = None,
+    model: dict[str, float] | None = None,
+    **overrides: Any,
+) -> Observer:
+    """Build an observer from a built-in variant name, an entry point, or module:Class.
+    `overrides` are ObserverConfig fields for a built-in variant and the constructor's
+    keywords for a plugin; `model` (r_hat_ohm, l_hat_h, lambda_hat_vs) sets the observer's
+    model where the overrides leave it open."""
+    model = {k: v for k, v in (model or {}).items() if v is not None}
+    if spec in VARIANT_KINDS:
+        cfg = observer_config(spec, **{**model, **overrides})
+        return KernelObserver(cfg, card, name=name)
+    cfg = ObserverConfig(variant=spec, extra=dict(overrides), **model).validate()
+    return plugin_observer(cfg, card, name)

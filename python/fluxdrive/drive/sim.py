@@ -29,6 +29,7 @@ from numba import njit
 
 from fluxdrive.core.blocks import rng_new
 from fluxdrive.core.excitation import Segment, stepped_sine
+from fluxdrive.core.machine import ConfigError
 from fluxdrive.core.scenario import RPM, Scenario
 from fluxdrive.drive.control import (
     CO_DA,
@@ -55,6 +56,8 @@ from fluxdrive.drive.observers import (
     OP_TS,
     OS_N,
     KernelObserver,
+    Observer,
+    build_observer,
     observer_reset,
     observer_step,
 )
@@ -123,26 +126,74 @@ def closed_loop_chunk(
         out_truth[k, :] = truth
         for o in range(n_obs):
             observer_step(obs_states[o], obs_params[o], frame, out_est[o, k])
-        if driving >= 0:
-            controller_step(cs, cp, frame, out_est[driving, k], w_ref[k], id_inj[k], ctrl)
-        else:
-            controller_step(cs, cp, frame, no_est, w_ref[k], id_inj[k], ctrl)
-        out_ctrl[k, :] = ctrl
-        plant_advance(
+        est = out_est[driving, k] if driving >= 0 else no_est
+        control_and_plant(
+            k,
             pst,
             mp,
             rng,
-            duty_prev[CO_DA : CO_DC + 1],
-            duty_prev[CO_EN] > 0.5,
             load_t,
             load_y,
             load_cfg,
+            cs,
+            cp,
+            w_ref,
+            id_inj,
+            est,
             frame,
             truth,
+            duty_prev,
+            ctrl,
         )
-        for j in range(LATCH_N):
-            duty_prev[j] = ctrl[j]
+        out_ctrl[k, :] = ctrl
     return k1
+
+
+@njit(cache=True)
+def control_and_plant(
+    k,
+    pst,
+    mp,
+    rng,
+    load_t,
+    load_y,
+    load_cfg,
+    cs,
+    cp,
+    w_ref,
+    id_inj,
+    est,
+    frame,
+    truth,
+    duty_prev,
+    ctrl,
+):
+    """Steps 2-4 of period k (after the observers): the controller turns frame k and the
+    driving estimate `est` into duty(k) (in `ctrl`), the plant simulates [t_k, t_{k+1}] with
+    the latched duty(k-1) into `frame`/`truth`, and duty(k) is latched in `duty_prev`."""
+    controller_step(cs, cp, frame, est, w_ref[k], id_inj[k], ctrl)
+    plant_advance(
+        pst,
+        mp,
+        rng,
+        duty_prev[CO_DA : CO_DC + 1],
+        duty_prev[CO_EN] > 0.5,
+        load_t,
+        load_y,
+        load_cfg,
+        frame,
+        truth,
+    )
+    for j in range(LATCH_N):
+        duty_prev[j] = ctrl[j]
+
+
+@njit(cache=True)
+def kernel_observers_step(obs_states, obs_params, is_kernel, frame, out_est, k):
+    """Every built-in (kernel) observer consumes frame k (the plugin rows are skipped)."""
+    for o in range(obs_states.shape[0]):
+        if is_kernel[o]:
+            observer_step(obs_states[o], obs_params[o], frame, out_est[o, k])
 
 
 # the decimation window's accumulator (split mode): sums of the averaged fields, the
@@ -323,10 +374,18 @@ class DriveSetup:
         self.cp = sc.control.to_params(card)
         self.names = list(sc.observers)
         self.obs_params = np.zeros((len(self.names), OP_N))
+        # user variants (module:Class, entry points) run in Python: their rows stay zero
+        self.plugins = [nm for nm in self.names if sc.observers[nm].is_plugin]
         for o, nm in enumerate(self.names):
-            self.obs_params[o] = sc.observers[nm].to_params(card)
+            if nm not in self.plugins:
+                self.obs_params[o] = sc.observers[nm].to_params(card)
         # split mode: the host (observers, speed loop, start-up) steps at D*Ts
         self.split = sc.control.mode == "split"
+        if self.split and self.plugins:
+            raise ConfigError(
+                f"{sc.name}: user variant(s) {self.plugins} in split mode: the in-process "
+                f"split loop is compiled and runs built-in variants only"
+            )
         self.decimation = int(sc.control.decimation)
         self.host_delay_samples = int(sc.control.host_delay_samples)
         self.cp_host = host_params(self.cp, self.decimation) if self.split else self.cp
@@ -373,6 +432,13 @@ class DriveSetup:
     def kernel_observer(self, name: str) -> KernelObserver:
         return KernelObserver(self.sc.observers[name], self.card, name=name)
 
+    def new_plugin_observers(self) -> dict[int, Observer]:
+        """Fresh instances of the user variants, by observer index."""
+        return {
+            self.names.index(nm): build_observer(self.sc.observers[nm], self.card, name=nm)
+            for nm in self.plugins
+        }
+
 
 def _injection(spec: dict, ts: float, unit: float):
     freqs = spec.get("frequencies_hz")
@@ -416,6 +482,7 @@ class LoopRun:
         self.ctrl = np.zeros((n, CO_N))
         self.k = 0
         self.wall_s = 0.0
+        self.plugins = ds.new_plugin_observers()
         if ds.split:
             # the host's controller state is `cs`; the drive's, its reference, the
             # decimation window and the references in flight
@@ -466,6 +533,10 @@ class LoopRun:
             )
             self.wall_s += time.perf_counter() - t0
             return
+        if self.plugins:
+            self._advance_with_plugins(k1)
+            self.wall_s += time.perf_counter() - t0
+            return
         self.k = closed_loop_chunk(
             self.k,
             k1,
@@ -491,6 +562,44 @@ class LoopRun:
             self.ctrl,
         )
         self.wall_s += time.perf_counter() - t0
+
+    def _advance_with_plugins(self, k1: int) -> None:
+        """The same period as closed_loop_chunk, driven from Python so that user variants
+        (Python classes) can drive or shadow: the kernel observers and the controller and
+        plant steps are the compiled functions the chunk calls, in the same order."""
+        ds = self.ds
+        is_kernel = np.array([nm not in ds.plugins for nm in ds.names])
+        no_est = np.zeros(ES_N)
+        ctrl = np.zeros(CO_N)
+        for k in range(self.k, k1):
+            self.frames[k, :] = self.frame
+            self.truths[k, :] = self.truth
+            kernel_observers_step(
+                self.obs_states, self.obs_params, is_kernel, self.frame, self.est, k
+            )
+            for o, obs in self.plugins.items():
+                self.est[o, k, :] = obs.step(self.frame.copy())  # a copy: plugins may write
+            est = self.est[self.driving, k] if self.driving >= 0 else no_est
+            control_and_plant(
+                k,
+                self.pst,
+                ds.mp,
+                self.rng,
+                ds.load_t,
+                ds.load_y,
+                ds.load_cfg,
+                self.cs,
+                self.cp,
+                ds.w_ref,
+                ds.id_inj,
+                est,
+                self.frame,
+                self.truth,
+                self.latch,
+                ctrl,
+            )
+            self.ctrl[k, :] = ctrl
+        self.k = max(self.k, k1)
 
     def result(self) -> SimResult:
         ds = self.ds

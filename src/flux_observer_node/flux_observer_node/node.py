@@ -23,7 +23,9 @@ With `scenario` set, the defaults come from that scenario's `observers.<observer
 
 from __future__ import annotations
 
+import json
 import sys
+from dataclasses import fields, replace
 
 import numpy as np
 from fluxdrive.core.machine import load_machine
@@ -40,6 +42,8 @@ from fluxdrive.drive.observers import (
     PARAM_RANGES,
     STRING_CHOICES,
     VARIANT_KINDS,
+    ObserverConfig,
+    build_observer,
     frame_limits,
     frame_out_of_range,
     observer_config,
@@ -97,13 +101,38 @@ DOCS = {
     "lambda_hat_vs": ("observer's magnet flux lambda^", "V s"),
 }
 RANGES = {k: (lo, hi) for k, lo, hi in PARAM_RANGES}
+# a user variant's declared parameters: its model only (plus `plugin_kwargs`)
+_PLUGIN_SKIP = tuple(
+    f.name
+    for f in fields(ObserverConfig)
+    if f.name not in ("r_hat_ohm", "l_hat_h", "lambda_hat_vs")
+)
 
 
-def config_params(cfg, card) -> list[P]:
-    """Declared parameters for every ObserverConfig field (defaults from cfg / the card)."""
-    return params.config_params(
-        cfg, card, DOCS, RANGES, skip=("variant", "extra"), choices=STRING_CHOICES
+def _plugin_kwargs_param(extra: dict) -> P:
+    return P(
+        "plugin_kwargs",
+        json.dumps(extra, sort_keys=True),
+        "a user variant's constructor keywords, a JSON object (default: the scenario "
+        "observer's `extra`)",
+        read_only=True,
     )
+
+
+def _parse_kwargs(text: str) -> dict:
+    try:
+        value = json.loads(text or "{}")
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"plugin_kwargs: not JSON ({exc.msg}): {text!r}") from None
+    if not isinstance(value, dict):
+        raise ValueError(f"plugin_kwargs: must be a JSON object, got {text!r}")
+    return value
+
+
+def config_params(cfg, card, skip: tuple[str, ...] = ("variant", "extra")) -> list[P]:
+    """Declared parameters for every ObserverConfig field but `skip` (defaults from cfg / the
+    card)."""
+    return params.config_params(cfg, card, DOCS, RANGES, skip=skip, choices=STRING_CHOICES)
 
 
 class ObserverNode(FluxNode):
@@ -152,19 +181,28 @@ class ObserverNode(FluxNode):
                 P(
                     "variant",
                     base.variant,
-                    "observer variant",
-                    choices=tuple(sorted(VARIANT_KINDS)),
+                    "observer variant: a built-in one ("
+                    + ", ".join(sorted(VARIANT_KINDS))
+                    + "), a user class module:Class, or an entry point of group "
+                    "fluxdrive.observers (the class must be importable by this process)",
                     read_only=True,
                 )
             ],
         )
         variant = variant["variant"]
         if variant != base.variant:
-            base = observer_config(variant)
+            base = observer_config(variant)  # an unknown or unloadable one: one line
         self.card = card
         base = base.resolved(card)  # frequencies left unset: from the card (OBSERVER_RULES)
-        self.specs = config_params(base, card)
+        # a user variant takes only its model (R^, L^, lambda^) and its constructor keywords
+        # (`plugin_kwargs`, JSON); the kernel's filter and PLL settings do not apply to it
+        self.specs = (
+            config_params(base, card, _PLUGIN_SKIP) if base.is_plugin else config_params(base, card)
+        )
         pv = declare(self, self.specs)
+        if base.is_plugin:
+            kw = declare(self, [_plugin_kwargs_param(base.extra)])["plugin_kwargs"]
+            base = replace(base, extra=_parse_kwargs(kw))
         common = declare(
             self,
             [
@@ -201,7 +239,16 @@ class ObserverNode(FluxNode):
         )
         self.sample_s = card.ts_s * int(common["decimation"])
         self.cfg = base.with_overrides(**pv)
-        self.params = self._params(self.cfg)
+        # a user variant runs its Python class per frame; a built-in one the kernel
+        self.plugin = None
+        if self.cfg.is_plugin:
+            if int(common["decimation"]) != 1:
+                raise ValueError(
+                    f"{self.cfg.variant}: a user variant steps at the card's PWM period; "
+                    f"decimation {common['decimation']} (split mode) needs a built-in variant"
+                )
+            self.plugin = build_observer(self.cfg, card, obs_name)
+        self.params = None if self.plugin else self._params(self.cfg)
         self.state = np.zeros(OS_N)
         observer_reset(self.state)
         self.frame = np.zeros(FR_N)
@@ -257,7 +304,13 @@ class ObserverNode(FluxNode):
         return op
 
     def _apply(self, changes: dict) -> str:
+        if self.plugin is not None:
+            raise ValueError(
+                f"{self.cfg.variant} is a user variant: its parameters are fixed at start "
+                f"(scenario or parameter file); rebuilding it would lose its state"
+            )
         cfg = self.cfg.with_overrides(**changes)  # raises ConfigError with the reason
+        assert self.params is not None  # a built-in variant's kernel row
         self.params[:] = self._params(cfg)
         self.cfg = cfg
         return f"applied from frame {self.last_seq + 1}"
@@ -270,7 +323,10 @@ class ObserverNode(FluxNode):
         if oor:  # beyond the sensors' full scale: a bad sample like a NaN
             fr[FR_IA] = np.nan
         self.row.fill(0.0)
-        observer_step(st, self.params, fr, self.row)
+        if self.plugin is not None:  # the user's class handles bad input its own way
+            self.row[:] = self.plugin.step(fr.copy())
+        else:
+            observer_step(st, self.params, fr, self.row)
         sec, nsec = self.stamp(seq)
         self.pub.publish(self.ew.pack(self.row, seq, sec, nsec))
         c["frames"] += 1
