@@ -74,6 +74,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=0.0,
         help="electrical offset of the encoder (bags without /drive/truth)",
     )
+    ap.add_argument(
+        "--card-model",
+        action="store_true",
+        help="new variants use the machine card's R, L, lambda as their model instead of "
+        "the observer model the bag records (the default)",
+    )
     ap.add_argument("--sweep", help="KEY=START:STOP:N or KEY=V1,V2,.. over the (single) variant")
     ap.add_argument(
         "--jobs",
@@ -159,7 +165,9 @@ def _main(args) -> int:
         bag = _read(bp)
         specs = args.variant or (["@recorded"] if bag.meta.get("observers") else ["paper"])
         variants = expand_variants(specs, bag)
-        res = replay_bag(bag, variants, machine, window, args.encoder_offset_deg)
+        res = replay_bag(
+            bag, variants, machine, window, args.encoder_offset_deg, card_model=args.card_model
+        )
         m = compute(res)
         m["truth_source"] = res.truth_source
         m["frames"] = bag.n
@@ -167,6 +175,13 @@ def _main(args) -> int:
         m["recorded_max_abs_diff"] = res.recorded_diff
         m["replay_wall_s"] = res.wall_s
         print(f"== {bag.path} ({bag.n} frames, reference: {res.truth_source})")
+        if any(v.recorded is None for v in variants):
+            print(
+                "   new variants' observer model: "
+                + ", ".join(f"{k} {v:.6g}" for k, v in res.model.items())
+                + f" from {res.model_source} (a variant's own r_hat_ohm=... wins)"
+            )
+        m["observer_model"] = {"values": res.model, "source": res.model_source}
         print(format_table(m))
         for nm, d in res.recorded_diff.items():
             print(f"   {nm}: max |replayed - recorded| = {d:.3g}")

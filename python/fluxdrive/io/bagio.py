@@ -304,6 +304,41 @@ def _json_default(x):
     return str(x)
 
 
+MODEL_KEYS = ("r_hat_ohm", "l_hat_h", "lambda_hat_vs")
+
+
+def observer_model_of(sc) -> dict[str, float]:
+    """The observer model (R^, L^, lambda^) a run's observers start from: the machine card
+    times the bench's model errors.  A variant replayed over the run's bag takes it by
+    default (fluxdrive.replay.lab), so it sees what the recorded observers saw."""
+    from fluxdrive.drive.observers import ObserverConfig
+
+    cfg = sc.bench.apply_observer_model(ObserverConfig(), sc.machine)
+    card = sc.machine
+    return {
+        "r_hat_ohm": float(card.resistance_ohm if cfg.r_hat_ohm is None else cfg.r_hat_ohm),
+        "l_hat_h": float(card.inductance_h if cfg.l_hat_h is None else cfg.l_hat_h),
+        "lambda_hat_vs": float(
+            card.flux_linkage_vs if cfg.lambda_hat_vs is None else cfg.lambda_hat_vs
+        ),
+    }
+
+
+def recorded_observer_model(meta: dict[str, Any]) -> tuple[dict[str, float] | None, str]:
+    """The observer model a bag's settings record, and where it came from: the settings'
+    `observer_model`, else (older bags) the driving -- or first -- recorded observer's
+    R^, L^, lambda^; (None, reason) when the bag records none."""
+    om = meta.get("observer_model")
+    if isinstance(om, dict) and all(isinstance(om.get(k), (int, float)) for k in MODEL_KEYS):
+        return {k: float(om[k]) for k in MODEL_KEYS}, "the bag's settings (observer_model)"
+    configs = meta.get("observers") or {}
+    for nm in [meta.get("driving"), *sorted(configs)]:
+        cfg = configs.get(nm) if isinstance(nm, str) else None
+        if isinstance(cfg, dict) and all(isinstance(cfg.get(k), (int, float)) for k in MODEL_KEYS):
+            return {k: float(cfg[k]) for k in MODEL_KEYS}, f"the recorded observer '{nm}'"
+    return None, "the machine card (the bag records no observer model)"
+
+
 def run_metadata(
     result,
     k0: int = 0,
@@ -316,6 +351,7 @@ def run_metadata(
         "format": 1,
         "machine": asdict(sc.machine),
         "observers": {nm: sc.observers[nm].to_dict() for nm in names if nm in sc.observers},
+        "observer_model": observer_model_of(sc),
         "driving": result.driving,
         "scenario": {
             "name": sc.name,

@@ -63,7 +63,13 @@ from fluxdrive.drive.observers import (
     make_observer,
 )
 from fluxdrive.drive.plant import FR_ENC, FR_N, FR_SEQ, TR_N, TR_T, TR_THETA_E, TR_WM
-from fluxdrive.io.bagio import RunBag, est_topic, read_run_bag, write_run_bag
+from fluxdrive.io.bagio import (
+    RunBag,
+    est_topic,
+    read_run_bag,
+    recorded_observer_model,
+    write_run_bag,
+)
 
 SAMPLES_DIR = REPO_ROOT / "bags" / "samples"
 
@@ -130,12 +136,17 @@ def parse_variant(spec: str) -> VariantSpec:
     return VariantSpec(slug(label), target, params)
 
 
-def build_observer(vs: VariantSpec, bag: RunBag, card: MachineCard) -> Observer:
+def build_observer(
+    vs: VariantSpec, bag: RunBag, card: MachineCard, model: dict[str, float] | None = None
+) -> Observer:
     """Instantiate a variant for one bag (fresh state; recorded state for @recorded on a
-    bag cut out of a longer run)."""
+    bag cut out of a longer run).  `model` (R^, L^, lambda^; default: the bag's recorded
+    observer model) is what a new variant starts from; its own r_hat_ohm=... wins."""
     rec = vs.recorded
     if rec is None:
-        obs = make_observer(vs.target, card, name=vs.label, **vs.params)
+        if model is None:
+            model = recorded_observer_model(bag.meta)[0]
+        obs = make_observer(vs.target, card, name=vs.label, model=model, **vs.params)
         obs.reset()
         return obs
     configs = bag.meta.get("observers") or {}
@@ -198,6 +209,9 @@ class ReplayResult:
     wall_s: dict[str, float] = field(default_factory=dict)
     bag: RunBag | None = None
     segments: dict = field(default_factory=dict)
+    # the observer model (R^, L^, lambda^) new variants started from, and where it came from
+    model: dict[str, float] = field(default_factory=dict)
+    model_source: str = ""
 
     def estimate(self, name: str) -> np.ndarray:
         return self.est[self.names.index(name)]
@@ -247,15 +261,24 @@ def replay_bag(
     machine: MachineCard | None = None,
     window: tuple[float, float] | None = None,
     encoder_offset_deg: float = 0.0,
+    card_model: bool = False,
 ) -> ReplayResult:
+    """Every variant over the bag's frames.  A new variant's observer model (R^, L^,
+    lambda^) is the one the bag records (`ReplayResult.model_source` says which), unless
+    `card_model` asks for the machine card's values."""
     card = bag.machine(machine)
     n = bag.n
+    if card_model:
+        model, model_source = _card_model(card), "the machine card (--card-model)"
+    else:
+        model, model_source = recorded_observer_model(bag.meta)
+        model = model or _card_model(card)
     est = np.zeros((len(variants), n, ES_N))
     walls: dict[str, float] = {}
     diffs: dict[str, float] = {}
     frames = np.ascontiguousarray(bag.frames, dtype=np.float64)
     for i, vs in enumerate(variants):
-        obs = build_observer(vs, bag, card)
+        obs = build_observer(vs, bag, card, model)
         t0 = time.perf_counter()
         changes = live_changes(bag, vs) if isinstance(obs, KernelObserver) else []
         out = run_with_changes(obs, frames, changes)
@@ -326,6 +349,8 @@ def replay_bag(
         diffs,
         walls,
         bag,
+        model=model,
+        model_source=model_source,
     )
 
 
@@ -380,6 +405,14 @@ def run_with_changes(
     if start < len(frames):
         out[start:] = obs.run(frames[start:])
     return out
+
+
+def _card_model(card: MachineCard) -> dict[str, float]:
+    return {
+        "r_hat_ohm": card.resistance_ohm,
+        "l_hat_h": card.inductance_h,
+        "lambda_hat_vs": card.flux_linkage_vs,
+    }
 
 
 def estimate_difference(a: np.ndarray, b: np.ndarray) -> float:
