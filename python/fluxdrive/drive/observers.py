@@ -812,7 +812,7 @@ def model_card(config: ObserverConfig, card: MachineCard) -> MachineCard:
     """`card` with its R, L and lambda replaced by the observer's model R^, L^, lambda^ where
     `config` sets them (a bench's model errors, a bag's recorded model): what a plugin
     observer is built with, so it sees the same model a built-in variant would."""
-    kw = {}
+    kw: dict[str, Any] = {}
     if config.r_hat_ohm is not None:
         kw["resistance_ohm"] = float(config.r_hat_ohm)
     if config.l_hat_h is not None:
@@ -852,7 +852,7 @@ def make_observer(
     spec: str,
     card: MachineCard,
     name: str | None = None,
-    model: dict[str, float] | None = None,
+    model: dict[str, Any] | None = None,
     **overrides: Any,
 ) -> Observer:
     """Build an observer from a built-in variant name, an entry point, or module:Class.

@@ -268,11 +268,13 @@ def replay_bag(
     `card_model` asks for the machine card's values."""
     card = bag.machine(machine)
     n = bag.n
-    if card_model:
-        model, model_source = _card_model(card), "the machine card (--card-model)"
+    recorded, model_source = recorded_observer_model(bag.meta)
+    if card_model or recorded is None:
+        model = _card_model(card)
+        if card_model:
+            model_source = "the machine card (--card-model)"
     else:
-        model, model_source = recorded_observer_model(bag.meta)
-        model = model or _card_model(card)
+        model = recorded
     est = np.zeros((len(variants), n, ES_N))
     walls: dict[str, float] = {}
     diffs: dict[str, float] = {}

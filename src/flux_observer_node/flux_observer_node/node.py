@@ -201,8 +201,8 @@ class ObserverNode(FluxNode):
         )
         pv = declare(self, self.specs)
         if base.is_plugin:
-            kw = declare(self, [_plugin_kwargs_param(base.extra)])["plugin_kwargs"]
-            base = replace(base, extra=_parse_kwargs(kw))
+            kw_text = declare(self, [_plugin_kwargs_param(base.extra)])["plugin_kwargs"]
+            base = replace(base, extra=_parse_kwargs(kw_text))
         common = declare(
             self,
             [
