@@ -39,23 +39,25 @@ typedef struct {
     uint8_t not_while_running;
 } prm_spec_t;
 
-/* ranges in SI units (DBC prm_id value table); defaults: the paper bench's card */
+/* ranges in SI units (DBC prm_id value table): the engine's DRIVE_PARAM_RANGES and
+ * DRIVE_PARAMS_STOPPED (fluxdrive.drive.control; tests/test_firmware.py compares them);
+ * defaults: safe placeholders, the host writes the design's values before arming */
 static const prm_spec_t PRM_SPEC[FD_PRM_COUNT] = {
-    [FD_PRM_CUR_KP] = {0.0f, 1.0e3f, 0.0f, 0},
-    [FD_PRM_CUR_KI] = {0.0f, 1.0e7f, 0.0f, 0},
-    [FD_PRM_L_HAT] = {0.0f, 1.0f, 0.0f, 0},
+    [FD_PRM_CUR_KP] = {0.0f, 1.0e4f, 0.0f, 0},
+    [FD_PRM_CUR_KI] = {0.0f, 1.0e8f, 0.0f, 0},
+    [FD_PRM_L_HAT] = {1.0e-7f, 10.0f, 1.0e-3f, 0},
     [FD_PRM_LAMBDA_HAT] = {0.0f, 10.0f, 0.0f, 0},
     [FD_PRM_DECOUPLE] = {0.0f, 1.0f, 1.0f, 0},
-    [FD_PRM_VOLTAGE_ADVANCE] = {0.0f, 4.0f, 1.5f, 0},
-    [FD_PRM_DEADTIME_COMP_S] = {0.0f, 1.0e-5f, 0.0f, 0},
-    [FD_PRM_CUR_LIMIT_A] = {0.0f, 25.0f, 10.0f, 0},
-    [FD_PRM_REF_TIMEOUT_S] = {1.0e-4f, 1.0f, 1.0e-2f, 0},
-    [FD_PRM_OVERCURRENT_A] = {0.1f, 1.0e3f, 20.0f, 0},
+    [FD_PRM_VOLTAGE_ADVANCE] = {0.0f, 3.0f, 1.5f, 0},
+    [FD_PRM_DEADTIME_COMP_S] = {0.0f, 1.0e-4f, 0.0f, 0},
+    [FD_PRM_CUR_LIMIT_A] = {0.01f, 1.0e3f, 10.0f, 0},
+    [FD_PRM_REF_TIMEOUT_S] = {1.0e-4f, 10.0f, 1.0e-2f, 0},
+    [FD_PRM_OVERCURRENT_A] = {0.01f, 1.0e3f, 20.0f, 0},
     [FD_PRM_I2T_LIMIT_PU2S] = {0.01f, 1.0e4f, 10.0f, 0},
     [FD_PRM_RATED_CURRENT_A] = {0.01f, 1.0e3f, 10.0f, 1},
     [FD_PRM_VDC_MIN_V] = {0.0f, 1.0e4f, 0.0f, 0},
     [FD_PRM_VDC_MAX_V] = {1.0f, 1.0e4f, 1.0e4f, 0},
-    [FD_PRM_HEARTBEAT_TIMEOUT_S] = {0.0f, 10.0f, 0.5f, 0},
+    [FD_PRM_HEARTBEAT_TIMEOUT_S] = {0.0f, 60.0f, 0.5f, 0},
     [FD_PRM_POLE_PAIRS] = {1.0f, 64.0f, 4.0f, 1},
 };
 

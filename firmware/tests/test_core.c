@@ -260,7 +260,7 @@ static void test_params(void)
     m.prm_id = FD_PRM_REF_TIMEOUT_S;
     m.prm_seq = 7;
     m.prm_write = 1;
-    m.prm_value = 5.0f; /* beyond 1 s */
+    m.prm_value = 50.0f; /* beyond 10 s */
     CHECK(fd_can_drive_param_pack(b, &m, 8) == 8);
     push(FD_CAN_DRIVE_PARAM_FRAME_ID, b, 8, 0);
     n_ack = 0;

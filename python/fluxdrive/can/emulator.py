@@ -46,12 +46,20 @@ No HOST_REF for REF_TIMEOUT_S while PWM is on: PWM off, WATCHDOG latched, FAULT 
 DRIVE_PARAM writes/reads the drive-side parameters (``DRIVE_PARAM_FIELDS``, ranges
 ``DRIVE_PARAM_RANGES``) and answers each with a DRIVE_PARAM_ACK.
 
+MCU logic (``mcu``): ``"python"`` (default) runs the logic above in this module; ``"c"`` runs
+the C drive firmware (``firmware/``, through :class:`fluxdrive.can.firmware.FirmwareCore`)
+as the MCU: per period the plant's frame goes in as raw ADC/capture counts, the received
+frames into its CAN queue, its period interrupt runs, and its PWM duties/enable drive
+``plant_advance``; what it sends goes onto the bus. The Python logic stays the reference
+the C core is tested against (tests/test_firmware.py).
+
 No ROS imports. Sends always use a timeout (python-can's ``virtual`` bus blocks forever on
 a full receive queue otherwise).
 """
 
 from __future__ import annotations
 
+import collections
 import threading
 import time
 from dataclasses import dataclass, field
@@ -176,7 +184,11 @@ class DriveEmulator:
         layout: str = "fd",
         decimation: int | None = None,
         protocol: FluxdriveProtocol | None = None,
+        mcu: str = "python",
     ) -> None:
+        if mcu not in ("python", "c"):
+            raise ValueError(f"mcu must be 'python' or 'c', not {mcu!r}")
+        self.mcu = mcu
         self.setup = setup
         self.bus = bus
         self.proto = protocol or get_protocol()
@@ -259,6 +271,33 @@ class DriveEmulator:
         }
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._fw: Any = None
+        self._fw_rx: collections.deque[can.Message] = collections.deque()
+        self._t0_wall = time.monotonic()
+        if mcu == "c":
+            self._fw = self._new_firmware()
+
+    def _new_firmware(self) -> Any:
+        """The C core as this emulator's MCU, configured like the Python logic: the same
+        layout, D, watchdog, over-current trip and heartbeat timeout, the drive parameters
+        of the scenario's design (host mode uses only the protections among them)."""
+        from fluxdrive.can.firmware import FirmwareCore
+        from fluxdrive.drive.control import drive_param_values
+
+        fw = FirmwareCore(
+            self.setup.mp,
+            decimation=self.decimation,
+            classic=self.layout == "classic",
+            cmd_timeout_s=self.cmd_timeout_s,
+        )
+        values = drive_param_values(self.split_cp)  # the scenario's design, as the Python MCU
+        values["OVERCURRENT_A"] = self.overcurrent_a
+        values["HEARTBEAT_TIMEOUT_S"] = self.heartbeat_timeout_s or 0.0
+        for name, value in values.items():
+            status = fw.param_write(name, float(value))
+            if status != "OK":
+                raise ValueError(f"C drive core refused {name} = {value:g}: {status}")
+        return fw
 
     # ------------------------------------------------------------------ bus I/O
 
@@ -279,6 +318,11 @@ class DriveEmulator:
         if msg.is_error_frame or msg.is_extended_id:
             return
         aid = msg.arbitration_id
+        if self._fw is not None:
+            if aid == ID_HOST_HEARTBEAT:
+                self._hb_last = time.monotonic()
+            self._fw_rx.append(msg)
+            return
         try:
             if aid == ID_DUTY_CMD:
                 d = self._msg_duty.decode(bytes(msg.data), decode_choices=False)
@@ -536,6 +580,9 @@ class DriveEmulator:
         [t_k, t_(k+1)], sample frame k+1. With D > 1 (either layout): samples and duty
         updates only every D-th period (the duty answering sample k-D), duties held in
         between."""
+        if self._fw is not None:
+            self._step_c()
+            return
         k = self.k
         d = self.decimation
         if self.record:
@@ -619,6 +666,87 @@ class DriveEmulator:
         if on:
             self.mode = MODE_RUN
         return out[CO_DA : CO_DC + 1].copy(), on
+
+    def _fw_feed(self, hold_refs: bool = False) -> None:
+        """Received frames into the C core's RX queue (what does not fit waits).
+        ``hold_refs``: HOST_REFs wait for the next sample boundary (lockstep split mode takes
+        the answer to sample k-D at boundary k, like the Python MCU; free-running, the core
+        takes the newest at any period boundary)."""
+        fw = self._fw
+        held: collections.deque[can.Message] = collections.deque()
+        while self._fw_rx:
+            msg = self._fw_rx[0]
+            if hold_refs and msg.arbitration_id == ID_HOST_REF:
+                held.append(self._fw_rx.popleft())
+                continue
+            if not fw.push(msg):
+                break
+            self._fw_rx.popleft()
+        self._fw_rx.extendleft(reversed(held))
+
+    def _step_c(self) -> None:
+        """One PWM period with the C core as the MCU: sample k in, its period interrupt
+        (lockstep: after the host's answer to sample k-D has arrived), the frames it sent
+        onto the bus, its PWM into the plant for [t_k, t_(k+1)], sample k+1."""
+        k = self.k
+        d = self.decimation
+        fw = self._fw
+        if self.record:
+            self.rec_frames.append(self.frame.copy())
+            self.rec_truth.append(self.truth.copy())
+        self._drain(0.0)
+        self._fw_feed(hold_refs=self.lockstep and k % d != 0)
+        if k % d == 0 and k >= d and self.lockstep:
+            want = (k - d) % _SEQ_MOD
+            deadline = time.monotonic() + self.lockstep_wait_s
+            while not fw.has_answer(want) and not self._stop.is_set():
+                left = deadline - time.monotonic()
+                if left <= 0.0:
+                    self.stats.lockstep_timeouts += 1
+                    break
+                self._drain(min(left, 0.05))
+                self._fw_feed()
+        now_us = int((time.monotonic() - self._t0_wall) * 1e6)
+        fw.set_sample(self.frame, now_us)
+        fw.period()
+        for msg in fw.pop_tx():
+            try:
+                self.bus.send(msg, timeout=self.send_timeout_s)
+            except can.CanError:
+                self.stats.tx_timeouts += 1
+        duty, enabled = fw.pwm()
+        st = fw.state()
+        self.armed = st["armed"]
+        self.pwm_enabled = st["pwm_enabled"]
+        self.fault_latched = st["fault_latched"]
+        self.fault_code = st["fault_code"]
+        self.mode = st["mode"]
+        self.duty = duty
+        s = self.setup
+        plant_advance(
+            self.pst, s.mp, self.rng, duty, enabled, s.load_t, s.load_y, s.load_cfg,
+            self.frame, self.truth,
+        )  # fmt: skip
+        self.k = k + 1
+        self._sync_c_stats()
+
+    def _sync_c_stats(self) -> None:
+        """The C core's counters under the emulator's names."""
+        c = self._fw.stats()
+        st = self.stats
+        st.periods = c["periods"]
+        st.samples_sent = c["samples_sent"]
+        st.duty_rx = c["duty_rx"] + c["ref_rx"]
+        st.duty_applied = c["duty_applied"]
+        st.duty_late = c["duty_late"]
+        st.stale_periods = c["stale_periods"]
+        st.arm_rx = c["arm_rx"]
+        st.bad_rx = c["bad_rx"]
+        st.layout_mismatch = c["layout_mismatch"]
+        st.disarm_rx = c["disarm_rx"]
+        if c["faults"] > st.faults:
+            st.fault_codes.append(self.fault_code)
+        st.faults = c["faults"]
 
     def _take_command(self, k: int) -> None:
         """At a sample boundary k: take the DUTY_CMD answering the previous sample (k-D);
