@@ -461,3 +461,105 @@ def _replay(sc, mcu, arm, duties):
         drive.shutdown()
         host.shutdown()
     return sent
+
+
+# ---------------------------------------------------------------- split mode
+
+
+def test_drive_param_ranges_are_the_engines(lib):
+    """Every DRIVE_PARAM: the C core accepts exactly the engine's DRIVE_PARAM_RANGES, and
+    refuses the ones in DRIVE_PARAMS_STOPPED while PWM is on."""
+    _, mp = _card_mp()
+    core = fw.FirmwareCore(mp)
+    for name, (lo, hi) in ctl.DRIVE_PARAM_RANGES.items():
+        assert core.param_write(name, lo) == "OK", name
+        assert core.param_write(name, hi) == "OK", name
+        assert core.param_write(name, hi * 1.001 + 1e-6) == "OUT_OF_RANGE", name
+        if lo > 0.0:
+            assert core.param_write(name, lo * 0.999) == "OUT_OF_RANGE", name
+        assert core.param_write(name, float("nan")) == "NOT_FINITE", name
+    assert set(ctl.DRIVE_PARAM_RANGES) == set(fw.PARAM_IDS)
+    card, mp = _card_mp()
+    drive = _Drive(mp, ctl.ControllerConfig().to_params(card))
+    drive.sample(np.zeros(3), card.dc_bus_v)
+    drive.sample(np.zeros(3), card.dc_bus_v)
+    assert drive.core.state()["pwm_enabled"]
+    for name in fw.PARAM_IDS:
+        value = drive.core.param_read(name)
+        want = "NOT_WHILE_RUNNING" if name in ctl.DRIVE_PARAMS_STOPPED else "OK"
+        assert drive.core.param_write(name, value) == want, name
+
+
+def test_split_drive_is_the_engines_split_drive_step(lib, db):
+    """Split mode, D = 4: the same frames and HOST_REFs (decoded as the wire carries them)
+    into the engine's split_drive_take_reference / split_drive_step and into the C core;
+    the duty the C core applies over [t_(k+1), t_(k+2)] is the engine's output for frame k
+    to float32 rounding, over 1200 periods with late references (the extrapolation
+    lengthens, the integrators rotate at each new one) and the hexagon limit reached."""
+    card, mp = _card_mp()
+    cp = ctl.ControllerConfig().to_params(card)
+    cp[ctl.CP_REF_TIMEOUT] = 0.01
+    cp[ctl.CP_TDCOMP] = 1.0e-6
+    ts = card.ts_s
+    d = 4
+    core = fw.FirmwareCore(mp, decimation=d, pwm_period_ticks=1 << 24)
+    for name, value in ctl.drive_param_values(cp).items():
+        assert core.param_write(name, value) == "OK", name
+    core.param_write("HEARTBEAT_TIMEOUT_S", 0.0)
+    arm = db.get_message_by_name("ARM_MODE")
+    ref_msg = db.get_message_by_name("HOST_REF")
+    data = arm.encode(
+        {"arm": 1, "arm_key": ARM_KEY, "reset_fault": 0, "sample_layout": 0,
+         "control_split": 1, "mode": 1, "cmd_timeout": 0, "decimation": d, "arm_counter": 0}
+    )  # fmt: skip
+    core.push(can.Message(arbitration_id=arm.frame_id, data=data, is_extended_id=False))
+    cs, dr = np.zeros(ctl.CS_N), np.zeros(ctl.DR_N)
+    ctl.split_drive_reset(cs, dr)
+    out = np.zeros(ctl.CO_N)
+    rng = np.random.default_rng(11)
+    lsb, vlsb = float(mp[pl.MP_ADC_LSB]), float(mp[pl.MP_VDC_LSB])
+    frame = np.zeros(pl.FR_N)
+    we = 2 * np.pi * 40.0
+    prev = None  # engine output of the previous period
+    late = set(rng.choice(np.arange(2, 300), 40, replace=False).tolist())
+    pending = []
+    compared = saturated = 0
+    for k in range(1200):
+        if k % d == 0 and k >= d:
+            j = k - d
+            amp_iq = 4.0 if k < 600 else 20.0
+            sig = {
+                "ref_seq": j % 65536, "ref_id": float(rng.normal(0, 0.5)), "ref_iq": amp_iq,
+                "ref_theta": float((we * j * ts + rng.normal(0, 0.01)) % (2 * np.pi)),
+                "ref_omega": we + float(rng.normal(0, 2.0)), "ref_enable": 1,
+            }  # fmt: skip
+            pending.append((k + (2 if k // d in late else 0), ref_msg.encode(sig)))
+        for due, payload in [p for p in pending if p[0] == k]:
+            pending.remove((due, payload))
+            r = ref_msg.decode(payload, decode_choices=False)
+            row = np.zeros(ctl.RF_N)
+            row[ctl.RF_ID_REF], row[ctl.RF_IQ_REF] = r["ref_id"], r["ref_iq"]
+            row[ctl.RF_TH], row[ctl.RF_W], row[ctl.RF_EN] = r["ref_theta"], r["ref_omega"], 1.0
+            row[ctl.RF_MODE] = ctl.MODE_CLOSED_LOOP
+            ctl.split_drive_take_reference(cs, dr, row, (k - r["ref_seq"]) * ts)
+            core.push(can.Message(arbitration_id=ref_msg.frame_id, data=payload, is_fd=True))
+        th = we * k * ts
+        i_abc = [3.0 * math.cos(th + 1.6 - j * 2 * math.pi / 3) + rng.normal(0, 0.2)
+                 for j in range(3)]  # fmt: skip
+        frame[pl.FR_IA : pl.FR_IC + 1] = _quantise(i_abc, lsb)
+        bus = 1.0 if k < 600 else 0.4  # then a sagging bus: beyond the hexagon, limiter at work
+        frame[pl.FR_VDC] = _quantise(bus * card.dc_bus_v * rng.uniform(0.98, 1.02), vlsb)
+        ctl.split_drive_step(cs, cp, dr, frame, out)
+        core.set_sample(frame, k * 100)
+        core.period()
+        core.pop_tx()
+        duty_c, en_c = core.pwm()
+        if prev is not None and prev[3] > 0.5:
+            np.testing.assert_allclose(duty_c, prev[:3], atol=2e-5, err_msg=f"period {k}")
+            assert en_c
+            compared += 1
+            saturated += math.hypot(out[ctl.CO_VD], out[ctl.CO_VQ]) > 0.55 * frame[pl.FR_VDC]
+        prev = np.concatenate([out[ctl.CO_DA : ctl.CO_DC + 1], [out[ctl.CO_EN]]])
+    assert not core.state()["fault_latched"] and cs[ctl.CS_MODE] != ctl.MODE_FAULT
+    print(f"split: {compared} periods compared, {saturated} at the hexagon limit")
+    assert compared > 1100 and saturated > 100
