@@ -54,6 +54,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -85,6 +86,8 @@ _TOP_KEYS = {
     "nodes",
     "stop_timeout_s",
     "stop_grace_s",
+    "start_timeout_s",
+    "stall_timeout_s",
 } | _POLICY_KEYS
 
 
@@ -123,6 +126,12 @@ class Graph:
     env: dict[str, str] = field(default_factory=dict)
     stop_timeout_s: float = 15.0
     stop_grace_s: float = 20.0
+    # a graph with a plant: the first frame must come within start_timeout_s of the start,
+    # and then at least one frame per second of wall time over any stall_timeout_s (a
+    # lockstep plant whose controller is silent steps one PWM-off period per
+    # duty_timeout_s: far below); otherwise the graph is stopped with one line
+    start_timeout_s: float = 300.0
+    stall_timeout_s: float = 120.0
     source: str = ""
     on_death: str = "stop"
     max_restarts: int = 3
@@ -364,6 +373,12 @@ def parse_graph(raw: Any, src: str = "graph", base: Path = REPO_ROOT) -> Graph:
             )
     stop_timeout_s = _seconds(src, "stop_timeout_s", raw.get("stop_timeout_s", 15.0), 0.1, 3600.0)
     stop_grace_s = _seconds(src, "stop_grace_s", raw.get("stop_grace_s", 20.0), 0.1, 3600.0)
+    start_timeout_s = _seconds(
+        src, "start_timeout_s", raw.get("start_timeout_s", 300.0), 1.0, 86400.0
+    )
+    stall_timeout_s = _seconds(
+        src, "stall_timeout_s", raw.get("stall_timeout_s", 120.0), 1.0, 86400.0
+    )
     g = Graph(
         name=str(raw.get("name", Path(src).stem)),
         namespace=check_namespace(raw.get("namespace"), f"{src}: 'namespace'"),
@@ -373,6 +388,8 @@ def parse_graph(raw: Any, src: str = "graph", base: Path = REPO_ROOT) -> Graph:
         env={str(k): str(v) for k, v in env.items()},
         stop_timeout_s=stop_timeout_s,
         stop_grace_s=stop_grace_s,
+        start_timeout_s=start_timeout_s,
+        stall_timeout_s=stall_timeout_s,
         source=src,
         **_policy(raw, src),
     )
@@ -410,6 +427,11 @@ def load_graph(path: str | Path) -> Graph:
 
 
 # ---------------------------------------------------------------------------- running
+# the start phase (stall watch: start_timeout_s) lasts until this frame: the controller and
+# observers answer from the first frames on, once their kernels are compiled
+START_FRAMES = 50
+
+
 def _libc_prctl():
     try:
         import ctypes
@@ -470,6 +492,7 @@ class Proc:
         self.done = False  # ended for good (normally, stopped, or died and ignored)
         self.ignored = False
         self.bag_open: str | None = None  # bag directory its recorder opened
+        self.t_last_line = time.monotonic()  # when it last wrote a line (progress included)
 
     @property
     def process(self) -> subprocess.Popen:
@@ -518,6 +541,10 @@ class Launcher:
         self._spawn_lock = threading.Lock()  # no restart once a stop has begun
         self._progress_shown = False
         self._last_progress_print = 0.0
+        self._t_start: float | None = None  # monotonic time of start()
+        self._watch_frames = False  # a plant that reports progress: stalls are watched
+        self._frames: deque[tuple[float, int]] = deque()  # (monotonic, frame) of progress
+        self.last_warning = ""  # the newest warning/error line of any process
         self.tty = hasattr(sys.stderr, "isatty") and sys.stderr.isatty()
 
     def env(self) -> dict[str, str]:
@@ -583,6 +610,11 @@ class Launcher:
                 ) from exc
 
     def start(self) -> None:
+        self._t_start = time.monotonic()
+        plants = [n for n in self.g.nodes if n.node == "plant"]
+        self._watch_frames = bool(plants) and all(
+            float(node_parameters(n).get("progress_interval_s", 0.5) or 0) > 0 for n in plants
+        )
         self.preflight()
         env = self.env()
         if self._restart_transport(dict(env)) and not self.quiet:
@@ -646,6 +678,7 @@ class Launcher:
             logf = open(self.log_dir / f"{p.name}.log", "a" if p.restarts else "w")  # noqa: SIM115
         assert p.popen and p.popen.stdout
         for raw in p.popen.stdout:
+            p.t_last_line = time.monotonic()
             line = raw.decode(errors="replace").rstrip("\n")
             if line.startswith("@progress "):
                 self._on_progress(line)
@@ -659,6 +692,8 @@ class Launcher:
             if line.startswith("@scope-url "):  # the scope server's address (--scope)
                 self.scope_urls.append(line[11:].strip())
                 continue
+            if "WARN" in line or "ERROR" in line:
+                self.last_warning = f"[{p.name}] {line}"
             if logf:
                 logf.write(line + "\n")
                 logf.flush()
@@ -673,6 +708,12 @@ class Launcher:
             self.progress = (int(k_text), int(n_text), float(wall_text))
         except ValueError:
             return
+        now = time.monotonic()
+        if self._frames and self.progress[0] < self._frames[-1][1]:
+            self._frames.clear()  # a restarted plant counts from 0 again
+        self._frames.append((now, self.progress[0]))
+        while len(self._frames) > 2 and self._frames[1][0] < now - self.g.stall_timeout_s:
+            self._frames.popleft()
         if not self.show_progress:
             return
         k, n, wall = self.progress
@@ -702,11 +743,51 @@ class Launcher:
                 except ProcessLookupError:
                     pass
 
+    def stalled(self, now: float) -> str | None:
+        """Why a graph with a plant is stuck (start or run phase), or None.  The drain
+        after the plant's last frame is bounded by stop_grace_s, the stop by
+        stop_timeout_s."""
+        g = self.g
+        if self.stopping or self._t_start is None:
+            return None
+        if not self._watch_frames:
+            return None  # no frames to watch (a replay, a scope, progress lines off)
+        plant_done = any(p.done for p in self.procs if any(n.node == "plant" for n in p.nodes))
+        if self.progress is None or self.progress[0] < START_FRAMES:
+            # starting: processes, discovery, the first answers (kernels compiling)
+            if now - self._t_start > g.start_timeout_s:
+                at = "no frame" if self.progress is None else f"frame {self.progress[0]}"
+                return (
+                    f"start phase: {at} after start_timeout_s = {g.start_timeout_s:g} s "
+                    f"(the run phase begins at frame {START_FRAMES})"
+                )
+            return None
+        if plant_done or self.progress[0] >= self.progress[1] - 1:
+            return None
+        t0, k0 = self._frames[0]
+        if now - t0 < g.stall_timeout_s:
+            return None  # not a whole window yet
+        # frames over the window [now - stall_timeout_s, now]: the newest progress mark at
+        # or before the window's start (marks come every progress_interval_s with frames)
+        k_then = k0
+        for t, k in self._frames:
+            if t <= now - g.stall_timeout_s:
+                k_then = k
+        n = self.progress[0] - k_then
+        if n >= g.stall_timeout_s:  # at least one frame per second of wall time
+            return None
+        return (
+            f"run phase: {n} frames in the last stall_timeout_s = {g.stall_timeout_s:g} s of "
+            f"wall time (at frame {self.progress[0]})"
+        )
+
     def stop(self, timeout: float | None = None) -> None:
         """SIGINT every live process, then SIGTERM, then SIGKILL; processes holding a
-        recorder only once the others have ended (the bag gets their last messages)."""
+        recorder only once the others have ended (the bag gets their last messages).  A
+        process stopped with SIGSTOP is continued first, so it can stop cleanly."""
         with self._spawn_lock:
             self.stopping = True
+        self.signal_all(signal.SIGCONT)
         timeout = self.g.stop_timeout_s if timeout is None else timeout
         first = [p for p in self.procs if not p.has_recorder]
         last = [p for p in self.procs if p.has_recorder]
@@ -828,6 +909,20 @@ class Launcher:
                 self.stop()
             if all(p.done for p in self.procs):
                 break
+            why = self.stalled(time.monotonic())
+            if why is not None:
+                live = [p for p in self.procs if not p.done]
+                quiet = min(live, key=lambda p: p.t_last_line) if live else None
+                if quiet is not None:
+                    why += (
+                        f"; silent longest: process {quiet.label} "
+                        f"({time.monotonic() - quiet.t_last_line:.1f} s)"
+                    )
+                last = f"; last warning: {self.last_warning}" if self.last_warning else ""
+                self._emit(f"[launch] ERROR: the graph is stuck ({why}){last}; stopping it")
+                self.stop()
+                self._join()
+                return 1
             if t_end is not None and time.monotonic() > t_end:
                 self._emit("[launch] timeout; stopping the graph")
                 self.stop()
