@@ -2,8 +2,11 @@
 foxglove.sdk.v1) gets every topic of a running lockstep graph advertised with its ros2msg
 schema and cdr encoding, subscribes, and decodes the CDR it receives (frames in sequence
 with the scenario's DC bus voltage, estimates with wrapped angles); parameters read and a
-refused set comes back as a status with the node's reason.  A client offering only the
-older foxglove.websocket.v1 subprotocol is refused at the handshake."""
+refused set comes back as a status with the node's reason; a parameter subscription
+receives a change made with `./fluxdrive param set` (another process); the controller's
+reset_fault is called as a service (cdr request and response); the server's time and the
+messages' log times follow the graph's /clock.  A client offering only the older
+foxglove.websocket.v1 subprotocol is refused at the handshake."""
 
 from __future__ import annotations
 
@@ -23,6 +26,16 @@ rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("fluxdrive_bringup")
 pytest.importorskip("foxglove")
 ws_client = pytest.importorskip("websockets.sync.client")
+ROOT = Path(__file__).resolve().parents[1]
+
+
+SERVICES: list[dict] = []  # every advertised service, whenever it came
+
+
+def _note(d: dict) -> dict:
+    if d.get("op") == "advertiseServices":
+        SERVICES.extend(d["services"])
+    return d
 
 
 def _recv_json(ws, want_op: str, timeout: float, pred=lambda m: True) -> dict:
@@ -33,7 +46,7 @@ def _recv_json(ws, want_op: str, timeout: float, pred=lambda m: True) -> dict:
         except TimeoutError:
             break
         if isinstance(m, str):
-            d = json.loads(m)
+            d = _note(json.loads(m))
             if d.get("op") == want_op and pred(d):
                 return d
     raise AssertionError(f"no '{want_op}' message within {timeout} s")
@@ -48,6 +61,7 @@ def test_foxglove_client_receives_and_decodes_topics(tmp_path):
 
     from fluxdrive_ros import topics
 
+    SERVICES.clear()
     dom = 100 + (os.getpid() * 7) % 60
     sp = scenario_path("paper_2pct_150load")
     sc = load_scenario(sp)
@@ -107,6 +121,8 @@ def test_foxglove_client_receives_and_decodes_topics(tmp_path):
                 )
             )
             got: dict[int, list[bytes]] = {1: [], 2: []}
+            log_times: list[int] = []  # of the frames
+            server_times: list[int] = []
             t_end = time.monotonic() + 90  # a first run compiles the kernels first
             while (len(got[1]) < 200 or len(got[2]) < 200) and time.monotonic() < t_end:
                 try:
@@ -114,8 +130,14 @@ def test_foxglove_client_receives_and_decodes_topics(tmp_path):
                 except TimeoutError:
                     continue
                 if isinstance(m, bytes) and m[0] == 0x01:  # message data
-                    sub_id, _log_time = struct.unpack_from("<IQ", m, 1)
+                    sub_id, log_time = struct.unpack_from("<IQ", m, 1)
                     got[sub_id].append(m[13:])
+                    if sub_id == 1:
+                        log_times.append(log_time)
+                elif isinstance(m, bytes) and m[0] == 0x02:  # server time
+                    server_times.append(struct.unpack_from("<Q", m, 1)[0])
+                elif isinstance(m, str):
+                    _note(json.loads(m))
             assert len(got[1]) >= 200 and len(got[2]) >= 200, {k: len(v) for k, v in got.items()}
             # the payload is the graph's CDR: decode with the project's codec
             dec = Decoder(topics.T_FRAME)
@@ -125,6 +147,18 @@ def test_foxglove_client_receives_and_decodes_topics(tmp_path):
             assert all(b > a for a, b in zip(seqs, seqs[1:], strict=False)), seqs[:20]
             vdc = {v[c.index("vdc")] for v in frames}
             assert all(abs(x - sc.machine.dc_bus_v) < 0.05 * sc.machine.dc_bus_v for x in vdc), vdc
+            # time: the server's time is the graph's /clock (sample time, not the epoch),
+            # and each frame's log time is the /clock of its moment: within 10 ms of the
+            # frame's own stamp (/clock comes every 1 ms of sample time; the rest is the
+            # order in which DDS delivers the two topics to the bridge under load)
+            assert "time" in info["capabilities"] and server_times, info["capabilities"]
+            assert server_times == sorted(server_times) and max(server_times) < 300e9
+            stamps = [
+                v[c.index("header.stamp.sec")] * 1_000_000_000 + v[c.index("header.stamp.nanosec")]
+                for v in frames
+            ]
+            lag = [abs(lt - st) for lt, st in zip(log_times, stamps, strict=True)]
+            assert max(log_times) < 300e9 and max(lag) < 10e6, (max(lag), log_times[:3])
             edec = Decoder(topics.T_ESTIMATE)
             ec = Codec(topics.T_ESTIMATE)
             th = [edec.decode(b)[ec.index("theta_e")] for b in got[2]]
@@ -156,6 +190,61 @@ def test_foxglove_client_receives_and_decodes_topics(tmp_path):
             assert "out of range" in st["message"] and st["level"] == 1  # warning
             d = _recv_json(ws, "parameterValues", 20, lambda d: d.get("id") == "s1")
             assert d["parameters"][0]["value"] == pytest.approx(0.05)  # unchanged
+
+            # a parameter subscription gets a change made elsewhere: the CLI, another process
+            name = "/obs/flux_measured.cutoff_hz"
+            ws.send(json.dumps({"op": "subscribeParameterUpdates", "parameterNames": [name]}))
+            time.sleep(0.5)
+            r = subprocess.run(
+                [
+                    str(ROOT / "fluxdrive"),
+                    "param",
+                    "set",
+                    "/obs/flux_measured",
+                    "cutoff_hz",
+                    "60.0",
+                ],
+                env={**env, "FLUXDRIVE_SKIP_BOOTSTRAP": "1"},
+                capture_output=True,
+                text=True,
+                timeout=60,
+            )
+            assert r.returncode == 0, r.stderr
+            d = _recv_json(
+                ws,
+                "parameterValues",
+                20,
+                lambda d: any(p["name"] == name for p in d["parameters"]) and "id" not in d,
+            )
+            assert next(p["value"] for p in d["parameters"] if p["name"] == name) == 60.0
+
+            # services: the controller's reset_fault, called with a cdr request
+            from rclpy.serialization import deserialize_message, serialize_message
+
+            from flux_drive_msgs.srv import ResetFault
+
+            def advertised(d: dict) -> bool:
+                return any(s["name"] == "/controller/reset_fault" for s in d["services"])
+
+            if not advertised({"services": SERVICES}):
+                _recv_json(ws, "advertiseServices", 30, advertised)
+            svc = next(s for s in SERVICES if s["name"] == "/controller/reset_fault")
+            assert svc["type"] == "flux_drive_msgs/srv/ResetFault"
+            assert "services" in info["capabilities"]
+            enc = b"cdr"
+            payload = serialize_message(ResetFault.Request())
+            ws.send(struct.pack("<BIII", 0x02, svc["id"], 7, len(enc)) + enc + payload)
+            t_end = time.monotonic() + 30
+            resp = None
+            while resp is None and time.monotonic() < t_end:
+                m = ws.recv(timeout=max(0.05, t_end - time.monotonic()))
+                if isinstance(m, bytes) and m[0] == 0x03:  # service call response
+                    sid, call_id, n = struct.unpack_from("<III", m, 1)
+                    assert (sid, call_id, m[13 : 13 + n]) == (svc["id"], 7, enc)
+                    resp = deserialize_message(m[13 + n :], ResetFault.Response)
+                elif isinstance(m, str) and _note(json.loads(m)).get("op") == "serviceCallFailure":
+                    raise AssertionError(m)
+            assert resp is not None and resp.success, resp
     finally:
         bridge.terminate()
         try:

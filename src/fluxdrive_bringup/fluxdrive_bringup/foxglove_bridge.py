@@ -1,7 +1,7 @@
 """`./fluxdrive foxglove`: every topic and every parameter of a running graph, served to
 Foxglove / Lichtblick with the Foxglove SDK (foxglove-sdk from PyPI).
 
-    ./fluxdrive foxglove [--port 8765] [--host 127.0.0.1] [--domain-id N]
+    ./fluxdrive foxglove [--port 8765] [--host 127.0.0.1] [--domain-id N] [--clock /clock]
 
 Connect a viewer to ws://127.0.0.1:8765 ("Open connection" -> "Foxglove WebSocket").  The
 server speaks the WebSocket subprotocol `foxglove.sdk.v1` (foxglove-sdk 0.30); a client that
@@ -17,9 +17,23 @@ QoS follows the publishers: best effort if any publisher is, transient-local (th
 last messages at subscription) only for latched topics (every publisher transient-local
 with a history of at most 100).
 
+Capabilities: parameters, services, time.
+
 Parameters: `/node.name` for every parameter of every node with parameter services
 (`./fluxdrive param` underneath); a set the node refuses is reported to the viewer as a
-warning status message with the node's reason, and the parameter keeps its value.
+warning status message with the node's reason, and the parameter keeps its value.  A viewer
+subscribed to parameters (parametersSubscribe) gets every change of them, whoever made it
+(`./fluxdrive param set`, the scope, another node): the bridge follows /parameter_events.
+
+Services: every ResetFault (`<controller>/reset_fault`, a bench bridge's) and Arm
+(`/drive/arm`) service of the graph, found by discovery, called with cdr request and
+response; the bridge calls them as node /fluxdrive_operator (the operator the controller's
+`allowed_operators` names, as `./fluxdrive fault reset` does).
+
+Time: the graph's `/clock` (`--clock`, e.g. /bench_a/clock for a namespaced drive) is
+broadcast as the server time, and every message goes out with the newest /clock time as its
+log time, so a viewer's timeline is the drive's sample time; without a /clock (a bench) the
+wall clock at reception.
 
 Cost: every subscribed per-sample topic of a 10 kHz lockstep graph crosses DDS into this
 process (as the split layout's recorder does): the graph slows accordingly.  For a live
@@ -38,6 +52,20 @@ from typing import Any
 
 SUBPROTOCOL = "foxglove.sdk.v1"
 BRIDGE_NODE = "fluxdrive_foxglove"
+# services a viewer may call: ROS service type -> its .srv file in flux_drive_msgs
+SERVICE_TYPES = ("flux_drive_msgs/srv/ResetFault", "flux_drive_msgs/srv/Arm")
+TIME_BROADCAST_S = 0.02  # at most 50 server-time updates a second
+
+
+def srv_schemas(srv_type: str) -> tuple[str, str]:
+    """(request, response) ros2msg text of a flux_drive_msgs service (the .srv file's two
+    halves; these services use built-in field types only)."""
+    from fluxdrive.core.paths import MSG_DIR
+
+    name = srv_type.rsplit("/", 1)[-1]
+    text = (MSG_DIR.parent / "srv" / f"{name}.srv").read_text()
+    req, _, resp = text.partition("\n---\n")
+    return req.strip() + "\n", resp.strip() + "\n"
 
 
 def ros2msg_schema(msgtype: str) -> str:
@@ -75,18 +103,36 @@ class Bridge:
             domain_id=args.domain_id, wait_s=3.0, node_name="fluxdrive_foxglove_params"
         )
         self.params_lock = threading.Lock()
+        self.param_subs: set[str] = set()  # `/node.name` a viewer subscribed to
+        self.services: dict[str, str] = {}  # ROS service -> type, offered to viewers
+        self.operator = None  # Session as /fluxdrive_operator (service calls), on demand
+        self.operator_lock = threading.Lock()
+        self.sim_ns: int | None = None  # newest /clock [ns]
+        self._t_time = 0.0
         self.server = foxglove.start_server(
             name="fluxdrive",
             host=args.host,
             port=args.port,
-            capabilities=[Capability.Parameters],
+            capabilities=[Capability.Parameters, Capability.Services, Capability.Time],
             server_listener=self,
             supported_encodings=["cdr"],
         )
         self.stop = threading.Event()
+        from rcl_interfaces.msg import ParameterEvent
+        from rclpy.qos import qos_profile_parameter_events
+        from rosgraph_msgs.msg import Clock
+
+        self.node.create_subscription(
+            ParameterEvent,
+            "/parameter_events",
+            self._on_parameter_event,
+            qos_profile_parameter_events,
+        )
+        self.node.create_subscription(Clock, args.clock, self._on_clock, 10)
 
     # ------------------------------------------------------------------ channels
     def discover(self) -> None:
+        self._discover_services()
         for topic, types in self.node.get_topic_names_and_types():
             if topic in self.channels or topic in self.skipped or not types:
                 continue
@@ -143,7 +189,8 @@ class Bridge:
             log = ch.log
 
             def cb(data: bytes) -> None:
-                log(data, log_time=time.time_ns())
+                t = self.sim_ns  # the drive's sample time when it has a /clock
+                log(data, log_time=time.time_ns() if t is None else t)
 
             self.subs[topic] = self.node.create_subscription(
                 msg_class(mtype), topic, cb, self._qos(topic), raw=True
@@ -158,7 +205,113 @@ class Bridge:
             if self.refs[topic] == 0 and topic in self.subs:
                 self.node.destroy_subscription(self.subs.pop(topic))
 
+    # ------------------------------------------------------------------ time
+    def _on_clock(self, msg) -> None:
+        self.sim_ns = msg.clock.sec * 1_000_000_000 + msg.clock.nanosec
+        now = time.monotonic()
+        if now - self._t_time >= TIME_BROADCAST_S:
+            self._t_time = now
+            self.server.broadcast_time(self.sim_ns)
+
+    # ------------------------------------------------------------------ services
+    def _discover_services(self) -> None:
+        new = []
+        for name, types in self.node.get_service_names_and_types():
+            t = next((t for t in types if t in SERVICE_TYPES), None)
+            if t is None or name in self.services:
+                continue
+            req, resp = srv_schemas(t)
+            Schema, MessageSchema = self.foxglove.Schema, self.foxglove.websocket.MessageSchema  # noqa: N806
+            new.append(
+                self.foxglove.websocket.Service(
+                    name,
+                    schema=self.foxglove.websocket.ServiceSchema(
+                        t,
+                        request=MessageSchema(
+                            encoding="cdr",
+                            schema=Schema(
+                                name=f"{t}_Request", encoding="ros2msg", data=req.encode()
+                            ),
+                        ),
+                        response=MessageSchema(
+                            encoding="cdr",
+                            schema=Schema(
+                                name=f"{t}_Response", encoding="ros2msg", data=resp.encode()
+                            ),
+                        ),
+                    ),
+                    handler=self._service_handler(name, t),
+                )
+            )
+            self.services[name] = t
+            print(f"foxglove: service {name} ({t})", flush=True)
+        if new:
+            self.server.add_services(new)
+
+    def _service_handler(self, service: str, srv_type: str):
+        """A viewer's call of `service`: the cdr request decoded, the ROS service called as
+        the operator, the cdr response returned (an exception: a call failure with its text)."""
+        import importlib
+
+        from rclpy.serialization import deserialize_message, serialize_message
+
+        pkg, _, name = srv_type.replace("/srv/", "/").partition("/")
+        cls = getattr(importlib.import_module(f"{pkg}.srv"), name)
+
+        def handler(request) -> bytes:
+            from .inspect_cli import OPERATOR_NODE, Session, _call, reset_fault
+
+            req = (
+                deserialize_message(bytes(request.payload), cls.Request)
+                if request.payload
+                else cls.Request()
+            )
+            with self.operator_lock:
+                if self.operator is None:
+                    self.operator = Session(
+                        domain_id=self.args.domain_id, wait_s=5.0, node_name=OPERATOR_NODE
+                    )
+                if name == "ResetFault":
+                    ok, message = reset_fault(self.operator, service)
+                    resp = cls.Response(success=ok, message=message)
+                else:
+                    resp = _call(self.operator, cls, service, req)
+            print(f"foxglove: call {service}: {resp.success} {resp.message!r}", flush=True)
+            return serialize_message(resp)
+
+        return handler
+
     # ------------------------------------------------------------------ parameters
+    def on_parameters_subscribe(self, param_names: list[str]) -> None:
+        with self.params_lock:
+            self.param_subs.update(param_names)
+
+    def on_parameters_unsubscribe(self, param_names: list[str]) -> None:
+        with self.params_lock:
+            self.param_subs.difference_update(param_names)
+
+    def _on_parameter_event(self, event) -> None:
+        """A node's parameters changed (whoever set them): the new values to the viewers
+        subscribed to them."""
+        from rclpy.parameter import parameter_value_to_python
+
+        Parameter = self.foxglove.Parameter  # noqa: N806
+        with self.params_lock:
+            subs = set(self.param_subs)
+        out = []
+        for p in [*event.new_parameters, *event.changed_parameters]:
+            full = f"{event.node}.{p.name}"
+            if full not in subs:
+                continue
+            v = parameter_value_to_python(p.value)
+            v = list(v) if isinstance(v, (list, tuple)) or hasattr(v, "tolist") else v
+            try:
+                out.append(Parameter(full, value=v))
+            except (TypeError, ValueError):
+                out.append(Parameter(full, value=json.dumps(v)))
+        if out:
+            self.server.publish_parameter_values(out)
+
     def _nodes(self) -> list[str]:
         s = self.params
         out = []
@@ -263,6 +416,8 @@ class Bridge:
         finally:
             self.server.stop()
             self.params.close()
+            if self.operator is not None:
+                self.operator.close()
             try:
                 self.node.destroy_node()
                 self.ex.shutdown()
@@ -277,6 +432,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
     ap.add_argument("--port", type=int, default=8765, help="TCP port (default 8765; 0: any)")
     ap.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID of the graph")
+    ap.add_argument(
+        "--clock",
+        default="/clock",
+        help="the graph's clock topic, served as the viewer's time (default /clock; a "
+        "namespaced drive's: /NS/clock)",
+    )
     args = ap.parse_args(sys.argv[1:] if argv is None else argv)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     if args.domain_id is None:
