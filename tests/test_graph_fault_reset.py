@@ -1,7 +1,8 @@
 """Fault latching at the graph level: a latched controller fault is cleared only by an
 explicit reset -- the controller's ~/reset_fault service, called by `./fluxdrive fault
 reset` (node /fluxdrive_operator) -- and only while no node outside `allowed_operators`
-holds a client of it.  After the reset the drive starts again from align (PWM on)."""
+holds a client of it.  After the reset the drive starts again from align (PWM on).  The
+latch and the reset are each one DriveFault event on /drive/fault."""
 
 from __future__ import annotations
 
@@ -27,13 +28,20 @@ def test_latched_fault_cleared_only_by_an_allowed_reset(graph, run, capsys):  # 
     from fluxdrive_bringup.inspect_cli import main_fault
     from fluxdrive_ros.wire import EstimateWire, FrameWire
 
-    from flux_drive_msgs.msg import ControllerState, DutyCommand, PhaseFrame, RotorEstimate
+    from flux_drive_msgs.msg import (
+        ControllerState,
+        DriveFault,
+        DutyCommand,
+        PhaseFrame,
+        RotorEstimate,
+    )
     from flux_drive_msgs.srv import ResetFault
 
     sc, r = run
     _controller(graph, sc, position_wall_timeout_s=0.3)
     duties = graph.listen(DutyCommand, "/drive/duty")
     states = graph.listen(ControllerState, "/drive/controller_state")
+    faults = graph.listen(DriveFault, "/drive/fault")
     fpub = graph.publisher(PhaseFrame, "/drive/frame")
     epub = graph.publisher(RotorEstimate, "/probe/estimate")
     wait_matched(fpub)
@@ -46,6 +54,11 @@ def test_latched_fault_cleared_only_by_an_allowed_reset(graph, run, capsys):  # 
     wait_for(lambda: len(states) >= 11, what="the stale-input trip")
     assert states[10].fault_code == 8 and not duties[10].enable
     assert states[10].fault_reason == "stale input"
+    wait_for(lambda: len(faults) >= 1, what="the DriveFault event")
+    f = faults[0]
+    assert (f.code, f.latched, f.source) == (DriveFault.STALE_INPUT, True, "/controller")
+    assert "stale input at sample 10" in f.reason
+    assert (f.header.stamp.sec, f.header.stamp.nanosec) == (0, 1_000_000)  # t_10 = 10 Ts
 
     # frames keep coming, estimates too: still latched (PWM off)
     for k in range(11, 20):
@@ -85,3 +98,7 @@ def test_latched_fault_cleared_only_by_an_allowed_reset(graph, run, capsys):  # 
     wait_for(lambda: len(states) >= 40, what="states after the reset")
     assert all(d.enable for d in duties[21:40])
     assert states[39].fault_reason == "" and states[39].mode != 4
+    # one event for the latch, one for the reset; nothing while latched
+    assert len(faults) == 2, [(f.code, f.reason) for f in faults]
+    assert faults[1].code == DriveFault.FAULT_NONE and not faults[1].latched
+    assert "'stale input' cleared" in faults[1].reason

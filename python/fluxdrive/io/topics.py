@@ -16,6 +16,7 @@ DONE = "/drive/done"  # flux_drive_msgs/RunDone: last seq of a finished run (lat
 CLOCK = "/clock"  # rosgraph_msgs/Clock: sim time of the plant
 ESTIMATE = "estimate"  # relative: /obs/<name>/estimate (flux_drive_msgs/RotorEstimate)
 OBS_NAMESPACE = "/obs"
+FAULT = "/drive/fault"  # flux_drive_msgs/DriveFault: a fault latched or cleared (controller)
 MARKER = "/drive/param_marker"  # flux_drive_msgs/ParameterMarker: an operator set a parameter
 SCOPE_ENVELOPE = "/scope/envelope"  # std_msgs/UInt8MultiArray: display envelopes of the scope tap
 
@@ -29,6 +30,7 @@ T_UINT64 = "std_msgs/msg/UInt64"
 T_DONE = "flux_drive_msgs/msg/RunDone"
 T_CLOCK = "rosgraph_msgs/msg/Clock"
 T_MARKER = "flux_drive_msgs/msg/ParameterMarker"
+T_FAULT = "flux_drive_msgs/msg/DriveFault"
 T_STRING = "std_msgs/msg/String"
 
 # the .msg sources (the interface package's definitions, embedded in every bag)
@@ -51,6 +53,7 @@ OFFERED_QOS: dict[str, tuple[int, str]] = {
     DONE: (1, "transient_local"),  # latched: a late reader still gets the end of the run
     SETTINGS: (1, "transient_local"),
     MARKER: (100, "transient_local"),
+    FAULT: (100, "transient_local"),
 }
 SAMPLE_QOS = (SAMPLE_DEPTH, "transient_local")  # every per-sample topic and /clock
 

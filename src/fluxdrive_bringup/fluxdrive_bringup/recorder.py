@@ -79,6 +79,7 @@ DEFAULT_TOPICS = [
         topics.DONE,
         topics.CLOCK,
         topics.MARKER,
+        topics.FAULT,
     )
 ] + [DIAGNOSTICS, ROSOUT]
 _HDR = struct.Struct("<iI")
@@ -97,6 +98,7 @@ def conventional_type(topic: str) -> str | None:
         topics.DONE: topics.T_DONE,
         topics.CLOCK: topics.T_CLOCK,
         topics.MARKER: topics.T_MARKER,
+        topics.FAULT: topics.T_FAULT,
         DIAGNOSTICS: T_DIAGNOSTICS,
         ROSOUT: T_LOG,
     }
@@ -337,6 +339,7 @@ class RecorderNode(FluxNode):
         prof = {
             topics.DONE: qos.LATCHED,
             topics.MARKER: qos.MARKERS,
+            topics.FAULT: qos.MARKERS,
             DIAGNOSTICS: qos.WATCH,
             ROSOUT: qos.WATCH,
         }.get(topic, qos.reader(self.pv["input_durability"]))

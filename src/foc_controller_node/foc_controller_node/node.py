@@ -425,6 +425,12 @@ class ControllerNode(FluxNode):
             self.graph.typed(topics.DONE, self._on_done),
             qos.LATCHED,
         )
+        # every fault latched, and its reset, as a DriveFault event (reliable, transient-
+        # local: a late reader, the recorder, still gets it)
+        self.pub_fault = self.create_publisher(
+            fm.DriveFault, in_drive(self, topics.FAULT), qos.MARKERS
+        )
+        self._fault_code = 0.0  # CO_FAULT of the last published sample
         self.reset_service = self.resolve_service_name("~/reset_fault")
         self.create_service(ResetFault, self.reset_service, self._on_reset)
         on_set(self, self.specs, self._apply, lambda: self.seq.next_k, card.ts_s)
@@ -486,8 +492,28 @@ class ControllerNode(FluxNode):
         else:
             self.pub_duty.publish(self.cw.pack_duty(out, k, sec, nsec))
         self.pub_state.publish(self.cw.pack_state(out, k, sec, nsec))
+        if out[CO_FAULT] != self._fault_code:  # latched or cleared at this sample
+            self._fault_event(k, out, sec, nsec)
         if self.done_seq is not None and k >= self.done_seq:
             self.finished = True
+
+    def _fault_event(self, k: int, out: np.ndarray, sec: int, nsec: int) -> None:
+        """A DriveFault on drive/fault: the code latched at sample k (PWM off), or
+        FAULT_NONE once a reset cleared it."""
+        code = int(out[CO_FAULT])
+        before = int(self._fault_code)
+        self._fault_code = out[CO_FAULT]
+        m = fm.DriveFault()
+        m.header.stamp.sec, m.header.stamp.nanosec = sec, nsec
+        m.header.frame_id = self.cw.frame_id
+        m.code = code
+        m.source = self.get_fully_qualified_name()
+        m.latched = code != 0
+        if code:
+            m.reason = f"{FAULT_NAMES.get(code, str(code))} at sample {k}: PWM off, latched"
+        else:
+            m.reason = f"'{FAULT_NAMES.get(before, str(before))}' cleared; running from sample {k}"
+        self.pub_fault.publish(m)
 
     def _log(self, level: str, text: str) -> None:
         self.log(text, level)  # the sequencer's (level, text) onto FluxNode.log
