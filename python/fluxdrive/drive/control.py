@@ -1120,10 +1120,12 @@ class ControllerConfig:
                 f"{src}: vdc_min_v {r.vdc_min_v:g} V must be below vdc_max_v "
                 f"{r.vdc_max_v:g} V (machine dc_bus_v {card.dc_bus_v:g} V)"
             )
-        if required(r.current_bandwidth_hz, "current_bandwidth_hz") >= 0.25 * card.pwm_hz:
+        if required(r.current_bandwidth_hz, "current_bandwidth_hz") > (
+            CURRENT_BW_MAX_OF_PWM * card.pwm_hz
+        ):
             raise ConfigError(
-                f"{src}: current_bandwidth_hz {r.current_bandwidth_hz} must "
-                f"be below a quarter of the PWM frequency ({card.pwm_hz} Hz)"
+                f"{src}: current_bandwidth_hz {r.current_bandwidth_hz} must not "
+                f"exceed a quarter of the PWM frequency ({card.pwm_hz} Hz)"
             )
         if r.position_source not in ("encoder", "estimate"):
             raise ConfigError(
@@ -1196,6 +1198,20 @@ class ControllerConfig:
         cp[CP_IRATED] = card.rated_current_a
         cp[CP_REF_TIMEOUT] = self.reference_timeout_s
         return cp
+
+
+# the current loop's bandwidth is at most this share of the PWM frequency (check())
+CURRENT_BW_MAX_OF_PWM = 0.25
+
+
+def control_ranges(card: MachineCard) -> dict[str, tuple[float, float]]:
+    """CONTROL_RANGES with the limits that follow from the card (the current loop's
+    bandwidth at most a quarter of the PWM frequency), so that a node's parameter
+    descriptors say what check() accepts."""
+    out = dict(CONTROL_RANGES)
+    lo, hi = out["current_bandwidth_hz"]
+    out["current_bandwidth_hz"] = (lo, min(hi, CURRENT_BW_MAX_OF_PWM * card.pwm_hz))
+    return out
 
 
 CONTROL_RANGES: dict[str, tuple[float, float]] = {

@@ -58,11 +58,11 @@ from fluxdrive.drive.control import (
     CO_EN,
     CO_FAULT,
     CO_MODE,
-    CONTROL_RANGES,
     CS_FAULT,
     FAULT_NAMES,
     MODE_NAMES,
     ControllerConfig,
+    control_ranges,
     host_params,
 )
 from fluxdrive.drive.observers import ES_N
@@ -80,7 +80,7 @@ from flux_drive_msgs.srv import ResetFault
 from fluxdrive_ros import access, params, qos, topics
 from fluxdrive_ros import diagnostics as diag
 
-# ControllerConfig field -> (description, unit); ranges from fluxdrive.drive.control.CONTROL_RANGES
+# ControllerConfig field -> (description, unit); ranges from fluxdrive.drive.control.control_ranges
 DOCS = {
     "current_bandwidth_hz": ("-3 dB bandwidth of the dq current loops (gains re-designed)", "Hz"),
     "speed_bandwidth_hz": (
@@ -163,7 +163,7 @@ def config_params(cfg: ControllerConfig, card) -> list[P]:
         cfg,
         card,
         DOCS,
-        CONTROL_RANGES,
+        control_ranges(card),
         skip=("position_source", *SPLIT_FIELDS),
         none_as_zero=NONE_AS_ZERO,
     )
