@@ -1,11 +1,19 @@
 """The scope page in a real browser (Debian's chromium, driven by playwright) against a
-running lockstep graph with the scope tap: the page loads, its traces advance, a parameter
-set in the panel reaches the node, a refused one shows the node's reason, the reset button
-gets the controller's answer, and every set leaves a marker in the bag.  Saves a
-screenshot (FLUXDRIVE_SCOPE_SCREENSHOT=path to keep it; docs/img/scope.png is one)."""
+running lockstep graph with the scope tap: the page loads, its traces advance; a drag
+zooms (and holds) the view, a click puts a cursor whose readout agrees with the trace; the
+θ̃ order spectrum arrives; a trigger armed on a parameter change captures a full-rate
+window around the change from the panel into a bag that the server reopens (and that
+this test reopens with the project's reader); the view exports as CSV and the capture as
+MCAP; a parameter set in the panel reaches the node, a refused one shows the node's reason
+and the box goes back to the value in force; the reset button gets the controller's
+answer, and every set leaves a marker in the bag.  Saves screenshots
+(FLUXDRIVE_SCOPE_SCREENSHOT=path to keep them: docs/img/scope.png and, next to it,
+scope-capture.png)."""
 
 from __future__ import annotations
 
+import csv
+import io
 import os
 import shutil
 import time
@@ -47,10 +55,13 @@ def test_scope_page_in_chromium(tmp_path):
     bag = tmp_path / "bag"
     g = graph_for_scenario(sp, sc, bag, "composed", duration_s=300.0, domain_id=dom)
     add_scope(g, port=0, token=TOKEN, observers=list(sc.observers))
+    captures = tmp_path / "captures"
+    next(n for n in g.nodes if n.node == "scope_tap").parameters["capture_dir"] = str(captures)
     launcher = Launcher(g, quiet=True, progress=False, log_dir=tmp_path / "logs")
     t0 = time.monotonic()
     launcher.start()
     shot = Path(os.environ.get("FLUXDRIVE_SCOPE_SCREENSHOT", tmp_path / "scope.png"))
+    shot_capture = shot.with_name(shot.stem + "-capture.png")
     try:
         while not launcher.scope_urls and time.monotonic() - t0 < 30:
             time.sleep(0.1)
@@ -89,6 +100,16 @@ def test_scope_page_in_chromium(tmp_path):
                 f"{s2['dataRate']} envelopes/s; points {n_pts}"
             )
 
+            _zoom_and_cursor(page)
+            _spectrum(page)
+
+            # arm the trigger on a parameter change (single shot)
+            page.select_option("#trig", "param")
+            page.fill("#trigpre", "0.02")
+            page.fill("#trigpost", "0.03")
+            page.click("#arm")
+            sync_api.expect(page.locator("#trigstate")).to_contain_text("armed", timeout=20_000)
+
             # parameter panel: a live change reaches the node ...
             row = page.locator('tr[data-node="/controller"][data-name="position_timeout_s"]')
             for _ in range(3):  # a node too busy to answer in time (loaded machine): reload
@@ -102,12 +123,38 @@ def test_scope_page_in_chromium(tmp_path):
             status = row.locator(".status")
             sync_api.expect(status).to_contain_text("✓", timeout=15_000)
             assert _param("/controller", "position_timeout_s", dom) == pytest.approx(0.07)
-            # ... a refused one shows the node's reason, the value stays
+            # ... the change triggered a capture: written, reopened by the server, shown
+            page.wait_for_function(
+                "window.scopeCapture && window.scopeCapture.series", timeout=60_000
+            )
+            cap = page.evaluate("window.scopeCapture")
+            _check_capture(cap, captures)
+            # ... a refused one shows the node's reason, the box goes back to the value
             row.locator("input").fill("99")
             row.locator("input").press("Enter")
             sync_api.expect(status).to_contain_text("out of range", timeout=15_000)
             assert "✗" in status.inner_text()
             assert _param("/controller", "position_timeout_s", dom) == pytest.approx(0.07)
+            assert row.locator("input").input_value() == "0.07"  # reverted in the panel
+            # values at their precision (no 20.00000000001): what the box shows is the
+            # node's value, shortest form
+            hb = page.locator('tr[data-node="/controller"][data-name="handback_rpm"] input')
+            v_hb = _param("/controller", "handback_rpm", dom)
+            assert float(hb.input_value()) == pytest.approx(v_hb, rel=1e-11)
+            assert len(hb.input_value()) <= 13, hb.input_value()
+
+            # export: the view as CSV, the capture as MCAP
+            with page.expect_download() as dl:
+                page.click("#csv")
+            rows = list(csv.reader(io.StringIO(Path(dl.value.path()).read_text())))
+            assert rows[0][0] == "t_s" and "iabc:i_a:min" in rows[0] and len(rows) > 20
+            col = rows[0].index("idq:i_q:max")
+            assert sum(1 for r in rows[1:] if r[col] != "") > 10
+            with page.expect_download() as dl:
+                page.click("#mcap")
+            data = Path(dl.value.path()).read_bytes()
+            mcap_file = next(Path(cap["path"]).glob("*.mcap"))
+            assert data[:8] == b"\x89MCAP0\r\n" and data == mcap_file.read_bytes()
             # the reset button asks the controller as the operator (nothing latched: ok)
             page.click("#reset")
             sync_api.expect(page.locator("#resetmsg")).to_contain_text("ok", timeout=20_000)
@@ -120,6 +167,7 @@ def test_scope_page_in_chromium(tmp_path):
             row.evaluate("e => e.scrollIntoView({block: 'center'})")  # the refusal in view
             page.wait_for_timeout(700)
             page.screenshot(path=str(shot), full_page=True)
+            page.locator("#capture").screenshot(path=str(shot_capture))
             browser.close()
     finally:
         launcher.stop()
@@ -132,9 +180,98 @@ def test_scope_page_in_chromium(tmp_path):
         conns = [c for c in r.connections if c.topic == "/drive/param_marker"]
         assert conns
         marks = [r.deserialize(raw, c.msgtype) for c, _, raw in r.messages(connections=conns)]
+    marks = [m for m in marks if m.node == "/controller"]
     assert [(m.name, m.value, m.successful) for m in marks] == [
         ("position_timeout_s", "0.07", True),
         ("position_timeout_s", "99", False),
     ]
     assert "out of range" in marks[1].reason and marks[0].node == "/controller"
     assert 0 < marks[0].seq <= marks[1].seq
+
+
+def _zoom_and_cursor(page) -> None:
+    """A drag across the θ̃ chart zooms every time chart to that span and holds the view;
+    a click puts cursor A there and each chart's readout shows its values at A; a
+    double-click goes back to the scrolling window."""
+    over = page.locator("#chart-idq .u-over")
+    box = over.bounding_box()
+    assert box is not None
+    y = box["y"] + box["height"] / 2
+    x_scale = (
+        "(id) => { const u = window.scopeDebug.chart(id);"
+        " return [u.scales.x.min, u.scales.x.max]; }"
+    )
+    before = page.evaluate(x_scale, "idq")
+    page.mouse.move(box["x"] + 0.3 * box["width"], y)
+    page.mouse.down()
+    page.mouse.move(box["x"] + 0.5 * box["width"], y, steps=5)
+    page.mouse.move(box["x"] + 0.6 * box["width"], y, steps=5)
+    page.mouse.up()
+    zoom = page.evaluate("window.scopeDebug.zoom()")
+    assert zoom is not None and page.locator("#pause").is_checked()
+    span0 = before[1] - before[0]
+    assert zoom[1] - zoom[0] == pytest.approx(0.3 * span0, rel=0.05)  # the dragged share
+    page.wait_for_timeout(300)
+    for chart in ("idq", "err", "iabc", "mode"):
+        assert page.evaluate(x_scale, chart) == pytest.approx(zoom)
+    # cursor A in the middle of the zoomed span
+    page.mouse.click(box["x"] + box["width"] / 2, y)
+    t_a = page.evaluate("window.scopeDebug.cursors().a")
+    assert zoom[0] < t_a < zoom[1]
+    assert abs(t_a - (zoom[0] + zoom[1]) / 2) < 0.02 * (zoom[1] - zoom[0])
+    readout = page.locator("#chart-idq .readout").inner_text()
+    assert readout.startswith("A: i_d "), readout
+    # the readout is the trace at A: i_q's band at the bucket holding t_a
+    lo, hi = page.evaluate(
+        """(t) => { const u = window.scopeDebug.chart("idq"), x = u.data[0];
+           let i = 0; while (i + 1 < x.length && x[i + 1] <= t) i++;
+           return [u.data[6][i], u.data[5][i]]; }""",
+        t_a,
+    )
+    shown = readout.split("i_q ", 1)[1].split(",")[0]
+    vals = [float(v) for v in shown.split("…")]
+    assert vals[0] == pytest.approx(lo, rel=1e-4, abs=1e-3)
+    assert vals[-1] == pytest.approx(hi, rel=1e-4, abs=1e-3)
+    assert "A t=" in page.locator("#cursors").inner_text()
+    over.dblclick(position={"x": box["width"] / 2, "y": box["height"] / 2})
+    assert page.evaluate("window.scopeDebug.zoom()") is None
+    assert not page.locator("#pause").is_checked()
+
+
+def _spectrum(page) -> None:
+    """The θ̃ and λ̂α order spectra (orders 1..20) of every observer arrive from the server
+    and are drawn."""
+    page.wait_for_function(
+        "(() => { const s = window.scopeDebug.spectrum().flux_measured;"
+        " return s && s.err && s.periods >= 1; })()",
+        timeout=60_000,
+    )
+    sp = page.evaluate("window.scopeDebug.spectrum().flux_measured")
+    assert sp["orders"] == list(range(1, 21))
+    assert len(sp["err"]) == 20 and len(sp["flux_alpha"]) == 20
+    assert all(v >= 0 for v in sp["err"] + sp["flux_alpha"])
+    # λ̂α's fundamental is the flux magnitude (mV·s): it dominates its spectrum
+    assert sp["flux_alpha"][0] > 5 * max(sp["flux_alpha"][1:])
+    # drawn at the next frame: the chart of the driving observer's θ̃ orders holds all 20
+    page.wait_for_function(
+        "window.scopeDebug.chart('spec_err').data[1].filter((v) => v !== null).length === 20",
+        timeout=10_000,
+    )
+
+
+def _check_capture(cap: dict, captures: Path) -> None:
+    """The capture: a bag under the tap's capture_dir with every frame of the window
+    around the parameter change (full rate), its marker, shown on the page."""
+    from fluxdrive.io.bagio import columns, read_raw
+
+    assert "position_timeout_s=0.07" in cap["why"], cap["why"]
+    path = Path(cap["path"])
+    assert path.parent == captures and (path / "metadata.yaml").exists()
+    seq0, seq1 = cap["seq0"], cap["seq1"]
+    assert seq1 - seq0 == 500  # 0.02 s before + 0.03 s after at 10 kHz
+    frames = [raw for t, _, _, raw in read_raw(path) if t == "/drive/frame"]
+    seq = columns("flux_drive_msgs/msg/PhaseFrame", frames)["seq"]
+    assert seq.tolist() == list(range(seq0, seq1 + 1))  # every sample, none twice
+    assert len(cap["series"]["i_a"]["t"]) == seq1 - seq0 + 1
+    assert "err/flux_measured" in cap["series"]
+    assert [(m["name"], m["value"]) for m in cap["markers"]] == [("position_timeout_s", "0.07")]

@@ -71,3 +71,101 @@ def test_batch_decode_reads_padded_dds_payloads():
     out = scope_tap.decode_batch(Decoder(topics.T_DUTY), msgs, ["seq", "duty[0]"])
     assert out[:, 0].tolist() == list(range(20))
     assert np.allclose(out[:, 1], 0.1 * np.arange(20))
+
+
+def test_order_spectrum_reads_the_orders_of_a_known_signal():
+    """θ̃ = 0.5° + 2° sin(6θ) and λ̂α = 10 mV·s cos θ + 0.3 mV·s cos(5θ + 1) over whole and
+    part electrical periods, the speed wandering a little: the spectrum gives exactly those
+    amplitudes (orders against the angle, the engine's definition)."""
+    n = 9000
+    rng = np.random.default_rng(11)
+    speed = 1.0 + 0.05 * np.sin(np.linspace(0, 3, n)) + 0.001 * rng.standard_normal(n)
+    theta = np.cumsum(speed) * (2 * math.pi * 3.37 / n)  # 3.37 electrical periods
+    wrapped = np.mod(theta, 2 * math.pi)
+    err = np.radians(0.5 + 2.0 * np.sin(6 * theta))
+    flux_a = 10e-3 * np.cos(theta) + 0.3e-3 * np.cos(5 * theta + 1.0)
+    sp = scope_tap.order_spectrum(wrapped, err, flux_a, np.ones(n))
+    assert sp["orders"] == list(range(1, 21)) and sp["periods"] == pytest.approx(3, abs=0.01)
+    assert sp["err"][5] == pytest.approx(2.0, rel=1e-3)
+    assert max(sp["err"][:5] + sp["err"][6:]) < 0.01
+    assert sp["flux_alpha"][0] == pytest.approx(10.0, rel=1e-3)
+    assert sp["flux_alpha"][4] == pytest.approx(0.3, rel=1e-2)
+    # without truth (the observer's own angle): no θ̃ spectrum, λ̂α still
+    sp2 = scope_tap.order_spectrum(wrapped, err * np.nan, flux_a, np.zeros(n))
+    assert "err" not in sp2 and sp2["flux_alpha"][0] == pytest.approx(10.0, rel=1e-3)
+
+
+def test_envelope_message_round_trip_with_arrays():
+    """The tap's wire format carries the spectrum samples untouched, and the page JSON
+    has the spectra computed from them."""
+    n = 4000
+    theta = np.mod(np.linspace(0, 4 * math.pi, n, endpoint=False), 2 * math.pi)
+    spec = np.stack([theta, np.radians(np.sin(6 * theta)), 1e-2 * np.cos(theta), np.ones(n)])
+    doc = {
+        "v": 1,
+        "seq": 1234,
+        "ts_s": 1e-4,
+        "streams": {
+            "state": {
+                "k": np.array([3.0, 4.0]),
+                "n": ["i_d", "mode"],
+                "dec": [3, 0],
+                "lo": np.array([[0.12345, 3.0], [0.2, 3.0]]),
+                "hi": np.array([[0.5, 3.0], [0.25, 3.0]]),
+            }
+        },
+        "locus": {},
+        "arrays": {"spec/x": spec},
+    }
+    head, arrays = scope_tap.unpack_envelopes(scope_tap.pack_envelopes(doc))
+    assert np.array_equal(arrays["spec/x"], spec) and head["seq"] == 1234
+    import json
+
+    text, head2 = scope_tap.page_json(scope_tap.pack_envelopes(doc))
+    page = json.loads(text)
+    assert page["streams"]["state"]["lo"][0] == [0.123, 3.0]  # rounded per field
+    assert page["spectrum"]["x"]["err"][5] == pytest.approx(1.0, rel=1e-6)
+    assert page["spectrum"]["x"]["flux_alpha"][0] == pytest.approx(10.0, rel=1e-6)
+
+
+def test_triggers_mode_fault_and_threshold():
+    """The trigger finds the first sample of its condition within a period."""
+    from types import SimpleNamespace
+
+    tap = SimpleNamespace(
+        pv={"trigger": "mode", "trigger_field": "state:i_q", "trigger_level": 2.0},
+        last_mode=2,
+        marker_raw=[],
+        candidates=[],
+    )
+    seq = np.arange(100, 110)
+    mode = np.array([2, 2, 3, 3, 3, 3, 4, 4, 4, 4], float)
+    i_q = np.array([0, 1, -2.5, 1, 3, 0, 0, 0, 0, 0], float)
+    cols = {"state": (seq, {"mode": mode, "i_q": i_q})}
+    scope_tap.ScopeTapNode._triggers(tap, cols)
+    assert tap.candidates == [(102, "mode 2 to 3"), (106, "mode 3 to 4")]
+    assert tap.last_mode == 4
+    tap.pv["trigger"], tap.last_mode = "fault", 2
+    scope_tap.ScopeTapNode._triggers(tap, cols)
+    assert tap.candidates == [(106, "mode 3 to 4")]
+    tap.pv["trigger"] = "threshold"
+    scope_tap.ScopeTapNode._triggers(tap, cols)
+    assert tap.candidates == [(102, "state:i_q >= 2")]  # |i_q| >= 2 first at 102
+
+
+def test_controller_descriptor_range_is_what_the_controller_accepts():
+    """The current-loop bandwidth's range follows the card: up to a quarter of the PWM
+    frequency, which the engine's check accepts, and nothing above."""
+    from fluxdrive.core.machine import ConfigError
+    from fluxdrive.core.scenario import load_scenario, scenario_path
+    from fluxdrive.drive.control import control_ranges
+
+    sc = load_scenario(scenario_path("paper_2pct_150load"))
+    card = sc.machine
+    lo, hi = control_ranges(card)["current_bandwidth_hz"]
+    assert hi == 0.25 * card.pwm_hz
+    import dataclasses
+
+    dataclasses.replace(sc.control, current_bandwidth_hz=hi).check(card)  # accepted
+    with pytest.raises(ConfigError, match="quarter of the PWM"):
+        dataclasses.replace(sc.control, current_bandwidth_hz=hi * 1.001).check(card)

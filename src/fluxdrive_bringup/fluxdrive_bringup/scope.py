@@ -55,7 +55,9 @@ MODE_NAMES = {0: "disabled", 1: "align", 2: "I/f ramp", 3: "closed loop", 4: "FA
 class RosSide:
     """The envelope subscription and marker publisher, spun in a thread of their own."""
 
-    def __init__(self, domain_id: int, on_envelope, attach_wait_s: float, quiet: bool = False):
+    def __init__(
+        self, domain_id: int, on_envelope, attach_wait_s: float, quiet: bool = False, on_head=None
+    ):
         import rclpy
         from fluxdrive_ros.topics import msg_class
         from rclpy.executors import SingleThreadedExecutor
@@ -82,7 +84,8 @@ class RosSide:
         def on_env(data: bytes) -> None:
             self.n_envelopes += 1
             try:
-                text, seq, ts_s = page_json(data)
+                text, head = page_json(data)
+                seq, ts_s = int(head.get("seq", -1)), float(head.get("ts_s", 1e-4))
             except (ValueError, KeyError, struct.error) as exc:
                 if self.n_envelopes < 5:
                     print(
@@ -92,6 +95,8 @@ class RosSide:
                 return
             self.note_envelope(seq, ts_s)
             on_envelope(text)
+            if on_head is not None:
+                on_head(head)
 
         self.sub = self.node.create_subscription(
             UInt8MultiArray, topics.SCOPE_ENVELOPE, on_env, 10, raw=True
@@ -241,10 +246,23 @@ class ParamSide:
         return out
 
     def set(self, node: str, name: str, text: str) -> tuple[bool, str, Any]:
-        from .inspect_cli import set_param
+        """Set; returns the node's answer and the value the node holds afterwards (the old
+        one after a refusal), so the page shows what is in force."""
+        from .inspect_cli import _get, set_param
 
-        ok, reason, value = set_param(self._s(), node, name, text)
-        return ok, reason, _plain(value)
+        s = self._s()
+        try:
+            ok, reason, _ = set_param(s, node, name, text)
+        finally:
+            ((_, now),) = _get(s, node, [name])
+        return ok, reason, _plain(now)
+
+    def tap(self) -> str:
+        """The scope tap's node name (the graph's, else the one this process started)."""
+        taps = [n for n in self.nodes() if n.rsplit("/", 1)[-1].startswith("scope_tap")]
+        if not taps:
+            raise LookupError("no scope tap in the graph")
+        return sorted(taps, key=len)[0]
 
     def reset(self, service: str) -> tuple[bool, str]:
         from .inspect_cli import OPERATOR_NODE, Session, reset_fault
@@ -265,6 +283,75 @@ class ParamSide:
         except Exception:  # noqa: BLE001
             pass
         self.pool.shutdown(wait=False)
+
+
+CAPTURE_FIELDS = {  # capture chart series: (topic, message path, scale, label)
+    "i_a": ("/drive/frame", "i_abc[0]", 1.0, "i_a [A]"),
+    "i_b": ("/drive/frame", "i_abc[1]", 1.0, "i_b [A]"),
+    "i_c": ("/drive/frame", "i_abc[2]", 1.0, "i_c [A]"),
+    "vdc": ("/drive/frame", "vdc", 1.0, "v_dc [V]"),
+    "i_d": ("/drive/controller_state", "i_dq[0]", 1.0, "i_d [A]"),
+    "i_q": ("/drive/controller_state", "i_dq[1]", 1.0, "i_q [A]"),
+    "mode": ("/drive/controller_state", "mode", 1.0, "mode"),
+}
+
+
+def load_capture(path: str | Path) -> dict[str, Any]:
+    """A capture bag reopened with the project's bag reader: full-rate series on the sample
+    time axis (phase currents, bus voltage, i_d/i_q, mode, θ̃ per observer), its markers
+    and message counts -- the page's capture view."""
+    import math
+
+    import numpy as np
+    from fluxdrive.io.bagio import columns, read_markers, read_raw
+
+    from fluxdrive_ros import topics
+
+    raws: dict[str, tuple[str, list[bytes]]] = {}
+    for topic, mtype, _t, raw in read_raw(path):
+        raws.setdefault(topic, (mtype, []))[1].append(bytes(raw))
+    cols = {t: columns(mt, r) for t, (mt, r) in raws.items() if t != topics.MARKER}
+    import yaml
+
+    meta = (Path(path) / "metadata.yaml").read_text()
+    custom = yaml.safe_load(meta)["rosbag2_bagfile_information"].get("custom_data") or {}
+    settings = json.loads(custom.get("fluxdrive", "{}"))
+    info = settings.get("scope_capture", {})
+    ts_s = float(settings.get("ts_s", 1e-4))
+    series: dict[str, dict[str, Any]] = {}
+
+    def put(key: str, label: str, seq, vals) -> None:
+        series[key] = {
+            "label": label,
+            "t": [round(float(k) * ts_s, 7) for k in seq],
+            "v": [None if not math.isfinite(v) else round(float(v), 5) for v in vals],
+        }
+
+    for key, (topic, fpath, scale, label) in CAPTURE_FIELDS.items():
+        c = cols.get(topic)
+        if c is not None and fpath in c:
+            put(key, label, c["seq"], c[fpath] * scale)
+    tr = cols.get(topics.TRUTH)
+    if tr is not None:
+        order = np.argsort(tr["seq"])
+        tseq, tth = tr["seq"][order], tr["theta_e"][order]
+        for topic, c in cols.items():
+            if not (topic.startswith("/obs/") and topic.endswith("/estimate")):
+                continue
+            ix = np.clip(np.searchsorted(tseq, c["seq"]), 0, len(tseq) - 1)
+            hit = tseq[ix] == c["seq"]
+            err = np.degrees((c["theta_e"][hit] - tth[ix[hit]] + np.pi) % (2 * np.pi) - np.pi)
+            name = topic.split("/")[2]
+            put(f"err/{name}", f"θ̃ {name} [deg]", c["seq"][hit], err)
+    markers = read_markers(raws[topics.MARKER][1]) if topics.MARKER in raws else []
+    return {
+        "path": str(path),
+        **info,
+        "ts_s": ts_s,
+        "series": series,
+        "markers": markers,
+        "messages": {t: len(r) for t, (_, r) in raws.items()},
+    }
 
 
 def _plain(v: Any) -> Any:
@@ -288,6 +375,27 @@ class Scope:
         self.dropped = 0
         self.ros: RosSide | None = None
         self.params: ParamSide | None = None
+        self.capture_path: str | None = None  # the newest capture bag the tap announced
+        self.capture: dict[str, Any] | None = None  # ... reopened (load_capture)
+        self.capture_pool = concurrent.futures.ThreadPoolExecutor(
+            1, thread_name_prefix="scope-capture"
+        )
+
+    # ROS thread: a capture the tap wrote is reopened from its bag (worker thread)
+    def on_head(self, head: dict) -> None:
+        cap = head.get("capture")
+        if not cap or cap.get("path") in (None, self.capture_path):
+            return
+        self.capture_path = cap["path"]
+
+        def load(path: str) -> None:
+            try:
+                self.capture = load_capture(path)
+            except Exception as exc:  # noqa: BLE001 - a broken bag: say so on the page
+                self.capture = {"path": path, "error": f"cannot reopen {path}: {exc}"}
+            print(f"scope: capture {path} ({cap.get('why', '')})", flush=True)
+
+        self.capture_pool.submit(load, cap["path"])
 
     # ROS thread -> event loop
     def on_envelope(self, text: str) -> None:
@@ -412,6 +520,66 @@ class Scope:
         print(f"scope: fault reset {service}: {'ok' if ok else 'REFUSED'}: {message}", flush=True)
         return web.json_response({"ok": ok, "message": message})
 
+    async def api_trigger(self, request):
+        """Arm the tap's single-shot trigger: JSON {trigger, field?, level?, pre_s?, post_s?}
+        set as the tap's parameters (the tap checks them like any parameter)."""
+        from aiohttp import web
+
+        if not self._authorised(request):
+            return web.json_response({"error": "wrong token"}, status=403)
+        try:
+            body = await request.json()
+            sets = [("trigger", str(body["trigger"]))]
+        except (ValueError, KeyError, TypeError):
+            return web.json_response({"ok": False, "reason": "expected JSON {trigger}"}, 400)
+        for key, name in (
+            ("field", "trigger_field"),
+            ("level", "trigger_level"),
+            ("pre_s", "capture_pre_s"),
+            ("post_s", "capture_post_s"),
+        ):
+            if key in body:
+                sets.insert(0, (name, str(body[key])))  # the trigger itself last: it arms
+        try:
+            tap = await self.params.run(self.params.tap)
+            for name, text in sets:
+                ok, reason, _ = await self.params.run(self.params.set, tap, name, text)
+                if not ok:
+                    return web.json_response({"ok": False, "reason": f"{name}: {reason}"})
+        except (LookupError, TimeoutError) as exc:
+            return web.json_response({"ok": False, "reason": str(exc)})
+        print(f"scope: trigger armed: {dict(sets)}", flush=True)
+        return web.json_response({"ok": True, "reason": f"armed ({sets[-1][1]})"})
+
+    async def api_capture(self, request):
+        from aiohttp import web
+
+        if not self._authorised(request):
+            return web.json_response({"error": "wrong token"}, status=403)
+        if self.capture is None:
+            return web.json_response({"path": None})
+        return web.json_response(self.capture)
+
+    async def api_capture_mcap(self, request):
+        """The newest capture's MCAP file (export)."""
+        from aiohttp import web
+
+        if not self._authorised(request):
+            return web.Response(status=403, text="wrong token\n")
+        if self.capture is None or "error" in self.capture:
+            return web.Response(status=404, text="no capture yet\n")
+        files = sorted(Path(self.capture["path"]).glob("*.mcap"))
+        if not files:
+            return web.Response(status=404, text="capture has no MCAP file\n")
+        return web.FileResponse(
+            files[0],
+            headers={
+                "Content-Disposition": f'attachment; filename="{Path(self.capture["path"]).name}'
+                '.mcap"',
+                "Content-Type": "application/octet-stream",
+            },
+        )
+
     async def api_status(self, request):
         from aiohttp import web
 
@@ -457,6 +625,9 @@ class Scope:
         app.router.add_post("/api/param", self.api_param)
         app.router.add_post("/api/reset", self.api_reset)
         app.router.add_get("/api/status", self.api_status)
+        app.router.add_post("/api/trigger", self.api_trigger)
+        app.router.add_get("/api/capture", self.api_capture)
+        app.router.add_get("/api/capture.mcap", self.api_capture_mcap)
         app.router.add_static("/static/", WEB_DIR, show_index=False)
         return app
 
@@ -465,7 +636,7 @@ class Scope:
 
         self.loop = asyncio.get_running_loop()
         dom = self.args.domain_id
-        self.ros = RosSide(dom, self.on_envelope, self.args.attach_wait)
+        self.ros = RosSide(dom, self.on_envelope, self.args.attach_wait, on_head=self.on_head)
         self.params = ParamSide(dom)
         quiet_bad_requests()
         runner = web.AppRunner(self.app(), access_log=None)
@@ -510,6 +681,7 @@ class Scope:
             await runner.cleanup()
             self.params.close()
             self.ros.close()
+            self.capture_pool.shutdown(wait=False)
         return 0
 
 

@@ -39,9 +39,11 @@ import re
 import struct
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+from fluxdrive.core.scenario import REPO_ROOT
 from fluxdrive_ros.cdr import Decoder
 from fluxdrive_ros.intra import RawSubscription
 from fluxdrive_ros.params import P, declare, on_set
@@ -123,11 +125,12 @@ def wrap_deg(x: np.ndarray) -> np.ndarray:
 # per locus xy[2, np].  Binary because the graph's process pays for every Python call: the
 # JSON for the page (rounded numbers) is made by the scope server, in its own process.
 _U32 = struct.Struct("<I")
+_STAMP = struct.Struct("<iI")  # header stamp (sec, nanosec) after the 4-byte CDR head
 _CDR_HEAD = b"\x00\x01\x00\x00" + _U32.pack(0) + _U32.pack(0)  # encapsulation, no dims, offset 0
 
 
 def pack_envelopes(doc: dict) -> bytes:
-    head = {k: v for k, v in doc.items() if k not in ("streams", "locus")}
+    head = {k: v for k, v in doc.items() if k not in ("streams", "locus", "arrays")}
     arrays = []
     head["streams"] = []
     for name, st in doc["streams"].items():
@@ -137,15 +140,19 @@ def pack_envelopes(doc: dict) -> bytes:
     for name, xy in doc["locus"].items():
         head["locus"].append({"name": name, "np": xy.shape[1]})
         arrays.append(xy.astype("<f8"))
+    head["arrays"] = []
+    for name, a in doc.get("arrays", {}).items():
+        head["arrays"].append({"name": name, "shape": list(a.shape)})
+        arrays.append(np.ascontiguousarray(a, dtype="<f8"))
     hj = json.dumps(head, separators=(",", ":")).encode()
     pad = b"\0" * ((-(4 + len(hj))) % 8)
     data = b"".join([_U32.pack(len(hj)), hj, pad, *(a.tobytes() for a in arrays)])
     return _CDR_HEAD + _U32.pack(len(data)) + data
 
 
-def page_json(cdr: bytes) -> tuple[str, int, float]:
-    """A /scope/envelope message (raw CDR) -> the page's JSON text (numbers rounded per
-    field; NaN -> null), the newest seq and the sample period."""
+def unpack_envelopes(cdr: bytes) -> tuple[dict, dict[str, np.ndarray]]:
+    """A /scope/envelope message (raw CDR) -> its head (streams and loci as arrays) and the
+    extra arrays (the order-spectrum samples)."""
     data = memoryview(cdr)[16:]
     (n,) = _U32.unpack_from(data, 0)
     head = json.loads(bytes(data[4 : 4 + n]))
@@ -160,21 +167,78 @@ def page_json(cdr: bytes) -> tuple[str, int, float]:
     streams = {}
     for st in head.pop("streams"):
         nb, nf = st["nb"], len(st["n"])
-        q = 10.0 ** np.array(st["dec"], dtype=float)
         k = take(nb)
         lo, hi = take(nb * nf).reshape(nb, nf), take(nb * nf).reshape(nb, nf)
-        streams[st["name"]] = {
-            "k": k.astype(np.int64).tolist(),
-            "n": st["n"],
-            "lo": (np.round(lo * q) / q).tolist(),
-            "hi": (np.round(hi * q) / q).tolist(),
-        }
+        streams[st["name"]] = {"k": k, "n": st["n"], "dec": st["dec"], "lo": lo, "hi": hi}
     locus = {}
     for lc in head.pop("locus"):
-        locus[lc["name"]] = (np.round(take(2 * lc["np"]).reshape(2, -1) * 1e4) / 1e4).tolist()
+        locus[lc["name"]] = take(2 * lc["np"]).reshape(2, -1)
+    arrays = {}
+    for ar in head.pop("arrays", []):
+        shape = tuple(ar["shape"])
+        arrays[ar["name"]] = take(int(np.prod(shape))).reshape(shape)
     head["streams"], head["locus"] = streams, locus
+    return head, arrays
+
+
+def page_json(cdr: bytes) -> tuple[str, dict]:
+    """A /scope/envelope message (raw CDR) -> the page's JSON text (numbers rounded per
+    field; NaN -> null) and its head (seq, ts_s, capture, ...).  The order spectra of the
+    samples the tap sent along (`arrays` "spec/<observer>") are computed here, in the scope
+    server's process, with the engine's harmonic code (order_spectrum)."""
+    head, arrays = unpack_envelopes(cdr)
+    streams = {}
+    for name, st in head["streams"].items():
+        q = 10.0 ** np.array(st["dec"], dtype=float)
+        streams[name] = {
+            "k": st["k"].astype(np.int64).tolist(),
+            "n": st["n"],
+            "lo": (np.round(st["lo"] * q) / q).tolist(),
+            "hi": (np.round(st["hi"] * q) / q).tolist(),
+        }
+    head["streams"] = streams
+    head["locus"] = {n: (np.round(xy * 1e4) / 1e4).tolist() for n, xy in head["locus"].items()}
+    spectra = {}
+    for name, a in arrays.items():
+        if name.startswith("spec/"):
+            spectra[name[5:]] = order_spectrum(a[0], a[1], a[2], a[3])
+    if spectra:
+        head["spectrum"] = spectra
     text = json.dumps(head, separators=(",", ":")).replace("NaN", "null")  # JSON has no NaN
-    return text, int(head.get("seq", -1)), float(head.get("ts_s", 1e-4))
+    return text, head
+
+
+SPECTRUM_ORDERS = range(1, 21)
+
+
+def order_spectrum(
+    theta_rad: np.ndarray, err_rad: np.ndarray, flux_alpha_vs: np.ndarray, truth: np.ndarray
+) -> dict[str, Any]:
+    """Orders 1..20 against the rotor's electrical angle (the true one where `truth` is 1,
+    else the observer's own) of the angle error θ̃ [deg] and of λ̂α [mV·s], over the
+    largest whole number of electrical periods in the samples: the engine's definitions
+    (fluxdrive.analysis.metrics.harmonic_spectrum, whole_periods), so the page shows the
+    numbers `./fluxdrive run` reports."""
+    from fluxdrive.analysis.metrics import harmonic_spectrum, whole_periods
+
+    ok = np.isfinite(theta_rad) & np.isfinite(flux_alpha_vs)
+    th, fa, e = theta_rad[ok], flux_alpha_vs[ok], err_rad[ok]
+    out: dict[str, Any] = {"orders": list(SPECTRUM_ORDERS), "samples": int(len(th))}
+    if len(th) < 16:
+        return out
+    unwrapped = np.unwrap(th)
+    sl = whole_periods(unwrapped)
+    thw = unwrapped[sl]
+    out["periods"] = round(abs(float(thw[-1] - thw[0])) / (2 * math.pi), 2)
+    out["flux_alpha"] = [
+        round(v * 1e3, 5) for v in harmonic_spectrum(fa[sl], thw, SPECTRUM_ORDERS).values()
+    ]
+    if truth.size and bool(np.all(truth[ok] > 0.5)) and np.isfinite(e).all():
+        out["err"] = [
+            round(math.degrees(v), 5)
+            for v in harmonic_spectrum(e[sl], thw, SPECTRUM_ORDERS).values()
+        ]
+    return out
 
 
 # stream -> (message type, [(field name, message path(s), transform, decimals)])
@@ -190,7 +254,18 @@ STATE_FIELDS = [
     ("i_q_ref", _col("i_dq_ref[1]"), 3),
     ("speed_ref", _col("omega_ref_m", RPM_PER_RAD_S), 2),
     ("speed_fb", _col("omega_fb_m", RPM_PER_RAD_S), 2),
+    ("mode", _col("mode"), 0),
 ]
+FRAME_FIELDS = [
+    ("i_a", _col("i_abc[0]"), 3),
+    ("i_b", _col("i_abc[1]"), 3),
+    ("i_c", _col("i_abc[2]"), 3),
+    ("v_ab", _col("v_ll[0]"), 2),
+    ("v_bc", _col("v_ll[1]"), 2),
+    ("v_ca", _col("v_ll[2]"), 2),
+    ("vdc", _col("vdc"), 2),
+]
+FRAME_PATHS = ["seq", "i_abc[0]", "i_abc[1]", "i_abc[2]", "v_ll[0]", "v_ll[1]", "v_ll[2]", "vdc"]
 STATE_PATHS = [
     "seq",
     "i_dq[0]",
@@ -205,6 +280,11 @@ DUTY_FIELDS = [("a", _col("duty[0]"), 4), ("b", _col("duty[1]"), 4), ("c", _col(
 DUTY_PATHS = ["seq", "duty[0]", "duty[1]", "duty[2]", "enable"]
 TRUTH_PATHS = ["seq", "theta_e", "omega_m"]
 EST_PATHS = ["seq", "theta_e", "omega_e", "flux_ab[0]", "flux_ab[1]"]
+MODE_FAULT = 4
+TRIGGERS = ("off", "param", "mode", "fault", "threshold")
+# a trigger may be seen after its sample: a parameter marker comes over DDS (up to a few
+# tap periods late on a loaded machine); the armed tap keeps this much more history
+TRIGGER_LATE_S = 0.5
 
 
 class ScopeTapNode(FluxNode):
@@ -245,6 +325,51 @@ class ScopeTapNode(FluxNode):
                 "-",
                 0.001,
                 1.0,
+            ),
+            P(
+                "spectrum_window_s",
+                1.0,
+                "order spectra of θ̃ and λ̂α over this much of the newest samples, "
+                "renewed as often (live)",
+                "s",
+                0.1,
+                10.0,
+            ),
+            P(
+                "trigger",
+                "off",
+                "single-shot capture: arm on a parameter change (param), a mode change "
+                "such as the I-f -> observer handover (mode), a latched fault (fault) or "
+                "|trigger_field| >= trigger_level (threshold); every set re-arms (live)",
+                choices=TRIGGERS,
+            ),
+            P(
+                "trigger_field",
+                "state:i_q",
+                "threshold trigger: stream:field of the envelopes, e.g. state:i_q, "
+                "frame:i_a, est/flux_measured:err (live)",
+            ),
+            P("trigger_level", 1.0, "threshold trigger: level of |field| (live)", "", -1e9, 1e9),
+            P(
+                "capture_pre_s",
+                0.05,
+                "capture: full-rate samples kept before the trigger (live)",
+                "s",
+                0.0,
+                1.0,
+            ),
+            P(
+                "capture_post_s",
+                0.1,
+                "capture: full-rate samples after the trigger (live)",
+                "s",
+                0.001,
+                2.0,
+            ),
+            P(
+                "capture_dir",
+                str(REPO_ROOT / "bags" / "captures"),
+                "capture: directory of the capture bags (one per trigger) (live)",
             ),
         ]
         pv = declare(self, self.specs)
@@ -312,8 +437,22 @@ class ScopeTapNode(FluxNode):
         self.cpu_tap = 0.0  # CPU seconds spent in _tick since the tap became active
         self.cpu_proc0 = 0.0  # process CPU time when it became active
         self.skipped = 0
+        self.types: dict[str, str] = {}
+        self.spec: dict[str, list[np.ndarray]] = {}  # observer -> [rows (5, n) per period]
+        self.spec_t0 = time.monotonic()
+        self.last_mode: int | None = None
+        self.markers: list[bytes] = []  # ParameterMarker CDR of this period
+        self.marker_log: list[dict] = []  # markers of this period for the page
+        # capture: the raw messages of the last periods (topic -> bytes) and their seq range
+        self.hist: list[tuple[int, dict[str, list[bytes]]]] = []
+        self.armed = False
+        self.pending: dict[str, Any] | None = None  # a triggered capture waiting for its end
+        self.last_capture: dict[str, Any] | None = None
+        self.candidates: list[tuple[int, str]] = []
+        self.marker_raw: list[bytes] = []
         self.pub = self.create_publisher(UInt8MultiArray, topics.SCOPE_ENVELOPE, ENVELOPE_QOS)
         for topic, mtype in (
+            (topics.FRAME, topics.T_FRAME),
             (topics.CONTROLLER_STATE, topics.T_STATE),
             (topics.DUTY, topics.T_DUTY),
             (topics.TRUTH, topics.T_TRUTH),
@@ -332,6 +471,13 @@ class ScopeTapNode(FluxNode):
                 self.graph.typed(topics.DONE, self._on_done),
                 qos.LATCHED,
             )
+        self.create_subscription(
+            topics.msg_class(topics.T_MARKER),
+            topics.MARKER,
+            self._on_marker,
+            qos.MARKERS,
+            raw=True,
+        )
         on_set(self, self.specs, self._apply)
         self.timer = self.create_timer(pv["period_s"], self._tick)
         self.get_logger().info(
@@ -341,6 +487,9 @@ class ScopeTapNode(FluxNode):
 
     def _apply(self, changes: dict) -> str:
         self.pv = {**self.pv, **changes}
+        if "trigger" in changes:  # every set of the trigger arms it afresh (single shot)
+            self.armed = self.pv["trigger"] != "off"
+            self.pending = None
         if "period_s" in changes:
             self.timer.cancel()
             self.timer = self.create_timer(self.pv["period_s"], self._tick)
@@ -352,6 +501,7 @@ class ScopeTapNode(FluxNode):
 
         lst: list[bytes] = []
         self.buf[topic] = lst
+        self.types[topic] = mtype
         self.decoders[topic] = Decoder(mtype)
         append = lst.append
 
@@ -366,6 +516,10 @@ class ScopeTapNode(FluxNode):
             return
         self.est_names.append(name)
         self._subscribe(topics.estimate_topic(name), topics.T_ESTIMATE)
+
+    def _on_marker(self, data: bytes) -> None:
+        if self.active:
+            self.markers.append(bytes(data))
 
     def _discover(self) -> None:
         for t, _types in self.get_topic_names_and_types():
@@ -388,6 +542,8 @@ class ScopeTapNode(FluxNode):
         if not was or not self.active:
             for lst in self.buf.values():
                 lst.clear()
+            self.markers.clear()
+            self.hist.clear()
             self.cpu_tap, self.cpu_proc0 = 0.0, c0
             self.last_t = time.monotonic()
             return
@@ -399,21 +555,132 @@ class ScopeTapNode(FluxNode):
         dt = max(now - self.last_t, 1e-6)
         self.last_t = now
         msgs = {t: self._take(t) for t in self.buf}
+        msgs[topics.MARKER], self.markers = self.markers, []
         doc = self.envelopes(msgs, dt)
         doc["skipped"] = self.skipped
+        self._capture(msgs, doc)
         self.pub.publish(pack_envelopes(doc))  # raw CDR of a UInt8MultiArray
         self.cpu_tap += time.process_time() - c0
+
+    # --------------------------------------------------------------- trigger and capture
+    def _capture(self, msgs: dict[str, list[bytes]], doc: dict) -> None:
+        """Keep the raw messages of the last periods while a trigger is armed or pending;
+        on the trigger write the full-rate window around it into a bag (the project's
+        one bag writer) and announce it in the envelopes (`capture`)."""
+        seq_now = int(doc.get("seq", -1))
+        if self.armed or self.pending is not None:
+            self.hist.append((seq_now, msgs))
+            keep = int(
+                round(
+                    (self.pv["capture_pre_s"] + self.pv["capture_post_s"] + TRIGGER_LATE_S)
+                    / self.ts_s
+                )
+            )
+            while len(self.hist) > 2 and self.hist[1][0] < seq_now - keep:
+                self.hist.pop(0)
+        if self.armed and self.candidates:
+            trig, why = min(self.candidates)
+            pre = int(round(self.pv["capture_pre_s"] / self.ts_s))
+            post = int(round(self.pv["capture_post_s"] / self.ts_s))
+            self.pending = {"seq": trig, "seq0": trig - pre, "seq1": trig + post, "why": why}
+            self.armed = False
+            self.get_logger().info(f"scope trigger at sample {trig}: {why}")
+        p = self.pending
+        if p is not None:
+            doc["pending"] = p
+            if p.get("ready"):  # one period after the window's end: every topic has it
+                self.pending = None
+                try:
+                    self.last_capture = self.write_capture(p)
+                except (OSError, ValueError) as exc:
+                    self.last_capture = {"error": f"capture not written: {exc}", **p}
+                    self.get_logger().error(self.last_capture["error"])
+                self.hist.clear()
+            elif seq_now >= p["seq1"]:
+                p["ready"] = True
+        doc["armed"] = self.armed
+        if self.last_capture is not None:
+            doc["capture"] = self.last_capture
+
+    def write_capture(self, p: dict[str, Any]) -> dict[str, Any]:
+        from fluxdrive.io.bagio import BagWriter
+
+        from .bagwriter import check_bag_target
+
+        why = re.sub(r"[^A-Za-z0-9_.-]+", "_", p["why"])[:40]
+        name = f"capture-{time.strftime('%Y%m%d-%H%M%S')}-{p['seq']}-{why}"
+        path = Path(self.pv["capture_dir"]) / name
+        check_bag_target(path)
+        by_topic: dict[str, list[bytes]] = {}
+        for _seq, period in self.hist:
+            for t, lst in period.items():
+                by_topic.setdefault(t, []).extend(lst)
+        info = {k: p[k] for k in ("seq", "seq0", "seq1", "why")}
+        counts: dict[str, int] = {}
+        with BagWriter(path, {"scope_capture": info, "ts_s": self.ts_s}) as w:
+            for t, lst in by_topic.items():
+                if not lst:
+                    continue
+                mtype = topics.T_MARKER if t == topics.MARKER else self.types[t]
+                dec = self.decoders.get(t) or Decoder(mtype)
+                seq = decode_batch(dec, lst, ["seq"])[:, 0]
+                sel = np.flatnonzero((seq >= p["seq0"]) & (seq <= p["seq1"]))
+                if t == topics.MARKER:
+                    sel = np.arange(len(lst))  # every marker of the window's periods
+                if not len(sel):
+                    continue
+                cid = w.add_connection(t, mtype)
+                for i in sel[np.argsort(seq[sel], kind="stable")]:
+                    sec, nsec = _STAMP.unpack_from(lst[i], 4)
+                    w.write(cid, sec * 1_000_000_000 + nsec, lst[i])
+                counts[t] = len(sel)
+        self.get_logger().info(f"scope capture: {sum(counts.values())} messages in {path}")
+        return {**info, "path": str(path), "messages": counts}
+
+    def _triggers(self, cols: dict[str, tuple[np.ndarray, dict[str, np.ndarray]]]) -> None:
+        """The trigger candidates (sample, why) of one period's decoded columns."""
+        self.candidates = []
+        src = self.pv["trigger"]
+        st = cols.get("state")
+        if st is not None and len(st[0]):
+            seq, f = st
+            mode = f["mode"].astype(np.int64)
+            prev = np.r_[self.last_mode if self.last_mode is not None else mode[0], mode[:-1]]
+            for i in np.flatnonzero(mode != prev):
+                a, b = int(prev[i]), int(mode[i])
+                if src == "mode" or (src == "fault" and b == MODE_FAULT):
+                    self.candidates.append((int(seq[i]), f"mode {a} to {b}"))
+            self.last_mode = int(mode[-1])
+        if src == "param":
+            from rclpy.serialization import deserialize_message
+
+            cls = topics.msg_class(topics.T_MARKER)
+            for raw in self.marker_raw:
+                m = deserialize_message(raw, cls)
+                self.candidates.append((int(m.seq), f"{m.node} {m.name}={m.value}"))
+        if src == "threshold":
+            stream, _, field = str(self.pv["trigger_field"]).rpartition(":")
+            got = cols.get(stream)
+            if got is not None and field in got[1]:
+                hit = np.flatnonzero(np.abs(got[1][field]) >= self.pv["trigger_level"])
+                if len(hit):
+                    j = hit[np.argmin(got[0][hit])]
+                    self.candidates.append(
+                        (int(got[0][j]), f"{stream}:{field} >= {self.pv['trigger_level']:g}")
+                    )
 
     def envelopes(self, msgs: dict[str, list[bytes]], dt: float) -> dict:
         """The envelope document of one period's messages (see the module doc)."""
         b = int(self.pv["bucket_samples"])
+        cols: dict[str, tuple[np.ndarray, dict[str, np.ndarray]]] = {}
+        self.marker_raw = msgs.get(topics.MARKER, [])
         streams: dict[str, dict] = {}
         doc: dict = {
             "v": 1,
             "ts_s": self.ts_s,
             "bucket": b,
             "wall": time.time(),
-            "rates": {t: round(len(m) / dt, 1) for t, m in msgs.items()},
+            "rates": {t: round(len(m) / dt, 1) for t, m in msgs.items() if t != topics.MARKER},
             "observers": list(self.est_names),
             "streams": streams,
             "locus": {},
@@ -423,8 +690,9 @@ class ScopeTapNode(FluxNode):
         def put(stream: str, seq: np.ndarray, fields: list[tuple[str, np.ndarray, int]]) -> None:
             if len(seq) == 0:
                 return
-            cols = np.stack([f[1] for f in fields], axis=1)
-            k, mn, mx = envelope(seq.astype(np.int64), cols, b)
+            cols[stream] = (seq, {f[0]: f[1] for f in fields})
+            arr = np.stack([f[1] for f in fields], axis=1)
+            k, mn, mx = envelope(seq.astype(np.int64), arr, b)
             q = [f[2] for f in fields]
             # rows = buckets, columns = the fields in "n" order
             streams[stream] = {"k": k, "n": [f[0] for f in fields], "dec": q, "lo": mn, "hi": mx}
@@ -442,6 +710,11 @@ class ScopeTapNode(FluxNode):
 
                 doc["fault"] = read_strings(topics.T_STATE, st[-1]).get("fault_reason", "")
             seq_max = max(seq_max, int(c["seq"].max()))
+        fr = msgs.get(topics.FRAME, [])
+        if fr:
+            a = decode_batch(self.decoders[topics.FRAME], fr, FRAME_PATHS)
+            c = dict(zip(FRAME_PATHS, a.T, strict=True))
+            put("frame", c["seq"], [(n, f(c), d) for n, f, d in FRAME_FIELDS])
         du = msgs.get(topics.DUTY, [])
         if du:
             a = decode_batch(self.decoders[topics.DUTY], du, DUTY_PATHS)
@@ -472,11 +745,27 @@ class ScopeTapNode(FluxNode):
             a = decode_batch(self.decoders[topics.estimate_topic(name)], em, EST_PATHS)
             s = a[:, 0].astype(np.int64)
             err = np.full(len(s), np.nan)
+            th_true = np.full(len(s), np.nan)
             if len(self.truth_seq):
                 ix = np.clip(np.searchsorted(self.truth_seq, s), 0, len(self.truth_seq) - 1)
                 hit = self.truth_seq[ix] == s
-                err[hit] = wrap_deg((a[hit, 1] - self.truth_th[ix[hit]]) * DEG)
+                th_true[hit] = self.truth_th[ix[hit]]
+                err[hit] = wrap_deg((a[hit, 1] - th_true[hit]) * DEG)
             fx, fy = a[:, 3], a[:, 4]
+            # samples for the order spectra (computed by the scope server): the rotor angle
+            # (true where known, else the estimate's), θ̃ [rad], λ̂α, truth flag
+            known = np.isfinite(th_true)
+            o = np.argsort(s, kind="stable")
+            self.spec.setdefault(name, []).append(
+                np.stack(
+                    [
+                        np.where(known, th_true, a[:, 1])[o],
+                        np.radians(err)[o],
+                        fx[o],
+                        known[o].astype(float),
+                    ]
+                )
+            )
             put(
                 f"est/{name}",
                 s,
@@ -490,6 +779,35 @@ class ScopeTapNode(FluxNode):
             n = max(1, len(s) // step)
             doc["locus"][name] = np.stack([fx[::n], fy[::n]]) * 1e3
         doc["seq"] = seq_max
+        # the newest spectrum_window_s of samples (sim time), sent at most once a wall second
+        n_win = int(round(self.pv["spectrum_window_s"] / self.ts_s))
+        for rows in self.spec.values():
+            if len(rows) > 1 and sum(r.shape[1] for r in rows[1:]) >= n_win:
+                del rows[0]
+        now = time.monotonic()
+        full = [n for n, r in self.spec.items() if sum(x.shape[1] for x in r) >= n_win]
+        if full and now - self.spec_t0 >= 1.0:
+            self.spec_t0 = now
+            doc["arrays"] = {
+                f"spec/{n}": np.concatenate(self.spec.pop(n), axis=1)[:, -n_win:] for n in full
+            }
+        if self.marker_raw:
+            from rclpy.serialization import deserialize_message
+
+            cls = topics.msg_class(topics.T_MARKER)
+            doc["markers"] = []
+            for raw in self.marker_raw:
+                m = deserialize_message(raw, cls)
+                doc["markers"].append(
+                    {
+                        "seq": int(m.seq),
+                        "node": m.node,
+                        "name": m.name,
+                        "value": m.value,
+                        "ok": bool(m.successful),
+                    }
+                )
+        self._triggers(cols)
         return doc
 
     def _on_done(self, _msg) -> None:

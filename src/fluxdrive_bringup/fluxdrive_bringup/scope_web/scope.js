@@ -15,6 +15,11 @@ window.scopeDebug = {        // non-null envelope points per stream:field (the b
     }
     return out;
   },
+  chart: (id) => { const c = charts.find((x) => x.def.id === id); return c ? c.u : null; },
+  zoom: () => zoom,
+  cursors: () => ({ ...cursors }),
+  spectrum: () => spectrum,
+  markers: () => markers,
 };
 
 let modes = {};
@@ -24,6 +29,24 @@ let charts = [];           // {def, u (uPlot) | canvas, el}
 let store = {};            // stream -> {k: [], f: {field: [mins, maxs]}}
 let locus = {};            // observer -> {t: [], x: [], y: []}
 let dirty = false;
+let markers = [];          // parameter changes: {t, text, ok} on every time axis
+let spectrum = {};         // observer -> {orders, err, flux_alpha, periods} (the server's)
+let zoom = null;           // [t0, t1] while zoomed (the view is held), else null
+let zoomPaused = false;    // the zoom paused the page (unzoom resumes it)
+const cursors = { a: null, b: null };  // cursor times [s]: click = A, shift-click = B
+let capture = null;        // the newest capture, reopened from its bag by the server
+let captureChart = null;
+
+// a number at its precision: 12 significant digits, trailing zeros dropped
+// (20.00000000001 -> 20, 0.1 + 0.2 -> 0.3)
+function fmt(v) {
+  if (v === null || v === undefined) return "–";
+  if (typeof v !== "number") return String(v);
+  if (!isFinite(v)) return String(v);
+  return String(Number(v.toPrecision(12)));
+}
+// a reading: 5 significant digits (a readout, not a value to type back)
+function fmtR(v) { return v === null || v === undefined ? "–" : String(Number(v.toPrecision(5))); }
 
 const $ = (id) => document.getElementById(id);
 const winS = () => parseFloat($("win").value);
@@ -71,6 +94,11 @@ function ingest(doc) {
     if (!l) l = locus[name] = { t: [], x: [], y: [] };
     for (let i = 0; i < xs.length; i++) { l.t.push(tNow); l.x.push(xs[i]); l.y.push(ys[i]); }
   }
+  for (const m of doc.markers || []) {
+    markers.push({ t: m.seq * tsS, text: `${m.node.split("/").pop()} ${m.name}=${m.value}`, ok: m.ok });
+  }
+  if (doc.spectrum) Object.assign(spectrum, doc.spectrum), spectrumDirty = true;
+  updateTrigger(doc);
   trim();
   updateDrive(doc);
   const obs = doc.observers || [];
@@ -90,6 +118,7 @@ function trim() {
     if (i) { s.k.splice(0, i); for (const a of Object.values(s.f)) { a[0].splice(0, i); a[1].splice(0, i); } }
   }
   const tmin = stats.simT - winS();
+  markers = markers.filter((m) => m.t >= tmin);
   for (const l of Object.values(locus)) {
     let i = 0;
     while (i < l.t.length && l.t[i] < tmin) i++;
@@ -120,11 +149,22 @@ function chartDefs() {
     { id: "duty", title: "duty a, b, c [-]", series: [
       { s: "duty", f: "a", label: "a", c: COLORS[0] }, { s: "duty", f: "b", label: "b", c: COLORS[1] },
       { s: "duty", f: "c", label: "c", c: COLORS[2] }] },
+    { id: "iabc", title: "phase currents i_a, i_b, i_c [A]", series: [
+      { s: "frame", f: "i_a", label: "i_a", c: COLORS[0] }, { s: "frame", f: "i_b", label: "i_b", c: COLORS[1] },
+      { s: "frame", f: "i_c", label: "i_c", c: COLORS[2] }] },
+    { id: "vll", title: "line voltages v_ab, v_bc, v_ca (period averages) [V]", series: [
+      { s: "frame", f: "v_ab", label: "v_ab", c: COLORS[0] }, { s: "frame", f: "v_bc", label: "v_bc", c: COLORS[1] },
+      { s: "frame", f: "v_ca", label: "v_ca", c: COLORS[2] }] },
+    { id: "vdc", title: "DC bus voltage [V]", series: [{ s: "frame", f: "vdc", label: "v_dc", c: COLORS[3] }] },
+    { id: "mode", title: "drive state timeline", modes: true, series: [
+      { s: "state", f: "mode", label: "mode", c: "#455a64", w: 2 }] },
+    { id: "spec_err", kind: "spectrum", key: "err", title: "order spectrum of θ̃ against the rotor angle [deg]" },
+    { id: "spec_flux", kind: "spectrum", key: "flux_alpha", title: "order spectrum of λ̂α against the rotor angle [mV·s]" },
   ];
 }
 
 function legendHtml(def) {
-  if (def.kind === "xy") {
+  if (def.kind === "xy" || def.kind === "spectrum") {
     return observers.map((n, i) => `<span class="lg" data-i="${i}"><i style="background:${COLORS[i % COLORS.length]}"></i>${n}</span>`).join("");
   }
   return def.series.map((s, i) => `<span class="lg" data-i="${i}"><i style="background:${s.c}"></i>${s.label}</span>`).join("") +
@@ -136,17 +176,105 @@ const hidden = new Set();  // "chart:label" the user switched off (kept across r
 function wireLegend(ch) {
   for (const el of ch.el.querySelectorAll(".lg")) {
     const i = +el.dataset.i;
-    const label = ch.def.kind === "xy" ? observers[i] : ch.def.series[i].label;
+    const label = ch.def.series ? ch.def.series[i].label : observers[i];
     const key = ch.def.id + ":" + label;
     const apply = () => {
       const off = hidden.has(key);
       el.classList.toggle("off", off);
-      if (ch.u) { ch.u.setSeries(1 + 2 * i, { show: !off }); ch.u.setSeries(2 + 2 * i, { show: !off }); }
+      if (ch.u && ch.def.kind === "spectrum") ch.u.setSeries(1 + i, { show: !off });
+      else if (ch.u) { ch.u.setSeries(1 + 2 * i, { show: !off }); ch.u.setSeries(2 + 2 * i, { show: !off }); }
       dirty = true;
     };
     el.addEventListener("click", () => { if (hidden.has(key)) hidden.delete(key); else hidden.add(key); apply(); });
     if (hidden.has(key)) apply();
   }
+}
+
+// y range of a chart from the 1st and 99th percentiles of what is in view (robust: one
+// observer's start-up transient does not set the scale for all), 8 % margin; the full
+// min..max with "robust" unticked
+function yRange(u, dmin, dmax) {
+  const [x0, x1] = [u.scales.x.min, u.scales.x.max];
+  const xs = u.data[0], vals = [];
+  for (let s = 1; s < u.data.length; s++) {
+    if (!u.series[s].show) continue;
+    const ys = u.data[s];
+    for (let i = 0; i < xs.length; i++) if (xs[i] >= x0 && xs[i] <= x1 && ys[i] !== null) vals.push(ys[i]);
+  }
+  if (!vals.length) return [dmin ?? -1, dmax ?? 1];
+  vals.sort((a, b) => a - b);
+  const q = (p) => vals[Math.min(vals.length - 1, Math.max(0, Math.round(p * (vals.length - 1))))];
+  let [lo, hi] = $("robust").checked ? [q(0.01), q(0.99)] : [vals[0], vals[vals.length - 1]];
+  if (hi - lo < 1e-9 * Math.max(1, Math.abs(hi))) { lo -= 0.5; hi += 0.5; }
+  const m = 0.08 * (hi - lo);
+  return [lo - m, hi + m];
+}
+
+// cursor lines (A, B) and parameter-change markers on every time chart
+function drawOverlay(u) {
+  const g = u.ctx, top = u.bbox.top, h = u.bbox.height, dpr = devicePixelRatio || 1;
+  g.save();
+  g.font = `${10 * dpr}px sans-serif`;
+  for (const m of markers) {
+    if (m.t < u.scales.x.min || m.t > u.scales.x.max) continue;
+    const x = Math.round(u.valToPos(m.t, "x", true));
+    g.strokeStyle = m.ok ? "#ef6c00" : "#c62828"; g.setLineDash([4 * dpr, 3 * dpr]); g.lineWidth = dpr;
+    g.beginPath(); g.moveTo(x, top); g.lineTo(x, top + h); g.stroke();
+    g.fillStyle = g.strokeStyle; g.fillText((m.ok ? "" : "✗ ") + m.text, x + 3 * dpr, top + 10 * dpr);
+  }
+  g.setLineDash([]);
+  for (const [k, c] of [["a", "#000"], ["b", "#6a1b9a"]]) {
+    const t = cursors[k];
+    if (t === null || t < u.scales.x.min || t > u.scales.x.max) continue;
+    const x = Math.round(u.valToPos(t, "x", true));
+    g.strokeStyle = c; g.lineWidth = dpr;
+    g.beginPath(); g.moveTo(x, top); g.lineTo(x, top + h); g.stroke();
+    g.fillStyle = c; g.fillText(k.toUpperCase(), x + 3 * dpr, top + h - 4 * dpr);
+  }
+  g.restore();
+}
+
+// value of each series at time t: the bucket (or merged group) holding t, "min…max"
+function valueAt(ch, t) {
+  const d = ch.u.data, xs = d[0];
+  if (!xs.length) return null;
+  let i = 0;
+  while (i + 1 < xs.length && xs[i + 1] <= t) i++;
+  return ch.def.series.map((s, j) => {
+    const hi = d[1 + 2 * j][i], lo = d[2 + 2 * j][i];
+    if (hi === null || lo === null) return `${s.label} –`;
+    const v = ch.def.modes ? (modes[hi] || hi) : (Math.abs(hi - lo) <= 1e-12 * Math.max(1, Math.abs(hi)) ? fmtR(hi) : `${fmtR(lo)}…${fmtR(hi)}`);
+    return `${s.label} ${v}`;
+  }).join(", ");
+}
+
+function updateReadouts() {
+  const { a, b } = cursors;
+  let head = "";
+  if (a !== null) head += `A t=${fmtR(a)} s`;
+  if (b !== null) head += `  B t=${fmtR(b)} s`;
+  if (a !== null && b !== null) head += `  Δt=${fmtR(b - a)} s (1/Δt=${fmtR(1 / Math.abs(b - a))} Hz)`;
+  $("cursors").textContent = head || "click a chart: cursor A; shift-click: B";
+  for (const ch of charts) {
+    if (!ch.u || ch.def.kind === "spectrum") continue;
+    const parts = [];
+    if (a !== null) parts.push("A: " + valueAt(ch, a));
+    if (b !== null) parts.push("B: " + valueAt(ch, b));
+    ch.el.querySelector(".readout").textContent = parts.join("  |  ");
+  }
+}
+
+function zoomTo(range) {
+  zoom = range;
+  if (range && !paused()) { $("pause").checked = true; zoomPaused = true; }
+  if (!range && zoomPaused) { $("pause").checked = false; zoomPaused = false; }
+  $("zoomstate").textContent = range ? `zoom ${fmtR(range[0])}…${fmtR(range[1])} s (double-click: back)` : "";
+  for (const ch of charts) {
+    if (!ch.u || ch.def.kind === "spectrum") continue;
+    if (range) ch.u.setScale("x", { min: range[0], max: range[1] });
+  }
+  dirty = true; dataDirty = true;
+  if (range) updateReadouts();
 }
 
 function buildCharts() {
@@ -168,6 +296,24 @@ function buildCharts() {
       wireLegend(charts[charts.length - 1]);
       continue;
     }
+    if (def.kind === "spectrum") {
+      // one stem line with a dot per order and observer (orders 1..20)
+      const series = [{ label: "order" }, ...observers.map((name, i) => ({
+        label: name, stroke: COLORS[i % COLORS.length], width: 1,
+        points: { show: true, size: 6, fill: COLORS[i % COLORS.length] } }))];
+      const u = new uPlot({
+        width, height: 170, legend: { show: false },
+        scales: { x: { time: false, range: [0.4, 20.6] }, y: { range: (u, mn, mx) => [0, Math.max(mx, 1e-9) * 1.1] } },
+        axes: [{ size: 28, splits: () => Array.from({ length: 20 }, (_, k) => k + 1) }, { size: 52 }],
+        series,
+      }, [[], ...observers.map(() => [])], el);
+      const note = document.createElement("div");
+      note.className = "readout";
+      el.appendChild(note);
+      charts.push({ def, u, el });
+      wireLegend(charts[charts.length - 1]);
+      continue;
+    }
     const series = [{ label: "t [s]" }];
     const bands = [];
     def.series.forEach((s) => {
@@ -176,17 +322,65 @@ function buildCharts() {
       series.push({ label: s.label + " min", stroke: s.c, width: s.w || 1, dash: s.dash, points: { show: false }, spanGaps: false });
       bands.push({ series: [hi, hi + 1], fill: s.c + "33" });
     });
+    const yAxis = { size: 52 };
+    if (def.modes) {
+      yAxis.size = 80;
+      yAxis.splits = () => [0, 1, 2, 3, 4];
+      yAxis.values = (u, vs) => vs.map((v) => modes[v] || v);
+    }
     const opts = {
-      width, height: 190, legend: { show: false }, bands,
-      cursor: { drag: { x: false, y: false } },
-      scales: { x: { time: false } },
-      axes: [{ size: 28 }, { size: 52 }],
+      width, height: def.modes ? 110 : 190, legend: { show: false }, bands,
+      cursor: { drag: { x: true, y: false, setScale: false }, sync: { key: "scope-t" } },
+      select: { show: true },
+      scales: { x: { time: false }, y: def.modes ? { range: [-0.3, 4.3] } : { range: yRange } },
+      axes: [{ size: 28 }, yAxis],
       series,
+      hooks: {
+        draw: [drawOverlay],
+        setSelect: [(u) => {
+          if (u.select.width > 4) {
+            zoomTo([u.posToVal(u.select.left, "x"), u.posToVal(u.select.left + u.select.width, "x")]);
+          }
+          u.setSelect({ left: 0, width: 0, top: 0, height: 0 }, false);
+        }],
+      },
     };
     const u = new uPlot(opts, [[], ...series.slice(1).map(() => [])], el);
+    const ro = document.createElement("div");
+    ro.className = "readout";
+    el.appendChild(ro);
+    u.over.addEventListener("click", (e) => {
+      const t = u.posToVal(e.offsetX, "x");
+      if (e.shiftKey) cursors.b = t; else cursors.a = t;
+      updateReadouts();
+      for (const c of charts) if (c.u) c.u.redraw(false, false);
+    });
+    u.over.addEventListener("dblclick", () => zoomTo(null));
     charts.push({ def, u, el });
     wireLegend(charts[charts.length - 1]);
   }
+  spectrumDirty = true;
+}
+
+let spectrumDirty = false;
+function drawSpectra() {
+  for (const ch of charts) {
+    if (ch.def.kind !== "spectrum") continue;
+    const orders = Array.from({ length: 20 }, (_, k) => k + 1);
+    const data = [orders, ...observers.map((n) => {
+      const sp = spectrum[n];
+      return sp && sp[ch.def.key] ? sp[ch.def.key] : orders.map(() => null);
+    })];
+    ch.u.setData(data);
+    const per = observers.filter((n) => spectrum[n]).map((n) => spectrum[n].periods).filter((p) => p);
+    const top = observers.filter((n) => spectrum[n] && spectrum[n][ch.def.key]).map((n) => {
+      const v = spectrum[n][ch.def.key];
+      return `${n}: h1 ${fmtR(v[0])}, h6 ${fmtR(v[5])}`;
+    });
+    ch.el.querySelector(".readout").textContent =
+      (per.length ? `over ${fmtR(per[0])} electrical periods; ` : "waiting for a window of samples; ") + top.join("; ");
+  }
+  spectrumDirty = false;
 }
 
 function chartData(def, px) {
@@ -272,26 +466,30 @@ function redraw(now) {
   const lagMax = simRate * arrInt * 1.3;  // about one document behind the newest data
   tShow = Math.min(stats.simT, Math.max(tShow + simRate * dt, stats.simT - lagMax));
   const win = winS();
+  const [x0, x1] = zoom || [tShow - win, tShow];
   for (const ch of charts) {
+    if (ch.def.kind === "spectrum") continue;
     if (ch.u) {
       ch.u.batch(() => {
         if (dataDirty) ch.u.setData(chartData(ch.def, ch.el.clientWidth), false);
-        ch.u.setScale("x", { min: tShow - win, max: tShow });
+        ch.u.setScale("x", { min: x0, max: x1 });
       });
     } else if (dataDirty) drawLocus(ch);
   }
+  if (spectrumDirty) drawSpectra();
+  if (dataDirty && (cursors.a !== null || cursors.b !== null)) updateReadouts();
   dataDirty = false;
 }
 
 function resize() {
-  for (const ch of charts) if (ch.u) ch.u.setSize({ width: Math.max(200, ch.el.clientWidth - 12), height: 190 });
+  for (const ch of charts) if (ch.u) ch.u.setSize({ width: Math.max(200, ch.el.clientWidth - 12), height: ch.u.height });
   dirty = true;
 }
 window.addEventListener("resize", resize);
 
 function frame(now) {
-  const moving = dirty || dataDirty || tShow < stats.simT;  // nothing new: no redraw
-  if (moving && !paused() && stats.lastSeq >= 0 && now - lastFrameWall >= 1000 / FPS - 2) {
+  const moving = dirty || dataDirty || spectrumDirty || tShow < stats.simT;  // nothing new: no redraw
+  if (moving && (!paused() || dirty) && stats.lastSeq >= 0 && now - lastFrameWall >= 1000 / FPS - 2) {
     if (dirty) dataDirty = true;
     const t0 = performance.now();
     redraw(now);
@@ -335,14 +533,14 @@ $("reset").addEventListener("click", async () => {
 
 // ------------------------------------------------------------------ parameters
 function valueText(p) {
-  if (Array.isArray(p.value)) return JSON.stringify(p.value);
+  if (Array.isArray(p.value)) return "[" + p.value.map((v) => typeof v === "number" ? fmt(v) : JSON.stringify(v)).join(", ") + "]";
   if (p.value === null || p.value === undefined) return "";
-  return String(p.value);
+  return fmt(p.value);
 }
 
 function rangeText(p) {
   if (p.choices.length) return "one of " + p.choices.join(", ");
-  if (p.min !== null && p.max !== null) return `[${p.min}, ${p.max}]`;
+  if (p.min !== null && p.max !== null) return `[${fmt(p.min)}, ${fmt(p.max)}]`;
   return "";
 }
 
@@ -376,6 +574,9 @@ function paramRow(node, p) {
     const j = await r.json();
     td3.textContent = j.ok ? "✓ " + (j.reason || "set") : "✗ " + j.reason;
     td3.className = "status " + (j.ok ? "ok" : "bad");
+    // the box shows what the node holds now: the new value, or the old one after a refusal
+    if (j.value !== null && j.value !== undefined) p.value = j.value;
+    input.value = valueText(p);
   };
   if (input.tagName === "SELECT") input.addEventListener("change", send);
   else input.addEventListener("keydown", (e) => { if (e.key === "Enter") send(); });
@@ -419,6 +620,123 @@ async function loadParams() {
   }
 }
 $("reload").addEventListener("click", loadParams);
+
+// ------------------------------------------------------------------ trigger and capture
+let capturePath = null;
+function updateTrigger(doc) {
+  const st = $("trigstate");
+  if (doc.pending) st.textContent = `triggered at t=${fmtR(doc.pending.seq * tsS)} s (${doc.pending.why}); capturing…`;
+  else if (doc.armed) st.textContent = "armed";
+  const c = doc.capture;
+  if (c && c.path !== capturePath) {
+    capturePath = c.path;
+    if (c.error) { st.textContent = c.error; return; }
+    st.textContent = `captured: ${c.why} at t=${fmtR(c.seq * tsS)} s -> ${c.path}; reopening…`;
+    setTimeout(loadCapture, 300);
+  }
+}
+
+async function loadCapture(attempt = 0) {
+  const r = await fetch("api/capture", { headers: { "X-Scope-Token": TOKEN } });
+  const j = await r.json();
+  if (!j.path || j.path !== capturePath) {  // the server is still reading the bag
+    if (attempt < 40) setTimeout(() => loadCapture(attempt + 1), 250);
+    return;
+  }
+  capture = j;
+  window.scopeCapture = j;  // read by the browser test
+  if (j.error) { $("trigstate").textContent = j.error; return; }
+  drawCapture();
+}
+
+function drawCapture() {
+  const j = capture, host = $("capplot");
+  host.innerHTML = "";
+  const tTrig = j.seq * j.ts_s;
+  const w = Math.max(300, host.clientWidth - 12);
+  // two charts on the sample time axis: currents [A], angle errors [deg]
+  const groups = [
+    Object.keys(j.series).filter((k) => ["i_a", "i_b", "i_c", "i_q"].includes(k)),
+    Object.keys(j.series).filter((k) => k.startsWith("err/")),
+  ];
+  for (const keys of groups) {
+    if (!keys.length) continue;
+    const ts = [...new Set(keys.flatMap((k) => j.series[k].t))].sort((a, b) => a - b);
+    const ix = new Map(ts.map((t, i) => [t, i]));
+    const data = [ts, ...keys.map((k) => {
+      const out = new Array(ts.length).fill(null), s = j.series[k];
+      s.t.forEach((t, i) => { out[ix.get(t)] = s.v[i]; });
+      return out;
+    })];
+    captureChart = new uPlot({
+      width: w, height: 170, scales: { x: { time: false } },
+      axes: [{ size: 28 }, { size: 52 }],
+      cursor: { drag: { x: true, y: false } },
+      series: [{ label: "t [s]", value: (u, v) => fmtR(v) },
+        ...keys.map((k, i) => ({ label: j.series[k].label, stroke: COLORS[i % COLORS.length], width: 1, spanGaps: true,
+                                 value: (u, v) => fmtR(v) }))],
+      hooks: { draw: [(u) => {
+        const g = u.ctx, x = Math.round(u.valToPos(tTrig, "x", true));
+        g.save(); g.strokeStyle = "#c62828"; g.setLineDash([5, 3]);
+        g.beginPath(); g.moveTo(x, u.bbox.top); g.lineTo(x, u.bbox.top + u.bbox.height); g.stroke(); g.restore();
+      }] },
+    }, data, host);
+  }
+  const n = Object.values(j.messages).reduce((a, b) => a + b, 0);
+  const mk = j.markers.map((m) => `${m.node} ${m.name}=${m.value} ${m.successful ? "✓" : "✗"} at t=${fmtR(m.seq * j.ts_s)} s`).join("; ");
+  $("capinfo").textContent = `reopened ${j.path}: ${n} messages, samples ${j.seq0}…${j.seq1} ` +
+    `(full rate, trigger: ${j.why} at the red line)` + (mk ? `\nmarkers: ${mk}` : "");
+  $("trigstate").textContent = `captured: ${j.why}`;
+  const a = $("mcap");
+  a.hidden = false;
+  a.href = `api/capture.mcap?token=${encodeURIComponent(TOKEN)}`;
+  a.download = j.path.split("/").pop() + ".mcap";
+}
+
+$("arm").addEventListener("click", async () => {
+  $("trigstate").textContent = "arming…";
+  const body = { trigger: $("trig").value, field: $("trigfield").value, level: $("triglevel").value,
+                 pre_s: $("trigpre").value, post_s: $("trigpost").value };
+  const r = await fetch("api/trigger", { method: "POST", headers: { "Content-Type": "application/json", "X-Scope-Token": TOKEN },
+                                          body: JSON.stringify(body) });
+  const j = await r.json();
+  $("trigstate").textContent = j.ok ? j.reason : "refused: " + j.reason;
+});
+
+// ------------------------------------------------------------------ export
+// the time charts' traces in view (each series' min and max per bucket) as one CSV
+function exportCsv() {
+  const rows = new Map(), cols = [];
+  for (const ch of charts) {
+    if (!ch.u || ch.def.kind === "spectrum") continue;
+    const d = ch.u.data, [x0, x1] = [ch.u.scales.x.min, ch.u.scales.x.max];
+    ch.def.series.forEach((s, j) => {
+      const ci = cols.length;
+      cols.push(`${ch.def.id}:${s.label}:min`, `${ch.def.id}:${s.label}:max`);
+      d[0].forEach((t, i) => {
+        if (t < x0 || t > x1) return;
+        const key = Number(t.toPrecision(12));
+        if (!rows.has(key)) rows.set(key, []);
+        const r = rows.get(key);
+        r[ci] = d[2 + 2 * j][i]; r[ci + 1] = d[1 + 2 * j][i];
+      });
+    });
+  }
+  const lines = ["t_s," + cols.join(",")];
+  for (const t of [...rows.keys()].sort((a, b) => a - b)) {
+    const r = rows.get(t);
+    lines.push(fmt(t) + "," + cols.map((_, i) => (r[i] === null || r[i] === undefined ? "" : fmt(r[i]))).join(","));
+  }
+  return lines.join("\n") + "\n";
+}
+window.scopeExportCsv = exportCsv;
+$("csv").addEventListener("click", () => {
+  const a = document.createElement("a");
+  a.href = URL.createObjectURL(new Blob([exportCsv()], { type: "text/csv" }));
+  a.download = `scope-${fmtR(stats.simT)}s.csv`;
+  document.body.appendChild(a); a.click(); a.remove();
+});
+$("robust").addEventListener("change", () => { dirty = true; dataDirty = true; for (const c of charts) if (c.u) c.u.redraw(true, true); });
 
 // ------------------------------------------------------------------ connection
 function connect() {
