@@ -55,7 +55,6 @@ from fluxdrive_ros import qos, topics
 RPM_PER_RAD_S = 60.0 / (2.0 * math.pi)
 DEG = 180.0 / math.pi
 ENVELOPE_QOS = 10  # depth: a slow scope skips periods, the graph never waits for it
-_EST_RE = re.compile(r"^/obs/([^/]+)/estimate$")
 
 
 def decode_batch(dec: Decoder, msgs: list[bytes], paths: list[str]) -> np.ndarray:
@@ -426,6 +425,10 @@ class ScopeTapNode(FluxNode):
             card = load_scenario(scenario_path(fixed["scenario"])).machine
             self.ts_s = card.ts_s
             self.pole_pairs = self.pole_pairs or card.pole_pairs
+        # the drive this tap belongs to (`__ns:=/a`: /a/drive/frame ...); the tap's keys and
+        # its capture bags use the canonical names, as the recorder's bags do
+        self.ns = topics.drive_namespace(self).rstrip("/")
+        self.est_re = re.compile(rf"^{re.escape(self.ns)}/obs/([^/]+)/estimate$")
         self.buf: dict[str, list[bytes]] = {}
         self.decoders: dict[str, Decoder] = {}
         self.subs: list[RawSubscription] = []
@@ -467,13 +470,13 @@ class ScopeTapNode(FluxNode):
         if fixed["exit_on_done"]:
             self.create_subscription(
                 topics.msg_class(topics.T_DONE),
-                topics.DONE,
+                topics.drive_topic(self, topics.DONE),
                 self.graph.typed(topics.DONE, self._on_done),
                 qos.LATCHED,
             )
         self.create_subscription(
             topics.msg_class(topics.T_MARKER),
-            topics.MARKER,
+            topics.drive_topic(self, topics.MARKER),
             self._on_marker,
             qos.MARKERS,
             raw=True,
@@ -509,7 +512,11 @@ class ScopeTapNode(FluxNode):
             if self.active:  # nobody watching: drop (the callback is all a sample costs)
                 append(data)
 
-        self.subs.append(RawSubscription(self, msg_class(mtype), topic, cb, qos.reader()))
+        self.subs.append(
+            RawSubscription(
+                self, msg_class(mtype), topics.drive_topic(self, topic), cb, qos.reader()
+            )
+        )
 
     def _add_observer(self, name: str) -> None:
         if name in self.est_names:
@@ -523,7 +530,7 @@ class ScopeTapNode(FluxNode):
 
     def _discover(self) -> None:
         for t, _types in self.get_topic_names_and_types():
-            m = _EST_RE.match(t)
+            m = self.est_re.match(t)
             if m:
                 self._add_observer(m.group(1))
 
