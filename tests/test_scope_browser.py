@@ -254,8 +254,10 @@ def _spectrum(page) -> None:
     assert sp["flux_alpha"][0] > 5 * max(sp["flux_alpha"][1:])
     # drawn at the next frame: the chart of the driving observer's θ̃ orders holds all 20
     page.wait_for_function(
-        "window.scopeDebug.chart('spec_err').data[1].filter((v) => v !== null).length === 20",
-        timeout=10_000,
+        """(() => { const u = window.scopeDebug.chart("spec_err");
+           const i = u.series.findIndex((s) => s.label === "flux_measured");
+           return i > 0 && u.data[i].filter((v) => v !== null).length === 20; })()""",
+        timeout=30_000,
     )
 
 
