@@ -426,6 +426,23 @@ def load_graph(path: str | Path) -> Graph:
     return parse_graph(raw, str(path), path.parent)
 
 
+def _note_in_metadata(bag: Path, missing: dict[str, dict[str, int]]) -> None:
+    """What a bag lacks against its publishers, in its metadata.yaml (custom_data
+    `fluxdrive_missing`, JSON), so whoever reads the bag later sees it too."""
+    f = bag / "metadata.yaml"
+    try:
+        meta = yamlio.load_file(f)
+        info = meta["rosbag2_bagfile_information"]
+        custom = info.get("custom_data") or {}
+        custom["fluxdrive_missing"] = json.dumps(
+            {"by": "launcher: recorded vs published at the nodes' exit", "topics": missing}
+        )
+        info["custom_data"] = custom
+        f.write_text(yamlio.dumps(meta, sort_keys=False))
+    except (OSError, yamlio.YAMLError, KeyError, TypeError):
+        pass  # the log line above says it; an unreadable metadata file is the recorder's
+
+
 # ---------------------------------------------------------------------------- running
 # the start phase (stall watch: start_timeout_s) lasts until this frame: the controller and
 # observers answer from the first frames on, once their kernels are compiled
@@ -545,6 +562,7 @@ class Launcher:
         self._watch_frames = False  # a plant that reports progress: stalls are watched
         self._frames: deque[tuple[float, int]] = deque()  # (monotonic, frame) of progress
         self.last_warning = ""  # the newest warning/error line of any process
+        self.published: dict[str, int] = {}  # topic -> messages its nodes published
         self.tty = hasattr(sys.stderr, "isatty") and sys.stderr.isatty()
 
     def env(self) -> dict[str, str]:
@@ -689,6 +707,14 @@ class Launcher:
             if line.startswith("@bag-open "):
                 p.bag_open = line[10:].strip()
                 continue
+            if line.startswith("@published "):  # a node's message count on one topic
+                try:
+                    topic, n_text = line.split()[1:3]
+                    with self.lock:
+                        self.published[topic] = self.published.get(topic, 0) + int(n_text)
+                except ValueError:
+                    pass
+                continue
             if line.startswith("@scope-url "):  # the scope server's address (--scope)
                 self.scope_urls.append(line[11:].strip())
                 continue
@@ -742,6 +768,42 @@ class Launcher:
                     os.killpg(p.popen.pid, sig)
                 except ProcessLookupError:
                     pass
+
+    def check_recorded(self) -> dict[str, tuple[int, int]]:
+        """Each finalised bag against what the nodes published (their `@published` counts
+        at exit): one line per topic the bag holds fewer messages of (and the shortfall
+        in its metadata.yaml, custom_data `fluxdrive_missing`), or one line that it holds
+        them all.  Returns {topic: (recorded, published)} of the shortfalls."""
+        from .soak import bag_counts
+
+        short: dict[str, tuple[int, int]] = {}
+        for bag in self.bags:
+            try:
+                counts, _ = bag_counts(Path(bag))
+            except Exception as exc:  # noqa: BLE001 - not finalised, damaged: say so
+                self._emit(f"[launch] WARNING: bag {bag}: cannot count its messages ({exc})")
+                continue
+            checked = 0
+            missing: dict[str, dict[str, int]] = {}
+            for topic, n_pub in sorted(self.published.items()):
+                if topic not in counts or n_pub == 0:
+                    continue  # not recorded by this bag
+                checked += 1
+                if counts[topic] < n_pub:
+                    short[topic] = (counts[topic], n_pub)
+                    missing[topic] = {"recorded": counts[topic], "published": n_pub}
+                    self._emit(
+                        f"[launch] WARNING: bag {bag} holds {counts[topic]} of the {n_pub} "
+                        f"messages published on {topic} ({n_pub - counts[topic]} missing)"
+                    )
+            if missing:
+                _note_in_metadata(Path(bag), missing)
+            if checked and not missing:
+                self._emit(
+                    f"[launch] bag {bag}: holds every message the nodes published on the "
+                    f"{checked} topics it records"
+                )
+        return short
 
     def stalled(self, now: float) -> str | None:
         """Why a graph with a plant is stuck (start or run phase), or None.  The drain
@@ -967,6 +1029,7 @@ class Launcher:
         finally:
             for s, h in old.items():
                 signal.signal(s, h)
+        self.check_recorded()
         self._bag_hints()
         if interrupted.is_set():
             dirty = [p for p in self.procs if p.code not in (0, None)]

@@ -133,8 +133,15 @@ class RawPublisher:
         self._post = self.bus.post if self.bus is not None else None
         self._count = self.pub.get_subscription_count
         self._publish = self.pub.publish
+        self.n_published = 0  # the launcher checks the bag against it (fluxdrive_ros.runner)
+        pubs = getattr(node, "raw_publishers", None)
+        if pubs is None:
+            pubs = []
+            node.raw_publishers = pubs
+        pubs.append(self)
 
     def publish(self, data: bytes) -> None:
+        self.n_published += 1
         local = False
         if self._post is not None and self.bus is not None:
             local = bool(self.bus.callbacks.get(self.topic))
