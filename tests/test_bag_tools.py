@@ -210,8 +210,8 @@ def test_can_import_bad_captures_one_line(tmp_path):
 
 
 def test_can_import_skips_and_counts_malformed_lines(tmp_path):
+    from fluxdrive.can import canlog
     from fluxdrive.can import protocol as cp
-    from fluxdrive.io import canlog
 
     n = 2000
     f = np.zeros((n, len(cp.FRAME_FIELDS)))

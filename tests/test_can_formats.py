@@ -2,7 +2,7 @@
 
 - PCAN `.trc` (version 2.1, FD frame types) imports like the other formats (python-can reads
   it; the file here is laid out as PEAK's TRC 2.1 description gives it);
-- the `.blf` and candump `.log` the project writes (fluxdrive.io.canlog) read back frame for
+- the `.blf` and candump `.log` the project writes (fluxdrive.can.canlog) read back frame for
   frame through a reader written after SavvyCAN's handling of those formats (its BLF walk:
   144-byte file header, LOBJ objects, each log container inflated and walked on its own with
   a 4-byte signature scan at its start, objects of the version-1 header; its candump
@@ -23,9 +23,9 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
+from fluxdrive.can import canlog
 from fluxdrive.can import protocol as cp
 from fluxdrive.drive.plant import FR_DA, FR_DC, FR_IA, FR_IC, FR_VAB, FR_VCA, FR_VDC
-from fluxdrive.io import canlog
 
 FD = cp.FRAME_INDEX
 BLF_CAN_MSG, BLF_CAN_MSG2, BLF_CONTAINER, BLF_CAN_FD_MSG = 1, 86, 10, 100

@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 
 try:
-    import fluxdrive.io.canlog  # noqa: F401
+    import fluxdrive.can.canlog  # noqa: F401
 except ImportError:  # not installed: use the source tree
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "python"))
 
+from fluxdrive.can import canlog
 from fluxdrive.can import protocol as cp
 from fluxdrive.drive.plant import FR_DA, FR_DC, FR_IA, FR_IC, FR_VAB, FR_VCA, FR_VDC
-from fluxdrive.io import canlog
 
 # frame-row column groups (fluxdrive.drive.plant FR_*)
 CUR, VLL, DUTY = slice(FR_IA, FR_IC + 1), slice(FR_VAB, FR_VCA + 1), slice(FR_DA, FR_DC + 1)

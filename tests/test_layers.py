@@ -23,7 +23,7 @@ ALLOWED: dict[str, set[str]] = {
     "fluxdrive.drive": {"fluxdrive.core"},
     "fluxdrive.analysis": {"fluxdrive.core", "fluxdrive.drive"},
     "fluxdrive.can": {"fluxdrive.core", "fluxdrive.drive"},
-    # captures are decoded with the wire protocol; the CAN loop writes its captures through io
+    # a capture (can.canlog) becomes a bag here
     "fluxdrive.io": {"fluxdrive.core", "fluxdrive.drive", "fluxdrive.can"},
 }
 _MID = {"fluxdrive.core", "fluxdrive.drive", "fluxdrive.analysis", "fluxdrive.io", "fluxdrive.can"}
@@ -55,8 +55,6 @@ KNOWN_EDGES: set[tuple[str, str]] = {
     # the scenario embeds the drive's configs: core/scenario.py moves up into drive
     ("fluxdrive.core.scenario", "fluxdrive.drive.control"),
     ("fluxdrive.core.scenario", "fluxdrive.drive.observers"),
-    # the CAN loop writes its capture with io's log writer: canlog moves into can
-    ("fluxdrive.can.loop", "fluxdrive.io.canlog"),
 }
 # command-line main()s outside cli/ still to move: study's own command line, the experiments'
 KNOWN_MAINS = {"fluxdrive.study.cli", "fluxdrive.experiments.registry"}

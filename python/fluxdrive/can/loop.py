@@ -108,12 +108,12 @@ class CanLoopResult:
 
 
 class _TapLogger(can.Listener):
-    """Records bus traffic with the project's capture writer (fluxdrive.io.canlog: python-can's,
+    """Records bus traffic with the project's capture writer (fluxdrive.can.canlog: python-can's,
     FD frames in .blf as the format defines them); numeric channel (BLF needs one), errors
     kept (a Notifier thread otherwise dies silently)."""
 
     def __init__(self, path: str) -> None:
-        from fluxdrive.io.canlog import open_writer
+        from fluxdrive.can.canlog import open_writer
 
         self.writer = open_writer(path)
         self.errors: list[BaseException] = []

@@ -2,7 +2,7 @@
 flux_drive_msgs/PhaseFrame on /drive/frame, the topic the graph uses, so a capture taken
 with standard tools (candump .log, Vector .asc, .blf) replays through observer variants.
 
-Decoding is :func:`fluxdrive.io.canlog.read_capture` (vectorised SAMPLE_FD codec, or the
+Decoding is :func:`fluxdrive.can.canlog.read_capture` (vectorised SAMPLE_FD codec, or the
 classic 4-frame layout); the 16-bit sequence counter is unwrapped into the period index
 k, ``header.stamp`` is the capture timestamp of the frame. Message definitions come from
 the .msg text (no ROS import), embedded in the bag so readers need no message package.
@@ -16,12 +16,12 @@ from typing import Any
 
 import numpy as np
 
+from fluxdrive.can.canlog import read_capture
 from fluxdrive.can.protocol import FRAME_FIELDS, SEQ_BITS, unwrap_counter
 from fluxdrive.core.machine import MachineCard
 from fluxdrive.core.scenario import load_scenario, scenario_path
 from fluxdrive.drive.plant import FR_SEQ
 from fluxdrive.io.bagio import BagWriter
-from fluxdrive.io.canlog import read_capture
 from fluxdrive.io.messages import FrameWire, Stamp
 from fluxdrive.io.topics import FRAME, T_FRAME
 
