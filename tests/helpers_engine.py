@@ -7,7 +7,7 @@ from pathlib import Path
 
 import yaml
 from fluxdrive.core.machine import MachineCard
-from fluxdrive.core.scenario import CONFIG_DIR, load_scenario
+from fluxdrive.drive.scenario import CONFIG_DIR, load_scenario
 
 IDEAL_SENSORS = dict(current_noise_a=0.0, current_adc_bits=24, capture_bits=24, dc_bus_adc_bits=24)
 

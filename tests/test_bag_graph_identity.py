@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from fluxdrive.core.scenario import load_scenario, scenario_path
 from fluxdrive.drive.plant import FR_SEQ
+from fluxdrive.drive.scenario import load_scenario, scenario_path
 from fluxdrive.drive.sim import run_scenario
 from fluxdrive.io import messages
 from fluxdrive.io.bagio import BagWriter, decode_rows, read_run_bag, run_metadata
@@ -89,7 +89,7 @@ def test_live_replay_stamps_the_receiving_graphs_id(tmp_path, short_run):
     bytes patched in place, a bag from before graph_id re-encoded from its rows."""
     pytest.importorskip("rclpy")
     live = pytest.importorskip("fluxdrive_bringup.live_replay")
-    from fluxdrive.core.scenario import REPO_ROOT
+    from fluxdrive.drive.scenario import REPO_ROOT
     from fluxdrive.io.bagio import write_run_bag
     from fluxdrive.io.messages import graph_id_of, row_codec
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fluxdrive.core.scenario import REPO_ROOT, load_scenario, scenario_path
+from fluxdrive.drive.scenario import REPO_ROOT, load_scenario, scenario_path
 from fluxdrive.drive.sim import run_scenario
 from fluxdrive.io.bagio import read_run_bag, write_run_bag
 

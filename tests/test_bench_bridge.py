@@ -17,7 +17,6 @@ from fluxdrive.can.bridge import BridgeConfig, CanBridge
 from fluxdrive.can.emulator import FAULT_CMD_TIMEOUT, DriveEmulator
 from fluxdrive.can.loop import new_virtual_channel, run_can_loop
 from fluxdrive.can.protocol import ID_ARM_MODE, ID_DUTY_CMD, ID_SAMPLE_FD, get_protocol
-from fluxdrive.core.scenario import CONFIG_DIR, RPM, load_scenario, scenario_path
 from fluxdrive.drive.control import CO_EN, CO_MODE, MODE_CLOSED_LOOP
 from fluxdrive.drive.observers import ES_TH
 from fluxdrive.drive.plant import (
@@ -35,6 +34,7 @@ from fluxdrive.drive.plant import (
     TR_THETA_E,
     TR_WM,
 )
+from fluxdrive.drive.scenario import CONFIG_DIR, RPM, load_scenario, scenario_path
 from fluxdrive.drive.sim import DriveSetup, run_scenario
 
 # frame-row column groups (fluxdrive.drive.plant FR_*)

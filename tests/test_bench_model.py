@@ -11,7 +11,6 @@ from fluxdrive.analysis.metrics import harmonic
 from fluxdrive.core.bench import BenchConfig, Thermal, VoltageCapture, parse_bench
 from fluxdrive.core.blocks import rng_new
 from fluxdrive.core.machine import ConfigError, MachineCard
-from fluxdrive.core.scenario import CONFIG_DIR, load_scenario, save_scenario
 from fluxdrive.drive.observers import ES_LA, ES_LB, OP_L, OP_LAM, OP_R
 from fluxdrive.drive.plant import (
     FR_IA,
@@ -31,6 +30,7 @@ from fluxdrive.drive.plant import (
     plant_state,
     winding_resistance,
 )
+from fluxdrive.drive.scenario import CONFIG_DIR, load_scenario, save_scenario
 from fluxdrive.drive.sim import DriveSetup, run_scenario
 from helpers_engine import ideal_machine, make_scenario
 

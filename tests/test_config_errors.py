@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import yaml
 from fluxdrive.core.machine import ConfigError, load_machine
-from fluxdrive.core.scenario import CONFIG_DIR, load_scenario
 from fluxdrive.drive.observers import observer_config
+from fluxdrive.drive.scenario import CONFIG_DIR, load_scenario
 
 
 def _write(tmp_path, name, data):

@@ -17,7 +17,7 @@ from typing import Any
 import pytest
 from fluxdrive.core import yamlio
 from fluxdrive.core.machine import ConfigError, load_machine
-from fluxdrive.core.scenario import CONFIG_DIR, load_scenario
+from fluxdrive.drive.scenario import CONFIG_DIR, load_scenario
 from fluxdrive.study.spec import load_spec
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st

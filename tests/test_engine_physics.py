@@ -11,7 +11,6 @@ from fluxdrive.analysis.freqresp import analyse
 from fluxdrive.analysis.metrics import compute, wrap
 from fluxdrive.core.blocks import rng_new
 from fluxdrive.core.machine import MachineCard
-from fluxdrive.core.scenario import CONFIG_DIR, load_scenario
 from fluxdrive.drive.control import (
     CO_ID,
     CO_ID_REF,
@@ -33,6 +32,7 @@ from fluxdrive.drive.plant import (
     plant_advance,
     plant_state,
 )
+from fluxdrive.drive.scenario import CONFIG_DIR, load_scenario
 from fluxdrive.drive.sim import run_scenario
 from helpers_engine import ideal_machine, make_scenario
 

@@ -54,7 +54,7 @@ def _recv_json(ws, want_op: str, timeout: float, pred=lambda m: True) -> dict:
 
 @pytest.mark.timeout(240)
 def test_foxglove_client_receives_and_decodes_topics(tmp_path):
-    from fluxdrive.core.scenario import load_scenario, scenario_path
+    from fluxdrive.drive.scenario import load_scenario, scenario_path
     from fluxdrive_bringup.launch import Launcher
     from fluxdrive_bringup.runs import graph_for_scenario
     from fluxdrive_ros.cdr import Codec, Decoder

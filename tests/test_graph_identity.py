@@ -32,7 +32,7 @@ def domain(offset: int) -> int:
 
 def _scenario(seed: int) -> Path:
     """The shipped scenario on the ideal bench with its own noise seed."""
-    from fluxdrive.core.scenario import load_scenario, save_scenario
+    from fluxdrive.drive.scenario import load_scenario, save_scenario
 
     src = ROOT / "config" / "scenarios" / "paper_2pct_150load.yaml"
     out = Path(tempfile.mkdtemp(prefix="fluxdrive-ident-")) / f"seed{seed}.yaml"
@@ -40,7 +40,7 @@ def _scenario(seed: int) -> Path:
 
 
 def _reference(path: Path):
-    from fluxdrive.core.scenario import load_scenario
+    from fluxdrive.drive.scenario import load_scenario
     from fluxdrive.drive.sim import run_scenario
     from fluxdrive_bringup.runs import shorten
 
@@ -51,8 +51,8 @@ def _reference(path: Path):
 
 @pytest.mark.parametrize("layouts", [("composed", "separate"), ("separate", "separate")])
 def test_two_graphs_one_domain_each_bag_equals_its_solo_run(tmp_path, layouts):
-    from fluxdrive.core.scenario import load_scenario
     from fluxdrive.drive.plant import FR_SEQ
+    from fluxdrive.drive.scenario import load_scenario
     from fluxdrive.io.bagio import read_run_bag
     from fluxdrive_bringup.runs import result_from_bag
 

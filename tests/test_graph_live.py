@@ -40,7 +40,7 @@ def _reference(sc, changes: dict[int, list]):
 
 
 def test_live_parameters_take_effect_exactly_and_bad_values_are_rejected(tmp_path):
-    from fluxdrive.core.scenario import load_scenario
+    from fluxdrive.drive.scenario import load_scenario
     from fluxdrive_bringup.inspect_cli import Session, set_param
     from fluxdrive_bringup.launch import Launcher
     from fluxdrive_bringup.runs import graph_for_scenario, result_from_bag, shorten

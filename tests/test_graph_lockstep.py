@@ -31,7 +31,7 @@ def _on_the_ideal_bench(path: Path) -> Path:
     bench"); graph == in-process holds on either bench."""
     import tempfile
 
-    from fluxdrive.core.scenario import load_scenario, save_scenario
+    from fluxdrive.drive.scenario import load_scenario, save_scenario
 
     out = Path(tempfile.mkdtemp(prefix="fluxdrive-ideal-bench-")) / path.name
     return save_scenario(load_scenario(path, overrides={"bench": {}}), out)
@@ -46,7 +46,7 @@ def domain(offset: int) -> int:
 
 
 def reference(duration: float):
-    from fluxdrive.core.scenario import load_scenario
+    from fluxdrive.drive.scenario import load_scenario
     from fluxdrive.drive.sim import run_scenario
     from fluxdrive_bringup.runs import shorten
 
@@ -56,7 +56,7 @@ def reference(duration: float):
 
 
 def graph_result(bag: Path, duration: float):
-    from fluxdrive.core.scenario import load_scenario
+    from fluxdrive.drive.scenario import load_scenario
     from fluxdrive_bringup.runs import result_from_bag
 
     return result_from_bag(bag, load_scenario(SCENARIO), duration)
@@ -152,7 +152,7 @@ def test_bag_every_frame_two_readers_and_replay_metadata(tmp_path):
     """(b) A run's bag holds every frame (count = last seq + 1) and every estimate; it opens
     with rosbags and with mcap/mcap_ros2; the replay lab (fluxdrive.io.bagio) reads it with the
     run's metadata and no problems."""
-    from fluxdrive.core.scenario import load_scenario
+    from fluxdrive.drive.scenario import load_scenario
     from fluxdrive_bringup.launch import Launcher
     from fluxdrive_bringup.runs import graph_for_scenario, shorten
 
@@ -266,8 +266,8 @@ def test_tripped_run_records_the_fault(tmp_path):
     """A drive that trips at once (DC-bus over-voltage limit below the bus): the graph
     records the latched fault, its code survives the trip through ControllerState's text,
     and the whole run still equals the in-process runner."""
-    from fluxdrive.core.scenario import load_scenario
     from fluxdrive.drive.control import CO_EN, CO_FAULT, FAULT_OVERVOLTAGE
+    from fluxdrive.drive.scenario import load_scenario
     from fluxdrive.drive.sim import run_scenario
     from fluxdrive_bringup.runs import result_from_bag, run_graph
 

@@ -27,7 +27,7 @@ _SHARED = ("/diagnostics", "/rosout")
 
 
 def _scenario(seed: int) -> Path:
-    from fluxdrive.core.scenario import load_scenario, save_scenario
+    from fluxdrive.drive.scenario import load_scenario, save_scenario
 
     src = ROOT / "config" / "scenarios" / "paper_2pct_150load.yaml"
     out = Path(tempfile.mkdtemp(prefix="fluxdrive-ns-")) / f"seed{seed}.yaml"
@@ -35,7 +35,7 @@ def _scenario(seed: int) -> Path:
 
 
 def _reference(path: Path):
-    from fluxdrive.core.scenario import load_scenario
+    from fluxdrive.drive.scenario import load_scenario
     from fluxdrive.drive.sim import run_scenario
     from fluxdrive_bringup.runs import shorten
 
@@ -45,8 +45,8 @@ def _reference(path: Path):
 
 
 def test_two_namespaced_drives_on_one_domain_each_record_their_solo_run(tmp_path):
-    from fluxdrive.core.scenario import load_scenario
     from fluxdrive.drive.plant import FR_SEQ
+    from fluxdrive.drive.scenario import load_scenario
     from fluxdrive.io.bagio import read_run_bag
     from fluxdrive_bringup.runs import result_from_bag
     from rosbags.highlevel import AnyReader

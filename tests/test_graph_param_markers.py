@@ -25,8 +25,8 @@ RATE = 0.25
 
 
 def test_cli_parameter_change_is_marked_and_replays_exactly(tmp_path):
-    from fluxdrive.core.scenario import load_scenario
     from fluxdrive.drive.plant import FR_SEQ
+    from fluxdrive.drive.scenario import load_scenario
     from fluxdrive.io.bagio import read_run_bag
     from fluxdrive.replay.lab import expand_variants, replay_bag
     from fluxdrive_bringup.launch import Launcher

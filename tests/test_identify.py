@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 from fluxdrive.analysis.metrics import compute
 from fluxdrive.core.machine import load_machine
-from fluxdrive.core.scenario import load_scenario, machine_path, scenario_path
 from fluxdrive.drive.identify import TOLERANCE, errors, identify_sim
+from fluxdrive.drive.scenario import load_scenario, machine_path, scenario_path
 from fluxdrive.drive.sim import run_scenario
 
 ROOT = Path(__file__).resolve().parents[1]

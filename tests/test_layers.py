@@ -49,13 +49,6 @@ KNOWN_CYCLES: list[set[str]] = [
     },
 ]
 
-# imports against the table still being moved this round: (importer, imported); the test fails
-# when one of them is gone, so the list only shrinks
-KNOWN_EDGES: set[tuple[str, str]] = {
-    # the scenario embeds the drive's configs: core/scenario.py moves up into drive
-    ("fluxdrive.core.scenario", "fluxdrive.drive.control"),
-    ("fluxdrive.core.scenario", "fluxdrive.drive.observers"),
-}
 # command-line main()s outside cli/ still to move: study's own command line, the experiments'
 KNOWN_MAINS = {"fluxdrive.study.cli", "fluxdrive.experiments.registry"}
 
@@ -167,18 +160,13 @@ def test_imports_follow_the_layers():
     g = graph()
     known = modules()
     bad = []
-    seen: set[tuple[str, str]] = set()
     for src, edges in sorted(g.items()):
         here = package_of(src)
         for dst, line in sorted(edges.items()):
             there = package_of(dst)
             if there != here and there not in ALLOWED[here]:
-                if (src, dst) in KNOWN_EDGES:
-                    seen.add((src, dst))
-                    continue
                 bad.append(f"{known[src].relative_to(REPO)}:{line}: {src} imports {dst}")
     assert bad == [], "imports against the layers:\n" + "\n".join(bad)
-    assert KNOWN_EDGES - seen == set(), "fixed: remove from KNOWN_EDGES"
 
 
 def test_no_import_cycles():

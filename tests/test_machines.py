@@ -14,8 +14,8 @@ import pytest
 from fluxdrive.analysis.metrics import compute, format_table
 from fluxdrive.core import yamlio
 from fluxdrive.core.machine import ConfigError, MachineCard, load_machine
-from fluxdrive.core.scenario import CONFIG_DIR, load_scenario, scenario_path
 from fluxdrive.drive.control import ControllerConfig
+from fluxdrive.drive.scenario import CONFIG_DIR, load_scenario, scenario_path
 from fluxdrive.drive.sim import run_scenario
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -16,7 +16,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from fluxdrive.core.scenario import load_scenario, scenario_path
 from fluxdrive.drive.observers import (
     ES_N,
     ES_TH,
@@ -29,6 +28,7 @@ from fluxdrive.drive.observers import (
     observer_step,
 )
 from fluxdrive.drive.plant import FLAG_STALE, FR_EN, FR_FLAGS, TR_THETA_E
+from fluxdrive.drive.scenario import load_scenario, scenario_path
 from fluxdrive.drive.sim import DriveSetup, run_scenario
 
 K0, N_LOST = 11000, 100  # 1.1 s: closed loop on the flux observer

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from fluxdrive.analysis.metrics import wrap
 from fluxdrive.core.machine import ConfigError
-from fluxdrive.core.scenario import CONFIG_DIR, load_scenario
 from fluxdrive.drive.control import CO_MODE, MODE_CLOSED_LOOP
 from fluxdrive.drive.observers import ES_TH, observer_config
 from fluxdrive.drive.plant import TR_THETA_E, TR_WM
+from fluxdrive.drive.scenario import CONFIG_DIR, load_scenario
 from fluxdrive.drive.sim import run_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -97,7 +97,7 @@ def test_plugin_drives_in_the_graph(tmp_path, example_importable):
     run's numbers exactly."""
     pytest.importorskip("rclpy")
     pytest.importorskip("fluxdrive_bringup")
-    from fluxdrive.core.scenario import save_scenario
+    from fluxdrive.drive.scenario import save_scenario
     from fluxdrive_bringup.runs import result_from_bag, run_graph
 
     duration = 1.0

@@ -69,7 +69,7 @@ def test_resources_found_outside_the_checkout_via_fluxdrive_root(tmp_path):
     code = (
         "import sys\n"
         "from fluxdrive.core.machine import ConfigError\n"
-        "from fluxdrive.core.scenario import load_scenario, scenario_path\n"
+        "from fluxdrive.drive.scenario import load_scenario, scenario_path\n"
         "from fluxdrive.can.protocol import default_dbc_path\n"
         "try:\n"
         "    sc = load_scenario(scenario_path('paper_2pct_150load'))\n"

@@ -232,7 +232,7 @@ def test_paper_2pct_150load_runs_sensorless_on_the_non_ideal_bench():
     the drive runs stably sensorless on paper_robust with measured voltages; the literal
     paper observer runs in shadow on the same data."""
     from fluxdrive.analysis.metrics import compute
-    from fluxdrive.core.scenario import CONFIG_DIR, load_scenario
+    from fluxdrive.drive.scenario import CONFIG_DIR, load_scenario
     from fluxdrive.drive.sim import run_scenario
 
     sc = load_scenario(CONFIG_DIR / "scenarios" / "paper_2pct_150load.yaml")

@@ -10,9 +10,9 @@ import sys
 import numpy as np
 import pytest
 from fluxdrive.cli import main as cli
-from fluxdrive.core.scenario import CONFIG_DIR, REPO_ROOT, load_scenario
 from fluxdrive.drive.observers import ES_TH
 from fluxdrive.drive.plant import TR_THETA_E
+from fluxdrive.drive.scenario import CONFIG_DIR, REPO_ROOT, load_scenario
 from fluxdrive.drive.sim import run_scenario
 from fluxdrive.io.bagio import (
     est_topic,

@@ -24,7 +24,7 @@ SCENARIO = ROOT / "config" / "scenarios" / "paper_2pct_150load.yaml"
 
 
 def test_a_stopped_drive_stops_the_run_with_one_line(tmp_path):
-    from fluxdrive.core.scenario import load_scenario
+    from fluxdrive.drive.scenario import load_scenario
     from fluxdrive_bringup.launch import Launcher
     from fluxdrive_bringup.runs import graph_for_scenario
 

@@ -45,7 +45,7 @@ def _param(node: str, name: str, domain_id: int):
 def test_scope_page_in_chromium(tmp_path):
     if not Path(CHROMIUM).exists():
         pytest.skip("chromium not installed (tools/bootstrap.sh installs Debian's package)")
-    from fluxdrive.core.scenario import load_scenario, scenario_path
+    from fluxdrive.drive.scenario import load_scenario, scenario_path
     from fluxdrive_bringup.launch import Launcher, add_scope
     from fluxdrive_bringup.runs import graph_for_scenario
 

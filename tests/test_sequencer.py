@@ -9,7 +9,6 @@ import math
 
 import numpy as np
 import pytest
-from fluxdrive.core.scenario import RPM, load_scenario, scenario_path
 from fluxdrive.drive.control import (
     CO_EN,
     CO_FAULT,
@@ -30,6 +29,7 @@ from fluxdrive.drive.plant import (
     FR_VDC,
     TR_WM,
 )
+from fluxdrive.drive.scenario import RPM, load_scenario, scenario_path
 from fluxdrive.drive.sequencer import ControlSequencer
 from fluxdrive.drive.sim import DriveSetup, run_scenario
 

@@ -10,10 +10,10 @@ import pytest
 from fluxdrive.analysis.metrics import compute
 from fluxdrive.can.loop import run_can_loop
 from fluxdrive.core import yamlio
-from fluxdrive.core.scenario import CONFIG_DIR, load_scenario
 from fluxdrive.drive.control import CO_MODE, FAULT_WATCHDOG, MODE_CLOSED_LOOP
 from fluxdrive.drive.observers import ES_TH
 from fluxdrive.drive.plant import TR_THETA_E, TR_WM
+from fluxdrive.drive.scenario import CONFIG_DIR, load_scenario
 from fluxdrive.drive.sim import run_scenario
 
 PAPER = CONFIG_DIR / "scenarios" / "paper_2pct_150load.yaml"

@@ -14,7 +14,6 @@ from fluxdrive.analysis.metrics import compute
 from fluxdrive.can.protocol import decimate_frames
 from fluxdrive.core import yamlio
 from fluxdrive.core.machine import ConfigError, MachineCard
-from fluxdrive.core.scenario import CONFIG_DIR, load_scenario
 from fluxdrive.core.transforms import inv_park, wrap_angle
 from fluxdrive.drive.control import (
     CO_EN,
@@ -43,6 +42,7 @@ from fluxdrive.drive.control import (
     split_drive_take_reference,
 )
 from fluxdrive.drive.plant import FR_EN, FR_FLAGS, FR_N, FR_VDC
+from fluxdrive.drive.scenario import CONFIG_DIR, load_scenario
 from fluxdrive.drive.sim import WIN_N, run_scenario, window_add, window_sample
 
 CARD = MachineCard()

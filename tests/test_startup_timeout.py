@@ -12,8 +12,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from fluxdrive.analysis.metrics import trip_info
-from fluxdrive.core.scenario import load_scenario, scenario_path
 from fluxdrive.drive.control import CO_FAULT, CO_MODE, FAULT_START_FAILED, MODE_CLOSED_LOOP
+from fluxdrive.drive.scenario import load_scenario, scenario_path
 from fluxdrive.drive.sim import run_scenario
 
 IF_PU, TIMEOUT_S, ALIGN_S = 0.6, 1.0, 0.15

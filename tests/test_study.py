@@ -16,7 +16,7 @@ import pyarrow.parquet as pq
 import pytest
 import yaml
 from fluxdrive.cli import main as cli
-from fluxdrive.core.scenario import RPM
+from fluxdrive.drive.scenario import RPM
 from fluxdrive.study import store
 from fluxdrive.study.cli import run_study
 from fluxdrive.study.maps import wilson

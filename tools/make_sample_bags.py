@@ -17,7 +17,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "python"))
 
-from fluxdrive.core.scenario import CONFIG_DIR, load_scenario  # noqa: E402
+from fluxdrive.drive.scenario import CONFIG_DIR, load_scenario  # noqa: E402
 from fluxdrive.drive.sim import run_scenario  # noqa: E402
 from fluxdrive.io.bagio import observer_states_at, write_run_bag  # noqa: E402
 

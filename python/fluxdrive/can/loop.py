@@ -152,7 +152,7 @@ def run_can_loop(
     decimation: int | None = None,
     control_scenario: Any = None,
 ) -> CanLoopResult:
-    """Run ``scenario`` (a :class:`fluxdrive.core.scenario.Scenario`) closed loop over a
+    """Run ``scenario`` (a :class:`fluxdrive.drive.scenario.Scenario`) closed loop over a
     virtual CAN bus. ``frame_hook(bridge, k)`` is called before each sample is handled
     (fault injection in tests). ``log_path`` records all bus traffic with python-can's
     Logger (.blf/.log/.asc). ``layout="classic"`` uses a non-FD bus and the classic

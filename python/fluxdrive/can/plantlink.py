@@ -15,9 +15,9 @@ from fluxdrive.can.bridge import BridgeConfig, CanBridge, bus_factory_from_param
 from fluxdrive.can.emulator import DriveEmulator
 from fluxdrive.can.loop import new_virtual_channel
 from fluxdrive.core.machine import MachineCard
-from fluxdrive.core.scenario import load_scenario, scenario_path
 from fluxdrive.drive.identify import IdentifyAbort
 from fluxdrive.drive.plant import FR_SEQ
+from fluxdrive.drive.scenario import load_scenario, scenario_path
 from fluxdrive.drive.sim import DriveSetup
 
 

@@ -28,8 +28,8 @@ def bench_engine(argv: list[str]) -> dict:
     """Closed loop in-process: switching-level plant + driving observer + one shadow + FOC,
     on the shipped scenario's non-ideal bench and on the ideal bench (runs alternate, so
     both see the same machine load; best of 3 each)."""
-    from fluxdrive.core.scenario import CONFIG_DIR, load_scenario
     from fluxdrive.drive.observers import observer_config
+    from fluxdrive.drive.scenario import CONFIG_DIR, load_scenario
     from fluxdrive.drive.sim import run_scenario
 
     path = CONFIG_DIR / "scenarios" / "paper_2pct_150load.yaml"
@@ -89,7 +89,7 @@ EXAMPLE_PLUGIN = "my_observer.flux_pll:FluxPllObserver"
 
 def _importable_example(spec: str) -> None:
     """The shipped example (examples/my_observer) without installing it."""
-    from fluxdrive.core.scenario import REPO_ROOT
+    from fluxdrive.drive.scenario import REPO_ROOT
 
     if spec.split(":")[0].split(".")[0] == "my_observer":
         path = str(REPO_ROOT / "examples" / "my_observer")
@@ -100,7 +100,7 @@ def _importable_example(spec: str) -> None:
 def _plugin_case(spec: str, kwargs: dict, driving: str, seconds: float):
     """The 2 %/150 % scenario cut to `seconds`, the ideal bench, one observer: `driving`
     'user' (the plugin) or 'kernel' (paper_robust)."""
-    from fluxdrive.core.scenario import CONFIG_DIR, load_scenario
+    from fluxdrive.drive.scenario import CONFIG_DIR, load_scenario
 
     obs = (
         {"user": {"variant": spec, "extra": kwargs}}
@@ -125,9 +125,9 @@ def bench_plugin(argv: list[str]) -> dict:
     against the built-in flux observer (paper_robust) in the compiled loop."""
     import argparse
 
-    from fluxdrive.core.scenario import REPO_ROOT
     from fluxdrive.drive.observers import make_observer
     from fluxdrive.drive.plant import FR_SEQ
+    from fluxdrive.drive.scenario import REPO_ROOT
     from fluxdrive.drive.sim import run_scenario
     from fluxdrive.io.bagio import read_run_bag
     from fluxdrive.replay.lab import SAMPLES_DIR, parse_variant

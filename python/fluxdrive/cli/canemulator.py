@@ -23,7 +23,7 @@ def main(argv: list[str] | None = None) -> int:
     import signal
     import sys
 
-    from fluxdrive.core.scenario import load_scenario, scenario_path
+    from fluxdrive.drive.scenario import load_scenario, scenario_path
     from fluxdrive.drive.sim import DriveSetup
 
     ap = argparse.ArgumentParser(prog="fluxdrive can-emulator", description=main.__doc__)

@@ -19,8 +19,8 @@ from dataclasses import asdict
 from pathlib import Path
 
 from fluxdrive.core.machine import load_machine
-from fluxdrive.core.scenario import CONFIG_DIR, machine_path, save_machine
 from fluxdrive.drive.identify import TOLERANCE, _stderr, errors, identify_sim
+from fluxdrive.drive.scenario import CONFIG_DIR, machine_path, save_machine
 
 
 def main(argv: list[str]) -> int:

@@ -13,7 +13,7 @@ from typing import Any
 
 from fluxdrive.analysis.metrics import compute, format_table, write_json
 from fluxdrive.core.machine import ConfigError, load_machine
-from fluxdrive.core.scenario import REPO_ROOT
+from fluxdrive.drive.scenario import REPO_ROOT
 from fluxdrive.io.bagio import BagError, RunBag, read_run_bag
 from fluxdrive.replay import lab
 from fluxdrive.replay.lab import (

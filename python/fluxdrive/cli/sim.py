@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 
 from fluxdrive.analysis.report import report
-from fluxdrive.core.scenario import REPO_ROOT, load_scenario, scenario_path
+from fluxdrive.drive.scenario import REPO_ROOT, load_scenario, scenario_path
 from fluxdrive.drive.sim import run_scenario
 
 

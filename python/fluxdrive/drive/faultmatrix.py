@@ -27,7 +27,6 @@ from pathlib import Path
 
 import numpy as np
 
-from fluxdrive.core.scenario import RPM, load_scenario, scenario_path
 from fluxdrive.drive.control import (
     CO_DA,
     CO_DC,
@@ -54,6 +53,7 @@ from fluxdrive.drive.plant import (
     plant_advance,
     plant_initial_frame,
 )
+from fluxdrive.drive.scenario import RPM, load_scenario, scenario_path
 from fluxdrive.drive.sequencer import ControlSequencer
 from fluxdrive.drive.sim import LATCH_N, DriveSetup, pwm_off_latch
 

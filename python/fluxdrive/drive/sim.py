@@ -30,7 +30,6 @@ from numba import njit
 from fluxdrive.core.blocks import rng_new
 from fluxdrive.core.excitation import Segment, stepped_sine
 from fluxdrive.core.machine import ConfigError
-from fluxdrive.core.scenario import RPM, Scenario
 from fluxdrive.drive.control import (
     CO_DA,
     CO_DC,
@@ -77,6 +76,7 @@ from fluxdrive.drive.plant import (
     plant_initial_frame,
     plant_state,
 )
+from fluxdrive.drive.scenario import RPM, Scenario
 
 # the duty latched from period k to k+1: the controller row up to its enable flag
 LATCH_N = max(CO_DA, CO_DC, CO_EN) + 1

@@ -12,7 +12,6 @@ import numpy as np
 
 from fluxdrive.analysis.freqresp import analyse
 from fluxdrive.analysis.metrics import RAD_S_TO_RPM, harmonic, steady_window, whole_periods, wrap
-from fluxdrive.core.scenario import CONFIG_DIR
 from fluxdrive.core.transforms import clarke
 from fluxdrive.drive.control import (
     CO_ID,
@@ -34,6 +33,7 @@ from fluxdrive.drive.observers import (
     observer_config,
 )
 from fluxdrive.drive.plant import FR_IA, FR_IB, FR_IC, TR_IA, TR_IB, TR_IC, TR_THETA_E, TR_WM
+from fluxdrive.drive.scenario import CONFIG_DIR
 from fluxdrive.experiments.registry import (
     LITERAL,
     OBS4,

@@ -34,7 +34,8 @@ import yaml
 
 from fluxdrive.analysis.metrics import compute
 from fluxdrive.core.machine import ConfigError, MachineCard
-from fluxdrive.core.scenario import (
+from fluxdrive.drive.plant import deadtime_volt_second_loss
+from fluxdrive.drive.scenario import (
     CONFIG_DIR,
     REPO_ROOT,
     Scenario,
@@ -42,7 +43,6 @@ from fluxdrive.core.scenario import (
     machine_path,
     scenario_path,
 )
-from fluxdrive.drive.plant import deadtime_volt_second_loss
 
 DEFAULT_MACHINE = CONFIG_DIR / "machines" / "default_spm.yaml"
 

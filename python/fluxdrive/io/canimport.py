@@ -19,8 +19,8 @@ import numpy as np
 from fluxdrive.can.canlog import read_capture
 from fluxdrive.can.protocol import FRAME_FIELDS, SEQ_BITS, unwrap_counter
 from fluxdrive.core.machine import MachineCard
-from fluxdrive.core.scenario import load_scenario, scenario_path
 from fluxdrive.drive.plant import FR_SEQ
+from fluxdrive.drive.scenario import load_scenario, scenario_path
 from fluxdrive.io.bagio import BagWriter
 from fluxdrive.io.messages import FrameWire, Stamp
 from fluxdrive.io.topics import FRAME, T_FRAME

@@ -48,7 +48,6 @@ from fluxdrive.analysis.metrics import (
     wrap,
 )
 from fluxdrive.core.machine import ConfigError, MachineCard
-from fluxdrive.core.scenario import REPO_ROOT, Scenario
 from fluxdrive.drive.control import CO_MODE, CO_N, CO_W_REF, ControllerConfig
 from fluxdrive.drive.observers import (
     ES_LA,
@@ -63,6 +62,7 @@ from fluxdrive.drive.observers import (
     make_observer,
 )
 from fluxdrive.drive.plant import FR_ENC, FR_N, FR_SEQ, TR_N, TR_T, TR_THETA_E, TR_WM
+from fluxdrive.drive.scenario import REPO_ROOT, Scenario
 from fluxdrive.io.bagio import (
     RunBag,
     est_topic,

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from fluxdrive.core.machine import ConfigError
-from fluxdrive.core.scenario import REPO_ROOT
+from fluxdrive.drive.scenario import REPO_ROOT
 from fluxdrive.study.runner import Progress, Runner, runner_from_args
 from fluxdrive.study.spec import StudySpec, load_spec
 from fluxdrive.study.tasks import run_task, warm_kernels

@@ -20,9 +20,9 @@ import numpy as np
 
 from fluxdrive.core import yamlio
 from fluxdrive.core.machine import ConfigError
-from fluxdrive.core.scenario import CONFIG_DIR, REPO_ROOT, scenario_path
 from fluxdrive.drive.control import ControllerConfig
 from fluxdrive.drive.observers import ObserverConfig
+from fluxdrive.drive.scenario import CONFIG_DIR, REPO_ROOT, scenario_path
 
 STUDY_DIR = CONFIG_DIR / "studies"
 

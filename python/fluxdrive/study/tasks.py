@@ -17,7 +17,7 @@ from typing import Any
 
 from fluxdrive.analysis.metrics import compute, observer_metrics, steady_window
 from fluxdrive.core.machine import ConfigError, load_machine
-from fluxdrive.core.scenario import Scenario, load_scenario
+from fluxdrive.drive.scenario import Scenario, load_scenario
 from fluxdrive.study.spec import BUILDERS, PERTURBATIONS, axis_kind
 
 ALPHA_CU_PER_K = 0.00393  # copper resistance
@@ -84,7 +84,7 @@ def run_task(p: dict[str, Any]) -> dict[str, Any]:
 def warm_kernels() -> None:
     """Compile (or load from the on-disk cache) the closed-loop kernels in this process: run
     before starting local workers, so that they load the cache instead of each compiling."""
-    from fluxdrive.core.scenario import CONFIG_DIR
+    from fluxdrive.drive.scenario import CONFIG_DIR
     from fluxdrive.drive.sim import run_scenario
 
     sc = load_scenario(

@@ -102,7 +102,7 @@ def drive_param_table(values: dict[str, float]) -> list[P]:
 def drive_defaults(scenario: str) -> dict[str, float]:
     """The drive-side parameters of a scenario's controller design (or the default card's)."""
     from fluxdrive.core.machine import load_machine
-    from fluxdrive.core.scenario import CONFIG_DIR, load_scenario, scenario_path
+    from fluxdrive.drive.scenario import CONFIG_DIR, load_scenario, scenario_path
 
     if scenario:
         sc = load_scenario(scenario_path(scenario))

@@ -29,7 +29,6 @@ from dataclasses import fields, replace
 
 import numpy as np
 from fluxdrive.core.machine import load_machine
-from fluxdrive.core.scenario import CONFIG_DIR, load_scenario, scenario_path
 from fluxdrive.drive.observers import (
     ES_N,
     ES_VALID,
@@ -51,6 +50,7 @@ from fluxdrive.drive.observers import (
     observer_step,
 )
 from fluxdrive.drive.plant import FR_IA, FR_N
+from fluxdrive.drive.scenario import CONFIG_DIR, load_scenario, scenario_path
 from fluxdrive_ros.intra import RawPublisher, RawSubscription
 from fluxdrive_ros.params import P, declare, on_set
 from fluxdrive_ros.runner import FluxNode, main_node

@@ -34,7 +34,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from fluxdrive.core.scenario import load_scenario, scenario_path
+from fluxdrive.drive.scenario import load_scenario, scenario_path
 
 
 def _say(text: str) -> None:

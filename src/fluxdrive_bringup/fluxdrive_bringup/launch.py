@@ -61,7 +61,7 @@ from typing import Any
 
 from fluxdrive.core import yamlio
 from fluxdrive.core.machine import ConfigError
-from fluxdrive.core.scenario import REPO_ROOT
+from fluxdrive.drive.scenario import REPO_ROOT
 from fluxdrive_ros.runner import NODE_CLASSES
 
 _POLICY_KEYS = {"on_death", "max_restarts", "restart_backoff_s"}

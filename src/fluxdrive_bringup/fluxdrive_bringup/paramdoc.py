@@ -9,7 +9,7 @@ from __future__ import annotations
 import os
 import sys
 
-from fluxdrive.core.scenario import CONFIG_DIR
+from fluxdrive.drive.scenario import CONFIG_DIR
 
 
 def tables() -> str:

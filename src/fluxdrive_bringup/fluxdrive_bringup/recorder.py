@@ -49,7 +49,7 @@ import time
 from datetime import datetime
 from pathlib import Path
 
-from fluxdrive.core.scenario import REPO_ROOT
+from fluxdrive.drive.scenario import REPO_ROOT
 from fluxdrive.io.messages import seq_offset
 from fluxdrive_ros.intra import RawSubscription
 from fluxdrive_ros.params import P, declare
@@ -309,7 +309,7 @@ class RecorderNode(FluxNode):
         during the run are not reflected there."""
         from types import SimpleNamespace
 
-        from fluxdrive.core.scenario import load_scenario, scenario_path
+        from fluxdrive.drive.scenario import load_scenario, scenario_path
         from fluxdrive.io.bagio import META_KEY, _json_default, run_metadata
 
         sc = load_scenario(scenario_path(pv["scenario"]))

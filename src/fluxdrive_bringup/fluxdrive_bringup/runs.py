@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from fluxdrive.core.scenario import REPO_ROOT, load_scenario, scenario_path
+from fluxdrive.drive.scenario import REPO_ROOT, load_scenario, scenario_path
 
 from .domains import choose_domain, pick_domain_id
 from .launch import Graph, Launcher, NodeSpec, check_namespace
@@ -384,7 +384,7 @@ def graph_run(sc, keep: bool = False):
     import shutil
     import tempfile
 
-    from fluxdrive.core.scenario import save_scenario
+    from fluxdrive.drive.scenario import save_scenario
 
     d = Path(tempfile.mkdtemp(prefix=f"fluxdrive-exp-graph-{sc.name}-"))
     sp = save_scenario(sc, d / f"{sc.name}.yaml")

@@ -420,7 +420,7 @@ class ScopeTapNode(FluxNode):
         self.ts_s = fixed["ts_s"]
         self.pole_pairs = fixed["pole_pairs"]
         if fixed["scenario"]:
-            from fluxdrive.core.scenario import load_scenario, scenario_path
+            from fluxdrive.drive.scenario import load_scenario, scenario_path
 
             card = load_scenario(scenario_path(fixed["scenario"])).machine
             self.ts_s = card.ts_s

@@ -35,7 +35,7 @@ import time
 from pathlib import Path
 
 from fluxdrive.core import yamlio
-from fluxdrive.core.scenario import REPO_ROOT, load_scenario, scenario_path
+from fluxdrive.drive.scenario import REPO_ROOT, load_scenario, scenario_path
 from fluxdrive_ros.topics import CONTROLLER_STATE, FRAME, TRUTH, estimate_topic
 
 from .domains import pick_domain_id

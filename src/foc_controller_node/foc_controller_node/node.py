@@ -53,7 +53,6 @@ import sys
 
 import numpy as np
 from fluxdrive.core.machine import load_machine
-from fluxdrive.core.scenario import CONFIG_DIR, RPM, load_scenario, scenario_path
 from fluxdrive.drive.control import (
     CO_EN,
     CO_FAULT,
@@ -67,6 +66,7 @@ from fluxdrive.drive.control import (
 )
 from fluxdrive.drive.observers import ES_N
 from fluxdrive.drive.plant import FR_N
+from fluxdrive.drive.scenario import CONFIG_DIR, RPM, load_scenario, scenario_path
 from fluxdrive.drive.sequencer import ControlSequencer
 from fluxdrive.drive.sim import DriveSetup
 from fluxdrive.io.messages import ReferenceWire

@@ -57,8 +57,8 @@ import time
 from typing import Any
 
 import numpy as np
-from fluxdrive.core.scenario import load_scenario, scenario_path
 from fluxdrive.drive.plant import FR_N, MP_TD, TR_N, plant_advance, plant_initial_frame
+from fluxdrive.drive.scenario import load_scenario, scenario_path
 from fluxdrive.drive.sim import DriveSetup
 from fluxdrive_ros.cdr import Codec, Decoder
 from fluxdrive_ros.intra import RawPublisher, RawSubscription
