@@ -71,7 +71,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     ),
     "experiment": ("fluxdrive.experiments.registry", "main", "reproduce the paper's figures"),
     "study": (
-        "fluxdrive.study.cli",
+        "fluxdrive.cli.study",
         "main",
         "sweeps and Monte-Carlo robustness maps on dask (local cores or a cluster)",
     ),
