@@ -15,9 +15,9 @@ from pathlib import Path
 
 import can
 import pytest
+from fluxdrive.can.canlog import CaptureError
 from fluxdrive.io.bagio import BagError, read_run_bag
 from fluxdrive.io.canimport import import_capture
-from fluxdrive.io.canlog import CaptureError
 from fluxdrive.replay.lab import parse_variant, replay_bag
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -45,7 +45,7 @@ def _messages(n: int = N_MSGS) -> list[can.Message]:
 
 
 def _write(path: Path, msgs: list[can.Message]) -> Path:
-    from fluxdrive.io.canlog import open_writer
+    from fluxdrive.can.canlog import open_writer
 
     w = open_writer(path)
     for m in msgs:
