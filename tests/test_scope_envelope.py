@@ -157,8 +157,8 @@ def test_controller_descriptor_range_is_what_the_controller_accepts():
     """The current-loop bandwidth's range follows the card: up to a quarter of the PWM
     frequency, which the engine's check accepts, and nothing above."""
     from fluxdrive.core.machine import ConfigError
-    from fluxdrive.core.scenario import load_scenario, scenario_path
     from fluxdrive.drive.control import control_ranges
+    from fluxdrive.drive.scenario import load_scenario, scenario_path
 
     sc = load_scenario(scenario_path("paper_2pct_150load"))
     card = sc.machine

@@ -43,7 +43,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from fluxdrive.core.scenario import REPO_ROOT
+from fluxdrive.drive.scenario import REPO_ROOT
 from fluxdrive_ros.cdr import Decoder
 from fluxdrive_ros.intra import RawSubscription
 from fluxdrive_ros.params import P, declare, on_set
