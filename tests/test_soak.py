@@ -55,8 +55,8 @@ def test_recorder_backpressure_holds_the_graph_and_loses_nothing(tmp_path):
     """A bag writer slower than the graph (here: a 0.5 MB backlog limit) holds the lockstep
     loop instead of growing the recorder's buffer; every message still lands in the bag."""
     from fluxdrive.drive.scenario import scenario_path
+    from fluxdrive.io.bagio import bag_counts
     from fluxdrive_bringup.runs import run_graph
-    from fluxdrive_bringup.soak import bag_counts
 
     bag = tmp_path / "bag"
     r = run_graph(

@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from fluxdrive.core import yamlio
 from fluxdrive.core.machine import ConfigError, MachineCard
 from fluxdrive.drive.control import CO_N
 from fluxdrive.drive.observers import ES_N
@@ -1034,3 +1035,26 @@ def observer_states_at(result, k0: int) -> dict[str, list[float]]:
             obs.run(result.frames[:k0])
         out[nm] = [float(x) for x in obs.state]
     return out
+
+
+def bag_counts(bag: Path) -> tuple[dict[str, int], dict[str, int]]:
+    """Per-topic message counts from the mcap summary and from metadata.yaml."""
+    from mcap.reader import make_reader
+
+    mcap_counts: dict[str, int] = {}
+    for f in sorted(bag.glob("*.mcap")):
+        with open(f, "rb") as fh:
+            summ = make_reader(fh).get_summary()
+            if summ is None or summ.statistics is None:
+                raise RuntimeError(f"{f}: no summary section (bag not finalised)")
+            for ch in summ.channels.values():  # a channel with no message has no count entry
+                mcap_counts.setdefault(ch.topic, 0)
+            for cid, n in summ.statistics.channel_message_counts.items():
+                topic = summ.channels[cid].topic
+                mcap_counts[topic] = mcap_counts.get(topic, 0) + n
+    meta = yamlio.load_file(bag / "metadata.yaml")["rosbag2_bagfile_information"]
+    meta_counts = {
+        t["topic_metadata"]["name"]: int(t["message_count"])
+        for t in meta["topics_with_message_count"]
+    }
+    return mcap_counts, meta_counts

@@ -774,7 +774,7 @@ class Launcher:
         at exit): one line per topic the bag holds fewer messages of (and the shortfall
         in its metadata.yaml, custom_data `fluxdrive_missing`), or one line that it holds
         them all.  Returns {topic: (recorded, published)} of the shortfalls."""
-        from .soak import bag_counts
+        from fluxdrive.io.bagio import bag_counts
 
         short: dict[str, tuple[int, int]] = {}
         for bag in self.bags:

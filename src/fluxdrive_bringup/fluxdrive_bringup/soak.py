@@ -34,8 +34,8 @@ import threading
 import time
 from pathlib import Path
 
-from fluxdrive.core import yamlio
 from fluxdrive.drive.scenario import REPO_ROOT, load_scenario, scenario_path
+from fluxdrive.io.bagio import bag_counts
 from fluxdrive_ros.topics import CONTROLLER_STATE, FRAME, TRUTH, estimate_topic
 
 from .domains import pick_domain_id
@@ -145,29 +145,6 @@ class RssSampler(threading.Thread):
 
 
 # ------------------------------------------------------------------ bag message counts
-def bag_counts(bag: Path) -> tuple[dict[str, int], dict[str, int]]:
-    """Per-topic message counts from the mcap summary and from metadata.yaml."""
-    from mcap.reader import make_reader
-
-    mcap_counts: dict[str, int] = {}
-    for f in sorted(bag.glob("*.mcap")):
-        with open(f, "rb") as fh:
-            summ = make_reader(fh).get_summary()
-            if summ is None or summ.statistics is None:
-                raise RuntimeError(f"{f}: no summary section (bag not finalised)")
-            for ch in summ.channels.values():  # a channel with no message has no count entry
-                mcap_counts.setdefault(ch.topic, 0)
-            for cid, n in summ.statistics.channel_message_counts.items():
-                topic = summ.channels[cid].topic
-                mcap_counts[topic] = mcap_counts.get(topic, 0) + n
-    meta = yamlio.load_file(bag / "metadata.yaml")["rosbag2_bagfile_information"]
-    meta_counts = {
-        t["topic_metadata"]["name"]: int(t["message_count"])
-        for t in meta["topics_with_message_count"]
-    }
-    return mcap_counts, meta_counts
-
-
 # ------------------------------------------------------------------ 1. lockstep soak
 def _calibrate(sp: Path, tmp: Path, calib_s: float) -> float:
     """Steady lockstep real-time factor of the scenario's graph: a short run, the rate
