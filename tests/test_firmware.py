@@ -563,3 +563,40 @@ def test_split_drive_is_the_engines_split_drive_step(lib, db):
     assert not core.state()["fault_latched"] and cs[ctl.CS_MODE] != ctl.MODE_FAULT
     print(f"split: {compared} periods compared, {saturated} at the hexagon limit")
     assert compared > 1100 and saturated > 100
+
+
+def test_c_mcu_answers_drive_params_between_periods(db):
+    """DRIVE_PARAM over the bus to DriveEmulator(mcu="c"): answered at once, between
+    period interrupts (a host writing parameters never stalls a lockstep period), with
+    the status and the value in effect."""
+    from fluxdrive.can.emulator import DriveEmulator
+    from fluxdrive.can.loop import new_virtual_channel
+    from fluxdrive.drive.sim import DriveSetup
+    from test_bench_bridge import short_2pct
+
+    ch = new_virtual_channel("fw-param")
+    drive = can.Bus(interface="virtual", channel=ch, fd=True)
+    host = can.Bus(interface="virtual", channel=ch, fd=True)
+    prm, ack = db.get_message_by_name("DRIVE_PARAM"), db.get_message_by_name("DRIVE_PARAM_ACK")
+    try:
+        emu = DriveEmulator(DriveSetup(short_2pct(0.6)), drive, lockstep=False, mcu="c")
+        asks = [(1, 1, 1, 2.5), (2, 9, 1, 50.0), (3, 99, 0, 0.0), (4, 3, 0, 0.0)]
+        for seq, pid, write, value in asks:
+            data = prm.encode({"prm_id": pid, "prm_seq": seq, "prm_write": write,
+                               "prm_value": value})  # fmt: skip
+            host.send(can.Message(arbitration_id=prm.frame_id, data=data, is_extended_id=False))
+        emu._drain(0.2)
+        emu._fw_feed()
+        got = []
+        msg = host.recv(0.5)
+        while msg is not None:
+            if msg.arbitration_id == ack.frame_id:
+                got.append(ack.decode(bytes(msg.data), decode_choices=False))
+            msg = host.recv(0.05)
+    finally:
+        drive.shutdown()
+        host.shutdown()
+    assert emu.k == 0  # no period ran
+    assert [(a["pa_seq"], a["pa_status"]) for a in got] == [(1, 0), (2, 2), (3, 1), (4, 0)]
+    assert got[0]["pa_value"] == 2.5 and got[1]["pa_value"] == pytest.approx(0.01)
+    assert got[3]["pa_value"] == pytest.approx(emu.setup.cp[ctl.CP_L], rel=1e-6)  # the design

@@ -161,6 +161,7 @@ typedef struct {
     uint32_t disarm_rx;
     uint32_t faults;
     uint32_t param_rx;
+    uint32_t refs_applied;
 } fd_stats_t;
 
 /** The whole drive state. Fields are public for tests and the SIL binding; firmware code

@@ -655,6 +655,7 @@ static void take_reference(fd_core_t *c)
         }
         c->ref = c->ref_new;
         c->ref_new.valid = 0;
+        c->stats.refs_applied++;
         c->last_ref_k = c->k;
         if (c->ref.enable && c->armed && !c->fault_latched) {
             c->pwm_enabled = 1;

@@ -306,6 +306,50 @@ static void test_reference_timeout(void)
     CHECK(core.fault_code == FD_FAULT_WATCHDOG && sil.pwm_enable == 0 && n_fault == 1);
 }
 
+static void send_heartbeat(void)
+{
+    struct fd_can_host_heartbeat_t m;
+    uint8_t b[2];
+    fd_can_host_heartbeat_init(&m);
+    m.hb_protocol_version = 2;
+    CHECK(fd_can_host_heartbeat_pack(b, &m, 2) == 2);
+    push(FD_CAN_HOST_HEARTBEAT_FRAME_ID, b, 2, 0);
+}
+
+static void test_host_heartbeat(void)
+{
+    setup(1);
+    /* armed without any heartbeat yet: no timeout runs */
+    for (int i = 0; i < 3; ++i) {
+        period();
+    }
+    send_heartbeat();
+    run_armed(); /* heartbeat taken at t = 0.3 ms; default HEARTBEAT_TIMEOUT_S 0.5 s */
+    uint32_t hb_k = 3u;
+    while (!core.fault_latched && core.k < 6000u) {
+        if (core.k >= 1u) {
+            send_duty((uint16_t)(core.k - 1u), 0.5f, 1);
+        }
+        period();
+        drain();
+    }
+    /* the first period more than 0.5 s (5000 periods of 100 us) after the heartbeat */
+    CHECK(core.fault_code == FD_FAULT_HOST_HEARTBEAT_LOST && core.k - 1u == hb_k + 5001u);
+    CHECK(last_fault.fault_code == 16 && last_fault.fault_detail == 5001u);
+    CHECK(!core.armed && sil.pwm_enable == 0);
+    /* 0 turns the timeout off */
+    setup(1);
+    CHECK(fd_core_param_write(&core, FD_PRM_HEARTBEAT_TIMEOUT_S, 0.0f) == FD_PA_OK);
+    send_heartbeat();
+    run_armed();
+    for (int i = 0; i < 6000; ++i) {
+        send_duty((uint16_t)(core.k - 1u), 0.5f, 1);
+        period();
+        drain();
+    }
+    CHECK(!core.fault_latched && core.pwm_enabled);
+}
+
 int main(void)
 {
     test_arm_key();
@@ -315,6 +359,7 @@ int main(void)
     test_bus_voltage();
     test_params();
     test_reference_timeout();
+    test_host_heartbeat();
     if (failures) {
         fprintf(stderr, "fd_core_test: %d check(s) failed\n", failures);
         return 1;

@@ -676,6 +676,12 @@ class DriveEmulator:
         held: collections.deque[can.Message] = collections.deque()
         while self._fw_rx:
             msg = self._fw_rx[0]
+            if msg.arbitration_id == ID_DRIVE_PARAM:
+                # parameter requests are served between interrupts (a firmware's background
+                # loop), so a host waiting for the ACK never stalls a lockstep period
+                fw.handle_now(self._fw_rx.popleft())
+                self._fw_send()
+                continue
             if hold_refs and msg.arbitration_id == ID_HOST_REF:
                 held.append(self._fw_rx.popleft())
                 continue
@@ -709,11 +715,7 @@ class DriveEmulator:
         now_us = int((time.monotonic() - self._t0_wall) * 1e6)
         fw.set_sample(self.frame, now_us)
         fw.period()
-        for msg in fw.pop_tx():
-            try:
-                self.bus.send(msg, timeout=self.send_timeout_s)
-            except can.CanError:
-                self.stats.tx_timeouts += 1
+        self._fw_send()
         duty, enabled = fw.pwm()
         st = fw.state()
         self.armed = st["armed"]
@@ -730,13 +732,24 @@ class DriveEmulator:
         self.k = k + 1
         self._sync_c_stats()
 
+    def _fw_send(self) -> None:
+        """What the C core sent, onto the bus."""
+        for msg in self._fw.pop_tx():
+            try:
+                self.bus.send(msg, timeout=self.send_timeout_s)
+            except can.CanError:
+                self.stats.tx_timeouts += 1
+
     def _sync_c_stats(self) -> None:
         """The C core's counters under the emulator's names."""
         c = self._fw.stats()
         st = self.stats
         st.periods = c["periods"]
         st.samples_sent = c["samples_sent"]
-        st.duty_rx = c["duty_rx"] + c["ref_rx"]
+        st.duty_rx = c["duty_rx"]
+        st.ref_rx = c["ref_rx"]
+        st.refs_applied = c["refs_applied"]
+        st.param_rx = c["param_rx"]
         st.duty_applied = c["duty_applied"]
         st.duty_late = c["duty_late"]
         st.stale_periods = c["stale_periods"]

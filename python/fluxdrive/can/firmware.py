@@ -134,7 +134,7 @@ class _Config(ctypes.Structure):
 _STAT_NAMES = (
     "periods", "samples_sent", "duty_rx", "duty_applied", "duty_late", "stale_periods",
     "ref_rx", "arm_rx", "bad_rx", "tx_overruns", "layout_mismatch", "disarm_rx", "faults",
-    "param_rx",
+    "param_rx", "refs_applied",
 )  # fmt: skip
 
 
@@ -142,6 +142,17 @@ class _Stats(ctypes.Structure):
     """fd_stats_t."""
 
     _fields_ = [(n, ctypes.c_uint32) for n in _STAT_NAMES]
+
+
+class _Frame(ctypes.Structure):
+    """fd_can_frame_t (firmware/include/fd_hal.h)."""
+
+    _fields_ = [
+        ("id", ctypes.c_uint32),
+        ("len", ctypes.c_uint8),
+        ("fd", ctypes.c_uint8),
+        ("data", ctypes.c_uint8 * 64),
+    ]
 
 
 class CurState(ctypes.Structure):
@@ -191,6 +202,7 @@ def load_library() -> ctypes.CDLL:
         "fd_core_param_write": (ctypes.c_int, [P, ctypes.c_int, F]),
         "fd_core_param_read": (ctypes.c_int, [P, ctypes.c_int, ctypes.POINTER(F)]),
         "fd_sil_has_answer": (ctypes.c_int, [P, P, ctypes.c_uint16]),
+        "fd_core_handle_frame": (None, [P, ctypes.POINTER(_Frame)]),
         "fd_core_flags": (U32, [P]),
         "fd_core_stats": (ctypes.POINTER(_Stats), [P]),
         "fd_core_period_index": (U32, [P]),
@@ -389,6 +401,14 @@ class FirmwareCore:
                 self._sil, msg.arbitration_id, buf, len(data), int(bool(msg.is_fd))
             )
         )
+
+    def handle_now(self, msg: can.Message) -> None:
+        """Serve a received frame at once, between period interrupts (what a firmware's
+        background loop does with parameter requests); its answer is in :meth:`pop_tx`."""
+        data = bytes(msg.data)[:64]
+        f = _Frame(msg.arbitration_id, len(data), int(bool(msg.is_fd)))
+        ctypes.memmove(f.data, data, len(data))
+        self.lib.fd_core_handle_frame(self._core, ctypes.byref(f))
 
     def pop_tx(self) -> list[can.Message]:
         """The frames the core sent since the last call, in order."""
