@@ -24,7 +24,13 @@ Envelope JSON (one object per period)::
                           "lo": [[min of each field] per bucket], "hi": [[max ...] ...]}},
      "locus": {observer: [[x...], [y...]]}}
 
-Streams: "state" (i_d, i_q, i_d_ref, i_q_ref [A], speed_ref, speed_fb [rpm], mode),
+Besides: per period the parameter markers seen ("markers"), the trigger state ("armed",
+"pending") and the newest capture bag ("capture"); about once a wall second, per observer,
+the newest `spectrum_window_s` of samples for the order spectra ("arrays" "spec/<name>":
+rotor angle, θ̃ [rad], λ̂α [V s], truth flag), which the scope server turns into orders.
+
+Streams: "frame" (i_a, i_b, i_c [A], v_ab, v_bc, v_ca, vdc [V]),
+"state" (i_d, i_q, i_d_ref, i_q_ref [A], speed_ref, speed_fb [rpm], mode),
 "truth" (theta [deg], speed [rpm], omega_e [rad/s]), "duty" (a, b, c [-]) and "est/<name>"
 (theta [deg], err [deg] = wrapped estimate minus truth when truth exists, omega_e [rad/s],
 flux_mag [mVs], valid).  Bucket k spans samples k*bucket ... (k+1)*bucket-1; a bucket cut
