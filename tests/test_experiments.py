@@ -16,20 +16,58 @@ def _run(name, tmp_path):
     return res
 
 
+def _value(res, cid):
+    """The number a registered claim (config/claims.yaml) rests on, by its id."""
+    return next(c for c in res["claims"] if c.get("id") == cid)["value"]
+
+
 def _holds(res, start):
+    """A claim beyond the paper (not registered): its own verdict."""
     return next(c for c in res["claims"] if c["claim"].startswith(start))["holds"]
+
+
+def test_claims_table_is_the_experiments_registry():
+    """Every claim the paper experiments judge is registered, and every registered claim is
+    judged; a reproduction names how it fails, the others why they cannot count."""
+    import re
+    from pathlib import Path
+
+    from fluxdrive.experiments.claims import count, judge, registered
+
+    table = registered()
+    src = (
+        Path(__file__).resolve().parents[1] / "python/fluxdrive/experiments/paper.py"
+    ).read_text()
+    used = set(re.findall(r'judge\(\s*"([a-z0-9_.]+)"', src))
+    assert used == set(table)
+    for row in table.values():
+        assert (row["class"] == "reproduction") == ("if_fails" in row)
+        assert row["class"] == "reproduction" or row.get("calibration") or row.get("design")
+    # the verdict is the table's test: a calibrated claim that passes is not "held"
+    c = judge("fig13.fullload_hexagon", "x", 10.0)
+    assert c["passes"] and c["holds"] is None and c["verdict"] == "calibrated"
+    r = judge("fig14.stable", "x", 0.5)
+    assert r["verdict"] == "disagreement" and r["holds"] is False
+    assert count([c, r, judge("fig14.stable", "x", 1.0)]) == {
+        "held": 1,
+        "disagreement": 1,
+        "modelling_gap": 0,
+        "calibrated": 1,
+        "by_design": 0,
+    }
 
 
 def test_fig14_measured_voltages_remove_6th_flux_has_better_snr(tmp_path):
     r = _run("fig14", tmp_path)
-    for v in ("[paper_robust] ", "[paper (literal)] "):
-        assert _holds(r, v + "Commanded voltages: visible deadtime")
+    for v in ("paper_robust", "paper (literal)"):
+        assert _value(r, f"fig14.commanded_6th[{v}]") > 3.0  # deg: the deadtime's 6th order
     # on the non-ideal bench the capture chain leaves a 6th-order residue (a quarter or less)
-    assert _holds(r, "[paper_robust] Measured voltages: the 6th-order")
-    assert _holds(r, "[paper_robust] Measured voltages: flux-based")
-    assert _holds(r, "Sensorless flux drive")
+    assert _value(r, "fig14.measured_6th_gone[paper_robust]") < 0.25
+    assert _value(r, "fig14.measured_snr[paper_robust]") < 1.0  # noise: flux over EMF
+    assert _value(r, "fig14.stable") == 1.0
     rep = json.loads((tmp_path / "report.json").read_text())["experiments"]["fig14"]
-    assert all({"claim", "ours", "holds"} <= set(c) for c in rep["claims"])
+    assert all({"id", "claim", "ours", "value", "verdict"} <= set(c) for c in rep["claims"])
+    assert "**Claims: held " in (tmp_path / "report.md").read_text()
     assert (tmp_path / "report.md").exists() and (tmp_path / "fig14_theta_error.png").exists()
 
 
@@ -44,11 +82,12 @@ def test_fig13_flux_locus_radius_and_tighter_than_emf_under_load(tmp_path):
 
 def test_fig2_4_offset_drift_and_deadtime_follow_the_equations(tmp_path):
     r = _run("fig2_4", tmp_path)
-    assert _holds(r, "Fig. 2 / eq. 6")
-    assert _holds(r, "Fig. 3: a 5 %")
-    assert _holds(r, "Fig. 4: with deadtime")
-    assert _holds(r, "Fig. 4: the integration")
-    assert not _holds(r, "(implied) the proposed")  # our finding at 2 % speed
+    assert _value(r, "fig2.offset") < 0.1  # locus centre within 10 % of eq. (6)'s
+    assert _value(r, "fig3.drift") < 0.15  # drift rate within 15 % of R^ |delta i|
+    assert _value(r, "fig4.magnitude") > 0.2  # |lambda^| off by more than 20 %
+    assert _value(r, "fig4.integration_reduces") < 0.5  # a pure integral divides order n by n
+    # our finding at 2 % speed: LPF + inverse HPF keeps the EMF's relative 5th/7th
+    assert _value(r, "fig4.proposed_reduces") > 0.7
 
 
 def test_fig17_flux_drive_keeps_the_encoder_current_bandwidth(tmp_path):
@@ -66,13 +105,13 @@ def test_fig19_rig_inertia_recovers_within_the_papers_time(tmp_path):
     rows = {x["J_scale"]: x for x in r["data"]["step_vs_inertia"]}
     assert rows[1]["stable"] and rows[1]["recovery_s"] is not None
     assert rows[1]["recovery_s"] < 0.25
-    assert _holds(r, "Full load at 4 %")
+    assert _value(r, "fig19.fullload_4pct") == 1.0
 
 
 def test_fig15_16_emf_thd_rises_at_low_speed_and_measured_voltages_cut_it(tmp_path):
     r = _run("fig15_16", tmp_path)
-    assert _holds(r, "EMF THD (commanded) rises")
-    assert _holds(r, "Measured voltages lower")
+    assert _value(r, "fig15.emf_thd_speed") == 1.0  # every bandwidth: higher THD at low speed
+    assert _value(r, "fig15.measured_lowers_emf") == 1.0  # THD lower at every point
 
 
 def test_fig18_speed_bandwidth_encoder_and_flux_10hz(tmp_path):
@@ -80,8 +119,8 @@ def test_fig18_speed_bandwidth_encoder_and_flux_10hz(tmp_path):
     the observer's speed path).  The paper's 'EMF only 7 Hz' is a documented disagreement:
     in our model the EMF path's speed LPF costs phase margin, not bandwidth."""
     r = _run("fig18", tmp_path)
-    assert _holds(r, "Encoder drive: speed bandwidth")
-    assert _holds(r, "Flux-based drive: speed bandwidth")
+    assert _value(r, "fig18.encoder") < 0.3  # within 30 % of the design
+    assert _value(r, "fig18.flux") < 0.2  # within 20 % of the encoder drive's
 
 
 def test_mismatch_r_is_a_magnitude_error_l_an_angle_error(tmp_path):
