@@ -160,6 +160,7 @@ def test_converted_bag_replays_with_its_settings(short_bag, tmp_path):
 @pytest.mark.parametrize("layout,d", [("fd", 4), ("classic", 8)])
 def test_decimated_capture_replays_like_the_live_bridge_run(tmp_path, layout, d):
     from fluxdrive.can.loop import run_can_loop
+    from fluxdrive.drive.plant import FR_SEQ
     from fluxdrive.io.canimport import import_capture
     from fluxdrive.replay.lab import expand_variants, replay_bag
 
@@ -174,7 +175,7 @@ def test_decimated_capture_replays_like_the_live_bridge_run(tmp_path, layout, d)
     assert b.meta["can_import"]["sample_period_s"] == pytest.approx(d * sc.machine.ts_s)
     assert b.machine().ts_s == pytest.approx(d * sc.machine.ts_s)
     # frames carry the sample index j, stamped j D Ts: consecutive, the live run's
-    assert np.array_equal(b.frames[:, 12], live.seq_rx)
+    assert np.array_equal(b.frames[:, FR_SEQ], live.seq_rx)
     assert np.allclose(np.diff(b.t), d * sc.machine.ts_s)
     rr = replay_bag(b, expand_variants(["@recorded"], b))
     for o, nm in enumerate(live.control_setup.names):
@@ -215,7 +216,7 @@ def test_can_import_skips_and_counts_malformed_lines(tmp_path):
 
     n = 2000
     f = np.zeros((n, len(cp.FRAME_FIELDS)))
-    f[:, 6] = 72.0
+    f[:, cp.FRAME_INDEX["vdc"]] = 72.0
     f[:, cp.FRAME_INDEX["pwm_enabled"]] = 1
     f[:, cp.FRAME_INDEX["seq"]] = np.arange(n)
     good = tmp_path / "good.log"

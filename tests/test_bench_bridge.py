@@ -18,7 +18,7 @@ from fluxdrive.can.emulator import FAULT_CMD_TIMEOUT, DriveEmulator
 from fluxdrive.can.loop import new_virtual_channel, run_can_loop
 from fluxdrive.can.protocol import ID_ARM_MODE, ID_DUTY_CMD, ID_SAMPLE_FD, get_protocol
 from fluxdrive.drive.control import CO_EN, CO_MODE, MODE_CLOSED_LOOP
-from fluxdrive.drive.observers import ES_TH
+from fluxdrive.drive.observers import ES_TH, ES_W
 from fluxdrive.drive.plant import (
     FR_DA,
     FR_DC,
@@ -366,7 +366,7 @@ def test_shipped_capture_imports_into_a_bag(tmp_path):
         ]
     )
     est = obs.run(frames)
-    w = est[-1000:, 1].mean() / sc.machine.pole_pairs / RPM
+    w = est[-1000:, ES_W].mean() / sc.machine.pole_pairs / RPM
     assert abs(w - 60.0) < 10.0
 
 
@@ -453,7 +453,7 @@ def test_closed_loop_over_classic_can_2pct_sensorless():
         f"10 kHz would need {100 * full['load_none']:.0f} %; {m / res.wall_s:.0f} samples/s wall"
     )
     assert abs(speed - 60.0) < 6.0
-    assert np.all(res.ctrl[j0:, 13] == 3)  # closed loop on the flux observer
+    assert np.all(res.ctrl[j0:, CO_MODE] == MODE_CLOSED_LOOP)  # on the flux observer
     assert can_rms < max(1.5 * ref_rms, ref_rms + 0.3)
     assert can_rms < 1.1 * CLASSIC_D8_RMS_DEG  # the figure the FD D = 4 test compares with
     assert abs(load - dec["load_none"]) < 0.02  # the traffic is what the budget counts
@@ -506,7 +506,7 @@ def test_classic_bridge_gaps_malformed_and_wire_seq():
         )
         time.sleep(0.05)
         frames = br.poll(timeout=0.1)
-        assert br.send_duty(int(frames[-1, 12]), (0.5, 0.5, 0.5), False)
+        assert br.send_duty(int(frames[-1, FR_SEQ]), (0.5, 0.5, 0.5), False)
         got = []
         msg = tx.recv(0.1)
         while msg is not None:
@@ -595,7 +595,7 @@ def test_closed_loop_over_fd_can_decimated_2pct_sensorless():
         f"{m / res.wall_s:.0f} samples/s wall"
     )
     assert abs(speed - 60.0) < 6.0
-    assert np.all(res.ctrl[j0:, 13] == 3)  # closed loop on the flux observer
+    assert np.all(res.ctrl[j0:, CO_MODE] == MODE_CLOSED_LOOP)  # on the flux observer
     # between the per-period loop and the classic D = 8 one
     assert can_rms < max(1.5 * ref_rms, ref_rms + 0.3)
     assert can_rms < 1.1 * CLASSIC_D8_RMS_DEG

@@ -28,6 +28,7 @@ from fluxdrive.can.protocol import (
     get_protocol,
     pack_payloads,
 )
+from fluxdrive.drive.plant import FR_DA, FR_IA, FR_VAB, FR_VDC
 
 __all__ = ["bench_can_cli", "make_test_frames", "measure_decode_rates", "run_can_benchmark"]
 
@@ -42,11 +43,11 @@ def make_test_frames(n: int, seed: int = 0) -> np.ndarray:
     th = 2 * np.pi * 50.0 * k * 1e-4
     f = np.zeros((n, len(FRAME_FIELDS)))
     for j, ph in enumerate((0.0, -2 * np.pi / 3, 2 * np.pi / 3)):
-        f[:, j] = 9.0 * np.cos(th + ph) + rng.normal(0, 0.05, n)
-        f[:, 7 + j] = 0.5 + 0.4 * np.cos(th + ph)
-    for j in range(3):
-        f[:, 3 + j] = 72.0 * (f[:, 7 + j] - f[:, 7 + (j + 1) % 3])
-    f[:, 6] = 72.0 + rng.normal(0, 0.1, n)
+        f[:, FR_IA + j] = 9.0 * np.cos(th + ph) + rng.normal(0, 0.05, n)
+        f[:, FR_DA + j] = 0.5 + 0.4 * np.cos(th + ph)
+    for j in range(3):  # line voltages from the duties: v_ab = Vdc (d_a - d_b), ...
+        f[:, FR_VAB + j] = 72.0 * (f[:, FR_DA + j] - f[:, FR_DA + (j + 1) % 3])
+    f[:, FR_VDC] = 72.0 + rng.normal(0, 0.1, n)
     f[:, FRAME_FIELDS.index("encoder_counts")] = np.floor(k * 0.3)
     f[:, FRAME_FIELDS.index("pwm_enabled")] = 1.0
     f[:, FRAME_FIELDS.index("seq")] = k
