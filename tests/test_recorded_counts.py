@@ -39,7 +39,14 @@ def test_a_finished_run_checks_the_bag_against_the_publishers(tmp_path, layout):
     assert code == 0
     assert launcher.published.get("/drive/frame", 0) >= 2000  # 0.2 s at 10 kHz
     lines = [ln for ln in text.splitlines() if str(bag) in ln and "message" in ln]
-    assert len(lines) == 1 and "holds every message the nodes published" in lines[0], lines
+    # every sample topic whole; /clock may lack its first messages in the split layout
+    # (the plant starts once the recorder's /drive/frame reader matched; its /clock reader
+    # can match later, volatile -- in this 0.2 s run most of /clock), which the check
+    # names: `bag ... holds 19 of the 200 messages published on /clock (181 missing)`
+    short0 = {t for ln in lines if "missing)" in ln for t in [ln.split(" published on ")[1]]}
+    assert {t.split(" ")[0] for t in short0} <= {"/clock"}, lines
+    if not short0:
+        assert len(lines) == 1 and "holds every message the nodes published" in lines[0]
     # the same check against a bag that lost its tail names topic and count
     launcher.published["/drive/frame"] += 7
     short = launcher.check_recorded()
