@@ -169,3 +169,11 @@ def test_controller_descriptor_range_is_what_the_controller_accepts():
     dataclasses.replace(sc.control, current_bandwidth_hz=hi).check(card)  # accepted
     with pytest.raises(ConfigError, match="quarter of the PWM"):
         dataclasses.replace(sc.control, current_bandwidth_hz=hi * 1.001).check(card)
+    # the split mode's reference timeout: at least two of the host's samples
+    for d in (1, 4):
+        lo, _ = control_ranges(card, d)["reference_timeout_s"]
+        assert lo == pytest.approx(2 * d * card.ts_s)
+        split = dataclasses.replace(sc.control, mode="split", decimation=d)
+        dataclasses.replace(split, reference_timeout_s=lo).check(card)
+        with pytest.raises(ConfigError, match="two samples"):
+            dataclasses.replace(split, reference_timeout_s=lo * 0.99).check(card)

@@ -1204,13 +1204,16 @@ class ControllerConfig:
 CURRENT_BW_MAX_OF_PWM = 0.25
 
 
-def control_ranges(card: MachineCard) -> dict[str, tuple[float, float]]:
-    """CONTROL_RANGES with the limits that follow from the card (the current loop's
-    bandwidth at most a quarter of the PWM frequency), so that a node's parameter
-    descriptors say what check() accepts."""
+def control_ranges(card: MachineCard, decimation: int = 1) -> dict[str, tuple[float, float]]:
+    """CONTROL_RANGES with the limits that follow from the card and the (fixed) decimation
+    -- the current loop's bandwidth at most a quarter of the PWM frequency, the reference
+    timeout at least two of the host's samples -- so that a node's parameter descriptors
+    say what check() accepts."""
     out = dict(CONTROL_RANGES)
     lo, hi = out["current_bandwidth_hz"]
     out["current_bandwidth_hz"] = (lo, min(hi, CURRENT_BW_MAX_OF_PWM * card.pwm_hz))
+    lo, hi = out["reference_timeout_s"]
+    out["reference_timeout_s"] = (max(lo, 2 * int(decimation) * card.ts_s), hi)
     return out
 
 

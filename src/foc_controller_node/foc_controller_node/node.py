@@ -163,7 +163,7 @@ def config_params(cfg: ControllerConfig, card) -> list[P]:
         cfg,
         card,
         DOCS,
-        control_ranges(card),
+        control_ranges(card, int(cfg.decimation)),
         skip=("position_source", *SPLIT_FIELDS),
         none_as_zero=NONE_AS_ZERO,
     )
