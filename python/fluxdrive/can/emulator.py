@@ -235,6 +235,11 @@ class DriveEmulator:
         self.stats = EmulatorStats()
         self.record = record
         self.rec_frames: list[np.ndarray] = []
+        # record=True: wall time (time.time) each sample went out, by wire seq, and the host's
+        # answer latency [s]: the answer's bus timestamp (python-can stamps a frame when it
+        # is sent) minus its sample's send time, for benchmarks
+        self._sent_wall: dict[int, float] = {}
+        self.answer_latency_s: list[float] = []
         self.rec_truth: list[np.ndarray] = []
         self._msg_sample = self.proto.sample_fd
         self._msg_duty = self.proto.message("DUTY_CMD")
@@ -332,6 +337,8 @@ class DriveEmulator:
                     return
                 self._cmds[int(d["cmd_seq"])] = (duty, bool(d["cmd_enable"]))
                 self.stats.duty_rx += 1
+                if self.record:
+                    self._answered(int(d["cmd_seq"]), msg.timestamp)
                 if len(self._cmds) > 64:  # forget very old ones
                     for key in list(self._cmds)[:-32]:
                         del self._cmds[key]
@@ -346,6 +353,8 @@ class DriveEmulator:
                 self._refs[seq] = ref
                 self._ref_newest = seq
                 self.stats.ref_rx += 1
+                if self.record:
+                    self._answered(seq, msg.timestamp)
                 if len(self._refs) > 64:
                     for key in list(self._refs)[:-32]:
                         del self._refs[key]
@@ -559,7 +568,16 @@ class DriveEmulator:
         }
         return self.proto.frame_to_classic_payloads(f, flags)
 
+    def _answered(self, seq: int, stamp: float) -> None:
+        t = self._sent_wall.pop(seq, None)
+        if t is not None and stamp > 0.0:
+            self.answer_latency_s.append(stamp - t)
+
     def _send_sample(self) -> None:
+        if self.record:
+            self._sent_wall[self.k % _SEQ_MOD] = time.time()
+            if len(self._sent_wall) > 256:
+                del self._sent_wall[next(iter(self._sent_wall))]
         if self.layout == "fd":
             self._send(ID_SAMPLE_FD, self.sample_payload(), True)
         else:

@@ -151,6 +151,7 @@ def run_can_loop(
     layout: str = "fd",
     decimation: int | None = None,
     control_scenario: Any = None,
+    realtime: bool = False,
 ) -> CanLoopResult:
     """Run ``scenario`` (a :class:`fluxdrive.drive.scenario.Scenario`) closed loop over a
     virtual CAN bus. ``frame_hook(bridge, k)`` is called before each sample is handled
@@ -161,7 +162,10 @@ def run_can_loop(
     ``control_scenario`` (default ``decimated_scenario(scenario, D)``, i.e. the
     scenario's own control section at ts = D*Ts). In split mode (the scenario's
     ``control.mode``) D is the scenario's ``control.decimation``. A ``frame_hook`` returning
-    False leaves that sample unanswered (host silence)."""
+    False leaves that sample unanswered (host silence). ``realtime`` paces the emulator to
+    wall time (with ``emulator_kw={"lockstep": False}``: a free-running MCU); the host's
+    answer latencies (sample sent -> answer on the bus) are in ``extra["answer_latency_s"]``,
+    the host's own time per sample (decoded -> answer sent) in ``extra["host_compute_s"]``."""
     ds = DriveSetup(scenario)
     split = ds.split
     if split:
@@ -207,11 +211,13 @@ def run_can_loop(
     k_of_sample = d if split else 1
 
     m = 0
+    host_s: list[float] = []  # per sample: frame decoded -> answer sent [s]
     t0 = time.perf_counter()
-    emu.start(n)
+    emu.start(n, realtime=realtime)
     if split:  # the drive-side parameters of this scenario's design, each acknowledged
         for name, value in drive_param_values(ds.cp).items():
-            ok, why, _ = bridge.set_drive_param(name, value, timeout_s=5.0)
+            # generous: the drive thread may be compiling its kernels (cold numba cache)
+            ok, why, _ = bridge.set_drive_param(name, value, timeout_s=60.0)
             if not ok:
                 raise RuntimeError(f"drive parameter refused: {why}")
     idle_since = None
@@ -225,6 +231,7 @@ def run_can_loop(
                         break
                 continue
             for fr in frames:
+                t_in = time.perf_counter()
                 kk = int(fr[FR_SEQ])
                 answer = True
                 if frame_hook is not None:
@@ -251,6 +258,7 @@ def run_can_loop(
                     )
                 else:
                     bridge.send_duty(kk, ctrl[CO_DA : CO_DC + 1], ctrl[CO_EN] > 0.5)
+                host_s.append(time.perf_counter() - t_in)
     finally:
         emu.stop()
         bridge.shutdown()
@@ -272,6 +280,10 @@ def run_can_loop(
         bridge.diagnostics(),
         emu.stats.as_dict(),
         wall,
+        extra={
+            "answer_latency_s": np.array(emu.answer_latency_s),
+            "host_compute_s": np.array(host_s),
+        },
         decimation=d,
         control_setup=dsc,
     )

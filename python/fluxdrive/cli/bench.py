@@ -1,5 +1,5 @@
-"""`./fluxdrive benchmark engine|replay|graph|paced|can|study|firmware|plugin`: throughput
-figures; the last line of each is a JSON object."""
+"""`./fluxdrive benchmark engine|replay|graph|paced|can|study|firmware|plugin|bench`:
+throughput figures; the last line of each is a JSON object."""
 
 from __future__ import annotations
 
@@ -21,6 +21,7 @@ BENCHES = {
     "study": ("fluxdrive.study.cli", "bench_study"),
     "firmware": ("fluxdrive.can.firmware_target", "bench_firmware"),
     "plugin": ("fluxdrive.cli.bench", "bench_plugin"),
+    "bench": ("fluxdrive.cli.hostbench", "bench_bench"),
 }
 
 

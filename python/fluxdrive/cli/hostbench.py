@@ -1,0 +1,158 @@
+"""`./fluxdrive benchmark bench`: the host's side of a decimated CAN bench, on this machine.
+
+At D = 4 on the FD layout (a real 1/5 Mbit/s bus needs D >= 4), with the drive emulator on a
+python-can virtual bus in lockstep (it waits for each answer, so every sample is answered
+and timed) and the host loop (bridge logic, observers, controller) in this process:
+
+  host / split  answer latency of the host per sample -- the answer frame's bus timestamp
+                minus its sample's (p50/p99/max [us]); host_compute_*: the host's own part
+                (sample decoded -> answer sent: observers, controller, codec) -- against
+                the link budget's host time
+                (`fluxdrive.can.protocol.link_budget`: what is left of a sample period once
+                the bus has carried the sample and the answer), the share of answers later
+                than that, and how many answers came later than the drive's watchdog allows
+                (`late_for_watchdog`; host mode: the duty-command watchdog, 1.5 sample
+                periods; split mode: the reference timeout, 10 ms) -- each would be a trip
+                on a drive that does not wait. The emulator shares the process (and
+                Python's GIL) with the host: its D periods of plant between two samples are
+                in the latency too, as load on the host's CPU would be. Host mode
+                runs `config/scenarios/can_2pct_decimated.yaml` (tuned for control at D*Ts),
+                split mode the paper's 2 % case with the drive closing the current loop.
+  split_current_bw_hz  the split drive's current loop measured with Fig. 17's protocol
+                in-process (flux drive, 10 % speed, half load, d-axis stepped sine), with the
+                drive's deadtime feed-forward at the card's deadtime; also without it and
+                host mode at D = 1 for comparison.
+
+Options: --duration S (drive seconds of each run, default 2), --decimation D.
+The last line on stdout is a JSON object, also written to results/can/bench.json (docs/can.md
+quotes it). No ROS.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from typing import Any
+
+import numpy as np
+
+from fluxdrive.analysis.freqresp import analyse
+from fluxdrive.can.loop import run_can_loop
+from fluxdrive.can.protocol import link_budget
+from fluxdrive.core import yamlio
+from fluxdrive.core.paths import ROOT
+from fluxdrive.core.scenario import load_scenario, scenario_path
+from fluxdrive.drive.control import CO_ID, CO_ID_REF
+from fluxdrive.drive.sim import run_scenario
+
+__all__ = ["bench_bench", "latency_figures", "split_current_bandwidth_hz"]
+
+RESULTS_PATH = ROOT / "results" / "can" / "bench.json"
+SWEEP_HZ = [200.0, 500.0, 700.0, 850.0, 1000.0, 1200.0, 1500.0]
+
+
+def _say(text: str) -> None:
+    print(f"[bench bench] {text}", file=sys.stderr, flush=True)
+
+
+def latency_figures(lat_s: np.ndarray, budget_us: float) -> dict[str, Any]:
+    """p50/p99/max of answer latencies [us] and the share above the host budget [%]."""
+    us = np.asarray(lat_s, dtype=float) * 1e6
+    if us.size == 0:
+        return {"answers": 0}
+    return {
+        "answers": int(us.size),
+        "p50_us": round(float(np.percentile(us, 50)), 1),
+        "p99_us": round(float(np.percentile(us, 99)), 1),
+        "max_us": round(float(us.max()), 1),
+        "over_budget_pct": round(100.0 * float(np.mean(us > budget_us)), 2),
+    }
+
+
+def _live_run(sc: Any, decimation: int, budget_us: float, watchdog_s: float) -> dict[str, Any]:
+    r = run_can_loop(sc, decimation=decimation)
+    emu = r.emulator_stats
+    lat = r.extra["answer_latency_s"]
+    out = latency_figures(lat, budget_us)
+    comp = latency_figures(r.extra["host_compute_s"], budget_us)
+    out.update({f"host_compute_{k}": v for k, v in comp.items() if k != "answers"})
+    out.update(
+        samples=int(emu["samples_sent"]),
+        wall_s=round(r.wall_s, 2),
+        watchdog_ms=round(1e3 * watchdog_s, 3),
+        late_for_watchdog=int(np.sum(lat > watchdog_s)),
+        drive_faults=list(emu["fault_codes"]),
+    )
+    return out
+
+
+def split_current_bandwidth_hz(
+    decimation: int = 4, deadtime_comp: bool = True, mode: str = "split"
+) -> float:
+    """-3 dB of i_d/i_d* (drive frame) with Fig. 17's protocol, in-process."""
+    from fluxdrive.experiments.paper import _fr_scenario
+
+    sc = _fr_scenario("flux_measured", SWEEP_HZ, "current")
+    kw: dict[str, Any] = {"mode": mode, "decimation": decimation if mode == "split" else 1}
+    if deadtime_comp:
+        kw["deadtime_comp_s"] = sc.machine.deadtime_s
+    sc.control = dataclasses.replace(sc.control, **kw).check(sc.machine)
+    r = run_scenario(sc, progress=False)
+    fr = analyse(r.ctrl[:, CO_ID], r.ctrl[:, CO_ID_REF], r.segments["current_d"], sc.machine.ts_s)
+    return round(float(fr["bandwidth_hz"]), 1)
+
+
+def bench_bench(argv: list[str]) -> dict[str, Any]:
+    ap = argparse.ArgumentParser(prog="fluxdrive benchmark bench", description=__doc__)
+    ap.add_argument("--duration", type=float, default=2.0, help="drive seconds per run")
+    ap.add_argument("--decimation", type=int, default=4)
+    args = ap.parse_args(argv)
+    d = int(args.decimation)
+    host_sc = load_scenario(scenario_path("can_2pct_decimated"))
+    pwm_hz = host_sc.machine.pwm_hz
+    lb = link_budget("fd", decimation=d, pwm_hz=pwm_hz)
+    budget_us = float(lb["host_budget_us_worst"])
+    dur = float(args.duration)
+    host_sc = load_scenario(
+        scenario_path("can_2pct_decimated"),
+        overrides={"duration_s": dur, "steady_window_s": [dur / 2, dur]},
+    )
+    paper = scenario_path("paper_2pct_150load")
+    raw = yamlio.load_file(paper)
+    split_sc = load_scenario(
+        paper,
+        overrides={
+            "duration_s": dur,
+            "steady_window_s": [dur / 2, dur],
+            "load_pu": 0.0,
+            "control": {**raw["control"], "mode": "split", "decimation": d},
+            "observers": {"flux_measured": raw["observers"]["flux_measured"]},
+        },
+    )
+    _say(f"D = {d}: host budget {budget_us:.0f}-{lb['host_budget_us_none']:.0f} us per sample")
+    _say("warming up (compiling the kernels) ...")
+    for sc in (host_sc, split_sc):
+        run_can_loop(dataclasses.replace(sc, duration_s=0.02), decimation=d)
+    out: dict[str, Any] = {
+        "decimation": d,
+        "sample_period_us": round(1e6 * d / pwm_hz, 1),
+        "host_budget_us_worst": round(budget_us, 1),
+        "host_budget_us_none": round(float(lb["host_budget_us_none"]), 1),
+    }
+    ts = host_sc.machine.ts_s
+    # host mode: the bridge's duty watchdog (BridgeConfig.cmd_timeout_s, at least 1.5 samples)
+    watchdogs = {"host": max(1e-3, 1.5 * d * ts), "split": split_sc.control.reference_timeout_s}
+    for mode, sc in (("host", host_sc), ("split", split_sc)):
+        _say(f"{mode} mode, {dur:g} s of drive time in lockstep ...")
+        out[mode] = _live_run(sc, d, budget_us, watchdogs[mode])
+        _say(f"{mode}: {out[mode]}")
+    _say("current-loop sweeps (Fig. 17 protocol, in-process) ...")
+    out["split_current_bw_hz"] = split_current_bandwidth_hz(d, True)
+    out["split_current_bw_hz_no_deadtime_comp"] = split_current_bandwidth_hz(d, False)
+    out["host_d1_current_bw_hz_no_deadtime_comp"] = split_current_bandwidth_hz(1, False, "host")
+    RESULTS_PATH.parent.mkdir(parents=True, exist_ok=True)
+    RESULTS_PATH.write_text(json.dumps(out, indent=2) + "\n")
+    _say(f"written {RESULTS_PATH.relative_to(ROOT)}")
+    return out
