@@ -22,7 +22,10 @@ D = 4
 
 def _split_case(duration_s: float, **control):
     """The paper's 2 % drive in split mode at D = 4, unloaded (a run of seconds: the brake
-    ramps of the loaded cases take the full 11 s, test_split_mode.py)."""
+    ramps of the loaded cases take the full 11 s, test_split_mode.py), on the ideal bench
+    (like test_bench_bridge.short_2pct: these tests are about the transport; on the
+    non-ideal one the unloaded start's swing about the I-f vector makes the handover time
+    depend on the last bit of the drive's float32 gains)."""
     raw = yamlio.load_file(PAPER)
     return load_scenario(
         PAPER,
@@ -30,6 +33,7 @@ def _split_case(duration_s: float, **control):
             "duration_s": duration_s,
             "steady_window_s": [duration_s - 0.5, duration_s],
             "load_pu": 0.0,
+            "bench": {},
             "control": {**raw["control"], "mode": "split", "decimation": D, **control},
             "observers": {"flux_measured": raw["observers"]["flux_measured"]},
         },
@@ -43,10 +47,9 @@ def _theta_rms_deg(est_th: np.ndarray, theta_true: np.ndarray) -> float:
 
 def test_split_over_can_matches_the_in_process_split_run():
     """Over the bus the drive gets its parameters as acknowledged DRIVE_PARAMs and a
-    HOST_REF for every sample; the run matches the in-process split run of the same case:
-    theta~ RMS within 0.3 deg (the protocol's quantisation -- 1 mA, 2 pi/65536 rad -- moves
-    the start's rotor swing about the I-f vector, so the runs agree statistically, not
-    sample by sample)."""
+    HOST_REF for every sample, all before its first period; the run matches the in-process
+    split run of the same case: theta~ RMS within 0.05 deg (the protocol's quantisation:
+    1 mA, 2 pi/65536 rad, float32 drive parameters)."""
     sc = _split_case(2.5)
     r = run_can_loop(sc)
     diag, emu = r.diagnostics, r.emulator_stats
@@ -63,7 +66,7 @@ def test_split_over_can_matches_the_in_process_split_run():
     assert ref["stable"]
     assert np.all(r.ctrl[k_win:, CO_MODE] == MODE_CLOSED_LOOP)
     assert abs(rpm - 60.0) < 1.0
-    assert abs(th_can - th_ref) < 0.3
+    assert abs(th_can - th_ref) < 0.05
 
 
 def test_host_silence_turns_pwm_off_with_a_fault_frame_the_bridge_reports():
@@ -114,7 +117,7 @@ def test_bridge_node_split_mode_parameters_references_and_fault_report():
     ch = new_virtual_channel()
     emu_bus = can.Bus(interface="virtual", channel=ch, fd=True)
     emu = DriveEmulator(
-        DriveSetup(_split_case(3.0)), emu_bus, lockstep=True, lockstep_wait_s=0.01, decimation=D
+        DriveSetup(_split_case(3.0)), emu_bus, lockstep=True, lockstep_wait_s=1.0, decimation=D
     )
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "0")) % 100 + 1)
@@ -171,7 +174,8 @@ def test_bridge_node_split_mode_parameters_references_and_fault_report():
         assert ok.successful and emu.split_cp[CP_KP_I] == pytest.approx(0.9 * kp, rel=1e-6)
         bad = node.set_parameters([Parameter("drive.pole_pairs", value=3.0)])[0]
         assert not bad.successful and "NOT_WHILE_RUNNING" in bad.reason, bad.reason
-        answer.clear()  # host silence
+        emu.lockstep_wait_s = 0.01  # host silence: the drive waits no longer
+        answer.clear()
         assert wait(lambda: emu.fault_latched)
         assert emu.stats.fault_codes == [FAULT_WATCHDOG]
         n0 = len(diags)
@@ -179,6 +183,7 @@ def test_bridge_node_split_mode_parameters_references_and_fault_report():
         st = diags[-1].status[0]
         assert st.level == DiagnosticStatus.ERROR
         assert "watchdog" in st.message and "reference timeout" in st.message, st.message
+        assert "reference timeout: 10.0 ms" in st.message  # 100 periods of 100 us
     finally:
         emu.stop()
         ex.shutdown()

@@ -582,13 +582,16 @@ class CanBridge:
                     fault_latched=int(d["fault_latched"]),
                     fault_count=int(d["fault_count"]),
                 )
-                self.drive_fault = {
-                    "code": int(d["fault_code"]),
-                    "latched": int(d["fault_latched"]),
-                    "detail": int(d["fault_detail"]),
-                    "seq": int(d["fault_seq"]),
-                }
-                if d["fault_code"] and d["fault_latched"]:
+                f = self.drive_fault
+                same = bool(f) and f["code"] == int(d["fault_code"]) and f["latched"]
+                if not (same and d["fault_latched"]):  # a repeat keeps the first's details
+                    self.drive_fault = {
+                        "code": int(d["fault_code"]),
+                        "latched": int(d["fault_latched"]),
+                        "detail": int(d["fault_detail"]),
+                        "seq": int(d["fault_seq"]),
+                    }
+                if d["fault_code"] and d["fault_latched"] and not same:
                     self.counters["drive_faults_rx"] += 1
                 if d["fault_code"] and d["fault_latched"] and self.armed:
                     self.armed = False  # the MCU disarmed itself

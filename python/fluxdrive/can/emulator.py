@@ -261,7 +261,20 @@ class DriveEmulator:
         self.split_dr = np.zeros(DR_N)
         split_drive_reset(self.split_cs, self.split_dr)
         self._split_out = np.zeros(CO_N)
-        # compile (or load) the drive-side kernels now, not in the first split period
+        # compile (or load) the plant and the drive-side kernels now, not in the first
+        # periods (a host waiting for samples would see a stale link); on copies
+        plant_advance(
+            self.pst.copy(),
+            setup.mp,
+            self.rng.copy(),
+            self.duty.copy(),
+            False,
+            setup.load_t,
+            setup.load_y,
+            setup.load_cfg,
+            self.frame.copy(),
+            self.truth.copy(),
+        )
         cs, dr = np.zeros(CS_N), np.zeros(DR_N)
         split_drive_reset(cs, dr)
         split_drive_take_reference(cs, dr, np.zeros(RF_N), 0.0)
@@ -678,7 +691,7 @@ class DriveEmulator:
         split_drive_step(cs, self.split_cp, self.split_dr, self.frame, out)
         if cs[CS_MODE] == MODE_FAULT and not self.fault_latched:
             code = int(cs[CS_FAULT])
-            detail = int(age * 1e4) if self.split_cp[CP_REF_TIMEOUT] > 0 and code == 9 else 0
+            detail = int(round(age * 1e4)) if self.split_cp[CP_REF_TIMEOUT] > 0 and code == 9 else 0
             self._raise_fault(code, detail)
         on = bool(out[CO_EN] > 0.5) and self.armed and not self.fault_latched
         if on:
@@ -816,6 +829,12 @@ class DriveEmulator:
                 self._raise_fault(FAULT_CMD_TIMEOUT, int((k - self._last_cmd_k) * self.ts * 1e4))
 
     # ------------------------------------------------------------------ running
+
+    def serve(self, until: threading.Event, poll_s: float = 0.01) -> None:
+        """Answer the bus (ARM_MODE, DRIVE_PARAM, ...) without running periods, until
+        `until` is set: the drive before its first period (e.g. configured by the host)."""
+        while not until.is_set() and not self._stop.is_set():
+            self._drain(poll_s)
 
     def run(self, n_periods: int, realtime: bool = False) -> None:
         """Run ``n_periods`` periods (or until :meth:`stop`). ``realtime`` paces the

@@ -26,6 +26,7 @@ import copy
 import dataclasses
 import itertools
 import math
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -51,7 +52,7 @@ from fluxdrive.drive.control import (
     host_reference_step,
 )
 from fluxdrive.drive.observers import ES_N, observer_step
-from fluxdrive.drive.plant import FR_SEQ
+from fluxdrive.drive.plant import FR_N, FR_SEQ
 from fluxdrive.drive.sim import DriveSetup
 
 __all__ = ["CanLoopResult", "decimated_scenario", "new_virtual_channel", "run_can_loop"]
@@ -210,16 +211,36 @@ def run_can_loop(
     # split: the host's rows step at D*Ts, the profiles are per PWM period
     k_of_sample = d if split else 1
 
+    # compile (or load) the host's kernels before the drive runs: in lockstep it waits only
+    # lockstep_wait_s for each answer
+    scratch_fr = np.zeros(FR_N)
+    scratch_est = np.zeros(ES_N)
+    for o in range(n_obs):
+        observer_step(dsc.new_observer_states()[o], dsc.obs_params[o], scratch_fr, scratch_est)
+    if split:
+        host_reference_step(
+            dsc.new_controller(), dsc.cp_host, scratch_fr, no_est, 0.0, 0.0, ctrl, ref
+        )
+    else:
+        controller_step(dsc.new_controller(), dsc.cp, scratch_fr, no_est, 0.0, 0.0, ctrl)
     m = 0
     host_s: list[float] = []  # per sample: frame decoded -> answer sent [s]
     t0 = time.perf_counter()
+    if split:  # the drive-side parameters of this scenario's design, each acknowledged,
+        # all in effect before the drive's first period (a run does not depend on when)
+        configured = threading.Event()
+        server = threading.Thread(target=emu.serve, args=(configured,), daemon=True)
+        server.start()
+        try:
+            for name, value in drive_param_values(ds.cp).items():
+                # generous: a cold numba cache compiles the emulator's kernels meanwhile
+                ok, why, _ = bridge.set_drive_param(name, value, timeout_s=60.0)
+                if not ok:
+                    raise RuntimeError(f"drive parameter refused: {why}")
+        finally:
+            configured.set()
+            server.join()
     emu.start(n, realtime=realtime)
-    if split:  # the drive-side parameters of this scenario's design, each acknowledged
-        for name, value in drive_param_values(ds.cp).items():
-            # generous: the drive thread may be compiling its kernels (cold numba cache)
-            ok, why, _ = bridge.set_drive_param(name, value, timeout_s=60.0)
-            if not ok:
-                raise RuntimeError(f"drive parameter refused: {why}")
     idle_since = None
     try:
         while True:
