@@ -71,6 +71,12 @@ def test_scope_page_in_chromium(tmp_path):
         with sync_api.sync_playwright() as p:
             browser = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
             page = browser.new_page(viewport={"width": 1600, "height": 1150})
+            errors: list[str] = []  # the page's own errors (not the 403 asked for below)
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.on(
+                "console",
+                lambda m: errors.append(m.text) if m.text.startswith("scope:") else None,
+            )
             # without the token: refused
             bad = page.goto(url.split("?")[0])
             assert bad is not None and bad.status == 403
@@ -167,6 +173,7 @@ def test_scope_page_in_chromium(tmp_path):
             row.evaluate("e => e.scrollIntoView({block: 'center'})")  # the refusal in view
             page.wait_for_timeout(700)
             page.screenshot(path=str(shot), full_page=True)
+            assert not errors, errors
             page.locator("#capture").screenshot(path=str(shot_capture))
             browser.close()
     finally:
@@ -256,9 +263,11 @@ def _spectrum(page) -> None:
     page.wait_for_function(
         """(() => { const u = window.scopeDebug.chart("spec_err");
            const i = u.series.findIndex((s) => s.label === "flux_measured");
-           return i > 0 && u.data[i].filter((v) => v !== null).length === 20; })()""",
+           return window.scopeStats.errors > 0
+             || (i > 0 && u.data[i].filter((v) => v !== null).length === 20); })()""",
         timeout=30_000,
     )
+    assert not page.evaluate("window.scopeStats.errors"), "the page failed to redraw"
 
 
 def _check_capture(cap: dict, captures: Path) -> None:

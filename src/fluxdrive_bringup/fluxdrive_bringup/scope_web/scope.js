@@ -488,17 +488,24 @@ function resize() {
 window.addEventListener("resize", resize);
 
 function frame(now) {
+  // the next frame is asked for first: an error in one chart must not stop the page
+  requestAnimationFrame(frame);
   const moving = dirty || dataDirty || spectrumDirty || tShow < stats.simT;  // nothing new: no redraw
   if (moving && (!paused() || dirty) && stats.lastSeq >= 0 && now - lastFrameWall >= 1000 / FPS - 2) {
     if (dirty) dataDirty = true;
     const t0 = performance.now();
-    redraw(now);
-    stats.drawMs = 0.9 * (stats.drawMs || 0) + 0.1 * (performance.now() - t0);  // per frame
     lastFrameWall = now;
     dirty = false;
+    try {
+      redraw(now);
+    } catch (e) {
+      stats.errors = (stats.errors || 0) + 1;
+      spectrumDirty = false;
+      console.error("scope: redraw failed:", e);
+    }
+    stats.drawMs = 0.9 * (stats.drawMs || 0) + 0.1 * (performance.now() - t0);  // per frame
     stats.redraws++;
   }
-  requestAnimationFrame(frame);
 }
 
 let lastRedraws = 0, lastEnv = 0, lastSeqT = null;
