@@ -35,9 +35,8 @@ def test_claims_table_is_the_experiments_registry():
     from fluxdrive.experiments.claims import count, judge, registered
 
     table = registered()
-    src = (
-        Path(__file__).resolve().parents[1] / "python/fluxdrive/experiments/paper.py"
-    ).read_text()
+    exp = Path(__file__).resolve().parents[1] / "python/fluxdrive/experiments"
+    src = (exp / "paper.py").read_text() + (exp / "fronts.py").read_text()
     used = set(re.findall(r'judge\(\s*"([a-z0-9_.]+)"', src))
     assert used == set(table)
     for row in table.values():

@@ -314,9 +314,10 @@ def plt():
 # ---------------------------------------------------------------- registry
 def _registry() -> dict[str, tuple[Callable, str]]:
     from fluxdrive.experiments import beyond as b
+    from fluxdrive.experiments import fronts as f
     from fluxdrive.experiments import paper as p
 
-    return {**p.EXPERIMENTS, **b.EXPERIMENTS}
+    return {**p.EXPERIMENTS, **f.EXPERIMENTS, **b.EXPERIMENTS}
 
 
 def run_experiment(
