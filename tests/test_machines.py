@@ -125,7 +125,9 @@ def test_rpm_values_keep_their_per_unit_speed_on_another_card(monkeypatch):
     # the experiments: the fig. 13/15 sensorless case at 60 rpm, `experiment --machine`
     from fluxdrive.experiments import registry
 
-    monkeypatch.setitem(registry._MACHINE, "path", str(CONFIG_DIR / "machines" / "gimbal_24v.yaml"))
+    monkeypatch.setitem(
+        registry.common._MACHINE, "path", str(CONFIG_DIR / "machines" / "gimbal_24v.yaml")
+    )
     sc = registry.sensorless(60.0, 1.5)
     assert sc.machine.name == "gimbal_24v"
     assert sc.speed_profile_rpm[-1, 1] == pytest.approx(0.02 * gimbal.rated_speed_rpm)

@@ -45,7 +45,7 @@ from fluxdrive.drive.control import (
 )
 from fluxdrive.drive.observers import ES_LA, ES_LB, ES_TH, ES_W, OP_LAM, OP_R
 from fluxdrive.drive.plant import TR_THETA_E, TR_WM
-from fluxdrive.experiments.registry import OBS4, build, claim, cv, encoder_run, plt
+from fluxdrive.experiments.common import OBS4, build, claim, cv, encoder_run, plt
 
 RPM = 2 * math.pi / 60
 

@@ -20,8 +20,8 @@ import numpy as np
 from fluxdrive.drive.control import ControllerConfig, design_loops
 from fluxdrive.drive.observers import observer_config
 from fluxdrive.experiments.claims import judge
+from fluxdrive.experiments.common import build, encoder_run, plt
 from fluxdrive.experiments.paper import harmonic_residual_rms, theta_err
-from fluxdrive.experiments.registry import build, encoder_run, plt
 
 # multiples of each variant's card-derived PLL bandwidth (and EMF speed LPF) swept
 FACTORS = (0.4, 0.6, 0.8, 1.0, 1.4, 2.0)

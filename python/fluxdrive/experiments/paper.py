@@ -36,7 +36,7 @@ from fluxdrive.drive.observers import (
 from fluxdrive.drive.plant import FR_IA, FR_IB, FR_IC, TR_IA, TR_IB, TR_IC, TR_THETA_E, TR_WM
 from fluxdrive.drive.scenario import CONFIG_DIR
 from fluxdrive.experiments.claims import judge
-from fluxdrive.experiments.registry import (
+from fluxdrive.experiments.common import (
     LITERAL,
     OBS4,
     OBS6,
