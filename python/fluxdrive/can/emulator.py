@@ -835,6 +835,10 @@ class DriveEmulator:
         `until` is set: the drive before its first period (e.g. configured by the host)."""
         while not until.is_set() and not self._stop.is_set():
             self._drain(poll_s)
+            if self._fw is not None:  # the C core answers between interrupts, like this
+                while self._fw_rx:
+                    self._fw.handle_now(self._fw_rx.popleft())
+                self._fw_send()
 
     def run(self, n_periods: int, realtime: bool = False) -> None:
         """Run ``n_periods`` periods (or until :meth:`stop`). ``realtime`` paces the
