@@ -43,8 +43,8 @@ from fluxdrive.can.loop import run_can_loop
 from fluxdrive.can.protocol import link_budget
 from fluxdrive.core import yamlio
 from fluxdrive.core.paths import ROOT
-from fluxdrive.core.scenario import load_scenario, scenario_path
 from fluxdrive.drive.control import CO_ID, CO_ID_REF
+from fluxdrive.drive.scenario import load_scenario, scenario_path
 from fluxdrive.drive.sim import run_scenario
 
 __all__ = ["bench_bench", "latency_figures", "split_current_bandwidth_hz"]
