@@ -45,13 +45,16 @@ def _theta_rms_deg(est_th: np.ndarray, theta_true: np.ndarray) -> float:
     return float(np.degrees(np.sqrt(np.mean(err**2))))
 
 
-def test_split_over_can_matches_the_in_process_split_run():
+@pytest.mark.parametrize("mcu", ["python", "c"])
+def test_split_over_can_matches_the_in_process_split_run(mcu):
     """Over the bus the drive gets its parameters as acknowledged DRIVE_PARAMs and a
     HOST_REF for every sample, all before its first period; the run matches the in-process
     split run of the same case: theta~ RMS within 0.05 deg (the protocol's quantisation:
-    1 mA, 2 pi/65536 rad, float32 drive parameters)."""
+    1 mA, 2 pi/65536 rad, float32 drive parameters) -- with the emulator's Python MCU (the
+    engine's drive-side kernels) and with the C firmware core as the MCU (software in the
+    loop: the C core's split current loop in float32)."""
     sc = _split_case(2.5)
-    r = run_can_loop(sc)
+    r = run_can_loop(sc, emulator_kw={"mcu": mcu})
     diag, emu = r.diagnostics, r.emulator_stats
     assert diag["control_split"] and diag["param_ok"] == diag["param_tx"] == 15
     assert emu["lockstep_timeouts"] == 0 and emu["faults"] == 0
@@ -62,7 +65,10 @@ def test_split_over_can_matches_the_in_process_split_run():
     ref = compute(run_scenario(sc, progress=False))
     th_ref = ref["observers"]["flux_measured"]["theta_err_rms_deg"]
     rpm = float(np.mean(r.truth[int(2.0 / sc.machine.ts_s) :, TR_WM])) * 60 / (2 * np.pi)
-    print(f"theta~ RMS over CAN {th_can:.3f} deg, in-process {th_ref:.3f} deg, {rpm:.2f} rpm")
+    print(
+        f"{mcu} MCU: theta~ RMS over CAN {th_can:.3f} deg, in-process {th_ref:.3f} deg, "
+        f"{rpm:.2f} rpm"
+    )
     assert ref["stable"]
     assert np.all(r.ctrl[k_win:, CO_MODE] == MODE_CLOSED_LOOP)
     assert abs(rpm - 60.0) < 1.0
