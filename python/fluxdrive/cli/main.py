@@ -27,6 +27,11 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
         "the main job: 2 % / 150 % load scenario through the ROS graph, recorded",
     ),
     "run": ("fluxdrive_bringup.cli", "main_run", "run any scenario through the ROS graph"),
+    "tune": (
+        "fluxdrive_bringup.cli",
+        "main_tune",
+        "hold a steady operating point (speed, load) paced until Ctrl-C, for live tuning",
+    ),
     "launch": ("fluxdrive_bringup.cli", "main_launch", "start a graph described in YAML"),
     "topic": ("fluxdrive_bringup.cli", "main_topic", "topic list|echo|hz"),
     "node": ("fluxdrive_bringup.cli", "main_node", "node list"),

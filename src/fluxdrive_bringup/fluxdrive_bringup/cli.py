@@ -22,6 +22,12 @@ def main_demo(argv: list[str]) -> int:
     return demo(argv)
 
 
+def main_tune(argv: list[str]) -> int:
+    from .tune import main
+
+    return main(argv)
+
+
 def main_topic(argv: list[str]) -> int:
     from .inspect_cli import main_topic as f
 

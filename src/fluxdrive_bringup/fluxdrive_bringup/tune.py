@@ -1,0 +1,176 @@
+"""`./fluxdrive tune`: a steady operating point (speed, load) held paced until Ctrl-C, for
+live tuning (`./fluxdrive param set ...`, `--scope`).
+
+The graph is the scenario's (fluxdrive_bringup.runs.graph_for_scenario) with the plant paced
+to the wall clock at `--rate` x real time and no end (duration_s 0), and no recorder (an
+indefinite run would fill the disk).  The hold point comes from a `tune_*` scenario
+(default config/scenarios/tune_60rpm_80load.yaml); `--speed-rpm` and `--load-pu` replace its
+speed and its load ramp (0.16 pu/s from 1 s on, the scenario's rate), written to
+`<out>/tune_scenario.yaml` for the nodes.  Loads above the card's rated torque are refused:
+the drive's I2t protection integrates (i/I_rated)^2 - 1 above rated current and would trip
+after i2t_limit_pu2s / (L^2 - 1) s of a load L (the paper scenario's 150 %: 8 s).  On Ctrl-C
+every node stops cleanly (the plant's last period with the PWM off) and the plant's pacing
+record (lateness p50/p99/max, holds, slips, watchdog trips) is printed as the last line
+(JSON)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+import time
+from pathlib import Path
+
+from fluxdrive.core.machine import ConfigError
+from fluxdrive.drive.scenario import REPO_ROOT, load_scenario, save_scenario, scenario_path
+
+from .domains import choose_domain
+from .launch import Launcher, add_scope
+from .runs import LAYOUTS, graph_for_scenario
+
+TUNE_SCENARIO = "tune_60rpm_80load"
+LOAD_RAMP_START_S = 1.0  # after the sensorless start (handover at ~0.3 s), as the scenario
+LOAD_RAMP_PU_PER_S = 0.16  # the scenario's ramp: 0.8 pu over 5 s
+DEFAULT_RATE = 0.05  # sim_paced's rate: 2 ms of wall time per 100 us period
+# the plant's watchdog in wall time: a controller late by less than this holds the plant
+# (time slips, counted as holds) instead of switching the PWM off; on a shared 2-core PC the
+# default 20 periods (40 ms at rate 0.05) trip several times a minute and the controller
+# latches its 'watchdog' fault within a minute (6 lost intervals in 10 s)
+DEFAULT_WATCHDOG_S = 1.0
+
+
+def hold_overrides(sc, speed_rpm: float | None, load_pu: float | None) -> tuple[dict, str]:
+    """Scenario overrides for the hold point, or ({}, reason) when it cannot be held."""
+    card = sc.machine
+    over: dict = {}
+    if speed_rpm is not None:
+        handover = sc.control.handover_rpm
+        if handover is None:
+            handover = 0.01 * card.rated_speed_rpm
+        if not (handover <= speed_rpm <= card.rated_speed_rpm):
+            return {}, (
+                f"--speed-rpm {speed_rpm:g}: hold between the handover speed "
+                f"({handover:g} rpm; below it the drive runs open-loop I-f) and the card's "
+                f"rated speed ({card.rated_speed_rpm:g} rpm)"
+            )
+        over["speed_rpm"] = float(speed_rpm)
+    if load_pu is not None:
+        if not (0.0 <= load_pu <= 1.0):
+            i2t = sc.control.i2t_limit_pu2s
+            trip = (
+                f"; the I2t protection would trip after {i2t / (load_pu**2 - 1.0):.1f} s"
+                if load_pu > 1.0
+                else ""
+            )
+            return {}, (
+                f"--load-pu {load_pu:g}: hold between 0 and the card's rated torque "
+                f"(1.0 = {card.rated_torque_nm:.3g} N m){trip}"
+            )
+        t1 = LOAD_RAMP_START_S + load_pu / LOAD_RAMP_PU_PER_S
+        over["load_pu"] = [[0.0, 0.0], [LOAD_RAMP_START_S, 0.0], [t1, float(load_pu)]]
+    return over, ""
+
+
+def pacing_record(log_dir: Path) -> dict | None:
+    """The plant's `pacing {json}` line from the graph's logs (logged when it stops)."""
+    for p in sorted(log_dir.glob("*.log")):
+        m = re.search(r"pacing (\{.*\})", p.read_text(errors="replace"))
+        if m:
+            return json.loads(m.group(1))
+    return None
+
+
+def main(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(
+        prog="fluxdrive tune", description=__doc__.split("\n\n")[0].replace("\n", " ")
+    )
+    ap.add_argument("--scenario", default=TUNE_SCENARIO, help="hold-point scenario (tune_*)")
+    ap.add_argument("--speed-rpm", type=float, help="hold speed [rpm] (default: the scenario's)")
+    ap.add_argument(
+        "--load-pu", type=float, help="hold load, of rated torque, <= 1 (default: the scenario's)"
+    )
+    ap.add_argument(
+        "--rate",
+        type=float,
+        default=DEFAULT_RATE,
+        help=f"rate_factor: simulated seconds per wall second (default {DEFAULT_RATE:g})",
+    )
+    ap.add_argument(
+        "--watchdog-s",
+        type=float,
+        default=DEFAULT_WATCHDOG_S,
+        help="PWM off when no duty command came for this much wall time (default "
+        f"{DEFAULT_WATCHDOG_S:g}; shorter: the controller lags behind)",
+    )
+    ap.add_argument("--layout", choices=LAYOUTS, default="composed")
+    ap.add_argument("--out", type=Path, help="folder for logs and graph (default runs/tune-<time>)")
+    ap.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default: the environment's)")
+    ap.add_argument("--quiet", action="store_true", help="hide the nodes' log lines")
+    ap.add_argument("--scope", action="store_true", help="start the live scope (prints its URL)")
+    ap.add_argument("--scope-port", type=int, default=8765, help="the scope's TCP port")
+    args = ap.parse_args(argv)
+    if not (1e-3 <= args.rate <= 10.0):
+        print(f"[tune] --rate {args.rate:g}: must be in [0.001, 10]", file=sys.stderr)
+        return 2
+    if not (1e-3 <= args.watchdog_s <= 60.0):
+        print(f"[tune] --watchdog-s {args.watchdog_s:g}: must be in [0.001, 60]", file=sys.stderr)
+        return 2
+    try:
+        base = scenario_path(args.scenario)
+        over, why = hold_overrides(load_scenario(base), args.speed_rpm, args.load_pu)
+        if why:
+            print(f"[tune] {why}", file=sys.stderr)
+            return 2
+        sc = load_scenario(base, overrides=over)
+        out = args.out or REPO_ROOT / "runs" / f"tune-{time.strftime('%Y%m%d-%H%M%S')}"
+        out.mkdir(parents=True, exist_ok=True)
+        sp = save_scenario(sc, out / "tune_scenario.yaml") if over else base
+    except ConfigError as exc:
+        print(f"[tune] {exc}", file=sys.stderr)
+        return 2
+    from fluxdrive_ros.security import precheck
+
+    refused = precheck()
+    if refused:
+        print(f"[tune] {refused}", file=sys.stderr)
+        return 2
+    dom, clash = choose_domain(args.domain_id, "tune")
+    if dom is None:
+        print(f"[tune] {clash}", file=sys.stderr)
+        return 2
+    extra: dict[str, dict[str, object]] = {
+        n: {"exit_on_done": False} for n in [*sc.observers, "controller"]
+    }
+    periods = max(1, round(args.watchdog_s * args.rate / sc.machine.ts_s))
+    extra["plant"] = {"mode": "paced", "rate_factor": args.rate, "watchdog_periods": periods}
+    g = graph_for_scenario(sp, sc, None, args.layout, 0.0, dom, extra=extra)
+    if args.scope:
+        add_scope(g, port=args.scope_port, observers=list(sc.observers))
+    speed = sc.speed_profile_rpm[-1, 1]
+    load = sc.load_profile_pu[-1, 1]
+    print(
+        f"[tune] {sc.name}: holding {speed:g} rpm at {load:g} pu brake load "
+        f"({load * sc.machine.rated_torque_nm:.3g} N m) after the start, paced at "
+        f"{args.rate:g} x real time (watchdog {args.watchdog_s:g} s of wall time = {periods} "
+        f"periods), ROS_DOMAIN_ID={dom}; Ctrl-C stops. Tune with e.g. "
+        f"./fluxdrive param set /controller speed_bandwidth_hz 5.0",
+        flush=True,
+    )
+    launcher = Launcher(g, quiet=args.quiet, log_dir=out / "logs")
+    if args.scope and args.quiet:
+        import threading
+
+        from .runs import _print_scope_url
+
+        threading.Thread(target=_print_scope_url, args=(launcher,), daemon=True).start()
+    code = launcher.run(None)
+    pacing = pacing_record(out / "logs")
+    if launcher.interrupted and code == 128 + int(launcher.stop_signal or 2):
+        code = 0  # Ctrl-C is how a tuning session ends
+    elif code == 0:
+        code = 1  # a hold has no end of its own: a graph that ended by itself failed
+    if code != 0:
+        print(f"[tune] the graph failed (exit {code}); logs in {out / 'logs'}", file=sys.stderr)
+    print(json.dumps({"scenario": sc.name, "speed_rpm": speed, "load_pu": load, **(pacing or {})}))
+    return code
