@@ -23,10 +23,11 @@ Modes
   the wall clock); the clock starts with the first duty command (up to
   `first_duty_timeout_s`, 30 s: processes starting).  The pacing record (lateness of every
   frame against its due time, holds, watchdog trips) is logged as one "pacing {json}" line
-  when the plant stops.  A live `rate_factor` change re-anchors the pacing clock at the
-  sample it takes effect (the simulated time reached so far is kept), so the next frame
-  follows at the new rate without a gap; a paced plant that publishes no frame for
-  `stall_warn_s` of wall time says so in one line.
+  when the plant stops, and while it runs the /diagnostics status "<node>: pacing" gives
+  the lateness p50/p99/max of the frames since its last report.  A live `rate_factor`
+  change re-anchors the pacing clock at the sample it takes effect (the simulated time
+  reached so far is kept), so the next frame follows at the new rate without a gap; a
+  paced plant that publishes no frame for `stall_warn_s` of wall time says so in one line.
 
 Safe state when the controller is gone (watchdogs):
 - lockstep: a duty command that has not come after `duty_timeout_s` of wall time (the
@@ -319,6 +320,9 @@ class PlantNode(FluxNode):
         )
         self.diag = diag.Diagnostics(self, pv["diagnostics_period_s"])
         self.diag.add("commands", self._diag_commands)
+        self._diag_from = 0  # paced: first lateness entry of the next /diagnostics window
+        if self.paced:
+            self.diag.add("pacing", self._diag_pacing)
         self.get_logger().info(
             f"scenario {sc.name} ({self.sc.source}): {self.n if self.n < 2**62 else 'inf'} "
             f"periods of {ds.ts * 1e6:.0f} us, seed {sc.seed}, {pv['mode']}"
@@ -627,9 +631,18 @@ class PlantNode(FluxNode):
         in periods of paced wall time), holds (the controller answered later than its two
         periods: time slipped) and watchdog trips."""
         lat = np.array(self.lateness)
-        per = self.ds.ts / self.pv["rate_factor"]
         if lat.size == 0:
             return {"frames": 0}
+        return {
+            **self._lateness_stats(lat),
+            "holds": self.n_holds,
+            "slips": self.n_slips,
+            "watchdog_trips": self.counts["watchdog_trips"],
+        }
+
+    def _lateness_stats(self, lat: np.ndarray) -> dict:
+        """Lateness of frames against their due time, in periods of paced wall time."""
+        per = self.ds.ts / self.pv["rate_factor"]
         p50, p99 = np.percentile(lat, [50, 99])
         return {
             "frames": int(lat.size),
@@ -638,10 +651,28 @@ class PlantNode(FluxNode):
             "lateness_p99_periods": float(p99 / per),
             "lateness_max_periods": float(lat.max() / per),
             "late_frames": int((lat > per).sum()),
+        }
+
+    def _diag_pacing(self) -> tuple[int, str, dict]:
+        """paced: the lateness of the frames since the last report (a window, so a long
+        session's record is not re-sorted every period), holds, slips and watchdog trips."""
+        lat = np.array(self.lateness[self._diag_from :])
+        self._diag_from = len(self.lateness)
+        totals = {
             "holds": self.n_holds,
             "slips": self.n_slips,
             "watchdog_trips": self.counts["watchdog_trips"],
         }
+        if lat.size == 0:
+            return diag.OK, "no frame since the last report", {"frames": 0, **totals}
+        st = self._lateness_stats(lat)
+        return (
+            diag.OK,
+            f"lateness p50 {st['lateness_p50_periods']:.2f} / p99 "
+            f"{st['lateness_p99_periods']:.2f} / max {st['lateness_max_periods']:.1f} periods "
+            f"over {st['frames']} frames",
+            {**st, **totals},
+        )
 
     def _diag_commands(self) -> tuple[int, str, dict]:
         c = self.counts
