@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import subprocess
 import sys
 import tempfile
 import time
@@ -410,7 +411,9 @@ observers, the controller and the recorder; composed layout by default.
   rtf             simulated time / wall time actually achieved
 
 Options: --duration S (simulated seconds, default 2), --rate R (default 1.0),
---layout composed|split|separate.  Progress on stderr; the last line is JSON."""
+--layout composed|split|separate, --background-load (one busy core: a child process
+spinning for the whole run, the realistic load of a shared bench PC; its figures are
+loaded figures).  Progress on stderr; the last line is JSON."""
 
 
 def bench_paced(argv: list[str]) -> dict:
@@ -424,12 +427,24 @@ def bench_paced(argv: list[str]) -> dict:
     ap.add_argument("--layout", choices=LAYOUTS, default="composed")
     ap.add_argument("--scenario", default=DEMO_SCENARIO)
     ap.add_argument("--domain-id", type=int)
+    ap.add_argument(
+        "--background-load",
+        action="store_true",
+        help="one busy core: a spinning child process for the whole run",
+    )
     args = ap.parse_args(argv)
     sp = scenario_path(args.scenario)
     tmp = Path(tempfile.mkdtemp(prefix="fluxdrive-bench-paced-"))
+    spinner = (
+        subprocess.Popen([sys.executable, "-c", "while True: pass"])
+        if args.background_load
+        else None
+    )
     try:
         _say(
-            f"paced graph ({args.layout}) at rate {args.rate:g}: {args.duration:g} s simulated ..."
+            f"paced graph ({args.layout}) at rate {args.rate:g}"
+            + (", one busy core in the background" if args.background_load else "")
+            + f": {args.duration:g} s simulated ..."
         )
         r = run_graph(
             sp,
@@ -453,12 +468,16 @@ def bench_paced(argv: list[str]) -> dict:
             )
         p = json.loads(m.group(1))
     finally:
+        if spinner is not None:
+            spinner.kill()
+            spinner.wait()
         if "p" in locals():
             shutil.rmtree(tmp, ignore_errors=True)
     wall_min = (r["loop_wall_s"] or r["wall_s"]) / 60.0
     res = {
         "layout": args.layout,
         "rate_factor": args.rate,
+        "background_load": args.background_load,
         "observers": 4,
         "recorded": True,
         "frames": p["frames"],
