@@ -120,6 +120,7 @@ def test_expected_interfaces_exist():
     assert MSG_NAMES == sorted(
         [
             "ControllerState",
+            "CurrentReference",
             "DriveFault",
             "DutyCommand",
             "FreqResponsePoint",

@@ -32,7 +32,8 @@ response; the bridge calls them as node /fluxdrive_operator (the operator the co
 
 Time: the graph's `/clock` (`--clock`, e.g. /bench_a/clock for a namespaced drive) is
 broadcast as the server time, and every message goes out with the newest /clock time as its
-log time, so a viewer's timeline is the drive's sample time; without a /clock (a bench) the
+log time (a stamped message: its own header stamp, the same sample time without racing the
+clock), so a viewer's timeline is the drive's sample time; without a /clock (a bench) the
 wall clock at reception.
 
 Cost: every subscribed per-sample topic of a 10 kHz lockstep graph crosses DDS into this
@@ -45,6 +46,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import struct
 import sys
 import threading
 import time
@@ -108,6 +110,7 @@ class Bridge:
         self.operator = None  # Session as /fluxdrive_operator (service calls), on demand
         self.operator_lock = threading.Lock()
         self.sim_ns: int | None = None  # newest /clock [ns]
+        self._clock_seen = False  # a publisher of the clock topic was seen
         self._t_time = 0.0
         self.server = foxglove.start_server(
             name="fluxdrive",
@@ -187,9 +190,17 @@ class Bridge:
                 return
             ch, mtype = self.channels[topic]
             log = ch.log
+            fields = list(msg_class(mtype).get_fields_and_field_types().items())
+            stamped = bool(fields) and fields[0] == ("header", "std_msgs/Header")
 
             def cb(data: bytes) -> None:
                 t = self.sim_ns  # the drive's sample time when it has a /clock
+                if stamped and len(data) >= 12 and self._graph_has_clock():
+                    # a sim graph: a stamped message's own stamp is its sample time on the
+                    # /clock's time base; the newest /clock would race it (DDS delivers the
+                    # two topics in any order, and a lockstep graph runs ahead of its clock)
+                    sec, nsec = struct.unpack_from("<iI" if data[1] == 1 else ">iI", data, 4)
+                    t = sec * 1_000_000_000 + nsec
                 log(data, log_time=time.time_ns() if t is None else t)
 
             self.subs[topic] = self.node.create_subscription(
@@ -206,6 +217,14 @@ class Bridge:
                 self.node.destroy_subscription(self.subs.pop(topic))
 
     # ------------------------------------------------------------------ time
+    def _graph_has_clock(self) -> bool:
+        """True once a publisher of the graph's clock topic is known (sim graphs)."""
+        if not self._clock_seen:
+            self._clock_seen = (
+                self.sim_ns is not None or self.node.count_publishers(self.args.clock) > 0
+            )
+        return self._clock_seen
+
     def _on_clock(self, msg) -> None:
         self.sim_ns = msg.clock.sec * 1_000_000_000 + msg.clock.nanosec
         now = time.monotonic()
