@@ -830,15 +830,22 @@ class DriveEmulator:
 
     # ------------------------------------------------------------------ running
 
-    def serve(self, until: threading.Event, poll_s: float = 0.01) -> None:
+    def serve(
+        self, until: threading.Event, poll_s: float = 0.01, until_armed: bool = False
+    ) -> None:
         """Answer the bus (ARM_MODE, DRIVE_PARAM, ...) without running periods, until
-        `until` is set: the drive before its first period (e.g. configured by the host)."""
+        `until` is set (or, with `until_armed`, the host armed the drive): the drive before
+        its first period (e.g. configured by the host)."""
         while not until.is_set() and not self._stop.is_set():
             self._drain(poll_s)
             if self._fw is not None:  # the C core answers between interrupts, like this
                 while self._fw_rx:
                     self._fw.handle_now(self._fw_rx.popleft())
                 self._fw_send()
+                if until_armed and self._fw.state()["armed"]:
+                    return
+            elif until_armed and self.armed:
+                return
 
     def run(self, n_periods: int, realtime: bool = False) -> None:
         """Run ``n_periods`` periods (or until :meth:`stop`). ``realtime`` paces the

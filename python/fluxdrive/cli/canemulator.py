@@ -73,8 +73,31 @@ def main(argv: list[str] | None = None) -> int:
         default=0.0,
         help="wait up to this long for the host's first HOST_HEARTBEAT [s]",
     )
+    ap.add_argument(
+        "--wait-armed",
+        type=float,
+        default=0.0,
+        help="answer the bus without running periods until the host arms the drive, up to "
+        "this long [s] (a lockstep run then starts armed and configured)",
+    )
+    ap.add_argument(
+        "--mcu",
+        choices=("python", "c"),
+        default="python",
+        help="the drive's MCU: the engine's kernels (python) or the C firmware core (c)",
+    )
+    ap.add_argument(
+        "--record-out",
+        default=None,
+        help="write the plant's true state per PWM period (TR_* rows) to this .npy file",
+    )
     a = ap.parse_args(sys.argv[1:] if argv is None else argv)
-    overrides = {"duration_s": a.duration} if a.duration else None
+    overrides = None
+    if a.duration:
+        overrides = {"duration_s": a.duration}
+        if load_scenario(scenario_path(a.scenario)).steady_window_s[1] > a.duration + 1e-9:
+            # a steady window beyond the end becomes the second half of the run
+            overrides["steady_window_s"] = [0.5 * a.duration, a.duration]
     sc = load_scenario(scenario_path(a.scenario), overrides=overrides)
     kw: dict[str, Any] = {"interface": a.interface, "channel": a.channel, "fd": a.layout == "fd"}
     if a.interface == "udp_multicast":
@@ -98,6 +121,8 @@ def main(argv: list[str] | None = None) -> int:
         lockstep_wait_s=a.lockstep_wait,
         layout=a.layout,
         decimation=a.decimation,
+        mcu=a.mcu,
+        record=a.record_out is not None,
     )
     signal.signal(signal.SIGTERM, lambda *_: emu._stop.set())
     signal.signal(signal.SIGINT, lambda *_: emu._stop.set())
@@ -123,11 +148,26 @@ def main(argv: list[str] | None = None) -> int:
                     rc = 1
                     break
                 emu._drain(0.05)
+        if rc == 0 and a.wait_armed > 0:
+            import threading
+
+            give_up = threading.Event()
+            timer = threading.Timer(a.wait_armed, give_up.set)
+            timer.start()
+            emu.serve(give_up, until_armed=True)
+            timer.cancel()
+            if give_up.is_set():
+                print(f"can-emulator: not armed within {a.wait_armed:g} s", file=sys.stderr)
+                rc = 1
         if rc == 0:
             emu.run(n, realtime=a.free_running)
             emu._drain(0.05)  # a disarm sent while we stopped
     finally:
         bus.shutdown()
+    if a.record_out is not None and emu.rec_truth:
+        import numpy as np
+
+        np.save(a.record_out, np.vstack(emu.rec_truth))
     out = {
         "periods": emu.k,
         "armed": emu.armed,

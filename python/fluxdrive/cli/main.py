@@ -27,6 +27,11 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
         "the main job: 2 % / 150 % load scenario through the ROS graph, recorded",
     ),
     "run": ("fluxdrive_bringup.cli", "main_run", "run any scenario through the ROS graph"),
+    "bench": (
+        "fluxdrive_bringup.cli",
+        "main_bench",
+        "bench --sil: the C drive on a CAN bus under the whole ROS graph",
+    ),
     "tune": (
         "fluxdrive_bringup.cli",
         "main_tune",

@@ -36,6 +36,7 @@ from __future__ import annotations
 import math
 import sys
 import threading
+import time
 
 import numpy as np
 import rclpy
@@ -218,6 +219,16 @@ def param_table() -> list[P]:
             "refused with the reason while a fault is latched)",
         ),
         P(
+            "arm_wait_s",
+            0.0,
+            "with armed at start: keep trying to arm this long, for a drive that comes up on "
+            "the bus after this node (0: one attempt)",
+            "s",
+            0.0,
+            600.0,
+            read_only=True,
+        ),
+        P(
             "diagnostics_period_s",
             1.0,
             "period of the /diagnostics status",
@@ -322,7 +333,11 @@ class BenchBridgeNode(Node):
         self._thread = threading.Thread(target=self._can_loop, name="can-rx", daemon=True)
         self._thread.start()
         if arm_at_start:
+            deadline = time.monotonic() + float(pv["arm_wait_s"])
             ok, why = self._arm()
+            while not ok and time.monotonic() < deadline:
+                time.sleep(0.2)
+                ok, why = self._arm()
             self.get_logger().info(f"arm at start: {ok} ({why})")
 
     def _report_link(self) -> None:

@@ -16,6 +16,12 @@ def main_run(argv: list[str]) -> int:
     return run(argv)
 
 
+def main_bench(argv: list[str]) -> int:
+    from .sil import main
+
+    return main(argv)
+
+
 def main_demo(argv: list[str]) -> int:
     from .runs import main_demo as demo
 

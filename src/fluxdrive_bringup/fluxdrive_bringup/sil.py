@@ -1,0 +1,211 @@
+"""`./fluxdrive bench --sil [SCENARIO]`: the whole bench path in one command, software in the
+loop.
+
+The scenario's lockstep graph (runs.graph_for_scenario) with its plant replaced by the bench:
+- the drive: `./fluxdrive can-emulator --mcu c` (the C firmware core as the MCU, lockstep,
+  the project's plant in that process), on python-can's `udp_multicast` bus with a port of
+  its own and TTL 0 (the datagrams never leave this host); it is the graph's required
+  process: its last period ends the run;
+- the bench_bridge node (control_split per --mode, decimation D) on the same bus;
+- the observer node(s), the controller (control_mode, decimation) and the recorder, as in
+  `./fluxdrive run`.
+The bag is read back like `run`'s; the plant's true state (the drive process's, written
+to truth.npy beside the bag, sampled at the decimated sample instants) fills the truth rows
+the bridge cannot publish, and the same metric table is printed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import random
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+from fluxdrive.drive.scenario import REPO_ROOT, load_scenario, scenario_path
+
+from fluxdrive_ros import topics
+
+from .domains import choose_domain
+from .launch import Launcher, NodeSpec
+from .recorder import DEFAULT_TOPICS
+from .runs import graph_for_scenario, shorten
+
+MODES = ("host", "split")
+
+
+def sil_graph(sp: Path, sc, bag: Path, *, mode: str, decimation: int, domain_id: int, truth_out):
+    """The lockstep graph of `sc` with the plant replaced by the C drive on a udp_multicast
+    bus and the bench_bridge node."""
+    rnd = random.Random(time.monotonic_ns())
+    group = f"239.255.{rnd.randint(1, 254)}.{rnd.randint(1, 254)}"
+    port = rnd.randint(20000, 60000)
+    d = int(decimation)
+    ctrl = {"control_mode": mode, "decimation": d}
+    extra = {"controller": ctrl, **{nm: {"decimation": d} for nm in sc.observers}}
+    g = graph_for_scenario(sp, sc, bag, "separate", None, domain_id, extra=extra)
+    g.name = f"{sc.name}-sil"
+    # the bridge's sample stamps are seq * D * ts_s on the wall clock's graph: no /clock
+    for n in g.nodes:
+        n.parameters["use_sim_time"] = False
+        if n.node == "recorder":
+            n.parameters["exit_on_done"] = False  # the drive's exit ends the run
+            n.parameters.pop("duration_s", None)
+            if mode == "split":  # the controller's answers are current references
+                n.parameters["topics"] = [*DEFAULT_TOPICS, topics.rel(topics.CURRENT_REF)]
+    g.nodes = [n for n in g.nodes if n.node != "plant"]
+    emulator = NodeSpec(
+        name="drive",
+        cmd=[
+            sys.executable,
+            "-m",
+            "fluxdrive.cli",
+            "can-emulator",
+            str(sp),
+            "--mcu",
+            "c",
+            "--interface",
+            "udp_multicast",
+            "--channel",
+            group,
+            "--port",
+            str(port),
+            "--hop-limit",
+            "0",
+            "--decimation",
+            str(d),
+            "--duration",
+            repr(float(sc.duration_s)),
+            "--lockstep-wait",
+            "1.0",
+            "--wait-armed",
+            "120",
+            "--record-out",
+            str(truth_out),
+        ],
+        required=True,
+    )
+    bridge_params = {
+        "interface": "udp_multicast",
+        "channel": group,
+        "decimation": d,
+        "control_split": mode == "split",
+        "scenario": str(sp),
+        "ts_s": float(sc.machine.ts_s),
+        "armed": True,
+        "stale_timeout_s": 30.0,
+        "arm_wait_s": 120.0,
+    }
+    ros_args = [
+        f"{k}:={str(v).lower() if isinstance(v, bool) else v}" for k, v in bridge_params.items()
+    ]
+    bridge = NodeSpec(
+        name="bench_bridge",
+        cmd=[
+            sys.executable,
+            "-m",
+            "bench_bridge.bridge_node",
+            "--ros-args",
+            *[a for kv in ros_args for a in ("-p", kv)],
+        ],
+    )
+    g.nodes = [emulator, bridge, *g.nodes]
+    g.env["CAN_CONFIG"] = json.dumps({"port": port, "hop_limit": 0})
+    return g
+
+
+def main(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(prog="fluxdrive bench", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--sil", action="store_true", required=True, help="software in the loop")
+    ap.add_argument("scenario", nargs="?", default="paper_2pct_150load")
+    ap.add_argument("--mode", choices=MODES, default="split", help="where the current loop runs")
+    ap.add_argument("--decimation", type=int, default=4, help="PWM periods per sample")
+    ap.add_argument("--duration", type=float, help="simulate only this long [s]")
+    ap.add_argument("--bag", type=Path, help="bag folder (default bags/<name>-sil-<time>)")
+    ap.add_argument("--domain-id", type=int)
+    ap.add_argument("--timeout", type=float, default=600.0)
+    ap.add_argument("--quiet", action="store_true")
+    args = ap.parse_args(argv)
+    if not 1 <= args.decimation <= 64:
+        print("[bench] --decimation must be in 1..64", file=sys.stderr)
+        return 2
+    sp = scenario_path(args.scenario)
+    sc = load_scenario(sp)
+    shorten(sc, args.duration)
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    bag = args.bag or REPO_ROOT / "bags" / f"{sc.name}-sil-{stamp}"
+    if Path(bag).exists():
+        print(f"[bench] bag directory {bag} exists already; choose a new one (--bag)")
+        return 2
+    dom, why = choose_domain(args.domain_id, "bench")
+    if dom is None:
+        print(f"[bench] {why}", file=sys.stderr)
+        return 2
+    out = Path(str(bag) + "-report")
+    out.mkdir(parents=True, exist_ok=True)
+    truth_out = out / "truth.npy"
+    g = sil_graph(
+        sp, sc, bag, mode=args.mode, decimation=args.decimation, domain_id=dom, truth_out=truth_out
+    )
+    (out / "graph.yaml").write_text(yaml.safe_dump(g.to_dict(), sort_keys=False))
+    print(
+        f"[bench] {sc.name}: C drive + plant, {args.mode} mode, D={args.decimation}, "
+        f"{sc.duration_s:g} s, ROS_DOMAIN_ID={dom}; graph: {out / 'graph.yaml'}",
+        flush=True,
+    )
+    t0 = time.perf_counter()
+    code = Launcher(g, quiet=args.quiet, progress=False, log_dir=out / "logs").run(args.timeout)
+    wall = time.perf_counter() - t0
+    if code != 0 or not truth_out.exists():
+        print(f"[bench] the bench failed (exit {code}); logs in {out / 'logs'}", file=sys.stderr)
+        return code or 1
+    res, arr = result_from_sil_bag(bag, sc, args.decimation, truth_out, wall)
+    # truth: from the drive's process; duty: split mode answers with current references
+    skip = {"truth", "duty"} if args.mode == "split" else {"truth"}
+    miss = {k: v for k, v in arr["missing"].items() if v and k not in skip}
+    print(
+        f"[bench] {arr['n']} samples in {wall:.1f} s wall"
+        + (f"; MISSING samples: {miss}" if miss else "; every sample of every topic present")
+    )
+    from fluxdrive.analysis.report import report
+
+    m = report(res, out, plots=False)
+    print(f"[bench] bag: {bag}")
+    return 0 if m.get("stable", True) and not miss else 1
+
+
+def result_from_sil_bag(bag: Path, sc, decimation: int, truth_npy: Path, wall_s: float = 0.0):
+    """SimResult at the sample rate (D * ts_s) from a SIL bag and the drive's true state."""
+    from fluxdrive.drive.control import CO_W_REF
+    from fluxdrive.drive.plant import TR_T
+    from fluxdrive.drive.sim import DriveSetup, SimResult
+    from fluxdrive.io.bagio import load_run_arrays
+
+    d = int(decimation)
+    ds = DriveSetup(sc)
+    arr = load_run_arrays(bag, ds.ts * d, names=list(sc.observers))
+    n = arr["n"]
+    truth = np.load(truth_npy)[::d][:n]
+    arr["truth"][: len(truth)] = truth
+    arr["truth"][:, TR_T] = np.arange(n) * ds.ts * d
+    w_ref = arr["ctrl"][:, CO_W_REF].copy()
+    bad = ~np.isfinite(w_ref)
+    w_ref[bad] = 0.0
+    res = SimResult(
+        sc,
+        list(sc.observers),
+        sc.driving,
+        np.arange(n) * ds.ts * d,
+        arr["frames"],
+        arr["truth"],
+        arr["est"],
+        arr["ctrl"],
+        w_ref,
+        ds.id_inj[::d][:n],
+        ds.segments,
+        wall_s,
+    )
+    return res, arr
