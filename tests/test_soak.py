@@ -13,7 +13,6 @@ import sys
 from pathlib import Path
 
 import pytest
-
 from fluxdrive.io.bagio import bag_counts
 from fluxdrive.io.topics import FRAME
 
