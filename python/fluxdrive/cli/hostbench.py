@@ -47,7 +47,12 @@ from fluxdrive.drive.control import CO_ID, CO_ID_REF
 from fluxdrive.drive.scenario import load_scenario, scenario_path
 from fluxdrive.drive.sim import run_scenario
 
-__all__ = ["bench_bench", "latency_figures", "split_current_bandwidth_hz"]
+__all__ = [
+    "bench_bench",
+    "current_sweep_scenario",
+    "latency_figures",
+    "split_current_bandwidth_hz",
+]
 
 RESULTS_PATH = ROOT / "results" / "can" / "bench.json"
 SWEEP_HZ = [200.0, 500.0, 700.0, 850.0, 1000.0, 1200.0, 1500.0]
@@ -88,17 +93,29 @@ def _live_run(sc: Any, decimation: int, budget_us: float, watchdog_s: float) -> 
     return out
 
 
-def split_current_bandwidth_hz(
-    decimation: int = 4, deadtime_comp: bool = True, mode: str = "split"
-) -> float:
-    """-3 dB of i_d/i_d* (drive frame) with Fig. 17's protocol, in-process."""
+def current_sweep_scenario(
+    decimation: int = 4,
+    deadtime_comp: bool = True,
+    mode: str = "split",
+    freqs_hz: list[float] | None = None,
+):
+    """Fig. 17's d-axis current sweep (10 % speed, flux observer on measured voltages) in
+    `mode` at `decimation`, the drive's deadtime feed-forward on or off."""
     from fluxdrive.experiments.paper import _fr_scenario
 
-    sc = _fr_scenario("flux_measured", SWEEP_HZ, "current")
+    sc = _fr_scenario("flux_measured", freqs_hz or SWEEP_HZ, "current")
     kw: dict[str, Any] = {"mode": mode, "decimation": decimation if mode == "split" else 1}
     if deadtime_comp:
         kw["deadtime_comp_s"] = sc.machine.deadtime_s
     sc.control = dataclasses.replace(sc.control, **kw).check(sc.machine)
+    return sc
+
+
+def split_current_bandwidth_hz(
+    decimation: int = 4, deadtime_comp: bool = True, mode: str = "split"
+) -> float:
+    """-3 dB of i_d/i_d* (drive frame) with Fig. 17's protocol, in-process."""
+    sc = current_sweep_scenario(decimation, deadtime_comp, mode)
     r = run_scenario(sc, progress=False)
     fr = analyse(r.ctrl[:, CO_ID], r.ctrl[:, CO_ID_REF], r.segments["current_d"], sc.machine.ts_s)
     return round(float(fr["bandwidth_hz"]), 1)

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import random
 import sys
 import time
@@ -35,6 +36,7 @@ from .recorder import DEFAULT_TOPICS
 from .runs import graph_for_scenario, shorten
 
 MODES = ("host", "split")
+SWEEP_RESULTS = REPO_ROOT / "results" / "can" / "sil_current_sweep.json"
 
 
 def sil_graph(sp: Path, sc, bag: Path, *, mode: str, decimation: int, domain_id: int, truth_out):
@@ -128,22 +130,45 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--domain-id", type=int)
     ap.add_argument("--timeout", type=float, default=600.0)
     ap.add_argument("--quiet", action="store_true")
+    ap.add_argument(
+        "--sweep-current",
+        action="store_true",
+        help="instead of SCENARIO: Fig. 17's d-axis current sweep at 10 %% speed through the "
+        "whole bench (split mode); prints the -3 dB bandwidth, last line JSON, and writes "
+        f"{SWEEP_RESULTS.relative_to(REPO_ROOT)}",
+    )
     args = ap.parse_args(argv)
     if not 1 <= args.decimation <= 64:
         print("[bench] --decimation must be in 1..64", file=sys.stderr)
         return 2
+    if args.sweep_current:
+        return sweep_current(args)
     sp = scenario_path(args.scenario)
     sc = load_scenario(sp)
     shorten(sc, args.duration)
+    code, res, arr, out = run_sil(sp, sc, args)
+    if res is None:
+        return code
+    from fluxdrive.analysis.report import report
+
+    m = report(res, out, plots=False)
+    print(f"[bench] bag: {args.bag_used}")
+    return 0 if m.get("stable", True) and not arr["missing_real"] else 1
+
+
+def run_sil(sp: Path, sc, args):
+    """Run `sc` (saved at `sp`) on the SIL bench; (exit code, SimResult or None, the bag's
+    arrays, report folder). Missing samples are printed and kept in arr["missing_real"]."""
     stamp = time.strftime("%Y%m%d-%H%M%S")
     bag = args.bag or REPO_ROOT / "bags" / f"{sc.name}-sil-{stamp}"
+    args.bag_used = bag
     if Path(bag).exists():
         print(f"[bench] bag directory {bag} exists already; choose a new one (--bag)")
-        return 2
+        return 2, None, None, None
     dom, why = choose_domain(args.domain_id, "bench")
     if dom is None:
         print(f"[bench] {why}", file=sys.stderr)
-        return 2
+        return 2, None, None, None
     out = Path(str(bag) + "-report")
     out.mkdir(parents=True, exist_ok=True)
     truth_out = out / "truth.npy"
@@ -161,7 +186,7 @@ def main(argv: list[str]) -> int:
     wall = time.perf_counter() - t0
     if code != 0 or not truth_out.exists():
         print(f"[bench] the bench failed (exit {code}); logs in {out / 'logs'}", file=sys.stderr)
-        return code or 1
+        return code or 1, None, None, None
     res, arr = result_from_sil_bag(bag, sc, args.decimation, truth_out, wall)
     # truth: from the drive's process; duty: split mode answers with current references
     skip = {"truth", "duty"} if args.mode == "split" else {"truth"}
@@ -170,11 +195,59 @@ def main(argv: list[str]) -> int:
         f"[bench] {arr['n']} samples in {wall:.1f} s wall"
         + (f"; MISSING samples: {miss}" if miss else "; every sample of every topic present")
     )
-    from fluxdrive.analysis.report import report
+    arr["missing_real"] = miss
+    return 0, res, arr, out
 
-    m = report(res, out, plots=False)
-    print(f"[bench] bag: {bag}")
-    return 0 if m.get("stable", True) and not miss else 1
+
+def sweep_current(args) -> int:
+    """Fig. 17's d-axis sweep in split mode through the whole bench: i_d (the host's Park of
+    the drive's samples, in the frame of the reference it sends) against i_d* at D*Ts, over
+    the sweep frequencies below the sample rate's Nyquist frequency."""
+    from fluxdrive.analysis.freqresp import analyse
+    from fluxdrive.cli.hostbench import SWEEP_HZ, current_sweep_scenario, split_current_bandwidth_hz
+    from fluxdrive.core.excitation import Segment
+    from fluxdrive.drive.control import CO_ID, CO_ID_REF
+    from fluxdrive.drive.scenario import save_scenario
+
+    d = int(args.decimation)
+    probe = current_sweep_scenario(d)
+    nyquist_hz = 0.5 * probe.machine.pwm_hz / d
+    freqs = [f for f in SWEEP_HZ if f < nyquist_hz]
+    sc = current_sweep_scenario(d, freqs_hz=freqs)
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    work = REPO_ROOT / "runs" / f"sil-current-sweep-{stamp}"
+    work.mkdir(parents=True, exist_ok=True)
+    sp = save_scenario(sc, work / "current_sweep.yaml")
+    sc = load_scenario(sp)
+    args.mode = "split"
+    args.bag = args.bag or work / "bag"
+    code, res, arr, _ = run_sil(sp, sc, args)
+    if res is None:
+        return code
+    ctrl = arr["ctrl"]
+    segs = [
+        Segment(s.frequency_hz, -(-s.k_start // d), s.k_end // d) for s in res.segments["current_d"]
+    ]
+    fr = analyse(ctrl[:, CO_ID], ctrl[:, CO_ID_REF], segs, sc.machine.ts_s * d)
+    bw = float(fr["bandwidth_hz"])
+    passed = [f for f, g in zip(fr["frequency_hz"], fr["gain_db"], strict=True) if g > -3.0]
+    out = {
+        "decimation": d,
+        "sample_rate_hz": round(sc.machine.pwm_hz / d, 1),
+        "frequency_hz": fr["frequency_hz"],
+        "gain_db": [round(g, 2) for g in fr["gain_db"]],
+        "coherence": [round(c, 3) for c in fr["coherence"]],
+        # -3 dB crossing; none within the swept band: the bandwidth is at least its top
+        "graph_bandwidth_hz": round(bw, 1) if math.isfinite(bw) else None,
+        "graph_bandwidth_at_least_hz": round(bw, 1) if math.isfinite(bw) else max(passed),
+        "in_process_bandwidth_hz": split_current_bandwidth_hz(d, True),
+        "missing_samples": arr["missing_real"],
+        "bag": str(args.bag_used),
+    }
+    SWEEP_RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    SWEEP_RESULTS.write_text(json.dumps(out, indent=2) + "\n")
+    print(json.dumps(out))
+    return 0 if not arr["missing_real"] else 1
 
 
 def result_from_sil_bag(bag: Path, sc, decimation: int, truth_npy: Path, wall_s: float = 0.0):
