@@ -52,7 +52,7 @@ from pathlib import Path
 from fluxdrive.drive.scenario import REPO_ROOT
 from fluxdrive.io.messages import seq_offset
 from fluxdrive_ros.intra import RawSubscription
-from fluxdrive_ros.params import P, declare
+from fluxdrive_ros.params import P, declare, input_durability_param
 from fluxdrive_ros.runner import FluxNode, main_node
 
 import flux_drive_msgs.msg as fm
@@ -179,16 +179,7 @@ class RecorderNode(FluxNode):
                     3600.0,
                     read_only=True,
                 ),
-                P(
-                    "input_durability",
-                    "volatile",
-                    "durability of the sample-topic "
-                    "subscriptions: volatile (matches any publisher) or transient_local "
-                    "(also receives what was published before the match; the lockstep sim "
-                    "graphs use it)",
-                    choices=qos.INPUT_DURABILITY_CHOICES,
-                    read_only=True,
-                ),
+                input_durability_param(),
                 P(
                     "flush_interval_s",
                     0.5,

@@ -137,6 +137,38 @@ def config_params(
     return out
 
 
+def input_durability_param() -> P:
+    """The durability of a node's sample-topic readers (observer, controller, recorder)."""
+    from fluxdrive_ros import qos
+
+    return P(
+        "input_durability",
+        "volatile",
+        "durability of the sample-topic subscriptions: volatile (matches any publisher) or "
+        "transient_local (also receives what was published before the match; the lockstep "
+        "sim graphs use it)",
+        choices=qos.INPUT_DURABILITY_CHOICES,
+        read_only=True,
+    )
+
+
+def frame_input_params() -> list[P]:
+    """What every node stepping on PhaseFrames declares: its input topic, the readers'
+    durability, and whether it exits once the run's last frame is processed."""
+    from fluxdrive_ros import topics
+
+    return [
+        P(
+            "frame_topic",
+            topics.rel(topics.FRAME),
+            "PhaseFrame input topic (relative: in the drive's namespace)",
+            read_only=True,
+        ),
+        input_durability_param(),
+        P("exit_on_done", True, "exit once the frame named by /drive/done is processed"),
+    ]
+
+
 def declare(node, specs: list[P]) -> dict[str, Any]:
     """Declare every parameter of `specs` on `node` and return {name: value}."""
     overrides = getattr(node, "_parameter_overrides", {})

@@ -315,23 +315,7 @@ class ControllerNode(FluxNode):
         common = declare(
             self,
             [
-                P(
-                    "frame_topic",
-                    topics.rel(topics.FRAME),
-                    "PhaseFrame input topic (relative: in the drive's namespace)",
-                    read_only=True,
-                ),
-                P(
-                    "input_durability",
-                    "volatile",
-                    "durability of the sample-topic "
-                    "subscriptions: volatile (matches any publisher) or transient_local "
-                    "(also receives what was published before the match; the lockstep sim "
-                    "graphs use it)",
-                    choices=qos.INPUT_DURABILITY_CHOICES,
-                    read_only=True,
-                ),
-                P("exit_on_done", True, "exit once the frame named by /drive/done is processed"),
+                *params.frame_input_params(),
                 P(
                     "frame_id",
                     "",
