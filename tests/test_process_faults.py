@@ -531,6 +531,16 @@ def test_sigkill_recorder_and_writer_then_bag_recover(tmp_path):
     g = graph_dict(bag, processes={}, plant={"progress_interval_s": 0.05})
     run = Run(g, domain(5), tmp_path).start()
     run.wait_frames(8000)
+    # kill once complete chunks are on disk (how many frames that takes depends on how fast
+    # this machine runs the graph and the writer): at least 1 MB, so the cut below leaves some
+    mcap_file = bag / "bag.mcap"
+    t_end = time.monotonic() + 60.0
+    while time.monotonic() < t_end and run.thread.is_alive():
+        if mcap_file.exists() and mcap_file.stat().st_size >= 1_000_000:
+            break
+        time.sleep(0.02)
+    else:
+        pytest.fail(f"no 1 MB of complete chunks in {mcap_file} within 60 s:\n{run.text()}")
     pid = run.pid("drive")
     os.killpg(pid, signal.SIGKILL)
     code = run.join()
