@@ -584,7 +584,7 @@ def test_sigkill_recorder_and_writer_then_bag_recover(tmp_path):
     # a file cut inside its last chunk (killed while writing it): that chunk is dropped
     import shutil
 
-    from fluxdrive_bringup.bagrecover import recover
+    from fluxdrive.io.bagrecover import recover
 
     cut = tmp_path / "cut"
     cut.mkdir()
@@ -674,7 +674,7 @@ def test_write_failure_midrun_stops_recording_cleanly(tmp_path):
     assert f"bag {bag} was not finalised" in out
     assert (bag / "bag.mcap").stat().st_size <= limit
 
-    from fluxdrive_bringup.bagrecover import recover
+    from fluxdrive.io.bagrecover import recover
 
     rec_ = recover(bag, tmp_path / "recovered")
     seqs, _, _, _ = read_frames(tmp_path / "recovered")

@@ -42,8 +42,8 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "node": ("fluxdrive_bringup.cli", "main_node", "node list"),
     "param": ("fluxdrive_bringup.cli", "main_param", "param get|set|dump"),
     "bag": (
-        "fluxdrive_bringup.cli",
-        "main_bag",
+        "fluxdrive.cli.bag",
+        "main",
         "bag recover BAG_DIR [--out DIR]: a valid bag from an unfinalised one",
     ),
     "fault": ("fluxdrive_bringup.cli", "main_fault", "fault reset: clear a latched drive fault"),

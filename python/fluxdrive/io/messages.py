@@ -446,6 +446,11 @@ def seq_offset(data: bytes) -> int:
     return off + (-(off - 4)) % 8
 
 
+def message_seq(data: bytes) -> int:
+    """seq of a serialised GRAPH_TYPES message, without decoding the rest."""
+    return _U64.unpack_from(data, seq_offset(data))[0]
+
+
 def graph_id_of(data: bytes) -> int:
     """graph_id of a serialised GRAPH_TYPES message, without decoding the rest."""
     return _U64.unpack_from(data, seq_offset(data) + 8)[0]

@@ -1,5 +1,5 @@
 """Graph commands of `./fluxdrive` (dispatched from fluxdrive.cli): launch, run, demo,
-topic, node, param, bag.  Everything here may import ROS; the in-process tools never do."""
+topic, node, param, ...  Everything here may import ROS; the in-process tools never do."""
 
 from __future__ import annotations
 
@@ -50,12 +50,6 @@ def main_param(argv: list[str]) -> int:
     from .inspect_cli import main_param as f
 
     return f(argv)
-
-
-def main_bag(argv: list[str]) -> int:
-    from .bagrecover import main
-
-    return main(argv)
 
 
 def main_soak(argv: list[str]) -> int:

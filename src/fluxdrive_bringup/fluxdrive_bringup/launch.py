@@ -609,7 +609,7 @@ class Launcher:
     def preflight(self) -> None:
         """Before anything starts: every recorder's bag directory must be new and writable,
         with the recorder's min_free_mb free (ConfigError naming the node otherwise)."""
-        from .bagwriter import check_bag_target
+        from fluxdrive.io.bagwriter import check_bag_target
 
         for n in self.g.nodes:
             if not n.is_recorder:

@@ -6,7 +6,7 @@ is lost).  In a process shared with the drive nodes, their topics arrive through
 intra-process bus (fluxdrive_ros.intra); from other processes over DDS.
 
 Writing: a callback only appends the framed bytes to a buffer; a feeder thread ships the
-buffer every 20 ms to the bag-writer helper process (fluxdrive_bringup.bagwriter, rosbags
+buffer every 20 ms to the bag-writer helper process (fluxdrive.io.bagwriter, rosbags
 Writer), which runs on the other core.  Every `flush_interval_s` (0.5 s) the writer closes
 its open MCAP chunk and flushes the file, so at most that much (or one 1 MiB chunk, about
 0.1 s of a 10 kHz run) is at risk if the recorder and its writer are killed outright;
@@ -50,15 +50,14 @@ from datetime import datetime
 from pathlib import Path
 
 from fluxdrive.drive.scenario import REPO_ROOT
-from fluxdrive.io.messages import seq_offset
+from fluxdrive.io.bagwriter import check_bag_target, pack_json
+from fluxdrive.io.messages import message_seq
 from fluxdrive_ros.intra import RawSubscription
 from fluxdrive_ros.params import P, declare, input_durability_param
 from fluxdrive_ros.runner import FluxNode, main_node
 
 import flux_drive_msgs.msg as fm
 from fluxdrive_ros import qos, topics
-
-from .bagwriter import check_bag_target, pack_json
 
 # the domain-wide topics of every ROS graph: the recorder keeps what its own drive's nodes
 # published (namespaced drive: names under its namespace; see _own_drive)
@@ -84,7 +83,6 @@ DEFAULT_TOPICS = [
 ] + [DIAGNOSTICS, ROSOUT]
 _HDR = struct.Struct("<iI")
 _U32 = struct.Struct("<I")
-_U64 = struct.Struct("<Q")
 _REC = struct.Struct("<cHqI")
 
 
@@ -119,11 +117,6 @@ def _has_seq(msgtype: str) -> bool:
         topics.T_REFERENCE,
         topics.T_ESTIMATE,
     )
-
-
-def _seq(data: bytes) -> int:
-    """seq of a per-sample message: right after the header's frame_id string."""
-    return _U64.unpack_from(data, seq_offset(data))[0]
 
 
 class RecorderNode(FluxNode):
@@ -268,7 +261,7 @@ class RecorderNode(FluxNode):
     # ----------------------------------------------------------------- writer process
     def _start_writer(self, custom: dict) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "fluxdrive_bringup.bagwriter"],
+            [sys.executable, "-m", "fluxdrive.cli.bagwriter"],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             bufsize=0,
@@ -358,7 +351,7 @@ class RecorderNode(FluxNode):
                 self._hold()
             counts[topic] += 1
             if has_seq:
-                last[topic] = _seq(data)
+                last[topic] = message_seq(data)
             self.last_rx = time.monotonic()
 
         if topic in (DIAGNOSTICS, ROSOUT):

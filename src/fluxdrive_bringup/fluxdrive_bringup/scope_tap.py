@@ -617,8 +617,7 @@ class ScopeTapNode(FluxNode):
 
     def write_capture(self, p: dict[str, Any]) -> dict[str, Any]:
         from fluxdrive.io.bagio import BagWriter
-
-        from .bagwriter import check_bag_target
+        from fluxdrive.io.bagwriter import check_bag_target
 
         why = re.sub(r"[^A-Za-z0-9_.-]+", "_", p["why"])[:40]
         name = f"capture-{time.strftime('%Y%m%d-%H%M%S')}-{p['seq']}-{why}"

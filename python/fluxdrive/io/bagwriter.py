@@ -1,6 +1,6 @@
-"""The recorder's bag-writing helper process: serialised messages in on stdin, a rosbag2
-bag (fluxdrive.io.bagio.BagWriter: MCAP storage, version 9, message definitions embedded)
-out.
+"""The recorder's bag-writing helper process (`python -m fluxdrive.cli.bagwriter`, this
+module's write_stream): serialised messages in on stdin, a rosbag2 bag
+(fluxdrive.io.bagio.BagWriter: MCAP storage, version 9, message definitions embedded) out.
 
 Why a process: writing with rosbags costs about 5 us of Python per message; at 10 kHz with
 ten topics that is half a core, and inside the recorder's process it would fight the
@@ -16,7 +16,7 @@ it reaches 1 MiB or on the recorder's flush marker (every `flush_interval_s`,
 default 0.5 s), whichever comes first, and the file is flushed and fsync'ed then.  If this
 process is killed too (SIGKILL of the recorder's process group, a power cut after the
 fsync), the file lacks only its summary and the open chunk: `./fluxdrive bag recover DIR`
-(fluxdrive_bringup.bagrecover) rebuilds a valid bag from the complete chunks.  While the
+(fluxdrive.io.bagrecover) rebuilds a valid bag from the complete chunks.  While the
 bag is open, RECORDING_FILE in the bag directory keeps what metadata.yaml would get at the
 end (custom_data), for the recovery; it is removed once the bag is finalised.
 
@@ -38,10 +38,10 @@ when writing failed; errors on stderr with a non-zero exit.
 from __future__ import annotations
 
 import json
-import signal
 import struct
 import sys
 from pathlib import Path
+from typing import BinaryIO
 
 MSG_HDR = struct.Struct("<cHqI")  # b"M", id, t, n
 U32 = struct.Struct("<I")
@@ -101,12 +101,10 @@ def flush_chunk(writer, sync: bool = True) -> None:
     writer.flush(sync)
 
 
-def main() -> int:
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+def write_stream(inp: BinaryIO) -> int:
+    """Write the bag the records on `inp` describe (the protocol above); the exit code."""
     from fluxdrive.io.bagio import META_KEY, BagWriter
 
-    inp = sys.stdin.buffer
     read = inp.read
     writer: BagWriter | None = None
     side: Path | None = None
@@ -190,7 +188,3 @@ def main() -> int:
                 )
             _say(f"error {failed}")  # the recorder logs it
     return EXIT_WRITE_FAILED if failed else 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,10 +1,11 @@
-"""`./fluxdrive bag recover BAG_DIR [--out DIR]`: a valid bag from one that was not finalised.
+"""A valid bag from one that was not finalised (`./fluxdrive bag recover BAG_DIR [--out DIR]`,
+fluxdrive.cli.bag).
 
 A recorder killed together with its bag writer (SIGKILL of its process group, a power cut)
 or stopped by a failing write (disk full) leaves BAG_DIR/<name>.mcap without its summary
 and footer, and no metadata.yaml.  The MCAP data section is still a sequence of complete
 records: the schemas and channels, then chunks of messages (closed every
-`flush_interval_s` or 1 MiB by the recorder's writer, see fluxdrive_bringup.bagwriter).
+`flush_interval_s` or 1 MiB by the recorder's writer, see fluxdrive.io.bagwriter).
 This reads it front to back with the mcap library's StreamReader (no summary needed; a
 chunk's messages are used only once the whole chunk was read), stops at the first
 truncated or corrupt record, and writes every message read so far into a new rosbag2 bag
@@ -16,14 +17,12 @@ per topic, the time span and, for /drive/frame, the sequence range and any gap.
 
 from __future__ import annotations
 
-import argparse
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from fluxdrive.core.machine import ConfigError
-
-from .bagwriter import RECORDING_FILE
+from fluxdrive.io.bagwriter import RECORDING_FILE
 
 
 @dataclass
@@ -44,7 +43,7 @@ class Recovery:
         return sum(self.counts.values())
 
 
-def _mcap_file(bag: Path) -> Path:
+def mcap_file(bag: Path) -> Path:
     if bag.is_file() and bag.suffix == ".mcap":
         return bag
     if not bag.is_dir():
@@ -72,15 +71,15 @@ def is_finalised(mcap: Path) -> bool:
 def recover(bag: Path, out: Path | None = None) -> Recovery:
     """Read what is readable of bag's MCAP file and write it to `out` (default
     <bag>-recovered) as a new, finalised bag."""
-    from fluxdrive.io.bagio import META_KEY, BagWriter, typestore
     from mcap.records import Channel, Chunk, Message, Schema
     from mcap.stream_reader import StreamReader, breakup_chunk
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-    from .recorder import _seq
+    from fluxdrive.io.bagio import META_KEY, BagWriter, typestore
+    from fluxdrive.io.messages import message_seq
 
     bag = Path(bag)
-    mcap = _mcap_file(bag)
+    mcap = mcap_file(bag)
     bag_dir = mcap.parent
     out = Path(out) if out is not None else bag_dir.with_name(bag_dir.name + "-recovered")
     if out.exists():
@@ -142,7 +141,7 @@ def recover(bag: Path, out: Path | None = None) -> Recovery:
                             rec.t_first_ns = x.log_time
                         rec.t_last_ns = max(rec.t_last_ns, x.log_time)
                         if topic == "/drive/frame":
-                            sq = _seq(x.data)
+                            sq = message_seq(x.data)
                             if first_seq is None:
                                 first_seq = sq
                             elif sq != last_seq + 1:
@@ -192,37 +191,3 @@ def report(rec: Recovery) -> str:
             + ("no gaps" if gaps == 0 else f"{gaps} frames missing inside")
         )
     return "\n".join(lines)
-
-
-def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="fluxdrive bag", description="bag maintenance")
-    sub = ap.add_subparsers(dest="cmd", required=True)
-    rp = sub.add_parser(
-        "recover",
-        help="rebuild a valid bag from one that was not finalised (recorder killed, disk full)",
-    )
-    rp.add_argument("bag", type=Path, help="bag directory (or its .mcap file)")
-    rp.add_argument("--out", type=Path, help="new bag directory (default <BAG>-recovered)")
-    rp.add_argument(
-        "--force", action="store_true", help="rewrite even a bag that was finalised properly"
-    )
-    args = ap.parse_args(argv)
-    try:
-        mcap = _mcap_file(args.bag)
-        if is_finalised(mcap) and not args.force:
-            print(
-                f"bag recover: {mcap.parent} was finalised properly (metadata.yaml, MCAP "
-                f"footer); nothing to recover (--force rewrites it anyway)"
-            )
-            return 0
-        rec = recover(args.bag, args.out)
-    except (ConfigError, OSError) as exc:
-        import sys
-
-        print(
-            f"fluxdrive {exc}" if isinstance(exc, ConfigError) else f"fluxdrive bag recover: {exc}",
-            file=sys.stderr,
-        )
-        return 2
-    print(report(rec))
-    return 0
