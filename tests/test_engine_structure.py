@@ -8,7 +8,8 @@ from pathlib import Path
 import fluxdrive
 import pytest
 from fluxdrive.core.layout import Layout
-from fluxdrive.drive import control, observers, plant
+from fluxdrive.drive import observers, plant
+from fluxdrive.drive.control import kernel as control
 
 ENGINE = Path(fluxdrive.__file__).resolve().parent
 

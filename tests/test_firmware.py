@@ -15,6 +15,7 @@ from fluxdrive.can import firmware as fw
 from fluxdrive.can.protocol import ARM_KEY, load_database
 from fluxdrive.drive import control as ctl
 from fluxdrive.drive import plant as pl
+from fluxdrive.drive.control import kernel
 
 U8_64 = ctypes.c_uint8 * 64
 
@@ -253,7 +254,7 @@ def _engine_protect(cs, cp, i_abc, vdc, ts):
     fr[pl.FR_VDC] = vdc
     out = np.zeros(ctl.CO_N)
     ia, ib = (2 * i_abc[0] - i_abc[1] - i_abc[2]) / 3.0, (i_abc[1] - i_abc[2]) / math.sqrt(3.0)
-    ctl._protect(cs, cp, fr, out, ia, ib, ts)
+    kernel._protect(cs, cp, fr, out, ia, ib, ts)
     return int(cs[ctl.CS_FAULT]) if cs[ctl.CS_MODE] == ctl.MODE_FAULT else 0
 
 
@@ -336,7 +337,7 @@ def test_current_loop_is_the_engines_in_float32(lib):
         idr, iqr = rng.normal(0, 2), rng.normal(0, 6)
         vdc = card.dc_bus_v * rng.uniform(0.9, 1.1)
         args = [_f32(a) for a in (ia, ib, th, we, idr, iqr, vdc)]
-        ctl._current_loops(cs, cp, *args[:6], args[6], ts, out)
+        kernel._current_loops(cs, cp, *args[:6], args[6], ts, out)
         lib.fd_current_loop(ctypes.byref(st), ctypes.byref(p), *args, ts, ctypes.byref(o))
         vmag = math.hypot(out[ctl.CO_VD], out[ctl.CO_VQ])
         saturated += vmag > 0.5 * args[6]

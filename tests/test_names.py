@@ -13,7 +13,7 @@ REPO = Path(__file__).resolve().parents[1]
 KERNELS = {
     "python/fluxdrive/drive/plant.py",
     "python/fluxdrive/drive/observers.py",
-    "python/fluxdrive/drive/control.py",
+    "python/fluxdrive/drive/control/kernel.py",
 }
 # names the code gives the rows of those layouts
 ROW_NAMES = {"frames", "frame", "fr", "f", "truth", "est", "ctrl"}

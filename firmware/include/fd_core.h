@@ -15,7 +15,7 @@
  *   output    PWM compare values + enable (HAL)
  *
  * The Python emulator's MCU logic (python/fluxdrive/can/emulator.py) is the reference for
- * host mode; the engine's _current_loops / _protect (python/fluxdrive/drive/control.py) for
+ * host mode; the engine's _current_loops / _protect (python/fluxdrive/drive/control/kernel.py) for
  * the current loop and the protections. docs/firmware.md describes the whole.
  */
 #ifndef FD_CORE_H

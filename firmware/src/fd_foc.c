@@ -1,5 +1,5 @@
 /* The dq current loop and the I2t integral: float32 ports of the engine's _current_loops,
- * _svpwm and _protect (python/fluxdrive/drive/control.py) with the same blocks
+ * _svpwm and _protect (python/fluxdrive/drive/control/kernel.py) with the same blocks
  * (core/blocks.py pi_output / pi_update, core/transforms.py clarke / park). Operation for
  * operation the same order, so a float32 result differs from the engine's float64 one only
  * by rounding (tests/test_firmware.py compares them). */
