@@ -42,7 +42,6 @@ KNOWN_LONG: set[str] = {
     "python/fluxdrive/experiments/paper.py::fig19",
     "python/fluxdrive/experiments/paper.py::fig2_4",
     "python/fluxdrive/experiments/paper.py::paper_robust",
-    "python/fluxdrive/experiments/registry.py::main",
     "python/fluxdrive/io/bagio.py::read_run_bag",
     "python/fluxdrive/io/bagrecover.py::recover",
     "python/fluxdrive/io/bagwriter.py::write_stream",

@@ -109,7 +109,7 @@ def test_per_unit_speeds_scale_with_the_card(tmp_path):
         load_scenario(f)
 
 
-def test_rpm_values_keep_their_per_unit_speed_on_another_card(monkeypatch):
+def test_rpm_values_keep_their_per_unit_speed_on_another_card():
     """A scenario (or experiment) written in rpm for its own card runs on `--machine CARD`
     at the same per-unit speeds: every rpm value scales by the ratio of rated speeds."""
     gimbal = load_machine(CONFIG_DIR / "machines" / "gimbal_24v.yaml")
@@ -122,20 +122,23 @@ def test_rpm_values_keep_their_per_unit_speed_on_another_card(monkeypatch):
     )
     same = load_scenario(scenario_path("can_2pct_decimated"))
     assert same.speed_profile_rpm[0, 1] == 60.0 and same.control.handover_rpm == 40.0
-    # the experiments: the fig. 13/15 sensorless case at 60 rpm, `experiment --machine`
-    from fluxdrive.experiments import registry
+    # the experiments: the fig. 13/15 sensorless case at 2 % speed, `experiment --machine`;
+    # the card comes in the experiment's context (no module state)
+    from fluxdrive.experiments.common import Ctx
 
-    monkeypatch.setitem(
-        registry.common._MACHINE, "path", str(CONFIG_DIR / "machines" / "gimbal_24v.yaml")
-    )
-    sc = registry.sensorless(60.0, 1.5)
+    ctx = Ctx(machine=CONFIG_DIR / "machines" / "gimbal_24v.yaml")
+    sc = ctx.sensorless(ctx.rpm(0.02), 1.5)
     assert sc.machine.name == "gimbal_24v"
     assert sc.speed_profile_rpm[-1, 1] == pytest.approx(0.02 * gimbal.rated_speed_rpm)
     assert sc.control.handover_rpm == pytest.approx(40.0 * k)
-    low = registry.sensorless(30.0, 1.0)  # 1 %: starts at 40 rpm, hands over at 35 rpm
+    low = ctx.sensorless(ctx.rpm(0.01), 1.0)  # 1 %: starts at 4/3 %, hands over at 7/6 %
     assert low.speed_profile_rpm[:, 1] == pytest.approx([40.0 * k, 40.0 * k, 30.0 * k])
     assert low.control.handover_rpm == pytest.approx(35.0 * k)
-    enc = registry.encoder_run(300.0, 1.0)
+    enc = ctx.encoder_run(ctx.rpm(0.1), 1.0)
+    # a scenario file keeps its per-unit speeds on the context's card
+    assert ctx.build(base="paper_2pct_150load").speed_profile_rpm[-1, 1] == pytest.approx(
+        0.02 * gimbal.rated_speed_rpm
+    )
     assert enc.speed_profile_rpm[0, 1] == pytest.approx(0.1 * gimbal.rated_speed_rpm)
 
 

@@ -79,7 +79,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
         "main",
         "measure R, L, lambda, J, B, deadtime of a motor -> machine card (--check)",
     ),
-    "experiment": ("fluxdrive.experiments.registry", "main", "reproduce the paper's figures"),
+    "experiment": ("fluxdrive.cli.experiment", "main", "reproduce the paper's figures"),
     "study": (
         "fluxdrive.cli.study",
         "main",

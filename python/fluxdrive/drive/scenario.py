@@ -207,15 +207,21 @@ _TOP_KEYS = {
 
 
 def load_scenario(
-    path: str | Path, machine: str | Path | None = None, overrides: dict[str, Any] | None = None
+    path: str | Path,
+    machine: str | Path | None = None,
+    overrides: dict[str, Any] | None = None,
+    raw: dict[str, Any] | None = None,
 ) -> Scenario:
-    """Load and validate a scenario; `machine` swaps the machine card."""
+    """Load and validate a scenario; `machine` swaps the machine card.  `raw`: the scenario's
+    mapping already in memory (nothing is read; `path` names it in messages and anchors its
+    relative paths)."""
     path = Path(path)
     src = str(path)
-    try:
-        raw = yamlio.load_file(path)
-    except (OSError, yamlio.YAMLError) as exc:
-        raise ConfigError(f"{src}: cannot read scenario: {yamlio.describe(exc)}") from exc
+    if raw is None:
+        try:
+            raw = yamlio.load_file(path)
+        except (OSError, yamlio.YAMLError) as exc:
+            raise ConfigError(f"{src}: cannot read scenario: {yamlio.describe(exc)}") from exc
     if not isinstance(raw, dict):
         raise ConfigError(f"{src}: a scenario must be a mapping")
     if machine is not None:  # --machine: the file's rpm values at the same per-unit speed

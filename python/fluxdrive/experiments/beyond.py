@@ -28,10 +28,12 @@ from __future__ import annotations
 
 import math
 import time
+from pathlib import Path
 
 import numpy as np
 
 from fluxdrive.analysis.metrics import RAD_S_TO_RPM, compute, harmonic, whole_periods
+from fluxdrive.core.machine import MachineCard
 from fluxdrive.drive.control import (
     CO_FAULT,
     CO_ID,
@@ -45,9 +47,25 @@ from fluxdrive.drive.control import (
 )
 from fluxdrive.drive.observers import ES_LA, ES_LB, ES_TH, ES_W, OP_LAM, OP_R
 from fluxdrive.drive.plant import TR_THETA_E, TR_WM
-from fluxdrive.experiments.common import OBS4, build, claim, cv, encoder_run, plt
+from fluxdrive.experiments.common import (
+    HANDBACK_MAX_PU,
+    OBS4,
+    SPEED_STEP_PU_S,
+    START_PU,
+    CardValues,
+    build,
+    card_values,
+    claim,
+    plt,
+    pu_rpm,
+    rated_rpm,
+)
 
 RPM = 2 * math.pi / 60
+# the descent protocol (lowest_speed, peers_fail) in per unit of the card's rated speed: start
+# at 16 %, decelerate at 1/15 of the rated speed per second
+DESCENT_START_PU = 0.16
+DESCENT_DECEL_PU_S = 1.0 / 15.0
 
 
 # ======================================================================== shared
@@ -71,19 +89,18 @@ VARIANTS = {
 }
 
 
-def variant_spec(name: str) -> dict:
+def variant_spec(name: str, mc: CardValues) -> dict:
     """VARIANTS[name] as an observer spec: a model error given relative to the card
     (r_hat_pu) becomes the observer's own R^ [ohm]."""
     spec = dict(VARIANTS[name])
     if "r_hat_pu" in spec:
-        spec["r_hat_ohm"] = spec.pop("r_hat_pu") * cv().r
+        spec["r_hat_ohm"] = spec.pop("r_hat_pu") * mc.r
     return spec
 
 
-def speed_bound_rpm(load_pu: float, commanded: bool) -> float:
+def speed_bound_rpm(mc: CardValues, load_pu: float, commanded: bool) -> float:
     """Rule-of-thumb lowest speed w_min = (0.2 R I + V_dt)/lambda (electrical) at the current
     I that carries the load; V_dt only where the observer uses commanded voltages."""
-    mc = cv()  # the card's values (see CardValues)
     v = 0.2 * mc.r * load_pu * mc.i_rated + (mc.vdt if commanded else 0.0)
     return v / mc.lam / mc.p * RAD_S_TO_RPM
 
@@ -94,23 +111,28 @@ def descent(
     *,
     driving: str,
     observers: dict | None = None,
-    start_rpm: float = 480.0,
-    decel_rpm_s: float = 200.0,
+    start_rpm: float | None = None,
+    decel_rpm_s: float | None = None,
     ramp_pu_s: float = 0.19,
     settle_s: float = 0.5,
     window_s: float = 1.5,
     seed: int = 1,
     name: str = "descent",
+    card: str | Path | None = None,
     **extra,
 ):
-    """Sensorless start (align, I-f, handover) at start_rpm unloaded -- every variant can hand
-    over there -- then the brake load ramped in at that speed, then a closed-loop deceleration
-    under load to `speed_rpm`, a settle and the steady window.  Loading at the target speed
-    instead would measure the speed loop's ramp lag (i_q ramp / K_i: 33 rpm at 0.19 pu/s),
-    not the observer; decelerating under a constant load leaves no lag (type-2 loop)."""
-    obs = dict(observers or {driving: variant_spec(driving)})
+    """Sensorless start (align, I-f, handover) at start_rpm (default 16 % of the rated speed
+    of `card`, whose rpm the speeds are) unloaded -- every variant can hand over there --
+    then the brake load ramped in at that speed, then a closed-loop deceleration (default
+    1/15 of the rated speed per second) under load to `speed_rpm`, a settle and the steady
+    window.  Loading at the target speed instead would measure the speed loop's ramp lag
+    (i_q ramp / K_i), not the observer; decelerating under a constant load leaves no lag
+    (type-2 loop)."""
+    obs = dict(observers or {driving: variant_spec(driving, card_values(card))})
+    start_rpm = pu_rpm(DESCENT_START_PU, card) if start_rpm is None else start_rpm
+    decel_rpm_s = pu_rpm(DESCENT_DECEL_PU_S, card) if decel_rpm_s is None else decel_rpm_s
     s0 = max(start_rpm, speed_rpm)
-    t_load = 1.0 + s0 / 300.0
+    t_load = 1.0 + s0 / (rated_rpm(card) * SPEED_STEP_PU_S)
     t_full = t_load + (load_pu / ramp_pu_s if load_pu > 0 else 0.0)
     t_dec = t_full + 0.3
     t_at = t_dec + (s0 - speed_rpm) / decel_rpm_s
@@ -118,12 +140,13 @@ def descent(
     dur = w0 + window_s
     ctrl = {
         "if_current_pu": 0.6,
-        "handover_rpm": 40.0,
-        "handback_rpm": min(20.0, 0.5 * speed_rpm),
+        "handover_rpm": pu_rpm(START_PU, card),
+        "handback_rpm": min(pu_rpm(HANDBACK_MAX_PU, card), 0.5 * speed_rpm),
         "handover_agree_lpf_hz": 2.0,
     }
     load = [[0.0, 0.0], [t_load, 0.0], [t_full, load_pu]] if load_pu > 0 else 0.0
     return build(
+        card=card,
         name=name,
         duration_s=round(dur, 4),
         seed=seed,
@@ -189,7 +212,13 @@ def _search_lowest(ctx, cases, grid, seeds, bisect_steps):
                 jobs.append(
                     (
                         descent(
-                            s, load, driving=v, seed=seed, name=f"low_{v}", ramp_pu_s=LOW_RAMP_PU_S
+                            s,
+                            load,
+                            driving=v,
+                            seed=seed,
+                            name=f"low_{v}",
+                            ramp_pu_s=LOW_RAMP_PU_S,
+                            card=ctx.machine,
                         ),
                         _x_hold,
                         None,
@@ -226,7 +255,7 @@ def _search_lowest(ctx, cases, grid, seeds, bisect_steps):
 def lowest_speed(ctx):
     if ctx.quick:
         cases = [("flux_measured", 1.0), ("flux_measured", 1.5), ("emf_commanded", 1.0)]
-        grid, seeds, nbis = [240.0, 60.0, 30.0], [1], 0
+        grid, seeds, nbis = [ctx.rpm(x) for x in (0.08, 0.02, 0.01)], [1], 0
     else:
         names = [
             "flux_measured",
@@ -240,7 +269,8 @@ def lowest_speed(ctx):
         cases = [(v, load) for v in names for load in (1.0, 1.5)]
         # one seed: a second one (last run) disagreed only at two bisection points (emf_measured
         # 100 % at 35.7 rpm, hl_measured 150 % at 12.6 rpm), one bisection step, no verdict
-        grid, seeds, nbis = [480.0, 240.0, 120.0, 60.0, 30.0, 15.0, 7.5], [1], 2
+        grid = [ctx.rpm(x) for x in (0.16, 0.08, 0.04, 0.02, 0.01, 0.005, 0.0025)]
+        seeds, nbis = [1], 2
     st = _search_lowest(ctx, cases, grid, seeds, nbis)
     lowest: dict = {}
     for (v, load), s in st.items():
@@ -266,7 +296,7 @@ def lowest_speed(ctx):
                 else None
             ),
             "loss": first_loss,
-            "bound_rpm": speed_bound_rpm(load, commanded),
+            "bound_rpm": speed_bound_rpm(ctx.cv, load, commanded),
         }
 
     def fmt(v, key):
@@ -435,11 +465,12 @@ def _plot_lowest(ctx, lowest, grid):
         lp = float(key.rstrip("%")) / 100
         for com, ls in ((False, "--"), (True, ":")):
             ax.axvline(
-                speed_bound_rpm(lp, com),
+                speed_bound_rpm(ctx.cv, lp, com),
                 color="0.4",
                 ls=ls,
                 lw=1,
-                label=f"(0.2RI{'+V_dt' if com else ''})/λ = {speed_bound_rpm(lp, com):.0f} rpm",
+                label=f"(0.2RI{'+V_dt' if com else ''})/λ = "
+                f"{speed_bound_rpm(ctx.cv, lp, com):.0f} rpm",
             )
         ax.set_yticks(range(len(names)))
         ax.set_yticklabels(names, fontsize=8)
@@ -475,7 +506,7 @@ def _x_mismatch(r, m):
 
 
 def mismatch(ctx):
-    mc = cv()  # the card's values (see CardValues)
+    mc = ctx.cv  # the card's values (see CardValues)
     rs = [0.7, 0.85, 1.15, 1.3]
     ls = [0.5, 0.8, 1.25, 1.5]
     lams = [0.8, 1.2]
@@ -491,11 +522,11 @@ def mismatch(ctx):
     offs = [0.01] if ctx.quick else [0.005, 0.01, 0.02]
     # on the ideal bench: the paper bench's own model errors and winding heating would mix
     # with the single error under study
-    jobs = [(build(base="paper_2pct_150load", observers=obs, bench={}), _x_mismatch, None)]
+    jobs = [(ctx.build(base="paper_2pct_150load", observers=obs, bench={}), _x_mismatch, None)]
     for o in offs:
         jobs.append(
             (
-                build(
+                ctx.build(
                     base="paper_2pct_150load",
                     bench={},
                     faults={"current_offset_pu": [0.0, o, 0.0]},
@@ -518,7 +549,7 @@ def mismatch(ctx):
     for key, val in closed:
         jobs.append(
             (
-                build(
+                ctx.build(
                     base="paper_2pct_150load",
                     bench={},
                     observers={"flux_measured": {**base, key: val}},
@@ -734,6 +765,7 @@ def _mag_forced_eq(kind: str, x: complex, w: float, k: float, lam_hat: float) ->
 
 
 def fundamental_estimate(
+    mc: CardValues,
     kind: str,
     w: float,
     iq: float,
@@ -748,7 +780,6 @@ def fundamental_estimate(
     """Rotor-frame flux estimate (true magnet flux = lambda along +real) of a variant in steady
     state; r_err = R - R^, l_err = L - L^, v_err_q an extra EMF error along q [V] (e.g. the
     deadtime fundamental (4/pi) V_dt with commanded voltages).  None: no stable equilibrium."""
-    mc = cv()  # the card's values (see CardValues)
     lam_hat = mc.lam if lam_hat is None else lam_hat
     x = 1j * (w * mc.lam + r_err * iq + v_err_q) - l_err * w * iq
     if kind in ("paper", "pure_integrator", "programmable_lpf", "emf"):
@@ -758,19 +789,18 @@ def fundamental_estimate(
     return _mag_forced_eq(kind, x, w, k, lam_hat)
 
 
-def predicted_angle_deg(kind: str, w: float, iq: float, **kw) -> float | None:
-    est = fundamental_estimate(kind, w, iq, **kw)
+def predicted_angle_deg(mc: CardValues, kind: str, w: float, iq: float, **kw) -> float | None:
+    est = fundamental_estimate(mc, kind, w, iq, **kw)
     return None if est is None else math.degrees(np.angle(est))
 
 
 def offset_h1_pred_deg(
-    kind: str, w: float, d_ab: float, *, wc: float = 0.0, k: float = 0.0
+    mc: CardValues, kind: str, w: float, d_ab: float, *, wc: float = 0.0, k: float = 0.0
 ) -> float | None:
     """First-order theta~ from a DC current-sensor offset |Delta i_ab| = d_ab: the observer
     sees a DC EMF error R^ d_ab; its DC response over the fundamental's magnitude.  For the
     magnitude-forcing observers the linearised (radial r, angle e) dynamics
     r' = -k r + w lam e + Re u,  lam e' = -w r + Im u  are driven at the rotor frequency."""
-    mc = cv()  # the card's values (see CardValues)
     d = mc.r * d_ab
     if kind == "pure_integrator":
         return None  # drifts (unbounded)
@@ -840,11 +870,11 @@ def _cut(kind: str, f_hz: float) -> dict:
     return {"gamma_bw_rad_s": 2 * math.pi * f_hz} if kind == "ortega" else {"cutoff_hz": f_hz}
 
 
-def _default_k(kind: str) -> tuple[float, float]:
-    """(w_c, k) of a variant's defaults [rad/s]."""
+def _default_k(card: MachineCard, kind: str) -> tuple[float, float]:
+    """(w_c, k) of a variant's defaults on the runs' card [rad/s]."""
     from fluxdrive.drive.observers import observer_config
 
-    c = observer_config(kind, card=build(duration_s=0.01).machine)  # the runs' card
+    c = observer_config(kind, card=card)
     return 2 * math.pi * c.cutoff_hz, (
         c.gamma_bw_rad_s if kind == "ortega" else 2 * math.pi * c.cutoff_hz
     )
@@ -854,9 +884,9 @@ STEADY_AC_DEG = 10.0  # an estimate whose theta~ wanders more than this about it
 
 
 def sensitivity(ctx):
-    mc = cv()  # the card's values (see CardValues)
+    mc = ctx.cv  # the card's values (see CardValues)
     rs, ls, lams, cuts, offs = _sens_lists(ctx.quick)
-    speed, load = 60.0, 1.5
+    speed, load = ctx.rpm(0.02), 1.5
     jobs = []
     for kind in SENS_VARIANTS:
         base = {"variant": SENS_RUN.get(kind, kind), "voltage_source": "measured"}
@@ -870,7 +900,9 @@ def sensitivity(ctx):
         if kind != "emf":
             for f in cuts:
                 obs[f"{kind}_fc{round(10 * f):04d}"] = {**base, **_cut(kind, f)}
-        jobs.append((encoder_run(speed, load, observers=obs, name=f"sens_{kind}"), _x_sens, None))
+        jobs.append(
+            (ctx.encoder_run(speed, load, observers=obs, name=f"sens_{kind}"), _x_sens, None)
+        )
     for o in offs:
         obs = {
             f"{kind}_nom": {"variant": SENS_RUN.get(kind, kind), "voltage_source": "measured"}
@@ -878,7 +910,7 @@ def sensitivity(ctx):
         }
         jobs.append(
             (
-                encoder_run(
+                ctx.encoder_run(
                     speed,
                     load,
                     observers=obs,
@@ -898,7 +930,7 @@ def sensitivity(ctx):
     }
     jobs.append(
         (
-            encoder_run(
+            ctx.encoder_run(
                 speed, load, observers=obs, name="sens_no_deadtime", plant={"deadtime_s": 0.0}
             ),
             _x_sens,
@@ -908,7 +940,7 @@ def sensitivity(ctx):
     # and with ideal sensors (no noise, 24-bit ADCs and capture) but the 2 us deadtime
     jobs.append(
         (
-            encoder_run(
+            ctx.encoder_run(
                 speed,
                 load,
                 observers=obs,
@@ -933,10 +965,10 @@ def sensitivity(ctx):
     tab: dict = {}
     for kind in SENS_VARIANTS:
         o = per[kind]["obs"]
-        wc, k = _default_k(kind)
+        wc, k = _default_k(ctx.card, kind)
 
         def row(obs_row, kind=kind, wc=wc, k=k, **x):
-            est = fundamental_estimate(kind, w, iq, **{"wc": wc, "k": k, **x})
+            est = fundamental_estimate(mc, kind, w, iq, **{"wc": wc, "k": k, **x})
             return {
                 **obs_row,
                 "steady": obs_row["ac_rms_deg"] < STEADY_AC_DEG,
@@ -961,7 +993,7 @@ def sensitivity(ctx):
             t[f"off{o_pu}"] = {
                 **x,
                 "steady": x["ac_rms_deg"] < STEADY_AC_DEG + x["h1_deg"],
-                "pred_h1_deg": offset_h1_pred_deg(kind, w, d_ab, wc=wc, k=k),
+                "pred_h1_deg": offset_h1_pred_deg(mc, kind, w, d_ab, wc=wc, k=k),
             }
         tab[kind] = t
     nd = {
@@ -976,7 +1008,7 @@ def sensitivity(ctx):
         for f in cuts
         if f <= 20
     }
-    claims = _sens_claims(tab, rs, ls, lams, cuts, offs, w, iq, nd, ids)
+    claims = _sens_claims(mc, tab, rs, ls, lams, cuts, offs, w, iq, nd, ids)
     figs = [_plot_sens(ctx, tab, rs, ls, lams, cuts, offs, w, iq)]
     return {
         "claims": claims,
@@ -1004,8 +1036,7 @@ def _label(key: str) -> str:
     return key
 
 
-def _sens_claims(tab, rs, ls, lams, cuts, offs, w, iq, nd, ids):
-    mc = cv()  # the card's values (see CardValues)
+def _sens_claims(mc: CardValues, tab, rs, ls, lams, cuts, offs, w, iq, nd, ids):
     claims = []
     desc = {
         "paper": "R̂: magnitude only, |λ̂| = λ + ΔR i_q/ω (a 180° flip once ΔR i_q < −ωλ); "
@@ -1197,7 +1228,7 @@ def _sens_claims(tab, rs, ls, lams, cuts, offs, w, iq, nd, ids):
 
 
 def _plot_sens(ctx, tab, rs, ls, lams, cuts, offs, w, iq):
-    mc = cv()  # the card's values (see CardValues)
+    mc = ctx.cv  # the card's values (see CardValues)
     p = plt()
     fig, ax = p.subplots(2, 3, figsize=(14, 7.5))
     col = {k: f"C{i}" for i, k in enumerate(tab)}
@@ -1300,18 +1331,23 @@ def reversal(
     *,
     seed: int = 1,
     if_current_pu: float = 1.0,
-    speed_rpm: float = 60.0,
+    speed_rpm: float | None = None,
     reverse_s: float = 1.2,
     name: str = "reversal",
+    card: str | Path | None = None,
 ):
-    """Sensorless flux drive (measured voltages): start, +speed_rpm, load ramped in, steady,
-    then a reference ramp to -speed_rpm through zero (hand-back to I-f below handback_rpm,
-    handover again past -handover_rpm), steady on the other side."""
+    """Sensorless flux drive (measured voltages): start, +speed_rpm (default 2 % of the rated
+    speed of `card`), load ramped in, steady, then a reference ramp to -speed_rpm through zero
+    (hand-back to I-f below handback_rpm, handover again past -handover_rpm), steady on the
+    other side."""
+    speed_rpm = pu_rpm(0.02, card) if speed_rpm is None else speed_rpm
+    start = pu_rpm(START_PU, card)
     t_full = 0.6 + max(load_pu / 0.19, 0.5)  # the paper's ramp rate (speed-loop lag ~33 rpm)
     t_rev = t_full + 1.5
     t_neg = t_rev + reverse_s
     dur = t_neg + 2.5
     return build(
+        card=card,
         name=name,
         duration_s=round(dur, 4),
         seed=seed,
@@ -1320,7 +1356,11 @@ def reversal(
         load_pu=[[0.0, 0.0], [0.6, 0.0], [t_full, load_pu]],
         steady_window_s=[round(dur - 1.0, 4), round(dur, 4)],
         driving="flux_measured",
-        control={"if_current_pu": if_current_pu, "handover_rpm": 40.0, "handback_rpm": 20.0},
+        control={
+            "if_current_pu": if_current_pu,
+            "handover_rpm": start,
+            "handback_rpm": 0.5 * start,
+        },
         observers={"flux_measured": VARIANTS["flux_measured"]},
         extra={"t_reverse_s": t_rev},
     )
@@ -1401,7 +1441,13 @@ def speed_reversal(ctx):
     jobs, keys = [], []
     for lt, lp, seeds in cases:
         for seed in seeds:
-            jobs.append((reversal(lp, lt, seed=seed, name=f"rev_{lt}"), _x_reversal, None))
+            jobs.append(
+                (
+                    reversal(lp, lt, seed=seed, name=f"rev_{lt}", card=ctx.machine),
+                    _x_reversal,
+                    None,
+                )
+            )
             keys.append((lt, lp, seed))
     res = ctx.run(jobs)
     rows: dict = {}
@@ -1539,22 +1585,22 @@ PEERS = [
 ]
 
 
-def _switch_scenario(driving: str, seed: int, **extra):
-    """60 rpm, rated brake load ramped in at the paper's 0.19 pu/s on the encoder, the loop
+def _switch_scenario(ctx, driving: str, seed: int, **extra):
+    """2 % speed, rated brake load ramped in at the paper's 0.19 pu/s on the encoder, the loop
     closed on `driving` at t_switch, 2.5 s later a 1.5 s window."""
     t_full = 0.3 + 1.0 / 0.19
     t_sw = t_full + 1.0
-    return build(
+    return ctx.build(
         name=f"peers_{driving}",
         duration_s=round(t_sw + 4.0, 4),
         seed=seed,
-        speed_rpm=60.0,
+        speed_rpm=ctx.rpm(0.02),
         load_type="brake",
         load_pu=[[0.0, 0.0], [0.3, 0.0], [round(t_full, 4), 1.0]],
         steady_window_s=[round(t_sw + 2.5, 4), round(t_sw + 4.0, 4)],
         driving=driving,
         control={},
-        observers={driving: variant_spec(driving)},
+        observers={driving: variant_spec(driving, ctx.cv)},
         extra={"t_switch_s": round(t_sw, 4)},
         **extra,
     )
@@ -1594,13 +1640,13 @@ def _switch_job(args):
 
 
 def peers_fail(ctx):
-    mc = cv()  # the card's values (see CardValues)
+    mc = ctx.cv  # the card's values (see CardValues)
     seeds = [1] if ctx.quick else [1, 2, 3]
     drivers = PEERS[:3] if ctx.quick else PEERS
-    sw_jobs = [(_switch_scenario(d, s), (d, s, "2us")) for d in drivers for s in seeds]
+    sw_jobs = [(_switch_scenario(ctx, d, s), (d, s, "2us")) for d in drivers for s in seeds]
     if not ctx.quick:  # the causal check: an ideal inverter, same observers
         sw_jobs += [
-            (_switch_scenario(d, s, plant={"deadtime_s": 0.0}), (d, s, "0"))
+            (_switch_scenario(ctx, d, s, plant={"deadtime_s": 0.0}), (d, s, "0"))
             for d in PEERS[1:4]
             for s in seeds[:2]
         ]
@@ -1609,12 +1655,23 @@ def peers_fail(ctx):
     sw_res = ctx.map(_switch_job, scs)
     ctx.log(f"{len(scs)} switched runs (in-process engine) in {time.perf_counter() - t0:.1f} s")
     # shadow: every variant on the encoder drive at the same point, for the mechanism
-    shadow_obs = {v: variant_spec(v) for v in PEERS}
+    shadow_obs = {v: variant_spec(v, mc) for v in PEERS}
     shadow_obs["hl_commanded"] = {"variant": "hinkkanen_luomi", "voltage_source": "commanded"}
-    jobs = [(encoder_run(60.0, 1.0, observers=shadow_obs, name="peers_shadow"), _x_sens, None)]
+    jobs = [
+        (
+            ctx.encoder_run(ctx.rpm(0.02), 1.0, observers=shadow_obs, name="peers_shadow"),
+            _x_sens,
+            None,
+        )
+    ]
     if not ctx.quick:  # the same drivers closing the loop at 480 rpm and descending under load
         jobs += [
-            (descent(60.0, 1.0, driving=d, name=f"peers_descent_{d}"), _x_hold, None) for d in PEERS
+            (
+                descent(ctx.rpm(0.02), 1.0, driving=d, name=f"peers_descent_{d}", card=ctx.machine),
+                _x_hold,
+                None,
+            )
+            for d in PEERS
         ]
     res = ctx.run(jobs)
     shadow, desc = res[0], dict(zip(PEERS, res[1:], strict=False))
@@ -1625,9 +1682,11 @@ def peers_fail(ctx):
         )
     w, iq = shadow["we"], shadow["iq"]
     so = shadow["obs"]
-    pred_ortega = predicted_angle_deg("ortega", w, iq, k=_default_k("ortega")[1], v_err_q=mc.v1_dt)
+    pred_ortega = predicted_angle_deg(
+        mc, "ortega", w, iq, k=_default_k(ctx.card, "ortega")[1], v_err_q=mc.v1_dt
+    )
     pred_hl = predicted_angle_deg(
-        "hinkkanen_luomi", w, iq, k=_default_k("hinkkanen_luomi")[1], v_err_q=mc.v1_dt
+        mc, "hinkkanen_luomi", w, iq, k=_default_k(ctx.card, "hinkkanen_luomi")[1], v_err_q=mc.v1_dt
     )
     pred_mag = mc.lam + mc.v1_dt / w
 
@@ -1922,7 +1981,7 @@ def _adaptive_job(args):
 
 
 def rs_adapt(ctx):
-    mc = cv()  # the card's values (see CardValues)
+    mc = ctx.cv  # the card's values (see CardValues)
     factors = [1.3] if ctx.quick else [1.3, 0.7]
     gain = 5.0
     cases = [(f, g) for f in factors for g in (None, gain)]
@@ -1930,7 +1989,7 @@ def rs_adapt(ctx):
     for f, g in cases:
         # ideal bench: only the R^ error under study (the paper bench adds its own R^ error
         # and a heating winding)
-        sc = build(
+        sc = ctx.build(
             base="paper_2pct_150load",
             bench={},
             observers={"flux_measured": {**OBS4["flux_measured"], "r_hat_ohm": mc.r * f}},

@@ -8,20 +8,22 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-import os
 import sys
-import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from fluxdrive.analysis.metrics import compute
-from fluxdrive.core.machine import MachineCard
+from fluxdrive.core.machine import MachineCard, load_machine
 from fluxdrive.drive.plant import deadtime_volt_second_loss
-from fluxdrive.drive.scenario import CONFIG_DIR, Scenario, load_scenario, scenario_path
+from fluxdrive.drive.scenario import (
+    CONFIG_DIR,
+    Scenario,
+    load_scenario,
+    machine_path,
+    scenario_path,
+)
 
 DEFAULT_MACHINE = CONFIG_DIR / "machines" / "default_spm.yaml"
 
@@ -41,35 +43,55 @@ OBS6 = {**OBS4, **LITERAL}
 
 
 # ---------------------------------------------------------------- scenario building
-_SCEN_DIR: Path | None = None
-# `experiment --machine CARD`: the card every scenario of the run uses (None: the scenarios')
-_MACHINE: dict[str, str | None] = {"path": None}
+# per unit of the card's rated speed: the experiments' start-up (I-f up to 4/3 %, handover there
+# or at 7/6 % below it, hand-back at 2/3 % at most) and the 10 %/s ramp that sets the load's
+# start after a speed step
+START_PU = 0.04 / 3.0
+HANDOVER_LOW_PU = 0.035 / 3.0
+HANDBACK_MAX_PU = 0.02 / 3.0
+SPEED_STEP_PU_S = 0.1
 
 
-def _scen_dir() -> Path:
-    global _SCEN_DIR
-    if _SCEN_DIR is None:
-        _SCEN_DIR = Path(tempfile.mkdtemp(prefix="fluxdrive-exp-"))
-    return _SCEN_DIR
-
-
-def build(machine_kw: dict | None = None, base: str | None = None, **raw) -> Scenario:
-    """A scenario from keyword keys (the YAML schema), optionally over a named scenario
-    file; `machine_kw` replaces machine-card fields (e.g. inertia_kgm2)."""
-    swap = _MACHINE["path"]
+def build(
+    machine_kw: dict | None = None,
+    base: str | None = None,
+    *,
+    card: str | Path | None = None,
+    **raw,
+) -> Scenario:
+    """A scenario from keyword keys (the YAML schema), built in memory, or over a named
+    scenario file (`base`, the keys override it); `card` is the machine card it runs on (its
+    rpm values are that card's; a base file keeps its per-unit speeds on it), None: the
+    default card or the file's; `machine_kw` replaces machine-card fields (e.g. inertia_kgm2)."""
     if base is not None:
-        sc = load_scenario(scenario_path(base), machine=swap, overrides=raw or None)
+        sc = load_scenario(scenario_path(base), machine=card, overrides=raw or None)
     else:
-        # the experiments give speeds in rpm of the default card; `experiment --machine`
-        # runs every scenario on that card at the same per-unit speeds (load_scenario)
-        raw.setdefault("machine", str(DEFAULT_MACHINE))
-        d = _scen_dir()
-        p = d / f"s{os.getpid()}_{len(list(d.iterdir()))}.yaml"
-        p.write_text(yaml.safe_dump(raw))
-        sc = load_scenario(p, machine=swap)
+        raw.setdefault("machine", str(card or DEFAULT_MACHINE))
+        where = CONFIG_DIR / "scenarios" / f"<experiment {raw.get('name', 'exp')}>"
+        sc = load_scenario(where, raw=raw)
     if machine_kw:
         sc.machine = dataclasses.replace(sc.machine, **machine_kw).validate()
     return sc
+
+
+def rated_rpm(card: str | Path | None = None) -> float:
+    """The rated speed [rpm] of `card` (None: the default card)."""
+    return _card(str(card or DEFAULT_MACHINE)).rated_speed_rpm
+
+
+@functools.cache
+def _card(path: str) -> MachineCard:
+    return load_machine(machine_path(path))
+
+
+def card_values(card: str | Path | None = None) -> CardValues:
+    """The values predictions use, of `card` (None: the default card)."""
+    return CardValues.of(_card(str(card or DEFAULT_MACHINE)))
+
+
+def pu_rpm(speed_pu: float, card: str | Path | None) -> float:
+    """A speed in per unit of `card`'s rated speed (None: the default card), in rpm."""
+    return round(speed_pu * rated_rpm(card), 9)
 
 
 def sensorless(
@@ -85,27 +107,30 @@ def sensorless(
     control: dict | None = None,
     machine_kw: dict | None = None,
     name: str = "exp",
+    card: str | Path | None = None,
     **extra,
 ) -> Scenario:
-    """Sensorless start (align -> I-f -> handover at up to 40 rpm), then the speed, then a
-    slow brake-load ramp (the paper's hysteresis dyno), then a steady window."""
+    """Sensorless start (align -> I-f -> handover at up to 4/3 % of rated speed), then the
+    speed (rpm of `card`), then a slow brake-load ramp (the paper's hysteresis dyno), then a
+    steady window."""
     obs = dict(observers or {driving: OBS6.get(driving, {"variant": "paper"})})
+    start = pu_rpm(START_PU, card)
     # handover on the filtered agreement (2 Hz): the per-sample check is reset by the unloaded
     # rotor's swing about the I-f vector and, on the non-ideal bench, delays the handover by
     # up to 1.5 s (into the steady window at no load: the fig13 experiment)
     ctrl = {
         "if_current_pu": 0.6,
-        "handover_rpm": 35.0 if speed_rpm < 40 else 40.0,
-        "handback_rpm": min(20.0, 0.5 * speed_rpm),
+        "handover_rpm": pu_rpm(HANDOVER_LOW_PU, card) if speed_rpm < start else start,
+        "handback_rpm": min(pu_rpm(HANDBACK_MAX_PU, card), 0.5 * speed_rpm),
         "handover_agree_lpf_hz": 2.0,
     }
     ctrl.update(control or {})
-    if speed_rpm < 40.0:
-        speed = [[0.0, 40.0], [0.8, 40.0], [1.3, speed_rpm]]
+    if speed_rpm < start:
+        speed = [[0.0, start], [0.8, start], [1.3, speed_rpm]]
         t_load = 1.8
     else:
         speed = [[0.0, speed_rpm]]
-        t_load = 1.0 + speed_rpm / 300.0
+        t_load = 1.0 + speed_rpm / (rated_rpm(card) * SPEED_STEP_PU_S)
     ramp = max(load_pu / ramp_pu_s, 0.01) if load_pu > 0 else 0.0
     t_end_ramp = t_load + ramp
     w0 = t_end_ramp + settle_s
@@ -113,6 +138,7 @@ def sensorless(
     load = [[0.0, 0.0], [t_load, 0.0], [t_end_ramp, load_pu]] if load_pu > 0 else 0.0
     return build(
         machine_kw=machine_kw,
+        card=card,
         name=name,
         duration_s=round(dur, 4),
         seed=seed,
@@ -139,9 +165,11 @@ def encoder_run(
     control: dict | None = None,
     machine_kw: dict | None = None,
     name: str = "exp",
+    card: str | Path | None = None,
     **extra,
 ) -> Scenario:
-    """Encoder-driven run (observers in shadow): speed, brake load ramp, steady window."""
+    """Encoder-driven run (observers in shadow) at speed_rpm (rpm of `card`): speed, brake
+    load ramp, steady window."""
     t_load = 0.3
     t1 = t_load + (ramp_s if load_pu > 0 else 0.0)
     w0 = t1 + settle_s
@@ -149,6 +177,7 @@ def encoder_run(
     load = [[0.0, 0.0], [t_load, 0.0], [t1, load_pu]] if load_pu > 0 else 0.0
     return build(
         machine_kw=machine_kw,
+        card=card,
         name=name,
         duration_s=round(dur, 4),
         seed=seed,
@@ -197,38 +226,13 @@ class CardValues:
         )
 
 
-def cv() -> CardValues:
-    """The values of the card `build` puts the experiments' scenarios on (`--machine` or the
-    default card)."""
-    return _card_values(_MACHINE["path"])
-
-
-@functools.cache
-def _card_values(machine: str | None) -> CardValues:
-    return CardValues.of(build(duration_s=0.01).machine)
-
-
 # ---------------------------------------------------------------- running
-# --graph: every run goes through the ROS 2 node graph (lockstep, recorded, read back from
-# the bag) instead of fluxdrive.drive.sim.run_scenario; the numbers are the same (the lockstep
-# graph reproduces the in-process runner bit for bit), only slower (about real time).  The
-# graph runner lives with the graph tools (fluxdrive_bringup.runs.graph_run), which install
-# it here: the engine imports no ROS.
-_RUNNER: dict[str, Callable[[Scenario], Any] | None] = {"graph": None}
-
-
-def use_graph_runner(run: Callable[[Scenario], Any] | None) -> None:
-    """Run every experiment scenario with `run` (scenario -> SimResult); None: in-process."""
-    _RUNNER["graph"] = run
-
-
 def _job(args):
-    sc, extractor, kw = args
+    sc, extractor, kw, graph_run = args
     from fluxdrive.drive.sim import run_scenario
 
     t0 = time.perf_counter()
-    graph = _RUNNER["graph"]
-    r = graph(sc) if graph is not None else run_scenario(sc, progress=False)
+    r = graph_run(sc) if graph_run is not None else run_scenario(sc, progress=False)
     m = compute(r)
     out = extractor(r, m, **(kw or {}))
     out["_wall_s"] = time.perf_counter() - t0
@@ -238,11 +242,45 @@ def _job(args):
 
 @dataclasses.dataclass
 class Ctx:
-    out: Path
+    """What an experiment runs in, passed to it explicitly (no module state): where its
+    figures go, quick or full, the parallel runner, the machine card every scenario runs on
+    (`experiment --machine`; None: the default card, or a scenario file's own) and the graph
+    runner (`experiment --graph`: scenario -> SimResult through the ROS node graph, installed
+    by the graph tools; None: in-process)."""
+
+    out: Path = Path(".")
     quick: bool = False
     runner: Any = None  # fluxdrive.study.runner.Runner; None: in-process, in order
     name: str = ""
     echo: bool = True
+    machine: Path | None = None
+    graph_run: Callable[[Scenario], Any] | None = None
+
+    @functools.cached_property
+    def card(self) -> MachineCard:
+        """The card the experiment's own scenarios run on."""
+        return _card(str(self.machine or DEFAULT_MACHINE))
+
+    @functools.cached_property
+    def cv(self) -> CardValues:
+        """The card values every prediction uses."""
+        return CardValues.of(self.card)
+
+    def rpm(self, speed_pu: float) -> float:
+        """A speed in per unit of the card's rated speed, in rpm."""
+        return pu_rpm(speed_pu, self.machine)
+
+    def build(self, machine_kw: dict | None = None, base: str | None = None, **raw) -> Scenario:
+        """`build` on this context's card."""
+        return build(machine_kw, base, card=self.machine, **raw)
+
+    def sensorless(self, speed_rpm: float, load_pu: float, **kw) -> Scenario:
+        """`sensorless` on this context's card."""
+        return sensorless(speed_rpm, load_pu, card=self.machine, **kw)
+
+    def encoder_run(self, speed_rpm: float, load_pu: float, **kw) -> Scenario:
+        """`encoder_run` on this context's card."""
+        return encoder_run(speed_rpm, load_pu, card=self.machine, **kw)
 
     def log(self, msg: str) -> None:
         if self.echo:
@@ -251,7 +289,7 @@ class Ctx:
 
     def run(self, jobs: list[tuple[Scenario, Callable, dict | None]]) -> list[dict]:
         """Run (scenario, extractor, kwargs) jobs; results in order, progress on stderr."""
-        return self.map(_job, jobs)
+        return self.map(_job, [(sc, ex, kw, self.graph_run) for sc, ex, kw in jobs])
 
     def map(self, fn: Callable[[Any], Any], items: list[Any]) -> list[Any]:
         """fn over items through the runner (in-process without one); results in order."""
@@ -261,6 +299,7 @@ class Ctx:
         return runner.map(fn, list(items), Progress(len(items), label=self.name, echo=self.echo))
 
     def fig(self, fig, name: str) -> str:
+        """Save a figure as out/NAME.png; its file name."""
         self.out.mkdir(parents=True, exist_ok=True)
         p = self.out / f"{name}.png"
         fig.tight_layout()

@@ -17,10 +17,11 @@ from typing import Any
 
 import numpy as np
 
+from fluxdrive.core.machine import MachineCard
 from fluxdrive.drive.control import ControllerConfig, design_loops
 from fluxdrive.drive.observers import observer_config
 from fluxdrive.experiments.claims import judge
-from fluxdrive.experiments.common import build, encoder_run, plt
+from fluxdrive.experiments.common import plt
 from fluxdrive.experiments.paper import harmonic_residual_rms, theta_err
 
 # multiples of each variant's card-derived PLL bandwidth (and EMF speed LPF) swept
@@ -36,9 +37,10 @@ def _name(fam: str, src: str, i: int) -> str:
     return f"{fam}_{src}_{i}"
 
 
-def build_cases(quick: bool) -> tuple[list[tuple[float, float]], dict[str, dict[str, Any]]]:
+def build_cases(
+    quick: bool, card: MachineCard
+) -> tuple[list[tuple[float, float]], dict[str, dict[str, Any]]]:
     """The operating points and the observers every run carries in shadow (name -> config)."""
-    card = build(duration_s=0.01).machine
     factors = FACTORS_QUICK if quick else FACTORS
     observers: dict[str, dict[str, Any]] = {}
     for fam, variant in FAMILIES.items():
@@ -191,13 +193,12 @@ def judge_fronts(fronts: dict[str, Any]) -> list[dict]:
 
 
 def fronts(ctx) -> dict[str, Any]:
-    points, observers = build_cases(ctx.quick)
-    card = build(duration_s=0.01).machine
-    rpm = card.rated_speed_rpm
+    card = ctx.card
+    points, observers = build_cases(ctx.quick, card)
     jobs = [
         (
-            encoder_run(
-                s * rpm, load, observers=observers, ramp_s=1.5, window_s=1.0, name="fronts"
+            ctx.encoder_run(
+                ctx.rpm(s), load, observers=observers, ramp_s=1.5, window_s=1.0, name="fronts"
             ),
             _x_front,
             None,

@@ -40,11 +40,9 @@ from fluxdrive.experiments.common import (
     LITERAL,
     OBS4,
     OBS6,
-    build,
-    cv,
-    encoder_run,
+    START_PU,
+    Ctx,
     plt,
-    sensorless,
 )
 
 RPM = 2 * math.pi / 60
@@ -111,7 +109,7 @@ VARIANTS = (("paper_robust", "flux"), ("paper (literal)", "paper"))
 
 def fig14(ctx):
     seeds = [1] if ctx.quick else [1, 2, 3]
-    jobs = [(build(base="paper_2pct_150load", seed=s), _x_fig14, None) for s in seeds]
+    jobs = [(ctx.build(base="paper_2pct_150load", seed=s), _x_fig14, None) for s in seeds]
     res = ctx.run(jobs)
     names = list(OBS6)
     rms = {n: [r["metrics"]["observers"][n]["theta_err_rms_deg"] for r in res] for n in names}
@@ -300,12 +298,12 @@ def fig13(ctx):
             )
         )
     jobs = [
-        (sensorless(60.0, ld, observers=obs, name="fig13", **kw), _x_locus, None)
+        (ctx.sensorless(ctx.rpm(0.02), ld, observers=obs, name="fig13", **kw), _x_locus, None)
         for _, ld, kw in cases
     ]
     res = ctx.run(jobs)
-    mc = cv()  # the card's values
-    r_nl = 60.0 * RPM * mc.p * mc.lam  # |e| = w lambda at 60 rpm [V]
+    mc = ctx.cv  # the card's values
+    r_nl = ctx.rpm(0.02) * RPM * mc.p * mc.lam  # |e| = w lambda at 2 % speed [V]
     p = plt()
     n_plot = min(len(cases), 3)
     fig, ax = p.subplots(2, n_plot, figsize=(3.6 * n_plot, 7.2), squeeze=False)
@@ -427,8 +425,7 @@ def _x_frames(r, m):
     }
 
 
-def _replay(frames, variant, src, **kw):
-    card = build(duration_s=0.01).machine
+def _replay(card, frames, variant, src, **kw):
     obs = KernelObserver(observer_config(variant, voltage_source=src, **kw), card)
     return obs.run(frames)
 
@@ -437,17 +434,17 @@ def fig2_4(ctx):
     from fluxdrive.analysis.metrics import harmonic as H
 
     pure = {"pure_integrator": {"variant": "pure_integrator", "voltage_source": "measured"}}
-    mc = cv()  # the card's values: every prediction below follows the card
+    mc = ctx.cv  # the card's values: every prediction below follows the card
     card_kw = {"inertia_kgm2": 1.5e-2}  # as in the engine test: isolate the estimator
     jobs = [
         # Fig. 2 and 4: encoder drive at 60 rpm and 300 rpm, full load, no sensor offsets
-        (encoder_run(60.0, 1.0, observers=pure, window_s=1.0), _x_frames, None),
+        (ctx.encoder_run(ctx.rpm(0.02), 1.0, observers=pure, window_s=1.0), _x_frames, None),
         # Fig. 3: 5 % offset on i_b, 60 rpm, no load
         (
-            build(
+            ctx.build(
                 machine_kw=card_kw,
                 duration_s=2.0,
-                speed_rpm=60.0,
+                speed_rpm=ctx.rpm(0.02),
                 steady_window_s=[1.0, 2.0],
                 faults={"current_offset_pu": [0.0, 0.05, 0.0]},
                 observers={"pure": {"variant": "pure_integrator"}, "paper": {"variant": "paper"}},
@@ -457,7 +454,9 @@ def fig2_4(ctx):
         ),
     ]
     if not ctx.quick:
-        jobs.append((encoder_run(300.0, 1.0, observers=pure, window_s=1.0), _x_frames, None))
+        jobs.append(
+            (ctx.encoder_run(ctx.rpm(0.1), 1.0, observers=pure, window_s=1.0), _x_frames, None)
+        )
     res = ctx.run(jobs)
     p = plt()
     claims = []
@@ -468,7 +467,7 @@ def fig2_4(ctx):
     th = r["theta"]
     k_start = int(np.searchsorted(r["t"], r["win"][0]))
     k0 = k_start + int(np.argmin(np.abs(wrap(th[k_start : k_start + 3000] - math.radians(45)))))
-    est = _replay(r["frames"][k0:], "pure_integrator", "measured")
+    est = _replay(ctx.card, r["frames"][k0:], "pure_integrator", "measured")
     n_per = int(round(2 * math.pi / (np.mean(r["wm"][k0:]) * mc.p) / mc.ts))
     seg = est[1 : 1 + 2 * n_per]
     centre = complex(seg[:, ES_LA].mean(), seg[:, ES_LB].mean())
@@ -514,10 +513,10 @@ def fig2_4(ctx):
     # ---- Fig. 3: 5 % offset on i_b: drift of the pure integrator
     r = res[1]
     ts = mc.ts
-    est_p = _replay(r["frames"], "pure_integrator", "measured")
-    est_q = _replay(r["frames"], "paper", "measured")
+    est_p = _replay(ctx.card, r["frames"], "pure_integrator", "measured")
+    est_q = _replay(ctx.card, r["frames"], "paper", "measured")
     cen = []
-    n_per = int(round(1 / (60 / 60 * mc.p) / ts))  # one electrical period
+    n_per = int(round(1 / (ctx.rpm(0.02) / 60 * mc.p) / ts))  # one electrical period
     ks = list(range(2000, len(est_p) - n_per, n_per))
     for k in ks:
         cen.append(complex(est_p[k : k + n_per, ES_LA].mean(), est_p[k : k + n_per, ES_LB].mean()))
@@ -531,8 +530,8 @@ def fig2_4(ctx):
     thq = r["theta"][sl]
     eq_ = wrap(est_q[sl, ES_TH] - thq)
     h1q = abs(H(eq_, np.unwrap(thq), 1))
-    we = 60 * RPM * mc.p
-    wc = 2 * math.pi * 100
+    we = ctx.rpm(0.02) * RPM * mc.p
+    wc = 2 * math.pi * float(observer_config("paper", ctx.card).cutoff_hz or 0.0)
     # the LPF leaves R*Delta/w_c, the inverse HPF multiplies it by |1 - j w_c/w|
     off_pred = mc.r * abs(dab) / wc * abs(1 - 1j * wc / we)
     h1_pred = math.asin(min(off_pred / mc.lam, 1.0))
@@ -545,7 +544,7 @@ def fig2_4(ctx):
             abs(rate - pred_rate) / abs(pred_rate),
         )
     )
-    est_r = _replay(r["frames"], "paper_robust", "measured")
+    est_r = _replay(ctx.card, r["frames"], "paper_robust", "measured")
     er_ = wrap(est_r[sl, ES_TH] - thq)
     h1r = abs(H(er_, np.unwrap(thq), 1))
     for vname, e_, h1_ in (("paper_robust", er_, h1r), ("paper (literal)", eq_, h1q)):
@@ -605,7 +604,7 @@ def fig2_4(ctx):
         iq = float(np.mean(r["iq"][k0:]))
         out = {}
         for var in ("pure_integrator", "paper"):
-            e = _replay(fr, var, "commanded")[k0:]
+            e = _replay(ctx.card, fr, var, "commanded")[k0:]
             la = e[:, ES_LA] - (e[:, ES_LA].mean() if var == "pure_integrator" else 0.0)
             lb = e[:, ES_LB] - (e[:, ES_LB].mean() if var == "pure_integrator" else 0.0)
             lam_c = (la + 1j * lb) * np.exp(-1j * th)  # rotor frame
@@ -639,7 +638,7 @@ def fig2_4(ctx):
         ax[0, c].legend(fontsize=7)
         vdt = mc.vdt
         pred_d = mc.lam + (4 / math.pi) * vdt / w_e * (1 if iq > 0 else -1)
-        wc = 2 * math.pi * 100
+        wc = 2 * math.pi * float(observer_config("paper", ctx.card).cutoff_hz or 0.0)
         att_paper = abs(1j * w_e + wc) / abs(1j * 6 * w_e + wc)
         out["pred_d_mag"] = pred_d
         out["rpm"] = rpm
@@ -759,8 +758,12 @@ def _x_fr_current(r, m):
     }
 
 
-def _fr_scenario(driving, freqs, kind, seed=1):
-    ts = cv().ts  # the sample period of the card the sweep runs on
+def _fr_scenario(driving, freqs, kind, seed=1, ctx: Ctx | None = None):
+    """Fig. 17's (kind "current") or Fig. 18's ("speed") stepped-sine sweep at 10 % speed
+    with `driving` closing the loop, on the context's card (None: the default card)."""
+    ctx = ctx or Ctx()
+    ts = ctx.cv.ts  # the sample period of the card the sweep runs on
+    start, speed_rpm = ctx.rpm(START_PU), ctx.rpm(0.1)
     machine_kw = None
     no_load = driving == "encoder_noload"
     if driving == "encoder_ideal":
@@ -785,7 +788,7 @@ def _fr_scenario(driving, freqs, kind, seed=1):
         from fluxdrive.analysis.freqresp import stepped_sine
 
         _, _, n = stepped_sine(freqs, 1.0, ts, t_inj, 10, 4)
-        speed = [[0.0, 40.0], [0.8, 40.0], [1.8, 300.0]]
+        speed = [[0.0, start], [0.8, start], [1.8, speed_rpm]]
         # half load keeps the 1.8 A d sweep off zero current (the deadtime's small-signal
         # resistance); ramped over 1.4 s: over 1 s the EMF drive's speed loop (granted ≈7 Hz by
         # the peaking rule) lets 300 rpm collapse to standstill (lock lost before the sweep)
@@ -804,20 +807,20 @@ def _fr_scenario(driving, freqs, kind, seed=1):
         from fluxdrive.analysis.freqresp import stepped_sine
 
         _, _, n = stepped_sine(freqs, 1.0, ts, t_inj, 6, 3)
-        speed = [[0.0, 40.0], [0.8, 40.0], [1.8, 300.0]]
+        speed = [[0.0, start], [0.8, start], [1.8, speed_rpm]]
         load = [[0.0, 0.0], [2.0, 0.0], [3.0, 0.3]]
     dur = n * ts + 0.01
     # the paper's Fig. 18 drives are 10 Hz speed loops: that is the target here
     ctrl = {
         "if_current_pu": 0.6,
-        "handover_rpm": 40.0,
-        "handback_rpm": 20.0,
+        "handover_rpm": start,
+        "handback_rpm": 0.5 * start,
         "speed_bandwidth_hz": 10.0,
     }
     # every drive gets its own loops from the one design rule (design_loops: target
     # bandwidth unless the closed loop would peak by more than 3 dB) for its speed path
     bench = {} if machine_kw else {"bench": BENCH}  # encoder_ideal: the ideal inverter/bench
-    return build(
+    return ctx.build(
         machine_kw=machine_kw,
         name=f"fr_{kind}_{driving}",
         duration_s=round(dur, 4),
@@ -894,7 +897,9 @@ def _bode(ctx, res, labels, key, title, fname, target_db=-3.0):
 def fig17(ctx):
     freqs = FR17_QUICK if ctx.quick else FR17_FULL
     drives = DRIVES[:3] if ctx.quick else DRIVES + ["encoder_ideal", "encoder_noload"]
-    res = ctx.run([(_fr_scenario(d, freqs, "current"), _x_fr_current, None) for d in drives])
+    res = ctx.run(
+        [(_fr_scenario(d, freqs, "current", ctx=ctx), _x_fr_current, None) for d in drives]
+    )
     figs = [
         _bode(
             ctx,
@@ -909,9 +914,9 @@ def fig17(ctx):
     bw = {d: r["ctrl"]["bandwidth_hz"] for d, r in zip(drives, res, strict=True)}
     bw_true = {d: r["true"]["bandwidth_hz"] for d, r in zip(drives, res, strict=True)}
     closed = {d: r["closed_loop"] for d, r in zip(drives, res, strict=True)}
-    delay = ControllerConfig().angle_advance_periods * cv().ts  # 1.5 PWM periods
+    delay = ControllerConfig().angle_advance_periods * ctx.cv.ts  # 1.5 PWM periods
     f_lpf = feedback_lpf_for_bandwidth(100.0, delay)
-    bw_design = card_current_bandwidth_hz(build(duration_s=0.01).machine)
+    bw_design = card_current_bandwidth_hz(ctx.card)
 
     def rel_to(d: str, ref: float) -> float:
         return abs(bw[d] - ref) / ref if closed.get(d, True) else math.inf
@@ -1028,7 +1033,7 @@ def _x_fr_speed(r, m):
 def fig18(ctx):
     freqs = FR18_QUICK if ctx.quick else FR18_FULL
     drives = DRIVES[:3] if ctx.quick else DRIVES
-    res = ctx.run([(_fr_scenario(d, freqs, "speed"), _x_fr_speed, None) for d in drives])
+    res = ctx.run([(_fr_scenario(d, freqs, "speed", ctx=ctx), _x_fr_speed, None) for d in drives])
     figs = [
         _bode(
             ctx,
@@ -1128,11 +1133,11 @@ def _x_step(r, m, t_step=2.0):
 
 def fig19(ctx):
     j_scales = [1, 10, 20] if ctx.quick else [1, 3, 6, 10, 15, 20, 30, 40]
-    card = build(base="paper_6pct_stepload").machine  # the card the runs use
+    card = ctx.build(base="paper_6pct_stepload").machine  # the card the runs use
     j0 = card.inertia_kgm2
     jobs = [
         (
-            build(
+            ctx.build(
                 base="paper_6pct_stepload",
                 duration_s=3.0 if ctx.quick else 3.5,
                 steady_window_s=[2.6, 3.0] if ctx.quick else [3.0, 3.5],
@@ -1142,7 +1147,7 @@ def fig19(ctx):
         )
         if s == 1
         else (
-            build(
+            ctx.build(
                 base="paper_6pct_stepload",
                 machine_kw={"inertia_kgm2": j0 * s},
                 duration_s=3.0 if ctx.quick else 3.5,
@@ -1153,7 +1158,7 @@ def fig19(ctx):
         )
         for s in j_scales
     ]
-    jobs.append((build(base="paper_4pct_fullload"), _x_step, {"t_step": 6.3}))
+    jobs.append((ctx.build(base="paper_4pct_fullload"), _x_step, {"t_step": 6.3}))
     res = ctx.run(jobs)
     steps, full4 = res[:-1], res[-1]
     p = plt()
@@ -1197,7 +1202,7 @@ def fig19(ctx):
     ax[1].set_xlabel("time [s]")
     figs.append(ctx.fig(fig, "fig19_full_load_4pct"))
     # what the model says: P-term needs T/(Kt Kp) of speed error; initial deceleration T/J
-    sc6 = build(base="paper_6pct_stepload")  # the step-load drive's own loop design
+    sc6 = ctx.build(base="paper_6pct_stepload")  # the step-load drive's own loop design
     kp = sc6.control.design(sc6.machine).kp_w
     dw_p = card.rated_torque_nm / (card.torque_constant_nm_per_a * kp) * RAD_S_TO_RPM
     decel = card.rated_torque_nm / card.inertia_kgm2
@@ -1292,8 +1297,8 @@ def fig15_16(ctx):
     res = ctx.run(
         [
             (
-                encoder_run(
-                    30.0 * s,
+                ctx.encoder_run(
+                    ctx.rpm(s / 100),
                     1.0,
                     observers=obs,
                     bench=BENCH,
@@ -1594,7 +1599,7 @@ def paper_robust(ctx):
         spec = {"variant": "paper_robust"} if kw is None else {"variant": "paper", **kw}
         drive_jobs.append(
             (
-                build(
+                ctx.build(
                     base="paper_2pct_150load",
                     observers={"drv": {**spec, "voltage_source": "measured"}},
                     driving="drv",
@@ -1605,10 +1610,14 @@ def paper_robust(ctx):
         )
     shadow = {**_dep_obs("commanded"), **_dep_obs("measured")}
     jobs = drive_jobs + [
-        (encoder_run(60.0, 1.5, observers=shadow, window_s=1.0, bench=BENCH), _x_shadow, None),
         (
-            encoder_run(
-                60.0,
+            ctx.encoder_run(ctx.rpm(0.02), 1.5, observers=shadow, window_s=1.0, bench=BENCH),
+            _x_shadow,
+            None,
+        ),
+        (
+            ctx.encoder_run(
+                ctx.rpm(0.02),
                 1.0,
                 observers=_dep_obs("measured"),
                 window_s=1.0,

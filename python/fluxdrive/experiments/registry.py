@@ -1,38 +1,28 @@
-"""`./fluxdrive experiment NAME|all [--quick] [--graph] [--out DIR]`: the paper's figures, and
-past them.  `--graph` runs every scenario through the ROS node graph instead of in-process.
+"""The experiments by name, running one in its context, and the report.
 
 Each experiment builds scenarios, runs them through the project's one parallel runner
 (fluxdrive.study.runner: a dask LocalCluster on every core, an existing cluster with
---scheduler, or in-process with --workers 1), writes
-PNGs laid out like the paper's figure, and one row per claim of the paper into
-report.md / report.json: {"claim", "ours", "holds", "why"}.  "why" explains every claim
-that does not hold with our numbers (physics first; nothing is tuned silently).
+--scheduler, or in-process with --workers 1), writes PNGs laid out like the paper's figure,
+and one row per claim into report.md / report.json (experiments.claims judges the paper's
+claims against config/claims.yaml).
 
-Experiments live in experiments_paper.py (Figs. 2-4, 13-19) and experiments_beyond.py
-(lowest speed, mismatch, sensitivity, online R_s, speed reversal, where peers fail).
-Each one is `fn(ctx) -> dict` with keys claims, figures, data; `ctx.run(jobs)` runs
-(scenario, extractor) jobs and returns the extractors' outputs, so only small arrays cross
-process boundaries.
+Experiments live in paper.py (Figs. 2-4, 13-19), fronts.py (flux vs EMF at matched
+bandwidth) and beyond.py (lowest speed, mismatch, sensitivity, online R_s, speed reversal,
+where peers fail).  Each one is `fn(ctx) -> dict` with keys claims, figures, data; `ctx` (a
+common.Ctx) carries the card, the runner and the output folder, and `ctx.run(jobs)` runs
+(scenario, extractor, kwargs) jobs and returns the extractors' outputs, so only small arrays
+cross process boundaries.  The command line is fluxdrive.cli.experiment.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
-import os
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from fluxdrive.core.machine import ConfigError
-from fluxdrive.drive.scenario import (
-    REPO_ROOT,
-    machine_path,
-)
-from fluxdrive.experiments import common
 from fluxdrive.experiments.claims import VERDICT_TEXT, count, counts_line
 
 # re-exported: study specs, the graph runner and tests name them here
@@ -45,11 +35,9 @@ from fluxdrive.experiments.common import (  # noqa: F401
     Ctx,
     build,
     claim,
-    cv,
     encoder_run,
     plt,
     sensorless,
-    use_graph_runner,
 )
 
 
@@ -62,11 +50,32 @@ def _registry() -> dict[str, tuple[Callable, str]]:
     return {**p.EXPERIMENTS, **f.EXPERIMENTS, **b.EXPERIMENTS}
 
 
+def experiments() -> dict[str, tuple[Callable, str]]:
+    """Every experiment by name: (function of a Ctx, title), in the report's order."""
+    return _registry()
+
+
 def run_experiment(
-    name: str, out: Path, quick: bool = False, runner=None, echo: bool = True
+    name: str,
+    out: Path,
+    quick: bool = False,
+    runner=None,
+    echo: bool = True,
+    machine: Path | None = None,
+    graph_run: Callable | None = None,
 ) -> dict:
+    """Run one experiment in a context of its own (card `machine`, None: the default card;
+    `graph_run`: every scenario through the node graph)."""
     fn, title = _registry()[name]
-    ctx = Ctx(out=Path(out), quick=quick, runner=runner, name=name, echo=echo)
+    ctx = Ctx(
+        out=Path(out),
+        quick=quick,
+        runner=runner,
+        name=name,
+        echo=echo,
+        machine=machine,
+        graph_run=graph_run,
+    )
     t0 = time.perf_counter()
     res = fn(ctx)
     res["runtime_s"] = round(time.perf_counter() - t0, 2)
@@ -79,7 +88,7 @@ def _fmt_holds(h) -> str:
     return {True: "yes", False: "**no**", None: "n/a"}[h]
 
 
-def _fmt_verdict(c: dict) -> str:
+def fmt_verdict(c: dict) -> str:
     """A registered claim's verdict (bold where a reproduction fails); a claim beyond the
     paper (no verdict): whether it holds."""
     v = c.get("verdict")
@@ -109,7 +118,7 @@ def _claim_rows(claims: list[dict]) -> list[str]:
             what, test, cls = _md(c["claim"]), "", "beyond the paper"
         lines.append(
             f"| {c.get('id', '')} | {what} | {cls} | {test} | {_md(c['ours'])} | "
-            f"{_fmt_verdict(c)} | {_md(why)} |"
+            f"{fmt_verdict(c)} | {_md(why)} |"
         )
     return lines
 
@@ -178,97 +187,3 @@ def _json_default(o):
     if isinstance(o, float) and math.isnan(o):
         return None
     return str(o)
-
-
-def main(argv: list[str]) -> int:
-    reg = _registry()
-    ap = argparse.ArgumentParser(
-        prog="fluxdrive experiment",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    ap.add_argument("name", help="experiment name or 'all' or 'list': " + ", ".join(reg))
-    ap.add_argument("--quick", action="store_true", help="fewer points, shorter runs")
-    ap.add_argument("--out", type=Path, help="output folder (default results/experiments)")
-    ap.add_argument(
-        "--workers",
-        type=int,
-        default=os.cpu_count() or 1,
-        help="worker processes of the local dask cluster (1: in-process)",
-    )
-    ap.add_argument("--scheduler", help="run on an existing dask cluster tcp://HOST:PORT")
-    ap.add_argument(
-        "--graph",
-        action="store_true",
-        help="run every scenario through the ROS 2 node graph (lockstep, "
-        "recorded to a bag and read back) instead of in-process; same numbers, "
-        "about real time, one run at a time",
-    )
-    ap.add_argument(
-        "--machine",
-        help="run every scenario on this machine card (per-unit "
-        "speeds scale with its rated speed, defaults derive from it; results go "
-        "to results/experiments-<card> unless --out)",
-    )
-    args = ap.parse_args(argv)
-    if args.machine:
-        from fluxdrive.core.machine import load_machine
-
-        card = load_machine(machine_path(args.machine))  # refuse a bad card up front
-        common._MACHINE["path"] = str(machine_path(args.machine).resolve())
-        args.out = args.out or REPO_ROOT / "results" / f"experiments-{card.name}"
-    if args.graph:
-        if common._RUNNER["graph"] is None:
-            raise ConfigError("--graph runs through the ROS graph: use ./fluxdrive experiment")
-        args.workers = 1  # a graph run uses both cores
-    if args.name == "list":
-        for k, (_, title) in reg.items():
-            print(f"{k:18s} {title}")
-        return 0
-    names = list(reg) if args.name == "all" else args.name.split(",")
-    bad = [n for n in names if n not in reg]
-    if bad:
-        print(f"unknown experiment(s) {bad}; known: {', '.join(reg)}", file=sys.stderr)
-        return 2
-    out = args.out or REPO_ROOT / "results" / "experiments"
-    t0 = time.perf_counter()
-    from fluxdrive.study.runner import runner_from_args
-    from fluxdrive.study.tasks import warm_kernels
-
-    if args.workers > 1 and not args.scheduler and not args.graph:
-        warm_kernels()  # compiled once here, loaded from the cache by the local workers
-    runner = runner_from_args(None if args.graph else args.scheduler, args.workers)
-    judged: list[dict] = []
-    try:
-        for n in names:
-            sys.stderr.write(f"== experiment {n} ({time.perf_counter() - t0:.0f} s elapsed)\n")
-            try:
-                res = run_experiment(n, out, args.quick, runner)
-            except Exception as exc:  # one broken experiment must not lose the others
-                import traceback
-
-                traceback.print_exc()
-                res = {
-                    "title": n,
-                    "runtime_s": 0.0,
-                    "quick": args.quick,
-                    "figures": [],
-                    "claims": [
-                        claim(
-                            "experiment ran",
-                            f"failed: {exc!r}",
-                            False,
-                            "see the traceback on stderr",
-                        )
-                    ],
-                }
-            write_report(out, {n: res})
-            for c in res["claims"]:
-                print(f"[{n}] {_fmt_verdict(c):22s} {c['claim']}  ->  {c['ours']}")
-            print(f"[{n}] {res['runtime_s']:.1f} s")
-            judged += res["claims"]
-    finally:
-        runner.close()
-    print(f"claims: {counts_line(count(judged))}")
-    print(f"report: {out / 'report.md'} ({time.perf_counter() - t0:.1f} s total)")
-    return 0

@@ -413,7 +413,6 @@ def graph_run(sc, keep: bool = False):
 
 def main_experiment_graph(argv: list[str]) -> int:
     """`./fluxdrive experiment ... --graph`: the engine's experiments, every run on the graph."""
-    from fluxdrive.experiments import registry
+    from fluxdrive.cli import experiment
 
-    registry.use_graph_runner(graph_run)
-    return registry.main(argv)
+    return experiment.main(argv, graph_run=graph_run)

@@ -1,0 +1,136 @@
+"""`./fluxdrive experiment NAME|all|list [--quick] [--graph] [--machine CARD] [--out DIR]`:
+the paper's figures, and past them (fluxdrive.experiments).  `--graph` runs every scenario
+through the ROS node graph instead of in-process (entered through the graph tools, which pass
+their runner in)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+import traceback
+from collections.abc import Callable
+from pathlib import Path
+
+from fluxdrive.core.machine import ConfigError, load_machine
+from fluxdrive.drive.scenario import REPO_ROOT, machine_path
+from fluxdrive.experiments.claims import count, counts_line
+from fluxdrive.experiments.common import claim
+from fluxdrive.experiments.registry import (
+    experiments,
+    fmt_verdict,
+    run_experiment,
+    write_report,
+)
+
+
+def _parser(names: list[str]) -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="fluxdrive experiment",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    ap.add_argument("name", help="experiment name or 'all' or 'list': " + ", ".join(names))
+    ap.add_argument("--quick", action="store_true", help="fewer points, shorter runs")
+    ap.add_argument("--out", type=Path, help="output folder (default results/experiments)")
+    ap.add_argument(
+        "--workers",
+        type=int,
+        default=os.cpu_count() or 1,
+        help="worker processes of the local dask cluster (1: in-process)",
+    )
+    ap.add_argument("--scheduler", help="run on an existing dask cluster tcp://HOST:PORT")
+    ap.add_argument(
+        "--graph",
+        action="store_true",
+        help="run every scenario through the ROS 2 node graph (lockstep, "
+        "recorded to a bag and read back) instead of in-process; same numbers, "
+        "about real time, one run at a time",
+    )
+    ap.add_argument(
+        "--machine",
+        help="run every scenario on this machine card (per-unit "
+        "speeds scale with its rated speed, defaults derive from it; results go "
+        "to results/experiments-<card> unless --out)",
+    )
+    return ap
+
+
+def _failed(name: str, quick: bool, exc: Exception) -> dict:
+    """The report entry of an experiment that raised (the others still run)."""
+    traceback.print_exc()
+    return {
+        "title": name,
+        "runtime_s": 0.0,
+        "quick": quick,
+        "figures": [],
+        "claims": [claim("experiment ran", f"failed: {exc!r}", False, "see the traceback")],
+    }
+
+
+def _run_all(
+    args: argparse.Namespace,
+    names: list[str],
+    machine: Path | None,
+    graph_run: Callable | None,
+    out: Path,
+) -> list[dict]:
+    """Run the experiments in order, each written to the report as it finishes."""
+    from fluxdrive.study.runner import runner_from_args
+    from fluxdrive.study.tasks import warm_kernels
+
+    t0 = time.perf_counter()
+    if args.workers > 1 and not args.scheduler and graph_run is None:
+        warm_kernels()  # compiled once here, loaded from the cache by the local workers
+    runner = runner_from_args(None if graph_run else args.scheduler, args.workers)
+    judged: list[dict] = []
+    try:
+        for n in names:
+            sys.stderr.write(f"== experiment {n} ({time.perf_counter() - t0:.0f} s elapsed)\n")
+            try:
+                res = run_experiment(
+                    n, out, args.quick, runner, machine=machine, graph_run=graph_run
+                )
+            except Exception as exc:  # one broken experiment must not lose the others
+                res = _failed(n, args.quick, exc)
+            write_report(out, {n: res})
+            for c in res["claims"]:
+                print(f"[{n}] {fmt_verdict(c):22s} {c['claim']}  ->  {c['ours']}")
+            print(f"[{n}] {res['runtime_s']:.1f} s")
+            judged += res["claims"]
+    finally:
+        runner.close()
+    print(f"claims: {counts_line(count(judged))}")
+    print(f"report: {out / 'report.md'} ({time.perf_counter() - t0:.1f} s total)")
+    return judged
+
+
+def main(argv: list[str], graph_run: Callable | None = None) -> int:
+    """The command; `graph_run` (scenario -> SimResult through the node graph) is what the
+    graph tools pass in for --graph."""
+    reg = experiments()
+    args = _parser(list(reg)).parse_args(argv)
+    machine = None
+    out = args.out
+    if args.machine:
+        card = load_machine(machine_path(args.machine))  # refuse a bad card up front
+        machine = machine_path(args.machine).resolve()
+        out = out or REPO_ROOT / "results" / f"experiments-{card.name}"
+    if args.graph:
+        if graph_run is None:
+            raise ConfigError("--graph runs through the ROS graph: use ./fluxdrive experiment")
+        args.workers = 1  # a graph run uses both cores
+    else:
+        graph_run = None
+    if args.name == "list":
+        for k, (_, title) in reg.items():
+            print(f"{k:18s} {title}")
+        return 0
+    names = list(reg) if args.name == "all" else args.name.split(",")
+    bad = [n for n in names if n not in reg]
+    if bad:
+        print(f"unknown experiment(s) {bad}; known: {', '.join(reg)}", file=sys.stderr)
+        return 2
+    _run_all(args, names, machine, graph_run, out or REPO_ROOT / "results" / "experiments")
+    return 0
