@@ -24,8 +24,10 @@ publisher: the header's frame_id, an observer's variant name), so pack/unpack ar
 
 from __future__ import annotations
 
+import operator
 import re
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -171,6 +173,16 @@ def leaves(type_name: str, prefix: str = "") -> tuple[Leaf, ...]:
     return tuple(res)
 
 
+def _tuple_getter(idx: list[int]) -> Callable[[tuple], tuple]:
+    """f(values) -> tuple(values[i] for i in idx), as a C-level itemgetter where it can."""
+    if len(idx) >= 2:
+        return operator.itemgetter(*idx)
+    if len(idx) == 1:
+        i = idx[0]
+        return lambda v: (v[i],)
+    return lambda v: ()
+
+
 class Codec:
     """Pack/unpack one message type for fixed string contents/lengths.
 
@@ -220,6 +232,10 @@ class Codec:
         const_idx = {i for i, _ in self._consts}
         self._num_idx = [i for i in range(n_args) if i not in const_idx]
         self._len_checks = [(i, c) for i, c in self._consts if isinstance(c, int)]
+        # the hot path (Decoder.decode, every message a node reads): C-level getters
+        self._num_get = _tuple_getter(self._num_idx)
+        self._chk_get = _tuple_getter([i for i, _ in self._len_checks])
+        self._chk_vals = tuple(c for _, c in self._len_checks)
         self._build_pack()
 
     def _build_pack(self) -> None:
@@ -287,8 +303,7 @@ class Codec:
         return all(vals[i] == c for i, c in self._len_checks)
 
     def unpack(self, data: bytes) -> tuple:
-        vals = self.struct.unpack_from(data, 4)
-        return tuple(vals[i] for i in self._num_idx)
+        return self._num_get(self.struct.unpack_from(data, 4))
 
     def unpack_all(self, data: bytes) -> tuple:
         """Raw struct tuple (strings and their lengths included)."""
@@ -355,8 +370,8 @@ class Decoder:
         c = self._last
         if c is not None and len(data) == c.size:
             vals = c.struct.unpack_from(data, 4)
-            if all(vals[i] == v for i, v in c._len_checks):
-                return tuple(vals[i] for i in c._num_idx)
+            if c._chk_get(vals) == c._chk_vals:
+                return c._num_get(vals)
         c = self.codec_for(data)
         self._last = c
         return c.unpack(data)

@@ -30,6 +30,7 @@ Set FLUXDRIVE_INTRA_PROCESS=0 to switch the shortcut off (everything over DDS).
 from __future__ import annotations
 
 import os
+import time
 import traceback
 from collections import defaultdict, deque
 from collections.abc import Callable
@@ -53,6 +54,7 @@ class Bus:
         self.on_error: Callable[[BaseException], None] | None = None
         self.on_interrupt: Callable[[], None] | None = None
         self.delivered = 0
+        self.targets: dict[tuple[str, int], list[Callable[[bytes], None]]] = {}
 
     # ------------------------------------------------------------- registration
     def add_publisher(self, topic: str) -> None:
@@ -63,10 +65,24 @@ class Bus:
     def add_subscription(self, sub: RawSubscription) -> None:
         self.callbacks[sub.topic].append(sub.callback)
         self.subscriptions[sub.topic].append(sub)
+        self.targets.clear()
+
+    def targets_of(self, topic: str, graph_id: int) -> list[Callable[[bytes], None]]:
+        """The callbacks a publisher of `graph_id` in this process delivers `topic` to: a
+        subscriber of the same graph (the usual case: every node of a process comes from one
+        launch) takes the bytes unchecked; any other gets the graph-id filter
+        (fluxdrive_ros.graph) -- the check costs a microsecond per delivery, a few dozen of
+        them per PWM period."""
+        key = (topic, graph_id)
+        cbs = self.targets.get(key)
+        if cbs is None:
+            cbs = [s.local_callback(graph_id) for s in self.subscriptions.get(topic, [])]
+            self.targets[key] = cbs
+        return cbs
 
     # ------------------------------------------------------------- delivery
-    def post(self, topic: str, data: bytes) -> None:
-        cbs = self.callbacks.get(topic)
+    def post(self, topic: str, data: bytes, graph_id: int | None = None) -> None:
+        cbs = self.callbacks.get(topic) if graph_id is None else self.targets_of(topic, graph_id)
         if not cbs:
             return
         self.queue.append((cbs, data))
@@ -124,6 +140,12 @@ def bus() -> Bus | None:
 class RawPublisher:
     """A publisher of serialised messages with intra-process delivery."""
 
+    # how long the count of matched DDS readers is reused (an rcl call per publish costs
+    # about as much as the delivery itself); a reader matched meanwhile misses at most what
+    # was published in that much wall time -- never a sample of a lockstep graph, whose
+    # plant waits for its readers and then `start_delay_s` before the first frame
+    COUNT_REUSE_S = 0.001
+
     def __init__(self, node, msg_cls, topic: str, qos):
         self.pub = node.create_publisher(msg_cls, topic, qos)
         self.topic = self.pub.topic_name
@@ -131,7 +153,11 @@ class RawPublisher:
         if self.bus is not None:
             self.bus.add_publisher(self.topic)
         self._post = self.bus.post if self.bus is not None else None
+        member = getattr(node, "graph", None)
+        self.graph_id = int(member.id) if member is not None else 0
         self._count = self.pub.get_subscription_count
+        self._n_dds = 0
+        self._t_count = -1.0
         self._publish = self.pub.publish
         self.n_published = 0  # the launcher checks the bag against it (fluxdrive_ros.runner)
         pubs = getattr(node, "raw_publishers", None)
@@ -140,18 +166,25 @@ class RawPublisher:
             node.raw_publishers = pubs
         pubs.append(self)
 
+    def _dds_readers(self) -> int:
+        now = time.perf_counter()
+        if now - self._t_count >= self.COUNT_REUSE_S:
+            self._n_dds = self._count()
+            self._t_count = now
+        return self._n_dds
+
     def publish(self, data: bytes) -> None:
         self.n_published += 1
         local = False
         if self._post is not None and self.bus is not None:
             local = bool(self.bus.callbacks.get(self.topic))
             if local:
-                self._post(self.topic, data)
+                self._post(self.topic, data, self.graph_id)
         try:
             # over DDS when a reader elsewhere is matched -- and always when nobody in this
             # process reads the topic, so the writer's transient-local history keeps it for
             # a reader that matches late
-            if not local or self._count():
+            if not local or self._dds_readers():
                 self._publish(data)
         except Exception:
             import rclpy
@@ -188,7 +221,9 @@ class RawSubscription:
         self.msg_cls = msg_cls
         self.qos = qos
         self.topic = node.resolve_topic_name(topic)
+        self.raw_callback = callback
         member = getattr(node, "graph", None)  # only this graph's messages reach `callback`
+        self.graph_id = int(member.id) if member is not None else 0
         if member is not None and member.carries_id(msg_cls):
             callback = member.filter(self.topic, callback)
         self.callback = callback
@@ -200,6 +235,13 @@ class RawSubscription:
         if self.bus is None or not self.bus.publishers.get(self.topic):
             dds_cb = self._drained if drain > 0 else callback
             self.sub = node.create_subscription(msg_cls, self.topic, dds_cb, qos, raw=True)
+
+    def local_callback(self, publisher_graph_id: int) -> Callable[[bytes], None]:
+        """The callback for bytes from a publisher of this process with that graph id:
+        unchecked when it is this node's graph (or this node accepts any), else filtered."""
+        if self.graph_id in (0, publisher_graph_id):
+            return self.raw_callback
+        return self.callback
 
     def _drained(self, data: bytes) -> None:
         self.callback(data)
