@@ -17,7 +17,13 @@ import numpy as np
 
 from fluxdrive.core import yamlio
 from fluxdrive.core.bench import BenchConfig, parse_bench
-from fluxdrive.core.machine import ConfigError, MachineCard, load_machine, refuse_unknown_keys
+from fluxdrive.core.machine import (
+    ConfigError,
+    MachineCard,
+    load_machine,
+    refuse_unknown_keys,
+    required,
+)
 from fluxdrive.core.paths import CONFIG_DIR, ROOT, project_file
 from fluxdrive.drive.control import CARD_RULES, ControllerConfig
 from fluxdrive.drive.observers import ObserverConfig, observer_config
@@ -217,102 +223,17 @@ def load_scenario(
     relative paths)."""
     path = Path(path)
     src = str(path)
-    if raw is None:
-        try:
-            raw = yamlio.load_file(path)
-        except (OSError, yamlio.YAMLError) as exc:
-            raise ConfigError(f"{src}: cannot read scenario: {yamlio.describe(exc)}") from exc
-    if not isinstance(raw, dict):
-        raise ConfigError(f"{src}: a scenario must be a mapping")
-    if machine is not None:  # --machine: the file's rpm values at the same per-unit speed
-        raw = _rescale_rpm(src, path, raw, load_machine(machine_path(machine)))
-    if overrides:
-        raw = dict(raw)
-        for pair in (("speed_rpm", "speed_pu"), ("speed_pu", "speed_rpm")):
-            if pair[0] in overrides and pair[0] not in raw:
-                raw.pop(pair[1], None)  # an override in the other unit replaces the profile
-        raw.update(overrides)
-    unknown = sorted(set(raw) - _TOP_KEYS, key=str)
-    if unknown:
-        raise ConfigError(f"{src}: unknown key(s) {unknown}; expected some of {sorted(_TOP_KEYS)}")
-    if machine is not None:  # --machine: a path, or a card name under config/machines
-        mpath = machine_path(machine)
-    else:
-        mpath = _own_card_path(path, raw)
-    try:
-        card = load_machine(mpath)
-    except ConfigError as exc:  # the card's own line, said to belong to this scenario
-        raise ConfigError(f"{src}: 'machine': {exc}") from exc
-
+    raw = _read_scenario(path, machine, overrides, raw)
+    card = _scenario_card(path, raw, machine)
     duration = _num(src, "duration_s", raw.get("duration_s", 2.0), 1e-3, 3600.0)
     seed = _int(src, "seed", raw.get("seed", 0), 0, (1 << 63) - 1)  # numpy seeds are >= 0
     bench_raw, bench_src = _bench_raw(src, path, raw.get("bench"))
     bench = parse_bench(bench_src, bench_raw, card)
-    ctrl_raw = dict(_mapping(src, "control", raw.get("control")))
-    for key_pu, key_rpm in _CONTROL_PU.items():
-        if key_pu in ctrl_raw:
-            if key_rpm in ctrl_raw:
-                raise ConfigError(f"{src}: give control.{key_pu} or control.{key_rpm}, not both")
-            ctrl_raw[key_rpm] = (
-                _num(src, f"control.{key_pu}", ctrl_raw.pop(key_pu), 0.0, 100.0)
-                * card.rated_speed_rpm
-            )
-    ctrl = _dataclass_from(src, "control", ControllerConfig, ctrl_raw)
-    ctrl.check(card, f"{src}: control")  # on this card: a bad value names the file
-    obs_raw = raw.get("observers", {}) or {}
-    if not isinstance(obs_raw, dict):
-        raise ConfigError(f"{src}: 'observers' must be a mapping name -> settings")
-    observers: dict[str, ObserverConfig] = {}
-    for name, spec in obs_raw.items():
-        spec = dict(_mapping(src, f"observers.{name}", spec))
-        variant = spec.pop("variant", "paper")
-        if not isinstance(variant, str):
-            raise ConfigError(f"{src}: 'observers.{name}.variant' must be a name, got {variant!r}")
-        try:
-            base = observer_config(variant)
-        except ConfigError as exc:
-            raise ConfigError(f"{src}: observers.{name}: {exc}") from exc
-        cfg = _dataclass_from(src, f"observers.{name}", ObserverConfig, spec, base)
-        cfg = bench.apply_observer_model(cfg, card)  # R^, L^, lambda^ the observer leaves open
-        # frequencies the scenario leaves unset: from this card (OBSERVER_RULES)
-        observers[str(name)] = cfg.validate(f"{src}: observers.{name}").resolved(card)
-    driving = str(raw.get("driving", "encoder"))
-    if driving != "encoder" and driving not in observers:
-        raise ConfigError(
-            f"{src}: 'driving' must be 'encoder' or one of the observers "
-            f"{sorted(observers)}, got '{driving}'"
-        )
-    ctrl.position_source = "encoder" if driving == "encoder" else "estimate"
-    if driving != "encoder" and ctrl.speed_observer_pll_hz is None:
-        # the speed loop is designed with the driving observer's speed path, unless the
-        # scenario fixes the design (e.g. to compare position sources on the same gains)
-        d = observers[driving]
-        ctrl.speed_observer_pll_hz = d.pll_bandwidth_hz
-        ctrl.speed_observer_damping = d.pll_damping
-        ctrl.speed_observer_lpf_hz = d.speed_lpf_hz
-    win = raw.get("steady_window_s", [0.5 * duration, duration])
-    if (
-        not isinstance(win, (list, tuple))
-        or len(win) != 2
-        or not 0
-        <= _num(src, "steady_window_s", win[0])
-        < _num(src, "steady_window_s", win[1])
-        <= duration + 1e-9
-    ):
-        raise ConfigError(f"{src}: 'steady_window_s' must be [start, end] within the duration")
-    faults = _mapping(src, "faults", raw.get("faults"))
-    bad = sorted(set(faults) - {"current_offset_pu", "current_gain"}, key=str)
-    if bad:
-        raise ConfigError(
-            f"{src}: unknown fault key(s) {bad}; expected current_offset_pu, current_gain"
-        )
-    off = faults.get("current_offset_pu", [0.0, 0.0, 0.0])
-    gain = faults.get("current_gain", [1.0, 1.0, 1.0])
-    for key, val in (("faults.current_offset_pu", off), ("faults.current_gain", gain)):
-        if not isinstance(val, list) or len(val) != 3:
-            raise ConfigError(f"{src}: '{key}' must be a list of 3 numbers (phases a, b, c)")
-        for x in val:
-            _num(src, key, x)
+    ctrl = _control_config(src, raw, card)
+    observers = _observer_configs(src, raw, card, bench)
+    driving = _driving(src, raw, ctrl, observers)
+    win = _steady_window(src, raw, duration)
+    off, gain = _current_faults(src, raw)
     plant = _mapping(src, "plant", raw.get("plant"))
     bad = sorted(set(plant) - {"deadtime_s"}, key=str)
     if bad:
@@ -332,7 +253,7 @@ def load_scenario(
         control=ctrl,
         observers=observers,
         driving=driving,
-        steady_window_s=(float(win[0]), float(win[1])),
+        steady_window_s=win,
         step_load_time_s=None if step_t is None else _num(src, "step_load_time_s", step_t),
         current_offset_a=tuple(float(x) * card.rated_current_a for x in off),
         current_gain=tuple(float(x) for x in gain),
@@ -344,6 +265,142 @@ def load_scenario(
         extra=dict(_mapping(src, "extra", raw.get("extra"))),
         bench=bench,
     )
+
+
+def _read_scenario(
+    path: Path,
+    machine: str | Path | None,
+    overrides: dict[str, Any] | None,
+    raw: dict[str, Any] | None,
+) -> dict[str, Any]:
+    """The scenario's mapping (read from `path` unless given), its rpm values rescaled to a
+    swapped card and the overrides applied; unknown top-level keys refused."""
+    src = str(path)
+    if raw is None:
+        try:
+            raw = yamlio.load_file(path)
+        except (OSError, yamlio.YAMLError) as exc:
+            raise ConfigError(f"{src}: cannot read scenario: {yamlio.describe(exc)}") from exc
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{src}: a scenario must be a mapping")
+    if machine is not None:  # --machine: the file's rpm values at the same per-unit speed
+        raw = _rescale_rpm(src, path, raw, load_machine(machine_path(machine)))
+    if overrides:
+        raw = dict(raw)
+        for pair in (("speed_rpm", "speed_pu"), ("speed_pu", "speed_rpm")):
+            if pair[0] in overrides and pair[0] not in raw:
+                raw.pop(pair[1], None)  # an override in the other unit replaces the profile
+        raw.update(overrides)
+    unknown = sorted(set(raw) - _TOP_KEYS, key=str)
+    if unknown:
+        raise ConfigError(f"{src}: unknown key(s) {unknown}; expected some of {sorted(_TOP_KEYS)}")
+    return raw
+
+
+def _scenario_card(path: Path, raw: dict[str, Any], machine: str | Path | None) -> MachineCard:
+    """The card `--machine` names (a path, or a card name under config/machines), else the
+    scenario's own; a bad card is said to belong to this scenario."""
+    mpath = machine_path(machine) if machine is not None else _own_card_path(path, raw)
+    try:
+        return load_machine(mpath)
+    except ConfigError as exc:  # the card's own line, said to belong to this scenario
+        raise ConfigError(f"{path}: 'machine': {exc}") from exc
+
+
+def _control_config(src: str, raw: dict[str, Any], card: MachineCard) -> ControllerConfig:
+    """The `control` block (per-unit speeds in rpm of this card), checked on the card."""
+    ctrl_raw = dict(_mapping(src, "control", raw.get("control")))
+    for key_pu, key_rpm in _CONTROL_PU.items():
+        if key_pu in ctrl_raw:
+            if key_rpm in ctrl_raw:
+                raise ConfigError(f"{src}: give control.{key_pu} or control.{key_rpm}, not both")
+            ctrl_raw[key_rpm] = (
+                _num(src, f"control.{key_pu}", ctrl_raw.pop(key_pu), 0.0, 100.0)
+                * card.rated_speed_rpm
+            )
+    ctrl = _dataclass_from(src, "control", ControllerConfig, ctrl_raw)
+    ctrl.check(card, f"{src}: control")  # on this card: a bad value names the file
+    return ctrl
+
+
+def _observer_configs(
+    src: str, raw: dict[str, Any], card: MachineCard, bench: BenchConfig
+) -> dict[str, ObserverConfig]:
+    """The `observers` block: each a variant's defaults with the scenario's settings, the
+    bench's observer model, and the card's rules for what is left unset."""
+    obs_raw = raw.get("observers", {}) or {}
+    if not isinstance(obs_raw, dict):
+        raise ConfigError(f"{src}: 'observers' must be a mapping name -> settings")
+    observers: dict[str, ObserverConfig] = {}
+    for name, spec in obs_raw.items():
+        spec = dict(_mapping(src, f"observers.{name}", spec))
+        variant = spec.pop("variant", "paper")
+        if not isinstance(variant, str):
+            raise ConfigError(f"{src}: 'observers.{name}.variant' must be a name, got {variant!r}")
+        try:
+            base = observer_config(variant)
+        except ConfigError as exc:
+            raise ConfigError(f"{src}: observers.{name}: {exc}") from exc
+        cfg = _dataclass_from(src, f"observers.{name}", ObserverConfig, spec, base)
+        cfg = bench.apply_observer_model(cfg, card)  # R^, L^, lambda^ the observer leaves open
+        # frequencies the scenario leaves unset: from this card (OBSERVER_RULES)
+        observers[str(name)] = cfg.validate(f"{src}: observers.{name}").resolved(card)
+    return observers
+
+
+def _driving(
+    src: str, raw: dict[str, Any], ctrl: ControllerConfig, observers: dict[str, ObserverConfig]
+) -> str:
+    """The position source ('encoder' or an observer's name), set on the controller with
+    the speed path its speed loop is designed with."""
+    driving = str(raw.get("driving", "encoder"))
+    if driving != "encoder" and driving not in observers:
+        raise ConfigError(
+            f"{src}: 'driving' must be 'encoder' or one of the observers "
+            f"{sorted(observers)}, got '{driving}'"
+        )
+    ctrl.position_source = "encoder" if driving == "encoder" else "estimate"
+    if driving != "encoder" and ctrl.speed_observer_pll_hz is None:
+        # the speed loop is designed with the driving observer's speed path, unless the
+        # scenario fixes the design (e.g. to compare position sources on the same gains)
+        d = observers[driving]
+        ctrl.speed_observer_pll_hz = required(d.pll_bandwidth_hz, "pll_bandwidth_hz")
+        ctrl.speed_observer_damping = d.pll_damping
+        ctrl.speed_observer_lpf_hz = required(d.speed_lpf_hz, "speed_lpf_hz")  # resolved
+    return driving
+
+
+def _steady_window(src: str, raw: dict[str, Any], duration: float) -> tuple[float, float]:
+    """[start, end] of the steady-state metrics, within the duration (default: 2nd half)."""
+    win = raw.get("steady_window_s", [0.5 * duration, duration])
+    if (
+        not isinstance(win, (list, tuple))
+        or len(win) != 2
+        or not 0
+        <= _num(src, "steady_window_s", win[0])
+        < _num(src, "steady_window_s", win[1])
+        <= duration + 1e-9
+    ):
+        raise ConfigError(f"{src}: 'steady_window_s' must be [start, end] within the duration")
+    return float(win[0]), float(win[1])
+
+
+def _current_faults(src: str, raw: dict[str, Any]) -> tuple[list, list]:
+    """The `faults` block: per-phase current-sensor offsets [pu] and gains."""
+    faults = _mapping(src, "faults", raw.get("faults"))
+    bad = sorted(set(faults) - {"current_offset_pu", "current_gain"}, key=str)
+    if bad:
+        raise ConfigError(
+            f"{src}: unknown fault key(s) {bad}; expected current_offset_pu, current_gain"
+        )
+    off = faults.get("current_offset_pu", [0.0, 0.0, 0.0])
+    gain = faults.get("current_gain", [1.0, 1.0, 1.0])
+    for key, val in (("faults.current_offset_pu", off), ("faults.current_gain", gain)):
+        if not isinstance(val, list) or len(val) != 3:
+            raise ConfigError(f"{src}: '{key}' must be a list of 3 numbers (phases a, b, c)")
+        for x in val:
+            _num(src, key, x)
+    return off, gain
 
 
 def _own_card_path(path: Path, raw: dict) -> Path:
