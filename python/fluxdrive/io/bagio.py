@@ -566,11 +566,9 @@ def _wanted(topic: str, msgtype: str) -> bool:
     )
 
 
-def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
-    """Read a drive bag into aligned arrays.  Raises BagError (one line) for a bag that
-    holds nothing replayable; a damaged or partial bag returns what it holds, with the
-    damage listed in `problems`."""
-    path = Path(path)
+def _bag_folder(path: Path) -> Path:
+    """The rosbag2 folder `path` names (a bare .mcap file: its folder), checked to hold a
+    storage file."""
     if not path.exists():
         raise BagError(f"{path}: no such bag")
     if path.is_file():  # a bare .mcap file: use its folder if that is a bag
@@ -580,17 +578,22 @@ def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
             raise BagError(f"{path}: not a rosbag2 folder (no metadata.yaml next to it)")
     if not (path / "metadata.yaml").exists():
         raise BagError(f"{path}: not a rosbag2 bag (no metadata.yaml)")
-    info = _info(path)
-    if not _bag_files(path):
-        raise BagError(f"{path}: bag has no storage file (.mcap/.db3)")
-    problems: list[str] = []
-    meta: dict[str, Any] = {}
+    return path
+
+
+def _recorded_meta(info: dict[str, Any], problems: list[str]) -> dict[str, Any]:
+    """The recorder's settings stored in metadata.yaml's custom data ({} when absent)."""
     try:
         cd = info.get("custom_data") or {}
         if META_KEY in cd:
-            meta = json.loads(cd[META_KEY])
+            return json.loads(cd[META_KEY])
     except Exception:  # noqa: BLE001
         problems.append("unreadable fluxdrive metadata (ignored)")
+    return {}
+
+
+def _expected_counts(info: dict[str, Any]) -> dict[str, int]:
+    """Messages per wanted topic that metadata.yaml says the bag holds."""
     expected: dict[str, int] = {}
     for tm in info.get("topics_with_message_count") or []:
         try:
@@ -599,52 +602,72 @@ def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
                 expected[md["name"]] = int(tm["message_count"])
         except (KeyError, TypeError, ValueError):
             pass
+    return expected
+
+
+def _open_source(path: Path, problems: list[str]):
+    """The indexed reader, or the sequential one when the index is unreadable (a recording
+    cut off): (topics, message iterator, close, definitions)."""
     try:
-        topics, messages_, close, defs = _indexed_source(path)
+        return _indexed_source(path)
     except Exception as exc:  # noqa: BLE001 - rosbags raises many kinds; name the problem
         first = f"{type(exc).__name__}: {_one_line(exc)}"
-        try:
-            topics, messages_, close, defs = _stream_source(path)
-        except BagError:
-            raise
-        except Exception:  # noqa: BLE001
-            raise BagError(
-                f"{path}: cannot open bag ({first}); not a readable rosbag2 bag"
-            ) from None
-        if not topics:
-            raise BagError(
-                f"{path}: cannot open bag ({first}); storage holds no readable "
-                f"records (truncated or damaged)"
-            ) from None
-        problems.append(f"bag index unreadable ({first}): storage truncated, read sequentially")
-    counts: dict[str, int] = {}
-    raws: dict[str, list[bytes]] = {}
-    raw: list[tuple[int, bytes]] = []
     try:
-        if not topics:
-            raise BagError(f"{path}: bag is empty (no topics)")
-        if TOPIC_FRAME not in topics:
-            ours = [tp for tp, ty in topics.items() if ty.startswith("flux_drive_msgs/")]
-            if not ours:
-                raise BagError(
-                    f"{path}: no fluxdrive topics; bag holds foreign message types "
-                    f"{sorted(set(topics.values()))[:4]}"
-                )
-            raise BagError(f"{path}: no {TOPIC_FRAME} topic (bag has {sorted(topics)})")
-        if topics[TOPIC_FRAME] != T_FRAME:
+        topics, messages_, close, defs = _stream_source(path)
+    except BagError:
+        raise
+    except Exception:  # noqa: BLE001
+        raise BagError(f"{path}: cannot open bag ({first}); not a readable rosbag2 bag") from None
+    if not topics:
+        raise BagError(
+            f"{path}: cannot open bag ({first}); storage holds no readable "
+            f"records (truncated or damaged)"
+        ) from None
+    problems.append(f"bag index unreadable ({first}): storage truncated, read sequentially")
+    return topics, messages_, close, defs
+
+
+def _check_frame_topic(path: Path, topics: dict[str, str]) -> None:
+    """One line naming why the bag holds no frames to replay."""
+    if not topics:
+        raise BagError(f"{path}: bag is empty (no topics)")
+    if TOPIC_FRAME not in topics:
+        ours = [tp for tp, ty in topics.items() if ty.startswith("flux_drive_msgs/")]
+        if not ours:
             raise BagError(
-                f"{path}: {TOPIC_FRAME} has type {topics[TOPIC_FRAME]}, expected {T_FRAME}"
+                f"{path}: no fluxdrive topics; bag holds foreign message types "
+                f"{sorted(set(topics.values()))[:4]}"
             )
+        raise BagError(f"{path}: no {TOPIC_FRAME} topic (bag has {sorted(topics)})")
+    if topics[TOPIC_FRAME] != T_FRAME:
+        raise BagError(f"{path}: {TOPIC_FRAME} has type {topics[TOPIC_FRAME]}, expected {T_FRAME}")
+
+
+@dataclass
+class _RawMessages:
+    """What the reader returned, per topic, before decoding."""
+
+    counts: dict[str, int] = field(default_factory=dict)
+    raws: dict[str, list[bytes]] = field(default_factory=dict)
+    frames: list[tuple[int, bytes]] = field(default_factory=list)  # (t_ns, CDR) if kept
+
+
+def _read_messages(path: Path, source, keep_raw: bool, problems: list[str]) -> _RawMessages:
+    """Every wanted message's bytes, up to where the storage ends or breaks; the reader is
+    closed in any case."""
+    topics, messages_, close, _ = source
+    got = _RawMessages()
+    try:
+        _check_frame_topic(path, topics)
         try:
             for tp, _msgtype, t_ns, data in messages_:
-                counts[tp] = counts.get(tp, 0) + 1
-                raws.setdefault(tp, []).append(bytes(data))
+                got.counts[tp] = got.counts.get(tp, 0) + 1
+                got.raws.setdefault(tp, []).append(bytes(data))
                 if keep_raw and tp == TOPIC_FRAME:
-                    raw.append((t_ns, raws[tp][-1]))
+                    got.frames.append((t_ns, got.raws[tp][-1]))
         except Exception as exc:  # noqa: BLE001
-            got = sum(counts.values())
             problems.append(
-                f"bag truncated or damaged after {got} messages "
+                f"bag truncated or damaged after {sum(got.counts.values())} messages "
                 f"({type(exc).__name__}: {_one_line(exc)})"
             )
     finally:
@@ -652,21 +675,24 @@ def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
             close()
         except Exception:  # noqa: BLE001
             pass
-    if "machine" not in meta:  # converted bag: metadata.yaml lost custom_data
-        meta = {**meta, **_settings_elsewhere(path, raws.get(SETTINGS))}
-        if "machine" not in meta:
-            problems.append(
-                "bag carries no recorder settings (machine card, observers): "
-                "replaying with the default machine card and observers"
-            )
-    raws.pop(SETTINGS, None)
-    marker_raws = raws.pop(MARKER, [])
-    # each topic decoded with the layout the bag recorded (a bag from before a field was
-    # added still reads)
-    tables = {tp: decode_rows(topics[tp], r, problems, tp, defs.get(tp)) for tp, r in raws.items()}
-    graph_id, keep_frames = _own_graph(tables, meta, problems)
-    if keep_raw and keep_frames is not None and len(raw) == len(keep_frames):
-        raw = [r for r, k in zip(raw, keep_frames, strict=True) if k]
+    return got
+
+
+@dataclass
+class _FrameIndex:
+    """The frames replayed (the last of each seq, in seq order) and their stamps."""
+
+    seqs: np.ndarray
+    frames: np.ndarray
+    t: np.ndarray
+
+    @property
+    def n(self) -> int:
+        return len(self.seqs)
+
+
+def _frame_index(path: Path, tables: dict[str, tuple], problems: list[str]) -> _FrameIndex:
+    """The frame rows by seq; duplicates and gaps named in `problems`."""
     if TOPIC_FRAME not in tables or not len(tables[TOPIC_FRAME][0]):
         raise BagError(
             f"{path}: no readable {TOPIC_FRAME} messages "
@@ -674,7 +700,6 @@ def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
         )
     fseq, frows, fcols = tables[TOPIC_FRAME]
     seqs, last = _last_of_each(fseq)
-    frames = frows[last]
     n = len(seqs)
     t = (
         fcols["header.stamp.sec"][last].astype(np.int64) * 1_000_000_000
@@ -694,58 +719,116 @@ def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
             f"{span - n} of {span} frames missing (seq gaps); replaying the "
             f"{n} present back to back"
         )
+    return _FrameIndex(seqs, frows[last], t)
+
+
+def _align(
+    tables: dict[str, tuple],
+    index: _FrameIndex,
+    tp: str,
+    width: int,
+    matched: dict[str, int],
+    problems: list[str] | None,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Topic `tp`'s rows placed at their frame's seq (NaN where none arrived) and which
+    frames have one; the count goes to `matched`, the shortfall to `problems` if given."""
+    if tp not in tables or not len(tables[tp][0]):
+        return None
+    n, seqs = index.n, index.seqs
+    mseq, mrows, _ = tables[tp]
+    out = np.full((n, width), np.nan)
+    pos = np.searchsorted(seqs, mseq)
+    hit = (pos < n) & (seqs[np.minimum(pos, n - 1)] == mseq)
+    out[pos[hit]] = mrows[hit]
+    have = np.zeros(n, dtype=bool)
+    have[pos[hit]] = True
+    matched[tp] = int(have.sum())
+    if problems is not None and not have.all():
+        problems.append(f"{tp}: {int(n - have.sum())} of {n} frames have no matching message")
+    return out, have
+
+
+def _controller_rows(
+    state: tuple[np.ndarray, np.ndarray] | None,
+    duty: tuple[np.ndarray, np.ndarray] | None,
+    n: int,
+) -> np.ndarray | None:
+    """One CO_* row from both messages; a row where only one arrived keeps 0 in the other's
+    columns (the replay reads mode/fault and the speed reference from it). Duties alone
+    carry no controller state: None."""
+    if state is None:
+        return None
+    ctrl = np.full((n, CO_N), np.nan)
+    have = np.zeros(n, dtype=bool)
+    for part, cols in (
+        (duty, [c for _, c in messages.DUTY_MAP]),
+        (state, [c for _, c in messages.STATE_MAP]),
+    ):
+        if part is not None:
+            idx = np.ix_(part[1], np.asarray(cols))
+            ctrl[idx] = part[0][idx]
+            have |= part[1]
+    ctrl[have] = np.nan_to_num(ctrl[have])
+    return ctrl
+
+
+def read_run_bag(path: str | Path, keep_raw: bool = False) -> RunBag:
+    """Read a drive bag into aligned arrays.  Raises BagError (one line) for a bag that
+    holds nothing replayable; a damaged or partial bag returns what it holds, with the
+    damage listed in `problems`."""
+    path = _bag_folder(Path(path))
+    info = _info(path)
+    if not _bag_files(path):
+        raise BagError(f"{path}: bag has no storage file (.mcap/.db3)")
+    problems: list[str] = []
+    meta = _recorded_meta(info, problems)
+    expected = _expected_counts(info)
+    source = _open_source(path, problems)
+    topics, defs = source[0], source[3]
+    got = _read_messages(path, source, keep_raw, problems)
+    if "machine" not in meta:  # converted bag: metadata.yaml lost custom_data
+        meta = {**meta, **_settings_elsewhere(path, got.raws.get(SETTINGS))}
+        if "machine" not in meta:
+            problems.append(
+                "bag carries no recorder settings (machine card, observers): "
+                "replaying with the default machine card and observers"
+            )
+    got.raws.pop(SETTINGS, None)
+    marker_raws = got.raws.pop(MARKER, [])
+    # each topic decoded with the layout the bag recorded (a bag from before a field was
+    # added still reads)
+    tables = {
+        tp: decode_rows(topics[tp], r, problems, tp, defs.get(tp)) for tp, r in got.raws.items()
+    }
+    graph_id, keep_frames = _own_graph(tables, meta, problems)
+    raw = got.frames
+    if keep_raw and keep_frames is not None and len(raw) == len(keep_frames):
+        raw = [r for r, k in zip(raw, keep_frames, strict=True) if k]
+    index = _frame_index(path, tables, problems)
     for tp, want in expected.items():
-        got = counts.get(tp, 0)
-        if want > got:
-            problems.append(f"{tp}: {got} of {want} messages read ({want - got} missing)")
-
-    matched: dict[str, int] = {TOPIC_FRAME: n}
-
-    def align(tp: str, width: int, report: bool = True) -> tuple[np.ndarray, np.ndarray] | None:
-        if tp not in tables or not len(tables[tp][0]):
-            return None
-        mseq, mrows, _ = tables[tp]
-        out = np.full((n, width), np.nan)
-        pos = np.searchsorted(seqs, mseq)
-        hit = (pos < n) & (seqs[np.minimum(pos, n - 1)] == mseq)
-        out[pos[hit]] = mrows[hit]
-        have = np.zeros(n, dtype=bool)
-        have[pos[hit]] = True
-        matched[tp] = int(have.sum())
-        if report and not have.all():
-            problems.append(f"{tp}: {int(n - have.sum())} of {n} frames have no matching message")
-        return out, have
-
+        if want > got.counts.get(tp, 0):
+            have = got.counts.get(tp, 0)
+            problems.append(f"{tp}: {have} of {want} messages read ({want - have} missing)")
+    matched: dict[str, int] = {TOPIC_FRAME: index.n}
     truth = None
-    if (a := align(TOPIC_TRUTH, TR_N)) is not None:
+    if (a := _align(tables, index, TOPIC_TRUTH, TR_N, matched, problems)) is not None:
         truth = a[0]
-        truth[:, TR_T] = t
-    ctrl = None
-    st, du = align(TOPIC_CTRL, CO_N), align(TOPIC_DUTY, CO_N, report=False)
-    if st is not None or du is not None:
-        # one CO_* row from both messages; a row where only one arrived keeps 0 in the
-        # other's columns (the replay reads mode/fault and the speed reference from it)
-        ctrl = np.full((n, CO_N), np.nan)
-        have = np.zeros(n, dtype=bool)
-        for part, cols in (
-            (du, [c for _, c in messages.DUTY_MAP]),
-            (st, [c for _, c in messages.STATE_MAP]),
-        ):
-            if part is not None:
-                idx = np.ix_(part[1], np.asarray(cols))
-                ctrl[idx] = part[0][idx]
-                have |= part[1]
-        ctrl[have] = np.nan_to_num(ctrl[have])
-        if st is None:
-            ctrl = None  # duties alone carry no controller state
+        truth[:, TR_T] = index.t
+    ctrl = _controller_rows(
+        _align(tables, index, TOPIC_CTRL, CO_N, matched, problems),
+        _align(tables, index, TOPIC_DUTY, CO_N, matched, None),
+        index.n,
+    )
     est = {}
     for tp in tables:
         if tp.startswith(EST_PREFIX) and tp.endswith(EST_SUFFIX):
-            e = align(tp, ES_N)
+            e = _align(tables, index, tp, ES_N, matched, problems)
             if e is not None:
                 est[tp[len(EST_PREFIX) : -len(EST_SUFFIX)]] = e[0]
     markers = read_markers(marker_raws, graph_id, problems, defs.get(MARKER))
-    return RunBag(path, t, frames, truth, est, ctrl, meta, counts, problems, raw, matched, markers)
+    bag = RunBag(path, index.t, index.frames, truth, est, ctrl, meta, got.counts, problems)
+    bag.raw_frames, bag.matched, bag.markers = raw, matched, markers
+    return bag
 
 
 def read_markers(
