@@ -185,6 +185,49 @@ def load_spec(path: str | Path) -> StudySpec:
     if not p.exists() and not p.suffix:
         p = STUDY_DIR / f"{p.name}.yaml"
     src = str(p)
+    raw = _read_spec(src, p)
+    seed = raw.get("seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise _err(src, f"'seed' must be a non-negative integer, got {seed!r}")
+    draws = raw.get("draws", 1)
+    if isinstance(draws, bool) or not isinstance(draws, int) or draws < 1:
+        raise _err(src, f"'draws' must be a positive integer, got {draws!r}")
+    scen = _scenario(src, p.parent, raw.get("scenario"))
+    vout = _variants(src, raw.get("variants"), scen)
+    grid = _grid(src, raw.get("grid") or {}, scen)
+    rnd = _random_axes(src, raw.get("random") or {}, grid, scen)
+    rl = _finite(src, "'rated_load_pu'", raw.get("rated_load_pu", 1.0))
+    if not 0 < rl <= 100:
+        raise _err(src, f"'rated_load_pu' must be in (0, 100], got {rl!r}")
+    prob = raw.get("probability", 0.95)
+    if isinstance(prob, bool) or not isinstance(prob, (int, float)) or not 0 < prob < 1:
+        raise _err(src, f"'probability' must be in (0, 1), got {prob!r}")
+    for key in ("name", "description"):
+        if not isinstance(raw.get(key, ""), str):
+            raise _err(src, f"'{key}' must be a string, got {raw[key]!r}")
+    axes = _map_axes(src, raw.get("map", {}) or {})
+    n_tasks = len(vout) * draws * math.prod(len(v) for v in grid.values())
+    if n_tasks > MAX_TASKS:
+        raise _err(src, f"{n_tasks} tasks (variants x grid points x draws), more than {MAX_TASKS}")
+    return StudySpec(
+        name=str(raw.get("name", p.stem)),
+        source=src,
+        seed=seed,
+        scenario=scen,
+        variants=vout,
+        grid=grid,
+        random=rnd,
+        draws=draws,
+        description=str(raw.get("description", "")),
+        rated_load_pu=float(rl),
+        probability=float(prob),
+        map_axes=axes,
+        raw=raw,
+    )
+
+
+def _read_spec(src: str, p: Path) -> dict[str, Any]:
+    """The spec file's mapping, unknown top-level keys refused."""
     try:
         raw = yamlio.load_file(p)
     except (OSError, yamlio.YAMLError) as exc:
@@ -194,14 +237,12 @@ def load_spec(path: str | Path) -> StudySpec:
     bad = sorted(set(raw) - _TOP, key=str)
     if bad:
         raise _err(src, f"unknown key(s) {bad}; expected some of {sorted(_TOP)}")
-    seed = raw.get("seed", 0)
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise _err(src, f"'seed' must be a non-negative integer, got {seed!r}")
-    draws = raw.get("draws", 1)
-    if isinstance(draws, bool) or not isinstance(draws, int) or draws < 1:
-        raise _err(src, f"'draws' must be a positive integer, got {draws!r}")
-    scen = _scenario(src, p.parent, raw.get("scenario"))
-    variants = raw.get("variants")
+    return raw
+
+
+def _variants(src: str, variants: Any, scen: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """`variants`: name -> observer settings (checked against the observer's keys unless
+    the study replays a bag, whose variants may be plugins)."""
     if not isinstance(variants, dict) or not variants:
         raise _err(
             src,
@@ -224,7 +265,11 @@ def load_spec(path: str | Path) -> StudySpec:
                     f"and observer settings {sorted(OBSERVER_KEYS)}",
                 )
         vout[str(name)] = cfg
-    grid = raw.get("grid") or {}
+    return vout
+
+
+def _grid(src: str, grid: Any, scen: dict[str, Any]) -> dict[str, list[float]]:
+    """`grid`: axis -> the values swept (scalar axes only)."""
     if not isinstance(grid, dict):
         raise _err(src, "'grid' must be a mapping axis -> list of values")
     for a, vals in grid.items():
@@ -241,8 +286,13 @@ def load_spec(path: str | Path) -> StudySpec:
             )
         for v in vals:
             _finite(src, f"grid.{a} values", v)
-    grid = {a: [float(v) for v in vals] for a, vals in grid.items()}
-    rnd = raw.get("random") or {}
+    return {a: [float(v) for v in vals] for a, vals in grid.items()}
+
+
+def _random_axes(
+    src: str, rnd: Any, grid: dict[str, list[float]], scen: dict[str, Any]
+) -> dict[str, dict[str, Any]]:
+    """`random`: perturbation axis -> distribution, none of them also a grid axis."""
     if not isinstance(rnd, dict):
         raise _err(src, "'random' must be a mapping axis -> distribution")
     for a, d in rnd.items():
@@ -253,37 +303,37 @@ def load_spec(path: str | Path) -> StudySpec:
         if a in grid:
             raise _err(src, f"random.{a}: also a grid axis")
         _axis_kind(src, f"random.{a}", a, scen)
-        if not isinstance(d, dict) or not isinstance(d.get("dist"), str) or d["dist"] not in DISTS:
-            raise _err(src, f"random.{a} must be {{dist: uniform|normal|choice, ...}}")
-        need = DISTS[d["dist"]]
-        miss = [k for k in need if k not in d]
-        if miss:
-            raise _err(src, f"random.{a}: dist {d['dist']} needs {list(need)}")
-        bad = sorted(set(d) - set(need) - {"dist", "clip_low", "clip_high"}, key=str)
-        if bad:
-            raise _err(src, f"random.{a}: unknown key(s) {bad} for dist {d['dist']}")
-        if d["dist"] == "choice":
-            if not isinstance(d["values"], list) or not 1 <= len(d["values"]) <= 10_000:
-                raise _err(src, f"random.{a}.values must be a list of 1..10000 numbers")
-            for v in d["values"]:
-                _finite(src, f"random.{a}.values", v)
-        else:
-            for k in (*need, *(c for c in ("clip_low", "clip_high") if c in d)):
-                _finite(src, f"random.{a}.{k}", d[k])
-            if d["dist"] == "uniform" and d["low"] > d["high"]:
-                raise _err(src, f"random.{a}: low {d['low']} is above high {d['high']}")
-            if d["dist"] == "normal" and d["std"] < 0:
-                raise _err(src, f"random.{a}.std must be >= 0, got {d['std']}")
-    rl = _finite(src, "'rated_load_pu'", raw.get("rated_load_pu", 1.0))
-    if not 0 < rl <= 100:
-        raise _err(src, f"'rated_load_pu' must be in (0, 100], got {rl!r}")
-    prob = raw.get("probability", 0.95)
-    if isinstance(prob, bool) or not isinstance(prob, (int, float)) or not 0 < prob < 1:
-        raise _err(src, f"'probability' must be in (0, 1), got {prob!r}")
-    for key in ("name", "description"):
-        if not isinstance(raw.get(key, ""), str):
-            raise _err(src, f"'{key}' must be a string, got {raw[key]!r}")
-    mp = raw.get("map", {}) or {}
+        _distribution(src, f"random.{a}", d)
+    return rnd
+
+
+def _distribution(src: str, key: str, d: Any) -> None:
+    """{dist: uniform|normal|choice, ...} with the numbers its kind needs."""
+    if not isinstance(d, dict) or not isinstance(d.get("dist"), str) or d["dist"] not in DISTS:
+        raise _err(src, f"{key} must be {{dist: uniform|normal|choice, ...}}")
+    need = DISTS[d["dist"]]
+    miss = [k for k in need if k not in d]
+    if miss:
+        raise _err(src, f"{key}: dist {d['dist']} needs {list(need)}")
+    bad = sorted(set(d) - set(need) - {"dist", "clip_low", "clip_high"}, key=str)
+    if bad:
+        raise _err(src, f"{key}: unknown key(s) {bad} for dist {d['dist']}")
+    if d["dist"] == "choice":
+        if not isinstance(d["values"], list) or not 1 <= len(d["values"]) <= 10_000:
+            raise _err(src, f"{key}.values must be a list of 1..10000 numbers")
+        for v in d["values"]:
+            _finite(src, f"{key}.values", v)
+        return
+    for k in (*need, *(c for c in ("clip_low", "clip_high") if c in d)):
+        _finite(src, f"{key}.{k}", d[k])
+    if d["dist"] == "uniform" and d["low"] > d["high"]:
+        raise _err(src, f"{key}: low {d['low']} is above high {d['high']}")
+    if d["dist"] == "normal" and d["std"] < 0:
+        raise _err(src, f"{key}.std must be >= 0, got {d['std']}")
+
+
+def _map_axes(src: str, mp: Any) -> tuple[str, str]:
+    """`map: {axes: [X, Y]}`: the two axes of the robustness map (default speed x load)."""
     axes = mp.get("axes", ["speed_rpm", "load_pu"]) if isinstance(mp, dict) else None
     if (
         not isinstance(axes, list)
@@ -292,25 +342,7 @@ def load_spec(path: str | Path) -> StudySpec:
         or (isinstance(mp, dict) and sorted(set(mp) - {"axes"}, key=str))
     ):
         raise _err(src, "'map' must be {axes: [X_AXIS, Y_AXIS]} (two axis names)")
-    axes = tuple(axes)
-    n_tasks = len(vout) * draws * math.prod(len(v) for v in grid.values())
-    if n_tasks > MAX_TASKS:
-        raise _err(src, f"{n_tasks} tasks (variants x grid points x draws), more than {MAX_TASKS}")
-    return StudySpec(
-        name=str(raw.get("name", p.stem)),
-        source=src,
-        seed=seed,
-        scenario=scen,
-        variants=vout,
-        grid=grid,
-        random=rnd,
-        draws=draws,
-        description=str(raw.get("description", "")),
-        rated_load_pu=float(rl),
-        probability=float(prob),
-        map_axes=axes,
-        raw=raw,
-    )  # type: ignore[arg-type]
+    return (axes[0], axes[1])
 
 
 def _scenario(src: str, base: Path, s: Any) -> dict[str, Any]:
