@@ -47,33 +47,7 @@ def run_study(
             shutil.rmtree(q) if q.is_dir() else q.unlink(missing_ok=True)
     out.mkdir(parents=True, exist_ok=True)
     tasks = spec.tasks()
-    order = [t["task_id"] for t in tasks]
-    old_t = store.read_table(out)
-    done: dict[str, str] = {}
-    if old_t is not None:
-        if "input_hash" not in old_t.column_names:
-            raise ConfigError(
-                f"{out} holds a table without input hashes; use another --out, "
-                f"or --restart to discard it"
-            )
-        done = dict(
-            zip(
-                old_t.column("task_id").to_pylist(),
-                old_t.column("input_hash").to_pylist(),
-                strict=True,
-            )
-        )
-    changed = [
-        t["task_id"]
-        for t in tasks
-        if t["task_id"] in done and done[t["task_id"]] != t["input_hash"]
-    ]
-    if changed:
-        raise ConfigError(
-            f"{out} holds results of {len(changed)} task(s) computed from other "
-            f"inputs (the spec changed, e.g. {changed[0]}); use another --out, or "
-            f"--restart to discard them"
-        )
+    done = _finished_tasks(out, tasks)
     todo = [t for t in tasks if t["task_id"] not in done]
     if echo:
         print(
@@ -84,48 +58,10 @@ def run_study(
             file=sys.stderr,
             flush=True,
         )
-    schema = store.schema_for(list(spec.grid), spec.random_columns())
-    w = store.TableWriter(out, schema, flush_s=flush_s)
-    failures: list[dict[str, Any]] = []
     t0 = time.perf_counter()
-    prog = Progress(len(todo), label=f"study {spec.name}", echo=echo)
-    try:
-        for o in runner.run_unordered(run_task, ((t["task_id"], t) for t in todo), prog):
-            if o.ok:
-                w.add(store.flat_row(o.payload, o.value, o.attempts, o.worker))
-            else:
-                failures.append(
-                    {
-                        "task_id": o.key,
-                        "attempts": o.attempts,
-                        "error": o.error,
-                        "inputs": {
-                            k: o.payload[k]
-                            for k in (
-                                "variant",
-                                "variant_cfg",
-                                "grid",
-                                "draw",
-                                "seed",
-                                "random",
-                                "scenario",
-                            )
-                        },
-                    }
-                )
-                if echo:
-                    print(
-                        f"[study] task {o.key} FAILED after {o.attempts} attempts: "
-                        f"{o.error.splitlines()[0] if o.error else '?'}",
-                        file=sys.stderr,
-                    )
-            if on_result is not None:
-                on_result(o)
-    finally:
-        w.close()
-        store.write_failures(out, failures)
+    failures = _run_tasks(spec, out, runner, todo, echo, on_result, flush_s)
     elapsed = time.perf_counter() - t0
-    table = store.compact(out, order)
+    table = store.compact(out, [t["task_id"] for t in tasks])
     info = {
         "tasks": len(tasks),
         "runner": _describe(runner),
@@ -155,6 +91,88 @@ def run_study(
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=1, default=str))
     return summary
+
+
+def _finished_tasks(out: Path, tasks: list[dict[str, Any]]) -> dict[str, str]:
+    """task_id -> input hash of the tasks `out` already holds; refused when one of them was
+    computed from other inputs than the spec's today (or without hashes)."""
+    from fluxdrive.study import store
+
+    old_t = store.read_table(out)
+    if old_t is None:
+        return {}
+    if "input_hash" not in old_t.column_names:
+        raise ConfigError(
+            f"{out} holds a table without input hashes; use another --out, "
+            f"or --restart to discard it"
+        )
+    done = dict(
+        zip(
+            old_t.column("task_id").to_pylist(),
+            old_t.column("input_hash").to_pylist(),
+            strict=True,
+        )
+    )
+    changed = [
+        t["task_id"]
+        for t in tasks
+        if t["task_id"] in done and done[t["task_id"]] != t["input_hash"]
+    ]
+    if changed:
+        raise ConfigError(
+            f"{out} holds results of {len(changed)} task(s) computed from other "
+            f"inputs (the spec changed, e.g. {changed[0]}); use another --out, or "
+            f"--restart to discard them"
+        )
+    return done
+
+
+# what a failed task's record repeats of its inputs
+_FAILURE_INPUTS = ("variant", "variant_cfg", "grid", "draw", "seed", "random", "scenario")
+
+
+def _run_tasks(
+    spec: StudySpec,
+    out: Path,
+    runner: Runner,
+    todo: list[dict[str, Any]],
+    echo: bool,
+    on_result,
+    flush_s: float,
+) -> list[dict[str, Any]]:
+    """Run `todo` on the runner, rows streamed into out/parts as tasks finish; returns the
+    failures (also written to out/failures.jsonl, whatever happens)."""
+    from fluxdrive.study import store
+
+    schema = store.schema_for(list(spec.grid), spec.random_columns())
+    w = store.TableWriter(out, schema, flush_s=flush_s)
+    failures: list[dict[str, Any]] = []
+    prog = Progress(len(todo), label=f"study {spec.name}", echo=echo)
+    try:
+        for o in runner.run_unordered(run_task, ((t["task_id"], t) for t in todo), prog):
+            if o.ok:
+                w.add(store.flat_row(o.payload, o.value, o.attempts, o.worker))
+            else:
+                failures.append(
+                    {
+                        "task_id": o.key,
+                        "attempts": o.attempts,
+                        "error": o.error,
+                        "inputs": {k: o.payload[k] for k in _FAILURE_INPUTS},
+                    }
+                )
+                if echo:
+                    print(
+                        f"[study] task {o.key} FAILED after {o.attempts} attempts: "
+                        f"{o.error.splitlines()[0] if o.error else '?'}",
+                        file=sys.stderr,
+                    )
+            if on_result is not None:
+                on_result(o)
+    finally:
+        w.close()
+        store.write_failures(out, failures)
+    return failures
 
 
 def _noop(x: Any) -> Any:
@@ -197,6 +215,8 @@ def bench_study(argv: list[str]) -> dict[str, Any]:
     overhead per task (wall per task on one worker minus the task's own wall)."""
     import tempfile
 
+    import yaml
+
     ap = argparse.ArgumentParser(prog="fluxdrive benchmark study")
     ap.add_argument(
         "--tasks",
@@ -206,69 +226,16 @@ def bench_study(argv: list[str]) -> dict[str, Any]:
     )
     ap.add_argument("--duration-s", type=float, default=1.0)
     args = ap.parse_args(argv)
-    spec_text = {
-        "name": "bench",
-        "seed": 7,
-        "draws": args.tasks,
-        "scenario": {
-            "file": "paper_2pct_150load",
-            "params": {
-                "duration_s": args.duration_s,
-                "steady_window_s": [0.5 * args.duration_s, args.duration_s],
-            },
-        },
-        "variants": {"flux_measured": {"variant": "paper", "voltage_source": "measured"}},
-        "random": {"r_hat_err": {"dist": "uniform", "low": -0.1, "high": 0.1}},
-    }
     warm_kernels()
     load_before = os.getloadavg()
-    res: dict[int, dict[str, float]] = {}
     with tempfile.TemporaryDirectory(prefix="fluxdrive-bench-study-") as d:
         sp = Path(d) / "bench.yaml"
-        import yaml
-
-        sp.write_text(yaml.safe_dump(spec_text))
-        spec = load_spec(sp)
-        tasks = spec.tasks()
-        for n in (1, 2):
-            with Runner("local", workers=n) as r:
-                assert r.client is not None  # "local": a LocalCluster's client
-                # warm every worker (imports, kernel cache) before timing
-                r.client.run(warm_kernels)
-                t0 = time.perf_counter()
-                walls, cpus = [], []
-                for o in r.run_unordered(run_task, ((t["task_id"], t) for t in tasks)):
-                    if not o.ok:
-                        raise RuntimeError(o.error)
-                    walls.append(o.value["wall_s"])
-                    cpus.append(o.value["cpu_s"])
-                el = time.perf_counter() - t0
-                if n == 1:  # the runner's own cost: empty tasks, submit to result
-                    t1 = time.perf_counter()
-                    r.map(_noop, list(range(40)))
-                    noop_s = (time.perf_counter() - t1) / 40
-            rate = len(tasks) / el
-            task_s = sum(walls) / len(walls)
-            # the workers' share of a core while they ran: 1.0 on an idle machine; below it,
-            # other processes took the rest (then speed-up figures measure the machine's load)
-            share = sum(cpus) / (el * n)
-            res[n] = {
-                "tasks_per_s": rate,
-                "task_wall_s": task_s,
-                "elapsed_s": el,
-                "task_cpu_s": sum(cpus) / len(cpus),
-                "core_share": share,
-                "overhead_s": el * n / len(tasks) - task_s,
-            }
-            print(
-                f"[bench] {n} worker(s): {len(tasks)} tasks of {args.duration_s:g} s "
-                f"simulated in {el:.2f} s = {rate:.2f} tasks/s (task itself {task_s:.3f} s "
-                f"wall, {res[n]['task_cpu_s']:.3f} s CPU; workers got {share:.0%} of a core "
-                f"each; overhead {res[n]['overhead_s'] * 1e3:.1f} ms/task)",
-                file=sys.stderr,
-            )
+        sp.write_text(yaml.safe_dump(_bench_spec(args.tasks, args.duration_s)))
+        tasks = load_spec(sp).tasks()
+        res = {n: _time_workers(tasks, n, args.duration_s) for n in (1, 2)}
     load_after = os.getloadavg()
     ov = res[1]["overhead_s"]
+    noop_s = res[1]["noop_s"]
     return {
         "tasks_per_s_1": round(res[1]["tasks_per_s"], 3),
         "tasks_per_s_2": round(res[2]["tasks_per_s"], 3),
@@ -287,4 +254,64 @@ def bench_study(argv: list[str]) -> dict[str, Any]:
         "tasks": args.tasks,
         "cores": os.cpu_count(),
         "loadavg_1min_before_after": [round(load_before[0], 2), round(load_after[0], 2)],
+    }
+
+
+def _bench_spec(draws: int, duration_s: float) -> dict[str, Any]:
+    """The benchmark's study: `draws` runs of the paper scenario, R^ drawn at random."""
+    return {
+        "name": "bench",
+        "seed": 7,
+        "draws": draws,
+        "scenario": {
+            "file": "paper_2pct_150load",
+            "params": {"duration_s": duration_s, "steady_window_s": [0.5 * duration_s, duration_s]},
+        },
+        "variants": {"flux_measured": {"variant": "paper", "voltage_source": "measured"}},
+        "random": {"r_hat_err": {"dist": "uniform", "low": -0.1, "high": 0.1}},
+    }
+
+
+def _time_workers(tasks: list[dict[str, Any]], n: int, duration_s: float) -> dict[str, float]:
+    """The tasks run on a LocalCluster of `n` warmed workers: rate, per-task wall and CPU,
+    the workers' core share, the overhead per task and (one worker) an empty task's cost."""
+    with Runner("local", workers=n) as r:
+        assert r.client is not None  # "local": a LocalCluster's client
+        # warm every worker (imports, kernel cache) before timing
+        r.client.run(warm_kernels)
+        t0 = time.perf_counter()
+        walls, cpus = [], []
+        for o in r.run_unordered(run_task, ((t["task_id"], t) for t in tasks)):
+            if not o.ok:
+                raise RuntimeError(o.error)
+            walls.append(o.value["wall_s"])
+            cpus.append(o.value["cpu_s"])
+        el = time.perf_counter() - t0
+        noop_s = float("nan")
+        if n == 1:  # the runner's own cost: empty tasks, submit to result
+            t1 = time.perf_counter()
+            r.map(_noop, list(range(40)))
+            noop_s = (time.perf_counter() - t1) / 40
+    rate = len(tasks) / el
+    task_s = sum(walls) / len(walls)
+    task_cpu_s = sum(cpus) / len(cpus)
+    # the workers' share of a core while they ran: 1.0 on an idle machine; below it,
+    # other processes took the rest (then speed-up figures measure the machine's load)
+    share = sum(cpus) / (el * n)
+    overhead_s = el * n / len(tasks) - task_s
+    print(
+        f"[bench] {n} worker(s): {len(tasks)} tasks of {duration_s:g} s "
+        f"simulated in {el:.2f} s = {rate:.2f} tasks/s (task itself {task_s:.3f} s "
+        f"wall, {task_cpu_s:.3f} s CPU; workers got {share:.0%} of a core "
+        f"each; overhead {overhead_s * 1e3:.1f} ms/task)",
+        file=sys.stderr,
+    )
+    return {
+        "tasks_per_s": rate,
+        "task_wall_s": task_s,
+        "elapsed_s": el,
+        "task_cpu_s": task_cpu_s,
+        "core_share": share,
+        "overhead_s": overhead_s,
+        "noop_s": noop_s,
     }
