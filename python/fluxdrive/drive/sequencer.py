@@ -406,6 +406,10 @@ class ControlSequencer:
                     f"{len(self.resync_at)} lost intervals (PWM switched off by the power "
                     f"stage's watchdog) within {self.resync_window_s:g} s of sample time, "
                     f"limit {self.max_resyncs} (frame {k})"
+                    if self.max_resyncs
+                    else f"the power stage's watchdog switched the PWM off at frame {k}: no "
+                    f"duty command from this controller for its wall-time limit (stopped or "
+                    f"dead, not late)"
                 )
                 cs[CS_MODE] = MODE_FAULT
                 cs[CS_FAULT] = FAULT_WATCHDOG

@@ -35,7 +35,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from fluxdrive.drive.scenario import load_scenario, scenario_path
+from fluxdrive.drive.scenario import REPO_ROOT, load_scenario, scenario_path
 
 
 def _say(text: str) -> None:
@@ -403,17 +403,24 @@ observers, the controller and the recorder; composed layout by default.
 
   lateness_p50/p99/max_periods  how late each frame went out against its due wall time,
                   in PWM periods (the plant's pacing record: one entry per frame)
+  duty_lateness_p50/p99/max_periods  how late each duty command came against its deadline
+                  (the due time of the frame it drives; negative: early), in PWM periods
   late_frames_per_min   frames more than one period late, per minute of wall time
-  holds_per_min   the controller answered later than its two periods (the plant waited;
-                  time slipped by the wait)
+  late_duties_per_min   duty commands the plant waited for past their deadline (the
+                  previous duty stayed in effect; time slipped by the wait)
   slips_per_min   the plant itself was more than 50 periods late and let time slip
-  watchdog_trips  PWM switched off because no duty command came for watchdog_periods
+  watchdog_trips  PWM switched off because no duty command at all came for watchdog_s
+  latched_faults  faults the controller latched (watchdog or any protection trip)
   rtf             simulated time / wall time actually achieved
 
-Options: --duration S (simulated seconds, default 2), --rate R (default 1.0),
---layout composed|split|separate, --background-load (one busy core: a child process
-spinning for the whole run, the realistic load of a shared bench PC; its figures are
-loaded figures).  Progress on stderr; the last line is JSON."""
+Options: --duration S (simulated seconds, default 2), --minutes M (instead: paced running
+for M minutes of wall time, the graph held as `tune` holds it -- use a scenario whose hold
+point does not trip I2t, e.g. tune_60rpm_80load), --rate R (default 1.0), --watchdog-s S
+(the plant's silence limit, default 1), --layout composed|split|separate,
+--background-load (one busy core: a child process spinning for the whole run, the
+realistic load of a shared bench PC; its figures are loaded figures), --write LABEL (also
+store the result under LABEL in results/benchmarks/paced.json).  Progress on stderr; the
+last line is JSON."""
 
 
 def bench_paced(argv: list[str]) -> dict:
@@ -423,6 +430,9 @@ def bench_paced(argv: list[str]) -> dict:
 
     ap = argparse.ArgumentParser(prog="fluxdrive benchmark paced", description=PACED_DOC)
     ap.add_argument("--duration", type=float, default=2.0, help="simulated seconds")
+    ap.add_argument("--minutes", type=float, default=0.0, help="wall minutes (0: --duration)")
+    ap.add_argument("--watchdog-s", type=float, default=1.0, help="plant's silence limit [s]")
+    ap.add_argument("--write", metavar="LABEL", help="store under LABEL in paced.json")
     ap.add_argument("--rate", type=float, default=1.0, help="rate_factor (1: real time)")
     ap.add_argument("--layout", choices=LAYOUTS, default="composed")
     ap.add_argument("--scenario", default=DEMO_SCENARIO)
@@ -434,6 +444,25 @@ def bench_paced(argv: list[str]) -> dict:
     )
     args = ap.parse_args(argv)
     sp = scenario_path(args.scenario)
+    plant: dict[str, object] = {
+        "mode": "paced",
+        "rate_factor": args.rate,
+        "watchdog_s": args.watchdog_s,
+    }
+    extra: dict[str, dict[str, object]] = {"plant": plant}
+    duration: float = args.duration
+    watch = None
+    if args.minutes > 0:  # held until stopped, as `tune` holds it
+        duration = 0.0
+        for n in [*load_scenario(sp).observers, "controller"]:
+            extra[n] = {"exit_on_done": False}
+
+        def watch(launcher) -> None:
+            while not (launcher.progress and launcher.progress[0] > 2):  # the loop runs
+                time.sleep(0.2)
+            time.sleep(60.0 * args.minutes)
+            launcher.stop()
+
     tmp = Path(tempfile.mkdtemp(prefix="fluxdrive-bench-paced-"))
     spinner = (
         subprocess.Popen([sys.executable, "-c", "while True: pass"])
@@ -444,19 +473,24 @@ def bench_paced(argv: list[str]) -> dict:
         _say(
             f"paced graph ({args.layout}) at rate {args.rate:g}"
             + (", one busy core in the background" if args.background_load else "")
-            + f": {args.duration:g} s simulated ..."
+            + (
+                f": {args.minutes:g} min of wall time ..."
+                if args.minutes > 0
+                else f": {args.duration:g} s simulated ..."
+            )
         )
         r = run_graph(
             sp,
             out=tmp / "run",
             bag=tmp / "bag",
             layout=args.layout,
-            duration_s=args.duration,
+            duration_s=duration,
             domain_id=args.domain_id,
             quiet=True,
-            timeout=600.0,
+            timeout=600.0 + 60.0 * args.minutes,
             progress=False,
-            extra={"plant": {"mode": "paced", "rate_factor": args.rate}},
+            extra=extra,
+            watch=watch,
         )
         text = "\n".join(
             p.read_text(errors="replace") for p in sorted((tmp / "run" / "logs").glob("*.log"))
@@ -473,10 +507,14 @@ def bench_paced(argv: list[str]) -> dict:
             spinner.wait()
         if "p" in locals():
             shutil.rmtree(tmp, ignore_errors=True)
-    wall_min = (r["loop_wall_s"] or r["wall_s"]) / 60.0
+    wall_min = p["wall_s"] / 60.0  # the paced run proper, from the first duty command
     res = {
         "layout": args.layout,
+        "scenario": Path(sp).stem,
         "rate_factor": args.rate,
+        "frames_per_s_due": round(args.rate / r["scenario"].machine.ts_s),
+        "wall_min": round(wall_min, 2),
+        "watchdog_s": args.watchdog_s,
         "background_load": args.background_load,
         "observers": 4,
         "recorded": True,
@@ -485,17 +523,41 @@ def bench_paced(argv: list[str]) -> dict:
         "lateness_p50_periods": round(p["lateness_p50_periods"], 3),
         "lateness_p99_periods": round(p["lateness_p99_periods"], 3),
         "lateness_max_periods": round(p["lateness_max_periods"], 1),
+        "duty_lateness_p50_periods": round(p.get("duty_lateness_p50_periods", 0.0), 3),
+        "duty_lateness_p99_periods": round(p.get("duty_lateness_p99_periods", 0.0), 3),
+        "duty_lateness_max_periods": round(p.get("duty_lateness_max_periods", 0.0), 1),
         "late_frames_per_min": round(p["late_frames"] / wall_min, 1),
-        "holds_per_min": round(p["holds"] / wall_min, 1),
+        "late_duties_per_min": round(p["late_duties"] / wall_min, 1),
         "slips_per_min": round(p["slips"] / wall_min, 1),
         "watchdog_trips": p["watchdog_trips"],
-        "rtf": round(r["lockstep_rtf"], 3) if r["lockstep_rtf"] else None,
+        "latched_faults": len(re.findall(r"PWM off \(latched\)", text)),
+        "rtf": round(p["frames"] * r["scenario"].machine.ts_s / p["wall_s"], 3),
     }
     _say(
         f"{res['frames']} frames: lateness p50 {res['lateness_p50_periods']} / p99 "
         f"{res['lateness_p99_periods']} / max {res['lateness_max_periods']} periods; "
-        f"{res['late_frames_per_min']} late frames/min, {res['holds_per_min']} holds/min, "
+        f"{res['late_frames_per_min']} late frames/min, {res['late_duties_per_min']} late "
+        f"duties/min, "
         f"{res['slips_per_min']} slips/min, {res['watchdog_trips']} watchdog trips; "
         f"achieved real-time factor {res['rtf']}"
     )
+    if args.write:
+        _write_paced(args.write, res)
     return res
+
+
+def _write_paced(label: str, res: dict) -> None:
+    """Merge one run into results/benchmarks/paced.json under `label` (the file the docs
+    quote), with when and how loaded the machine was."""
+    import os
+
+    path = REPO_ROOT / "results" / "benchmarks" / "paced.json"
+    doc = json.loads(path.read_text()) if path.exists() else {}
+    doc[label] = {
+        **res,
+        "measured": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "load_average_1min_at_end": round(os.getloadavg()[0], 2),
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n")
+    _say(f"written {path} [{label}]")

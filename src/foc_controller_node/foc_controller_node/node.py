@@ -292,10 +292,12 @@ class ControllerNode(FluxNode):
             ),
             P(
                 "max_resyncs",
-                5,
-                "lost intervals (PWM switched off by the power stage's "
-                "watchdog while this controller fell behind) tolerated within "
-                "resync_window_s; one more latches the fault 'watchdog'",
+                0,
+                "lost intervals (PWM switched off by the power stage's watchdog: no duty "
+                "command from this controller for its wall-time limit) tolerated within "
+                "resync_window_s; one more latches the fault 'watchdog' (0: the first "
+                "latches -- the plant's watchdog takes only a silent controller for dead, "
+                "a late one is lateness)",
                 "",
                 0,
                 1000,

@@ -15,19 +15,26 @@ Modes
   graph reproduces the in-process runner sample for sample.  After frame N-1 and its duty the
   plant publishes /drive/done = N-1 (latched) and exits.
 - paced: the same loop, held to the wall clock at `rate_factor` x real time: frame k is
-  published once it is due *and* duty(k-2) has arrived (so while the graph keeps up, a paced
-  run equals a lockstep run); a controller that falls behind holds the plant for up to
-  `watchdog_periods` periods of wall time, after which the plant runs on with the PWM off
-  (frames flagged STATUS_STALE_COMMAND) until duty commands come back.  Time slips by every
-  hold (the next frame is due when the plant goes on, no burst of frames to catch up with
-  the wall clock); the clock starts with the first duty command (up to
-  `first_duty_timeout_s`, 30 s: processes starting).  The pacing record (lateness of every
-  frame against its due time, holds, watchdog trips) is logged as one "pacing {json}" line
-  when the plant stops, and while it runs the /diagnostics status "<node>: pacing" gives
-  the lateness p50/p99/max of the frames since its last report.  A live `rate_factor`
-  change re-anchors the pacing clock at the sample it takes effect (the simulated time
-  reached so far is kept), so the next frame follows at the new rate without a gap; a
-  paced plant that publishes no frame for `stall_warn_s` of wall time says so in one line.
+  published once it is due *and* duty(k-2) has arrived (so a paced run equals a lockstep
+  run).  A late host is not a dead one: a controller that answers after the deadline (the
+  due time of frame k) but within `watchdog_s` of wall time since its previous duty command
+  holds the plant -- the previous duty stays in effect, nothing is simulated meanwhile and
+  time slips by the wait (frame k is due when it goes out, no burst of frames to catch up
+  with the wall clock); the duty is counted (late_duties) and its lateness recorded: never
+  a PWM off, nothing a controller counts as a lost interval.  Only a controller silent for
+  `watchdog_s` (no duty command at all) is taken for dead: PWM off (frames flagged
+  STATUS_STALE_COMMAND), one log line, until duty commands come back (the controller
+  latches its 'watchdog' fault when it sees that).  The clock starts with the first duty
+  command (up to `first_duty_timeout_s`, 30 s: processes starting); the plant lets time
+  slip when it is itself more than 50 periods late.  The pacing record (lateness of every
+  frame against its due time and of every duty command against its deadline, p50/p99/max,
+  late duties, slips, watchdog trips) is logged as one
+  "pacing {json}" line when the plant stops, and while it runs the /diagnostics status
+  "<node>: pacing" gives the same for the frames and duties since its last report.  A live
+  `rate_factor` change re-anchors the pacing clock at the sample it takes effect (the
+  simulated time reached so far is kept), so the next frame follows at the new rate
+  without a gap; a paced plant that publishes no frame for `stall_warn_s` of wall time
+  says so in one line.
 
 Safe state when the controller is gone (watchdogs):
 - lockstep: a duty command that has not come after `duty_timeout_s` of wall time (the
@@ -35,7 +42,7 @@ Safe state when the controller is gone (watchdogs):
   simulated with the PWM off (frame flagged STATUS_STALE_COMMAND), and one more each further
   `duty_timeout_s`, until duty commands come back (a restarted controller picks up at the
   live frame; the skipped duties are dropped if they come late);
-- paced: see above (`watchdog_periods`);
+- paced: see above (`watchdog_s`);
 - stopped before the end of the run (SIGINT/SIGTERM, the launcher stopping the graph): one
   last period with the PWM off is simulated and published (flagged STATUS_STALE_COMMAND,
   acknowledged by the readers in other processes, e.g. a recorder stopped after us), and
@@ -147,13 +154,16 @@ def param_table(sc) -> list[P]:
             3600.0,
         ),
         P(
-            "watchdog_periods",
-            20,
-            "paced mode: PWM off when no duty command came for this "
-            "many periods of (paced) wall time",
-            "periods",
-            1,
-            10_000_000,
+            "watchdog_s",
+            1.0,
+            "paced mode: the controller counts as dead when no duty command at all has come "
+            "for this much wall time: PWM off (frames flagged stale) until duty commands come "
+            "back, one log line; a duty command late by less is lateness (the plant waits "
+            "with the previous duty in effect, time slips; counted and reported), never a "
+            "PWM off (live)",
+            "s",
+            1e-3,
+            3600.0,
         ),
         P(
             "duty_timeout_s",
@@ -297,8 +307,12 @@ class PlantNode(FluxNode):
         self.last_duty: tuple | None = None
         self.t_last_duty = 0.0
         self.watchdog_tripped = False
-        self.held = False  # paced: waiting for a duty command late beyond its two periods
-        self.n_holds = 0
+        self.held = False  # paced: waiting for a duty command past its deadline
+        self.n_late_duties = 0  # paced: duty commands the plant waited for past their deadline
+        self.owed: dict[int, float] = {}  # paced: seq -> deadline (wall) of a duty waited for
+        self.duty_lateness: list[float] = []  # paced: arrival - deadline of every duty [s]
+        self.t_run0: float | None = None  # paced: wall time of the first duty command
+        self._diag_duty_from = 0
         self.n_slips = 0
         self.lateness: list[float] = []  # paced: publish time - due time of every frame [s]
         self.t_last_frame = 0.0  # paced: wall time of the last frame published
@@ -469,15 +483,7 @@ class PlantNode(FluxNode):
             )
             return
         if self.paced:
-            d = (v[3], v[4], v[5], bool(v[6]))
-            self.duties[seq] = d
-            if self.last_duty is None or seq >= self.last_duty[0]:
-                self.last_duty = (seq, d)
-            self.t_last_duty = time.perf_counter()
-            if self.watchdog_tripped:
-                self.watchdog_tripped = False
-                self.get_logger().info(f"duty commands back (seq {seq}); PWM follows them")
-            self._pace_step()
+            self._paced_duty(seq, (v[3], v[4], v[5], bool(v[6])))
             return
         if self.done:
             return
@@ -568,9 +574,36 @@ class PlantNode(FluxNode):
                 f"{self.k} (rate_factor {rate:g}, stall_warn_s {self.pv['stall_warn_s']:g}): {why}"
             )
 
+    def _paced_duty(self, seq: int, d: tuple) -> None:
+        """paced: file duty(seq) for frame seq + 2 and measure how late it came."""
+        now = time.perf_counter()
+        ts_wall = self.ds.ts / float(self.pv["rate_factor"])
+        deadline = self.owed.pop(seq, None)  # the plant waited for it past its deadline
+        if deadline is not None:
+            self.n_late_duties += 1
+        if seq + 2 > self.k:  # its period is still to come (else: after a watchdog trip)
+            self.duties[seq] = d
+            if deadline is None:
+                deadline = self.t_wall0 + (seq + 2) * ts_wall  # when frame seq + 2 is due
+        if (
+            deadline is not None
+            and self.last_duty is not None  # not the first (the clock starts with it)
+            and len(self.duty_lateness) < 2_000_000
+        ):
+            self.duty_lateness.append(now - deadline)
+        if self.last_duty is None:
+            self.t_run0 = now  # the paced run proper starts (its clock too)
+        if self.last_duty is None or seq >= self.last_duty[0]:
+            self.last_duty = (seq, d)
+        self.t_last_duty = now
+        if self.watchdog_tripped:
+            self.watchdog_tripped = False
+            self.get_logger().info(f"duty commands back (seq {seq}); PWM follows them")
+        self._pace_step()
+
     def _pace_step(self) -> None:
-        """Advance every period that is due and whose duty(k-2) is here (or whose wait for
-        it has outlasted the watchdog)."""
+        """Advance every period that is due on its duty(k-2); wait for a late one (time
+        slips); PWM off when the controller has been silent for watchdog_s."""
         if self.done or not self.started:
             return
         now = time.perf_counter()
@@ -581,96 +614,134 @@ class PlantNode(FluxNode):
             self.n_slips += 1  # slips instead of a burst of frames nobody can answer
             self.t_wall0 += (due - self.k - 1) * ts / rate
             due = self.k + 1
-        wd_wall = self.pv["watchdog_periods"] * ts / rate
-        if self.last_duty is None:  # the first answer may take a while (processes
-            # starting, code loading): the clock starts with it
-            wd_wall = max(wd_wall, float(self.pv["first_duty_timeout_s"]))
         steps = 0
         while self.k < due and steps < 5000:
             k = self.k + 1
             if k >= self.n:
                 self._finish()
                 return
-            d = self.duties.pop(k - 2, None)
             lat = now - self.t_wall0 - k * ts / rate  # lateness against the due time
-            if self.held and (d is not None or k < 2):
-                # the controller held the plant: time slips by the wait (frame k is due now)
-                # instead of a burst of frames to catch up with the wall clock
-                self.held = False
-                self.n_holds += 1
-                self.t_wall0 = now - k * ts / rate
-            if k < 2:  # frame 1 comes from duty(-1): PWM off, as in lockstep
-                self._advance(np.array([0.5, 0.5, 0.5]), False, k)
-            elif d is not None:
-                self.duty[0], self.duty[1], self.duty[2] = d[0], d[1], d[2]
-                self._advance(self.duty, d[3], k)
-            elif now - self.t_last_duty <= wd_wall:
-                self.held = True  # the controller is behind: wait for duty(k-2)
+            if not self._pace_period(k, now, ts / rate):
                 break
-            else:
-                if not self.watchdog_tripped:
-                    self.watchdog_tripped = True
-                    self.counts.add("watchdog_trips")
-                    self.get_logger().warning(
-                        f"watchdog: no duty command for {wd_wall * 1e3:.1f} ms of wall time; "
-                        f"PWM off from frame {k}"
-                    )
-                if self.held:  # time slips by the wait: frame k is due now
-                    self.held = False
-                    self.t_wall0 = now - k * ts / rate
-                self._advance(np.array([0.5, 0.5, 0.5]), False, k, STATUS_STALE_COMMAND)
             if len(self.lateness) < 2_000_000:
                 self.lateness.append(lat)
             steps += 1
         if len(self.duties) > 64:  # drop duties for frames already simulated
             for old in [j for j in self.duties if j < self.k - 2]:
                 del self.duties[old]
+        if len(self.owed) > 100_000:  # duties never sent (a controller catching up)
+            for old in sorted(self.owed)[:50_000]:
+                del self.owed[old]
+
+    def _pace_period(self, k: int, now: float, ts_wall: float) -> bool:
+        """Simulate period k (frame k); False while the plant waits for duty(k-2)."""
+        off = np.array([0.5, 0.5, 0.5])
+        d = self.duties.pop(k - 2, None)
+        if k < 2:  # frame 1 comes from duty(-1): PWM off, as in lockstep
+            self._advance(off, False, k)
+            return True
+        if d is not None:
+            if self.held:  # the plant waited for it: time slips by the wait (frame k is
+                self.held = False  # due now), no burst of frames to catch up with
+                self.t_wall0 = now - k * ts_wall
+            self.duty[0], self.duty[1], self.duty[2] = d[0], d[1], d[2]
+            self._advance(self.duty, d[3], k)
+            return True
+        silent_s = now - self.t_last_duty
+        # the first answer may take a while (processes starting, code loading)
+        limit_s = float(
+            self.pv["watchdog_s" if self.last_duty is not None else "first_duty_timeout_s"]
+        )
+        if not self.watchdog_tripped and silent_s < limit_s:
+            # late, not dead: the previous duty stays in effect while the plant waits
+            if self.last_duty is not None and k - 2 not in self.owed:
+                self.owed[k - 2] = self.t_wall0 + k * ts_wall  # its deadline
+            self.held = True
+            return False
+        if not self.watchdog_tripped:
+            self.watchdog_tripped = True
+            self.counts.add("watchdog_trips")
+            self.get_logger().warning(
+                f"watchdog: no duty command at all for {silent_s:.2f} s of wall time "
+                f"({'watchdog_s' if self.last_duty is not None else 'first_duty_timeout_s'} "
+                f"{limit_s:g}; the controller is dead or stopped, not late); PWM off from "
+                f"frame {k} until duty commands come back"
+            )
+        if self.held:  # time slips by the wait: frame k is due now
+            self.held = False
+            self.t_wall0 = now - k * ts_wall
+        self.owed.pop(k - 2, None)
+        self._advance(off, False, k, STATUS_STALE_COMMAND)
+        return True
 
     def pacing(self) -> dict:
-        """Paced loop timing: lateness of the frames against their due time (p50/p99/max,
-        in periods of paced wall time), holds (the controller answered later than its two
-        periods: time slipped) and watchdog trips."""
+        """Paced loop timing: lateness of the frames against their due time and of the
+        duty commands against their deadline (the due time of the frame they drive), p50/
+        p99/max in periods of paced wall time; late duties (the plant waited for them),
+        slips and watchdog trips (controller silent for watchdog_s)."""
         lat = np.array(self.lateness)
         if lat.size == 0:
             return {"frames": 0}
         return {
-            **self._lateness_stats(lat),
-            "holds": self.n_holds,
+            **self._lateness_stats(lat, np.array(self.duty_lateness)),
+            **self._pacing_totals(),
+            # wall time since the first duty command (t_wall0 moves with every slip)
+            "wall_s": time.perf_counter() - (self.t_run0 or self.t_wall0),
+        }
+
+    def _pacing_totals(self) -> dict:
+        return {
+            "late_duties": self.n_late_duties,
             "slips": self.n_slips,
             "watchdog_trips": self.counts["watchdog_trips"],
         }
 
-    def _lateness_stats(self, lat: np.ndarray) -> dict:
-        """Lateness of frames against their due time, in periods of paced wall time."""
+    def _lateness_stats(self, lat: np.ndarray, duty_lat: np.ndarray) -> dict:
+        """Lateness of frames against their due time and of duty commands against their
+        deadline, in periods of paced wall time."""
         per = self.ds.ts / self.pv["rate_factor"]
         p50, p99 = np.percentile(lat, [50, 99])
-        return {
+        out = {
             "frames": int(lat.size),
             "period_s": per,
             "lateness_p50_periods": float(p50 / per),
             "lateness_p99_periods": float(p99 / per),
             "lateness_max_periods": float(lat.max() / per),
             "late_frames": int((lat > per).sum()),
+            "duties": int(duty_lat.size),
         }
+        if duty_lat.size:
+            d50, d99 = np.percentile(duty_lat, [50, 99])
+            out["duty_lateness_p50_periods"] = float(d50 / per)
+            out["duty_lateness_p99_periods"] = float(d99 / per)
+            out["duty_lateness_max_periods"] = float(duty_lat.max() / per)
+        return out
 
     def _diag_pacing(self) -> tuple[int, str, dict]:
-        """paced: the lateness of the frames since the last report (a window, so a long
-        session's record is not re-sorted every period), holds, slips and watchdog trips."""
+        """paced: the lateness of the frames and duty commands since the last report (a
+        window, so a long session's record is not re-sorted every period), with the run's
+        late duties, slips and watchdog trips."""
         lat = np.array(self.lateness[self._diag_from :])
         self._diag_from = len(self.lateness)
-        totals = {
-            "holds": self.n_holds,
-            "slips": self.n_slips,
-            "watchdog_trips": self.counts["watchdog_trips"],
-        }
+        duty_lat = np.array(self.duty_lateness[self._diag_duty_from :])
+        self._diag_duty_from = len(self.duty_lateness)
+        totals = self._pacing_totals()
         if lat.size == 0:
             return diag.OK, "no frame since the last report", {"frames": 0, **totals}
-        st = self._lateness_stats(lat)
+        st = self._lateness_stats(lat, duty_lat)
+        duties = (
+            f"; duty commands p50 {st['duty_lateness_p50_periods']:.2f} / p99 "
+            f"{st['duty_lateness_p99_periods']:.2f} / max "
+            f"{st['duty_lateness_max_periods']:.1f} periods late, "
+            f"{totals['late_duties']} waited for"
+            if duty_lat.size
+            else ""
+        )
         return (
             diag.OK,
-            f"lateness p50 {st['lateness_p50_periods']:.2f} / p99 "
+            f"frames p50 {st['lateness_p50_periods']:.2f} / p99 "
             f"{st['lateness_p99_periods']:.2f} / max {st['lateness_max_periods']:.1f} periods "
-            f"over {st['frames']} frames",
+            f"late over {st['frames']} frames" + duties,
             {**st, **totals},
         )
 
