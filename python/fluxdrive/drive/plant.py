@@ -73,6 +73,19 @@ MP_TH_ALPHA = _MP.index()  # copper tempco [1/K]
 MP_TH_TREF = _MP.index()  # temperature of the card's resistance [deg C]
 MP_TH_TAMB = _MP.index()  # ambient [deg C]
 MP_H6_SAT = _MP.index()  # 6th order of |lambda_pm| at rated current [pu] (spatial saturation)
+# flux-state circuit (inductance saturation, phase asymmetry): the stator flux is integrated
+MP_CIRC_ON = _MP.index()  # 1: integrate the armature flux (saturation or asymmetry on)
+MP_SAT_ON = _MP.index()  # 1: L_d, L_q from the flux map (InductanceSaturation)
+MP_SAT_KD, MP_SAT_S = _MP.indices(2)  # d-axis saturation gain [pu] and exponent
+MP_SAT_KQ, MP_SAT_T = _MP.indices(2)  # q-axis saturation gain [pu] and exponent
+MP_SAT_KC, MP_SAT_U, MP_SAT_V = _MP.indices(3)  # cross-saturation gain [pu], exponents
+MP_LM_AA, MP_LM_AB, MP_LM_BB = _MP.indices(3)  # per-phase L multipliers as an alpha/beta matrix
+MP_LI_AA, MP_LI_AB, MP_LI_BB = _MP.indices(3)  # its inverse
+MP_RM_AA, MP_RM_AB, MP_RM_BB = _MP.indices(3)  # per-phase R multipliers, alpha/beta matrix
+MP_COSS = _MP.index()  # device output capacitance [F] (0: instant deadtime commutation)
+MP_SWN_A = _MP.index()  # switching-edge ringing at the edge, rms [A] (0: off)
+MP_SWN_WINDOW = _MP.index()  # edges this long before a sample disturb it [s]
+MP_SWN_DECAY = _MP.index()  # ringing decay time [s]
 MP_N = _MP.close(globals())
 
 # ---- plant state vector (PS_*)
@@ -189,6 +202,48 @@ def _bench_params(mp: np.ndarray, card: MachineCard, bench: BenchConfig) -> None
         mp[MP_TH_TREF] = card.resistance_ref_c
         mp[MP_TH_TAMB] = bench.thermal.ambient_c
     mp[MP_H6_SAT] = bench.spatial_saturation_h6_pu
+    _circuit_params(mp, bench)
+    if bench.current_sensor_gain is not None:
+        mp[MP_GAIN_A : MP_GAIN_C + 1] *= bench.current_sensor_gain
+    mp[MP_COSS] = bench.output_capacitance_f
+    noise = bench.switching_noise
+    if noise is not None and noise.ringing_a > 0.0 and noise.window_s > 0.0:
+        mp[MP_SWN_A] = noise.ringing_a
+        mp[MP_SWN_WINDOW] = noise.window_s
+        mp[MP_SWN_DECAY] = noise.decay_s
+
+
+def phase_matrix(k_abc) -> np.ndarray:
+    """Per-phase multipliers k_a, k_b, k_c of a diagonal phase quantity (x_j = k_j y_j) as
+    the symmetric alpha/beta matrix: Clarke(diag(k) inv_clarke(y)) for zero-sequence-free y."""
+    ka, kb, kc = (float(x) for x in k_abc)
+    off = (kc - kb) / (2.0 * SQRT3)
+    return np.array([[(4.0 * ka + kb + kc) / 6.0, off], [off, 0.5 * (kb + kc)]])
+
+
+def _circuit_params(mp: np.ndarray, bench: BenchConfig) -> None:
+    """The flux-state circuit's numbers; all zero (branch off) for a linear, balanced machine."""
+    unit = (1.0, 1.0, 1.0)
+    sat = bench.inductance_saturation
+    asym = bench.phase_asymmetry
+    l_pu = unit if asym is None else asym.inductance_pu
+    r_pu = unit if asym is None else asym.resistance_pu
+    sat_on = sat is not None and sat.on
+    if not sat_on and l_pu == unit and r_pu == unit:
+        return
+    mp[MP_CIRC_ON] = 1.0
+    lm = phase_matrix(l_pu)
+    li = np.linalg.inv(lm)
+    rm = phase_matrix(r_pu)
+    mp[MP_LM_AA], mp[MP_LM_AB], mp[MP_LM_BB] = lm[0, 0], lm[0, 1], lm[1, 1]
+    mp[MP_LI_AA], mp[MP_LI_AB], mp[MP_LI_BB] = li[0, 0], li[0, 1], li[1, 1]
+    mp[MP_RM_AA], mp[MP_RM_AB], mp[MP_RM_BB] = rm[0, 0], rm[0, 1], rm[1, 1]
+    if sat is not None and sat_on:
+        mp[MP_SAT_ON] = 1.0
+        mp[MP_SAT_KD], mp[MP_SAT_S] = sat.d_pu, sat.d_exponent
+        mp[MP_SAT_KQ], mp[MP_SAT_T] = sat.q_pu, sat.q_exponent
+        mp[MP_SAT_KC] = sat.cross_pu
+        mp[MP_SAT_U], mp[MP_SAT_V] = sat.cross_exponent_d, sat.cross_exponent_q
 
 
 def plant_state(
@@ -278,6 +333,97 @@ def _spatial_saturation(st, mp, ia, ib, th, lind):
 
 
 @njit(cache=True, inline="always")
+def _flux_map(mp, x, y):
+    """Current per unit of I_rated from armature flux per unit of L I_rated (d, q: x, y) by
+    the flux map of InductanceSaturation, and its Jacobian d(i)/d(psi) (symmetric)."""
+    kd = mp[MP_SAT_KD]
+    kq = mp[MP_SAT_KQ]
+    kc = mp[MP_SAT_KC]
+    s_ = mp[MP_SAT_S]
+    t_ = mp[MP_SAT_T]
+    u_ = mp[MP_SAT_U]
+    v_ = mp[MP_SAT_V]
+    ax = abs(x)
+    ay = abs(y)
+    xs = ax**s_
+    yt = ay**t_
+    xu = ax**u_
+    yv = ay**v_
+    cd = kc / (v_ + 2.0) * xu * ay ** (v_ + 2.0)  # cross term of i_d / x
+    cq = kc / (u_ + 2.0) * ax ** (u_ + 2.0) * yv  # cross term of i_q / y
+    gd = x * (1.0 + kd * xs + cd)
+    gq = y * (1.0 + kq * yt + cq)
+    jdd = 1.0 + kd * (s_ + 1.0) * xs + (u_ + 1.0) * cd
+    jqq = 1.0 + kq * (t_ + 1.0) * yt + (v_ + 1.0) * cq
+    jdq = kc * x * xu * y * yv
+    return gd, gq, jdd, jdq, jqq
+
+
+@njit(cache=True, inline="always")
+def _circuit_current(mp, psa, psb, th, lind):
+    """Current (alpha/beta) from the armature flux psi - lambda_pm (alpha/beta): the per-phase
+    inductance multipliers M give the balanced machine's flux x = M^-1 psi, the flux map (or
+    x/L) its current.  Returns (i_alpha, i_beta, x_alpha, x_beta)."""
+    xa = mp[MP_LI_AA] * psa + mp[MP_LI_AB] * psb
+    xb = mp[MP_LI_AB] * psa + mp[MP_LI_BB] * psb
+    if mp[MP_SAT_ON] == 0.0:
+        return xa / lind, xb / lind, xa, xb
+    c = math.cos(th)
+    s = math.sin(th)
+    irated = mp[MP_IRATED]
+    psib = lind * irated
+    gd, gq, _, _, _ = _flux_map(mp, (c * xa + s * xb) / psib, (c * xb - s * xa) / psib)
+    return (c * gd - s * gq) * irated, (s * gd + c * gq) * irated, xa, xb
+
+
+@njit(cache=True)
+def _circuit_flux(mp, ia, ib, th, lind):
+    """The armature flux (alpha/beta) that carries current (ia, ib): the flux map inverted
+    by Newton (it is monotonic and convex, so Newton from the linear flux converges), then
+    psi = M x."""
+    xa = lind * ia
+    xb = lind * ib
+    if mp[MP_SAT_ON] > 0.0:
+        c = math.cos(th)
+        s = math.sin(th)
+        irated = mp[MP_IRATED]
+        td = (c * ia + s * ib) / irated
+        tq = (c * ib - s * ia) / irated
+        x = td
+        y = tq
+        for _ in range(50):
+            gd, gq, jdd, jdq, jqq = _flux_map(mp, x, y)
+            rd = gd - td
+            rq = gq - tq
+            det = jdd * jqq - jdq * jdq
+            x -= (jqq * rd - jdq * rq) / det
+            y -= (jdd * rq - jdq * rd) / det
+            if abs(rd) + abs(rq) < 1e-14:
+                break
+        psib = lind * irated
+        xa = (c * x - s * y) * psib
+        xb = (s * x + c * y) * psib
+    return mp[MP_LM_AA] * xa + mp[MP_LM_AB] * xb, mp[MP_LM_AB] * xa + mp[MP_LM_BB] * xb
+
+
+@njit(cache=True, inline="always")
+def _circuit_step(mp, psa, psb, ia, ib, va, vb, ea, eb, r, hs, th, lind):
+    """One midpoint (RK2) step of d(psi)/dt = v - R M_R i(psi) - e over hs.  Returns the new
+    flux, current, and the balanced flux x and current at the midpoint (for the torque)."""
+    ra = r * (mp[MP_RM_AA] * ia + mp[MP_RM_AB] * ib)
+    rb = r * (mp[MP_RM_AB] * ia + mp[MP_RM_BB] * ib)
+    pma = psa + 0.5 * hs * (va - ra - ea)
+    pmb = psb + 0.5 * hs * (vb - rb - eb)
+    ima, imb, xma, xmb = _circuit_current(mp, pma, pmb, th, lind)
+    ra = r * (mp[MP_RM_AA] * ima + mp[MP_RM_AB] * imb)
+    rb = r * (mp[MP_RM_AB] * ima + mp[MP_RM_BB] * imb)
+    psa += hs * (va - ra - ea)
+    psb += hs * (vb - rb - eb)
+    ia_n, ib_n, _, _ = _circuit_current(mp, psa, psb, th, lind)
+    return psa, psb, ia_n, ib_n, xma, xmb, ima, imb
+
+
+@njit(cache=True, inline="always")
 def _leg_voltage(state, i_phase, vdc, vdev):
     """Leg-to-negative-rail voltage for a leg state and its phase current.
     Returns (real voltage incl. device drops, ideal level seen by the capture timer)."""
@@ -291,6 +437,75 @@ def _leg_voltage(state, i_phase, vdc, vdev):
     if i_phase < 0.0:
         return vdc + vdev, vdc
     return 0.5 * vdc, 0.5 * vdc  # no current: the leg floats (only exactly at i = 0)
+
+
+@njit(cache=True, inline="always")
+def _ramp_mean(t0, t1, tc):
+    """Mean over [t0, t1] (times since the ramp's start) of min(1, t/tc)."""
+    g0 = t0 * t0 / (2.0 * tc) if t0 < tc else t0 - 0.5 * tc
+    g1 = t1 * t1 / (2.0 * tc) if t1 < tc else t1 - 0.5 * tc
+    return (g1 - g0) / (t1 - t0)
+
+
+@njit(cache=True, inline="always")
+def _ramp_above_half(t0, t1, tc):
+    """Fraction of [t0, t1] (times since the ramp's start) where min(1, t/tc) >= 1/2."""
+    return (t1 - min(max(0.5 * tc, t0), t1)) / (t1 - t0)
+
+
+@njit(cache=True, inline="always")
+def _leg_voltage_coss(state, i_phase, vdc, vdev, u0, hs, t1, t2, td, coss):
+    """_leg_voltage over the sub-step [u0, u0 + hs] with the devices' output capacitance:
+    in a deadtime window the current that would flip the leg to the other diode charges
+    2 C_oss through V_dc first, a ramp of t_c = 2 C_oss V_dc/|i|; the next gate turn-on ends
+    the window (hard switching).  Returns the mean leg voltage and the ideal level the
+    capture sees (the level flips where the ramp crosses half the bus)."""
+    if state != LEG_DIODE or i_phase == 0.0:
+        return _leg_voltage(state, i_phase, vdc, vdev)
+    tc = 2.0 * coss * vdc / abs(i_phase)
+    if u0 < t2 or t2 < t1 + td:  # the bottom switch turned off at t1: the leg was at 0
+        if i_phase > 0.0:
+            return -vdev, 0.0  # the bottom diode takes the current, no swing
+        w0 = u0 - t1
+        f = _ramp_mean(w0, w0 + hs, tc)
+        return vdev + f * vdc, vdc * _ramp_above_half(w0, w0 + hs, tc)
+    if i_phase < 0.0:  # after the top switch turned off: the leg was at V_dc
+        return vdc + vdev, vdc
+    w0 = u0 - t2
+    f = _ramp_mean(w0, w0 + hs, tc)
+    return (1.0 - f) * vdc - vdev, vdc * (1.0 - _ramp_above_half(w0, w0 + hs, tc))
+
+
+@njit(cache=True, inline="always")
+def _switching_noise_rms(mp, vs_out, enabled, ia, ib, t1a, t2a, t1b, t2b, t1c, t2c):
+    """Rms of the switching-synchronous disturbance of each phase's sample into
+    vs_out[9:12]: every leg's voltage edge dt (< window) before the sample instant adds
+    ringing^2 exp(-2 dt/decay) to the variance.  A leg's voltage edges: for i > 0 at the top
+    switch's turn-on (t1 + td) and turn-off (t2); for i < 0 at t1 and t2 + td."""
+    ts = mp[MP_TS]
+    td = mp[MP_TD]
+    a0 = mp[MP_SWN_A]
+    win = mp[MP_SWN_WINDOW]
+    tau = mp[MP_SWN_DECAY]
+    for j in range(3):
+        vs_out[9 + j] = 0.0
+    if not enabled:
+        return
+    pa, pb, pc = inv_clarke(ia, ib)
+    for j in range(3):
+        t_sample = ts - (mp[MP_SKEW_A + j] if mp[MP_SKEW_ON] > 0.0 else 0.0)
+        var = 0.0
+        for leg in range(3):
+            i_leg = pa if leg == 0 else (pb if leg == 1 else pc)
+            t1 = t1a if leg == 0 else (t1b if leg == 1 else t1c)
+            t2 = t2a if leg == 0 else (t2b if leg == 1 else t2c)
+            up = t1 + td if i_leg > 0.0 else t1
+            down = t2 if i_leg > 0.0 else t2 + td
+            for te in (up, down):
+                dt = t_sample - te
+                if 0.0 < te < ts and 0.0 <= dt < win:
+                    var += a0 * a0 * math.exp(-2.0 * dt / tau)
+        vs_out[9 + j] = math.sqrt(var)
 
 
 @njit(cache=True, inline="always")
@@ -393,8 +608,9 @@ def _mechanics(st, mp, wm, thm0, te, tl):
 @njit(cache=True)
 def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out, cap_t, cap_s, cap_n):
     """Integrate [t_k, t_k + Ts] at switching level.  Writes the line volt-seconds
-    (real and ideal-level) into vs_out[0:6] and the phase currents at the skewed sampling
-    instants into vs_out[6:9]; records line-level edges for the capture model (cap_*);
+    (real and ideal-level) into vs_out[0:6], the phase currents at the skewed sampling
+    instants into vs_out[6:9] and the switching-noise rms into vs_out[9:12]; records
+    line-level edges for the capture model (cap_*);
     updates currents, speed, angle, winding temperature."""
     ts = mp[MP_TS]
     td = mp[MP_TD]
@@ -428,6 +644,14 @@ def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out, cap_t, cap
         ia, ib, hl = _spatial_saturation(st, mp, ia, ib, p * thm0, lind)
         h5 += 0.5 * hl
         h7 += 0.5 * hl
+    circ_on = mp[MP_CIRC_ON] > 0.0
+    psa = 0.0
+    psb = 0.0
+    if circ_on:
+        psa, psb = _circuit_flux(mp, ia, ib, p * thm0, lind)
+    coss = mp[MP_COSS]
+    if mp[MP_SWN_A] > 0.0:
+        _switching_noise_rms(mp, vs_out, enabled, ia, ib, t1a, t2a, t1b, t2b, t1c, t2c)
     for j in range(6):
         vs_out[j] = 0.0
     te_int = 0.0
@@ -477,16 +701,28 @@ def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out, cap_t, cap
                     continue
                 zero_lock = False
             iph_a, iph_b, iph_c = inv_clarke(ia, ib)
-            va0, qa = _leg_voltage(sa, iph_a, vdc, vdev)
-            vb0, qb = _leg_voltage(sb, iph_b, vdc, vdev)
-            vc0, qc = _leg_voltage(sc, iph_c, vdc, vdev)
+            if coss > 0.0 and enabled:
+                u0 = ta + u * hs
+                va0, qa = _leg_voltage_coss(sa, iph_a, vdc, vdev, u0, hs, t1a, t2a, td, coss)
+                vb0, qb = _leg_voltage_coss(sb, iph_b, vdc, vdev, u0, hs, t1b, t2b, td, coss)
+                vc0, qc = _leg_voltage_coss(sc, iph_c, vdc, vdev, u0, hs, t1c, t2c, td, coss)
+            else:
+                va0, qa = _leg_voltage(sa, iph_a, vdc, vdev)
+                vb0, qb = _leg_voltage(sb, iph_b, vdc, vdev)
+                vc0, qc = _leg_voltage(sc, iph_c, vdc, vdev)
             if cap_on:
                 t_sub = ta + u * hs
                 _cap_track(cap_t, cap_s, cap_n, 0, t_sub, qa - qb, vdc)
                 _cap_track(cap_t, cap_s, cap_n, 1, t_sub, qb - qc, vdc)
                 _cap_track(cap_t, cap_s, cap_n, 2, t_sub, qc - qa, vdc)
             va, vb = clarke(va0, vb0, vc0)
-            if r > 0.0:  # exact RL step response over hs (v and e held)
+            if circ_on:  # flux-state circuit: saturation / asymmetry (midpoint steps)
+                psa, psb, ia_n, ib_n, xma, xmb, ima, imb = _circuit_step(
+                    mp, psa, psb, ia, ib, va, vb, ea, eb, r, hs, th, lind
+                )
+                # reluctance torque of the saturated machine, 1.5 p (x x i); zero when linear
+                te_int += 1.5 * p * (xma * imb - xmb * ima) * hs
+            elif r > 0.0:  # exact RL step response over hs (v and e held)
                 ia_n = a_rl * ia + (1.0 - a_rl) * (va - ea) / r
                 ib_n = a_rl * ib + (1.0 - a_rl) * (vb - eb) / r
             else:
@@ -502,6 +738,8 @@ def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out, cap_t, cap
                 if na * iph_a < 0.0 or nb * iph_b < 0.0 or nc * iph_c < 0.0:
                     ia_n = 0.0
                     ib_n = 0.0
+                    psa = 0.0
+                    psb = 0.0
                     zero_lock = True
             ia = ia_n
             ib = ib_n
@@ -600,6 +838,10 @@ def _sample(st, mp, rng, vs, da, db, dc, enabled, frame, truth, cap_t, cap_s, ca
     n0 = rng_normal(rng) * noise if noise > 0.0 else 0.0
     n1 = rng_normal(rng) * noise if noise > 0.0 else 0.0
     n2 = rng_normal(rng) * noise if noise > 0.0 else 0.0
+    if mp[MP_SWN_A] > 0.0:  # switching-synchronous ringing, drawn only where it is on
+        n0 += rng_normal(rng) * vs[9] if vs[9] > 0.0 else 0.0
+        n1 += rng_normal(rng) * vs[10] if vs[10] > 0.0 else 0.0
+        n2 += rng_normal(rng) * vs[11] if vs[11] > 0.0 else 0.0
     x, c0 = _adc(mp[MP_GAIN_A] * sa_ + mp[MP_OFF_A] + n0, lsb, rng_)
     frame[FR_IA] = x
     x, c1 = _adc(mp[MP_GAIN_B] * sb_ + mp[MP_OFF_B] + n1, lsb, rng_)
@@ -676,7 +918,7 @@ def load_torque(t, wm, load_t, load_y, load_cfg):
 @njit(cache=True)
 def plant_initial_frame(st, mp, rng, frame, truth):
     """Frame 0 (t = 0): currents sampled, no voltage history, PWM off."""
-    vs = np.zeros(9)
+    vs = np.zeros(12)
     inv_a, inv_b, inv_c = inv_clarke(st[PS_IA], st[PS_IB])
     vs[6] = inv_a
     vs[7] = inv_b
@@ -692,15 +934,15 @@ def plant_advance(st, mp, rng, duty, enabled, load_t, load_y, load_cfg, frame, t
     """Simulate one PWM period with `duty` (3 values in [0, 1]) and sample the next frame."""
     # one scratch allocation a period: event times, volt-seconds + skewed samples, edge
     # counts of the capture model (and its edge lists only when that model is on)
-    buf = np.empty(33)
+    buf = np.empty(36)
     ev = buf[0:20]
-    vs = buf[20:29]
-    cap_n = buf[29:32]
+    vs = buf[20:32]  # volt-seconds, skewed samples, switching-noise rms
+    cap_n = buf[32:35]
     if mp[MP_CAP_ON] > 0.0:
         cap_t = np.empty((3, CAP_MAX_EDGES))
         cap_s = np.empty((3, CAP_MAX_EDGES))
     else:
-        cap_t = buf[32:33].reshape((1, 1))
+        cap_t = buf[35:36].reshape((1, 1))
         cap_s = cap_t
     da = min(max(duty[0], 0.0), 1.0)
     db = min(max(duty[1], 0.0), 1.0)
