@@ -88,7 +88,7 @@ def test_live_replay_stamps_the_receiving_graphs_id(tmp_path, short_run):
     """`replay --live` into a graph: the frames carry that graph's id -- a today's bag's
     bytes patched in place, a bag from before graph_id re-encoded from its rows."""
     pytest.importorskip("rclpy")
-    live = pytest.importorskip("fluxdrive_bringup.live_replay")
+    live = pytest.importorskip("fluxdrive_bringup.replay.live_replay")
     from fluxdrive.drive.scenario import REPO_ROOT
     from fluxdrive.io.bagio import write_run_bag
     from fluxdrive.io.messages import graph_id_of, row_codec

@@ -238,7 +238,7 @@ def test_can_import_skips_and_counts_malformed_lines(tmp_path):
 
 
 def test_interrupted_run_counts_the_bag(short_bag):
-    from fluxdrive_bringup.runs import interrupted_bag_note
+    from fluxdrive_bringup.launch.runs import interrupted_bag_note
 
     bag, res = short_bag
     assert f"holds {len(res.t)} frames" in interrupted_bag_note(bag)

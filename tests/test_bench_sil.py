@@ -49,7 +49,7 @@ def test_bench_sil_split_mode_records_every_sample_and_matches_in_process(tmp_pa
     from fluxdrive.drive.plant import FR_SEQ
     from fluxdrive.io.bagio import read_raw, topic_counts, typestore
     from fluxdrive.io.topics import CURRENT_REF
-    from fluxdrive_bringup.sil import result_from_sil_bag
+    from fluxdrive_bringup.measure.sil import result_from_sil_bag
 
     sp = _case(tmp_path / "sil_2pct_split.yaml")
     bag = tmp_path / "bag"

@@ -97,7 +97,7 @@ def test_alias_bomb_in_a_graph_env_is_one_line(tmp_path):
     """The probe's graph file with a bomb under `env:` took 6.8 GB and 71 s, then
     `OSError: Argument list too long`; now the loader refuses it at once."""
     pytest.importorskip("fluxdrive_bringup")
-    from fluxdrive_bringup.launch import load_graph
+    from fluxdrive_bringup.launch.launcher import load_graph
 
     p = tmp_path / "bomb_graph.yaml"
     body = "".join("  " + ln + "\n" for ln in _alias_bomb().splitlines())
@@ -284,7 +284,7 @@ def test_fuzz_study_spec(tmp_path):
 
 def test_fuzz_graph(tmp_path):
     pytest.importorskip("fluxdrive_bringup")
-    from fluxdrive_bringup.launch import load_graph
+    from fluxdrive_bringup.launch.launcher import load_graph
 
     base = yamlio.load_file(CONFIG_DIR / "graphs" / "sim_separate.yaml")
     for nd in base["nodes"]:

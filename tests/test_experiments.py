@@ -233,7 +233,7 @@ def test_graph_flag_runs_through_the_node_graph_with_the_same_numbers(tmp_path):
     from fluxdrive.drive.scenario import load_scenario, save_scenario, scenario_differences
     from fluxdrive.drive.sim import run_scenario
     from fluxdrive.experiments.registry import sensorless
-    from fluxdrive_bringup.runs import graph_run
+    from fluxdrive_bringup.launch.runs import graph_run
 
     sc = sensorless(
         120.0,

@@ -55,8 +55,8 @@ def _recv_json(ws, want_op: str, timeout: float, pred=lambda m: True) -> dict:
 @pytest.mark.timeout(240)
 def test_foxglove_client_receives_and_decodes_topics(tmp_path):
     from fluxdrive.drive.scenario import load_scenario, scenario_path
-    from fluxdrive_bringup.launch import Launcher
-    from fluxdrive_bringup.runs import graph_for_scenario
+    from fluxdrive_bringup.launch.launcher import Launcher
+    from fluxdrive_bringup.launch.runs import graph_for_scenario
     from fluxdrive_ros.cdr import Codec, Decoder
 
     from fluxdrive_ros import topics
@@ -70,7 +70,7 @@ def test_foxglove_client_receives_and_decodes_topics(tmp_path):
     env = dict(os.environ, ROS_DOMAIN_ID=str(dom), PYTHONUNBUFFERED="1")
     launcher.start()
     bridge = subprocess.Popen(
-        [sys.executable, "-m", "fluxdrive_bringup.foxglove_bridge", "--port", "0"],
+        [sys.executable, "-m", "fluxdrive_bringup.view.foxglove_bridge", "--port", "0"],
         env=env,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,

@@ -193,7 +193,7 @@ def test_bridge_arms_and_resets_only_for_allowed_nodes(graph):
 
 
 def test_launcher_keeps_discovery_local_and_keys_each_launch(monkeypatch):
-    from fluxdrive_bringup.launch import Launcher, launcher_env_discovery, parse_graph
+    from fluxdrive_bringup.launch.launcher import Launcher, launcher_env_discovery, parse_graph
 
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "SUBNET")  # e.g. from a shell profile
     monkeypatch.delenv("FLUXDRIVE_GRAPH_KEY", raising=False)

@@ -25,7 +25,7 @@ from test_graph_bad_input import (  # noqa: E402,F401 - fixtures and helpers sha
 
 
 def test_latched_fault_cleared_only_by_an_allowed_reset(graph, run, capsys):  # noqa: F811
-    from fluxdrive_bringup.inspect_cli import main_fault
+    from fluxdrive_bringup.inspect.commands import main_fault
     from fluxdrive_ros.wire import EstimateWire, FrameWire
 
     from flux_drive_msgs.msg import (

@@ -42,7 +42,7 @@ def _scenario(seed: int) -> Path:
 def _reference(path: Path):
     from fluxdrive.drive.scenario import load_scenario
     from fluxdrive.drive.sim import run_scenario
-    from fluxdrive_bringup.runs import shorten
+    from fluxdrive_bringup.launch.runs import shorten
 
     sc = load_scenario(path)
     shorten(sc, DURATION_S)
@@ -54,7 +54,7 @@ def test_two_graphs_one_domain_each_bag_equals_its_solo_run(tmp_path, layouts):
     from fluxdrive.drive.plant import FR_SEQ
     from fluxdrive.drive.scenario import load_scenario
     from fluxdrive.io.bagio import read_run_bag
-    from fluxdrive_bringup.runs import result_from_bag
+    from fluxdrive_bringup.launch.runs import result_from_bag
 
     dom = domain(41 if layouts[0] == "composed" else 43)
     env = {k: v for k, v in os.environ.items() if k != "FLUXDRIVE_GRAPH_KEY"}  # one per launch

@@ -41,9 +41,9 @@ def _reference(sc, changes: dict[int, list]):
 
 def test_live_parameters_take_effect_exactly_and_bad_values_are_rejected(tmp_path):
     from fluxdrive.drive.scenario import load_scenario
-    from fluxdrive_bringup.inspect_cli import Session, set_param
-    from fluxdrive_bringup.launch import Launcher
-    from fluxdrive_bringup.runs import graph_for_scenario, result_from_bag, shorten
+    from fluxdrive_bringup.inspect.commands import Session, set_param
+    from fluxdrive_bringup.launch.launcher import Launcher
+    from fluxdrive_bringup.launch.runs import graph_for_scenario, result_from_bag, shorten
 
     dom = 120 + (os.getpid() * 7 + 5) % 100
     sc = load_scenario(SCENARIO)
@@ -58,7 +58,7 @@ def test_live_parameters_take_effect_exactly_and_bad_values_are_rejected(tmp_pat
     s = Session(domain_id=dom, wait_s=20.0)
     try:
         # services up (nodes constructed), then wait for the run to be under way
-        from fluxdrive_bringup.inspect_cli import _get
+        from fluxdrive_bringup.inspect.commands import _get
 
         assert _get(s, "/obs/flux_measured", ["cutoff_hz"])[0][1] == 100.0
         assert _get(s, "/controller", ["current_bandwidth_hz"])[0][1] == 1000.0
@@ -130,7 +130,7 @@ def test_paced_plant_watchdog_switches_pwm_off_without_a_controller(tmp_path):
     """Paced mode with no controller in the graph: the plant holds frame 2 waiting for
     duty(0), then its watchdog lets it run on at the wall-clock rate with the PWM off, every
     frame flagged as run on a stale command; the recorder still gets every frame."""
-    from fluxdrive_bringup.launch import Graph, Launcher, NodeSpec
+    from fluxdrive_bringup.launch.launcher import Graph, Launcher, NodeSpec
     from rosbags.highlevel import AnyReader
 
     dom = 120 + (os.getpid() * 7 + 8) % 100

@@ -48,7 +48,7 @@ def domain(offset: int) -> int:
 def reference(duration: float):
     from fluxdrive.drive.scenario import load_scenario
     from fluxdrive.drive.sim import run_scenario
-    from fluxdrive_bringup.runs import shorten
+    from fluxdrive_bringup.launch.runs import shorten
 
     sc = load_scenario(SCENARIO)
     shorten(sc, duration)
@@ -57,7 +57,7 @@ def reference(duration: float):
 
 def graph_result(bag: Path, duration: float):
     from fluxdrive.drive.scenario import load_scenario
-    from fluxdrive_bringup.runs import result_from_bag
+    from fluxdrive_bringup.launch.runs import result_from_bag
 
     return result_from_bag(bag, load_scenario(SCENARIO), duration)
 
@@ -76,7 +76,7 @@ def test_graph_equals_in_process_runner(tmp_path, layout, duration):
     """(a) The lockstep graph (sensorless start: align, I-f, handover to the flux observer
     within the first second) gives the in-process runner's numbers exactly -- with the
     intra-process delivery of the composed layout and with everything over DDS."""
-    from fluxdrive_bringup.runs import run_graph
+    from fluxdrive_bringup.launch.runs import run_graph
 
     bag = tmp_path / "bag"
     t0 = time.perf_counter()
@@ -153,8 +153,8 @@ def test_bag_every_frame_two_readers_and_replay_metadata(tmp_path):
     with rosbags and with mcap/mcap_ros2; the replay lab (fluxdrive.io.bagio) reads it with the
     run's metadata and no problems."""
     from fluxdrive.drive.scenario import load_scenario
-    from fluxdrive_bringup.launch import Launcher
-    from fluxdrive_bringup.runs import graph_for_scenario, shorten
+    from fluxdrive_bringup.launch.launcher import Launcher
+    from fluxdrive_bringup.launch.runs import graph_for_scenario, shorten
 
     sc = load_scenario(SCENARIO)
     shorten(sc, 0.3)
@@ -269,7 +269,7 @@ def test_tripped_run_records_the_fault(tmp_path):
     from fluxdrive.drive.control import CO_EN, CO_FAULT, FAULT_OVERVOLTAGE
     from fluxdrive.drive.scenario import load_scenario
     from fluxdrive.drive.sim import run_scenario
-    from fluxdrive_bringup.runs import result_from_bag, run_graph
+    from fluxdrive_bringup.launch.runs import result_from_bag, run_graph
 
     raw = yaml.safe_load(SCENARIO.read_text())
     raw.update(

@@ -37,7 +37,7 @@ def _scenario(seed: int) -> Path:
 def _reference(path: Path):
     from fluxdrive.drive.scenario import load_scenario
     from fluxdrive.drive.sim import run_scenario
-    from fluxdrive_bringup.runs import shorten
+    from fluxdrive_bringup.launch.runs import shorten
 
     sc = load_scenario(path)
     shorten(sc, DURATION_S)
@@ -48,7 +48,7 @@ def test_two_namespaced_drives_on_one_domain_each_record_their_solo_run(tmp_path
     from fluxdrive.drive.plant import FR_SEQ
     from fluxdrive.drive.scenario import load_scenario
     from fluxdrive.io.bagio import read_run_bag
-    from fluxdrive_bringup.runs import result_from_bag
+    from fluxdrive_bringup.launch.runs import result_from_bag
     from rosbags.highlevel import AnyReader
 
     dom = 120 + (os.getpid() * 7 + 47) % 100

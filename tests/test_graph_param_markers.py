@@ -29,8 +29,8 @@ def test_cli_parameter_change_is_marked_and_replays_exactly(tmp_path):
     from fluxdrive.drive.scenario import load_scenario
     from fluxdrive.io.bagio import read_run_bag
     from fluxdrive.replay.lab import expand_variants, replay_bag
-    from fluxdrive_bringup.launch import Launcher
-    from fluxdrive_bringup.runs import graph_for_scenario, shorten
+    from fluxdrive_bringup.launch.launcher import Launcher
+    from fluxdrive_bringup.launch.runs import graph_for_scenario, shorten
 
     dom = 120 + (os.getpid() * 13 + 9) % 100
     sc = load_scenario(SCENARIO)

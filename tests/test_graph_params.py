@@ -59,7 +59,7 @@ def _make(kind: str, ctx, tmp: Path, **params):
             parameter_overrides=[Parameter("scenario", value=SCENARIO), *ov],
         )
     if kind == "recorder":
-        from fluxdrive_bringup.recorder import RecorderNode
+        from fluxdrive_bringup.record.recorder import RecorderNode
 
         return RecorderNode(
             "recorder",

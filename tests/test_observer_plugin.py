@@ -98,7 +98,7 @@ def test_plugin_drives_in_the_graph(tmp_path, example_importable):
     pytest.importorskip("rclpy")
     pytest.importorskip("fluxdrive_bringup")
     from fluxdrive.drive.scenario import save_scenario
-    from fluxdrive_bringup.runs import result_from_bag, run_graph
+    from fluxdrive_bringup.launch.runs import result_from_bag, run_graph
 
     duration = 1.0
     sc = _case(

@@ -98,7 +98,7 @@ class Run:
     """A Launcher running in a background thread; its [launch] and node lines collected."""
 
     def __init__(self, g: dict, dom: int, tmp: Path):
-        from fluxdrive_bringup.launch import Launcher, parse_graph
+        from fluxdrive_bringup.launch.launcher import Launcher, parse_graph
 
         graph = parse_graph(g, "faults.yaml")
         graph.domain_id = dom
@@ -429,7 +429,7 @@ def test_launcher_killed_graph_stops_and_bag_is_finalised(tmp_path):
 def test_on_death_policy_errors_name_file_and_key():
     """Malformed on_death settings are refused with the file, the node and the key."""
     from fluxdrive.core.machine import ConfigError
-    from fluxdrive_bringup.launch import parse_graph
+    from fluxdrive_bringup.launch.launcher import parse_graph
 
     def bad(pol: dict, node: str = "controller", top: dict | None = None) -> str:
         g = graph_dict(
@@ -602,7 +602,7 @@ def test_bag_target_refused_before_start(tmp_path):
     """An unwritable bags/ (its parent is a regular file: fails for root too) and a
     min_free_mb above the free space are refused in one line before any process starts."""
     from fluxdrive.core.machine import ConfigError
-    from fluxdrive_bringup.launch import Launcher, parse_graph
+    from fluxdrive_bringup.launch.launcher import Launcher, parse_graph
 
     blocker = tmp_path / "not_a_dir"
     blocker.write_text("x")
@@ -652,7 +652,7 @@ def test_write_failure_midrun_stops_recording_cleanly(tmp_path):
         args += ["-p", f"{k}:={v if not isinstance(v, list) else '[' + ','.join(v) + ']'}"]
     code_ = (
         "import resource, sys; resource.setrlimit(resource.RLIMIT_FSIZE, "
-        f"({limit}, {limit})); from fluxdrive_bringup.recorder import main; "
+        f"({limit}, {limit})); from fluxdrive_bringup.record.recorder import main; "
         "sys.exit(main(sys.argv))"
     )
     g["nodes"].append({"name": "recorder", "cmd": [sys.executable, "-c", code_, *args]})

@@ -21,8 +21,8 @@ SCENARIO = ROOT / "config" / "scenarios" / "paper_2pct_150load.yaml"
 @pytest.mark.parametrize("layout", ["composed", "split"])
 def test_a_finished_run_checks_the_bag_against_the_publishers(tmp_path, layout):
     from fluxdrive.drive.scenario import load_scenario
-    from fluxdrive_bringup.launch import Launcher
-    from fluxdrive_bringup.runs import graph_for_scenario, shorten
+    from fluxdrive_bringup.launch.launcher import Launcher
+    from fluxdrive_bringup.launch.runs import graph_for_scenario, shorten
 
     dom = 120 + (os.getpid() * 43 + (7 if layout == "split" else 19)) % 100
     sc = load_scenario(SCENARIO)

@@ -25,8 +25,8 @@ SCENARIO = ROOT / "config" / "scenarios" / "paper_2pct_150load.yaml"
 
 def test_a_stopped_drive_stops_the_run_with_one_line(tmp_path):
     from fluxdrive.drive.scenario import load_scenario
-    from fluxdrive_bringup.launch import Launcher
-    from fluxdrive_bringup.runs import graph_for_scenario
+    from fluxdrive_bringup.launch.launcher import Launcher
+    from fluxdrive_bringup.launch.runs import graph_for_scenario
 
     dom = 120 + (os.getpid() * 41 + 17) % 100
     sc = load_scenario(SCENARIO)

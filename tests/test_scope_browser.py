@@ -31,7 +31,7 @@ TOKEN = "scope-test-token"
 
 
 def _param(node: str, name: str, domain_id: int):
-    from fluxdrive_bringup.inspect_cli import Session, _get
+    from fluxdrive_bringup.inspect.commands import Session, _get
 
     s = Session(domain_id=domain_id, wait_s=3.0)
     try:
@@ -46,8 +46,8 @@ def test_scope_page_in_chromium(tmp_path):
     if not Path(CHROMIUM).exists():
         pytest.skip("chromium not installed (tools/bootstrap.sh installs Debian's package)")
     from fluxdrive.drive.scenario import load_scenario, scenario_path
-    from fluxdrive_bringup.launch import Launcher, add_scope
-    from fluxdrive_bringup.runs import graph_for_scenario
+    from fluxdrive_bringup.launch.launcher import Launcher, add_scope
+    from fluxdrive_bringup.launch.runs import graph_for_scenario
 
     dom = 160 + os.getpid() % 60
     sp = scenario_path("paper_2pct_150load")

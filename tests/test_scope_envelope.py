@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 pytest.importorskip("rclpy")
-scope_tap = pytest.importorskip("fluxdrive_bringup.scope_tap")
+scope_tap = pytest.importorskip("fluxdrive_bringup.view.scope_tap")
 
 
 def test_envelope_keeps_a_one_sample_spike():

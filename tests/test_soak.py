@@ -60,7 +60,7 @@ def test_recorder_backpressure_holds_the_graph_and_loses_nothing(tmp_path):
     loop instead of growing the recorder's buffer; every message still lands in the bag."""
     from fluxdrive.drive.scenario import scenario_path
     from fluxdrive.io.bagio import bag_counts
-    from fluxdrive_bringup.runs import run_graph
+    from fluxdrive_bringup.launch.runs import run_graph
 
     bag = tmp_path / "bag"
     r = run_graph(

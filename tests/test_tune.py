@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def test_hold_point_from_the_card():
     from fluxdrive.drive.scenario import load_scenario, scenario_path
-    from fluxdrive_bringup.tune import TUNE_SCENARIO, hold_overrides
+    from fluxdrive_bringup.launch.tune import TUNE_SCENARIO, hold_overrides
 
     sc = load_scenario(scenario_path(TUNE_SCENARIO))
     assert sc.load_profile_pu[:, 1].max() <= 1.0  # the shipped point: at most rated load

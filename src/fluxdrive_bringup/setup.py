@@ -11,7 +11,7 @@ setup(
         ("share/" + package_name, ["package.xml"]),
     ],
     # the scope's page and its vendored JavaScript (served from the package directory)
-    package_data={package_name: ["scope_web/*.*", "scope_web/vendor/*"]},
+    package_data={package_name: ["view/scope_web/*.*", "view/scope_web/vendor/*"]},
     install_requires=["setuptools"],
     zip_safe=False,
     maintainer="fluxdrive",
@@ -20,11 +20,11 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            "recorder = fluxdrive_bringup.recorder:main",
+            "recorder = fluxdrive_bringup.record.recorder:main",
             "container = fluxdrive_ros.runner:container_main",
-            "scope = fluxdrive_bringup.scope:main",
-            "scope_tap = fluxdrive_bringup.scope_tap:main",
-            "foxglove_bridge = fluxdrive_bringup.foxglove_bridge:main",
+            "scope = fluxdrive_bringup.view.scope:main",
+            "scope_tap = fluxdrive_bringup.view.scope_tap:main",
+            "foxglove_bridge = fluxdrive_bringup.view.foxglove_bridge:main",
         ],
     },
 )

@@ -15,8 +15,8 @@ import numpy as np
 BENCHES = {
     "engine": ("fluxdrive.cli.bench", "bench_engine"),
     "replay": ("fluxdrive.replay.lab", "bench_replay"),
-    "graph": ("fluxdrive_bringup.bench", "bench_graph"),
-    "paced": ("fluxdrive_bringup.bench", "bench_paced"),
+    "graph": ("fluxdrive_bringup.measure.bench", "bench_graph"),
+    "paced": ("fluxdrive_bringup.measure.bench", "bench_paced"),
     "can": ("fluxdrive.can.benchmark", "bench_can_cli"),
     "study": ("fluxdrive.study.cli", "bench_study"),
     "firmware": ("fluxdrive.can.firmware_target", "bench_firmware"),

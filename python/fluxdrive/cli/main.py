@@ -99,8 +99,8 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
 }
 
 # options that need the ROS graph: the same command, entered through the graph tools
-LIVE_REPLAY = ("fluxdrive_bringup.live_replay", "main")
-EXPERIMENT_GRAPH = ("fluxdrive_bringup.runs", "main_experiment_graph")
+LIVE_REPLAY = ("fluxdrive_bringup.replay.live_replay", "main")
+EXPERIMENT_GRAPH = ("fluxdrive_bringup.launch.runs", "main_experiment_graph")
 
 
 def main_test(argv: list[str]) -> int:

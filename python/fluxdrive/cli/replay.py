@@ -1,6 +1,6 @@
 """`./fluxdrive replay BAG... --variant SPEC ...`: the command line of the replay lab
 (fluxdrive.replay.lab) and of its sweeps (fluxdrive.study.bagsweep); `--live` is sent to
-fluxdrive_bringup.live_replay, which shares this parser."""
+fluxdrive_bringup.replay.live_replay, which shares this parser."""
 
 from __future__ import annotations
 
@@ -120,7 +120,7 @@ def main(argv: list[str]) -> int:
 
 
 def _main(args) -> int:
-    if args.live:  # the command line sends --live to fluxdrive_bringup.live_replay (ROS)
+    if args.live:  # the command line sends --live to fluxdrive_bringup.replay.live_replay (ROS)
         raise ConfigError("--live publishes on the ROS graph: run it as ./fluxdrive replay")
     machine = load_machine(args.machine) if args.machine else None
     window = _parse_window(args.window)

@@ -5,72 +5,72 @@ from __future__ import annotations
 
 
 def main_launch(argv: list[str]) -> int:
-    from .launch import main
+    from fluxdrive_bringup.launch.launcher import main
 
     return main(argv)
 
 
 def main_run(argv: list[str]) -> int:
-    from .runs import main_run as run
+    from fluxdrive_bringup.launch.runs import main_run as run
 
     return run(argv)
 
 
 def main_bench(argv: list[str]) -> int:
-    from .sil import main
+    from fluxdrive_bringup.measure.sil import main
 
     return main(argv)
 
 
 def main_demo(argv: list[str]) -> int:
-    from .runs import main_demo as demo
+    from fluxdrive_bringup.launch.runs import main_demo as demo
 
     return demo(argv)
 
 
 def main_tune(argv: list[str]) -> int:
-    from .tune import main
+    from fluxdrive_bringup.launch.tune import main
 
     return main(argv)
 
 
 def main_topic(argv: list[str]) -> int:
-    from .inspect_cli import main_topic as f
+    from fluxdrive_bringup.inspect.commands import main_topic as f
 
     return f(argv)
 
 
 def main_node(argv: list[str]) -> int:
-    from .inspect_cli import main_node as f
+    from fluxdrive_bringup.inspect.commands import main_node as f
 
     return f(argv)
 
 
 def main_param(argv: list[str]) -> int:
-    from .inspect_cli import main_param as f
+    from fluxdrive_bringup.inspect.commands import main_param as f
 
     return f(argv)
 
 
 def main_soak(argv: list[str]) -> int:
-    from .soak import main
+    from fluxdrive_bringup.measure.soak import main
 
     return main(argv)
 
 
 def main_fault(argv: list[str]) -> int:
-    from .inspect_cli import main_fault as f
+    from fluxdrive_bringup.inspect.commands import main_fault as f
 
     return f(argv)
 
 
 def main_scope(argv: list[str]) -> int:
-    from .scope import main
+    from fluxdrive_bringup.view.scope import main
 
     return main(argv)
 
 
 def main_foxglove(argv: list[str]) -> int:
-    from .foxglove_bridge import main
+    from fluxdrive_bringup.view.foxglove_bridge import main
 
     return main(argv)

@@ -44,7 +44,7 @@ from .params import P
 KEY_ENV = "FLUXDRIVE_GRAPH_KEY"
 ANYONE = "*"
 DEFAULT_ALLOWED = ("/controller",)
-# the node name of `./fluxdrive fault reset` (fluxdrive_bringup.inspect_cli), the operator's
+# the node name of `./fluxdrive fault reset` (fluxdrive_bringup.inspect.commands), the operator's
 # tool; the controller obeys ~/reset_fault only from these
 DEFAULT_OPERATORS = ("/fluxdrive_operator",)
 

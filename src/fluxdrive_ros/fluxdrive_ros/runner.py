@@ -50,8 +50,8 @@ NODE_CLASSES = {
     "plant": "spm_plant_sim.node:PlantNode",
     "observer": "flux_observer_node.node:ObserverNode",
     "controller": "foc_controller_node.node:ControllerNode",
-    "recorder": "fluxdrive_bringup.recorder:RecorderNode",
-    "scope_tap": "fluxdrive_bringup.scope_tap:ScopeTapNode",
+    "recorder": "fluxdrive_bringup.record.recorder:RecorderNode",
+    "scope_tap": "fluxdrive_bringup.view.scope_tap:ScopeTapNode",
 }
 
 

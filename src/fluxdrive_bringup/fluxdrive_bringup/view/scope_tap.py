@@ -831,7 +831,7 @@ class ScopeTapNode(FluxNode):
 
 
 def main(argv: list[str] | None = None) -> int:
-    return main_node("fluxdrive_bringup.scope_tap:ScopeTapNode", "scope_tap", argv)
+    return main_node("fluxdrive_bringup.view.scope_tap:ScopeTapNode", "scope_tap", argv)
 
 
 if __name__ == "__main__":

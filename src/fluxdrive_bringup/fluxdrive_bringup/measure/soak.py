@@ -38,9 +38,9 @@ from fluxdrive.drive.scenario import REPO_ROOT, load_scenario, scenario_path
 from fluxdrive.io.bagio import bag_counts
 from fluxdrive_ros.topics import CONTROLLER_STATE, FRAME, TRUTH, estimate_topic
 
-from .domains import pick_domain_id
-from .launch import Launcher
-from .runs import graph_for_scenario, shorten
+from fluxdrive_bringup.launch.domains import pick_domain_id
+from fluxdrive_bringup.launch.launcher import Launcher
+from fluxdrive_bringup.launch.runs import graph_for_scenario, shorten
 
 SOAK_SCENARIO = "paper_4pct_fullload"
 

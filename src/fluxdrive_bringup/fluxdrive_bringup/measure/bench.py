@@ -43,7 +43,13 @@ def _say(text: str) -> None:
 
 
 def bench_graph(argv: list[str]) -> dict:
-    from .runs import DEMO_SCENARIO, LAYOUTS, result_from_bag, run_graph, shorten
+    from fluxdrive_bringup.launch.runs import (
+        DEMO_SCENARIO,
+        LAYOUTS,
+        result_from_bag,
+        run_graph,
+        shorten,
+    )
 
     ap = argparse.ArgumentParser(prog="fluxdrive benchmark graph", description=__doc__)
     ap.add_argument("--duration", type=float, default=3.0, help="simulated seconds (default 3)")
@@ -426,7 +432,7 @@ last line is JSON."""
 def bench_paced(argv: list[str]) -> dict:
     import re
 
-    from .runs import DEMO_SCENARIO, LAYOUTS, run_graph
+    from fluxdrive_bringup.launch.runs import DEMO_SCENARIO, LAYOUTS, run_graph
 
     ap = argparse.ArgumentParser(prog="fluxdrive benchmark paced", description=PACED_DOC)
     ap.add_argument("--duration", type=float, default=2.0, help="simulated seconds")

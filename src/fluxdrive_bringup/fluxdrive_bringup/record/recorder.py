@@ -526,7 +526,7 @@ class RecorderNode(FluxNode):
 
 
 def main(argv: list[str] | None = None) -> int:
-    return main_node("fluxdrive_bringup.recorder:RecorderNode", "recorder", argv)
+    return main_node("fluxdrive_bringup.record.recorder:RecorderNode", "recorder", argv)
 
 
 if __name__ == "__main__":

@@ -8,7 +8,7 @@ launch; every page, API call and WebSocket must carry it).  `./fluxdrive run/dem
 
 Parts (one process):
 - a ROS thread (rclpy context of its own, node /fluxdrive_scope): subscribes to the display
-  envelopes of the scope tap (/scope/envelope, fluxdrive_bringup.scope_tap: binary, so that
+  envelopes of the scope tap (/scope/envelope, fluxdrive_bringup.view.scope_tap: binary, so that
   the graph's process does not pay for JSON), turns each into the page's JSON and forwards
   it to every open page over a WebSocket; publishes a ParameterMarker on
   /drive/param_marker for every parameter set from the page that the node refused (an
@@ -79,7 +79,7 @@ class RosSide:
         self.local_tap: Any = None  # a ScopeTapNode when the graph has no tap of its own
         self.quiet = quiet
 
-        from .scope_tap import page_json
+        from fluxdrive_bringup.view.scope_tap import page_json
 
         def on_env(data: bytes) -> None:
             self.n_envelopes += 1
@@ -137,7 +137,7 @@ class RosSide:
             time.sleep(0.1)
         if self.stop.is_set() or self.sub.get_publisher_count() > 0:
             return
-        from .scope_tap import ScopeTapNode
+        from fluxdrive_bringup.view.scope_tap import ScopeTapNode
 
         print(
             "scope: no scope tap in the graph (start it with --scope to keep the cost low); "
@@ -188,7 +188,7 @@ class ParamSide:
         self.session = None
 
     def _s(self):
-        from .inspect_cli import Session
+        from fluxdrive_bringup.inspect.commands import Session
 
         if self.session is None:
             self.session = Session(
@@ -215,7 +215,7 @@ class ParamSide:
         return sorted(set(out))
 
     def describe(self, node: str) -> list[dict[str, Any]]:
-        from .inspect_cli import _describe, _get, _list
+        from fluxdrive_bringup.inspect.commands import _describe, _get, _list
 
         s = self._s()
         names = _list(s, node)
@@ -248,7 +248,7 @@ class ParamSide:
     def set(self, node: str, name: str, text: str) -> tuple[bool, str, Any]:
         """Set; returns the node's answer and the value the node holds afterwards (the old
         one after a refusal), so the page shows what is in force."""
-        from .inspect_cli import _get, set_param
+        from fluxdrive_bringup.inspect.commands import _get, set_param
 
         s = self._s()
         try:
@@ -265,7 +265,7 @@ class ParamSide:
         return sorted(taps, key=len)[0]
 
     def reset(self, service: str) -> tuple[bool, str]:
-        from .inspect_cli import OPERATOR_NODE, Session, reset_fault
+        from fluxdrive_bringup.inspect.commands import OPERATOR_NODE, Session, reset_fault
 
         s = Session(domain_id=self.domain_id, wait_s=self.wait_s, node_name=OPERATOR_NODE)
         try:

@@ -86,7 +86,7 @@ class Bridge:
         from foxglove.websocket import Capability
         from rclpy.executors import SingleThreadedExecutor
 
-        from .inspect_cli import Session
+        from fluxdrive_bringup.inspect.commands import Session
 
         self.args = args
         self.foxglove = foxglove
@@ -278,7 +278,12 @@ class Bridge:
         cls = getattr(importlib.import_module(f"{pkg}.srv"), name)
 
         def handler(request) -> bytes:
-            from .inspect_cli import OPERATOR_NODE, Session, _call, reset_fault
+            from fluxdrive_bringup.inspect.commands import (
+                OPERATOR_NODE,
+                Session,
+                _call,
+                reset_fault,
+            )
 
             req = (
                 deserialize_message(bytes(request.payload), cls.Request)
@@ -346,7 +351,7 @@ class Bridge:
 
     def _values(self, names: list[str]) -> list:
         """foxglove Parameters for `/node.param` names; [] = every parameter of every node."""
-        from .inspect_cli import _get, _list
+        from fluxdrive_bringup.inspect.commands import _get, _list
 
         Parameter = self.foxglove.Parameter  # noqa: N806
         want: dict[str, list[str]] = {}
@@ -383,7 +388,7 @@ class Bridge:
             return self._values(list(param_names))
 
     def on_set_parameters(self, client, parameters, request_id=None):
-        from .inspect_cli import set_param
+        from fluxdrive_bringup.inspect.commands import set_param
 
         names = []
         with self.params_lock:

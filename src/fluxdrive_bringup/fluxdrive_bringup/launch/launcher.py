@@ -1063,9 +1063,9 @@ def add_scope(
     exit_on_done: bool = False,
     observers: list[str] | None = None,
 ) -> None:
-    """Add the live scope to a graph: the scope tap (fluxdrive_bringup.scope_tap) in the
+    """Add the live scope to a graph: the scope tap (fluxdrive_bringup.view.scope_tap) in the
     plant's process -- so the samples reach it through the intra-process bus, not DDS -- and
-    the scope's web server (fluxdrive_bringup.scope) as a process of its own."""
+    the scope's web server (fluxdrive_bringup.view.scope) as a process of its own."""
     host = next((n for n in g.nodes if n.node == "plant"), None) or next(
         (n for n in g.nodes if n.node), None
     )
@@ -1087,7 +1087,7 @@ def add_scope(
     cmd = [
         sys.executable,
         "-m",
-        "fluxdrive_bringup.scope",
+        "fluxdrive_bringup.view.scope",
         "--port",
         str(port),
         "--attach-wait",
@@ -1178,7 +1178,7 @@ def main(argv: list[str]) -> int:
     if args.scope:
         add_scope(g, port=args.scope_port)
     if not args.shared_domain:  # a domain no live node uses (or refused, naming them)
-        from .domains import choose_domain
+        from fluxdrive_bringup.launch.domains import choose_domain
 
         # (the graph's domain_id, else ROS_DOMAIN_ID, else 0 -- where `param set` and
         # `topic echo` from another shell look by default)

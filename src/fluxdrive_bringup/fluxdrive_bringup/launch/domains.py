@@ -12,7 +12,7 @@ def domain_users(domain_id: int, wait_s: float | None = None) -> list[str]:
     """Nodes alive on a ROS domain (discovery on localhost), after up to wait_s (default:
     one discovery announcement period, inspect_cli.SETTLE_MIN_S): another graph there would
     hear this one's topics and this one its."""
-    from .inspect_cli import SETTLE_MIN_S, Session
+    from fluxdrive_bringup.inspect.commands import SETTLE_MIN_S, Session
 
     wait_s = SETTLE_MIN_S if wait_s is None else wait_s
     s = Session(domain_id=domain_id, wait_s=wait_s, node_name=f"fluxdrive_probe_{os.getpid()}")

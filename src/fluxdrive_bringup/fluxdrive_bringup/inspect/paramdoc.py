@@ -1,7 +1,7 @@
 """Markdown tables of every declared parameter of the graph's nodes, read from the nodes
 themselves (descriptions, units, ranges, defaults for the demo scenario, live or not):
 
-    python -m fluxdrive_bringup.paramdoc > /tmp/params.md   (the tables in docs/graph.md)
+    python -m fluxdrive_bringup.inspect.paramdoc > /tmp/params.md   (the tables in docs/graph.md)
 """
 
 from __future__ import annotations

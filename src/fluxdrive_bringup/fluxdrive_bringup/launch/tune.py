@@ -1,7 +1,7 @@
 """`./fluxdrive tune`: a steady operating point (speed, load) held paced until Ctrl-C, for
 live tuning (`./fluxdrive param set ...`, `--scope`).
 
-The graph is the scenario's (fluxdrive_bringup.runs.graph_for_scenario) with the plant paced
+The graph is the scenario's (fluxdrive_bringup.launch.runs.graph_for_scenario) with the plant paced
 to the wall clock at `--rate` x real time and no end (duration_s 0), and no recorder (an
 indefinite run would fill the disk).  The hold point comes from a `tune_*` scenario
 (default config/scenarios/tune_60rpm_80load.yaml); `--speed-rpm` and `--load-pu` replace its
@@ -25,9 +25,9 @@ from pathlib import Path
 from fluxdrive.core.machine import ConfigError
 from fluxdrive.drive.scenario import REPO_ROOT, load_scenario, save_scenario, scenario_path
 
-from .domains import choose_domain
-from .launch import Launcher, add_scope
-from .runs import LAYOUTS, graph_for_scenario
+from fluxdrive_bringup.launch.domains import choose_domain
+from fluxdrive_bringup.launch.launcher import Launcher, add_scope
+from fluxdrive_bringup.launch.runs import LAYOUTS, graph_for_scenario
 
 TUNE_SCENARIO = "tune_60rpm_80load"
 LOAD_RAMP_START_S = 1.0  # after the sensorless start (handover at ~0.3 s), as the scenario
@@ -159,7 +159,7 @@ def main(argv: list[str]) -> int:
     if args.scope and args.quiet:
         import threading
 
-        from .runs import _print_scope_url
+        from fluxdrive_bringup.launch.runs import _print_scope_url
 
         threading.Thread(target=_print_scope_url, args=(launcher,), daemon=True).start()
     code = launcher.run(None)

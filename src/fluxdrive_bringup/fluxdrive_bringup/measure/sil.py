@@ -28,12 +28,11 @@ import numpy as np
 import yaml
 from fluxdrive.drive.scenario import REPO_ROOT, load_scenario, scenario_path
 
+from fluxdrive_bringup.launch.domains import choose_domain
+from fluxdrive_bringup.launch.launcher import Launcher, NodeSpec
+from fluxdrive_bringup.launch.runs import graph_for_scenario, shorten
+from fluxdrive_bringup.record.recorder import DEFAULT_TOPICS
 from fluxdrive_ros import topics
-
-from .domains import choose_domain
-from .launch import Launcher, NodeSpec
-from .recorder import DEFAULT_TOPICS
-from .runs import graph_for_scenario, shorten
 
 MODES = ("host", "split")
 SWEEP_RESULTS = REPO_ROOT / "results" / "can" / "sil_current_sweep.json"

@@ -3,7 +3,7 @@
 1. the graph for the scenario: the plant (lockstep), one observer node per scenario
    observer (/obs/<name>, the driving one and the shadows), the controller (position from
    the driving observer's estimate topic, or the encoder), the recorder;
-2. launched (fluxdrive_bringup.launch) with a domain of its own; the plant waits until
+2. launched (fluxdrive_bringup.launch.launcher) with a domain of its own; the plant waits until
    every frame subscriber and the duty publisher are matched (plus a settling delay) before
    its first frame, and all per-sample topics are transient-local, so nothing published
    during discovery is lost;
@@ -33,8 +33,8 @@ import numpy as np
 import yaml
 from fluxdrive.drive.scenario import REPO_ROOT, load_scenario, scenario_path
 
-from .domains import choose_domain, pick_domain_id
-from .launch import Graph, Launcher, NodeSpec, check_namespace
+from fluxdrive_bringup.launch.domains import choose_domain, pick_domain_id
+from fluxdrive_bringup.launch.launcher import Graph, Launcher, NodeSpec, check_namespace
 
 LAYOUTS = ("composed", "split", "separate")
 DEMO_SCENARIO = "paper_2pct_150load"
@@ -187,7 +187,7 @@ def run_graph(
         sc_path, sc, bag, layout, duration_s, dom, extra=extra, namespace=namespace
     )
     if scope:
-        from .launch import add_scope
+        from fluxdrive_bringup.launch.launcher import add_scope
 
         add_scope(g, port=scope_port, exit_on_done=True, observers=list(sc.observers))
     out.mkdir(parents=True, exist_ok=True)

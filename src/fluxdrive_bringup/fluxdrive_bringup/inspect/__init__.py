@@ -1,0 +1,1 @@
+"""Look into a running graph: topics, nodes, parameters, fault reset; parameter docs."""

@@ -1,0 +1,1 @@
+"""Start graphs: the YAML launcher, its domains, scenario runs and live tuning."""

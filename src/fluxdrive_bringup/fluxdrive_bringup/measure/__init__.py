@@ -1,0 +1,1 @@
+"""Measure the graph: benchmarks, the soak test and the software-in-the-loop bench."""

@@ -1,0 +1,1 @@
+"""Replay a bag onto the graph: the live replay publisher."""
