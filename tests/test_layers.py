@@ -5,6 +5,8 @@ cycle between modules.
     core  <-  drive  <-  {analysis, can <- io}  <-  replay  <-  study  <-  experiments  <-  cli
                                                                            <-  ROS packages (src/)
 
+and, inside fluxdrive_bringup, its jobs: {record, inspect, replay} <- {view, launch} <- measure.
+
 A package may import its own modules and anything the table lists for it; nothing else."""
 
 from __future__ import annotations
@@ -36,7 +38,21 @@ ENGINE = set(ALLOWED)
 ALLOWED["fluxdrive_ros"] = ENGINE
 for _pkg in ("spm_plant_sim", "flux_observer_node", "foc_controller_node", "bench_bridge"):
     ALLOWED[_pkg] = ENGINE | {"fluxdrive_ros"}
-ALLOWED["fluxdrive_bringup"] = ENGINE | {"fluxdrive_ros"}
+# fluxdrive_bringup by job: record, inspect and replay stand alone; view and launch look into a
+# running graph (inspect); launch also starts recorders (record); measure runs graphs (launch)
+_ROS = ENGINE | {"fluxdrive_ros"}
+_JOB = {job: f"fluxdrive_bringup.{job}" for job in ("launch", "record", "inspect", "view")}
+ALLOWED["fluxdrive_bringup"] = _ROS  # the package's __init__
+for _job in ("record", "inspect", "replay"):
+    ALLOWED[f"fluxdrive_bringup.{_job}"] = _ROS
+ALLOWED["fluxdrive_bringup.view"] = _ROS | {_JOB["inspect"]}
+ALLOWED["fluxdrive_bringup.launch"] = _ROS | {_JOB["inspect"], _JOB["record"]}
+ALLOWED["fluxdrive_bringup.measure"] = ALLOWED["fluxdrive_bringup.launch"] | {_JOB["launch"]}
+# the graph commands of ./fluxdrive: every job
+ALLOWED["fluxdrive_bringup.cli"] = _ROS | {
+    f"fluxdrive_bringup.{job}"
+    for job in ("launch", "record", "inspect", "view", "measure", "replay")
+}
 
 # cycles still being taken apart this round, each named with the modules in it; the test fails
 # when one of them is gone, so the list only shrinks
@@ -93,7 +109,7 @@ def imports_of(name: str, path: Path, known: dict[str, Path]) -> list[tuple[str,
 
 def package_of(module: str) -> str:
     parts = module.split(".")
-    if parts[0] == "fluxdrive":
+    if parts[0] in ("fluxdrive", "fluxdrive_bringup"):  # a subpackage each (bringup: by job)
         return ".".join(parts[:2]) if len(parts) > 1 else "fluxdrive"
     return parts[0]
 
