@@ -6,6 +6,7 @@ experiments.py for the framework and the claim format.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -35,7 +36,7 @@ from fluxdrive.drive.observers import (
 )
 from fluxdrive.drive.plant import FR_IA, FR_IB, FR_IC, TR_IA, TR_IB, TR_IC, TR_THETA_E, TR_WM
 from fluxdrive.drive.scenario import CONFIG_DIR
-from fluxdrive.experiments.claims import judge
+from fluxdrive.experiments.claims import judge, registered
 from fluxdrive.experiments.common import (
     LITERAL,
     OBS4,
@@ -79,11 +80,40 @@ def _dec(x, n=3000):
 
 
 # ======================================================================== Fig. 14
+def op_point(r) -> dict:
+    """The run's operating point over its steady window and every observer's speed path and
+    cut-off: what verdict texts quote instead of typed numbers."""
+    sl = _win(r)
+    mc = r.scenario.machine
+    rpm = float(np.mean(r.truth[sl, TR_WM])) * RAD_S_TO_RPM
+    lp = r.scenario.load_profile_pu
+    return {
+        "rpm": rpm,
+        "speed_pu": rpm / mc.rated_speed_rpm,
+        "fe_hz": abs(rpm) / 60.0 * mc.pole_pairs,
+        "load_pu": float(lp[-1, 1]),
+        "obs": {
+            nm: {
+                "cutoff_hz": float(o.cutoff_hz or 0.0),
+                "pll_hz": float(o.pll_bandwidth_hz or 0.0),
+                "lpf_hz": float(o.speed_lpf_hz or 0.0),
+            }
+            for nm, o in r.scenario.observers.items()
+        },
+    }
+
+
 def _x_fig14(r, m, show_s=0.5):
     sl = _win(r)
     th = r.truth[sl, TR_THETA_E]
     thu = np.unwrap(th)
-    out = {"metrics": m, "noise": {}}
+    cap = r.scenario.bench.voltage_capture
+    out = {"metrics": m, "noise": {}, "op": op_point(r)}
+    out["capture"] = (
+        None
+        if cap is None
+        else {"delay_diff_s": cap.delay_rise_s - cap.delay_fall_s, "min_pulse_s": cap.min_pulse_s}
+    )
     n_show = int(show_s / r.scenario.machine.ts_s)
     series = {"t": _dec(r.t[sl][-n_show:]), "theta": _dec(th[-n_show:])}
     for nm in r.names:
@@ -105,33 +135,46 @@ def per_seed(vals: list[float], fmt: str = "{:.2f}", rel: float = 0.5) -> str:
 
 
 VARIANTS = (("paper_robust", "flux"), ("paper (literal)", "paper"))
+SLIP_DEG = 30.0  # a seed whose |θ̃| passes this anywhere in the window has slipped
 
 
-def fig14(ctx):
-    seeds = [1] if ctx.quick else [1, 2, 3]
-    jobs = [(ctx.build(base="paper_2pct_150load", seed=s), _x_fig14, None) for s in seeds]
-    res = ctx.run(jobs)
+def _fig14_jobs(ctx, seeds: list[int]) -> list:
+    return [(ctx.build(base="paper_2pct_150load", seed=s), _x_fig14, None) for s in seeds]
+
+
+def _fig14_analyse(res: list[dict]) -> dict:
+    """Per observer, per seed: θ̃ RMS, 6th order, broadband noise, peak; stability; slips."""
     names = list(OBS6)
-    rms = {n: [r["metrics"]["observers"][n]["theta_err_rms_deg"] for r in res] for n in names}
-    h6 = {n: [r["metrics"]["observers"][n]["theta_err_h6_deg"] for r in res] for n in names}
-    noise = {n: [r["noise"][n] for r in res] for n in names}
-    peak = {n: [r["metrics"]["observers"][n]["theta_err_peak_deg"] for r in res] for n in names}
-    stable = [r["metrics"]["stable"] for r in res]
-    # a seed whose estimate slipped (|θ̃| > 30° anywhere in the window) is not averaged in
-    slipped = {n: [p > 30.0 for p in peak[n]] for n in names}
 
-    def med(d, n):
-        return float(np.median(d[n]))
+    def per(key: str) -> dict[str, list[float]]:
+        return {n: [r["metrics"]["observers"][n][key] for r in res] for n in names}
 
+    peak = per("theta_err_peak_deg")
+    return {
+        "rms": per("theta_err_rms_deg"),
+        "h6": per("theta_err_h6_deg"),
+        "noise": {n: [r["noise"][n] for r in res] for n in names},
+        "peak": peak,
+        "stable": [r["metrics"]["stable"] for r in res],
+        "slipped": {n: [p > SLIP_DEG for p in peak[n]] for n in names},
+        "op": res[0]["op"],
+        "capture": res[0]["capture"],
+    }
+
+
+def _fig14_plot(ctx, a: dict, s: dict, seed: int) -> str:
     p = plt()
-    s = res[0]["series"]
+    op = a["op"]
     fig, ax = p.subplots(4, 2, figsize=(11, 9), sharex=True)
     for c, src in enumerate(("commanded", "measured")):
         ax[0, c].plot(s["t"], np.degrees(wrap(s["theta"])), lw=0.8, label="θe (encoder)")
         ax[0, c].plot(s["t"], np.degrees(s[f"flux_{src}_th"]), lw=0.8, label="θ̂ flux")
         ax[0, c].set_ylabel("angle [deg]")
         ax[0, c].legend(fontsize=7)
-        ax[0, c].set_title(f"({'ab'[c]}) {src} voltages, 60 rpm, 150 % load (seed {seeds[0]})")
+        ax[0, c].set_title(
+            f"({'ab'[c]}) {src} voltages, {op['rpm']:.0f} rpm ({100 * op['speed_pu']:.0f} %), "
+            f"{100 * op['load_pu']:.0f} % load (seed {seed})"
+        )
         for rr, (kind, lab) in enumerate(
             (("emf", "emf"), ("flux", "flux robust"), ("paper", "flux literal")), 1
         ):
@@ -143,183 +186,244 @@ def fig14(ctx):
             ax[rr, c].text(
                 0.01,
                 0.85,
-                f"RMS {per_seed(rms[nm])}°, 6th {per_seed(h6[nm])}°, noise {per_seed(noise[nm])}°",
+                f"RMS {per_seed(a['rms'][nm])}°, 6th {per_seed(a['h6'][nm])}°, "
+                f"noise {per_seed(a['noise'][nm])}°",
                 transform=ax[rr, c].transAxes,
                 fontsize=7,
             )
         ax[3, c].set_xlabel("time [s]")
-    figs = [ctx.fig(fig, "fig14_theta_error")]
+    return ctx.fig(fig, "fig14_theta_error")
+
+
+def _med(d: dict, n: str) -> float:
+    return float(np.median(d[n]))
+
+
+def _fig14_commanded_snr_why(a: dict, fc: str) -> str:
+    """Why the commanded-voltage θ̃ RMS is the deadtime 6th order's, numbers from the run."""
+    op, noise = a["op"], a["noise"]
+    flux, emf = op["obs"][fc], op["obs"]["emf_commanded"]
+    fe, wc = op["fe_hz"], flux["cutoff_hz"]
+    lpf = f" plus a {emf['lpf_hz']:.0f} Hz speed LPF" if emf["lpf_hz"] else ""
+    return (
+        f"the total RMS is the deadtime 6th order's: at {100 * op['speed_pu']:.0f} % speed the "
+        f"5th/7th ({5 * fe:.0f}-{7 * fe:.0f} Hz) lie at up to {7 * fe / wc:.2f} of the "
+        f"{wc:.0f} Hz cut-off, where LPF + inverse HPF has about the EMF's 1/(jω) gain, and the "
+        f"EMF path's {emf['pll_hz']:.0f} Hz PLL{lpf} filters the {6 * fe:.0f} Hz θ̃ ripple "
+        f"more than the flux path's {flux['pll_hz']:.0f} Hz one.  The broadband part passes "
+        "each PLL in proportion to √(its bandwidth): per √Hz of PLL bandwidth flux "
+        f"{_med(noise, fc) / math.sqrt(flux['pll_hz']):.3f}° vs emf "
+        f"{_med(noise, 'emf_commanded') / math.sqrt(emf['pll_hz']):.3f}°"
+    )
+
+
+def _fig14_capture_why(a: dict) -> str:
+    cap = a["capture"]
+    if cap is None:
+        return "the bench has no voltage capture model: the measured voltages are exact"
+    return (
+        "the bench's capture chain (comparator threshold and edge ramp, a "
+        f"{1e9 * abs(cap['delay_diff_s']):.0f} ns rise/fall delay difference, a "
+        f"{1e9 * cap['min_pulse_s']:.0f} ns minimum pulse) mis-measures short line pulses, so "
+        "a deadtime-like residue of the 6th order stays"
+    )
+
+
+def _fig14_measured_snr_why(a: dict, k: str) -> str:
+    why = (
+        "verdict on the SNR, i.e. the broadband noise; the total RMS also carries the "
+        "6th-order residue of the capture chain (previous row), which the EMF path's "
+        "lower-bandwidth PLL filters more"
+    )
+    if k != "paper":
+        return why
+    op = a["op"]
+    return why + (
+        "; the literal observer compensates at the PLL's own ω̂e: its θ̃ ripple moves ω̂e, "
+        "which moves the compensation angle atan(ωc/ω̂e) -- a loop that amplifies "
+        f"low-frequency θ̃ noise at {100 * op['speed_pu']:.0f} % speed (ωc/ωe = "
+        f"{op['obs']['paper_measured']['cutoff_hz'] / op['fe_hz']:.0f}), and a seed can slip"
+    )
+
+
+def _fig14_variant_claims(a: dict, vname: str, k: str) -> list[dict]:
+    """The four per-variant rows: 6th order and SNR on commanded and measured voltages."""
+    rms, h6, noise, sl = a["rms"], a["h6"], a["noise"], a["slipped"]
+    fc, fm = f"{k}_commanded", f"{k}_measured"
+    ec, em = "emf_commanded", "emf_measured"
 
     def q(d, n):
         return per_seed(d[n])
 
-    claims = []
-    for vname, k in VARIANTS:
-        fc, fm = f"{k}_commanded", f"{k}_measured"
-        claims += [
-            judge(
-                "fig14.commanded_6th",
-                f"6th order: emf {q(h6, 'emf_commanded')}°, flux {q(h6, fc)}° (RMS "
-                f"{q(rms, 'emf_commanded')}° / {q(rms, fc)}°)",
-                min(med(h6, "emf_commanded"), med(h6, fc)),
-                variant=vname,
-            ),
-            judge(
-                "fig14.commanded_snr",
-                f"broadband noise (θ̃ minus orders 0-20): flux {q(noise, fc)}° vs emf "
-                f"{q(noise, 'emf_commanded')}°; total RMS {q(rms, fc)}° vs "
-                f"{q(rms, 'emf_commanded')}°",
-                med(noise, fc) / med(noise, "emf_commanded"),
-                "the total RMS is the deadtime 6th order's: at 2 % speed the 5th/7th (20-28 "
-                "Hz) lie far below the 100 Hz cut-off, where LPF + inverse HPF has the EMF's "
-                "1/(jω) gain, and the EMF path's 15 Hz PLL filters the 24 Hz θ̃ ripple more "
-                "than the flux path's 25 Hz one.  The broadband part passes each PLL in "
-                "proportion to √(its bandwidth): per √Hz of PLL bandwidth flux "
-                f"{med(noise, fc) / math.sqrt(25.0):.3f}° vs emf "
-                f"{med(noise, 'emf_commanded') / math.sqrt(15.0):.3f}°",
-                variant=vname,
-            ),
-            judge(
-                "fig14.measured_6th_gone",
-                f"6th order: emf {q(h6, 'emf_measured')}°, flux {q(h6, fm)}° (commanded: "
-                f"{q(h6, 'emf_commanded')}° / {q(h6, fc)}°)",
-                max(
-                    med(h6, "emf_measured") / med(h6, "emf_commanded"),
-                    med(h6, fm) / med(h6, fc),
-                ),
-                "On the non-ideal bench "
-                "the capture chain (comparator threshold and edge ramp, 35 ns rise/fall delay "
-                "difference, 111 ns minimum pulse) mis-measures short line pulses, so a "
-                "deadtime-like residue of the 6th order stays; on the ideal bench it drops "
-                "below a tenth",
-                variant=vname,
-            ),
-            judge(
-                "fig14.measured_snr",
-                f"noise flux {q(noise, fm)}° vs emf {q(noise, 'emf_measured')}°; RMS "
-                f"{q(rms, fm)}° vs {q(rms, 'emf_measured')}°"
-                + (
-                    f"; seeds with a slip (|θ̃| > 30°): flux {sum(slipped[fm])}, emf "
-                    f"{sum(slipped['emf_measured'])}"
-                    if any(slipped[fm] + slipped["emf_measured"])
-                    else ""
-                ),
-                med(noise, fm) / med(noise, "emf_measured"),
-                "verdict on the SNR, i.e. the broadband noise; the total RMS also carries "
-                "the 6th-order residue of the capture chain (previous row), which the EMF "
-                "path's lower-bandwidth PLL filters more"
-                + (
-                    "; the literal observer compensates at the PLL's own ω̂e: its θ̃ ripple "
-                    "moves ω̂e, which moves the compensation angle atan(ωc/ω̂e) -- a loop that "
-                    "amplifies low-frequency θ̃ noise at 2 % speed (ωc/ωe = 25), and a seed "
-                    "can slip"
-                    if k == "paper"
-                    else ""
-                ),
-                variant=vname,
-            ),
-        ]
+    slips = (
+        f"; seeds with a slip (|θ̃| > {SLIP_DEG:.0f}°): flux {sum(sl[fm])}, emf {sum(sl[em])}"
+        if any(sl[fm] + sl[em])
+        else ""
+    )
+    return [
+        judge(
+            "fig14.commanded_6th",
+            f"6th order: emf {q(h6, ec)}°, flux {q(h6, fc)}° (RMS {q(rms, ec)}° / {q(rms, fc)}°)",
+            min(_med(h6, ec), _med(h6, fc)),
+            variant=vname,
+        ),
+        judge(
+            "fig14.commanded_snr",
+            f"broadband noise (θ̃ minus orders 0-20): flux {q(noise, fc)}° vs emf "
+            f"{q(noise, ec)}°; total RMS {q(rms, fc)}° vs {q(rms, ec)}°",
+            _med(noise, fc) / _med(noise, ec),
+            _fig14_commanded_snr_why(a, fc),
+            variant=vname,
+        ),
+        judge(
+            "fig14.measured_6th_gone",
+            f"6th order: emf {q(h6, em)}°, flux {q(h6, fm)}° (commanded: {q(h6, ec)}° / "
+            f"{q(h6, fc)}°)",
+            max(_med(h6, em) / _med(h6, ec), _med(h6, fm) / _med(h6, fc)),
+            _fig14_capture_why(a),
+            variant=vname,
+        ),
+        judge(
+            "fig14.measured_snr",
+            f"noise flux {q(noise, fm)}° vs emf {q(noise, em)}°; RMS {q(rms, fm)}° vs "
+            f"{q(rms, em)}°" + slips,
+            _med(noise, fm) / _med(noise, em),
+            _fig14_measured_snr_why(a, k),
+            variant=vname,
+        ),
+    ]
+
+
+def _fig14_judge(a: dict) -> list[dict]:
+    claims = [c for vname, k in VARIANTS for c in _fig14_variant_claims(a, vname, k)]
+    st = a["stable"]
     claims.append(
         judge(
             "fig14.stable",
-            f"paper_robust driving: stable on {sum(stable)}/{len(stable)} seeds (the literal "
-            "observer as the driving one: see the paper_robust experiment)",
-            sum(stable) / len(stable),
+            f"paper_robust driving: stable on {sum(st)}/{len(st)} seeds (the literal observer as "
+            "the driving one: see the paper_robust experiment)",
+            sum(st) / len(st),
         )
     )
-    return {
-        "claims": claims,
-        "figures": figs,
-        "data": {
-            "seeds": seeds,
-            "rms_deg": rms,
-            "h6_deg": h6,
-            "noise_deg": noise,
-            "peak_deg": peak,
-        },
-    }
+    return claims
+
+
+def fig14(ctx):
+    """Fig. 14: θ̃ of every observer on commanded and measured voltages at the 2 % / 150 %
+    point, per seed: build -> run -> analyse -> plot -> judge."""
+    seeds = [1] if ctx.quick else [1, 2, 3]
+    res = ctx.run(_fig14_jobs(ctx, seeds))
+    a = _fig14_analyse(res)
+    figs = [_fig14_plot(ctx, a, res[0]["series"], seeds[0])]
+    data = {"seeds": seeds, "rms_deg": a["rms"], "h6_deg": a["h6"], "noise_deg": a["noise"]}
+    data["peak_deg"] = a["peak"]
+    return {"claims": _fig14_judge(a), "figures": figs, "data": data}
 
 
 # ======================================================================== Fig. 13
+def _bench_effects(bench) -> str:
+    """The effects a run's bench has on, with their numbers (for the texts)."""
+    on = []
+    if bench.voltage_capture is not None:
+        on.append("voltage capture")
+    if bench.current_sample_skew_s and any(bench.current_sample_skew_s):
+        on.append("current-sampling skew")
+    om = bench.observer_model
+    if om is not None:
+        on.append(f"observer model R̂ {om.r_pu:g}, L̂ {om.l_pu:g}, λ̂ {om.lambda_pu:g} of the card")
+    if bench.thermal is not None:
+        on.append("winding heating")
+    if bench.spatial_saturation_h6_pu:
+        on.append(
+            f"spatial saturation (6th order {bench.spatial_saturation_h6_pu:g} pu at I_rated)"
+        )
+    return ", ".join(on) if on else "the ideal bench"
+
+
+def _radius_h6(radius: np.ndarray, thu: np.ndarray) -> float:
+    """6th order of a locus radius over its mean: how hexagonal the locus is."""
+    return float(abs(harmonic(radius - radius.mean(), thu, 6)) / radius.mean())
+
+
 def _x_locus(r, m):
     sl = _win(r)
-    we = float(np.mean(r.truth[sl, TR_WM])) * r.scenario.machine.pole_pairs
+    mc = r.scenario.machine
+    we = float(np.mean(r.truth[sl, TR_WM])) * mc.pole_pairs
     emf = r.estimate("emf_measured")[sl]
     flx = r.estimate("flux_measured")[sl]
     e_a, e_b = emf[:, ES_EA], emf[:, ES_EB]
-    n_av = 10  # 1 ms moving average (what a scope at 1 kS/s would show)
+    n_av = max(1, round(1e-3 / mc.ts_s))  # 1 ms moving average (what a scope would show)
     k = np.ones(n_av) / n_av
     ea_f, eb_f = np.convolve(e_a, k, "valid"), np.convolve(e_b, k, "valid")
-    re = np.hypot(e_a, e_b)
-    ref = np.hypot(ea_f, eb_f)
+    re, ref = np.hypot(e_a, e_b), np.hypot(ea_f, eb_f)
     rf = np.hypot(flx[:, ES_LA], flx[:, ES_LB]) * we
     thu = np.unwrap(r.truth[sl, TR_THETA_E])
-    mag_h6 = abs(harmonic(rf - rf.mean(), thu, 6)) / rf.mean()
 
     def rng(x):
         return [float(np.percentile(x, 0.5)), float(np.percentile(x, 99.5))]
 
-    mode = r.ctrl[:, CO_MODE]
-    kc = np.nonzero(mode == MODE_CLOSED_LOOP)[0]
-    mc = r.scenario.machine
+    kc = np.nonzero(r.ctrl[:, CO_MODE] == MODE_CLOSED_LOOP)[0]
     i_if = r.scenario.control.if_current_pu * mc.rated_current_a
-    swing = math.sqrt(
-        mc.pole_pairs * 1.5 * mc.pole_pairs * mc.flux_linkage_vs * i_if / mc.inertia_kgm2
-    ) / (2 * math.pi)
+    kt = 1.5 * mc.pole_pairs * mc.flux_linkage_vs
     return {
         "metrics": m,
         "we": we,
         "ripple_rpm": m["speed"]["ripple_rpm"],
         "handover_s": float(r.t[kc[0]]) if kc.size else float("nan"),
+        "handover_lpf_hz": float(r.scenario.control.handover_agree_lpf_hz or 0.0),
         "window_s": float(r.scenario.steady_window_s[0]),
-        "if_swing_hz": swing,
+        "if_swing_hz": math.sqrt(mc.pole_pairs * kt * i_if / mc.inertia_kgm2) / (2 * math.pi),
+        "n_av": n_av,
+        "bench": _bench_effects(r.scenario.bench),
         "emf_raw": rng(re),
         "emf_1ms": rng(ref),
+        "emf_h6_rel": _radius_h6(ref, thu[n_av - 1 :]),
         "flux_v": rng(rf),
         "flux_mean_v": float(rf.mean()),
-        "flux_h6_rel": float(mag_h6),
+        "flux_h6_rel": _radius_h6(rf, thu),
         "emf_series": (_dec(ea_f, 4000), _dec(eb_f, 4000)),
         "emf_raw_series": (_dec(e_a, 4000), _dec(e_b, 4000)),
         "flux_series": (_dec(flx[:, ES_LA] * we, 4000), _dec(flx[:, ES_LB] * we, 4000)),
     }
 
 
-def fig13(ctx):
-    obs = {k: OBS4[k] for k in ("flux_measured", "emf_measured")}
+def _fig13_cases(ctx) -> list[tuple[str, float, dict]]:
+    """(label, load, scenario keys): no load and full load on the paper bench; the full run
+    adds full load on the ideal bench and the no-load start with the per-sample handover."""
     cases = [("no load", 0.0, {"bench": BENCH}), ("full load", 1.0, {"bench": BENCH})]
     if not ctx.quick:
         cases.append(("full load, ideal bench", 1.0, {}))
-        # the start-up's handover as it was (per-sample agreement): the no-load hunting
-        cases.append(
-            (
-                "no load, per-sample handover",
-                0.0,
-                {"bench": BENCH, "control": {"handover_agree_lpf_hz": 0.0}},
-            )
-        )
-    jobs = [
-        (ctx.sensorless(ctx.rpm(0.02), ld, observers=obs, name="fig13", **kw), _x_locus, None)
+        ctrl = {"handover_agree_lpf_hz": 0.0}
+        cases.append(("no load, per-sample handover", 0.0, {"bench": BENCH, "control": ctrl}))
+    return cases
+
+
+def _fig13_jobs(ctx, cases) -> list:
+    obs = {k: OBS4[k] for k in ("flux_measured", "emf_measured")}
+    speed = ctx.rpm(0.02)
+    return [
+        (ctx.sensorless(speed, ld, observers=obs, name="fig13", **kw), _x_locus, None)
         for _, ld, kw in cases
     ]
-    res = ctx.run(jobs)
-    mc = ctx.cv  # the card's values
-    r_nl = ctx.rpm(0.02) * RPM * mc.p * mc.lam  # |e| = w lambda at 2 % speed [V]
+
+
+def _fig13_plot(ctx, cases, res) -> str:
     p = plt()
     n_plot = min(len(cases), 3)
+    lim = 1.2 * max(max(r["emf_raw"][1], r["flux_v"][1]) for r in res[:n_plot])
     fig, ax = p.subplots(2, n_plot, figsize=(3.6 * n_plot, 7.2), squeeze=False)
     for c, ((lab, _, _), r) in enumerate(zip(cases[:n_plot], res[:n_plot], strict=True)):
         for row, (key, what) in enumerate((("emf", "ê"), ("flux", "ω·λ̂pm"))):
             a = ax[row, c]
             if key == "emf":
                 a.plot(*r["emf_raw_series"], lw=0.3, color="0.75", label="per sample")
-                a.plot(*r["emf_series"], lw=0.5, label="1 ms average")
+                a.plot(*r["emf_series"], lw=0.5, label=f"{r['n_av']}-sample average")
                 a.legend(fontsize=6, loc="lower right")
                 rr = r["emf_raw"]
             else:
                 a.plot(*r["flux_series"], lw=0.5)
                 rr = r["flux_v"]
             a.set_aspect("equal")
-            lim = 1.8
             a.set_xlim(-lim, lim)
             a.set_ylim(-lim, lim)
             a.set_title(
@@ -328,88 +432,120 @@ def fig13(ctx):
             )
             a.set_xlabel("α [V]")
             a.set_ylabel("β [V]")
-    figs = [ctx.fig(fig, "fig13_loci")]
-    nl, fl = res[0], res[1]
-    ps = res[3] if len(res) > 3 else None
-    hunt = (
-        ""
-        if ps is None
-        else (
-            f"  With the per-sample handover criterion (control.handover_agree_lpf_hz = 0) the "
-            f"same start hands over only at "
-            f"{ps['handover_s']:.2f} s, inside the window (from {ps['window_s']:.2f} s): the "
-            f"unloaded rotor still swings about the I-f vector (undamped, sqrt(p K_t I_if/J)/2π "
-            f"= {ps['if_swing_hz']:.0f} Hz) and ω·|λ̂| spans {ps['flux_v'][0]:.3f}-"
-            f"{ps['flux_v'][1]:.3f} V with {ps['ripple_rpm']:.0f} rpm p-p of speed ripple "
-            f"(handover {nl['handover_s']:.2f} s, {nl['ripple_rpm']:.0f} rpm here).  Switched "
-            "off one at a time (seed 1): without the voltage capture 52 rpm p-p, without the "
-            "observer model errors 14 rpm, without skew, thermal or spatial saturation still "
-            "148-154 rpm; each of the two alone 8 and 18 rpm, the ideal bench 2 rpm.  Capture "
-            "and model errors tilt the estimate during I-f (θ̃ -4 to -11°) and the per-sample "
-            "check (speed within 30 % of the ramp) is reset by every ±50 % swing, so the "
-            "handover waits for a chance 0.3 s of agreement; a 2 Hz-filtered check (the "
-            "experiments' setting, control.handover_agree_lpf_hz) sees the swing's mean"
-        )
+    return ctx.fig(fig, "fig13_loci")
+
+
+def _band(x: list[float]) -> float:
+    return x[1] - x[0]
+
+
+def _fig13_emf_claims(ctx, nl: dict, fl: dict, ideal: dict | None, r_nl: float) -> list[dict]:
+    mc, card = ctx.cv, ctx.card
+    ratio = _band(fl["emf_1ms"]) / _band(nl["emf_1ms"])
+    ideal_txt = (
+        f"; on the ideal bench {100 * ideal['emf_h6_rel']:.1f} %" if ideal is not None else ""
     )
-    claims = [
+    shows = (
+        f"panel (b): over {fl['n_av']} samples the full-load ê radius spans "
+        f"{_band(fl['emf_1ms']):.2f} V against {_band(nl['emf_1ms']):.2f} V at no load "
+        f"({ratio:.2f}×), and its 6th order is {100 * fl['emf_h6_rel']:.1f} % of the mean radius "
+        f"({100 * nl['emf_h6_rel']:.1f} % at no load{ideal_txt}): the locus "
+        + ("turns hexagonal" if fl["emf_h6_rel"] > 2 * nl["emf_h6_rel"] else "keeps its shape")
+        + f" under load on this bench ({fl['bench']})"
+    )
+    return [
         judge(
             "fig13.noload_emf_noisy",
             f"ê radius {nl['emf_raw'][0]:.2f}-{nl['emf_raw'][1]:.2f} V per sample, "
-            f"{nl['emf_1ms'][0]:.2f}-{nl['emf_1ms'][1]:.2f} V over 1 ms (ω·λ = {r_nl:.2f} V)",
-            (nl["emf_1ms"][1] - nl["emf_1ms"][0]) / r_nl,
-            "(per-sample band: 12-bit current ADC noise times L/Ts = 8 Ω; 1-ms band is "
-            "closer to a scope view)",
+            f"{nl['emf_1ms'][0]:.2f}-{nl['emf_1ms'][1]:.2f} V over {nl['n_av']} samples "
+            f"(ω·λ = {r_nl:.2f} V)",
+            _band(nl["emf_1ms"]) / r_nl,
+            f"per-sample band: the current sensor's {1e3 * card.current_noise_a:.0f} mA RMS noise "
+            f"({card.current_adc_bits}-bit ADC) times L/Ts = {mc.l / mc.ts:.1f} Ω; the "
+            f"{1e3 * nl['n_av'] * mc.ts:.0f} ms average is closer to a scope view",
         ),
         judge(
             "fig13.fullload_emf_distorts",
             f"ê radius {fl['emf_raw'][0]:.2f}-{fl['emf_raw'][1]:.2f} V per sample, "
-            f"{fl['emf_1ms'][0]:.2f}-{fl['emf_1ms'][1]:.2f} V over 1 ms",
-            (fl["emf_1ms"][1] - fl["emf_1ms"][0]) / (nl["emf_1ms"][1] - nl["emf_1ms"][0]),
-            "with measured voltages and L_d = L_q our EMF locus does not distort under load "
-            "(the R i_q and L di/dt terms are modelled exactly); the paper's 0.45-1.17 V "
-            "needs model error its EMF path does not remove (saturated L, deadtime "
-            "residue)",
+            f"{fl['emf_1ms'][0]:.2f}-{fl['emf_1ms'][1]:.2f} V over {fl['n_av']} samples",
+            ratio,
+            shows,
         ),
+    ]
+
+
+def _fig13_handover_txt(nl: dict, ps: dict | None) -> str:
+    """The no-load start as run (filtered handover), and the per-sample one for comparison."""
+    txt = (
+        f"run: sensorless start on the paper bench ({nl['bench']}), handover on the estimate's "
+        f"agreement with the I-f ramp low-passed at {nl['handover_lpf_hz']:g} Hz at "
+        f"{nl['handover_s']:.2f} s, window from {nl['window_s']:.2f} s, speed ripple "
+        f"{nl['ripple_rpm']:.0f} rpm p-p; the radius is |λ̂| times the window's mean speed, so "
+        "this band is |λ̂|'s own"
+    )
+    if ps is None:
+        return txt
+    return txt + (
+        f".  With the per-sample handover criterion (control.handover_agree_lpf_hz = 0) the same "
+        f"start hands over at {ps['handover_s']:.2f} s (window from {ps['window_s']:.2f} s): the "
+        "unloaded rotor swings about the I-f vector (undamped, sqrt(p K_t I_if/J)/2π = "
+        f"{ps['if_swing_hz']:.0f} Hz), which resets a per-sample check; ω·|λ̂| then spans "
+        f"{ps['flux_v'][0]:.3f}-{ps['flux_v'][1]:.3f} V with {ps['ripple_rpm']:.0f} rpm p-p of "
+        "speed ripple"
+    )
+
+
+def _fig13_flux_claims(nl, fl, ideal, ps, r_nl) -> list[dict]:
+    claims = [
         judge(
             "fig13.noload_flux_circle",
             f"ω·|λ̂| {nl['flux_v'][0]:.3f}-{nl['flux_v'][1]:.3f} V, mean "
             f"{nl['flux_mean_v']:.3f} V (speed ripple {nl['ripple_rpm']:.1f} rpm p-p at "
             f"no load; full load {fl['flux_v'][0]:.3f}-{fl['flux_v'][1]:.3f} V)",
-            (nl["flux_v"][1] - nl["flux_v"][0]) / r_nl,
-            "the radius is |λ̂| times the window's mean speed, so this band is |λ̂|'s own; "
-            "what is left at no load is the bench's: seed 1 with the per-sample start, the "
-            "ideal bench gives 0.566-0.616 V, the capture chain alone 0.507-0.641 V, the "
-            "observer model errors alone 0.473-0.664 V." + hunt,
+            _band(nl["flux_v"]) / r_nl,
+            _fig13_handover_txt(nl, ps),
         ),
         judge(
             "fig13.fullload_flux_tighter",
-            f"flux band {fl['flux_v'][1] - fl['flux_v'][0]:.3f} V vs EMF band "
-            f"{fl['emf_1ms'][1] - fl['emf_1ms'][0]:.3f} V (1 ms average), "
-            f"{fl['emf_raw'][1] - fl['emf_raw'][0]:.2f} V (per sample)",
-            (fl["flux_v"][1] - fl["flux_v"][0]) / (fl["emf_1ms"][1] - fl["emf_1ms"][0]),
+            f"flux band {_band(fl['flux_v']):.3f} V vs EMF band {_band(fl['emf_1ms']):.3f} V "
+            f"({fl['n_av']}-sample average), {_band(fl['emf_raw']):.2f} V (per sample)",
+            _band(fl["flux_v"]) / _band(fl["emf_1ms"]),
         ),
     ]
-    if len(res) > 2:
-        ideal = res[2]
+    if ideal is not None:
         claims.append(
             judge(
                 "fig13.fullload_hexagon",
-                f"6th order of |λ̂| at full load: {100 * fl['flux_h6_rel']:.2f} % on the non-ideal "
-                f"bench (spatial saturation on) vs {100 * ideal['flux_h6_rel']:.2f} % on the ideal "
-                f"bench; no load {100 * nl['flux_h6_rel']:.2f} %",
+                f"6th order of |λ̂| at full load: {100 * fl['flux_h6_rel']:.2f} % on the "
+                f"non-ideal bench vs {100 * ideal['flux_h6_rel']:.2f} % on the ideal bench; no "
+                f"load {100 * nl['flux_h6_rel']:.2f} %",
                 fl["flux_h6_rel"] / ideal["flux_h6_rel"],
-                "the bench's spatial saturation gives the magnet flux 5th/7th orders growing with "
-                "(i/I_rated)²: a 6th order in |λ̂| under load only",
+                "the bench's spatial saturation gives the magnet flux 5th/7th orders growing "
+                "with (i/I_rated)²: a 6th order in |λ̂| under load only",
             )
         )
-    return {
-        "claims": claims,
-        "figures": figs,
-        "data": {
-            lab: {k: v for k, v in r.items() if not k.endswith("series") and k != "metrics"}
-            for (lab, _, _), r in zip(cases, res, strict=True)
-        },
+    return claims
+
+
+def fig13(ctx):
+    """Fig. 13: EMF and flux loci at 2 % speed, no load and full load: build -> run -> plot ->
+    judge (the extractor analyses each run)."""
+    cases = _fig13_cases(ctx)
+    res = ctx.run(_fig13_jobs(ctx, cases))
+    mc = ctx.cv  # the card's values
+    r_nl = ctx.rpm(0.02) * RPM * mc.p * mc.lam  # |e| = w lambda at 2 % speed [V]
+    figs = [_fig13_plot(ctx, cases, res)]
+    nl, fl = res[0], res[1]
+    ideal = res[2] if len(res) > 2 else None
+    ps = res[3] if len(res) > 3 else None
+    claims = _fig13_emf_claims(ctx, nl, fl, ideal, r_nl) + _fig13_flux_claims(
+        nl, fl, ideal, ps, r_nl
+    )
+    data = {
+        lab: {k: v for k, v in r.items() if not k.endswith("series") and k != "metrics"}
+        for (lab, _, _), r in zip(cases, res, strict=True)
     }
+    return {"claims": claims, "figures": figs, "data": data}
 
 
 # ======================================================================== Figs. 2-4
@@ -1120,9 +1256,14 @@ def fig18(ctx):
 # ======================================================================== Fig. 19
 def _x_step(r, m, t_step=2.0):
     k = int(np.searchsorted(r.t, t_step - 0.3))
+    ks = int(np.searchsorted(r.t, t_step))
+    k_pre = int(np.searchsorted(r.t, t_step - 0.1))
     sl = slice(k, None, 5)
     return {
         "metrics": m,
+        "t_step": t_step,
+        "pre_step_rpm": float(np.mean(r.truth[k_pre:ks, TR_WM])) * RAD_S_TO_RPM,
+        "step_ref_rpm": float(r.w_ref[ks]) * RAD_S_TO_RPM,
         "t": r.t[sl],
         "rpm": r.truth[sl, TR_WM] * RAD_S_TO_RPM,
         "ref": r.w_ref[sl] * RAD_S_TO_RPM,
@@ -1131,117 +1272,178 @@ def _x_step(r, m, t_step=2.0):
     }
 
 
-def fig19(ctx):
-    j_scales = [1, 10, 20] if ctx.quick else [1, 3, 6, 10, 15, 20, 30, 40]
-    card = ctx.build(base="paper_6pct_stepload").machine  # the card the runs use
-    j0 = card.inertia_kgm2
-    jobs = [
-        (
-            ctx.build(
-                base="paper_6pct_stepload",
-                duration_s=3.0 if ctx.quick else 3.5,
-                steady_window_s=[2.6, 3.0] if ctx.quick else [3.0, 3.5],
-            ),
-            _x_step,
-            None,
-        )
-        if s == 1
-        else (
-            ctx.build(
-                base="paper_6pct_stepload",
-                machine_kw={"inertia_kgm2": j0 * s},
-                duration_s=3.0 if ctx.quick else 3.5,
-                steady_window_s=[2.6, 3.0] if ctx.quick else [3.0, 3.5],
-            ),
-            _x_step,
-            None,
-        )
-        for s in j_scales
-    ]
-    jobs.append((ctx.build(base="paper_4pct_fullload"), _x_step, {"t_step": 6.3}))
-    res = ctx.run(jobs)
-    steps, full4 = res[:-1], res[-1]
-    p = plt()
-    fig, ax = p.subplots(3, 1, figsize=(9, 8), sharex=True)
+STEP_BASE = "paper_6pct_stepload"
+# the registered floor of Fig. 19's dip (80 rpm of the paper's 3000 rpm machine), per unit
+DIP_FLOOR_PU = 0.08 / 3.0
+REACHED = 0.9  # the speed before the step must be within 10 % of the command
+
+
+def _fig19_step_job(ctx, rig, s: float):
+    """The step on the rig card with its inertia times s.  The I-f acceleration falls as 1/s
+    (the I-f current's torque accelerates J s at 1/s the rate) and the step comes later by the
+    longer spin-up, so every inertia runs at the step speed when the load steps in."""
+    base = ctx.build(base=STEP_BASE)
+    t0 = float(base.step_load_time_s or 0.0)
+    accel = float(base.control.resolved(rig).if_accel_rpm_s or 0.0)
+    kt = 1.5 * rig.pole_pairs * rig.flux_linkage_vs
+    step_rpm = float(base.speed_profile_rpm[-1, 1])
+    # spin-up of the nominal rig: the I-f ramp to the handover, then the rated torque's
+    # acceleration to the step speed; J s takes s times as long for both
+    spin = float(base.control.resolved(rig).handover_rpm or 0.0) / accel
+    spin += rig.inertia_kgm2 * step_rpm * RPM / (kt * rig.rated_current_a)
+    t_step = round(t0 + 4.0 * (s - 1.0) * spin, 4)
+    tail = base.duration_s - t0
+    load = [[0.0, 0.0], [t_step, 0.0], [t_step + 1e-4, 1.0]]
+    sc = ctx.build(
+        base=STEP_BASE,
+        duration_s=round(t_step + (tail - 0.5 if ctx.quick else tail), 4),
+        steady_window_s=[round(t_step + tail - 1.4 + (0.0 if ctx.quick else 0.5), 4)]
+        + [round(t_step + (tail - 0.5 if ctx.quick else tail), 4)],
+        load_pu=load,
+        step_load_time_s=t_step,
+        control={"if_accel_rpm_s": round(accel / s, 6)},
+    )
+    sc.machine = dataclasses.replace(sc.machine, inertia_kgm2=rig.inertia_kgm2 * s).validate()
+    return (sc, _x_step, {"t_step": t_step})
+
+
+def _fig19_rows(j_scales, steps, floor_rpm: float, max_s: float) -> list[dict]:
     rows = []
     for s, r in zip(j_scales, steps, strict=True):
         sp = r["metrics"]["speed"]
+        reached = r["pre_step_rpm"] >= REACHED * r["step_ref_rpm"]
+        rec = sp.get("recovery_s")
+        min_rpm = sp.get("min_rpm_after_step")
+        stable = bool(r["metrics"]["stable"])
         rows.append(
             {
                 "J_scale": s,
-                "stable": r["metrics"]["stable"],
-                "min_rpm": sp.get("min_rpm_after_step"),
+                "stable": stable,
+                "reached_step_speed": reached,
+                "pre_step_rpm": r["pre_step_rpm"],
+                "min_rpm": min_rpm,
                 "dip_rpm": sp.get("dip_rpm"),
-                "recovery_s": sp.get("recovery_s"),
+                "recovery_s": rec,
+                "stalled": not stable or (min_rpm is not None and min_rpm <= 0.0),
+                "meets": bool(
+                    stable
+                    and reached
+                    and min_rpm is not None
+                    and min_rpm >= floor_rpm
+                    and rec is not None
+                    and rec <= max_s
+                ),
             }
         )
-        ax[0].plot(r["t"], r["rpm"], lw=0.7, label=f"J×{s}")
-        ax[1].plot(r["t"], r["iq"], lw=0.6)
+    return rows
+
+
+def _fig19_plot_step(ctx, j_scales, steps, floor_rpm: float, step_rpm: float) -> str:
+    p = plt()
+    fig, ax = p.subplots(3, 1, figsize=(9, 8), sharex=True)
+    for s, r in zip(j_scales, steps, strict=True):
+        t = r["t"] - r["t_step"]  # every inertia's step at 0
+        ax[0].plot(t, r["rpm"], lw=0.7, label=f"J×{s:g}")
+        ax[1].plot(t, r["iq"], lw=0.6)
         if r["th_err"] is not None:
-            ax[2].plot(r["t"], r["th_err"], lw=0.6)
-    ax[0].plot(steps[0]["t"], steps[0]["ref"], "k--", lw=0.7)
-    ax[0].axhline(90, color="0.5", ls=":", lw=0.7)
+            ax[2].plot(t, r["th_err"], lw=0.6)
+    ax[0].plot(steps[0]["t"] - steps[0]["t_step"], steps[0]["ref"], "k--", lw=0.7)
+    ax[0].axhline(floor_rpm, color="0.5", ls=":", lw=0.7)
     ax[0].set_ylabel("speed [rpm]")
     ax[0].legend(fontsize=7, ncol=3)
     ax[0].set_title(
-        "Fig. 19: 100 % step load at 6 % speed (180 rpm), flux drive, measured "
-        "voltages (dotted: 3 % speed)",
+        f"Fig. 19: 100 % step load at {step_rpm:.0f} rpm, flux drive, measured voltages "
+        f"(dotted: the registered floor {floor_rpm:.0f} rpm)",
         fontsize=9,
     )
     ax[1].set_ylabel("i_q [A]")
     ax[2].set_ylabel("θ̃ [deg]")
     ax[2].set_ylim(-60, 60)
-    ax[2].set_xlabel("time [s]")
-    figs = [ctx.fig(fig, "fig19_step_load")]
+    ax[2].set_xlabel("time since the step [s]")
+    return ctx.fig(fig, "fig19_step_load")
+
+
+def _fig19_plot_full(ctx, full4) -> str:
+    p = plt()
     fig, ax = p.subplots(2, 1, figsize=(9, 5), sharex=True)
     ax[0].plot(full4["t"], full4["rpm"], lw=0.7)
     ax[0].set_ylabel("speed [rpm]")
-    ax[0].set_title("Fig. 19: full load at 4 % speed (120 rpm)", fontsize=9)
+    ax[0].set_title(
+        f"Fig. 19: full load at {full4['metrics']['speed']['mean_rpm']:.0f} rpm", fontsize=9
+    )
     ax[1].plot(full4["t"], full4["th_err"], lw=0.6)
     ax[1].set_ylabel("θ̃ [deg]")
     ax[1].set_xlabel("time [s]")
-    figs.append(ctx.fig(fig, "fig19_full_load_4pct"))
-    # what the model says: P-term needs T/(Kt Kp) of speed error; initial deceleration T/J
-    sc6 = ctx.build(base="paper_6pct_stepload")  # the step-load drive's own loop design
-    kp = sc6.control.design(sc6.machine).kp_w
-    dw_p = card.rated_torque_nm / (card.torque_constant_nm_per_a * kp) * RAD_S_TO_RPM
-    decel = card.rated_torque_nm / card.inertia_kgm2
-    ok = [
-        r
-        for r in rows
-        if r["stable"]
-        and r["min_rpm"] is not None
-        and r["min_rpm"] >= 80
-        and r["recovery_s"] is not None
-        and r["recovery_s"] <= 0.25
-    ]
+    return ctx.fig(fig, "fig19_full_load_4pct")
+
+
+def _fig19_row_txt(r: dict) -> str:
+    if not r["reached_step_speed"]:
+        return f"J×{r['J_scale']:g}: {r['pre_step_rpm']:.0f} rpm at the step (not up to speed)"
+    rec = "no recovery" if r["recovery_s"] is None else f"recovery {r['recovery_s']:.2f} s"
+    return f"J×{r['J_scale']:g}: min {r['min_rpm']:.0f} rpm, {rec}" + (
+        ", stalls" if r["stalled"] else ""
+    )
+
+
+def _fig19_step_claim(rows, rig, model: dict, floor_rpm: float) -> dict:
     r1 = rows[0]
+    ok = ", ".join(f"{r['J_scale']:g}" for r in rows if r["meets"])
+    rec = "none" if r1["recovery_s"] is None else f"{r1['recovery_s']:.3f} s"
+    ours = (
+        f"J = {rig.inertia_kgm2:.3g} kg·m² (paper_rig.yaml): min speed {r1['min_rpm']:.0f} rpm, "
+        f"recovery {rec}, stable {r1['stable']}; "
+        + (
+            f"the registered test met at J×{ok}"
+            if ok
+            else f"the registered test met at no inertia up to J×{rows[-1]['J_scale']:g}"
+        )
+        + " (same loop design rule, gains scale with J)"
+    )
+    why = (
+        f"paper_rig.yaml infers J = {rig.inertia_kgm2:.3g} kg·m² from the paper's dip for a "
+        "ζ = 1 PI loop of 10 Hz; our design rule gives this drive K_p = "
+        f"{model['kp']:.3g} A·s/rad, so the P-term alone needs {model['dw_p_rpm']:.0f} rpm of "
+        f"error for the rated {rig.rated_torque_nm:.2f} N·m, and the step decelerates the "
+        f"rotor at {model['decel']:.0f} rad/s² at first.  "
+        + ("; ".join(_fig19_row_txt(r) for r in rows))
+        + f" (registered floor {floor_rpm:.0f} rpm)"
+    )
+    # the registered quantity: the recovery time, inf when not stable, not recovered, not up
+    # to speed at the step or dipping below the floor
+    fails = not (r1["stable"] and r1["reached_step_speed"]) or r1["recovery_s"] is None
+    fails = fails or r1["min_rpm"] is None or r1["min_rpm"] < floor_rpm
+    value = math.inf if fails else r1["recovery_s"]
+    return judge("fig19.step_dip", ours, value, why)
+
+
+def fig19(ctx):
+    """Fig. 19: the 100 % step at 6 % speed over inertias (spin-up scaled with J), and full
+    load at 4 % speed: build -> run -> analyse -> plot -> judge."""
+    j_scales = [1.0, 3.0] if ctx.quick else [1.0, 2.0, 3.0, 6.0, 10.0]
+    rig = ctx.build(base=STEP_BASE).machine  # the card the runs use
+    jobs = [_fig19_step_job(ctx, rig, s) for s in j_scales]
+    jobs.append((ctx.build(base="paper_4pct_fullload"), _x_step, {"t_step": 6.3}))
+    res = ctx.run(jobs)
+    steps, full4 = res[:-1], res[-1]
+    floor_rpm = DIP_FLOOR_PU * rig.rated_speed_rpm
+    max_s = float(registered()["fig19.step_dip"]["threshold"])
+    rows = _fig19_rows(j_scales, steps, floor_rpm, max_s)
+    step_rpm = steps[0]["step_ref_rpm"]
+    figs = [
+        _fig19_plot_step(ctx, j_scales, steps, floor_rpm, step_rpm),
+        _fig19_plot_full(ctx, full4),
+    ]
+    sc6 = ctx.build(base=STEP_BASE)  # the step-load drive's own loop design
+    kp = sc6.control.design(sc6.machine).kp_w
+    model = {
+        "kp": kp,
+        "dw_p_rpm": rig.rated_torque_nm / (rig.torque_constant_nm_per_a * kp) * RAD_S_TO_RPM,
+        "decel": rig.rated_torque_nm / rig.inertia_kgm2,
+    }
     m4 = full4["metrics"]
     claims = [
-        judge(
-            "fig19.step_dip",
-            f"J = {j0:.2g}: min speed {r1['min_rpm']:.0f} rpm, recovery "
-            f"{r1['recovery_s'] if r1['recovery_s'] is not None else 'none'} s, stable "
-            f"{r1['stable']}; "
-            + (
-                f"reproduced from J×{ok[0]['J_scale']} on"
-                if ok
-                else f"not reproduced up to J×{rows[-1]['J_scale']} (min {rows[-1]['min_rpm']:.0f} "
-                f"rpm)"
-            )
-            + " (same loop design rule, gains scale with J)",
-            r1["recovery_s"]
-            if r1["stable"] and r1["min_rpm"] >= 80 and r1["recovery_s"] is not None
-            else math.inf,
-            f"with J = {j0:.2g} kg·m² the step decelerates the rotor at {decel:.0f} rad/s² and "
-            f"the speed loop's P-term needs {dw_p:.0f} rpm of error for "
-            f"{card.rated_torque_nm:.2f} N·m: the rotor stalls into the zero-speed region the "
-            "observer cannot see.  The dip scales "
-            "~1/J at a fixed loop bandwidth: "
-            + "; ".join(f"J×{r['J_scale']}: min {r['min_rpm']:.0f} rpm" for r in rows)
-            + ".  The paper's dip to ≈90 rpm implies a much larger dyno inertia (or a "
-            f"stiffer loop) than the card's {j0:.2g} kg·m²",
-        ),
+        _fig19_step_claim(rows, rig, model, floor_rpm),
         judge(
             "fig19.fullload_4pct",
             f"stable {m4['stable']}, mean {m4['speed']['mean_rpm']:.1f} rpm, θ̃ RMS "
@@ -1249,16 +1451,10 @@ def fig19(ctx):
             float(bool(m4["stable"])),
         ),
     ]
-    return {
-        "claims": claims,
-        "figures": figs,
-        "data": {
-            "step_vs_inertia": rows,
-            "p_term_error_rpm": dw_p,
-            "initial_decel_rad_s2": decel,
-            "fullload_4pct": {"stable": m4["stable"], "speed": m4["speed"]},
-        },
-    }
+    data = {"step_vs_inertia": rows, "p_term_error_rpm": model["dw_p_rpm"]}
+    data["initial_decel_rad_s2"] = model["decel"]
+    data["fullload_4pct"] = {"stable": m4["stable"], "speed": m4["speed"]}
+    return {"claims": claims, "figures": figs, "data": data}
 
 
 # ======================================================================== Figs. 15/16
@@ -1699,7 +1895,7 @@ def paper_robust(ctx):
 
 EXPERIMENTS = {
     "fig14": (fig14, "θ̃ with commanded vs measured voltages, 2 % speed / 150 % load"),
-    "fig13": (fig13, "EMF vs flux loci at 60 rpm, no load / full load"),
+    "fig13": (fig13, "EMF vs flux loci at 2 % speed, no load / full load"),
     "fig2_4": (fig2_4, "integration offset, current-offset drift, deadtime (Figs. 2-4)"),
     "fig17": (fig17, "current-loop frequency response at 10 % speed"),
     "fig19": (fig19, "100 % step load at 6 % speed; full load at 4 % speed"),
