@@ -34,8 +34,6 @@ KNOWN_LONG: set[str] = {
     "python/fluxdrive/experiments/beyond.py::sensitivity",
     "python/fluxdrive/experiments/beyond.py::speed_reversal",
     "python/fluxdrive/experiments/paper.py::fig15_16",
-    "python/fluxdrive/experiments/paper.py::fig17",
-    "python/fluxdrive/experiments/paper.py::fig18",
     "python/fluxdrive/experiments/paper.py::fig2_4",
     "python/fluxdrive/experiments/paper.py::paper_robust",
     "python/fluxdrive/io/bagrecover.py::recover",
