@@ -40,8 +40,12 @@ from __future__ import annotations
 import json
 import struct
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import BinaryIO
+from typing import TYPE_CHECKING, BinaryIO
+
+if TYPE_CHECKING:
+    from fluxdrive.io.bagio import BagWriter
 
 MSG_HDR = struct.Struct("<cHqI")  # b"M", id, t, n
 U32 = struct.Struct("<I")
@@ -101,27 +105,29 @@ def flush_chunk(writer, sync: bool = True) -> None:
     writer.flush(sync)
 
 
-def write_stream(inp: BinaryIO) -> int:
-    """Write the bag the records on `inp` describe (the protocol above); the exit code."""
-    from fluxdrive.io.bagio import META_KEY, BagWriter
+class _BagStream:
+    """One bag written from the record stream: the writer, its connections by the recorder's
+    id, the messages written so far."""
 
-    read = inp.read
-    writer: BagWriter | None = None
-    side: Path | None = None
-    conns: dict[int, int] = {}
-    n_msgs = 0
-    failed = ""
+    def __init__(self, read: Callable[[int], bytes]):
+        self.read = read
+        self.writer: BagWriter | None = None
+        self.side: Path | None = None  # RECORDING_FILE while the bag is open
+        self.conns: dict[int, int] = {}
+        self.n_msgs = 0
 
-    def read_json() -> dict:
-        (n,) = U32.unpack(read(4))
-        return json.loads(read(n))
+    def read_json(self) -> dict:
+        (n,) = U32.unpack(self.read(4))
+        return json.loads(self.read(n))
 
-    try:
+    def copy_records(self) -> None:
+        """Until the end marker, EOF or a corrupt record: every record to the bag."""
+        read = self.read
         while True:
             kind = read(1)
             if not kind or kind == b"E":
                 break
-            if kind == b"M":
+            if kind == b"M":  # the per-message path stays inline: ten topics at 10 kHz
                 hdr = read(14)
                 if len(hdr) < 14:
                     break
@@ -129,51 +135,64 @@ def write_stream(inp: BinaryIO) -> int:
                 data = read(n)
                 if len(data) < n:
                     break
-                if writer is None:
+                if self.writer is None:
                     raise RuntimeError("bag writer: a message before the bag's header")
-                writer.write(conns[cid], t, data)
-                n_msgs += 1
+                self.writer.write(self.conns[cid], t, data)
+                self.n_msgs += 1
             elif kind == b"F":
-                flush_chunk(writer)
+                flush_chunk(self.writer)
             elif kind == b"C":
-                c = read_json()
-                if writer is None:
-                    raise RuntimeError("bag writer: a connection before the bag's header")
-                conns[c["id"]] = writer.add_connection(c["topic"], c["type"])
+                self.add_connection(self.read_json())
             elif kind == b"H":
-                h = read_json()
-                path = Path(h["path"])
-                cd = h.get("custom_data") or {}
-                settings = json.loads(cd[META_KEY]) if META_KEY in cd else {}
-                writer = BagWriter(path, settings, epoch_offset_ns=h.get("epoch_offset_ns"))
-                side = path / RECORDING_FILE
-                side.write_text(
-                    json.dumps(
-                        {
-                            "note": "this bag is being written; without metadata.yaml it was not "
-                            "finalised: ./fluxdrive bag recover " + str(path),
-                            "custom_data": {META_KEY: json.dumps(writer.settings)},
-                        }
-                    )
-                )
+                self.open_bag(self.read_json())
                 _say("ready")
             else:
                 print(f"bagwriter: corrupt input (record type {kind!r})", file=sys.stderr)
                 break
-    except OSError as exc:  # disk full, file too large, I/O error: stop recording
+
+    def add_connection(self, c: dict) -> None:
+        if self.writer is None:
+            raise RuntimeError("bag writer: a connection before the bag's header")
+        self.conns[c["id"]] = self.writer.add_connection(c["topic"], c["type"])
+
+    def open_bag(self, h: dict) -> None:
+        """The header record: open the bag and leave RECORDING_FILE for a recovery."""
+        from fluxdrive.io.bagio import META_KEY, BagWriter
+
+        path = Path(h["path"])
+        cd = h.get("custom_data") or {}
+        settings = json.loads(cd[META_KEY]) if META_KEY in cd else {}
+        self.writer = BagWriter(path, settings, epoch_offset_ns=h.get("epoch_offset_ns"))
+        self.side = path / RECORDING_FILE
+        self.side.write_text(
+            json.dumps(
+                {
+                    "note": "this bag is being written; without metadata.yaml it was not "
+                    "finalised: ./fluxdrive bag recover " + str(path),
+                    "custom_data": {META_KEY: json.dumps(self.writer.settings)},
+                }
+            )
+        )
+
+    def write_failure(self, exc: OSError) -> str:
+        writer = self.writer
         where = (
             getattr(getattr(writer, "storage", None), "path", None)
             or exc.filename
             or (writer.path if writer is not None else "the bag")
         )
-        failed = f"cannot write {where}: {exc.strerror or exc} (after {n_msgs} messages)"
-    finally:
+        return f"cannot write {where}: {exc.strerror or exc} (after {self.n_msgs} messages)"
+
+    def finish(self, failed: str) -> str:
+        """Finalise the bag (or, after a failed write, close it without its summary) and say
+        so on stdout; the reason it failed, "" when it did not."""
+        writer = self.writer
         if writer is not None and not failed:
             try:
                 writer.close()
-                if side is not None:
-                    side.unlink(missing_ok=True)
-                _say(f"closed {n_msgs}")
+                if self.side is not None:
+                    self.side.unlink(missing_ok=True)
+                _say(f"closed {self.n_msgs}")
             except OSError as exc:
                 failed = f"cannot finalise {writer.path}: {exc.strerror or exc}"
         if failed:
@@ -187,4 +206,17 @@ def write_stream(inp: BinaryIO) -> int:
                     f"./fluxdrive bag recover {writer.path}"
                 )
             _say(f"error {failed}")  # the recorder logs it
+        return failed
+
+
+def write_stream(inp: BinaryIO) -> int:
+    """Write the bag the records on `inp` describe (the protocol above); the exit code."""
+    stream = _BagStream(inp.read)
+    failed = ""
+    try:
+        stream.copy_records()
+    except OSError as exc:  # disk full, file too large, I/O error: stop recording
+        failed = stream.write_failure(exc)
+    finally:
+        failed = stream.finish(failed)
     return EXIT_WRITE_FAILED if failed else 0
