@@ -36,8 +36,6 @@ KNOWN_LONG: set[str] = {
     "python/fluxdrive/experiments/paper.py::fig15_16",
     "python/fluxdrive/experiments/paper.py::fig2_4",
     "python/fluxdrive/experiments/paper.py::paper_robust",
-    "python/fluxdrive/io/bagrecover.py::recover",
-    "python/fluxdrive/io/bagwriter.py::write_stream",
     "python/fluxdrive/replay/lab.py::plot_replay",
     "python/fluxdrive/replay/lab.py::replay_bag",
     "src/bench_bridge/bench_bridge/bridge_node.py::BenchBridgeNode.__init__",

@@ -20,9 +20,11 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from fluxdrive.core.machine import ConfigError
 from fluxdrive.io.bagwriter import RECORDING_FILE
+from fluxdrive.io.messages import message_seq
 
 
 @dataclass
@@ -71,42 +73,83 @@ def is_finalised(mcap: Path) -> bool:
 def recover(bag: Path, out: Path | None = None) -> Recovery:
     """Read what is readable of bag's MCAP file and write it to `out` (default
     <bag>-recovered) as a new, finalised bag."""
-    from mcap.records import Channel, Chunk, Message, Schema
-    from mcap.stream_reader import StreamReader, breakup_chunk
-    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+    from fluxdrive.io.bagio import META_KEY, BagWriter
 
-    from fluxdrive.io.bagio import META_KEY, BagWriter, typestore
-    from fluxdrive.io.messages import message_seq
-
-    bag = Path(bag)
-    mcap = mcap_file(bag)
+    mcap = mcap_file(Path(bag))
     bag_dir = mcap.parent
     out = Path(out) if out is not None else bag_dir.with_name(bag_dir.name + "-recovered")
     if out.exists():
         raise ConfigError(f"bag recover: {out} exists already; give --out a new directory")
     rec = Recovery(source=mcap, out=out, bytes_total=mcap.stat().st_size)
-    custom: dict[str, str] = {}
-    side = bag_dir / RECORDING_FILE
-    if side.exists():
-        try:
-            custom = dict(json.loads(side.read_text()).get("custom_data") or {})
-        except (OSError, ValueError) as exc:
-            rec.stop_reason = f"{side} unreadable ({exc}); custom_data not recovered. "
-
-    store = typestore()
-    schemas: dict[int, Schema] = {}
-    conns: dict[int, int] = {}
-    topic_of: dict[int, str] = {}
-    first_seq: int | None = None
-    last_seq = 0  # set with first_seq
-    gaps = 0
+    custom = _recorded_custom_data(bag_dir / RECORDING_FILE, rec)
     try:
         settings = json.loads(custom[META_KEY]) if META_KEY in custom else {}
     except ValueError:
         settings = {}
     # the recorded log times are already on the epoch: no second offset
     writer = BagWriter(out, settings, epoch_offset_ns=0)
+    copy = _ChunkCopy(writer, rec)
     try:
+        copy.run(mcap)
+    finally:
+        writer.close()
+    if copy.first_seq is not None:
+        rec.frame_seqs = (copy.first_seq, copy.last_seq, copy.gaps)
+    if not copy.conns:
+        import shutil
+
+        shutil.rmtree(out, ignore_errors=True)
+        raise ConfigError(f"bag recover: nothing readable in {mcap} ({rec.stop_reason})")
+    return rec
+
+
+def _recorded_custom_data(side: Path, rec: Recovery) -> dict[str, str]:
+    """The run's custom_data the bag writer left in RECORDING_FILE ({} without it)."""
+    if not side.exists():
+        return {}
+    try:
+        return dict(json.loads(side.read_text()).get("custom_data") or {})
+    except (OSError, ValueError) as exc:
+        rec.stop_reason = f"{side} unreadable ({exc}); custom_data not recovered. "
+        return {}
+
+
+def _stop_reason(exc: Exception, rec: Recovery, at_end_of_file: bool) -> str:
+    """Why the readable part ends: the data simply stops (no summary), the file ends inside a
+    record (a short read: the mcap library raises EndOfFile or, inside a record's length
+    field, struct.error), or damage before the end."""
+    if type(exc).__name__ == "EndOfFile" and rec.bytes_read == rec.bytes_total:
+        what = "the data ends there, without the summary (not finalised)"
+    elif at_end_of_file:
+        what = "the file ends inside a record (the writer stopped there)"
+    else:
+        what = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+    return f"stopped at byte {rec.bytes_read}: {what}"
+
+
+class _ChunkCopy:
+    """The records of an MCAP file, front to back, into a bag writer: schemas and channels
+    become connections, messages of complete chunks are written; /drive/frame's seq range and
+    gaps are counted on the way."""
+
+    def __init__(self, writer, rec: Recovery):
+        from fluxdrive.io.bagio import typestore
+
+        self.writer = writer
+        self.rec = rec
+        self.store = typestore()
+        self.schemas: dict[int, Any] = {}
+        self.conns: dict[int, int] = {}  # MCAP channel id -> writer connection
+        self.topic_of: dict[int, str] = {}
+        self.first_seq: int | None = None
+        self.last_seq = 0  # set with first_seq
+        self.gaps = 0
+
+    def run(self, mcap: Path) -> None:
+        from mcap.records import Channel, Chunk, Message, Schema
+        from mcap.stream_reader import StreamReader, breakup_chunk
+
+        rec = self.rec
         with open(mcap, "rb") as fh:
             records = StreamReader(fh, emit_chunks=True, validate_crcs=True).records
             while True:
@@ -118,58 +161,50 @@ def recover(bag: Path, out: Path | None = None) -> Recovery:
                     rec.stop_reason += "the file is complete (it has its footer)"
                     break
                 except Exception as exc:  # noqa: BLE001 - any damage ends the readable part
-                    what = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
-                    if type(exc).__name__ == "EndOfFile":
-                        what = (
-                            "the data ends there, without the summary (not finalised)"
-                            if rec.bytes_read == rec.bytes_total
-                            else "the file ends inside a record (the writer stopped there)"
-                        )
-                    rec.stop_reason += f"stopped at byte {rec.bytes_read}: {what}"
+                    rec.stop_reason += _stop_reason(exc, rec, fh.tell() >= rec.bytes_total)
                     break
                 rec.bytes_read = fh.tell()
                 rec.chunks += isinstance(r, Chunk)
                 for x in inner:
                     if isinstance(x, Message):
-                        conn = conns.get(x.channel_id)
-                        if conn is None:
-                            continue
-                        writer.write(conn, x.log_time, x.data)
-                        topic = topic_of[x.channel_id]
-                        rec.counts[topic] += 1
-                        if rec.t_first_ns is None or x.log_time < rec.t_first_ns:
-                            rec.t_first_ns = x.log_time
-                        rec.t_last_ns = max(rec.t_last_ns, x.log_time)
-                        if topic == "/drive/frame":
-                            sq = message_seq(x.data)
-                            if first_seq is None:
-                                first_seq = sq
-                            elif sq != last_seq + 1:
-                                gaps += abs(sq - last_seq - 1)
-                            last_seq = sq
+                        self.message(x)
                     elif isinstance(x, Schema):
-                        schemas[x.id] = x
-                    elif isinstance(x, Channel) and x.id not in conns:
-                        sch = schemas.get(x.schema_id)
-                        if sch is None:
-                            continue
-                        ts = store
-                        if sch.name not in store.fielddefs:  # not ours: its embedded text
-                            ts = get_typestore(Stores.EMPTY)
-                            ts.register(get_types_from_msg(sch.data.decode(), sch.name))
-                        conns[x.id] = writer.add_connection(x.topic, sch.name, ts)
-                        topic_of[x.id] = x.topic
-                        rec.counts[x.topic] = 0
-    finally:
-        writer.close()
-    if first_seq is not None:
-        rec.frame_seqs = (first_seq, last_seq, gaps)
-    if not conns:
-        import shutil
+                        self.schemas[x.id] = x
+                    elif isinstance(x, Channel) and x.id not in self.conns:
+                        self.channel(x)
 
-        shutil.rmtree(out, ignore_errors=True)
-        raise ConfigError(f"bag recover: nothing readable in {mcap} ({rec.stop_reason})")
-    return rec
+    def message(self, x) -> None:
+        conn = self.conns.get(x.channel_id)
+        if conn is None:
+            return
+        rec = self.rec
+        self.writer.write(conn, x.log_time, x.data)
+        topic = self.topic_of[x.channel_id]
+        rec.counts[topic] += 1
+        if rec.t_first_ns is None or x.log_time < rec.t_first_ns:
+            rec.t_first_ns = x.log_time
+        rec.t_last_ns = max(rec.t_last_ns, x.log_time)
+        if topic == "/drive/frame":
+            sq = message_seq(x.data)
+            if self.first_seq is None:
+                self.first_seq = sq
+            elif sq != self.last_seq + 1:
+                self.gaps += abs(sq - self.last_seq - 1)
+            self.last_seq = sq
+
+    def channel(self, x) -> None:
+        from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+        sch = self.schemas.get(x.schema_id)
+        if sch is None:
+            return
+        ts = self.store
+        if sch.name not in self.store.fielddefs:  # not ours: its embedded text
+            ts = get_typestore(Stores.EMPTY)
+            ts.register(get_types_from_msg(sch.data.decode(), sch.name))
+        self.conns[x.id] = self.writer.add_connection(x.topic, sch.name, ts)
+        self.topic_of[x.id] = x.topic
+        self.rec.counts[x.topic] = 0
 
 
 def report(rec: Recovery) -> str:
