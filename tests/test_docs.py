@@ -50,6 +50,13 @@ def test_quoted_figures_are_current():
     assert stale(files) == [], "run ./fluxdrive docs quotes"
 
 
+def test_parameter_tables_are_current():
+    """docs/configuration.md's tables are what the config schemas generate."""
+    from fluxdrive.drive.config_blocks import stale_tables
+
+    assert stale_tables() == [], "run ./fluxdrive docs params"
+
+
 def test_quote_fill_reads_the_results(tmp_path):
     (tmp_path / "r.json").write_text(json.dumps({"a": {"rms": [2.0, 2.5, 2.25], "n": 7}}))
     text = (

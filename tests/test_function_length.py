@@ -40,7 +40,6 @@ KNOWN_LONG: set[str] = {
     "python/fluxdrive/replay/lab.py::replay_bag",
     "src/bench_bridge/bench_bridge/bridge_node.py::BenchBridgeNode.__init__",
     "src/bench_bridge/bench_bridge/bridge_node.py::param_table",
-    "src/flux_observer_node/flux_observer_node/node.py::ObserverNode.__init__",
     "src/fluxdrive_bringup/fluxdrive_bringup/launch/launcher.py::Launcher.wait",
     "src/fluxdrive_bringup/fluxdrive_bringup/launch/launcher.py::main",
     "src/fluxdrive_bringup/fluxdrive_bringup/launch/launcher.py::parse_graph",
@@ -54,7 +53,6 @@ KNOWN_LONG: set[str] = {
     "src/fluxdrive_bringup/fluxdrive_bringup/view/scope_tap.py::ScopeTapNode.envelopes",
     "src/fluxdrive_ros/fluxdrive_ros/runner.py::spin",
     "src/fluxdrive_ros/fluxdrive_ros/security.py::make_keystore",
-    "src/foc_controller_node/foc_controller_node/node.py::ControllerNode.__init__",
     "src/spm_plant_sim/spm_plant_sim/node.py::PlantNode.__init__",
     "src/spm_plant_sim/spm_plant_sim/node.py::param_table",
 }

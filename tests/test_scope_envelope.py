@@ -157,12 +157,13 @@ def test_controller_descriptor_range_is_what_the_controller_accepts():
     """The current-loop bandwidth's range follows the card: up to a quarter of the PWM
     frequency, which the engine's check accepts, and nothing above."""
     from fluxdrive.core.machine import ConfigError
-    from fluxdrive.drive.control import control_ranges
+    from fluxdrive.core.schema import ranges
+    from fluxdrive.drive.control import ControllerConfig
     from fluxdrive.drive.scenario import load_scenario, scenario_path
 
     sc = load_scenario(scenario_path("paper_2pct_150load"))
     card = sc.machine
-    lo, hi = control_ranges(card)["current_bandwidth_hz"]
+    lo, hi = ranges(ControllerConfig, card)["current_bandwidth_hz"]
     assert hi == 0.25 * card.pwm_hz
     import dataclasses
 
@@ -171,7 +172,7 @@ def test_controller_descriptor_range_is_what_the_controller_accepts():
         dataclasses.replace(sc.control, current_bandwidth_hz=hi * 1.001).check(card)
     # the split mode's reference timeout: at least two of the host's samples
     for d in (1, 4):
-        lo, _ = control_ranges(card, d)["reference_timeout_s"]
+        lo, _ = ranges(ControllerConfig, card, d)["reference_timeout_s"]
         assert lo == pytest.approx(2 * d * card.ts_s)
         split = dataclasses.replace(sc.control, mode="split", decimation=d)
         dataclasses.replace(split, reference_timeout_s=lo).check(card)

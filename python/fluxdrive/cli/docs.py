@@ -5,6 +5,8 @@
 ./fluxdrive docs serve               mkdocs serve on 127.0.0.1:8000 (live reload)
 ./fluxdrive docs quotes [--check]    fill the quoted figures of README.md and docs/*.md from
                                      results/ (--check: only say which files are stale)
+./fluxdrive docs params [--check]    write the parameter tables of docs/configuration.md from
+                                     the config schemas (--check: only say which are stale)
 """
 
 from __future__ import annotations
@@ -50,6 +52,32 @@ def quotes(check: bool) -> int:
         return 1
 
 
+def param_tables(check: bool) -> int:
+    from fluxdrive.drive import config_blocks
+
+    page = config_blocks.DOC_PAGE.relative_to(ROOT)
+    if check:
+        bad = config_blocks.stale_tables()
+        for key in bad:
+            print(f"{page}: the '{key}' table differs from its schema", file=sys.stderr)
+        print(f"{len(config_blocks.BLOCKS)} config blocks; {len(bad)} stale tables in {page}")
+        return 1 if bad else 0
+    text = config_blocks.DOC_PAGE.read_text()
+    try:
+        new = config_blocks.fill(text)
+    except ValueError as exc:
+        print(f"docs params: {exc}", file=sys.stderr)
+        return 1
+    missing = [k for k in config_blocks.BLOCKS if f"<!-- params {k} -->" not in new]
+    for key in missing:
+        print(f"{page}: no table for '{key}' (add <!-- params {key} --><!-- /params -->)")
+    if new != text:
+        config_blocks.DOC_PAGE.write_text(new)
+    state = "updated" if new != text else "current"
+    print(f"{len(config_blocks.BLOCKS)} config blocks; {page} {state}")
+    return 1 if missing else 0
+
+
 def main(argv: list[str]) -> int:
     ap = argparse.ArgumentParser(
         prog="fluxdrive docs",
@@ -62,10 +90,14 @@ def main(argv: list[str]) -> int:
     sub.add_parser("serve", help="serve the site on 127.0.0.1:8000 while editing")
     q = sub.add_parser("quotes", help="fill quoted figures from results/")
     q.add_argument("--check", action="store_true", help="only report stale files (exit 1)")
+    pt = sub.add_parser("params", help="write the parameter tables from the config schemas")
+    pt.add_argument("--check", action="store_true", help="only report stale tables (exit 1)")
     args = ap.parse_args(argv)
     if args.cmd == "build":
         return build(args.out)
     if args.cmd == "serve":
         cmd = [sys.executable, "-m", "mkdocs", "serve", "-a", "127.0.0.1:8000"]
         return subprocess.call(cmd, cwd=ROOT)
+    if args.cmd == "params":
+        return param_tables(args.check)
     return quotes(args.check)

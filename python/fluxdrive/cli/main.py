@@ -88,7 +88,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "docs": (
         "fluxdrive.cli.docs",
         "main",
-        "docs build | serve | quotes: the docs site (mkdocs) and the figures it quotes",
+        "docs build | serve | quotes | params: the docs site (mkdocs), its figures and tables",
     ),
     "test": (
         "fluxdrive.cli.main",

@@ -74,6 +74,7 @@ from fluxdrive.core.machine import (
     card_current_bandwidth_hz,
     required,
 )
+from fluxdrive.core.schema import Rule, check_fields, param, resolve, rule_texts, specs
 from fluxdrive.core.transforms import clarke, inv_clarke, line_to_phase, wrap_angle
 from fluxdrive.drive.plant import (
     FLAG_STALE,
@@ -111,12 +112,6 @@ PD_SIN, PD_ATAN = 0, 1
 PHASE_DETECTORS = {"sin": PD_SIN, "atan": PD_ATAN}
 LT_BEFORE, LT_AFTER = 0, 1
 INDUCTANCE_TERMS = {"before_filter": LT_BEFORE, "after_integration": LT_AFTER}
-# the string-valued ObserverConfig fields and their choices (the ROS node declares them so)
-STRING_CHOICES: dict[str, tuple[str, ...]] = {
-    "voltage_source": tuple(VOLTAGE_SOURCES),
-    "phase_detector": tuple(PHASE_DETECTORS),
-    "inductance_term": tuple(INDUCTANCE_TERMS),
-}
 
 # ---- parameter vector OP_*
 _OP = Layout("OP")
@@ -497,142 +492,6 @@ def observer_run(os_, op, frames, out):
         observer_step(os_, op, frames[k], out[k])
 
 
-# ====================================================================== Python interface
-@dataclass
-class ObserverConfig:
-    """One observer instance.  Model parameters are the observer's own (default: the
-    machine card's), so mismatch is set here, independently of the plant."""
-
-    variant: str = "paper"
-    voltage_source: str = "measured"  # measured | commanded
-    # the frequency settings left None are derived from the machine card in per unit
-    # (OBSERVER_RULES, `resolved`); a value set explicitly wins
-    cutoff_hz: float | None = None  # w_c of lpf/paper; correction gain of hinkkanen_luomi
-    pll_bandwidth_hz: float | None = None
-    pll_damping: float = 1.0
-    speed_lpf_hz: float | None = None  # extra LPF on the speed output (EMF path, Fig. 5)
-    omega_floor_rad_s: float | None = None  # floor on |w^| in the inverse HPF
-    deadtime_comp_s: float = 0.0  # deadtime feed-forward (commanded voltages only)
-    gamma_bw_rad_s: float | None = None  # ortega: gamma = gamma_bw / lambda^2
-    plpf_k: float = 0.25  # programmable LPF: w_c = |w^|/K, floored at cutoff_min_hz
-    cutoff_min_hz: float | None = None
-    # > 0: the compensation's rotor frequency is the LPF output's own rotation rate, low-passed
-    # at this cut-off; 0: the PLL's frequency estimate, as in the paper
-    comp_freq_lpf_hz: float | None = None
-    # PLL phase detector: 'atan' (atan2 of the vector in the estimated frame, Sec. III) or
-    # 'sin' (normalised cross product, sin of the error)
-    phase_detector: str = "sin"
-    # where L^ i is removed: 'before_filter' (L^ di/dt in the EMF before the filter) or
-    # 'after_integration' (L^ i subtracted from the integrated stator flux, eq. 5);
-    # honoured by pure_integrator, lpf, paper, paper_robust, programmable_lpf
-    inductance_term: str = "before_filter"
-    r_hat_ohm: float | None = None
-    l_hat_h: float | None = None
-    lambda_hat_vs: float | None = None
-    extra: dict[str, Any] = field(default_factory=dict)
-
-    @property
-    def is_plugin(self) -> bool:
-        """A user variant (module:Class or an entry point): a Python class, not the kernel."""
-        return self.variant not in VARIANT_KINDS
-
-    def validate(self, src: str = "observer") -> ObserverConfig:
-        if self.is_plugin:
-            try:
-                found = load_observer_class(self.variant)
-            except ConfigError as exc:
-                raise ConfigError(f"{src}: {exc}") from None
-            if found is None:
-                raise ConfigError(f"{src}: {_unknown_variant_text(self.variant)}")
-        if not isinstance(self.extra, dict):
-            raise ConfigError(f"{src}: extra must be a mapping (a plugin's constructor keywords)")
-        for key, choices in STRING_CHOICES.items():
-            if getattr(self, key) not in choices:
-                raise ConfigError(
-                    f"{src}: {key} must be one of {list(choices)}, got {getattr(self, key)!r}"
-                )
-        for key, lo, hi in PARAM_RANGES:
-            v = getattr(self, key)
-            if v is None and (key.endswith(("_ohm", "_h", "_vs")) or key in OBSERVER_RULES):
-                continue
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (lo <= v <= hi):
-                raise ConfigError(f"{src}: {key} must be a number in [{lo}, {hi}], got {v!r}")
-        return self
-
-    def with_overrides(self, **kw: Any) -> ObserverConfig:
-        known = {f.name for f in fields(self)}
-        bad = sorted(set(kw) - known)
-        if bad:
-            raise ConfigError(f"unknown observer parameter(s) {bad}; known: {sorted(known)}")
-        return replace(self, **kw).validate()
-
-    def resolved(self, card: MachineCard) -> ObserverConfig:
-        """A copy with every unset frequency setting derived from `card` (OBSERVER_RULES:
-        per unit of the card's current-loop bandwidth or rated electrical frequency)."""
-        rules = {**_RULES_ALL, **VARIANT_RULES.get(self.variant, {})}
-        f_i = card_current_bandwidth_hz(card)
-        basis = {
-            "f_i": f_i,
-            "f_e": card.rated_electrical_hz,
-            "w_e": 2.0 * math.pi * card.rated_electrical_hz,
-        }
-        kw: dict[str, Any] = {}
-        for k, (b, factor, cap) in rules.items():
-            if getattr(self, k) is None:
-                v = factor * basis[b]
-                kw[k] = round(v if cap is None else min(v, cap * f_i), 9)
-        return replace(self, **kw) if kw else self
-
-    def to_params(self, card: MachineCard) -> np.ndarray:
-        if self.is_plugin:
-            raise ConfigError(
-                f"variant '{self.variant}' is a plugin (a Python class): it has no kernel "
-                f"parameter row; build it with build_observer()"
-            )
-        self = self.validate().resolved(card)  # noqa: PLW0642 - the card fills what is unset
-        op = np.zeros(OP_N)
-        op[OP_KIND] = VARIANT_KINDS[self.variant]
-        op[OP_TS] = card.ts_s
-        op[OP_R] = card.resistance_ohm if self.r_hat_ohm is None else self.r_hat_ohm
-        op[OP_L] = card.inductance_h if self.l_hat_h is None else self.l_hat_h
-        op[OP_LAM] = card.flux_linkage_vs if self.lambda_hat_vs is None else self.lambda_hat_vs
-        op[OP_WC] = 2.0 * math.pi * required(self.cutoff_hz, "cutoff_hz")
-        kp, ki = pll_gains(required(self.pll_bandwidth_hz, "pll_bandwidth_hz"), self.pll_damping)
-        op[OP_PLL_KP] = kp
-        op[OP_PLL_KI] = ki
-        op[OP_SPEED_LPF] = 2.0 * math.pi * required(self.speed_lpf_hz, "speed_lpf_hz")
-        op[OP_WFLOOR] = self.omega_floor_rad_s
-        op[OP_GAMMA] = self.gamma_bw_rad_s / op[OP_LAM] ** 2
-        op[OP_VSRC] = VOLTAGE_SOURCES[self.voltage_source]
-        op[OP_TD] = self.deadtime_comp_s
-        op[OP_K] = self.plpf_k
-        op[OP_WC_MIN] = 2.0 * math.pi * required(self.cutoff_min_hz, "cutoff_min_hz")
-        op[OP_COMP_LPF] = 2.0 * math.pi * required(self.comp_freq_lpf_hz, "comp_freq_lpf_hz")
-        op[OP_PD] = PHASE_DETECTORS[self.phase_detector]
-        op[OP_LTERM] = INDUCTANCE_TERMS[self.inductance_term]
-        return op
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
-
-
-PARAM_RANGES: list[tuple[str, float, float]] = [
-    ("cutoff_hz", 0.0, 2000.0),
-    ("pll_bandwidth_hz", 0.1, 2000.0),
-    ("pll_damping", 0.1, 5.0),
-    ("speed_lpf_hz", 0.0, 2000.0),
-    ("omega_floor_rad_s", 0.01, 1000.0),
-    ("deadtime_comp_s", 0.0, 1e-4),
-    ("gamma_bw_rad_s", 0.0, 1e5),
-    ("plpf_k", 0.01, 10.0),
-    ("cutoff_min_hz", 0.0, 1000.0),
-    ("comp_freq_lpf_hz", 0.0, 1000.0),
-    ("r_hat_ohm", 0.0, 1e3),
-    ("l_hat_h", 1e-7, 10.0),
-    ("lambda_hat_vs", 1e-6, 10.0),
-]
-STRING_FIELDS = set(STRING_CHOICES) | {"variant"}
-
 # Per-unit rules that derive every unset observer frequency from the machine card
 # (`ObserverConfig.resolved`): (basis, factor, cap), basis f_i = the card's current-loop
 # bandwidth [Hz] (card_current_bandwidth_hz: the PWM rate and the electrical time constant
@@ -693,10 +552,219 @@ def _rule_text(field_name: str) -> str:
     return text
 
 
-OBSERVER_RULES: dict[str, str] = {k: _rule_text(k) for k in _RULES_ALL}
-OBSERVER_RULES["gamma_bw_rad_s"] = (
-    "1 rad/s per Hz of the card's current bandwidth (gamma lambda^2 = 1000 rad/s at 1 kHz)"
-)
+def _rule_value(field_name: str, card: MachineCard, variant: str) -> float:
+    """The per-unit rule of `field_name` for `variant` on `card`."""
+    b, factor, cap = VARIANT_RULES.get(variant, {}).get(field_name, _RULES_ALL[field_name])
+    f_i = card_current_bandwidth_hz(card)
+    basis = {
+        "f_i": f_i,
+        "f_e": card.rated_electrical_hz,
+        "w_e": 2.0 * math.pi * card.rated_electrical_hz,
+    }
+    v = factor * basis[b]
+    return round(v if cap is None else min(v, cap * f_i), 9)
+
+
+def _card_rule(field_name: str, text: str | None = None) -> Rule:
+    return Rule(
+        text or _rule_text(field_name),
+        lambda card, cfg: _rule_value(field_name, card, cfg.variant),
+    )
+
+
+# ====================================================================== Python interface
+@dataclass
+class ObserverConfig:
+    """One observer instance.  Model parameters are the observer's own (default: the
+    machine card's), so mismatch is set here, independently of the plant.  The frequency
+    settings left None are derived from the machine card in per unit (their card rules,
+    `resolved`); a value set explicitly wins.  Every field is declared once with its unit,
+    range and text (`fluxdrive.core.schema`)."""
+
+    variant: str = param(
+        "paper",
+        unit="",
+        doc="observer variant: a built-in one ("
+        + ", ".join(sorted(VARIANT_KINDS))
+        + "), a user class module:Class, or an entry point of group fluxdrive.observers",
+        live=False,
+    )
+    voltage_source: str = param(
+        "measured",
+        unit="",
+        doc="stator voltage the observer integrates: captured line voltages (measured) or "
+        "duty x Vdc (commanded)",
+        choices=tuple(VOLTAGE_SOURCES),
+    )
+    cutoff_hz: float | None = param(
+        None,
+        unit="Hz",
+        doc="cut-off w_c of the LPF replacing the integrator (lpf/paper); correction gain "
+        "of hinkkanen_luomi",
+        range=(0.0, 2000.0),
+        rule=_card_rule("cutoff_hz"),
+    )
+    pll_bandwidth_hz: float | None = param(
+        None,
+        unit="Hz",
+        doc="PLL natural frequency (Kp = 2 zeta wn, Ki = wn^2)",
+        range=(0.1, 2000.0),
+        rule=_card_rule("pll_bandwidth_hz"),
+    )
+    pll_damping: float = param(1.0, unit="-", doc="PLL damping ratio", range=(0.1, 5.0))
+    speed_lpf_hz: float | None = param(
+        None,
+        unit="Hz",
+        doc="extra low-pass on the speed output (EMF path, Fig. 5); 0 = off",
+        range=(0.0, 2000.0),
+        rule=_card_rule("speed_lpf_hz"),
+    )
+    omega_floor_rad_s: float | None = param(
+        None,
+        unit="rad/s",
+        doc="floor on |w^| in the inverse-HPF compensation",
+        range=(0.01, 1000.0),
+        rule=_card_rule("omega_floor_rad_s"),
+    )
+    deadtime_comp_s: float = param(
+        0.0,
+        unit="s",
+        doc="deadtime feed-forward on commanded voltages (0 = off)",
+        range=(0.0, 1e-4),
+    )
+    gamma_bw_rad_s: float | None = param(
+        None,
+        unit="rad/s",
+        doc="ortega: observer gain gamma = gamma_bw / lambda^2",
+        range=(0.0, 1e5),
+        rule=_card_rule(
+            "gamma_bw_rad_s",
+            "1 rad/s per Hz of the card's current bandwidth (gamma lambda^2 = 1000 rad/s at 1 kHz)",
+        ),
+    )
+    plpf_k: float = param(0.25, unit="-", doc="programmable LPF: w_c = |w^|/K", range=(0.01, 10.0))
+    cutoff_min_hz: float | None = param(
+        None,
+        unit="Hz",
+        doc="programmable LPF: floor on w_c",
+        range=(0.0, 1000.0),
+        rule=_card_rule("cutoff_min_hz"),
+    )
+    comp_freq_lpf_hz: float | None = param(
+        None,
+        unit="Hz",
+        doc="paper/paper_robust: > 0, the compensation's rotor frequency is the LPF output's "
+        "own rotation rate low-passed at this cut-off; 0 = the PLL's frequency (eq. 8)",
+        range=(0.0, 1000.0),
+        rule=_card_rule("comp_freq_lpf_hz"),
+    )
+    phase_detector: str = param(
+        "sin",
+        unit="",
+        doc="PLL phase detector: atan (atan2 of the vector in the estimated frame, Sec. III) "
+        "or sin (normalised cross product, sin of the error)",
+        choices=tuple(PHASE_DETECTORS),
+    )
+    inductance_term: str = param(
+        "before_filter",
+        unit="",
+        doc="where L^ i is removed: before_filter (L^ di/dt in the EMF before the filter) or "
+        "after_integration (subtracted from the integrated stator flux, eq. 5); honoured by "
+        "pure_integrator, lpf, paper, paper_robust, programmable_lpf",
+        choices=tuple(INDUCTANCE_TERMS),
+    )
+    r_hat_ohm: float | None = param(
+        None,
+        unit="ohm",
+        doc="observer's stator resistance R^",
+        range=(0.0, 1e3),
+        card_default="resistance_ohm",
+    )
+    l_hat_h: float | None = param(
+        None,
+        unit="H",
+        doc="observer's stator inductance L^",
+        range=(1e-7, 10.0),
+        card_default="inductance_h",
+    )
+    lambda_hat_vs: float | None = param(
+        None,
+        unit="V s",
+        doc="observer's magnet flux lambda^",
+        range=(1e-6, 10.0),
+        card_default="flux_linkage_vs",
+    )
+    extra: dict[str, Any] = field(default_factory=dict)  # a plugin's constructor keywords
+
+    @property
+    def is_plugin(self) -> bool:
+        """A user variant (module:Class or an entry point): a Python class, not the kernel."""
+        return self.variant not in VARIANT_KINDS
+
+    def validate(self, src: str = "observer") -> ObserverConfig:
+        if self.is_plugin:
+            try:
+                found = load_observer_class(self.variant)
+            except ConfigError as exc:
+                raise ConfigError(f"{src}: {exc}") from None
+            if found is None:
+                raise ConfigError(f"{src}: {_unknown_variant_text(self.variant)}")
+        if not isinstance(self.extra, dict):
+            raise ConfigError(f"{src}: extra must be a mapping (a plugin's constructor keywords)")
+        check_fields(self, src)
+        return self
+
+    def with_overrides(self, **kw: Any) -> ObserverConfig:
+        known = {f.name for f in fields(self)}
+        bad = sorted(set(kw) - known)
+        if bad:
+            raise ConfigError(f"unknown observer parameter(s) {bad}; known: {sorted(known)}")
+        return replace(self, **kw).validate()
+
+    def resolved(self, card: MachineCard) -> ObserverConfig:
+        """A copy with every unset frequency setting derived from `card` (the card rules:
+        per unit of the card's current-loop bandwidth or rated electrical frequency)."""
+        return resolve(self, card)
+
+    def to_params(self, card: MachineCard) -> np.ndarray:
+        if self.is_plugin:
+            raise ConfigError(
+                f"variant '{self.variant}' is a plugin (a Python class): it has no kernel "
+                f"parameter row; build it with build_observer()"
+            )
+        self = self.validate().resolved(card)  # noqa: PLW0642 - the card fills what is unset
+        op = np.zeros(OP_N)
+        op[OP_KIND] = VARIANT_KINDS[self.variant]
+        op[OP_TS] = card.ts_s
+        op[OP_R] = card.resistance_ohm if self.r_hat_ohm is None else self.r_hat_ohm
+        op[OP_L] = card.inductance_h if self.l_hat_h is None else self.l_hat_h
+        op[OP_LAM] = card.flux_linkage_vs if self.lambda_hat_vs is None else self.lambda_hat_vs
+        op[OP_WC] = 2.0 * math.pi * required(self.cutoff_hz, "cutoff_hz")
+        kp, ki = pll_gains(required(self.pll_bandwidth_hz, "pll_bandwidth_hz"), self.pll_damping)
+        op[OP_PLL_KP] = kp
+        op[OP_PLL_KI] = ki
+        op[OP_SPEED_LPF] = 2.0 * math.pi * required(self.speed_lpf_hz, "speed_lpf_hz")
+        op[OP_WFLOOR] = self.omega_floor_rad_s
+        op[OP_GAMMA] = self.gamma_bw_rad_s / op[OP_LAM] ** 2
+        op[OP_VSRC] = VOLTAGE_SOURCES[self.voltage_source]
+        op[OP_TD] = self.deadtime_comp_s
+        op[OP_K] = self.plpf_k
+        op[OP_WC_MIN] = 2.0 * math.pi * required(self.cutoff_min_hz, "cutoff_min_hz")
+        op[OP_COMP_LPF] = 2.0 * math.pi * required(self.comp_freq_lpf_hz, "comp_freq_lpf_hz")
+        op[OP_PD] = PHASE_DETECTORS[self.phase_detector]
+        op[OP_LTERM] = INDUCTANCE_TERMS[self.inductance_term]
+        return op
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+STRING_CHOICES: dict[str, tuple[str, ...]] = {
+    k: s.choices for k, s in specs(ObserverConfig).items() if s.choices is not None
+}
+STRING_FIELDS = set(STRING_CHOICES) | {"variant"}
+# {field: text of the card rule that fills it when unset}
+OBSERVER_RULES: dict[str, str] = rule_texts(ObserverConfig)
 
 # Fixed settings per variant (structure, not frequencies).
 VARIANT_DEFAULTS: dict[str, dict[str, Any]] = {

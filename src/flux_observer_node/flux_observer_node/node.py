@@ -25,9 +25,10 @@ from __future__ import annotations
 
 import json
 import sys
-from dataclasses import fields, replace
+from dataclasses import replace
 
 import numpy as np
+from fluxdrive.core import schema
 from fluxdrive.core.machine import load_machine
 from fluxdrive.drive.observers import (
     ES_N,
@@ -38,9 +39,6 @@ from fluxdrive.drive.observers import (
     OS_LOST,
     OS_N,
     OS_STALE,
-    PARAM_RANGES,
-    STRING_CHOICES,
-    VARIANT_KINDS,
     ObserverConfig,
     build_observer,
     frame_limits,
@@ -60,52 +58,9 @@ import flux_drive_msgs.msg as fm
 from fluxdrive_ros import diagnostics as diag
 from fluxdrive_ros import params, qos, topics
 
-_CARD = "; default: from the machine card (OBSERVER_RULES)"
-# ObserverConfig field -> (description, unit)
-DOCS = {
-    "voltage_source": (
-        "stator voltage the observer integrates: captured line voltages or duty x Vdc",
-        "",
-    ),
-    "cutoff_hz": (
-        "cut-off of the LPF replacing the integrator (lpf/paper); correction gain "
-        "of hinkkanen_luomi" + _CARD,
-        "Hz",
-    ),
-    "pll_bandwidth_hz": ("PLL natural frequency (Kp = 2 zeta wn, Ki = wn^2)" + _CARD, "Hz"),
-    "pll_damping": ("PLL damping ratio", ""),
-    "speed_lpf_hz": (
-        "extra low-pass on the speed output (EMF path, Fig. 5); 0 = off" + _CARD,
-        "Hz",
-    ),
-    "omega_floor_rad_s": ("floor on |w^| in the inverse-HPF compensation" + _CARD, "rad/s"),
-    "deadtime_comp_s": ("deadtime feed-forward on commanded voltages (0 = off)", "s"),
-    "gamma_bw_rad_s": ("ortega: observer gain gamma = gamma_bw / lambda^2" + _CARD, "rad/s"),
-    "plpf_k": ("programmable LPF: w_c = |w^|/K", ""),
-    "cutoff_min_hz": ("programmable LPF: floor on w_c" + _CARD, "Hz"),
-    "comp_freq_lpf_hz": (
-        "paper/paper_robust: low-pass on the LPF output's own rotation "
-        "used as the compensation frequency; 0 = the PLL's frequency (eq. 8)" + _CARD,
-        "Hz",
-    ),
-    "phase_detector": (
-        "PLL phase detector: atan (arctangent, Sec. III) or sin (normalised cross product)",
-        "",
-    ),
-    "inductance_term": (
-        "where L^ i is removed: after_integration (eq. 5) or before_filter (L^ di/dt in the EMF)",
-        "",
-    ),
-    "r_hat_ohm": ("observer's stator resistance R^", "ohm"),
-    "l_hat_h": ("observer's stator inductance L^", "H"),
-    "lambda_hat_vs": ("observer's magnet flux lambda^", "V s"),
-}
-RANGES = {k: (lo, hi) for k, lo, hi in PARAM_RANGES}
 # a user variant's declared parameters: its model only (plus `plugin_kwargs`)
 _PLUGIN_SKIP = tuple(
-    f.name
-    for f in fields(ObserverConfig)
-    if f.name not in ("r_hat_ohm", "l_hat_h", "lambda_hat_vs")
+    f for f in schema.specs(ObserverConfig) if f not in ("r_hat_ohm", "l_hat_h", "lambda_hat_vs")
 )
 
 
@@ -129,98 +84,74 @@ def _parse_kwargs(text: str) -> dict:
     return value
 
 
-def config_params(cfg, card, skip: tuple[str, ...] = ("variant", "extra")) -> list[P]:
-    """Declared parameters for every ObserverConfig field but `skip` (defaults from cfg / the
-    card)."""
-    return params.config_params(cfg, card, DOCS, RANGES, skip=skip, choices=STRING_CHOICES)
+def config_params(cfg: ObserverConfig, card) -> list[P]:
+    """The live parameters of every ObserverConfig field from its schema (the variant is
+    declared on its own; a user variant takes only its model, R^, L^, lambda^)."""
+    skip = _PLUGIN_SKIP if cfg.is_plugin else ("variant",)
+    return params.config_params(cfg, card, skip=skip)
+
+
+def input_params(name: str) -> list[P]:
+    """Where the node's defaults come from: a scenario's observer entry, else a card."""
+    return [
+        P(
+            "scenario",
+            "",
+            "scenario YAML (path or a name under config/scenarios): the "
+            "machine card and this observer's defaults",
+            read_only=True,
+        ),
+        P(
+            "observer",
+            name,
+            "entry of the scenario's observers this node runs (default: "
+            "the node name); also the estimate's variant field",
+            read_only=True,
+        ),
+        P(
+            "machine",
+            str(CONFIG_DIR / "machines" / "default_spm.yaml"),
+            "machine card YAML when no scenario is given",
+            read_only=True,
+        ),
+    ]
+
+
+def common_params(decimation: int) -> list[P]:
+    """Input topic and durability, frame_id, the decimation, diagnostics."""
+    return [
+        *params.frame_input_params(),
+        P("frame_id", "", "header.frame_id of published estimates", read_only=True),
+        P(
+            "decimation",
+            decimation,
+            "PWM periods per frame (a decimated CAN link, split mode): the observer "
+            "steps at decimation x the machine card's PWM period",
+            "",
+            1,
+            64,
+            read_only=True,
+        ),
+        diag.PARAM,
+    ]
 
 
 class ObserverNode(FluxNode):
     def __init__(self, name: str = "observer", namespace: str | None = None, **kw):
         super().__init__(name, namespace, **kw)
-        first = declare(
-            self,
-            [
-                P(
-                    "scenario",
-                    "",
-                    "scenario YAML (path or a name under config/scenarios): the "
-                    "machine card and this observer's defaults",
-                    read_only=True,
-                ),
-                P(
-                    "observer",
-                    name,
-                    "entry of the scenario's observers this node runs (default: "
-                    "the node name); also the estimate's variant field",
-                    read_only=True,
-                ),
-                P(
-                    "machine",
-                    str(CONFIG_DIR / "machines" / "default_spm.yaml"),
-                    "machine card YAML when no scenario is given",
-                    read_only=True,
-                ),
-            ],
-        )
-        sp, obs_name, mpath = first["scenario"], first["observer"], first["machine"]
-        base = None
-        decimation = 1
-        if sp:
-            sc = load_scenario(scenario_path(sp))
-            card = sc.machine
-            base = sc.observers.get(obs_name)
-            decimation = int(sc.control.decimation)
-        else:
-            card = load_machine(mpath)
-        if base is None:
-            base = observer_config("paper")
-        variant = declare(
-            self,
-            [
-                P(
-                    "variant",
-                    base.variant,
-                    "observer variant: a built-in one ("
-                    + ", ".join(sorted(VARIANT_KINDS))
-                    + "), a user class module:Class, or an entry point of group "
-                    "fluxdrive.observers (the class must be importable by this process)",
-                    read_only=True,
-                )
-            ],
-        )
-        variant = variant["variant"]
-        if variant != base.variant:
-            base = observer_config(variant)  # an unknown or unloadable one: one line
+        first = declare(self, input_params(name))
+        obs_name = first["observer"]
+        card, base, decimation = self._load(first)
         self.card = card
-        base = base.resolved(card)  # frequencies left unset: from the card (OBSERVER_RULES)
+        base = base.resolved(card)  # frequencies left unset: from the card (card rules)
         # a user variant takes only its model (R^, L^, lambda^) and its constructor keywords
         # (`plugin_kwargs`, JSON); the kernel's filter and PLL settings do not apply to it
-        self.specs = (
-            config_params(base, card, _PLUGIN_SKIP) if base.is_plugin else config_params(base, card)
-        )
+        self.specs = config_params(base, card)
         pv = declare(self, self.specs)
         if base.is_plugin:
             kw_text = declare(self, [_plugin_kwargs_param(base.extra)])["plugin_kwargs"]
             base = replace(base, extra=_parse_kwargs(kw_text))
-        common = declare(
-            self,
-            [
-                *params.frame_input_params(),
-                P("frame_id", "", "header.frame_id of published estimates", read_only=True),
-                P(
-                    "decimation",
-                    decimation,
-                    "PWM periods per frame (a decimated CAN link, split mode): the observer "
-                    "steps at decimation x the machine card's PWM period",
-                    "",
-                    1,
-                    64,
-                    read_only=True,
-                ),
-                diag.PARAM,
-            ],
-        )
+        common = declare(self, common_params(decimation))
         self.sample_s = card.ts_s * int(common["decimation"])
         self.cfg = base.with_overrides(**pv)
         # a user variant runs its Python class per frame; a built-in one the kernel
@@ -280,6 +211,25 @@ class ObserverNode(FluxNode):
             f"{obs_name}: variant {self.cfg.variant}, {self.cfg.voltage_source} voltages, "
             f"publishing {self.pub.topic_name}"
         )
+
+    def _load(self, first: dict):
+        """(card, the observer's config, decimation) of the scenario or the machine card,
+        the variant as declared (an unknown or unloadable one: one line)."""
+        base, decimation = None, 1
+        if first["scenario"]:
+            sc = load_scenario(scenario_path(first["scenario"]))
+            card = sc.machine
+            base = sc.observers.get(first["observer"])
+            decimation = int(sc.control.decimation)
+        else:
+            card = load_machine(first["machine"])
+        if base is None:
+            base = observer_config("paper")
+        spec = schema.specs(ObserverConfig)["variant"]
+        variant = declare(self, [P.of(spec, base.variant)])["variant"]
+        if variant != base.variant:
+            base = observer_config(variant)
+        return card, base, decimation
 
     def _params(self, cfg) -> np.ndarray:
         """The kernel's parameter row at this node's sample time."""

@@ -21,6 +21,7 @@ Conventions
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import re
@@ -29,7 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from fluxdrive.core import yamlio
+from fluxdrive.core import schema, yamlio
 from rcl_interfaces.msg import (
     FloatingPointRange,
     IntegerRange,
@@ -91,50 +92,52 @@ class P:
                 )
         return None
 
+    @classmethod
+    def of(cls, spec: schema.Spec, value: Any, rng: tuple[float, float] | None = None) -> P:
+        """The parameter of one schema field (`fluxdrive.core.schema`): its text, unit, range
+        (`rng`: narrowed on the card) or choices, read-only unless the field is live."""
+        text = spec.doc + (f"; unset: {spec.rule.text}" if spec.rule is not None else "")
+        text += " (live)" if spec.live else ""
+        lo, hi = rng if rng is not None else (spec.lo, spec.hi)
+        if spec.choices is not None or spec.kind is str:
+            return P(spec.name, str(value), text, choices=spec.choices, read_only=not spec.live)
+        if spec.kind is bool:
+            return P(spec.name, bool(value), text, read_only=not spec.live)
+        value = int(value) if spec.kind is int else float(value)
+        unit = "" if spec.unit == "-" else spec.unit
+        return P(spec.name, value, text, unit, lo, hi, read_only=not spec.live)
 
-# model fields of an engine config that default to the machine card (None in the config)
-MODEL_DEFAULTS = {
-    "r_hat_ohm": "resistance_ohm",
-    "l_hat_h": "inductance_h",
-    "lambda_hat_vs": "flux_linkage_vs",
-}
 
-
-def config_params(
-    cfg,
-    card,
-    docs: dict[str, tuple[str, str]],
-    ranges: dict[str, tuple[float, float]],
-    *,
-    skip: tuple[str, ...] = (),
-    choices: dict[str, tuple[str, ...]] | None = None,
-    none_as_zero: frozenset[str] = frozenset(),
-) -> list[P]:
-    """Live parameters for every field of an engine config dataclass (ObserverConfig,
-    ControllerConfig): default from `cfg` (a model field left None: the card's value),
-    description and unit from `docs`, range from the engine's `ranges`; `choices` for
-    string fields; `none_as_zero` fields stand for None with 0.0 (ROS has no None)."""
-    import dataclasses
-
+def config_params(cfg, card, decimation: int = 1, *, skip: tuple[str, ...] = ()) -> list[P]:
+    """The declared parameters of an engine config (ControllerConfig, ObserverConfig, ...),
+    every field but `skip` from its schema: default from `cfg` (a model field left None: the
+    card's value; a field whose None means "off": 0.0, as ROS has no None), text, unit and
+    live from the field, range as accepted on `card` at `decimation` (`schema.ranges`)."""
+    rng = schema.ranges(cfg, card, decimation)
     out = []
-    for f in dataclasses.fields(cfg):
-        if f.name in skip:
+    for name, s in schema.specs(cfg).items():
+        if name in skip:
             continue
-        v = getattr(cfg, f.name)
-        if v is None and f.name in MODEL_DEFAULTS:
-            v = float(getattr(card, MODEL_DEFAULTS[f.name]))
-        desc, unit = docs.get(f.name, (f.name, ""))
-        if choices and f.name in choices:
-            out.append(P(f.name, str(v), desc, choices=choices[f.name]))
-            continue
-        lo, hi = ranges.get(f.name, (None, None))
-        if f.name in none_as_zero:
-            v, lo = (0.0 if v is None else v), 0.0
-        if isinstance(v, bool):
-            out.append(P(f.name, v, desc + " (live)"))
-        else:
-            out.append(P(f.name, float(v), desc + " (live)", unit, lo, hi))
+        v = getattr(cfg, name)
+        r = rng.get(name)
+        if v is None and s.card_default is not None:
+            v = getattr(card, s.card_default)
+        if s.none_is_zero and r is not None:
+            v, r = (0.0 if v is None else v), (0.0, r[1])
+        out.append(P.of(s, v, r))
     return out
+
+
+def to_config(cfg, values: dict[str, Any]):
+    """`cfg` with the parameter values of its fields applied (0.0 -> None for a field whose
+    None means "off")."""
+    table = schema.specs(cfg)
+    kw = {
+        k: (None if table[k].none_is_zero and v == 0.0 else v)
+        for k, v in values.items()
+        if k in table
+    }
+    return dataclasses.replace(cfg, **kw)
 
 
 def input_durability_param() -> P:

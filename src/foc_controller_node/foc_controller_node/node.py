@@ -52,6 +52,7 @@ import dataclasses
 import sys
 
 import numpy as np
+from fluxdrive.core import schema
 from fluxdrive.core.machine import load_machine
 from fluxdrive.drive.control import (
     CO_EN,
@@ -61,7 +62,6 @@ from fluxdrive.drive.control import (
     FAULT_NAMES,
     MODE_NAMES,
     ControllerConfig,
-    control_ranges,
     host_params,
 )
 from fluxdrive.drive.observers import ES_N
@@ -80,67 +80,9 @@ from flux_drive_msgs.srv import ResetFault
 from fluxdrive_ros import access, params, qos, topics
 from fluxdrive_ros import diagnostics as diag
 
-# ControllerConfig field -> (description, unit); ranges from fluxdrive.drive.control.control_ranges
-DOCS = {
-    "current_bandwidth_hz": ("-3 dB bandwidth of the dq current loops (gains re-designed)", "Hz"),
-    "speed_bandwidth_hz": (
-        "target -3 dB bandwidth of the speed loop (gains re-designed; "
-        "lower if the peaking limit binds)",
-        "Hz",
-    ),
-    "peak_limit_db": (
-        "robustness limit of the loop design: closed-loop peaking of the current and speed loops",
-        "dB",
-    ),
-    "current_limit_pu": ("|i_q*| limit, per unit of rated current", "pu"),
-    "angle_advance_periods": ("inverse-Park angle advance, in periods of w^", "periods"),
-    "deadtime_comp_s": ("deadtime feed-forward on the duties (0 = off)", "s"),
-    "decoupling": ("cross-coupling and back-EMF feed-forward on", ""),
-    "align_time_s": ("sensorless start: alignment time", "s"),
-    "align_current_pu": ("sensorless start: alignment d current", "pu"),
-    "if_current_pu": ("sensorless start: I-f ramp current", "pu"),
-    "if_accel_rpm_s": ("sensorless start: I-f ramp acceleration", "rpm/s"),
-    "handover_rpm": ("I-f -> observer handover speed", "rpm"),
-    "handback_rpm": ("observer -> I-f hand-back speed (below handover)", "rpm"),
-    "handover_dwell_s": (
-        "estimate valid and agreeing with the I-f ramp this long before handover",
-        "s",
-    ),
-    "handover_agree_lpf_hz": (
-        "handover criterion: estimate vs I-f ramp compared low-passed at "
-        "this cut-off (0 = per sample)",
-        "Hz",
-    ),
-    "handover_timeout_s": (
-        "I-f ramp at the handover speed this long without a handover "
-        "latches 'start-up failed' (0 = wait for ever)",
-        "s",
-    ),
-    "encoder_pll_hz": ("encoder tracking-PLL bandwidth", "Hz"),
-    "speed_feedback_lpf_hz": ("display low-pass of the speed feedback", "Hz"),
-    "speed_observer_pll_hz": (
-        "driving observer's PLL bandwidth assumed by the speed-loop design; 0 = ideal feedback",
-        "Hz",
-    ),
-    "speed_observer_damping": ("driving observer's PLL damping assumed by the design", ""),
-    "speed_observer_lpf_hz": ("driving observer's speed LPF assumed by the design", "Hz"),
-    "overcurrent_pu": ("instantaneous over-current trip, per unit of rated current", "pu"),
-    "overspeed_pu": ("over-speed trip, per unit of rated speed", "pu"),
-    "vdc_min_v": ("DC-bus under-voltage trip", "V"),
-    "vdc_max_v": ("DC-bus over-voltage trip", "V"),
-    "invalid_timeout_s": ("loss-of-lock trip: estimate invalid this long in closed loop", "s"),
-    "i2t_limit_pu2s": ("I2t trip: integral of ((i/I_rated)^2 - 1) dt", "pu^2 s"),
-    "r_hat_ohm": ("controller's stator resistance R^", "ohm"),
-    "l_hat_h": ("controller's stator inductance L^", "H"),
-    "lambda_hat_vs": ("controller's magnet flux lambda^", "V s"),
-    "reference_timeout_s": (
-        "split mode: the drive turns PWM off and latches 'watchdog' when no current "
-        "reference comes for this long",
-        "s",
-    ),
-}
-# ControllerConfig fields that are not live kernel parameters: where the loop runs
-SPLIT_FIELDS = ("mode", "decimation", "host_delay_samples")
+# ControllerConfig fields declared on their own (read-only, under the node's names) or not
+# at all (host_delay_samples: an in-process timing knob), not among the live parameters
+FIXED_FIELDS = ("position_source", "mode", "decimation", "host_delay_samples")
 # wall-clock grace for the very first estimate (a starting observer process, compilation)
 FIRST_ESTIMATE_WALL_S = 30.0
 # parameters of the node, not of ControllerConfig
@@ -154,106 +96,139 @@ NODE_LEVEL = {
     "max_resyncs",
     "resync_window_s",
 }
-# None-able fields: ROS parameters cannot be None; 0.0 stands for None
-NONE_AS_ZERO = frozenset({"speed_observer_pll_hz"})
 
 
-def config_params(cfg: ControllerConfig, card) -> list[P]:
-    return params.config_params(
-        cfg,
-        card,
-        DOCS,
-        control_ranges(card, int(cfg.decimation)),
-        skip=("position_source", *SPLIT_FIELDS),
-        none_as_zero=NONE_AS_ZERO,
-    )
+def input_params() -> list[P]:
+    """Where the node's defaults come from: a scenario, else a machine card."""
+    return [
+        P(
+            "scenario",
+            "",
+            "scenario YAML (path or a name under config/scenarios): machine "
+            "card, controller defaults, speed profile and injections",
+            read_only=True,
+        ),
+        P(
+            "machine",
+            str(CONFIG_DIR / "machines" / "default_spm.yaml"),
+            "machine card YAML when no scenario is given",
+            read_only=True,
+        ),
+    ]
 
 
-def to_config(cfg: ControllerConfig, values: dict) -> ControllerConfig:
-    """cfg with parameter values applied (0.0 -> None where ROS cannot say None)."""
-    kw = {}
-    names = {f.name for f in dataclasses.fields(cfg)}
-    for k, v in values.items():
-        if k not in names:
-            continue
-        if k in NONE_AS_ZERO and v == 0.0:
-            v = None
-        kw[k] = v
-    return dataclasses.replace(cfg, **kw)
+def source_params(cfg: ControllerConfig, driving: str) -> list[P]:
+    """The read-only choices of a run: position source, its topic, where the current loop
+    runs and the decimation (from the ControllerConfig schema, under the node's names)."""
+    spec = schema.specs(ControllerConfig)
+    mode = dataclasses.replace(P.of(spec["mode"], cfg.mode), name="control_mode")
+    topic = topics.estimate_topic(driving if driving != "encoder" else "flux_measured")
+    return [
+        P.of(spec["position_source"], cfg.position_source),
+        P(
+            "estimate_topic",
+            topics.rel(topic),
+            "RotorEstimate topic of the driving observer (position_source = estimate; "
+            "relative: in the drive's namespace)",
+            read_only=True,
+        ),
+        mode,
+        P.of(spec["decimation"], int(cfg.decimation)),
+    ]
+
+
+def node_params() -> list[P]:
+    """The node's own live and read-only parameters (speed reference, timeouts, resyncs)."""
+    return [
+        P(
+            "speed_ref_mode",
+            "profile",
+            "speed reference: the scenario's profile or the constant speed_ref_rpm (live)",
+            choices=("profile", "constant"),
+        ),
+        P("speed_ref_rpm", 0.0, "constant mechanical speed reference (live)", "rpm", -1e5, 1e5),
+        P(
+            "position_timeout_s",
+            0.05,
+            "safe state (PWM off, latched 'stale input') when "
+            "the driving estimate of a frame has not come while frames this much sample "
+            "time later have (live)",
+            "s",
+            1e-4,
+            10.0,
+        ),
+        P(
+            "position_wall_timeout_s",
+            2.0,
+            "safe state when the driving estimate of a "
+            "waiting frame has not come for this much wall time (lockstep graphs, where "
+            "the plant waits for us; 0: off) (live)",
+            "s",
+            0.0,
+            3600.0,
+        ),
+        P(
+            "max_resyncs",
+            0,
+            "lost intervals (PWM switched off by the power stage's watchdog: no duty "
+            "command from this controller for its wall-time limit) tolerated within "
+            "resync_window_s; one more latches the fault 'watchdog' (0: the first "
+            "latches -- the plant's watchdog takes only a silent controller for dead, "
+            "a late one is lateness)",
+            "",
+            0,
+            1000,
+            read_only=True,
+        ),
+        P(
+            "resync_window_s",
+            10.0,
+            "sample-time window of max_resyncs",
+            "s",
+            0.01,
+            3600.0,
+            read_only=True,
+        ),
+    ]
+
+
+def common_params() -> list[P]:
+    """Input topic and durability, frame_id, diagnostics, who may reset a fault."""
+    return [
+        *params.frame_input_params(),
+        P(
+            "frame_id",
+            "",
+            "header.frame_id of ControllerState and DutyCommand (the access "
+            "mark travels in DutyCommand.commander)",
+            read_only=True,
+        ),
+        diag.PARAM,
+        P(
+            "allowed_operators",
+            list(access.DEFAULT_OPERATORS),
+            "nodes (fully qualified names) whose ~/reset_fault requests are obeyed; '*' = anyone",
+            read_only=True,
+        ),
+    ]
+
+
+def design_card(card, split: bool, decimation: int):
+    """(card, decimation) the node's settings are checked on: split, the drive's card at the
+    decimation; host mode at D > 1, the loops designed for the sample rate (PWM / D)."""
+    if decimation > 1 and not split:
+        return dataclasses.replace(card, pwm_hz=card.pwm_hz / decimation), 1
+    return card, decimation
 
 
 class ControllerNode(FluxNode):
+    w_ref_profile: np.ndarray  # the speed reference per sample [rad/s mechanical]
+    id_inj: np.ndarray  # the d-current injection per sample [A]
+
     def __init__(self, name: str = "controller", namespace: str | None = None, **kw):
         super().__init__(name, namespace, **kw)
-        first = declare(
-            self,
-            [
-                P(
-                    "scenario",
-                    "",
-                    "scenario YAML (path or a name under config/scenarios): machine "
-                    "card, controller defaults, speed profile and injections",
-                    read_only=True,
-                ),
-                P(
-                    "machine",
-                    str(CONFIG_DIR / "machines" / "default_spm.yaml"),
-                    "machine card YAML when no scenario is given",
-                    read_only=True,
-                ),
-            ],
-        )
-        sp, mpath = first["scenario"], first["machine"]
-        if sp:
-            sc = load_scenario(scenario_path(sp))
-            card = sc.machine
-            cfg = sc.control
-            ds = DriveSetup(sc)
-            self.w_ref_profile, self.id_inj = ds.w_ref, ds.id_inj
-            driving = sc.driving
-        else:
-            card = load_machine(mpath)
-            cfg = ControllerConfig()
-            self.w_ref_profile, self.id_inj = np.zeros(1), np.zeros(1)
-            driving = "encoder"
-        src = declare(
-            self,
-            [
-                P(
-                    "position_source",
-                    cfg.position_source,
-                    "angle/speed feedback: the encoder or an observer's estimate topic",
-                    choices=("encoder", "estimate"),
-                    read_only=True,
-                ),
-                P(
-                    "estimate_topic",
-                    topics.rel(
-                        topics.estimate_topic(driving if driving != "encoder" else "flux_measured")
-                    ),
-                    "RotorEstimate topic of the driving observer (position_source = estimate; "
-                    "relative: in the drive's namespace)",
-                    read_only=True,
-                ),
-                P(
-                    "control_mode",
-                    cfg.mode,
-                    "where the current loop runs: host (this node, duties out) or split "
-                    "(the drive, current references out on /drive/current_ref)",
-                    choices=("host", "split"),
-                    read_only=True,
-                ),
-                P(
-                    "decimation",
-                    int(cfg.decimation),
-                    "PWM periods per frame: the node steps at decimation x the card's PWM period",
-                    "",
-                    1,
-                    64,
-                    read_only=True,
-                ),
-            ],
-        )
+        card, cfg, driving = self._load(declare(self, input_params()))
+        src = declare(self, source_params(cfg, driving))
         self.split = src["control_mode"] == "split"
         self.decimation = int(src["decimation"])
         d = self.decimation
@@ -262,101 +237,43 @@ class ControllerNode(FluxNode):
         # ROS parameters cannot say "derive it"
         cfg = dataclasses.replace(cfg, position_source=src["position_source"]).resolved(card)
         self.card = card
-        self.specs = config_params(cfg, card) + [
-            P(
-                "speed_ref_mode",
-                "profile",
-                "speed reference: the scenario's profile or the constant speed_ref_rpm (live)",
-                choices=("profile", "constant"),
-            ),
-            P("speed_ref_rpm", 0.0, "constant mechanical speed reference (live)", "rpm", -1e5, 1e5),
-            P(
-                "position_timeout_s",
-                0.05,
-                "safe state (PWM off, latched 'stale input') when "
-                "the driving estimate of a frame has not come while frames this much sample "
-                "time later have (live)",
-                "s",
-                1e-4,
-                10.0,
-            ),
-            P(
-                "position_wall_timeout_s",
-                2.0,
-                "safe state when the driving estimate of a "
-                "waiting frame has not come for this much wall time (lockstep graphs, where "
-                "the plant waits for us; 0: off) (live)",
-                "s",
-                0.0,
-                3600.0,
-            ),
-            P(
-                "max_resyncs",
-                0,
-                "lost intervals (PWM switched off by the power stage's watchdog: no duty "
-                "command from this controller for its wall-time limit) tolerated within "
-                "resync_window_s; one more latches the fault 'watchdog' (0: the first "
-                "latches -- the plant's watchdog takes only a silent controller for dead, "
-                "a late one is lateness)",
-                "",
-                0,
-                1000,
-                read_only=True,
-            ),
-            P(
-                "resync_window_s",
-                10.0,
-                "sample-time window of max_resyncs",
-                "s",
-                0.01,
-                3600.0,
-                read_only=True,
-            ),
-        ]
+        live = params.config_params(cfg, *design_card(card, self.split, d), skip=FIXED_FIELDS)
+        self.specs = live + node_params()
         pv = declare(self, self.specs)
-        common = declare(
-            self,
-            [
-                *params.frame_input_params(),
-                P(
-                    "frame_id",
-                    "",
-                    "header.frame_id of ControllerState and DutyCommand (the access "
-                    "mark travels in DutyCommand.commander)",
-                    read_only=True,
-                ),
-                diag.PARAM,
-                P(
-                    "allowed_operators",
-                    list(access.DEFAULT_OPERATORS),
-                    "nodes (fully qualified "
-                    "names) whose ~/reset_fault requests are obeyed; '*' = anyone",
-                    read_only=True,
-                ),
-            ],
-        )
+        common = declare(self, common_params())
         self.allowed_operators = list(common["allowed_operators"])
         self.pv = pv
-        self.cfg = to_config(cfg, pv)
+        self.cfg = params.to_config(cfg, pv)
         self.cp = self._params(self.cfg)
         self.sensorless = self.cfg.position_source == "estimate"
-        self.stamp = Stamp(card.ts_s * self.decimation)
-        self.fw = FrameWire()
-        self.ew = EstimateWire("")
-        # DutyCommand.commander = this node's mark: the plant / bench bridge obey
-        # only marked commands of their allowed_commanders (fluxdrive_ros.access)
-        self.cw = ControlWire(
-            common["frame_id"],
-            commander=access.mark(self.get_fully_qualified_name(), topics.DUTY),
-            graph_id=self.graph.id,
+        self._wire(card, pv, common, src["estimate_topic"])
+        on_set(self, self.specs, self._apply, lambda: self.seq.next_k, card.ts_s)
+        self.diag = diag.Diagnostics(self, common["diagnostics_period_s"])
+        self.diag.add("input", self._diag_input)
+        self.diag.add("state", self._diag_state)
+        if self.sensorless:
+            self.create_timer(0.1, self._check_wall_timeout)
+        self.get_logger().info(
+            "position from "
+            + (src["estimate_topic"] if self.sensorless else "the encoder")
+            + f"; current loop {self.cfg.current_bandwidth_hz:g} Hz, speed loop "
+            f"{self.cfg.speed_bandwidth_hz:g} Hz"
         )
-        # pairing, stale-input trips, lost-interval re-synchronisation: the engine's
-        self.rw = ReferenceWire(
-            common["frame_id"],
-            commander=access.mark(self.get_fully_qualified_name(), topics.CURRENT_REF),
-            graph_id=self.graph.id,
-        )
-        self.seq = ControlSequencer(
+
+    def _load(self, first: dict):
+        """(card, ControllerConfig, driving observer) of the scenario or the machine card;
+        sets the speed profile and the d-current injection."""
+        if first["scenario"]:
+            sc = load_scenario(scenario_path(first["scenario"]))
+            ds = DriveSetup(sc)
+            self.w_ref_profile, self.id_inj = ds.w_ref, ds.id_inj
+            return sc.machine, sc.control, sc.driving
+        self.w_ref_profile, self.id_inj = np.zeros(1), np.zeros(1)
+        return load_machine(first["machine"]), ControllerConfig(), "encoder"
+
+    def _sequencer(self, card, pv: dict) -> ControlSequencer:
+        """The engine's sequencer: pairing, stale-input trips, lost-interval resyncs."""
+        return ControlSequencer(
             self.cp,
             card.ts_s * self.decimation,
             self.sensorless,
@@ -372,6 +289,26 @@ class ControllerNode(FluxNode):
             pv["resync_window_s"],
             split=self.split,
         )
+
+    def _wire(self, card, pv: dict, common: dict, estimate_topic: str) -> None:
+        """Wire formats, the sequencer, publishers, subscriptions, fault events, reset."""
+        self.stamp = Stamp(card.ts_s * self.decimation)
+        self.fw = FrameWire()
+        self.ew = EstimateWire("")
+        # DutyCommand.commander = this node's mark: the plant / bench bridge obey
+        # only marked commands of their allowed_commanders (fluxdrive_ros.access)
+        self.cw = ControlWire(
+            common["frame_id"],
+            commander=access.mark(self.get_fully_qualified_name(), topics.DUTY),
+            graph_id=self.graph.id,
+        )
+        self.rw = ReferenceWire(
+            common["frame_id"],
+            commander=access.mark(self.get_fully_qualified_name(), topics.CURRENT_REF),
+            graph_id=self.graph.id,
+        )
+        # pairing, stale-input trips, lost-interval re-synchronisation: the engine's
+        self.seq = self._sequencer(card, pv)
         self.counts = diag.Counters(*self.seq.counts)
         self.counts.values = self.seq.counts
         self.done_seq: int | None = None
@@ -401,7 +338,7 @@ class ControllerNode(FluxNode):
             self.sub_est = RawSubscription(
                 self,
                 fm.RotorEstimate,
-                topics.in_drive(self, src["estimate_topic"]),
+                topics.in_drive(self, estimate_topic),
                 self._on_est,
                 qos.reader(common["input_durability"]),
             )
@@ -419,30 +356,17 @@ class ControllerNode(FluxNode):
         self._fault_code = 0.0  # CO_FAULT of the last published sample
         self.reset_service = self.resolve_service_name("~/reset_fault")
         self.create_service(ResetFault, self.reset_service, self._on_reset)
-        on_set(self, self.specs, self._apply, lambda: self.seq.next_k, card.ts_s)
-        self.diag = diag.Diagnostics(self, common["diagnostics_period_s"])
-        self.diag.add("input", self._diag_input)
-        self.diag.add("state", self._diag_state)
-        if self.sensorless:
-            self.create_timer(0.1, self._check_wall_timeout)
-        self.get_logger().info(
-            "position from "
-            + (src["estimate_topic"] if self.sensorless else "the encoder")
-            + f"; current loop {self.cfg.current_bandwidth_hz:g} Hz, speed loop "
-            f"{self.cfg.speed_bandwidth_hz:g} Hz"
-        )
 
     # ----------------------------------------------------------------- parameters
     def _params(self, cfg: ControllerConfig) -> np.ndarray:
         """The kernel's row at this node's sample time: split, the host's half of the
         PWM-rate design; host mode at D > 1, the loops designed for the sample rate."""
         d = self.decimation
+        card, _ = design_card(self.card, self.split, d)  # what the descriptors' ranges say
         if self.split:
-            return host_params(dataclasses.replace(cfg, mode="split").to_params(self.card), d)
-        if d > 1:
-            card = dataclasses.replace(self.card, pwm_hz=self.card.pwm_hz / d)
-            return dataclasses.replace(cfg, mode="host", decimation=1).to_params(card)
-        return cfg.to_params(self.card)
+            split = dataclasses.replace(cfg, mode="split", decimation=d)
+            return host_params(split.to_params(card), d)
+        return dataclasses.replace(cfg, mode="host", decimation=1).to_params(card)
 
     def _set_ref(self, pv) -> None:
         self.seq.set_timeouts(pv["position_timeout_s"], pv["position_wall_timeout_s"])
@@ -454,7 +378,7 @@ class ControllerNode(FluxNode):
         new = {**self.pv, **changes}
         ctrl = {k: v for k, v in changes.items() if k not in NODE_LEVEL}
         if ctrl:
-            cfg = to_config(self.cfg, ctrl)
+            cfg = params.to_config(self.cfg, ctrl)
             cp = self._params(cfg)  # ConfigError (a ValueError) -> rejected
             self.cp[:] = cp
             self.cfg = cfg

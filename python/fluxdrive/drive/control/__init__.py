@@ -11,7 +11,6 @@ from __future__ import annotations
 from fluxdrive.drive.control.config import (
     CARD_RULES,
     CONTROL_MODES,
-    CONTROL_RANGES,
     CURRENT_BW_MAX_OF_PWM,
     DRIVE_PARAM_FIELDS,
     DRIVE_PARAM_RANGES,
@@ -23,7 +22,6 @@ from fluxdrive.drive.control.config import (
     VDC_MAX_PU,
     VDC_MIN_PU,
     ControllerConfig,
-    control_ranges,
     drive_param_values,
 )
 from fluxdrive.drive.control.kernel import (
@@ -300,8 +298,6 @@ __all__ = [
     "SPEED_OF_CURRENT_BW",
     "ControllerConfig",
     "CURRENT_BW_MAX_OF_PWM",
-    "control_ranges",
-    "CONTROL_RANGES",
     "CONTROL_MODES",
     "DRIVE_PARAM_FIELDS",
     "DRIVE_PARAM_RANGES",

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -15,6 +14,15 @@ from fluxdrive.core.machine import (
     MachineCard,
     card_current_bandwidth_hz,
     required,
+)
+from fluxdrive.core.schema import (
+    Limit,
+    Rule,
+    check_fields,
+    check_limits,
+    param,
+    resolve,
+    rule_texts,
 )
 from fluxdrive.drive.control.kernel import (
     CP_ADV,
@@ -64,126 +72,284 @@ from fluxdrive.drive.control.loop_design import (
 # (`ControllerConfig.resolved`).  On the default card they give the values the testbed was
 # tuned with (1 kHz current loop at 10 kHz PWM, 15 Hz speed-loop target, 20-95 V bus window,
 # 30/20 rpm handover/hand-back at 3000 rpm rated), so a scenario carries over to another
-# machine by its physics, not by numbers bound to one motor.
-CARD_RULES: dict[str, str] = {
-    "current_bandwidth_hz": "PWM/10 (1.5-period delay), at least 3x the RL corner R/(2 pi L),"
-    " at most PWM/5",
-    "speed_bandwidth_hz": "0.015 x the card's current bandwidth (a target: the design's "
-    "peaking limit may grant less)",
-    "encoder_pll_hz": "0.15 x the card's current bandwidth",
-    "speed_feedback_lpf_hz": "0.02 x the card's current bandwidth",
-    "vdc_min_v": "0.28 x dc_bus_v",
-    "vdc_max_v": "1.32 x dc_bus_v",
-    "handover_rpm": "0.01 x rated speed",
-    "handback_rpm": "2/3 of the card's handover speed",
-    "if_accel_rpm_s": "0.2 x rated speed per second",
-}
+# machine by its physics, not by numbers bound to one motor.  Every rule reads the card only
+# (never another field's explicit value), so setting one bandwidth does not move the others.
 VDC_MIN_PU, VDC_MAX_PU = 0.28, 1.32
 HANDOVER_PU, HANDBACK_OF_HANDOVER, IF_ACCEL_PU_S = 0.01, 2.0 / 3.0, 0.2
 SPEED_OF_CURRENT_BW = 0.015  # speed-loop target / current-loop bandwidth (15 Hz at 1 kHz)
+# the current loop's bandwidth is at most this share of the PWM frequency (check())
+CURRENT_BW_MAX_OF_PWM = 0.25
+CONTROL_MODES = ("host", "split")
+
+
+def _card_bw(card: MachineCard) -> float:
+    return round(card_current_bandwidth_hz(card), 6)
+
+
+def _rated_rpm(share: float) -> Rule:
+    return Rule(
+        f"{share:g} x rated speed" + (" per second" if share == IF_ACCEL_PU_S else ""),
+        lambda card, cfg: share * card.rated_speed_rpm,
+    )
+
+
+_OF_CURRENT_BW = "the card's current bandwidth"
+_PWM_QUARTER = Limit(
+    "at most a quarter of the PWM frequency",
+    lambda card, decimation: (None, CURRENT_BW_MAX_OF_PWM * card.pwm_hz),
+)
+_TWO_SAMPLES = Limit(
+    "at least two samples (2 x decimation PWM periods)",
+    lambda card, decimation: (2 * int(decimation) * card.ts_s, None),
+)
 
 
 @dataclass
 class ControllerConfig:
     """FOC settings; gains derive from bandwidths and the controller's own model of the
     machine (r_hat/l_hat/lambda_hat default to the machine card).  A field left None is
-    derived from the machine card (CARD_RULES, `resolved`); a value set explicitly wins."""
+    derived from the machine card (its card rule, `resolved`); a value set explicitly wins.
+    Every field is declared once with its unit, range and text (`fluxdrive.core.schema`)."""
 
-    position_source: str = "encoder"  # 'encoder' or 'estimate'
-    current_bandwidth_hz: float | None = None
-    # target; the peaking limit may grant less (design_loops)
-    speed_bandwidth_hz: float | None = None
-    current_limit_pu: float = 2.0  # |i_q*| limit, per unit of rated current
-    angle_advance_periods: float = 1.5
-    deadtime_comp_s: float = 0.0
-    decoupling: bool = True
-    align_time_s: float = 0.15
-    align_current_pu: float = 0.8
-    if_current_pu: float = 1.0
-    if_accel_rpm_s: float | None = None
-    handover_rpm: float | None = None
-    handback_rpm: float | None = None
-    encoder_pll_hz: float | None = None
-    speed_feedback_lpf_hz: float | None = None  # only for display/metrics, not in the loop
+    position_source: str = param(
+        "encoder",
+        unit="",
+        doc="angle/speed feedback: the encoder or the driving observer's estimate",
+        choices=("encoder", "estimate"),
+        live=False,
+    )
+    current_bandwidth_hz: float | None = param(
+        None,
+        unit="Hz",
+        doc="-3 dB bandwidth of the dq current loops (gains re-designed)",
+        range=(10.0, 5000.0),
+        rule=Rule(
+            "PWM/10 (1.5-period delay), at least 3x the RL corner R/(2 pi L), at most PWM/5",
+            lambda card, cfg: _card_bw(card),
+        ),
+        limit=_PWM_QUARTER,
+    )
+    speed_bandwidth_hz: float | None = param(
+        None,
+        unit="Hz",
+        doc="target -3 dB bandwidth of the speed loop (gains re-designed; lower if the "
+        "peaking limit binds)",
+        range=(0.1, 200.0),
+        rule=Rule(
+            f"{SPEED_OF_CURRENT_BW:g} x {_OF_CURRENT_BW} (a target: the design's peaking "
+            "limit may grant less)",
+            lambda card, cfg: round(SPEED_OF_CURRENT_BW * _card_bw(card), 6),
+        ),
+    )
+    current_limit_pu: float = param(
+        2.0, unit="pu", doc="|i_q*| limit, per unit of rated current", range=(0.05, 3.0)
+    )
+    angle_advance_periods: float = param(
+        1.5, unit="periods", doc="inverse-Park angle advance, in periods of w^", range=(0.0, 3.0)
+    )
+    deadtime_comp_s: float = param(
+        0.0, unit="s", doc="deadtime feed-forward on the duties (0 = off)", range=(0.0, 1e-4)
+    )
+    decoupling: bool = param(True, unit="", doc="cross-coupling and back-EMF feed-forward on")
+    align_time_s: float = param(
+        0.15, unit="s", doc="sensorless start: alignment time", range=(0.0, 10.0)
+    )
+    align_current_pu: float = param(
+        0.8, unit="pu", doc="sensorless start: alignment d current", range=(0.0, 2.0)
+    )
+    if_current_pu: float = param(
+        1.0, unit="pu", doc="sensorless start: I-f ramp current", range=(0.0, 2.0)
+    )
+    if_accel_rpm_s: float | None = param(
+        None,
+        unit="rpm/s",
+        doc="sensorless start: I-f ramp acceleration",
+        range=(1.0, 1e5),
+        rule=_rated_rpm(IF_ACCEL_PU_S),
+    )
+    handover_rpm: float | None = param(
+        None,
+        unit="rpm",
+        doc="I-f -> observer handover speed",
+        range=(0.1, 1e5),
+        rule=_rated_rpm(HANDOVER_PU),
+    )
+    handback_rpm: float | None = param(
+        None,
+        unit="rpm",
+        doc="observer -> I-f hand-back speed (below handover)",
+        range=(0.0, 1e5),
+        rule=Rule(
+            "2/3 of the card's handover speed",
+            lambda card, cfg: HANDBACK_OF_HANDOVER * HANDOVER_PU * card.rated_speed_rpm,
+        ),
+    )
+    encoder_pll_hz: float | None = param(
+        None,
+        unit="Hz",
+        doc="encoder tracking-PLL bandwidth",
+        range=(1.0, 2000.0),
+        rule=Rule(f"0.15 x {_OF_CURRENT_BW}", lambda card, cfg: 0.15 * _card_bw(card)),
+    )
+    speed_feedback_lpf_hz: float | None = param(
+        None,
+        unit="Hz",
+        doc="display low-pass of the speed feedback (metrics only, not in the loop)",
+        range=(0.1, 2000.0),
+        rule=Rule(f"0.02 x {_OF_CURRENT_BW}", lambda card, cfg: 0.02 * _card_bw(card)),
+    )
     # the driving observer's speed path, for the speed-loop design (set from the scenario's
-    # driving observer; None: ideal feedback)
-    speed_observer_pll_hz: float | None = None
-    speed_observer_damping: float = 1.0
-    speed_observer_lpf_hz: float = 0.0
-    # robustness limit of the loop design: closed-loop peaking of every designed loop
-    peak_limit_db: float = 3.0
-    overcurrent_pu: float = 2.1  # instantaneous trip on any sampled phase current, pu of rated
-    overspeed_pu: float = 1.5
-    vdc_min_v: float | None = None
-    vdc_max_v: float | None = None
-    invalid_timeout_s: float = 0.05
-    handover_dwell_s: float = 0.3  # estimate valid and agreeing with the ramp this long (the
-    # paper observer's compensation frequency settles in ~0.3 s)
-    # the I-f ramp at the handover speed this long without a handover latches "start-up
-    # failed" (0: wait for ever); 5 s is many handover dwells and I-f load-angle periods
-    handover_timeout_s: float = 5.0
-    # handover criterion: 0 compares the estimate with the I-f ramp per sample (angle within
-    # 70 deg, speed within 30 %); > 0 compares them low-passed at this cut-off, so the rotor's
-    # undamped swing about the I-f vector (at light load) does not reset the dwell.  Keep it
-    # well below that swing's frequency sqrt(p K_t I_if / J)/(2 pi) (about 23 Hz on the default
-    # card at 0.6 pu) and its time constant below the dwell
-    handover_agree_lpf_hz: float = 0.0
-    i2t_limit_pu2s: float = 10.0  # I2t trip: integral of ((i/I_rated)^2-1) dt (150 % for 8 s)
-    r_hat_ohm: float | None = None
-    l_hat_h: float | None = None
-    lambda_hat_vs: float | None = None
-    # where the current loop runs: 'host' (the controller closes it on every sample and
-    # sends duties) or 'split' (the drive closes it every PWM period on the host's current
-    # references and angle; the host runs observers and speed loop at decimation x Ts)
-    mode: str = "host"
-    decimation: int = 1  # PWM periods per sample the host sees (split mode)
-    # split mode, in-process: the host's answer to sample j reaches the drive this many
-    # samples late (0: at the next sample boundary, the lockstep timing)
-    host_delay_samples: int = 0
-    # split mode: no reference this long while PWM is on -> PWM off, fault 'watchdog'
-    reference_timeout_s: float = 0.01
+    # driving observer)
+    speed_observer_pll_hz: float | None = param(
+        None,
+        unit="Hz",
+        doc="driving observer's PLL bandwidth assumed by the speed-loop design; "
+        "unset (0) = ideal feedback",
+        range=(0.1, 2000.0),
+        none_is_zero=True,
+    )
+    speed_observer_damping: float = param(
+        1.0, unit="-", doc="driving observer's PLL damping assumed by the design", range=(0.1, 5.0)
+    )
+    speed_observer_lpf_hz: float = param(
+        0.0,
+        unit="Hz",
+        doc="driving observer's speed LPF assumed by the design",
+        range=(0.0, 2000.0),
+    )
+    peak_limit_db: float = param(
+        3.0,
+        unit="dB",
+        doc="robustness limit of the loop design: closed-loop peaking of the current and "
+        "speed loops",
+        range=(0.1, 20.0),
+    )
+    overcurrent_pu: float = param(
+        2.1,
+        unit="pu",
+        doc="instantaneous over-current trip on any sampled phase current, per unit of rated "
+        "current",
+        range=(0.1, 5.0),
+    )
+    overspeed_pu: float = param(
+        1.5, unit="pu", doc="over-speed trip, per unit of rated speed", range=(0.1, 5.0)
+    )
+    vdc_min_v: float | None = param(
+        None,
+        unit="V",
+        doc="DC-bus under-voltage trip",
+        range=(0.0, 1e4),
+        rule=Rule(
+            f"{VDC_MIN_PU:g} x dc_bus_v", lambda card, cfg: round(VDC_MIN_PU * card.dc_bus_v, 9)
+        ),
+    )
+    vdc_max_v: float | None = param(
+        None,
+        unit="V",
+        doc="DC-bus over-voltage trip",
+        range=(1.0, 1e4),
+        rule=Rule(
+            f"{VDC_MAX_PU:g} x dc_bus_v", lambda card, cfg: round(VDC_MAX_PU * card.dc_bus_v, 9)
+        ),
+    )
+    invalid_timeout_s: float = param(
+        0.05,
+        unit="s",
+        doc="loss-of-lock trip: estimate invalid this long in closed loop",
+        range=(1e-4, 10.0),
+    )
+    # 0.3 s: the paper observer's compensation frequency settles in ~0.3 s
+    handover_dwell_s: float = param(
+        0.3,
+        unit="s",
+        doc="estimate valid and agreeing with the I-f ramp this long before handover",
+        range=(0.0, 10.0),
+    )
+    # 5 s is many handover dwells and I-f load-angle periods
+    handover_timeout_s: float = param(
+        5.0,
+        unit="s",
+        doc="I-f ramp at the handover speed this long without a handover latches 'start-up "
+        "failed' (0 = wait for ever)",
+        range=(0.0, 600.0),
+    )
+    # > 0 so the rotor's undamped swing about the I-f vector (at light load) does not reset
+    # the dwell.  Keep it well below that swing's frequency sqrt(p K_t I_if / J)/(2 pi) (about
+    # 23 Hz on the default card at 0.6 pu) and its time constant below the dwell
+    handover_agree_lpf_hz: float = param(
+        0.0,
+        unit="Hz",
+        doc="handover criterion: estimate vs I-f ramp (angle within 70 deg, speed within "
+        "30 %) compared low-passed at this cut-off (0 = per sample)",
+        range=(0.0, 1000.0),
+    )
+    i2t_limit_pu2s: float = param(
+        10.0,
+        unit="pu^2 s",
+        doc="I2t trip: integral of ((i/I_rated)^2 - 1) dt (10: 150 % for 8 s)",
+        range=(0.01, 1e4),
+    )
+    r_hat_ohm: float | None = param(
+        None,
+        unit="ohm",
+        doc="controller's stator resistance R^",
+        range=(0.0, 1e3),
+        card_default="resistance_ohm",
+    )
+    l_hat_h: float | None = param(
+        None,
+        unit="H",
+        doc="controller's stator inductance L^",
+        range=(1e-7, 10.0),
+        card_default="inductance_h",
+    )
+    lambda_hat_vs: float | None = param(
+        None,
+        unit="V s",
+        doc="controller's magnet flux lambda^",
+        range=(1e-6, 10.0),
+        card_default="flux_linkage_vs",
+    )
+    mode: str = param(
+        "host",
+        unit="",
+        doc="where the current loop runs: host (the controller closes it on every sample and "
+        "sends duties) or split (the drive closes it every PWM period on the host's current "
+        "references and angle; the host runs observers and speed loop at decimation x Ts)",
+        choices=CONTROL_MODES,
+        live=False,
+    )
+    decimation: int = param(
+        1,
+        unit="-",
+        doc="PWM periods per sample the host sees (split mode)",
+        range=(1, 64),
+        live=False,
+    )
+    host_delay_samples: int = param(
+        0,
+        unit="samples",
+        doc="split mode, in-process: the host's answer to sample j reaches the drive this "
+        "many samples late (0: at the next sample boundary, the lockstep timing)",
+        range=(0, 1000),
+        live=False,
+    )
+    reference_timeout_s: float = param(
+        0.01,
+        unit="s",
+        doc="split mode: the drive turns PWM off and latches 'watchdog' when no current "
+        "reference comes for this long",
+        range=(1e-4, 10.0),
+        limit=_TWO_SAMPLES,
+    )
 
     def resolved(self, card: MachineCard) -> ControllerConfig:
-        """A copy with every unset card-derived field filled in from `card` (CARD_RULES)."""
-        from dataclasses import replace
-
-        kw: dict[str, Any] = {}
-        # every rule reads the card only (never another field's explicit value), so setting
-        # one bandwidth does not move the others
-        cur = round(card_current_bandwidth_hz(card), 6)
-        if self.current_bandwidth_hz is None:
-            kw["current_bandwidth_hz"] = cur
-        if self.speed_bandwidth_hz is None:
-            kw["speed_bandwidth_hz"] = round(SPEED_OF_CURRENT_BW * cur, 6)
-        if self.encoder_pll_hz is None:
-            kw["encoder_pll_hz"] = 0.15 * cur
-        if self.speed_feedback_lpf_hz is None:
-            kw["speed_feedback_lpf_hz"] = 0.02 * cur
-        if self.vdc_min_v is None:
-            kw["vdc_min_v"] = round(VDC_MIN_PU * card.dc_bus_v, 9)
-        if self.vdc_max_v is None:
-            kw["vdc_max_v"] = round(VDC_MAX_PU * card.dc_bus_v, 9)
-        if self.handover_rpm is None:
-            kw["handover_rpm"] = HANDOVER_PU * card.rated_speed_rpm
-        if self.handback_rpm is None:
-            kw["handback_rpm"] = HANDBACK_OF_HANDOVER * HANDOVER_PU * card.rated_speed_rpm
-        if self.if_accel_rpm_s is None:
-            kw["if_accel_rpm_s"] = IF_ACCEL_PU_S * card.rated_speed_rpm
-        return replace(self, **kw) if kw else self
+        """A copy with every unset card-derived field filled in from `card` (card rules)."""
+        return resolve(self, card)
 
     def validate(self, src: str = "control") -> ControllerConfig:
         """Every field checked for type and range; the message names the key and rule."""
-        for key, (lo, hi) in CONTROL_RANGES.items():
-            v = getattr(self, key)
-            if v is None and (
-                key in CARD_RULES
-                or key.startswith(("r_hat", "l_hat", "lambda_hat", "speed_observer_pll"))
-            ):
-                continue
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not lo <= v <= hi:
-                raise ConfigError(f"{src}: {key} must be a number in [{lo}, {hi}], got {v!r}")
-        if not isinstance(self.decoupling, bool):
-            raise ConfigError(f"{src}: decoupling must be true/false, got {self.decoupling!r}")
+        check_fields(self, src)
         return self
 
     def design(self, card: MachineCard) -> LoopDesign:
@@ -214,6 +380,7 @@ class ControllerConfig:
         """The settings resolved on `card` and checked as a whole (ranges, and the rules
         that tie fields to each other or to the card); returns the resolved copy."""
         r = self.validate(src).resolved(card).validate(src)
+        check_limits(r, card, int(r.decimation), src)  # a quarter of PWM, two samples
         vdc_min_v, vdc_max_v = (
             required(r.vdc_min_v, "vdc_min_v"),
             required(r.vdc_max_v, "vdc_max_v"),
@@ -223,37 +390,15 @@ class ControllerConfig:
                 f"{src}: vdc_min_v {r.vdc_min_v:g} V must be below vdc_max_v "
                 f"{r.vdc_max_v:g} V (machine dc_bus_v {card.dc_bus_v:g} V)"
             )
-        if required(r.current_bandwidth_hz, "current_bandwidth_hz") > (
-            CURRENT_BW_MAX_OF_PWM * card.pwm_hz
-        ):
-            raise ConfigError(
-                f"{src}: current_bandwidth_hz {r.current_bandwidth_hz} must not "
-                f"exceed a quarter of the PWM frequency ({card.pwm_hz} Hz)"
-            )
-        if r.position_source not in ("encoder", "estimate"):
-            raise ConfigError(
-                f"{src}: position_source must be 'encoder' or 'estimate', got '{r.position_source}'"
-            )
         if required(r.handback_rpm, "handback_rpm") >= required(r.handover_rpm, "handover_rpm"):
             raise ConfigError(
                 f"{src}: handback_rpm ({r.handback_rpm:g}) must be below "
                 f"handover_rpm ({r.handover_rpm:g}) (hysteresis)"
             )
-        if r.mode not in CONTROL_MODES:
-            raise ConfigError(f"{src}: mode must be one of {list(CONTROL_MODES)}, got {r.mode!r}")
-        for key in ("decimation", "host_delay_samples"):
-            if float(getattr(r, key)) != int(getattr(r, key)):
-                raise ConfigError(f"{src}: {key} must be an integer, got {getattr(r, key)!r}")
         if r.mode == "host" and (r.decimation != 1 or r.host_delay_samples != 0):
             raise ConfigError(
                 f"{src}: decimation and host_delay_samples apply to mode 'split' "
                 f"(mode is 'host'; a decimated host-mode bench runs over CAN: docs/can.md)"
-            )
-        d = int(r.decimation)
-        if r.reference_timeout_s < 2 * d * card.ts_s:
-            raise ConfigError(
-                f"{src}: reference_timeout_s {r.reference_timeout_s:g} s must be at least "
-                f"two samples ({2 * d} PWM periods at decimation {d})"
             )
         return r
 
@@ -303,58 +448,9 @@ class ControllerConfig:
         return cp
 
 
-# the current loop's bandwidth is at most this share of the PWM frequency (check())
-CURRENT_BW_MAX_OF_PWM = 0.25
+# {field: text of the card rule that fills it when unset}
+CARD_RULES: dict[str, str] = rule_texts(ControllerConfig)
 
-
-def control_ranges(card: MachineCard, decimation: int = 1) -> dict[str, tuple[float, float]]:
-    """CONTROL_RANGES with the limits that follow from the card and the (fixed) decimation
-    -- the current loop's bandwidth at most a quarter of the PWM frequency, the reference
-    timeout at least two of the host's samples -- so that a node's parameter descriptors
-    say what check() accepts."""
-    out = dict(CONTROL_RANGES)
-    lo, hi = out["current_bandwidth_hz"]
-    out["current_bandwidth_hz"] = (lo, min(hi, CURRENT_BW_MAX_OF_PWM * card.pwm_hz))
-    lo, hi = out["reference_timeout_s"]
-    out["reference_timeout_s"] = (max(lo, 2 * int(decimation) * card.ts_s), hi)
-    return out
-
-
-CONTROL_RANGES: dict[str, tuple[float, float]] = {
-    "current_bandwidth_hz": (10.0, 5000.0),
-    "speed_bandwidth_hz": (0.1, 200.0),
-    "current_limit_pu": (0.05, 3.0),
-    "angle_advance_periods": (0.0, 3.0),
-    "deadtime_comp_s": (0.0, 1e-4),
-    "align_time_s": (0.0, 10.0),
-    "align_current_pu": (0.0, 2.0),
-    "if_current_pu": (0.0, 2.0),
-    "if_accel_rpm_s": (1.0, 1e5),
-    "handover_rpm": (0.1, 1e5),
-    "handback_rpm": (0.0, 1e5),
-    "encoder_pll_hz": (1.0, 2000.0),
-    "speed_feedback_lpf_hz": (0.1, 2000.0),
-    "overcurrent_pu": (0.1, 5.0),
-    "overspeed_pu": (0.1, 5.0),
-    "vdc_min_v": (0.0, 1e4),
-    "vdc_max_v": (1.0, 1e4),
-    "invalid_timeout_s": (1e-4, 10.0),
-    "handover_dwell_s": (0.0, 10.0),
-    "handover_timeout_s": (0.0, 600.0),
-    "handover_agree_lpf_hz": (0.0, 1000.0),
-    "i2t_limit_pu2s": (0.01, 1e4),
-    "r_hat_ohm": (0.0, 1e3),
-    "l_hat_h": (1e-7, 10.0),
-    "lambda_hat_vs": (1e-6, 10.0),
-    "speed_observer_pll_hz": (0.1, 2000.0),
-    "speed_observer_damping": (0.1, 5.0),
-    "speed_observer_lpf_hz": (0.0, 2000.0),
-    "peak_limit_db": (0.1, 20.0),
-    "decimation": (1, 64),
-    "host_delay_samples": (0, 1000),
-    "reference_timeout_s": (1e-4, 10.0),
-}
-CONTROL_MODES = ("host", "split")
 
 # the drive-side parameters of split mode: DRIVE_PARAM prm_id name (config/can/fluxdrive.dbc)
 # -> the controller row's field the drive reads (HEARTBEAT_TIMEOUT_S is the bridge's own)

@@ -1,0 +1,77 @@
+"""The config blocks a user writes (a scenario's `control:`, ...), each a dataclass declared
+with `fluxdrive.core.schema`, and the parameter tables of docs/configuration.md generated
+from them.
+
+A table sits in the page between two markers naming its block::
+
+    <!-- params control -->
+    | key | default | unit | ... |
+    <!-- /params -->
+
+`fill(text)` rewrites every table from the schema, `stale_tables()` lists the blocks whose
+table differs (the docs test fails on any); ``./fluxdrive docs params [--check]`` rewrites
+(or checks) the page.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import Any
+
+from fluxdrive.core import schema
+from fluxdrive.core.paths import ROOT
+from fluxdrive.drive.control.config import ControllerConfig
+from fluxdrive.drive.observers import ObserverConfig
+
+DOC_PAGE = ROOT / "docs" / "configuration.md"
+TABLE_RE = re.compile(r"(<!-- params (?P<key>\S+) -->\n)(?P<table>.*?)(<!-- /params -->)", re.S)
+
+
+@dataclass(frozen=True)
+class Block:
+    """One config block: its dataclass, how a value set in it is checked (as a scenario
+    would give it), and the fields that are not settings (free: no schema; free_text: a
+    string without a fixed list of choices)."""
+
+    cls: type
+    check: Callable[[dict[str, Any]], Any]
+    free: frozenset[str] = frozenset()
+    free_text: frozenset[str] = frozenset()
+
+
+BLOCKS: dict[str, Block] = {
+    "control": Block(ControllerConfig, lambda kw: replace(ControllerConfig(), **kw).validate()),
+    "observer": Block(
+        ObserverConfig,
+        lambda kw: replace(ObserverConfig(), **kw).validate(),
+        free=frozenset({"extra"}),  # a user variant's constructor keywords, its own
+        free_text=frozenset({"variant"}),  # a built-in name, module:Class or an entry point
+    ),
+}
+
+
+def docs_tables() -> dict[str, str]:
+    """{block key: its Markdown table} as the schema says it."""
+    return {key: schema.markdown_table(b.cls) + "\n" for key, b in BLOCKS.items()}
+
+
+def fill(text: str) -> str:
+    """`text` with every params table rewritten from the schema (an unknown key: ValueError)."""
+    tables = docs_tables()
+
+    def sub(m: re.Match) -> str:
+        key = m["key"]
+        if key not in tables:
+            raise ValueError(f"{DOC_PAGE.name}: no config block '{key}' (known: {sorted(tables)})")
+        return m.group(1) + tables[key] + m.group(4)
+
+    return TABLE_RE.sub(sub, text)
+
+
+def stale_tables() -> list[str]:
+    """The blocks whose table in the docs page is missing or differs from the schema."""
+    text = DOC_PAGE.read_text()
+    present = {m["key"]: m["table"] for m in TABLE_RE.finditer(text)}
+    return [k for k, t in docs_tables().items() if present.get(k) != t]

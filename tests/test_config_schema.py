@@ -1,0 +1,165 @@
+"""Every config field is declared once (`fluxdrive.core.schema`): its unit, range, text and
+card rule live on the dataclass field, and the validation, the ROS parameter descriptors the
+nodes declare and the parameter tables in the docs are read from there.
+
+- every field of every block has a unit, a doc text and a range (or choices);
+- validation takes exactly the schema's range: the ends accepted, just outside refused with
+  one line naming the key;
+- the descriptors the controller and observer nodes declare (started without a graph) carry
+  the schema's text, unit, range -- narrowed on the card -- and live/read-only;
+- docs/configuration.md holds the tables `schema.markdown_table` generates."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import re
+from pathlib import Path
+
+import pytest
+from fluxdrive.core import schema
+from fluxdrive.core.machine import ConfigError
+from fluxdrive.drive.config_blocks import BLOCKS, docs_tables, stale_tables
+from fluxdrive.drive.control import ControllerConfig
+from fluxdrive.drive.scenario import load_scenario, scenario_path
+
+ROOT = Path(__file__).resolve().parents[1]
+SCENARIO = str(ROOT / "config" / "scenarios" / "paper_2pct_150load.yaml")
+
+
+@pytest.mark.parametrize("key", sorted(BLOCKS))
+def test_every_field_has_unit_doc_and_range(key):
+    cls = BLOCKS[key].cls
+    specs = schema.specs(cls)
+    undeclared = {f.name for f in dataclasses.fields(cls)} - set(specs) - BLOCKS[key].free
+    assert not undeclared, f"{key}: fields without a schema: {sorted(undeclared)}"
+    defaults = {f.name: f.default for f in dataclasses.fields(cls)}
+    for name, s in specs.items():
+        assert s.doc.strip(), f"{key}.{name}: no doc"
+        if s.numeric:
+            assert s.unit, f"{key}.{name}: no unit ('-' when dimensionless)"
+            assert s.lo is not None and s.hi is not None and s.lo <= s.hi, f"{key}.{name}"
+            v = defaults[name]
+            assert v is None or s.lo <= v <= s.hi, f"{key}.{name}: default {v} off its range"
+            assert v is not None or s.optional, f"{key}.{name}: None without a meaning"
+        elif s.kind is str:
+            assert s.choices or name in BLOCKS[key].free_text, f"{key}.{name}: no choices"
+
+
+@pytest.mark.parametrize("key", sorted(BLOCKS))
+def test_validation_takes_exactly_the_schema_range(key):
+    block = BLOCKS[key]
+    for name, (lo, hi) in schema.ranges(block.cls).items():
+        spec = schema.specs(block.cls)[name]
+        for ok in (lo, hi):
+            block.check({name: ok})  # the ends are accepted
+        step = 1 if spec.kind is int else max(abs(hi), abs(lo), 1.0) * 1e-6
+        for bad in (lo - step, hi + step):
+            with pytest.raises(ConfigError) as err:
+                block.check({name: bad})
+            text = str(err.value)
+            assert name in text and "\n" not in text, text
+            assert f"[{lo}, {hi}]" in text or f"[{lo:g}, {hi:g}]" in text, text
+
+
+def test_card_limits_narrow_the_range_and_check_holds_to_them():
+    """current_bandwidth_hz at most a quarter of PWM, reference_timeout_s at least two host
+    samples: the schema's ranges on the card are what `check` accepts."""
+    sc = load_scenario(scenario_path("paper_2pct_150load"))
+    card = sc.machine
+    for d in (1, 4):
+        rng = schema.ranges(ControllerConfig, card, d)
+        assert rng["current_bandwidth_hz"][1] == 0.25 * card.pwm_hz
+        assert rng["reference_timeout_s"][0] == pytest.approx(2 * d * card.ts_s)
+        split = dataclasses.replace(sc.control, mode="split", decimation=d)
+        for name, (lo, hi) in rng.items():
+            for ok in (lo, hi):
+                dataclasses.replace(split, **{name: ok}).validate()
+        lo = rng["reference_timeout_s"][0]
+        with pytest.raises(ConfigError, match="reference_timeout_s .* two samples"):
+            dataclasses.replace(split, reference_timeout_s=lo * 0.99).check(card)
+        hi = rng["current_bandwidth_hz"][1]
+        dataclasses.replace(split, current_bandwidth_hz=hi).check(card)
+        with pytest.raises(ConfigError, match="current_bandwidth_hz .* quarter of the PWM"):
+            dataclasses.replace(split, current_bandwidth_hz=hi * 1.001).check(card)
+
+
+def test_card_rules_fill_what_is_unset():
+    """resolve() fills every None that has a rule, from the card; rules read the card only."""
+    card = load_scenario(scenario_path("paper_2pct_150load")).machine
+    r = ControllerConfig().resolved(card)
+    for name, s in schema.specs(ControllerConfig).items():
+        if s.rule is not None:
+            assert getattr(r, name) == s.rule.value(card, r), name
+    assert r.vdc_min_v == pytest.approx(0.28 * card.dc_bus_v)
+    assert r.handback_rpm == pytest.approx(2 / 3 * r.handover_rpm)
+    # an explicit value wins and moves no other field
+    r2 = ControllerConfig(current_bandwidth_hz=500.0).resolved(card)
+    assert r2.current_bandwidth_hz == 500.0 and r2.speed_bandwidth_hz == r.speed_bandwidth_hz
+
+
+def test_docs_tables_are_generated_from_the_schema():
+    """Every block has its table in the page, and it is the generated one (the staleness
+    check of the whole page is in tests/test_docs.py)."""
+    text = (ROOT / "docs" / "configuration.md").read_text()
+    for key, table in docs_tables().items():
+        assert f"<!-- params {key} -->\n{table}<!-- /params -->" in text, key
+    assert stale_tables() == []
+
+
+# --------------------------------------------------------------- the nodes' descriptors
+rclpy = pytest.importorskip("rclpy")
+
+
+@pytest.fixture(scope="module")
+def ctx():
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    c = rclpy.Context()
+    rclpy.init(context=c, domain_id=(os.getpid() * 13 + 5) % 100 + 100)
+    yield c
+    rclpy.shutdown(context=c)
+
+
+def _node(kind: str, ctx):
+    from rclpy.parameter import Parameter
+
+    ov = [Parameter("scenario", value=SCENARIO)]
+    if kind == "controller":
+        from foc_controller_node.node import ControllerNode
+
+        return ControllerNode("controller", context=ctx, parameter_overrides=ov)
+    from flux_observer_node.node import ObserverNode
+
+    return ObserverNode("flux_measured", namespace="/obs", context=ctx, parameter_overrides=ov)
+
+
+@pytest.mark.parametrize("kind", ["controller", "observer"])
+def test_node_descriptors_are_the_schema(kind, ctx):
+    """Every schema field a node declares: description starts with the field's doc and ends
+    with its unit, range = the schema's range on the scenario's card, read-only = not live."""
+    sc = load_scenario(scenario_path("paper_2pct_150load"))
+    cfg = sc.control if kind == "controller" else sc.observers["flux_measured"]
+    rng = schema.ranges(cfg, sc.machine, int(sc.control.decimation))
+    node = _node(kind, ctx)
+    try:
+        seen = 0
+        for name, s in schema.specs(cfg).items():
+            if not node.has_parameter(name):
+                continue
+            seen += 1
+            d = node.describe_parameter(name)
+            assert d.description.startswith(s.doc), (name, d.description)
+            if s.numeric:
+                unit = "-" if s.unit == "-" else s.unit
+                assert d.description.endswith(f"[{unit}]"), (name, d.description)
+                r = (d.floating_point_range or d.integer_range)[0]
+                lo, hi = rng[name]
+                lo = 0.0 if s.none_is_zero else lo
+                assert math.isclose(r.from_value, lo) and math.isclose(r.to_value, hi), name
+            if s.choices:
+                assert re.findall(r"[\w]+", d.additional_constraints)[2:] == list(s.choices)
+            assert d.read_only == (not s.live), name
+        assert seen >= 12
+    finally:
+        node.destroy_node()
