@@ -380,3 +380,28 @@ def test_bad_effect_entries_are_refused_with_the_key():
     }
     bench = parse_bench("x.yaml", raw, card)
     assert parse_bench("x.yaml", bench.to_raw(), card) == bench
+
+
+def test_experiment_bench_option_swaps_only_the_paper_bench(tmp_path):
+    """`experiment --bench FILE`: a scenario on the paper bench runs on FILE, an ideal one
+    stays ideal; a file that changes the observers' model is refused (they took theirs from
+    the paper bench when the scenario was loaded)."""
+    from fluxdrive.drive.scenario import CONFIG_DIR, load_bench_file
+    from fluxdrive.experiments.common import PAPER_BENCH, Ctx
+
+    effects = CONFIG_DIR / "benches" / "paper_lab_effects.yaml"
+    ctx = Ctx(bench=effects, echo=False)
+    on_paper = ctx.build(base="paper_2pct_150load")
+    ideal = ctx.build(base="paper_2pct_150load", bench={})
+    swapped, kept = ctx._on_bench((on_paper, ideal))
+    assert swapped.bench == load_bench_file(effects, on_paper.machine)
+    assert swapped.bench.inductance_saturation is not None
+    assert (
+        swapped.bench.voltage_capture
+        == load_bench_file(PAPER_BENCH, on_paper.machine).voltage_capture
+    )
+    assert kept.bench == BenchConfig()
+    other_model = tmp_path / "other_model.yaml"
+    other_model.write_text(f"base: {PAPER_BENCH}\nobserver_model: {{r_pu: 1.0}}\n")
+    with pytest.raises(ConfigError, match="observer_model"):
+        Ctx(bench=other_model, echo=False)._on_bench(on_paper)

@@ -1,4 +1,5 @@
-"""`./fluxdrive experiment NAME|all|list [--quick] [--graph] [--machine CARD] [--out DIR]`:
+"""`./fluxdrive experiment NAME|all|list [--quick] [--graph] [--machine CARD] [--bench FILE]
+[--out DIR]`:
 the paper's figures, and past them (fluxdrive.experiments).  `--graph` runs every scenario
 through the ROS node graph instead of in-process (entered through the graph tools, which pass
 their runner in)."""
@@ -14,9 +15,9 @@ from collections.abc import Callable
 from pathlib import Path
 
 from fluxdrive.core.machine import ConfigError, load_machine
-from fluxdrive.drive.scenario import REPO_ROOT, machine_path
+from fluxdrive.drive.scenario import REPO_ROOT, load_bench_file, machine_path
 from fluxdrive.experiments.claims import count, counts_line
-from fluxdrive.experiments.common import claim
+from fluxdrive.experiments.common import DEFAULT_MACHINE, claim
 from fluxdrive.experiments.registry import (
     experiments,
     fmt_verdict,
@@ -47,6 +48,13 @@ def _parser(names: list[str]) -> argparse.ArgumentParser:
         help="run every scenario through the ROS 2 node graph (lockstep, "
         "recorded to a bag and read back) instead of in-process; same numbers, "
         "about real time, one run at a time",
+    )
+    ap.add_argument(
+        "--bench",
+        type=Path,
+        help="run every scenario that uses the paper bench (config/benches/paper_lab.yaml) "
+        "on this bench file instead (ideal runs stay ideal; results go to "
+        "results/bench-<file> unless --out)",
     )
     ap.add_argument(
         "--machine",
@@ -90,7 +98,13 @@ def _run_all(
             sys.stderr.write(f"== experiment {n} ({time.perf_counter() - t0:.0f} s elapsed)\n")
             try:
                 res = run_experiment(
-                    n, out, args.quick, runner, machine=machine, graph_run=graph_run
+                    n,
+                    out,
+                    args.quick,
+                    runner,
+                    machine=machine,
+                    graph_run=graph_run,
+                    bench=args.bench,
                 )
             except Exception as exc:  # one broken experiment must not lose the others
                 res = _failed(n, args.quick, exc)
@@ -117,6 +131,9 @@ def main(argv: list[str], graph_run: Callable | None = None) -> int:
         card = load_machine(machine_path(args.machine))  # refuse a bad card up front
         machine = machine_path(args.machine).resolve()
         out = out or REPO_ROOT / "results" / f"experiments-{card.name}"
+    if args.bench:
+        load_bench_file(args.bench, load_machine(machine or DEFAULT_MACHINE))  # refuse early
+        out = out or REPO_ROOT / "results" / f"bench-{args.bench.stem}"
     if args.graph:
         if graph_run is None:
             raise ConfigError("--graph runs through the ROS graph: use ./fluxdrive experiment")

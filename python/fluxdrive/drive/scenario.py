@@ -477,12 +477,19 @@ def _speed_profile(src: str, raw: dict, card: MachineCard) -> np.ndarray:
     return _profile(src, "speed_rpm", raw.get("speed_rpm", 60.0))
 
 
-def _bench_raw(src: str, path: Path, v: Any) -> tuple[Any, str]:
+def load_bench_file(path: Path, card: MachineCard) -> BenchConfig:
+    """A bench file (the file a scenario's `bench:` names), validated for `card`."""
+    raw, src = _bench_raw(str(path), Path(path).resolve(), str(Path(path).resolve()))
+    return parse_bench(src, raw, card)
+
+
+def _bench_raw(src: str, path: Path, v: Any, depth: int = 0) -> tuple[Any, str]:
     """The `bench:` entry: a mapping, or the path of a bench file (relative to the scenario);
-    with the source its errors name (the scenario, and the bench file if there is one)."""
+    with the source its errors name (the scenario, and the bench file if there is one).  A
+    bench file may start from another one (`base: FILE`, relative to it) and add to it."""
     if not isinstance(v, str):
         return v, src
-    if not v or "\0" in v:
+    if not v or "\0" in v or depth > 4:
         raise ConfigError(f"{src}: 'bench' must be a mapping or a bench file's path, got {v!r}")
     bpath = Path(v) if Path(v).is_absolute() else path.parent / v
     try:
@@ -491,7 +498,14 @@ def _bench_raw(src: str, path: Path, v: Any) -> tuple[Any, str]:
         raise ConfigError(
             f"{src}: 'bench': cannot read bench file {bpath}: {yamlio.describe(exc)}"
         ) from exc
-    return ({} if raw is None else raw), f"{src}: bench file {bpath}"
+    where = f"{src}: bench file {bpath}"
+    if isinstance(raw, dict) and "base" in raw:
+        rest = {k: x for k, x in raw.items() if k != "base"}
+        base, _ = _bench_raw(where, bpath, raw["base"], depth + 1)
+        if not isinstance(base, dict):
+            raise ConfigError(f"{where}: 'base' must name a bench file of effects")
+        return {**base, **rest}, where
+    return ({} if raw is None else raw), where
 
 
 def _load_band(src: str, raw: dict) -> float:

@@ -15,17 +15,20 @@ from pathlib import Path
 from typing import Any
 
 from fluxdrive.analysis.metrics import compute
-from fluxdrive.core.machine import MachineCard, load_machine
+from fluxdrive.core.machine import ConfigError, MachineCard, load_machine
 from fluxdrive.drive.plant import deadtime_volt_second_loss
 from fluxdrive.drive.scenario import (
     CONFIG_DIR,
     Scenario,
+    load_bench_file,
     load_scenario,
     machine_path,
     scenario_path,
 )
 
 DEFAULT_MACHINE = CONFIG_DIR / "machines" / "default_spm.yaml"
+# the non-ideal bench of the paper scenarios (`experiment --bench FILE` runs FILE in its place)
+PAPER_BENCH = CONFIG_DIR / "benches" / "paper_lab.yaml"
 
 # flux_*: the flux observer that drives (paper_robust: the literal one loses lock, see the
 # paper_robust experiment); paper_*: the paper's observer exactly as written, in shadow
@@ -255,6 +258,7 @@ class Ctx:
     echo: bool = True
     machine: Path | None = None
     graph_run: Callable[[Scenario], Any] | None = None
+    bench: Path | None = None  # `experiment --bench`: this bench file replaces the paper bench
 
     @functools.cached_property
     def card(self) -> MachineCard:
@@ -296,7 +300,30 @@ class Ctx:
         from fluxdrive.study.runner import Progress, Runner
 
         runner = self.runner or Runner("serial")
-        return runner.map(fn, list(items), Progress(len(items), label=self.name, echo=self.echo))
+        items = [self._on_bench(x) for x in items]
+        return runner.map(fn, items, Progress(len(items), label=self.name, echo=self.echo))
+
+    def _on_bench(self, item: Any) -> Any:
+        """`item` (a scenario, or a job tuple holding some) with `--bench`'s file in place of
+        the paper bench wherever a scenario runs on the paper bench (ideal runs stay ideal).
+        The swapped file must keep the paper bench's observer model: the scenario's
+        observers took their R^, L^, lambda^ from it when it was loaded."""
+        if self.bench is None:
+            return item
+        if isinstance(item, tuple):
+            return tuple(self._on_bench(x) for x in item)
+        if not isinstance(item, Scenario):
+            return item
+        paper = load_bench_file(PAPER_BENCH, item.machine)
+        if item.bench != paper:
+            return item
+        swap = load_bench_file(self.bench, item.machine)
+        if swap.observer_model != paper.observer_model:
+            raise ConfigError(
+                f"{self.bench}: --bench must keep the paper bench's observer_model "
+                f"(start the file with 'base: {PAPER_BENCH.name}')"
+            )
+        return dataclasses.replace(item, bench=swap)
 
     def fig(self, fig, name: str) -> str:
         """Save a figure as out/NAME.png; its file name."""

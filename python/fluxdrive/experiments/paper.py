@@ -35,12 +35,12 @@ from fluxdrive.drive.observers import (
     observer_config,
 )
 from fluxdrive.drive.plant import FR_IA, FR_IB, FR_IC, TR_IA, TR_IB, TR_IC, TR_THETA_E, TR_WM
-from fluxdrive.drive.scenario import CONFIG_DIR
 from fluxdrive.experiments.claims import judge, registered
 from fluxdrive.experiments.common import (
     LITERAL,
     OBS4,
     OBS6,
+    PAPER_BENCH,
     START_PU,
     Ctx,
     plt,
@@ -49,7 +49,7 @@ from fluxdrive.experiments.common import (
 RPM = 2 * math.pi / 60
 # the non-ideal bench of the paper scenarios, for the experiments that build their own runs
 # (Figs. 13, 15-18 and paper_robust; Figs. 2-4 are the paper's own idealised simulations)
-BENCH = str(CONFIG_DIR / "benches" / "paper_lab.yaml")
+BENCH = str(PAPER_BENCH)
 
 
 def _win(r):

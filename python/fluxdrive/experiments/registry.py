@@ -63,9 +63,11 @@ def run_experiment(
     echo: bool = True,
     machine: Path | None = None,
     graph_run: Callable | None = None,
+    bench: Path | None = None,
 ) -> dict:
     """Run one experiment in a context of its own (card `machine`, None: the default card;
-    `graph_run`: every scenario through the node graph)."""
+    `graph_run`: every scenario through the node graph; `bench`: a bench file that replaces the
+    paper bench)."""
     fn, title = _registry()[name]
     ctx = Ctx(
         out=Path(out),
@@ -75,6 +77,7 @@ def run_experiment(
         echo=echo,
         machine=machine,
         graph_run=graph_run,
+        bench=bench,
     )
     t0 = time.perf_counter()
     res = fn(ctx)
