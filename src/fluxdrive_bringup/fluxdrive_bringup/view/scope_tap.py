@@ -49,6 +49,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from fluxdrive.drive.control import MODE_FAULT
 from fluxdrive.drive.scenario import REPO_ROOT
 from fluxdrive_ros.cdr import Decoder
 from fluxdrive_ros.intra import RawSubscription
@@ -63,14 +64,14 @@ DEG = 180.0 / math.pi
 ENVELOPE_QOS = 10  # depth: a slow scope skips periods, the graph never waits for it
 
 
-def decode_batch(dec: Decoder, msgs: list[bytes], paths: list[str]) -> np.ndarray:
-    """Columns `paths` of a list of serialised messages as an (n, len(paths)) float array,
-    decoded with numpy over the codec's fixed layout: one join and one frombuffer while the
-    layout holds (the strings of a publisher are constant; a controller's fault reason
-    changes its length), else one per layout."""
-    out = np.empty((len(msgs), len(paths)))
+def decode_batch(dec: Decoder, msgs: list[bytes], paths: list[str]) -> dict[str, np.ndarray]:
+    """Fields `paths` of a list of serialised messages, by their message path (`seq`,
+    `i_abc[0]`, ...): float arrays decoded with numpy over the codec's fixed layout, one join
+    and one frombuffer while the layout holds (the strings of a publisher are constant; a
+    controller's fault reason changes its length), else one per layout."""
+    out = np.empty((len(paths), len(msgs)))
     if not msgs:
-        return out
+        return dict(zip(paths, out, strict=True))
     buf = b"".join(msgs)
     n0 = len(msgs[0])
     if len(buf) == n0 * len(msgs) and len(msgs[-1]) == n0:
@@ -96,8 +97,8 @@ def decode_batch(dec: Decoder, msgs: list[bytes], paths: list[str]) -> np.ndarra
             )
         arr = np.frombuffer(data, dtype=hit[1])
         for j, name in enumerate(hit[2]):
-            out[ix, j] = arr[name]
-    return out
+            out[j, ix] = arr[name]
+    return dict(zip(paths, out, strict=True))
 
 
 _LAYOUTS: dict[tuple, tuple] = {}  # (codec, paths) -> (codec, numpy dtype, field names)
@@ -206,7 +207,7 @@ def page_json(cdr: bytes) -> tuple[str, dict]:
     spectra = {}
     for name, a in arrays.items():
         if name.startswith("spec/"):
-            spectra[name[5:]] = order_spectrum(a[0], a[1], a[2], a[3])
+            spectra[name[5:]] = order_spectrum(*a)  # its rows: order_spectrum's arguments
     if spectra:
         head["spectrum"] = spectra
     text = json.dumps(head, separators=(",", ":")).replace("NaN", "null")  # JSON has no NaN
@@ -285,7 +286,6 @@ DUTY_FIELDS = [("a", _col("duty[0]"), 4), ("b", _col("duty[1]"), 4), ("c", _col(
 DUTY_PATHS = ["seq", "duty[0]", "duty[1]", "duty[2]", "enable"]
 TRUTH_PATHS = ["seq", "theta_e", "omega_m"]
 EST_PATHS = ["seq", "theta_e", "omega_e", "flux_ab[0]", "flux_ab[1]"]
-MODE_FAULT = 4
 TRIGGERS = ("off", "param", "mode", "fault", "threshold")
 # a trigger may be seen after its sample: a parameter marker comes over DDS (up to a few
 # tap periods late on a loaded machine); the armed tap keeps this much more history
@@ -635,7 +635,7 @@ class ScopeTapNode(FluxNode):
                     continue
                 mtype = topics.T_MARKER if t == topics.MARKER else self.types[t]
                 dec = self.decoders.get(t) or Decoder(mtype)
-                seq = decode_batch(dec, lst, ["seq"])[:, 0]
+                seq = decode_batch(dec, lst, ["seq"])["seq"]
                 sel = np.flatnonzero((seq >= p["seq0"]) & (seq <= p["seq1"]))
                 if t == topics.MARKER:
                     sel = np.arange(len(lst))  # every marker of the window's periods
@@ -712,35 +712,32 @@ class ScopeTapNode(FluxNode):
         # controller state (+ the drive's mode and latched fault)
         st = msgs.get(topics.CONTROLLER_STATE, [])
         if st:
-            a = decode_batch(self.decoders[topics.CONTROLLER_STATE], st, STATE_PATHS)
-            c = dict(zip(STATE_PATHS, a.T, strict=True))
+            c = decode_batch(self.decoders[topics.CONTROLLER_STATE], st, STATE_PATHS)
             put("state", c["seq"], [(n, f(c), d) for n, f, d in STATE_FIELDS])
             doc["mode"] = int(c["mode"][-1])
             doc["fault"] = ""
-            if doc["mode"] == 4:  # MODE_FAULT: the reason string of the newest message
+            if doc["mode"] == MODE_FAULT:  # the reason string of the newest message
                 from fluxdrive_ros.cdr import read_strings
 
                 doc["fault"] = read_strings(topics.T_STATE, st[-1]).get("fault_reason", "")
             seq_max = max(seq_max, int(c["seq"].max()))
         fr = msgs.get(topics.FRAME, [])
         if fr:
-            a = decode_batch(self.decoders[topics.FRAME], fr, FRAME_PATHS)
-            c = dict(zip(FRAME_PATHS, a.T, strict=True))
+            c = decode_batch(self.decoders[topics.FRAME], fr, FRAME_PATHS)
             put("frame", c["seq"], [(n, f(c), d) for n, f, d in FRAME_FIELDS])
         du = msgs.get(topics.DUTY, [])
         if du:
-            a = decode_batch(self.decoders[topics.DUTY], du, DUTY_PATHS)
-            c = dict(zip(DUTY_PATHS, a.T, strict=True))
+            c = decode_batch(self.decoders[topics.DUTY], du, DUTY_PATHS)
             put("duty", c["seq"], [(n, f(c), d) for n, f, d in DUTY_FIELDS])
             doc["enable"] = bool(c["enable"][-1])
         tr = msgs.get(topics.TRUTH, [])
         if tr:
-            a = decode_batch(self.decoders[topics.TRUTH], tr, TRUTH_PATHS)
-            s = a[:, 0].astype(np.int64)
-            th = a[:, 1]
-            fields = [("theta", wrap_deg(th * DEG), 2), ("speed", a[:, 2] * RPM_PER_RAD_S, 2)]
+            c = decode_batch(self.decoders[topics.TRUTH], tr, TRUTH_PATHS)
+            s = c["seq"].astype(np.int64)
+            th, omega_m = c["theta_e"], c["omega_m"]
+            fields = [("theta", wrap_deg(th * DEG), 2), ("speed", omega_m * RPM_PER_RAD_S, 2)]
             if self.pole_pairs:
-                fields.append(("omega_e", a[:, 2] * self.pole_pairs, 3))
+                fields.append(("omega_e", omega_m * self.pole_pairs, 3))
             put("truth", s, fields)
             # keep the last two periods' truth for the estimates' error (they may lag)
             keep = max(0, len(self.truth_seq) - 4 * len(s))
@@ -754,16 +751,16 @@ class ScopeTapNode(FluxNode):
             em = msgs.get(topics.estimate_topic(name), [])
             if not em:
                 continue
-            a = decode_batch(self.decoders[topics.estimate_topic(name)], em, EST_PATHS)
-            s = a[:, 0].astype(np.int64)
+            c = decode_batch(self.decoders[topics.estimate_topic(name)], em, EST_PATHS)
+            s, th_est = c["seq"].astype(np.int64), c["theta_e"]
             err = np.full(len(s), np.nan)
             th_true = np.full(len(s), np.nan)
             if len(self.truth_seq):
                 ix = np.clip(np.searchsorted(self.truth_seq, s), 0, len(self.truth_seq) - 1)
                 hit = self.truth_seq[ix] == s
                 th_true[hit] = self.truth_th[ix[hit]]
-                err[hit] = wrap_deg((a[hit, 1] - th_true[hit]) * DEG)
-            fx, fy = a[:, 3], a[:, 4]
+                err[hit] = wrap_deg((th_est[hit] - th_true[hit]) * DEG)
+            fx, fy = c["flux_ab[0]"], c["flux_ab[1]"]
             # samples for the order spectra (computed by the scope server): the rotor angle
             # (true where known, else the estimate's), θ̃ [rad], λ̂α, truth flag
             known = np.isfinite(th_true)
@@ -771,7 +768,7 @@ class ScopeTapNode(FluxNode):
             self.spec.setdefault(name, []).append(
                 np.stack(
                     [
-                        np.where(known, th_true, a[:, 1])[o],
+                        np.where(known, th_true, th_est)[o],
                         np.radians(err)[o],
                         fx[o],
                         known[o].astype(float),
@@ -782,9 +779,9 @@ class ScopeTapNode(FluxNode):
                 f"est/{name}",
                 s,
                 [
-                    ("theta", wrap_deg(a[:, 1] * DEG), 2),
+                    ("theta", wrap_deg(th_est * DEG), 2),
                     ("err", err, 2),
-                    ("omega_e", a[:, 2], 3),
+                    ("omega_e", c["omega_e"], 3),
                     ("flux_mag", np.hypot(fx, fy) * 1e3, 4),
                 ],
             )
