@@ -292,137 +292,186 @@ TRIGGERS = ("off", "param", "mode", "fault", "threshold")
 TRIGGER_LATE_S = 0.5
 
 
+class _Envelopes:
+    """One period's streams: per stream its bucket indices and per-bucket min/max of each
+    field (`streams`, for the document) and the decoded fields (`cols`, for the triggers)."""
+
+    def __init__(self, bucket: int):
+        self.bucket = bucket
+        self.streams: dict[str, dict] = {}
+        self.cols: dict[str, tuple[np.ndarray, dict[str, np.ndarray]]] = {}
+
+    def put(self, stream: str, seq: np.ndarray, fields: list[tuple[str, np.ndarray, int]]) -> None:
+        """fields: (name, values, decimals shown)."""
+        if len(seq) == 0:
+            return
+        self.cols[stream] = (seq, {f[0]: f[1] for f in fields})
+        arr = np.stack([f[1] for f in fields], axis=1)
+        k, mn, mx = envelope(seq.astype(np.int64), arr, self.bucket)
+        q = [f[2] for f in fields]
+        # rows = buckets, columns = the fields in "n" order
+        self.streams[stream] = {"k": k, "n": [f[0] for f in fields], "dec": q, "lo": mn, "hi": mx}
+
+
+def live_params() -> list[P]:
+    """The tap's live parameters (set while it runs; see _apply)."""
+    return _envelope_params() + _capture_params()
+
+
+def _envelope_params() -> list[P]:
+    return [
+        P(
+            "period_s",
+            0.04,
+            "publish the envelopes this often (the page's data rate) (live)",
+            "s",
+            0.01,
+            1.0,
+        ),
+        P(
+            "bucket_samples",
+            20,
+            "samples per envelope bucket (min/max over each bucket; "
+            "the page shows one bucket per pixel or so) (live)",
+            "-",
+            1,
+            10000,
+        ),
+        P(
+            "locus_points",
+            60,
+            "flux-locus points per observer and period (every n-th sample) (live)",
+            "-",
+            1,
+            2000,
+        ),
+        P(
+            "max_cpu_share",
+            0.04,
+            "at most this share of its process's CPU time goes to "
+            "the envelopes: a period is skipped (its samples go into the next) while the "
+            "tap is over it, so a slow or loaded graph is not slowed further (live)",
+            "-",
+            0.001,
+            1.0,
+        ),
+        P(
+            "spectrum_window_s",
+            1.0,
+            "order spectra of θ̃ and λ̂α over this much of the newest samples, "
+            "renewed as often (live)",
+            "s",
+            0.1,
+            10.0,
+        ),
+    ]
+
+
+def _capture_params() -> list[P]:
+    return [
+        P(
+            "trigger",
+            "off",
+            "single-shot capture: arm on a parameter change (param), a mode change "
+            "such as the I-f -> observer handover (mode), a latched fault (fault) or "
+            "|trigger_field| >= trigger_level (threshold); every set re-arms (live)",
+            choices=TRIGGERS,
+        ),
+        P(
+            "trigger_field",
+            "state:i_q",
+            "threshold trigger: stream:field of the envelopes, e.g. state:i_q, "
+            "frame:i_a, est/flux_measured:err (live)",
+        ),
+        P("trigger_level", 1.0, "threshold trigger: level of |field| (live)", "", -1e9, 1e9),
+        P(
+            "capture_pre_s",
+            0.05,
+            "capture: full-rate samples kept before the trigger (live)",
+            "s",
+            0.0,
+            1.0,
+        ),
+        P(
+            "capture_post_s",
+            0.1,
+            "capture: full-rate samples after the trigger (live)",
+            "s",
+            0.001,
+            2.0,
+        ),
+        P(
+            "capture_dir",
+            str(REPO_ROOT / "bags" / "captures"),
+            "capture: directory of the capture bags (one per trigger) (live)",
+        ),
+    ]
+
+
+def fixed_params() -> list[P]:
+    """The tap's read-only parameters (fixed at start)."""
+    return [
+        P(
+            "observers",
+            [""],
+            "observer names to watch; empty: every /obs/<name>/estimate "
+            "topic the graph has (discovered)",
+            read_only=True,
+        ),
+        P(
+            "pole_pairs",
+            0,
+            "pole pairs of the machine (truth speed in electrical rad/s "
+            "next to the estimates); 0: from `scenario`, else not shown",
+            "-",
+            0,
+            64,
+            read_only=True,
+        ),
+        P(
+            "scenario",
+            "",
+            "scenario YAML (for pole_pairs and the sample period)",
+            read_only=True,
+        ),
+        P(
+            "ts_s",
+            1e-4,
+            "sample period (overridden by the scenario's)",
+            "s",
+            1e-7,
+            1.0,
+            read_only=True,
+        ),
+        P(
+            "exit_on_done",
+            True,
+            "end with the run (/drive/done), like the drive nodes, so "
+            "that a process it shares with them can exit",
+            read_only=True,
+        ),
+    ]
+
+
 class ScopeTapNode(FluxNode):
     def __init__(self, name: str = "scope_tap", namespace: str | None = None, **kw):
         super().__init__(name, namespace, **kw)
-        self.specs = [
-            P(
-                "period_s",
-                0.04,
-                "publish the envelopes this often (the page's data rate) (live)",
-                "s",
-                0.01,
-                1.0,
-            ),
-            P(
-                "bucket_samples",
-                20,
-                "samples per envelope bucket (min/max over each bucket; "
-                "the page shows one bucket per pixel or so) (live)",
-                "-",
-                1,
-                10000,
-            ),
-            P(
-                "locus_points",
-                60,
-                "flux-locus points per observer and period (every n-th sample) (live)",
-                "-",
-                1,
-                2000,
-            ),
-            P(
-                "max_cpu_share",
-                0.04,
-                "at most this share of its process's CPU time goes to "
-                "the envelopes: a period is skipped (its samples go into the next) while the "
-                "tap is over it, so a slow or loaded graph is not slowed further (live)",
-                "-",
-                0.001,
-                1.0,
-            ),
-            P(
-                "spectrum_window_s",
-                1.0,
-                "order spectra of θ̃ and λ̂α over this much of the newest samples, "
-                "renewed as often (live)",
-                "s",
-                0.1,
-                10.0,
-            ),
-            P(
-                "trigger",
-                "off",
-                "single-shot capture: arm on a parameter change (param), a mode change "
-                "such as the I-f -> observer handover (mode), a latched fault (fault) or "
-                "|trigger_field| >= trigger_level (threshold); every set re-arms (live)",
-                choices=TRIGGERS,
-            ),
-            P(
-                "trigger_field",
-                "state:i_q",
-                "threshold trigger: stream:field of the envelopes, e.g. state:i_q, "
-                "frame:i_a, est/flux_measured:err (live)",
-            ),
-            P("trigger_level", 1.0, "threshold trigger: level of |field| (live)", "", -1e9, 1e9),
-            P(
-                "capture_pre_s",
-                0.05,
-                "capture: full-rate samples kept before the trigger (live)",
-                "s",
-                0.0,
-                1.0,
-            ),
-            P(
-                "capture_post_s",
-                0.1,
-                "capture: full-rate samples after the trigger (live)",
-                "s",
-                0.001,
-                2.0,
-            ),
-            P(
-                "capture_dir",
-                str(REPO_ROOT / "bags" / "captures"),
-                "capture: directory of the capture bags (one per trigger) (live)",
-            ),
-        ]
-        pv = declare(self, self.specs)
-        fixed = declare(
-            self,
-            [
-                P(
-                    "observers",
-                    [""],
-                    "observer names to watch; empty: every /obs/<name>/estimate "
-                    "topic the graph has (discovered)",
-                    read_only=True,
-                ),
-                P(
-                    "pole_pairs",
-                    0,
-                    "pole pairs of the machine (truth speed in electrical rad/s "
-                    "next to the estimates); 0: from `scenario`, else not shown",
-                    "-",
-                    0,
-                    64,
-                    read_only=True,
-                ),
-                P(
-                    "scenario",
-                    "",
-                    "scenario YAML (for pole_pairs and the sample period)",
-                    read_only=True,
-                ),
-                P(
-                    "ts_s",
-                    1e-4,
-                    "sample period (overridden by the scenario's)",
-                    "s",
-                    1e-7,
-                    1.0,
-                    read_only=True,
-                ),
-                P(
-                    "exit_on_done",
-                    True,
-                    "end with the run (/drive/done), like the drive nodes, so "
-                    "that a process it shares with them can exit",
-                    read_only=True,
-                ),
-            ],
+        self.specs = live_params()
+        self.pv = declare(self, self.specs)
+        fixed = declare(self, fixed_params())
+        self._timing(fixed)
+        self._init_state()
+        self.pub = self.create_publisher(UInt8MultiArray, topics.SCOPE_ENVELOPE, ENVELOPE_QOS)
+        self._subscribe_all(fixed)
+        on_set(self, self.specs, self._apply)
+        self.timer = self.create_timer(self.pv["period_s"], self._tick)
+        self.get_logger().info(
+            f"scope tap on {len(self.subs)} topics, envelopes every "
+            f"{self.pv['period_s'] * 1e3:.0f} ms on {topics.SCOPE_ENVELOPE}"
         )
-        self.pv = pv
+
+    def _timing(self, fixed: dict) -> None:
+        """Sample period and pole pairs: the scenario's when one is given."""
         self.ts_s = fixed["ts_s"]
         self.pole_pairs = fixed["pole_pairs"]
         if fixed["scenario"]:
@@ -431,6 +480,8 @@ class ScopeTapNode(FluxNode):
             card = load_scenario(scenario_path(fixed["scenario"])).machine
             self.ts_s = card.ts_s
             self.pole_pairs = self.pole_pairs or card.pole_pairs
+
+    def _init_state(self) -> None:
         # the drive this tap belongs to (`__ns:=/a`: /a/drive/frame ...); the tap's keys and
         # its capture bags use the canonical names, as the recorder's bags do
         self.ns = topics.drive_namespace(self).rstrip("/")
@@ -447,7 +498,7 @@ class ScopeTapNode(FluxNode):
         self.cpu_proc0 = 0.0  # process CPU time when it became active
         self.skipped = 0
         self.types: dict[str, str] = {}
-        self.spec: dict[str, list[np.ndarray]] = {}  # observer -> [rows (5, n) per period]
+        self.spec: dict[str, list[np.ndarray]] = {}  # observer -> [rows (4, n) per period]
         self.spec_t0 = time.monotonic()
         self.last_mode: int | None = None
         self.markers: list[bytes] = []  # ParameterMarker CDR of this period
@@ -459,7 +510,10 @@ class ScopeTapNode(FluxNode):
         self.last_capture: dict[str, Any] | None = None
         self.candidates: list[tuple[int, str]] = []
         self.marker_raw: list[bytes] = []
-        self.pub = self.create_publisher(UInt8MultiArray, topics.SCOPE_ENVELOPE, ENVELOPE_QOS)
+
+    def _subscribe_all(self, fixed: dict) -> None:
+        """The per-sample topics, the observers (named, else discovered), the run's end and
+        the parameter markers."""
         for topic, mtype in (
             (topics.FRAME, topics.T_FRAME),
             (topics.CONTROLLER_STATE, topics.T_STATE),
@@ -486,12 +540,6 @@ class ScopeTapNode(FluxNode):
             self._on_marker,
             qos.MARKERS,
             raw=True,
-        )
-        on_set(self, self.specs, self._apply)
-        self.timer = self.create_timer(pv["period_s"], self._tick)
-        self.get_logger().info(
-            f"scope tap on {len(self.subs)} topics, envelopes every "
-            f"{pv['period_s'] * 1e3:.0f} ms on {topics.SCOPE_ENVELOPE}"
         )
 
     def _apply(self, changes: dict) -> str:
@@ -683,112 +731,116 @@ class ScopeTapNode(FluxNode):
 
     def envelopes(self, msgs: dict[str, list[bytes]], dt: float) -> dict:
         """The envelope document of one period's messages (see the module doc)."""
-        b = int(self.pv["bucket_samples"])
-        cols: dict[str, tuple[np.ndarray, dict[str, np.ndarray]]] = {}
+        env = _Envelopes(int(self.pv["bucket_samples"]))
         self.marker_raw = msgs.get(topics.MARKER, [])
-        streams: dict[str, dict] = {}
         doc: dict = {
             "v": 1,
             "ts_s": self.ts_s,
-            "bucket": b,
+            "bucket": env.bucket,
             "wall": time.time(),
             "rates": {t: round(len(m) / dt, 1) for t, m in msgs.items() if t != topics.MARKER},
             "observers": list(self.est_names),
-            "streams": streams,
+            "streams": env.streams,
             "locus": {},
         }
-        seq_max = -1
-
-        def put(stream: str, seq: np.ndarray, fields: list[tuple[str, np.ndarray, int]]) -> None:
-            if len(seq) == 0:
-                return
-            cols[stream] = (seq, {f[0]: f[1] for f in fields})
-            arr = np.stack([f[1] for f in fields], axis=1)
-            k, mn, mx = envelope(seq.astype(np.int64), arr, b)
-            q = [f[2] for f in fields]
-            # rows = buckets, columns = the fields in "n" order
-            streams[stream] = {"k": k, "n": [f[0] for f in fields], "dec": q, "lo": mn, "hi": mx}
-
-        # controller state (+ the drive's mode and latched fault)
-        st = msgs.get(topics.CONTROLLER_STATE, [])
-        if st:
-            c = decode_batch(self.decoders[topics.CONTROLLER_STATE], st, STATE_PATHS)
-            put("state", c["seq"], [(n, f(c), d) for n, f, d in STATE_FIELDS])
-            doc["mode"] = int(c["mode"][-1])
-            doc["fault"] = ""
-            if doc["mode"] == MODE_FAULT:  # the reason string of the newest message
-                from fluxdrive_ros.cdr import read_strings
-
-                doc["fault"] = read_strings(topics.T_STATE, st[-1]).get("fault_reason", "")
-            seq_max = max(seq_max, int(c["seq"].max()))
+        seq_max = self._state_envelope(msgs.get(topics.CONTROLLER_STATE, []), env, doc)
         fr = msgs.get(topics.FRAME, [])
         if fr:
             c = decode_batch(self.decoders[topics.FRAME], fr, FRAME_PATHS)
-            put("frame", c["seq"], [(n, f(c), d) for n, f, d in FRAME_FIELDS])
+            env.put("frame", c["seq"], [(n, f(c), d) for n, f, d in FRAME_FIELDS])
         du = msgs.get(topics.DUTY, [])
         if du:
             c = decode_batch(self.decoders[topics.DUTY], du, DUTY_PATHS)
-            put("duty", c["seq"], [(n, f(c), d) for n, f, d in DUTY_FIELDS])
+            env.put("duty", c["seq"], [(n, f(c), d) for n, f, d in DUTY_FIELDS])
             doc["enable"] = bool(c["enable"][-1])
-        tr = msgs.get(topics.TRUTH, [])
-        if tr:
-            c = decode_batch(self.decoders[topics.TRUTH], tr, TRUTH_PATHS)
-            s = c["seq"].astype(np.int64)
-            th, omega_m = c["theta_e"], c["omega_m"]
-            fields = [("theta", wrap_deg(th * DEG), 2), ("speed", omega_m * RPM_PER_RAD_S, 2)]
-            if self.pole_pairs:
-                fields.append(("omega_e", omega_m * self.pole_pairs, 3))
-            put("truth", s, fields)
-            # keep the last two periods' truth for the estimates' error (they may lag)
-            keep = max(0, len(self.truth_seq) - 4 * len(s))
-            self.truth_seq = np.r_[self.truth_seq[keep:], s]
-            self.truth_th = np.r_[self.truth_th[keep:], th]
-            o = np.argsort(self.truth_seq, kind="stable")
-            self.truth_seq, self.truth_th = self.truth_seq[o], self.truth_th[o]
-            seq_max = max(seq_max, int(s.max()))
-        step = int(self.pv["locus_points"])
+        seq_max = max(seq_max, self._truth_envelope(msgs.get(topics.TRUTH, []), env))
         for name in self.est_names:
             em = msgs.get(topics.estimate_topic(name), [])
-            if not em:
-                continue
-            c = decode_batch(self.decoders[topics.estimate_topic(name)], em, EST_PATHS)
-            s, th_est = c["seq"].astype(np.int64), c["theta_e"]
-            err = np.full(len(s), np.nan)
-            th_true = np.full(len(s), np.nan)
-            if len(self.truth_seq):
-                ix = np.clip(np.searchsorted(self.truth_seq, s), 0, len(self.truth_seq) - 1)
-                hit = self.truth_seq[ix] == s
-                th_true[hit] = self.truth_th[ix[hit]]
-                err[hit] = wrap_deg((th_est[hit] - th_true[hit]) * DEG)
-            fx, fy = c["flux_ab[0]"], c["flux_ab[1]"]
-            # samples for the order spectra (computed by the scope server): the rotor angle
-            # (true where known, else the estimate's), θ̃ [rad], λ̂α, truth flag
-            known = np.isfinite(th_true)
-            o = np.argsort(s, kind="stable")
-            self.spec.setdefault(name, []).append(
-                np.stack(
-                    [
-                        np.where(known, th_true, th_est)[o],
-                        np.radians(err)[o],
-                        fx[o],
-                        known[o].astype(float),
-                    ]
-                )
-            )
-            put(
-                f"est/{name}",
-                s,
-                [
-                    ("theta", wrap_deg(th_est * DEG), 2),
-                    ("err", err, 2),
-                    ("omega_e", c["omega_e"], 3),
-                    ("flux_mag", np.hypot(fx, fy) * 1e3, 4),
-                ],
-            )
-            n = max(1, len(s) // step)
-            doc["locus"][name] = np.stack([fx[::n], fy[::n]]) * 1e3
+            if em:
+                self._estimate_envelope(name, em, env, doc)
         doc["seq"] = seq_max
-        # the newest spectrum_window_s of samples (sim time), sent at most once a wall second
+        self._spectrum_samples(doc)
+        if self.marker_raw:
+            doc["markers"] = self._marker_list()
+        self._triggers(env.cols)
+        return doc
+
+    def _state_envelope(self, st: list[bytes], env: _Envelopes, doc: dict) -> int:
+        """Controller state, the drive's mode and latched fault; the newest seq (-1: none)."""
+        if not st:
+            return -1
+        c = decode_batch(self.decoders[topics.CONTROLLER_STATE], st, STATE_PATHS)
+        env.put("state", c["seq"], [(n, f(c), d) for n, f, d in STATE_FIELDS])
+        doc["mode"] = int(c["mode"][-1])
+        doc["fault"] = ""
+        if doc["mode"] == MODE_FAULT:  # the reason string of the newest message
+            from fluxdrive_ros.cdr import read_strings
+
+            doc["fault"] = read_strings(topics.T_STATE, st[-1]).get("fault_reason", "")
+        return int(c["seq"].max())
+
+    def _truth_envelope(self, tr: list[bytes], env: _Envelopes) -> int:
+        """The true angle and speed; kept a while for the estimates' error. The newest seq."""
+        if not tr:
+            return -1
+        c = decode_batch(self.decoders[topics.TRUTH], tr, TRUTH_PATHS)
+        s = c["seq"].astype(np.int64)
+        th, omega_m = c["theta_e"], c["omega_m"]
+        fields = [("theta", wrap_deg(th * DEG), 2), ("speed", omega_m * RPM_PER_RAD_S, 2)]
+        if self.pole_pairs:
+            fields.append(("omega_e", omega_m * self.pole_pairs, 3))
+        env.put("truth", s, fields)
+        # keep the last two periods' truth for the estimates' error (they may lag)
+        keep = max(0, len(self.truth_seq) - 4 * len(s))
+        self.truth_seq = np.r_[self.truth_seq[keep:], s]
+        self.truth_th = np.r_[self.truth_th[keep:], th]
+        o = np.argsort(self.truth_seq, kind="stable")
+        self.truth_seq, self.truth_th = self.truth_seq[o], self.truth_th[o]
+        return int(s.max())
+
+    def _estimate_envelope(self, name: str, em: list[bytes], env: _Envelopes, doc: dict) -> None:
+        """One observer's estimate, its error against the truth kept, its flux locus, and
+        its samples for the order spectra."""
+        c = decode_batch(self.decoders[topics.estimate_topic(name)], em, EST_PATHS)
+        s, th_est = c["seq"].astype(np.int64), c["theta_e"]
+        err = np.full(len(s), np.nan)
+        th_true = np.full(len(s), np.nan)
+        if len(self.truth_seq):
+            ix = np.clip(np.searchsorted(self.truth_seq, s), 0, len(self.truth_seq) - 1)
+            hit = self.truth_seq[ix] == s
+            th_true[hit] = self.truth_th[ix[hit]]
+            err[hit] = wrap_deg((th_est[hit] - th_true[hit]) * DEG)
+        fx, fy = c["flux_ab[0]"], c["flux_ab[1]"]
+        # samples for the order spectra (computed by the scope server): the rotor angle
+        # (true where known, else the estimate's), θ̃ [rad], λ̂α, truth flag
+        known = np.isfinite(th_true)
+        o = np.argsort(s, kind="stable")
+        self.spec.setdefault(name, []).append(
+            np.stack(
+                [
+                    np.where(known, th_true, th_est)[o],
+                    np.radians(err)[o],
+                    fx[o],
+                    known[o].astype(float),
+                ]
+            )
+        )
+        env.put(
+            f"est/{name}",
+            s,
+            [
+                ("theta", wrap_deg(th_est * DEG), 2),
+                ("err", err, 2),
+                ("omega_e", c["omega_e"], 3),
+                ("flux_mag", np.hypot(fx, fy) * 1e3, 4),
+            ],
+        )
+        n = max(1, len(s) // int(self.pv["locus_points"]))
+        doc["locus"][name] = np.stack([fx[::n], fy[::n]]) * 1e3
+
+    def _spectrum_samples(self, doc: dict) -> None:
+        """The newest spectrum_window_s of samples (sim time), sent at most once a wall
+        second (`arrays` "spec/<observer>")."""
         n_win = int(round(self.pv["spectrum_window_s"] / self.ts_s))
         for rows in self.spec.values():
             if len(rows) > 1 and sum(r.shape[1] for r in rows[1:]) >= n_win:
@@ -800,24 +852,25 @@ class ScopeTapNode(FluxNode):
             doc["arrays"] = {
                 f"spec/{n}": np.concatenate(self.spec.pop(n), axis=1)[:, -n_win:] for n in full
             }
-        if self.marker_raw:
-            from rclpy.serialization import deserialize_message
 
-            cls = topics.msg_class(topics.T_MARKER)
-            doc["markers"] = []
-            for raw in self.marker_raw:
-                m = deserialize_message(raw, cls)
-                doc["markers"].append(
-                    {
-                        "seq": int(m.seq),
-                        "node": m.node,
-                        "name": m.name,
-                        "value": m.value,
-                        "ok": bool(m.successful),
-                    }
-                )
-        self._triggers(cols)
-        return doc
+    def _marker_list(self) -> list[dict]:
+        """This period's parameter markers, for the page."""
+        from rclpy.serialization import deserialize_message
+
+        cls = topics.msg_class(topics.T_MARKER)
+        out = []
+        for raw in self.marker_raw:
+            m = deserialize_message(raw, cls)
+            out.append(
+                {
+                    "seq": int(m.seq),
+                    "node": m.node,
+                    "name": m.name,
+                    "value": m.value,
+                    "ok": bool(m.successful),
+                }
+            )
+        return out
 
     def _on_done(self, _msg) -> None:
         # one more period for the last samples, then done
