@@ -634,6 +634,15 @@ class Launcher:
             float(node_parameters(n).get("progress_interval_s", 0.5) or 0) > 0 for n in plants
         )
         self.preflight()
+        from fluxdrive_bringup.launch.kernels import KERNEL_NODES, warm_for_graph
+
+        # no node compiles on its first frame (a silent stall otherwise); the start phase
+        # (start_timeout_s) begins with the processes
+        warm_for_graph(
+            (node_parameters(n).get("scenario") for n in self.g.nodes if n.node in KERNEL_NODES),
+            lambda text: self._emit(f"[launch] {text}"),
+        )
+        self._t_start = time.monotonic()
         env = self.env()
         if self._restart_transport(dict(env)) and not self.quiet:
             self._emit(
