@@ -30,6 +30,7 @@ from dataclasses import dataclass, fields, replace
 from typing import Any
 
 from fluxdrive.core.machine import ConfigError, MachineCard, refuse_unknown_keys
+from fluxdrive.core.schema import Limit, Spec, check_value, param, ranges, specs
 
 
 @dataclass(frozen=True)
@@ -43,13 +44,41 @@ class VoltageCapture:
     jitter, floored to the timer tick.  A pulse whose ramp never reaches the threshold, or
     whose registered width is below `min_pulse_s`, is not seen at all."""
 
-    threshold_pu: float = 0.0
-    edge_time_s: float = 0.0
-    delay_rise_s: float = 0.0
-    delay_fall_s: float = 0.0
-    min_pulse_s: float = 0.0
-    jitter_s: float = 0.0
-    resolution_bits: int | None = None  # None: the machine card's capture_bits
+    threshold_pu: float = param(
+        0.0,
+        unit="pu",
+        doc="comparator threshold, per unit of the card's DC bus",
+        range=(0.0, 0.99),
+        live=False,
+    )
+    edge_time_s: float = param(
+        0.0, unit="s", doc="switching edge: 0 -> 100 % of the bus", range=(0.0, 1e-5), live=False
+    )
+    delay_rise_s: float = param(
+        0.0, unit="s", doc="link delay of a pulse start", range=(0.0, 1e-5), live=False
+    )
+    delay_fall_s: float = param(
+        0.0, unit="s", doc="link delay of a pulse end", range=(0.0, 1e-5), live=False
+    )
+    min_pulse_s: float = param(
+        0.0,
+        unit="s",
+        doc="shortest registered pulse (a shorter one is not seen)",
+        range=(0.0, 1e-5),
+        live=False,
+    )
+    jitter_s: float = param(
+        0.0, unit="s", doc="rms Gaussian jitter of a latched edge", range=(0.0, 1e-6), live=False
+    )
+    resolution_bits: int | None = param(
+        None,
+        unit="bits",
+        doc="capture timer resolution over the PWM period",
+        range=(4, 30),
+        card_default="capture_bits",
+        live=False,
+        kind=int,
+    )
 
     def width_error_s(self) -> float:
         """Registered minus true width of a full-height pulse: the threshold crossing moves
@@ -63,17 +92,40 @@ class VoltageCapture:
 class ObserverModel:
     """Observer model parameters relative to the machine card (1.0 = exact)."""
 
-    r_pu: float = 1.0
-    l_pu: float = 1.0
-    lambda_pu: float = 1.0
+    r_pu: float = param(
+        1.0, unit="pu", doc="observers' R^ per unit of the card's", range=(0.0, 10.0), live=False
+    )
+    l_pu: float = param(
+        1.0, unit="pu", doc="observers' L^ per unit of the card's", range=(0.01, 10.0), live=False
+    )
+    lambda_pu: float = param(
+        1.0,
+        unit="pu",
+        doc="observers' lambda^ per unit of the card's",
+        range=(0.01, 10.0),
+        live=False,
+    )
 
 
 @dataclass(frozen=True)
 class Thermal:
     """Winding temperature: ambient and the temperature the run starts at [deg C]."""
 
-    ambient_c: float = 25.0
-    initial_winding_c: float = 25.0
+    ambient_c: float = param(
+        25.0, unit="degC", doc="ambient temperature", range=(-60.0, 200.0), live=False
+    )
+    initial_winding_c: float = param(
+        25.0,
+        unit="degC",
+        doc="winding temperature at the start of the run",
+        range=(-60.0, 250.0),
+        live=False,
+    )
+
+
+# exponents of the flux map: 0..10; the pu gains 0..10 (10: the current 11x the linear one
+# at the rated-current flux, far beyond any real machine)
+_FLUX_MAP_RANGE = (0.0, 10.0)
 
 
 @dataclass(frozen=True)
@@ -87,13 +139,35 @@ class InductanceSaturation:
     (S, T, U, V = the exponents), the gradient of one magnetic energy, so the incremental
     inductances are reciprocal.  All pu zero: the linear machine."""
 
-    d_pu: float = 0.0
-    d_exponent: float = 2.0
-    q_pu: float = 0.0
-    q_exponent: float = 2.0
-    cross_pu: float = 0.0
-    cross_exponent_d: float = 1.0
-    cross_exponent_q: float = 0.0
+    d_pu: float = param(
+        0.0, unit="pu", doc="d-axis saturation gain", range=_FLUX_MAP_RANGE, live=False
+    )
+    d_exponent: float = param(
+        2.0, unit="-", doc="d-axis saturation exponent S", range=_FLUX_MAP_RANGE, live=False
+    )
+    q_pu: float = param(
+        0.0, unit="pu", doc="q-axis saturation gain", range=_FLUX_MAP_RANGE, live=False
+    )
+    q_exponent: float = param(
+        2.0, unit="-", doc="q-axis saturation exponent T", range=_FLUX_MAP_RANGE, live=False
+    )
+    cross_pu: float = param(
+        0.0, unit="pu", doc="cross-saturation gain", range=_FLUX_MAP_RANGE, live=False
+    )
+    cross_exponent_d: float = param(
+        1.0,
+        unit="-",
+        doc="cross-saturation exponent U (of the d flux)",
+        range=_FLUX_MAP_RANGE,
+        live=False,
+    )
+    cross_exponent_q: float = param(
+        0.0,
+        unit="-",
+        doc="cross-saturation exponent V (of the q flux)",
+        range=_FLUX_MAP_RANGE,
+        live=False,
+    )
 
     @property
     def on(self) -> bool:
@@ -104,8 +178,22 @@ class InductanceSaturation:
 class PhaseAsymmetry:
     """Per-phase winding resistance and (synchronous) inductance relative to the card."""
 
-    resistance_pu: tuple[float, float, float] = (1.0, 1.0, 1.0)
-    inductance_pu: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    resistance_pu: tuple[float, float, float] = param(
+        (1.0, 1.0, 1.0),
+        unit="pu",
+        doc="winding resistance of phases a, b, c per unit of the card's",
+        range=(0.1, 10.0),
+        live=False,
+        kind=float,
+    )
+    inductance_pu: tuple[float, float, float] = param(
+        (1.0, 1.0, 1.0),
+        unit="pu",
+        doc="inductance of phases a, b, c per unit of the card's",
+        range=(0.1, 10.0),
+        live=False,
+        kind=float,
+    )
 
 
 @dataclass(frozen=True)
@@ -113,22 +201,67 @@ class SwitchingNoise:
     """A PWM voltage edge rings into the current sensors: a sample taken dt after an edge
     (dt < window_s) gets Gaussian noise of rms ringing_a exp(-dt/decay_s) per edge."""
 
-    ringing_a: float = 0.0
-    window_s: float = 0.0
-    decay_s: float = 1e-6
+    ringing_a: float = param(
+        0.0,
+        unit="A",
+        doc="rms current-sample noise of an edge just before the sample",
+        range=(0.0, 100.0),
+        live=False,
+    )
+    window_s: float = param(
+        0.0,
+        unit="s",
+        doc="an edge this close before the sample disturbs it",
+        range=(0.0, 1e-4),
+        live=False,
+    )
+    decay_s: float = param(
+        1e-6, unit="s", doc="decay time of the ringing", range=(1e-9, 1e-4), live=False
+    )
 
 
 @dataclass(frozen=True)
 class BenchConfig:
     voltage_capture: VoltageCapture | None = None
-    current_sample_skew_s: tuple[float, float, float] | None = None
+    current_sample_skew_s: tuple[float, float, float] | None = param(
+        None,
+        unit="s",
+        doc="per-phase sampling instant (a, b, c) before the carrier valley; unset: none",
+        range=(0.0, 1e-3),
+        limit=Limit(
+            "at most a quarter of the PWM period", lambda card, decimation: (None, 0.25 * card.ts_s)
+        ),
+        none_is_zero=True,
+        live=False,
+        kind=float,
+    )
     observer_model: ObserverModel | None = None
     thermal: Thermal | None = None
-    spatial_saturation_h6_pu: float = 0.0
+    spatial_saturation_h6_pu: float = param(
+        0.0,
+        unit="pu",
+        doc="6th order of |lambda_pm| per unit at rated current, growing with (|i|/I_rated)^2",
+        range=(0.0, 0.3),
+        live=False,
+    )
     inductance_saturation: InductanceSaturation | None = None
     phase_asymmetry: PhaseAsymmetry | None = None
-    current_sensor_gain: tuple[float, float, float] | None = None
-    output_capacitance_f: float = 0.0
+    current_sensor_gain: tuple[float, float, float] | None = param(
+        None,
+        unit="-",
+        doc="per-phase current-sensor gains (a, b, c); unset: 1",
+        range=(0.5, 2.0),
+        none_is_zero=True,
+        live=False,
+        kind=float,
+    )
+    output_capacitance_f: float = param(
+        0.0,
+        unit="F",
+        doc="device output capacitance: the deadtime commutation takes 2 C_oss V_dc/|i|",
+        range=(0.0, 1e-6),
+        live=False,
+    )
     switching_noise: SwitchingNoise | None = None
 
     @property
@@ -192,66 +325,40 @@ def _num(src: str, key: str, v: Any, lo: float, hi: float) -> float:
     return float(v)
 
 
-def _triple(src: str, key: str, v: Any, lo: float, hi: float) -> tuple[float, float, float]:
+def _triple(
+    src: str, key: str, v: Any, lo: float, hi: float, unit: str
+) -> tuple[float, float, float]:
     if not isinstance(v, list) or len(v) != 3:
-        raise ConfigError(f"{src}: 'bench.{key}' must be a list of 3 numbers (phases a, b, c)")
+        raise ConfigError(
+            f"{src}: 'bench.{key}' must be a list of 3 numbers (phases a, b, c) [{unit}]"
+        )
     a, b, c = (_num(src, key, x, lo, hi) for x in v)
     return (a, b, c)
 
 
-def _section(src: str, key: str, cls, data: Any, ranges: dict[str, tuple[float, float]]):
+def _value(src: str, key: str, spec: Spec, v: Any, lo: float, hi: float, phases: bool) -> Any:
+    """One entry checked against its schema (`lo`, `hi`: its range on the card)."""
+    if phases:
+        return _triple(src, key, v, lo, hi, spec.unit)
+    if spec.kind is int:
+        check_value(replace(spec, lo=lo, hi=hi), v, f"{src}: 'bench.{key}'")
+        return int(v)
+    return _num(src, key, v, lo, hi)
+
+
+def _section(src: str, key: str, cls, data: Any):
     if not isinstance(data, dict):
         raise ConfigError(f"{src}: 'bench.{key}' must be a mapping")
     refuse_unknown_keys(src, data, [f.name for f in fields(cls)], f"bench.{key}")
+    table, rng = specs(cls), ranges(cls)
     kw: dict[str, Any] = {}
     for k, v in data.items():
-        lo, hi = ranges[k]
-        if isinstance(getattr(cls(), k), tuple):  # per-phase values
-            kw[k] = _triple(src, f"{key}.{k}", v, lo, hi)
-        elif k == "resolution_bits":
-            if v is None:
-                continue
-            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
-                raise ConfigError(
-                    f"{src}: 'bench.{key}.{k}' must be an integer in "
-                    f"[{int(lo)}, {int(hi)}], got {v!r}"
-                )
-            kw[k] = v
-        else:
-            kw[k] = _num(src, f"{key}.{k}", v, lo, hi)
+        if v is None and table[k].optional:
+            continue
+        kw[k] = _value(src, f"{key}.{k}", table[k], v, *rng[k], per_phase(cls, k))
     return cls(**kw)
 
 
-_CAPTURE_RANGES = {
-    "threshold_pu": (0.0, 0.99),
-    "edge_time_s": (0.0, 1e-5),
-    "delay_rise_s": (0.0, 1e-5),
-    "delay_fall_s": (0.0, 1e-5),
-    "min_pulse_s": (0.0, 1e-5),
-    "jitter_s": (0.0, 1e-6),
-    "resolution_bits": (4, 30),
-}
-_MODEL_RANGES = {"r_pu": (0.0, 10.0), "l_pu": (0.01, 10.0), "lambda_pu": (0.01, 10.0)}
-_THERMAL_RANGES = {"ambient_c": (-60.0, 200.0), "initial_winding_c": (-60.0, 250.0)}
-# exponents of the flux map: 0..10; the pu gains 0..10 (10: the current 11x the linear one
-# at the rated-current flux, far beyond any real machine)
-_SATURATION_RANGES = {
-    "d_pu": (0.0, 10.0),
-    "d_exponent": (0.0, 10.0),
-    "q_pu": (0.0, 10.0),
-    "q_exponent": (0.0, 10.0),
-    "cross_pu": (0.0, 10.0),
-    "cross_exponent_d": (0.0, 10.0),
-    "cross_exponent_q": (0.0, 10.0),
-}
-_ASYMMETRY_RANGES = {"resistance_pu": (0.1, 10.0), "inductance_pu": (0.1, 10.0)}
-_SWITCHING_NOISE_RANGES = {
-    "ringing_a": (0.0, 100.0),
-    "window_s": (0.0, 1e-4),
-    "decay_s": (1e-9, 1e-4),
-}
-_SENSOR_GAIN_RANGE = (0.5, 2.0)
-_OUTPUT_CAPACITANCE_RANGE_F = (0.0, 1e-6)
 BENCH_KEYS = (
     "voltage_capture",
     "current_sample_skew_s",
@@ -266,6 +373,22 @@ BENCH_KEYS = (
 )
 
 
+# the sub-blocks of `bench:`, each a mapping of its own fields
+SECTIONS: dict[str, type] = {
+    "voltage_capture": VoltageCapture,
+    "observer_model": ObserverModel,
+    "thermal": Thermal,
+    "inductance_saturation": InductanceSaturation,
+    "phase_asymmetry": PhaseAsymmetry,
+    "switching_noise": SwitchingNoise,
+}
+
+
+def per_phase(cls, name: str) -> bool:
+    """A field given as [a, b, c] (its annotation says tuple)."""
+    return "tuple[" in str(next(f.type for f in fields(cls) if f.name == name))
+
+
 def parse_bench(src: str, raw: Any, card: MachineCard) -> BenchConfig:
     """Validate a scenario's `bench:` mapping (None/absent: the ideal bench)."""
     if raw is None:
@@ -274,56 +397,15 @@ def parse_bench(src: str, raw: Any, card: MachineCard) -> BenchConfig:
         raise ConfigError(f"{src}: 'bench' must be a mapping of effects ({', '.join(BENCH_KEYS)})")
     refuse_unknown_keys(src, raw, list(BENCH_KEYS), "bench")
     kw: dict[str, Any] = {}
-    if raw.get("voltage_capture") is not None:
-        cap = _section(
-            src, "voltage_capture", VoltageCapture, raw["voltage_capture"], _CAPTURE_RANGES
-        )
-        kw["voltage_capture"] = cap
-    if raw.get("current_sample_skew_s") is not None:
-        v = raw["current_sample_skew_s"]
-        if not isinstance(v, list) or len(v) != 3:
-            raise ConfigError(
-                f"{src}: 'bench.current_sample_skew_s' must be a list of 3 "
-                f"numbers (phases a, b, c) [s]"
-            )
-        kw["current_sample_skew_s"] = _triple(
-            src, "current_sample_skew_s", v, 0.0, 0.25 * card.ts_s
-        )
-    if raw.get("observer_model") is not None:
-        kw["observer_model"] = _section(
-            src, "observer_model", ObserverModel, raw["observer_model"], _MODEL_RANGES
-        )
-    if raw.get("thermal") is not None:
-        th = raw["thermal"]
-        th = {} if th is True else th
-        # on a card without a thermal model (thermal_resistance_k_per_w or
-        # thermal_time_constant_s 0) the winding stays at the start temperature
-        kw["thermal"] = _section(src, "thermal", Thermal, th, _THERMAL_RANGES)
-    if raw.get("spatial_saturation_h6_pu") is not None:
-        kw["spatial_saturation_h6_pu"] = _num(
-            src, "spatial_saturation_h6_pu", raw["spatial_saturation_h6_pu"], 0.0, 0.3
-        )
-    kw.update(_parse_circuit_effects(src, raw))
-    return BenchConfig(**kw)
-
-
-def _parse_circuit_effects(src: str, raw: dict) -> dict[str, Any]:
-    """The machine and inverter effects: saturation, asymmetry, sensor gains, C_oss, ringing."""
-    kw: dict[str, Any] = {}
-    blocks = (
-        ("inductance_saturation", InductanceSaturation, _SATURATION_RANGES),
-        ("phase_asymmetry", PhaseAsymmetry, _ASYMMETRY_RANGES),
-        ("switching_noise", SwitchingNoise, _SWITCHING_NOISE_RANGES),
-    )
-    for key, cls, ranges in blocks:
+    for key, cls in SECTIONS.items():
         if raw.get(key) is not None:
-            kw[key] = _section(src, key, cls, raw[key], ranges)
-    if raw.get("current_sensor_gain") is not None:
-        kw["current_sensor_gain"] = _triple(
-            src, "current_sensor_gain", raw["current_sensor_gain"], *_SENSOR_GAIN_RANGE
-        )
-    if raw.get("output_capacitance_f") is not None:
-        kw["output_capacitance_f"] = _num(
-            src, "output_capacitance_f", raw["output_capacitance_f"], *_OUTPUT_CAPACITANCE_RANGE_F
-        )
-    return kw
+            # `thermal: true`: the defaults (on a card without a thermal model,
+            # thermal_resistance_k_per_w or thermal_time_constant_s 0, the winding stays at
+            # the start temperature)
+            data = {} if key == "thermal" and raw[key] is True else raw[key]
+            kw[key] = _section(src, key, cls, data)
+    rng = ranges(BenchConfig, card)  # the sample skew: at most a quarter of the PWM period
+    for key, spec in specs(BenchConfig).items():
+        if raw.get(key) is not None:
+            kw[key] = _value(src, key, spec, raw[key], *rng[key], per_phase(BenchConfig, key))
+    return BenchConfig(**kw)

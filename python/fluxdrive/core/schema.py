@@ -167,7 +167,8 @@ def check_value(s: Spec, v: Any, where: str) -> None:
         or not math.isfinite(v)
         or (s.lo is not None and s.hi is not None and not s.lo <= v <= s.hi)
     ):
-        raise ConfigError(f"{where} must be a number in [{s.lo}, {s.hi}], got {v!r}")
+        what = "an integer" if s.kind is int else "a number"
+        raise ConfigError(f"{where} must be {what} in [{s.lo}, {s.hi}], got {v!r}")
     elif s.kind is int and v != int(v):
         raise ConfigError(f"{where} must be an integer in [{s.lo}, {s.hi}], got {v!r}")
 

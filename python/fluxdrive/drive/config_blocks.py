@@ -15,12 +15,15 @@ table differs (the docs test fails on any); ``./fluxdrive docs params [--check]`
 
 from __future__ import annotations
 
+import functools
 import re
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
 from fluxdrive.core import schema
+from fluxdrive.core.bench import SECTIONS, BenchConfig, parse_bench, per_phase
+from fluxdrive.core.machine import MachineCard, load_machine
 from fluxdrive.core.paths import ROOT
 from fluxdrive.drive.control.config import ControllerConfig
 from fluxdrive.drive.observers import ObserverConfig
@@ -39,6 +42,29 @@ class Block:
     check: Callable[[dict[str, Any]], Any]
     free: frozenset[str] = frozenset()
     free_text: frozenset[str] = frozenset()
+    on_card: bool = False  # `check` holds the fields to their ranges on the default card
+
+
+@functools.cache
+def default_card() -> MachineCard:
+    return load_machine(ROOT / "config" / "machines" / "default_spm.yaml")
+
+
+def _bench_check(section: str | None) -> Callable[[dict[str, Any]], Any]:
+    """Check values as a scenario's `bench:` (or `bench.<section>:`) on the default card; a
+    per-phase field given one number gets it for every phase."""
+    cls = BenchConfig if section is None else SECTIONS[section]
+
+    def check(kw: dict[str, Any]) -> Any:
+        raw = {
+            k: [v] * 3 if per_phase(cls, k) and not isinstance(v, list) else v
+            for k, v in kw.items()
+        }
+        return parse_bench(
+            "bench check", raw if section is None else {section: raw}, default_card()
+        )
+
+    return check
 
 
 BLOCKS: dict[str, Block] = {
@@ -49,6 +75,10 @@ BLOCKS: dict[str, Block] = {
         free=frozenset({"extra"}),  # a user variant's constructor keywords, its own
         free_text=frozenset({"variant"}),  # a built-in name, module:Class or an entry point
     ),
+    "bench": Block(BenchConfig, _bench_check(None), free=frozenset(SECTIONS), on_card=True),
+    **{
+        f"bench.{key}": Block(cls, _bench_check(key), on_card=True) for key, cls in SECTIONS.items()
+    },
 }
 
 
