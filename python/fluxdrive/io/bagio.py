@@ -1141,3 +1141,35 @@ def bag_counts(bag: Path) -> tuple[dict[str, int], dict[str, int]]:
         for t in meta["topics_with_message_count"]
     }
     return mcap_counts, meta_counts
+
+
+MISSING_KEY = "fluxdrive_missing"  # custom_data key: JSON, what a bag lacks and why
+
+
+def note_missing(
+    bag: Path,
+    missing: dict[str, dict[str, int]],
+    why: str,
+    lost_in_transit: dict[str, int] | None = None,
+) -> None:
+    """Add to a finalised bag's metadata.yaml (custom_data `fluxdrive_missing`, JSON) what
+    it lacks -- {topic: {"recorded": r, "published": n}} and messages lost in transit --
+    and why, so that whoever reads the bag later sees it.  Notes from several checkers (the
+    recorder, the launcher) are merged.  A metadata file that cannot be read or written is
+    left alone: the caller has said it in its log."""
+    f = Path(bag) / "metadata.yaml"
+    try:
+        meta = yamlio.load_file(f)
+        info = meta["rosbag2_bagfile_information"]
+        custom = info.get("custom_data") or {}
+        note = json.loads(custom.get(MISSING_KEY) or "{}")
+        note.setdefault("topics", {}).update(missing)
+        if lost_in_transit:
+            note.setdefault("lost_in_transit", {}).update(lost_in_transit)
+        if why not in note.setdefault("why", []):
+            note["why"].append(why)
+        custom[MISSING_KEY] = json.dumps(note)
+        info["custom_data"] = custom
+        f.write_text(yamlio.dumps(meta, sort_keys=False))
+    except (OSError, ValueError, yamlio.YAMLError, KeyError, TypeError, AttributeError):
+        pass

@@ -125,6 +125,20 @@ class Bus:
         if q and not self.scheduled:
             self._schedule()
 
+    def deliver_queued(self, callbacks: list[Callable[[bytes], None]]) -> int:
+        """Hand the messages still queued to these callbacks only (not to the others, and
+        without the executor): a node that closes last (the recorder) takes what the nodes
+        of its process published before they stopped.  Returns how many it got."""
+        own = {id(cb) for cb in callbacks}
+        n = 0
+        while self.queue:
+            cbs, data = self.queue.popleft()
+            for cb in cbs:
+                if id(cb) in own:
+                    cb(data)
+                    n += 1
+        return n
+
 
 _BUS: Bus | None = None
 
@@ -255,6 +269,19 @@ class RawSubscription:
                 return
             self.callback(taken[0])
             sub = self.sub  # the callback may have dropped the DDS reader
+
+    def take_waiting(self) -> int:
+        """Hand every message waiting in the DDS reader to the callback now (no executor:
+        a stopping node's last take).  Returns how many."""
+        n = 0
+        while self.sub is not None:
+            with self.sub.handle:
+                taken = self.sub.handle.take_message(self.sub.msg_type, True)
+            if taken is None:
+                break
+            self.callback(taken[0])
+            n += 1
+        return n
 
     def _drop_dds(self) -> None:
         if self.sub is not None:

@@ -157,10 +157,9 @@ def spin(nodes: list[FluxNode], executor=None, poll_s: float = 0.5) -> int:
 
     bus = intra.bus()
     failed: list[BaseException] = []
-    stop_requested = []
 
     def request_stop(*_a) -> None:
-        stop_requested.append(True)
+        _STOP_REQUESTS.append(True)
         if not all_done.done():
             all_done.set_result(False)
 
@@ -195,7 +194,9 @@ def spin(nodes: list[FluxNode], executor=None, poll_s: float = 0.5) -> int:
         code = 1
     if failed:
         code = 1
-    for n in nodes:
+    # nodes that record close last: what the others publish as they close (the plant's
+    # final PWM-off frame) reaches them first
+    for n in sorted(nodes, key=lambda n: bool(getattr(n, "closes_last", False))):
         try:
             n.close()
         except Exception:  # noqa: BLE001
@@ -205,6 +206,7 @@ def spin(nodes: list[FluxNode], executor=None, poll_s: float = 0.5) -> int:
         if g is not None and g.foreign:
             n.log(g.summary(), "warning")
         code = code or int(getattr(n, "exit_code", 0) or 0)
+    flush_publishers(nodes, STOP_ACK_TIMEOUT_S)
     if os.environ.get("FLUXDRIVE_GRAPH_KEY"):  # started by the launcher: it checks the bag
         for n in nodes:
             for pub in getattr(n, "raw_publishers", []):
@@ -222,6 +224,51 @@ def spin(nodes: list[FluxNode], executor=None, poll_s: float = 0.5) -> int:
     if rclpy.ok():
         rclpy.try_shutdown()
     return code
+
+
+# stop requests (signals) this process got; a second one cuts a recorder's drain short
+_STOP_REQUESTS: list[bool] = []
+
+
+def stop_requests() -> int:
+    return len(_STOP_REQUESTS)
+
+
+# where the launcher writes, before it stops a process holding a recorder, how many messages
+# the graph's nodes published per topic (their `@published` lines as they exited): the
+# recorder finalises once it has received that many (fluxdrive_bringup.record.recorder)
+STOP_COUNTS_ENV = "FLUXDRIVE_STOP_COUNTS"
+
+# a stopping process waits this long at most for its readers elsewhere (the recorder) to
+# acknowledge what it published, so that none of it dies with its writers
+STOP_ACK_TIMEOUT_S = 10.0
+
+
+def flush_publishers(nodes: list[FluxNode], timeout_s: float) -> bool:
+    """Wait until every reader in another process has acknowledged every message the
+    nodes' sample publishers sent (reliable readers: it is in their history), at most
+    timeout_s in all; a reader that stays behind is named in one line.  Without this a
+    process that stops while the recorder lags it takes its unacknowledged tail with it."""
+    from rclpy.duration import Duration
+
+    t_end = time.monotonic() + timeout_s
+    behind = []
+    for n in nodes:
+        for pub in getattr(n, "raw_publishers", []):
+            try:
+                left = max(0.0, t_end - time.monotonic())
+                if not pub.wait_for_all_acked(Duration(seconds=left)):
+                    behind.append(pub.topic)
+            except Exception:  # noqa: BLE001 - the context is gone: nothing to wait for
+                return False
+    if behind:
+        nodes[0].log(
+            f"stopping: readers of {', '.join(behind)} did not acknowledge every message "
+            f"within {timeout_s:g} s (a reader stalled or killed); the unacknowledged ones "
+            f"are lost with this process",
+            "warning",
+        )
+    return not behind
 
 
 _EARLY_STOP: list[int] = []

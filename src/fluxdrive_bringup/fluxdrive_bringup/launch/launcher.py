@@ -33,8 +33,9 @@ FLUXDRIVE_GRAPH_KEY, a random key per launch that marks the graph's commands
 Output lines are prefixed with the process name.  Ctrl-C (or SIGTERM) is forwarded as
 SIGINT to every process (each finalises: the recorder closes its bag), then SIGTERM and
 SIGKILL after timeouts; processes holding a recorder are stopped last, once the others have
-ended, so that the bag gets their last messages.  Before anything starts, every recorder's
-bag directory is checked (new, writable, `min_free_mb` free).
+ended (each waits until the recorder has acknowledged what it published), and are handed the
+nodes' published counts first, so that the bag gets every message they published.  Before
+anything starts, every recorder's bag directory is checked (new, writable, `min_free_mb` free).
 
 A process that dies (killed by a signal, or a non-zero exit code) is reported with its
 nodes, pid and signal/code and handled per its nodes' `on_death`: stop the graph (exit code
@@ -62,7 +63,7 @@ from typing import Any
 from fluxdrive.core import yamlio
 from fluxdrive.core.machine import ConfigError
 from fluxdrive.drive.scenario import REPO_ROOT
-from fluxdrive_ros.runner import NODE_CLASSES
+from fluxdrive_ros.runner import NODE_CLASSES, STOP_COUNTS_ENV
 
 _POLICY_KEYS = {"on_death", "max_restarts", "restart_backoff_s"}
 ON_DEATH = ("stop", "restart", "ignore")
@@ -426,23 +427,6 @@ def load_graph(path: str | Path) -> Graph:
     return parse_graph(raw, str(path), path.parent)
 
 
-def _note_in_metadata(bag: Path, missing: dict[str, dict[str, int]]) -> None:
-    """What a bag lacks against its publishers, in its metadata.yaml (custom_data
-    `fluxdrive_missing`, JSON), so whoever reads the bag later sees it too."""
-    f = bag / "metadata.yaml"
-    try:
-        meta = yamlio.load_file(f)
-        info = meta["rosbag2_bagfile_information"]
-        custom = info.get("custom_data") or {}
-        custom["fluxdrive_missing"] = json.dumps(
-            {"by": "launcher: recorded vs published at the nodes' exit", "topics": missing}
-        )
-        info["custom_data"] = custom
-        f.write_text(yamlio.dumps(meta, sort_keys=False))
-    except (OSError, yamlio.YAMLError, KeyError, TypeError):
-        pass  # the log line above says it; an unreadable metadata file is the recorder's
-
-
 # ---------------------------------------------------------------------------- running
 # the start phase (stall watch: start_timeout_s) lasts until this frame: the controller and
 # observers answer from the first frames on, once their kernels are compiled
@@ -563,6 +547,7 @@ class Launcher:
         self._frames: deque[tuple[float, int]] = deque()  # (monotonic, frame) of progress
         self.last_warning = ""  # the newest warning/error line of any process
         self.published: dict[str, int] = {}  # topic -> messages its nodes published
+        self._stop_dir: Path | None = None  # the recorders' counts files (stop())
         self.tty = hasattr(sys.stderr, "isatty") and sys.stderr.isatty()
 
     def env(self) -> dict[str, str]:
@@ -676,6 +661,8 @@ class Launcher:
         self._restart_transport(env)
         if p.restarts:
             env["FLUXDRIVE_RESTART_COUNT"] = str(p.restarts)
+        if p.has_recorder:
+            env[STOP_COUNTS_ENV] = str(self._counts_file(p))
         p.code = None
         p.popen = subprocess.Popen(
             p.argv,
@@ -783,7 +770,7 @@ class Launcher:
         at exit): one line per topic the bag holds fewer messages of (and the shortfall
         in its metadata.yaml, custom_data `fluxdrive_missing`), or one line that it holds
         them all.  Returns {topic: (recorded, published)} of the shortfalls."""
-        from fluxdrive.io.bagio import bag_counts
+        from fluxdrive.io.bagio import bag_counts, note_missing
 
         short: dict[str, tuple[int, int]] = {}
         for bag in self.bags:
@@ -806,7 +793,9 @@ class Launcher:
                         f"messages published on {topic} ({n_pub - counts[topic]} missing)"
                     )
             if missing:
-                _note_in_metadata(Path(bag), missing)
+                note_missing(
+                    Path(bag), missing, "launcher: recorded vs published at the nodes' exit"
+                )
             if checked and not missing:
                 self._emit(
                     f"[launch] bag {bag}: holds every message the nodes published on the "
@@ -862,10 +851,34 @@ class Launcher:
         timeout = self.g.stop_timeout_s if timeout is None else timeout
         first = [p for p in self.procs if not p.has_recorder]
         last = [p for p in self.procs if p.has_recorder]
-        for group in (first, last):
-            self._stop_group(group, timeout)
+        self._stop_group(first, timeout)
+        self._hand_counts(first, last)
+        self._stop_group(last, timeout)
         for p in self.procs:
             p.process.wait()
+
+    def _counts_file(self, p: Proc) -> Path:
+        """Where the recorder of process `p` finds the published counts on a stop."""
+        if self._stop_dir is None:
+            import tempfile
+
+            self._stop_dir = Path(tempfile.mkdtemp(prefix="fluxdrive-stop-"))
+        return self._stop_dir / f"{p.name}.json"
+
+    def _hand_counts(self, stopped: list[Proc], recorders: list[Proc]) -> None:
+        """Between the two stop groups: every stopped process's `@published` lines read
+        (its output pump ends with it), the totals per topic go to each recorder's counts
+        file, so it finalises once it has them all (fluxdrive_bringup.record.recorder)."""
+        for p in stopped:
+            if p.reader is not None:
+                p.reader.join(timeout=5.0)
+        with self.lock:
+            counts = dict(self.published)
+        for p in recorders:
+            f = self._counts_file(p)
+            tmp = f.with_suffix(".tmp")
+            tmp.write_text(json.dumps(counts))
+            tmp.replace(f)  # whole or not at all when the recorder reads it
 
     def _stop_group(self, group: list[Proc], timeout: float) -> None:
         self.signal_all(signal.SIGINT, group)
@@ -1040,6 +1053,10 @@ class Launcher:
                 signal.signal(s, h)
         self.check_recorded()
         self._bag_hints()
+        if self._stop_dir is not None:
+            import shutil
+
+            shutil.rmtree(self._stop_dir, ignore_errors=True)
         if interrupted.is_set():
             dirty = [p for p in self.procs if p.code not in (0, None)]
             for p in dirty:

@@ -29,8 +29,11 @@ Timestamps: `timestamps` = header (default: each message's header stamp, i.e. th
 instant -- sim time in a lockstep run; /clock by its value) or receive (wall clock at
 reception, as ros2 bag record does).
 
-End: on SIGINT/SIGTERM the buffer is flushed and the bag finalised (metadata.yaml, MCAP
-summary).  With exit_on_done, after /drive/done = N-1 it waits until every per-sample topic
+End: on SIGINT/SIGTERM it takes what waits in its readers -- stopped by the launcher, until
+it holds what the stopped nodes published (their counts, $FLUXDRIVE_STOP_COUNTS), see
+_drain_on_stop -- then the buffer is flushed and the bag finalised (metadata.yaml, MCAP
+summary); what is missing is named in the log and the metadata (fluxdrive_missing).
+With exit_on_done, after /drive/done = N-1 it waits until every per-sample topic
 it has seen has delivered seq N-1 (or nothing arrived for `drain_timeout_s`), then
 finalises and exits.  If the recorder alone is killed outright, the writer process still
 finalises the bag with everything handed over (at most the last 20 ms are lost); if the
@@ -40,6 +43,7 @@ writer dies too (SIGKILL of the process group), see above.
 from __future__ import annotations
 
 import json
+import os
 import re
 import struct
 import subprocess
@@ -195,6 +199,16 @@ class RecorderNode(FluxNode):
                     read_only=True,
                 ),
                 P(
+                    "stop_drain_timeout_s",
+                    10.0,
+                    "on a stop: wait this long at most for the messages the stopped nodes "
+                    "published (their counts, from the launcher) before finalising; what is "
+                    "missing then is named in the log and the bag's metadata",
+                    "s",
+                    0.0,
+                    600.0,
+                ),
+                P(
                     "min_free_mb",
                     100.0,
                     "refuse to start unless the bag's file system has this much free space",
@@ -235,6 +249,11 @@ class RecorderNode(FluxNode):
         self.types: dict[str, str] = {}
         self.counts: dict[str, int] = {}
         self.last_seq: dict[str, int] = {}
+        self.lost: dict[str, int] = {}  # seq jumps of the per-period topics: lost in transit
+        self.sub_topic: dict[str, str] = {}  # subscribed (resolved) name -> bag topic
+        self.stop_missing: dict[str, dict[str, int]] = {}  # short at the end of the stop drain
+        self.closes_last = True  # fluxdrive_ros.runner: after the nodes that publish
+        self._ppid = os.getppid()  # the launcher: gone = every graph process is stopping
         self.last_rx = time.monotonic()
         self.last_ts = 0
         self.done_seq: int | None = None
@@ -333,6 +352,7 @@ class RecorderNode(FluxNode):
         rec = _REC.pack
         hdr = _HDR.unpack_from
         has_seq = _has_seq(mtype)
+        every_period = mtype in (topics.T_FRAME, topics.T_TRUTH)  # one per seq, no skips
         header_ts = self.header_ts
         stamped = header_ts and (mtype == topics.T_CLOCK or mtype.startswith("flux_drive_msgs/"))
 
@@ -351,13 +371,33 @@ class RecorderNode(FluxNode):
                 self._hold()
             counts[topic] += 1
             if has_seq:
-                last[topic] = message_seq(data)
+                k = message_seq(data)
+                if every_period and k > last.get(topic, k - 1) + 1:
+                    self._gap(topic, last[topic], k)
+                last[topic] = k
             self.last_rx = time.monotonic()
 
         if topic in (DIAGNOSTICS, ROSOUT):
             cb = self._own_drive(topic, cls, cb)
-        self.subs.append(RawSubscription(self, cls, self.sub_name.get(topic, topic), cb, prof))
+        sub = RawSubscription(self, cls, self.sub_name.get(topic, topic), cb, prof)
+        self.subs.append(sub)
+        self.sub_topic[sub.topic] = topic
         return True
+
+    def _gap(self, topic: str, last: int, k: int) -> None:
+        """A per-period topic jumped from seq `last` to `k`: those messages were published
+        but never reached this reader (its DDS reader fell further behind than the writer's
+        history, or was dropped for a while: a stalled recorder).  Logged once per topic,
+        counted for the final line and the bag's metadata."""
+        n = k - last - 1
+        if topic not in self.lost:
+            self.get_logger().warning(
+                f"{topic}: seq jumps from {last} to {k}: {n} messages never reached the "
+                f"recorder (its reader fell more than the writer's history of "
+                f"{qos.SAMPLE_DEPTH} samples behind, or lost its match: a stalled recorder); "
+                f"further gaps are counted"
+            )
+        self.lost[topic] = self.lost.get(topic, 0) + n
 
     def _own_drive(self, topic: str, cls, cb):
         """/diagnostics and /rosout are shared by every graph on the domain: a recorder of
@@ -483,7 +523,108 @@ class RecorderNode(FluxNode):
                 self.get_logger().warning(f"finishing without the last samples of {short}")
             self.finished = True
 
+    # ----------------------------------------------------------------- stop drain
+    def _take_waiting(self) -> int:
+        """Everything already here, into the bag: what the nodes of this process queued
+        for it (intra-process) and what waits in its DDS readers."""
+        from fluxdrive_ros import intra
+
+        bus = intra.bus()
+        n = bus.deliver_queued([s.callback for s in self.subs]) if bus is not None else 0
+        return n + sum(s.take_waiting() for s in self.subs)
+
+    def _short_of(self, expected: dict[str, int]) -> dict[str, dict[str, int]]:
+        """Topics (bag names) of which fewer messages arrived than were published."""
+        out = {}
+        for name, n_pub in expected.items():
+            topic = self.sub_topic.get(name)
+            if topic is not None and self.counts.get(topic, 0) < n_pub:
+                out[topic] = {"recorded": self.counts[topic], "published": n_pub}
+        return out
+
+    def _live_publishers(self) -> list[str]:
+        """Sample topics that still have a publisher in another process."""
+        return [
+            self.sub_topic[s.topic]
+            for s in self.subs
+            if s.sub is not None
+            and self.types.get(self.sub_topic[s.topic], "").startswith("flux_drive_msgs/")
+            and s.sub.get_publisher_count() > 0
+        ]
+
+    def _drain_on_stop(self) -> None:
+        """Before finalising: take what the stopped nodes published.  Stopped by the
+        launcher (it stops the recorder last and writes the nodes' published counts to
+        $FLUXDRIVE_STOP_COUNTS first): until that many have arrived per topic, or a short
+        topic has no publisher left (each flushes before it exits, so what has not come
+        then never will).  The launcher gone (every graph process got SIGTERM at once):
+        until no sample topic has a publisher left.  Stopped alone: what is waiting.  At
+        most stop_drain_timeout_s (a second signal ends it at once); what is missing is
+        logged and noted in the bag's metadata."""
+        from fluxdrive_ros.runner import STOP_COUNTS_ENV, stop_requests
+
+        expected = _read_counts(os.environ.get(STOP_COUNTS_ENV, ""))
+        parent_gone = os.getppid() != self._ppid
+        if expected is None and not parent_gone:
+            self._take_waiting()
+            return
+        limit = float(self.pv["stop_drain_timeout_s"])
+        t_end = time.monotonic() + limit
+        cut: list[str] = []
+        while True:
+            n = self._take_waiting()
+            live = self._live_publishers()
+            if expected is not None:
+                live = [t for t in self._short_of(expected) if t in live]
+            if not live and not n:
+                break
+            if time.monotonic() >= t_end or stop_requests() > 1:
+                cut = live
+                break
+            if not n:
+                time.sleep(0.005)
+        self._take_waiting()
+        if expected is not None:
+            self.stop_missing = self._short_of(expected)
+        if self.stop_missing or cut:
+            what = ", ".join(
+                f"{t} {v['recorded']} of {v['published']} "
+                f"({v['published'] - v['recorded']} missing)"
+                for t, v in self.stop_missing.items()
+            )
+            why = (
+                f"{', '.join(cut)} still had a publisher after stop_drain_timeout_s = "
+                f"{limit:g} s (a process that did not end)"
+                if cut
+                else "their publishers are gone"
+            )
+            self.log(
+                f"stop: the bag lacks messages the stopped nodes published: {what or '-'}; {why}",
+                "warning",
+            )
+
+    def _note_missing(self) -> None:
+        """What the bag lacks and why, in its metadata (custom_data fluxdrive_missing)."""
+        from fluxdrive.io.bagio import note_missing
+
+        if self.stop_missing:
+            note_missing(
+                self.bag_dir,
+                self.stop_missing,
+                "recorder: published by the stopped nodes, never received",
+            )
+        if self.lost:
+            note_missing(
+                self.bag_dir,
+                {},
+                "recorder: seq gaps, published but never received (the recorder's reader fell "
+                "behind the writers' history or lost its match: a stalled recorder)",
+                lost_in_transit=self.lost,
+            )
+
     def close(self) -> None:
+        if not self.write_failed and not self.closed:
+            self._drain_on_stop()
         self.stop.set()
         self.thread.join(timeout=30.0)
         with self.lock:
@@ -520,9 +661,28 @@ class RecorderNode(FluxNode):
             else ""
         )
         foreign = f"; not recorded: {self.graph.summary()}" if self.graph.foreign else ""
-        self.log(f"bag {self.bag_dir} finalised: {total} messages ({detail}){held}{foreign}")
+        lost = (
+            "; never received (seq gaps): " + ", ".join(f"{t} {n}" for t, n in self.lost.items())
+            if self.lost
+            else ""
+        )
+        self.log(f"bag {self.bag_dir} finalised: {total} messages ({detail}){held}{foreign}{lost}")
+        self._note_missing()
         sys.stdout.write(f"@bag {self.bag_dir}\n")
         sys.stdout.flush()
+
+
+def _read_counts(path: str) -> dict[str, int] | None:
+    """The launcher's published counts {topic: n} (None: no file, not stopped by it)."""
+    if not path:
+        return None
+    try:
+        raw = json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(raw, dict):
+        return None
+    return {str(t): int(n) for t, n in raw.items() if isinstance(n, int)}
 
 
 def main(argv: list[str] | None = None) -> int:
