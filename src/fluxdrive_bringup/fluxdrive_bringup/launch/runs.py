@@ -164,7 +164,7 @@ def run_graph(
     sc_path: Path,
     *,
     out: Path,
-    bag: Path,
+    bag: Path | None,
     layout: str = "composed",
     duration_s: float | None = None,
     domain_id: int | None = None,
@@ -179,7 +179,8 @@ def run_graph(
 ) -> dict:
     """Launch the lockstep graph of a scenario, wait for the end.  Returns a summary dict
     (exit code, wall time, real-time factor, bag path).  scope: with the live scope
-    (launch.add_scope); watch: called in a thread with the Launcher once it starts."""
+    (launch.add_scope); watch: called in a thread with the Launcher once it starts;
+    bag None: no recorder."""
     sc = load_scenario(sc_path)
     shorten(sc, duration_s)
     dom = pick_domain_id() if domain_id is None else domain_id

@@ -1,11 +1,19 @@
 """`./fluxdrive benchmark graph`: real-time factor of the lockstep graph against the
-in-process runner, on the demo scenario (2 % speed / 150 % load: plant, four observers,
+in-process runner, on the demo scenario (2 % speed / 150 % load: plant, six observers,
 controller, recorder; every message recorded).
 
   lockstep_rtf    simulated time / wall time of the graph's lockstep loop (first frame to
                   last frame, as the plant measures it), 10 kHz PWM, composed layout;
                   the recorded bag is checked to hold every sample
   in_process_rtf  the same scenario and observers through fluxdrive.drive.sim.run_scenario
+  graph_process_cpu_us_per_period, bag_writer_cpu_us_per_period
+                  CPU per PWM period of the graph's process and of its helper (the
+                  recorder's bag writer), over the middle 80 % of the run, least of the runs:
+                  unlike the real-time factor these hardly move with other load
+  cpu_bound_rtf   the real-time factor that CPU allows with a core for each (a quiet 2-core
+                  machine): Ts / the larger of the two
+  closed_loop_cpu_us_per_period  (--closed-loop) the graph's process with the driving
+                  observer only and no recorder: what the per-period loop itself costs
 
   lockstep_rtf_scope   (--scope) the same run with the live scope attached: the scope tap
                   in the graph's process, the scope's web server, and a page reading every
@@ -20,7 +28,8 @@ controller, recorder; every message recorded).
 
 Options: --duration S (simulated seconds, default 3), --layouts composed,split,separate
 (extra keys lockstep_rtf_<layout>), --repeat N (best of N; with --scope the runs with and
-without alternate, so both see the same machine load).
+without alternate, so both see the same machine load), --closed-loop, --write (store the
+result in results/benchmarks/graph.json, quoted by docs/performance.md).
 Progress goes to stderr; the last line on stdout is a JSON object.
 """
 
@@ -71,10 +80,17 @@ def bench_graph(argv: list[str]) -> dict:
         action="store_true",
         help="with --scope: the page in headless chromium instead of a plain WebSocket client",
     )
+    ap.add_argument(
+        "--closed-loop",
+        action="store_true",
+        help="also measure the closed loop alone (plant, driving observer, controller)",
+    )
+    ap.add_argument("--write", action="store_true", help="write results/benchmarks/graph.json")
     args = ap.parse_args(argv)
     if args.scope_browser:
         args.scope = True
     sp = scenario_path(args.scenario)
+    first_cpu: list[dict] = []  # CPU figures of the runs of the first layout, without scope
     layouts = [x.strip() for x in args.layouts.split(",") if x.strip()]
     for lay in layouts:
         if lay not in LAYOUTS:
@@ -178,6 +194,8 @@ def bench_graph(argv: list[str]) -> dict:
                             f", scope server {c['scope']:.2f} s" if "scope" in c else ""
                         )
                         cpus.setdefault(with_scope, []).append(c)
+                        if lay == layouts[0] and not with_scope:
+                            first_cpu.append(c)
                     _say(
                         f"graph ({lay}){what}: {r['frames']} frames in "
                         f"{r['loop_wall_s']:.2f} s = real-time factor "
@@ -233,7 +251,88 @@ def bench_graph(argv: list[str]) -> dict:
                 res[k] = out[f"{k}_{layouts[0]}"]
     if len(layouts) > 1:
         res.update(out)
+    res.update(cpu_figures(first_cpu, sc.machine.ts_s))
+    if args.closed_loop:
+        res.update(closed_loop_cpu(sp, args.duration, args.domain_id, sc.machine.ts_s))
+    if args.write:
+        write_result("graph", res)
     return res
+
+
+def cpu_figures(runs: list[dict], ts_s: float) -> dict:
+    """CPU per PWM period of the graph's process and of its helpers (the bag writer), the
+    least of the runs (the one least disturbed by other load), and the real-time factor that
+    CPU allows when each has a core of its own (a quiet 2-core machine): the arithmetic
+    behind the measured real-time factor, which moves with the machine's load."""
+    runs = [c for c in runs if "graph_process" in c]
+    if not runs:
+        return {}
+    per = 1e6 * ts_s  # us of CPU per period = s of CPU per simulated s x 1e6 x ts
+    graph_us = min(c["graph_process"] for c in runs) * per
+    helpers_us = min(c["helpers"] for c in runs) * per
+    slowest = max(graph_us, helpers_us)
+    return {
+        "graph_process_cpu_us_per_period": round(graph_us, 1),
+        "bag_writer_cpu_us_per_period": round(helpers_us, 1),
+        "cpu_bound_rtf": round(1e6 * ts_s / slowest, 3) if slowest > 0 else None,
+    }
+
+
+def closed_loop_cpu(sp: Path, duration_s: float, domain_id: int | None, ts_s: float) -> dict:
+    """CPU per PWM period of the closed loop alone: the scenario with its driving observer
+    only and no recorder (the plant's truth and the controller's state, read by nobody in
+    the process, then go out over DDS, which this figure includes)."""
+    from fluxdrive.drive.scenario import save_scenario
+
+    from fluxdrive_bringup.launch.runs import run_graph
+
+    sc = load_scenario(sp)
+    sc.observers = {sc.driving: sc.observers[sc.driving]}
+    tmp = Path(tempfile.mkdtemp(prefix="fluxdrive-bench-loop-"))
+    try:
+        loop_sp = save_scenario(sc, tmp / sp.name)
+        cpu = CpuWatcher()
+
+        def watch(launcher) -> None:
+            cpu.run(launcher)
+
+        _say(f"closed loop alone (plant, {sc.driving}, controller): {duration_s:g} s ...")
+        r = run_graph(
+            loop_sp,
+            out=tmp / "run",
+            bag=None,
+            duration_s=duration_s,
+            domain_id=domain_id,
+            quiet=True,
+            timeout=600.0,
+            progress=False,
+            watch=watch,
+        )
+        cpu.stop()
+        c = cpu.per_sim_s(ts_s)
+        if r["code"] != 0 or "graph_process" not in c:
+            raise RuntimeError(f"closed-loop run failed (exit {r['code']}); logs in {tmp}")
+        us = c["graph_process"] * 1e6 * ts_s
+        _say(f"closed loop alone: {us:.1f} us of CPU per period, RTF {r['lockstep_rtf']:.3f}")
+        return {"closed_loop_cpu_us_per_period": round(us, 1)}
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def write_result(name: str, res: dict) -> None:
+    """results/benchmarks/<name>.json (the file the docs quote), with when it was measured
+    and how loaded the machine was."""
+    import os
+
+    path = REPO_ROOT / "results" / "benchmarks" / f"{name}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    doc = {
+        **res,
+        "measured": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "load_average_1min_at_end": round(os.getloadavg()[0], 2),
+    }
+    path.write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n")
+    _say(f"written {path}")
 
 
 class CpuWatcher:
@@ -246,7 +345,16 @@ class CpuWatcher:
         import threading
 
         self.done = threading.Event()
-        self.samples: list[tuple[int, float, float]] = []  # (k, graph cpu, scope cpu)
+        # (k, graph cpu with its helpers, scope cpu, graph process alone)
+        self.samples: list[tuple[int, float, float, float]] = []
+
+    @staticmethod
+    def _own_cpu(p) -> float:
+        try:
+            t = p.cpu_times()
+            return t.user + t.system
+        except Exception:  # noqa: BLE001 - the process ended
+            return float("nan")
 
     @staticmethod
     def _cpu(p) -> float:
@@ -283,7 +391,12 @@ class CpuWatcher:
             if prog is None:
                 continue
             self.samples.append(
-                (prog[0], self._cpu(graph), self._cpu(scope) if scope is not None else float("nan"))
+                (
+                    prog[0],
+                    self._cpu(graph),
+                    self._cpu(scope) if scope is not None else float("nan"),
+                    self._own_cpu(graph),
+                )
             )
             if prog[0] >= prog[1]:
                 break
@@ -302,6 +415,10 @@ class CpuWatcher:
             return {}
         dk = (mid[-1][0] - mid[0][0]) * ts_s
         out = {"graph": (mid[-1][1] - mid[0][1]) / dk}
+        if math.isfinite(mid[0][3]) and math.isfinite(mid[-1][3]):
+            # the graph's process alone, and its helpers (the recorder's bag writer)
+            out["graph_process"] = (mid[-1][3] - mid[0][3]) / dk
+            out["helpers"] = out["graph"] - out["graph_process"]
         if math.isfinite(mid[0][2]) and math.isfinite(mid[-1][2]):
             out["scope"] = (mid[-1][2] - mid[0][2]) / dk
         return out
