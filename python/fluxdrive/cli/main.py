@@ -80,6 +80,11 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
         "measure R, L, lambda, J, B, deadtime of a motor -> machine card (--check)",
     ),
     "experiment": ("fluxdrive.cli.experiment", "main", "reproduce the paper's figures"),
+    "compare": (
+        "fluxdrive.cli.compare",
+        "main",
+        "Pareto fronts of any observer variants (yours too): θ̃ vs allowed speed bandwidth",
+    ),
     "study": (
         "fluxdrive.cli.study",
         "main",

@@ -8,6 +8,10 @@ bandwidth the project's one loop-design rule (control.design_loops, 3 dB peaking
 drive fed by that speed path; its θ̃ (RMS, 6th order, broadband noise) is measured in shadow
 on an encoder-driven run at each operating point.  The paper's SNR claim is then judged at
 matched allowed bandwidth, from the fronts: build -> run -> analyse -> plot -> judge.
+For a variant with a flux cutoff (w_c), the cutoff is swept too, at the card's PLL setting.
+
+`./fluxdrive compare VARIANT...` (fluxdrive.cli.compare) makes the same fronts for any set of
+variants, a user's `module:Class` included, with these functions.
 """
 
 from __future__ import annotations
@@ -27,7 +31,12 @@ from fluxdrive.experiments.paper import harmonic_residual_rms, theta_err
 # multiples of each variant's card-derived PLL bandwidth (and EMF speed LPF) swept
 FACTORS = (0.4, 0.6, 0.8, 1.0, 1.4, 2.0)
 FACTORS_QUICK = (0.6, 1.0, 1.6)
+# multiples of the card-derived flux cutoff w_c swept at the card's PLL (variants with a w_c)
+CUTOFF_FACTORS = (0.5, 2.0)
+CUTOFF_FACTORS_QUICK = (0.5,)
 FAMILIES = {"flux": "paper_robust", "emf": "emf"}
+# a plugin's constructor keywords for the PLL and the flux cutoff (`compare --pll-key` ...)
+PLUGIN_KEYS = {"pll": "pll_hz", "cutoff": "cutoff_hz"}
 SOURCES = ("measured", "commanded")
 # operating points in per unit of the card's rated speed and torque
 POINTS = ((0.02, 1.5), (0.02, 0.0), (0.10, 1.5), (0.10, 0.0))
@@ -37,25 +46,56 @@ def _name(fam: str, src: str, i: int) -> str:
     return f"{fam}_{src}_{i}"
 
 
+def _setting(
+    variant: str, card: MachineCard, src: str, pll_f: float, wc_f: float, keys: dict[str, str]
+):
+    """One observer config of a sweep: the variant's card-derived PLL (and EMF speed LPF)
+    times pll_f and flux cutoff times wc_f.  A plugin takes them as constructor keywords
+    (PLUGIN_KEYS), from the built-in rules' values for the flux observer."""
+    base = observer_config("paper_robust" if ":" in variant else variant, card)
+    pll_hz = round(pll_f * float(base.pll_bandwidth_hz or 0.0), 6)
+    wc_hz = round(wc_f * float(base.cutoff_hz or 0.0), 6)
+    if ":" in variant:
+        extra = {keys["pll"]: pll_hz, keys["cutoff"]: wc_hz}
+        return {"variant": variant, "extra": extra, "pll_bandwidth_hz": pll_hz}
+    cfg: dict[str, Any] = {"variant": variant, "voltage_source": src, "pll_bandwidth_hz": pll_hz}
+    if base.speed_lpf_hz:
+        cfg["speed_lpf_hz"] = round(pll_f * base.speed_lpf_hz, 6)
+    if wc_f != 1.0:
+        cfg["cutoff_hz"] = wc_hz
+    return cfg
+
+
+def _has_cutoff(variant: str, card: MachineCard) -> bool:
+    if ":" in variant:
+        return True
+    return bool(observer_config(variant, card).cutoff_hz) and variant != "emf"
+
+
 def build_cases(
-    quick: bool, card: MachineCard
+    quick: bool,
+    card: MachineCard,
+    families: dict[str, str] | None = None,
+    points: list[tuple[float, float]] | None = None,
+    sources: tuple[str, ...] = SOURCES,
+    plugin_keys: dict[str, str] = PLUGIN_KEYS,
 ) -> tuple[list[tuple[float, float]], dict[str, dict[str, Any]]]:
-    """The operating points and the observers every run carries in shadow (name -> config)."""
+    """The operating points and the observers every run carries in shadow (name -> config):
+    per family and voltage source the PLL sweep, then (variants with a w_c) the cutoff sweep."""
     factors = FACTORS_QUICK if quick else FACTORS
+    cutoffs = CUTOFF_FACTORS_QUICK if quick else CUTOFF_FACTORS
     observers: dict[str, dict[str, Any]] = {}
-    for fam, variant in FAMILIES.items():
-        base = observer_config(variant, card)
-        for src in SOURCES:
-            for i, f in enumerate(factors):
-                cfg = {
-                    "variant": variant,
-                    "voltage_source": src,
-                    "pll_bandwidth_hz": round(f * float(base.pll_bandwidth_hz or 0.0), 6),
-                }
-                if base.speed_lpf_hz:
-                    cfg["speed_lpf_hz"] = round(f * base.speed_lpf_hz, 6)
-                observers[_name(fam, src, i)] = cfg
-    points = list(POINTS[:2] if quick else POINTS)
+    for fam, variant in (families or FAMILIES).items():
+        sweep = [(f, 1.0) for f in factors]
+        if _has_cutoff(variant, card):
+            sweep += [(1.0, f) for f in cutoffs]
+        for src in sources:
+            for i, (pll_f, wc_f) in enumerate(sweep):
+                observers[_name(fam, src, i)] = _setting(
+                    variant, card, src, pll_f, wc_f, plugin_keys
+                )
+    if points is None:
+        points = list(POINTS[:2] if quick else POINTS)
     return points, observers
 
 
@@ -108,16 +148,18 @@ def _at(front: list[tuple[float, float]], bw: float) -> float:
     return float(np.interp(bw, xs, [p[1] for p in front]))
 
 
-def analyse(points, observers, res, card) -> dict[str, Any]:
+def analyse(
+    points, observers, res, card, families=None, sources: tuple[str, ...] = SOURCES
+) -> dict[str, Any]:
     """Per operating point and voltage source: each family's points and fronts (RMS and
     noise), and the noise ratio flux/EMF at matched allowed bandwidth over their overlap."""
     bw = {nm: allowed_bandwidth_hz(card, cfg) for nm, cfg in observers.items()}
     out: dict[str, Any] = {}
     for (speed, load), r in zip(points, res, strict=True):
-        for src in SOURCES:
+        for src in sources:
             key = f"{100 * speed:g}pct_{100 * load:g}load_{src}"
             cell: dict[str, Any] = {}
-            for fam in FAMILIES:
+            for fam in families or FAMILIES:
                 names = [n for n in observers if n.startswith(f"{fam}_{src}_")]
                 pts = {
                     q: [(bw[n], r["obs"][n][f"{q}_deg"]) for n in names]
@@ -127,28 +169,39 @@ def analyse(points, observers, res, card) -> dict[str, Any]:
                     "points": pts,
                     "front_rms": pareto(pts["rms"]),
                     "front_noise": pareto(pts["noise"]),
+                    "front_h6": pareto(pts["h6"]),
+                    "settings": [observers[n] for n in names],
                 }
-            lo = max(min(p[0] for p in cell[f]["front_noise"]) for f in FAMILIES)
-            hi = min(max(p[0] for p in cell[f]["front_noise"]) for f in FAMILIES)
-            grid = np.linspace(lo, hi, 9) if hi >= lo else np.array([])
-            ratios = [
-                _at(cell["flux"]["front_noise"], b) / _at(cell["emf"]["front_noise"], b)
-                for b in grid
-            ]
-            cell["matched_bw_hz"] = [float(lo), float(hi)] if hi >= lo else None
-            cell["noise_ratio_flux_emf"] = [x for x in ratios if math.isfinite(x)]
+            if "flux" in cell and "emf" in cell:
+                cell.update(_matched(cell))
             out[key] = cell
     return out
 
 
-def plot(ctx, fronts: dict[str, Any]) -> str:
+def _matched(cell: dict[str, Any]) -> dict[str, Any]:
+    """The flux/EMF noise ratio over the overlap of their allowed bandwidths."""
+    fams = ("flux", "emf")
+    lo = max(min(p[0] for p in cell[f]["front_noise"]) for f in fams)
+    hi = min(max(p[0] for p in cell[f]["front_noise"]) for f in fams)
+    grid = np.linspace(lo, hi, 9) if hi >= lo else np.array([])
+    ratios = [
+        _at(cell["flux"]["front_noise"], b) / _at(cell["emf"]["front_noise"], b) for b in grid
+    ]
+    return {
+        "matched_bw_hz": [float(lo), float(hi)] if hi >= lo else None,
+        "noise_ratio_flux_emf": [x for x in ratios if math.isfinite(x)],
+    }
+
+
+def plot(ctx, fronts: dict[str, Any], families=None, name: str = "fronts_flux_vs_emf") -> str:
     p = plt()
     keys = list(fronts)
     cols = 4
     rows = (len(keys) + cols - 1) // cols
     fig, axes = p.subplots(rows, cols, figsize=(3.4 * cols, 3.0 * rows), squeeze=False)
     for ax, key in zip(axes.flat, keys, strict=False):
-        for fam, color in (("flux", "C0"), ("emf", "C3")):
+        for k, fam in enumerate(families or FAMILIES):
+            color = f"C{(0, 3, 2, 1, 4, 5, 6)[k % 7]}"
             c = fronts[key][fam]
             for q, style in (("rms", "o-"), ("noise", "s--")):
                 xs, ys = zip(*sorted(c["points"][q]), strict=True)
@@ -161,7 +214,7 @@ def plot(ctx, fronts: dict[str, Any]) -> str:
     axes.flat[0].legend(fontsize=6)
     for ax in list(axes.flat)[len(keys) :]:
         ax.axis("off")
-    return ctx.fig(fig, "fronts_flux_vs_emf")
+    return ctx.fig(fig, name)
 
 
 def judge_fronts(fronts: dict[str, Any]) -> list[dict]:
@@ -192,13 +245,30 @@ def judge_fronts(fronts: dict[str, Any]) -> list[dict]:
     return claims
 
 
-def fronts(ctx) -> dict[str, Any]:
+def run_fronts(
+    ctx,
+    families=None,
+    points=None,
+    sources=SOURCES,
+    plugin_keys=PLUGIN_KEYS,
+    settle_s: float = 0.7,
+    window_s: float = 1.0,
+) -> dict[str, Any]:
+    """Build, run and analyse the fronts of `families` (name -> variant) at `points`
+    ((speed pu, load pu); None: POINTS) for `sources`, θ̃ measured over `window_s` after
+    `settle_s` at the operating point; the analysed cells by point/source."""
     card = ctx.card
-    points, observers = build_cases(ctx.quick, card)
+    points, observers = build_cases(ctx.quick, card, families, points, sources, plugin_keys)
     jobs = [
         (
             ctx.encoder_run(
-                ctx.rpm(s), load, observers=observers, ramp_s=1.5, window_s=1.0, name="fronts"
+                ctx.rpm(s),
+                load,
+                observers=observers,
+                ramp_s=1.5,
+                settle_s=settle_s,
+                window_s=window_s,
+                name="fronts",
             ),
             _x_front,
             None,
@@ -206,7 +276,11 @@ def fronts(ctx) -> dict[str, Any]:
         for s, load in points
     ]
     res = ctx.run(jobs)
-    data = analyse(points, observers, res, card)
+    return analyse(points, observers, res, card, families, sources)
+
+
+def fronts(ctx) -> dict[str, Any]:
+    data = run_fronts(ctx)
     return {"claims": judge_fronts(data), "figures": [plot(ctx, data)], "data": data}
 
 

@@ -1,0 +1,141 @@
+"""`./fluxdrive compare VARIANT... [--speeds PU,...] [--loads PU,...] [--sources ...]`:
+Pareto fronts of θ̃ (RMS, broadband noise, 6th order) against the speed-loop bandwidth each
+observer's speed path allows, for any set of observer variants -- built-in names or a user's
+`module:Class` -- sweeping each one's PLL (and the EMF path's speed LPF with it) and, where
+it has one, its flux cutoff.  Every variant runs in shadow on the same encoder-driven runs,
+one per operating point; the fronts come from the `fronts` experiment's code
+(fluxdrive.experiments.fronts).  Writes compare.json and compare.png (default
+results/compare/).  A plugin gets the sweep as constructor keywords (--pll-key,
+--cutoff-key); the last line printed is the JSON summary."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+from pathlib import Path
+from typing import Any
+
+from fluxdrive.core.machine import ConfigError
+from fluxdrive.drive.observers import observer_config
+from fluxdrive.drive.scenario import REPO_ROOT, machine_path
+from fluxdrive.experiments import fronts as fr
+from fluxdrive.experiments.common import Ctx
+
+
+def _floats(text: str, what: str) -> list[float]:
+    try:
+        vals = [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise ConfigError(f"--{what}: a comma-separated list of numbers, got {text!r}") from None
+    if not vals or any(v < 0.0 for v in vals):
+        raise ConfigError(f"--{what}: non-negative numbers, got {text!r}")
+    return vals
+
+
+def _parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="fluxdrive compare",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    ap.add_argument("variants", nargs="+", help="observer variants (name or module:Class)")
+    ap.add_argument("--speeds", default="0.02,0.1", help="speeds [pu of rated] (0.02,0.1)")
+    ap.add_argument("--loads", default="1.5,0", help="brake loads [pu of rated torque] (1.5,0)")
+    ap.add_argument(
+        "--sources", default="measured,commanded", help="voltage sources (measured,commanded)"
+    )
+    ap.add_argument("--quick", action="store_true", help="coarse sweep")
+    ap.add_argument("--settle-s", type=float, default=0.7, help="settling at the point [s]")
+    ap.add_argument("--window-s", type=float, default=1.0, help="θ̃ measured over [s]")
+    ap.add_argument("--machine", help="machine card (default: the default card)")
+    ap.add_argument("--pll-key", default="pll_hz", help="a plugin's PLL keyword [Hz]")
+    ap.add_argument("--cutoff-key", default="cutoff_hz", help="a plugin's flux cutoff [Hz]")
+    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    ap.add_argument("--out", type=Path, default=REPO_ROOT / "results" / "compare")
+    return ap
+
+
+def families_of(variants: list[str]) -> dict[str, str]:
+    """Family name (the variant's, made a plain identifier) -> variant; each one validated
+    (an unknown name or a plugin that does not load: one line)."""
+    fams: dict[str, str] = {}
+    for v in variants:
+        observer_config(v)
+        last = re.sub(r"(?<=[a-z0-9])(?=[A-Z])", "_", v.rsplit(":", 1)[-1])  # CamelCase
+        name = re.sub(r"\W+", "_", last).strip("_").lower() or "variant"
+        while name in fams:
+            name += "_"
+        fams[name] = v
+    return fams
+
+
+def summary(data: dict[str, Any], families: dict[str, str]) -> dict[str, Any]:
+    """Per cell and family: the front of θ̃ RMS (bandwidth, θ̃) and the best θ̃ at the
+    highest bandwidth the family reaches."""
+    out: dict[str, Any] = {}
+    for key, cell in data.items():
+        out[key] = {
+            fam: {
+                "variant": families[fam],
+                "front_rms": cell[fam]["front_rms"],
+                "front_noise": cell[fam]["front_noise"],
+                "front_h6": cell[fam]["front_h6"],
+                "max_bandwidth_hz": max(p[0] for p in cell[fam]["front_rms"]),
+            }
+            for fam in families
+        }
+    return out
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    from fluxdrive.study.runner import runner_from_args
+
+    families = families_of(args.variants)
+    sources = tuple(s.strip() for s in args.sources.split(",") if s.strip())
+    bad = [s for s in sources if s not in fr.SOURCES]
+    if bad:
+        raise ConfigError(f"--sources: {bad} unknown; use {', '.join(fr.SOURCES)}")
+    points = [
+        (s, ld) for s in _floats(args.speeds, "speeds") for ld in _floats(args.loads, "loads")
+    ]
+    machine = machine_path(args.machine).resolve() if args.machine else None
+    runner = runner_from_args(None, args.workers)
+    ctx = Ctx(out=args.out, quick=args.quick, runner=runner, name="compare", machine=machine)
+    try:
+        keys = {"pll": args.pll_key, "cutoff": args.cutoff_key}
+        if not (0.0 <= args.settle_s <= 60.0 and 0.05 <= args.window_s <= 60.0):
+            raise ConfigError("--settle-s in [0, 60] s and --window-s in [0.05, 60] s")
+        data = fr.run_fronts(ctx, families, points, sources, keys, args.settle_s, args.window_s)
+    finally:
+        runner.close()
+    figure = fr.plot(ctx, data, families, name="compare")
+    result = {
+        "variants": families,
+        "card": ctx.card.name,
+        "points": points,
+        "sources": list(sources),
+        "quick": args.quick,
+        "figure": figure,
+        "fronts": summary(data, families),
+        "cells": data,
+    }
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "compare.json").write_text(json.dumps(result, indent=1))
+    return result
+
+
+def main(argv: list[str]) -> int:
+    args = _parser().parse_args(argv)
+    result = run(args)
+    for key, cell in result["fronts"].items():
+        for fam, f in cell.items():
+            best = min(e for _, e in f["front_rms"])
+            print(
+                f"{key:28s} {fam:16s} θ̃ RMS best {best:.2f}° ; up to "
+                f"{f['max_bandwidth_hz']:.1f} Hz speed-loop bandwidth"
+            )
+    print(f"written: {args.out / 'compare.json'}, {args.out / result['figure']}")
+    print(json.dumps({"variants": result["variants"], "fronts": result["fronts"]}))
+    return 0

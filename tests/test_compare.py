@@ -1,0 +1,46 @@
+"""`./fluxdrive compare`: Pareto fronts for any set of variants, a user's class included."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+from fluxdrive.cli.compare import main
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "my_observer"
+PLUGIN = "my_observer.flux_pll:FluxPllObserver"  # paper_robust's equations in plain Python
+
+
+@pytest.fixture
+def example_importable(monkeypatch):
+    monkeypatch.syspath_prepend(str(EXAMPLE))
+    monkeypatch.setenv("PYTHONPATH", f"{EXAMPLE}:{os.environ.get('PYTHONPATH', '')}")
+
+
+def test_compare_builtin_and_plugin_on_a_coarse_grid(tmp_path, example_importable, capsys):
+    """paper_robust and a plugin written from the same equations (docs/engine.md), swept on
+    one operating point: both get the same allowed speed bandwidths (the design rule sees
+    the same PLL), a wider PLL allows more, and the two fronts agree point by point (the
+    same estimator, so the same θ̃) -- the plugin really ran with the swept settings."""
+    out = tmp_path / "cmp"
+    argv = ["paper_robust", PLUGIN, "--quick", "--speeds", "0.1", "--loads", "0"]
+    argv += ["--sources", "measured", "--settle-s", "0.3", "--window-s", "0.4"]
+    argv += ["--workers", "1", "--out", str(out)]
+    assert main(argv) == 0
+    res = json.loads((out / "compare.json").read_text())
+    assert (out / res["figure"]).stat().st_size > 0
+    cell = res["cells"]["10pct_0load_measured"]
+    ours, theirs = cell["paper_robust"], cell["flux_pll_observer"]
+    bws = [p[0] for p in ours["points"]["rms"]]
+    assert [p[0] for p in theirs["points"]["rms"]] == pytest.approx(bws)
+    assert bws[2] > bws[1] > bws[0]  # PLL factors 0.6, 1.0, 1.6 of the card's rule
+    for (_, a), (_, b) in zip(ours["points"]["rms"], theirs["points"]["rms"], strict=True):
+        assert b == pytest.approx(a, abs=0.1)
+    # the cutoff sweep (half the card's w_c) sits at the card PLL's bandwidth
+    assert ours["settings"][-1]["cutoff_hz"] == pytest.approx(0.5 * 100.0)
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["variants"] == {
+        "paper_robust": "paper_robust",
+        "flux_pll_observer": PLUGIN,
+    }
