@@ -57,12 +57,77 @@ def _parser(names: list[str]) -> argparse.ArgumentParser:
         "results/bench-<file> unless --out)",
     )
     ap.add_argument(
+        "--against",
+        type=Path,
+        help="a results folder of the same experiments (e.g. on another bench): write "
+        "deltas.json, each claim's value and verdict there and here (name 'deltas': only "
+        "that, from the report already in --out)",
+    )
+    ap.add_argument(
         "--machine",
         help="run every scenario on this machine card (per-unit "
         "speeds scale with its rated speed, defaults derive from it; results go "
         "to results/experiments-<card> unless --out)",
     )
     return ap
+
+
+def verdict_deltas(base: dict, new: dict) -> dict:
+    """Claim by claim (matched on id), the value and verdict of `base` and `new` (two
+    report.json mappings), and the counts of verdicts that changed."""
+
+    def claims(rep: dict) -> dict[str, dict]:
+        return {
+            c.get("id") or c["claim"]: {**c, "experiment": name}
+            for name, e in rep.get("experiments", {}).items()
+            for c in e.get("claims", [])
+        }
+
+    b, n = claims(base), claims(new)
+    rows = []
+    for cid in [k for k in n if k in b] + [k for k in b if k not in n]:
+        cb, cn = b.get(cid, {}), n.get(cid, {})
+        rows.append(
+            {
+                "id": cid,
+                "experiment": (cn or cb)["experiment"],
+                "claim": (cn or cb)["claim"],
+                "base_value": cb.get("value"),
+                "new_value": cn.get("value"),
+                "base_verdict": cb.get("verdict", fmt_verdict(cb) if cb else None),
+                "new_verdict": cn.get("verdict", fmt_verdict(cn) if cn else None),
+                "base_ours": cb.get("ours"),
+                "new_ours": cn.get("ours"),
+            }
+        )
+    changed = [r for r in rows if r["base_verdict"] != r["new_verdict"]]
+    return {
+        "claims": len(rows),
+        "verdicts_changed": len(changed),
+        "changed": changed,
+        "counts_base": count([c for c in b.values()]),
+        "counts_new": count([c for c in n.values()]),
+        "rows": rows,
+    }
+
+
+def _write_deltas(against: Path, out: Path) -> None:
+    import json
+
+    reports = []
+    for d in (against, out):
+        try:
+            reports.append(json.loads((d / "report.json").read_text()))
+        except (OSError, ValueError) as exc:
+            raise ConfigError(f"{d / 'report.json'}: cannot read the report: {exc}") from None
+    deltas = verdict_deltas(*reports)
+    deltas["base_dir"] = str(against)
+    (out / "deltas.json").write_text(json.dumps(deltas, indent=1, default=str))
+    for r in deltas["rows"]:
+        if r["base_verdict"] != r["new_verdict"]:
+            print(f"changed: {r['id']}: {r['base_verdict']} -> {r['new_verdict']}")
+    print(f"deltas: {deltas['verdicts_changed']} of {deltas['claims']} verdicts changed")
+    print(f"written: {out / 'deltas.json'}")
 
 
 def _failed(name: str, quick: bool, exc: Exception) -> dict:
@@ -144,10 +209,18 @@ def main(argv: list[str], graph_run: Callable | None = None) -> int:
         for k, (_, title) in reg.items():
             print(f"{k:18s} {title}")
         return 0
+    out = out or REPO_ROOT / "results" / "experiments"
+    if args.name == "deltas":
+        if args.against is None:
+            raise ConfigError("experiment deltas: give --against DIR (and --out DIR)")
+        _write_deltas(args.against, out)
+        return 0
     names = list(reg) if args.name == "all" else args.name.split(",")
     bad = [n for n in names if n not in reg]
     if bad:
         print(f"unknown experiment(s) {bad}; known: {', '.join(reg)}", file=sys.stderr)
         return 2
-    _run_all(args, names, machine, graph_run, out or REPO_ROOT / "results" / "experiments")
+    _run_all(args, names, machine, graph_run, out)
+    if args.against is not None:
+        _write_deltas(args.against, out)
     return 0
