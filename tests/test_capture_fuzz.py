@@ -155,6 +155,27 @@ def test_fuzz_can_import_text_capture(tmp_path):
     run()
 
 
+def test_relative_clock_capture_gets_sample_time(tmp_path):
+    """A capture whose clock is not an epoch time (a relative-time logger, or a .blf whose header
+    time was zeroed: its frames land before 1970, which the fuzz found as an mcap struct.error
+    traceback) imports with bag time = sample time, never a negative log time."""
+    from fluxdrive.io.bagio import read_run_bag
+
+    msgs = _messages()
+    t0 = msgs[0].timestamp
+    for m in msgs:
+        m.timestamp -= t0 + 5.0  # the first frame 5 s before the epoch
+    bag = tmp_path / "bag"
+    import_capture(_write(tmp_path / "rel.log", msgs), bag)
+    run = read_run_bag(bag)
+    assert run.meta["can_import"]["source"].endswith("rel.log")
+    from mcap.reader import make_reader
+
+    with open(next(bag.glob("*.mcap")), "rb") as fh:
+        times = [m.log_time for _, _, m in make_reader(fh).iter_messages()]
+    assert times and min(times) >= 0 and times == sorted(times)
+
+
 def test_fuzz_can_import_blf_bytes(tmp_path):
     base = _write(tmp_path / "base.blf", _messages()).read_bytes()
     path = tmp_path / "fuzz.blf"

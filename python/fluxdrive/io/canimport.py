@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from fluxdrive.can.canlog import read_capture
+from fluxdrive.can.canlog import CaptureError, read_capture
 from fluxdrive.can.protocol import FRAME_FIELDS, SEQ_BITS, unwrap_counter
 from fluxdrive.core.machine import MachineCard
 from fluxdrive.drive.plant import FR_SEQ
@@ -81,8 +81,7 @@ def import_capture(
     stamp = Stamp(sample_card.ts_s)
     fw = FrameWire(frame_id)  # FRAME_FIELDS are the engine's FR_* columns
     outp = Path(out)
-    # bag time: the capture's own clock (its timestamps are wall-clock epoch times)
-    offset = int(round(float(cap.timestamps[0]) * 1e9)) - stamp.ns(int(f[0, FR_SEQ]))
+    offset = _bag_time_offset_ns(log, float(cap.timestamps[0]), stamp, f)
     with BagWriter(outp, settings, epoch_offset_ns=offset) as w:
         cid = w.add_connection(topic, T_FRAME)
         for j in range(f.shape[0]):
@@ -104,3 +103,19 @@ def import_capture(
             f"{Path(log).name}:{n}: {why}" for n, why in cap.bad_lines[:5]
         ]
     return out_counts
+
+
+def _bag_time_offset_ns(log: Path | str, t0_s: float, stamp: Stamp, f: np.ndarray) -> int:
+    """Bag time = sample stamp + this offset: the capture's own clock, where its timestamps are
+    wall-clock epoch times.  A capture on a relative clock (or one whose header time is damaged)
+    would put the first samples before 1970: its bag time is the sample time itself.  A bag
+    time past what MCAP's unsigned 64-bit nanoseconds hold is refused in one line."""
+    seq0, seq_end = int(f[0, FR_SEQ]), int(f[-1, FR_SEQ])
+    if not np.isfinite(t0_s) or abs(t0_s) > 1e10:
+        raise CaptureError(f"{log}: first timestamp {t0_s!r} s is not a usable capture time")
+    offset = max(int(round(t0_s * 1e9)) - stamp.ns(seq0), 0)
+    if offset + stamp.ns(seq_end) >= 2**63:
+        raise CaptureError(
+            f"{log}: the capture's timestamps run past the year 2262 (bag time limit)"
+        )
+    return offset
