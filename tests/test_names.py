@@ -1,7 +1,8 @@
 """Names from one place: outside the kernel modules that define the row layouts, a column of a
 frame, truth, estimate or controller row is named by its layout constant (FR_*, TR_*, ES_*,
 CO_*) or by the protocol's FRAME_INDEX, never by a raw number that breaks silently when a
-layout grows."""
+layout grows. A layout array is one of ROW_NAMES, or any array the same file indexes in
+its column by a layout constant or builds with a layout's width (`np.zeros((n, ES_N))`)."""
 
 from __future__ import annotations
 
@@ -40,11 +41,39 @@ def _names_a_constant(node: ast.expr) -> bool:
     return any((_name(n) or "").isupper() for n in ast.walk(node))
 
 
+# prefixes of the row layouts' constants (FR_SEQ, TR_T, ES_W, CO_MODE, FR_N, ...)
+LAYOUT_PREFIXES = ("FR_", "TR_", "ES_", "CO_")
+
+
+def _layout_constant(node: ast.AST) -> str | None:
+    name = _name(node) if isinstance(node, (ast.Name, ast.Attribute)) else None
+    return name if name is not None and name.startswith(LAYOUT_PREFIXES) else None
+
+
+def layout_arrays(tree: ast.AST) -> set[str]:
+    """Names of the file's layout arrays besides ROW_NAMES: indexed in their column by a
+    layout constant somewhere (`a[:, FR_SEQ]`), or built with a layout's width
+    (`a = np.zeros((n, ES_N))`)."""
+    found = set(ROW_NAMES)
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Subscript) and isinstance(node.slice, ast.Tuple):
+            if any(_layout_constant(n) for n in ast.walk(node.slice.elts[-1])):
+                found.add(_name(node.value) or "")
+        elif isinstance(node, (ast.Assign, ast.AnnAssign)) and node.value is not None:
+            if any((_layout_constant(n) or "").endswith("_N") for n in ast.walk(node.value)):
+                targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+                found |= {_name(t) or "" for t in targets}
+    return found - {""}
+
+
 def raw_column_indices(path: Path) -> list[str]:
-    """`rows[..., 7]`, `frame[:, 3 + j]`: a row array indexed in its column by a literal."""
+    """`rows[..., 7]`, `frame[:, 3 + j]`: a layout array indexed in its column by a
+    literal."""
+    tree = ast.parse(path.read_text(), str(path))
+    arrays = layout_arrays(tree)
     hits = []
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
-        if isinstance(node, ast.Subscript) and _name(node.value) in ROW_NAMES:
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Subscript) and _name(node.value) in arrays:
             cols = node.slice
             col = cols.elts[-1] if isinstance(cols, ast.Tuple) else None
             if col is not None and _has_literal(col) and not _names_a_constant(col):
@@ -70,3 +99,12 @@ def test_the_check_sees_a_raw_index(tmp_path):
         "e = f[:, FR_DA + (j + 1) % 3]\n"
     )
     assert raw_column_indices(f) == ["1: frames[:, 12]", "2: est[-1, 3 + j]"]
+
+
+def test_the_check_sees_a_raw_index_on_any_layout_array(tmp_path):
+    f = tmp_path / "x.py"
+    f.write_text(
+        "a = np.zeros((n, ES_N))\nb = a[:, 2]\nc = q[:, CO_MODE]\nd = q[:, 4]\n"
+        "e = xy[:, 1]\ng = a[3]\n"
+    )
+    assert raw_column_indices(f) == ["2: a[:, 2]", "4: q[:, 4]"]
