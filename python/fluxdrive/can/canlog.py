@@ -45,6 +45,7 @@ from fluxdrive.can.protocol import (
     get_protocol,
     pack_payloads,
 )
+from fluxdrive.drive.plant import FR_SEQ
 
 __all__ = [
     "SUPPORTED_SUFFIXES",
@@ -143,6 +144,138 @@ def open_writer(path: str | os.PathLike[str]) -> can.io.generic.MessageWriter:
     return can.Logger(str(p))
 
 
+@dataclass
+class _Sorted:
+    """A capture's messages by kind: SAMPLE_FD payloads (with stamps and FD flags), classic
+    sample parts, and counts of the rest."""
+
+    total: int = 0
+    other: int = 0
+    errors: int = 0
+    fd_data: list[bytes] = field(default_factory=list)
+    fd_ts: list[float] = field(default_factory=list)
+    fd_isfd: list[bool] = field(default_factory=list)
+    classic: list[tuple[int, bytes, float]] = field(default_factory=list)
+    foreign_ids: list[int] = field(default_factory=list)  # the first 3 other IDs seen
+
+
+def _sort_messages(messages, sample_id: int, classic_ids: Sequence[int]) -> _Sorted:
+    classic = set(classic_ids)
+    got = _Sorted()
+    for msg in messages:
+        got.total += 1
+        if msg.is_error_frame:
+            got.errors += 1
+            continue
+        aid = msg.arbitration_id
+        if aid == sample_id and not msg.is_extended_id:
+            got.fd_data.append(bytes(msg.data))
+            got.fd_ts.append(msg.timestamp)
+            got.fd_isfd.append(bool(msg.is_fd))
+        elif aid in classic and not msg.is_extended_id:
+            got.classic.append((aid, bytes(msg.data), msg.timestamp))
+        else:
+            got.other += 1
+            if len(got.foreign_ids) < 3 and aid not in got.foreign_ids:
+                got.foreign_ids.append(aid)
+    return got
+
+
+def _samples_text(sample_id: int, classic_ids: Sequence[int]) -> str:
+    return (
+        f"SAMPLE_FD 0x{sample_id:03X} or the classic layout "
+        f"{', '.join(f'0x{i:03X}' for i in classic_ids)}"
+    )
+
+
+def _refuse_without_samples(
+    p: Path,
+    got: _Sorted,
+    bad_lines: list[tuple[int, str]],
+    notes: dict[str, str],
+    samples: str,
+) -> None:
+    """One line when the capture holds no CAN frame, or none with a sample ID."""
+    if got.total == 0:
+        why = (
+            f" ({len(bad_lines)} malformed lines, first {p.name}:{bad_lines[0][0]}: "
+            f"{bad_lines[0][1]})"
+            if bad_lines
+            else ""
+        )
+        raise CaptureError(f"{p}: holds no CAN frames{why}{_note(notes)}")
+    if not got.fd_data and not got.classic:
+        ids = ", ".join(f"0x{i:X}" for i in got.foreign_ids)
+        raise CaptureError(
+            f"{p}: none of its {got.total} CAN frames is a sample frame ({samples}); "
+            f"{got.other} have other IDs (e.g. {ids}){_note(notes)}"
+        )
+
+
+@dataclass
+class _Decoded:
+    frames: np.ndarray
+    ts: np.ndarray
+    step: int
+    layout: str
+    reasons: list[tuple[int, str]]
+    counts: dict[str, int]
+
+
+def _decode_fd_samples(proto: FluxdriveProtocol, got: _Sorted) -> _Decoded:
+    """The SAMPLE_FD frames through the vectorised decoder; one sent without the FD flag
+    is malformed. The classic parts, if any, count as other messages."""
+    payloads, lens = pack_payloads(got.fd_data, proto.fd_codec.length)
+    frames, res = proto.decode_fd(payloads, lens)
+    valid = res.report.valid.copy()
+    not_fd = ~np.asarray(got.fd_isfd, dtype=bool)
+    for i in np.flatnonzero(not_fd & valid):
+        res.report.reasons[int(i)] = "sent as a classic CAN frame (FD flag clear)"
+    valid &= ~not_fd
+    reasons = [(int(i), res.report.reasons[int(i)]) for i in np.flatnonzero(~valid)[:100]]
+    frames = frames[valid]
+    return _Decoded(
+        frames=frames,
+        ts=np.asarray(got.fd_ts, dtype=np.float64)[valid],
+        step=_infer_step(frames[:, FR_SEQ], 1),
+        layout="fd" if got.fd_data else "none",
+        reasons=reasons,
+        counts={
+            "sample": len(got.fd_data),
+            "decoded": int(valid.sum()),
+            "malformed": int((~valid).sum()),
+            "other": got.other + len(got.classic),
+        },
+    )
+
+
+def _reassemble_classic(
+    proto: FluxdriveProtocol, got: _Sorted, classic_step: int | None
+) -> _Decoded:
+    """The classic layout's four parts per sample reassembled into frames."""
+    ra = ClassicReassembler(protocol=proto)
+    rows, tss = [], []
+    for aid, data, t in got.classic:
+        r = ra.feed(aid, data)
+        if r is not None:
+            rows.append(r)
+            tss.append(t)
+    frames = np.vstack(rows) if rows else np.empty((0, len(FRAME_FIELDS)))
+    return _Decoded(
+        frames=frames,
+        ts=np.asarray(tss, dtype=np.float64),
+        step=classic_step or _infer_step(frames[:, FR_SEQ], proto.classic_decimation),
+        layout="classic",
+        reasons=list(enumerate(ra.reasons)),
+        counts={
+            "sample": len(got.classic),
+            "decoded": ra.completed,
+            "malformed": ra.malformed,
+            "incomplete": ra.incomplete,
+        },
+    )
+
+
 def read_capture(
     path: str | os.PathLike[str],
     *,
@@ -160,115 +293,41 @@ def read_capture(
     p = Path(path)
     _check_suffix(p)
     proto = protocol or get_protocol()
-    classic = set(classic_ids)
-    total = other = errors = 0
-    fd_data: list[bytes] = []
-    fd_ts: list[float] = []
-    fd_isfd: list[bool] = []
-    cl_msgs: list[tuple[int, bytes, float]] = []
     bad_lines: list[tuple[int, str]] = []
     notes: dict[str, str] = {}
-    foreign_ids: list[int] = []
     if not p.is_file():
         raise CaptureError(f"{p}: no such capture file")
-    for msg in _messages(p, bad_lines, notes):
-        total += 1
-        if msg.is_error_frame:
-            errors += 1
-            continue
-        aid = msg.arbitration_id
-        if aid == sample_id and not msg.is_extended_id:
-            fd_data.append(bytes(msg.data))
-            fd_ts.append(msg.timestamp)
-            fd_isfd.append(bool(msg.is_fd))
-        elif aid in classic and not msg.is_extended_id:
-            cl_msgs.append((aid, bytes(msg.data), msg.timestamp))
-        else:
-            other += 1
-            if len(foreign_ids) < 3 and aid not in foreign_ids:
-                foreign_ids.append(aid)
-    counts = {
-        "total": total,
-        "other": other,
-        "error_frames": errors,
-        "malformed_lines": len(bad_lines),
-    }
-    if total == 0:
-        why = (
-            f" ({len(bad_lines)} malformed lines, first {p.name}:{bad_lines[0][0]}: "
-            f"{bad_lines[0][1]})"
-            if bad_lines
-            else ""
-        )
-        raise CaptureError(f"{p}: holds no CAN frames{why}{_note(notes)}")
-    if not fd_data and not cl_msgs:
-        ids = ", ".join(f"0x{i:X}" for i in foreign_ids)
-        raise CaptureError(
-            f"{p}: none of its {total} CAN frames is a sample frame (SAMPLE_FD "
-            f"0x{sample_id:03X} or the classic layout "
-            f"{', '.join(f'0x{i:03X}' for i in classic_ids)}); {other} have other IDs "
-            f"(e.g. {ids}){_note(notes)}"
-        )
-    reasons: list[tuple[int, str]] = []
-    if fd_data or not cl_msgs:
-        payloads, lens = pack_payloads(fd_data, proto.fd_codec.length)
-        frames, res = proto.decode_fd(payloads, lens)
-        valid = res.report.valid.copy()
-        not_fd = ~np.asarray(fd_isfd, dtype=bool)
-        for i in np.flatnonzero(not_fd & valid):
-            res.report.reasons[int(i)] = "sent as a classic CAN frame (FD flag clear)"
-        valid &= ~not_fd
-        for i in np.flatnonzero(~valid)[:100]:
-            reasons.append((int(i), res.report.reasons[int(i)]))
-        frames = frames[valid]
-        ts = np.asarray(fd_ts, dtype=np.float64)[valid]
-        step = _infer_step(frames[:, FRAME_FIELDS.index("seq")], 1)
-        layout = "fd" if fd_data else "none"
-        counts.update(sample=len(fd_data), decoded=int(valid.sum()), malformed=int((~valid).sum()))
-        other += len(cl_msgs)
-        counts["other"] = other
+    got = _sort_messages(_messages(p, bad_lines, notes), sample_id, classic_ids)
+    samples = _samples_text(sample_id, classic_ids)
+    _refuse_without_samples(p, got, bad_lines, notes, samples)
+    if got.fd_data or not got.classic:
+        dec = _decode_fd_samples(proto, got)
     else:
-        ra = ClassicReassembler(protocol=proto)
-        rows, tss = [], []
-        for aid, data, t in cl_msgs:
-            r = ra.feed(aid, data)
-            if r is not None:
-                rows.append(r)
-                tss.append(t)
-        frames = np.vstack(rows) if rows else np.empty((0, len(FRAME_FIELDS)))
-        ts = np.asarray(tss, dtype=np.float64)
-        step = classic_step or _infer_step(
-            frames[:, FRAME_FIELDS.index("seq")], proto.classic_decimation
-        )
-        layout = "classic"
-        reasons = list(enumerate(ra.reasons))
-        counts.update(
-            sample=len(cl_msgs),
-            decoded=ra.completed,
-            malformed=ra.malformed,
-            incomplete=ra.incomplete,
-        )
-    st = count_seq_gaps(
-        frames[:, FRAME_FIELDS.index("seq")].astype(np.int64), bits=SEQ_BITS, step=step
-    )
+        dec = _reassemble_classic(proto, got, classic_step)
+    counts = {
+        "total": got.total,
+        "other": got.other,
+        "error_frames": got.errors,
+        "malformed_lines": len(bad_lines),
+        **dec.counts,
+    }
+    st = count_seq_gaps(dec.frames[:, FR_SEQ].astype(np.int64), bits=SEQ_BITS, step=dec.step)
     counts.update(
         gaps=st.gaps, lost=st.lost, duplicates=st.duplicates, out_of_order=st.out_of_order
     )
-    if not len(frames):
+    if not len(dec.frames):
         raise CaptureError(
-            f"{p}: none of its {total} CAN frames is a valid sample frame "
-            f"(SAMPLE_FD 0x{sample_id:03X} or the classic layout "
-            f"{', '.join(f'0x{i:03X}' for i in classic_ids)}); "
+            f"{p}: none of its {got.total} CAN frames is a valid sample frame ({samples}); "
             f"{counts.get('malformed', 0)} malformed"
         )
     return CaptureResult(
-        frames=frames,
-        timestamps=ts,
+        frames=dec.frames,
+        timestamps=dec.ts,
         counts=counts,
-        layout=layout,
-        reasons=reasons,
+        layout=dec.layout,
+        reasons=dec.reasons,
         bad_lines=bad_lines[:20],
-        step=step,
+        step=dec.step,
         truncated=notes.get("truncated", ""),
     )
 
