@@ -174,23 +174,12 @@ def run_can_loop(
     n = ds.n if n_periods is None else int(n_periods)
     ch = channel or new_virtual_channel()
     fd = layout == "fd"
-    emu_bus = can.Bus(interface="virtual", channel=ch, fd=fd, receive_own_messages=False)
-    tap = can.Bus(interface="virtual", channel=ch, fd=True) if log_path else None
-    logger = _TapLogger(log_path) if log_path else None
-    notifier = (
-        can.Notifier(tap, [logger], timeout=0.05)
-        if tap is not None and logger is not None
-        else None
-    )
+    buses = _Buses.open(ch, fd, log_path)
     emu = DriveEmulator(
-        ds, emu_bus, record=True, layout=layout, decimation=decimation, **(emulator_kw or {})
+        ds, buses.emu, record=True, layout=layout, decimation=decimation, **(emulator_kw or {})
     )
     d = emu.decimation
-    cfg = bridge_config or BridgeConfig(stale_timeout_s=1.0)
-    if decimation is not None and not cfg.decimation:
-        cfg = dataclasses.replace(cfg, decimation=d)
-    if split:
-        cfg = dataclasses.replace(cfg, control_split=True)
+    cfg = _bridge_config(bridge_config, decimation is not None, d, split)
     bridge = CanBridge(bus_factory_from_params("virtual", ch, fd=fd), cfg)
     bridge.connect()
     if arm:
@@ -198,113 +187,180 @@ def run_can_loop(
     if control_scenario is None:
         control_scenario = decimated_scenario(scenario, d) if d > 1 and not split else scenario
     dsc = DriveSetup(control_scenario) if control_scenario is not scenario else ds
-    n_smp = math.ceil(n / d)
-    cs = dsc.new_controller()
-    obs = dsc.new_observer_states()
-    n_obs = obs.shape[0]
-    est_rows = np.zeros((n_obs, n_smp, ES_N))
-    ctrl_rows = np.zeros((n_smp, CO_N))
-    rx_rows = np.zeros((n_smp, 14))
-    no_est = np.zeros(ES_N)
-    ctrl = np.zeros(CO_N)
-    ref = np.zeros(RF_N)
-    # split: the host's rows step at D*Ts, the profiles are per PWM period
-    k_of_sample = d if split else 1
-
-    # compile (or load) the host's kernels before the drive runs: in lockstep it waits only
-    # lockstep_wait_s for each answer
-    scratch_fr = np.zeros(FR_N)
-    scratch_est = np.zeros(ES_N)
-    for o in range(n_obs):
-        observer_step(dsc.new_observer_states()[o], dsc.obs_params[o], scratch_fr, scratch_est)
-    if split:
-        host_reference_step(
-            dsc.new_controller(), dsc.cp_host, scratch_fr, no_est, 0.0, 0.0, ctrl, ref
-        )
-    else:
-        controller_step(dsc.new_controller(), dsc.cp, scratch_fr, no_est, 0.0, 0.0, ctrl)
-    m = 0
-    host_s: list[float] = []  # per sample: frame decoded -> answer sent [s]
+    host = _Host(dsc, math.ceil(n / d), split, d)
+    host.warm()
     t0 = time.perf_counter()
-    if split:  # the drive-side parameters of this scenario's design, each acknowledged,
-        # all in effect before the drive's first period (a run does not depend on when)
-        configured = threading.Event()
-        server = threading.Thread(target=emu.serve, args=(configured,), daemon=True)
-        server.start()
-        try:
-            for name, value in drive_param_values(ds.cp).items():
-                # generous: a cold numba cache compiles the emulator's kernels meanwhile
-                ok, why, _ = bridge.set_drive_param(name, value, timeout_s=60.0)
-                if not ok:
-                    raise RuntimeError(f"drive parameter refused: {why}")
-        finally:
-            configured.set()
-            server.join()
+    if split:
+        _configure_split_drive(emu, bridge, ds)
     emu.start(n, realtime=realtime)
-    idle_since = None
     try:
-        while True:
-            frames = bridge.poll(timeout=0.2)
-            if frames.shape[0] == 0:
-                if emu._thread is None or not emu._thread.is_alive():
-                    idle_since = idle_since or time.perf_counter()
-                    if time.perf_counter() - idle_since > 0.3:
-                        break
-                continue
-            for fr in frames:
-                t_in = time.perf_counter()
-                kk = int(fr[FR_SEQ])
-                answer = True
-                if frame_hook is not None:
-                    answer = frame_hook(bridge, kk) is not False
-                if m >= n_smp:
-                    break
-                rx_rows[m] = fr
-                for o in range(n_obs):
-                    observer_step(obs[o], dsc.obs_params[o], fr, est_rows[o, m])
-                ki = min(max(kk * k_of_sample, 0), dsc.n - 1)
-                est = est_rows[dsc.driving_index, m] if dsc.driving_index >= 0 else no_est
-                w_ref, inj = dsc.w_ref[ki], dsc.id_inj[ki]
-                if split:
-                    host_reference_step(cs, dsc.cp_host, fr, est, w_ref, inj, ctrl, ref)
-                else:
-                    controller_step(cs, dsc.cp, fr, est, w_ref, inj, ctrl)
-                ctrl_rows[m] = ctrl
-                m += 1
-                if not answer:
-                    continue
-                if split:
-                    bridge.send_reference(
-                        kk, ref[RF_ID_REF], ref[RF_IQ_REF], ref[RF_TH], ref[RF_W], ref[RF_EN] > 0.5
-                    )
-                else:
-                    bridge.send_duty(kk, ctrl[CO_DA : CO_DC + 1], ctrl[CO_EN] > 0.5)
-                host_s.append(time.perf_counter() - t_in)
+        _serve(bridge, emu, host, frame_hook)
     finally:
         emu.stop()
         bridge.shutdown()
-        emu_bus.shutdown()
-        if notifier is not None:
-            time.sleep(0.05)
-            notifier.stop()  # also stops (closes) the logger
-        if tap is not None:
-            tap.shutdown()
+        buses.close()
     wall = time.perf_counter() - t0
     fs, tr = emu.recorded()
+    m = host.m
     return CanLoopResult(
         ds,
         fs,
         tr,
-        rx_rows[:m],
-        est_rows[:, :m],
-        ctrl_rows[:m],
+        host.rx_rows[:m],
+        host.est_rows[:, :m],
+        host.ctrl_rows[:m],
         bridge.diagnostics(),
         emu.stats.as_dict(),
         wall,
         extra={
             "answer_latency_s": np.array(emu.answer_latency_s),
-            "host_compute_s": np.array(host_s),
+            "host_compute_s": np.array(host.host_s),
         },
         decimation=d,
         control_setup=dsc,
     )
+
+
+def _bridge_config(
+    given: BridgeConfig | None, decimated: bool, decimation: int, split: bool
+) -> BridgeConfig:
+    """The bridge's settings: those given (default: a 1 s stale timeout), with the
+    emulator's decimation when one was asked for, and split mode when the scenario's."""
+    cfg = given or BridgeConfig(stale_timeout_s=1.0)
+    if decimated and not cfg.decimation:
+        cfg = dataclasses.replace(cfg, decimation=decimation)
+    if split:
+        cfg = dataclasses.replace(cfg, control_split=True)
+    return cfg
+
+
+@dataclass
+class _Buses:
+    """The emulator's end of the virtual bus and, with a log path, a tap recording it."""
+
+    emu: can.BusABC
+    tap: can.BusABC | None = None
+    notifier: can.Notifier | None = None
+
+    @classmethod
+    def open(cls, ch: str, fd: bool, log_path: str | None) -> _Buses:
+        emu = can.Bus(interface="virtual", channel=ch, fd=fd, receive_own_messages=False)
+        if not log_path:
+            return cls(emu)
+        tap = can.Bus(interface="virtual", channel=ch, fd=True)
+        return cls(emu, tap, can.Notifier(tap, [_TapLogger(log_path)], timeout=0.05))
+
+    def close(self) -> None:
+        self.emu.shutdown()
+        if self.notifier is not None:
+            time.sleep(0.05)
+            self.notifier.stop()  # also stops (closes) the logger
+        if self.tap is not None:
+            self.tap.shutdown()
+
+
+def _configure_split_drive(emu: DriveEmulator, bridge: CanBridge, ds: DriveSetup) -> None:
+    """The drive-side parameters of this scenario's design, each acknowledged, all in
+    effect before the drive's first period (a run does not depend on when)."""
+    configured = threading.Event()
+    server = threading.Thread(target=emu.serve, args=(configured,), daemon=True)
+    server.start()
+    try:
+        for name, value in drive_param_values(ds.cp).items():
+            # generous: a cold numba cache compiles the emulator's kernels meanwhile
+            ok, why, _ = bridge.set_drive_param(name, value, timeout_s=60.0)
+            if not ok:
+                raise RuntimeError(f"drive parameter refused: {why}")
+    finally:
+        configured.set()
+        server.join()
+
+
+class _Host:
+    """The host's side of the loop: the observers and the controller (split: the host's
+    reference step) over the received samples, their rows, and the answer to each."""
+
+    def __init__(self, dsc: DriveSetup, n_smp: int, split: bool, decimation: int) -> None:
+        self.dsc = dsc
+        self.split = split
+        self.cs = dsc.new_controller()
+        self.obs = dsc.new_observer_states()
+        self.n_obs = self.obs.shape[0]
+        self.est_rows = np.zeros((self.n_obs, n_smp, ES_N))
+        self.ctrl_rows = np.zeros((n_smp, CO_N))
+        self.rx_rows = np.zeros((n_smp, FR_N))
+        self.no_est = np.zeros(ES_N)
+        self.ctrl = np.zeros(CO_N)
+        self.ref = np.zeros(RF_N)
+        # split: the host's rows step at D*Ts, the profiles are per PWM period
+        self.k_of_sample = decimation if split else 1
+        self.m = 0  # samples handled
+        self.host_s: list[float] = []  # per sample: frame decoded -> answer sent [s]
+
+    def warm(self) -> None:
+        """Compile (or load) the host's kernels before the drive runs: in lockstep it
+        waits only lockstep_wait_s for each answer."""
+        dsc, no_est = self.dsc, self.no_est
+        scratch_fr = np.zeros(FR_N)
+        scratch_est = np.zeros(ES_N)
+        for o in range(self.n_obs):
+            observer_step(dsc.new_observer_states()[o], dsc.obs_params[o], scratch_fr, scratch_est)
+        cs = dsc.new_controller()
+        if self.split:
+            host_reference_step(cs, dsc.cp_host, scratch_fr, no_est, 0.0, 0.0, self.ctrl, self.ref)
+        else:
+            controller_step(cs, dsc.cp, scratch_fr, no_est, 0.0, 0.0, self.ctrl)
+
+    def step(self, fr: np.ndarray, kk: int) -> None:
+        """Sample `kk` through the observers and the controller, rows kept."""
+        dsc, m = self.dsc, self.m
+        self.rx_rows[m] = fr
+        for o in range(self.n_obs):
+            observer_step(self.obs[o], dsc.obs_params[o], fr, self.est_rows[o, m])
+        ki = min(max(kk * self.k_of_sample, 0), dsc.n - 1)
+        est = self.est_rows[dsc.driving_index, m] if dsc.driving_index >= 0 else self.no_est
+        w_ref, inj = dsc.w_ref[ki], dsc.id_inj[ki]
+        if self.split:
+            host_reference_step(self.cs, dsc.cp_host, fr, est, w_ref, inj, self.ctrl, self.ref)
+        else:
+            controller_step(self.cs, dsc.cp, fr, est, w_ref, inj, self.ctrl)
+        self.ctrl_rows[m] = self.ctrl
+        self.m += 1
+
+    def answer(self, bridge: CanBridge, kk: int) -> None:
+        """The duty command (split: the HOST_REF) answering sample `kk`."""
+        ref, ctrl = self.ref, self.ctrl
+        if self.split:
+            bridge.send_reference(
+                kk, ref[RF_ID_REF], ref[RF_IQ_REF], ref[RF_TH], ref[RF_W], ref[RF_EN] > 0.5
+            )
+        else:
+            bridge.send_duty(kk, ctrl[CO_DA : CO_DC + 1], ctrl[CO_EN] > 0.5)
+
+
+def _serve(bridge: CanBridge, emu: DriveEmulator, host: _Host, frame_hook: Any) -> None:
+    """Handle and answer every sample the bridge decodes, until the emulator has finished
+    and the bus has been quiet for 0.3 s."""
+    n_smp = host.rx_rows.shape[0]
+    idle_since = None
+    while True:
+        frames = bridge.poll(timeout=0.2)
+        if frames.shape[0] == 0:
+            if emu._thread is None or not emu._thread.is_alive():
+                idle_since = idle_since or time.perf_counter()
+                if time.perf_counter() - idle_since > 0.3:
+                    break
+            continue
+        for fr in frames:
+            t_in = time.perf_counter()
+            kk = int(fr[FR_SEQ])
+            answer = True
+            if frame_hook is not None:
+                answer = frame_hook(bridge, kk) is not False
+            if host.m >= n_smp:
+                break
+            host.step(fr, kk)
+            if not answer:
+                continue
+            host.answer(bridge, kk)
+            host.host_s.append(time.perf_counter() - t_in)
