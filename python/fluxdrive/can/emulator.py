@@ -111,7 +111,31 @@ from fluxdrive.drive.control import (
     split_drive_step,
     split_drive_take_reference,
 )
-from fluxdrive.drive.plant import FR_IA, FR_IC, FR_N, TR_N, plant_advance, plant_initial_frame
+from fluxdrive.drive.plant import (
+    FR_DA,
+    FR_DB,
+    FR_DC,
+    FR_EN,
+    FR_ENC,
+    FR_FLAGS,
+    FR_IA,
+    FR_IB,
+    FR_IC,
+    FR_N,
+    FR_SEQ,
+    FR_VAB,
+    FR_VBC,
+    FR_VCA,
+    FR_VDC,
+    TR_N,
+    plant_advance,
+    plant_initial_frame,
+)
+
+# the frame row's blocks (FR_*: phase currents, line voltages, duties)
+_CURRENTS = slice(FR_IA, FR_IC + 1)
+_V_LL = slice(FR_VAB, FR_VCA + 1)
+_DUTIES = slice(FR_DA, FR_DC + 1)
 
 __all__ = [
     "FAULT_CMD_TIMEOUT",
@@ -210,12 +234,31 @@ class DriveEmulator:
         self.overcurrent_a = (
             overcurrent_a if overcurrent_a is not None else 2.0 * card.rated_current_a
         )
-        self.pst, self.rng = setup.new_plant()
+        self._init_plant()
+        self._init_mcu_state()
+        self._init_recording(record)
+        self._init_messages()
+        self._init_window()
+        self._init_split()
+        self._warm_kernels()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._fw: Any = None
+        self._fw_rx: collections.deque[can.Message] = collections.deque()
+        self._t0_wall = time.monotonic()
+        if mcu == "c":
+            self._fw = self._new_firmware()
+
+    def _init_plant(self) -> None:
+        """The plant's state and its frame 0 (PWM off)."""
+        self.pst, self.rng = self.setup.new_plant()
         self.frame = np.zeros(FR_N)
         self.truth = np.zeros(TR_N)
-        plant_initial_frame(self.pst, setup.mp, self.rng, self.frame, self.truth)
+        plant_initial_frame(self.pst, self.setup.mp, self.rng, self.frame, self.truth)
         self.k = 0  # index of the frame held in self.frame
-        # MCU state
+
+    def _init_mcu_state(self) -> None:
+        """Disarmed, PWM off, no fault, no command yet."""
         self.armed = False
         self.pwm_enabled = False  # PWM state for the next period
         self.duty = np.array([0.5, 0.5, 0.5])  # duties for the next period
@@ -233,6 +276,8 @@ class DriveEmulator:
         self._next_status_k = 0
         self._next_fault_repeat_k = 0
         self.stats = EmulatorStats()
+
+    def _init_recording(self, record: bool) -> None:
         self.record = record
         self.rec_frames: list[np.ndarray] = []
         # record=True: wall time (time.time) each sample went out, by wire seq, and the host's
@@ -241,28 +286,46 @@ class DriveEmulator:
         self._sent_wall: dict[int, float] = {}
         self.answer_latency_s: list[float] = []
         self.rec_truth: list[np.ndarray] = []
+
+    def _init_messages(self) -> None:
+        """The DBC messages the MCU sends and reads."""
         self._msg_sample = self.proto.sample_fd
         self._msg_duty = self.proto.message("DUTY_CMD")
         self._msg_arm = self.proto.message("ARM_MODE")
         self._msg_fault = self.proto.message("FAULT")
         self._msg_status = self.proto.message("STATUS")
-        # the sample window: sums over (t_(k-D), t_k] of v_ll and duties (6), PWM on in
-        # every period, OR of the flags; frame 0 forms the first window on its own
+        self._msg_ref = self.proto.message("HOST_REF")
+        self._msg_prm = self.proto.message("DRIVE_PARAM")
+        self._msg_ack = self.proto.message("DRIVE_PARAM_ACK")
+        self._prm_names = {
+            int(k): str(v) for k, v in self._msg_prm.get_signal_by_name("prm_id").choices.items()
+        }
+
+    def _init_window(self) -> None:
+        """The sample window: sums over (t_(k-D), t_k] of v_ll and duties (6), PWM on in
+        every period, OR of the flags; frame 0 forms the first window on its own."""
         self._win_sum = np.zeros(6)
         self._win_n = 0
         self._win_pwm = True
         self._win_flags = 0
         self._accumulate()
-        # split mode: the drive-side controller (engine kernels), its parameters (the
-        # scenario's design until the host writes DRIVE_PARAMs), references by wire seq
+
+    def _init_split(self) -> None:
+        """Split mode: the drive-side controller (engine kernels), its parameters (the
+        scenario's design until the host writes DRIVE_PARAMs), references by wire seq."""
         self.control_split = False
-        self.split_cp = np.array(setup.cp, dtype=float)
+        self.split_cp = np.array(self.setup.cp, dtype=float)
         self.split_cs = np.zeros(CS_N)
         self.split_dr = np.zeros(DR_N)
         split_drive_reset(self.split_cs, self.split_dr)
         self._split_out = np.zeros(CO_N)
-        # compile (or load) the plant and the drive-side kernels now, not in the first
-        # periods (a host waiting for samples would see a stale link); on copies
+        self._refs: dict[int, np.ndarray] = {}  # ref_seq (16 bit) -> RF_* row
+        self._ref_newest: int | None = None  # ref_seq of the newest HOST_REF not yet taken
+
+    def _warm_kernels(self) -> None:
+        """Compile (or load) the plant and the drive-side kernels now, not in the first
+        periods (a host waiting for samples would see a stale link); on copies."""
+        setup = self.setup
         plant_advance(
             self.pst.copy(),
             setup.mp,
@@ -279,21 +342,6 @@ class DriveEmulator:
         split_drive_reset(cs, dr)
         split_drive_take_reference(cs, dr, np.zeros(RF_N), 0.0)
         split_drive_step(cs, self.split_cp, dr, self.frame.copy(), np.zeros(CO_N))
-        self._refs: dict[int, np.ndarray] = {}  # ref_seq (16 bit) -> RF_* row
-        self._ref_newest: int | None = None  # ref_seq of the newest HOST_REF not yet taken
-        self._msg_ref = self.proto.message("HOST_REF")
-        self._msg_prm = self.proto.message("DRIVE_PARAM")
-        self._msg_ack = self.proto.message("DRIVE_PARAM_ACK")
-        self._prm_names = {
-            int(k): str(v) for k, v in self._msg_prm.get_signal_by_name("prm_id").choices.items()
-        }
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._fw: Any = None
-        self._fw_rx: collections.deque[can.Message] = collections.deque()
-        self._t0_wall = time.monotonic()
-        if mcu == "c":
-            self._fw = self._new_firmware()
 
     def _new_firmware(self) -> Any:
         """The C core as this emulator's MCU, configured like the Python logic: the same
@@ -517,17 +565,17 @@ class DriveEmulator:
         f = self.window_frame()
         sig = {
             "seq": self.k % _SEQ_MOD,
-            "i_a": f[0], "i_b": f[1], "i_c": f[2],
-            "v_ab": f[3], "v_bc": f[4], "v_ca": f[5],
-            "vdc": f[6],
-            "duty_a": f[7], "duty_b": f[8], "duty_c": f[9],
-            "encoder": int((int(f[11]) + 2**31) % 2**32 - 2**31),
+            "i_a": f[FR_IA], "i_b": f[FR_IB], "i_c": f[FR_IC],
+            "v_ab": f[FR_VAB], "v_bc": f[FR_VBC], "v_ca": f[FR_VCA],
+            "vdc": f[FR_VDC],
+            "duty_a": f[FR_DA], "duty_b": f[FR_DB], "duty_c": f[FR_DC],
+            "encoder": int((int(f[FR_ENC]) + 2**31) % 2**32 - 2**31),
             "cmd_seq_applied": self._applied_seq,
             "t_mcu": round((self.k * self.ts) % 4294.967295, 6),
-            "pwm_enabled": int(f[10] > 0.5),
+            "pwm_enabled": int(f[FR_EN] > 0.5),
             "armed": int(self.armed),
             "fault_active": int(self.fault_latched),
-            "adc_clip": int(int(f[13]) & FRAME_FLAG_ADC_CLIP),
+            "adc_clip": int(int(f[FR_FLAGS]) & FRAME_FLAG_ADC_CLIP),
             "cmd_stale": int(self._stale_prev),
             "capture_valid": int(self._win_pwm),
             "control_split": int(self.control_split),
@@ -539,11 +587,11 @@ class DriveEmulator:
     def _accumulate(self) -> None:
         """Add the frame just sampled to the sample window."""
         f = self.frame
-        self._win_sum[0:3] += f[3:6]
-        self._win_sum[3:6] += f[7:10]
+        self._win_sum[0:3] += f[_V_LL]
+        self._win_sum[3:6] += f[_DUTIES]
         self._win_n += 1
-        self._win_pwm = self._win_pwm and bool(f[10] > 0.5)
-        self._win_flags |= int(f[13])
+        self._win_pwm = self._win_pwm and bool(f[FR_EN] > 0.5)
+        self._win_flags |= int(f[FR_FLAGS])
 
     def window_frame(self) -> np.ndarray:
         """Frame k as the sample reports it (either layout): currents, vdc, encoder at
@@ -551,11 +599,11 @@ class DriveEmulator:
         only if on in all of its periods; flags OR-ed. D = 1: frame k itself."""
         f = self.frame.copy()
         if self._win_n > 1:
-            f[3:6] = self._win_sum[0:3] / self._win_n
-            f[7:10] = self._win_sum[3:6] / self._win_n
-        f[10] = 1.0 if self._win_pwm else 0.0
-        f[13] = float(self._win_flags)
-        f[12] = self.k
+            f[_V_LL] = self._win_sum[0:3] / self._win_n
+            f[_DUTIES] = self._win_sum[3:6] / self._win_n
+        f[FR_EN] = 1.0 if self._win_pwm else 0.0
+        f[FR_FLAGS] = float(self._win_flags)
+        f[FR_SEQ] = self.k
         return f
 
     def _reset_window(self) -> None:
@@ -568,10 +616,10 @@ class DriveEmulator:
         """The four classic sample frames [(id, 8 bytes)] of frame k with the window
         averages, values saturated to the DBC ranges like the MCU's converters."""
         f = self.window_frame()
-        f[0:3] = np.clip(f[0:3], -25.0, 25.0)
-        f[3:6] = np.clip(f[3:6], -100.0, 100.0)
-        f[6] = min(max(f[6], 0.0), 100.0)
-        f[7:10] = np.clip(f[7:10], 0.0, 1.0)
+        f[_CURRENTS] = np.clip(f[_CURRENTS], -25.0, 25.0)
+        f[_V_LL] = np.clip(f[_V_LL], -100.0, 100.0)
+        f[FR_VDC] = min(max(f[FR_VDC], 0.0), 100.0)
+        f[_DUTIES] = np.clip(f[_DUTIES], 0.0, 1.0)
         flags = {
             "c_armed": int(self.armed),
             "c_fault_active": int(self.fault_latched),
