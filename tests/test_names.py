@@ -2,7 +2,8 @@
 frame, truth, estimate or controller row is named by its layout constant (FR_*, TR_*, ES_*,
 CO_*) or by the protocol's FRAME_INDEX, never by a raw number that breaks silently when a
 layout grows. A layout array is one of ROW_NAMES, or any array the same file indexes in
-its column by a layout constant or builds with a layout's width (`np.zeros((n, ES_N))`)."""
+its column by a layout constant or builds with a layout's width (`np.zeros((n, ES_N))`); a
+layout row is one built with a layout's width alone (`np.zeros(FR_N)`) or a copy of one."""
 
 from __future__ import annotations
 
@@ -66,19 +67,56 @@ def layout_arrays(tree: ast.AST) -> set[str]:
     return found - {""}
 
 
+def layout_rows(tree: ast.AST) -> set[str]:
+    """Names of the file's one-row layout arrays: built with a layout's width alone
+    (`f = np.zeros(FR_N)`), or a copy of one (`g = f.copy()`)."""
+    found: set[str] = set()
+    for _ in range(2):  # a copy of a row found on the first pass
+        for node in ast.walk(tree):
+            if not isinstance(node, (ast.Assign, ast.AnnAssign)) or node.value is None:
+                continue
+            v = node.value
+            if not isinstance(v, ast.Call):
+                continue
+            width = bool(v.args) and (_layout_constant(v.args[0]) or "").endswith("_N")
+            copy = (
+                isinstance(v.func, ast.Attribute)
+                and v.func.attr == "copy"
+                and _name(v.func.value) in found
+            )
+            if width or copy:
+                targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+                found |= {_name(t) or "" for t in targets}
+    return found - {""}
+
+
+def _literal_column(col: ast.expr) -> bool:
+    """A column (or a slice of columns) given by a number, not by a named constant."""
+    if isinstance(col, ast.Slice):
+        ends = [e for e in (col.lower, col.upper) if e is not None]
+        return any(_has_literal(e) for e in ends) and not any(_names_a_constant(e) for e in ends)
+    return _has_literal(col) and not _names_a_constant(col)
+
+
 def raw_column_indices(path: Path) -> list[str]:
     """`rows[..., 7]`, `frame[:, 3 + j]`: a layout array indexed in its column by a
-    literal."""
+    literal; `f[3:6]`, `f[10]`: a layout row likewise."""
     tree = ast.parse(path.read_text(), str(path))
     arrays = layout_arrays(tree)
-    hits = []
+    rows = layout_rows(tree)
+    hits = set()
     for node in ast.walk(tree):
-        if isinstance(node, ast.Subscript) and _name(node.value) in arrays:
-            cols = node.slice
-            col = cols.elts[-1] if isinstance(cols, ast.Tuple) else None
-            if col is not None and _has_literal(col) and not _names_a_constant(col):
-                hits.append(f"{node.lineno}: {ast.unparse(node)}")
-    return hits
+        if not isinstance(node, ast.Subscript):
+            continue
+        cols = node.slice
+        name = _name(node.value)
+        if isinstance(cols, ast.Tuple):
+            col = cols.elts[-1] if name in arrays else None
+        else:
+            col = cols if name in rows else None
+        if col is not None and _literal_column(col):
+            hits.add((node.lineno, f"{node.lineno}: {ast.unparse(node)}"))
+    return [h for _, h in sorted(hits)]
 
 
 def test_no_raw_column_index_outside_the_kernels():
@@ -108,3 +146,12 @@ def test_the_check_sees_a_raw_index_on_any_layout_array(tmp_path):
         "e = xy[:, 1]\ng = a[3]\n"
     )
     assert raw_column_indices(f) == ["2: a[:, 2]", "4: q[:, 4]"]
+
+
+def test_the_check_sees_a_raw_index_on_a_layout_row(tmp_path):
+    f = tmp_path / "x.py"
+    f.write_text(
+        "r = np.zeros(FR_N)\na = r[3:6]\ng = r.copy()\ng[10] = 1.0\nb = r[FR_EN]\n"
+        "c = r[FR_VAB : FR_VCA + 1]\nd = xs[2]\n"
+    )
+    assert raw_column_indices(f) == ["2: r[3:6]", "4: g[10]"]
