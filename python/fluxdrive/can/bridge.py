@@ -189,6 +189,14 @@ class CanBridge:
         self.bus: can.BusABC | None = None
         self._tx_lock = threading.Lock()
         self._arm_lock = threading.RLock()  # arm state change + ARM_MODE send are atomic
+        self._init_messages()
+        self._init_drive_params()
+        self._init_layout(bus_factory)
+        self._init_state()
+
+    def _init_messages(self) -> None:
+        """The DBC messages the bridge sends and reads, and the DRIVE_PARAM ids and
+        ACK statuses by name (from the DBC's value tables)."""
         self._msg_fd = self.proto.sample_fd
         self._msg_duty = self.proto.message("DUTY_CMD")
         self._msg_arm = self.proto.message("ARM_MODE")
@@ -198,13 +206,15 @@ class CanBridge:
         self._msg_ref = self.proto.message("HOST_REF")
         self._msg_prm = self.proto.message("DRIVE_PARAM")
         self._msg_ack = self.proto.message("DRIVE_PARAM_ACK")
-        # DRIVE_PARAM ids and ACK statuses by name, from the DBC's value tables
         self.param_ids = {
             str(v): int(k) for k, v in self._msg_prm.get_signal_by_name("prm_id").choices.items()
         }
         self._ack_status = {
             int(k): str(v) for k, v in self._msg_ack.get_signal_by_name("pa_status").choices.items()
         }
+
+    def _init_drive_params(self) -> None:
+        """DRIVE_PARAM exchanges in flight, the drive's last fault, the sample's ranges."""
         self._prm_seq = 0
         self._acks: dict[tuple[int, int], tuple[int, float]] = {}  # (id, seq) -> status, value
         self._ack_cv = threading.Condition()
@@ -216,6 +226,10 @@ class CanBridge:
             for s in self._msg_fd.signals
             if s.minimum is not None or s.maximum is not None
         ]
+
+    def _init_layout(self, bus_factory: Callable[[], can.BusABC]) -> None:
+        """The sample layout (auto: the bus's), its decimation D and the MCU's duty
+        watchdog (which must outlast a sample period)."""
         layout = self.cfg.layout
         if layout == "auto":
             layout = "fd" if getattr(bus_factory, "fd", True) else "classic"
@@ -227,7 +241,6 @@ class CanBridge:
             raise ValueError(f"decimation must be in 1..255, not {d}")
         self.decimation = d
         """PWM periods per sample (either layout)."""
-        # the MCU's duty watchdog must outlast a sample period (D periods)
         self.mcu_cmd_timeout_s = (
             max(self.cfg.cmd_timeout_s, 1.5 * self.decimation / self.proto.pwm_frequency)
             if self.decimation > 1
@@ -235,7 +248,9 @@ class CanBridge:
         )
         self._reasm = ClassicReassembler(protocol=self.proto)
         self._wire: dict[int, int] = {}  # D > 1: sample index j -> wire seq (16 bit)
-        # state
+
+    def _init_state(self) -> None:
+        """Disarmed, no fault, no sample seen, counters at zero."""
         self.armed = False
         self.fault: str = ""  # latched host-side fault reason ("" = none)
         self.drive_mismatch: str = ""  # the last STATUS's layout/D disagreement ("" = none)
