@@ -182,17 +182,15 @@ class CurOut(ctypes.Structure):
     ]
 
 
-def load_library() -> ctypes.CDLL:
-    """The SIL shared library (built first if needed), with argument types declared."""
-    global _LIB
-    if _LIB is not None:
-        return _LIB
-    lib = ctypes.CDLL(str(build_host() / "libfluxdrive_sil.so"))
+def _c_signatures() -> dict[str, tuple[Any, list[Any]]]:
+    """The SIL library's functions: name -> (return type, argument types)."""
     P, U32, I32, F = ctypes.c_void_p, ctypes.c_uint32, ctypes.c_int32, ctypes.c_float
+    U8, U16 = ctypes.c_uint8, ctypes.c_uint16
     I32P = ctypes.POINTER(ctypes.c_int32)
     U32P = ctypes.POINTER(ctypes.c_uint32)
     U8P = ctypes.POINTER(ctypes.c_uint8)
-    sig: dict[str, tuple[Any, list[Any]]] = {
+    FP = ctypes.POINTER(F)
+    return {
         "fd_sil_sizeof": (ctypes.c_size_t, []),
         "fd_core_sizeof": (ctypes.c_size_t, []),
         "fd_sil_init": (None, [P]),
@@ -200,8 +198,8 @@ def load_library() -> ctypes.CDLL:
         "fd_core_init": (None, [P, ctypes.POINTER(_Config), P]),
         "fd_core_period": (None, [P]),
         "fd_core_param_write": (ctypes.c_int, [P, ctypes.c_int, F]),
-        "fd_core_param_read": (ctypes.c_int, [P, ctypes.c_int, ctypes.POINTER(F)]),
-        "fd_sil_has_answer": (ctypes.c_int, [P, P, ctypes.c_uint16]),
+        "fd_core_param_read": (ctypes.c_int, [P, ctypes.c_int, FP]),
+        "fd_sil_has_answer": (ctypes.c_int, [P, P, U16]),
         "fd_core_handle_frame": (None, [P, ctypes.POINTER(_Frame)]),
         "fd_core_flags": (U32, [P]),
         "fd_core_stats": (ctypes.POINTER(_Stats), [P]),
@@ -211,56 +209,30 @@ def load_library() -> ctypes.CDLL:
         "fd_sil_get_pwm": (None, [P, U32P, I32P]),
         "fd_sil_rx_push": (ctypes.c_int, [P, U32, U8P, U32, U32]),
         "fd_sil_tx_pop": (ctypes.c_int, [P, U32P, U8P, U32P, U32P]),
+        # state, params, i_alpha, i_beta, th, we, id_ref, iq_ref, vdc, ts, out
         "fd_current_loop": (
             None,
-            [
-                ctypes.POINTER(CurState),
-                ctypes.POINTER(CurParams),
-                F,
-                F,
-                F,
-                F,
-                F,
-                F,
-                F,
-                F,
-                ctypes.POINTER(CurOut),
-            ],
-        ),  # fmt: skip
+            [ctypes.POINTER(CurState), ctypes.POINTER(CurParams)]
+            + [F] * 8
+            + [ctypes.POINTER(CurOut)],
+        ),
         "fd_i2t_step": (F, [F, F, F, F, F]),
-        "fd_sil_decode_host": (ctypes.c_int, [U32, U8P, U32, ctypes.POINTER(F)]),
-        "fd_encode_fault": (
-            ctypes.c_int,
-            [U8P] + [ctypes.c_uint8] * 4 + [ctypes.c_uint16] * 2 + [ctypes.c_uint8],
-        ),  # fmt: skip
-        "fd_encode_status": (
-            ctypes.c_int,
-            [U8P] + [ctypes.c_uint8] * 7 + [ctypes.c_uint16, ctypes.c_int8, ctypes.c_uint8],
-        ),
-        "fd_encode_sample_fd": (
-            ctypes.c_int,
-            [
-                U8P,
-                ctypes.c_uint16,
-                ctypes.POINTER(F),
-                I32,
-                ctypes.c_uint16,
-                U32,
-                ctypes.c_uint8,
-                ctypes.c_uint8,
-                ctypes.c_uint8,
-            ],
-        ),  # fmt: skip
-        "fd_encode_sample_classic": (
-            ctypes.c_int,
-            [U8P, ctypes.c_uint16, ctypes.POINTER(F), I32, ctypes.c_uint8],
-        ),
-        "fd_encode_param_ack": (
-            ctypes.c_int,
-            [U8P, ctypes.c_uint8, ctypes.c_uint8, ctypes.c_uint8, F],
-        ),
+        "fd_sil_decode_host": (ctypes.c_int, [U32, U8P, U32, FP]),
+        "fd_encode_fault": (ctypes.c_int, [U8P] + [U8] * 4 + [U16] * 2 + [U8]),
+        "fd_encode_status": (ctypes.c_int, [U8P] + [U8] * 7 + [U16, ctypes.c_int8, U8]),
+        "fd_encode_sample_fd": (ctypes.c_int, [U8P, U16, FP, I32, U16, U32, U8, U8, U8]),
+        "fd_encode_sample_classic": (ctypes.c_int, [U8P, U16, FP, I32, U8]),
+        "fd_encode_param_ack": (ctypes.c_int, [U8P, U8, U8, U8, F]),
     }
-    for name, (res, args) in sig.items():
+
+
+def load_library() -> ctypes.CDLL:
+    """The SIL shared library (built first if needed), with argument types declared."""
+    global _LIB
+    if _LIB is not None:
+        return _LIB
+    lib = ctypes.CDLL(str(build_host() / "libfluxdrive_sil.so"))
+    for name, (res, args) in _c_signatures().items():
         fn = getattr(lib, name)
         fn.restype = res
         fn.argtypes = args
