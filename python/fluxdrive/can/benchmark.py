@@ -21,14 +21,13 @@ import can
 import numpy as np
 
 from fluxdrive.can.protocol import (
-    FRAME_FIELDS,
     ID_SAMPLE_FD,
     FluxdriveProtocol,
     SeqTracker,
     get_protocol,
     pack_payloads,
 )
-from fluxdrive.drive.plant import FR_DA, FR_IA, FR_VAB, FR_VDC
+from fluxdrive.drive.plant import FR_DA, FR_EN, FR_ENC, FR_IA, FR_N, FR_SEQ, FR_VAB, FR_VDC
 
 __all__ = ["bench_can_cli", "make_test_frames", "measure_decode_rates", "run_can_benchmark"]
 
@@ -41,16 +40,16 @@ def make_test_frames(n: int, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
     k = np.arange(n, dtype=np.float64)
     th = 2 * np.pi * 50.0 * k * 1e-4
-    f = np.zeros((n, len(FRAME_FIELDS)))
+    f = np.zeros((n, FR_N))
     for j, ph in enumerate((0.0, -2 * np.pi / 3, 2 * np.pi / 3)):
         f[:, FR_IA + j] = 9.0 * np.cos(th + ph) + rng.normal(0, 0.05, n)
         f[:, FR_DA + j] = 0.5 + 0.4 * np.cos(th + ph)
     for j in range(3):  # line voltages from the duties: v_ab = Vdc (d_a - d_b), ...
         f[:, FR_VAB + j] = 72.0 * (f[:, FR_DA + j] - f[:, FR_DA + (j + 1) % 3])
     f[:, FR_VDC] = 72.0 + rng.normal(0, 0.1, n)
-    f[:, FRAME_FIELDS.index("encoder_counts")] = np.floor(k * 0.3)
-    f[:, FRAME_FIELDS.index("pwm_enabled")] = 1.0
-    f[:, FRAME_FIELDS.index("seq")] = k
+    f[:, FR_ENC] = np.floor(k * 0.3)
+    f[:, FR_EN] = 1.0
+    f[:, FR_SEQ] = k
     return f
 
 
@@ -124,8 +123,8 @@ class _DecodingListener(can.Listener):
             ok = res.report.valid
             self.decoded += int(ok.sum())
             self.malformed += int((~ok).sum())
-            self.seq.update_many(frames[ok, FRAME_FIELDS.index("seq")].astype(np.int64))
-            self.checksum += float(np.sum(frames[ok, FRAME_FIELDS.index("i_a")]))
+            self.seq.update_many(frames[ok, FR_SEQ].astype(np.int64))
+            self.checksum += float(np.sum(frames[ok, FR_IA]))
 
     def on_error(self, exc: Exception) -> None:
         self.errors.append(exc)
@@ -161,55 +160,11 @@ def run_can_benchmark(
     bus_tx = can.Bus(**kw)
     listener = _DecodingListener(proto, batch)
     notifier = can.Notifier(bus_rx, [listener], timeout=0.05)
-    state = {"sent": 0, "timeouts": 0, "errors": 0}
-    done = threading.Event()
-
-    def sender() -> None:
-        t_start = time.perf_counter()
-        for i, data in enumerate(rows):
-            if rate_hz is not None and i % 16 == 0:
-                lag = i / rate_hz - (time.perf_counter() - t_start)
-                if lag > 0:
-                    time.sleep(lag)
-            msg = can.Message(
-                arbitration_id=ID_SAMPLE_FD,
-                is_extended_id=False,
-                is_fd=True,
-                bitrate_switch=True,
-                data=data,
-            )
-            try:
-                bus_tx.send(msg, timeout=send_timeout)
-                state["sent"] += 1
-            except can.CanOperationError:
-                state["timeouts"] += 1
-            except can.CanError:
-                state["errors"] += 1
-        done.set()
-
+    sender = _Sender(bus_tx, rows, rate_hz, send_timeout)
     t0 = time.perf_counter()
-    th = threading.Thread(target=sender, name="can-bench-sender", daemon=True)
-    th.start()
-    last_print = t0
+    threading.Thread(target=sender.run, name="can-bench-sender", daemon=True).start()
     try:
-        while True:
-            finished = done.wait(0.2)
-            now = time.perf_counter()
-            if progress and (now - last_print >= 1.0 or finished):
-                last_print = now
-                print(
-                    f"[bench can] sent {state['sent']}/{n_frames} "
-                    f"received {listener.received} decoded {listener.decoded} "
-                    f"({listener.received / max(now - t0, 1e-9):,.0f} frames/s)",
-                    file=sys.stderr,
-                    flush=True,
-                )
-            if finished:
-                break
-        # drain: wait until the receive side has everything the sender got out
-        deadline = time.perf_counter() + 5.0
-        while listener.received < state["sent"] and time.perf_counter() < deadline:
-            time.sleep(0.005)
+        _follow(sender, listener, n_frames, t0, progress)
         listener.flush()
         elapsed = time.perf_counter() - t0
     finally:
@@ -225,8 +180,8 @@ def run_can_benchmark(
         "n_frames": n_frames,
         "rate_hz": rate_hz,
         "elapsed_s": elapsed,
-        "send_timeouts": state["timeouts"],
-        "send_errors": state["errors"],
+        "send_timeouts": sender.timeouts,
+        "send_errors": sender.errors,
         "malformed": listener.malformed,
         "seq_gaps": listener.seq.stats.gaps,
         "seq_lost": listener.seq.stats.lost,
@@ -247,6 +202,67 @@ def run_can_benchmark(
             flush=True,
         )
     return result
+
+
+class _Sender:
+    """Sends the payloads as SAMPLE_FD frames, paced to ``rate_hz`` on average (None: as
+    fast as the bus takes them), each with a timeout (the virtual bus blocks forever on a
+    full receive queue); counts what went out, timed out or failed."""
+
+    def __init__(
+        self, bus: can.BusABC, rows: list[bytes], rate_hz: float | None, timeout_s: float
+    ) -> None:
+        self.bus, self.rows, self.rate_hz, self.timeout_s = bus, rows, rate_hz, timeout_s
+        self.sent = self.timeouts = self.errors = 0
+        self.done = threading.Event()
+
+    def run(self) -> None:
+        t_start = time.perf_counter()
+        for i, data in enumerate(self.rows):
+            if self.rate_hz is not None and i % 16 == 0:
+                lag = i / self.rate_hz - (time.perf_counter() - t_start)
+                if lag > 0:
+                    time.sleep(lag)
+            msg = can.Message(
+                arbitration_id=ID_SAMPLE_FD,
+                is_extended_id=False,
+                is_fd=True,
+                bitrate_switch=True,
+                data=data,
+            )
+            try:
+                self.bus.send(msg, timeout=self.timeout_s)
+                self.sent += 1
+            except can.CanOperationError:
+                self.timeouts += 1
+            except can.CanError:
+                self.errors += 1
+        self.done.set()
+
+
+def _follow(
+    sender: _Sender, listener: _DecodingListener, n_frames: int, t0: float, progress: bool
+) -> None:
+    """Wait for the sender (progress to stderr each second), then until the receive side
+    has everything the sender got out (at most 5 s)."""
+    last_print = t0
+    while True:
+        finished = sender.done.wait(0.2)
+        now = time.perf_counter()
+        if progress and (now - last_print >= 1.0 or finished):
+            last_print = now
+            print(
+                f"[bench can] sent {sender.sent}/{n_frames} "
+                f"received {listener.received} decoded {listener.decoded} "
+                f"({listener.received / max(now - t0, 1e-9):,.0f} frames/s)",
+                file=sys.stderr,
+                flush=True,
+            )
+        if finished:
+            break
+    deadline = time.perf_counter() + 5.0
+    while listener.received < sender.sent and time.perf_counter() < deadline:
+        time.sleep(0.005)
 
 
 def bench_can_cli(argv: list[str]) -> dict[str, Any]:
