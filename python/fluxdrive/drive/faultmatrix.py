@@ -38,7 +38,15 @@ from fluxdrive.drive.control import (
     CP_VDC_MAX,
     CP_VDC_MIN,
     CS_FAULT,
+    FAULT_BAD_SAMPLE,
+    FAULT_LOSS_OF_LOCK,
     FAULT_NAMES,
+    FAULT_OVERCURRENT,
+    FAULT_OVERVOLTAGE,
+    FAULT_POSITION_INVALID,
+    FAULT_STALE_INPUT,
+    FAULT_UNDERVOLTAGE,
+    FAULT_WATCHDOG,
     MODE_CLOSED_LOOP,
 )
 from fluxdrive.drive.observers import ES_N, ES_TH, ES_VALID, observer_step
@@ -174,32 +182,32 @@ class Case:
     seq_kw: dict | None = None
 
 
-def _cases(k0: int, ds: DriveSetup) -> list[Case]:
-    def at(k_set: set[int], fn) -> Inject:
-        def inj(k, fr, es):
-            if k in k_set:
-                fn(fr, es)
-            return [(k, fr, es)]
+def _at(k_set: set[int], fn: Callable) -> Inject:
+    """Apply `fn(frame, estimate)` at the periods in `k_set`."""
 
-        return inj
+    def inj(k, fr, es):
+        if k in k_set:
+            fn(fr, es)
+        return [(k, fr, es)]
 
-    def nan_i(fr, es):
-        fr[FR_IA] = math.nan
+    return inj
 
-    def oc(fr, es):
-        fr[FR_IA] = 3.0 * ds.cp[CP_OC_TRIP]
 
-    def ov(fr, es):
-        fr[FR_VDC] = 1.3 * ds.cp[CP_VDC_MAX]
+def _injections(k0: int, ds: DriveSetup) -> dict[str, Inject]:
+    """What each case does to the frames and estimates the controller receives (from
+    period k0 + 10 on, against this setup's protection limits)."""
 
-    def uv(fr, es):
-        fr[FR_VDC] = 0.5 * ds.cp[CP_VDC_MIN]
+    def set_frame(col: int, value: float) -> Callable:
+        def fn(fr, es):
+            fr[col] = value
 
-    def th_nan(fr, es):
-        es[ES_TH] = math.nan
+        return fn
 
-    def invalid(fr, es):
-        es[ES_VALID] = 0.0
+    def set_estimate(col: int, value: float) -> Callable:
+        def fn(fr, es):
+            es[col] = value
+
+        return fn
 
     def silent(k, fr, es):  # the observer stops publishing
         return [(k, fr, None if k >= k0 + 10 else es)]
@@ -211,76 +219,82 @@ def _cases(k0: int, ds: DriveSetup) -> list[Case]:
     def gap(k, fr, es):  # 50 frames lost upstream
         return [] if k0 + 10 <= k < k0 + 60 else [(k, fr, es)]
 
-    inv_n = round(2 * ds.cp[CP_INV_TIMEOUT] / ds.ts)
-    from fluxdrive.drive.control import (
-        FAULT_BAD_SAMPLE,
-        FAULT_LOSS_OF_LOCK,
-        FAULT_OVERCURRENT,
-        FAULT_OVERVOLTAGE,
-        FAULT_POSITION_INVALID,
-        FAULT_STALE_INPUT,
-        FAULT_UNDERVOLTAGE,
-        FAULT_WATCHDOG,
-    )
-
     one = {k0 + 10}
+    inv_n = round(2 * ds.cp[CP_INV_TIMEOUT] / ds.ts)
+    return {
+        "nan_i": _at(one, set_frame(FR_IA, math.nan)),
+        "oc": _at(one, set_frame(FR_IA, 3.0 * ds.cp[CP_OC_TRIP])),
+        "ov": _at(one, set_frame(FR_VDC, 1.3 * ds.cp[CP_VDC_MAX])),
+        "uv": _at(one, set_frame(FR_VDC, 0.5 * ds.cp[CP_VDC_MIN])),
+        "th_nan": _at(one, set_estimate(ES_TH, math.nan)),
+        "invalid": _at(set(range(k0 + 10, k0 + 10 + inv_n)), set_estimate(ES_VALID, 0.0)),
+        "silent": silent,
+        "restart": restart,
+        "gap": gap,
+    }
+
+
+def _cases(k0: int, ds: DriveSetup) -> list[Case]:
+    inj = _injections(k0, ds)
+    inv_n = round(2 * ds.cp[CP_INV_TIMEOUT] / ds.ts)
+    latched, recovers = "latched", "recovers"
     return [
-        Case("bad sample", "i_a = NaN in one frame", "latched", FAULT_BAD_SAMPLE, at(one, nan_i)),
+        Case("bad sample", "i_a = NaN in one frame", latched, FAULT_BAD_SAMPLE, inj["nan_i"]),
         Case(
             "over-current",
             "i_a = 3 x the trip level in one frame",
-            "latched",
+            latched,
             FAULT_OVERCURRENT,
-            at(one, oc),
+            inj["oc"],
         ),
         Case(
             "DC-bus over-voltage",
             "V_dc = 1.3 x vdc_max_v in one frame",
-            "latched",
+            latched,
             FAULT_OVERVOLTAGE,
-            at(one, ov),
+            inj["ov"],
         ),
         Case(
             "DC-bus under-voltage",
             "V_dc = 0.5 x vdc_min_v in one frame",
-            "latched",
+            latched,
             FAULT_UNDERVOLTAGE,
-            at(one, uv),
+            inj["uv"],
         ),
         Case(
             "estimate not finite",
             "theta^ = NaN in one estimate",
-            "latched",
+            latched,
             FAULT_POSITION_INVALID,
-            at(one, th_nan),
+            inj["th_nan"],
         ),
         Case(
             "loss of observer lock",
             f"estimate flagged invalid for {inv_n} periods (2 x invalid_timeout_s)",
-            "latched",
+            latched,
             FAULT_LOSS_OF_LOCK,
-            at(set(range(k0 + 10, k0 + 10 + inv_n)), invalid),
+            inj["invalid"],
         ),
         Case(
             "observer silent",
             "no estimate from frame k0+10 on",
-            "latched",
+            latched,
             FAULT_STALE_INPUT,
-            silent,
+            inj["silent"],
             seq_kw={"min_wait_s": 0.0},
         ),
         Case(
             "frame source restarted",
             "frames count from 0 again at k0+10",
-            "latched",
+            latched,
             FAULT_STALE_INPUT,
-            restart,
+            inj["restart"],
         ),
-        Case("frames lost upstream", "50 consecutive frames never arrive", "recovers", 0, gap),
+        Case("frames lost upstream", "50 consecutive frames never arrive", recovers, 0, inj["gap"]),
         Case(
             "controller stall 0.2 s",
             "controller gets nothing for 2000 periods, then its backlog",
-            "recovers",
+            recovers,
             0,
             None,
             lambda k: k0 <= k < k0 + 2000,
@@ -289,7 +303,7 @@ def _cases(k0: int, ds: DriveSetup) -> list[Case]:
         Case(
             "repeated stalls",
             "3 stalls of 30 periods within 0.2 s (limit 2 in 1 s)",
-            "latched",
+            latched,
             FAULT_WATCHDOG,
             None,
             lambda k: any(k0 + a <= k < k0 + a + 30 for a in (0, 1000, 2000)),
@@ -311,77 +325,72 @@ def run_matrix(progress: bool = False) -> list[dict]:
     assert base.ctrl[k0 - 1][CO_MODE] == MODE_CLOSED_LOOP, "no closed loop at k0"
     rows = []
     for case in _cases(k0, base.ds):
-        dr = base.fork()
-        for key, v in (case.seq_kw or {}).items():
-            setattr(dr.seq, key, v)
-        dr.run(case.periods, stalled=case.stalled or (lambda k: False), inject=case.inject)
-        if case.expect == "latched" and not dr.seq.tripped:
-            # a silent observer in a paced graph: the plant's watchdog cuts the PWM, so the
-            # waiting controller looks behind and only the wall-clock rule is left
-            t0 = time.monotonic()
-            dr.seq.t_wait = t0  # (the waiting began now: a wall-clock figure independent of
-            dr.seq._last_check = 0.0  # how long this machine took to simulate the case)
-            for j in range(int((dr.seq.wall_timeout_s + 0.5) / 0.1)):  # the node's 0.1 s timer
-                dr.seq.check_wall(t0 + 0.1 * j)
-        ks = sorted(k for k in dr.ctrl if k >= k0)
-        latched = int(dr.seq.cs[CS_FAULT]) if dr.seq.tripped else 0
-        k_trip = dr.trip_period if dr.trip_period >= 0 else None
-        pwm_off_after = k_trip is not None and dr.pwm_after_trip == 0
-        errors = [t for lvl, t in dr.lines if lvl == "error"]
-        mode_end = int(dr.ctrl[ks[-1]][CO_MODE])
-        c = dr.seq.counts
-        if latched and k_trip is not None:
-            did = f"PWM off from period k0{k_trip - k0:+d}, latched '{FAULT_NAMES[latched]}'"
-        elif mode_end == MODE_CLOSED_LOOP and c["lost_intervals"]:
-            did = (
-                f"PWM off by the power stage for {len(dr.lost)} periods; restart through "
-                f"align / I-f ({c['restarts']}), flying ({c['flying_restarts']}); closed "
-                f"loop again"
-            )
-        elif mode_end == MODE_CLOSED_LOOP:
-            did = "rides through; closed loop at the end"
-        else:
-            did = f"not latched, mode {mode_end} at the end"
-        # nothing lost: every frame the controller received was answered or counted as
-        # dropped (repeated/backwards, skipped while catching up); frames that never came
-        # are counted as missing
-        received = c["frames"] - k0
-        answered = dr.n_emit - k0
-        dropped = c["repeated_or_backwards"] + c["skipped_frames"]
-        recorded = (
-            f"received {received}, answered {answered}, dropped {dropped}, missing "
-            f"{c['missing_frames']}; lost intervals {c['lost_intervals']}"
-        )
-        ok = (
-            (
-                case.expect == "latched"
-                and latched == case.code
-                and pwm_off_after
-                and len(errors) == 1
-            )
-            or (
-                case.expect == "recovers"
-                and not latched
-                and mode_end == MODE_CLOSED_LOOP
-                and not errors
-            )
-        ) and answered + dropped >= received
-        rows.append(
-            {
-                "fault": case.fault,
-                "injected": case.injected,
-                "drive": did,
-                "log": errors[0] if errors else "",
-                "recorded": recorded,
-                "ok": bool(ok),
-            }
-        )
+        row = _run_case(base, case, k0)
+        rows.append(row)
         if progress:
             print(
-                f"[fault-matrix] {case.fault}: {did} ({'ok' if ok else 'UNEXPECTED'})",
+                f"[fault-matrix] {case.fault}: {row['drive']} "
+                f"({'ok' if row['ok'] else 'UNEXPECTED'})",
                 file=sys.stderr,
             )
     return rows
+
+
+def _run_case(base: Drive, case: Case, k0: int) -> dict:
+    """One case on a fork of the closed-loop drive: its row of the table."""
+    dr = base.fork()
+    for key, v in (case.seq_kw or {}).items():
+        setattr(dr.seq, key, v)
+    dr.run(case.periods, stalled=case.stalled or (lambda k: False), inject=case.inject)
+    if case.expect == "latched" and not dr.seq.tripped:
+        # a silent observer in a paced graph: the plant's watchdog cuts the PWM, so the
+        # waiting controller looks behind and only the wall-clock rule is left
+        t0 = time.monotonic()
+        dr.seq.t_wait = t0  # (the waiting began now: a wall-clock figure independent of
+        dr.seq._last_check = 0.0  # how long this machine took to simulate the case)
+        for j in range(int((dr.seq.wall_timeout_s + 0.5) / 0.1)):  # the node's 0.1 s timer
+            dr.seq.check_wall(t0 + 0.1 * j)
+    ks = sorted(k for k in dr.ctrl if k >= k0)
+    latched = int(dr.seq.cs[CS_FAULT]) if dr.seq.tripped else 0
+    k_trip = dr.trip_period if dr.trip_period >= 0 else None
+    pwm_off_after = k_trip is not None and dr.pwm_after_trip == 0
+    errors = [t for lvl, t in dr.lines if lvl == "error"]
+    mode_end = int(dr.ctrl[ks[-1]][CO_MODE])
+    c = dr.seq.counts
+    if latched and k_trip is not None:
+        did = f"PWM off from period k0{k_trip - k0:+d}, latched '{FAULT_NAMES[latched]}'"
+    elif mode_end == MODE_CLOSED_LOOP and c["lost_intervals"]:
+        did = (
+            f"PWM off by the power stage for {len(dr.lost)} periods; restart through "
+            f"align / I-f ({c['restarts']}), flying ({c['flying_restarts']}); closed "
+            f"loop again"
+        )
+    elif mode_end == MODE_CLOSED_LOOP:
+        did = "rides through; closed loop at the end"
+    else:
+        did = f"not latched, mode {mode_end} at the end"
+    # nothing lost: every frame the controller received was answered or counted as
+    # dropped (repeated/backwards, skipped while catching up); frames that never came
+    # are counted as missing
+    received = c["frames"] - k0
+    answered = dr.n_emit - k0
+    dropped = c["repeated_or_backwards"] + c["skipped_frames"]
+    expected = (
+        latched == case.code and pwm_off_after and len(errors) == 1
+        if case.expect == "latched"
+        else not latched and mode_end == MODE_CLOSED_LOOP and not errors
+    )
+    return {
+        "fault": case.fault,
+        "injected": case.injected,
+        "drive": did,
+        "log": errors[0] if errors else "",
+        "recorded": (
+            f"received {received}, answered {answered}, dropped {dropped}, missing "
+            f"{c['missing_frames']}; lost intervals {c['lost_intervals']}"
+        ),
+        "ok": bool(expected and answered + dropped >= received),
+    }
 
 
 def table(rows: list[dict]) -> str:
