@@ -268,71 +268,17 @@ def replay_bag(
     `card_model` asks for the machine card's values."""
     card = bag.machine(machine)
     n = bag.n
-    recorded, model_source = recorded_observer_model(bag.meta)
-    if card_model or recorded is None:
-        model = _card_model(card)
-        if card_model:
-            model_source = "the machine card (--card-model)"
-    else:
-        model = recorded
-    est = np.zeros((len(variants), n, ES_N))
-    walls: dict[str, float] = {}
-    diffs: dict[str, float] = {}
+    model, model_source = _observer_model(bag, card, card_model)
     frames = np.ascontiguousarray(bag.frames, dtype=np.float64)
-    for i, vs in enumerate(variants):
-        obs = build_observer(vs, bag, card, model)
-        t0 = time.perf_counter()
-        changes = live_changes(bag, vs) if isinstance(obs, KernelObserver) else []
-        out = run_with_changes(obs, frames, changes)
-        walls[vs.label] = time.perf_counter() - t0
-        if out.shape != (n, ES_N):
-            raise ConfigError(
-                f"variant '{vs.label}': run() returned shape {out.shape}, expected ({n}, {ES_N})"
-            )
-        est[i] = out
-        rec_name = vs.recorded or vs.label
-        if rec_name in bag.est and (vs.recorded is None or not vs.params):
-            diffs[vs.label] = estimate_difference(out, bag.est[rec_name])
-    truth_source = "truth"
-    truth = bag.truth
-    if truth is None:
-        truth = encoder_truth(bag, card, encoder_offset_deg)
-        truth_source = "encoder"
-    else:
-        truth = truth.copy()
-        bad = ~np.isfinite(truth[:, TR_THETA_E])
-        if bad.any():  # fill gaps in the truth from the encoder
-            enc = encoder_truth(bag, card, encoder_offset_deg)
-            truth[bad] = enc[bad]
-            truth_source = "truth+encoder"
+    est, walls, diffs = _run_variants(bag, variants, card, model, frames)
+    truth, truth_source = _replay_truth(bag, card, encoder_offset_deg)
     ctrl = bag.ctrl if bag.ctrl is not None else np.zeros((n, CO_N))
     ctrl = np.nan_to_num(ctrl)
     if bag.ctrl is not None and np.any(ctrl[:, CO_W_REF] != 0):
         w_ref = ctrl[:, CO_W_REF].copy()
     else:
         w_ref = truth[:, TR_WM].copy()
-    win = _window(bag, window)
-    meta_sc = bag.meta.get("scenario") or {}
-    step = meta_sc.get("step_load_time_s")
-    if step is not None and not (bag.t[0] <= step < bag.t[-1]):
-        step = None
-    sc = Scenario(
-        name=f"{bag.path.name}",
-        machine=card,
-        duration_s=float(bag.t[-1] - bag.t[0]),
-        seed=int(meta_sc.get("seed", 0)),
-        speed_profile_rpm=np.array([[0.0, 0.0]]),
-        load_profile_pu=np.array([[0.0, 0.0]]),
-        dyno_pu_per_rpm=0.0,
-        brake_band_rpm=0.0,
-        control=ControllerConfig(),
-        observers={},
-        driving="encoder",
-        steady_window_s=win,
-        step_load_time_s=step,
-        description=f"replay of {bag.path}",
-        source=str(meta_sc.get("source", "")),
-    )
+    sc = _replay_scenario(bag, card, _window(bag, window))
     # a recorded controller state would make the stability check about the recorded
     # controller mode; for replay the variants drive nothing
     ctrl[:, CO_MODE] = 0.0
@@ -353,6 +299,87 @@ def replay_bag(
         bag,
         model=model,
         model_source=model_source,
+    )
+
+
+def _observer_model(
+    bag: RunBag, card: MachineCard, card_model: bool
+) -> tuple[dict[str, float], str]:
+    """The observer model new variants get, and where it comes from: the bag's record,
+    else (or with `card_model`) the machine card."""
+    recorded, model_source = recorded_observer_model(bag.meta)
+    if card_model or recorded is None:
+        if card_model:
+            model_source = "the machine card (--card-model)"
+        return _card_model(card), model_source
+    return recorded, model_source
+
+
+def _run_variants(
+    bag: RunBag,
+    variants: list[VariantSpec],
+    card: MachineCard,
+    model: dict[str, float],
+    frames: np.ndarray,
+) -> tuple[np.ndarray, dict[str, float], dict[str, float]]:
+    """Each variant's estimates over the frames (recorded live changes applied), its
+    wall time, and its difference from the bag's own estimates where it replays one."""
+    n = bag.n
+    est = np.zeros((len(variants), n, ES_N))
+    walls: dict[str, float] = {}
+    diffs: dict[str, float] = {}
+    for i, vs in enumerate(variants):
+        obs = build_observer(vs, bag, card, model)
+        t0 = time.perf_counter()
+        changes = live_changes(bag, vs) if isinstance(obs, KernelObserver) else []
+        out = run_with_changes(obs, frames, changes)
+        walls[vs.label] = time.perf_counter() - t0
+        if out.shape != (n, ES_N):
+            raise ConfigError(
+                f"variant '{vs.label}': run() returned shape {out.shape}, expected ({n}, {ES_N})"
+            )
+        est[i] = out
+        rec_name = vs.recorded or vs.label
+        if rec_name in bag.est and (vs.recorded is None or not vs.params):
+            diffs[vs.label] = estimate_difference(out, bag.est[rec_name])
+    return est, walls, diffs
+
+
+def _replay_truth(bag: RunBag, card: MachineCard, offset_deg: float) -> tuple[np.ndarray, str]:
+    """The rotor's truth: the bag's, its gaps filled from the encoder; the encoder's
+    alone when the bag has none."""
+    if bag.truth is None:
+        return encoder_truth(bag, card, offset_deg), "encoder"
+    truth = bag.truth.copy()
+    bad = ~np.isfinite(truth[:, TR_THETA_E])
+    if not bad.any():
+        return truth, "truth"
+    truth[bad] = encoder_truth(bag, card, offset_deg)[bad]
+    return truth, "truth+encoder"
+
+
+def _replay_scenario(bag: RunBag, card: MachineCard, win: tuple[float, float]) -> Scenario:
+    """The scenario the metrics read: the bag's span, seed and load step, no profiles."""
+    meta_sc = bag.meta.get("scenario") or {}
+    step = meta_sc.get("step_load_time_s")
+    if step is not None and not (bag.t[0] <= step < bag.t[-1]):
+        step = None
+    return Scenario(
+        name=f"{bag.path.name}",
+        machine=card,
+        duration_s=float(bag.t[-1] - bag.t[0]),
+        seed=int(meta_sc.get("seed", 0)),
+        speed_profile_rpm=np.array([[0.0, 0.0]]),
+        load_profile_pu=np.array([[0.0, 0.0]]),
+        dyno_pu_per_rpm=0.0,
+        brake_band_rpm=0.0,
+        control=ControllerConfig(),
+        observers={},
+        driving="encoder",
+        steady_window_s=win,
+        step_load_time_s=step,
+        description=f"replay of {bag.path}",
+        source=str(meta_sc.get("source", "")),
     )
 
 
@@ -439,30 +466,61 @@ def _plt():
 
 
 def plot_replay(res: ReplayResult, out_dir: Path, orders: int = 12) -> dict[str, Path]:
+    """The replay's figures in `out_dir`: θ̃ over time, its harmonic orders, the flux
+    loci and the speed estimates; name -> path."""
     plt = _plt()
     out_dir.mkdir(parents=True, exist_ok=True)
-    t = res.t
-    th = res.truth[:, TR_THETA_E]
-    dec = slice(0, len(t), max(1, len(t) // 20000))
-    win = steady_window(t, res.scenario.steady_window_s)
-    sl = slice(win.k0, win.k1)
+    figures = {
+        "theta_error": _plot_theta_error(plt, res),
+        "theta_harmonics": _plot_theta_harmonics(plt, res, orders),
+        "flux_locus": _plot_flux_loci(plt, res),
+        "speed": _plot_speed(plt, res),
+    }
     paths: dict[str, Path] = {}
-    ref = "true" if res.truth_source.startswith("truth") else "encoder"
-    # theta error vs time
+    for name, fig in figures.items():
+        paths[name] = out_dir / f"{name}.png"
+        fig.tight_layout()
+        fig.savefig(paths[name], dpi=100)
+        plt.close(fig)
+    return paths
+
+
+def _reference(res: ReplayResult) -> str:
+    return "true" if res.truth_source.startswith("truth") else "encoder"
+
+
+def _decimated(res: ReplayResult) -> slice:
+    """At most ~20 000 points per line."""
+    return slice(0, len(res.t), max(1, len(res.t) // 20000))
+
+
+def _metrics_window(res: ReplayResult) -> slice:
+    win = steady_window(res.t, res.scenario.steady_window_s)
+    return slice(win.k0, win.k1)
+
+
+def _finish(ax) -> None:
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, ncol=3)
+
+
+def _plot_theta_error(plt, res: ReplayResult):
+    t, th, dec = res.t, res.truth[:, TR_THETA_E], _decimated(res)
     fig, ax = plt.subplots(figsize=(9, 4))
     for i, nm in enumerate(res.names):
         ax.plot(t[dec], np.degrees(wrap(res.est[i, dec, ES_TH] - th[dec])), lw=0.7, label=nm)
     ax.axvspan(*res.scenario.steady_window_s, color="0.9", zorder=-1, label="metrics window")
     ax.set_ylim(-45, 45)
     ax.set_xlabel("time [s]")
-    ax.set_ylabel(f"θ̃ = θ̂ − θ({ref}) [el. deg]")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, ncol=3)
-    fig.tight_layout()
-    paths["theta_error"] = out_dir / "theta_error.png"
-    fig.savefig(paths["theta_error"], dpi=100)
-    plt.close(fig)
-    # harmonic orders of theta error vs the rotor angle
+    ax.set_ylabel(f"θ̃ = θ̂ − θ({_reference(res)}) [el. deg]")
+    _finish(ax)
+    return fig
+
+
+def _plot_theta_harmonics(plt, res: ReplayResult, orders: int):
+    """Harmonic orders of θ̃ against the rotor angle, over the metrics window."""
+    sl = _metrics_window(res)
+    th = res.truth[:, TR_THETA_E]
     unw = np.unwrap(th[sl])
     wp = whole_periods(unw)
     fig, ax = plt.subplots(figsize=(9, 3.8))
@@ -483,11 +541,13 @@ def plot_replay(res: ReplayResult, out_dir: Path, orders: int = 12) -> dict[str,
     ax.set_ylabel("amplitude [el. deg]")
     ax.grid(alpha=0.3, axis="y")
     ax.legend(fontsize=7, ncol=3)
-    fig.tight_layout()
-    paths["theta_harmonics"] = out_dir / "theta_harmonics.png"
-    fig.savefig(paths["theta_harmonics"], dpi=100)
-    plt.close(fig)
-    # flux loci
+    return fig
+
+
+def _plot_flux_loci(plt, res: ReplayResult):
+    """Each variant's flux estimate over the metrics window against the card's |λ|."""
+    sl = _metrics_window(res)
+    nv = max(1, len(res.names))
     cols = min(nv, 4)
     rows = (nv + cols - 1) // cols
     fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 3.2 * rows), squeeze=False)
@@ -508,25 +568,22 @@ def plot_replay(res: ReplayResult, out_dir: Path, orders: int = 12) -> dict[str,
         ax.set_ylabel("λ̂β [mV·s]", fontsize=8)
     for j in range(nv, rows * cols):
         axes[j // cols][j % cols].axis("off")
-    fig.tight_layout()
-    paths["flux_locus"] = out_dir / "flux_locus.png"
-    fig.savefig(paths["flux_locus"], dpi=100)
-    plt.close(fig)
-    # speed estimate vs encoder / truth
+    return fig
+
+
+def _plot_speed(plt, res: ReplayResult):
+    """Speed estimates against the encoder's / the true speed."""
+    t, dec = res.t, _decimated(res)
     p = res.scenario.machine.pole_pairs
     fig, ax = plt.subplots(figsize=(9, 4))
+    ref = _reference(res)
     ax.plot(t[dec], res.truth[dec, TR_WM] * RAD_S_TO_RPM, "k", lw=1.0, label=f"{ref} speed")
     for i, nm in enumerate(res.names):
         ax.plot(t[dec], res.est[i, dec, ES_W] / p * RAD_S_TO_RPM, lw=0.7, label=nm)
     ax.set_xlabel("time [s]")
     ax.set_ylabel("mechanical speed [rpm]")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, ncol=3)
-    fig.tight_layout()
-    paths["speed"] = out_dir / "speed.png"
-    fig.savefig(paths["speed"], dpi=100)
-    plt.close(fig)
-    return paths
+    _finish(ax)
+    return fig
 
 
 MD_COLS = [
