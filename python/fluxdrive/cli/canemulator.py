@@ -18,13 +18,70 @@ def main(argv: list[str] | None = None) -> int:
     other processes on this host). Runs ``--periods`` PWM periods (default: the
     scenario's) or until SIGINT/SIGTERM; the last stdout line is a JSON object with the
     MCU's final state and counters."""
-    import argparse
     import json
     import signal
-    import sys
 
-    from fluxdrive.drive.scenario import load_scenario, scenario_path
     from fluxdrive.drive.sim import DriveSetup
+
+    a = _parser().parse_args(sys.argv[1:] if argv is None else argv)
+    sc = _scenario(a.scenario, a.duration)
+    try:
+        bus = can.Bus(**_bus_kwargs(a))
+    except (can.CanError, OSError, ImportError, ValueError) as exc:
+        print(
+            f"can-emulator: cannot open the {a.interface} bus on {a.channel}: {exc}",
+            file=sys.stderr,
+        )
+        return 2
+    emu = DriveEmulator(
+        DriveSetup(sc),
+        bus,
+        lockstep=not a.free_running,
+        lockstep_wait_s=a.lockstep_wait,
+        layout=a.layout,
+        decimation=a.decimation,
+        mcu=a.mcu,
+        record=a.record_out is not None,
+    )
+    signal.signal(signal.SIGTERM, lambda *_: emu._stop.set())
+    signal.signal(signal.SIGINT, lambda *_: emu._stop.set())
+    n = sc.n_periods if a.periods is None else a.periods
+    print(
+        f"[can-emulator] {sc.name}: {a.layout} layout (D={emu.decimation}) on "
+        f"{a.interface}:{a.channel}, {n} periods, "
+        f"{'free-running' if a.free_running else 'lockstep'}",
+        file=sys.stderr,
+        flush=True,
+    )
+    t0 = time.perf_counter()
+    try:
+        rc = 0 if _wait_for_host(emu, a.wait_for_host) and _wait_armed(emu, a.wait_armed) else 1
+        if rc == 0:
+            emu.run(n, realtime=a.free_running)
+            emu._drain(0.05)  # a disarm sent while we stopped
+    finally:
+        bus.shutdown()
+    if a.record_out is not None and emu.rec_truth:
+        import numpy as np
+
+        np.save(a.record_out, np.vstack(emu.rec_truth))
+    out = {
+        "periods": emu.k,
+        "armed": emu.armed,
+        "pwm_enabled": emu.pwm_enabled,
+        "fault_latched": emu.fault_latched,
+        "fault_code": emu.fault_code,
+        "layout": emu.layout,
+        "decimation": emu.decimation,
+        "wall_s": round(time.perf_counter() - t0, 3),
+        **emu.stats.as_dict(),
+    }
+    print(json.dumps(out), flush=True)
+    return rc
+
+
+def _parser():
+    import argparse
 
     ap = argparse.ArgumentParser(prog="fluxdrive can-emulator", description=main.__doc__)
     ap.add_argument(
@@ -91,96 +148,61 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="write the plant's true state per PWM period (TR_* rows) to this .npy file",
     )
-    a = ap.parse_args(sys.argv[1:] if argv is None else argv)
-    overrides = None
-    if a.duration:
-        overrides = {"duration_s": a.duration}
-        if load_scenario(scenario_path(a.scenario)).steady_window_s[1] > a.duration + 1e-9:
-            # a steady window beyond the end becomes the second half of the run
-            overrides["steady_window_s"] = [0.5 * a.duration, a.duration]
-    sc = load_scenario(scenario_path(a.scenario), overrides=overrides)
+    return ap
+
+
+def _scenario(name: str, duration_s: float | None):
+    """The plant's scenario; `--duration` overrides its length (a steady window beyond
+    the end becomes the second half of the run)."""
+    from fluxdrive.drive.scenario import load_scenario, scenario_path
+
+    overrides: dict[str, Any] | None = None
+    if duration_s:
+        overrides = {"duration_s": duration_s}
+        if load_scenario(scenario_path(name)).steady_window_s[1] > duration_s + 1e-9:
+            overrides["steady_window_s"] = [0.5 * duration_s, duration_s]
+    return load_scenario(scenario_path(name), overrides=overrides)
+
+
+def _bus_kwargs(a) -> dict[str, Any]:
     kw: dict[str, Any] = {"interface": a.interface, "channel": a.channel, "fd": a.layout == "fd"}
     if a.interface == "udp_multicast":
         kw["hop_limit"] = a.hop_limit
-        if a.port is not None:
-            kw["port"] = a.port
-    elif a.port is not None:
+    if a.port is not None:
         kw["port"] = a.port
-    try:
-        bus = can.Bus(**kw)
-    except (can.CanError, OSError, ImportError, ValueError) as exc:
-        print(
-            f"can-emulator: cannot open the {a.interface} bus on {a.channel}: {exc}",
-            file=sys.stderr,
-        )
-        return 2
-    emu = DriveEmulator(
-        DriveSetup(sc),
-        bus,
-        lockstep=not a.free_running,
-        lockstep_wait_s=a.lockstep_wait,
-        layout=a.layout,
-        decimation=a.decimation,
-        mcu=a.mcu,
-        record=a.record_out is not None,
-    )
-    signal.signal(signal.SIGTERM, lambda *_: emu._stop.set())
-    signal.signal(signal.SIGINT, lambda *_: emu._stop.set())
-    n = sc.n_periods if a.periods is None else a.periods
-    print(
-        f"[can-emulator] {sc.name}: {a.layout} layout (D={emu.decimation}) on "
-        f"{a.interface}:{a.channel}, {n} periods, "
-        f"{'free-running' if a.free_running else 'lockstep'}",
-        file=sys.stderr,
-        flush=True,
-    )
-    rc = 0
-    t0 = time.perf_counter()
-    try:
-        if a.wait_for_host > 0:
-            deadline = time.monotonic() + a.wait_for_host
-            while emu._hb_last is None and not emu._stop.is_set():
-                if time.monotonic() > deadline:
-                    print(
-                        f"can-emulator: no host heartbeat within {a.wait_for_host:g} s",
-                        file=sys.stderr,
-                    )
-                    rc = 1
-                    break
-                emu._drain(0.05)
-        if rc == 0 and a.wait_armed > 0:
-            import threading
+    return kw
 
-            give_up = threading.Event()
-            timer = threading.Timer(a.wait_armed, give_up.set)
-            timer.start()
-            emu.serve(give_up, until_armed=True)
-            timer.cancel()
-            if give_up.is_set():
-                print(f"can-emulator: not armed within {a.wait_armed:g} s", file=sys.stderr)
-                rc = 1
-        if rc == 0:
-            emu.run(n, realtime=a.free_running)
-            emu._drain(0.05)  # a disarm sent while we stopped
-    finally:
-        bus.shutdown()
-    if a.record_out is not None and emu.rec_truth:
-        import numpy as np
 
-        np.save(a.record_out, np.vstack(emu.rec_truth))
-    out = {
-        "periods": emu.k,
-        "armed": emu.armed,
-        "pwm_enabled": emu.pwm_enabled,
-        "fault_latched": emu.fault_latched,
-        "fault_code": emu.fault_code,
-        "layout": emu.layout,
-        "decimation": emu.decimation,
-        "wall_s": round(time.perf_counter() - t0, 3),
-        **emu.stats.as_dict(),
-    }
-    print(json.dumps(out), flush=True)
-    return rc
+def _wait_for_host(emu: DriveEmulator, wait_s: float) -> bool:
+    """Up to `wait_s` for the host's first HOST_HEARTBEAT (0: do not wait); False (said
+    on stderr) when none came."""
+    if wait_s <= 0:
+        return True
+    deadline = time.monotonic() + wait_s
+    while emu._hb_last is None and not emu._stop.is_set():
+        if time.monotonic() > deadline:
+            print(f"can-emulator: no host heartbeat within {wait_s:g} s", file=sys.stderr)
+            return False
+        emu._drain(0.05)
+    return True
+
+
+def _wait_armed(emu: DriveEmulator, wait_s: float) -> bool:
+    """Answer the bus without running periods until the host arms the drive, up to
+    `wait_s` (0: do not wait); False (said on stderr) when it did not."""
+    if wait_s <= 0:
+        return True
+    import threading
+
+    give_up = threading.Event()
+    timer = threading.Timer(wait_s, give_up.set)
+    timer.start()
+    emu.serve(give_up, until_armed=True)
+    timer.cancel()
+    if give_up.is_set():
+        print(f"can-emulator: not armed within {wait_s:g} s", file=sys.stderr)
+        return False
+    return True
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -126,34 +126,7 @@ def _main(args) -> int:
     window = _parse_window(args.window)
     out = args.out or REPO_ROOT / "runs" / f"replay-{time.strftime('%Y%m%d-%H%M%S')}"
     if args.sweep:
-        if len(args.variant) > 1:
-            raise ConfigError("--sweep takes one --variant")
-        key, values = parse_sweep(args.sweep)
-        status = 0
-        for bp in args.bags:
-            bag = _read(bp)
-            vs = expand_variants(args.variant or ["paper"], bag)[0]
-            od = out / slug(bag.path.name) if len(args.bags) > 1 else out
-            where = args.scheduler or f"{args.jobs} processes"
-            print(
-                f"sweep {vs.target} {key} over {len(values)} values on {bag.path} "
-                f"({bag.n} frames, {where})"
-            )
-            rows = sweep_bag(
-                bag,
-                vs,
-                key,
-                values,
-                args.jobs,
-                od,
-                args.machine,
-                window,
-                args.encoder_offset_deg,
-                args.scheduler,
-            )
-            print(format_sweep(rows, key))
-            print(f"saved: {od}/sweep.json, sweep.png")
-        return status
+        return _sweep(args, window, out)
     metrics_all: dict[str, Any] = {}
     md = [
         "# Replay report",
@@ -168,40 +141,13 @@ def _main(args) -> int:
         res = replay_bag(
             bag, variants, machine, window, args.encoder_offset_deg, card_model=args.card_model
         )
-        m = compute(res)
-        m["truth_source"] = res.truth_source
-        m["frames"] = bag.n
-        m["problems"] = bag.problems
-        m["recorded_max_abs_diff"] = res.recorded_diff
-        m["replay_wall_s"] = res.wall_s
-        print(f"== {bag.path} ({bag.n} frames, reference: {res.truth_source})")
-        if any(v.recorded is None for v in variants):
-            print(
-                "   new variants' observer model: "
-                + ", ".join(f"{k} {v:.6g}" for k, v in res.model.items())
-                + f" from {res.model_source} (a variant's own r_hat_ohm=... wins)"
-            )
-        m["observer_model"] = {"values": res.model, "source": res.model_source}
-        print(format_table(m))
-        for nm, d in res.recorded_diff.items():
-            print(f"   {nm}: max |replayed - recorded| = {d:.3g}")
-        applied = {
-            v.label: len(live_changes(bag, v))
-            for v in variants
-            if v.recorded is not None and live_changes(bag, v)
-        }
-        if applied:
-            print(
-                "   live parameter changes applied from the bag's markers: "
-                + ", ".join(f"{k} {n}" for k, n in applied.items())
-            )
+        m = _report_bag(bag, variants, res)
         key = slug(bag.path.name)
         while key in metrics_all:
             key += "_"
         metrics_all[key] = m
-        od = out / key
         if not args.no_plots:
-            plots = plot_replay(res, od)
+            plots = plot_replay(res, out / key)
             md.append(markdown_section(res, m, plots, out))
         if args.write_bag is not None:
             wb = args.write_bag if len(args.bags) == 1 else args.write_bag / key
@@ -215,6 +161,69 @@ def _main(args) -> int:
     else:
         print(f"saved: {out}/metrics.json")
     return 0
+
+
+def _sweep(args, window: tuple[float, float] | None, out: Path) -> int:
+    """--sweep: the one variant over the values of one setting, per bag."""
+    if len(args.variant) > 1:
+        raise ConfigError("--sweep takes one --variant")
+    key, values = parse_sweep(args.sweep)
+    for bp in args.bags:
+        bag = _read(bp)
+        vs = expand_variants(args.variant or ["paper"], bag)[0]
+        od = out / slug(bag.path.name) if len(args.bags) > 1 else out
+        where = args.scheduler or f"{args.jobs} processes"
+        print(
+            f"sweep {vs.target} {key} over {len(values)} values on {bag.path} "
+            f"({bag.n} frames, {where})"
+        )
+        rows = sweep_bag(
+            bag,
+            vs,
+            key,
+            values,
+            args.jobs,
+            od,
+            args.machine,
+            window,
+            args.encoder_offset_deg,
+            args.scheduler,
+        )
+        print(format_sweep(rows, key))
+        print(f"saved: {od}/sweep.json, sweep.png")
+    return 0
+
+
+def _report_bag(bag: RunBag, variants: list, res: lab.ReplayResult) -> dict[str, Any]:
+    """One bag's metrics (with where its reference and model came from), printed."""
+    m = compute(res)
+    m["truth_source"] = res.truth_source
+    m["frames"] = bag.n
+    m["problems"] = bag.problems
+    m["recorded_max_abs_diff"] = res.recorded_diff
+    m["replay_wall_s"] = res.wall_s
+    print(f"== {bag.path} ({bag.n} frames, reference: {res.truth_source})")
+    if any(v.recorded is None for v in variants):
+        print(
+            "   new variants' observer model: "
+            + ", ".join(f"{k} {v:.6g}" for k, v in res.model.items())
+            + f" from {res.model_source} (a variant's own r_hat_ohm=... wins)"
+        )
+    m["observer_model"] = {"values": res.model, "source": res.model_source}
+    print(format_table(m))
+    for nm, d in res.recorded_diff.items():
+        print(f"   {nm}: max |replayed - recorded| = {d:.3g}")
+    applied = {
+        v.label: len(live_changes(bag, v))
+        for v in variants
+        if v.recorded is not None and live_changes(bag, v)
+    }
+    if applied:
+        print(
+            "   live parameter changes applied from the bag's markers: "
+            + ", ".join(f"{k} {n}" for k, n in applied.items())
+        )
+    return m
 
 
 def _read(path: Path) -> RunBag:
