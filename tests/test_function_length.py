@@ -16,16 +16,6 @@ MAX_LINES = 80
 SKIP_DIRS = {"build", "install", "log", "__pycache__", ".ws", ".venv"}
 
 KNOWN_LONG: set[str] = {
-    "python/fluxdrive/can/benchmark.py::run_can_benchmark",
-    "python/fluxdrive/can/bridge.py::CanBridge.__init__",
-    "python/fluxdrive/can/canlog.py::read_capture",
-    "python/fluxdrive/can/emulator.py::DriveEmulator.__init__",
-    "python/fluxdrive/can/firmware.py::load_library",
-    "python/fluxdrive/can/loop.py::run_can_loop",
-    "python/fluxdrive/cli/canemulator.py::main",
-    "python/fluxdrive/cli/replay.py::_main",
-    "python/fluxdrive/drive/faultmatrix.py::_cases",
-    "python/fluxdrive/drive/faultmatrix.py::run_matrix",
     "python/fluxdrive/experiments/beyond.py::_plot_sens",
     "python/fluxdrive/experiments/beyond.py::_sens_claims",
     "python/fluxdrive/experiments/beyond.py::lowest_speed",
@@ -36,8 +26,6 @@ KNOWN_LONG: set[str] = {
     "python/fluxdrive/experiments/paper.py::fig15_16",
     "python/fluxdrive/experiments/paper.py::fig2_4",
     "python/fluxdrive/experiments/paper.py::paper_robust",
-    "python/fluxdrive/replay/lab.py::plot_replay",
-    "python/fluxdrive/replay/lab.py::replay_bag",
     "src/bench_bridge/bench_bridge/bridge_node.py::BenchBridgeNode.__init__",
     "src/bench_bridge/bench_bridge/bridge_node.py::param_table",
     "src/fluxdrive_bringup/fluxdrive_bringup/launch/launcher.py::Launcher.wait",
