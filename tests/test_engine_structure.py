@@ -82,3 +82,14 @@ def test_layout_refuses_a_hand_typed_index():
     ns2 = {"YY_A": bad.index(), "YY_B": 5}
     with pytest.raises(RuntimeError, match="YY"):
         bad.close(ns2)
+
+
+def test_layout_names_given_with_the_indices():
+    """A name handed out with an index is the column's name; the rest are the constants'."""
+    lay = Layout("ZZ")
+    ns: dict[str, object] = {"ZZ_IA": lay.index("i_a")}
+    ns["ZZ_X"], ns["ZZ_Y"] = lay.indices(2, "x_pos y_pos")
+    ns["ZZ_K"] = lay.index()
+    assert lay.close(ns) == 4 and lay.names == ("i_a", "x_pos", "y_pos", "k")
+    with pytest.raises(ValueError, match="ZZ2"):
+        Layout("ZZ2").indices(2, "one")

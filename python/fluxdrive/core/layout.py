@@ -14,7 +14,9 @@ written, and its length is counted, not typed:
 Adding a field is one line anywhere in the block.  `close` checks that the module's
 `CP_*` integers are exactly 0..N-1, each once (an index typed by hand, a duplicate or a
 gap is refused at import), and records the field names in order (`_CP.names`) for code
-that maps rows to messages or columns by name.
+that maps rows to messages or columns by name: a name given where the index is handed out
+(`_FR.index("vdc")`, `_FR.indices(3, "i_a i_b i_c")`), else the constant's name after the
+prefix in lower case.
 """
 
 from __future__ import annotations
@@ -29,18 +31,26 @@ class Layout:
         self.prefix = prefix
         self.n = 0
         self.names: tuple[str, ...] = ()
+        self._given: dict[int, str] = {}  # index -> the name given with it
         self._closed = False
 
-    def index(self) -> int:
-        """The next index."""
+    def index(self, name: str | None = None) -> int:
+        """The next index; `name`: the column's name outside the kernels (default: the
+        constant's)."""
         if self._closed:
             raise RuntimeError(f"layout {self.prefix} is closed; add fields before close()")
         self.n += 1
+        if name is not None:
+            self._given[self.n - 1] = name
         return self.n - 1
 
-    def indices(self, count: int) -> tuple[int, ...]:
-        """The next `count` indices (a block the kernel slices as a whole)."""
-        return tuple(self.index() for _ in range(count))
+    def indices(self, count: int, names: str | None = None) -> tuple[int, ...]:
+        """The next `count` indices (a block the kernel slices as a whole); `names`: their
+        names, separated by spaces."""
+        given: list[str | None] = list(names.split()) if names else [None] * count
+        if len(given) != count:
+            raise ValueError(f"layout {self.prefix}: {count} indices, names {names!r}")
+        return tuple(self.index(name) for name in given)
 
     def close(self, namespace: Mapping[str, object]) -> int:
         """Check the module's `prefix`_* integers against the layout; return its length."""
@@ -59,7 +69,7 @@ class Layout:
                 f"layout {self.prefix}: constants {found} are not exactly "
                 f"0..{self.n - 1} from {self.prefix}.index()"
             )
-        self.names = tuple(k[len(head) :].lower() for k in by_index)
+        self.names = tuple(self._given.get(found[k], k[len(head) :].lower()) for k in by_index)
         self._closed = True
         return self.n
 

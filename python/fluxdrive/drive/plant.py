@@ -103,15 +103,19 @@ PS_N = _PS.close(globals())
 
 # ---- frame vector (what the drive's MCU knows at sample k): FR_*
 _FR = Layout("FR")
-FR_IA, FR_IB, FR_IC = _FR.indices(3)  # sampled phase currents [A]
-FR_VAB, FR_VBC, FR_VCA = _FR.indices(3)  # captured line voltages, average over the last period [V]
-FR_VDC = _FR.index()  # DC-bus ADC [V]
-FR_DA, FR_DB, FR_DC = _FR.indices(3)  # duties applied over the last period
-FR_EN = _FR.index()  # 1.0 if PWM was enabled over the last period
-FR_ENC = _FR.index()  # cumulative encoder counts
-FR_SEQ = _FR.index()  # sample index k
-FR_FLAGS = _FR.index()  # status bits (FLAG_*)
+FR_IA, FR_IB, FR_IC = _FR.indices(3, "i_a i_b i_c")  # sampled phase currents [A]
+# captured line voltages, average over the last period [V]
+FR_VAB, FR_VBC, FR_VCA = _FR.indices(3, "v_ab v_bc v_ca")
+FR_VDC = _FR.index("vdc")  # DC-bus ADC [V]
+FR_DA, FR_DB, FR_DC = _FR.indices(3, "duty_a duty_b duty_c")  # applied over the last period
+FR_EN = _FR.index("pwm_enabled")  # 1.0 if PWM was enabled over the last period
+FR_ENC = _FR.index("encoder_counts")  # cumulative encoder counts
+FR_SEQ = _FR.index("seq")  # sample index k
+FR_FLAGS = _FR.index("flags")  # status bits (FLAG_*)
 FR_N = _FR.close(globals())
+# the frame's column names, in column order: the one naming of the frame row that the CAN
+# protocol, captures and fault messages use
+FRAME_COLUMNS: tuple[str, ...] = _FR.names
 FLAG_CLIP = 1  # a current ADC channel clipped at full scale
 # the power stage had no fresh duty command for this period (PhaseFrame.STATUS_STALE_COMMAND);
 # with FR_EN = 0 its watchdog switched the PWM off: a lost interval (observers coast it)

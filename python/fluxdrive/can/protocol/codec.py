@@ -56,18 +56,9 @@ ID_DRIVE_PARAM = 0x680
 ID_DRIVE_PARAM_ACK = 0x681
 CLASSIC_SAMPLE_IDS = (ID_SAMPLE_C_CUR, ID_SAMPLE_C_VLT, ID_SAMPLE_C_DUTY, ID_SAMPLE_C_AUX)
 
-# engine frame column (fluxdrive.drive.plant FR_*) -> its name on the bus
-_FRAME_COLUMN_NAMES: dict[int, str] = {
-    _pl.FR_IA: "i_a", _pl.FR_IB: "i_b", _pl.FR_IC: "i_c",
-    _pl.FR_VAB: "v_ab", _pl.FR_VBC: "v_bc", _pl.FR_VCA: "v_ca",
-    _pl.FR_VDC: "vdc",
-    _pl.FR_DA: "duty_a", _pl.FR_DB: "duty_b", _pl.FR_DC: "duty_c",
-    _pl.FR_EN: "pwm_enabled", _pl.FR_ENC: "encoder_counts", _pl.FR_SEQ: "seq",
-    _pl.FR_FLAGS: "flags",
-}  # fmt: skip
-FRAME_FIELDS: tuple[str, ...] = tuple(_FRAME_COLUMN_NAMES[j] for j in range(_pl.FR_N))
+FRAME_FIELDS: tuple[str, ...] = _pl.FRAME_COLUMNS
 """Column names of the engine's per-period frame row (float64), in the order of the
-plant's ``FR_*`` indices."""
+plant's ``FR_*`` indices: the names the plant's layout declares."""
 FRAME_FLAG_ADC_CLIP = 1
 """Bit of the frame's ``flags`` column: a current ADC channel clipped (SAMPLE_FD.adc_clip)."""
 FRAME_INDEX: dict[str, int] = {name: i for i, name in enumerate(FRAME_FIELDS)}

@@ -32,27 +32,10 @@ from fluxdrive.drive.control.kernel import (
     SRC_ESTIMATE,
 )
 from fluxdrive.drive.observers import ES_TH, ES_W
-from fluxdrive.drive.plant import FR_ENC, FR_IA, FR_IB, FR_IC, FR_VDC
+from fluxdrive.drive.plant import FR_ENC, FR_IA, FR_IB, FR_IC, FR_VDC, FRAME_COLUMNS
+
 
 # ====================================================================== trips, explained
-_FRAME_FIELDS = (
-    "i_a",
-    "i_b",
-    "i_c",
-    "v_ab",
-    "v_bc",
-    "v_ca",
-    "v_dc",
-    "d_a",
-    "d_b",
-    "d_c",
-    "enable",
-    "encoder",
-    "seq",
-    "flags",
-)
-
-
 def trip_values(
     code: int,
     frame: np.ndarray,
@@ -106,7 +89,7 @@ def trip_values(
         return f"estimate not finite (theta^ = {est[ES_TH]}, omega^ = {est[ES_W]})"
     if code == FAULT_BAD_SAMPLE:
         bad = [
-            f"{_FRAME_FIELDS[j]} = {frame[j]}"
+            f"{FRAME_COLUMNS[j]} = {frame[j]}"
             for j in (FR_IA, FR_IB, FR_IC, FR_VDC, FR_ENC)
             if not math.isfinite(frame[j])
         ]
