@@ -49,6 +49,19 @@ def _reference(path: Path):
     return run_scenario(sc, progress=False)
 
 
+def _clock_ns(bag: Path) -> list[int]:
+    """The sim times of a bag's /clock messages [ns], in bag order."""
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([bag]) as reader:
+        conns = [c for c in reader.connections if c.topic == "/clock"]
+        out = []
+        for c, _, raw in reader.messages(connections=conns):
+            t = reader.deserialize(raw, c.msgtype).clock
+            out.append(t.sec * 1_000_000_000 + t.nanosec)
+    return out
+
+
 @pytest.mark.parametrize("layouts", [("composed", "separate"), ("separate", "separate")])
 def test_two_graphs_one_domain_each_bag_equals_its_solo_run(tmp_path, layouts):
     from fluxdrive.drive.plant import FR_SEQ
@@ -94,6 +107,13 @@ def test_two_graphs_one_domain_each_bag_equals_its_solo_run(tmp_path, layouts):
             rb.problems
         )
         assert np.array_equal(rb.frames[:, FR_SEQ], np.arange(len(rb.frames)))
+        # /clock carries no graph id: each graph's clock is its own topic on a shared domain,
+        # so the bag holds its own ticks only -- one per clock_decimation (10) frames, in order
+        # (both graphs tick the same times: the other's ticks would be repeats and jumps back)
+        ticks = _clock_ns(bag)
+        assert len(ticks) == int(round(DURATION_S * 1e4)) // 10, (run, len(ticks))
+        assert ticks == sorted(set(ticks)), run
+        assert "sim time is on /fluxdrive/graph_" in logs[run], logs[run][-3000:]
         res, arr = result_from_bag(bag, load_scenario(runs[run]), DURATION_S)
         ref = _reference(runs[run])
         assert arr["n"] == ref.frames.shape[0] == int(round(DURATION_S * 1e4))

@@ -58,6 +58,13 @@ def env_id() -> int:
     return id_from_key(os.environ.get(KEY_ENV, ""))
 
 
+def private_clock(graph_id: int) -> str:
+    """The clock topic of a graph that shares its ROS domain (`--shared-domain`):
+    rosgraph_msgs/Clock carries no graph id, so such a graph publishes and reads its sim
+    time here instead of /clock (the launcher remaps /clock for every node of it)."""
+    return f"/fluxdrive/graph_{graph_id:016x}/clock"
+
+
 def param() -> P:
     return P(
         "graph_id",

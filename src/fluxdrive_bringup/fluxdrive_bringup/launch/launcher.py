@@ -138,6 +138,9 @@ class Graph:
     max_restarts: int = 3
     restart_backoff_s: float = 1.0
     namespace: str = ""  # the drive's namespace: every node under it (`__ns:=`), e.g. /a
+    # sharing its ROS domain with other graphs (--shared-domain): /clock, which carries no
+    # graph id, is remapped to the graph's own (fluxdrive_ros.graph.private_clock)
+    shared_domain: bool = False
 
     def policy(self, members: list[NodeSpec]) -> tuple[str, int, float]:
         """(on_death, max_restarts, restart_backoff_s) of a process (its nodes agree)."""
@@ -589,7 +592,35 @@ class Launcher:
         argv = [sys.executable, "-m", "fluxdrive_ros.runner", "--spec-json", json.dumps(spec)]
         if self.g.namespace:  # the whole drive under it (fluxdrive_ros.runner)
             argv += ["--ros-args", "-r", f"__ns:={self.g.namespace}"]
+        elif self.clock_topic != "/clock":
+            argv += ["--ros-args", "-r", f"/clock:={self.clock_topic}"]
         return argv
+
+    def bag_name(self, topic: str) -> str:
+        """The name a topic the nodes publish has in the bag: the recorder names the
+        drive's topics as a drive in the root namespace would, and the graph's clock
+        /clock."""
+        if topic == self.clock_topic:
+            return "/clock"
+        ns = self.g.namespace
+        if ns and topic.startswith(ns + "/"):
+            return topic[len(ns) :]
+        return topic
+
+    @property
+    def clock_topic(self) -> str:
+        """The topic this graph's sim time goes on: /clock (the ROS convention: `topic echo
+        /clock`, Foxglove) -- or, in a namespace, <ns>/clock (fluxdrive_ros.runner) -- unless
+        the graph shares its domain in the root namespace: then its own
+        /fluxdrive/graph_<id>/clock, so that no graph reads or records another's clock."""
+        if self.g.namespace:
+            return self.g.namespace + "/clock"
+        if not self.g.shared_domain:
+            return "/clock"
+        from fluxdrive_ros.graph import id_from_key, private_clock
+
+        self.env()  # the graph key (drawn once per launch)
+        return private_clock(id_from_key(self._graph_key))
 
     def preflight(self) -> None:
         """Before anything starts: every recorder's bag directory must be new and writable,
@@ -781,7 +812,8 @@ class Launcher:
                 continue
             checked = 0
             missing: dict[str, dict[str, int]] = {}
-            for topic, n_pub in sorted(self.published.items()):
+            for name, n_pub in sorted(self.published.items()):
+                topic = self.bag_name(name)
                 if topic not in counts or n_pub == 0:
                     continue  # not recorded by this bag
                 checked += 1
@@ -1203,6 +1235,7 @@ def main(argv: list[str]) -> int:
             n.parameters[pname] = yamlio.loads(val)
     if args.scope:
         add_scope(g, port=args.scope_port)
+    g.shared_domain = bool(args.shared_domain)
     if not args.shared_domain:  # a domain no live node uses (or refused, naming them)
         from fluxdrive_bringup.launch.domains import choose_domain
 
@@ -1223,6 +1256,8 @@ def main(argv: list[str]) -> int:
         f"[launch] graph {g.name}: {procs}; ROS_DOMAIN_ID={dom_shown}, discovery {disc}", flush=True
     )
     launcher = Launcher(g, log_dir=args.log_dir)
+    if launcher.clock_topic != "/clock" and not g.namespace:
+        print(f"[launch] shared domain: this graph's sim time is on {launcher.clock_topic}")
     code = launcher.run(args.timeout)
     for b in launcher.bags:
         print(f"[launch] bag: {b}")

@@ -176,6 +176,7 @@ def run_graph(
     scope_port: int = 8765,
     watch=None,
     namespace: str = "",
+    shared_domain: bool = False,
 ) -> dict:
     """Launch the lockstep graph of a scenario, wait for the end.  Returns a summary dict
     (exit code, wall time, real-time factor, bag path).  scope: with the live scope
@@ -187,6 +188,7 @@ def run_graph(
     g = graph_for_scenario(
         sc_path, sc, bag, layout, duration_s, dom, extra=extra, namespace=namespace
     )
+    g.shared_domain = shared_domain  # its /clock: the graph's own (Launcher.clock_topic)
     if scope:
         from fluxdrive_bringup.launch.launcher import add_scope
 
@@ -200,6 +202,8 @@ def run_graph(
         flush=True,
     )
     launcher = Launcher(g, quiet=quiet, progress=progress, log_dir=out / "logs")
+    if launcher.clock_topic != "/clock" and not namespace:
+        print(f"[run] shared domain: this graph's sim time is on {launcher.clock_topic}")
     if watch is not None:
         import threading
 
@@ -324,6 +328,7 @@ def main_run(argv: list[str], default_scenario: str | None = None) -> int:
         scope_port=args.scope_port,
         watch=_print_scope_url if args.scope and args.quiet else None,
         namespace=check_namespace(args.namespace, "--namespace"),
+        shared_domain=args.shared_domain,
     )
     if r["interrupted"]:
         print(f"[run] interrupted: {interrupted_bag_note(bag)}", file=sys.stderr)
