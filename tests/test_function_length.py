@@ -26,8 +26,6 @@ KNOWN_LONG: set[str] = {
     "python/fluxdrive/experiments/paper.py::fig15_16",
     "python/fluxdrive/experiments/paper.py::fig2_4",
     "python/fluxdrive/experiments/paper.py::paper_robust",
-    "src/bench_bridge/bench_bridge/bridge_node.py::BenchBridgeNode.__init__",
-    "src/bench_bridge/bench_bridge/bridge_node.py::param_table",
     "src/fluxdrive_bringup/fluxdrive_bringup/launch/launcher.py::Launcher.wait",
     "src/fluxdrive_bringup/fluxdrive_bringup/launch/launcher.py::main",
     "src/fluxdrive_bringup/fluxdrive_bringup/launch/launcher.py::parse_graph",

@@ -77,6 +77,7 @@ from fluxdrive.can.protocol import (
     SeqTracker,
     get_protocol,
 )
+from fluxdrive.core.schema import param
 from fluxdrive.drive.control import FAULT_NAMES
 
 __all__ = [
@@ -102,33 +103,94 @@ _FD_COLS = {
 
 @dataclass
 class BridgeConfig:
-    """Supervisor settings (the node's parameters)."""
+    """Supervisor settings (the bench_bridge node's parameters of the same names)."""
 
-    stale_timeout_s: float = 0.05
-    """No valid sample for this long (after the first) -> STALE fault + disable."""
-    cmd_timeout_s: float = 1e-3
-    """MCU duty-command watchdog sent in ARM_MODE.cmd_timeout."""
-    heartbeat_period_s: float = 0.1
-    """HOST_HEARTBEAT and ARM_MODE repetition period."""
-    reconnect_initial_s: float = 0.05
-    reconnect_max_s: float = 2.0
-    reconnect_factor: float = 2.0
-    send_timeout_s: float = 0.05
-    fast_path_min: int = 4
-    """Bursts of at least this many sample frames use the vectorised numpy decoder."""
-    max_reasons: int = 50
-    """Examples of malformed-frame reasons kept for diagnostics."""
-    layout: str = "auto"
-    """Sample layout: "fd" (SAMPLE_FD each period), "classic" (4-frame layout every D
-    periods) or "auto" (classic when the bus factory says ``fd=False``, else fd)."""
-    decimation: int = 0
-    """PWM periods per sample, either layout (0: the DBC's default for the layout,
-    FdDecimation = 1 / ClassicDecimation = 8; a real 1/5 Mbit/s FD bus needs
-    FdDecimationRealBus = 4)."""
-    control_split: bool = False
-    """Split mode: the drive closes the current loop; HOST_REF instead of DUTY_CMD."""
-    param_ack_timeout_s: float = 0.2
-    """How long :meth:`CanBridge.set_drive_param` waits for the DRIVE_PARAM_ACK."""
+    stale_timeout_s: float = param(
+        0.05,
+        unit="s",
+        doc="no valid sample for this long (after the first): STALE fault, PWM disabled",
+        range=(1e-4, 60.0),
+    )
+    cmd_timeout_s: float = param(
+        1e-3,
+        unit="s",
+        doc="MCU duty-command watchdog sent in ARM_MODE (0: the MCU's default, 1 ms)",
+        range=(0.0, 6.5535),
+        live=False,
+    )
+    heartbeat_period_s: float = param(
+        0.1,
+        unit="s",
+        doc="HOST_HEARTBEAT and ARM_MODE repetition period",
+        range=(1e-3, 10.0),
+        live=False,
+    )
+    reconnect_initial_s: float = param(
+        0.05,
+        unit="s",
+        doc="first reconnect delay after the bus is lost",
+        range=(1e-3, 60.0),
+        live=False,
+    )
+    reconnect_max_s: float = param(
+        2.0,
+        unit="s",
+        doc="longest reconnect delay (exponential back-off)",
+        range=(1e-3, 3600.0),
+        live=False,
+    )
+    reconnect_factor: float = param(
+        2.0, unit="-", doc="back-off factor of the reconnect delay", range=(1.0, 10.0), live=False
+    )
+    send_timeout_s: float = param(
+        0.05, unit="s", doc="timeout of one bus send", range=(1e-4, 10.0), live=False
+    )
+    fast_path_min: int = param(
+        4,
+        unit="frames",
+        doc="bursts of at least this many sample frames use the vectorised numpy decoder",
+        range=(1, 1_000_000),
+        live=False,
+    )
+    max_reasons: int = param(
+        50,
+        unit="-",
+        doc="examples of malformed-frame reasons kept for diagnostics",
+        range=(0, 10_000),
+        live=False,
+    )
+    layout: str = param(
+        "auto",
+        unit="",
+        doc="sample layout: fd (SAMPLE_FD each period), classic (4-frame layout every D "
+        "periods) or auto (classic when the bus factory says fd=False, else fd)",
+        choices=("auto", "fd", "classic"),
+        live=False,
+    )
+    decimation: int = param(
+        0,
+        unit="periods",
+        doc="PWM periods per sample, either layout (0: the DBC's default, FD 1 = every "
+        "period, which only fits a virtual bus, classic 8; a real 1/5 Mbit/s FD bus needs "
+        ">= 4, see docs/can.md); sent in ARM_MODE, the drive must report it in STATUS; "
+        "observers and controller must then run at decimation * ts_s",
+        range=(0, 255),
+        live=False,
+    )
+    control_split: bool = param(
+        False,
+        unit="",
+        doc="split mode: the drive closes the current loop on the graph's current references "
+        "(/drive/current_ref -> HOST_REF) and its drive.* parameters",
+        live=False,
+    )
+    param_ack_timeout_s: float = param(
+        0.2,
+        unit="s",
+        doc="how long CanBridge.set_drive_param waits for the DRIVE_PARAM_ACK",
+        range=(1e-3, 10.0),
+        live=False,
+    )
 
 
 # python-can interfaces that take no bit-rate arguments (software buses)

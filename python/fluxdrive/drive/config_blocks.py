@@ -25,7 +25,7 @@ from fluxdrive.core import schema
 from fluxdrive.core.bench import SECTIONS, BenchConfig, parse_bench, per_phase
 from fluxdrive.core.machine import MachineCard, load_machine
 from fluxdrive.core.paths import ROOT
-from fluxdrive.drive.control.config import ControllerConfig
+from fluxdrive.drive.control.config import ControllerConfig, DriveParams
 from fluxdrive.drive.observers import ObserverConfig
 
 DOC_PAGE = ROOT / "docs" / "configuration.md"
@@ -74,6 +74,9 @@ BLOCKS: dict[str, Block] = {
         lambda kw: replace(ObserverConfig(), **kw).validate(),
         free=frozenset({"extra"}),  # a user variant's constructor keywords, its own
         free_text=frozenset({"variant"}),  # a built-in name, module:Class or an entry point
+    ),
+    "drive": Block(
+        DriveParams, lambda kw: schema.check_fields(replace(DriveParams(), **kw), "drive")
     ),
     "bench": Block(BenchConfig, _bench_check(None), free=frozenset(SECTIONS), on_card=True),
     **{

@@ -37,6 +37,7 @@ import math
 import sys
 import threading
 import time
+from dataclasses import replace
 
 import numpy as np
 import rclpy
@@ -47,9 +48,11 @@ from fluxdrive.can.bridge import (
     bus_factory_from_params,
 )
 from fluxdrive.can.protocol import link_budget, smallest_fitting_decimation
+from fluxdrive.core import schema
 from fluxdrive.drive.control import (
     DRIVE_PARAM_RANGES,
     ControllerConfig,
+    DriveParams,
     drive_param_values,
 )
 from fluxdrive.drive.plant import FR_SEQ
@@ -62,42 +65,23 @@ from flux_drive_msgs.srv import Arm, ResetFault
 from fluxdrive_ros import access, graph, qos, topics
 
 _SOFTWARE_BUSES = ("virtual", "udp_multicast")  # no wire time: any layout and D "fit"
-# DRIVE_PARAM name -> (description, unit) of its ROS parameter drive.<name lower case>
-DRIVE_DOCS = {
-    "CUR_KP": ("current PI proportional gain", "V/A"),
-    "CUR_KI": ("current PI integral gain", "V/(A s)"),
-    "L_HAT": ("inductance of the drive's decoupling model", "H"),
-    "LAMBDA_HAT": ("magnet flux of the drive's back-EMF feed-forward", "V s"),
-    "DECOUPLE": ("1: cross-coupling and back-EMF feed-forward on, 0: off", ""),
-    "VOLTAGE_ADVANCE": ("inverse-Park angle advance", "periods"),
-    "DEADTIME_COMP_S": ("deadtime feed-forward (0: off)", "s"),
-    "CUR_LIMIT_A": ("limit of the current references the drive follows", "A"),
-    "REF_TIMEOUT_S": ("no HOST_REF this long with PWM on: PWM off, fault 'watchdog'", "s"),
-    "OVERCURRENT_A": ("instantaneous over-current trip", "A"),
-    "I2T_LIMIT_PU2S": ("I2t trip: integral of ((i/I_rated)^2 - 1) dt", "pu^2 s"),
-    "RATED_CURRENT_A": ("rated current of the I2t protection (only with PWM off)", "A"),
-    "VDC_MIN_V": ("DC-bus under-voltage trip", "V"),
-    "VDC_MAX_V": ("DC-bus over-voltage trip", "V"),
-    "HEARTBEAT_TIMEOUT_S": ("host heartbeat timeout (0: off)", "s"),
-    "POLE_PAIRS": ("pole pairs (only with PWM off)", ""),
-}
+# the DRIVE_PARAM names, in the order DriveParams declares them
+DRIVE_PARAMS = tuple(DRIVE_PARAM_RANGES)
 
 
 def drive_param_name(prm: str) -> str:
-    """The ROS parameter of a DRIVE_PARAM: drive.<name in lower case>."""
+    """The ROS parameter of a DRIVE_PARAM: drive.<name in lower case> (a DriveParams field)."""
     return "drive." + prm.lower()
 
 
 def drive_param_table(values: dict[str, float]) -> list[P]:
-    """Split mode: one live parameter per drive-side parameter (default `values`)."""
-    out = []
-    for prm, (desc, unit) in DRIVE_DOCS.items():
-        lo, hi = DRIVE_PARAM_RANGES[prm]
-        v = float(values.get(prm, 0.0))
-        out.append(
-            P(drive_param_name(prm), v, f"drive: {desc} (DRIVE_PARAM {prm}; live)", unit, lo, hi)
-        )
-    return out
+    """Split mode: one live parameter per drive-side parameter (DriveParams; default
+    `values`, the scenario's controller design)."""
+    specs = schema.specs(DriveParams)
+    return [
+        replace(P.of(specs[prm.lower()], float(values.get(prm, 0.0))), name=drive_param_name(prm))
+        for prm in DRIVE_PARAMS
+    ]
 
 
 def drive_defaults(scenario: str) -> dict[str, float]:
@@ -116,8 +100,19 @@ def drive_defaults(scenario: str) -> dict[str, float]:
     return vals
 
 
-def param_table() -> list[P]:
-    """The bridge's declared parameters (description, unit, range; live ones marked)."""
+# BridgeConfig fields the node declares under their own names
+SUPERVISOR_FIELDS = (
+    "decimation",
+    "stale_timeout_s",
+    "cmd_timeout_s",
+    "reconnect_initial_s",
+    "reconnect_max_s",
+    "control_split",
+)
+
+
+def bus_params() -> list[P]:
+    """The CAN bus: python-can interface, channel, bit rates, FD or classic."""
     return [
         P(
             "interface",
@@ -155,53 +150,18 @@ def param_table() -> list[P]:
             "use CAN FD frames (and the SAMPLE_FD layout; false: the classic 4-frame layout)",
             read_only=True,
         ),
-        P(
-            "decimation",
-            0,
-            "PWM periods per sample, either layout (0: the DBC's default, FD 1 "
-            "= every period, which only fits a virtual bus, classic 8; a real 1/5 Mbit/s FD "
-            "bus needs >= 4, see docs/can.md); sent in ARM_MODE, the drive must report it in "
-            "STATUS; observers and controller must then run at decimation * ts_s",
-            "periods",
-            0,
-            255,
-            read_only=True,
-        ),
-        P(
-            "stale_timeout_s",
-            0.05,
-            "no valid sample for this long (after the first): STALE fault, PWM disabled (live)",
-            "s",
-            1e-4,
-            60.0,
-        ),
-        P(
-            "cmd_timeout_s",
-            0.001,
-            "MCU duty-command watchdog sent in ARM_MODE (0: the MCU's default, 1 ms)",
-            "s",
-            0.0,
-            6.5535,
-            read_only=True,
-        ),
-        P(
-            "reconnect_initial_s",
-            0.05,
-            "first reconnect delay after the bus is lost",
-            "s",
-            1e-3,
-            60.0,
-            read_only=True,
-        ),
-        P(
-            "reconnect_max_s",
-            2.0,
-            "longest reconnect delay (exponential back-off)",
-            "s",
-            1e-3,
-            3600.0,
-            read_only=True,
-        ),
+    ]
+
+
+def supervisor_params() -> list[P]:
+    """The supervisor's settings, from the BridgeConfig schema (fluxdrive.can.bridge)."""
+    specs, defaults = schema.specs(BridgeConfig), BridgeConfig()
+    return [P.of(specs[name], getattr(defaults, name)) for name in SUPERVISOR_FIELDS]
+
+
+def node_params() -> list[P]:
+    """The node's own: PWM period, frame_id, arming, diagnostics, scenario, access, graph."""
+    return [
         P(
             "ts_s",
             1e-4,
@@ -238,13 +198,6 @@ def param_table() -> list[P]:
             read_only=True,
         ),
         P(
-            "control_split",
-            False,
-            "split mode: the drive closes the current loop on the graph's current references "
-            "(/drive/current_ref -> HOST_REF) and its drive.* parameters",
-            read_only=True,
-        ),
-        P(
             "scenario",
             "",
             "scenario YAML (path or name) whose controller design gives the drive.* defaults "
@@ -254,6 +207,11 @@ def param_table() -> list[P]:
         access.param(),
         graph.param(),
     ]
+
+
+def param_table() -> list[P]:
+    """The bridge's declared parameters (description, unit, range; live ones marked)."""
+    return bus_params() + supervisor_params() + node_params()
 
 
 class BenchBridgeNode(Node):
@@ -266,17 +224,11 @@ class BenchBridgeNode(Node):
         self.p_data_bitrate = pv["data_bitrate"]
         self.p_fd = pv["fd"]
         self.p_decimation = int(pv["decimation"])
-        stale = pv["stale_timeout_s"]
-        cmd_to = pv["cmd_timeout_s"]
-        rc0 = pv["reconnect_initial_s"]
-        rc1 = pv["reconnect_max_s"]
         self.ts = pv["ts_s"]
         self.frame_id = pv["frame_id"]
-        arm_at_start = pv["armed"]
         self.split = bool(pv["control_split"])
         self.drive_specs = drive_param_table(drive_defaults(pv["scenario"])) if self.split else []
         self.drive_values = declare(self, self.drive_specs) if self.split else {}
-        diag_period = pv["diagnostics_period_s"]
         self.allowed = list(pv["allowed_commanders"])
         # graph identity (fluxdrive_ros.graph): its frames carry the graph's id, duties of
         # another graph are dropped and counted
@@ -286,23 +238,31 @@ class BenchBridgeNode(Node):
         )
         self.duty_out_of_range = 0
         self.service_refused = 0
-        factory = bus_factory_from_params(
-            self.p_interface, self.p_channel, self.p_bitrate, self.p_fd, self.p_data_bitrate
-        )
-        self.bridge = CanBridge(
-            factory,
-            BridgeConfig(
-                stale_timeout_s=stale,
-                cmd_timeout_s=cmd_to,
-                reconnect_initial_s=rc0,
-                reconnect_max_s=rc1,
-                decimation=self.p_decimation,
-                control_split=self.split,
-            ),
-        )
+        self.bridge = self._make_bridge(pv)
         self._report_link()
         self._mismatch_logged = ""
         self._drive_fault_logged = ""
+        self._wire(pv["diagnostics_period_s"])
+        on_set(self, param_table() + self.drive_specs, self._apply_params)
+        self.bridge.connect()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._can_loop, name="can-rx", daemon=True)
+        self._thread.start()
+        if pv["armed"]:
+            self._arm_at_start(float(pv["arm_wait_s"]))
+
+    def _make_bridge(self, pv: dict) -> CanBridge:
+        """The engine's supervisor on the configured bus, with the declared settings."""
+        factory = bus_factory_from_params(
+            self.p_interface, self.p_channel, self.p_bitrate, self.p_fd, self.p_data_bitrate
+        )
+        return CanBridge(
+            factory,
+            BridgeConfig(**{name: pv[name] for name in SUPERVISOR_FIELDS}),
+        )
+
+    def _wire(self, diag_period: float) -> None:
+        """Frames out, duties or references in, the arm and reset services, diagnostics."""
         # the simulated plant's QoS: every reader of /drive/frame matches (volatile ones and
         # the transient-local ones of lockstep graphs); duties read like the plant reads them
         self.pub = self.create_publisher(PhaseFrame, topics.FRAME, qos.SAMPLES)
@@ -327,18 +287,15 @@ class BenchBridgeNode(Node):
         self.create_service(Arm, "/drive/arm", self._on_arm)
         self.create_service(ResetFault, "/drive/reset_fault", self._on_reset)
         self.create_timer(diag_period, self._publish_diagnostics)
-        on_set(self, param_table() + self.drive_specs, self._apply_params)
-        self.bridge.connect()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._can_loop, name="can-rx", daemon=True)
-        self._thread.start()
-        if arm_at_start:
-            deadline = time.monotonic() + float(pv["arm_wait_s"])
+
+    def _arm_at_start(self, wait_s: float) -> None:
+        """Arm now; for a drive that comes up later, retry for `wait_s` (0: once)."""
+        deadline = time.monotonic() + wait_s
+        ok, why = self._arm()
+        while not ok and time.monotonic() < deadline:
+            time.sleep(0.2)
             ok, why = self._arm()
-            while not ok and time.monotonic() < deadline:
-                time.sleep(0.2)
-                ok, why = self._arm()
-            self.get_logger().info(f"arm at start: {ok} ({why})")
+        self.get_logger().info(f"arm at start: {ok} ({why})")
 
     def _report_link(self) -> None:
         """Log the layout and D; warn when they do not fit the configured bus."""
@@ -426,7 +383,7 @@ class BenchBridgeNode(Node):
     def _arm(self) -> tuple[bool, str]:
         """Arm; in split mode the drive first gets (and acknowledges) every drive.* value."""
         if self.split:
-            vals = {prm: self.drive_values[drive_param_name(prm)] for prm in DRIVE_DOCS}
+            vals = {prm: self.drive_values[drive_param_name(prm)] for prm in DRIVE_PARAMS}
             why = self._push_drive_params(vals)
             if why:
                 return False, f"drive parameters not taken: {why}"
@@ -459,7 +416,7 @@ class BenchBridgeNode(Node):
 
     def _apply_params(self, changes: dict) -> str | None:
         drive = {
-            p: changes[drive_param_name(p)] for p in DRIVE_DOCS if drive_param_name(p) in changes
+            p: changes[drive_param_name(p)] for p in DRIVE_PARAMS if drive_param_name(p) in changes
         }
         if drive:  # the drive must acknowledge, else the set is refused with its reason
             why = self._push_drive_params(drive)

@@ -22,6 +22,7 @@ from fluxdrive.drive.control.config import (
     VDC_MAX_PU,
     VDC_MIN_PU,
     ControllerConfig,
+    DriveParams,
     drive_param_values,
 )
 from fluxdrive.drive.control.kernel import (
@@ -301,6 +302,7 @@ __all__ = [
     "CONTROL_MODES",
     "DRIVE_PARAM_FIELDS",
     "DRIVE_PARAM_RANGES",
+    "DriveParams",
     "DRIVE_PARAMS_STOPPED",
     "drive_param_values",
     "trip_values",

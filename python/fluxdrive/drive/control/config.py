@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -21,6 +22,7 @@ from fluxdrive.core.schema import (
     check_fields,
     check_limits,
     param,
+    ranges,
     resolve,
     rule_texts,
 )
@@ -473,25 +475,77 @@ DRIVE_PARAM_FIELDS: dict[str, int] = {
 }
 
 
-# what a split-mode drive accepts per DRIVE_PARAM ([lo, hi]; else OUT_OF_RANGE); the ones in
-# DRIVE_PARAMS_STOPPED only while PWM is off (else NOT_WHILE_RUNNING)
+def _from_design(name: str) -> Rule:
+    """Unset: what the host sends, the default controller's design on the card."""
+    return Rule(
+        "the host controller's design on the card (ControllerConfig.to_params)",
+        lambda card, cfg: drive_param_values(ControllerConfig().to_params(card))[name],
+    )
+
+
+def _drive(doc: str, unit: str, rng: tuple[float, float], name: str) -> Any:
+    return param(None, unit=unit, doc=doc, range=rng, rule=_from_design(name))
+
+
+@dataclass
+class DriveParams:
+    """The drive-side parameters of split mode: DRIVE_PARAM over CAN (prm_id name = the field
+    in upper case, config/can/fluxdrive.dbc), what a split-mode drive accepts (else
+    OUT_OF_RANGE); the bench bridge's live parameters drive.<field>.  RATED_CURRENT_A and
+    POLE_PAIRS are taken only while PWM is off (DRIVE_PARAMS_STOPPED, else NOT_WHILE_RUNNING)."""
+
+    cur_kp: float | None = _drive("current PI proportional gain", "V/A", (0.0, 1e4), "CUR_KP")
+    cur_ki: float | None = _drive("current PI integral gain", "V/(A s)", (0.0, 1e8), "CUR_KI")
+    l_hat: float | None = _drive(
+        "inductance of the drive's decoupling model", "H", (1e-7, 10.0), "L_HAT"
+    )
+    lambda_hat: float | None = _drive(
+        "magnet flux of the drive's back-EMF feed-forward", "V s", (0.0, 10.0), "LAMBDA_HAT"
+    )
+    decouple: float | None = _drive(
+        "1: cross-coupling and back-EMF feed-forward on, 0: off", "-", (0.0, 1.0), "DECOUPLE"
+    )
+    voltage_advance: float | None = _drive(
+        "inverse-Park angle advance", "periods", (0.0, 3.0), "VOLTAGE_ADVANCE"
+    )
+    deadtime_comp_s: float | None = _drive(
+        "deadtime feed-forward (0: off)", "s", (0.0, 1e-4), "DEADTIME_COMP_S"
+    )
+    cur_limit_a: float | None = _drive(
+        "limit of the current references the drive follows", "A", (0.01, 1e3), "CUR_LIMIT_A"
+    )
+    ref_timeout_s: float | None = _drive(
+        "no HOST_REF this long with PWM on: PWM off, fault 'watchdog'",
+        "s",
+        (1e-4, 10.0),
+        "REF_TIMEOUT_S",
+    )
+    overcurrent_a: float | None = _drive(
+        "instantaneous over-current trip", "A", (0.01, 1e3), "OVERCURRENT_A"
+    )
+    i2t_limit_pu2s: float | None = _drive(
+        "I2t trip: integral of ((i/I_rated)^2 - 1) dt", "pu^2 s", (0.01, 1e4), "I2T_LIMIT_PU2S"
+    )
+    rated_current_a: float | None = _drive(
+        "rated current of the I2t protection (only with PWM off)",
+        "A",
+        (0.01, 1e3),
+        "RATED_CURRENT_A",
+    )
+    vdc_min_v: float | None = _drive("DC-bus under-voltage trip", "V", (0.0, 1e4), "VDC_MIN_V")
+    vdc_max_v: float | None = _drive("DC-bus over-voltage trip", "V", (1.0, 1e4), "VDC_MAX_V")
+    # the bridge's own (not from the controller's row)
+    heartbeat_timeout_s: float = param(
+        0.0, unit="s", doc="host heartbeat timeout (0: off)", range=(0.0, 60.0)
+    )
+    pole_pairs: float | None = _drive(
+        "pole pairs (only with PWM off)", "-", (1.0, 64.0), "POLE_PAIRS"
+    )
+
+
+# what a split-mode drive accepts per DRIVE_PARAM name ([lo, hi]; else OUT_OF_RANGE)
 DRIVE_PARAM_RANGES: dict[str, tuple[float, float]] = {
-    "CUR_KP": (0.0, 1e4),
-    "CUR_KI": (0.0, 1e8),
-    "L_HAT": (1e-7, 10.0),
-    "LAMBDA_HAT": (0.0, 10.0),
-    "DECOUPLE": (0.0, 1.0),
-    "VOLTAGE_ADVANCE": (0.0, 3.0),
-    "DEADTIME_COMP_S": (0.0, 1e-4),
-    "CUR_LIMIT_A": (0.01, 1e3),
-    "REF_TIMEOUT_S": (1e-4, 10.0),
-    "OVERCURRENT_A": (0.01, 1e3),
-    "I2T_LIMIT_PU2S": (0.01, 1e4),
-    "RATED_CURRENT_A": (0.01, 1e3),
-    "VDC_MIN_V": (0.0, 1e4),
-    "VDC_MAX_V": (1.0, 1e4),
-    "HEARTBEAT_TIMEOUT_S": (0.0, 60.0),
-    "POLE_PAIRS": (1.0, 64.0),
+    name.upper(): rng for name, rng in ranges(DriveParams).items()
 }
 DRIVE_PARAMS_STOPPED = ("POLE_PAIRS", "RATED_CURRENT_A")
 
