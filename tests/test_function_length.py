@@ -36,7 +36,6 @@ KNOWN_LONG: set[str] = {
     "src/fluxdrive_bringup/fluxdrive_bringup/measure/soak.py::burst_replay",
     "src/fluxdrive_bringup/fluxdrive_bringup/record/recorder.py::RecorderNode.__init__",
     "src/fluxdrive_ros/fluxdrive_ros/runner.py::spin",
-    "src/fluxdrive_ros/fluxdrive_ros/security.py::make_keystore",
     "src/spm_plant_sim/spm_plant_sim/node.py::PlantNode.__init__",
     "src/spm_plant_sim/spm_plant_sim/node.py::param_table",
 }

@@ -132,93 +132,94 @@ def make_keystore(root: Path, enclaves: list[str], days: int = 3650) -> list[Pat
         (root / sub).mkdir(parents=True, exist_ok=True)
     ca_key, ca_cert = root / "private" / "ca.key.pem", root / "public" / "ca.cert.pem"
     if not ca_key.exists():
-        _openssl(
-            "ecparam", "-name", "prime256v1", "-genkey", "-noout", "-out", str(ca_key), cwd=root
-        )
-        _openssl(
-            "req",
-            "-new",
-            "-x509",
-            "-key",
-            str(ca_key),
-            "-out",
-            str(ca_cert),
-            "-days",
-            str(days),
-            "-subj",
-            "/CN=fluxdrive_keystore_ca",
-            "-addext",
-            "basicConstraints=critical,CA:true",
-            "-addext",
-            "keyUsage=keyCertSign,cRLSign",
-            cwd=root,
-        )
-        for name in ("identity_ca.cert.pem", "permissions_ca.cert.pem"):
-            shutil.copy(ca_cert, root / "public" / name)
-        for name in ("identity_ca.key.pem", "permissions_ca.key.pem"):
-            shutil.copy(ca_key, root / "private" / name)
+        _make_ca(root, ca_key, ca_cert, days)
     gov = root / "enclaves" / "governance.xml"
     gov.write_text(_GOVERNANCE)
+    _sign(str(gov), str(gov.with_suffix(".p7s")), ca_key, ca_cert, cwd=root)
+    return [
+        _make_enclave(root, e, ca_key, ca_cert, gov.with_suffix(".p7s"), days) for e in enclaves
+    ]
+
+
+def _make_ca(root: Path, ca_key: Path, ca_cert: Path, days: int) -> None:
+    """One self-signed CA, used as both the identity and the permissions CA."""
+    _openssl("ecparam", "-name", "prime256v1", "-genkey", "-noout", "-out", str(ca_key), cwd=root)
+    _openssl(
+        "req",
+        "-new",
+        "-x509",
+        "-key",
+        str(ca_key),
+        "-out",
+        str(ca_cert),
+        "-days",
+        str(days),
+        "-subj",
+        "/CN=fluxdrive_keystore_ca",
+        "-addext",
+        "basicConstraints=critical,CA:true",
+        "-addext",
+        "keyUsage=keyCertSign,cRLSign",
+        cwd=root,
+    )
+    for name in ("identity_ca.cert.pem", "permissions_ca.cert.pem"):
+        shutil.copy(ca_cert, root / "public" / name)
+    for name in ("identity_ca.key.pem", "permissions_ca.key.pem"):
+        shutil.copy(ca_key, root / "private" / name)
+
+
+def _sign(doc: str, out: str, ca_key: Path, ca_cert: Path, cwd: Path) -> None:
+    """An S/MIME signature of a governance or permissions document by the CA."""
     _openssl(
         "smime",
         "-sign",
         "-in",
-        str(gov),
+        doc,
         "-text",
         "-out",
-        str(gov.with_suffix(".p7s")),
+        out,
         "-signer",
         str(ca_cert),
         "-inkey",
         str(ca_key),
-        cwd=root,
+        cwd=cwd,
     )
-    out = []
-    for enclave in enclaves:
-        if not enclave.startswith("/") or "//" in enclave:
-            raise ValueError(f"enclave {enclave!r}: an absolute name like /fluxdrive/drive")
-        d = root / "enclaves" / enclave.strip("/")
-        d.mkdir(parents=True, exist_ok=True)
-        cn = enclave.strip("/").replace("/", ".") or "root"
-        _openssl("ecparam", "-name", "prime256v1", "-genkey", "-noout", "-out", "key.pem", cwd=d)
-        _openssl("req", "-new", "-key", "key.pem", "-out", "req.csr", "-subj", f"/CN={cn}", cwd=d)
-        _openssl(
-            "x509",
-            "-req",
-            "-in",
-            "req.csr",
-            "-CA",
-            str(ca_cert),
-            "-CAkey",
-            str(ca_key),
-            "-CAcreateserial",
-            "-out",
-            "cert.pem",
-            "-days",
-            str(days),
-            cwd=d,
-        )
-        (d / "req.csr").unlink()
-        (d / "permissions.xml").write_text(_PERMISSIONS.format(enclave=enclave, cn=cn))
-        _openssl(
-            "smime",
-            "-sign",
-            "-in",
-            "permissions.xml",
-            "-text",
-            "-out",
-            "permissions.p7s",
-            "-signer",
-            str(ca_cert),
-            "-inkey",
-            str(ca_key),
-            cwd=d,
-        )
-        shutil.copy(gov.with_suffix(".p7s"), d / "governance.p7s")
-        shutil.copy(ca_cert, d / "identity_ca.cert.pem")
-        shutil.copy(ca_cert, d / "permissions_ca.cert.pem")
-        out.append(d)
-    return out
+
+
+def _make_enclave(
+    root: Path, enclave: str, ca_key: Path, ca_cert: Path, gov_p7s: Path, days: int
+) -> Path:
+    """An enclave's key, certificate (signed by the CA), permissions and the CA files."""
+    if not enclave.startswith("/") or "//" in enclave:
+        raise ValueError(f"enclave {enclave!r}: an absolute name like /fluxdrive/drive")
+    d = root / "enclaves" / enclave.strip("/")
+    d.mkdir(parents=True, exist_ok=True)
+    cn = enclave.strip("/").replace("/", ".") or "root"
+    _openssl("ecparam", "-name", "prime256v1", "-genkey", "-noout", "-out", "key.pem", cwd=d)
+    _openssl("req", "-new", "-key", "key.pem", "-out", "req.csr", "-subj", f"/CN={cn}", cwd=d)
+    _openssl(
+        "x509",
+        "-req",
+        "-in",
+        "req.csr",
+        "-CA",
+        str(ca_cert),
+        "-CAkey",
+        str(ca_key),
+        "-CAcreateserial",
+        "-out",
+        "cert.pem",
+        "-days",
+        str(days),
+        cwd=d,
+    )
+    (d / "req.csr").unlink()
+    (d / "permissions.xml").write_text(_PERMISSIONS.format(enclave=enclave, cn=cn))
+    _sign("permissions.xml", "permissions.p7s", ca_key, ca_cert, cwd=d)
+    shutil.copy(gov_p7s, d / "governance.p7s")
+    shutil.copy(ca_cert, d / "identity_ca.cert.pem")
+    shutil.copy(ca_cert, d / "permissions_ca.cert.pem")
+    return d
 
 
 def main(argv: list[str] | None = None) -> int:
