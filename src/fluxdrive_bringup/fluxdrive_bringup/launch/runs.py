@@ -246,6 +246,38 @@ def interrupted_bag_note(bag: Path) -> str:
 
 
 def main_run(argv: list[str], default_scenario: str | None = None) -> int:
+    args = _run_parser(default_scenario).parse_args(argv)
+    sp = scenario_path(args.scenario if default_scenario is None else default_scenario)
+    sc = load_scenario(sp)
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    out = args.out or REPO_ROOT / "runs" / f"{sc.name}-{stamp}"
+    bag = args.bag or REPO_ROOT / "bags" / f"{sc.name}-{stamp}"
+    dom, refused = _run_preflight(args, bag)
+    if refused:
+        print(f"[run] {refused}", file=sys.stderr)
+        return 2
+    r = run_graph(
+        sp,
+        out=out,
+        bag=bag,
+        layout=args.layout,
+        duration_s=args.duration,
+        domain_id=dom,
+        quiet=args.quiet,
+        timeout=args.timeout,
+        scope=args.scope,
+        scope_port=args.scope_port,
+        watch=_print_scope_url if args.scope and args.quiet else None,
+        namespace=check_namespace(args.namespace, "--namespace"),
+        shared_domain=args.shared_domain,
+    )
+    failed = _run_outcome(r, out, bag)
+    if failed is not None:
+        return failed
+    return _run_report(args, r, out, bag)
+
+
+def _run_parser(default_scenario: str | None) -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="fluxdrive run" if default_scenario is None else "fluxdrive demo",
         description=__doc__.split("\n\n")[0],
@@ -291,45 +323,29 @@ def main_run(argv: list[str], default_scenario: str | None = None) -> int:
         "live on the ROS domain (by default refused: graphs on one domain hear "
         "each other)",
     )
-    args = ap.parse_args(argv)
-    sp = scenario_path(args.scenario if default_scenario is None else default_scenario)
-    sc = load_scenario(sp)
-    stamp = time.strftime("%Y%m%d-%H%M%S")
-    out = args.out or REPO_ROOT / "runs" / f"{sc.name}-{stamp}"
-    bag = args.bag or REPO_ROOT / "bags" / f"{sc.name}-{stamp}"
+    return ap
+
+
+def _run_preflight(args, bag: Path) -> tuple[int | None, str]:
+    """Before anything starts: (the ROS domain, "") or (None, why the run is refused)."""
     if Path(bag).exists():
-        # before anything starts: a failed run must never be mistaken for this old bag
-        print(
-            f"[run] bag directory {bag} exists already; choose a new one (--bag)", file=sys.stderr
-        )
-        return 2
+        # a failed run must never be mistaken for this old bag
+        return None, f"bag directory {bag} exists already; choose a new one (--bag)"
     from fluxdrive_ros.security import precheck
 
     why = precheck()
     if why:
-        print(f"[run] {why}", file=sys.stderr)
-        return 2
+        return None, why
     dom = args.domain_id
     if not args.shared_domain:
         dom, why = choose_domain(args.domain_id, "run")
         if dom is None:
-            print(f"[run] {why}", file=sys.stderr)
-            return 2
-    r = run_graph(
-        sp,
-        out=out,
-        bag=bag,
-        layout=args.layout,
-        duration_s=args.duration,
-        domain_id=dom,
-        quiet=args.quiet,
-        timeout=args.timeout,
-        scope=args.scope,
-        scope_port=args.scope_port,
-        watch=_print_scope_url if args.scope and args.quiet else None,
-        namespace=check_namespace(args.namespace, "--namespace"),
-        shared_domain=args.shared_domain,
-    )
+            return None, why
+    return dom, ""
+
+
+def _run_outcome(r: dict, out: Path, bag: Path) -> int | None:
+    """The exit code of an interrupted or failed run (said why), None when it completed."""
     if r["interrupted"]:
         print(f"[run] interrupted: {interrupted_bag_note(bag)}", file=sys.stderr)
         return 128 + int(r.get("stop_signal") or 2)  # 130 (SIGINT) / 143 (SIGTERM)
@@ -344,6 +360,11 @@ def main_run(argv: list[str], default_scenario: str | None = None) -> int:
             f"real-time factor {r['lockstep_rtf']:.3f} (whole command {r['wall_s']:.1f} s "
             f"incl. start-up and finalising)"
         )
+    return None
+
+
+def _run_report(args, r: dict, out: Path, bag: Path) -> int:
+    """The bag read back, the report and graph_run.json; 1 when unstable or incomplete."""
     from fluxdrive.analysis.report import report
 
     t0 = time.perf_counter()
