@@ -81,6 +81,23 @@ def pacing_record(log_dir: Path) -> dict | None:
 
 
 def main(argv: list[str]) -> int:
+    args = _tune_parser().parse_args(argv)
+    try:
+        sc, sp, out, dom = _prepare(args)
+    except ConfigError as exc:
+        print(f"[tune] {exc}", file=sys.stderr)
+        return 2
+    extra: dict[str, dict[str, object]] = {
+        n: {"exit_on_done": False} for n in [*sc.observers, "controller"]
+    }
+    extra["plant"] = {"mode": "paced", "rate_factor": args.rate, "watchdog_s": args.watchdog_s}
+    g = graph_for_scenario(sp, sc, None, args.layout, 0.0, dom, extra=extra)
+    if args.scope:
+        add_scope(g, port=args.scope_port, observers=list(sc.observers))
+    return _hold(args, g, sc, out, dom)
+
+
+def _tune_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="fluxdrive tune", description=__doc__.split("\n\n")[0].replace("\n", " ")
     )
@@ -108,43 +125,38 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--quiet", action="store_true", help="hide the nodes' log lines")
     ap.add_argument("--scope", action="store_true", help="start the live scope (prints its URL)")
     ap.add_argument("--scope-port", type=int, default=8765, help="the scope's TCP port")
-    args = ap.parse_args(argv)
+    return ap
+
+
+def _prepare(args):
+    """(scenario, its file, the output folder, ROS domain) of the session: the chosen
+    scenario with the hold point's overrides (saved to the output folder when there are
+    any). Raises ConfigError naming why the session is refused."""
     if not (1e-3 <= args.rate <= 10.0):
-        print(f"[tune] --rate {args.rate:g}: must be in [0.001, 10]", file=sys.stderr)
-        return 2
+        raise ConfigError(f"--rate {args.rate:g}: must be in [0.001, 10]")
     if not (1e-3 <= args.watchdog_s <= 60.0):
-        print(f"[tune] --watchdog-s {args.watchdog_s:g}: must be in [0.001, 60]", file=sys.stderr)
-        return 2
-    try:
-        base = scenario_path(args.scenario)
-        over, why = hold_overrides(load_scenario(base), args.speed_rpm, args.load_pu)
-        if why:
-            print(f"[tune] {why}", file=sys.stderr)
-            return 2
-        sc = load_scenario(base, overrides=over)
-        out = args.out or REPO_ROOT / "runs" / f"tune-{time.strftime('%Y%m%d-%H%M%S')}"
-        out.mkdir(parents=True, exist_ok=True)
-        sp = save_scenario(sc, out / "tune_scenario.yaml") if over else base
-    except ConfigError as exc:
-        print(f"[tune] {exc}", file=sys.stderr)
-        return 2
+        raise ConfigError(f"--watchdog-s {args.watchdog_s:g}: must be in [0.001, 60]")
+    base = scenario_path(args.scenario)
+    over, why = hold_overrides(load_scenario(base), args.speed_rpm, args.load_pu)
+    if why:
+        raise ConfigError(why)
+    sc = load_scenario(base, overrides=over)
+    out = args.out or REPO_ROOT / "runs" / f"tune-{time.strftime('%Y%m%d-%H%M%S')}"
+    out.mkdir(parents=True, exist_ok=True)
+    sp = save_scenario(sc, out / "tune_scenario.yaml") if over else base
     from fluxdrive_ros.security import precheck
 
     refused = precheck()
     if refused:
-        print(f"[tune] {refused}", file=sys.stderr)
-        return 2
+        raise ConfigError(refused)
     dom, clash = choose_domain(args.domain_id, "tune")
     if dom is None:
-        print(f"[tune] {clash}", file=sys.stderr)
-        return 2
-    extra: dict[str, dict[str, object]] = {
-        n: {"exit_on_done": False} for n in [*sc.observers, "controller"]
-    }
-    extra["plant"] = {"mode": "paced", "rate_factor": args.rate, "watchdog_s": args.watchdog_s}
-    g = graph_for_scenario(sp, sc, None, args.layout, 0.0, dom, extra=extra)
-    if args.scope:
-        add_scope(g, port=args.scope_port, observers=list(sc.observers))
+        raise ConfigError(clash)
+    return sc, sp, out, dom
+
+
+def _hold(args, g, sc, out: Path, dom: int) -> int:
+    """Run the held graph until Ctrl-C (exit 0) and print its pacing record (JSON)."""
     speed = sc.speed_profile_rpm[-1, 1]
     load = sc.load_profile_pu[-1, 1]
     print(
