@@ -260,11 +260,6 @@ def lockstep_soak(
 def burst_replay(bag: Path, loops: int, sample_s: float, max_growth_mb: float) -> dict:
     import rclpy
     from fluxdrive.io.bagio import topic_counts
-    from fluxdrive.io.cdr import Decoder
-    from rclpy.experimental import EventsExecutor
-    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-
-    from flux_drive_msgs.msg import PhaseFrame
 
     n_bag = topic_counts(bag).get(FRAME, 0)
     if n_bag == 0:
@@ -273,6 +268,42 @@ def burst_replay(bag: Path, loops: int, sample_s: float, max_growth_mb: float) -
     dom = pick_domain_id()
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=dom)
+    node, ex, state = _burst_sink(ctx, n_bag)
+    _say(f"burst: {n_bag} frames x {loops} passes, unpaced, into a KEEP_ALL reliable reader")
+    pub = _burst_publisher(bag, total, dom)
+    sink_rss = RssSampler(sample_s, pids=lambda: [os.getpid()])
+    pub_rss = RssSampler(sample_s, pids=lambda: [pub.pid] if pub.poll() is None else [])
+    sink_rss.start()
+    pub_rss.start()
+    try:
+        wall = _receive(ex, pub, state, total)
+        err = pub.communicate(timeout=60)[1]
+    finally:
+        sink_rss.stop_evt.set()
+        pub_rss.stop_evt.set()
+        if pub.poll() is None:
+            pub.kill()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+    if pub.returncode != 0:
+        tail = (err or "").strip().splitlines()[-1:]
+        raise RuntimeError(f"burst publisher failed (exit {pub.returncode}): {tail}")
+    # the first half fills the middleware's pools (the writer history of a KEEP_ALL burst)
+    _, _, sg = sink_rss.growth_mb(0.5)
+    _, _, pg = pub_rss.growth_mb(0.5)
+    return _burst_result(total, state, wall, sg, pg, max_growth_mb)
+
+
+def _burst_sink(ctx, n_bag: int):
+    """A node counting the frames it receives and the ones out of order (within a pass the
+    seqs are consecutive; each pass starts again): (node, executor, counts)."""
+    import rclpy
+    from fluxdrive.io.cdr import Decoder
+    from rclpy.experimental import EventsExecutor
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    from flux_drive_msgs.msg import PhaseFrame
+
     node = rclpy.create_node("soak_burst_sink", context=ctx)
     dec = Decoder("flux_drive_msgs/msg/PhaseFrame")
     state = {"got": 0, "prev": -1, "order_errors": 0}
@@ -280,7 +311,6 @@ def burst_replay(bag: Path, loops: int, sample_s: float, max_growth_mb: float) -
     def on_frame(data: bytes) -> None:
         c = dec.codec_for(data)
         seq = int(c.unpack(data)[c.index("seq")])
-        # within a pass the sequence numbers are consecutive; each pass starts again
         if state["got"] % n_bag != 0 and seq != state["prev"] + 1:
             state["order_errors"] += 1
         state["prev"] = seq
@@ -296,6 +326,11 @@ def burst_replay(bag: Path, loops: int, sample_s: float, max_growth_mb: float) -
     )
     ex = EventsExecutor(context=ctx)
     ex.add_node(node)
+    return node, ex, state
+
+
+def _burst_publisher(bag: Path, total: int, dom: int) -> subprocess.Popen:
+    """`replay --live` of the bag, looped to `total` frames, as fast as it goes."""
     env = dict(os.environ, ROS_DOMAIN_ID=str(dom))
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     cmd = [
@@ -313,8 +348,7 @@ def burst_replay(bag: Path, loops: int, sample_s: float, max_growth_mb: float) -
         "--wait-s",
         "60",
     ]
-    _say(f"burst: {n_bag} frames x {loops} passes, unpaced, into a KEEP_ALL reliable reader")
-    pub = subprocess.Popen(
+    return subprocess.Popen(
         cmd,
         env=env,
         cwd=str(REPO_ROOT),
@@ -322,44 +356,34 @@ def burst_replay(bag: Path, loops: int, sample_s: float, max_growth_mb: float) -
         stderr=subprocess.PIPE,
         text=True,
     )
-    sink_rss = RssSampler(sample_s, pids=lambda: [os.getpid()])
-    pub_rss = RssSampler(sample_s, pids=lambda: [pub.pid] if pub.poll() is None else [])
-    sink_rss.start()
-    pub_rss.start()
+
+
+def _receive(ex, pub: subprocess.Popen, state: dict, total: int) -> float:
+    """Spin until every frame came (or the publisher ended and what was in flight did);
+    the wall time from the first frame to the last [s]."""
     t0 = time.monotonic()
     t_first = None
     last_say = t0
-    try:
-        deadline = t0 + 600.0
-        while time.monotonic() < deadline:
-            ex.spin_once(timeout_sec=0.05)
-            now = time.monotonic()
-            if t_first is None and state["got"]:
-                t_first = now
-            if state["got"] >= total:
-                break
-            if pub.poll() is not None and state["got"] < total:
-                deadline = min(deadline, now + 10.0)  # what is in flight, then give up
-            if now - last_say > 5.0:
-                last_say = now
-                _say(f"burst: {state['got']}/{total} frames received")
-        t_last = time.monotonic()
-        err = pub.communicate(timeout=60)[1]
-    finally:
-        sink_rss.stop_evt.set()
-        pub_rss.stop_evt.set()
-        if pub.poll() is None:
-            pub.kill()
-        node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
-    if pub.returncode != 0:
-        tail = (err or "").strip().splitlines()[-1:]
-        raise RuntimeError(f"burst publisher failed (exit {pub.returncode}): {tail}")
-    wall = t_last - (t_first or t0)
+    deadline = t0 + 600.0
+    while time.monotonic() < deadline:
+        ex.spin_once(timeout_sec=0.05)
+        now = time.monotonic()
+        if t_first is None and state["got"]:
+            t_first = now
+        if state["got"] >= total:
+            break
+        if pub.poll() is not None and state["got"] < total:
+            deadline = min(deadline, now + 10.0)  # what is in flight, then give up
+        if now - last_say > 5.0:
+            last_say = now
+            _say(f"burst: {state['got']}/{total} frames received")
+    return time.monotonic() - (t_first or t0)
+
+
+def _burst_result(
+    total: int, state: dict, wall: float, sg: float, pg: float, max_growth_mb: float
+) -> dict:
     got = state["got"]
-    # the first half fills the middleware's pools (the writer history of a KEEP_ALL burst)
-    _, _, sg = sink_rss.growth_mb(0.5)
-    _, _, pg = pub_rss.growth_mb(0.5)
     res = {
         "burst_frames_sent": total,
         "burst_frames_received": got,
