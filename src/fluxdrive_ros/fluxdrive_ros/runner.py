@@ -153,9 +153,6 @@ def spin(nodes: list[FluxNode], executor=None, poll_s: float = 0.5) -> int:
     for n in nodes:
         n._finish_hook = check
         ex.add_node(n)
-    from . import intra
-
-    bus = intra.bus()
     failed: list[BaseException] = []
 
     def request_stop(*_a) -> None:
@@ -163,17 +160,43 @@ def spin(nodes: list[FluxNode], executor=None, poll_s: float = 0.5) -> int:
         if not all_done.done():
             all_done.set_result(False)
 
-    if bus is not None:
+    _start_bus(ex, all_done, failed, request_stop)
+    _stop_on_signals(request_stop)
+    check()
+    code = _spin_until_done(ex, all_done, poll_s)
+    if failed:
+        code = 1
+    code = _close_nodes(nodes, code)
+    flush_publishers(nodes, STOP_ACK_TIMEOUT_S)
+    if os.environ.get("FLUXDRIVE_GRAPH_KEY"):  # started by the launcher: it checks the bag
+        for n in nodes:
+            for pub in getattr(n, "raw_publishers", []):
+                print(f"@published {pub.topic} {pub.n_published}", flush=True)
+    _shutdown(ex, nodes)
+    return code
 
-        def on_error(exc: BaseException) -> None:
-            failed.append(exc)
-            if not all_done.done():
-                all_done.set_result(False)
 
-        bus.on_error = on_error
-        bus.on_interrupt = request_stop
-        bus.start(ex)
-    # Ctrl-C / SIGTERM: stop between callbacks, never a KeyboardInterrupt inside one
+def _start_bus(ex, all_done, failed: list[BaseException], request_stop) -> None:
+    """The intra-process bus (when nodes share it): an error in a delivery ends the spin,
+    failed; an interrupt it sees stops it."""
+    from . import intra
+
+    bus = intra.bus()
+    if bus is None:
+        return
+
+    def on_error(exc: BaseException) -> None:
+        failed.append(exc)
+        if not all_done.done():
+            all_done.set_result(False)
+
+    bus.on_error = on_error
+    bus.on_interrupt = request_stop
+    bus.start(ex)
+
+
+def _stop_on_signals(request_stop) -> None:
+    """Ctrl-C / SIGTERM: stop between callbacks, never a KeyboardInterrupt inside one."""
     import signal
     import threading
 
@@ -182,8 +205,10 @@ def spin(nodes: list[FluxNode], executor=None, poll_s: float = 0.5) -> int:
             signal.signal(sig, request_stop)
     if _EARLY_STOP:  # a signal arrived while the nodes were being built
         request_stop()
-    check()
-    code = 0
+
+
+def _spin_until_done(ex, all_done, poll_s: float) -> int:
+    """0, or 1 when a callback raised (reported)."""
     try:
         while rclpy.ok() and not all_done.done():
             ex.spin_until_future_complete(all_done, timeout_sec=poll_s)
@@ -191,9 +216,12 @@ def spin(nodes: list[FluxNode], executor=None, poll_s: float = 0.5) -> int:
         pass
     except Exception:  # noqa: BLE001 - a callback raised: report, exit non-zero
         traceback.print_exc()
-        code = 1
-    if failed:
-        code = 1
+        return 1
+    return 0
+
+
+def _close_nodes(nodes: list[FluxNode], code: int) -> int:
+    """Close every node (a failing close makes the code 1); the first non-zero code wins."""
     # nodes that record close last: what the others publish as they close (the plant's
     # final PWM-off frame) reaches them first
     for n in sorted(nodes, key=lambda n: bool(getattr(n, "closes_last", False))):
@@ -206,11 +234,10 @@ def spin(nodes: list[FluxNode], executor=None, poll_s: float = 0.5) -> int:
         if g is not None and g.foreign:
             n.log(g.summary(), "warning")
         code = code or int(getattr(n, "exit_code", 0) or 0)
-    flush_publishers(nodes, STOP_ACK_TIMEOUT_S)
-    if os.environ.get("FLUXDRIVE_GRAPH_KEY"):  # started by the launcher: it checks the bag
-        for n in nodes:
-            for pub in getattr(n, "raw_publishers", []):
-                print(f"@published {pub.topic} {pub.n_published}", flush=True)
+    return code
+
+
+def _shutdown(ex, nodes: list[FluxNode]) -> None:
     for n in nodes:
         try:
             ex.remove_node(n)
@@ -223,7 +250,6 @@ def spin(nodes: list[FluxNode], executor=None, poll_s: float = 0.5) -> int:
         pass
     if rclpy.ok():
         rclpy.try_shutdown()
-    return code
 
 
 # stop requests (signals) this process got; a second one cuts a recorder's drain short
