@@ -38,6 +38,9 @@ def test_compare_builtin_and_plugin_on_a_coarse_grid(tmp_path, example_importabl
     assert bws[2] > bws[1] > bws[0]  # PLL factors 0.6, 1.0, 1.6 of the card's rule
     for (_, a), (_, b) in zip(ours["points"]["rms"], theirs["points"]["rms"], strict=True):
         assert b == pytest.approx(a, abs=0.1)
+    # the same estimator: θ̃ of the first over the second at equal allowed bandwidth is 1
+    ratios = res["fronts"]["10pct_0load_measured"]["first_over_second"]["rms"]["ratios"]
+    assert ratios and all(r == pytest.approx(1.0, abs=0.1) for r in ratios)
     # the cutoff sweep (half the card's w_c) sits at the card PLL's bandwidth
     assert ours["settings"][-1]["cutoff_hz"] == pytest.approx(0.5 * 100.0)
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["variants"] == {

@@ -19,7 +19,7 @@ from typing import Any
 
 from fluxdrive.core.machine import ConfigError
 from fluxdrive.drive.observers import observer_config
-from fluxdrive.drive.scenario import REPO_ROOT, machine_path
+from fluxdrive.drive.scenario import REPO_ROOT, load_bench_file, machine_path
 from fluxdrive.experiments import fronts as fr
 from fluxdrive.experiments.common import Ctx
 
@@ -50,6 +50,7 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--settle-s", type=float, default=0.7, help="settling at the point [s]")
     ap.add_argument("--window-s", type=float, default=1.0, help="θ̃ measured over [s]")
     ap.add_argument("--machine", help="machine card (default: the default card)")
+    ap.add_argument("--bench", type=Path, help="bench file the runs use (default: ideal)")
     ap.add_argument("--pll-key", default="pll_hz", help="a plugin's PLL keyword [Hz]")
     ap.add_argument("--cutoff-key", default="cutoff_hz", help="a plugin's flux cutoff [Hz]")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
@@ -72,9 +73,11 @@ def families_of(variants: list[str]) -> dict[str, str]:
 
 
 def summary(data: dict[str, Any], families: dict[str, str]) -> dict[str, Any]:
-    """Per cell and family: the front of θ̃ RMS (bandwidth, θ̃) and the best θ̃ at the
-    highest bandwidth the family reaches."""
+    """Per cell and family: the fronts (bandwidth, θ̃) and the highest bandwidth the family
+    reaches; with two or more families, the first over the second on the RMS and noise
+    fronts at equal allowed bandwidth (`first_over_second`)."""
     out: dict[str, Any] = {}
+    names = list(families)
     for key, cell in data.items():
         out[key] = {
             fam: {
@@ -86,6 +89,11 @@ def summary(data: dict[str, Any], families: dict[str, str]) -> dict[str, Any]:
             }
             for fam in families
         }
+        if len(names) >= 2:
+            out[key]["first_over_second"] = {
+                q: fr.matched_ratio(cell, names[0], names[1], f"front_{q}")
+                for q in ("rms", "noise")
+            }
     return out
 
 
@@ -107,13 +115,20 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         keys = {"pll": args.pll_key, "cutoff": args.cutoff_key}
         if not (0.0 <= args.settle_s <= 60.0 and 0.05 <= args.window_s <= 60.0):
             raise ConfigError("--settle-s in [0, 60] s and --window-s in [0.05, 60] s")
-        data = fr.run_fronts(ctx, families, points, sources, keys, args.settle_s, args.window_s)
+        bench = None
+        if args.bench is not None:
+            load_bench_file(args.bench, ctx.card)  # a bad file: one line, before any run
+            bench = str(args.bench.resolve())
+        data = fr.run_fronts(
+            ctx, families, points, sources, keys, args.settle_s, args.window_s, bench
+        )
     finally:
         runner.close()
     figure = fr.plot(ctx, data, families, name="compare")
     result = {
         "variants": families,
         "card": ctx.card.name,
+        "bench": str(args.bench) if args.bench else "ideal",
         "points": points,
         "sources": list(sources),
         "quick": args.quick,
@@ -131,6 +146,8 @@ def main(argv: list[str]) -> int:
     result = run(args)
     for key, cell in result["fronts"].items():
         for fam, f in cell.items():
+            if fam == "first_over_second":
+                continue
             best = min(e for _, e in f["front_rms"])
             print(
                 f"{key:28s} {fam:16s} θ̃ RMS best {best:.2f}° ; up to "

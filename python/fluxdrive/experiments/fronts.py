@@ -178,19 +178,23 @@ def analyse(
     return out
 
 
-def _matched(cell: dict[str, Any]) -> dict[str, Any]:
-    """The flux/EMF noise ratio over the overlap of their allowed bandwidths."""
-    fams = ("flux", "emf")
-    lo = max(min(p[0] for p in cell[f]["front_noise"]) for f in fams)
-    hi = min(max(p[0] for p in cell[f]["front_noise"]) for f in fams)
+def matched_ratio(cell: dict[str, Any], a: str, b: str, front: str = "front_noise") -> dict:
+    """θ̃ of family a over family b on their fronts at equal allowed bandwidth, on a grid over
+    the overlap of their bandwidths (empty: no overlap)."""
+    lo = max(min(p[0] for p in cell[f][front]) for f in (a, b))
+    hi = min(max(p[0] for p in cell[f][front]) for f in (a, b))
     grid = np.linspace(lo, hi, 9) if hi >= lo else np.array([])
-    ratios = [
-        _at(cell["flux"]["front_noise"], b) / _at(cell["emf"]["front_noise"], b) for b in grid
-    ]
+    ratios = [_at(cell[a][front], x) / _at(cell[b][front], x) for x in grid]
     return {
         "matched_bw_hz": [float(lo), float(hi)] if hi >= lo else None,
-        "noise_ratio_flux_emf": [x for x in ratios if math.isfinite(x)],
+        "ratios": [x for x in ratios if math.isfinite(x)],
     }
+
+
+def _matched(cell: dict[str, Any]) -> dict[str, Any]:
+    """The flux/EMF noise ratio over the overlap of their allowed bandwidths."""
+    m = matched_ratio(cell, "flux", "emf")
+    return {"matched_bw_hz": m["matched_bw_hz"], "noise_ratio_flux_emf": m["ratios"]}
 
 
 def plot(ctx, fronts: dict[str, Any], families=None, name: str = "fronts_flux_vs_emf") -> str:
@@ -253,10 +257,12 @@ def run_fronts(
     plugin_keys=PLUGIN_KEYS,
     settle_s: float = 0.7,
     window_s: float = 1.0,
+    bench: str | None = None,
 ) -> dict[str, Any]:
     """Build, run and analyse the fronts of `families` (name -> variant) at `points`
     ((speed pu, load pu); None: POINTS) for `sources`, θ̃ measured over `window_s` after
-    `settle_s` at the operating point; the analysed cells by point/source."""
+    `settle_s` at the operating point, on the ideal bench or the bench file `bench`; the
+    analysed cells by point/source."""
     card = ctx.card
     points, observers = build_cases(ctx.quick, card, families, points, sources, plugin_keys)
     jobs = [
@@ -269,6 +275,7 @@ def run_fronts(
                 settle_s=settle_s,
                 window_s=window_s,
                 name="fronts",
+                **({"bench": bench} if bench else {}),
             ),
             _x_front,
             None,
