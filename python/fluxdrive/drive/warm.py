@@ -32,6 +32,7 @@ from fluxdrive.drive.observers import (
     frame_limits,
     frame_out_of_range,
     observer_reset,
+    observer_run,
     observer_step,
 )
 from fluxdrive.drive.plant import FR_N, TR_N, plant_advance, plant_initial_frame
@@ -44,6 +45,7 @@ KERNELS = (
     plant_advance,
     observer_reset,
     observer_step,
+    observer_run,
     frame_out_of_range,
     controller_reset,
     controller_step,
@@ -70,6 +72,7 @@ def graph_kernel_calls(sc) -> list[tuple[object, tuple]]:
         (plant_advance, (pst, mp, rng, duty, False, *load, frame, truth)),
         (observer_reset, (ost,)),
         (observer_step, (ost, op, frame, est)),
+        (observer_run, (ost, op, np.zeros((2, FR_N)), np.zeros((2, ES_N)))),  # shadows' blocks
         (frame_out_of_range, (frame, frame_limits(sc.machine))),
         (controller_reset, (cs,)),
         (controller_step, (cs, cp, frame, est, 0.0, 0.0, out)),
