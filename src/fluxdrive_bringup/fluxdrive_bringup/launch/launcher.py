@@ -269,85 +269,7 @@ def parse_graph(raw: Any, src: str = "graph", base: Path = REPO_ROOT) -> Graph:
     seen = set()
     for i, nd in enumerate(nodes_raw):
         where = f"{src}: nodes[{i}]"
-        if not isinstance(nd, dict):
-            raise ConfigError(f"{where} must be a mapping")
-        bad = sorted(set(nd) - _NODE_KEYS, key=str)
-        if bad:
-            raise ConfigError(
-                f"{where}: unknown key(s) {bad}; expected some of {sorted(_NODE_KEYS)}"
-            )
-        name = nd.get("name")
-        if not isinstance(name, str) or not name.replace("_", "a").isalnum():
-            raise ConfigError(
-                f"{where}: 'name' must be a ROS name (letters, digits, _), got {name!r}"
-            )
-        if ("node" in nd) == ("cmd" in nd):
-            raise ConfigError(
-                f"{where} ({name}): give exactly one of 'node' (one of "
-                f"{sorted(NODE_CLASSES)} or module:Class) and 'cmd'"
-            )
-        node = nd.get("node")
-        if node is not None and (
-            not isinstance(node, str) or (node not in NODE_CLASSES and ":" not in node)
-        ):
-            raise ConfigError(
-                f"{where} ({name}): 'node' must be one of {sorted(NODE_CLASSES)} "
-                f"or module:Class, got {node!r}"
-            )
-        cmd = nd.get("cmd")
-        if cmd is not None and (
-            not isinstance(cmd, list) or not all(isinstance(c, str) for c in cmd) or not cmd
-        ):
-            raise ConfigError(f"{where} ({name}): 'cmd' must be a list of strings")
-        params = nd.get("params", []) or []
-        if isinstance(params, str):
-            params = [params]
-        if not isinstance(params, list):
-            raise ConfigError(f"{where} ({name}): 'params' must be a list of files")
-        files = []
-        for p in params:
-            if not isinstance(p, str) or not p or "\0" in p:
-                raise ConfigError(
-                    f"{where} ({name}): 'params' entries must be file paths, got {p!r}"
-                )
-            f = _resolve(p, base)
-            if not f.exists():
-                raise ConfigError(f"{where} ({name}): parameter file {p} not found")
-            try:
-                yamlio.load_file(f)
-            except (OSError, yamlio.YAMLError) as exc:
-                raise ConfigError(f"{f}: not valid YAML: {yamlio.describe(exc)}") from exc
-            files.append(str(f))
-        parameters = nd.get("parameters", {}) or {}
-        if not isinstance(parameters, dict) or not all(isinstance(k, str) for k in parameters):
-            raise ConfigError(f"{where} ({name}): 'parameters' must be a mapping name -> value")
-        for s_key in ("namespace", "process"):
-            if not isinstance(nd.get(s_key, "") or "", str):
-                raise ConfigError(
-                    f"{where} ({name}): '{s_key}' must be a string, got {nd[s_key]!r}"
-                )
-        if not isinstance(nd.get("required", False), bool):
-            raise ConfigError(f"{where} ({name}): 'required' must be true/false")
-        ns = str(nd.get("namespace", "") or "")
-        if ns and not ns.startswith("/"):
-            ns = "/" + ns
-        spec = NodeSpec(
-            name=name,
-            node=node,
-            namespace=ns.rstrip("/"),
-            process=str(nd.get("process", "") or ""),
-            params=files,
-            parameters=dict(parameters),
-            required=bool(nd.get("required", False)),
-            cmd=cmd,
-            **_policy(nd, f"{where} ({name})"),
-        )
-        if spec.is_recorder and spec.on_death == "restart":
-            raise ConfigError(
-                f"{where} ({name}): 'on_death: restart' is not supported for a "
-                f"recorder (its bag directory exists after the first start); "
-                f"use stop or ignore"
-            )
+        spec = _parse_node(nd, where, base)
         if spec.fqn in seen:
             raise ConfigError(f"{where}: node {spec.fqn} appears twice")
         seen.add(spec.fqn)
@@ -360,21 +282,7 @@ def parse_graph(raw: Any, src: str = "graph", base: Path = REPO_ROOT) -> Graph:
     dom = raw.get("domain_id")
     if dom is not None and (not isinstance(dom, int) or not 0 <= dom <= 232):
         raise ConfigError(f"{src}: 'domain_id' must be an integer 0..232")
-    env = raw.get("env", {}) or {}
-    if not isinstance(env, dict):
-        raise ConfigError(f"{src}: 'env' must be a mapping")
-    for k, v in env.items():
-        # an environment variable is a name and a scalar; Linux takes at most 128 kB each
-        if not isinstance(k, str) or not k or "=" in k or "\0" in k:
-            raise ConfigError(f"{src}: 'env': {k!r} is not an environment variable name")
-        if isinstance(v, (dict, list)) or v is None:
-            raise ConfigError(
-                f"{src}: 'env.{k}' must be a string or number, got {type(v).__name__}"
-            )
-        if len(str(v)) > _ENV_VALUE_MAX or "\0" in str(v):
-            raise ConfigError(
-                f"{src}: 'env.{k}' is {len(str(v))} characters (at most {_ENV_VALUE_MAX}, no NUL)"
-            )
+    env = _parse_env(raw.get("env", {}) or {}, src)
     stop_timeout_s = _seconds(src, "stop_timeout_s", raw.get("stop_timeout_s", 15.0), 0.1, 3600.0)
     stop_grace_s = _seconds(src, "stop_grace_s", raw.get("stop_grace_s", 20.0), 0.1, 3600.0)
     start_timeout_s = _seconds(
@@ -389,7 +297,7 @@ def parse_graph(raw: Any, src: str = "graph", base: Path = REPO_ROOT) -> Graph:
         nodes=nodes,
         discovery_range=dr,
         domain_id=dom,
-        env={str(k): str(v) for k, v in env.items()},
+        env=env,
         stop_timeout_s=stop_timeout_s,
         stop_grace_s=stop_grace_s,
         start_timeout_s=start_timeout_s,
@@ -397,6 +305,119 @@ def parse_graph(raw: Any, src: str = "graph", base: Path = REPO_ROOT) -> Graph:
         source=src,
         **_policy(raw, src),
     )
+    _check_processes(g, src)
+    return g
+
+
+def _parse_node(nd: Any, where: str, base: Path) -> NodeSpec:
+    """One entry of the graph's `nodes` (where: its place in the file)."""
+    if not isinstance(nd, dict):
+        raise ConfigError(f"{where} must be a mapping")
+    bad = sorted(set(nd) - _NODE_KEYS, key=str)
+    if bad:
+        raise ConfigError(f"{where}: unknown key(s) {bad}; expected some of {sorted(_NODE_KEYS)}")
+    name = nd.get("name")
+    if not isinstance(name, str) or not name.replace("_", "a").isalnum():
+        raise ConfigError(f"{where}: 'name' must be a ROS name (letters, digits, _), got {name!r}")
+    here = f"{where} ({name})"
+    node, cmd = _node_or_cmd(nd, here)
+    files = _param_files(nd.get("params", []) or [], here, base)
+    parameters = nd.get("parameters", {}) or {}
+    if not isinstance(parameters, dict) or not all(isinstance(k, str) for k in parameters):
+        raise ConfigError(f"{here}: 'parameters' must be a mapping name -> value")
+    for s_key in ("namespace", "process"):
+        if not isinstance(nd.get(s_key, "") or "", str):
+            raise ConfigError(f"{here}: '{s_key}' must be a string, got {nd[s_key]!r}")
+    if not isinstance(nd.get("required", False), bool):
+        raise ConfigError(f"{here}: 'required' must be true/false")
+    ns = str(nd.get("namespace", "") or "")
+    if ns and not ns.startswith("/"):
+        ns = "/" + ns
+    spec = NodeSpec(
+        name=name,
+        node=node,
+        namespace=ns.rstrip("/"),
+        process=str(nd.get("process", "") or ""),
+        params=files,
+        parameters=dict(parameters),
+        required=bool(nd.get("required", False)),
+        cmd=cmd,
+        **_policy(nd, here),
+    )
+    if spec.is_recorder and spec.on_death == "restart":
+        raise ConfigError(
+            f"{here}: 'on_death: restart' is not supported for a "
+            f"recorder (its bag directory exists after the first start); "
+            f"use stop or ignore"
+        )
+    return spec
+
+
+def _node_or_cmd(nd: dict, here: str) -> tuple[str | None, list[str] | None]:
+    """A node's class (a known node or module:Class) or its command, exactly one of them."""
+    if ("node" in nd) == ("cmd" in nd):
+        raise ConfigError(
+            f"{here}: give exactly one of 'node' (one of "
+            f"{sorted(NODE_CLASSES)} or module:Class) and 'cmd'"
+        )
+    node = nd.get("node")
+    if node is not None and (
+        not isinstance(node, str) or (node not in NODE_CLASSES and ":" not in node)
+    ):
+        raise ConfigError(
+            f"{here}: 'node' must be one of {sorted(NODE_CLASSES)} or module:Class, got {node!r}"
+        )
+    cmd = nd.get("cmd")
+    if cmd is not None and (
+        not isinstance(cmd, list) or not all(isinstance(c, str) for c in cmd) or not cmd
+    ):
+        raise ConfigError(f"{here}: 'cmd' must be a list of strings")
+    return node, cmd
+
+
+def _param_files(params: Any, here: str, base: Path) -> list[str]:
+    """A node's parameter files: each found and valid YAML."""
+    if isinstance(params, str):
+        params = [params]
+    if not isinstance(params, list):
+        raise ConfigError(f"{here}: 'params' must be a list of files")
+    files = []
+    for p in params:
+        if not isinstance(p, str) or not p or "\0" in p:
+            raise ConfigError(f"{here}: 'params' entries must be file paths, got {p!r}")
+        f = _resolve(p, base)
+        if not f.exists():
+            raise ConfigError(f"{here}: parameter file {p} not found")
+        try:
+            yamlio.load_file(f)
+        except (OSError, yamlio.YAMLError) as exc:
+            raise ConfigError(f"{f}: not valid YAML: {yamlio.describe(exc)}") from exc
+        files.append(str(f))
+    return files
+
+
+def _parse_env(env: Any, src: str) -> dict[str, str]:
+    """The graph's `env`: variable names and scalar values."""
+    if not isinstance(env, dict):
+        raise ConfigError(f"{src}: 'env' must be a mapping")
+    for k, v in env.items():
+        # an environment variable is a name and a scalar; Linux takes at most 128 kB each
+        if not isinstance(k, str) or not k or "=" in k or "\0" in k:
+            raise ConfigError(f"{src}: 'env': {k!r} is not an environment variable name")
+        if isinstance(v, (dict, list)) or v is None:
+            raise ConfigError(
+                f"{src}: 'env.{k}' must be a string or number, got {type(v).__name__}"
+            )
+        if len(str(v)) > _ENV_VALUE_MAX or "\0" in str(v):
+            raise ConfigError(
+                f"{src}: 'env.{k}' is {len(str(v))} characters (at most {_ENV_VALUE_MAX}, no NUL)"
+            )
+    return {str(k): str(v) for k, v in env.items()}
+
+
+def _check_processes(g: Graph, src: str) -> None:
+    """The nodes of one process: no 'cmd' among others, one death policy, no restarted
+    recorder."""
     for pname, members in g.processes().items():
         if len(members) > 1 and any(m.cmd for m in members):
             raise ConfigError(f"{src}: process '{pname}' mixes a 'cmd' with other nodes")
@@ -412,7 +433,6 @@ def parse_graph(raw: Any, src: str = "graph", base: Path = REPO_ROOT) -> Graph:
                 f"restart' is not supported for it (its bag directory exists "
                 f"after the first start); use stop or ignore"
             )
-    return g
 
 
 def load_graph(path: str | Path) -> Graph:
