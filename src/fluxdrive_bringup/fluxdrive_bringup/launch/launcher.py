@@ -1000,19 +1000,7 @@ class Launcher:
                 if p.done:
                     continue
                 if p.restart_at is not None:
-                    if self.stopping:
-                        p.restart_at = None
-                        p.done = True
-                    elif now >= p.restart_at:
-                        with self._spawn_lock:
-                            if self.stopping:
-                                continue
-                            p.restart_at = None
-                            self._spawn(p)
-                        self._emit(
-                            f"[launch] process {p.label} restarted (pid "
-                            f"{p.process.pid}, restart {p.restarts} of {p.max_restarts})"
-                        )
+                    self._restart_when_due(p, now)
                     continue
                 code = p.process.poll()
                 if code is None:
@@ -1045,17 +1033,9 @@ class Launcher:
                 self.stop()
             if all(p.done for p in self.procs):
                 break
-            why = self.stalled(time.monotonic())
+            why = self._stuck()
             if why is not None:
-                live = [p for p in self.procs if not p.done]
-                quiet = min(live, key=lambda p: p.t_last_line) if live else None
-                if quiet is not None:
-                    why += (
-                        f"; silent longest: process {quiet.label} "
-                        f"({time.monotonic() - quiet.t_last_line:.1f} s)"
-                    )
-                last = f"; last warning: {self.last_warning}" if self.last_warning else ""
-                self._emit(f"[launch] ERROR: the graph is stuck ({why}){last}; stopping it")
+                self._emit(f"[launch] ERROR: the graph is stuck ({why}); stopping it")
                 self.stop()
                 self._join()
                 return 1
@@ -1070,6 +1050,39 @@ class Launcher:
             p for p in self.procs if p.code not in (0, None) and not self.stopping and not p.ignored
         ]
         return 1 if bad else 0
+
+    def _restart_when_due(self, p: Proc, now: float) -> None:
+        """A process waiting for its restart: restarted once its back-off is over (never
+        while the graph stops)."""
+        if self.stopping:
+            p.restart_at = None
+            p.done = True
+        elif p.restart_at is not None and now >= p.restart_at:
+            with self._spawn_lock:
+                if self.stopping:
+                    return
+                p.restart_at = None
+                self._spawn(p)
+            self._emit(
+                f"[launch] process {p.label} restarted (pid "
+                f"{p.process.pid}, restart {p.restarts} of {p.max_restarts})"
+            )
+
+    def _stuck(self) -> str | None:
+        """Why the graph is stuck (with the process silent longest and the last warning),
+        None while it is not."""
+        why = self.stalled(time.monotonic())
+        if why is None:
+            return None
+        live = [p for p in self.procs if not p.done]
+        quiet = min(live, key=lambda p: p.t_last_line) if live else None
+        if quiet is not None:
+            why += (
+                f"; silent longest: process {quiet.label} "
+                f"({time.monotonic() - quiet.t_last_line:.1f} s)"
+            )
+        last = f"; last warning: {self.last_warning}" if self.last_warning else ""
+        return why + last
 
     def _join(self) -> None:
         for p in self.procs:
@@ -1191,6 +1204,37 @@ def launcher_env_discovery(g: Graph) -> str:
 
 
 def main(argv: list[str]) -> int:
+    args = _launch_parser().parse_args(argv)
+    from fluxdrive_ros.security import precheck
+
+    why = precheck()
+    if why:  # every process would fail the same way: say it once, start nothing
+        print(f"[launch] {why}", file=sys.stderr)
+        return 2
+    g = load_graph(args.graph)
+    if args.domain_id is not None:
+        g.domain_id = args.domain_id
+    if args.namespace:
+        g.namespace = check_namespace(args.namespace, "--namespace")
+    _apply_sets(g, args.set)
+    if args.scope:
+        add_scope(g, port=args.scope_port)
+    g.shared_domain = bool(args.shared_domain)
+    if not args.shared_domain:  # a domain no live node uses (or refused, naming them)
+        why = _choose_free_domain(g)
+        if why:
+            print(f"[launch] {why}", file=sys.stderr)
+            return 2
+    dom_shown = g.domain_id if g.domain_id is not None else os.environ.get("ROS_DOMAIN_ID", "0")
+    procs = ", ".join(f"{pn}[{', '.join(m.fqn for m in ms)}]" for pn, ms in g.processes().items())
+    disc = launcher_env_discovery(g)
+    print(
+        f"[launch] graph {g.name}: {procs}; ROS_DOMAIN_ID={dom_shown}, discovery {disc}", flush=True
+    )
+    return _run_and_report(g, args)
+
+
+def _launch_parser():
     import argparse
 
     ap = argparse.ArgumentParser(
@@ -1230,19 +1274,12 @@ def main(argv: list[str]) -> int:
         "nodes live on the ROS domain (by default refused: graphs on one domain "
         "hear each other)",
     )
-    args = ap.parse_args(argv)
-    from fluxdrive_ros.security import precheck
+    return ap
 
-    why = precheck()
-    if why:  # every process would fail the same way: say it once, start nothing
-        print(f"[launch] {why}", file=sys.stderr)
-        return 2
-    g = load_graph(args.graph)
-    if args.domain_id is not None:
-        g.domain_id = args.domain_id
-    if args.namespace:
-        g.namespace = check_namespace(args.namespace, "--namespace")
-    for item in args.set:
+
+def _apply_sets(g: Graph, sets: list[str]) -> None:
+    """--set NODE.PARAM=VALUE (a YAML value) onto the graph's nodes."""
+    for item in sets:
         key, _, val = item.partition("=")
         node, _, pname = key.partition(".")
         match = [n for n in g.nodes if n.name == node or n.fqn == node]
@@ -1253,28 +1290,26 @@ def main(argv: list[str]) -> int:
             )
         for n in match:
             n.parameters[pname] = yamlio.loads(val)
-    if args.scope:
-        add_scope(g, port=args.scope_port)
-    g.shared_domain = bool(args.shared_domain)
-    if not args.shared_domain:  # a domain no live node uses (or refused, naming them)
-        from fluxdrive_bringup.launch.domains import choose_domain
 
-        # (the graph's domain_id, else ROS_DOMAIN_ID, else 0 -- where `param set` and
-        # `topic echo` from another shell look by default)
-        dom, why = choose_domain(
-            g.domain_id if g.domain_id is not None else int(os.environ.get("ROS_DOMAIN_ID") or 0),
-            "launch",
-        )
-        if dom is None:
-            print(f"[launch] {why}", file=sys.stderr)
-            return 2
-        g.domain_id = dom
-    dom_shown = g.domain_id if g.domain_id is not None else os.environ.get("ROS_DOMAIN_ID", "0")
-    procs = ", ".join(f"{pn}[{', '.join(m.fqn for m in ms)}]" for pn, ms in g.processes().items())
-    disc = launcher_env_discovery(g)
-    print(
-        f"[launch] graph {g.name}: {procs}; ROS_DOMAIN_ID={dom_shown}, discovery {disc}", flush=True
+
+def _choose_free_domain(g: Graph) -> str:
+    """Put the graph on a domain no live node uses; "" or why it is refused (naming them)."""
+    from fluxdrive_bringup.launch.domains import choose_domain
+
+    # (the graph's domain_id, else ROS_DOMAIN_ID, else 0 -- where `param set` and
+    # `topic echo` from another shell look by default)
+    dom, why = choose_domain(
+        g.domain_id if g.domain_id is not None else int(os.environ.get("ROS_DOMAIN_ID") or 0),
+        "launch",
     )
+    if dom is None:
+        return why or "no free ROS domain"
+    g.domain_id = dom
+    return ""
+
+
+def _run_and_report(g: Graph, args) -> int:
+    """Run the graph; then its bags, restarts and the deaths it ignored."""
     launcher = Launcher(g, log_dir=args.log_dir)
     if launcher.clock_topic != "/clock" and not g.namespace:
         print(f"[launch] shared domain: this graph's sim time is on {launcher.clock_topic}")
