@@ -4,6 +4,10 @@ engine's bag I/O needs them without ROS); this module adds what needs rclpy."""
 
 from __future__ import annotations
 
+import re
+from typing import Any
+
+from fluxdrive.core.machine import ConfigError
 from fluxdrive.io.topics import (  # noqa: F401 - re-exported: the one definition
     CLOCK,
     CONTROLLER_STATE,
@@ -76,3 +80,18 @@ def in_drive(node, topic: str) -> str:
         return topic
     ns = drive_namespace(node)
     return (ns.rstrip("/") + "/" + topic) if ns != "/" else "/" + topic
+
+
+def check_namespace(value: Any, where: str) -> str:
+    """A drive namespace ('/a', 'a/b' -> '/a/b'; None or '' -> ''), or ConfigError naming
+    `where`."""
+    if value is None or value == "":
+        return ""
+    text = str(value).strip("/")
+    if not isinstance(value, str) or not re.fullmatch(
+        r"[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*", text
+    ):
+        raise ConfigError(
+            f"{where} must be a ROS namespace like /bench_a (letters, digits, _), got {value!r}"
+        )
+    return "/" + text

@@ -49,7 +49,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import signal
 import subprocess
 import sys
@@ -64,6 +63,7 @@ from fluxdrive.core import yamlio
 from fluxdrive.core.machine import ConfigError
 from fluxdrive.drive.scenario import REPO_ROOT
 from fluxdrive_ros.runner import NODE_CLASSES, STOP_COUNTS_ENV
+from fluxdrive_ros.topics import check_namespace
 
 _POLICY_KEYS = {"on_death", "max_restarts", "restart_backoff_s"}
 ON_DEATH = ("stop", "restart", "ignore")
@@ -193,21 +193,6 @@ class Graph:
             )
         out["nodes"] = nodes
         return out
-
-
-def check_namespace(value: Any, where: str) -> str:
-    """A drive namespace ('/a', 'a/b' -> '/a/b'; None or '' -> ''), or ConfigError naming
-    `where`."""
-    if value is None or value == "":
-        return ""
-    text = str(value).strip("/")
-    if not isinstance(value, str) or not re.fullmatch(
-        r"[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*", text
-    ):
-        raise ConfigError(
-            f"{where} must be a ROS namespace like /bench_a (letters, digits, _), got {value!r}"
-        )
-    return "/" + text
 
 
 def _resolve(p: str | Path, base: Path) -> Path:
@@ -1188,6 +1173,8 @@ def add_scope(
         cmd += ["--token", token]
     if exit_on_done:
         cmd.append("--exit-on-done")
+    if g.namespace:  # a command is not remapped: the server is told the drive's namespace
+        cmd += ["--namespace", g.namespace]
     g.nodes.append(NodeSpec(name="scope", cmd=cmd, on_death="ignore"))
 
 

@@ -56,7 +56,13 @@ class RosSide:
     """The envelope subscription and marker publisher, spun in a thread of their own."""
 
     def __init__(
-        self, domain_id: int, on_envelope, attach_wait_s: float, quiet: bool = False, on_head=None
+        self,
+        domain_id: int,
+        on_envelope,
+        attach_wait_s: float,
+        quiet: bool = False,
+        on_head=None,
+        namespace: str = "",
     ):
         import rclpy
         from fluxdrive_ros.topics import msg_class
@@ -78,6 +84,8 @@ class RosSide:
         self.done = threading.Event()
         self.local_tap: Any = None  # a ScopeTapNode when the graph has no tap of its own
         self.quiet = quiet
+        # the drive's namespace ('' or /a): its envelopes, its end, its markers live there
+        self.ns = namespace.rstrip("/")
 
         from fluxdrive_bringup.view.scope_tap import page_json
 
@@ -99,7 +107,7 @@ class RosSide:
                 on_head(head)
 
         self.sub = self.node.create_subscription(
-            UInt8MultiArray, topics.SCOPE_ENVELOPE, on_env, 10, raw=True
+            UInt8MultiArray, self.ns + topics.SCOPE_ENVELOPE, on_env, 10, raw=True
         )
         # the graph's id when started by its launch (else 0: any graph's end, and markers
         # stamped 0, which every recorder accepts; fluxdrive_ros.graph)
@@ -109,10 +117,14 @@ class RosSide:
             if self.graph_id in (0, m.graph_id):
                 self.done.set()
 
-        self.node.create_subscription(msg_class(topics.T_DONE), topics.DONE, on_done, qos.LATCHED)
+        self.node.create_subscription(
+            msg_class(topics.T_DONE), self.ns + topics.DONE, on_done, qos.LATCHED
+        )
         self.marker_cls = msg_class(topics.T_MARKER)
         # reliable, transient-local: a recorder that matches late still gets the markers
-        self.pub_marker = self.node.create_publisher(self.marker_cls, topics.MARKER, qos.MARKERS)
+        self.pub_marker = self.node.create_publisher(
+            self.marker_cls, self.ns + topics.MARKER, qos.MARKERS
+        )
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self._spin, name="scope-ros", daemon=True)
         self.thread.start()
@@ -144,7 +156,9 @@ class RosSide:
             "tapping every sample topic from this process over DDS instead",
             flush=True,
         )
-        self.local_tap = ScopeTapNode("scope_tap_local", context=self.ctx)
+        self.local_tap = ScopeTapNode(
+            "scope_tap_local", namespace=self.ns or None, context=self.ctx
+        )
         self.ex.add_node(self.local_tap)
 
     def note_envelope(self, seq: int, ts_s: float) -> None:
@@ -512,7 +526,9 @@ class Scope:
 
         if not self._authorised(request):
             return web.json_response({"error": "wrong token"}, status=403)
-        service = request.query.get("service", "/controller/reset_fault")
+        # the drive's controller (in its namespace) unless the page names another service
+        own = getattr(self.args, "namespace", "") + "/controller/reset_fault"
+        service = request.query.get("service", own)
         try:
             ok, message = await self.params.run(self.params.reset, service)
         except (LookupError, TimeoutError) as exc:
@@ -636,7 +652,13 @@ class Scope:
 
         self.loop = asyncio.get_running_loop()
         dom = self.args.domain_id
-        self.ros = RosSide(dom, self.on_envelope, self.args.attach_wait, on_head=self.on_head)
+        self.ros = RosSide(
+            dom,
+            self.on_envelope,
+            self.args.attach_wait,
+            on_head=self.on_head,
+            namespace=getattr(self.args, "namespace", ""),
+        )
         self.params = ParamSide(dom)
         quiet_bad_requests()
         runner = web.AppRunner(self.app(), access_log=None)
@@ -730,7 +752,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--exit-on-done", action="store_true", help="exit a second after the graph's /drive/done"
     )
+    ap.add_argument(
+        "--namespace",
+        default="",
+        help="the drive's ROS namespace (e.g. /bench_a: its /bench_a/scope/envelope, markers "
+        "on /bench_a/drive/param_marker; default: the root namespace)",
+    )
     args = ap.parse_args(sys.argv[1:] if argv is None else argv)
+    from fluxdrive.core.machine import ConfigError
+    from fluxdrive_ros.topics import check_namespace
+
+    try:
+        args.namespace = check_namespace(args.namespace, "--namespace")
+    except ConfigError as exc:
+        print(f"scope: {exc}", file=sys.stderr)
+        return 2
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     if args.domain_id is None:
         args.domain_id = int(os.environ.get("ROS_DOMAIN_ID", "0") or 0)

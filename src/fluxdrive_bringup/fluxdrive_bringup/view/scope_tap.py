@@ -461,13 +461,15 @@ class ScopeTapNode(FluxNode):
         fixed = declare(self, fixed_params())
         self._timing(fixed)
         self._init_state()
-        self.pub = self.create_publisher(UInt8MultiArray, topics.SCOPE_ENVELOPE, ENVELOPE_QOS)
+        # in the drive's namespace (/a/scope/envelope), as every topic of the drive
+        self.envelope_topic = topics.drive_topic(self, topics.SCOPE_ENVELOPE)
+        self.pub = self.create_publisher(UInt8MultiArray, self.envelope_topic, ENVELOPE_QOS)
         self._subscribe_all(fixed)
         on_set(self, self.specs, self._apply)
         self.timer = self.create_timer(self.pv["period_s"], self._tick)
         self.get_logger().info(
             f"scope tap on {len(self.subs)} topics, envelopes every "
-            f"{self.pv['period_s'] * 1e3:.0f} ms on {topics.SCOPE_ENVELOPE}"
+            f"{self.pv['period_s'] * 1e3:.0f} ms on {self.envelope_topic}"
         )
 
     def _timing(self, fixed: dict) -> None:
