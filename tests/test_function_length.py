@@ -29,8 +29,6 @@ KNOWN_LONG: set[str] = {
     "src/fluxdrive_bringup/fluxdrive_bringup/measure/bench.py::bench_graph",
     "src/fluxdrive_bringup/fluxdrive_bringup/measure/bench.py::bench_paced",
     "src/fluxdrive_bringup/fluxdrive_bringup/record/recorder.py::RecorderNode.__init__",
-    "src/spm_plant_sim/spm_plant_sim/node.py::PlantNode.__init__",
-    "src/spm_plant_sim/spm_plant_sim/node.py::param_table",
 }
 
 

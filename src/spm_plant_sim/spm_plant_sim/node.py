@@ -81,7 +81,8 @@ from fluxdrive_ros import access, qos, topics
 from fluxdrive_ros import diagnostics as diag
 
 
-def param_table(sc) -> list[P]:
+def run_params(sc) -> list[P]:
+    """The run: mode, seed, length, the bridge's deadtime, the load."""
     card = sc.machine
     td = card.deadtime_s if sc.plant_deadtime_s is None else sc.plant_deadtime_s
     return [
@@ -126,6 +127,12 @@ def param_table(sc) -> list[P]:
             -100.0,
             100.0,
         ),
+    ]
+
+
+def timing_params() -> list[P]:
+    """Pacing and the watchdogs: rate, first duty, stalls, a dead or hung controller."""
+    return [
         P(
             "rate_factor",
             1.0,
@@ -176,6 +183,12 @@ def param_table(sc) -> list[P]:
             0.0,
             3600.0,
         ),
+    ]
+
+
+def graph_params() -> list[P]:
+    """Start-up matching, /clock, progress, exit, frame_id, durability, diagnostics, access."""
+    return [
         P(
             "clock_decimation",
             10,
@@ -229,6 +242,11 @@ def param_table(sc) -> list[P]:
     ]
 
 
+def param_table(sc) -> list[P]:
+    """The plant's declared parameters (description, unit, range; live ones marked)."""
+    return run_params(sc) + timing_params() + graph_params()
+
+
 # paced: a plant late by more than this many periods lets time slip instead of catching up
 MAX_CATCH_UP = 50
 
@@ -236,21 +254,7 @@ MAX_CATCH_UP = 50
 class PlantNode(FluxNode):
     def __init__(self, name: str = "plant", namespace: str | None = None, **kw):
         super().__init__(name, namespace, **kw)
-        sp = declare(
-            self,
-            [
-                P(
-                    "scenario",
-                    "",
-                    "scenario YAML (path or a name under "
-                    "config/scenarios): machine card, load, seed, faults",
-                    read_only=True,
-                )
-            ],
-        )["scenario"]
-        if not sp:
-            raise ValueError("parameter 'scenario' (path of a scenario YAML) is required")
-        sc = load_scenario(scenario_path(sp))
+        sc = self._scenario()
         self.specs = param_table(sc)
         pv = declare(self, self.specs)
         self.pv = pv
@@ -268,6 +272,53 @@ class PlantNode(FluxNode):
         self.mp = ds.mp.copy()
         self._set_load(pv)
         self.stamp = Stamp(ds.ts)
+        self._wire(pv)
+        self._init_state(pv)
+        self.counts = diag.Counters(
+            "duty_received",
+            "duty_nonfinite",
+            "duty_out_of_range",
+            "repeated_or_backwards",
+            "unexpected_seq",
+            "watchdog_trips",
+        )
+        self._logged = 0
+        on_set(self, self.specs, self._apply, lambda: self.k + 1, ds.ts)
+        self.guard = access.CommandGuard(
+            topics.drive_names(self, list(pv["allowed_commanders"])), topics.DUTY
+        )
+        self.diag = diag.Diagnostics(self, pv["diagnostics_period_s"])
+        self.diag.add("commands", self._diag_commands)
+        self._diag_from = 0  # paced: first lateness entry of the next /diagnostics window
+        if self.paced:
+            self.diag.add("pacing", self._diag_pacing)
+        self.get_logger().info(
+            f"scenario {sc.name} ({self.sc.source}): {self.n if self.n < 2**62 else 'inf'} "
+            f"periods of {ds.ts * 1e6:.0f} us, seed {sc.seed}, {pv['mode']}"
+        )
+        self._start_timer = self.create_timer(0.05, self._try_start)
+        self._pace_timer: Any = None  # an rclpy Timer once paced
+
+    def _scenario(self):
+        """The scenario named by the `scenario` parameter (required)."""
+        sp = declare(
+            self,
+            [
+                P(
+                    "scenario",
+                    "",
+                    "scenario YAML (path or a name under "
+                    "config/scenarios): machine card, load, seed, faults",
+                    read_only=True,
+                )
+            ],
+        )["scenario"]
+        if not sp:
+            raise ValueError("parameter 'scenario' (path of a scenario YAML) is required")
+        return load_scenario(scenario_path(sp))
+
+    def _wire(self, pv: dict) -> None:
+        """Wire formats, the frame/truth/clock/done publishers and the duty subscription."""
         gid = self.graph.id
         self.fw = FrameWire(pv["frame_id"], extra_flags=STATUS_SIMULATED, graph_id=gid)
         self.tw = TruthWire(pv["frame_id"], graph_id=gid)
@@ -293,6 +344,9 @@ class PlantNode(FluxNode):
             qos.reader(pv["input_durability"]),
             drain=256,
         )
+
+    def _init_state(self, pv: dict) -> None:
+        """Stepping, start-up and pacing state (lateness, late duties, watchdogs)."""
         self.k = -1  # index of the last frame published
         self.next_duty = 0  # lockstep: seq of the duty command expected next
         self.pending: dict[int, tuple] = {}
@@ -319,30 +373,6 @@ class PlantNode(FluxNode):
         self.stalled_since: float | None = None  # paced: the stall line was said
         self._wd_k = -1  # lockstep watchdog: frame index and wall time of the last progress
         self._wd_t = 0.0
-        self.counts = diag.Counters(
-            "duty_received",
-            "duty_nonfinite",
-            "duty_out_of_range",
-            "repeated_or_backwards",
-            "unexpected_seq",
-            "watchdog_trips",
-        )
-        self._logged = 0
-        on_set(self, self.specs, self._apply, lambda: self.k + 1, ds.ts)
-        self.guard = access.CommandGuard(
-            topics.drive_names(self, list(pv["allowed_commanders"])), topics.DUTY
-        )
-        self.diag = diag.Diagnostics(self, pv["diagnostics_period_s"])
-        self.diag.add("commands", self._diag_commands)
-        self._diag_from = 0  # paced: first lateness entry of the next /diagnostics window
-        if self.paced:
-            self.diag.add("pacing", self._diag_pacing)
-        self.get_logger().info(
-            f"scenario {sc.name} ({self.sc.source}): {self.n if self.n < 2**62 else 'inf'} "
-            f"periods of {ds.ts * 1e6:.0f} us, seed {sc.seed}, {pv['mode']}"
-        )
-        self._start_timer = self.create_timer(0.05, self._try_start)
-        self._pace_timer: Any = None  # an rclpy Timer once paced
 
     # ----------------------------------------------------------------- parameters
     def _set_load(self, pv) -> None:
