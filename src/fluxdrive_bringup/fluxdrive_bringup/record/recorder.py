@@ -292,7 +292,7 @@ class RecorderNode(FluxNode):
         # bag times on a real epoch: sample time + the wall clock at the start (header
         # stamps stay sim time; the offset is recorded in the bag's settings)
         offset = 0 if self.pv["timestamps"] == "receive" else time.time_ns()
-        self.pipe.write(
+        self._send(
             pack_json(
                 b"H", {"path": str(self.bag_dir), "custom_data": custom, "epoch_offset_ns": offset}
             )
@@ -478,10 +478,19 @@ class RecorderNode(FluxNode):
                     if self.closed:
                         return
                     try:
-                        self.pipe.write(chunk)
+                        self._send(chunk)
                     except OSError as exc:
                         self._writer_failed(exc)
                         return
+
+    def _send(self, data: bytes) -> None:
+        """All of `data` down the pipe to the writer.  A raw pipe write returns early when a
+        signal interrupts it part-way (Ctrl-C, a SIGSTOP/SIGCONT, a profiler attaching):
+        a record cut there corrupted the writer's input ("corrupt input (record type
+        b'N')", seen under py-spy)."""
+        view = memoryview(data)
+        while view:
+            view = view[self.pipe.write(view) :]
 
     def _writer_failed(self, exc: OSError) -> None:
         """The bag writer stopped (a write failed: disk full, ...): stop recording, say why
@@ -635,7 +644,7 @@ class RecorderNode(FluxNode):
                 return
             self.closed = True
             try:
-                self.pipe.write(self._take() + b"E")
+                self._send(self._take() + b"E")
                 self.pipe.close()
             except OSError:
                 pass
