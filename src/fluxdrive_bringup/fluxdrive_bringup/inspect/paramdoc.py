@@ -11,6 +11,31 @@ import sys
 
 from fluxdrive.drive.scenario import CONFIG_DIR
 
+# node class -> (config block, anchor in docs/configuration.md): the block's fields, which the
+# node declares from their schema, are documented there, once
+SCHEMA_BLOCKS = {
+    "observer": ("observer", "observers-the-flux-observers"),
+    "controller": ("control", "control-the-controller"),
+}
+
+
+def _schema_fields(cls: str) -> set[str]:
+    from fluxdrive.core import schema
+    from fluxdrive.drive.config_blocks import BLOCKS
+
+    return set(schema.specs(BLOCKS[SCHEMA_BLOCKS[cls][0]].cls)) if cls in SCHEMA_BLOCKS else set()
+
+
+def _schema_note(cls: str) -> list[str]:
+    if cls not in SCHEMA_BLOCKS:
+        return []
+    key, anchor = SCHEMA_BLOCKS[cls]
+    return [
+        f"Plus every field of the `{key}` block, default the scenario's: "
+        f"[configuration.md](configuration.md#{anchor}).",
+        "",
+    ]
+
 
 def tables() -> str:
     import rclpy
@@ -49,7 +74,7 @@ def tables() -> str:
                 out.append(f"#### {title}\n")
                 out.append("| parameter | default (demo) | range / choices | live | description |")
                 out.append("|---|---|---|---|---|")
-                for pname in sorted(node._parameters):
+                for pname in sorted(set(node._parameters) - _schema_fields(cls)):
                     if pname in skip:
                         continue
                     d = node.describe_parameter(pname)
@@ -75,7 +100,7 @@ def tables() -> str:
                         else str(v)
                     )
                     out.append(f"| `{pname}` | {val} | {rng} | {live} | {desc} |")
-                out.append("")
+                out += ["", *_schema_note(cls)]
             finally:
                 if hasattr(node, "proc"):  # the recorder's writer process
                     node.close()
