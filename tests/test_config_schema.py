@@ -165,3 +165,33 @@ def test_node_descriptors_are_the_schema(kind, ctx):
         assert seen >= 12
     finally:
         node.destroy_node()
+
+
+def test_bridge_descriptors_are_the_schema(ctx):
+    """The bench bridge in split mode: drive.<field> per DriveParams field and the supervisor's
+    settings carry the schemas' ranges (what the drive and CanBridge accept) and text."""
+    from bench_bridge.bridge_node import SUPERVISOR_FIELDS, BenchBridgeNode
+    from fluxdrive.can.bridge import BridgeConfig
+    from fluxdrive.can.loop import new_virtual_channel
+    from fluxdrive.drive.control import DRIVE_PARAM_RANGES, DriveParams
+    from rclpy.parameter import Parameter
+
+    ov = [
+        Parameter("channel", value=new_virtual_channel()),
+        Parameter("control_split", value=True),
+        Parameter("scenario", value=SCENARIO),
+    ]
+    node = BenchBridgeNode(context=ctx, parameter_overrides=ov)
+    try:
+        fields = [("drive." + n, n, s, DriveParams) for n, s in schema.specs(DriveParams).items()]
+        fields += [(n, n, schema.specs(BridgeConfig)[n], BridgeConfig) for n in SUPERVISOR_FIELDS]
+        for pname, name, s, cls in fields:
+            d = node.describe_parameter(pname)
+            assert d.description.startswith(s.doc), (pname, d.description)
+            assert d.read_only == (not s.live), pname
+            if s.numeric:
+                r = (d.floating_point_range or d.integer_range)[0]
+                assert (r.from_value, r.to_value) == schema.ranges(cls)[name], pname
+        assert {n.upper() for n in schema.specs(DriveParams)} == set(DRIVE_PARAM_RANGES)
+    finally:
+        node.destroy_node()
