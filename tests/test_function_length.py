@@ -28,7 +28,6 @@ KNOWN_LONG: set[str] = {
     "python/fluxdrive/experiments/paper.py::paper_robust",
     "src/fluxdrive_bringup/fluxdrive_bringup/measure/bench.py::bench_graph",
     "src/fluxdrive_bringup/fluxdrive_bringup/measure/bench.py::bench_paced",
-    "src/fluxdrive_bringup/fluxdrive_bringup/record/recorder.py::RecorderNode.__init__",
 }
 
 

@@ -123,103 +123,115 @@ def _has_seq(msgtype: str) -> bool:
     )
 
 
+def recorder_params() -> list[P]:
+    """The recorder's parameters: what it records, then how it writes."""
+    return _what_params() + _writing_params()
+
+
+def _what_params() -> list[P]:
+    """The bag, its topics and metadata (the default bag directory named by the time now)."""
+    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+    return [
+        P(
+            "bag_dir",
+            str(REPO_ROOT / "bags" / f"run-{stamp}"),
+            "output bag directory (must not exist yet)",
+            read_only=True,
+        ),
+        P("topics", list(DEFAULT_TOPICS), "topics to record", read_only=True),
+        P(
+            "observers",
+            [""],
+            "observer names whose /obs/<name>/estimate is recorded",
+            read_only=True,
+        ),
+        P(
+            "timestamps",
+            "header",
+            "bag time stamps: header (sample instant) or receive (wall clock)",
+            choices=("header", "receive"),
+            read_only=True,
+        ),
+        P("exit_on_done", True, "finalise and exit once the run is done and drained"),
+        P(
+            "drain_timeout_s",
+            3.0,
+            "after /drive/done: give up waiting for missing "
+            "samples after this long without new messages",
+            "s",
+            0.0,
+            600.0,
+        ),
+        P(
+            "scenario",
+            "",
+            "scenario of the run: its machine card and observer "
+            "configurations go into the bag's metadata (for replay)",
+            read_only=True,
+        ),
+        P(
+            "duration_s",
+            0.0,
+            "run length for the metadata (0: the scenario's)",
+            "s",
+            0.0,
+            3600.0,
+            read_only=True,
+        ),
+        input_durability_param(),
+    ]
+
+
+def _writing_params() -> list[P]:
+    """Chunks, backlog, the stop's drain and the free space it needs."""
+    return [
+        P(
+            "flush_interval_s",
+            0.5,
+            "close the open MCAP chunk and flush the bag file this "
+            "often (bounds what a killed recorder loses)",
+            "s",
+            0.05,
+            60.0,
+        ),
+        P(
+            "max_backlog_mb",
+            8.0,
+            "messages received but not yet handed to the bag "
+            "writer are held to this much; beyond it the recorder's callback waits for the "
+            "writer (backpressure: a lockstep graph slows to the disk's speed instead of "
+            "growing in memory; also bounds what a SIGKILL loses)",
+            "MB",
+            0.5,
+            4096.0,
+            read_only=True,
+        ),
+        P(
+            "stop_drain_timeout_s",
+            10.0,
+            "on a stop: wait this long at most for the messages the stopped nodes "
+            "published (their counts, from the launcher) before finalising; what is "
+            "missing then is named in the log and the bag's metadata",
+            "s",
+            0.0,
+            600.0,
+        ),
+        P(
+            "min_free_mb",
+            100.0,
+            "refuse to start unless the bag's file system has this much free space",
+            "MB",
+            0.0,
+            1e9,
+            read_only=True,
+        ),
+    ]
+
+
 class RecorderNode(FluxNode):
     def __init__(self, name: str = "recorder", namespace: str | None = None, **kw):
         super().__init__(name, namespace, **kw)
-        stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
-        pv = declare(
-            self,
-            [
-                P(
-                    "bag_dir",
-                    str(REPO_ROOT / "bags" / f"run-{stamp}"),
-                    "output bag directory (must not exist yet)",
-                    read_only=True,
-                ),
-                P("topics", list(DEFAULT_TOPICS), "topics to record", read_only=True),
-                P(
-                    "observers",
-                    [""],
-                    "observer names whose /obs/<name>/estimate is recorded",
-                    read_only=True,
-                ),
-                P(
-                    "timestamps",
-                    "header",
-                    "bag time stamps: header (sample instant) or receive (wall clock)",
-                    choices=("header", "receive"),
-                    read_only=True,
-                ),
-                P("exit_on_done", True, "finalise and exit once the run is done and drained"),
-                P(
-                    "drain_timeout_s",
-                    3.0,
-                    "after /drive/done: give up waiting for missing "
-                    "samples after this long without new messages",
-                    "s",
-                    0.0,
-                    600.0,
-                ),
-                P(
-                    "scenario",
-                    "",
-                    "scenario of the run: its machine card and observer "
-                    "configurations go into the bag's metadata (for replay)",
-                    read_only=True,
-                ),
-                P(
-                    "duration_s",
-                    0.0,
-                    "run length for the metadata (0: the scenario's)",
-                    "s",
-                    0.0,
-                    3600.0,
-                    read_only=True,
-                ),
-                input_durability_param(),
-                P(
-                    "flush_interval_s",
-                    0.5,
-                    "close the open MCAP chunk and flush the bag file this "
-                    "often (bounds what a killed recorder loses)",
-                    "s",
-                    0.05,
-                    60.0,
-                ),
-                P(
-                    "max_backlog_mb",
-                    8.0,
-                    "messages received but not yet handed to the bag "
-                    "writer are held to this much; beyond it the recorder's callback waits for the "
-                    "writer (backpressure: a lockstep graph slows to the disk's speed instead of "
-                    "growing in memory; also bounds what a SIGKILL loses)",
-                    "MB",
-                    0.5,
-                    4096.0,
-                    read_only=True,
-                ),
-                P(
-                    "stop_drain_timeout_s",
-                    10.0,
-                    "on a stop: wait this long at most for the messages the stopped nodes "
-                    "published (their counts, from the launcher) before finalising; what is "
-                    "missing then is named in the log and the bag's metadata",
-                    "s",
-                    0.0,
-                    600.0,
-                ),
-                P(
-                    "min_free_mb",
-                    100.0,
-                    "refuse to start unless the bag's file system has this much free space",
-                    "MB",
-                    0.0,
-                    1e9,
-                    read_only=True,
-                ),
-            ],
-        )
-        self.pv = pv
+        pv = self.pv = declare(self, recorder_params())
         want = [t for t in pv["topics"] if t]
         want += [topics.rel(topics.estimate_topic(o)) for o in pv["observers"] if o]
         # bag topic name -> the name subscribed (relative ones: in this drive's namespace)
@@ -236,6 +248,17 @@ class RecorderNode(FluxNode):
         self._start_writer(custom)
         sys.stdout.write(f"@bag-open {self.bag_dir}\n")  # the launcher names it if unfinalised
         sys.stdout.flush()
+        self._init_state()
+        self._subscribe_all(pv)
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._feeder, name="bag-feeder", daemon=True)
+        self.thread.start()
+        self.get_logger().info(
+            f"recording {len(self.want)} topics to {self.bag_dir} ({free_mb:.0f} MB free)"
+        )
+
+    def _init_state(self) -> None:
+        pv = self.pv
         self.header_ts = pv["timestamps"] == "header"
         self.buf: list[bytes] = []
         # backlog = bytes_in - bytes_out; each counter has one writer thread (callbacks /
@@ -259,6 +282,9 @@ class RecorderNode(FluxNode):
         self.done_seq: int | None = None
         self.closed = False
         self.subs: list[RawSubscription] = []
+
+    def _subscribe_all(self, pv: dict) -> None:
+        """Every wanted topic (those of unknown type once they appear) and the run's end."""
         self.pending = [t for t in self.want if not self._subscribe(t, conventional_type(t))]
         if self.pending:
             self._discover_timer = self.create_timer(0.2, self._discover)
@@ -270,12 +296,6 @@ class RecorderNode(FluxNode):
                 qos.LATCHED,
             )
             self._done_timer = self.create_timer(0.1, self._check_done)
-        self.stop = threading.Event()
-        self.thread = threading.Thread(target=self._feeder, name="bag-feeder", daemon=True)
-        self.thread.start()
-        self.get_logger().info(
-            f"recording {len(self.want)} topics to {self.bag_dir} ({free_mb:.0f} MB free)"
-        )
 
     # ----------------------------------------------------------------- writer process
     def _start_writer(self, custom: dict) -> None:
