@@ -56,12 +56,12 @@ def test_recorder_stalled_past_its_lease_says_what_is_missing_and_why(tmp_path):
     )
     g["nodes"][0]["required"] = True
     run = Run(g, domain(33), tmp_path).start()
-    run.wait_frames(2000)
+    run.wait_frames(2000, timeout=400)  # kernels may compile first
     pid = run.pid("recorder")
     os.kill(pid, signal.SIGSTOP)
     k_stop = run.frames()
     time.sleep(STALL_S)  # the stall is the input: a stated length of time ...
-    run.wait_frames(k_stop + 12000)  # ... and more frames than the writers' history holds
+    run.wait_frames(k_stop + 12000, timeout=400)  # ... and past the writers' history
     k_cont = run.frames()
     os.kill(pid, signal.SIGCONT)
     code = run.join(timeout=240)  # the run ends by itself (Run: launcher timeout 150 s)
