@@ -26,7 +26,6 @@ KNOWN_LONG: set[str] = {
     "python/fluxdrive/experiments/paper.py::fig15_16",
     "python/fluxdrive/experiments/paper.py::fig2_4",
     "python/fluxdrive/experiments/paper.py::paper_robust",
-    "src/fluxdrive_bringup/fluxdrive_bringup/measure/bench.py::bench_graph",
     "src/fluxdrive_bringup/fluxdrive_bringup/measure/bench.py::bench_paced",
 }
 

@@ -52,13 +52,48 @@ def _say(text: str) -> None:
 
 
 def bench_graph(argv: list[str]) -> dict:
-    from fluxdrive_bringup.launch.runs import (
-        DEMO_SCENARIO,
-        LAYOUTS,
-        result_from_bag,
-        run_graph,
-        shorten,
-    )
+    from fluxdrive_bringup.launch.runs import LAYOUTS
+
+    args = _graph_parser().parse_args(argv)
+    if args.scope_browser:
+        args.scope = True
+    sp = scenario_path(args.scenario)
+    layouts = [x.strip() for x in args.layouts.split(",") if x.strip()]
+    for lay in layouts:
+        if lay not in LAYOUTS:
+            raise SystemExit(f"unknown layout {lay!r}; choose from {LAYOUTS}")
+    sc, in_rtf = _in_process_rtf(sp, args.duration)
+    first_cpu: list[dict] = []  # CPU figures of the runs of the first layout, without scope
+    out: dict = {}
+    page: dict = {}
+    tmp = Path(tempfile.mkdtemp(prefix="fluxdrive-bench-"))
+    try:
+        for lay in layouts:
+            best: dict[bool, float] = {}
+            cpus: dict[bool, list[dict]] = {}
+            for rep in range(args.repeat):
+                for with_scope in [False, True] if args.scope else [False]:
+                    rtf, c, seen = _graph_run(args, sp, sc, lay, rep, with_scope, tmp)
+                    page = seen or page
+                    if c:
+                        cpus.setdefault(with_scope, []).append(c)
+                        if lay == layouts[0] and not with_scope:
+                            first_cpu.append(c)
+                    best[with_scope] = max(best.get(with_scope, 0.0), rtf)
+            out.update(_layout_figures(lay, best, cpus, args.scope))
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    res = _graph_result(args, sc, layouts, out, page, in_rtf)
+    res.update(cpu_figures(first_cpu, sc.machine.ts_s))
+    if args.closed_loop:
+        res.update(closed_loop_cpu(sp, args.duration, args.domain_id, sc.machine.ts_s))
+    if args.write:
+        write_result("graph", res)
+    return res
+
+
+def _graph_parser() -> argparse.ArgumentParser:
+    from fluxdrive_bringup.launch.runs import DEMO_SCENARIO, LAYOUTS
 
     ap = argparse.ArgumentParser(prog="fluxdrive benchmark graph", description=__doc__)
     ap.add_argument("--duration", type=float, default=3.0, help="simulated seconds (default 3)")
@@ -86,25 +121,22 @@ def bench_graph(argv: list[str]) -> dict:
         help="also measure the closed loop alone (plant, driving observer, controller)",
     )
     ap.add_argument("--write", action="store_true", help="write results/benchmarks/graph.json")
-    args = ap.parse_args(argv)
-    if args.scope_browser:
-        args.scope = True
-    sp = scenario_path(args.scenario)
-    first_cpu: list[dict] = []  # CPU figures of the runs of the first layout, without scope
-    layouts = [x.strip() for x in args.layouts.split(",") if x.strip()]
-    for lay in layouts:
-        if lay not in LAYOUTS:
-            raise SystemExit(f"unknown layout {lay!r}; choose from {LAYOUTS}")
+    return ap
 
-    # in-process reference (compiled kernels warmed up first)
+
+def _in_process_rtf(sp: Path, duration_s: float):
+    """The in-process runner's real-time factor on the scenario (kernels warmed up first);
+    (the shortened scenario, its real-time factor)."""
     from fluxdrive.drive.sim import run_scenario
 
+    from fluxdrive_bringup.launch.runs import shorten
+
     sc = load_scenario(sp)
-    shorten(sc, min(0.05, args.duration))
+    shorten(sc, min(0.05, duration_s))
     _say("in-process: compiling / warming up ...")
     run_scenario(sc, progress=False)
     sc = load_scenario(sp)
-    shorten(sc, args.duration)
+    shorten(sc, duration_s)
     t0 = time.perf_counter()
     run_scenario(sc, progress=False)
     wall_ip = time.perf_counter() - t0
@@ -113,117 +145,111 @@ def bench_graph(argv: list[str]) -> dict:
         f"in-process: {sc.n_periods} periods, {len(sc.observers)} observers in "
         f"{wall_ip:.2f} s = real-time factor {in_rtf:.2f}"
     )
+    return sc, in_rtf
 
-    out: dict = {}
+
+def _graph_run(args, sp: Path, sc, lay: str, rep: int, with_scope: bool, tmp: Path):
+    """One graph run: (its lockstep real-time factor, CPU per simulated second, the scope
+    page's figures); raises when it failed or lost samples."""
+    from fluxdrive_bringup.launch.runs import result_from_bag, run_graph
+
+    tag = f"{lay}-{rep}" + ("-scope" if with_scope else "")
+    bag = tmp / f"bag-{tag}"
+    what = (
+        (" with the scope" + (" (chromium)" if args.scope_browser else " (WebSocket client)"))
+        if with_scope
+        else ""
+    )
+    _say(f"graph ({lay}){what}, run {rep + 1}/{args.repeat}: {args.duration:g} s simulated ...")
+    watcher = ScopeWatcher(args.scope_browser) if with_scope else None
+    cpu = CpuWatcher()
+
+    def watch(launcher, watcher=watcher, cpu=cpu) -> None:
+        import threading
+
+        threading.Thread(target=cpu.run, args=(launcher,), daemon=True).start()
+        if watcher is not None:
+            watcher.run(launcher)
+
+    r = run_graph(
+        sp,
+        out=tmp / f"run-{tag}",
+        bag=bag,
+        layout=lay,
+        duration_s=args.duration,
+        domain_id=args.domain_id,
+        quiet=True,
+        timeout=600.0,
+        progress=False,
+        scope=with_scope,
+        scope_port=0,
+        watch=watch,
+    )
+    cpu.stop()
+    if r["code"] != 0 or r["lockstep_rtf"] is None:
+        raise RuntimeError(
+            f"graph run ({lay}) failed (exit {r['code']}); logs in {tmp / f'run-{tag}' / 'logs'}"
+        )
+    _, arr = result_from_bag(bag, load_scenario(sp), args.duration)
+    missing = sum(arr["missing"].values())
     page: dict = {}
-    tmp = Path(tempfile.mkdtemp(prefix="fluxdrive-bench-"))
-    try:
-        for lay in layouts:
-            best: dict[bool, float] = {}
-            cpus: dict[bool, list[dict]] = {}
-            for rep in range(args.repeat):
-                for with_scope in [False, True] if args.scope else [False]:
-                    tag = f"{lay}-{rep}" + ("-scope" if with_scope else "")
-                    bag = tmp / f"bag-{tag}"
-                    what = (
-                        (
-                            " with the scope"
-                            + (" (chromium)" if args.scope_browser else " (WebSocket client)")
-                        )
-                        if with_scope
-                        else ""
-                    )
-                    _say(
-                        f"graph ({lay}){what}, run {rep + 1}/{args.repeat}: "
-                        f"{args.duration:g} s simulated ..."
-                    )
-                    watcher = ScopeWatcher(args.scope_browser) if with_scope else None
-                    cpu = CpuWatcher()
+    extra = ""
+    if watcher is not None:
+        watcher.stop()
+        page = watcher.summary(r["loop_wall_s"] or 1.0)
+        extra = _page_note(page)
+        if page["scope_envelopes"] == 0:
+            raise RuntimeError(
+                f"the scope delivered nothing ({lay}); logs in {tmp / f'run-{tag}' / 'logs'}"
+            )
+    c = cpu.per_sim_s(sc.machine.ts_s)
+    if c:
+        extra += f"; CPU per simulated second: graph process {c['graph']:.2f} s" + (
+            f", scope server {c['scope']:.2f} s" if "scope" in c else ""
+        )
+    _say(
+        f"graph ({lay}){what}: {r['frames']} frames in "
+        f"{r['loop_wall_s']:.2f} s = real-time factor "
+        f"{r['lockstep_rtf']:.3f}; bag: {arr['n']} frames, {missing} samples "
+        f"missing{extra}"
+    )
+    if missing:
+        raise RuntimeError(f"graph run ({lay}) lost {missing} samples: {arr['missing']}")
+    shutil.rmtree(bag, ignore_errors=True)
+    return r["lockstep_rtf"], c, page
 
-                    def watch(launcher, watcher=watcher, cpu=cpu) -> None:
-                        import threading
 
-                        threading.Thread(target=cpu.run, args=(launcher,), daemon=True).start()
-                        if watcher is not None:
-                            watcher.run(launcher)
+def _page_note(page: dict) -> str:
+    return (
+        f"; scope: {page['scope_envelopes']} envelopes to the page "
+        f"({page['scope_envelopes_per_s']:.1f}/s)"
+        + (f", page redraws {page['scope_page_fps']:.0f}/s" if "scope_page_fps" in page else "")
+    )
 
-                    r = run_graph(
-                        sp,
-                        out=tmp / f"run-{tag}",
-                        bag=bag,
-                        layout=lay,
-                        duration_s=args.duration,
-                        domain_id=args.domain_id,
-                        quiet=True,
-                        timeout=600.0,
-                        progress=False,
-                        scope=with_scope,
-                        scope_port=0,
-                        watch=watch,
-                    )
-                    cpu.stop()
-                    if r["code"] != 0 or r["lockstep_rtf"] is None:
-                        raise RuntimeError(
-                            f"graph run ({lay}) failed (exit {r['code']}); "
-                            f"logs in {tmp / f'run-{tag}' / 'logs'}"
-                        )
-                    sc2 = load_scenario(sp)
-                    _, arr = result_from_bag(bag, sc2, args.duration)
-                    missing = sum(arr["missing"].values())
-                    extra = ""
-                    if watcher is not None:
-                        watcher.stop()
-                        page = watcher.summary(r["loop_wall_s"] or 1.0)
-                        extra = (
-                            f"; scope: {page['scope_envelopes']} envelopes to the page "
-                            f"({page['scope_envelopes_per_s']:.1f}/s)"
-                            + (
-                                f", page redraws {page['scope_page_fps']:.0f}/s"
-                                if "scope_page_fps" in page
-                                else ""
-                            )
-                        )
-                        if page["scope_envelopes"] == 0:
-                            raise RuntimeError(
-                                f"the scope delivered nothing ({lay}); logs in "
-                                f"{tmp / f'run-{tag}' / 'logs'}"
-                            )
-                    c = cpu.per_sim_s(sc.machine.ts_s)
-                    if c:
-                        extra += f"; CPU per simulated second: graph process {c['graph']:.2f} s" + (
-                            f", scope server {c['scope']:.2f} s" if "scope" in c else ""
-                        )
-                        cpus.setdefault(with_scope, []).append(c)
-                        if lay == layouts[0] and not with_scope:
-                            first_cpu.append(c)
-                    _say(
-                        f"graph ({lay}){what}: {r['frames']} frames in "
-                        f"{r['loop_wall_s']:.2f} s = real-time factor "
-                        f"{r['lockstep_rtf']:.3f}; bag: {arr['n']} frames, {missing} samples "
-                        f"missing{extra}"
-                    )
-                    if missing:
-                        raise RuntimeError(
-                            f"graph run ({lay}) lost {missing} samples: {arr['missing']}"
-                        )
-                    best[with_scope] = max(best.get(with_scope, 0.0), r["lockstep_rtf"])
-                    shutil.rmtree(bag, ignore_errors=True)
-            out[f"lockstep_rtf_{lay}"] = round(best[False], 3)
-            if args.scope:
-                out[f"lockstep_rtf_scope_{lay}"] = round(best[True], 3)
-                if cpus.get(False) and cpus.get(True):
-                    # least CPU per simulated second of each: the run least disturbed by
-                    # other load on the machine
-                    g0 = min(c["graph"] for c in cpus[False])
-                    g1 = min(c["graph"] for c in cpus[True])
-                    out[f"graph_cpu_s_per_sim_s_{lay}"] = round(g0, 3)
-                    out[f"graph_cpu_s_per_sim_s_scope_{lay}"] = round(g1, 3)
-                    out[f"scope_cpu_cost_pct_{lay}"] = round(100.0 * (g1 / g0 - 1.0), 1)
-                    sv = [c["scope"] for c in cpus[True] if "scope" in c]
-                    if sv:
-                        out[f"scope_server_cpu_s_per_sim_s_{lay}"] = round(min(sv), 3)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+
+def _layout_figures(
+    lay: str, best: dict[bool, float], cpus: dict[bool, list[dict]], scope: bool
+) -> dict:
+    """A layout's best real-time factors and, with the scope, what the scope costs."""
+    out = {f"lockstep_rtf_{lay}": round(best[False], 3)}
+    if not scope:
+        return out
+    out[f"lockstep_rtf_scope_{lay}"] = round(best[True], 3)
+    if cpus.get(False) and cpus.get(True):
+        # least CPU per simulated second of each: the run least disturbed by
+        # other load on the machine
+        g0 = min(c["graph"] for c in cpus[False])
+        g1 = min(c["graph"] for c in cpus[True])
+        out[f"graph_cpu_s_per_sim_s_{lay}"] = round(g0, 3)
+        out[f"graph_cpu_s_per_sim_s_scope_{lay}"] = round(g1, 3)
+        out[f"scope_cpu_cost_pct_{lay}"] = round(100.0 * (g1 / g0 - 1.0), 1)
+        sv = [c["scope"] for c in cpus[True] if "scope" in c]
+        if sv:
+            out[f"scope_server_cpu_s_per_sim_s_{lay}"] = round(min(sv), 3)
+    return out
+
+
+def _graph_result(args, sc, layouts: list[str], out: dict, page: dict, in_rtf: float) -> dict:
     res = {
         "lockstep_rtf": out[f"lockstep_rtf_{layouts[0]}"],
         "in_process_rtf": round(in_rtf, 2),
@@ -251,11 +277,6 @@ def bench_graph(argv: list[str]) -> dict:
                 res[k] = out[f"{k}_{layouts[0]}"]
     if len(layouts) > 1:
         res.update(out)
-    res.update(cpu_figures(first_cpu, sc.machine.ts_s))
-    if args.closed_loop:
-        res.update(closed_loop_cpu(sp, args.duration, args.domain_id, sc.machine.ts_s))
-    if args.write:
-        write_result("graph", res)
     return res
 
 
