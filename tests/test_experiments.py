@@ -258,3 +258,45 @@ def test_graph_flag_runs_through_the_node_graph_with_the_same_numbers(tmp_path):
     print(
         sc.duration_s, "s simulated; θ̃ RMS", mb["observers"]["flux_measured"]["theta_err_rms_deg"]
     )
+
+
+def test_a_second_card_reports_its_own_numbers(tmp_path):
+    """`experiment --machine`: a quick subset (Figs. 13, 14, 19) on the gimbal card, whose
+    rated speed, PWM, deadtime, cut-off and PLLs all differ from the default card's.  Its texts
+    quote that card's numbers: none of the default card's speeds, frequencies and voltages
+    appears in what the runs report (the claims' registered text quotes the paper, not
+    checked)."""
+    from fluxdrive.core.machine import card_current_bandwidth_hz, load_machine
+    from fluxdrive.drive.observers import observer_config
+    from fluxdrive.drive.scenario import CONFIG_DIR
+    from fluxdrive.experiments.common import CardValues
+
+    gimbal = CONFIG_DIR / "machines" / "gimbal_24v.yaml"
+
+    def numbers(card):
+        mc = CardValues.of(card)
+        rpm = [f"{pu * card.rated_speed_rpm:.0f} rpm" for pu in (0.02, 0.04, 0.06, 0.1, 0.16)]
+        hz = [observer_config(v, card) for v in ("paper_robust", "emf")]
+        hz = [f"{x:.0f} Hz" for o in hz for x in (o.cutoff_hz, o.pll_bandwidth_hz)]
+        hz.append(f"{card_current_bandwidth_hz(card):.0f} Hz")
+        volts = [f"{mc.vdt:.2f} V", f"{mc.v1_dt:.2f} V", f"{mc.l / mc.ts:.1f} Ω"]
+        emf_2pct = 0.02 * card.rated_speed_rpm * 2 * math.pi / 60 * mc.p * mc.lam
+        volts.append(f"(ω·λ = {emf_2pct:.2f} V)")
+        return set(rpm + hz + volts + [f"{1e6 * card.deadtime_s:g} µs"])
+
+    default = numbers(MachineCard())
+    own = numbers(load_machine(gimbal))
+    assert len(default - own) >= 10  # the cards differ in what the texts quote
+
+    texts = []
+    for name in ("fig13", "fig14", "fig19"):
+        res = run_experiment(name, tmp_path, quick=True, echo=False, machine=gimbal)
+        texts += [
+            c["ours"] + " " + c.get("why", "") + " " + c.get("note", "") for c in res["claims"]
+        ]
+    prose = "\n".join(texts)
+    # the card's own numbers are there: its ω·λ at 2 % speed (fig13) and its J (fig19)
+    assert next(x for x in own if x.startswith("(ω·λ")) in prose
+    assert f"J = {load_machine(gimbal).inertia_kgm2:.3g} kg·m²" in prose
+    stale = sorted(x for x in default - own if x in prose)
+    assert not stale, f"default-card numbers in the gimbal card's report: {stale}"

@@ -16,16 +16,11 @@ MAX_LINES = 80
 SKIP_DIRS = {"build", "install", "log", "__pycache__", ".ws", ".venv"}
 
 KNOWN_LONG: set[str] = {
-    "python/fluxdrive/experiments/beyond.py::_plot_sens",
     "python/fluxdrive/experiments/beyond.py::_sens_claims",
     "python/fluxdrive/experiments/beyond.py::lowest_speed",
     "python/fluxdrive/experiments/beyond.py::mismatch",
     "python/fluxdrive/experiments/beyond.py::peers_fail",
     "python/fluxdrive/experiments/beyond.py::sensitivity",
-    "python/fluxdrive/experiments/beyond.py::speed_reversal",
-    "python/fluxdrive/experiments/paper.py::fig15_16",
-    "python/fluxdrive/experiments/paper.py::fig2_4",
-    "python/fluxdrive/experiments/paper.py::paper_robust",
     "src/fluxdrive_bringup/fluxdrive_bringup/measure/bench.py::bench_paced",
 }
 
