@@ -21,7 +21,6 @@ KNOWN_LONG: set[str] = {
     "python/fluxdrive/experiments/beyond.py::mismatch",
     "python/fluxdrive/experiments/beyond.py::peers_fail",
     "python/fluxdrive/experiments/beyond.py::sensitivity",
-    "src/fluxdrive_bringup/fluxdrive_bringup/measure/bench.py::bench_paced",
 }
 
 

@@ -568,9 +568,25 @@ last line is JSON."""
 
 
 def bench_paced(argv: list[str]) -> dict:
-    import re
+    args = _paced_parser().parse_args(argv)
+    sp = scenario_path(args.scenario)
+    r, p, text = _paced_run(args, sp)
+    res = _paced_result(args, sp, r, p, text)
+    _say(
+        f"{res['frames']} frames: lateness p50 {res['lateness_p50_periods']} / p99 "
+        f"{res['lateness_p99_periods']} / max {res['lateness_max_periods']} periods; "
+        f"{res['late_frames_per_min']} late frames/min, {res['late_duties_per_min']} late "
+        f"duties/min, "
+        f"{res['slips_per_min']} slips/min, {res['watchdog_trips']} watchdog trips; "
+        f"achieved real-time factor {res['rtf']}"
+    )
+    if args.write:
+        _write_paced(args.write, res)
+    return res
 
-    from fluxdrive_bringup.launch.runs import DEMO_SCENARIO, LAYOUTS, run_graph
+
+def _paced_parser() -> argparse.ArgumentParser:
+    from fluxdrive_bringup.launch.runs import DEMO_SCENARIO, LAYOUTS
 
     ap = argparse.ArgumentParser(prog="fluxdrive benchmark paced", description=PACED_DOC)
     ap.add_argument("--duration", type=float, default=2.0, help="simulated seconds")
@@ -586,8 +602,16 @@ def bench_paced(argv: list[str]) -> dict:
         action="store_true",
         help="one busy core: a spinning child process for the whole run",
     )
-    args = ap.parse_args(argv)
-    sp = scenario_path(args.scenario)
+    return ap
+
+
+def _paced_run(args, sp: Path):
+    """The paced graph run: (run_graph's summary, the plant's pacing record, the logs'
+    text); raises when it failed."""
+    import re
+
+    from fluxdrive_bringup.launch.runs import run_graph
+
     plant: dict[str, object] = {
         "mode": "paced",
         "rate_factor": args.rate,
@@ -644,15 +668,20 @@ def bench_paced(argv: list[str]) -> dict:
             raise RuntimeError(
                 f"paced graph failed (exit {r['code']}); logs in {tmp / 'run' / 'logs'}"
             )
-        p = json.loads(m.group(1))
+        pacing = json.loads(m.group(1))
     finally:
         if spinner is not None:
             spinner.kill()
             spinner.wait()
-        if "p" in locals():
-            shutil.rmtree(tmp, ignore_errors=True)
+    shutil.rmtree(tmp, ignore_errors=True)  # kept (logs) when the run failed
+    return r, pacing, text
+
+
+def _paced_result(args, sp: Path, r: dict, p: dict, text: str) -> dict:
+    import re
+
     wall_min = p["wall_s"] / 60.0  # the paced run proper, from the first duty command
-    res = {
+    return {
         "layout": args.layout,
         "scenario": Path(sp).stem,
         "rate_factor": args.rate,
@@ -677,17 +706,6 @@ def bench_paced(argv: list[str]) -> dict:
         "latched_faults": len(re.findall(r"PWM off \(latched\)", text)),
         "rtf": round(p["frames"] * r["scenario"].machine.ts_s / p["wall_s"], 3),
     }
-    _say(
-        f"{res['frames']} frames: lateness p50 {res['lateness_p50_periods']} / p99 "
-        f"{res['lateness_p99_periods']} / max {res['lateness_max_periods']} periods; "
-        f"{res['late_frames_per_min']} late frames/min, {res['late_duties_per_min']} late "
-        f"duties/min, "
-        f"{res['slips_per_min']} slips/min, {res['watchdog_trips']} watchdog trips; "
-        f"achieved real-time factor {res['rtf']}"
-    )
-    if args.write:
-        _write_paced(args.write, res)
-    return res
 
 
 def _write_paced(label: str, res: dict) -> None:
