@@ -13,10 +13,8 @@ from pathlib import Path
 from typing import Any
 
 from fluxdrive.core import yamlio
-
-
-class ConfigError(ValueError):
-    """A configuration file or value is invalid; the message names the file, key and rule."""
+from fluxdrive.core.errors import ConfigError as ConfigError  # its home for importers
+from fluxdrive.core.schema import param, ranges
 
 
 def required(value: float | None, key: str) -> float:
@@ -48,36 +46,128 @@ def _require_range(src: str, key: str, value: Any, lo: float, hi: float) -> floa
 class MachineCard:
     """SPM machine + two-level inverter + sensors.  SI units throughout."""
 
-    name: str = "default_spm"
-    pole_pairs: int = 4
-    rated_speed_rpm: float = 3000.0
-    flux_linkage_vs: float = 0.0235  # magnet flux, peak per phase [V s]
-    resistance_ohm: float = 0.40
-    inductance_h: float = 0.80e-3
-    rated_current_a: float = 9.0  # peak phase current
-    inertia_kgm2: float = 1.5e-4  # motor + dyno
-    viscous_nms: float = 1.0e-4  # [N m s/rad]
-    dc_bus_v: float = 72.0
-    pwm_hz: float = 10_000.0
-    deadtime_s: float = 2.0e-6
-    device_drop_v: float = 0.0  # switch/diode forward drop
-    current_adc_bits: int = 12
-    current_range_a: float = 20.0  # ADC full scale +-range
-    current_noise_a: float = 0.02  # Gaussian, RMS (about 2 LSB of a 12-bit +-20 A ADC)
-    capture_bits: int = 12  # line-voltage capture: resolution in bits of the period
-    dc_bus_adc_bits: int = 12
-    dc_bus_range_v: float = 100.0
-    dc_bus_noise_v: float = 0.0
-    encoder_lines: int = 2500
-    flux_h5: float = 0.0  # 5th/7th magnet-flux harmonics, per unit of the fundamental
-    flux_h7: float = 0.0
-    saturation: float = 0.0  # L drops by this fraction at rated current (L = L0 (1 - s (i/I_r)^2))
-    # winding thermal model (used when a scenario's bench turns it on): one thermal node,
-    # winding to ambient; resistance_ohm is the value at resistance_ref_c
-    thermal_resistance_k_per_w: float = 0.0
-    thermal_time_constant_s: float = 0.0
-    resistance_ref_c: float = 25.0
-    copper_tempco_per_k: float = 0.00393  # annealed copper at 20 deg C (IEC 60028)
+    name: str = param("default_spm", unit="", doc="the card's name", live=False)
+    pole_pairs: int = param(4, unit="-", doc="pole pairs", range=(1, 64), live=False)
+    rated_speed_rpm: float = param(
+        3000.0, unit="rpm", doc="rated mechanical speed", range=(1.0, 1000000.0), live=False
+    )
+    flux_linkage_vs: float = param(
+        0.0235, unit="V s", doc="magnet flux, peak per phase", range=(1e-06, 10.0), live=False
+    )
+    resistance_ohm: float = param(
+        0.40,
+        unit="ohm",
+        doc="stator resistance per phase (at resistance_ref_c)",
+        range=(0.0, 1000.0),
+        live=False,
+    )
+    inductance_h: float = param(
+        0.80e-3, unit="H", doc="synchronous inductance", range=(1e-07, 10.0), live=False
+    )
+    rated_current_a: float = param(
+        9.0, unit="A", doc="rated current, peak per phase", range=(0.001, 10000.0), live=False
+    )
+    inertia_kgm2: float = param(
+        1.5e-4, unit="kg m^2", doc="inertia of motor and dyno", range=(1e-09, 1000.0), live=False
+    )
+    viscous_nms: float = param(
+        1.0e-4, unit="N m s/rad", doc="viscous friction", range=(0.0, 1000.0), live=False
+    )
+    dc_bus_v: float = param(72.0, unit="V", doc="DC-bus voltage", range=(1.0, 10000.0), live=False)
+    pwm_hz: float = param(
+        10_000.0, unit="Hz", doc="PWM (and sample) frequency", range=(100.0, 1000000.0), live=False
+    )
+    deadtime_s: float = param(
+        2.0e-6,
+        unit="s",
+        doc="inverter deadtime (below 20 % of the PWM period)",
+        range=(0.0, 0.0001),
+        live=False,
+    )
+    device_drop_v: float = param(
+        0.0, unit="V", doc="switch/diode forward drop", range=(0.0, 10.0), live=False
+    )
+    current_adc_bits: int = param(
+        12, unit="bits", doc="current ADC resolution", range=(4, 24), live=False
+    )
+    current_range_a: float = param(
+        20.0, unit="A", doc="current ADC full scale (+-)", range=(0.001, 100000.0), live=False
+    )
+    current_noise_a: float = param(
+        0.02,
+        unit="A",
+        doc="current-sample noise, Gaussian rms (about 2 LSB of a 12-bit +-20 A ADC)",
+        range=(0.0, 1000.0),
+        live=False,
+    )
+    capture_bits: int = param(
+        12,
+        unit="bits",
+        doc="line-voltage capture: resolution in bits of the period",
+        range=(4, 24),
+        live=False,
+    )
+    dc_bus_adc_bits: int = param(
+        12, unit="bits", doc="DC-bus ADC resolution", range=(4, 24), live=False
+    )
+    dc_bus_range_v: float = param(
+        100.0, unit="V", doc="DC-bus ADC full scale", range=(1.0, 100000.0), live=False
+    )
+    dc_bus_noise_v: float = param(
+        0.0, unit="V", doc="DC-bus sample noise, Gaussian rms", range=(0.0, 1000.0), live=False
+    )
+    encoder_lines: int = param(
+        2500,
+        unit="lines",
+        doc="encoder lines per revolution (4x counts)",
+        range=(1, 1 << 20),
+        live=False,
+    )
+    flux_h5: float = param(
+        0.0,
+        unit="pu",
+        doc="5th magnet-flux harmonic, per unit of the fundamental",
+        range=(-0.5, 0.5),
+        live=False,
+    )
+    flux_h7: float = param(
+        0.0,
+        unit="pu",
+        doc="7th magnet-flux harmonic, per unit of the fundamental",
+        range=(-0.5, 0.5),
+        live=False,
+    )
+    saturation: float = param(
+        0.0,
+        unit="-",
+        doc="L drops by this fraction at rated current (L = L0 (1 - s (i/I_r)^2))",
+        range=(0.0, 0.7),
+        live=False,
+    )
+    thermal_resistance_k_per_w: float = param(
+        0.0,
+        unit="K/W",
+        doc="winding-to-ambient thermal resistance (0: no thermal model)",
+        range=(0.0, 1000.0),
+        live=False,
+    )
+    thermal_time_constant_s: float = param(
+        0.0,
+        unit="s",
+        doc="winding thermal time constant (0: no thermal model)",
+        range=(0.0, 1000000.0),
+        live=False,
+    )
+    resistance_ref_c: float = param(
+        25.0, unit="degC", doc="temperature of resistance_ohm", range=(-60.0, 250.0), live=False
+    )
+    copper_tempco_per_k: float = param(
+        0.00393,
+        unit="1/K",
+        doc="resistance temperature coefficient (annealed copper at 20 deg C, IEC 60028)",
+        range=(0.0, 0.01),
+        live=False,
+    )
 
     # ---- derived quantities
     @property
@@ -103,36 +193,7 @@ class MachineCard:
         return self.rated_speed_rpm / 60.0 * self.pole_pairs
 
     def validate(self, src: str = "machine card") -> MachineCard:
-        checks = {
-            "pole_pairs": (1, 64),
-            "rated_speed_rpm": (1.0, 1e6),
-            "flux_linkage_vs": (1e-6, 10.0),
-            "resistance_ohm": (0.0, 1e3),
-            "inductance_h": (1e-7, 10.0),
-            "rated_current_a": (1e-3, 1e4),
-            "inertia_kgm2": (1e-9, 1e3),
-            "viscous_nms": (0.0, 1e3),
-            "dc_bus_v": (1.0, 1e4),
-            "pwm_hz": (100.0, 1e6),
-            "deadtime_s": (0.0, 1e-4),
-            "device_drop_v": (0.0, 10.0),
-            "current_adc_bits": (4, 24),
-            "current_range_a": (1e-3, 1e5),
-            "current_noise_a": (0.0, 1e3),
-            "capture_bits": (4, 24),
-            "dc_bus_adc_bits": (4, 24),
-            "dc_bus_range_v": (1.0, 1e5),
-            "dc_bus_noise_v": (0.0, 1e3),
-            "encoder_lines": (1, 1 << 20),
-            "flux_h5": (-0.5, 0.5),
-            "flux_h7": (-0.5, 0.5),
-            "saturation": (0.0, 0.7),
-            "thermal_resistance_k_per_w": (0.0, 1e3),
-            "thermal_time_constant_s": (0.0, 1e6),
-            "resistance_ref_c": (-60.0, 250.0),
-            "copper_tempco_per_k": (0.0, 0.01),
-        }
-        for key, (lo, hi) in checks.items():
+        for key, (lo, hi) in ranges(MachineCard).items():
             _require_range(src, key, getattr(self, key), lo, hi)
         if self.deadtime_s * self.pwm_hz >= 0.2:
             raise ConfigError(f"{src}: deadtime_s {self.deadtime_s} is >= 20 % of the PWM period")

@@ -26,7 +26,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from fluxdrive.core.machine import ConfigError
+from fluxdrive.core.errors import ConfigError
 
 SCHEMA = "fluxdrive.schema"  # the key of a field's Spec in its dataclass field metadata
 

@@ -75,6 +75,12 @@ BLOCKS: dict[str, Block] = {
         free=frozenset({"extra"}),  # a user variant's constructor keywords, its own
         free_text=frozenset({"variant"}),  # a built-in name, module:Class or an entry point
     ),
+    # on a card where the deadtime rule (below 20 % of the PWM period) does not bind
+    "machine": Block(
+        MachineCard,
+        lambda kw: replace(MachineCard(deadtime_s=0.0, pwm_hz=100.0), **kw).validate("machine"),
+        free_text=frozenset({"name"}),
+    ),
     "drive": Block(
         DriveParams, lambda kw: schema.check_fields(replace(DriveParams(), **kw), "drive")
     ),
