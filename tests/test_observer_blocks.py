@@ -80,3 +80,17 @@ def test_blocks_publish_the_per_frame_estimates(monkeypatch):
     assert counts[64] == counts[1]
     assert counts[1]["bad_samples"] >= 1 and counts[1]["repeated_or_backwards"] >= 1
     assert counts[1]["missing"] >= 1
+
+
+def test_frames_unpacked_as_a_block_equal_one_by_one():
+    from fluxdrive.drive.plant import FR_N
+    from fluxdrive.io.messages import FrameWire
+
+    frames = _frames()
+    fw = FrameWire()
+    block = np.zeros((len(frames), FR_N))
+    seqs = fw.unpack_block(frames, block)
+    assert seqs is not None  # one publisher's frames: one layout, one numpy pass
+    one = np.zeros((len(frames), FR_N))
+    assert seqs == [fw.unpack(d, one[i]) for i, d in enumerate(frames)]
+    assert np.array_equal(block, one, equal_nan=True)

@@ -286,10 +286,36 @@ class RowCodec:
         src = "def fill(m, out):\n" + "\n".join(sets) + f"\n    return m[{seq_i}]\n"
         exec(src, env)  # noqa: S102
         self.fill: Callable[[tuple, np.ndarray], int] = env["fill"]
+        # unpack_block (PhaseFrames only): (column, field position) of the mapped fields
+        self._block = [(c, idx[f]) for f, c in mapping] if mtype == topics.T_FRAME else []
+        self._seq_i = seq_i
+        self._flags_i = idx.get("status_flags", -1)
 
     def unpack(self, data: bytes, out: np.ndarray) -> int:
         """Fill the mapped columns of `out` from serialised bytes; returns seq."""
         return self.fill(self.decoder.decode(data), out)
+
+    def unpack_block(self, datas: list[bytes], out: np.ndarray) -> list[int] | None:
+        """Rows out[:n] from n PhaseFrames of one layout (one publisher's) in one numpy
+        pass over their bytes -- the columns `unpack` fills, with the same values; returns
+        their seqs, or None when the type or the messages' layouts do not allow it (then
+        unpack them one by one)."""
+        if not self._block or not datas:
+            return None
+        c = self.decoder.codec_for(datas[0])
+        if list(c.strings) != ["header.frame_id"]:
+            return None
+        size, strlen = c.size, datas[0][12:16]  # the frame_id's length fixes the layout
+        if any(len(d) != size or d[12:16] != strlen for d in datas):
+            return None
+        arr = np.frombuffer(b"".join(datas), dtype=c.numpy_dtype())
+        n = len(datas)
+        for col, j in self._block:
+            out[:n, col] = arr[f"f{j}"]
+        seq = arr[f"f{self._seq_i}"]
+        out[:n, FR_SEQ] = seq
+        out[:n, FR_FLAGS] = arr[f"f{self._flags_i}"] & FRAME_FLAGS_IN
+        return seq.tolist()
 
     def row(self, values: tuple, out: np.ndarray | None = None) -> np.ndarray:
         """A row (zeros where unmapped) from decoded values (Codec.fields order)."""
@@ -325,6 +351,10 @@ class FrameWire:
     def unpack(self, data: bytes, out: np.ndarray) -> int:
         """Fill an FR_* row; returns seq."""
         return self.rc.unpack(data, out)
+
+    def unpack_block(self, datas: list[bytes], out: np.ndarray) -> list[int] | None:
+        """Fill FR_* rows out[:n] from n frames at once; their seqs (None: unpack each)."""
+        return self.rc.unpack_block(datas, out)
 
 
 class TruthWire:

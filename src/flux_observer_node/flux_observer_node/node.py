@@ -297,8 +297,9 @@ class ObserverNode(FluxNode):
         self.pending = []
         n = len(pend)
         frames, est = self.blk_frames[:n], self.blk_est[:n]
-        unpack = self.fw.unpack
-        seqs = [unpack(data, frames[i]) for i, data in enumerate(pend)]
+        seqs = self.fw.unpack_block(pend, self.blk_frames)
+        if seqs is None:  # frames of several layouts: one by one
+            seqs = [self.fw.unpack(data, frames[i]) for i, data in enumerate(pend)]
         st = self.state
         saved = st.copy()
         before = (st[OS_BAD], st[OS_STALE], st[OS_GAPS], st[OS_LOST])
