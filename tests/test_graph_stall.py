@@ -26,10 +26,13 @@ from test_process_faults import STATUS_STALE_COMMAND, Run, domain, graph_dict, r
 
 pytest.importorskip("rclpy")
 
-RATE = 0.1  # simulated seconds per wall second: 1000 frames/s
-WATCHDOG_S = 0.6  # the plant's limit (default 1 s), scaled down
+RATE = 0.2  # simulated seconds per wall second: 2000 frames/s
+WATCHDOG_S = 1.5  # the plant's limit (default 1 s): 1.5 s, a loaded machine hiccups for 0.6 s
 LATE_STALL_S = 0.25  # less than the limit: late
-DEAD_STALL_S = 1.5  # more: dead
+# more: dead.  At 2000 frames/s a 3 s stop once left the controller silent for over a
+# minute after SIGCONT (the test had moved to 1000 frames/s): it must say within seconds
+# that it latched
+DEAD_STALL_S = 3.0
 MODE_CLOSED_LOOP, MODE_FAULT = 3, 4
 
 
@@ -105,7 +108,8 @@ def test_late_controller_is_counted_a_silent_one_latches(tmp_path):
         target=lambda: setattr(run, "code", run.launcher.run(timeout=400)), daemon=True
     )
     run.start()
-    run.wait_frames(11000, timeout=180)  # closed loop from about frame 9000
+    # closed loop from about frame 9000 (kernels compile first: minutes on a loaded machine)
+    run.wait_frames(11000, timeout=400)
     pid = run.pid("controller")
     at, k_late = len(run.lines), run.frames()
     _stall(pid, LATE_STALL_S)
@@ -119,13 +123,16 @@ def test_late_controller_is_counted_a_silent_one_latches(tmp_path):
         r"(\d+)",
         after=at,
     )
+    t_cont = time.monotonic()
     run.wait_line(
         r"watchdog: the power stage's watchdog switched the PWM off at frame \d+: no duty "
         r"command from this controller for its wall-time limit \(stopped or dead, not "
         r"late\); PWM off \(latched\)",
         after=at,
+        timeout=30,
     )
-    run.wait_frames(run.frames() + 200)
+    after_cont_s = time.monotonic() - t_cont
+    run.wait_frames(run.frames() + 2000)
     run.launcher.stop()
     code = run.join()
     out = run.text()
@@ -147,8 +154,13 @@ def test_late_controller_is_counted_a_silent_one_latches(tmp_path):
     a, b = next(r for r in stale if r[1] >= k_dead)
     assert a == k_off and not any(pwm[a : b + 1]), (a, k_off, b)
     assert modes[max(modes)] == MODE_FAULT
+    # (how far the latched controller has come by the end: it may still be answering the
+    # frames queued while it stood still -- the plant says "duty commands back" only once
+    # it answers a frame still to come)
+    print(f"latched {after_cont_s:.2f} s after SIGCONT; answered up to {max(modes)} of {n}")
     # the record: the late duty of the first stall and its lateness, one trip
-    assert pacing["watchdog_trips"] == 1
+    trips = [ln for ln in out.splitlines() if "watchdog" in ln or "commands back" in ln]
+    assert pacing["watchdog_trips"] == 1, "\n".join(trips)
     assert pacing["late_duties"] >= 1
     assert pacing["duty_lateness_max_periods"] >= 0.5 * LATE_STALL_S * RATE * 1e4
     assert pacing["duty_lateness_p50_periods"] <= pacing["duty_lateness_p99_periods"]

@@ -28,7 +28,9 @@ Modes
   command (up to `first_duty_timeout_s`, 30 s: processes starting); the plant lets time
   slip when it is itself more than 50 periods late.  The pacing record (lateness of every
   frame against its due time and of every duty command against its deadline, p50/p99/max,
-  late duties, slips, watchdog trips) is logged as one
+  late duties, skipped duties -- periods the controller never answered because it went on
+  with a later frame, run on the previous duty and flagged STATUS_STALE_COMMAND -- slips,
+  watchdog trips) is logged as one
   "pacing {json}" line when the plant stops, and while it runs the /diagnostics status
   "<node>: pacing" gives the same for the frames and duties since its last report.  A live
   `rate_factor` change re-anchors the pacing clock at the sample it takes effect (the
@@ -362,10 +364,13 @@ class PlantNode(FluxNode):
         self.t_last_duty = 0.0
         self.watchdog_tripped = False
         self.held = False  # paced: waiting for a duty command past its deadline
-        self.n_late_duties = 0  # paced: duty commands the plant waited for past their deadline
+        self.n_late_duties = 0  # paced: duty commands that came after their deadline
+        self.n_skipped_duties = 0  # paced: periods the controller skipped (answered a later one)
+        self.enabled = False  # paced: PWM state of the last period (kept for a skipped one)
         self.owed: dict[int, float] = {}  # paced: seq -> deadline (wall) of a duty waited for
         self.duty_lateness: list[float] = []  # paced: arrival - deadline of every duty [s]
         self.t_run0: float | None = None  # paced: wall time of the first duty command
+        self.t_pub = np.zeros(4096)  # wall time frame k was published, at k % 4096
         self._diag_duty_from = 0
         self.n_slips = 0
         self.lateness: list[float] = []  # paced: publish time - due time of every frame [s]
@@ -455,6 +460,7 @@ class PlantNode(FluxNode):
 
     def _publish(self, k: int, flags: int = 0) -> None:
         self.t_last_frame = time.perf_counter()
+        self.t_pub[k % 4096] = self.t_last_frame
         if self.stalled_since is not None:
             self.get_logger().info(
                 f"pacing: frames again (frame {k}) after "
@@ -609,24 +615,25 @@ class PlantNode(FluxNode):
         now = time.perf_counter()
         ts_wall = self.ds.ts / float(self.pv["rate_factor"])
         deadline = self.owed.pop(seq, None)  # the plant waited for it past its deadline
-        if deadline is not None:
-            self.n_late_duties += 1
         if seq + 2 > self.k:  # its period is still to come (else: after a watchdog trip)
             self.duties[seq] = d
             if deadline is None:
                 deadline = self.t_wall0 + (seq + 2) * ts_wall  # when frame seq + 2 is due
-        if (
-            deadline is not None
-            and self.last_duty is not None  # not the first (the clock starts with it)
-            and len(self.duty_lateness) < 2_000_000
-        ):
-            self.duty_lateness.append(now - deadline)
+        if deadline is not None and self.k - seq < len(self.t_pub):
+            # the controller's own lateness: two periods from when it could have frame seq
+            # (a plant late itself -- its process stalled -- moves the deadline with it)
+            deadline = max(deadline, float(self.t_pub[seq % len(self.t_pub)]) + 2.0 * ts_wall)
+        if deadline is not None and self.last_duty is not None:  # (the clock starts with
+            self.n_late_duties += int(now > deadline)  # the first one: not counted)
+            if len(self.duty_lateness) < 2_000_000:
+                self.duty_lateness.append(now - deadline)
         if self.last_duty is None:
             self.t_run0 = now  # the paced run proper starts (its clock too)
         if self.last_duty is None or seq >= self.last_duty[0]:
             self.last_duty = (seq, d)
         self.t_last_duty = now
-        if self.watchdog_tripped:
+        # back once it answers a frame still to come (not while it works off its backlog)
+        if self.watchdog_tripped and seq + 2 > self.k:
             self.watchdog_tripped = False
             self.get_logger().info(f"duty commands back (seq {seq}); PWM follows them")
         self._pace_step()
@@ -675,7 +682,14 @@ class PlantNode(FluxNode):
                 self.held = False  # due now), no burst of frames to catch up with
                 self.t_wall0 = now - k * ts_wall
             self.duty[0], self.duty[1], self.duty[2] = d[0], d[1], d[2]
+            self.enabled = d[3]
             self._advance(self.duty, d[3], k)
+            return True
+        if self.last_duty is not None and self.last_duty[0] > k - 2 and not self.watchdog_tripped:
+            # the controller answered a later frame: it skipped this one (catching up), so
+            # duty(k-2) will not come -- the previous duty stays on, the frame says so
+            self.n_skipped_duties += 1
+            self._advance(self.duty, self.enabled, k, STATUS_STALE_COMMAND)
             return True
         silent_s = now - self.t_last_duty
         # the first answer may take a while (processes starting, code loading)
@@ -701,13 +715,15 @@ class PlantNode(FluxNode):
             self.held = False
             self.t_wall0 = now - k * ts_wall
         self.owed.pop(k - 2, None)
+        self.enabled = False
         self._advance(off, False, k, STATUS_STALE_COMMAND)
         return True
 
     def pacing(self) -> dict:
         """Paced loop timing: lateness of the frames against their due time and of the
-        duty commands against their deadline (the due time of the frame they drive), p50/
-        p99/max in periods of paced wall time; late duties (the plant waited for them),
+        duty commands against their deadline (two periods after the frame they answer went
+        out, or the due time of the frame they drive if later), p50/p99/max in periods of
+        paced wall time; late duties (after their deadline),
         slips and watchdog trips (controller silent for watchdog_s)."""
         lat = np.array(self.lateness)
         if lat.size == 0:
@@ -722,6 +738,7 @@ class PlantNode(FluxNode):
     def _pacing_totals(self) -> dict:
         return {
             "late_duties": self.n_late_duties,
+            "skipped_duties": self.n_skipped_duties,
             "slips": self.n_slips,
             "watchdog_trips": self.counts["watchdog_trips"],
         }

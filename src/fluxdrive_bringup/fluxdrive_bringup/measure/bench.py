@@ -548,10 +548,11 @@ observers, the controller and the recorder; composed layout by default.
   lateness_p50/p99/max_periods  how late each frame went out against its due wall time,
                   in PWM periods (the plant's pacing record: one entry per frame)
   duty_lateness_p50/p99/max_periods  how late each duty command came against its deadline
-                  (the due time of the frame it drives; negative: early), in PWM periods
+                  (two periods after the frame it answers went out, or the due time of the
+                  frame it drives if later; negative: early), in PWM periods
   late_frames_per_min   frames more than one period late, per minute of wall time
-  late_duties_per_min   duty commands the plant waited for past their deadline (the
-                  previous duty stayed in effect; time slipped by the wait)
+  late_duties_per_min   duty commands that came after their deadline (the plant waited
+                  with the previous duty in effect; time slipped by the wait)
   slips_per_min   the plant itself was more than 50 periods late and let time slip
   watchdog_trips  PWM switched off because no duty command at all came for watchdog_s
   latched_faults  faults the controller latched (watchdog or any protection trip)
