@@ -861,13 +861,16 @@ class Launcher:
             return None
         if plant_done or self.progress[0] >= self.progress[1] - 1:
             return None
-        t0, k0 = self._frames[0]
+        frames = list(self._frames)  # a copy: the output thread appends to it meanwhile
+        if not frames:
+            return None
+        t0, k0 = frames[0]
         if now - t0 < g.stall_timeout_s:
             return None  # not a whole window yet
         # frames over the window [now - stall_timeout_s, now]: the newest progress mark at
         # or before the window's start (marks come every progress_interval_s with frames)
         k_then = k0
-        for t, k in self._frames:
+        for t, k in frames:
             if t <= now - g.stall_timeout_s:
                 k_then = k
         n = self.progress[0] - k_then
