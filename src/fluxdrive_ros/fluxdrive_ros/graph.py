@@ -58,11 +58,17 @@ def env_id() -> int:
     return id_from_key(os.environ.get(KEY_ENV, ""))
 
 
-def private_clock(graph_id: int) -> str:
-    """The clock topic of a graph that shares its ROS domain (`--shared-domain`):
-    rosgraph_msgs/Clock carries no graph id, so such a graph publishes and reads its sim
-    time here instead of /clock (the launcher remaps /clock for every node of it)."""
-    return f"/fluxdrive/graph_{graph_id:016x}/clock"
+# the topics every node of a graph shares with every other ROS node on the domain, whose
+# messages carry no graph id: a graph sharing its domain gets its own copy of each
+SHARED_TOPICS = ("/clock", "/diagnostics", "/rosout")
+
+
+def private_topic(graph_id: int, topic: str) -> str:
+    """The name `topic` (one of SHARED_TOPICS) has for a graph that shares its ROS domain
+    (`--shared-domain`): rosgraph_msgs/Clock, diagnostic_msgs/DiagnosticArray and
+    rcl_interfaces/Log carry no graph id, so such a graph publishes and reads them here (the
+    launcher remaps each for every node of it)."""
+    return f"/fluxdrive/graph_{graph_id:016x}{topic}"
 
 
 def param() -> P:

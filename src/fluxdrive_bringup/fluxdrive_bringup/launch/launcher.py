@@ -139,7 +139,7 @@ class Graph:
     restart_backoff_s: float = 1.0
     namespace: str = ""  # the drive's namespace: every node under it (`__ns:=`), e.g. /a
     # sharing its ROS domain with other graphs (--shared-domain): /clock, which carries no
-    # graph id, is remapped to the graph's own (fluxdrive_ros.graph.private_clock)
+    # graph id, is remapped to the graph's own (fluxdrive_ros.graph.private_topic)
     shared_domain: bool = False
 
     def policy(self, members: list[NodeSpec]) -> tuple[str, int, float]:
@@ -597,16 +597,32 @@ class Launcher:
         argv = [sys.executable, "-m", "fluxdrive_ros.runner", "--spec-json", json.dumps(spec)]
         if self.g.namespace:  # the whole drive under it (fluxdrive_ros.runner)
             argv += ["--ros-args", "-r", f"__ns:={self.g.namespace}"]
-        elif self.clock_topic != "/clock":
-            argv += ["--ros-args", "-r", f"/clock:={self.clock_topic}"]
+        elif self.private_topics:
+            argv += ["--ros-args"]
+            for shared, own in self.private_topics.items():
+                argv += ["-r", f"{shared}:={own}"]
         return argv
+
+    @property
+    def private_topics(self) -> dict[str, str]:
+        """Shared topic -> this graph's own name for it, for a graph sharing its domain in
+        the root namespace (/clock, /diagnostics, /rosout: their messages carry no graph id,
+        so two such graphs would read and record each other's); empty otherwise."""
+        if self.g.namespace or not self.g.shared_domain:
+            return {}
+        from fluxdrive_ros.graph import SHARED_TOPICS, id_from_key, private_topic
+
+        self.env()  # the graph key (drawn once per launch)
+        gid = id_from_key(self._graph_key)
+        return {t: private_topic(gid, t) for t in SHARED_TOPICS}
 
     def bag_name(self, topic: str) -> str:
         """The name a topic the nodes publish has in the bag: the recorder names the
-        drive's topics as a drive in the root namespace would, and the graph's clock
-        /clock."""
-        if topic == self.clock_topic:
-            return "/clock"
+        drive's topics as a drive in the root namespace would, and the graph's own clock,
+        diagnostics and log topics by their shared names."""
+        for shared, own in self.private_topics.items():
+            if topic == own:
+                return shared
         ns = self.g.namespace
         if ns and topic.startswith(ns + "/"):
             return topic[len(ns) :]
@@ -620,12 +636,7 @@ class Launcher:
         /fluxdrive/graph_<id>/clock, so that no graph reads or records another's clock."""
         if self.g.namespace:
             return self.g.namespace + "/clock"
-        if not self.g.shared_domain:
-            return "/clock"
-        from fluxdrive_ros.graph import id_from_key, private_clock
-
-        self.env()  # the graph key (drawn once per launch)
-        return private_clock(id_from_key(self._graph_key))
+        return self.private_topics.get("/clock", "/clock")
 
     def preflight(self) -> None:
         """Before anything starts: every recorder's bag directory must be new and writable,
