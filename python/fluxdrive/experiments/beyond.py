@@ -883,132 +883,153 @@ def _default_k(card: MachineCard, kind: str) -> tuple[float, float]:
 STEADY_AC_DEG = 10.0  # an estimate whose theta~ wanders more than this about its mean slips
 
 
-def sensitivity(ctx):
-    mc = ctx.cv  # the card's values (see CardValues)
-    rs, ls, lams, cuts, offs = _sens_lists(ctx.quick)
-    speed, load = ctx.rpm(0.02), 1.5
-    jobs = []
-    for kind in SENS_VARIANTS:
-        base = {"variant": SENS_RUN.get(kind, kind), "voltage_source": "measured"}
-        obs = {f"{kind}_nom": base}
-        for f in rs:
-            obs[f"{kind}_r{round(100 * f):03d}"] = {**base, "r_hat_ohm": mc.r * f}
-        for f in ls:
-            obs[f"{kind}_l{round(100 * f):03d}"] = {**base, "l_hat_h": mc.l * f}
-        for f in lams:
-            obs[f"{kind}_lam{round(100 * f):03d}"] = {**base, "lambda_hat_vs": mc.lam * f}
-        if kind != "emf":
-            for f in cuts:
-                obs[f"{kind}_fc{round(10 * f):04d}"] = {**base, **_cut(kind, f)}
-        jobs.append(
-            (ctx.encoder_run(speed, load, observers=obs, name=f"sens_{kind}"), _x_sens, None)
-        )
-    for o in offs:
-        obs = {
-            f"{kind}_nom": {"variant": SENS_RUN.get(kind, kind), "voltage_source": "measured"}
-            for kind in SENS_VARIANTS
-        }
-        jobs.append(
-            (
-                ctx.encoder_run(
-                    speed,
-                    load,
-                    observers=obs,
-                    name="sens_offset",
-                    faults={"current_offset_pu": [0.0, o, 0.0]},
-                ),
-                _x_sens,
-                None,
-            )
-        )
-    # control: the magnitude-forcing observers' cut-off sweep with an ideal inverter
-    obs = {
+def _sens_observers(mc: CardValues, kind: str, lists) -> dict:
+    """One encoder run's shadow observers for `kind`: nominal, each R^/L^/lambda^ error and
+    (not emf, which has no cut-off) each cut-off."""
+    rs, ls, lams, cuts, _ = lists
+    base = {"variant": SENS_RUN.get(kind, kind), "voltage_source": "measured"}
+    obs = {f"{kind}_nom": base}
+    for f in rs:
+        obs[f"{kind}_r{round(100 * f):03d}"] = {**base, "r_hat_ohm": mc.r * f}
+    for f in ls:
+        obs[f"{kind}_l{round(100 * f):03d}"] = {**base, "l_hat_h": mc.l * f}
+    for f in lams:
+        obs[f"{kind}_lam{round(100 * f):03d}"] = {**base, "lambda_hat_vs": mc.lam * f}
+    if kind != "emf":
+        for f in cuts:
+            obs[f"{kind}_fc{round(10 * f):04d}"] = {**base, **_cut(kind, f)}
+    return obs
+
+
+def _sens_control_observers(cuts) -> dict:
+    """The magnitude-forcing observers' cut-off sweep (up to 20 Hz) for the control runs."""
+    return {
         f"{kind}_fc{round(10 * f):04d}": {"variant": SENS_RUN.get(kind, kind), **_cut(kind, f)}
         for kind in ("hinkkanen_luomi", "ortega")
         for f in cuts
         if f <= 20
     }
-    jobs.append(
+
+
+def _sens_jobs(ctx, speed: float, load: float, lists) -> list:
+    """Build: one encoder run per variant, one per current offset (every variant nominal),
+    then the two controls (ideal inverter; ideal sensors with the 2 us deadtime)."""
+    offs, cuts = lists[4], lists[3]
+    jobs = [
         (
             ctx.encoder_run(
-                speed, load, observers=obs, name="sens_no_deadtime", plant={"deadtime_s": 0.0}
+                speed, load, observers=_sens_observers(ctx.cv, kind, lists), name=f"sens_{kind}"
             ),
             _x_sens,
             None,
         )
+        for kind in SENS_VARIANTS
+    ]
+    nominal = {
+        f"{kind}_nom": {"variant": SENS_RUN.get(kind, kind), "voltage_source": "measured"}
+        for kind in SENS_VARIANTS
+    }
+    for o in offs:
+        run = ctx.encoder_run(
+            speed,
+            load,
+            observers=nominal,
+            name="sens_offset",
+            faults={"current_offset_pu": [0.0, o, 0.0]},
+        )
+        jobs.append((run, _x_sens, None))
+    # control: the magnitude-forcing observers' cut-off sweep with an ideal inverter
+    obs = _sens_control_observers(cuts)
+    no_dt = ctx.encoder_run(
+        speed, load, observers=obs, name="sens_no_deadtime", plant={"deadtime_s": 0.0}
     )
+    jobs.append((no_dt, _x_sens, None))
     # and with ideal sensors (no noise, 24-bit ADCs and capture) but the 2 us deadtime
-    jobs.append(
-        (
-            ctx.encoder_run(
-                speed,
-                load,
-                observers=obs,
-                name="sens_ideal_sensors",
-                machine_kw={
-                    "current_noise_a": 0.0,
-                    "current_adc_bits": 24,
-                    "capture_bits": 24,
-                    "dc_bus_adc_bits": 24,
-                },
-            ),
-            _x_sens,
-            None,
-        )
+    ideal_kw = {
+        "current_noise_a": 0.0,
+        "current_adc_bits": 24,
+        "capture_bits": 24,
+        "dc_bus_adc_bits": 24,
+    }
+    ideal = ctx.encoder_run(
+        speed, load, observers=obs, name="sens_ideal_sensors", machine_kw=ideal_kw
     )
-    res = ctx.run(jobs)
+    jobs.append((ideal, _x_sens, None))
+    return jobs
+
+
+def _sens_row(mc: CardValues, kind: str, w: float, iq: float, obs_row: dict, **x) -> dict:
+    """One measured row next to the fundamental model's angle and magnitude."""
+    est = fundamental_estimate(mc, kind, w, iq, **x)
+    return {
+        **obs_row,
+        "steady": obs_row["ac_rms_deg"] < STEADY_AC_DEG,
+        "pred_deg": None if est is None else math.degrees(np.angle(est)),
+        "pred_mag": None if est is None else abs(est),
+    }
+
+
+def _sens_kind_table(ctx, kind: str, o: dict, w: float, iq: float, lists, off_res) -> dict:
+    """Analyse one variant: every error row against the model, every offset row against the
+    first-order prediction."""
+    mc = ctx.cv
+    rs, ls, lams, cuts, offs = lists
+    wc, k = _default_k(ctx.card, kind)
+    dk = {"wc": wc, "k": k}
+    t = {"nom": _sens_row(mc, kind, w, iq, o[f"{kind}_nom"], **dk)}
+    for f in rs:
+        x = o[f"{kind}_r{round(100 * f):03d}"]
+        t[f"r{f}"] = _sens_row(mc, kind, w, iq, x, **dk, r_err=mc.r * (1 - f))
+    for f in ls:
+        x = o[f"{kind}_l{round(100 * f):03d}"]
+        t[f"l{f}"] = _sens_row(mc, kind, w, iq, x, **dk, l_err=mc.l * (1 - f))
+    for f in lams:
+        x = o[f"{kind}_lam{round(100 * f):03d}"]
+        t[f"lam{f}"] = _sens_row(mc, kind, w, iq, x, **dk, lam_hat=mc.lam * f)
+    if kind != "emf":
+        for f in cuts:
+            kk = 2 * math.pi * f
+            x = o[f"{kind}_fc{round(10 * f):04d}"]
+            t[f"fc{f}"] = {**_sens_row(mc, kind, w, iq, x, wc=kk, k=kk), "k": kk}
+    for o_pu, rr in zip(offs, off_res, strict=True):
+        d_ab = o_pu * mc.i_rated * math.sqrt(1 / 9 + 1 / 3)
+        x = rr["obs"][f"{kind}_nom"]
+        t[f"off{o_pu}"] = {
+            **x,
+            "steady": x["ac_rms_deg"] < STEADY_AC_DEG + x["h1_deg"],
+            "pred_h1_deg": offset_h1_pred_deg(mc, kind, w, d_ab, wc=wc, k=k),
+        }
+    return t
+
+
+def _sens_fc_means(r: dict, cuts) -> dict:
+    """A control run's mean theta~ per magnitude-forcing observer and cut-off."""
+    return {
+        f"{kind}_fc{f}": r["obs"][f"{kind}_fc{round(10 * f):04d}"]["mean_deg"]
+        for kind in ("hinkkanen_luomi", "ortega")
+        for f in cuts
+        if f <= 20
+    }
+
+
+def sensitivity(ctx):
+    """Every variant under parameter errors, offsets and cut-offs against its steady-state
+    fundamental model: build -> run -> analyse -> judge -> plot."""
+    mc = ctx.cv  # the card's values (see CardValues)
+    lists = _sens_lists(ctx.quick)
+    rs, ls, lams, cuts, offs = lists
+    speed, load = ctx.rpm(0.02), 1.5
+    res = ctx.run(_sens_jobs(ctx, speed, load, lists))
     nv = len(SENS_VARIANTS)
     per = dict(zip(SENS_VARIANTS, res[:nv], strict=True))
     off_res = res[nv : nv + len(offs)]
-    no_dt, ideal = res[-2], res[-1]
     w, iq = per["paper"]["we"], per["paper"]["iq"]
-    tab: dict = {}
-    for kind in SENS_VARIANTS:
-        o = per[kind]["obs"]
-        wc, k = _default_k(ctx.card, kind)
-
-        def row(obs_row, kind=kind, wc=wc, k=k, **x):
-            est = fundamental_estimate(mc, kind, w, iq, **{"wc": wc, "k": k, **x})
-            return {
-                **obs_row,
-                "steady": obs_row["ac_rms_deg"] < STEADY_AC_DEG,
-                "pred_deg": None if est is None else math.degrees(np.angle(est)),
-                "pred_mag": None if est is None else abs(est),
-            }
-
-        t = {"nom": row(o[f"{kind}_nom"])}
-        for f in rs:
-            t[f"r{f}"] = row(o[f"{kind}_r{round(100 * f):03d}"], r_err=mc.r * (1 - f))
-        for f in ls:
-            t[f"l{f}"] = row(o[f"{kind}_l{round(100 * f):03d}"], l_err=mc.l * (1 - f))
-        for f in lams:
-            t[f"lam{f}"] = row(o[f"{kind}_lam{round(100 * f):03d}"], lam_hat=mc.lam * f)
-        if kind != "emf":
-            for f in cuts:
-                kk = 2 * math.pi * f
-                t[f"fc{f}"] = {**row(o[f"{kind}_fc{round(10 * f):04d}"], wc=kk, k=kk), "k": kk}
-        for o_pu, rr in zip(offs, off_res, strict=True):
-            d_ab = o_pu * mc.i_rated * math.sqrt(1 / 9 + 1 / 3)
-            x = rr["obs"][f"{kind}_nom"]
-            t[f"off{o_pu}"] = {
-                **x,
-                "steady": x["ac_rms_deg"] < STEADY_AC_DEG + x["h1_deg"],
-                "pred_h1_deg": offset_h1_pred_deg(mc, kind, w, d_ab, wc=wc, k=k),
-            }
-        tab[kind] = t
-    nd = {
-        f"{kind}_fc{f}": no_dt["obs"][f"{kind}_fc{round(10 * f):04d}"]["mean_deg"]
-        for kind in ("hinkkanen_luomi", "ortega")
-        for f in cuts
-        if f <= 20
+    tab = {
+        kind: _sens_kind_table(ctx, kind, per[kind]["obs"], w, iq, lists, off_res)
+        for kind in SENS_VARIANTS
     }
-    ids = {
-        f"{kind}_fc{f}": ideal["obs"][f"{kind}_fc{round(10 * f):04d}"]["mean_deg"]
-        for kind in ("hinkkanen_luomi", "ortega")
-        for f in cuts
-        if f <= 20
-    }
-    claims = _sens_claims(mc, tab, rs, ls, lams, cuts, offs, w, iq, nd, ids)
+    nd, ids = _sens_fc_means(res[-2], cuts), _sens_fc_means(res[-1], cuts)
+    claims = _sens_claims(mc, tab, rs, ls, lams, cuts, offs, w, iq, nd, ids, speed)
     figs = [_plot_sens(ctx, tab, rs, ls, lams, cuts, offs, w, iq)]
     return {
         "claims": claims,
@@ -1036,72 +1057,83 @@ def _label(key: str) -> str:
     return key
 
 
-def _sens_claims(mc: CardValues, tab, rs, ls, lams, cuts, offs, w, iq, nd, ids):
-    claims = []
-    desc = {
-        "paper": "R̂: magnitude only, |λ̂| = λ + ΔR i_q/ω (a 180° flip once ΔR i_q < −ωλ); "
-        "L̂: angle atan(ΔL i_q/λ); λ̂: nothing",
-        "lpf": "a lead atan(ω_c/ω) whatever the parameters (no compensation); parameter "
-        "errors add on top as for paper",
-        "hinkkanen_luomi": "magnitude errors (R̂, λ̂) become angle errors atan(c/ω), c the "
-        "correction that pulls |η| back to λ̂; L̂: as paper",
-        "ortega": "as hinkkanen_luomi with the stiffer default loop γλ² = 1000 s⁻¹",
-        "emf": "the EMF angle: R̂ (along q) no angle, L̂ atan(ΔL i_q/λ), λ̂ unused",
-    }
-    for kind, t in tab.items():
-        keys = [f"r{f}" for f in rs] + [f"l{f}" for f in ls] + [f"lam{f}" for f in lams]
-        used, no_eq, slip, bad = [], [], [], []
-        for k in keys:
-            x = t[k]
-            if x["pred_deg"] is None:
-                no_eq.append(k)
-            elif not x["steady"]:
-                slip.append(k)
-            else:
-                used.append(k)
-                if _wrapdiff(x["mean_deg"], x["pred_deg"]) > 3.0 + 0.1 * abs(x["pred_deg"]):
-                    bad.append(k)
+# what the fundamental model says each variant makes of the parameter errors
+SENS_DESC = {
+    "paper": "R̂: magnitude only, |λ̂| = λ + ΔR i_q/ω (a 180° flip once ΔR i_q < −ωλ); "
+    "L̂: angle atan(ΔL i_q/λ); λ̂: nothing",
+    "lpf": "a lead atan(ω_c/ω) whatever the parameters (no compensation); parameter "
+    "errors add on top as for paper",
+    "hinkkanen_luomi": "magnitude errors (R̂, λ̂) become angle errors atan(c/ω), c the "
+    "correction that pulls |η| back to λ̂; L̂: as paper",
+    "ortega": "as hinkkanen_luomi with the stiffer default loop γλ² = 1000 s⁻¹",
+    "emf": "the EMF angle: R̂ (along q) no angle, L̂ atan(ΔL i_q/λ), λ̂ unused",
+}
 
-        def fmt(k, t=t):
-            x = t[k]
-            pr = "no equilibrium" if x["pred_deg"] is None else f"{x['pred_deg']:.1f}°"
-            tag = "" if x["steady"] else ", slips"
-            return f"{_label(k)}: {x['mean_deg']:.1f}° (model {pr}{tag})"
 
-        nom = t["nom"]
-        why = []
-        if no_eq:
-            why.append(
-                f"no stable equilibrium in the model at {', '.join(map(_label, no_eq))} "
-                "(the magnitude loop cannot hold |η| at λ̂ with the |x| it is given: "
-                "the estimate keeps turning)"
-            )
-        if slip:
-            why.append(
-                f"the estimate slips (θ̃ wanders > {STEADY_AC_DEG:.0f}° about its mean) "
-                f"at {', '.join(map(_label, slip))}"
-            )
-        if bad:
-            why.append(f"off the model at {', '.join(map(_label, bad))}")
-        if kind == "ortega" and not nom["steady"]:
-            why.append(
-                "even with exact parameters the default γλ² = 1000 s⁻¹ slips at 60 rpm: "
-                "its angle-error pole ω²/k = 0.6 s⁻¹ barely corrects, and a q-axis EMF "
-                "residue δ gives k δ/(ω²λ) ≈ 4° per mV (cut-off row)"
-            )
-        claims.append(
-            claim(
-                f"{kind} (measured voltages, 60 rpm, 150 %): mean θ̃ under R̂ ±30 %, L̂ ±30 %, "
-                f"λ̂ ±10 % follows the steady-state fundamental model where the estimate is "
-                f"steady — {desc[kind]}",
-                f"nominal {nom['mean_deg']:.2f}° (RMS {nom['rms_deg']:.2f}°); "
-                + "; ".join(fmt(k) for k in keys)
-                + f"; compared at {len(used)}/{len(keys)}",
-                bool(used) and not bad,
-                "; ".join(why),
-            )
+def _sens_sort(t: dict, keys: list[str]) -> tuple[list, list, list, list]:
+    """(compared, no model equilibrium, slipping, off the model) among the error rows."""
+    used, no_eq, slip, bad = [], [], [], []
+    for k in keys:
+        x = t[k]
+        if x["pred_deg"] is None:
+            no_eq.append(k)
+        elif not x["steady"]:
+            slip.append(k)
+        else:
+            used.append(k)
+            if _wrapdiff(x["mean_deg"], x["pred_deg"]) > 3.0 + 0.1 * abs(x["pred_deg"]):
+                bad.append(k)
+    return used, no_eq, slip, bad
+
+
+def _sens_row_txt(x: dict, k: str) -> str:
+    pr = "no equilibrium" if x["pred_deg"] is None else f"{x['pred_deg']:.1f}°"
+    tag = "" if x["steady"] else ", slips"
+    return f"{_label(k)}: {x['mean_deg']:.1f}° (model {pr}{tag})"
+
+
+def _sens_kind_why(kind: str, nom: dict, no_eq: list, slip: list, bad: list, rpm: float) -> str:
+    why = []
+    if no_eq:
+        why.append(
+            f"no stable equilibrium in the model at {', '.join(map(_label, no_eq))} "
+            "(the magnitude loop cannot hold |η| at λ̂ with the |x| it is given: "
+            "the estimate keeps turning)"
         )
-    # offsets
+    if slip:
+        why.append(
+            f"the estimate slips (θ̃ wanders > {STEADY_AC_DEG:.0f}° about its mean) "
+            f"at {', '.join(map(_label, slip))}"
+        )
+    if bad:
+        why.append(f"off the model at {', '.join(map(_label, bad))}")
+    if kind == "ortega" and not nom["steady"]:
+        why.append(
+            f"even with exact parameters the default γλ² = 1000 s⁻¹ slips at {rpm:.0f} rpm: "
+            "its angle-error pole ω²/k = 0.6 s⁻¹ barely corrects, and a q-axis EMF "
+            "residue δ gives k δ/(ω²λ) ≈ 4° per mV (cut-off row)"
+        )
+    return "; ".join(why)
+
+
+def _sens_kind_claim(kind: str, t: dict, rs, ls, lams, rpm: float) -> dict:
+    """Judge one variant's R^/L^/lambda^ rows against its fundamental model."""
+    keys = [f"r{f}" for f in rs] + [f"l{f}" for f in ls] + [f"lam{f}" for f in lams]
+    used, no_eq, slip, bad = _sens_sort(t, keys)
+    nom = t["nom"]
+    return claim(
+        f"{kind} (measured voltages, {rpm:.0f} rpm, 150 %): mean θ̃ under R̂ ±30 %, L̂ ±30 %, "
+        f"λ̂ ±10 % follows the steady-state fundamental model where the estimate is "
+        f"steady — {SENS_DESC[kind]}",
+        f"nominal {nom['mean_deg']:.2f}° (RMS {nom['rms_deg']:.2f}°); "
+        + "; ".join(_sens_row_txt(t[k], k) for k in keys)
+        + f"; compared at {len(used)}/{len(keys)}",
+        bool(used) and not bad,
+        _sens_kind_why(kind, nom, no_eq, slip, bad, rpm),
+    )
+
+
+def _sens_offset_claim(tab: dict, offs) -> dict:
     rows, ok = [], True
     for kind, t in tab.items():
         parts = []
@@ -1116,114 +1148,134 @@ def _sens_claims(mc: CardValues, tab, rs, ls, lams, cuts, offs, w, iq, nd, ids):
             if pr is not None and x["steady"] and kind != "lpf":
                 ok = ok and abs(x["h1_deg"] - pr) < 0.35 * pr + 0.3
         rows.append(f"{kind}: " + ", ".join(parts))
-    claims.append(
-        claim(
-            "Current-sensor offset on i_b: first-order θ̃ = the DC EMF error R̂|Δi_αβ| through each "
-            "variant's DC gain over its fundamental gain (paper √(1/ω_c² + 1/ω²), emf 1/ω, "
-            "hinkkanen_luomi/ortega their linearised magnitude loop r' = −k r + ωλe + Re u, "
-            "λe' = −ω r + Im u driven at the rotor frequency)",
-            "; ".join(rows),
-            ok,
-            "paper/emf sit ~15 % under the model (the PLL and the compensation frequency, itself "
-            "rippling at the rotor frequency, smooth the first order a little); ortega slips at "
-            "its default gain with or without an offset (rows above).  lpf (model: 1/ω_c over "
-            "ω/√(ω²+ω_c²)) is 2× above: its uncompensated lead atan(ω_c/ω) also turns the "
-            "offset's first-order speed ripple (the encoder drive's torque ripple K_t|Δi|) into "
-            "angle, dθ̃/dω = −ω_c/(ω²+ω_c²)",
-        )
+    return claim(
+        "Current-sensor offset on i_b: first-order θ̃ = the DC EMF error R̂|Δi_αβ| through each "
+        "variant's DC gain over its fundamental gain (paper √(1/ω_c² + 1/ω²), emf 1/ω, "
+        "hinkkanen_luomi/ortega their linearised magnitude loop r' = −k r + ωλe + Re u, "
+        "λe' = −ω r + Im u driven at the rotor frequency)",
+        "; ".join(rows),
+        ok,
+        "paper/emf sit ~15 % under the model (the PLL and the compensation frequency, itself "
+        "rippling at the rotor frequency, smooth the first order a little); ortega slips at "
+        "its default gain with or without an offset (rows above).  lpf (model: 1/ω_c over "
+        "ω/√(ω²+ω_c²)) is 2× above: its uncompensated lead atan(ω_c/ω) also turns the "
+        "offset's first-order speed ripple (the encoder drive's torque ripple K_t|Δi|) into "
+        "angle, dθ̃/dω = −ω_c/(ω²+ω_c²)",
     )
-    # cut-off
+
+
+def _sens_cutoff_claim(tab: dict, cuts) -> dict:
     lpf_used = [f for f in cuts if tab["lpf"][f"fc{f}"]["steady"]]
     lpf_ok = all(
         _wrapdiff(tab["lpf"][f"fc{f}"]["mean_deg"], tab["lpf"][f"fc{f}"]["pred_deg"]) < 3.0
         for f in lpf_used
     )
-    claims.append(
-        claim(
-            "Cut-off: the uncompensated LPF leads by atan(ω_c/ω); LPF + inverse HPF removes that "
-            "(mean ≈ 0 at any ω_c)",
-            "; ".join(
-                f"{kind}: "
-                + ", ".join(
-                    f"{f:g} Hz {tab[kind][f'fc{f}']['mean_deg']:.1f}° (RMS "
-                    f"{tab[kind][f'fc{f}']['rms_deg']:.2f}°)"
-                    for f in cuts
-                )
-                for kind in ("lpf", "paper")
-            ),
-            lpf_ok and all(abs(tab["paper"][f"fc{f}"]["mean_deg"]) < 2.0 for f in cuts),
-            "the lpf's |λ̂| = λω/√(ω²+ω_c²) is 0.2λ at 20 Hz and 0.01λ at 300 Hz: far below the "
-            "0.3λ validity band, a drive could not use it; the paper's RMS rises slowly with ω_c "
-            "(the inverse HPF gain ω_c/ω amplifies what the LPF lets through)",
+    return claim(
+        "Cut-off: the uncompensated LPF leads by atan(ω_c/ω); LPF + inverse HPF removes that "
+        "(mean ≈ 0 at any ω_c)",
+        "; ".join(
+            f"{kind}: "
+            + ", ".join(
+                f"{f:g} Hz {tab[kind][f'fc{f}']['mean_deg']:.1f}° (RMS "
+                f"{tab[kind][f'fc{f}']['rms_deg']:.2f}°)"
+                for f in cuts
+            )
+            for kind in ("lpf", "paper")
+        ),
+        lpf_ok and all(abs(tab["paper"][f"fc{f}"]["mean_deg"]) < 2.0 for f in cuts),
+        "the lpf's |λ̂| = λω/√(ω²+ω_c²) is 0.2λ at 20 Hz and 0.01λ at 300 Hz: far below the "
+        "0.3λ validity band, a drive could not use it; the paper's RMS rises slowly with ω_c "
+        "(the inverse HPF gain ω_c/ω amplifies what the LPF lets through)",
+    )
+
+
+def _sens_fit_delta(mc: CardValues, t: dict, cuts, w: float) -> tuple[float, list] | None:
+    """The q-axis EMF residue delta [mV] fitted to theta~ = k delta/(w^2 lam) over the
+    small-signal regime of the linearisation: from the lowest gain up to the first point that
+    slips, leaves |theta~| < 5 deg or changes sign (theta~ keeps the sign of delta while it is
+    linear); None below two points."""
+    fs: list[float] = []
+    for f in cuts:
+        mean = t[f"fc{f}"]["mean_deg"]
+        if not (t[f"fc{f}"]["steady"] and abs(mean) < 5.0):
+            break
+        if fs and mean * t[f"fc{fs[-1]}"]["mean_deg"] < 0.0:
+            break
+        fs.append(f)
+    if len(fs) < 2:
+        return None
+    kk = np.array([2 * math.pi * f for f in fs])
+    y = np.radians([t[f"fc{f}"]["mean_deg"] for f in fs])
+    # through the origin: e = k delta / (w^2 lam)
+    slope = float(np.sum(kk * y) / np.sum(kk * kk))
+    return 1e3 * slope * w * w * mc.lam, fs
+
+
+def _sens_gain_why(mc: CardValues, deltas: dict, slips: dict, w: float) -> str:
+    return (
+        f"the residue "
+        f"({100 * abs(np.mean([v[0] for v in deltas.values()])) / (1e3 * w * mc.lam):.1f}"
+        " % of the back-EMF ωλ) comes with the deadtime: it vanishes with an ideal inverter "
+        "and stays with ideal sensors, so it is not quantisation or noise; the likely "
+        "mechanism is that the valley-sampled current no longer equals the period average "
+        "once deadtime distorts the PWM ripple (R × a few mA)."
+        + (
+            "  Slips at "
+            + ", ".join(f"{n}: {v} Hz" for n, v in slips.items() if v)
+            + ": the best k is of the order of ω (characteristic s² + k s + ω²), far below "
+            "the defaults meant for higher speeds"
+            if any(slips.values())
+            else ""
         )
     )
-    hl, ot = tab["hinkkanen_luomi"], tab["ortega"]
+
+
+def _sens_gain_claim(mc: CardValues, tab: dict, cuts, w: float, nd: dict, ids: dict) -> dict:
+    """Judge the magnitude-forcing pair's cut-off sweep: one residue delta for both."""
+    pair = (("hinkkanen_luomi", tab["hinkkanen_luomi"]), ("ortega", tab["ortega"]))
     deltas = {}
-    for name, t in (("hinkkanen_luomi", hl), ("ortega", ot)):
-        # the small-signal regime of the linearisation: from the lowest gain up to the first
-        # point that slips, leaves |theta~| < 5 deg or changes sign (theta~ = k delta/(w^2 lam)
-        # keeps the sign of delta while it is linear)
-        fs: list[float] = []
-        for f in cuts:
-            mean = t[f"fc{f}"]["mean_deg"]
-            if not (t[f"fc{f}"]["steady"] and abs(mean) < 5.0):
-                break
-            if fs and mean * t[f"fc{fs[-1]}"]["mean_deg"] < 0.0:
-                break
-            fs.append(f)
-        if len(fs) >= 2:
-            kk = np.array([2 * math.pi * f for f in fs])
-            y = np.radians([t[f"fc{f}"]["mean_deg"] for f in fs])
-            # through the origin: e = k delta / (w^2 lam)
-            slope = float(np.sum(kk * y) / np.sum(kk * kk))
-            deltas[name] = (1e3 * slope * w * w * mc.lam, fs)
-    slips = {
-        name: [f for f in cuts if not t[f"fc{f}"]["steady"]]
-        for name, t in (("hinkkanen_luomi", hl), ("ortega", ot))
-    }
+    for name, t in pair:
+        fit = _sens_fit_delta(mc, t, cuts, w)
+        if fit is not None:
+            deltas[name] = fit
+    slips = {name: [f for f in cuts if not t[f"fc{f}"]["steady"]] for name, t in pair}
     ok = (
         len(deltas) == 2
         and abs(deltas["hinkkanen_luomi"][0] - deltas["ortega"][0])
         < 0.3 * max(abs(v[0]) for v in deltas.values())
         and all(abs(v) < 0.3 for v in nd.values())
     )
-    claims.append(
-        claim(
-            "Cut-off (equivalent gain k = 2π f: w_c of hinkkanen_luomi, γλ² of ortega): both turn "
-            "a small q-axis EMF residue δ into θ̃ ≈ k δ/(ω²λ) (linearised angle pole ω²/k), so "
-            "they show the same δ, and θ̃ grows with k until the estimate slips",
-            "; ".join(
-                f"{name}: "
-                + ", ".join(
-                    f"{f:g} Hz {t[f'fc{f}']['mean_deg']:.2f}°"
-                    f"{'' if t[f'fc{f}']['steady'] else ' (slips)'}"
-                    for f in cuts
-                )
-                for name, t in (("hinkkanen_luomi", hl), ("ortega", ot))
+    return claim(
+        "Cut-off (equivalent gain k = 2π f: w_c of hinkkanen_luomi, γλ² of ortega): both turn "
+        "a small q-axis EMF residue δ into θ̃ ≈ k δ/(ω²λ) (linearised angle pole ω²/k), so "
+        "they show the same δ, and θ̃ grows with k until the estimate slips",
+        "; ".join(
+            f"{name}: "
+            + ", ".join(
+                f"{f:g} Hz {t[f'fc{f}']['mean_deg']:.2f}°"
+                f"{'' if t[f'fc{f}']['steady'] else ' (slips)'}"
+                for f in cuts
             )
-            + "; fitted δ (low-gain end, |θ̃| < 5°): "
-            + ", ".join(f"{n} {v[0]:.2f} mV" for n, v in deltas.items())
-            + "; ideal inverter (no deadtime): "
-            + ", ".join(f"{k.replace('_fc', ' ')} Hz {v:.2f}°" for k, v in nd.items())
-            + "; ideal sensors, 2 µs deadtime: "
-            + ", ".join(f"{k.replace('_fc', ' ')} Hz {v:.2f}°" for k, v in ids.items()),
-            ok,
-            f"the residue "
-            f"({100 * abs(np.mean([v[0] for v in deltas.values()])) / (1e3 * w * mc.lam):.1f}"
-            " % of the back-EMF ωλ) comes with the deadtime: it vanishes with an ideal inverter "
-            "and stays with ideal sensors, so it is not quantisation or noise; the likely "
-            "mechanism is that the valley-sampled current no longer equals the period average "
-            "once deadtime distorts the PWM ripple (R × a few mA)."
-            + (
-                "  Slips at "
-                + ", ".join(f"{n}: {v} Hz" for n, v in slips.items() if v)
-                + ": the best k is of the order of ω (characteristic s² + k s + ω²), far below "
-                "the defaults meant for higher speeds"
-                if any(slips.values())
-                else ""
-            ),
+            for name, t in pair
         )
+        + "; fitted δ (low-gain end, |θ̃| < 5°): "
+        + ", ".join(f"{n} {v[0]:.2f} mV" for n, v in deltas.items())
+        + "; ideal inverter (no deadtime): "
+        + ", ".join(f"{k.replace('_fc', ' ')} Hz {v:.2f}°" for k, v in nd.items())
+        + "; ideal sensors, 2 µs deadtime: "
+        + ", ".join(f"{k.replace('_fc', ' ')} Hz {v:.2f}°" for k, v in ids.items()),
+        ok,
+        _sens_gain_why(mc, deltas, slips, w),
     )
+
+
+def _sens_claims(mc: CardValues, tab, rs, ls, lams, cuts, offs, w, iq, nd, ids, rpm: float):
+    """Judge: one claim per variant, then the offsets, the cut-off, the magnitude-forcing
+    pair's gain sweep."""
+    claims = [_sens_kind_claim(kind, t, rs, ls, lams, rpm) for kind, t in tab.items()]
+    claims.append(_sens_offset_claim(tab, offs))
+    claims.append(_sens_cutoff_claim(tab, cuts))
+    claims.append(_sens_gain_claim(mc, tab, cuts, w, nd, ids))
     return claims
 
 
