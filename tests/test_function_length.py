@@ -17,7 +17,6 @@ SKIP_DIRS = {"build", "install", "log", "__pycache__", ".ws", ".venv"}
 
 KNOWN_LONG: set[str] = {
     "python/fluxdrive/experiments/beyond.py::lowest_speed",
-    "python/fluxdrive/experiments/beyond.py::mismatch",
     "python/fluxdrive/experiments/beyond.py::peers_fail",
 }
 
