@@ -16,7 +16,6 @@ MAX_LINES = 80
 SKIP_DIRS = {"build", "install", "log", "__pycache__", ".ws", ".venv"}
 
 KNOWN_LONG: set[str] = {
-    "python/fluxdrive/experiments/beyond.py::lowest_speed",
     "python/fluxdrive/experiments/beyond.py::peers_fail",
 }
 

@@ -253,39 +253,47 @@ def _search_lowest(ctx, cases, grid, seeds, bisect_steps):
     return st
 
 
-def lowest_speed(ctx):
+def _lowest_cases(ctx) -> tuple[list, list, list, int]:
+    """Build: (cases (variant, load), speed grid [rpm], seeds, bisection steps)."""
     if ctx.quick:
         cases = [("flux_measured", 1.0), ("flux_measured", 1.5), ("emf_commanded", 1.0)]
-        grid, seeds, nbis = [ctx.rpm(x) for x in (0.08, 0.02, 0.01)], [1], 0
-    else:
-        names = [
-            "flux_measured",
-            "flux_commanded",
-            "emf_measured",
-            "emf_commanded",
-            "hl_measured",
-            "ortega_measured",
-            "flux_measured_rhat120",
-        ]
-        cases = [(v, load) for v in names for load in (1.0, 1.5)]
-        # one seed: a second one (last run) disagreed only at two bisection points (emf_measured
-        # 100 % at 35.7 rpm, hl_measured 150 % at 12.6 rpm), one bisection step, no verdict
-        grid = [ctx.rpm(x) for x in (0.16, 0.08, 0.04, 0.02, 0.01, 0.005, 0.0025)]
-        seeds, nbis = [1], 2
-    st = _search_lowest(ctx, cases, grid, seeds, nbis)
+        return cases, [ctx.rpm(x) for x in (0.08, 0.02, 0.01)], [1], 0
+    names = [
+        "flux_measured",
+        "flux_commanded",
+        "emf_measured",
+        "emf_commanded",
+        "hl_measured",
+        "ortega_measured",
+        "flux_measured_rhat120",
+    ]
+    cases = [(v, load) for v in names for load in (1.0, 1.5)]
+    # one seed: a second one (last run) disagreed only at two bisection points (emf_measured
+    # 100 % at 35.7 rpm, hl_measured 150 % at 12.6 rpm), one bisection step, no verdict
+    grid = [ctx.rpm(x) for x in (0.16, 0.08, 0.04, 0.02, 0.01, 0.005, 0.0025)]
+    return cases, grid, [1], 2
+
+
+def _lowest_first_loss(s: dict) -> dict | None:
+    """Where the first lost run at the first lost speed lost the rotor."""
+    if s["lo"] is None:
+        return None
+    lost_runs = [x for x in s["runs"][s["lo"]] if not x["stable"]]
+    if not lost_runs:
+        return None
+    x = lost_runs[0]
+    return {
+        "lost": x["lost"],
+        "fault": x["fault"],
+        "closed_at_s": x["closed_at_s"],
+        "rms_deg": x["rms_deg"],
+    }
+
+
+def _lowest_table(ctx, st: dict) -> dict:
+    """Analyse the search: variant -> "100%"/"150%" -> lowest held, first lost, bound."""
     lowest: dict = {}
     for (v, load), s in st.items():
-        first_loss = None
-        if s["lo"] is not None:
-            lost_runs = [x for x in st[(v, load)]["runs"][s["lo"]] if not x["stable"]]
-            x = lost_runs[0] if lost_runs else None
-            if x is not None:
-                first_loss = {
-                    "lost": x["lost"],
-                    "fault": x["fault"],
-                    "closed_at_s": x["closed_at_s"],
-                    "rms_deg": x["rms_deg"],
-                }
         commanded = VARIANTS[v]["voltage_source"] == "commanded"
         lowest.setdefault(v, {})[f"{int(load * 100)}%"] = {
             "lowest_rpm": s["hi"],
@@ -296,120 +304,139 @@ def lowest_speed(ctx):
                 if s["hi"] is not None
                 else None
             ),
-            "loss": first_loss,
+            "loss": _lowest_first_loss(s),
             "bound_rpm": speed_bound_rpm(ctx.cv, load, commanded),
         }
+    return lowest
 
-    def fmt(v, key):
-        d = lowest[v][key]
-        low = d["lowest_rpm"]
-        s = f"{low:g} rpm" if low is not None else f"none (lost at {d['first_lost_rpm']:g})"
-        if d["first_lost_rpm"] is not None and low is not None:
-            s += f", lost at {d['first_lost_rpm']:g}"
-        elif d["first_lost_rpm"] is None:
-            s += " (held down to the grid's end)"
-        s += f"; bound {d['bound_rpm']:.0f} rpm"
-        if d["loss"] and d["loss"]["lost"]:
-            lo = d["loss"]["lost"]
-            s += (
-                f" (loss at ref {lo['ref_rpm']:.0f} rpm, load {lo['load_pu']:.2f} pu, "
-                f"fault {lo['fault']})"
-            )
-        elif d["loss"] and d["loss"]["closed_at_s"] is None:
-            s += " (never handed over)"
-        return s
 
-    notes = {
-        "flux_measured": "measured voltages carry the deadtime, and R^ = R: neither term of the "
-        "bound applies.  What ends it near 12-15 rpm was not isolated; "
-        "candidates are what the measured voltage still gets wrong (the "
-        "≈3.6 mV deadtime residue of the sensitivity experiment) and noise, "
-        "both amplified by the inverse HPF gain ω_c/ω (≈100 at 15 rpm)",
-        "flux_commanded": "the deadtime fundamental (4/π)V_dt = 1.83 V lies along the current, so "
-        "it integrates into a flux-magnitude error (4/π)V_dt/ω (Fig. 4): |λ̂| "
-        "leaves the 3λ validity band near 90-140 rpm and the drive trips on "
-        "loss of lock",
-        "emf_measured": "no integration: the per-sample EMF carries L/Ts·σ_i ≈ 0.18 V of noise "
-        "against ωλ (0.59 V at 60 rpm, 0.3 V at 30 rpm): the SNR runs out "
-        "first (the paper's argument)",
-        "emf_commanded": "the deadtime error (4/π)V_dt follows the current; once the loop is "
-        "closed on the estimate it rotates with the estimated frame and hides "
-        "(4/π)V_dt/(ωλ+(4/π)V_dt) of every angle error from the PLL (peers_fail)",
-        "hl_measured": "the modified integrator's angle-error pole is ω²/k for k = 2π·5 Hz: "
-        "slow but unbiased with measured voltages (sensitivity)",
-        "ortega_measured": "its magnitude loop (γλ² = 1000 s⁻¹) turns any q-axis EMF residue δ "
-        "into an angle error k δ/(ω² λ), ≈ 4° per mV at 60 rpm and "
-        "growing as 1/ω² (the ≈3.6 mV deadtime residue: sensitivity "
-        "experiment); its angle pole ω²/k is 0.6 s⁻¹ there",
-        "flux_measured_rhat120": "R^ 20 % high: |λ̂| = λ − 0.2 R I/ω, which leaves the 0.3λ "
-        "validity band at ω = 0.2 R I/(0.7 λ) = 1.43× the bound and "
-        "flips sign at the bound itself",
-    }
+def _lowest_txt(d: dict) -> str:
+    """One case's result: lowest held, first lost, bound, where it lost the rotor."""
+    low = d["lowest_rpm"]
+    s = f"{low:g} rpm" if low is not None else f"none (lost at {d['first_lost_rpm']:g})"
+    if d["first_lost_rpm"] is not None and low is not None:
+        s += f", lost at {d['first_lost_rpm']:g}"
+    elif d["first_lost_rpm"] is None:
+        s += " (held down to the grid's end)"
+    s += f"; bound {d['bound_rpm']:.0f} rpm"
+    if d["loss"] and d["loss"]["lost"]:
+        lo = d["loss"]["lost"]
+        s += (
+            f" (loss at ref {lo['ref_rpm']:.0f} rpm, load {lo['load_pu']:.2f} pu, "
+            f"fault {lo['fault']})"
+        )
+    elif d["loss"] and d["loss"]["closed_at_s"] is None:
+        s += " (never handed over)"
+    return s
+
+
+# why each variant stops where it does (the lowest_speed claims' notes)
+LOWEST_NOTES = {
+    "flux_measured": "measured voltages carry the deadtime, and R^ = R: neither term of the "
+    "bound applies.  What ends it near 12-15 rpm was not isolated; "
+    "candidates are what the measured voltage still gets wrong (the "
+    "≈3.6 mV deadtime residue of the sensitivity experiment) and noise, "
+    "both amplified by the inverse HPF gain ω_c/ω (≈100 at 15 rpm)",
+    "flux_commanded": "the deadtime fundamental (4/π)V_dt = 1.83 V lies along the current, so "
+    "it integrates into a flux-magnitude error (4/π)V_dt/ω (Fig. 4): |λ̂| "
+    "leaves the 3λ validity band near 90-140 rpm and the drive trips on "
+    "loss of lock",
+    "emf_measured": "no integration: the per-sample EMF carries L/Ts·σ_i ≈ 0.18 V of noise "
+    "against ωλ (0.59 V at 60 rpm, 0.3 V at 30 rpm): the SNR runs out "
+    "first (the paper's argument)",
+    "emf_commanded": "the deadtime error (4/π)V_dt follows the current; once the loop is "
+    "closed on the estimate it rotates with the estimated frame and hides "
+    "(4/π)V_dt/(ωλ+(4/π)V_dt) of every angle error from the PLL (peers_fail)",
+    "hl_measured": "the modified integrator's angle-error pole is ω²/k for k = 2π·5 Hz: "
+    "slow but unbiased with measured voltages (sensitivity)",
+    "ortega_measured": "its magnitude loop (γλ² = 1000 s⁻¹) turns any q-axis EMF residue δ "
+    "into an angle error k δ/(ω² λ), ≈ 4° per mV at 60 rpm and "
+    "growing as 1/ω² (the ≈3.6 mV deadtime residue: sensitivity "
+    "experiment); its angle pole ω²/k is 0.6 s⁻¹ there",
+    "flux_measured_rhat120": "R^ 20 % high: |λ̂| = λ − 0.2 R I/ω, which leaves the 0.3λ "
+    "validity band at ω = 0.2 R I/(0.7 λ) = 1.43× the bound and "
+    "flips sign at the bound itself",
+}
+
+
+def _lowest_variant_claims(lowest: dict, start_rpm: float) -> list[dict]:
+    """One unjudged row per variant: its lowest speed per load against the bound."""
     claims = []
     for v in lowest:
         keys = list(lowest[v])
         claims.append(
             claim(
                 f"{v}: lowest speed holding {' / '.join(keys)} load (sensorless, descent under "
-                "load from 480 rpm) vs ω_min ≈ (0.2 R I + V_dt)/λ",
-                "; ".join(f"{k}: {fmt(v, k)}" for k in keys),
+                f"load from {start_rpm:.0f} rpm) vs ω_min ≈ (0.2 R I + V_dt)/λ",
+                "; ".join(f"{k}: {_lowest_txt(lowest[v][k])}" for k in keys),
                 None,
-                notes.get(v, ""),
+                LOWEST_NOTES.get(v, ""),
             )
         )
+    return claims
 
-    def low(v, key):
-        d = lowest.get(v, {}).get(key)
-        return None if d is None else d["lowest_rpm"]
 
-    loads = sorted({k for v in lowest.values() for k in v})
-    if "flux_measured" in lowest:
-        fm = [
-            (k, low("flux_measured", k), lowest["flux_measured"][k]["bound_rpm"])
-            for k in loads
-            if k in lowest["flux_measured"]
-        ]
-        claims.append(
-            claim(
-                "With measured voltages and R^ = R the flux observer holds the load well below the "
-                "bound (neither of its terms applies)",
-                "; ".join(
-                    f"{k}: {x:g} rpm vs bound {b:.0f}" if x is not None else f"{k}: none"
-                    for k, x, b in fm
-                ),
-                all(x is not None and x < 0.5 * b for _, x, b in fm),
-            )
+def _low(lowest: dict, v: str, key: str) -> float | None:
+    d = lowest.get(v, {}).get(key)
+    return None if d is None else d["lowest_rpm"]
+
+
+def _lowest_flux_claim(lowest: dict, loads: list[str]) -> list[dict]:
+    """Judge: with measured voltages and R^ = R the flux observer beats the bound."""
+    if "flux_measured" not in lowest:
+        return []
+    fm = [
+        (k, _low(lowest, "flux_measured", k), lowest["flux_measured"][k]["bound_rpm"])
+        for k in loads
+        if k in lowest["flux_measured"]
+    ]
+    return [
+        claim(
+            "With measured voltages and R^ = R the flux observer holds the load well below the "
+            "bound (neither of its terms applies)",
+            "; ".join(
+                f"{k}: {x:g} rpm vs bound {b:.0f}" if x is not None else f"{k}: none"
+                for k, x, b in fm
+            ),
+            all(x is not None and x < 0.5 * b for _, x, b in fm),
         )
-    if "flux_measured_rhat120" in lowest:
-        rows = [
-            (
-                k,
-                low("flux_measured_rhat120", k),
-                lowest["flux_measured_rhat120"][k]["first_lost_rpm"],
-                lowest["flux_measured_rhat120"][k]["bound_rpm"],
-            )
-            for k in loads
-        ]
-        claims.append(
-            claim(
-                "The bound's 0.2 R I term is a 20 % R^ error: with R^ = 1.2 R the flux observer "
-                "fails between the bound and 2× the bound (predicted 1.43×: |λ̂| = λ − 0.2RI/ω "
-                "leaves the 0.3λ validity band)",
-                "; ".join(
-                    f"{k}: lost at {lo}, held at {hi} rpm (bound {b:.0f}, 1.43× = {1.43 * b:.0f})"
-                    for k, hi, lo, b in rows
-                ),
-                all(
-                    lo is not None and hi is not None and lo < 2.0 * b and hi > b
-                    for _, hi, lo, b in rows
-                ),
-                "the search brackets the loss between two tested speeds; a bracket straddling "
-                "the predicted band edge counts",
-            )
+    ]
+
+
+def _lowest_rhat_claim(lowest: dict, loads: list[str]) -> list[dict]:
+    """Judge: the bound's 0.2 R I term as an R^ error of 20 %."""
+    v = "flux_measured_rhat120"
+    if v not in lowest:
+        return []
+    rows = [
+        (k, _low(lowest, v, k), lowest[v][k]["first_lost_rpm"], lowest[v][k]["bound_rpm"])
+        for k in loads
+    ]
+    return [
+        claim(
+            "The bound's 0.2 R I term is a 20 % R^ error: with R^ = 1.2 R the flux observer "
+            "fails between the bound and 2× the bound (predicted 1.43×: |λ̂| = λ − 0.2RI/ω "
+            "leaves the 0.3λ validity band)",
+            "; ".join(
+                f"{k}: lost at {lo}, held at {hi} rpm (bound {b:.0f}, 1.43× = {1.43 * b:.0f})"
+                for k, hi, lo, b in rows
+            ),
+            all(
+                lo is not None and hi is not None and lo < 2.0 * b and hi > b
+                for _, hi, lo, b in rows
+            ),
+            "the search brackets the loss between two tested speeds; a bracket straddling "
+            "the predicted band edge counts",
         )
+    ]
+
+
+def _lowest_bound_claims(ctx, lowest: dict, loads: list[str]) -> list[dict]:
+    """Judge: the bound's V_dt term (full runs only) and the paper's SNR argument."""
+    claims = []
     com = [v for v in ("flux_commanded", "emf_commanded") if v in lowest]
     if com and not ctx.quick:
-        rows = [(v, k, low(v, k), lowest[v][k]["bound_rpm"]) for v in com for k in loads]
+        rows = [(v, k, _low(lowest, v, k), lowest[v][k]["bound_rpm"]) for v in com for k in loads]
         claims.append(
             claim(
                 "The bound's V_dt term: commanded-voltage observers stop holding the load near "
@@ -422,15 +449,30 @@ def lowest_speed(ctx):
             )
         )
     if "emf_measured" in lowest:
-        rows = [(k, low("flux_measured", k), low("emf_measured", k)) for k in loads]
+        rows2 = [
+            (k, _low(lowest, "flux_measured", k), _low(lowest, "emf_measured", k)) for k in loads
+        ]
         claims.append(
             claim(
                 "The paper's SNR argument as a speed range: with measured voltages the flux "
                 "observer holds the load lower than the EMF observer",
-                "; ".join(f"{k}: flux {a} vs EMF {b} rpm" for k, a, b in rows),
-                all(a is not None and (b is None or a < b) for _, a, b in rows),
+                "; ".join(f"{k}: flux {a} vs EMF {b} rpm" for k, a, b in rows2),
+                all(a is not None and (b is None or a < b) for _, a, b in rows2),
             )
         )
+    return claims
+
+
+def lowest_speed(ctx):
+    """Lowest speed each variant holds under load: build -> run (grid + bisection) ->
+    analyse -> judge -> plot."""
+    cases, grid, seeds, nbis = _lowest_cases(ctx)
+    st = _search_lowest(ctx, cases, grid, seeds, nbis)
+    lowest = _lowest_table(ctx, st)
+    loads = sorted({k for v in lowest.values() for k in v})
+    claims = _lowest_variant_claims(lowest, ctx.rpm(DESCENT_START_PU))
+    claims += _lowest_flux_claim(lowest, loads) + _lowest_rhat_claim(lowest, loads)
+    claims += _lowest_bound_claims(ctx, lowest, loads)
     figs = [_plot_lowest(ctx, lowest, grid)]
     return {
         "claims": claims,
@@ -439,9 +481,9 @@ def lowest_speed(ctx):
             "lowest": lowest,
             "grid_rpm": grid,
             "seeds": seeds,
-            "protocol": "sensorless start at 480 rpm unloaded, brake load ramp "
-            f"{LOW_RAMP_PU_S} pu/s, decel 200 rpm/s, 0.5 s settle, "
-            "1.5 s window",
+            "protocol": f"sensorless start at {ctx.rpm(DESCENT_START_PU):.0f} rpm unloaded, "
+            f"brake load ramp {LOW_RAMP_PU_S} pu/s, decel {ctx.rpm(DESCENT_DECEL_PU_S):.0f} "
+            "rpm/s, 0.5 s settle, 1.5 s window",
         },
     }
 
@@ -479,7 +521,8 @@ def _plot_lowest(ctx, lowest, grid):
         ax.set_xscale("log")
         ax.set_xlim(min(grid) * 0.6, max(grid) * 1.6)
         ax.set_xlabel("speed [rpm] (green held, red lost, ★ lowest held, | own bound)")
-        ax.set_title(f"{key} load: sensorless, descent under load from 480 rpm", fontsize=9)
+        start = ctx.rpm(DESCENT_START_PU)
+        ax.set_title(f"{key} load: sensorless, descent under load from {start:.0f} rpm", fontsize=9)
         ax.legend(fontsize=7, loc="lower left", ncol=2)
         ax.grid(alpha=0.3, which="both", axis="x")
     return ctx.fig(fig, "beyond_lowest_speed")
