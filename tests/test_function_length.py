@@ -15,9 +15,7 @@ REPO = Path(__file__).resolve().parents[1]
 MAX_LINES = 80
 SKIP_DIRS = {"build", "install", "log", "__pycache__", ".ws", ".venv"}
 
-KNOWN_LONG: set[str] = {
-    "python/fluxdrive/experiments/beyond.py::peers_fail",
-}
+KNOWN_LONG: set[str] = set()
 
 
 def _is_kernel(fn: ast.FunctionDef | ast.AsyncFunctionDef) -> bool:
