@@ -129,7 +129,9 @@ def test_late_controller_is_counted_a_silent_one_latches(tmp_path):
         r"command from this controller for its wall-time limit \(stopped or dead, not "
         r"late\); PWM off \(latched\)",
         after=at,
-        timeout=30,
+        # it answers the frames queued while it stood still first: under load that is slow
+        # (docs/graph.md, "Limit at high frame rates")
+        timeout=90,
     )
     after_cont_s = time.monotonic() - t_cont
     run.wait_frames(run.frames() + 2000)
