@@ -100,8 +100,9 @@ def test_late_controller_is_counted_a_silent_one_latches(tmp_path):
     for nd in g["nodes"]:
         if "scenario" in nd["parameters"]:
             nd["parameters"]["scenario"] = sc
+    # the paced plant switches the PWM off only for a silent controller: latch the first
     next(nd for nd in g["nodes"] if nd["name"] == "controller")["parameters"].update(
-        align_time_s=0.1, handover_dwell_s=0.15
+        align_time_s=0.1, handover_dwell_s=0.15, max_resyncs=0
     )
     run = Run(g, domain(11), tmp_path)
     run.thread = threading.Thread(

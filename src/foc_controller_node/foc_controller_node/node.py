@@ -169,12 +169,12 @@ def node_params() -> list[P]:
         ),
         P(
             "max_resyncs",
-            0,
-            "lost intervals (PWM switched off by the power stage's watchdog: no duty "
-            "command from this controller for its wall-time limit) tolerated within "
-            "resync_window_s; one more latches the fault 'watchdog' (0: the first "
-            "latches -- the plant's watchdog takes only a silent controller for dead, "
-            "a late one is lateness)",
+            5,
+            "lost intervals (PWM switched off by the power stage's watchdog) tolerated "
+            "within resync_window_s; one more latches the fault 'watchdog'.  A drive on a "
+            "bus and a lockstep plant also switch it off for a late host, a lost frame or "
+            "a restarted controller's first answers; with the paced plant, which takes "
+            "only a silent controller for dead, 0 latches the first",
             "",
             0,
             1000,

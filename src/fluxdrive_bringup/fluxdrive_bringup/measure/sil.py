@@ -45,10 +45,7 @@ def sil_graph(sp: Path, sc, bag: Path, *, mode: str, decimation: int, domain_id:
     group = f"239.255.{rnd.randint(1, 254)}.{rnd.randint(1, 254)}"
     port = rnd.randint(20000, 60000)
     d = int(decimation)
-    # a drive on a bus switches the PWM off for a period without a fresh command (a late
-    # host, a lost frame, the first armed period), not only for a dead host as the paced
-    # plant does: tolerate resyncs as the engine does (the node's default 0 latches the first)
-    ctrl = {"control_mode": mode, "decimation": d, "max_resyncs": 5}
+    ctrl = {"control_mode": mode, "decimation": d}
     extra = {"controller": ctrl, **{nm: {"decimation": d} for nm in sc.observers}}
     g = graph_for_scenario(sp, sc, bag, "separate", None, domain_id, extra=extra)
     g.name = f"{sc.name}-sil"
