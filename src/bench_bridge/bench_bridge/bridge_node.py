@@ -333,8 +333,13 @@ class BenchBridgeNode(Node):
             except Exception as exc:  # noqa: BLE001 - keep the supervisor alive
                 self.get_logger().error(f"CAN poll: {exc!r}")
                 continue
-            for fr in frames:
-                self.pub.publish(self._to_msg(fr))
+            try:
+                for fr in frames:
+                    self.pub.publish(self._to_msg(fr))
+            except Exception:  # noqa: BLE001 - rclpy shut down under us: the run is over
+                if self.context.ok():
+                    raise
+                return
 
     def _to_msg(self, fr: np.ndarray) -> bytes:
         """A decoded sample -> PhaseFrame bytes (the one mapping, fluxdrive.io.messages);
