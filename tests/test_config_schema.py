@@ -101,6 +101,26 @@ def test_card_rules_fill_what_is_unset():
     assert r2.current_bandwidth_hz == 500.0 and r2.speed_bandwidth_hz == r.speed_bandwidth_hz
 
 
+def test_deadtime_is_ranged_in_one_place():
+    """The card's deadtime, a scenario's plant override and every feed-forward of it (controller,
+    observers, split-mode drive) accept the one range of core.machine.DEADTIME_RANGE_S."""
+    from fluxdrive.core.machine import DEADTIME_RANGE_S, MachineCard
+    from fluxdrive.drive.control import DriveParams
+
+    classes = [b.cls for b in BLOCKS.values()] + [MachineCard, DriveParams]
+    seen = {
+        f"{cls.__name__}.{name}": (s.lo, s.hi)
+        for cls in classes
+        for name, s in schema.specs(cls).items()
+        if "deadtime" in name
+    }
+    assert len(seen) >= 4, seen
+    assert all(r == DEADTIME_RANGE_S for r in seen.values()), seen
+    over = {"plant": {"deadtime_s": DEADTIME_RANGE_S[1] * 1.01}}
+    with pytest.raises(ConfigError, match=r"plant\.deadtime_s"):
+        load_scenario(scenario_path("paper_2pct_150load"), overrides=over)
+
+
 def test_docs_tables_are_generated_from_the_schema():
     """Every block has its table in the page, and it is the generated one (the staleness
     check of the whole page is in tests/test_docs.py)."""

@@ -16,6 +16,10 @@ from fluxdrive.core import yamlio
 from fluxdrive.core.errors import ConfigError as ConfigError  # its home for importers
 from fluxdrive.core.schema import param, ranges
 
+# what an inverter deadtime (or a feed-forward of it) may be, in seconds: one range for the card,
+# the plant override of a scenario, the controller's, observers' and drive's feed-forward
+DEADTIME_RANGE_S: tuple[float, float] = (0.0, 1e-4)
+
 
 def required(value: float | None, key: str) -> float:
     """A setting that `resolved(card)` has filled in: its value, or an error naming the key
@@ -81,7 +85,7 @@ class MachineCard:
         2.0e-6,
         unit="s",
         doc="inverter deadtime (below 20 % of the PWM period)",
-        range=(0.0, 0.0001),
+        range=DEADTIME_RANGE_S,
         live=False,
     )
     device_drop_v: float = param(

@@ -69,6 +69,7 @@ from fluxdrive.core.blocks import (
 )
 from fluxdrive.core.layout import Layout
 from fluxdrive.core.machine import (
+    DEADTIME_RANGE_S,
     ConfigError,
     MachineCard,
     card_current_bandwidth_hz,
@@ -630,7 +631,7 @@ class ObserverConfig:
         0.0,
         unit="s",
         doc="deadtime feed-forward on commanded voltages (0 = off)",
-        range=(0.0, 1e-4),
+        range=DEADTIME_RANGE_S,
     )
     gamma_bw_rad_s: float | None = param(
         None,

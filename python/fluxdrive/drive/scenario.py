@@ -18,6 +18,7 @@ import numpy as np
 from fluxdrive.core import yamlio
 from fluxdrive.core.bench import BenchConfig, parse_bench
 from fluxdrive.core.machine import (
+    DEADTIME_RANGE_S,
     ConfigError,
     MachineCard,
     load_machine,
@@ -239,6 +240,7 @@ def load_scenario(
     if bad:
         raise ConfigError(f"{src}: unknown plant key(s) {bad}; expected deadtime_s")
     td = plant.get("deadtime_s")
+    td = None if td is None else _num(src, "plant.deadtime_s", td, *DEADTIME_RANGE_S)
     step_t = raw.get("step_load_time_s")
     return Scenario(
         name=str(raw.get("name", path.stem)),
@@ -257,7 +259,7 @@ def load_scenario(
         step_load_time_s=None if step_t is None else _num(src, "step_load_time_s", step_t),
         current_offset_a=tuple(float(x) * card.rated_current_a for x in off),
         current_gain=tuple(float(x) for x in gain),
-        plant_deadtime_s=None if td is None else _num(src, "plant.deadtime_s", td, 0.0, 1e-4),
+        plant_deadtime_s=td,
         initial_angle_deg=_num(src, "initial_angle_deg", raw.get("initial_angle_deg", 0.0)),
         id_injection=_injection(src, "id_injection", raw.get("id_injection")),
         speed_injection=_injection(src, "speed_injection", raw.get("speed_injection")),

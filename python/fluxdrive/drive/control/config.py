@@ -11,6 +11,7 @@ import numpy as np
 
 from fluxdrive.core.blocks import pll_gains
 from fluxdrive.core.machine import (
+    DEADTIME_RANGE_S,
     ConfigError,
     MachineCard,
     card_current_bandwidth_hz,
@@ -150,7 +151,7 @@ class ControllerConfig:
         1.5, unit="periods", doc="inverse-Park angle advance, in periods of w^", range=(0.0, 3.0)
     )
     deadtime_comp_s: float = param(
-        0.0, unit="s", doc="deadtime feed-forward on the duties (0 = off)", range=(0.0, 1e-4)
+        0.0, unit="s", doc="deadtime feed-forward on the duties (0 = off)", range=DEADTIME_RANGE_S
     )
     decoupling: bool = param(True, unit="", doc="cross-coupling and back-EMF feed-forward on")
     align_time_s: float = param(
@@ -509,7 +510,7 @@ class DriveParams:
         "inverse-Park angle advance", "periods", (0.0, 3.0), "VOLTAGE_ADVANCE"
     )
     deadtime_comp_s: float | None = _drive(
-        "deadtime feed-forward (0: off)", "s", (0.0, 1e-4), "DEADTIME_COMP_S"
+        "deadtime feed-forward (0: off)", "s", DEADTIME_RANGE_S, "DEADTIME_COMP_S"
     )
     cur_limit_a: float | None = _drive(
         "limit of the current references the drive follows", "A", (0.01, 1e3), "CUR_LIMIT_A"
