@@ -215,3 +215,78 @@ def test_bridge_descriptors_are_the_schema(ctx):
         assert {n.upper() for n in schema.specs(DriveParams)} == set(DRIVE_PARAM_RANGES)
     finally:
         node.destroy_node()
+
+
+# every node the graphs run, as paramdoc starts them: (class, node name, namespace, parameters)
+NODES = {
+    "plant": ("plant", "", {"scenario": SCENARIO}),
+    "controller": ("controller", "", {"scenario": SCENARIO}),
+    "observer": ("flux_measured", "/obs", {"scenario": SCENARIO}),
+    "recorder": ("recorder", "", {"bag_dir": "/tmp/fluxdrive-never-written/bag"}),
+    "scope_tap": ("scope_tap", "", {"scenario": SCENARIO}),
+}
+ROS_OWN = {"use_sim_time", "start_type_description_service"}  # rclpy declares these itself
+
+
+def _check_declared_from_schema(node) -> int:
+    """Every parameter the node declared came from a schema field (`declare` keeps them in
+    node.param_specs), and its descriptor is that field's: text, read-only = not live, a
+    range inside the field's static range."""
+    declared = set(node._parameters) - ROS_OWN
+    specs = getattr(node, "param_specs", {})
+    assert declared == set(specs), f"not from a schema: {sorted(declared - set(specs))}"
+    for name, s in specs.items():
+        d = node.describe_parameter(name)
+        assert d.description.startswith(s.doc), (name, d.description)
+        assert d.read_only == (not s.live), name
+        r = (d.floating_point_range or d.integer_range or [None])[0]
+        assert (r is not None) == (s.numeric and s.lo is not None), name
+        if r is not None:
+            lo = 0.0 if s.none_is_zero else s.lo
+            assert lo <= r.from_value <= r.to_value <= s.hi, (name, r, s.lo, s.hi)
+    return len(specs)
+
+
+@pytest.mark.parametrize("kind", sorted(NODES))
+def test_every_node_parameter_comes_from_a_schema(kind, ctx):
+    from fluxdrive_ros.runner import load_class
+    from rclpy.parameter import Parameter
+
+    name, ns, values = NODES[kind]
+    ov = [Parameter(k, value=v) for k, v in values.items()]
+    node = load_class(kind)(name, namespace=ns, context=ctx, parameter_overrides=ov)
+    try:
+        assert _check_declared_from_schema(node) >= 5
+    finally:
+        if hasattr(node, "proc"):  # the recorder's writer process
+            node.close()
+        node.destroy_node()
+
+
+def test_bridge_parameters_come_from_a_schema(ctx):
+    from bench_bridge.bridge_node import BenchBridgeNode
+    from fluxdrive.can.loop import new_virtual_channel
+    from rclpy.parameter import Parameter
+
+    ov = [
+        Parameter("channel", value=new_virtual_channel()),
+        Parameter("control_split", value=True),
+        Parameter("scenario", value=SCENARIO),
+    ]
+    node = BenchBridgeNode(context=ctx, parameter_overrides=ov)
+    try:
+        assert _check_declared_from_schema(node) >= 20
+    finally:
+        node.destroy_node()
+
+
+def test_a_parameter_without_a_schema_is_refused(ctx):
+    from fluxdrive_ros.params import P, declare
+    from rclpy.node import Node
+
+    node = Node("hand_written", context=ctx)
+    try:
+        with pytest.raises(TypeError, match="'gain' is not declared from a schema"):
+            declare(node, [P("gain", 1.0, "a hand-written parameter", "-", 0.0, 2.0)])
+    finally:
+        node.destroy_node()

@@ -56,7 +56,7 @@ class Spec:
     drive runs) or fixed for a run."""
 
     name: str
-    kind: type  # float, int, bool or str
+    kind: type  # float, int, bool, str or tuple (a list of strings)
     unit: str
     doc: str
     lo: float | None = None
@@ -106,7 +106,9 @@ def param(
     live or not (the kind is read from the default, or given for a None default)."""
     if kind is None:
         kind = (
-            str
+            tuple  # a list of strings (a tuple of numbers: per phase, checked per element)
+            if isinstance(default, tuple) and all(isinstance(x, str) for x in default)
+            else str
             if choices is not None or isinstance(default, str)
             else bool
             if isinstance(default, bool)
@@ -157,6 +159,9 @@ def check_value(s: Spec, v: Any, where: str) -> None:
     if s.kind is bool:
         if not isinstance(v, bool):
             raise ConfigError(f"{where} must be true/false, got {v!r}")
+    elif s.kind is tuple:
+        if not isinstance(v, (list, tuple)) or not all(isinstance(x, str) for x in v):
+            raise ConfigError(f"{where} must be a list of strings, got {v!r}")
     elif s.kind is str:
         if not isinstance(v, str) or (s.choices is not None and v not in s.choices):
             what = f"one of {list(s.choices)}" if s.choices is not None else "a string"
@@ -219,6 +224,8 @@ def _default_text(s: Spec, default: Any) -> str:
         return "off" if s.none_is_zero else "-"
     if isinstance(default, float):
         return f"{default:g}"
+    if s.kind is tuple:
+        return ", ".join(f"`{x}`" for x in default if x) or "none"
     return str(default).lower() if isinstance(default, bool) else str(default)
 
 

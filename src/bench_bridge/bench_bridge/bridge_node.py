@@ -37,7 +37,7 @@ import math
 import sys
 import threading
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 import rclpy
@@ -49,6 +49,7 @@ from fluxdrive.can.bridge import (
 )
 from fluxdrive.can.protocol import link_budget, smallest_fitting_decimation
 from fluxdrive.core import schema
+from fluxdrive.core.schema import param
 from fluxdrive.drive.control import (
     DRIVE_PARAM_RANGES,
     ControllerConfig,
@@ -56,7 +57,7 @@ from fluxdrive.drive.control import (
     drive_param_values,
 )
 from fluxdrive.drive.plant import FR_SEQ
-from fluxdrive_ros.params import P, declare, on_set
+from fluxdrive_ros.params import P, config_params, declare, on_set
 from fluxdrive_ros.wire import FrameWire, Stamp
 from rclpy.node import Node
 
@@ -111,46 +112,47 @@ SUPERVISOR_FIELDS = (
 )
 
 
+@dataclass
+class BridgeBus:
+    """The CAN bus: python-can interface, channel, bit rates, FD or classic."""
+
+    interface: str = param(
+        "virtual",
+        unit="",
+        doc="python-can interface (virtual, socketcan, pcan, ...)",
+        live=False,
+    )
+    channel: str = param(
+        "fluxdrive",
+        unit="",
+        doc="python-can channel (virtual bus name, can0, ...)",
+        live=False,
+    )
+    bitrate: int = param(
+        1000000,
+        unit="bit/s",
+        doc="CAN (FD arbitration) bit rate",
+        range=(10000, 1000000),
+        live=False,
+    )
+    data_bitrate: int = param(
+        5000000,
+        unit="bit/s",
+        doc="CAN FD data-phase bit rate",
+        range=(125000, 12000000),
+        live=False,
+    )
+    fd: bool = param(
+        True,
+        unit="",
+        doc="use CAN FD frames (and the SAMPLE_FD layout; false: the classic 4-frame layout)",
+        live=False,
+    )
+
+
 def bus_params() -> list[P]:
     """The CAN bus: python-can interface, channel, bit rates, FD or classic."""
-    return [
-        P(
-            "interface",
-            "virtual",
-            "python-can interface (virtual, socketcan, pcan, ...)",
-            read_only=True,
-        ),
-        P(
-            "channel",
-            "fluxdrive",
-            "python-can channel (virtual bus name, can0, ...)",
-            read_only=True,
-        ),
-        P(
-            "bitrate",
-            1_000_000,
-            "CAN (FD arbitration) bit rate",
-            "bit/s",
-            10_000,
-            1_000_000,
-            read_only=True,
-        ),
-        P(
-            "data_bitrate",
-            5_000_000,
-            "CAN FD data-phase bit rate",
-            "bit/s",
-            125_000,
-            12_000_000,
-            read_only=True,
-        ),
-        P(
-            "fd",
-            True,
-            "use CAN FD frames (and the SAMPLE_FD layout; false: the classic 4-frame layout)",
-            read_only=True,
-        ),
-    ]
+    return config_params(BridgeBus())
 
 
 def supervisor_params() -> list[P]:
@@ -159,54 +161,56 @@ def supervisor_params() -> list[P]:
     return [P.of(specs[name], getattr(defaults, name)) for name in SUPERVISOR_FIELDS]
 
 
+@dataclass
+class BridgeNodeSettings:
+    """The node's own: PWM period, frame_id, arming, its diagnostics, scenario."""
+
+    ts_s: float = param(
+        1e-4,
+        unit="s",
+        doc="PWM period of the drive (header.stamp = seq * ts_s)",
+        range=(1e-6, 1e-2),
+        live=False,
+    )
+    frame_id: str = param(
+        "drive",
+        unit="",
+        doc="header.frame_id of published frames",
+        live=False,
+    )
+    armed: bool = param(
+        False,
+        unit="",
+        doc="arm the drive (at start, and live: true arms, false disarms; refused"
+        " with the reason while a fault is latched)",
+    )
+    arm_wait_s: float = param(
+        0.0,
+        unit="s",
+        doc="with armed at start: keep trying to arm this long, for a drive that "
+        "comes up on the bus after this node (0: one attempt)",
+        range=(0.0, 600.0),
+        live=False,
+    )
+    diagnostics_period_s: float = param(
+        1.0,
+        unit="s",
+        doc="period of the /diagnostics status",
+        range=(0.05, 60.0),
+        live=False,
+    )
+    scenario: str = param(
+        "",
+        unit="",
+        doc="scenario YAML (path or name) whose controller design gives the "
+        "drive.* defaults (split mode; empty: the default machine card's)",
+        live=False,
+    )
+
+
 def node_params() -> list[P]:
     """The node's own: PWM period, frame_id, arming, diagnostics, scenario, access, graph."""
-    return [
-        P(
-            "ts_s",
-            1e-4,
-            "PWM period of the drive (header.stamp = seq * ts_s)",
-            "s",
-            1e-6,
-            1e-2,
-            read_only=True,
-        ),
-        P("frame_id", "drive", "header.frame_id of published frames", read_only=True),
-        P(
-            "armed",
-            False,
-            "arm the drive (at start, and live: true arms, false disarms; "
-            "refused with the reason while a fault is latched)",
-        ),
-        P(
-            "arm_wait_s",
-            0.0,
-            "with armed at start: keep trying to arm this long, for a drive that comes up on "
-            "the bus after this node (0: one attempt)",
-            "s",
-            0.0,
-            600.0,
-            read_only=True,
-        ),
-        P(
-            "diagnostics_period_s",
-            1.0,
-            "period of the /diagnostics status",
-            "s",
-            0.05,
-            60.0,
-            read_only=True,
-        ),
-        P(
-            "scenario",
-            "",
-            "scenario YAML (path or name) whose controller design gives the drive.* defaults "
-            "(split mode; empty: the default machine card's)",
-            read_only=True,
-        ),
-        access.param(),
-        graph.param(),
-    ]
+    return [*config_params(BridgeNodeSettings()), access.param(), graph.param()]
 
 
 def param_table() -> list[P]:

@@ -25,11 +25,12 @@ from __future__ import annotations
 
 import json
 import sys
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from fluxdrive.core import schema
 from fluxdrive.core.machine import load_machine
+from fluxdrive.core.schema import param
 from fluxdrive.drive.observers import (
     ES_N,
     ES_VALID,
@@ -65,14 +66,21 @@ _PLUGIN_SKIP = tuple(
 )
 
 
-def _plugin_kwargs_param(extra: dict) -> P:
-    return P(
-        "plugin_kwargs",
-        json.dumps(extra, sort_keys=True),
-        "a user variant's constructor keywords, a JSON object (default: the scenario "
-        "observer's `extra`)",
-        read_only=True,
+@dataclass
+class ObserverPlugin:
+    """A user variant's constructor keywords."""
+
+    plugin_kwargs: str = param(
+        "{}",
+        unit="",
+        doc="a user variant's constructor keywords, a JSON object (default: the "
+        "scenario observer's `extra`)",
+        live=False,
     )
+
+
+def _plugin_kwargs_param(extra: dict) -> P:
+    return params.config_params(ObserverPlugin(json.dumps(extra, sort_keys=True)))[0]
 
 
 def _parse_kwargs(text: str) -> dict:
@@ -92,59 +100,73 @@ def config_params(cfg: ObserverConfig, card) -> list[P]:
     return params.config_params(cfg, card, skip=skip)
 
 
+@dataclass
+class ObserverInput:
+    """Where the node's defaults come from."""
+
+    scenario: str = param(
+        "",
+        unit="",
+        doc="scenario YAML (path or a name under config/scenarios): the machine "
+        "card and this observer's defaults",
+        live=False,
+    )
+    observer: str = param(
+        "observer",
+        unit="",
+        doc="entry of the scenario's observers this node runs (default: the node "
+        "name); also the estimate's variant field",
+        live=False,
+    )
+    machine: str = param(
+        str(CONFIG_DIR / "machines" / "default_spm.yaml"),
+        unit="",
+        doc="machine card YAML when no scenario is given",
+        live=False,
+    )
+
+
 def input_params(name: str) -> list[P]:
     """Where the node's defaults come from: a scenario's observer entry, else a card."""
-    return [
-        P(
-            "scenario",
-            "",
-            "scenario YAML (path or a name under config/scenarios): the "
-            "machine card and this observer's defaults",
-            read_only=True,
-        ),
-        P(
-            "observer",
-            name,
-            "entry of the scenario's observers this node runs (default: "
-            "the node name); also the estimate's variant field",
-            read_only=True,
-        ),
-        P(
-            "machine",
-            str(CONFIG_DIR / "machines" / "default_spm.yaml"),
-            "machine card YAML when no scenario is given",
-            read_only=True,
-        ),
-    ]
+    return params.config_params(ObserverInput(observer=name))
+
+
+@dataclass
+class ObserverCommon:
+    """frame_id, the decimation, frames per kernel call."""
+
+    frame_id: str = param(
+        "",
+        unit="",
+        doc="header.frame_id of published estimates",
+        live=False,
+    )
+    decimation: int = param(
+        1,
+        unit="-",
+        doc="PWM periods per frame (a decimated CAN link, split mode): the "
+        "observer steps at decimation x the machine card's PWM period",
+        range=(1, 64),
+        live=False,
+    )
+    block_frames: int = param(
+        1,
+        unit="frames",
+        doc="frames per kernel call: 1 = each frame as it comes; N > 1 collects N"
+        " frames (or what came within 50 ms of wall time) and runs them in "
+        "one call, the estimates then go out together -- for shadow "
+        "observers, whose estimates nothing waits for; the driving observer "
+        "keeps 1",
+        range=(1, 4096),
+        live=False,
+    )
 
 
 def common_params(decimation: int) -> list[P]:
     """Input topic and durability, frame_id, the decimation, diagnostics."""
     return [
         *params.frame_input_params(),
-        P("frame_id", "", "header.frame_id of published estimates", read_only=True),
-        P(
-            "decimation",
-            decimation,
-            "PWM periods per frame (a decimated CAN link, split mode): the observer "
-            "steps at decimation x the machine card's PWM period",
-            "",
-            1,
-            64,
-            read_only=True,
-        ),
-        P(
-            "block_frames",
-            1,
-            "frames per kernel call: 1 = each frame as it comes; N > 1 collects N frames "
-            "(or what came within 50 ms of wall time) and runs them in one call, the "
-            "estimates then go out together -- for shadow observers, whose estimates nothing "
-            "waits for; the driving observer keeps 1",
-            "frames",
-            1,
-            4096,
-            read_only=True,
-        ),
+        *params.config_params(ObserverCommon(decimation=int(decimation))),
         diag.PARAM,
     ]
 

@@ -35,11 +35,13 @@ import hashlib
 import hmac
 import os
 from collections import Counter
+from dataclasses import dataclass
 from typing import Any
 
+from fluxdrive.core.schema import param as schema_param
 from fluxdrive.io.messages import duty_commander
 
-from .params import P
+from .params import P, config_params
 
 KEY_ENV = "FLUXDRIVE_GRAPH_KEY"
 ANYONE = "*"
@@ -49,15 +51,22 @@ DEFAULT_ALLOWED = ("/controller",)
 DEFAULT_OPERATORS = ("/fluxdrive_operator",)
 
 
-def param(default: tuple[str, ...] = DEFAULT_ALLOWED) -> P:
-    return P(
-        "allowed_commanders",
-        list(default),
-        "nodes (fully qualified names) whose "
-        "duty commands -- and arm/reset requests -- are obeyed; '*' = any publisher "
-        "(messages must carry the graph's mark, see fluxdrive_ros.access)",
-        read_only=True,
+@dataclass
+class AccessSettings:
+    """Whose duty commands a node obeys."""
+
+    allowed_commanders: tuple[str, ...] = schema_param(
+        DEFAULT_ALLOWED,
+        unit="",
+        doc="nodes (fully qualified names) whose duty commands -- and arm/reset requests -- "
+        "are obeyed; '*' = any publisher (messages must carry the graph's mark, see "
+        "fluxdrive_ros.access)",
+        live=False,
     )
+
+
+def param(default: tuple[str, ...] = DEFAULT_ALLOWED) -> P:
+    return config_params(AccessSettings(tuple(default)))[0]
 
 
 def graph_key() -> bytes:

@@ -17,12 +17,14 @@ not the simulated drive).  Tools: `./fluxdrive topic echo /diagnostics`.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from fluxdrive.core.schema import param as schema_param
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from .params import P
+from .params import P, config_params
 
 TOPIC = "/diagnostics"
 OK, WARN, ERROR = 0, 1, 2  # DiagnosticStatus.level (a byte in the message)
@@ -37,17 +39,22 @@ QOS = QoSProfile(
 Source = Callable[[], tuple[int, str, dict[str, Any]]]
 
 
+@dataclass
+class DiagnosticsSettings:
+    """How often a node reports on /diagnostics."""
+
+    diagnostics_period_s: float = schema_param(
+        1.0,
+        unit="s",
+        doc="period of this node's /diagnostics status (0: none)",
+        range=(0.0, 60.0),
+        live=False,
+    )
+
+
 def param(default_s: float = 1.0) -> P:
     """The `diagnostics_period_s` parameter every node declares."""
-    return P(
-        "diagnostics_period_s",
-        float(default_s),
-        "period of this node's /diagnostics status (0: none)",
-        "s",
-        0.0,
-        60.0,
-        read_only=True,
-    )
+    return config_params(DiagnosticsSettings(float(default_s)))[0]
 
 
 PARAM = param()

@@ -32,12 +32,14 @@ import os
 import struct
 from collections import Counter
 from collections.abc import Callable
+from dataclasses import dataclass
 
+from fluxdrive.core.schema import param as schema_param
 from fluxdrive.io.messages import GRAPH_TYPES
 from fluxdrive.io.topics import MARKER
 
 from .access import KEY_ENV
-from .params import P
+from .params import P, config_params
 
 MAX_ID = 2**63 - 1  # a ROS integer parameter is int64
 # topics on which id 0 (a tool outside any launch) is accepted by a node with an id
@@ -71,18 +73,23 @@ def private_topic(graph_id: int, topic: str) -> str:
     return f"/fluxdrive/graph_{graph_id:016x}{topic}"
 
 
-def param() -> P:
-    return P(
-        "graph_id",
-        env_id(),
-        "identity of this node's graph: stamped on every message "
-        "it publishes; messages with another id are dropped and counted (0: not in a "
-        "launched graph, accept any); default from the launch (FLUXDRIVE_GRAPH_KEY)",
-        "",
+@dataclass
+class GraphSettings:
+    """The graph a node belongs to."""
+
+    graph_id: int = schema_param(
         0,
-        MAX_ID,
-        read_only=True,
+        unit="-",
+        doc="identity of this node's graph: stamped on every message it publishes; messages "
+        "with another id are dropped and counted (0: not in a launched graph, accept any); "
+        "default from the launch (FLUXDRIVE_GRAPH_KEY)",
+        range=(0, MAX_ID),
+        live=False,
     )
+
+
+def param() -> P:
+    return config_params(GraphSettings(env_id()))[0]
 
 
 def msg_type_of(msg_cls) -> str:

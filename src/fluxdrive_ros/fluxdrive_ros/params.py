@@ -39,6 +39,8 @@ from rcl_interfaces.msg import (
 )
 from rclpy.parameter import Parameter
 
+from fluxdrive_ros import qos, topics
+
 
 @dataclass
 class P:
@@ -52,6 +54,8 @@ class P:
     hi: float | None = None
     choices: tuple[str, ...] | None = None
     read_only: bool = False
+    # the schema field it is declared from (`P.of`); `declare` refuses a parameter without one
+    spec: schema.Spec | None = None
 
     @property
     def numeric(self) -> bool:
@@ -99,16 +103,19 @@ class P:
         text = spec.doc + (f"; unset: {spec.rule.text}" if spec.rule is not None else "")
         text += " (live)" if spec.live else ""
         lo, hi = rng if rng is not None else (spec.lo, spec.hi)
+        fixed = not spec.live
         if spec.choices is not None or spec.kind is str:
-            return P(spec.name, str(value), text, choices=spec.choices, read_only=not spec.live)
+            return P(spec.name, str(value), text, choices=spec.choices, read_only=fixed, spec=spec)
         if spec.kind is bool:
-            return P(spec.name, bool(value), text, read_only=not spec.live)
+            return P(spec.name, bool(value), text, read_only=fixed, spec=spec)
+        if spec.kind is tuple:  # a list of strings; ROS infers no type from [] so [""] for none
+            return P(spec.name, [str(x) for x in value] or [""], text, read_only=fixed, spec=spec)
         value = int(value) if spec.kind is int else float(value)
         unit = "" if spec.unit == "-" else spec.unit
-        return P(spec.name, value, text, unit, lo, hi, read_only=not spec.live)
+        return P(spec.name, value, text, unit, lo, hi, read_only=fixed, spec=spec)
 
 
-def config_params(cfg, card, decimation: int = 1, *, skip: tuple[str, ...] = ()) -> list[P]:
+def config_params(cfg, card=None, decimation: int = 1, *, skip: tuple[str, ...] = ()) -> list[P]:
     """The declared parameters of an engine config (ControllerConfig, ObserverConfig, ...),
     every field but `skip` from its schema: default from `cfg` (a model field left None: the
     card's value; a field whose None means "off": 0.0, as ROS has no None), text, unit and
@@ -140,43 +147,52 @@ def to_config(cfg, values: dict[str, Any]):
     return dataclasses.replace(cfg, **kw)
 
 
-def input_durability_param() -> P:
-    """The durability of a node's sample-topic readers (observer, controller, recorder)."""
-    from fluxdrive_ros import qos
+@dataclass
+class FrameInput:
+    """What every node stepping on PhaseFrames declares: its input topic, the readers'
+    durability, and whether it exits once the run's last frame is processed."""
 
-    return P(
-        "input_durability",
+    frame_topic: str = schema.param(
+        topics.rel(topics.FRAME),
+        unit="",
+        doc="PhaseFrame input topic (relative: in the drive's namespace)",
+        live=False,
+    )
+    input_durability: str = schema.param(
         "volatile",
-        "durability of the sample-topic subscriptions: volatile (matches any publisher) or "
-        "transient_local (also receives what was published before the match; the lockstep "
-        "sim graphs use it)",
+        unit="",
+        doc="durability of the sample-topic subscriptions: volatile (matches any publisher) "
+        "or transient_local (also receives what was published before the match; the "
+        "lockstep sim graphs use it)",
         choices=qos.INPUT_DURABILITY_CHOICES,
-        read_only=True,
+        live=False,
+    )
+    exit_on_done: bool = schema.param(
+        True, unit="", doc="exit once the frame named by /drive/done is processed"
     )
 
 
-def frame_input_params() -> list[P]:
-    """What every node stepping on PhaseFrames declares: its input topic, the readers'
-    durability, and whether it exits once the run's last frame is processed."""
-    from fluxdrive_ros import topics
+def input_durability_param() -> P:
+    """The durability of a node's sample-topic readers (observer, controller, recorder)."""
+    return config_params(FrameInput(), skip=("frame_topic", "exit_on_done"))[0]
 
-    return [
-        P(
-            "frame_topic",
-            topics.rel(topics.FRAME),
-            "PhaseFrame input topic (relative: in the drive's namespace)",
-            read_only=True,
-        ),
-        input_durability_param(),
-        P("exit_on_done", True, "exit once the frame named by /drive/done is processed"),
-    ]
+
+def frame_input_params() -> list[P]:
+    """What every node stepping on PhaseFrames declares (`FrameInput`)."""
+    return config_params(FrameInput())
 
 
 def declare(node, specs: list[P]) -> dict[str, Any]:
-    """Declare every parameter of `specs` on `node` and return {name: value}."""
+    """Declare every parameter of `specs` on `node` and return {name: value}; each must come
+    from a schema field (`P.of`, `config_params`): a hand-written one is a TypeError.  The
+    fields are kept in `node.param_specs` ({parameter name: Spec})."""
     overrides = getattr(node, "_parameter_overrides", {})
+    declared = node.__dict__.setdefault("param_specs", {})
     out = {}
     for s in specs:
+        if s.spec is None:
+            raise TypeError(f"parameter {s.name!r} is not declared from a schema field")
+        declared[s.name] = s.spec
         ov = overrides.get(s.name)
         if ov is not None and isinstance(s.default, float) and ov.type_ == Parameter.Type.INTEGER:
             overrides[s.name] = Parameter(s.name, Parameter.Type.DOUBLE, float(ov.value))
@@ -249,8 +265,6 @@ class _MarkerPublisher:
         from fluxdrive.io.messages import Stamp
 
         import flux_drive_msgs.msg as fm
-
-        from . import qos, topics
 
         self.node = node
         self.cls = fm.ParameterMarker

@@ -50,10 +50,12 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+from dataclasses import dataclass
 
 import numpy as np
 from fluxdrive.core import schema
 from fluxdrive.core.machine import load_machine
+from fluxdrive.core.schema import param
 from fluxdrive.drive.control import (
     CO_EN,
     CO_FAULT,
@@ -98,23 +100,41 @@ NODE_LEVEL = {
 }
 
 
+@dataclass
+class ControllerInput:
+    """Where the node's defaults come from."""
+
+    scenario: str = param(
+        "",
+        unit="",
+        doc="scenario YAML (path or a name under config/scenarios): machine card,"
+        " controller defaults, speed profile and injections",
+        live=False,
+    )
+    machine: str = param(
+        str(CONFIG_DIR / "machines" / "default_spm.yaml"),
+        unit="",
+        doc="machine card YAML when no scenario is given",
+        live=False,
+    )
+
+
 def input_params() -> list[P]:
     """Where the node's defaults come from: a scenario, else a machine card."""
-    return [
-        P(
-            "scenario",
-            "",
-            "scenario YAML (path or a name under config/scenarios): machine "
-            "card, controller defaults, speed profile and injections",
-            read_only=True,
-        ),
-        P(
-            "machine",
-            str(CONFIG_DIR / "machines" / "default_spm.yaml"),
-            "machine card YAML when no scenario is given",
-            read_only=True,
-        ),
-    ]
+    return params.config_params(ControllerInput())
+
+
+@dataclass
+class ControllerTopic:
+    """Where the driving estimate comes from."""
+
+    estimate_topic: str = param(
+        "",
+        unit="",
+        doc="RotorEstimate topic of the driving observer (position_source = "
+        "estimate; relative: in the drive's namespace)",
+        live=False,
+    )
 
 
 def source_params(cfg: ControllerConfig, driving: str) -> list[P]:
@@ -125,92 +145,93 @@ def source_params(cfg: ControllerConfig, driving: str) -> list[P]:
     topic = topics.estimate_topic(driving if driving != "encoder" else "flux_measured")
     return [
         P.of(spec["position_source"], cfg.position_source),
-        P(
-            "estimate_topic",
-            topics.rel(topic),
-            "RotorEstimate topic of the driving observer (position_source = estimate; "
-            "relative: in the drive's namespace)",
-            read_only=True,
-        ),
+        *params.config_params(ControllerTopic(topics.rel(topic))),
         mode,
         P.of(spec["decimation"], int(cfg.decimation)),
     ]
 
 
+@dataclass
+class ControllerNodeSettings:
+    """The node's own live and read-only parameters."""
+
+    speed_ref_mode: str = param(
+        "profile",
+        unit="",
+        doc="speed reference: the scenario's profile or the constant speed_ref_rpm",
+        choices=("profile", "constant"),
+    )
+    speed_ref_rpm: float = param(
+        0.0,
+        unit="rpm",
+        doc="constant mechanical speed reference",
+        range=(-1e5, 1e5),
+    )
+    position_timeout_s: float = param(
+        0.05,
+        unit="s",
+        doc="safe state (PWM off, latched 'stale input') when the driving "
+        "estimate of a frame has not come while frames this much sample time "
+        "later have",
+        range=(1e-4, 10.0),
+    )
+    position_wall_timeout_s: float = param(
+        2.0,
+        unit="s",
+        doc="safe state when the driving estimate of a waiting frame has not come"
+        " for this much wall time (lockstep graphs, where the plant waits for"
+        " us; 0: off)",
+        range=(0.0, 3600.0),
+    )
+    max_resyncs: int = param(
+        5,
+        unit="-",
+        doc="lost intervals (PWM switched off by the power stage's watchdog) "
+        "tolerated within resync_window_s; one more latches the fault "
+        "'watchdog'.  A drive on a bus and a lockstep plant also switch it "
+        "off for a late host, a lost frame or a restarted controller's first "
+        "answers; with the paced plant, which takes only a silent controller "
+        "for dead, 0 latches the first",
+        range=(0, 1000),
+        live=False,
+    )
+    resync_window_s: float = param(
+        10.0,
+        unit="s",
+        doc="sample-time window of max_resyncs",
+        range=(0.01, 3600.0),
+        live=False,
+    )
+
+
 def node_params() -> list[P]:
     """The node's own live and read-only parameters (speed reference, timeouts, resyncs)."""
-    return [
-        P(
-            "speed_ref_mode",
-            "profile",
-            "speed reference: the scenario's profile or the constant speed_ref_rpm (live)",
-            choices=("profile", "constant"),
-        ),
-        P("speed_ref_rpm", 0.0, "constant mechanical speed reference (live)", "rpm", -1e5, 1e5),
-        P(
-            "position_timeout_s",
-            0.05,
-            "safe state (PWM off, latched 'stale input') when "
-            "the driving estimate of a frame has not come while frames this much sample "
-            "time later have (live)",
-            "s",
-            1e-4,
-            10.0,
-        ),
-        P(
-            "position_wall_timeout_s",
-            2.0,
-            "safe state when the driving estimate of a "
-            "waiting frame has not come for this much wall time (lockstep graphs, where "
-            "the plant waits for us; 0: off) (live)",
-            "s",
-            0.0,
-            3600.0,
-        ),
-        P(
-            "max_resyncs",
-            5,
-            "lost intervals (PWM switched off by the power stage's watchdog) tolerated "
-            "within resync_window_s; one more latches the fault 'watchdog'.  A drive on a "
-            "bus and a lockstep plant also switch it off for a late host, a lost frame or "
-            "a restarted controller's first answers; with the paced plant, which takes "
-            "only a silent controller for dead, 0 latches the first",
-            "",
-            0,
-            1000,
-            read_only=True,
-        ),
-        P(
-            "resync_window_s",
-            10.0,
-            "sample-time window of max_resyncs",
-            "s",
-            0.01,
-            3600.0,
-            read_only=True,
-        ),
-    ]
+    return params.config_params(ControllerNodeSettings())
+
+
+@dataclass
+class ControllerCommon:
+    """The frame_id of what it publishes, who may reset a fault."""
+
+    frame_id: str = param(
+        "",
+        unit="",
+        doc="header.frame_id of ControllerState and DutyCommand (the access mark "
+        "travels in DutyCommand.commander)",
+        live=False,
+    )
+    allowed_operators: tuple[str, ...] = param(
+        access.DEFAULT_OPERATORS,
+        unit="",
+        doc="nodes (fully qualified names) whose ~/reset_fault requests are obeyed; '*' = anyone",
+        live=False,
+    )
 
 
 def common_params() -> list[P]:
     """Input topic and durability, frame_id, diagnostics, who may reset a fault."""
-    return [
-        *params.frame_input_params(),
-        P(
-            "frame_id",
-            "",
-            "header.frame_id of ControllerState and DutyCommand (the access "
-            "mark travels in DutyCommand.commander)",
-            read_only=True,
-        ),
-        diag.PARAM,
-        P(
-            "allowed_operators",
-            list(access.DEFAULT_OPERATORS),
-            "nodes (fully qualified names) whose ~/reset_fault requests are obeyed; '*' = anyone",
-            read_only=True,
-        ),
-    ]
+    common = params.config_params(ControllerCommon())
+    return [*params.frame_input_params(), common[0], diag.PARAM, common[1]]
 
 
 def design_card(card, split: bool, decimation: int):

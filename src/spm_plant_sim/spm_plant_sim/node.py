@@ -64,15 +64,18 @@ from __future__ import annotations
 import math
 import sys
 import time
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from fluxdrive.core.machine import DEADTIME_RANGE_S
+from fluxdrive.core.schema import param
 from fluxdrive.drive.plant import FR_N, MP_TD, TR_N, plant_advance, plant_initial_frame
 from fluxdrive.drive.scenario import load_scenario, scenario_path
 from fluxdrive.drive.sim import DriveSetup
 from fluxdrive_ros.cdr import Codec, Decoder
 from fluxdrive_ros.intra import RawPublisher, RawSubscription
-from fluxdrive_ros.params import P, declare, on_set
+from fluxdrive_ros.params import P, config_params, declare, input_durability_param, on_set
 from fluxdrive_ros.runner import FluxNode, main_node
 from fluxdrive_ros.wire import STATUS_SIMULATED, STATUS_STALE_COMMAND, FrameWire, Stamp, TruthWire
 from rclpy.duration import Duration
@@ -83,162 +86,185 @@ from fluxdrive_ros import access, qos, topics
 from fluxdrive_ros import diagnostics as diag
 
 
+@dataclass
+class PlantInput:
+    """What the plant simulates."""
+
+    scenario: str = param(
+        "",
+        unit="",
+        doc="scenario YAML (path or a name under config/scenarios): machine card, load, seed, "
+        "faults",
+        live=False,
+    )
+
+
+@dataclass
+class PlantRun:
+    """The run: mode, seed, length, the bridge's deadtime, the load."""
+
+    mode: str = param(
+        "lockstep",
+        unit="",
+        doc="lockstep: sim time, one period per duty command; paced: wall clock at rate_factor",
+        choices=("lockstep", "paced"),
+        live=False,
+    )
+    seed: int = param(
+        1,
+        unit="-",
+        doc="sensor-noise random seed",
+        range=(0, 2**62),
+        live=False,
+    )
+    duration_s: float = param(
+        11.0,
+        unit="s",
+        doc="run length (paced: 0 = until stopped)",
+        range=(0.0, 3600.0),
+        live=False,
+    )
+    deadtime_s: float = param(
+        2.0e-6,  # the card's, unless the scenario overrides it
+        unit="s",
+        doc="inverter deadtime of the simulated bridge",
+        range=DEADTIME_RANGE_S,
+    )
+    load_mode: str = param(
+        "profile",
+        unit="",
+        doc="load torque: the scenario's profile (times load_scale) or a constant load_constant_nm",
+        choices=("profile", "constant"),
+    )
+    load_scale: float = param(
+        1.0,
+        unit="-",
+        doc="factor on the scenario's load profile",
+        range=(0.0, 10.0),
+    )
+    load_constant_nm: float = param(
+        0.0,
+        unit="N m",
+        doc="load torque when load_mode = constant",
+        range=(-100.0, 100.0),
+    )
+
+
+@dataclass
+class PlantTiming:
+    """Pacing and the watchdogs."""
+
+    rate_factor: float = param(
+        1.0,
+        unit="-",
+        doc="paced mode: simulated seconds per wall second",
+        range=(0.001, 10.0),
+    )
+    first_duty_timeout_s: float = param(
+        30.0,
+        unit="s",
+        doc="paced mode: how long the plant waits for the first duty command "
+        "(processes starting, code loading) before it runs on with the PWM "
+        "off",
+        range=(0.0, 3600.0),
+    )
+    stall_warn_s: float = param(
+        2.0,
+        unit="s",
+        doc="paced mode: one warning line when no frame has been published for "
+        "this much wall time beyond its due time (the plant waits for a duty "
+        "command, or its loop is starved), one more when frames come again",
+        range=(0.01, 3600.0),
+    )
+    watchdog_s: float = param(
+        1.0,
+        unit="s",
+        doc="paced mode: the controller counts as dead when no duty command at "
+        "all has come for this much wall time: PWM off (frames flagged stale)"
+        " until duty commands come back, one log line; a duty command late by"
+        " less is lateness (the plant waits with the previous duty in effect,"
+        " time slips; counted and reported), never a PWM off",
+        range=(0.001, 3600.0),
+    )
+    duty_timeout_s: float = param(
+        5.0,
+        unit="s",
+        doc="lockstep mode: simulate the next period with the PWM off when its "
+        "duty command has not come for this much wall time (controller dead "
+        "or hung), then one period per timeout until commands come back; 0 = "
+        "wait forever",
+        range=(0.0, 3600.0),
+    )
+
+
+@dataclass
+class PlantGraph:
+    """Start-up matching, /clock, progress, exit, frame_id, durability."""
+
+    clock_decimation: int = param(
+        10,
+        unit="frames",
+        doc="publish /clock every N frames (0: never)",
+        range=(0, 1000000),
+    )
+    wait_frame_subscribers: int = param(
+        1,
+        unit="-",
+        doc="matched /drive/frame subscribers needed before the first frame",
+        range=(0, 1000),
+        live=False,
+    )
+    wait_duty_publishers: int = param(
+        1,
+        unit="-",
+        doc="matched /drive/duty publishers needed before the first frame",
+        range=(0, 100),
+        live=False,
+    )
+    start_delay_s: float = param(
+        0.5,
+        unit="s",
+        doc="wait this long after matching before the first frame (lets the rest "
+        "of the graph finish discovery)",
+        range=(0.0, 60.0),
+        live=False,
+    )
+    progress_interval_s: float = param(
+        0.5,
+        unit="s",
+        doc="progress line period on stdout (0: none)",
+        range=(0.0, 3600.0),
+    )
+    exit_on_done: bool = param(
+        True,
+        unit="",
+        doc="exit after the run's last frame (after /drive/done)",
+    )
+    frame_id: str = param(
+        "",
+        unit="",
+        doc="header.frame_id of published frames",
+        live=False,
+    )
+
+
 def run_params(sc) -> list[P]:
     """The run: mode, seed, length, the bridge's deadtime, the load."""
-    card = sc.machine
-    td = card.deadtime_s if sc.plant_deadtime_s is None else sc.plant_deadtime_s
-    return [
-        P(
-            "mode",
-            "lockstep",
-            "lockstep: sim time, one period per duty command; paced: wall clock at rate_factor",
-            choices=("lockstep", "paced"),
-            read_only=True,
-        ),
-        P("seed", int(sc.seed), "sensor-noise random seed", "", 0, 2**62, read_only=True),
-        P(
-            "duration_s",
-            float(sc.duration_s),
-            "run length (paced: 0 = until stopped)",
-            "s",
-            0.0,
-            3600.0,
-            read_only=True,
-        ),
-        P(
-            "deadtime_s",
-            float(td),
-            "inverter deadtime of the simulated bridge (live)",
-            "s",
-            0.0,
-            1e-4,
-        ),
-        P(
-            "load_mode",
-            "profile",
-            "load torque: the scenario's profile (times load_scale) or "
-            "a constant load_constant_nm (live)",
-            choices=("profile", "constant"),
-        ),
-        P("load_scale", 1.0, "factor on the scenario's load profile (live)", "", 0.0, 10.0),
-        P(
-            "load_constant_nm",
-            0.0,
-            "load torque when load_mode = constant (live)",
-            "N m",
-            -100.0,
-            100.0,
-        ),
-    ]
+    td = sc.machine.deadtime_s if sc.plant_deadtime_s is None else sc.plant_deadtime_s
+    run = PlantRun(seed=int(sc.seed), duration_s=float(sc.duration_s), deadtime_s=float(td))
+    return config_params(run)
 
 
 def timing_params() -> list[P]:
     """Pacing and the watchdogs: rate, first duty, stalls, a dead or hung controller."""
-    return [
-        P(
-            "rate_factor",
-            1.0,
-            "paced mode: simulated seconds per wall second (live)",
-            "",
-            1e-3,
-            10.0,
-        ),
-        P(
-            "first_duty_timeout_s",
-            30.0,
-            "paced mode: how long the plant waits for the first duty command (processes "
-            "starting, code loading) before it runs on with the PWM off",
-            "s",
-            0.0,
-            3600.0,
-        ),
-        P(
-            "stall_warn_s",
-            2.0,
-            "paced mode: one warning line when no frame has been published for this much "
-            "wall time beyond its due time (the plant waits for a duty command, or its "
-            "loop is starved), one more when frames come again (live)",
-            "s",
-            0.01,
-            3600.0,
-        ),
-        P(
-            "watchdog_s",
-            1.0,
-            "paced mode: the controller counts as dead when no duty command at all has come "
-            "for this much wall time: PWM off (frames flagged stale) until duty commands come "
-            "back, one log line; a duty command late by less is lateness (the plant waits "
-            "with the previous duty in effect, time slips; counted and reported), never a "
-            "PWM off (live)",
-            "s",
-            1e-3,
-            3600.0,
-        ),
-        P(
-            "duty_timeout_s",
-            5.0,
-            "lockstep mode: simulate the next period with the PWM off "
-            "when its duty command has not come for this much wall time (controller dead or "
-            "hung), then one period per timeout until commands come back; 0 = wait forever "
-            "(live)",
-            "s",
-            0.0,
-            3600.0,
-        ),
-    ]
+    return config_params(PlantTiming())
 
 
 def graph_params() -> list[P]:
     """Start-up matching, /clock, progress, exit, frame_id, durability, diagnostics, access."""
     return [
-        P(
-            "clock_decimation",
-            10,
-            "publish /clock every N frames (0: never)",
-            "frames",
-            0,
-            1_000_000,
-        ),
-        P(
-            "wait_frame_subscribers",
-            1,
-            "matched /drive/frame subscribers needed before the first frame",
-            "",
-            0,
-            1000,
-            read_only=True,
-        ),
-        P(
-            "wait_duty_publishers",
-            1,
-            "matched /drive/duty publishers needed before the first frame",
-            "",
-            0,
-            100,
-            read_only=True,
-        ),
-        P(
-            "start_delay_s",
-            0.5,
-            "wait this long after matching before the first frame (lets "
-            "the rest of the graph finish discovery)",
-            "s",
-            0.0,
-            60.0,
-            read_only=True,
-        ),
-        P("progress_interval_s", 0.5, "progress line period on stdout (0: none)", "s", 0.0, 3600.0),
-        P("exit_on_done", True, "exit after the run's last frame (after /drive/done)"),
-        P("frame_id", "", "header.frame_id of published frames", read_only=True),
-        P(
-            "input_durability",
-            "volatile",
-            "durability of the sample-topic "
-            "subscriptions: volatile (matches any publisher) or transient_local (also receives "
-            "what was published before the match; the lockstep sim graphs use it)",
-            choices=qos.INPUT_DURABILITY_CHOICES,
-            read_only=True,
-        ),
+        *config_params(PlantGraph()),
+        input_durability_param(),
         diag.PARAM,
         access.param(),
     ]
@@ -303,18 +329,7 @@ class PlantNode(FluxNode):
 
     def _scenario(self):
         """The scenario named by the `scenario` parameter (required)."""
-        sp = declare(
-            self,
-            [
-                P(
-                    "scenario",
-                    "",
-                    "scenario YAML (path or a name under "
-                    "config/scenarios): machine card, load, seed, faults",
-                    read_only=True,
-                )
-            ],
-        )["scenario"]
+        sp = declare(self, config_params(PlantInput()))["scenario"]
         if not sp:
             raise ValueError("parameter 'scenario' (path of a scenario YAML) is required")
         return load_scenario(scenario_path(sp))

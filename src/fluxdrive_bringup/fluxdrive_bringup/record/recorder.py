@@ -50,14 +50,16 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 
+from fluxdrive.core.schema import param
 from fluxdrive.drive.scenario import REPO_ROOT
 from fluxdrive.io.bagwriter import check_bag_target, pack_json
 from fluxdrive.io.messages import message_seq
 from fluxdrive_ros.intra import RawSubscription
-from fluxdrive_ros.params import P, declare, input_durability_param
+from fluxdrive_ros.params import P, config_params, declare, input_durability_param
 from fluxdrive_ros.runner import FluxNode, main_node
 
 import flux_drive_msgs.msg as fm
@@ -128,104 +130,111 @@ def recorder_params() -> list[P]:
     return _what_params() + _writing_params()
 
 
+@dataclass
+class RecorderWhat:
+    """The bag, its topics and metadata (`bag_dir` left empty: bags/run-<time now>)."""
+
+    bag_dir: str = param(
+        "",
+        unit="",
+        doc="output bag directory (must not exist yet)",
+        live=False,
+    )
+    topics: tuple[str, ...] = param(
+        tuple(DEFAULT_TOPICS),
+        unit="",
+        doc="topics to record",
+        live=False,
+    )
+    observers: tuple[str, ...] = param(
+        (),
+        unit="",
+        doc="observer names whose /obs/<name>/estimate is recorded",
+        live=False,
+    )
+    timestamps: str = param(
+        "header",
+        unit="",
+        doc="bag time stamps: header (sample instant) or receive (wall clock)",
+        choices=("header", "receive"),
+        live=False,
+    )
+    exit_on_done: bool = param(
+        True,
+        unit="",
+        doc="finalise and exit once the run is done and drained",
+    )
+    drain_timeout_s: float = param(
+        3.0,
+        unit="s",
+        doc="after /drive/done: give up waiting for missing samples after this "
+        "long without new messages",
+        range=(0.0, 600.0),
+    )
+    scenario: str = param(
+        "",
+        unit="",
+        doc="scenario of the run: its machine card and observer configurations go"
+        " into the bag's metadata (for replay)",
+        live=False,
+    )
+    duration_s: float = param(
+        0.0,
+        unit="s",
+        doc="run length for the metadata (0: the scenario's)",
+        range=(0.0, 3600.0),
+        live=False,
+    )
+
+
 def _what_params() -> list[P]:
     """The bag, its topics and metadata (the default bag directory named by the time now)."""
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
-    return [
-        P(
-            "bag_dir",
-            str(REPO_ROOT / "bags" / f"run-{stamp}"),
-            "output bag directory (must not exist yet)",
-            read_only=True,
-        ),
-        P("topics", list(DEFAULT_TOPICS), "topics to record", read_only=True),
-        P(
-            "observers",
-            [""],
-            "observer names whose /obs/<name>/estimate is recorded",
-            read_only=True,
-        ),
-        P(
-            "timestamps",
-            "header",
-            "bag time stamps: header (sample instant) or receive (wall clock)",
-            choices=("header", "receive"),
-            read_only=True,
-        ),
-        P("exit_on_done", True, "finalise and exit once the run is done and drained"),
-        P(
-            "drain_timeout_s",
-            3.0,
-            "after /drive/done: give up waiting for missing "
-            "samples after this long without new messages",
-            "s",
-            0.0,
-            600.0,
-        ),
-        P(
-            "scenario",
-            "",
-            "scenario of the run: its machine card and observer "
-            "configurations go into the bag's metadata (for replay)",
-            read_only=True,
-        ),
-        P(
-            "duration_s",
-            0.0,
-            "run length for the metadata (0: the scenario's)",
-            "s",
-            0.0,
-            3600.0,
-            read_only=True,
-        ),
-        input_durability_param(),
-    ]
+    what = RecorderWhat(bag_dir=str(REPO_ROOT / "bags" / f"run-{stamp}"))
+    return [*config_params(what), input_durability_param()]
+
+
+@dataclass
+class RecorderWriting:
+    """Chunks, backlog, the stop's drain and the free space it needs."""
+
+    flush_interval_s: float = param(
+        0.5,
+        unit="s",
+        doc="close the open MCAP chunk and flush the bag file this often (bounds "
+        "what a killed recorder loses)",
+        range=(0.05, 60.0),
+    )
+    max_backlog_mb: float = param(
+        8.0,
+        unit="MB",
+        doc="messages received but not yet handed to the bag writer are held to "
+        "this much; beyond it the recorder's callback waits for the writer "
+        "(backpressure: a lockstep graph slows to the disk's speed instead of"
+        " growing in memory; also bounds what a SIGKILL loses)",
+        range=(0.5, 4096.0),
+        live=False,
+    )
+    stop_drain_timeout_s: float = param(
+        10.0,
+        unit="s",
+        doc="on a stop: wait this long at most for the messages the stopped nodes"
+        " published (their counts, from the launcher) before finalising; what"
+        " is missing then is named in the log and the bag's metadata",
+        range=(0.0, 600.0),
+    )
+    min_free_mb: float = param(
+        100.0,
+        unit="MB",
+        doc="refuse to start unless the bag's file system has this much free space",
+        range=(0.0, 1000000000.0),
+        live=False,
+    )
 
 
 def _writing_params() -> list[P]:
     """Chunks, backlog, the stop's drain and the free space it needs."""
-    return [
-        P(
-            "flush_interval_s",
-            0.5,
-            "close the open MCAP chunk and flush the bag file this "
-            "often (bounds what a killed recorder loses)",
-            "s",
-            0.05,
-            60.0,
-        ),
-        P(
-            "max_backlog_mb",
-            8.0,
-            "messages received but not yet handed to the bag "
-            "writer are held to this much; beyond it the recorder's callback waits for the "
-            "writer (backpressure: a lockstep graph slows to the disk's speed instead of "
-            "growing in memory; also bounds what a SIGKILL loses)",
-            "MB",
-            0.5,
-            4096.0,
-            read_only=True,
-        ),
-        P(
-            "stop_drain_timeout_s",
-            10.0,
-            "on a stop: wait this long at most for the messages the stopped nodes "
-            "published (their counts, from the launcher) before finalising; what is "
-            "missing then is named in the log and the bag's metadata",
-            "s",
-            0.0,
-            600.0,
-        ),
-        P(
-            "min_free_mb",
-            100.0,
-            "refuse to start unless the bag's file system has this much free space",
-            "MB",
-            0.0,
-            1e9,
-            read_only=True,
-        ),
-    ]
+    return config_params(RecorderWriting())
 
 
 class RecorderNode(FluxNode):

@@ -45,15 +45,17 @@ import re
 import struct
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from fluxdrive.core.schema import param
 from fluxdrive.drive.control import MODE_FAULT
 from fluxdrive.drive.scenario import REPO_ROOT
 from fluxdrive_ros.cdr import Decoder
 from fluxdrive_ros.intra import RawSubscription
-from fluxdrive_ros.params import P, declare, on_set
+from fluxdrive_ros.params import P, config_params, declare, on_set
 from fluxdrive_ros.runner import FluxNode, main_node
 from std_msgs.msg import UInt8MultiArray
 
@@ -313,144 +315,138 @@ class _Envelopes:
         self.streams[stream] = {"k": k, "n": [f[0] for f in fields], "dec": q, "lo": mn, "hi": mx}
 
 
+@dataclass
+class TapEnvelope:
+    """The envelopes the page draws: rate, buckets, locus, CPU share, spectra."""
+
+    period_s: float = param(
+        0.04,
+        unit="s",
+        doc="publish the envelopes this often (the page's data rate)",
+        range=(0.01, 1.0),
+    )
+    bucket_samples: int = param(
+        20,
+        unit="-",
+        doc="samples per envelope bucket (min/max over each bucket; the page "
+        "shows one bucket per pixel or so)",
+        range=(1, 10000),
+    )
+    locus_points: int = param(
+        60,
+        unit="-",
+        doc="flux-locus points per observer and period (every n-th sample)",
+        range=(1, 2000),
+    )
+    max_cpu_share: float = param(
+        0.04,
+        unit="-",
+        doc="at most this share of its process's CPU time goes to the envelopes: "
+        "a period is skipped (its samples go into the next) while the tap is "
+        "over it, so a slow or loaded graph is not slowed further",
+        range=(0.001, 1.0),
+    )
+    spectrum_window_s: float = param(
+        1.0,
+        unit="s",
+        doc="order spectra of θ̃ and λ̂α over this much of the newest samples, renewed as often",
+        range=(0.1, 10.0),
+    )
+
+
+@dataclass
+class TapCapture:
+    """Single-shot captures: the trigger, the window, where the bags go."""
+
+    trigger: str = param(
+        "off",
+        unit="",
+        doc="single-shot capture: arm on a parameter change (param), a mode "
+        "change such as the I-f -> observer handover (mode), a latched fault "
+        "(fault) or |trigger_field| >= trigger_level (threshold); every set "
+        "re-arms",
+        choices=TRIGGERS,
+    )
+    trigger_field: str = param(
+        "state:i_q",
+        unit="",
+        doc="threshold trigger: stream:field of the envelopes, e.g. state:i_q, "
+        "frame:i_a, est/flux_measured:err",
+    )
+    trigger_level: float = param(
+        1.0,
+        unit="-",
+        doc="threshold trigger: level of |field|",
+        range=(-1e9, 1e9),
+    )
+    capture_pre_s: float = param(
+        0.05,
+        unit="s",
+        doc="capture: full-rate samples kept before the trigger",
+        range=(0.0, 1.0),
+    )
+    capture_post_s: float = param(
+        0.1,
+        unit="s",
+        doc="capture: full-rate samples after the trigger",
+        range=(0.001, 2.0),
+    )
+    capture_dir: str = param(
+        str(REPO_ROOT / "bags" / "captures"),
+        unit="",
+        doc="capture: directory of the capture bags (one per trigger)",
+    )
+
+
 def live_params() -> list[P]:
     """The tap's live parameters (set while it runs; see _apply)."""
-    return _envelope_params() + _capture_params()
+    return config_params(TapEnvelope()) + config_params(TapCapture())
 
 
-def _envelope_params() -> list[P]:
-    return [
-        P(
-            "period_s",
-            0.04,
-            "publish the envelopes this often (the page's data rate) (live)",
-            "s",
-            0.01,
-            1.0,
-        ),
-        P(
-            "bucket_samples",
-            20,
-            "samples per envelope bucket (min/max over each bucket; "
-            "the page shows one bucket per pixel or so) (live)",
-            "-",
-            1,
-            10000,
-        ),
-        P(
-            "locus_points",
-            60,
-            "flux-locus points per observer and period (every n-th sample) (live)",
-            "-",
-            1,
-            2000,
-        ),
-        P(
-            "max_cpu_share",
-            0.04,
-            "at most this share of its process's CPU time goes to "
-            "the envelopes: a period is skipped (its samples go into the next) while the "
-            "tap is over it, so a slow or loaded graph is not slowed further (live)",
-            "-",
-            0.001,
-            1.0,
-        ),
-        P(
-            "spectrum_window_s",
-            1.0,
-            "order spectra of θ̃ and λ̂α over this much of the newest samples, "
-            "renewed as often (live)",
-            "s",
-            0.1,
-            10.0,
-        ),
-    ]
+@dataclass
+class TapFixed:
+    """The tap's read-only parameters (fixed at start)."""
 
-
-def _capture_params() -> list[P]:
-    return [
-        P(
-            "trigger",
-            "off",
-            "single-shot capture: arm on a parameter change (param), a mode change "
-            "such as the I-f -> observer handover (mode), a latched fault (fault) or "
-            "|trigger_field| >= trigger_level (threshold); every set re-arms (live)",
-            choices=TRIGGERS,
-        ),
-        P(
-            "trigger_field",
-            "state:i_q",
-            "threshold trigger: stream:field of the envelopes, e.g. state:i_q, "
-            "frame:i_a, est/flux_measured:err (live)",
-        ),
-        P("trigger_level", 1.0, "threshold trigger: level of |field| (live)", "", -1e9, 1e9),
-        P(
-            "capture_pre_s",
-            0.05,
-            "capture: full-rate samples kept before the trigger (live)",
-            "s",
-            0.0,
-            1.0,
-        ),
-        P(
-            "capture_post_s",
-            0.1,
-            "capture: full-rate samples after the trigger (live)",
-            "s",
-            0.001,
-            2.0,
-        ),
-        P(
-            "capture_dir",
-            str(REPO_ROOT / "bags" / "captures"),
-            "capture: directory of the capture bags (one per trigger) (live)",
-        ),
-    ]
+    observers: tuple[str, ...] = param(
+        (),
+        unit="",
+        doc="observer names to watch; empty: every /obs/<name>/estimate topic the"
+        " graph has (discovered)",
+        live=False,
+    )
+    pole_pairs: int = param(
+        0,
+        unit="-",
+        doc="pole pairs of the machine (truth speed in electrical rad/s next to "
+        "the estimates); 0: from `scenario`, else not shown",
+        range=(0, 64),
+        live=False,
+    )
+    scenario: str = param(
+        "",
+        unit="",
+        doc="scenario YAML (for pole_pairs and the sample period)",
+        live=False,
+    )
+    ts_s: float = param(
+        1e-4,
+        unit="s",
+        doc="sample period (overridden by the scenario's)",
+        range=(1e-7, 1.0),
+        live=False,
+    )
+    exit_on_done: bool = param(
+        True,
+        unit="",
+        doc="end with the run (/drive/done), like the drive nodes, so that a "
+        "process it shares with them can exit",
+        live=False,
+    )
 
 
 def fixed_params() -> list[P]:
     """The tap's read-only parameters (fixed at start)."""
-    return [
-        P(
-            "observers",
-            [""],
-            "observer names to watch; empty: every /obs/<name>/estimate "
-            "topic the graph has (discovered)",
-            read_only=True,
-        ),
-        P(
-            "pole_pairs",
-            0,
-            "pole pairs of the machine (truth speed in electrical rad/s "
-            "next to the estimates); 0: from `scenario`, else not shown",
-            "-",
-            0,
-            64,
-            read_only=True,
-        ),
-        P(
-            "scenario",
-            "",
-            "scenario YAML (for pole_pairs and the sample period)",
-            read_only=True,
-        ),
-        P(
-            "ts_s",
-            1e-4,
-            "sample period (overridden by the scenario's)",
-            "s",
-            1e-7,
-            1.0,
-            read_only=True,
-        ),
-        P(
-            "exit_on_done",
-            True,
-            "end with the run (/drive/done), like the drive nodes, so "
-            "that a process it shares with them can exit",
-            read_only=True,
-        ),
-    ]
+    return config_params(TapFixed())
 
 
 class ScopeTapNode(FluxNode):
