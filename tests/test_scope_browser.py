@@ -107,7 +107,7 @@ def test_scope_page_in_chromium(tmp_path):
             )
 
             _zoom_and_cursor(page)
-            _spectrum(page)
+            _spectrum(page, errors)
 
             # arm the trigger on a parameter change (single shot)
             page.select_option("#trig", "param")
@@ -209,15 +209,19 @@ def _zoom_and_cursor(page) -> None:
         " return [u.scales.x.min, u.scales.x.max]; }"
     )
     before = page.evaluate(x_scale, "idq")
-    page.mouse.move(box["x"] + 0.3 * box["width"], y)
+    # reach the start in steps and let a frame pass, so the chart's cursor is where the
+    # button goes down; the time axis holds still from there to the button's release
+    page.mouse.move(box["x"] + 0.3 * box["width"], y, steps=5)
+    page.wait_for_timeout(100)
     page.mouse.down()
     page.mouse.move(box["x"] + 0.5 * box["width"], y, steps=5)
     page.mouse.move(box["x"] + 0.6 * box["width"], y, steps=5)
+    page.wait_for_timeout(100)
     page.mouse.up()
     zoom = page.evaluate("window.scopeDebug.zoom()")
     assert zoom is not None and page.locator("#pause").is_checked()
     span0 = before[1] - before[0]
-    assert zoom[1] - zoom[0] == pytest.approx(0.3 * span0, rel=0.05)  # the dragged share
+    assert zoom[1] - zoom[0] == pytest.approx(0.3 * span0, rel=0.05), (zoom, before)
     page.wait_for_timeout(300)
     for chart in ("idq", "err", "iabc", "mode"):
         assert page.evaluate(x_scale, chart) == pytest.approx(zoom)
@@ -245,7 +249,7 @@ def _zoom_and_cursor(page) -> None:
     assert not page.locator("#pause").is_checked()
 
 
-def _spectrum(page) -> None:
+def _spectrum(page, errors: list[str]) -> None:
     """The θ̃ and λ̂α order spectra (orders 1..20) of every observer arrive from the server
     and are drawn."""
     page.wait_for_function(
@@ -267,7 +271,7 @@ def _spectrum(page) -> None:
              || (i > 0 && u.data[i].filter((v) => v !== null).length === 20); })()""",
         timeout=30_000,
     )
-    assert not page.evaluate("window.scopeStats.errors"), "the page failed to redraw"
+    assert not page.evaluate("window.scopeStats.errors"), f"the page failed to redraw: {errors}"
 
 
 def _check_capture(cap: dict, captures: Path) -> None:

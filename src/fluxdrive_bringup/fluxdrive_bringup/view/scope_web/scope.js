@@ -33,6 +33,10 @@ let markers = [];          // parameter changes: {t, text, ok} on every time axi
 let spectrum = {};         // observer -> {orders, err, flux_alpha, periods} (the server's)
 let zoom = null;           // [t0, t1] while zoomed (the view is held), else null
 let zoomPaused = false;    // the zoom paused the page (unzoom resumes it)
+let dragView = null;       // [t0, t1] held while a drag selects a span: the time axis
+                           // must not scroll under the selection, or it means other times
+let dragChart = null;      // the chart the drag started on: the only one whose selection
+                           // (in its own pixels) zooms; synced charts have other widths
 const cursors = { a: null, b: null };  // cursor times [s]: click = A, shift-click = B
 let capture = null;        // the newest capture, reopened from its bag by the server
 let captureChart = null;
@@ -338,7 +342,7 @@ function buildCharts() {
       hooks: {
         draw: [drawOverlay],
         setSelect: [(u) => {
-          if (u.select.width > 4) {
+          if (u.select.width > 4 && u === dragChart) {
             zoomTo([u.posToVal(u.select.left, "x"), u.posToVal(u.select.left + u.select.width, "x")]);
           }
           u.setSelect({ left: 0, width: 0, top: 0, height: 0 }, false);
@@ -356,6 +360,10 @@ function buildCharts() {
       for (const c of charts) if (c.u) c.u.redraw(false, false);
     });
     u.over.addEventListener("dblclick", () => zoomTo(null));
+    u.over.addEventListener("mousedown", () => {
+      dragChart = u;
+      if (!zoom) dragView = [u.scales.x.min, u.scales.x.max];
+    });
     charts.push({ def, u, el });
     wireLegend(charts[charts.length - 1]);
   }
@@ -466,7 +474,7 @@ function redraw(now) {
   const lagMax = simRate * arrInt * 1.3;  // about one document behind the newest data
   tShow = Math.min(stats.simT, Math.max(tShow + simRate * dt, stats.simT - lagMax));
   const win = winS();
-  const [x0, x1] = zoom || [tShow - win, tShow];
+  const [x0, x1] = zoom || dragView || [tShow - win, tShow];
   for (const ch of charts) {
     if (ch.def.kind === "spectrum") continue;
     if (ch.u) {
@@ -486,6 +494,7 @@ function resize() {
   dirty = true;
 }
 window.addEventListener("resize", resize);
+window.addEventListener("mouseup", () => setTimeout(() => { dragView = null; dragChart = null; }, 0));
 
 function frame(now) {
   // the next frame is asked for first: an error in one chart must not stop the page
