@@ -222,7 +222,7 @@ NODES = {
     "plant": ("plant", "", {"scenario": SCENARIO}),
     "controller": ("controller", "", {"scenario": SCENARIO}),
     "observer": ("flux_measured", "/obs", {"scenario": SCENARIO}),
-    "recorder": ("recorder", "", {"bag_dir": "/tmp/fluxdrive-never-written/bag"}),
+    "recorder": ("recorder", "", {}),  # bag_dir: under tmp_path
     "scope_tap": ("scope_tap", "", {"scenario": SCENARIO}),
 }
 ROS_OWN = {"use_sim_time", "start_type_description_service"}  # rclpy declares these itself
@@ -248,11 +248,12 @@ def _check_declared_from_schema(node) -> int:
 
 
 @pytest.mark.parametrize("kind", sorted(NODES))
-def test_every_node_parameter_comes_from_a_schema(kind, ctx):
+def test_every_node_parameter_comes_from_a_schema(kind, ctx, tmp_path):
     from fluxdrive_ros.runner import load_class
     from rclpy.parameter import Parameter
 
     name, ns, values = NODES[kind]
+    values = {**values, "bag_dir": str(tmp_path / "bag")} if kind == "recorder" else values
     ov = [Parameter(k, value=v) for k, v in values.items()]
     node = load_class(kind)(name, namespace=ns, context=ctx, parameter_overrides=ov)
     try:

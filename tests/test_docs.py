@@ -10,6 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from fluxdrive.analysis.quotes import count, fill, format_value, quoted_files, stale
 
 REPO = Path(__file__).resolve().parents[1]
@@ -55,6 +56,15 @@ def test_parameter_tables_are_current():
     from fluxdrive.drive.config_blocks import stale_tables
 
     assert stale_tables() == [], "run ./fluxdrive docs params"
+
+
+def test_node_parameter_tables_are_current():
+    """docs/graph.md's node tables are what the nodes declare (started without a graph)."""
+    pytest.importorskip("rclpy")
+    from fluxdrive_bringup.inspect import paramdoc
+
+    text = paramdoc.PAGE.read_text()
+    assert paramdoc.fill(text) == text, "run ./fluxdrive docs params"
 
 
 def test_quote_fill_reads_the_results(tmp_path):

@@ -6,7 +6,8 @@
 ./fluxdrive docs quotes [--check]    fill the quoted figures of README.md and docs/*.md from
                                      results/ (--check: only say which files are stale)
 ./fluxdrive docs params [--check]    write the parameter tables of docs/configuration.md from
-                                     the config schemas (--check: only say which are stale)
+                                     the config schemas and the node tables of docs/graph.md
+                                     from the nodes (--check: only say which are stale)
 """
 
 from __future__ import annotations
@@ -78,6 +79,17 @@ def param_tables(check: bool) -> int:
     return 1 if missing else 0
 
 
+# the node tables of docs/graph.md are read from the nodes: ROS, so from the graph package
+NODE_TABLES = "fluxdrive_bringup.inspect.paramdoc"
+
+
+def node_tables(check: bool) -> int:
+    """The node parameter tables of docs/graph.md written (or checked) in a process of their
+    own (the nodes start there; the engine never imports ROS)."""
+    cmd = [sys.executable, "-m", NODE_TABLES, "--check" if check else "--write"]
+    return subprocess.call(cmd, cwd=ROOT)
+
+
 def main(argv: list[str]) -> int:
     ap = argparse.ArgumentParser(
         prog="fluxdrive docs",
@@ -99,5 +111,5 @@ def main(argv: list[str]) -> int:
         cmd = [sys.executable, "-m", "mkdocs", "serve", "-a", "127.0.0.1:8000"]
         return subprocess.call(cmd, cwd=ROOT)
     if args.cmd == "params":
-        return param_tables(args.check)
+        return param_tables(args.check) | node_tables(args.check)
     return quotes(args.check)

@@ -177,6 +177,8 @@ BLOCK_WAIT_S = 0.05
 
 
 class ObserverNode(FluxNode):
+    PLUGIN_SETTINGS = ObserverPlugin  # what a user variant declares besides its model
+
     def __init__(self, name: str = "observer", namespace: str | None = None, **kw):
         super().__init__(name, namespace, **kw)
         first = declare(self, input_params(name))

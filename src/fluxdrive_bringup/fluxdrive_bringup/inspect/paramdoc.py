@@ -1,117 +1,179 @@
 """Markdown tables of every declared parameter of the graph's nodes, read from the nodes
-themselves (descriptions, units, ranges, defaults for the demo scenario, live or not):
+themselves (descriptions, units, ranges, defaults for the demo scenario, live or not), between
+the markers of docs/graph.md:
 
-    python -m fluxdrive_bringup.inspect.paramdoc > /tmp/params.md   (the tables in docs/graph.md)
+    python -m fluxdrive_bringup.inspect.paramdoc [--write | --check]   (./fluxdrive docs params)
+
+Every parameter a node declares comes from a schema field (`fluxdrive_ros.params.declare`);
+the fields of the controller's and observers' config blocks are in docs/configuration.md.
 """
 
 from __future__ import annotations
 
+import argparse
 import os
+import shutil
 import sys
+from pathlib import Path
+from typing import Any
 
-from fluxdrive.drive.scenario import CONFIG_DIR
+from fluxdrive.core import schema
+from fluxdrive.drive.config_blocks import BLOCKS
+from fluxdrive.drive.scenario import CONFIG_DIR, REPO_ROOT
 
+PAGE = REPO_ROOT / "docs" / "graph.md"
+BEGIN, END = "<!-- node-params -->\n", "<!-- /node-params -->"
+NEVER_WRITTEN = "/tmp/fluxdrive-paramdoc-never-written"
 # node class -> (config block, anchor in docs/configuration.md): the block's fields, which the
 # node declares from their schema, are documented there, once
 SCHEMA_BLOCKS = {
     "observer": ("observer", "observers-the-flux-observers"),
     "controller": ("control", "control-the-controller"),
 }
+ROS_OWN = {"use_sim_time", "start_type_description_service"}  # rclpy declares these
+
+
+def _nodes() -> list[tuple[str, str, str, str, dict[str, Any]]]:
+    """(title, node class, name, namespace, parameters) of each table; graph_id 0: the value
+    outside a launched graph (a launch sets its own)."""
+    sc = str(CONFIG_DIR / "scenarios" / "paper_2pct_150load.yaml")
+    demo = {"scenario": sc, "graph_id": 0}
+    return [
+        ("spm_plant_sim (/plant)", "plant", "plant", "", demo),
+        ("flux_observer_node (/obs/<name>)", "observer", "flux_measured", "/obs", demo),
+        ("foc_controller_node (/controller)", "controller", "controller", "", demo),
+        ("recorder (/recorder)", "recorder", "recorder", "", {"bag_dir": NEVER_WRITTEN + "/bag"}),
+        (
+            "scope tap (/scope_tap, started by `./fluxdrive scope`)",
+            "scope_tap",
+            "scope_tap",
+            "",
+            demo,
+        ),
+    ]
 
 
 def _schema_fields(cls: str) -> set[str]:
-    from fluxdrive.core import schema
-    from fluxdrive.drive.config_blocks import BLOCKS
-
     return set(schema.specs(BLOCKS[SCHEMA_BLOCKS[cls][0]].cls)) if cls in SCHEMA_BLOCKS else set()
 
 
-def _schema_note(cls: str) -> list[str]:
-    if cls not in SCHEMA_BLOCKS:
-        return []
-    key, anchor = SCHEMA_BLOCKS[cls]
-    return [
-        f"Plus every field of the `{key}` block, default the scenario's: "
-        f"[configuration.md](configuration.md#{anchor}).",
-        "",
+def _value_text(v: Any) -> str:
+    if isinstance(v, str) and v.startswith(f"{REPO_ROOT}/"):  # the same in every checkout
+        v = v[len(f"{REPO_ROOT}/") :]
+    if isinstance(v, str) and len(v) > 40:
+        return "…/" + v.rsplit("/", 1)[-1]
+    if isinstance(v, float):
+        return f"{v:g}"
+    return repr(v) if isinstance(v, (list, bool)) else str(v)
+
+
+def _range_text(d) -> str:
+    if d.floating_point_range:
+        r = d.floating_point_range[0]
+        return f"[{r.from_value:g}, {r.to_value:g}]"
+    if d.integer_range:
+        r = d.integer_range[0]
+        return f"[{r.from_value}, {r.to_value}]"
+    return d.additional_constraints.replace("one of: ", "")
+
+
+def _row(name: str, value: Any, d) -> str:
+    live = "no" if d.read_only else "yes"
+    desc = d.description.replace(" (live)", "").replace("|", "\\|")
+    return f"| `{name}` | {_value_text(value)} | {_range_text(d)} | {live} | {desc} |"
+
+
+def _plugin_row(node_cls) -> list[str]:
+    """A user variant declares `plugin_kwargs` (and only its model fields): not on the demo."""
+    from fluxdrive_ros.params import config_params
+
+    p = config_params(node_cls.PLUGIN_SETTINGS())[0]
+    d = p.descriptor()
+    only = "user variants only, which declare this and their model: `r_hat_ohm`, `l_hat_h`, "
+    d.description = f"({only}`lambda_hat_vs`) {d.description}"
+    return [_row(p.name, p.default, d)]
+
+
+def _table(cls: str, node) -> list[str]:
+    out = [
+        "| parameter | default (demo) | range / choices | live | description |",
+        "|---|---|---|---|---|",
     ]
+    for pname in sorted(set(node._parameters) - _schema_fields(cls) - ROS_OWN):
+        out.append(_row(pname, node.get_parameter(pname).value, node.describe_parameter(pname)))
+    if cls == "observer":
+        out += _plugin_row(type(node))
+    out.append("")
+    if cls in SCHEMA_BLOCKS:
+        key, anchor = SCHEMA_BLOCKS[cls]
+        out += [
+            f"Plus every field of the `{key}` block, default the scenario's: "
+            f"[configuration.md](configuration.md#{anchor}).",
+            "",
+        ]
+    return out
 
 
 def tables() -> str:
+    """The tables, one per node, as docs/graph.md holds them between its markers."""
     import rclpy
-    from rcl_interfaces.msg import ParameterType
-
-    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     from fluxdrive_ros.runner import load_class
     from rclpy.parameter import Parameter
 
-    sc = str(CONFIG_DIR / "scenarios" / "paper_2pct_150load.yaml")
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "0") or 0))
     out = []
-    specs = [
-        ("spm_plant_sim (/plant)", "plant", "plant", "", {"scenario": sc}),
-        ("flux_observer_node (/obs/<name>)", "observer", "flux_measured", "/obs", {"scenario": sc}),
-        ("foc_controller_node (/controller)", "controller", "controller", "", {"scenario": sc}),
-        (
-            "recorder (/recorder)",
-            "recorder",
-            "recorder",
-            "",
-            {"bag_dir": "/tmp/fluxdrive-paramdoc-never-written/bag"},
-        ),
-    ]
-    skip = {"use_sim_time", "start_type_description_service"}
     try:
-        for title, cls, name, ns, params in specs:
-            node = load_class(cls)(
-                name,
-                namespace=ns,
-                context=ctx,
-                parameter_overrides=[Parameter(k, value=v) for k, v in params.items()],
-            )
+        for title, cls, name, ns, params in _nodes():
+            ov = [Parameter(k, value=v) for k, v in params.items()]
+            node = load_class(cls)(name, namespace=ns, context=ctx, parameter_overrides=ov)
             try:
-                out.append(f"#### {title}\n")
-                out.append("| parameter | default (demo) | range / choices | live | description |")
-                out.append("|---|---|---|---|---|")
-                for pname in sorted(set(node._parameters) - _schema_fields(cls)):
-                    if pname in skip:
-                        continue
-                    d = node.describe_parameter(pname)
-                    v = node.get_parameter(pname).value
-                    if d.type == ParameterType.PARAMETER_STRING and len(str(v)) > 40:
-                        v = "…/" + str(v).rsplit("/", 1)[-1]
-                    rng = ""
-                    if d.floating_point_range:
-                        r = d.floating_point_range[0]
-                        rng = f"[{r.from_value:g}, {r.to_value:g}]"
-                    elif d.integer_range:
-                        r = d.integer_range[0]
-                        rng = f"[{r.from_value}, {r.to_value}]"
-                    elif d.additional_constraints:
-                        rng = d.additional_constraints.replace("one of: ", "")
-                    live = "no" if d.read_only else "yes"
-                    desc = d.description.replace(" (live)", "").replace("|", "\\|")
-                    val = (
-                        f"{v:g}"
-                        if isinstance(v, float)
-                        else repr(v)
-                        if isinstance(v, (list, bool))
-                        else str(v)
-                    )
-                    out.append(f"| `{pname}` | {val} | {rng} | {live} | {desc} |")
-                out += ["", *_schema_note(cls)]
+                out += [f"#### {title}", "", *_table(cls, node)]
             finally:
                 if hasattr(node, "proc"):  # the recorder's writer process
                     node.close()
                 node.destroy_node()
     finally:
         ctx.try_shutdown()
-    import shutil
-
-    shutil.rmtree("/tmp/fluxdrive-paramdoc-never-written", ignore_errors=True)
+        shutil.rmtree(NEVER_WRITTEN, ignore_errors=True)
     return "\n".join(out)
 
 
+def fill(text: str, page: Path = PAGE) -> str:
+    """`text` with the tables between its markers regenerated."""
+    if BEGIN not in text or END not in text:
+        raise ValueError(f"{page}: no {BEGIN.strip()} ... {END} markers")
+    head, rest = text.split(BEGIN, 1)
+    _, tail = rest.split(END, 1)
+    return head + BEGIN + tables() + END + tail
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="paramdoc", description=__doc__.split("\n\n")[0])
+    how = ap.add_mutually_exclusive_group()
+    how.add_argument("--write", action="store_true", help=f"rewrite the tables in {PAGE.name}")
+    how.add_argument("--check", action="store_true", help="exit 1 when they are stale")
+    args = ap.parse_args(argv)
+    if not (args.write or args.check):
+        sys.stdout.write(tables() + "\n")
+        return 0
+    text = PAGE.read_text()
+    try:
+        new = fill(text)
+    except ValueError as exc:
+        print(f"docs params: {exc}", file=sys.stderr)
+        return 1
+    page = PAGE.relative_to(REPO_ROOT)
+    if args.check:
+        if new != text:
+            print(f"{page}: node parameter tables are stale (./fluxdrive docs params)")
+        return int(new != text)
+    if new != text:
+        PAGE.write_text(new)
+    print(f"{page}: node parameter tables {'updated' if new != text else 'current'}")
+    return 0
+
+
 if __name__ == "__main__":
-    sys.stdout.write(tables() + "\n")
+    sys.exit(main())
