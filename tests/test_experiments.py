@@ -260,32 +260,37 @@ def test_graph_flag_runs_through_the_node_graph_with_the_same_numbers(tmp_path):
     )
 
 
+def _card_numbers(card) -> set[str]:
+    """What the experiments' texts quote of a card, formatted as they format it: speeds at 2-16
+    %, the flux and EMF observers' cut-off and PLL, the current loop, V_dt and its fundamental,
+    L/Ts, the back-EMF at 2 %, the deadtime."""
+    from fluxdrive.core.machine import card_current_bandwidth_hz
+    from fluxdrive.drive.observers import observer_config
+    from fluxdrive.experiments.common import CardValues
+
+    mc = CardValues.of(card)
+    rpm = [f"{pu * card.rated_speed_rpm:.0f} rpm" for pu in (0.02, 0.04, 0.06, 0.1, 0.16)]
+    hz = [observer_config(v, card) for v in ("paper_robust", "emf")]
+    hz = [f"{x:.0f} Hz" for o in hz for x in (o.cutoff_hz, o.pll_bandwidth_hz)]
+    hz.append(f"{card_current_bandwidth_hz(card):.0f} Hz")
+    volts = [f"{mc.vdt:.2f} V", f"{mc.v1_dt:.2f} V", f"{mc.l / mc.ts:.1f} Ω"]
+    emf_2pct = 0.02 * card.rated_speed_rpm * 2 * math.pi / 60 * mc.p * mc.lam
+    volts.append(f"(ω·λ = {emf_2pct:.2f} V)")
+    return set(rpm + hz + volts + [f"{1e6 * card.deadtime_s:g} µs"])
+
+
 def test_a_second_card_reports_its_own_numbers(tmp_path):
     """`experiment --machine`: a quick subset (Figs. 13, 14, 19) on the gimbal card, whose
     rated speed, PWM, deadtime, cut-off and PLLs all differ from the default card's.  Its texts
     quote that card's numbers: none of the default card's speeds, frequencies and voltages
     appears in what the runs report (the claims' registered text quotes the paper, not
     checked)."""
-    from fluxdrive.core.machine import card_current_bandwidth_hz, load_machine
-    from fluxdrive.drive.observers import observer_config
+    from fluxdrive.core.machine import load_machine
     from fluxdrive.drive.scenario import CONFIG_DIR
-    from fluxdrive.experiments.common import CardValues
 
     gimbal = CONFIG_DIR / "machines" / "gimbal_24v.yaml"
-
-    def numbers(card):
-        mc = CardValues.of(card)
-        rpm = [f"{pu * card.rated_speed_rpm:.0f} rpm" for pu in (0.02, 0.04, 0.06, 0.1, 0.16)]
-        hz = [observer_config(v, card) for v in ("paper_robust", "emf")]
-        hz = [f"{x:.0f} Hz" for o in hz for x in (o.cutoff_hz, o.pll_bandwidth_hz)]
-        hz.append(f"{card_current_bandwidth_hz(card):.0f} Hz")
-        volts = [f"{mc.vdt:.2f} V", f"{mc.v1_dt:.2f} V", f"{mc.l / mc.ts:.1f} Ω"]
-        emf_2pct = 0.02 * card.rated_speed_rpm * 2 * math.pi / 60 * mc.p * mc.lam
-        volts.append(f"(ω·λ = {emf_2pct:.2f} V)")
-        return set(rpm + hz + volts + [f"{1e6 * card.deadtime_s:g} µs"])
-
-    default = numbers(MachineCard())
-    own = numbers(load_machine(gimbal))
+    default = _card_numbers(MachineCard())
+    own = _card_numbers(load_machine(gimbal))
     assert len(default - own) >= 10  # the cards differ in what the texts quote
 
     texts = []
@@ -300,3 +305,63 @@ def test_a_second_card_reports_its_own_numbers(tmp_path):
     assert f"J = {load_machine(gimbal).inertia_kgm2:.3g} kg·m²" in prose
     stale = sorted(x for x in default - own if x in prose)
     assert not stale, f"default-card numbers in the gimbal card's report: {stale}"
+
+
+# one switched run's analysed row (beyond._switch_job's keys, no series)
+_PEER_ROW = {
+    "stable": True,
+    "fault": "none",
+    "rms_deg": 1.0,
+    "pre_mean_deg": 0.0,
+    "pre_rms_deg": 1.0,
+    "lost_after_s": None,
+}
+
+
+def test_past_the_paper_texts_quote_the_card_they_ran_on():
+    """The texts beyond.py builds around its runs (lowest_speed's notes, sensitivity's and
+    peers_fail's explanations) on the gimbal card: its deadtime fundamental, EMF noise L/Ts
+    sigma_i, gamma lambda^2, inertia and 2 % speed are there, none of the default card's.
+    Text builders only, fed the card's fundamental numbers (no runs: milliseconds)."""
+    from fluxdrive.core.machine import load_machine
+    from fluxdrive.drive.scenario import CONFIG_DIR
+    from fluxdrive.experiments import beyond
+    from fluxdrive.experiments.common import Ctx
+
+    def texts(ctx) -> tuple[str, set[str]]:
+        mc, cr = ctx.cv, beyond.card_rates(ctx)
+        w, rpm = cr["w2"], ctx.rpm(0.02)
+        pred = beyond._peers_pred(ctx, w, mc.i_rated)
+        ctl = beyond._peers_control_claim(
+            {"emf_measured@2us": [_PEER_ROW]},
+            mc,
+            w,
+            cr,
+        )
+        nom = {"steady": False}
+        parts = [
+            *beyond.lowest_notes(ctx, {}).values(),
+            beyond._peers_mechanism_why(mc, w, rpm, pred),
+            ctl[0].get("why", ctl[0].get("note", "")),
+            beyond._sens_kind_why("ortega", nom, [], [], [], rpm, mc, w, cr["k_ortega"]),
+            beyond.SENS_DESC["ortega"].format(k=cr["k_ortega"]),
+            beyond._peers_headline_claim({}, 1, rpm, ctx.card.deadtime_s)["claim"],
+        ]
+        quoted = _card_numbers(ctx.card) | {
+            f"{mc.v1_dt:.2f} V",
+            f"≈ {cr['emf_noise_v']:.2g} V",
+            f"γλ² = {cr['k_ortega']:.0f} s⁻¹",
+            f"{mc.j:.3g} kg·m²",
+            f"≈{cr['rpm_3lam']:.0f} rpm",
+        }
+        return "\n".join(parts), quoted
+
+    gimbal = Ctx(machine=CONFIG_DIR / "machines" / "gimbal_24v.yaml")
+    prose, own = texts(gimbal)
+    _, default = texts(Ctx())
+    assert load_machine(gimbal.machine).name == "gimbal_24v"
+    for x in (f"γλ² = {beyond.card_rates(gimbal)['k_ortega']:.0f} s⁻¹", f"{gimbal.cv.j:.3g} kg·m²"):
+        assert x in prose, x
+    assert f"{gimbal.rpm(0.02):.0f} rpm" in prose
+    stale = sorted(x for x in default - own if x in prose)
+    assert not stale, f"default-card numbers in the gimbal card's texts: {stale}"

@@ -1,7 +1,7 @@
 """Past the paper: lowest sustainable speed per variant, parameter mismatch and offsets,
 sensitivity per variant, online R_s, sensorless speed reversal, where peers fail.
 
-  lowest_speed    sensorless start at 480 rpm, load ramped in, descent under load to the
+  lowest_speed    sensorless start at 16 % speed, load ramped in, descent under load to the
                   speed; grid + bisection per variant, 100 % and 150 % load, against the bound
                   (0.2 R I + V_dt)/lambda
   mismatch        the paper observer under R^/L^/lambda^ errors and current offsets, shadow
@@ -9,9 +9,9 @@ sensitivity per variant, online R_s, sensorless speed reversal, where peers fail
   sensitivity     the same errors plus the cut-off, for every variant, against a
                   steady-state fundamental model of each (shadow observers on one encoder run)
   rs_adapt        online R_s estimate for R^ 30 % off
-  speed_reversal  +60 -> -60 rpm under brake/active load: hand-back to I-f, through zero,
+  speed_reversal  +2 % -> -2 % speed under brake/active load: hand-back to I-f, through zero,
                   handover again
-  peers_fail      60 rpm, rated load, 2 us deadtime: the loop closed on each observer
+  peers_fail      2 % speed, rated load, the card's deadtime: the loop closed on each observer
 
 The online R_s estimate runs *outside* the compiled kernels: the closed loop is stepped in
 1 ms chunks (the same `closed_loop_chunk` the runner uses) and between chunks an adapter
@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from fluxdrive.analysis.metrics import RAD_S_TO_RPM, compute, harmonic, whole_periods
-from fluxdrive.core.machine import MachineCard
+from fluxdrive.core.machine import MachineCard, card_current_bandwidth_hz
 from fluxdrive.drive.control import (
     CO_FAULT,
     CO_ID,
@@ -46,7 +46,8 @@ from fluxdrive.drive.control import (
     MODE_CLOSED_LOOP,
     MODE_IF_RAMP,
 )
-from fluxdrive.drive.observers import ES_LA, ES_LB, ES_TH, ES_W, OP_LAM, OP_R
+from fluxdrive.drive.control.config import SPEED_OF_CURRENT_BW
+from fluxdrive.drive.observers import ES_LA, ES_LB, ES_TH, ES_W, OP_LAM, OP_R, observer_config
 from fluxdrive.drive.plant import TR_THETA_E, TR_WM
 from fluxdrive.experiments.common import (
     HANDBACK_MAX_PU,
@@ -193,7 +194,7 @@ def _x_hold(r, m):
     }
 
 
-# the search loads the drive at 480 rpm, where the ramp's speed lag (rate/(K_t K_i), ≈90 rpm at
+# the search loads the drive at 16 % speed, where the ramp's speed lag (rate/(K_t K_i), ≈90 rpm at
 # 0.5 pu/s) costs nothing: a faster ramp than the paper scenarios' 0.19 pu/s shortens every
 # run by 3-5 s of the ≈12-15 s it took (the experiment ran 5 min; the whole set must run in 3)
 LOW_RAMP_PU_S = 0.5
@@ -330,36 +331,68 @@ def _lowest_txt(d: dict) -> str:
     return s
 
 
-# why each variant stops where it does (the lowest_speed claims' notes)
-LOWEST_NOTES = {
-    "flux_measured": "measured voltages carry the deadtime, and R^ = R: neither term of the "
-    "bound applies.  What ends it near 12-15 rpm was not isolated; "
-    "candidates are what the measured voltage still gets wrong (the "
-    "≈3.6 mV deadtime residue of the sensitivity experiment) and noise, "
-    "both amplified by the inverse HPF gain ω_c/ω (≈100 at 15 rpm)",
-    "flux_commanded": "the deadtime fundamental (4/π)V_dt = 1.83 V lies along the current, so "
-    "it integrates into a flux-magnitude error (4/π)V_dt/ω (Fig. 4): |λ̂| "
-    "leaves the 3λ validity band near 90-140 rpm and the drive trips on "
-    "loss of lock",
-    "emf_measured": "no integration: the per-sample EMF carries L/Ts·σ_i ≈ 0.18 V of noise "
-    "against ωλ (0.59 V at 60 rpm, 0.3 V at 30 rpm): the SNR runs out "
-    "first (the paper's argument)",
-    "emf_commanded": "the deadtime error (4/π)V_dt follows the current; once the loop is "
-    "closed on the estimate it rotates with the estimated frame and hides "
-    "(4/π)V_dt/(ωλ+(4/π)V_dt) of every angle error from the PLL (peers_fail)",
-    "hl_measured": "the modified integrator's angle-error pole is ω²/k for k = 2π·5 Hz: "
-    "slow but unbiased with measured voltages (sensitivity)",
-    "ortega_measured": "its magnitude loop (γλ² = 1000 s⁻¹) turns any q-axis EMF residue δ "
-    "into an angle error k δ/(ω² λ), ≈ 4° per mV at 60 rpm and "
-    "growing as 1/ω² (the ≈3.6 mV deadtime residue: sensitivity "
-    "experiment); its angle pole ω²/k is 0.6 s⁻¹ there",
-    "flux_measured_rhat120": "R^ 20 % high: |λ̂| = λ − 0.2 R I/ω, which leaves the 0.3λ "
-    "validity band at ω = 0.2 R I/(0.7 λ) = 1.43× the bound and "
-    "flips sign at the bound itself",
-}
+def card_rates(ctx) -> dict[str, float]:
+    """The card's numbers the texts quote, from the card and the variants' defaults on it:
+    electrical rad/s at 2 % and 1 % speed, the flux observer's cut-off w_c, the magnitude
+    loops' gains k (hinkkanen_luomi w_c, ortega gamma lambda^2) [rad/s], the per-sample EMF
+    noise L/Ts sigma_i [V], the speed where |lambda^| = lambda + (4/pi)V_dt/w reaches 3 lambda."""
+    mc = ctx.cv
+    w3 = mc.v1_dt / (2.0 * mc.lam)
+    return {
+        "w2": ctx.rpm(0.02) * RPM * mc.p,
+        "w1": ctx.rpm(0.01) * RPM * mc.p,
+        "wc": _default_k(ctx.card, "paper_robust")[0],
+        "k_hl": _default_k(ctx.card, "hinkkanen_luomi")[1],
+        "k_ortega": _default_k(ctx.card, "ortega")[1],
+        "emf_noise_v": mc.l / mc.ts * ctx.card.current_noise_a,
+        "rpm_3lam": w3 / (mc.p * RPM),
+    }
 
 
-def _lowest_variant_claims(lowest: dict, start_rpm: float) -> list[dict]:
+def _deg_per_mv(mc: CardValues, k: float, w: float) -> float:
+    """Angle error of a magnitude-forcing observer per mV of q-axis EMF residue: k d/(w^2 lam)."""
+    return math.degrees(k * 1e-3 / (w * w * mc.lam))
+
+
+def lowest_notes(ctx, lowest: dict) -> dict[str, str]:
+    """Why each variant stops where it does (the lowest_speed claims' notes), in the card's
+    numbers: the speeds are the card's 2 % and 1 %, the gains its variants' defaults."""
+    mc, cr = ctx.cv, card_rates(ctx)
+    r2, r1 = ctx.rpm(0.02), ctx.rpm(0.01)
+    held = [x["lowest_rpm"] for x in lowest.get("flux_measured", {}).values() if x["lowest_rpm"]]
+    w_low = max(held) * RPM * mc.p if held else cr["w2"]
+    at_low = f"{w_low / (mc.p * RPM):.3g} rpm" if held else f"{r2:.0f} rpm"
+    k_or, w2 = cr["k_ortega"], cr["w2"]
+    return {
+        "flux_measured": "measured voltages carry the deadtime, and R^ = R: neither term of the "
+        "bound applies.  What ends it was not isolated; candidates are what the measured "
+        "voltage still gets wrong (the deadtime residue of the sensitivity experiment) and "
+        f"noise, both amplified by the inverse HPF gain ω_c/ω (≈{cr['wc'] / w_low:.0f} at "
+        f"{at_low})",
+        "flux_commanded": f"the deadtime fundamental (4/π)V_dt = {mc.v1_dt:.2f} V lies along "
+        "the current, so it integrates into a flux-magnitude error (4/π)V_dt/ω (Fig. 4): |λ̂| "
+        f"leaves the 3λ validity band below ≈{cr['rpm_3lam']:.0f} rpm and the drive trips on "
+        "loss of lock",
+        "emf_measured": "no integration: the per-sample EMF carries L/Ts·σ_i ≈ "
+        f"{cr['emf_noise_v']:.2g} V of noise against ωλ ({w2 * mc.lam:.2g} V at {r2:.0f} rpm, "
+        f"{cr['w1'] * mc.lam:.2g} V at {r1:.0f} rpm): the SNR runs out first (the paper's "
+        "argument)",
+        "emf_commanded": "the deadtime error (4/π)V_dt follows the current; once the loop is "
+        "closed on the estimate it rotates with the estimated frame and hides "
+        "(4/π)V_dt/(ωλ+(4/π)V_dt) of every angle error from the PLL (peers_fail)",
+        "hl_measured": "the modified integrator's angle-error pole is ω²/k for k = "
+        f"{cr['k_hl']:.3g} rad/s: slow but unbiased with measured voltages (sensitivity)",
+        "ortega_measured": f"its magnitude loop (γλ² = {k_or:.0f} s⁻¹) turns any q-axis EMF "
+        f"residue δ into an angle error k δ/(ω² λ), ≈ {_deg_per_mv(mc, k_or, w2):.2g}° per mV "
+        f"at {r2:.0f} rpm and growing as 1/ω² (the deadtime residue: sensitivity "
+        f"experiment); its angle pole ω²/k is {w2 * w2 / k_or:.2g} s⁻¹ there",
+        "flux_measured_rhat120": "R^ 20 % high: |λ̂| = λ − 0.2 R I/ω, which leaves the 0.3λ "
+        "validity band at ω = 0.2 R I/(0.7 λ) = 1.43× the bound and "
+        "flips sign at the bound itself",
+    }
+
+
+def _lowest_variant_claims(lowest: dict, start_rpm: float, notes: dict) -> list[dict]:
     """One unjudged row per variant: its lowest speed per load against the bound."""
     claims = []
     for v in lowest:
@@ -370,7 +403,7 @@ def _lowest_variant_claims(lowest: dict, start_rpm: float) -> list[dict]:
                 f"load from {start_rpm:.0f} rpm) vs ω_min ≈ (0.2 R I + V_dt)/λ",
                 "; ".join(f"{k}: {_lowest_txt(lowest[v][k])}" for k in keys),
                 None,
-                LOWEST_NOTES.get(v, ""),
+                notes.get(v, ""),
             )
         )
     return claims
@@ -470,7 +503,7 @@ def lowest_speed(ctx):
     st = _search_lowest(ctx, cases, grid, seeds, nbis)
     lowest = _lowest_table(ctx, st)
     loads = sorted({k for v in lowest.values() for k in v})
-    claims = _lowest_variant_claims(lowest, ctx.rpm(DESCENT_START_PU))
+    claims = _lowest_variant_claims(lowest, ctx.rpm(DESCENT_START_PU), lowest_notes(ctx, lowest))
     claims += _lowest_flux_claim(lowest, loads) + _lowest_rhat_claim(lowest, loads)
     claims += _lowest_bound_claims(ctx, lowest, loads)
     figs = [_plot_lowest(ctx, lowest, grid)]
@@ -946,8 +979,6 @@ def _cut(kind: str, f_hz: float) -> dict:
 
 def _default_k(card: MachineCard, kind: str) -> tuple[float, float]:
     """(w_c, k) of a variant's defaults on the runs' card [rad/s]."""
-    from fluxdrive.drive.observers import observer_config
-
     c = observer_config(kind, card=card)
     wc = 2 * math.pi * float(c.cutoff_hz or 0.0)
     return wc, float(c.gamma_bw_rad_s or 0.0) if kind == "ortega" else wc
@@ -1102,7 +1133,7 @@ def sensitivity(ctx):
         for kind in SENS_VARIANTS
     }
     nd, ids = _sens_fc_means(res[-2], cuts), _sens_fc_means(res[-1], cuts)
-    claims = _sens_claims(mc, tab, rs, ls, lams, cuts, offs, w, iq, nd, ids, speed)
+    claims = _sens_claims(mc, tab, lists, w, nd, ids, speed, ctx.card)
     figs = [_plot_sens(ctx, tab, rs, ls, lams, cuts, offs, w, iq)]
     return {
         "claims": claims,
@@ -1138,7 +1169,7 @@ SENS_DESC = {
     "errors add on top as for paper",
     "hinkkanen_luomi": "magnitude errors (R̂, λ̂) become angle errors atan(c/ω), c the "
     "correction that pulls |η| back to λ̂; L̂: as paper",
-    "ortega": "as hinkkanen_luomi with the stiffer default loop γλ² = 1000 s⁻¹",
+    "ortega": "as hinkkanen_luomi with the stiffer default loop γλ² = {k:.0f} s⁻¹",
     "emf": "the EMF angle: R̂ (along q) no angle, L̂ atan(ΔL i_q/λ), λ̂ unused",
 }
 
@@ -1165,7 +1196,9 @@ def _sens_row_txt(x: dict, k: str) -> str:
     return f"{_label(k)}: {x['mean_deg']:.1f}° (model {pr}{tag})"
 
 
-def _sens_kind_why(kind: str, nom: dict, no_eq: list, slip: list, bad: list, rpm: float) -> str:
+def _sens_kind_why(
+    kind: str, nom: dict, no_eq: list, slip: list, bad: list, rpm: float, mc: CardValues, w, k
+) -> str:
     why = []
     if no_eq:
         why.append(
@@ -1182,27 +1215,29 @@ def _sens_kind_why(kind: str, nom: dict, no_eq: list, slip: list, bad: list, rpm
         why.append(f"off the model at {', '.join(map(_label, bad))}")
     if kind == "ortega" and not nom["steady"]:
         why.append(
-            f"even with exact parameters the default γλ² = 1000 s⁻¹ slips at {rpm:.0f} rpm: "
-            "its angle-error pole ω²/k = 0.6 s⁻¹ barely corrects, and a q-axis EMF "
-            "residue δ gives k δ/(ω²λ) ≈ 4° per mV (cut-off row)"
+            f"even with exact parameters the default γλ² = {k:.0f} s⁻¹ slips at {rpm:.0f} rpm: "
+            f"its angle-error pole ω²/k = {w * w / k:.2g} s⁻¹ barely corrects, and a q-axis EMF "
+            f"residue δ gives k δ/(ω²λ) ≈ {_deg_per_mv(mc, k, w):.2g}° per mV (cut-off row)"
         )
     return "; ".join(why)
 
 
-def _sens_kind_claim(kind: str, t: dict, rs, ls, lams, rpm: float) -> dict:
-    """Judge one variant's R^/L^/lambda^ rows against its fundamental model."""
+def _sens_kind_claim(kind: str, t: dict, lists, rpm: float, mc: CardValues, w, k) -> dict:
+    """Judge one variant's R^/L^/lambda^ rows against its fundamental model (k: ortega's
+    default gamma lambda^2 on the card [rad/s], w the electrical speed [rad/s])."""
+    rs, ls, lams = lists
     keys = [f"r{f}" for f in rs] + [f"l{f}" for f in ls] + [f"lam{f}" for f in lams]
     used, no_eq, slip, bad = _sens_sort(t, keys)
     nom = t["nom"]
     return claim(
         f"{kind} (measured voltages, {rpm:.0f} rpm, 150 %): mean θ̃ under R̂ ±30 %, L̂ ±30 %, "
         f"λ̂ ±10 % follows the steady-state fundamental model where the estimate is "
-        f"steady — {SENS_DESC[kind]}",
+        f"steady — {SENS_DESC[kind].format(k=k)}",
         f"nominal {nom['mean_deg']:.2f}° (RMS {nom['rms_deg']:.2f}°); "
         + "; ".join(_sens_row_txt(t[k], k) for k in keys)
         + f"; compared at {len(used)}/{len(keys)}",
         bool(used) and not bad,
-        _sens_kind_why(kind, nom, no_eq, slip, bad, rpm),
+        _sens_kind_why(kind, nom, no_eq, slip, bad, rpm, mc, w, k),
     )
 
 
@@ -1237,7 +1272,7 @@ def _sens_offset_claim(tab: dict, offs) -> dict:
     )
 
 
-def _sens_cutoff_claim(tab: dict, cuts) -> dict:
+def _sens_cutoff_claim(tab: dict, cuts, w: float) -> dict:
     lpf_used = [f for f in cuts if tab["lpf"][f"fc{f}"]["steady"]]
     lpf_ok = all(
         _wrapdiff(tab["lpf"][f"fc{f}"]["mean_deg"], tab["lpf"][f"fc{f}"]["pred_deg"]) < 3.0
@@ -1256,8 +1291,11 @@ def _sens_cutoff_claim(tab: dict, cuts) -> dict:
             for kind in ("lpf", "paper")
         ),
         lpf_ok and all(abs(tab["paper"][f"fc{f}"]["mean_deg"]) < 2.0 for f in cuts),
-        "the lpf's |λ̂| = λω/√(ω²+ω_c²) is 0.2λ at 20 Hz and 0.01λ at 300 Hz: far below the "
-        "0.3λ validity band, a drive could not use it; the paper's RMS rises slowly with ω_c "
+        f"the lpf's |λ̂| = λω/√(ω²+ω_c²) is {w / math.hypot(w, 2 * math.pi * cuts[0]):.2g}λ at "
+        f"{cuts[0]:g} Hz and {w / math.hypot(w, 2 * math.pi * cuts[-1]):.2g}λ at {cuts[-1]:g} "
+        "Hz, below the 0.3λ validity band for any f_c above ω√(1/0.3² − 1)/2π = "
+        f"{w * math.sqrt(1 / 0.09 - 1) / (2 * math.pi):.2g} Hz: a drive could not use it "
+        "there; the paper's RMS rises slowly with ω_c "
         "(the inverse HPF gain ω_c/ω amplifies what the LPF lets through)",
     )
 
@@ -1303,7 +1341,9 @@ def _sens_gain_why(mc: CardValues, deltas: dict, slips: dict, w: float) -> str:
     )
 
 
-def _sens_gain_claim(mc: CardValues, tab: dict, cuts, w: float, nd: dict, ids: dict) -> dict:
+def _sens_gain_claim(
+    mc: CardValues, tab: dict, cuts, w: float, nd: dict, ids: dict, td_s: float
+) -> dict:
     """Judge the magnitude-forcing pair's cut-off sweep: one residue delta for both."""
     pair = (("hinkkanen_luomi", tab["hinkkanen_luomi"]), ("ortega", tab["ortega"]))
     deltas = {}
@@ -1335,20 +1375,24 @@ def _sens_gain_claim(mc: CardValues, tab: dict, cuts, w: float, nd: dict, ids: d
         + ", ".join(f"{n} {v[0]:.2f} mV" for n, v in deltas.items())
         + "; ideal inverter (no deadtime): "
         + ", ".join(f"{k.replace('_fc', ' ')} Hz {v:.2f}°" for k, v in nd.items())
-        + "; ideal sensors, 2 µs deadtime: "
+        + f"; ideal sensors, {1e6 * td_s:g} µs deadtime: "
         + ", ".join(f"{k.replace('_fc', ' ')} Hz {v:.2f}°" for k, v in ids.items()),
         ok,
         _sens_gain_why(mc, deltas, slips, w),
     )
 
 
-def _sens_claims(mc: CardValues, tab, rs, ls, lams, cuts, offs, w, iq, nd, ids, rpm: float):
+def _sens_claims(mc: CardValues, tab, lists, w, nd, ids, rpm: float, card: MachineCard):
     """Judge: one claim per variant, then the offsets, the cut-off, the magnitude-forcing
     pair's gain sweep."""
-    claims = [_sens_kind_claim(kind, t, rs, ls, lams, rpm) for kind, t in tab.items()]
+    rs, ls, lams, cuts, offs = lists
+    k_ortega, td_s = _default_k(card, "ortega")[1], card.deadtime_s
+    claims = [
+        _sens_kind_claim(kind, t, (rs, ls, lams), rpm, mc, w, k_ortega) for kind, t in tab.items()
+    ]
     claims.append(_sens_offset_claim(tab, offs))
-    claims.append(_sens_cutoff_claim(tab, cuts))
-    claims.append(_sens_gain_claim(mc, tab, cuts, w, nd, ids))
+    claims.append(_sens_cutoff_claim(tab, cuts, w))
+    claims.append(_sens_gain_claim(mc, tab, cuts, w, nd, ids, td_s))
     return claims
 
 
@@ -1778,7 +1822,7 @@ def _peers_switch_jobs(ctx, seeds: list[int], drivers: list[str]) -> list:
 
 def _peers_jobs(ctx) -> list:
     """Build the shadow run (every variant on the encoder drive at the same point, for the
-    mechanism) and, in full runs, the same drivers closing the loop at 480 rpm and descending
+    mechanism) and, in full runs, the same drivers closing the loop at 16 % speed and descending
     under load."""
     shadow_obs = {v: variant_spec(v, ctx.cv) for v in PEERS}
     shadow_obs["hl_commanded"] = {"variant": "hinkkanen_luomi", "voltage_source": "commanded"}
@@ -1811,7 +1855,8 @@ def _peers_pred(ctx, w: float, iq: float) -> dict:
     mc = ctx.cv
     k_ortega = _default_k(ctx.card, "ortega")[1]
     k_hl = _default_k(ctx.card, "hinkkanen_luomi")[1]
-    return {
+    return _peers_loop_numbers(ctx) | {
+        "k_ortega": k_ortega,
         "ortega_commanded_deg": predicted_angle_deg(
             mc, "ortega", w, iq, k=k_ortega, v_err_q=mc.v1_dt
         ),
@@ -1849,14 +1894,15 @@ def _peers_summ(rows: dict, key: str) -> tuple[str, int, int]:
     )
 
 
-def _peers_headline_claim(rows: dict, n_seeds: int, speed_rpm: float) -> dict:
+def _peers_headline_claim(rows: dict, n_seeds: int, speed_rpm: float, td_s: float) -> dict:
     """Judge: commanded reduced-order observers lose the rotor, flux_measured holds it."""
     s_fm, n_fm, t_fm = _peers_summ(rows, "flux_measured@2us")
     s_ec, n_ec, _ = _peers_summ(rows, "emf_commanded@2us")
     s_oc, n_oc, _ = _peers_summ(rows, "ortega_commanded@2us")
     ok = n_fm == t_fm and n_ec == 0 and n_oc == 0
     return claim(
-        f"{speed_rpm:.0f} rpm, rated load, 2 µs deadtime uncompensated: closing the loop on a "
+        f"{speed_rpm:.0f} rpm, rated load, {1e6 * td_s:g} µs deadtime uncompensated: closing "
+        "the loop on a "
         "reduced-order "
         "observer driven by commanded voltages loses the rotor; the paper's flux observer on "
         "measured voltages holds it",
@@ -1867,26 +1913,45 @@ def _peers_headline_claim(rows: dict, n_seeds: int, speed_rpm: float) -> dict:
     )
 
 
-def _peers_mechanism_why(mc: CardValues, w: float, rpm: float) -> str:
+def _peers_loop_numbers(ctx) -> dict[str, float]:
+    """The card's numbers the mechanism text quotes: the deceleration of a 5 % torque deficit
+    under the rated brake (5 % of 1.5 p lambda I_rated over J) [rad/s^2], the time it takes to
+    lose the 2 % speed [s], the speed loop's target and the flux observer PLL's bandwidth [Hz]."""
+    mc = ctx.cv
+    decel = 0.05 * 1.5 * mc.p * mc.lam * mc.i_rated / mc.j
+    return {
+        "decel_rad_s2": decel,
+        "t_lost_s": ctx.rpm(0.02) * RPM / decel,
+        "speed_bw_hz": SPEED_OF_CURRENT_BW * card_current_bandwidth_hz(ctx.card),
+        "pll_hz": float(observer_config("paper_robust", ctx.card).pll_bandwidth_hz or 0.0),
+    }
+
+
+def _peers_mechanism_why(mc: CardValues, w: float, rpm: float, pred: dict) -> str:
+    x_over_lam = pred["flux_commanded_mag_vs"] / mc.lam
     return (
-        "ortega forces |η| = λ̂: the correction c that shrinks |x|/ω ≈ 4λ back to λ rotates "
-        "the estimate by atan(c/ω) = acos(ωλ/|x|), so closing the loop on it puts the current "
-        "~75° off the q axis and the torque collapses at once.  The EMF and paper observers "
-        "keep the mean angle but carry the deadtime's 6th-order ripple "
-        f"(±16° at {rpm:.0f} rpm, Fig. 14a).  What makes that fatal is the operating point: "
-        "the default card's 1.5e-4 kg·m² "
-        "rotor under the rated brake decelerates at ΔT/J ≈ 400 rad/s² for a 5 % torque "
-        f"deficit, so {rpm:.0f} rpm is gone in ~15 ms -- faster than the 10 Hz speed loop or "
-        "the 25 Hz observer respond (the speed loop's 10 Hz design does not change this: slower "
-        "speed loops fail too).  As the rotor slows, (4/π)V_dt/(ωλ) "
+        f"ortega forces |η| = λ̂: the correction c that shrinks |x|/ω ≈ {x_over_lam:.1f}λ back "
+        "to λ rotates the estimate by atan(c/ω) = acos(ωλ/|x|), so closing the loop on it puts "
+        f"the current ~{pred['ortega_commanded_deg']:.0f}° off the q axis and the torque "
+        "collapses at once.  The EMF and paper observers keep the mean angle but carry the "
+        f"deadtime's 6th-order ripple (Fig. 14a; its RMS above).  What makes that fatal is "
+        f"the operating point: the card's {mc.j:.3g} kg·m² rotor under the rated brake "
+        f"decelerates at ΔT/J ≈ {pred['decel_rad_s2']:.0f} rad/s² for a 5 % torque deficit, "
+        f"so {rpm:.0f} rpm is gone in ~{1e3 * pred['t_lost_s']:.0f} ms, against the speed "
+        f"loop's {pred['speed_bw_hz']:.0f} Hz target and the {pred['pll_hz']:.0f} Hz "
+        "observer PLL (slower speed loops fail too).  As the rotor slows, (4/π)V_dt/(ωλ) "
         f"({mc.v1_dt / (w * mc.lam):.1f} at {rpm:.0f} rpm) grows and "
         "with it the error, and once the current follows θ̂ the deadtime error turns with the "
         "estimate (the EMF observer then sees only ωλ/(ωλ+(4/π)V_dt) = "
         f"{w * mc.lam / (w * mc.lam + mc.v1_dt):.2f} of its own angle error): a runaway that "
-        "ends at "
-        "standstill, where no back-EMF observer sees the rotor.  The paper's observer on "
-        "commanded voltages also has |λ̂| ≈ 4λ, outside the validity band: it trips on loss "
-        "of lock (next row) -- the measured voltages are what make it work"
+        "ends at standstill, where no back-EMF observer sees the rotor.  The paper's observer "
+        f"on commanded voltages has |λ̂| ≈ {x_over_lam:.1f}λ, "
+        + (
+            "outside the 3λ validity band: it trips on loss of lock (next row) -- the measured "
+            "voltages are what make it work"
+            if x_over_lam > 3.0
+            else "inside the 3λ validity band here"
+        )
     )
 
 
@@ -1910,7 +1975,8 @@ def _peers_mechanism_claim(mc: CardValues, so: dict, w: float, pred: dict, rpm) 
         "is a magnitude error of the EMF (along the current = along q); what each observer "
         "makes of it decides",
         f"{vdt_txt}.  ortega_commanded θ̃ {o_c['mean_deg']:.1f}° (model acos(ωλ/(ωλ+(4/π)"
-        f"V_dt)) with γλ² = 1000: {pred_ortega:.1f}°); hinkkanen_luomi commanded "
+        f"V_dt)) with γλ² = {pred['k_ortega']:.0f}: {pred_ortega:.1f}°); hinkkanen_luomi "
+        "commanded "
         f"{h_c['mean_deg']:.1f}° (model {pred_hl:.1f}°); paper commanded |λ̂| "
         f"{1e3 * f_c['mag']:.1f} mV·s (model λ + (4/π)V_dt/ω = {1e3 * pred_mag:.1f}, 3λ "
         f"validity limit {3e3 * mc.lam:.1f}), θ̃ mean {f_c['mean_deg']:.1f}°; emf_commanded θ̃ "
@@ -1920,11 +1986,11 @@ def _peers_mechanism_claim(mc: CardValues, so: dict, w: float, pred: dict, rpm) 
             and abs(f_c["mag"] - pred_mag) < 0.1 * pred_mag
             and abs(e_c["mean_deg"]) < 5.0
         ),
-        _peers_mechanism_why(mc, w, rpm),
+        _peers_mechanism_why(mc, w, rpm, pred),
     )
 
 
-def _peers_control_claim(rows: dict, mc: CardValues, w: float) -> list[dict]:
+def _peers_control_claim(rows: dict, mc: CardValues, w: float, cr: dict) -> list[dict]:
     """The controls at the same point (unjudged): flux on commanded, emf/ortega on measured."""
     ctrl_rows = []
     for d in PEERS[3:]:
@@ -1934,26 +2000,33 @@ def _peers_control_claim(rows: dict, mc: CardValues, w: float) -> list[dict]:
     if not ctrl_rows:
         return []
     em_ok = all(x["stable"] for x in rows.get("emf_measured@2us", []))
+    x_over_lam = (mc.lam + mc.v1_dt / w) / mc.lam
     return [
         claim(
             "Controls at the same point: the paper's observer on commanded voltages, and the "
             "EMF / ortega observers on measured voltages",
             "; ".join(ctrl_rows),
             None,
-            "flux_commanded: |λ̂| = λ + (4/π)V_dt/ω ≈ 4λ leaves the 3λ validity band → loss-of-"
-            "lock trip (the angle itself is fine).  emf_measured: no deadtime error; its per-"
-            f"sample noise L/Ts·σ_i ≈ 0.18 V against {w * mc.lam:.2f} V "
+            f"flux_commanded: |λ̂| = λ + (4/π)V_dt/ω ≈ {x_over_lam:.1f}λ "
             + (
-                "costs accuracy (θ̃ RMS ~1° vs 0.15° for the flux observer) but it holds here; "
-                "it fails at 30 rpm (lowest_speed).  "
+                "leaves the 3λ validity band → loss-of-lock trip (the angle itself is fine).  "
+                if x_over_lam > 3.0
+                else "stays inside the 3λ validity band.  "
+            )
+            + "emf_measured: no deadtime "
+            f"error; its per-sample noise L/Ts·σ_i ≈ {cr['emf_noise_v']:.2g} V against "
+            f"{w * mc.lam:.2f} V "
+            + (
+                "costs accuracy (its θ̃ RMS against flux_measured's, headline row) but it holds "
+                "here; it fails lower down (lowest_speed).  "
                 if em_ok
                 else "can make the estimate slip before or after the loop is closed.  "
             )
             + "ortega_measured: measured voltages remove "
-            f"the {mc.v1_dt:.2f} V, but the ≈3.6 mV deadtime residue times k/(ω²λ) (sensitivity) "
-            "and its "
-            "0.6 s⁻¹ angle pole still lose the rotor at its default gain: a structural limit "
-            "at low speed, not the voltage source",
+            f"the {mc.v1_dt:.2f} V, but the deadtime residue (sensitivity) times k/(ω²λ) = "
+            f"{_deg_per_mv(mc, cr['k_ortega'], w):.2g}° per mV and its "
+            f"{w * w / cr['k_ortega']:.2g} s⁻¹ angle pole still lose the rotor at its default "
+            "gain: a structural limit at low speed, not the voltage source",
         )
     ]
 
@@ -2027,8 +2100,8 @@ def _peers_rs_claim() -> dict:
 
 
 def peers_fail(ctx):
-    """60 rpm, rated load, 2 us deadtime: the loop closed on each observer (in-process), the
-    mechanism in shadow, the descent: build -> run -> analyse -> judge -> plot."""
+    """2 % speed, rated load, the card's deadtime: the loop closed on each observer
+    (in-process), the mechanism in shadow, the descent: build -> run -> analyse -> judge -> plot."""
     mc = ctx.cv  # the card's values (see CardValues)
     seeds = [1] if ctx.quick else [1, 2, 3]
     drivers = PEERS[:3] if ctx.quick else PEERS
@@ -2044,9 +2117,9 @@ def peers_fail(ctx):
     so = shadow["obs"]
     pred = _peers_pred(ctx, w, iq)
     speed_rpm = ctx.rpm(0.02)
-    claims = [_peers_headline_claim(rows, len(seeds), speed_rpm)]
+    claims = [_peers_headline_claim(rows, len(seeds), speed_rpm, ctx.card.deadtime_s)]
     claims += [_peers_mechanism_claim(mc, so, w, pred, speed_rpm)] + _peers_control_claim(
-        rows, mc, w
+        rows, mc, w, card_rates(ctx)
     )
     claims += _peers_no_deadtime_claim(rows, speed_rpm) + _peers_descent_claim(ctx, desc)
     claims.append(_peers_rs_claim())
@@ -2095,13 +2168,13 @@ def _plot_peers(ctx, sw_jobs, sw_res, drivers):
     ax[1].set_ylim(-185, 185)
     az[1].set_ylim(-185, 185)
     ax[1].set_xlabel("time after closing the loop on the observer [s]")
-    az[1].set_xlabel("the first 60 ms [ms]")
+    az[1].set_xlabel("the first tens of ms [ms]")
     ax[0].set_title(
-        "60 rpm, rated brake load, 2 µs deadtime uncompensated: encoder until t = 0, "
-        "then sensorless on each observer (seed 1)",
+        f"{ctx.rpm(0.02):.0f} rpm, rated brake load, {1e6 * ctx.card.deadtime_s:g} µs deadtime "
+        "uncompensated: encoder until t = 0, then sensorless on each observer (seed 1)",
         fontsize=9,
     )
-    az[0].set_title("zoom: the light rotor stalls in ~15 ms", fontsize=9)
+    az[0].set_title("zoom: the first tens of ms after closing", fontsize=9)
     return ctx.fig(fig, "beyond_peers_fail")
 
 
@@ -2245,11 +2318,11 @@ EXPERIMENTS = {
     "sensitivity": (sensitivity, "θ̃ vs R̂, L̂, λ̂, current offset and cut-off, per variant"),
     "speed_reversal": (
         speed_reversal,
-        "sensorless reversal +60 → −60 rpm under load, I-f through zero",
+        "sensorless reversal +2 % → −2 % speed under load, I-f through zero",
     ),
     "peers_fail": (
         peers_fail,
-        "60 rpm, rated load, 2 µs deadtime: where reduced-order "
+        "2 % speed, rated load, the card's deadtime: where reduced-order "
         "observers on commanded voltages lose the rotor",
     ),
 }
