@@ -47,3 +47,26 @@ def test_compare_builtin_and_plugin_on_a_coarse_grid(tmp_path, example_importabl
         "paper_robust": "paper_robust",
         "flux_pll_observer": PLUGIN,
     }
+
+
+def test_matched_ratio_when_one_front_starts_above_the_other():
+    """Fronts that do not overlap in bandwidth are still compared: a family whose best
+    setting allows more bandwidth than any of the other's holds that θ̃ below (a speed loop
+    can be tuned slower than its observer allows), so the ratio runs over the other's whole
+    front and says which front was held."""
+    from fluxdrive.experiments.fronts import matched_ratio, pareto
+
+    flux = pareto([(6.0, 0.03), (15.0, 0.02), (29.0, 0.03)])  # the 6 Hz point is dominated
+    emf = pareto([(3.0, 0.04), (13.0, 0.10)])
+    assert flux == [(15.0, 0.02), (29.0, 0.03)]
+    m = matched_ratio({"flux": {"f": flux}, "emf": {"f": emf}}, "flux", "emf", "f")
+    assert m["matched_bw_hz"] == pytest.approx([3.0, 13.0])
+    assert m["held_below_hz"] == {"flux": 15.0}
+    # flux holds 0.02 over the whole range; EMF rises linearly from 0.04 to 0.10
+    assert len(m["ratios"]) == 9
+    assert m["ratios"][0] == pytest.approx(0.02 / 0.04)
+    assert m["ratios"][-1] == pytest.approx(0.02 / 0.10)
+    assert m["ratios"][4] == pytest.approx(0.02 / 0.07)
+    # no front at all: nothing to compare, said as such
+    none = matched_ratio({"flux": {"f": flux}, "emf": {"f": []}}, "flux", "emf", "f")
+    assert none["ratios"] == [] and none["matched_bw_hz"] is None
