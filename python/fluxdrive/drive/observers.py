@@ -25,8 +25,9 @@ exactly (eqs. 3, 5).  Variants differ in what replaces the pure integral:
                     inductance_term = before_filter   L^ di/dt removed before the filter,
                                            so only the rotor-frequency EMF is filtered and
                                            the inverse HPF is exact for it.  In eq. (5)'s
-                                           order a 1.8 A d-current at 50 Hz moves theta^ by
-                                           28 deg at 60 rpm (0.3 deg here), and the
+                                           order a d-current at another frequency than
+                                           the rotor's leaks into theta^ (`experiment
+                                           paper_robust`: the leak row), and the
                                            handover's current steps kick the literal
                                            observer into a loss of lock at 2 % / 150 %
                     comp_freq_lpf_hz = 2   compensation at the LPF output's own rotation

@@ -14,7 +14,7 @@ import numpy as np
 
 from fluxdrive.analysis.freqresp import analyse
 from fluxdrive.analysis.metrics import RAD_S_TO_RPM, harmonic, steady_window, whole_periods, wrap
-from fluxdrive.core.machine import card_current_bandwidth_hz
+from fluxdrive.core.machine import MachineCard, card_current_bandwidth_hz
 from fluxdrive.core.transforms import clarke
 from fluxdrive.drive.control import (
     CO_ID,
@@ -1871,6 +1871,11 @@ def _x_shadow(r, m):
     return out
 
 
+# the leak test's d-current amplitude, of the rated current (id_injection's unit)
+ROBUST_INJECTION_PU = 1.8
+ROBUST_INJECTION_LOAD_PU = 1.0
+
+
 def _robust_jobs(ctx, f_inj: float) -> list:
     """The literal observer with each departure driving the 2 % / 150 % case, then all of
     them in shadow on an encoder drive, then in shadow under a d-axis current at f_inj."""
@@ -1882,7 +1887,12 @@ def _robust_jobs(ctx, f_inj: float) -> list:
         drive_jobs.append((sc, _x_driving, None))
     shadow = {**_dep_obs("commanded"), **_dep_obs("measured")}
     speed = ctx.rpm(0.02)
-    inj = {"frequencies_hz": [f_inj], "amplitude": 1.8, "start_s": 3.5, "cycles": 40}
+    inj = {
+        "frequencies_hz": [f_inj],
+        "amplitude": ROBUST_INJECTION_PU,
+        "start_s": 3.5,
+        "cycles": 40,
+    }
     inj["settle_cycles"] = 5
     return drive_jobs + [
         (
@@ -1893,7 +1903,7 @@ def _robust_jobs(ctx, f_inj: float) -> list:
         (
             ctx.encoder_run(
                 speed,
-                1.0,
+                ROBUST_INJECTION_LOAD_PU,
                 observers=_dep_obs("measured"),
                 window_s=1.0,
                 bench=BENCH,
@@ -1912,7 +1922,14 @@ def _robust_drive_txt(lab: str, r: dict) -> str:
     return f"{lab}: not stable (fault {r['fault']}{t})"
 
 
-def _robust_judge(drv, sh, inj, f_inj: float) -> list[dict]:
+def _injection_txt(card: MachineCard, f_inj: float) -> str:
+    """The leak test's d-current, from the values the run used (amplitude in A and in per
+    unit of the card's rated current)."""
+    amp_a = ROBUST_INJECTION_PU * card.rated_current_a
+    return f"d-axis current {amp_a:.3g} A ({ROBUST_INJECTION_PU:g} × rated) at {f_inj:.3g} Hz"
+
+
+def _robust_judge(drv, sh, inj, f_inj: float, card: MachineCard) -> list[dict]:
     labs = list(DEPARTURES)
     ok = {lab: r["stable"] for lab, r in zip(labs, drv, strict=True)}
     claims = [
@@ -1949,7 +1966,8 @@ def _robust_judge(drv, sh, inj, f_inj: float) -> list[dict]:
     claims.append(
         judge(
             "robust.departures_leak",
-            "; ".join(f"{lab}: {inj['leak'][f'{lab}|measured']:.2f}°" for lab in labs),
+            f"{_injection_txt(card, f_inj)}: "
+            + "; ".join(f"{lab}: {inj['leak'][f'{lab}|measured']:.2f}°" for lab in labs),
             inj["leak"]["paper_robust|measured"] / inj["leak"]["paper|measured"],
             "eq. (5) filters L̂·i with the rest of v − R̂i; the inverse HPF is right only at "
             f"ω̂e, so the {f_inj:.0f} Hz part leaves the filter with the wrong gain and phase "
@@ -1974,8 +1992,12 @@ def paper_robust(ctx):
         "shadow": {k: v for k, v in sh.items() if k not in ("metrics", "leak")},
         "leak_50hz_deg": inj["leak"],
         "leak_hz": f_inj,
+        "injection_pu": ROBUST_INJECTION_PU,
+        "injection_a": ROBUST_INJECTION_PU * ctx.card.rated_current_a,
+        "injection_load_pu": ROBUST_INJECTION_LOAD_PU,
     }
-    return {"claims": _robust_judge(drv, sh, inj, f_inj), "figures": [], "data": data}
+    claims = _robust_judge(drv, sh, inj, f_inj, ctx.card)
+    return {"claims": claims, "figures": [], "data": data}
 
 
 EXPERIMENTS = {
