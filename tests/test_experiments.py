@@ -56,6 +56,17 @@ def test_claims_table_is_the_experiments_registry():
     }
 
 
+def test_groups_name_the_papers_figures():
+    """`experiment paper` runs exactly the paper's figures, once each, in the report's order."""
+    from fluxdrive.experiments import paper
+    from fluxdrive.experiments.registry import expand, experiments
+
+    assert expand("paper") == list(paper.EXPERIMENTS)
+    assert expand("fig18,paper") == ["fig18"] + [n for n in paper.EXPERIMENTS if n != "fig18"]
+    assert sorted(expand("paper") + expand("beyond")) == sorted(experiments())
+    assert expand("all") == list(experiments())
+
+
 def test_fig14_measured_voltages_remove_6th_flux_has_better_snr(tmp_path):
     r = _run("fig14", tmp_path)
     for v in ("paper_robust", "paper (literal)"):

@@ -1,4 +1,4 @@
-"""`./fluxdrive benchmark engine|replay|graph|paced|can|study|firmware|plugin|bench`:
+"""`./fluxdrive benchmark engine|replay|graph|paced|can|study|firmware|plugin|bench|experiments`:
 throughput figures; the last line of each is a JSON object."""
 
 from __future__ import annotations
@@ -6,8 +6,10 @@ from __future__ import annotations
 import importlib
 import json
 import math
+import os
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -22,7 +24,99 @@ BENCHES = {
     "firmware": ("fluxdrive.can.firmware_target", "bench_firmware"),
     "plugin": ("fluxdrive.cli.bench", "bench_plugin"),
     "bench": ("fluxdrive.cli.hostbench", "bench_bench"),
+    "experiments": ("fluxdrive.cli.bench", "bench_experiments"),
 }
+
+
+def write_benchmark(name: str, res: dict) -> Path:
+    """results/benchmarks/<name>.json (the file the docs quote), with when it was measured
+    and how loaded the machine was."""
+    from fluxdrive.core.paths import ROOT
+
+    path = ROOT / "results" / "benchmarks" / f"{name}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    doc = {
+        **res,
+        "measured": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "load_average_1min_at_end": round(os.getloadavg()[0], 2),
+    }
+    path.write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n")
+    print(f"[bench] wrote {path}", file=sys.stderr)
+    return path
+
+
+def _cpu_s() -> float:
+    """CPU seconds (user + system) of this process and of its live child processes (the
+    dask workers of a local cluster)."""
+    import psutil
+
+    me = psutil.Process()
+    total = sum(me.cpu_times()[:2])
+    for ch in me.children(recursive=True):
+        try:
+            total += sum(ch.cpu_times()[:2])
+        except psutil.Error:  # a worker that ended between listing and reading
+            pass
+    return total
+
+
+def bench_experiments(argv: list[str]) -> dict:
+    """The experiments' cost: each one run as `./fluxdrive experiment` runs it (in-process
+    engine, no ROS), its wall time and the CPU time it took (this process and its workers);
+    the report goes to a scratch folder, results/experiments is left alone."""
+    import argparse
+    import tempfile
+
+    from fluxdrive.experiments.registry import expand, experiments, run_experiment
+    from fluxdrive.study.runner import runner_from_args
+    from fluxdrive.study.tasks import warm_kernels
+
+    ap = argparse.ArgumentParser(prog="fluxdrive benchmark experiments")
+    ap.add_argument("names", nargs="?", default="paper", help="experiments or a group (paper)")
+    ap.add_argument("--workers", type=int, default=1, help="dask workers (1: in-process)")
+    ap.add_argument("--quick", action="store_true", help="the quick variants")
+    ap.add_argument(
+        "--write", action="store_true", help="also write results/benchmarks/experiments.json"
+    )
+    args = ap.parse_args(argv)
+    names = expand(args.names)
+    bad = [n for n in names if n not in experiments()]
+    if bad:
+        raise SystemExit(f"benchmark experiments: unknown {bad}; known: {', '.join(experiments())}")
+    warm_kernels()  # compiled (or loaded from the cache) before the clock starts
+    runner = runner_from_args(None, args.workers)
+    per: dict[str, dict] = {}
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            wall0, cpu0 = time.perf_counter(), _cpu_s()
+            for n in names:
+                w, c = time.perf_counter(), _cpu_s()
+                run_experiment(n, Path(tmp) / "report", args.quick, runner, echo=False)
+                per[n] = {
+                    "wall_s": round(time.perf_counter() - w, 2),
+                    "cpu_s": round(_cpu_s() - c, 2),
+                }
+                print(
+                    f"[bench] {n:14s} {per[n]['wall_s']:7.1f} s wall {per[n]['cpu_s']:7.1f} s CPU",
+                    file=sys.stderr,
+                )
+            wall, cpu = time.perf_counter() - wall0, _cpu_s() - cpu0
+    finally:
+        runner.close()
+    print(f"[bench] {len(names)} experiments: {wall:.1f} s wall, {cpu:.1f} s CPU", file=sys.stderr)
+    out = {
+        "names": args.names,
+        "experiments": per,
+        "total_wall_s": round(wall, 1),
+        "total_cpu_s": round(cpu, 1),
+        "workers": args.workers,
+        "quick": args.quick,
+        "cpu_count": os.cpu_count(),
+    }
+    if args.write:
+        label = args.names.replace(",", "_") + ("_quick" if args.quick else "")
+        write_benchmark(f"experiments_{label}", out)
+    return out
 
 
 def bench_engine(argv: list[str]) -> dict:
@@ -128,7 +222,6 @@ def bench_plugin(argv: list[str]) -> dict:
 
     from fluxdrive.drive.observers import make_observer
     from fluxdrive.drive.plant import FR_SEQ
-    from fluxdrive.drive.scenario import REPO_ROOT
     from fluxdrive.drive.sim import run_scenario
     from fluxdrive.io.bagio import read_run_bag
     from fluxdrive.replay.lab import SAMPLES_DIR, parse_variant
@@ -189,10 +282,7 @@ def bench_plugin(argv: list[str]) -> dict:
         "closed_loop_s": args.seconds,
     }
     if args.write:
-        path = REPO_ROOT / "results" / "benchmarks" / "plugin_observer.json"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(out, indent=2) + "\n")
-        print(f"[bench] wrote {path}", file=sys.stderr)
+        write_benchmark("plugin_observer", out)
     return out
 
 

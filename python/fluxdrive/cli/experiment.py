@@ -1,6 +1,7 @@
-"""`./fluxdrive experiment NAME|all|list [--quick] [--graph] [--machine CARD] [--bench FILE]
-[--out DIR]`:
-the paper's figures, and past them (fluxdrive.experiments).  `--graph` runs every scenario
+"""`./fluxdrive experiment NAME[,NAME...]|paper|beyond|all|list [--quick] [--graph]
+[--machine CARD] [--bench FILE] [--out DIR]`:
+the paper's figures (`paper`: all of them, one report, the total wall time printed last), and
+past them (`beyond`) (fluxdrive.experiments).  `--graph` runs every scenario
 through the ROS node graph instead of in-process (entered through the graph tools, which pass
 their runner in)."""
 
@@ -19,8 +20,10 @@ from fluxdrive.drive.scenario import REPO_ROOT, load_bench_file, machine_path
 from fluxdrive.experiments.claims import count, counts_line
 from fluxdrive.experiments.common import DEFAULT_MACHINE, claim
 from fluxdrive.experiments.registry import (
+    expand,
     experiments,
     fmt_verdict,
+    groups,
     run_experiment,
     write_report,
 )
@@ -32,7 +35,11 @@ def _parser(names: list[str]) -> argparse.ArgumentParser:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    ap.add_argument("name", help="experiment name or 'all' or 'list': " + ", ".join(names))
+    ap.add_argument(
+        "name",
+        help="experiment names (comma-separated), a group (paper: the paper's figures, "
+        "beyond, all) or 'list': " + ", ".join(names),
+    )
     ap.add_argument("--quick", action="store_true", help="fewer points, shorter runs")
     ap.add_argument("--out", type=Path, help="output folder (default results/experiments)")
     ap.add_argument(
@@ -181,7 +188,10 @@ def _run_all(
     finally:
         runner.close()
     print(f"claims: {counts_line(count(judged))}")
-    print(f"report: {out / 'report.md'} ({time.perf_counter() - t0:.1f} s total)")
+    print(
+        f"report: {out / 'report.md'} ({len(names)} experiments, "
+        f"{time.perf_counter() - t0:.1f} s wall total, load average {os.getloadavg()[0]:.1f})"
+    )
     return judged
 
 
@@ -208,6 +218,8 @@ def main(argv: list[str], graph_run: Callable | None = None) -> int:
     if args.name == "list":
         for k, (_, title) in reg.items():
             print(f"{k:18s} {title}")
+        for g, members in groups().items():
+            print(f"{g:18s} group: {', '.join(members)}")
         return 0
     out = out or REPO_ROOT / "results" / "experiments"
     if args.name == "deltas":
@@ -215,7 +227,7 @@ def main(argv: list[str], graph_run: Callable | None = None) -> int:
             raise ConfigError("experiment deltas: give --against DIR (and --out DIR)")
         _write_deltas(args.against, out)
         return 0
-    names = list(reg) if args.name == "all" else args.name.split(",")
+    names = expand(args.name)
     bad = [n for n in names if n not in reg]
     if bad:
         print(f"unknown experiment(s) {bad}; known: {', '.join(reg)}", file=sys.stderr)

@@ -19,7 +19,8 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "benchmark": (
         "fluxdrive.cli.bench",
         "main",
-        "benchmarks: engine | replay | graph | paced | can | study | firmware | plugin",
+        "benchmarks: engine | replay | graph | paced | can | study | firmware | plugin | "
+        "experiments",
     ),
     "demo": (
         "fluxdrive_bringup.cli",

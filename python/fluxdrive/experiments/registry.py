@@ -55,6 +55,32 @@ def experiments() -> dict[str, tuple[Callable, str]]:
     return _registry()
 
 
+def groups() -> dict[str, list[str]]:
+    """Names that stand for several experiments: `paper` (the paper's figures, paper.py),
+    `beyond` (past the paper, fronts.py and beyond.py) and `all`."""
+    from fluxdrive.experiments import beyond as b
+    from fluxdrive.experiments import fronts as f
+    from fluxdrive.experiments import paper as p
+
+    return {
+        "paper": list(p.EXPERIMENTS),
+        "beyond": [*f.EXPERIMENTS, *b.EXPERIMENTS],
+        "all": list(_registry()),
+    }
+
+
+def expand(names: str) -> list[str]:
+    """A comma-separated list of experiment and group names -> experiment names, in order,
+    each once (unknown names are kept for the caller to refuse)."""
+    grp = groups()
+    out: list[str] = []
+    for n in (x.strip() for x in names.split(",") if x.strip()):
+        for e in grp.get(n, [n]):
+            if e not in out:
+                out.append(e)
+    return out
+
+
 def run_experiment(
     name: str,
     out: Path,
