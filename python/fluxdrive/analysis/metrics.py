@@ -235,12 +235,55 @@ def compute(result) -> dict[str, Any]:
         "trip": trip,
         "window_s": list(sc.steady_window_s),
         "observers": observers,
+        "lowest": lowest_by_metric(observers),
         "speed": speed,
         "currents": {
             "i_q_mean_a": float(np.mean(result.ctrl[sl, CO_IQ])),
             "i_d_mean_a": float(np.mean(result.ctrl[sl, CO_ID])),
         },
     }
+
+
+# the metrics a run names a winner on (lower is better), with their label and unit
+RANKED = (
+    ("theta_err_rms_deg", "θ̃ RMS", "°"),
+    ("theta_err_peak_deg", "θ̃ peak", "°"),
+    ("theta_err_h6_deg", "θ̃ 6th order", "°"),
+    ("thd_flux_alpha", "THD λ̂α", ""),
+    ("thdn_flux_alpha", "THD+N λ̂α", ""),
+)
+
+
+def lowest_by_metric(observers: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Per ranked metric, the observer with the lowest value (and the value) among those
+    with valid data; a metric no observer has is left out."""
+    out: dict[str, dict[str, Any]] = {}
+    for key, _, _ in RANKED:
+        vals = [
+            (float(om[key]), nm)
+            for nm, om in observers.items()
+            if om.get("valid_data", True) and om.get(key) is not None and math.isfinite(om[key])
+        ]
+        if vals:
+            v, nm = min(vals, key=lambda x: x[0])
+            out[key] = {"observer": nm, "value": v}
+    return out
+
+
+def _lowest_line(m: dict[str, Any]) -> str | None:
+    low = m.get("lowest") or lowest_by_metric(m["observers"])
+    if len(m["observers"]) < 2 or not low:
+        return None
+    parts = [
+        f"{label} {low[key]['observer']} ({low[key]['value']:.3g}{unit})"
+        for key, label, unit in RANKED
+        if key in low
+    ]
+    return (
+        "lowest, each observer at its own tuning: "
+        + "; ".join(parts)
+        + " (at matched speed-loop bandwidth: ./fluxdrive compare)"
+    )
 
 
 def trip_info(result) -> dict[str, Any] | None:
@@ -322,6 +365,9 @@ def format_table(m: dict[str, Any]) -> str:
         rec = "not within 10 %" if s["recovery_s"] is None else f"{s['recovery_s']:.3f} s"
         line += f", step-load dip {s['dip_rpm']:.1f} rpm, recovery {rec}"
     lines.append(line)
+    lowest = _lowest_line(m)
+    if lowest:
+        lines.append(lowest)
     lines.append(
         "(* driving; θ̃ = θ̂ − θ in electrical degrees over the window; h1/h6 orders "
         "of θ̃ vs the rotor angle; spread = (max−min)/mean |λ̂|; THD: orders 2..20; "
