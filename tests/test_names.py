@@ -42,8 +42,22 @@ def _names_a_constant(node: ast.expr) -> bool:
     return any((_name(n) or "").isupper() for n in ast.walk(node))
 
 
-# prefixes of the row layouts' constants (FR_SEQ, TR_T, ES_W, CO_MODE, FR_N, ...)
-LAYOUT_PREFIXES = ("FR_", "TR_", "ES_", "CO_")
+def _layout_prefixes() -> tuple[str, ...]:
+    """The prefix of every layout the kernel modules define (`_FR = Layout("FR")`: FR_SEQ,
+    FR_N, ...): frames, truth, estimates, controller outputs, and the parameter, state,
+    reference and drive rows (CP_, CS_, MP_, OP_, OS_, PS_, RF_, DR_, LD_)."""
+    found = set()
+    for rel in KERNELS:
+        for node in ast.walk(ast.parse((REPO / rel).read_text())):
+            if isinstance(node, ast.Call) and _name(node.func) == "Layout" and node.args:
+                arg = node.args[0]
+                if isinstance(arg, ast.Constant) and isinstance(arg.value, str):
+                    found.add(arg.value + "_")
+    return tuple(sorted(found))
+
+
+# prefixes of the row layouts' constants (FR_SEQ, TR_T, ES_W, CO_MODE, CP_KP, FR_N, ...)
+LAYOUT_PREFIXES = _layout_prefixes()
 
 
 def _layout_constant(node: ast.AST) -> str | None:
@@ -68,9 +82,16 @@ def layout_arrays(tree: ast.AST) -> set[str]:
 
 
 def layout_rows(tree: ast.AST) -> set[str]:
-    """Names of the file's one-row layout arrays: built with a layout's width alone
-    (`f = np.zeros(FR_N)`), or a copy of one (`g = f.copy()`)."""
-    found: set[str] = set()
+    """Names of the file's one-row layout arrays: indexed by a layout constant somewhere
+    (`cp[CP_KP]`), built with a layout's width alone (`f = np.zeros(FR_N)`), or a copy of
+    one (`g = f.copy()`)."""
+    found: set[str] = {
+        _name(node.value) or ""
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Subscript)
+        and not isinstance(node.slice, ast.Tuple)
+        and any(_layout_constant(n) for n in ast.walk(node.slice))
+    }
     for _ in range(2):  # a copy of a row found on the first pass
         for node in ast.walk(tree):
             if not isinstance(node, (ast.Assign, ast.AnnAssign)) or node.value is None:
@@ -130,6 +151,10 @@ def test_no_raw_column_index_outside_the_kernels():
     assert found == [], "raw column indices (use the layout's constant):\n" + "\n".join(found)
 
 
+def test_every_layout_is_checked():
+    assert {"FR_", "TR_", "ES_", "CO_", "CP_", "CS_", "MP_", "OP_", "OS_"} <= set(LAYOUT_PREFIXES)
+
+
 def test_the_check_sees_a_raw_index(tmp_path):
     f = tmp_path / "x.py"
     f.write_text(
@@ -152,6 +177,7 @@ def test_the_check_sees_a_raw_index_on_a_layout_row(tmp_path):
     f = tmp_path / "x.py"
     f.write_text(
         "r = np.zeros(FR_N)\na = r[3:6]\ng = r.copy()\ng[10] = 1.0\nb = r[FR_EN]\n"
-        "c = r[FR_VAB : FR_VCA + 1]\nd = xs[2]\n"
+        "c = r[FR_VAB : FR_VCA + 1]\nd = xs[2]\np = cfg.to_params(card)\nk = p[CP_KP]\n"
+        "x = p[4]\n"
     )
-    assert raw_column_indices(f) == ["2: r[3:6]", "4: g[10]"]
+    assert raw_column_indices(f) == ["2: r[3:6]", "4: g[10]", "10: p[4]"]

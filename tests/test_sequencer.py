@@ -64,7 +64,7 @@ def test_any_arrival_order_gives_the_same_answers():
     frames = [np.full(FR_N, 0.0) for _ in range(n)]
     for k, f in enumerate(frames):
         f[FR_IA] = 0.1 * math.sin(k / 10)
-        f[6] = 72.0  # FR_VDC
+        f[FR_VDC] = 72.0
     ests = [np.zeros(ES_N) for _ in range(n)]
     outs = {}
     for order in ("in_order", "shuffled"):
