@@ -3,7 +3,7 @@ huge IDs only said 'strides is incompatible ...' without the file; a truncated .
 with exit 0 and no word of it) and a derandomized hypothesis fuzz over mutated captures
 (.log text, .blf bytes) and mutated bags.  The property: the import or the replay succeeds,
 or raises its one refusal (CaptureError / BagError, one line naming the file) -- never
-another exception -- within TIME_BUDGET_S per file."""
+another exception (time is not asserted: HANG_GUARD_S only ends a hung import)."""
 
 from __future__ import annotations
 
@@ -24,7 +24,9 @@ from hypothesis import strategies as st
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE_BLF = ROOT / "bags" / "samples" / "emulator_2pct_start_1s.blf"
-TIME_BUDGET_S = 10.0  # per file: a runaway (a huge allocation, a loop) takes minutes
+# not a speed bound: an import still running after this long is hung (a runaway -- a huge
+# allocation, a loop -- took minutes)
+HANG_GUARD_S = 120.0
 N_MSGS = 120  # CAN frames in the fuzzed captures
 FUZZ = dict(
     derandomize=True,
@@ -129,7 +131,7 @@ def _expect_refusal_or_ok(fn, path: Path) -> None:
         assert "\n" not in msg and path.name in msg, msg
     finally:
         dt = time.perf_counter() - t0
-        assert dt < TIME_BUDGET_S, f"{dt:.1f} s for one file"
+        assert dt < HANG_GUARD_S, f"{dt:.1f} s for one file: hung"
 
 
 def test_fuzz_can_import_text_capture(tmp_path):

