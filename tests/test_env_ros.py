@@ -123,7 +123,6 @@ def test_expected_interfaces_exist():
             "CurrentReference",
             "DriveFault",
             "DutyCommand",
-            "FreqResponsePoint",
             "ParameterMarker",
             "PhaseFrame",
             "PlantTruth",

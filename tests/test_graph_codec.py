@@ -22,7 +22,6 @@ MSGS = [
     "RotorEstimate",
     "DutyCommand",
     "ControllerState",
-    "FreqResponsePoint",
     "DriveFault",
     "ParameterMarker",
     "CurrentReference",

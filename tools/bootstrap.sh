@@ -77,6 +77,22 @@ colcon_hash() {
   } | sha256sum | cut -d' ' -f1
 }
 package_list() { (cd "$ROOT" && find src -name package.xml -not -path '*/.*' | LC_ALL=C sort); }
+# Interfaces built before whose source is gone (a removed .msg/.srv/.action; a dangling
+# symlink in the symlink install): the merged install and the package's build tree keep their
+# generated code, and the package's type support then fails to import (undefined symbol of
+# the removed type).
+stale_interfaces() {
+  [ -d "$WS/install/share" ] || return 0
+  local xml pkg f
+  for xml in $(package_list); do
+    pkg="$(basename "$(dirname "$xml")")"
+    for f in "$WS/install/share/$pkg"/{msg/*.msg,srv/*.srv,action/*.action}; do
+      { [ -e "$f" ] || [ -L "$f" ]; } && [ ! -e "$ROOT/$(dirname "$xml")/${f#"$WS/install/share/$pkg/"}" ] &&
+        echo "$pkg/${f#"$WS/install/share/$pkg/"}"
+    done
+  done
+  return 0
+}
 
 pip_current() { [ -x "$VENV/bin/python" ] && [ -f "$PIP_STAMP" ] && [ "$(cat "$PIP_STAMP")" = "$(pip_hash)" ]; }
 # venvs and CMake build trees hold absolute paths: a moved checkout must start afresh.
@@ -205,6 +221,10 @@ if [ "${FLUXDRIVE_BOOTSTRAP_FORCE:-0}" = 1 ] || ! colcon_current; then
   # A package removed or moved: start clean, a merged install keeps its files otherwise.
   if [ -f "$PKGS_STAMP" ] && [ -n "$(LC_ALL=C comm -23 "$PKGS_STAMP" <(package_list))" ]; then
     log "packages gone from src/ ($(LC_ALL=C comm -23 "$PKGS_STAMP" <(package_list) | tr '\n' ' ')): removing .ws/build and .ws/install"
+    rm -rf "$WS/build" "$WS/install"
+  fi
+  if [ -n "$(stale_interfaces)" ]; then
+    log "interfaces gone from src/ ($(stale_interfaces | tr '\n' ' ')): removing .ws/build and .ws/install"
     rm -rf "$WS/build" "$WS/install"
   fi
   rm -f "$COLCON_STAMP" # an interrupted or failed build must not look current later
