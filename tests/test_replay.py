@@ -403,3 +403,78 @@ def test_replayed_variant_takes_the_bags_observer_model(sample, capsys, tmp_path
         == 0
     )
     assert "observer model" in capsys.readouterr().out
+
+
+def _tuned_bag(src, dst, row: int, change: dict) -> int:
+    """`src` rewritten as if flux_measured had been changed live at frame row `row`: its
+    node's ParameterMarker (source "node") and its estimates from there on.  Returns the
+    marker's seq."""
+    from fluxdrive.drive.plant import FR_SEQ
+    from fluxdrive.io.bagio import BagWriter, read_raw
+    from fluxdrive.io.messages import EstimateWire
+    from fluxdrive.io.topics import MARKER, SETTINGS, T_MARKER
+    from fluxdrive.replay.lab import build_observer, run_with_changes
+
+    b = read_run_bag(src)
+    obs = build_observer(parse_variant("@flux_measured"), b, b.machine())
+    est = run_with_changes(obs, np.ascontiguousarray(b.frames), [(row, change)])
+    seqs = b.frames[:, FR_SEQ].astype(int)
+    ew, store, i = EstimateWire("flux_measured"), typestore(), 0
+    ((name, value),) = change.items()
+    t = store.types
+    stamp = t["builtin_interfaces/msg/Time"](*divmod(round(b.t[row] * 1e9), 10**9))
+    marker = t[T_MARKER](
+        header=t["std_msgs/msg/Header"](stamp=stamp, frame_id=""),
+        seq=int(seqs[row]), graph_id=0, node="/obs/flux_measured", name=name,
+        value=json.dumps(value), successful=True, reason="", source="node",
+    )  # fmt: skip
+    with BagWriter(dst, b.meta, epoch_offset_ns=0) as w:
+        for topic, mtype, t_ns, raw in read_raw(src):
+            if topic == SETTINGS:
+                continue  # the writer writes its own
+            if topic == est_topic("flux_measured"):
+                st = divmod(round(b.t[i] * 1e9), 10**9)
+                if i < row:  # the rows are aligned: before the change, the same bytes
+                    assert ew.pack(b.est["flux_measured"][i], int(seqs[i]), *st) == bytes(raw)
+                raw = ew.pack(est[i], int(seqs[i]), *st)
+                if i == row:
+                    cdr = store.serialize_cdr(marker, T_MARKER)
+                    w.write(w.add_connection(MARKER, T_MARKER), t_ns, cdr)
+                i += 1
+            w.write(w.add_connection(topic, mtype), t_ns, bytes(raw))
+    return int(seqs[row])
+
+
+def test_sweep_applies_the_bags_markers_and_says_so(bags, tmp_path, capsys):
+    """A sweep over a bag with a live change replays it: the value that keeps the recorded
+    settings gives max |replayed - recorded| = 0 (the marker applied at its sample, the cut
+    bag's recorded state restored); sweeping the changed setting itself replaces it, and
+    the sweep says which."""
+    from fluxdrive.drive.observers import ObserverConfig
+
+    tuned = tmp_path / "tuned"
+    _tuned_bag(bags["cut"], tuned, 1200, {"cutoff_hz": 40.0})
+    b = read_run_bag(tuned)
+    assert [(m["name"], m["value"]) for m in b.markers] == [("cutoff_hz", "40.0")]
+    rec = b.meta["observers"]["flux_measured"]
+    pll = ObserverConfig(**rec).resolved(b.machine()).pll_bandwidth_hz
+    out = tmp_path / "sw"
+    argv = ["replay", str(tuned), "-v", "@flux_measured", "-j", "1", "--out", str(out)]
+    assert cli.main([*argv, "--sweep", f"pll_bandwidth_hz={pll!r},{2 * pll!r}"]) == 0
+    text = capsys.readouterr().out
+    print(text)
+    assert "applied in every run at the sample they took effect: 1\n" in text
+    assert f"pll_bandwidth_hz={pll:g} keeps the recorded settings: max |replayed" in text
+    assert "max |replayed - recorded| = 0\n" in text
+    rows = json.loads((out / "sweep.json").read_text())["rows"]
+    assert [r["markers_applied"] for r in rows] == [1, 1]
+    assert rows[0]["recorded_max_abs_diff"] == 0.0 and rows[1]["recorded_max_abs_diff"] is None
+    # without the marker the same settings are not the recorded run
+    plain = replay_bag(b, [parse_variant("@flux_measured")])
+    b.markers = []
+    assert replay_bag(b, [parse_variant("@flux_measured")]).recorded_diff["flux_measured"] > 1e-6
+    assert plain.recorded_diff["flux_measured"] == 0.0
+    # sweeping the changed setting: the swept value holds for the whole run
+    assert cli.main([*argv, "--sweep", "cutoff_hz=40,60"]) == 0
+    text = capsys.readouterr().out
+    assert "effect: 0; 1 change(s) of cutoff_hz replaced by the swept value" in text

@@ -177,6 +177,9 @@ def _sweep(args, window: tuple[float, float] | None, out: Path) -> int:
             f"sweep {vs.target} {key} over {len(values)} values on {bag.path} "
             f"({bag.n} frames, {where})"
         )
+        note = lab.sweep_marker_note(bag, vs, key)
+        if note:
+            print(f"   {note}")
         rows = sweep_bag(
             bag,
             vs,
@@ -190,6 +193,12 @@ def _sweep(args, window: tuple[float, float] | None, out: Path) -> int:
             args.scheduler,
         )
         print(format_sweep(rows, key))
+        for r in rows:
+            if r.get("recorded_max_abs_diff") is not None:
+                print(
+                    f"   {key}={r[key]:g} keeps the recorded settings: "
+                    f"max |replayed - recorded| = {r['recorded_max_abs_diff']:.3g}"
+                )
         print(f"saved: {od}/sweep.json, sweep.png")
     return 0
 

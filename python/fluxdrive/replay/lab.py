@@ -149,24 +149,44 @@ def build_observer(
         obs = make_observer(vs.target, card, name=vs.label, model=model, **vs.params)
         obs.reset()
         return obs
-    configs = bag.meta.get("observers") or {}
-    if rec not in configs:
-        raise ConfigError(
-            f"{bag.path}: no recorded configuration for observer '{rec}' "
-            f"(bag records {sorted(configs) or 'none'})"
-        )
-    known = {f.name for f in fields(ObserverConfig)}
-    cfg = ObserverConfig(**{k: v for k, v in configs[rec].items() if k in known})
-    if vs.params:
-        cfg = cfg.with_overrides(**vs.params)
+    recorded = recorded_config(bag, rec)
+    cfg = recorded.with_overrides(**vs.params) if vs.params else recorded
     obs = KernelObserver(cfg, card, name=vs.label)
     obs.reset()
     st = (bag.meta.get("observer_states") or {}).get(rec)
     # the state layout only grows at its end (new counters): a bag recorded before a new
     # index restores its prefix, the new entries keep their reset values
-    if st is not None and not vs.params and len(st) <= OS_N:
+    if st is not None and len(st) <= OS_N and keeps_recorded(vs, bag, card):
         obs.state[: len(st)] = np.array(st, dtype=np.float64)
     return obs
+
+
+def recorded_config(bag: RunBag, name: str) -> ObserverConfig:
+    """The configuration the bag records for observer `name` (at the bag's first frame)."""
+    configs = bag.meta.get("observers") or {}
+    if name not in configs:
+        raise ConfigError(
+            f"{bag.path}: no recorded configuration for observer '{name}' "
+            f"(bag records {sorted(configs) or 'none'})"
+        )
+    known = {f.name for f in fields(ObserverConfig)}
+    return ObserverConfig(**{k: v for k, v in configs[name].items() if k in known})
+
+
+def keeps_recorded(vs: VariantSpec, bag: RunBag, card: MachineCard) -> bool:
+    """A @recorded variant whose own settings (a sweep's value included) leave the recorded
+    observer's kernel parameters as they were: it replays the recorded estimates exactly
+    (recorded state restored, the bag's markers applied), so its difference from them is
+    reported."""
+    if vs.recorded is None:
+        return False
+    if not vs.params:
+        return True
+    recorded = recorded_config(bag, vs.recorded)
+    if recorded.is_plugin:
+        return False
+    mine = recorded.with_overrides(**vs.params)
+    return bool(np.array_equal(mine.to_params(card), recorded.to_params(card)))
 
 
 def expand_variants(specs: list[str], bag: RunBag) -> list[VariantSpec]:
@@ -340,7 +360,7 @@ def _run_variants(
             )
         est[i] = out
         rec_name = vs.recorded or vs.label
-        if rec_name in bag.est and (vs.recorded is None or not vs.params):
+        if rec_name in bag.est and (vs.recorded is None or keeps_recorded(vs, bag, card)):
             diffs[vs.label] = estimate_difference(out, bag.est[rec_name])
     return est, walls, diffs
 
@@ -412,6 +432,30 @@ def live_changes(bag: RunBag, vs: VariantSpec) -> list[tuple[int, dict[str, Any]
         row = int(np.searchsorted(seqs, m["seq"]))
         out.setdefault(row, {})[m["name"]] = value
     return sorted(out.items())
+
+
+def sweep_marker_note(bag: RunBag, vs: VariantSpec, key: str) -> str:
+    """What a sweep of `key` over the variant does with the bag's parameter markers, in one
+    line ("" when the bag has none): applied in every run at their samples (a @recorded
+    variant), except those of `key` itself, which the swept value replaces."""
+    if not bag.markers:
+        return ""
+    if vs.recorded is None:
+        return (
+            f"the bag's {len(bag.markers)} parameter marker(s) change recorded observers, "
+            f"not the new variant {vs.target}: not applied"
+        )
+    base = VariantSpec(vs.label, vs.target, {k: v for k, v in vs.params.items() if k != key})
+    changes = live_changes(bag, base)
+    swept = sum(key in ch for _, ch in changes)
+    applied = sum(len(ch) for _, ch in changes) - swept
+    note = (
+        f"{vs.target}: the bag's live parameter changes of it applied in every run at the "
+        f"sample they took effect: {applied}"
+    )
+    if swept:
+        note += f"; {swept} change(s) of {key} replaced by the swept value"
+    return note
 
 
 def run_with_changes(

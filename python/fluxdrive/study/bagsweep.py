@@ -66,6 +66,9 @@ def sweep_bag(
                     )
                 m = o.value["metrics"]
                 rows[o.key] = {key: values[o.key], **m, "replay_s": o.value["replay_s"]}
+                for extra in ("markers_applied", "recorded_max_abs_diff"):
+                    if extra in o.value:
+                        rows[o.key][extra] = o.value[extra]
                 _progress(done, len(values), key, values[o.key], m, t0)
     finally:
         clear_bag_cache()

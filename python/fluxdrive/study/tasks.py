@@ -222,7 +222,7 @@ def _bag_task(p: dict[str, Any]) -> dict[str, Any]:
     import numpy as np
 
     from fluxdrive.drive.plant import TR_THETA_E
-    from fluxdrive.replay.lab import VariantSpec, replay_bag
+    from fluxdrive.replay.lab import VariantSpec, live_changes, replay_bag
 
     spec = p["scenario"]
     bag = _bag(spec["bag"])
@@ -256,4 +256,7 @@ def _bag_task(p: dict[str, Any]) -> dict[str, Any]:
     out["sim_s"] = float(res.t[-1] - res.t[0])
     out["replay_s"] = float(res.wall_s.get(p["variant"], 0.0))
     out["metrics"] = m
+    if vs.recorded is not None:  # the bag's live changes applied, and (same settings) exactness
+        out["markers_applied"] = len(live_changes(bag, vs))
+        out["recorded_max_abs_diff"] = res.recorded_diff.get(p["variant"])
     return out
