@@ -138,3 +138,21 @@ def test_benchmark_plugin_prints_its_figures(capsys):
     for key in ("replay_us_per_sample", "closed_loop_us_per_period"):
         assert out[key] > 0.0
     assert "[bench] closed loop" in capsys.readouterr().err
+
+
+def test_numba_plugin_is_the_python_plugin_compiled(example_importable):
+    """examples/my_observer/flux_pll_numba.py (the driving example's equations in one numba
+    kernel) gives the plain-Python class's estimates over a recorded bag, through its block
+    `run()` and frame by frame through `step()`."""
+    from fluxdrive.drive.observers import make_observer
+    from fluxdrive.io.bagio import read_run_bag
+    from fluxdrive.replay.lab import SAMPLES_DIR
+
+    bag = read_run_bag(SAMPLES_DIR / "paper_2pct_150load")
+    card, frames = bag.machine(), bag.frames[:20000]
+    ref = make_observer(DRIVER, card, pll_hz=20.0).run(frames)
+    fast = make_observer("my_observer.flux_pll_numba:FluxPllNumbaObserver", card, pll_hz=20.0)
+    assert np.allclose(fast.run(frames), ref, rtol=0.0, atol=1e-9)
+    fast.reset()
+    stepped = np.array([fast.step(fr) for fr in frames[:2000]])
+    assert np.allclose(stepped, ref[:2000], rtol=0.0, atol=1e-9)
