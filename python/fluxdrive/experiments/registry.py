@@ -167,8 +167,9 @@ def write_report(out: Path, results: dict[str, dict]) -> None:
     allres = {
         k: allres[k] for k in sorted(allres, key=lambda k: order.index(k) if k in order else 999)
     }
-    jpath.write_text(json.dumps({"experiments": allres}, indent=1, default=_json_default))
     n = count([c for r in allres.values() for c in r.get("claims", [])])
+    doc = {"counts": n, "experiments": allres}  # the counts: for the docs to quote
+    jpath.write_text(json.dumps(doc, indent=1, default=_json_default))
     lines = [
         "# fluxdrive experiments: the paper's claims with our numbers",
         "",
