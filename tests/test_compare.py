@@ -50,23 +50,30 @@ def test_compare_builtin_and_plugin_on_a_coarse_grid(tmp_path, example_importabl
 
 
 def test_matched_ratio_when_one_front_starts_above_the_other():
-    """Fronts that do not overlap in bandwidth are still compared: a family whose best
-    setting allows more bandwidth than any of the other's holds that θ̃ below (a speed loop
-    can be tuned slower than its observer allows), so the ratio runs over the other's whole
-    front and says which front was held."""
+    """Fronts that do not overlap in bandwidth are still compared where both observers have
+    settings: a family whose lower-bandwidth settings did no better than its best holds that
+    θ̃ below it (a speed loop can be tuned slower than its observer allows), so the ratio runs
+    from the higher of the two lowest swept bandwidths and says which front was held; below
+    a family's lowest setting nothing is assumed."""
     from fluxdrive.experiments.fronts import matched_ratio, pareto
 
-    flux = pareto([(6.0, 0.03), (15.0, 0.02), (29.0, 0.03)])  # the 6 Hz point is dominated
-    emf = pareto([(3.0, 0.04), (13.0, 0.10)])
+    flux_pts = [(6.0, 0.03), (15.0, 0.02), (29.0, 0.03)]  # the 6 Hz setting is dominated
+    emf_pts = [(3.0, 0.04), (13.0, 0.10)]
+    flux, emf = pareto(flux_pts), pareto(emf_pts)
     assert flux == [(15.0, 0.02), (29.0, 0.03)]
-    m = matched_ratio({"flux": {"f": flux}, "emf": {"f": emf}}, "flux", "emf", "f")
-    assert m["matched_bw_hz"] == pytest.approx([3.0, 13.0])
+    cell = {
+        "flux": {"f": flux, "points": {"f": flux_pts}},
+        "emf": {"f": emf, "points": {"f": emf_pts}},
+    }
+    m = matched_ratio(cell, "flux", "emf", "f")
+    assert m["matched_bw_hz"] == pytest.approx([6.0, 13.0])
     assert m["held_below_hz"] == {"flux": 15.0}
-    # flux holds 0.02 over the whole range; EMF rises linearly from 0.04 to 0.10
+    # flux holds 0.02 over the whole range; EMF rises linearly from 0.04 at 3 Hz to 0.10 at 13
     assert len(m["ratios"]) == 9
-    assert m["ratios"][0] == pytest.approx(0.02 / 0.04)
+    assert m["ratios"][0] == pytest.approx(0.02 / 0.058)
     assert m["ratios"][-1] == pytest.approx(0.02 / 0.10)
-    assert m["ratios"][4] == pytest.approx(0.02 / 0.07)
-    # no front at all: nothing to compare, said as such
+    # no bandwidth both allow, or no front at all: nothing compared, said as such
+    low = {"flux": {"f": [(20.0, 0.1)]}, "emf": {"f": [(3.0, 0.1), (13.0, 0.2)]}}
+    assert matched_ratio(low, "flux", "emf", "f")["ratios"] == []
     none = matched_ratio({"flux": {"f": flux}, "emf": {"f": []}}, "flux", "emf", "f")
     assert none["ratios"] == [] and none["matched_bw_hz"] is None

@@ -185,18 +185,23 @@ def analyse(
 
 def matched_ratio(cell: dict[str, Any], a: str, b: str, front: str = "front_noise") -> dict:
     """θ̃ of family a over family b on their fronts at equal allowed bandwidth, on a grid from
-    the lower of their fronts' lowest bandwidths up to the highest bandwidth both reach.
-    A front that starts higher holds its first point's θ̃ below it (`_at`): its best setting
-    also allows more bandwidth, so the family dominates there; `held_below_hz` names such
-    fronts and where they start.  Empty ratios and no range: a family without a front."""
+    the higher of their lowest swept bandwidths (both have settings there) up to the highest
+    bandwidth both fronts reach.  A front that starts above the grid's start holds its first
+    point's θ̃ below it (`_at`): that family's settings allowing less were measured and did
+    no better, so it dominates there; `held_below_hz` names such fronts and where they
+    start.  Empty ratios and no range: a family without a front."""
     fronts = {f: cell[f][front] for f in (a, b)}
     if not all(fronts.values()):
         return {"matched_bw_hz": None, "ratios": [], "held_below_hz": {}}
-    starts = {f: min(p[0] for p in fr) for f, fr in fronts.items()}
-    lo = min(starts.values())
+    q = front.removeprefix("front_")
+    swept = {f: cell[f].get("points", {}).get(q) or fronts[f] for f in (a, b)}
+    lo = max(min(p[0] for p in pts) for pts in swept.values())
     hi = min(max(p[0] for p in fr) for fr in fronts.values())
+    if hi < lo:  # one family's settings all allow less than the other's least
+        return {"matched_bw_hz": None, "ratios": [], "held_below_hz": {}}
     grid = np.linspace(lo, hi, 9)
     ratios = [_at(fronts[a], x) / _at(fronts[b], x) for x in grid]
+    starts = {f: min(p[0] for p in fr) for f, fr in fronts.items()}
     return {
         "matched_bw_hz": [float(lo), float(hi)],
         "ratios": [x for x in ratios if math.isfinite(x)],
@@ -243,7 +248,7 @@ def _cell_txt(key: str, v: dict[str, Any]) -> str:
     which front held its first point below where it starts."""
     r = v["noise_ratio_flux_emf"]
     if not r:
-        return f"{key}: noise flux/EMF not comparable (a family without a front)"
+        return f"{key}: noise flux/EMF not comparable (no bandwidth both allow)"
     lo, hi = v["matched_bw_hz"]
     held = "".join(
         f" ({fam}'s front starts at {x:.1f} Hz: below, its {x:.1f}-Hz setting)"
