@@ -19,7 +19,6 @@ Only `rosbags` is used (no rclpy): tests and the sample bags need no ROS graph.
 from __future__ import annotations
 
 import json
-import os
 import time
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -91,90 +90,54 @@ def typestore():
 
 # ------------------------------------------------------------------ writing
 class _McapStorage:
-    """rosbags' storage-writer interface over the `mcap` library, so the project's bags
-    open in every MCAP tool: zstd chunk compression (inside the MCAP, not a compressed
-    file), messages sorted by log time within each chunk, a sequence number per channel,
-    the offered QoS per channel, and extra MCAP metadata records (the recorder's settings)
-    next to rosbag2's own."""
+    """rosbags' storage-writer interface over fluxdrive.io.mcapfile (MCAP written in bulk), so
+    the project's bags open in every MCAP tool: zstd chunk compression (inside the MCAP, not a
+    compressed file), messages sorted by log time within each chunk, a sequence number per
+    channel, the offered QoS per channel, and extra MCAP metadata records (the recorder's
+    settings) next to rosbag2's own."""
 
     def __init__(self, path: Path, compression: Any) -> None:
-        from mcap.writer import CompressionType, IndexType
-        from mcap.writer import Writer as McapWriter
+        from fluxdrive.io.mcapfile import McapFile
 
+        _ = compression  # rosbags' file/message compression: never used (chunks are zstd)
         self.path = path / f"{path.name}.mcap"
-        self.bio = self.path.open("xb")
-        # chunks are cut here (`chunk_bytes`), the library's own limit is never reached
-        # (no attachment index: the library would point a summary offset at an empty group)
-        self.w = McapWriter(
-            self.bio,
-            chunk_size=1 << 40,
-            compression=CompressionType.ZSTD,
-            index_types=IndexType.CHUNK | IndexType.MESSAGE | IndexType.METADATA,
-        )
-        self.w.start(profile="ros2", library="fluxdrive")
+        self.file = McapFile(self.path)
         self.schema_ids: dict[str, int] = {}
         self.channel_ids: dict[int, int] = {}  # rosbags connection id -> MCAP channel id
-        self.seqno: dict[int, int] = {}
-        self.pending: list[tuple[int, int, int, bytes]] = []  # (log time, order, cid, data)
-        self.pending_bytes = 0
-        self.chunk_bytes = 1 << 20
         self.records: dict[str, dict[str, str]] = {}
         self.ros_distro = ROS_DISTRO
 
     def add_msgtype(self, connection: Any) -> None:
         fmt = "ros2msg" if connection.msgdef.format.name == "MSG" else "ros2idl"
-        self.schema_ids[connection.msgtype] = self.w.register_schema(
-            name=connection.msgtype, encoding=fmt, data=connection.msgdef.data.encode()
+        self.schema_ids[connection.msgtype] = self.file.add_schema(
+            connection.msgtype, fmt, connection.msgdef.data.encode()
         )
 
     def add_connection(self, connection: Any, offered_qos_profiles: str) -> None:
-        self.channel_ids[connection.id] = self.w.register_channel(
-            topic=connection.topic,
-            message_encoding="cdr",
-            schema_id=self.schema_ids[connection.msgtype],
-            metadata={"offered_qos_profiles": offered_qos_profiles},
+        self.channel_ids[connection.id] = self.file.add_channel(
+            connection.topic,
+            "cdr",
+            self.schema_ids[connection.msgtype],
+            {"offered_qos_profiles": offered_qos_profiles},
         )
-        self.seqno[connection.id] = 0
 
     def write(self, connection: Any, timestamp: int, data: bytes | memoryview) -> None:
-        self.pending.append((timestamp, len(self.pending), connection.id, bytes(data)))
-        self.pending_bytes += len(data) + 31
-        if self.pending_bytes >= self.chunk_bytes:
-            self.flush(sync=False)
+        self.file.add(self.channel_ids[connection.id], timestamp, data)
 
     def flush(self, sync: bool = True) -> None:
         """Close the open chunk: its messages in log-time order, then on disk."""
-        if self.pending:
-            self.pending.sort()
-            add = self.w.add_message
-            for t, _, cid, data in self.pending:
-                self.seqno[cid] += 1
-                add(
-                    channel_id=self.channel_ids[cid],
-                    log_time=t,
-                    data=data,
-                    publish_time=t,
-                    sequence=self.seqno[cid],
-                )
-            self.pending.clear()
-            self.pending_bytes = 0
-            self.w.flush()
-        self.bio.flush()
-        if sync:
-            os.fsync(self.bio.fileno())
+        self.file.flush(sync)
 
     def close(self, version: int, metadata: str) -> None:
         _ = version
-        self.flush(sync=False)
-        self.w.add_metadata("rosbag2", {"serialized_metadata": _distro(metadata)})
+        self.file.add_metadata("rosbag2", {"serialized_metadata": _distro(metadata)})
         for name, rec in self.records.items():
-            self.w.add_metadata(name, rec)
-        self.w.finish()
-        self.bio.close()
+            self.file.add_metadata(name, rec)
+        self.file.finish()
 
     def abort(self) -> None:
         """Close without the summary (complete chunks stay readable for bag recover)."""
-        self.bio.close()
+        self.file.abort()
 
 
 ROS_DISTRO = "jazzy"
@@ -252,6 +215,7 @@ class BagWriter:
         self.storage: _McapStorage = self.w.storage  # type: ignore[assignment]
         self.storage.records[META_KEY] = {META_KEY: text}
         self.conns: list[Any] = []
+        self._channel_of = np.zeros(0, np.int64)  # connection id -> MCAP channel id
         cid = self.add_connection(SETTINGS, T_STRING)
         self.w.write(
             self.conns[cid],
@@ -274,6 +238,25 @@ class BagWriter:
 
     def write(self, cid: int, t_ns: int, data: bytes | memoryview) -> None:
         self.w.write(self.conns[cid], t_ns + self.offset, data)
+
+    def write_many(self, cids: np.ndarray, t_ns: np.ndarray, data: list, sizes: list[int]) -> None:
+        """Messages in bulk, as `write` one by one would write them: connection ids (from
+        add_connection), sample times [ns], the CDR bytes (bytes or memoryviews) and their
+        lengths.  numpy passes, no Python per message here (the recorder's writer)."""
+        if not len(cids):
+            return
+        cids = np.asarray(cids, np.int64)
+        if len(self._channel_of) < len(self.conns):
+            ids = self.storage.channel_ids
+            self._channel_of = np.array([ids[c.id] for c in self.conns], np.int64)
+        t = np.asarray(t_ns, np.int64) + self.offset
+        self.storage.file.add_many(self._channel_of[cids].tolist(), t.tolist(), data, sizes)
+        w = self.w  # rosbags' bookkeeping for metadata.yaml: counts and time range
+        for cid, k in enumerate(np.bincount(cids, minlength=len(self.conns)).tolist()):
+            if k:
+                w.counts[self.conns[cid].id] += k
+        w.min_timestamp = min(w.min_timestamp, int(t.min()))
+        w.max_timestamp = max(w.max_timestamp, int(t.max()))
 
     def flush(self, sync: bool = True) -> None:
         """Close the open chunk and push the file to the disk (crash safety)."""

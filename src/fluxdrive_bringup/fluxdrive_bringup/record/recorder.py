@@ -6,8 +6,8 @@ is lost).  In a process shared with the drive nodes, their topics arrive through
 intra-process bus (fluxdrive_ros.intra); from other processes over DDS.
 
 Writing: a callback only appends the framed bytes to a buffer; a feeder thread ships the
-buffer every 20 ms to the bag-writer helper process (fluxdrive.io.bagwriter, rosbags
-Writer), which runs on the other core.  Every `flush_interval_s` (0.5 s) the writer closes
+buffer every 20 ms to the bag-writer helper process (fluxdrive.io.bagwriter: MCAP built
+in bulk), which runs on the other core.  Every `flush_interval_s` (0.5 s) the writer closes
 its open MCAP chunk and flushes the file, so at most that much (or one 1 MiB chunk, about
 0.1 s of a 10 kHz run) is at risk if the recorder and its writer are killed outright;
 `./fluxdrive bag recover` rebuilds a valid bag from the rest.  At start the bag directory
