@@ -62,8 +62,8 @@ class Pipe(io.BytesIO):
         super().__init__(raw)
         self.rng = np.random.default_rng(3)
 
-    def read1(self, n: int = -1) -> bytes:
-        return super().read1(min(n, int(self.rng.integers(1, 900))))
+    def read1(self, n: int | None = -1) -> bytes:
+        return super().read1(int(self.rng.integers(1, 900)))
 
 
 def mcap_messages(bag: Path) -> tuple[list[tuple[str, int, int, int, bytes]], object]:

@@ -239,10 +239,12 @@ class BagWriter:
     def write(self, cid: int, t_ns: int, data: bytes | memoryview) -> None:
         self.w.write(self.conns[cid], t_ns + self.offset, data)
 
-    def write_many(self, cids: np.ndarray, t_ns: np.ndarray, data: list, sizes: list[int]) -> None:
-        """Messages in bulk, as `write` one by one would write them: connection ids (from
-        add_connection), sample times [ns], the CDR bytes (bytes or memoryviews) and their
-        lengths.  numpy passes, no Python per message here (the recorder's writer)."""
+    def write_many(
+        self, cids: np.ndarray, t_ns: np.ndarray, src: bytes, first: np.ndarray, size: np.ndarray
+    ) -> None:
+        """Messages in bulk, as `write` one by one would write them: message i is
+        src[first[i] : first[i] + size[i]] on connection cids[i] (from add_connection) at
+        sample time t_ns[i].  numpy passes, no Python per message (the recorder's writer)."""
         if not len(cids):
             return
         cids = np.asarray(cids, np.int64)
@@ -250,7 +252,10 @@ class BagWriter:
             ids = self.storage.channel_ids
             self._channel_of = np.array([ids[c.id] for c in self.conns], np.int64)
         t = np.asarray(t_ns, np.int64) + self.offset
-        self.storage.file.add_many(self._channel_of[cids].tolist(), t.tolist(), data, sizes)
+        size = np.asarray(size, np.int64)
+        self.storage.file.add_many(
+            src, np.asarray(first, np.int64), size, self._channel_of[cids], t
+        )
         w = self.w  # rosbags' bookkeeping for metadata.yaml: counts and time range
         for cid, k in enumerate(np.bincount(cids, minlength=len(self.conns)).tolist()):
             if k:

@@ -53,8 +53,10 @@ if TYPE_CHECKING:
     from fluxdrive.io.bagio import BagWriter
 
 MSG_HDR = struct.Struct("<cHqI")  # b"M", id, t, n
-_MSG = struct.Struct("<HqI")  # after the b"M"
 _MSG_HEAD = MSG_HDR.size
+_U32_AT = struct.Struct("<I")  # a message's data length, 11 bytes into its record
+_HEAD = np.dtype([("id", "<u2"), ("t", "<i8"), ("n", "<u4")])  # a message record's head
+_HEAD_BYTES = np.arange(1, _MSG_HEAD)  # after the b"M"
 _M = ord("M")
 U32 = struct.Struct("<I")
 RECORDING_FILE = "recording.json"  # in the bag directory while the bag is being written
@@ -149,33 +151,29 @@ class _BagStream:
 
     def messages(self, buf: bytes, pos: int) -> int:
         """The complete message records from `pos` on (up to the first other record or the
-        end of `buf`) into the bag; where they end."""
+        end of `buf`) into the bag; where they end.  Python finds where each record starts;
+        numpy reads their heads."""
         end = len(buf)
-        unpack = _MSG.unpack_from
-        view = memoryview(buf)
-        cids: list[int] = []
-        times: list[int] = []
-        data: list[memoryview] = []
-        sizes: list[int] = []
+        size_at = _U32_AT.unpack_from
+        starts: list[int] = []
+        add = starts.append
         while pos + _MSG_HEAD <= end and buf[pos] == _M:
-            cid, t, n = unpack(buf, pos + 1)
-            first = pos + _MSG_HEAD
-            pos_next = first + n
+            pos_next = pos + _MSG_HEAD + size_at(buf, pos + 11)[0]
             if pos_next > end:
                 break
-            cids.append(cid)
-            times.append(t)
-            data.append(view[first:pos_next])
-            sizes.append(n)
+            add(pos)
             pos = pos_next
-        if cids:
+        if starts:
             if self.writer is None:
                 raise RuntimeError("bag writer: a message before the bag's header")
-            conns = self.conn_of[cids]
+            at = np.array(starts, np.int64)
+            raw = np.frombuffer(buf, np.uint8)
+            head = raw[at[:, None] + _HEAD_BYTES].view(_HEAD)[:, 0]
+            conns = self.conn_of[head["id"]]
             if conns.min() < 0:
                 raise RuntimeError("bag writer: a message before its connection")
-            self.writer.write_many(conns, np.array(times, np.int64), data, sizes)
-            self.n_msgs += len(cids)
+            self.writer.write_many(conns, head["t"], buf, at + _MSG_HEAD, head["n"])
+            self.n_msgs += len(starts)
         return pos
 
     def control(self, buf: bytes, pos: int) -> int | None:
