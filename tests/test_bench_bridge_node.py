@@ -171,3 +171,127 @@ def test_bridge_node_decimation_parameter_and_drive_check():
         probe.destroy_node()
         rclpy.shutdown(context=ctx)
         emu_bus.shutdown()
+
+
+def test_bridge_node_publishes_every_fault_and_marks_parameter_changes():
+    """In a namespace (/bench_a: every name relative), on a python-can virtual bus with the
+    drive emulator: the supervisor's own stale-data fault and its reset, and a fault the
+    drive reports in its FAULT frame and its clearing, are each one DriveFault on
+    /bench_a/drive/fault (code, latched, source, reason); a parameter set through the
+    parameter service is a ParameterMarker on /bench_a/drive/param_marker at the next
+    sample."""
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    import can
+    from bench_bridge.bridge_node import BenchBridgeNode
+    from fluxdrive.can.emulator import FAULT_OVERCURRENT, DriveEmulator
+    from fluxdrive.can.loop import new_virtual_channel
+    from fluxdrive.drive.sim import DriveSetup
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+    from test_bench_bridge import short_2pct
+
+    from flux_drive_msgs.msg import DriveFault, ParameterMarker, PhaseFrame
+    from flux_drive_msgs.srv import ResetFault
+    from fluxdrive_ros import qos
+
+    ch = new_virtual_channel()
+    emu_bus = can.Bus(interface="virtual", channel=ch, fd=True)
+    emu = DriveEmulator(DriveSetup(short_2pct(0.1)), emu_bus, lockstep=False)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "0")) % 100 + 1)
+    stale_s = 0.3
+    node = BenchBridgeNode(
+        context=ctx,
+        namespace="/bench_a",
+        parameter_overrides=[
+            Parameter("channel", value=ch),
+            Parameter("stale_timeout_s", value=stale_s),
+            Parameter("allowed_commanders", value=["*"]),
+        ],
+    )
+    probe = rclpy.create_node("probe", context=ctx)
+    ex = rclpy.executors.SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    ex.add_node(probe)
+    spinner = threading.Thread(target=ex.spin, daemon=True)
+    faults, markers, frames = [], [], []
+    probe.create_subscription(DriveFault, "/bench_a/drive/fault", faults.append, qos.MARKERS)
+    probe.create_subscription(
+        ParameterMarker, "/bench_a/drive/param_marker", markers.append, qos.MARKERS
+    )
+    probe.create_subscription(PhaseFrame, "/bench_a/drive/frame", frames.append, 100)
+    reset = probe.create_client(ResetFault, "/bench_a/drive/reset_fault")
+    params = AsyncParameterClient(probe, "/bench_a/bench_bridge")
+
+    def wait(cond, what: str, timeout: float = 20.0, drive: bool = False) -> None:
+        t_end = time.monotonic() + timeout
+        while not cond():
+            assert time.monotonic() < t_end, f"no {what}: faults {faults}, markers {markers}"
+            if drive:
+                emu._drain(0.02)  # the drive reads its bus (ARM_MODE's reset pulse)
+            else:
+                time.sleep(0.02)
+
+    try:
+        spinner.start()
+        assert reset.wait_for_service(timeout_sec=10.0)
+        assert params.wait_for_services(timeout_sec=10.0)
+        for _ in range(20):  # 20 samples, then the drive goes silent
+            emu.step()
+        wait(lambda: len(frames) == 20, "20 frames")
+        # the supervisor's own fault: stale data
+        wait(lambda: len(faults) == 1, "stale-data DriveFault")
+        f = faults[0]
+        assert (f.code, f.latched, f.source) == (
+            DriveFault.STALE_INPUT,
+            True,
+            "/bench_a/bench_bridge",
+        )
+        assert f.reason.startswith("stale data: no valid sample for") and "latched" in f.reason
+        stale = float(f.reason.split(" for ")[1].split(" s")[0])
+        assert stale_s <= stale < stale_s + 5.0, f.reason
+        # a parameter set through the parameter service: marked at the next sample
+        fut = params.set_parameters([Parameter("stale_timeout_s", value=0.5)])
+        wait(fut.done, "set_parameters answer")
+        assert fut.result().results[0].successful
+        wait(lambda: len(markers) == 1, "ParameterMarker")
+        m = markers[0]
+        assert (m.node, m.name, m.value, m.successful) == (
+            "/bench_a/bench_bridge",
+            "stale_timeout_s",
+            "0.5",
+            True,
+        )
+        assert m.seq == 20 and m.source == "node"
+        assert node.bridge.cfg.stale_timeout_s == 0.5
+        # the reset clears it: FAULT_NONE, not latched
+        assert reset.call(ResetFault.Request(), timeout_sec=10.0).success
+        wait(lambda: len(faults) == 2, "cleared DriveFault")
+        f = faults[1]
+        assert (f.code, f.latched) == (DriveFault.FAULT_NONE, False)
+        assert f.reason.startswith("'stale data") and "cleared" in f.reason
+        # the drive's own fault, reported in its FAULT frame: its code, "drive via" us
+        emu._raise_fault(FAULT_OVERCURRENT, 3 << 2)  # the drive's over-current trip
+        wait(lambda: len(faults) == 3, "the drive's DriveFault")
+        f = faults[2]
+        assert (f.code, f.latched) == (DriveFault.OVERCURRENT, True)
+        assert f.source == "drive via /bench_a/bench_bridge"
+        assert f.reason.startswith("drive fault 1 over-current") and "PWM off" in f.reason
+        # a reset: the drive clears it and says so in a FAULT frame
+        assert reset.call(ResetFault.Request(), timeout_sec=10.0).success
+        wait(lambda: len(faults) == 4, "the drive's clearing", drive=True)
+        f = faults[3]
+        assert (f.code, f.latched, f.source) == (
+            DriveFault.FAULT_NONE,
+            False,
+            "drive via /bench_a/bench_bridge",
+        )
+        assert "drive fault 1" in f.reason and "cleared" in f.reason
+        assert not emu.fault_latched
+    finally:
+        ex.shutdown()
+        spinner.join(timeout=5.0)
+        node.destroy_node()
+        probe.destroy_node()
+        rclpy.shutdown(context=ctx)
+        emu_bus.shutdown()

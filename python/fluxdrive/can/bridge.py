@@ -36,6 +36,9 @@
   timeout or the drive's refusal comes back as the reason);
 * the drive's **FAULT** frames are kept (code, name, detail) for diagnostics
   (:meth:`drive_fault_text`), including the split-mode reference timeout (WATCHDOG);
+* every fault latched or cleared -- the drive's (its FAULT frames) and this supervisor's
+  own (stale data, a layout/D disagreement; cleared by :meth:`reset_fault`) -- is queued as
+  a :class:`FaultEvent` in ``fault_events`` for the node to publish (DriveFault);
 * **counters** for diagnostics (:meth:`diagnostics`).
 
 The bridge is single-threaded: call :meth:`poll` from one thread (the node's CAN
@@ -48,7 +51,7 @@ from __future__ import annotations
 import math
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -78,13 +81,19 @@ from fluxdrive.can.protocol import (
     get_protocol,
 )
 from fluxdrive.core.schema import param
-from fluxdrive.drive.control import FAULT_NAMES
+from fluxdrive.drive.control import (
+    FAULT_BAD_SAMPLE,
+    FAULT_NAMES,
+    FAULT_NONE,
+    FAULT_STALE_INPUT,
+)
 
 __all__ = [
     "FRAME_FLAG_STALE_COMMAND",
     "BridgeConfig",
     "BusFactory",
     "CanBridge",
+    "FaultEvent",
     "bus_factory_from_params",
 ]
 
@@ -99,6 +108,18 @@ _FD_COLS = {
     "i_a": 0, "i_b": 1, "i_c": 2, "v_ab": 3, "v_bc": 4, "v_ca": 5, "vdc": 6,
     "duty_a": 7, "duty_b": 8, "duty_c": 9, "pwm_enabled": 10, "encoder": 11, "seq": 12,
 }  # fmt: skip
+
+
+@dataclass(frozen=True)
+class FaultEvent:
+    """A fault latched (``latched``) or cleared (code FAULT_NONE) on the bench: ``code`` is a
+    DriveFault code (the drive's own codes from 16 up pass through as the drive sent them),
+    ``origin`` "drive" (its FAULT frame) or "host" (this supervisor), ``reason`` one line."""
+
+    code: int
+    latched: bool
+    reason: str
+    origin: str
 
 
 @dataclass
@@ -283,6 +304,8 @@ class CanBridge:
         self._poll_thread: int | None = None  # ident of the thread polling the bus
         self._backlog: list[np.ndarray] = []  # samples polled while waiting for an ACK
         self.drive_fault: dict[str, Any] = {}  # the drive's last FAULT frame
+        # faults latched or cleared, oldest first, until the node publishes them
+        self.fault_events: deque[FaultEvent] = deque(maxlen=256)
         self._ranges = [
             (s.name, s.minimum, s.maximum)
             for s in self._msg_fd.signals
@@ -333,6 +356,11 @@ class CanBridge:
         self.malformed_reasons: Counter[str] = Counter()
         self.malformed_examples: list[str] = []
         self.last_error = ""
+
+    @property
+    def newest_sample(self) -> int:
+        """Sample index j of the newest frame handed out (0 before the first)."""
+        return self._seq_out
 
     # ------------------------------------------------------------------ connection
 
@@ -575,16 +603,22 @@ class CanBridge:
         return True, reason or "disarmed"
 
     def reset_fault(self) -> tuple[bool, str]:
-        """Clear the host-side latched fault and pulse ARM_MODE.reset_fault."""
+        """Clear the host-side latched fault and pulse ARM_MODE.reset_fault (the drive
+        reports its own clearing with a FAULT frame)."""
+        if self.fault:
+            self.fault_events.append(
+                FaultEvent(FAULT_NONE, False, f"'{self.fault}' cleared by a reset", "host")
+            )
         self.fault = ""
         if self.connected:
             self._send_arm(False, reset_fault=True)
             self._send_arm(False, reset_fault=False)
         return True, "fault reset"
 
-    def _raise_fault(self, reason: str) -> None:
+    def _raise_fault(self, reason: str, code: int) -> None:
         if not self.fault:
             self.counters["faults"] += 1
+            self.fault_events.append(FaultEvent(code, True, f"{reason}: PWM off, latched", "host"))
         self.fault = reason
         self.disarm(reason)
 
@@ -659,17 +693,7 @@ class CanBridge:
                     fault_latched=int(d["fault_latched"]),
                     fault_count=int(d["fault_count"]),
                 )
-                f = self.drive_fault
-                same = bool(f) and f["code"] == int(d["fault_code"]) and f["latched"]
-                if not (same and d["fault_latched"]):  # a repeat keeps the first's details
-                    self.drive_fault = {
-                        "code": int(d["fault_code"]),
-                        "latched": int(d["fault_latched"]),
-                        "detail": int(d["fault_detail"]),
-                        "seq": int(d["fault_seq"]),
-                    }
-                if d["fault_code"] and d["fault_latched"] and not same:
-                    self.counters["drive_faults_rx"] += 1
+                self._note_drive_fault(d)
                 if d["fault_code"] and d["fault_latched"] and self.armed:
                     self.armed = False  # the MCU disarmed itself
                     self.counters["disarmed_by_mcu_fault"] += 1
@@ -690,6 +714,28 @@ class CanBridge:
                 self.counters["rx_other"] += 1
         except Exception as exc:  # noqa: BLE001 - a bad housekeeping frame is counted
             self._malformed("housekeeping", f"0x{aid:03X}: {exc}")
+
+    def _note_drive_fault(self, d: dict[str, Any]) -> None:
+        """A FAULT frame: keep the first of a latched fault's repeats; a new latched fault,
+        and the clearing of one, become fault events."""
+        f = self.drive_fault
+        was = int(f["code"]) if f and f["code"] and f["latched"] else 0
+        same = bool(was) and was == int(d["fault_code"])
+        if not (same and d["fault_latched"]):  # a repeat keeps the first's details
+            self.drive_fault = {
+                "code": int(d["fault_code"]),
+                "latched": int(d["fault_latched"]),
+                "detail": int(d["fault_detail"]),
+                "seq": int(d["fault_seq"]),
+            }
+        if d["fault_code"] and d["fault_latched"] and not same:
+            self.counters["drive_faults_rx"] += 1
+            ev = FaultEvent(int(d["fault_code"]), True, self.drive_fault_text(), "drive")
+            self.fault_events.append(ev)
+        elif was and not (d["fault_code"] and d["fault_latched"]):
+            name = FAULT_NAMES.get(was, f"drive fault {was}")
+            ev = FaultEvent(FAULT_NONE, False, f"drive fault {was} {name} cleared", "drive")
+            self.fault_events.append(ev)
 
     def _malformed(self, kind: str, detail: str) -> None:
         self.counters["malformed"] += 1
@@ -771,7 +817,8 @@ class CanBridge:
             f"D={self.decimation}"
         )
         if self._mismatch_run >= 2 and not self.fault:
-            self._raise_fault(self.drive_mismatch)
+            # samples of another layout or rate than the loop is set for: bad samples
+            self._raise_fault(self.drive_mismatch, FAULT_BAD_SAMPLE)
 
     def _decode_classic(self, msgs: list[can.Message]) -> np.ndarray:
         """Reassemble classic sample parts into frames (seq: see :meth:`_hand_out`)."""
@@ -872,7 +919,7 @@ class CanBridge:
         if t is not None and now - t > self.cfg.stale_timeout_s and not self.fault:
             self.counters["stale_faults"] += 1
             self._last_valid_t = None
-            self._raise_fault(f"stale data: no valid sample for {now - t:.3f} s")
+            self._raise_fault(f"stale data: no valid sample for {now - t:.3f} s", FAULT_STALE_INPUT)
         if now >= self._next_hb_t:
             self._next_hb_t = now + self.cfg.heartbeat_period_s
             self._hb_alive = (self._hb_alive + 1) % 256

@@ -6,6 +6,8 @@ Thin wrapper over :class:`fluxdrive.can.bridge.CanBridge` (all supervisor logic 
   ``decimation``, ``stale_timeout_s``, ``cmd_timeout_s``, ``armed`` (arm at start / live),
   ``frame_id``, ``graph_id``, ``reconnect_initial_s``, ``reconnect_max_s``,
   ``diagnostics_period_s``, ``ts_s``;
+* topic and service names are relative to the drive's namespace (`__ns:=/bench_a`:
+  /bench_a/drive/frame, ...; fluxdrive_ros.topics.in_drive), like the simulated plant's;
 * publishes flux_drive_msgs/PhaseFrame on ``/drive/frame`` (header.stamp = k * ts_s,
   sample-time like the simulated plant; ``fd`` false selects the classic-CAN layout;
   ``decimation`` D, either layout: one sample every D PWM periods, seq = the sample index
@@ -23,6 +25,14 @@ Thin wrapper over :class:`fluxdrive.can.bridge.CanBridge` (all supervisor logic 
   whenever one is set (live: the set is refused with the drive's reason on a refusal or
   without an acknowledgement); the drive's FAULT frames (e.g. the reference timeout) are
   reported on /diagnostics (level ERROR, the fault named in the message);
+* every fault, latched or cleared, as a flux_drive_msgs/DriveFault on ``/drive/fault``
+  (reliable, transient-local, like the controller's): the drive's (its FAULT frames; source
+  ``drive via <this node>``) and the supervisor's own (stale data: STALE_INPUT, a drive
+  running another layout or D: BAD_SAMPLE; cleared by ``/drive/reset_fault``), stamped with
+  the newest sample's time, one log line each;
+* every parameter change it accepts (``armed``, ``stale_timeout_s``, ``drive.*``) as a
+  ParameterMarker on ``/drive/param_marker`` (fluxdrive_ros.params.on_set), seq = the next
+  sample, so the bag of a bench run holds them like a simulated run's;
 * a CAN thread polls the bus; the node disarms on shutdown;
 * access (fluxdrive_ros.access): duty commands are obeyed only from `allowed_commanders`
   (default /controller; others dropped and counted on /diagnostics); /drive/arm (arm) and
@@ -45,6 +55,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from fluxdrive.can.bridge import (
     BridgeConfig,
     CanBridge,
+    FaultEvent,
     bus_factory_from_params,
 )
 from fluxdrive.can.protocol import link_budget, smallest_fitting_decimation
@@ -61,7 +72,7 @@ from fluxdrive_ros.params import P, config_params, declare, on_set
 from fluxdrive_ros.wire import FrameWire, Stamp
 from rclpy.node import Node
 
-from flux_drive_msgs.msg import CurrentReference, DutyCommand, PhaseFrame
+from flux_drive_msgs.msg import CurrentReference, DriveFault, DutyCommand, PhaseFrame
 from flux_drive_msgs.srv import Arm, ResetFault
 from fluxdrive_ros import access, graph, qos, topics
 
@@ -233,7 +244,8 @@ class BenchBridgeNode(Node):
         self.split = bool(pv["control_split"])
         self.drive_specs = drive_param_table(drive_defaults(pv["scenario"])) if self.split else []
         self.drive_values = declare(self, self.drive_specs) if self.split else {}
-        self.allowed = list(pv["allowed_commanders"])
+        # the allow-list names nodes of this drive (/controller: <namespace>/controller)
+        self.allowed = topics.drive_names(self, list(pv["allowed_commanders"]))
         # graph identity (fluxdrive_ros.graph): its frames carry the graph's id, duties of
         # another graph are dropped and counted
         self.graph = graph.Membership(self, pv["graph_id"])
@@ -247,7 +259,14 @@ class BenchBridgeNode(Node):
         self._mismatch_logged = ""
         self._drive_fault_logged = ""
         self._wire(pv["diagnostics_period_s"])
-        on_set(self, param_table() + self.drive_specs, self._apply_params)
+        # every accepted change is a marker in the bag, at the next sample
+        on_set(
+            self,
+            param_table() + self.drive_specs,
+            self._apply_params,
+            sample=lambda: self.bridge.newest_sample + 1,
+            ts_s=self.ts * self.bridge.decimation,
+        )
         self.bridge.connect()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._can_loop, name="can-rx", daemon=True)
@@ -269,27 +288,34 @@ class BenchBridgeNode(Node):
         """Frames out, duties or references in, the arm and reset services, diagnostics."""
         # the simulated plant's QoS: every reader of /drive/frame matches (volatile ones and
         # the transient-local ones of lockstep graphs); duties read like the plant reads them
-        self.pub = self.create_publisher(PhaseFrame, topics.FRAME, qos.SAMPLES)
+        self.pub = self.create_publisher(
+            PhaseFrame, topics.drive_topic(self, topics.FRAME), qos.SAMPLES
+        )
         self.wire = FrameWire(self.frame_id, graph_id=self.graph.id)
         self._stamp_d = 0
         self._stamp = Stamp(self.ts)
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.fault_pub = self.create_publisher(
+            DriveFault, topics.drive_topic(self, topics.FAULT), qos.MARKERS
+        )
         if self.split:
             self.create_subscription(
                 CurrentReference,
-                topics.CURRENT_REF,
+                topics.drive_topic(self, topics.CURRENT_REF),
                 self.graph.typed(topics.CURRENT_REF, self._on_reference),
                 qos.reader("volatile"),
             )
         else:
             self.create_subscription(
                 DutyCommand,
-                topics.DUTY,
+                topics.drive_topic(self, topics.DUTY),
                 self.graph.typed(topics.DUTY, self._on_duty),
                 qos.reader("volatile"),
             )
-        self.create_service(Arm, "/drive/arm", self._on_arm)
-        self.create_service(ResetFault, "/drive/reset_fault", self._on_reset)
+        self.arm_service = topics.in_drive(self, "drive/arm")
+        self.reset_service = topics.in_drive(self, "drive/reset_fault")
+        self.create_service(Arm, self.arm_service, self._on_arm)
+        self.create_service(ResetFault, self.reset_service, self._on_reset)
         self.create_timer(diag_period, self._publish_diagnostics)
 
     def _arm_at_start(self, wait_s: float) -> None:
@@ -340,10 +366,29 @@ class BenchBridgeNode(Node):
             try:
                 for fr in frames:
                     self.pub.publish(self._to_msg(fr))
+                while self.bridge.fault_events:
+                    self._publish_fault(self.bridge.fault_events.popleft())
             except Exception:  # noqa: BLE001 - rclpy shut down under us: the run is over
                 if self.context.ok():
                     raise
                 return
+
+    def _publish_fault(self, ev: FaultEvent) -> None:
+        """A fault latched or cleared on the bench as a DriveFault, stamped with the newest
+        sample's time, and one log line."""
+        m = DriveFault()
+        j = self.bridge.newest_sample
+        m.header.stamp.sec, m.header.stamp.nanosec = self._stamp(j)
+        m.header.frame_id = self.frame_id
+        m.code, m.latched, m.reason = int(ev.code), bool(ev.latched), ev.reason
+        fqn = self.get_fully_qualified_name()
+        m.source = fqn if ev.origin == "host" else f"drive via {fqn}"
+        self.fault_pub.publish(m)
+        text = f"fault {ev.code} ({m.source}) at sample {j}: {ev.reason}"
+        if ev.latched:
+            self.get_logger().error(text)
+        else:
+            self.get_logger().info(text)
 
     def _to_msg(self, fr: np.ndarray) -> bytes:
         """A decoded sample -> PhaseFrame bytes (the one mapping, fluxdrive.io.messages);
@@ -406,7 +451,7 @@ class BenchBridgeNode(Node):
         return why
 
     def _on_arm(self, req, resp):
-        why = self._refused("/drive/arm") if req.arm else None  # disarm: always obeyed
+        why = self._refused(self.arm_service) if req.arm else None  # disarm: always obeyed
         if why:
             resp.success, resp.message = False, why
             return resp
@@ -415,7 +460,7 @@ class BenchBridgeNode(Node):
         return resp
 
     def _on_reset(self, req, resp):
-        why = self._refused("/drive/reset_fault")
+        why = self._refused(self.reset_service)
         if why:
             resp.success, resp.message = False, why
             return resp
