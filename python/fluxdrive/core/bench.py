@@ -12,7 +12,11 @@ them in the scenario files and in docs/engine.md ("Non-ideal bench").
                            constant, tempco), so R drifts while R^ does not (a card without
                            a thermal model keeps the winding at its start temperature)
   spatial_saturation_h6_pu 6th order of |lambda_pm| per unit at rated current, growing with
-                           (|i|/I_rated)^2 (hexagonal flux locus under load)
+                           (|i|/I_rated)^2, split evenly into the 5th and 7th (a hexagon of
+                           pure radius under load)
+  spatial_saturation_h5_pu the 5th and 7th magnet-flux harmonics of that saturation, each on
+  spatial_saturation_h7_pu its own (signed; added to the even split): an unequal pair also
+                           moves the flux angle, by (h7 - h5) sin 6 theta
   inductance_saturation    L_d, L_q falling with i_d, i_q, with cross-saturation (an algebraic
                            flux map; the plant then integrates the stator flux)
   phase_asymmetry          per-phase resistance and inductance multipliers (a, b, c)
@@ -240,8 +244,25 @@ class BenchConfig:
     spatial_saturation_h6_pu: float = param(
         0.0,
         unit="pu",
-        doc="6th order of |lambda_pm| per unit at rated current, growing with (|i|/I_rated)^2",
+        doc="6th order of |lambda_pm| per unit at rated current, growing with (|i|/I_rated)^2, "
+        "split evenly into the 5th and 7th magnet-flux harmonics (a hexagon of pure radius)",
         range=(0.0, 0.3),
+        live=False,
+    )
+    spatial_saturation_h5_pu: float = param(
+        0.0,
+        unit="pu",
+        doc="5th magnet-flux harmonic (e^{-j5 theta}) per unit of lambda at rated current, "
+        "growing with (|i|/I_rated)^2; added to half of spatial_saturation_h6_pu",
+        range=(-0.3, 0.3),
+        live=False,
+    )
+    spatial_saturation_h7_pu: float = param(
+        0.0,
+        unit="pu",
+        doc="7th magnet-flux harmonic (e^{j7 theta}) per unit of lambda at rated current, "
+        "growing with (|i|/I_rated)^2; added to half of spatial_saturation_h6_pu",
+        range=(-0.3, 0.3),
         live=False,
     )
     inductance_saturation: InductanceSaturation | None = None
@@ -267,6 +288,12 @@ class BenchConfig:
     @property
     def ideal(self) -> bool:
         return self == BenchConfig()
+
+    def spatial_saturation_h5_h7(self) -> tuple[float, float]:
+        """The spatial saturation's 5th and 7th magnet-flux harmonics at rated current [pu]:
+        half of the 6th order each (pure radius) plus the separate 5th and 7th."""
+        half = 0.5 * self.spatial_saturation_h6_pu
+        return half + self.spatial_saturation_h5_pu, half + self.spatial_saturation_h7_pu
 
     def apply_observer_model(self, cfg, card: MachineCard):
         """`cfg` (an ObserverConfig) with R^, L^, lambda^ set from the card times the bench's
@@ -298,8 +325,13 @@ class BenchConfig:
             raw["observer_model"] = asdict(self.observer_model)
         if self.thermal is not None:
             raw["thermal"] = asdict(self.thermal)
-        if self.spatial_saturation_h6_pu != 0.0:
-            raw["spatial_saturation_h6_pu"] = float(self.spatial_saturation_h6_pu)
+        for key in (
+            "spatial_saturation_h6_pu",
+            "spatial_saturation_h5_pu",
+            "spatial_saturation_h7_pu",
+        ):
+            if getattr(self, key) != 0.0:
+                raw[key] = float(getattr(self, key))
         for name in ("inductance_saturation", "phase_asymmetry", "switching_noise"):
             block = getattr(self, name)
             if block is not None:
@@ -365,6 +397,8 @@ BENCH_KEYS = (
     "observer_model",
     "thermal",
     "spatial_saturation_h6_pu",
+    "spatial_saturation_h5_pu",
+    "spatial_saturation_h7_pu",
     "inductance_saturation",
     "phase_asymmetry",
     "current_sensor_gain",

@@ -72,7 +72,8 @@ MP_TH_DECAY = _MP.index()  # exp(-Ts/tau)
 MP_TH_ALPHA = _MP.index()  # copper tempco [1/K]
 MP_TH_TREF = _MP.index()  # temperature of the card's resistance [deg C]
 MP_TH_TAMB = _MP.index()  # ambient [deg C]
-MP_H6_SAT = _MP.index()  # 6th order of |lambda_pm| at rated current [pu] (spatial saturation)
+# spatial saturation: 5th and 7th magnet-flux harmonics at rated current [pu of lambda]
+MP_SSAT_H5, MP_SSAT_H7 = _MP.indices(2)
 # flux-state circuit (inductance saturation, phase asymmetry): the stator flux is integrated
 MP_CIRC_ON = _MP.index()  # 1: integrate the armature flux (saturation or asymmetry on)
 MP_SAT_ON = _MP.index()  # 1: L_d, L_q from the flux map (InductanceSaturation)
@@ -98,7 +99,7 @@ PS_K = _PS.index()  # its index
 PS_TE = _PS.index()  # average electrical torque over the last period [N m]
 PS_TL = _PS.index()  # average load torque over the last period [N m]
 PS_TW = _PS.index()  # winding temperature [deg C] (thermal model)
-PS_H6 = _PS.index()  # load-dependent flux harmonic applied over the last period [pu]
+PS_SSAT_X = _PS.index()  # (|i|/I_rated)^2 of the spatial saturation applied over the last period
 PS_N = _PS.close(globals())
 
 # ---- frame vector (what the drive's MCU knows at sample k): FR_*
@@ -205,7 +206,7 @@ def _bench_params(mp: np.ndarray, card: MachineCard, bench: BenchConfig) -> None
         mp[MP_TH_ALPHA] = card.copper_tempco_per_k
         mp[MP_TH_TREF] = card.resistance_ref_c
         mp[MP_TH_TAMB] = bench.thermal.ambient_c
-    mp[MP_H6_SAT] = bench.spatial_saturation_h6_pu
+    mp[MP_SSAT_H5], mp[MP_SSAT_H7] = bench.spatial_saturation_h5_h7()
     _circuit_params(mp, bench)
     if bench.current_sensor_gain is not None:
         mp[MP_GAIN_A : MP_GAIN_C + 1] *= bench.current_sensor_gain
@@ -321,19 +322,21 @@ def _thermal_step(st, mp, r, i2_mean):
 
 @njit(cache=True, inline="always")
 def _spatial_saturation(st, mp, ia, ib, th, lind):
-    """Load-dependent flux harmonic h = s6 (|i|/I_r)^2, split evenly into the 5th and 7th
-    (so |lambda_pm| carries h at 6 theta_e: a hexagonal locus).  h is held over a period;
-    when it changes at a period boundary the stator flux stays continuous, so the current
-    takes the difference: L di = -lambda dh (e^{-j5th} + e^{j7th})/2.  Returns (ia, ib, h)."""
+    """Load-dependent magnet-flux harmonics h5 = s5 x, h7 = s7 x with x = (|i|/I_r)^2
+    (lambda_pm gains lambda (h5 e^{-j5th} + h7 e^{j7th}); in the rotor frame d carries
+    (h5 + h7) cos 6th, q (h7 - h5) sin 6th).  x is held over a period; when it changes at a
+    period boundary the stator flux stays continuous, so the current takes the difference:
+    L di = -lambda dx (s5 e^{-j5th} + s7 e^{j7th}).  Returns (ia, ib, x)."""
     x = (ia * ia + ib * ib) / (mp[MP_IRATED] * mp[MP_IRATED])
-    h = mp[MP_H6_SAT] * x
-    dh = h - st[PS_H6]
-    if dh != 0.0:
-        k = 0.5 * mp[MP_LAM] * dh / lind
-        ia -= k * (math.cos(5.0 * th) + math.cos(7.0 * th))
-        ib -= k * (-math.sin(5.0 * th) + math.sin(7.0 * th))
-        st[PS_H6] = h
-    return ia, ib, h
+    dx = x - st[PS_SSAT_X]
+    if dx != 0.0:
+        k = mp[MP_LAM] * dx / lind
+        s5 = mp[MP_SSAT_H5]
+        s7 = mp[MP_SSAT_H7]
+        ia -= k * (s5 * math.cos(5.0 * th) + s7 * math.cos(7.0 * th))
+        ib -= k * (-s5 * math.sin(5.0 * th) + s7 * math.sin(7.0 * th))
+        st[PS_SSAT_X] = x
+    return ia, ib, x
 
 
 @njit(cache=True, inline="always")
@@ -644,10 +647,10 @@ def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out, cap_t, cap
     lind = _inductance(mp, ia, ib)
     h5 = mp[MP_H5]
     h7 = mp[MP_H7]
-    if mp[MP_H6_SAT] != 0.0:
-        ia, ib, hl = _spatial_saturation(st, mp, ia, ib, p * thm0, lind)
-        h5 += 0.5 * hl
-        h7 += 0.5 * hl
+    if mp[MP_SSAT_H5] != 0.0 or mp[MP_SSAT_H7] != 0.0:
+        ia, ib, xl = _spatial_saturation(st, mp, ia, ib, p * thm0, lind)
+        h5 += mp[MP_SSAT_H5] * xl
+        h7 += mp[MP_SSAT_H7] * xl
     circ_on = mp[MP_CIRC_ON] > 0.0
     psa = 0.0
     psb = 0.0

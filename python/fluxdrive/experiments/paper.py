@@ -340,9 +340,11 @@ def _bench_effects(bench) -> str:
         on.append(f"observer model R̂ {om.r_pu:g}, L̂ {om.l_pu:g}, λ̂ {om.lambda_pu:g} of the card")
     if bench.thermal is not None:
         on.append("winding heating")
-    if bench.spatial_saturation_h6_pu:
+    h5, h7 = bench.spatial_saturation_h5_h7()
+    if h5 or h7:
         on.append(
-            f"spatial saturation (6th order {bench.spatial_saturation_h6_pu:g} pu at I_rated)"
+            f"spatial saturation (magnet-flux 5th {h5:.3g} pu, 7th {h7:.3g} pu at I_rated: "
+            f"{abs(h5 + h7):.3g} pu of radius, {abs(h7 - h5):.3g} rad of angle)"
         )
     return ", ".join(on) if on else "the ideal bench"
 
