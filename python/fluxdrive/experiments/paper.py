@@ -537,7 +537,8 @@ def _fig13_flux_claims(nl, fl, ideal, ps, r_nl) -> list[dict]:
                 f"load {100 * nl['flux_h6_rel']:.2f} %",
                 fl["flux_h6_rel"] / ideal["flux_h6_rel"],
                 "the bench's spatial saturation gives the magnet flux 5th/7th orders growing "
-                "with (i/I_rated)²: a 6th order in |λ̂| under load only",
+                "with (i/I_rated)²: a 6th order in |λ̂| under load only; which 5th/7th split "
+                "Figs. 13(d) and 14(b) allow together: experiment hexagon",
             )
         )
     return claims
