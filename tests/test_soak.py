@@ -56,29 +56,33 @@ def test_soak_and_burst_lose_nothing_and_do_not_grow():
 
 
 def test_recorder_backpressure_holds_the_graph_and_loses_nothing(tmp_path):
-    """A bag writer slower than the graph (here: a 0.5 MB backlog limit) holds the lockstep
-    loop instead of growing the recorder's buffer; every message still lands in the bag."""
-    from fluxdrive.drive.scenario import scenario_path
+    """A bag writer behind the graph holds the lockstep loop instead of growing the
+    recorder's buffer (max_backlog_mb 0.5); every message still lands in the bag.  The
+    writer is made to fall behind for certain, whatever the machine's speed: it is stopped
+    (SIGSTOP) once the graph runs, until the recorder says it holds, then resumed."""
+    import signal
+
+    import psutil
     from fluxdrive.io.bagio import bag_counts
-    from fluxdrive_bringup.launch.runs import run_graph
+    from test_process_faults import Run, domain, graph_dict
 
     bag = tmp_path / "bag"
-    r = run_graph(
-        scenario_path("paper_4pct_fullload"),
-        out=tmp_path / "run",
-        bag=bag,
-        duration_s=1.0,
-        quiet=True,
-        progress=False,
-        timeout=300.0,
-        extra={"recorder": {"max_backlog_mb": 0.5}},
-    )
-    assert r["code"] == 0
-    mc, meta = bag_counts(bag)
     n = 10_000
+    g = graph_dict(bag, duration_s=n / 10_000, processes={}, recorder={"max_backlog_mb": 0.5})
+    run = Run(g, domain(35), tmp_path).start()
+    run.wait_frames(100, timeout=400)  # running: the writer has opened the bag (kernels first)
+    drive = psutil.Process(run.pid("drive"))
+    (writer,) = [
+        p for p in drive.children(recursive=True) if "fluxdrive.cli.bagwriter" in p.cmdline()
+    ]
+    writer.send_signal(signal.SIGSTOP)
+    try:
+        run.wait_line("holding the callbacks until it catches up", timeout=300)
+    finally:
+        writer.send_signal(signal.SIGCONT)
+    assert run.join(timeout=300) == 0, run.text()
+    mc, meta = bag_counts(bag)
     assert mc["/drive/frame"] == n and mc["/drive/controller_state"] == n
     assert all(mc[t] == n for t in mc if t.endswith("/estimate"))
     assert mc == meta
-    logs = "".join(p.read_text() for p in (tmp_path / "run" / "logs").glob("*"))
-    assert "holding the callbacks until it catches up" in logs
-    assert "the writer's backpressure held the callbacks" in logs
+    assert "the writer's backpressure held the callbacks" in run.text()
