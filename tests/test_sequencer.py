@@ -217,3 +217,34 @@ def test_repeated_stalls_past_the_limit_latch_watchdog_with_the_reason():
     assert dr.seq.tripped and int(dr.seq.cs[CS_FAULT]) == FAULT_WATCHDOG
     errors = [t for lvl, t in dr.lines if lvl == "error"]
     assert len(errors) == 1 and "3 lost intervals" in errors[0] and "limit 2" in errors[0]
+
+
+def test_frames_that_stop_coming_are_said_once_and_their_return():
+    """Frames stop mid-run (a frame source stopped, or a lost frame holding every later one
+    in the DDS reader until it is sent again): one warning after frame_silence_s of wall
+    time -- a stall of this process itself not counted -- and one line when they return."""
+    sq, fr, got, lines = _bare()
+    for k in range(10):
+        sq.on_frame(k, fr.copy())
+        sq.on_estimate(k, np.zeros(ES_N))
+    t0 = 1000.0
+    for i in range(0, 45):  # 4.4 s of silence, checked every 0.1 s
+        sq.check_wall(t0 + 0.1 * i)
+    sq.check_wall(t0 + 7.4)  # this process stood still for 3 s: not the frames' silence
+    for i in range(1, 50):
+        sq.check_wall(t0 + 7.4 + 0.1 * i)
+    silent = [t for lvl, t in lines if "no frame for" in t]
+    assert silent == [], silent  # 4.4 s + 4.9 s, the stall between not counted
+    sq.check_wall(t0 + 7.4 + 5.02)
+    silent = [(lvl, t) for lvl, t in lines if "no frame for" in t]
+    assert len(silent) == 1 and silent[0][0] == "warning", lines
+    assert "after frame 9 (answered up to 9)" in silent[0][1]
+    assert silent[0][1].startswith("no frame for 5.0 s of wall time")
+    for i in range(1, 30):
+        sq.check_wall(t0 + 12.42 + 0.1 * i)
+    assert len([t for _, t in lines if "no frame for" in t]) == 1  # said once
+    sq.on_frame(10, fr.copy())
+    sq.on_estimate(10, np.zeros(ES_N))
+    sq.check_wall(t0 + 15.5)
+    back = [t for _, t in lines if t.startswith("frames again")]
+    assert back == ["frames again: frame 10 after 8.1 s of wall time without one"], lines

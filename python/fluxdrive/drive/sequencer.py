@@ -132,6 +132,12 @@ class ControlSequencer:
         self.catch_up_wall_s = 10.0
         self._last_check = 0.0
         self._caught_up_by = 0.0  # wall time until which a stall of our own excuses waiting
+        # no frame at all for this long (wall time, our own stalls not counted): one line
+        # saying so, one when frames come again (docs/graph.md, "Limit at high frame rates")
+        self.frame_silence_s = 5.0
+        self._frames_seen = 0  # counts["frames"] at the last check
+        self._silent_since = 0.0  # wall time of the last check that saw a new frame
+        self._silence_logged = False
         self.set_timeouts(position_timeout_s, position_wall_timeout_s)
         self.cs = np.zeros(CS_N)
         controller_reset(self.cs)
@@ -224,9 +230,11 @@ class ControlSequencer:
         """Wall-clock timeout of the estimate the sequence is waiting for; call it every
         0.1 s or so -- a call more than 0.5 s after the previous one means this process was
         stalled itself, and that time does not count as waiting."""
-        if not self.sensorless:
-            return
         now = time.monotonic() if now is None else now
+        self._watch_frames(now)
+        if not self.sensorless:
+            self._last_check = now
+            return
         if now - self._last_check > self.self_stall_s and self._last_check > 0.0:
             self.t_wait += now - self._last_check  # we were stalled ourselves: not counted
             self._caught_up_by = now + self.catch_up_wall_s
@@ -252,6 +260,32 @@ class ControlSequencer:
                 f"no position estimate for frame {self.next_k} for {waited:.1f} s of wall time"
             )
             self._run()
+
+    def _watch_frames(self, now: float) -> None:
+        """Frames stopped coming mid-run (after a first one): say so once after
+        frame_silence_s of wall time, and again when they come back.  A controller resumed
+        after a stop can stand here for long: a frame its DDS reader dropped meanwhile is
+        held, with every later one (in-order delivery), until the writer resends it."""
+        n = self.counts["frames"]
+        if n != self._frames_seen:
+            if self._silence_logged:
+                self.log(
+                    "info",
+                    f"frames again: frame {self.max_seq} after "
+                    f"{now - self._silent_since:.1f} s of wall time without one",
+                )
+            self._frames_seen, self._silent_since, self._silence_logged = n, now, False
+        elif self._last_check > 0.0 and now - self._last_check > self.self_stall_s:
+            self._silent_since = now  # we stood still ourselves: not the frames' silence
+        elif n and not self._silence_logged and now - self._silent_since > self.frame_silence_s:
+            self._silence_logged = True
+            self.log(
+                "warning",
+                f"no frame for {now - self._silent_since:.1f} s of wall time after frame "
+                f"{self.max_seq} (answered up to {self.next_k - 1}): the frame source stopped, "
+                "or a frame lost in transit holds every later one until it is sent again "
+                "(reliable in-order delivery)",
+            )
 
     # ------------------------------------------------------------------ sequencing
     def _run(self) -> None:

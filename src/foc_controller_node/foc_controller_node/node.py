@@ -272,8 +272,8 @@ class ControllerNode(FluxNode):
         self.diag = diag.Diagnostics(self, common["diagnostics_period_s"])
         self.diag.add("input", self._diag_input)
         self.diag.add("state", self._diag_state)
-        if self.sensorless:
-            self.create_timer(0.1, self._check_wall_timeout)
+        # the estimate's wall-clock timeout, and frames that stop coming (either source)
+        self.create_timer(0.1, self._check_wall_timeout)
         self.get_logger().info(
             "position from "
             + (src["estimate_topic"] if self.sensorless else "the encoder")
@@ -450,7 +450,8 @@ class ControllerNode(FluxNode):
         self.log(text, level)  # the sequencer's (level, text) onto FluxNode.log
 
     def _check_wall_timeout(self) -> None:
-        self.seq.check_wall()
+        if not self.finished:  # past the run's last sample no frame is due
+            self.seq.check_wall()
 
     def _on_reset(self, req, resp):  # noqa: ARG002 - the request is empty
         """Explicit reset of a latched fault (the only way one is cleared)."""
