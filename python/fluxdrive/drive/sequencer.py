@@ -132,12 +132,7 @@ class ControlSequencer:
         self.catch_up_wall_s = 10.0
         self._last_check = 0.0
         self._caught_up_by = 0.0  # wall time until which a stall of our own excuses waiting
-        # no frame at all for this long (wall time, our own stalls not counted): one line
-        # saying so, one when frames come again (docs/graph.md, "Limit at high frame rates")
-        self.frame_silence_s = 5.0
-        self._frames_seen = 0  # counts["frames"] at the last check
-        self._silent_since = 0.0  # wall time of the last check that saw a new frame
-        self._silence_logged = False
+        self._init_frame_watch()
         self.set_timeouts(position_timeout_s, position_wall_timeout_s)
         self.cs = np.zeros(CS_N)
         controller_reset(self.cs)
@@ -260,6 +255,15 @@ class ControlSequencer:
                 f"no position estimate for frame {self.next_k} for {waited:.1f} s of wall time"
             )
             self._run()
+
+    def _init_frame_watch(self) -> None:
+        """No frame at all for frame_silence_s (wall time, our own stalls not counted): one
+        line saying so, one when frames come again (docs/graph.md, "Limit at high frame
+        rates")."""
+        self.frame_silence_s = 5.0
+        self._frames_seen = 0  # counts["frames"] at the last check
+        self._silent_since = 0.0  # wall time of the last check that saw a new frame
+        self._silence_logged = False
 
     def _watch_frames(self, now: float) -> None:
         """Frames stopped coming mid-run (after a first one): say so once after
