@@ -68,6 +68,7 @@ from typing import Any
 import can
 import numpy as np
 
+from fluxdrive.can.firmware import FirmwareCore
 from fluxdrive.can.protocol import (
     ARM_KEY,
     FRAME_FLAG_ADC_CLIP,
@@ -107,6 +108,7 @@ from fluxdrive.drive.control import (
     RF_N,
     RF_TH,
     RF_W,
+    drive_param_values,
     split_drive_reset,
     split_drive_step,
     split_drive_take_reference,
@@ -347,8 +349,6 @@ class DriveEmulator:
         """The C core as this emulator's MCU, configured like the Python logic: the same
         layout, D, watchdog, over-current trip and heartbeat timeout, the drive parameters
         of the scenario's design (host mode uses only the protections among them)."""
-        from fluxdrive.can.firmware import FirmwareCore
-        from fluxdrive.drive.control import drive_param_values
 
         fw = FirmwareCore(
             self.setup.mp,

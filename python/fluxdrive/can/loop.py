@@ -35,6 +35,7 @@ import can
 import numpy as np
 
 from fluxdrive.can.bridge import BridgeConfig, CanBridge, bus_factory_from_params
+from fluxdrive.can.canlog import open_writer
 from fluxdrive.can.emulator import DriveEmulator
 from fluxdrive.drive.control import (
     CO_DA,
@@ -114,8 +115,6 @@ class _TapLogger(can.Listener):
     kept (a Notifier thread otherwise dies silently)."""
 
     def __init__(self, path: str) -> None:
-        from fluxdrive.can.canlog import open_writer
-
         self.writer = open_writer(path)
         self.errors: list[BaseException] = []
 

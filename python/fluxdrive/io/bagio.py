@@ -29,7 +29,7 @@ import numpy as np
 from fluxdrive.core import yamlio
 from fluxdrive.core.machine import ConfigError, MachineCard
 from fluxdrive.drive.control import CO_N
-from fluxdrive.drive.observers import ES_N
+from fluxdrive.drive.observers import ES_N, KernelObserver, ObserverConfig
 from fluxdrive.drive.plant import FR_N, FR_SEQ, TR_N, TR_T, TR_THETA_E
 from fluxdrive.io import messages
 from fluxdrive.io.cdr import Decoder, layout_type, read_strings
@@ -300,7 +300,6 @@ def observer_model_of(sc) -> dict[str, float]:
     """The observer model (R^, L^, lambda^) a run's observers start from: the machine card
     times the bench's model errors.  A variant replayed over the run's bag takes it by
     default (fluxdrive.replay.lab), so it sees what the recorded observers saw."""
-    from fluxdrive.drive.observers import ObserverConfig
 
     cfg = sc.bench.apply_observer_model(ObserverConfig(), sc.machine)
     card = sc.machine
@@ -455,8 +454,6 @@ def _bag_files(path: Path) -> list[Path]:
 
 
 def _info(path: Path) -> dict[str, Any]:
-    from fluxdrive.core import yamlio
-
     try:
         info = yamlio.load_file(path / "metadata.yaml") or {}
     except Exception as exc:  # noqa: BLE001
@@ -1093,7 +1090,6 @@ def observer_states_at(result, k0: int) -> dict[str, list[float]]:
     """The recorded observers' OS_* states just before frame k0, by re-running each over
     frames 0..k0-1 (the same compiled kernel as the run, so the same numbers): stored in a
     cut-out bag so that replaying it continues the live estimates exactly."""
-    from fluxdrive.drive.observers import KernelObserver
 
     out: dict[str, list[float]] = {}
     for nm in result.names:

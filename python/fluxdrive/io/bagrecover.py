@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from fluxdrive.core.machine import ConfigError
+from fluxdrive.io.bagio import META_KEY, BagWriter, typestore
 from fluxdrive.io.bagwriter import RECORDING_FILE
 from fluxdrive.io.messages import message_seq
 
@@ -73,7 +74,6 @@ def is_finalised(mcap: Path) -> bool:
 def recover(bag: Path, out: Path | None = None) -> Recovery:
     """Read what is readable of bag's MCAP file and write it to `out` (default
     <bag>-recovered) as a new, finalised bag."""
-    from fluxdrive.io.bagio import META_KEY, BagWriter
 
     mcap = mcap_file(Path(bag))
     bag_dir = mcap.parent
@@ -133,8 +133,6 @@ class _ChunkCopy:
     gaps are counted on the way."""
 
     def __init__(self, writer, rec: Recovery):
-        from fluxdrive.io.bagio import typestore
-
         self.writer = writer
         self.rec = rec
         self.store = typestore()

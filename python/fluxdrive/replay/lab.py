@@ -56,6 +56,7 @@ from fluxdrive.drive.observers import (
     ES_TH,
     ES_W,
     OS_N,
+    VARIANT_KINDS,
     KernelObserver,
     Observer,
     ObserverConfig,
@@ -799,7 +800,6 @@ def write_augmented_bag(res: ReplayResult, bag: RunBag, path: Path) -> Path:
 # ====================================================================== benchmark
 def bench_replay(argv: list[str]) -> dict[str, Any]:
     """Samples/s of each built-in variant over a sample bag's frames, one core."""
-    from fluxdrive.drive.observers import VARIANT_KINDS
 
     ap = argparse.ArgumentParser(prog="fluxdrive benchmark replay")
     ap.add_argument("bag", nargs="?", type=Path)

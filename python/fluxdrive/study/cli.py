@@ -22,6 +22,7 @@ from typing import Any
 
 from fluxdrive.core.machine import ConfigError
 from fluxdrive.drive.scenario import REPO_ROOT
+from fluxdrive.study import maps, store
 from fluxdrive.study.runner import Progress, Runner
 from fluxdrive.study.spec import StudySpec, load_spec
 from fluxdrive.study.tasks import run_task, warm_kernels
@@ -38,7 +39,6 @@ def run_study(
 ) -> dict[str, Any]:
     """Run (or resume) a study into `out`; returns a summary (tasks, skipped, failures,
     lowest speeds).  `on_result(outcome)` is called after each finished task."""
-    from fluxdrive.study import maps, store
 
     out = Path(out)
     if restart and out.exists():
@@ -96,7 +96,6 @@ def run_study(
 def _finished_tasks(out: Path, tasks: list[dict[str, Any]]) -> dict[str, str]:
     """task_id -> input hash of the tasks `out` already holds; refused when one of them was
     computed from other inputs than the spec's today (or without hashes)."""
-    from fluxdrive.study import store
 
     old_t = store.read_table(out)
     if old_t is None:
@@ -142,7 +141,6 @@ def _run_tasks(
 ) -> list[dict[str, Any]]:
     """Run `todo` on the runner, rows streamed into out/parts as tasks finish; returns the
     failures (also written to out/failures.jsonl, whatever happens)."""
-    from fluxdrive.study import store
 
     schema = store.schema_for(list(spec.grid), spec.random_columns())
     w = store.TableWriter(out, schema, flush_s=flush_s)

@@ -16,8 +16,13 @@ from pathlib import Path
 from typing import Any
 
 from fluxdrive.analysis.metrics import compute, observer_metrics, steady_window
+from fluxdrive.core import yamlio
 from fluxdrive.core.machine import ConfigError, load_machine
-from fluxdrive.drive.scenario import Scenario, load_scenario
+from fluxdrive.drive.plant import TR_THETA_E
+from fluxdrive.drive.scenario import CONFIG_DIR, Scenario, load_scenario
+from fluxdrive.drive.sim import run_scenario
+from fluxdrive.io.bagio import read_run_bag
+from fluxdrive.replay.lab import VariantSpec, live_changes, replay_bag
 from fluxdrive.study.spec import BUILDERS, PERTURBATIONS, axis_kind
 
 ALPHA_CU_PER_K = 0.00393  # copper resistance
@@ -60,8 +65,6 @@ def run_task(p: dict[str, Any]) -> dict[str, Any]:
     if "bag" in p["scenario"]:
         out = _bag_task(p)
     else:
-        from fluxdrive.drive.sim import run_scenario
-
         sc = build_task_scenario(p)
         r = run_scenario(sc, progress=False)
         m = compute(r)
@@ -84,8 +87,6 @@ def run_task(p: dict[str, Any]) -> dict[str, Any]:
 def warm_kernels() -> None:
     """Compile (or load from the on-disk cache) the closed-loop kernels in this process: run
     before starting local workers, so that they load the cache instead of each compiling."""
-    from fluxdrive.drive.scenario import CONFIG_DIR
-    from fluxdrive.drive.sim import run_scenario
 
     sc = load_scenario(
         CONFIG_DIR / "scenarios" / "paper_2pct_150load.yaml",
@@ -134,8 +135,6 @@ def build_task_scenario(p: dict[str, Any]) -> Scenario:
             **kw,
         )
     else:
-        from fluxdrive.core import yamlio
-
         raw = yamlio.load_file(spec["file"]) or {}
         driving = "encoder" if raw.get("driving", "encoder") == "encoder" else vname
         over = {**scen_kw, "observers": {vname: obs}, "driving": driving, "seed": p["seed"]}
@@ -211,8 +210,6 @@ def clear_bag_cache() -> None:
 
 
 def _bag(path: str):
-    from fluxdrive.io.bagio import read_run_bag
-
     if path not in _BAGS:
         cache_bag(path, read_run_bag(Path(path)))
     return _BAGS[path]
@@ -220,9 +217,6 @@ def _bag(path: str):
 
 def _bag_task(p: dict[str, Any]) -> dict[str, Any]:
     import numpy as np
-
-    from fluxdrive.drive.plant import TR_THETA_E
-    from fluxdrive.replay.lab import VariantSpec, live_changes, replay_bag
 
     spec = p["scenario"]
     bag = _bag(spec["bag"])
