@@ -27,6 +27,7 @@ from fluxdrive.core.machine import MachineCard, load_machine
 from fluxdrive.core.paths import ROOT
 from fluxdrive.drive.control.config import ControllerConfig, DriveParams
 from fluxdrive.drive.observers import ObserverConfig
+from fluxdrive.drive.scenario import ScenarioSettings, load_scenario
 
 DOC_PAGE = ROOT / "docs" / "configuration.md"
 TABLE_RE = re.compile(r"(<!-- params (?P<key>\S+) -->\n)(?P<table>.*?)(<!-- /params -->)", re.S)
@@ -67,7 +68,17 @@ def _bench_check(section: str | None) -> Callable[[dict[str, Any]], Any]:
     return check
 
 
+def _scenario_check(kw: dict[str, Any]) -> Any:
+    """Check values as a scenario's top-level keys (the demo scenario with them set; its
+    steady window shrunk to fit a shorter duration)."""
+    d = kw.get("duration_s")
+    fit = {"steady_window_s": [0.0, d]} if isinstance(d, float) and 0 < d < 11.0 else {}
+    path = ROOT / "config" / "scenarios" / "paper_2pct_150load.yaml"
+    return load_scenario(path, overrides={**fit, **kw})
+
+
 BLOCKS: dict[str, Block] = {
+    "scenario": Block(ScenarioSettings, _scenario_check),
     "control": Block(ControllerConfig, lambda kw: replace(ControllerConfig(), **kw).validate()),
     "observer": Block(
         ObserverConfig,

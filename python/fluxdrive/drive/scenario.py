@@ -26,6 +26,7 @@ from fluxdrive.core.machine import (
     required,
 )
 from fluxdrive.core.paths import CONFIG_DIR, ROOT, project_file
+from fluxdrive.core.schema import check_value, param, specs
 from fluxdrive.drive.control import CARD_RULES, ControllerConfig
 from fluxdrive.drive.observers import ObserverConfig, observer_config
 
@@ -76,6 +77,73 @@ class Scenario:
 
     def dyno_nm_per_rad_s(self) -> float:
         return self.dyno_pu_per_rpm * self.machine.rated_torque_nm / RPM
+
+
+@dataclass
+class ScenarioSettings:
+    """The single-valued keys at a scenario file's top level (the profiles, the blocks and the
+    faults have their own parsers and tables); `load_scenario` checks them here."""
+
+    duration_s: float = param(
+        2.0, unit="s", doc="simulated run length", range=(1e-3, 3600.0), live=False
+    )
+    seed: int = param(
+        0,
+        unit="-",
+        doc="random seed of the sensor noise (numpy seeds are >= 0)",
+        range=(0, 2**63 - 1),
+        live=False,
+    )
+    load_type: str = param(
+        "brake",
+        unit="",
+        doc="brake: the load profile acts as a passive brake (a hysteresis dyno: it opposes "
+        "the motion, fading to zero within brake_band_rpm of standstill); active: a torque "
+        "source (a dyno in torque mode)",
+        choices=("brake", "active"),
+        live=False,
+    )
+    brake_band_rpm: float = param(
+        2.0,
+        unit="rpm",
+        doc="brake load: the speed band around standstill in which the brake torque fades to zero",
+        range=(1e-3, 1e4),
+        live=False,
+    )
+    dyno_pu_per_rpm: float = param(
+        0.0,
+        unit="pu/rpm",
+        doc="speed-proportional load torque, per unit of rated torque per rpm",
+        range=(-1.0, 1.0),
+        live=False,
+    )
+    step_load_time_s: float | None = param(
+        None,
+        unit="s",
+        doc="the load step's instant: the speed metrics split there (unset: no step)",
+        range=(0.0, 3600.0),
+        none_is_zero=True,
+        live=False,
+    )
+    initial_angle_deg: float = param(
+        0.0,
+        unit="deg",
+        doc="rotor angle at t = 0 (electrical; one turn either way)",
+        range=(-360.0, 360.0),
+        live=False,
+    )
+
+
+_SETTINGS = specs(ScenarioSettings)
+
+
+def _setting(src: str, raw: dict[str, Any], key: str) -> Any:
+    """A top-level key, checked by its schema field (absent: the field's default)."""
+    default = ScenarioSettings.__dataclass_fields__[key].default
+    v = raw.get(key, default)
+    check_value(_SETTINGS[key], v, f"{src}: '{key}'")
+    kind = _SETTINGS[key].kind
+    return v if v is None or kind is str else kind(v)
 
 
 def _num(src: str, key: str, v: Any, lo: float = -math.inf, hi: float = math.inf) -> float:
@@ -226,8 +294,8 @@ def load_scenario(
     src = str(path)
     raw = _read_scenario(path, machine, overrides, raw)
     card = _scenario_card(path, raw, machine)
-    duration = _num(src, "duration_s", raw.get("duration_s", 2.0), 1e-3, 3600.0)
-    seed = _int(src, "seed", raw.get("seed", 0), 0, (1 << 63) - 1)  # numpy seeds are >= 0
+    duration = _setting(src, raw, "duration_s")
+    seed = _setting(src, raw, "seed")
     bench_raw, bench_src = _bench_raw(src, path, raw.get("bench"))
     bench = parse_bench(bench_src, bench_raw, card)
     ctrl = _control_config(src, raw, card)
@@ -241,7 +309,6 @@ def load_scenario(
         raise ConfigError(f"{src}: unknown plant key(s) {bad}; expected deadtime_s")
     td = plant.get("deadtime_s")
     td = None if td is None else _num(src, "plant.deadtime_s", td, *DEADTIME_RANGE_S)
-    step_t = raw.get("step_load_time_s")
     return Scenario(
         name=str(raw.get("name", path.stem)),
         description=str(raw.get("description", "")),
@@ -250,17 +317,17 @@ def load_scenario(
         seed=seed,
         speed_profile_rpm=_speed_profile(src, raw, card),
         load_profile_pu=_profile(src, "load_pu", raw.get("load_pu", 0.0)),
-        dyno_pu_per_rpm=_num(src, "dyno_pu_per_rpm", raw.get("dyno_pu_per_rpm", 0.0)),
+        dyno_pu_per_rpm=_setting(src, raw, "dyno_pu_per_rpm"),
         brake_band_rpm=_load_band(src, raw),
         control=ctrl,
         observers=observers,
         driving=driving,
         steady_window_s=win,
-        step_load_time_s=None if step_t is None else _num(src, "step_load_time_s", step_t),
+        step_load_time_s=_setting(src, raw, "step_load_time_s"),
         current_offset_a=tuple(float(x) * card.rated_current_a for x in off),
         current_gain=tuple(float(x) for x in gain),
         plant_deadtime_s=td,
-        initial_angle_deg=_num(src, "initial_angle_deg", raw.get("initial_angle_deg", 0.0)),
+        initial_angle_deg=_setting(src, raw, "initial_angle_deg"),
         id_injection=_injection(src, "id_injection", raw.get("id_injection")),
         speed_injection=_injection(src, "speed_injection", raw.get("speed_injection")),
         source=src,
@@ -511,15 +578,9 @@ def _bench_raw(src: str, path: Path, v: Any, depth: int = 0) -> tuple[Any, str]:
 
 
 def _load_band(src: str, raw: dict) -> float:
-    kind = raw.get("load_type", "brake")
-    if kind not in ("brake", "active"):
-        raise ConfigError(
-            f"{src}: 'load_type' must be 'brake' (passive, like the paper's "
-            f"hysteresis dyno) or 'active', got {kind!r}"
-        )
-    if kind == "active":
+    if _setting(src, raw, "load_type") == "active":
         return 0.0
-    return _num(src, "brake_band_rpm", raw.get("brake_band_rpm", 2.0), 1e-3, 1e4)
+    return _setting(src, raw, "brake_band_rpm")
 
 
 def _config_file(name_or_path: str | Path, folder: str, what: str) -> Path:

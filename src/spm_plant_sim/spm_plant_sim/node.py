@@ -68,10 +68,11 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from fluxdrive.core import schema
 from fluxdrive.core.machine import DEADTIME_RANGE_S
 from fluxdrive.core.schema import param
 from fluxdrive.drive.plant import FR_N, MP_TD, TR_N, plant_advance, plant_initial_frame
-from fluxdrive.drive.scenario import load_scenario, scenario_path
+from fluxdrive.drive.scenario import ScenarioSettings, load_scenario, scenario_path
 from fluxdrive.drive.sim import DriveSetup
 from fluxdrive_ros.cdr import Codec, Decoder
 from fluxdrive_ros.intra import RawPublisher, RawSubscription
@@ -108,13 +109,6 @@ class PlantRun:
         unit="",
         doc="lockstep: sim time, one period per duty command; paced: wall clock at rate_factor",
         choices=("lockstep", "paced"),
-        live=False,
-    )
-    seed: int = param(
-        1,
-        unit="-",
-        doc="sensor-noise random seed",
-        range=(0, 2**62),
         live=False,
     )
     duration_s: float = param(
@@ -251,8 +245,9 @@ class PlantGraph:
 def run_params(sc) -> list[P]:
     """The run: mode, seed, length, the bridge's deadtime, the load."""
     td = sc.machine.deadtime_s if sc.plant_deadtime_s is None else sc.plant_deadtime_s
-    run = PlantRun(seed=int(sc.seed), duration_s=float(sc.duration_s), deadtime_s=float(td))
-    return config_params(run)
+    run = PlantRun(duration_s=float(sc.duration_s), deadtime_s=float(td))
+    seed = P.of(schema.specs(ScenarioSettings)["seed"], int(sc.seed))  # the scenario's key
+    return [seed, *config_params(run)]
 
 
 def timing_params() -> list[P]:
