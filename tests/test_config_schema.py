@@ -65,6 +65,21 @@ def test_validation_takes_exactly_the_schema_range(key):
             assert f"[{lo}, {hi}]" in text or f"[{lo:g}, {hi:g}]" in text, text
 
 
+def test_study_spec_takes_exactly_the_schema_range():
+    """A study spec's single-valued keys (study.spec.StudySettings, above the drive layer
+    and so not among BLOCKS): what load_spec checks is the schema's range."""
+    from fluxdrive.study.spec import StudySettings, study_settings
+
+    for name, (lo, hi) in schema.ranges(StudySettings).items():
+        kind = schema.specs(StudySettings)[name].kind
+        for ok in (lo, hi):
+            assert getattr(study_settings("s.yaml", {name: kind(ok)}), name) == kind(ok)
+        step = 1 if kind is int else max(abs(hi), abs(lo), 1.0) * 1e-6
+        for bad in (lo - step, hi + step):
+            with pytest.raises(ConfigError, match=rf"s\.yaml: '{name}' must be .* in \["):
+                study_settings("s.yaml", {name: kind(bad)})
+
+
 def test_card_limits_narrow_the_range_and_check_holds_to_them():
     """current_bandwidth_hz at most a quarter of PWM, reference_timeout_s at least two host
     samples: the schema's ranges on the card are what `check` accepts."""

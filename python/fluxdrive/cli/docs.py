@@ -54,28 +54,41 @@ def quotes(check: bool) -> int:
 
 
 def param_tables(check: bool) -> int:
+    """The config blocks' tables of docs/configuration.md and the study spec's of
+    docs/study.md, written from their schemas (or checked)."""
+    from fluxdrive.drive import config_blocks
+    from fluxdrive.study import spec
+
+    pages = [
+        (config_blocks.DOC_PAGE, config_blocks.docs_tables()),
+        (spec.DOC_PAGE, spec.docs_tables()),
+    ]
+    return max(_page_tables(page, tables, check) for page, tables in pages)
+
+
+def _page_tables(path, tables: dict[str, str], check: bool) -> int:
     from fluxdrive.drive import config_blocks
 
-    page = config_blocks.DOC_PAGE.relative_to(ROOT)
+    page = path.relative_to(ROOT)
     if check:
-        bad = config_blocks.stale_tables()
+        bad = config_blocks.stale_tables(tables, path)
         for key in bad:
             print(f"{page}: the '{key}' table differs from its schema", file=sys.stderr)
-        print(f"{len(config_blocks.BLOCKS)} config blocks; {len(bad)} stale tables in {page}")
+        print(f"{len(tables)} config blocks; {len(bad)} stale tables in {page}")
         return 1 if bad else 0
-    text = config_blocks.DOC_PAGE.read_text()
+    text = path.read_text()
     try:
-        new = config_blocks.fill(text)
+        new = config_blocks.fill(text, tables, path)
     except ValueError as exc:
         print(f"docs params: {exc}", file=sys.stderr)
         return 1
-    missing = [k for k in config_blocks.BLOCKS if f"<!-- params {k} -->" not in new]
+    missing = [k for k in tables if f"<!-- params {k} -->" not in new]
     for key in missing:
         print(f"{page}: no table for '{key}' (add <!-- params {key} --><!-- /params -->)")
     if new != text:
-        config_blocks.DOC_PAGE.write_text(new)
+        path.write_text(new)
     state = "updated" if new != text else "current"
-    print(f"{len(config_blocks.BLOCKS)} config blocks; {page} {state}")
+    print(f"{len(tables)} config blocks; {page} {state}")
     return 1 if missing else 0
 
 

@@ -19,6 +19,7 @@ import functools
 import re
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any
 
 from fluxdrive.core import schema
@@ -107,21 +108,23 @@ def docs_tables() -> dict[str, str]:
     return {key: schema.markdown_table(b.cls) + "\n" for key, b in BLOCKS.items()}
 
 
-def fill(text: str) -> str:
-    """`text` with every params table rewritten from the schema (an unknown key: ValueError)."""
-    tables = docs_tables()
+def fill(text: str, tables: dict[str, str] | None = None, page: Path = DOC_PAGE) -> str:
+    """`text` with every params table rewritten from `tables` (default: the blocks'; an
+    unknown key: ValueError)."""
+    tables = docs_tables() if tables is None else tables
 
     def sub(m: re.Match) -> str:
         key = m["key"]
         if key not in tables:
-            raise ValueError(f"{DOC_PAGE.name}: no config block '{key}' (known: {sorted(tables)})")
+            raise ValueError(f"{page.name}: no config block '{key}' (known: {sorted(tables)})")
         return m.group(1) + tables[key] + m.group(4)
 
     return TABLE_RE.sub(sub, text)
 
 
-def stale_tables() -> list[str]:
+def stale_tables(tables: dict[str, str] | None = None, page: Path = DOC_PAGE) -> list[str]:
     """The blocks whose table in the docs page is missing or differs from the schema."""
-    text = DOC_PAGE.read_text()
+    text = page.read_text()
     present = {m["key"]: m["table"] for m in TABLE_RE.finditer(text)}
-    return [k for k, t in docs_tables().items() if present.get(k) != t]
+    tables = docs_tables() if tables is None else tables
+    return [k for k, t in tables.items() if present.get(k) != t]

@@ -20,6 +20,7 @@ import numpy as np
 
 from fluxdrive.core import yamlio
 from fluxdrive.core.machine import ConfigError
+from fluxdrive.core.schema import check_value, markdown_table, param, specs
 from fluxdrive.drive.control import ControllerConfig
 from fluxdrive.drive.observers import ObserverConfig
 from fluxdrive.drive.scenario import CONFIG_DIR, REPO_ROOT, scenario_path
@@ -173,6 +174,59 @@ def _finite(src: str, key: str, v: Any) -> float:
     return float(v)
 
 
+@dataclass
+class StudySettings:
+    """A study spec's single-valued keys (the scenario, variants, grid, random axes and map
+    have their own parsers); `load_spec` checks them here."""
+
+    seed: int = param(
+        0,
+        unit="-",
+        doc="every draw's random values and plant seed derive from (seed, draw index)",
+        range=(0, 2**63 - 1),
+        live=False,
+    )
+    draws: int = param(
+        1,
+        unit="-",
+        doc="random draws (machines) per variant and grid point",
+        range=(1, MAX_TASKS),
+        live=False,
+    )
+    rated_load_pu: float = param(
+        1.0,
+        unit="pu",
+        doc="the load of the maps' 'lowest speed' question",
+        range=(1e-3, 100.0),
+        live=False,
+    )
+    probability: float = param(
+        0.95,
+        unit="-",
+        doc="the probability the lowest speed is held with",
+        range=(1e-3, 0.999),
+        live=False,
+    )
+
+
+DOC_PAGE = REPO_ROOT / "docs" / "study.md"  # its table of StudySettings
+
+
+def docs_tables() -> dict[str, str]:
+    """{block key: Markdown table} of the study page (`./fluxdrive docs params`)."""
+    return {"study": markdown_table(StudySettings) + "\n"}
+
+
+def study_settings(src: str, raw: dict[str, Any]) -> StudySettings:
+    """The spec's single-valued keys, each checked by its field (absent: its default)."""
+    kw = {}
+    for name, s in specs(StudySettings).items():
+        v = raw.get(name, StudySettings.__dataclass_fields__[name].default)
+        check_value(s, v, f"{src}: '{name}'")
+        kw[name] = s.kind(v)
+    return StudySettings(**kw)
+
+
 def _path_text(src: str, key: str, v: Any) -> str:
     if not isinstance(v, str) or not v or "\0" in v:
         raise _err(src, f"{key} must be a path, got {v!r}")
@@ -186,22 +240,12 @@ def load_spec(path: str | Path) -> StudySpec:
         p = STUDY_DIR / f"{p.name}.yaml"
     src = str(p)
     raw = _read_spec(src, p)
-    seed = raw.get("seed", 0)
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise _err(src, f"'seed' must be a non-negative integer, got {seed!r}")
-    draws = raw.get("draws", 1)
-    if isinstance(draws, bool) or not isinstance(draws, int) or draws < 1:
-        raise _err(src, f"'draws' must be a positive integer, got {draws!r}")
+    st = study_settings(src, raw)
+    draws = st.draws
     scen = _scenario(src, p.parent, raw.get("scenario"))
     vout = _variants(src, raw.get("variants"), scen)
     grid = _grid(src, raw.get("grid") or {}, scen)
     rnd = _random_axes(src, raw.get("random") or {}, grid, scen)
-    rl = _finite(src, "'rated_load_pu'", raw.get("rated_load_pu", 1.0))
-    if not 0 < rl <= 100:
-        raise _err(src, f"'rated_load_pu' must be in (0, 100], got {rl!r}")
-    prob = raw.get("probability", 0.95)
-    if isinstance(prob, bool) or not isinstance(prob, (int, float)) or not 0 < prob < 1:
-        raise _err(src, f"'probability' must be in (0, 1), got {prob!r}")
     for key in ("name", "description"):
         if not isinstance(raw.get(key, ""), str):
             raise _err(src, f"'{key}' must be a string, got {raw[key]!r}")
@@ -212,15 +256,15 @@ def load_spec(path: str | Path) -> StudySpec:
     return StudySpec(
         name=str(raw.get("name", p.stem)),
         source=src,
-        seed=seed,
+        seed=st.seed,
         scenario=scen,
         variants=vout,
         grid=grid,
         random=rnd,
         draws=draws,
         description=str(raw.get("description", "")),
-        rated_load_pu=float(rl),
-        probability=float(prob),
+        rated_load_pu=st.rated_load_pu,
+        probability=st.probability,
         map_axes=axes,
         raw=raw,
     )
