@@ -14,6 +14,7 @@ import argparse
 import os
 import shutil
 import sys
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +24,6 @@ from fluxdrive.drive.scenario import CONFIG_DIR, REPO_ROOT
 
 PAGE = REPO_ROOT / "docs" / "graph.md"
 BEGIN, END = "<!-- node-params -->\n", "<!-- /node-params -->"
-NEVER_WRITTEN = "/tmp/fluxdrive-paramdoc-never-written"
 # node class -> (config block, anchor in docs/configuration.md): the block's fields, which the
 # node declares from their schema, are documented there, once
 SCHEMA_BLOCKS = {
@@ -33,16 +33,16 @@ SCHEMA_BLOCKS = {
 ROS_OWN = {"use_sim_time", "start_type_description_service"}  # rclpy declares these
 
 
-def _nodes() -> list[tuple[str, str, str, str, dict[str, Any]]]:
+def _nodes(scratch: str) -> list[tuple[str, str, str, str, dict[str, Any]]]:
     """(title, node class, name, namespace, parameters) of each table; graph_id 0: the value
-    outside a launched graph (a launch sets its own)."""
+    outside a launched graph (a launch sets its own); the recorder's bag in `scratch`."""
     sc = str(CONFIG_DIR / "scenarios" / "paper_2pct_150load.yaml")
     demo = {"scenario": sc, "graph_id": 0}
     return [
         ("spm_plant_sim (/plant)", "plant", "plant", "", demo),
         ("flux_observer_node (/obs/<name>)", "observer", "flux_measured", "/obs", demo),
         ("foc_controller_node (/controller)", "controller", "controller", "", demo),
-        ("recorder (/recorder)", "recorder", "recorder", "", {"bag_dir": NEVER_WRITTEN + "/bag"}),
+        ("recorder (/recorder)", "recorder", "recorder", "", {"bag_dir": scratch + "/bag"}),
         (
             "scope tap (/scope_tap, started by `./fluxdrive scope`)",
             "scope_tap",
@@ -60,7 +60,7 @@ def _schema_fields(cls: str) -> set[str]:
 def _value_text(v: Any) -> str:
     if isinstance(v, str) and v.startswith(f"{REPO_ROOT}/"):  # the same in every checkout
         v = v[len(f"{REPO_ROOT}/") :]
-    if isinstance(v, str) and len(v) > 40:
+    if isinstance(v, str) and (len(v) > 40 or v.startswith("/")):  # elsewhere: a temp dir
         return "…/" + v.rsplit("/", 1)[-1]
     if isinstance(v, float):
         return f"{v:g}"
@@ -124,8 +124,9 @@ def tables() -> str:
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "0") or 0))
     out = []
+    scratch = tempfile.mkdtemp(prefix="fluxdrive-paramdoc-")  # its own: tables run in parallel
     try:
-        for title, cls, name, ns, params in _nodes():
+        for title, cls, name, ns, params in _nodes(scratch):
             ov = [Parameter(k, value=v) for k, v in params.items()]
             node = load_class(cls)(name, namespace=ns, context=ctx, parameter_overrides=ov)
             try:
@@ -136,7 +137,7 @@ def tables() -> str:
                 node.destroy_node()
     finally:
         ctx.try_shutdown()
-        shutil.rmtree(NEVER_WRITTEN, ignore_errors=True)
+        shutil.rmtree(scratch, ignore_errors=True)
     return "\n".join(out)
 
 
