@@ -275,6 +275,8 @@ MAX_CATCH_UP = 50
 
 
 class PlantNode(FluxNode):
+    TIMING_SETTINGS = PlantTiming  # pacing and watchdogs (`./fluxdrive tune` checks by them)
+
     def __init__(self, name: str = "plant", namespace: str | None = None, **kw):
         super().__init__(name, namespace, **kw)
         sc = self._scenario()

@@ -22,8 +22,10 @@ import sys
 import time
 from pathlib import Path
 
+from fluxdrive.core import schema
 from fluxdrive.core.machine import ConfigError
 from fluxdrive.drive.scenario import REPO_ROOT, load_scenario, save_scenario, scenario_path
+from fluxdrive_ros.runner import load_class
 
 from fluxdrive_bringup.launch.domains import choose_domain
 from fluxdrive_bringup.launch.launcher import Launcher, add_scope
@@ -132,10 +134,10 @@ def _prepare(args):
     """(scenario, its file, the output folder, ROS domain) of the session: the chosen
     scenario with the hold point's overrides (saved to the output folder when there are
     any). Raises ConfigError naming why the session is refused."""
-    if not (1e-3 <= args.rate <= 10.0):
-        raise ConfigError(f"--rate {args.rate:g}: must be in [0.001, 10]")
-    if not (1e-3 <= args.watchdog_s <= 60.0):
-        raise ConfigError(f"--watchdog-s {args.watchdog_s:g}: must be in [0.001, 60]")
+    # the plant's own fields (rate_factor, watchdog_s): what it would accept, said before start
+    timing = schema.specs(load_class("plant").TIMING_SETTINGS)
+    schema.check_value(timing["rate_factor"], args.rate, "--rate")
+    schema.check_value(timing["watchdog_s"], args.watchdog_s, "--watchdog-s")
     base = scenario_path(args.scenario)
     over, why = hold_overrides(load_scenario(base), args.speed_rpm, args.load_pu)
     if why:
