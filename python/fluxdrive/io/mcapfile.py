@@ -2,10 +2,13 @@
 
 A 10 kHz graph hands its bag writer about ten messages per PWM period.  The `mcap` library's
 Writer builds a Python object and several small writes per message (about 9 us each with
-rosbags on top: most of a core at 10 kHz).  Here messages wait as plain lists (channel id,
-log time, the CDR bytes) until a chunk is cut; the chunk's message records, sequence numbers
-and message indexes are then built with numpy for the whole chunk at once: one structured
-array of 31-byte record headers, one join of headers and data, one compression.
+rosbags on top: most of a core at 10 kHz).  Here messages wait, until a chunk is cut, as
+segments: the bytes they came in (a pipe read of the recorder's stream) with numpy arrays of
+where each message's data lies, its channel and its log time -- no Python object per message
+(a retained object per message cost more in garbage-collector passes over this process's
+heap than everything else).  The chunk's message records, sequence numbers and message
+indexes are then built with numpy for the whole chunk at once: one structured array of
+31-byte record heads, one join of heads and data slices, one compression.
 
 The file is what the library would write, and every MCAP reader opens it: header; schemas
 and channels (in the data section, each written when it is added, so a stream reader --
