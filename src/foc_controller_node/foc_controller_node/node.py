@@ -85,19 +85,10 @@ from fluxdrive_ros import diagnostics as diag
 # ControllerConfig fields declared on their own (read-only, under the node's names) or not
 # at all (host_delay_samples: an in-process timing knob), not among the live parameters
 FIXED_FIELDS = ("position_source", "mode", "decimation", "host_delay_samples")
+# the live parameters that are ControllerConfig fields (the rest are the node's own)
+CONFIG_FIELDS = frozenset(schema.specs(ControllerConfig))
 # wall-clock grace for the very first estimate (a starting observer process, compilation)
 FIRST_ESTIMATE_WALL_S = 30.0
-# parameters of the node, not of ControllerConfig
-NODE_LEVEL = {
-    "control_mode",
-    "decimation",
-    "speed_ref_mode",
-    "speed_ref_rpm",
-    "position_timeout_s",
-    "position_wall_timeout_s",
-    "max_resyncs",
-    "resync_window_s",
-}
 
 
 @dataclass
@@ -397,7 +388,7 @@ class ControllerNode(FluxNode):
 
     def _apply(self, changes: dict) -> str:
         new = {**self.pv, **changes}
-        ctrl = {k: v for k, v in changes.items() if k not in NODE_LEVEL}
+        ctrl = {k: v for k, v in changes.items() if k in CONFIG_FIELDS}
         if ctrl:
             cfg = params.to_config(self.cfg, ctrl)
             cp = self._params(cfg)  # ConfigError (a ValueError) -> rejected
