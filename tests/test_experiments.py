@@ -190,7 +190,8 @@ def test_lowest_speed_flux_measured_holds_2pct_full_and_150pct_load(tmp_path):
             * 60
             / (2 * math.pi)
         )
-        assert f["lowest_rpm"] is not None and f["lowest_rpm"] < f["bound_rpm"]
+        # held well below the bound (neither of its terms applies): under half of it
+        assert f["lowest_rpm"] is not None and f["lowest_rpm"] < 0.5 * f["bound_rpm"], f
     e = d["emf_commanded"]["100%"]
     # commanded voltages: V_dt = Vdc td/Ts (1.44 V) dominates, (0.2 R I + V_dt)/lambda = 219
     # rpm; below it the observer loses the rotor, not far below it (the bound is the rule of
@@ -207,7 +208,6 @@ def test_lowest_speed_flux_measured_holds_2pct_full_and_150pct_load(tmp_path):
     assert e["lowest_rpm"] is None or (
         e["first_lost_rpm"] < e["bound_rpm"] and e["lowest_rpm"] > 0.5 * e["bound_rpm"]
     )
-    assert _holds(r, "With measured voltages and R^ = R")
     assert (tmp_path / "beyond_lowest_speed.png").exists()
 
 
