@@ -34,6 +34,7 @@ LATE_STALL_S = 0.25  # less than the limit: late
 # that it latched
 DEAD_STALL_S = 3.0
 MODE_CLOSED_LOOP, MODE_FAULT = 3, 4
+WATCHDOG = 9  # DriveFault.WATCHDOG
 
 
 def _modes(bag):
@@ -45,6 +46,20 @@ def _modes(bag):
         for conn, _, raw in reader.messages(connections=conns):
             m = reader.deserialize(raw, conn.msgtype)
             out[int(m.seq)] = int(m.mode)
+    return out
+
+
+def _faults(bag):
+    """The bag's DriveFault events: (source, code, latched, frame of the stamp, reason)."""
+    from rosbags.highlevel import AnyReader
+
+    out = []
+    with AnyReader([bag]) as reader:
+        conns = [c for c in reader.connections if c.topic == "/drive/fault"]
+        for conn, _, raw in reader.messages(connections=conns):
+            m = reader.deserialize(raw, conn.msgtype)
+            k = round((m.header.stamp.sec + m.header.stamp.nanosec * 1e-9) / 1e-4)
+            out.append((m.source, int(m.code), bool(m.latched), k, m.reason))
     return out
 
 
@@ -157,6 +172,16 @@ def test_late_controller_is_counted_a_silent_one_latches(tmp_path):
     a, b = next(r for r in stale if r[1] >= k_dead)
     assert a == k_off and not any(pwm[a : b + 1]), (a, k_off, b)
     assert modes[max(modes)] == MODE_FAULT
+    # each side's fault is one DriveFault in the bag: the plant's watchdog (not latched, at
+    # the frame it switched off; a "back" event only once duties answer live frames again)
+    # and the controller's latch
+    events = _faults(bag)
+    plant = [e for e in events if e[0] == "/plant"]
+    assert plant[0][1:4] == (WATCHDOG, False, k_off), events
+    assert plant[0][4].startswith("watchdog: no duty command at all for"), events
+    assert [e[1] for e in plant] in ([WATCHDOG], [WATCHDOG, 0]), events
+    ctrl = [e[1:3] for e in events if e[0] == "/controller"]
+    assert ctrl == [(WATCHDOG, True)], events
     # (how far the latched controller has come by the end: it may still be answering the
     # frames queued while it stood still -- the plant says "duty commands back" only once
     # it answers a frame still to come)

@@ -348,6 +348,11 @@ class PlantNode(FluxNode):
         )
         self.pub_clock = RawPublisher(self, Clock, in_drive(self, topics.CLOCK), qos.CLOCK)
         self.pub_done = self.create_publisher(fm.RunDone, in_drive(self, topics.DONE), qos.LATCHED)
+        # its watchdog's trips and returns, as DriveFault events (not latched: PWM off only
+        # until duty commands come back)
+        self.pub_fault = self.create_publisher(
+            fm.DriveFault, in_drive(self, topics.FAULT), qos.MARKERS
+        )
         # drained: a flood of foreign duty commands is refused in a row, not one executor
         # round each (fluxdrive_ros.intra), so it does not cost the paced loop its deadline
         self.sub_duty = RawSubscription(
@@ -564,6 +569,18 @@ class PlantNode(FluxNode):
             v = queued
             seq = v[2]
 
+    def _watchdog_event(self, k: int, text: str) -> None:
+        """The watchdog tripped (WATCHDOG, not latched: PWM off until duty commands come
+        back) or duty commands came back (FAULT_NONE), as a DriveFault stamped at frame k."""
+        m = fm.DriveFault()
+        m.header.stamp.sec, m.header.stamp.nanosec = self.stamp(k)
+        m.header.frame_id = self.pv["frame_id"]
+        m.code = fm.DriveFault.WATCHDOG if self.watchdog_tripped else fm.DriveFault.FAULT_NONE
+        m.latched = False
+        m.source = self.get_fully_qualified_name()
+        m.reason = text
+        self.pub_fault.publish(m)
+
     def _lockstep_watchdog(self) -> None:
         """lockstep: no duty command for duty_timeout_s of wall time -> the period it would
         have driven goes with the PWM off (flagged stale); again each further timeout."""
@@ -573,9 +590,9 @@ class PlantNode(FluxNode):
         if self.k != self._wd_k:  # the loop moved: a duty command came
             if self.watchdog_tripped:
                 self.watchdog_tripped = False
-                self.get_logger().info(
-                    f"duty commands back (seq {self.next_duty - 1}); lockstep resumes"
-                )
+                text = f"duty commands back (seq {self.next_duty - 1}); lockstep resumes"
+                self.get_logger().info(text)
+                self._watchdog_event(self.k, text)
             self._wd_k, self._wd_t = self.k, now
             return
         lim = float(self.pv["duty_timeout_s"])
@@ -587,11 +604,13 @@ class PlantNode(FluxNode):
         if not self.watchdog_tripped:
             self.watchdog_tripped = True
             self.counts.add("watchdog_trips")
-            self.get_logger().warning(
+            text = (
                 f"watchdog: no duty command {j} for {lim:g} s of wall time (controller gone?); "
                 f"PWM off from frame {j + 2}, one period per {lim:g} s until duty commands "
                 f"come back"
             )
+            self.get_logger().warning(text)
+            self._watchdog_event(j + 2, text)
         self.next_duty = j + 1
         if j + 2 < self.n:
             self._advance(np.array([0.5, 0.5, 0.5]), False, j + 2, STATUS_STALE_COMMAND)
@@ -647,7 +666,9 @@ class PlantNode(FluxNode):
         # back once it answers a frame still to come (not while it works off its backlog)
         if self.watchdog_tripped and seq + 2 > self.k:
             self.watchdog_tripped = False
-            self.get_logger().info(f"duty commands back (seq {seq}); PWM follows them")
+            text = f"duty commands back (seq {seq}); PWM follows them"
+            self.get_logger().info(text)
+            self._watchdog_event(seq + 2, text)
         self._pace_step()
 
     def _pace_step(self) -> None:
@@ -717,12 +738,14 @@ class PlantNode(FluxNode):
         if not self.watchdog_tripped:
             self.watchdog_tripped = True
             self.counts.add("watchdog_trips")
-            self.get_logger().warning(
+            text = (
                 f"watchdog: no duty command at all for {silent_s:.2f} s of wall time "
                 f"({'watchdog_s' if self.last_duty is not None else 'first_duty_timeout_s'} "
                 f"{limit_s:g}; the controller is dead or stopped, not late); PWM off from "
                 f"frame {k} until duty commands come back"
             )
+            self.get_logger().warning(text)
+            self._watchdog_event(k, text)
         if self.held:  # time slips by the wait: frame k is due now
             self.held = False
             self.t_wall0 = now - k * ts_wall
