@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import pytest
 from fluxdrive.core.machine import MachineCard
@@ -221,12 +222,26 @@ def test_sensitivity_per_variant_follows_the_fundamental_model(tmp_path):
     all; the uncompensated LPF leads by atan(w_c/w); hinkkanen_luomi and ortega see the same
     deadtime residue (gone with an ideal inverter)."""
     r = _run("sensitivity", tmp_path)
-    assert _holds(r, "paper (measured")
-    assert _holds(r, "hinkkanen_luomi (measured")
-    assert _holds(r, "lpf (measured")
-    assert _holds(r, "Cut-off: the uncompensated LPF")
-    assert _holds(r, "Cut-off (equivalent gain")
     t = r["data"]["table"]
+    for kind in ("paper", "hinkkanen_luomi", "lpf"):
+        # every R^/L^/lambda^ row the model has an equilibrium for and the estimate is steady
+        # at: mean theta~ within 3 deg + 10 % of the model's
+        rows = {k: x for k, x in t[kind].items() if re.fullmatch(r"(r|l|lam)[\d.]+", k)}
+        used = {k: x for k, x in rows.items() if x["pred_deg"] is not None and x["steady"]}
+        assert used, (kind, rows)
+        for k, x in used.items():
+            err = abs((x["mean_deg"] - x["pred_deg"] + 180.0) % 360.0 - 180.0)
+            assert err <= 3.0 + 0.1 * abs(x["pred_deg"]), (kind, k, x)
+    # cut-off: the uncompensated LPF leads by atan(w_c/w) (its steady rows), the paper's
+    # LPF + inverse HPF stays at a mean under 2 deg at every cut-off
+    fc = [k for k in t["lpf"] if k.startswith("fc")]
+    assert fc and any(t["lpf"][k]["steady"] for k in fc)
+    for k in fc:
+        x = t["lpf"][k]
+        err = abs((x["mean_deg"] - x["pred_deg"] + 180.0) % 360.0 - 180.0)
+        assert not x["steady"] or err < 3.0, (k, x)
+        assert abs(t["paper"][k]["mean_deg"]) < 2.0, (k, t["paper"][k])
+    assert _holds(r, "Cut-off (equivalent gain")  # a fit over the gains: the experiment's own
     assert (
         abs(t["hinkkanen_luomi"]["r0.85"]["mean_deg"] - t["hinkkanen_luomi"]["r0.85"]["pred_deg"])
         < 2.0
