@@ -17,7 +17,7 @@ from fluxdrive.can.bridge import BridgeConfig, CanBridge
 from fluxdrive.can.emulator import FAULT_CMD_TIMEOUT, DriveEmulator
 from fluxdrive.can.loop import new_virtual_channel, run_can_loop
 from fluxdrive.can.protocol import ID_ARM_MODE, ID_DUTY_CMD, ID_SAMPLE_FD, get_protocol
-from fluxdrive.drive.control import CO_EN, CO_MODE, MODE_CLOSED_LOOP
+from fluxdrive.drive.control import CO_EN, CO_MODE, FAULT_BAD_SAMPLE, MODE_CLOSED_LOOP
 from fluxdrive.drive.observers import ES_TH, ES_W
 from fluxdrive.drive.plant import (
     FR_DA,
@@ -638,6 +638,15 @@ def test_fd_decimation_mismatch_refuses_arming_and_latches_a_fault():
         assert dg["layout_mismatch"] == 2 and dg["faults"] == 1 and dg["state"] == "fault"
         emu._drain(0.1)
         assert not emu.armed and not emu.pwm_enabled
+        # one fault event for the node's DriveFault: samples of another rate are bad
+        # samples; the reset clears it (and it comes back while the drive disagrees)
+        (ev,) = br.fault_events
+        assert (ev.code, ev.latched, ev.origin) == (FAULT_BAD_SAMPLE, True, "host")
+        assert ev.reason == f"{br.fault}: PWM off, latched"
+        br.fault_events.clear()
+        assert br.reset_fault()[0] and not br.fault
+        (ev,) = br.fault_events
+        assert (ev.code, ev.latched) == (0, False) and "layout mismatch" in ev.reason
     finally:
         br.shutdown()
         emu_bus.shutdown()
