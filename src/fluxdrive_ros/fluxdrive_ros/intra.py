@@ -30,6 +30,7 @@ Set FLUXDRIVE_INTRA_PROCESS=0 to switch the shortcut off (everything over DDS).
 from __future__ import annotations
 
 import os
+import struct
 import time
 import traceback
 from collections import defaultdict, deque
@@ -291,3 +292,45 @@ class RawSubscription:
     def publisher_count(self) -> int:
         local = self.bus.publishers.get(self.topic, 0) if self.bus is not None else 0
         return (self.sub.get_publisher_count() if self.sub is not None else 0) + local
+
+
+_CLOCK = struct.Struct("<iI")  # rosgraph_msgs/Clock after the CDR header: sec, nanosec
+
+
+def share_sim_time(nodes) -> RawSubscription | None:
+    """One /clock reader for every node of this process that runs on sim time, instead of
+    one per node.  rclpy gives each node its own TimeSource with its own DDS subscription
+    of /clock: nine nodes of a composed drive took nine DDS deliveries (and deserialisations)
+    of every /clock message, about as much CPU as the closed loop's own messages.  Here the
+    nodes' subscriptions are dropped and one raw subscription -- through the bus when the
+    plant publishes in this process, else over DDS -- sets every node's ROS time from the
+    same message.  ROS time of each node stays the newest /clock, as with rclpy's own (a
+    node switched to sim time later subscribes on its own again).  The clock topic is the
+    one the time sources read (`/clock`, remapped to a namespaced drive's own clock)."""
+    from rclpy.clock import ClockType
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rclpy.time import Time
+    from rosgraph_msgs.msg import Clock
+
+    sim = [n for n in nodes if getattr(n, "_time_source", None) is not None]
+    sim = [n for n in sim if n._time_source.ros_time_is_active]
+    if not sim:
+        return None
+    for n in sim:
+        ts = n._time_source
+        if ts._clock_sub is not None:
+            n.destroy_subscription(ts._clock_sub)
+            ts._clock_sub = None
+    clocks = [n.get_clock() for n in sim]
+    unpack = _CLOCK.unpack_from
+    ros_time = ClockType.ROS_TIME
+
+    def on_clock(data: bytes) -> None:
+        sec, nsec = unpack(data, 4)
+        t = Time(seconds=sec, nanoseconds=nsec, clock_type=ros_time)
+        for c in clocks:
+            c.set_ros_time_override(t)
+
+    # what rclpy's TimeSource subscribes with: the newest time is all that matters
+    best_effort = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
+    return RawSubscription(sim[0], Clock, "/clock", on_clock, best_effort)

@@ -150,6 +150,9 @@ def spin(nodes: list[FluxNode], executor=None, poll_s: float = 0.5) -> int:
         if all(n.finished for n in nodes) and not all_done.done():
             all_done.set_result(True)
 
+    from .intra import share_sim_time
+
+    share_sim_time(nodes)  # one /clock reader for the process, not one per node
     for n in nodes:
         n._finish_hook = check
         ex.add_node(n)
