@@ -67,6 +67,7 @@ def test_blocks_publish_the_per_frame_estimates(monkeypatch):
             )
             out: list[bytes] = []
             node.pub.publish = out.append  # what the node hands its publisher, in order
+            node.pub.publish_block = out.extend  # (a block: its messages in a row)
             for data in frames:
                 node._on_frame(data)
             node._flush()  # the end of the run (done / stop) flushes what is left

@@ -56,6 +56,7 @@ class Bus:
         self.on_interrupt: Callable[[], None] | None = None
         self.delivered = 0
         self.targets: dict[tuple[str, int], list[Callable[[bytes], None]]] = {}
+        self.block_targets: dict[tuple[str, int], tuple[list, list]] = {}
 
     # ------------------------------------------------------------- registration
     def add_publisher(self, topic: str) -> None:
@@ -67,6 +68,7 @@ class Bus:
         self.callbacks[sub.topic].append(sub.callback)
         self.subscriptions[sub.topic].append(sub)
         self.targets.clear()
+        self.block_targets.clear()
 
     def targets_of(self, topic: str, graph_id: int) -> list[Callable[[bytes], None]]:
         """The callbacks a publisher of `graph_id` in this process delivers `topic` to: a
@@ -81,7 +83,37 @@ class Bus:
             self.targets[key] = cbs
         return cbs
 
+    def block_targets_of(self, topic: str, graph_id: int) -> tuple[list, list]:
+        """(the block callbacks, the per-message callbacks) a block of `topic` from a
+        publisher of `graph_id` goes to: a subscriber that takes blocks (the recorder) gets
+        the whole block in one call, the others each message."""
+        key = (topic, graph_id)
+        t = self.block_targets.get(key)
+        if t is None:
+            blocks, singles = [], []
+            for s in self.subscriptions.get(topic, []):
+                cb = s.local_block_callback(graph_id)
+                if cb is not None:
+                    blocks.append(cb)
+                else:
+                    singles.append(s.local_callback(graph_id))
+            t = self.block_targets[key] = (blocks, singles)
+        return t
+
     # ------------------------------------------------------------- delivery
+    def post_block(self, topic: str, datas: list[bytes], graph_id: int) -> None:
+        """Messages of one publisher in a row: one queue entry per block subscriber, one
+        per message for the others (each subscriber sees them in order, as with `post`)."""
+        blocks, singles = self.block_targets_of(topic, graph_id)
+        q = self.queue
+        for cb in blocks:
+            q.append(((cb,), datas))
+        if singles:
+            for data in datas:
+                q.append((singles, data))
+        if (blocks or singles) and not self.scheduled:
+            self._schedule()
+
     def post(self, topic: str, data: bytes, graph_id: int | None = None) -> None:
         cbs = self.callbacks.get(topic) if graph_id is None else self.targets_of(topic, graph_id)
         if not cbs:
@@ -195,11 +227,30 @@ class RawPublisher:
             local = bool(self.bus.callbacks.get(self.topic))
             if local:
                 self._post(self.topic, data, self.graph_id)
+        # over DDS when a reader elsewhere is matched -- and always when nobody in this
+        # process reads the topic, so the writer's transient-local history keeps it for
+        # a reader that matches late
+        if not local or self._dds_readers():
+            self._publish_dds((data,))
+
+    def publish_block(self, datas: list[bytes]) -> None:
+        """Several messages in a row (a shadow observer's block of estimates): the same
+        messages as `publish` of each, but a subscriber in this process that takes blocks
+        (the recorder) gets them in one call."""
+        if not datas:
+            return
+        self.n_published += len(datas)
+        local = False
+        if self.bus is not None:
+            local = bool(self.bus.callbacks.get(self.topic))
+            if local:
+                self.bus.post_block(self.topic, datas, self.graph_id)
+        if not local or self._dds_readers():
+            self._publish_dds(datas)
+
+    def _publish_dds(self, datas) -> None:
         try:
-            # over DDS when a reader elsewhere is matched -- and always when nobody in this
-            # process reads the topic, so the writer's transient-local history keeps it for
-            # a reader that matches late
-            if not local or self._dds_readers():
+            for data in datas:
                 self._publish(data)
         except Exception:
             import rclpy
@@ -230,9 +281,19 @@ class RawSubscription:
     commands are refused by their mark, in the callback) keeps its loop's deadline so."""
 
     def __init__(
-        self, node, msg_cls, topic: str, callback: Callable[[bytes], None], qos, drain: int = 0
+        self,
+        node,
+        msg_cls,
+        topic: str,
+        callback: Callable[[bytes], None],
+        qos,
+        drain: int = 0,
+        block_callback: Callable[[list[bytes]], None] | None = None,
     ):
         self.node = node
+        # takes a block of messages of one publisher of this process in one call (else
+        # they come one by one); not graph-filtered: used for this graph's publishers only
+        self.block_callback = block_callback
         self.msg_cls = msg_cls
         self.qos = qos
         self.topic = node.resolve_topic_name(topic)
@@ -257,6 +318,14 @@ class RawSubscription:
         if self.graph_id in (0, publisher_graph_id):
             return self.raw_callback
         return self.callback
+
+    def local_block_callback(self, publisher_graph_id: int):
+        """The block callback for a publisher of this process with that graph id (None:
+        none, or another graph's publisher, whose messages go one by one through the
+        filter)."""
+        if self.block_callback is not None and self.graph_id in (0, publisher_graph_id):
+            return self.block_callback
+        return None
 
     def _drained(self, data: bytes) -> None:
         self.callback(data)
