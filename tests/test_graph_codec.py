@@ -145,3 +145,25 @@ def test_rows_survive_messages_bit_for_bit():
         assert (
             reason == {0: "", 7: "position estimate not finite", 37: "fault 37"}[int(co[CO_FAULT])]
         )
+
+
+def test_estimate_blocks_pack_the_same_bytes_as_one_by_one():
+    """A shadow's block of estimates packed in one numpy pass gives the very messages
+    `pack` gives row by row -- also with NaN, signed zeros, huge values and stamps across
+    a second boundary."""
+    from fluxdrive.drive.observers import ES_N, ES_VALID
+    from fluxdrive_ros.wire import EstimateWire, Stamp
+
+    rng = np.random.default_rng(7)
+    stamp = Stamp(1e-4)
+    seqs = np.arange(99_990, 100_050)
+    n = len(seqs)
+    es = rng.normal(size=(n, ES_N)) * 10.0 ** rng.integers(-8, 8, size=(n, ES_N))
+    es[3, :] = np.nan
+    es[4, :] = -0.0
+    es[5, :] = 1e300
+    es[:, ES_VALID] = rng.integers(0, 2, n)
+    ew = EstimateWire("emf_measured", "f", graph_id=12345)
+    ks = [int(k) for k in seqs]
+    block = ew.pack_block(es, seqs, stamp.ns_block(seqs))
+    assert block == [ew.pack(es[i], k, *stamp(k)) for i, k in enumerate(ks)]

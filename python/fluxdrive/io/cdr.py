@@ -236,6 +236,7 @@ class Codec:
         self._num_get = _tuple_getter(self._num_idx)
         self._chk_get = _tuple_getter([i for i, _ in self._len_checks])
         self._chk_vals = tuple(c for _, c in self._len_checks)
+        self._np_dtypes: dict[int, Any] = {}  # numpy_dtype by item size
         self._build_pack()
 
     def _build_pack(self) -> None:
@@ -259,7 +260,15 @@ class Codec:
     def numpy_dtype(self, itemsize: int | None = None):
         """A numpy structured dtype over whole messages of this layout (field names =
         positions f0, f1, ... in `fields` order): np.frombuffer(b"".join(msgs), dtype).
-        `itemsize`: the messages' length when it exceeds `size` (trailing padding)."""
+        `itemsize`: the messages' length when it exceeds `size` (trailing padding).
+        Built once per item size (a shadow observer asks for it at every block)."""
+        key = itemsize or self.size
+        dt = self._np_dtypes.get(key)
+        if dt is None:
+            dt = self._np_dtypes[key] = self._numpy_dtype(key)
+        return dt
+
+    def _numpy_dtype(self, itemsize: int):
         import numpy as np
 
         np_codes = {
@@ -280,7 +289,7 @@ class Codec:
                 "names": [f"f{j}" for j in range(len(self.fields))],
                 "formats": [np_codes[c] for c in self.codes],
                 "offsets": self.offsets,
-                "itemsize": itemsize or self.size,
+                "itemsize": itemsize,
             }
         )
 
