@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import literally, njit
 
 from fluxdrive.core.bench import BenchConfig
 from fluxdrive.core.blocks import pwl, rng_normal, sign
@@ -613,12 +613,17 @@ def _mechanics(st, mp, wm, thm0, te, tl):
 
 
 @njit(cache=True)
-def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out, cap_t, cap_s, cap_n):
+def _period(st, mp, da, db, dc, enabled, t_load, ev, vs_out, cap_t, cap_s, cap_n, effects):
     """Integrate [t_k, t_k + Ts] at switching level.  Writes the line volt-seconds
     (real and ideal-level) into vs_out[0:6], the phase currents at the skewed sampling
     instants into vs_out[6:9] and the switching-noise rms into vs_out[9:12]; records
-    line-level edges for the capture model (cap_*);
-    updates currents, speed, angle, winding temperature."""
+    line-level edges for the capture model (cap_*); updates currents, speed, angle, winding
+    temperature.  `effects` is a constant at the call (numba compiles one variant per
+    value): False leaves out the bench-effect branches (flux-state circuit, C_oss
+    commutation, switching noise), which must all be off in `mp`; each is written
+    `if effects and ...`, a branch on the argument itself, which numba prunes before it
+    compiles (and inlines) the branch's helpers."""
+    literally(effects)
     ts = mp[MP_TS]
     td = mp[MP_TD]
     vdc = mp[MP_VDC]
@@ -654,13 +659,14 @@ def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out, cap_t, cap
     circ_on = mp[MP_CIRC_ON] > 0.0
     psa = 0.0
     psb = 0.0
-    if circ_on:
+    if effects and circ_on:
         psa, psb = _circuit_flux(mp, ia, ib, p * thm0, lind)
     coss = mp[MP_COSS]
-    if mp[MP_SWN_A] > 0.0:
+    if effects and mp[MP_SWN_A] > 0.0:
         _switching_noise_rms(mp, vs_out, enabled, ia, ib, t1a, t2a, t1b, t2b, t1c, t2c)
-    for j in range(6):
-        vs_out[j] = 0.0
+    # line volt-seconds, real (v_*) and ideal-level (q_*), in registers: stores into vs_out
+    # would be reloaded after every store the compiler cannot prove apart (cap_t, st)
+    v_ab = v_bc = v_ca = q_ab = q_bc = q_ca = 0.0
     te_int = 0.0
     i2_int = 0.0
     if cap_on:
@@ -699,16 +705,16 @@ def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out, cap_t, cap
                 vb0 = pb + 0.5 * vdc
                 vc0 = pc + 0.5 * vdc
                 if max(pa, pb, pc) - min(pa, pb, pc) < vdc:
-                    vs_out[0] += (va0 - vb0) * hs  # the capture sees the same levels
-                    vs_out[1] += (vb0 - vc0) * hs
-                    vs_out[2] += (vc0 - va0) * hs
-                    vs_out[3] += (va0 - vb0) * hs
-                    vs_out[4] += (vb0 - vc0) * hs
-                    vs_out[5] += (vc0 - va0) * hs
+                    v_ab += (va0 - vb0) * hs  # the capture sees the same levels
+                    v_bc += (vb0 - vc0) * hs
+                    v_ca += (vc0 - va0) * hs
+                    q_ab += (va0 - vb0) * hs
+                    q_bc += (vb0 - vc0) * hs
+                    q_ca += (vc0 - va0) * hs
                     continue
                 zero_lock = False
             iph_a, iph_b, iph_c = inv_clarke(ia, ib)
-            if coss > 0.0 and enabled:
+            if effects and coss > 0.0 and enabled:
                 u0 = ta + u * hs
                 va0, qa = _leg_voltage_coss(sa, iph_a, vdc, vdev, u0, hs, t1a, t2a, td, coss)
                 vb0, qb = _leg_voltage_coss(sb, iph_b, vdc, vdev, u0, hs, t1b, t2b, td, coss)
@@ -723,7 +729,7 @@ def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out, cap_t, cap
                 _cap_track(cap_t, cap_s, cap_n, 1, t_sub, qb - qc, vdc)
                 _cap_track(cap_t, cap_s, cap_n, 2, t_sub, qc - qa, vdc)
             va, vb = clarke(va0, vb0, vc0)
-            if circ_on:  # flux-state circuit: saturation / asymmetry (midpoint steps)
+            if effects and circ_on:  # flux-state circuit: saturation / asymmetry (midpoint steps)
                 psa, psb, ia_n, ib_n, xma, xmb, ima, imb = _circuit_step(
                     mp, psa, psb, ia, ib, va, vb, ea, eb, r, hs, th, lind
                 )
@@ -751,12 +757,18 @@ def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out, cap_t, cap
             ia = ia_n
             ib = ib_n
             # line volt-seconds: real leg voltages, and the ideal levels the capture sees
-            vs_out[0] += (va0 - vb0) * hs
-            vs_out[1] += (vb0 - vc0) * hs
-            vs_out[2] += (vc0 - va0) * hs
-            vs_out[3] += (qa - qb) * hs
-            vs_out[4] += (qb - qc) * hs
-            vs_out[5] += (qc - qa) * hs
+            v_ab += (va0 - vb0) * hs
+            v_bc += (vb0 - vc0) * hs
+            v_ca += (vc0 - va0) * hs
+            q_ab += (qa - qb) * hs
+            q_bc += (qb - qc) * hs
+            q_ca += (qc - qa) * hs
+    vs_out[0] = v_ab
+    vs_out[1] = v_bc
+    vs_out[2] = v_ca
+    vs_out[3] = q_ab
+    vs_out[4] = q_bc
+    vs_out[5] = q_ca
     if skew_on:
         for j in range(3):
             if mp[MP_SKEW_A + j] == 0.0:
@@ -769,6 +781,22 @@ def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out, cap_t, cap
     st[PS_IB] = ib
     st[PS_TE] = te
     st[PS_TL] = t_load
+
+
+@njit(cache=True)
+def _effects_on(mp):
+    """Is any bench effect on that `_period(..., False)` leaves out?"""
+    return mp[MP_CIRC_ON] > 0.0 or mp[MP_COSS] > 0.0 or mp[MP_SWN_A] > 0.0
+
+
+@njit(cache=True)
+def _simulate_period(st, mp, da, db, dc, enabled, t_load, ev, vs_out, cap_t, cap_s, cap_n):
+    """`_period` in the variant `mp` needs, chosen per period (one branch): the effect
+    branches, loop-invariant as they are, slow the sub-step loop of a machine without them."""
+    if _effects_on(mp):
+        _period(st, mp, da, db, dc, enabled, t_load, ev, vs_out, cap_t, cap_s, cap_n, True)
+    else:
+        _period(st, mp, da, db, dc, enabled, t_load, ev, vs_out, cap_t, cap_s, cap_n, False)
 
 
 @njit(cache=True)
