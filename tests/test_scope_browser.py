@@ -153,7 +153,14 @@ def test_scope_page_in_chromium(tmp_path):
             with page.expect_download() as dl:
                 page.click("#csv")
             rows = list(csv.reader(io.StringIO(Path(dl.value.path()).read_text())))
-            assert rows[0][0] == "t_s" and "iabc:i_a:min" in rows[0] and len(rows) > 20
+            view = page.evaluate(
+                """() => { const u = window.scopeDebug.chart("idq"), x = u.data[0];
+                   return [u.scales.x.min, u.scales.x.max, x.length, x[0], x[x.length - 1],
+                           window.scopeDebug.zoom(), window.scopeDebug.dragView(),
+                           document.getElementById("pause").checked, window.scopeStats.simT,
+                           window.scopeDebug.timing()]; }"""
+            )
+            assert rows[0][0] == "t_s" and "iabc:i_a:min" in rows[0] and len(rows) > 20, view
             col = rows[0].index("idq:i_q:max")
             assert sum(1 for r in rows[1:] if r[col] != "") > 10
             with page.expect_download() as dl:

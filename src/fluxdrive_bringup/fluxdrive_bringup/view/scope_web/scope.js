@@ -17,6 +17,8 @@ window.scopeDebug = {        // non-null envelope points per stream:field (the b
   },
   chart: (id) => { const c = charts.find((x) => x.def.id === id); return c ? c.u : null; },
   zoom: () => zoom,
+  dragView: () => dragView,
+  timing: () => ({ tShow, simRate, arrInt, lastFrameWall, errors: stats.errors || 0, redraws: stats.redraws }),
   cursors: () => ({ ...cursors }),
   spectrum: () => spectrum,
   markers: () => markers,
@@ -203,16 +205,33 @@ function yRange(u, dmin, dmax) {
   for (let s = 1; s < u.data.length; s++) {
     if (!u.series[s].show) continue;
     const ys = u.data[s];
-    for (let i = 0; i < xs.length; i++) if (xs[i] >= x0 && xs[i] <= x1 && ys[i] !== null) vals.push(ys[i]);
+    for (let i = 0; i < xs.length; i++) {
+      if (xs[i] >= x0 && xs[i] <= x1 && Number.isFinite(ys[i])) vals.push(ys[i]);
+    }
   }
-  if (!vals.length) return [dmin ?? -1, dmax ?? 1];
+  if (!vals.length) return paddedRange(dmin ?? -1, dmax ?? 1);
   vals.sort((a, b) => a - b);
   const q = (p) => vals[Math.min(vals.length - 1, Math.max(0, Math.round(p * (vals.length - 1))))];
-  let [lo, hi] = $("robust").checked ? [q(0.01), q(0.99)] : [vals[0], vals[vals.length - 1]];
-  if (hi - lo < 1e-9 * Math.max(1, Math.abs(hi))) { lo -= 0.5; hi += 0.5; }
+  const [lo, hi] = $("robust").checked ? [q(0.01), q(0.99)] : [vals[0], vals[vals.length - 1]];
+  return paddedRange(lo, hi);
+}
+
+// [lo, hi] widened to a span uPlot can draw: its axis splits step from lo to hi, and on an
+// empty, non-finite or round-off-sized span they never arrive ("Invalid array length")
+function paddedRange(lo, hi) {
+  if (!Number.isFinite(lo) || !Number.isFinite(hi)) [lo, hi] = [-1, 1];
+  const least = 1e-6 * Math.max(1, Math.abs(lo), Math.abs(hi));
+  if (!(hi - lo >= least)) {
+    const c = (lo + hi) / 2, w = Math.max(0.5, least);
+    [lo, hi] = [c - w, c + w];
+  }
   const m = 0.08 * (hi - lo);
   return [lo - m, hi + m];
 }
+
+// a time span the x axis can show: finite and wider than round-off at its times
+const drawableSpan = (t0, t1) =>
+  Number.isFinite(t0) && Number.isFinite(t1) && t1 - t0 > 1e-9 * Math.max(1, Math.abs(t0), Math.abs(t1));
 
 // cursor lines (A, B) and parameter-change markers on every time chart
 function drawOverlay(u) {
@@ -269,7 +288,9 @@ function updateReadouts() {
 }
 
 function zoomTo(range) {
+  if (range && !drawableSpan(range[0], range[1])) return;  // a click, not a span
   zoom = range;
+  dragView = null;
   if (range && !paused()) { $("pause").checked = true; zoomPaused = true; }
   if (!range && zoomPaused) { $("pause").checked = false; zoomPaused = false; }
   $("zoomstate").textContent = range ? `zoom ${fmtR(range[0])}…${fmtR(range[1])} s (double-click: back)` : "";
@@ -307,7 +328,7 @@ function buildCharts() {
         points: { show: true, size: 6, fill: COLORS[i % COLORS.length] } }))];
       const u = new uPlot({
         width, height: 170, legend: { show: false },
-        scales: { x: { time: false, range: [0.4, 20.6] }, y: { range: (u, mn, mx) => [0, Math.max(mx, 1e-9) * 1.1] } },
+        scales: { x: { time: false, range: [0.4, 20.6] }, y: { range: (u, mn, mx) => [0, (Number.isFinite(mx) ? Math.max(mx, 1e-9) : 1) * 1.1] } },
         axes: [{ size: 28, splits: () => Array.from({ length: 20 }, (_, k) => k + 1) }, { size: 52 }],
         series,
       }, [[], ...observers.map(() => [])], el);
@@ -362,7 +383,8 @@ function buildCharts() {
     u.over.addEventListener("dblclick", () => zoomTo(null));
     u.over.addEventListener("mousedown", () => {
       dragChart = u;
-      if (!zoom) dragView = [u.scales.x.min, u.scales.x.max];
+      const [t0, t1] = [u.scales.x.min, u.scales.x.max];
+      if (!zoom && drawableSpan(t0, t1)) dragView = [t0, t1];
     });
     charts.push({ def, u, el });
     wireLegend(charts[charts.length - 1]);
@@ -471,16 +493,19 @@ function noteArrival() {
 
 function redraw(now) {
   const dt = lastFrameWall ? now - lastFrameWall : 0;
-  const lagMax = simRate * arrInt * 1.3;  // about one document behind the newest data
-  tShow = Math.min(stats.simT, Math.max(tShow + simRate * dt, stats.simT - lagMax));
   const win = winS();
+  // about one document behind the newest data, for a smooth scroll; but never more than
+  // half the window, which is all the page keeps: a slow page with a fast graph (documents
+  // many seconds of sim time apart) jumps instead of showing times it holds no data for
+  const lagMax = Math.min(simRate * arrInt * 1.3, 0.5 * win);
+  tShow = Math.min(stats.simT, Math.max(tShow + simRate * dt, stats.simT - lagMax));
   const [x0, x1] = zoom || dragView || [tShow - win, tShow];
   for (const ch of charts) {
     if (ch.def.kind === "spectrum") continue;
     if (ch.u) {
       ch.u.batch(() => {
         if (dataDirty) ch.u.setData(chartData(ch.def, ch.el.clientWidth), false);
-        ch.u.setScale("x", { min: x0, max: x1 });
+        if (drawableSpan(x0, x1)) ch.u.setScale("x", { min: x0, max: x1 });
       });
     } else if (dataDirty) drawLocus(ch);
   }
@@ -494,7 +519,9 @@ function resize() {
   dirty = true;
 }
 window.addEventListener("resize", resize);
-window.addEventListener("mouseup", () => setTimeout(() => { dragView = null; dragChart = null; }, 0));
+// capture phase: seen even when a chart's own handler stops the event; cleared after the
+// chart has read its selection
+window.addEventListener("mouseup", () => setTimeout(() => { dragView = null; dragChart = null; }, 0), true);
 
 function frame(now) {
   // the next frame is asked for first: an error in one chart must not stop the page
