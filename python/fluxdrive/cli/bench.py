@@ -28,19 +28,27 @@ BENCHES = {
 }
 
 
-def write_benchmark(name: str, res: dict) -> Path:
-    """results/benchmarks/<name>.json (the file the docs quote), with when it was measured
-    and how loaded the machine was."""
+def benchmark_path(name: str) -> Path:
+    """results/benchmarks/<name>.json: the file the docs quote."""
     from fluxdrive.core.paths import ROOT
 
-    path = ROOT / "results" / "benchmarks" / f"{name}.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    doc = {
+    return ROOT / "results" / "benchmarks" / f"{name}.json"
+
+
+def stamped(res: dict) -> dict:
+    """`res` with when it was measured and how loaded the machine was."""
+    return {
         **res,
         "measured": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "load_average_1min_at_end": round(os.getloadavg()[0], 2),
     }
-    path.write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n")
+
+
+def write_benchmark(name: str, res: dict) -> Path:
+    """results/benchmarks/<name>.json (the file the docs quote), stamped."""
+    path = benchmark_path(name)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(stamped(res), indent=1, sort_keys=True) + "\n")
     print(f"[bench] wrote {path}", file=sys.stderr)
     return path
 

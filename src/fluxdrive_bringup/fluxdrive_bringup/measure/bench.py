@@ -44,7 +44,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from fluxdrive.drive.scenario import REPO_ROOT, load_scenario, scenario_path
+from fluxdrive.cli.bench import benchmark_path, stamped, write_benchmark
+from fluxdrive.drive.scenario import load_scenario, scenario_path
 
 
 def _say(text: str) -> None:
@@ -88,7 +89,7 @@ def bench_graph(argv: list[str]) -> dict:
     if args.closed_loop:
         res.update(closed_loop_cpu(sp, args.duration, args.domain_id, sc.machine.ts_s))
     if args.write:
-        write_result("graph", res)
+        write_benchmark("graph", res)
     return res
 
 
@@ -338,22 +339,6 @@ def closed_loop_cpu(sp: Path, duration_s: float, domain_id: int | None, ts_s: fl
         return {"closed_loop_cpu_us_per_period": round(us, 1)}
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-
-
-def write_result(name: str, res: dict) -> None:
-    """results/benchmarks/<name>.json (the file the docs quote), with when it was measured
-    and how loaded the machine was."""
-    import os
-
-    path = REPO_ROOT / "results" / "benchmarks" / f"{name}.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    doc = {
-        **res,
-        "measured": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-        "load_average_1min_at_end": round(os.getloadavg()[0], 2),
-    }
-    path.write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n")
-    _say(f"written {path}")
 
 
 class CpuWatcher:
@@ -712,15 +697,9 @@ def _paced_result(args, sp: Path, r: dict, p: dict, text: str) -> dict:
 def _write_paced(label: str, res: dict) -> None:
     """Merge one run into results/benchmarks/paced.json under `label` (the file the docs
     quote), with when and how loaded the machine was."""
-    import os
-
-    path = REPO_ROOT / "results" / "benchmarks" / "paced.json"
+    path = benchmark_path("paced")
     doc = json.loads(path.read_text()) if path.exists() else {}
-    doc[label] = {
-        **res,
-        "measured": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-        "load_average_1min_at_end": round(os.getloadavg()[0], 2),
-    }
+    doc[label] = stamped(res)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n")
     _say(f"written {path} [{label}]")
