@@ -10,6 +10,7 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -127,13 +128,12 @@ def bench_experiments(argv: list[str]) -> dict:
     return out
 
 
-def bench_engine(argv: list[str]) -> dict:
-    """Closed loop in-process: switching-level plant + driving observer + one shadow + FOC,
-    on the shipped scenario's non-ideal bench and on the ideal bench (runs alternate, so
-    both see the same machine load; best of 3 each)."""
+def _engine_cases() -> tuple[Path, Any, Any]:
+    """The engine benchmark's cases: the shipped 2 %/150 % scenario with the driving flux
+    observer and one shadow (EMF, commanded voltages) on its non-ideal bench (the paper
+    bench) and on the ideal bench.  Returns (scenario file, paper case, ideal case)."""
     from fluxdrive.drive.observers import observer_config
     from fluxdrive.drive.scenario import CONFIG_DIR, load_scenario
-    from fluxdrive.drive.sim import run_scenario
 
     path = CONFIG_DIR / "scenarios" / "paper_2pct_150load.yaml"
     sc = load_scenario(path)
@@ -148,7 +148,16 @@ def bench_engine(argv: list[str]) -> dict:
         "flux_measured": ideal.observers["flux_measured"],
         "emf_commanded": observer_config("emf", voltage_source="commanded"),
     }
-    print("[bench] compiling / warming up ...", file=sys.stderr)
+    return path, sc, ideal
+
+
+def _engine_warm(path: Path, sc: Any, ideal: Any) -> float:
+    """Compile (or load from the cache) every kernel of both cases with a 50 ms run of
+    each; returns the wall seconds that took."""
+    from fluxdrive.drive.scenario import load_scenario
+    from fluxdrive.drive.sim import run_scenario
+
+    t0 = time.perf_counter()
     for base in (sc, ideal):
         warm = load_scenario(
             path,
@@ -160,31 +169,236 @@ def bench_engine(argv: list[str]) -> dict:
         )
         warm.observers = base.observers
         run_scenario(warm, progress=False)
-    best = {"bench": 0.0, "ideal": 0.0}
-    for rep in range(3):
-        for key, case in (("bench", sc), ("ideal", ideal)):
-            t0 = time.perf_counter()
+    return time.perf_counter() - t0
+
+
+def engine_runs(reps: int = 3) -> dict:
+    """The engine benchmark in this interpreter, on whichever `fluxdrive` it imports: warm
+    up, then `reps` runs of each case, alternating (so both see the same machine load).
+    Returns the best periods per wall second and per process-CPU second of each case
+    ("paper_bench", "ideal_bench"), the warm-up's wall seconds and the engine's folder."""
+    import fluxdrive
+    from fluxdrive.drive.sim import run_scenario
+
+    path, sc, ideal = _engine_cases()
+    print("[bench] compiling / warming up ...", file=sys.stderr)
+    warm_s = _engine_warm(path, sc, ideal)
+    wall = {"paper_bench": 0.0, "ideal_bench": 0.0}
+    cpu = dict(wall)
+    for rep in range(reps):
+        for key, case in (("paper_bench", sc), ("ideal_bench", ideal)):
+            t0, c0 = time.perf_counter(), time.process_time()
             res = run_scenario(case, progress=False)
-            dt = time.perf_counter() - t0
+            dt, dc = time.perf_counter() - t0, time.process_time() - c0
             rate = case.n_periods / dt
             print(
-                f"[bench] run {rep + 1}/3 ({key} bench): {case.n_periods} periods in "
-                f"{dt:.3f} s = {rate / 1e3:.0f} k periods/s, {case.duration_s / dt:.1f}x real "
-                f"time",
+                f"[bench] run {rep + 1}/{reps} ({key.replace('_', ' ')}): {case.n_periods} "
+                f"periods in {dt:.3f} s = {rate / 1e3:.0f} k periods/s, "
+                f"{case.duration_s / dt:.1f}x real time ({case.n_periods / dc / 1e3:.0f} k "
+                f"per CPU second)",
                 file=sys.stderr,
             )
-            best[key] = max(best[key], rate)
+            wall[key] = max(wall[key], rate)
+            cpu[key] = max(cpu[key], case.n_periods / dc)
             del res
-    ts = sc.machine.ts_s
     return {
-        "periods_per_s": round(best["bench"]),
-        "real_time_factor": round(best["bench"] * ts, 2),
-        "ideal_bench_periods_per_s": round(best["ideal"]),
-        "ideal_bench_real_time_factor": round(best["ideal"] * ts, 2),
+        "periods_per_wall_s": wall,
+        "periods_per_cpu_s": cpu,
+        "warm_s": round(warm_s, 2),
+        "ts_s": sc.machine.ts_s,
+        "scenario": sc.name,
+        "engine": str(Path(fluxdrive.__file__).resolve().parent),
+    }
+
+
+def bench_engine(argv: list[str]) -> dict:
+    """Closed loop in-process: switching-level plant + driving observer + one shadow + FOC,
+    on the shipped scenario's non-ideal bench and on the ideal bench (runs alternate, so
+    both see the same machine load; best of 3 each).  `--against REF`: this checkout's
+    engine against commit REF's, measured alternately in fresh interpreters
+    (`bench_engine_against`)."""
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="fluxdrive benchmark engine")
+    ap.add_argument("--against", metavar="REF", help="a commit to measure this engine against")
+    ap.add_argument("--rounds", type=int, default=3, help="--against: rounds (default 3)")
+    ap.add_argument(
+        "--write",
+        action="store_true",
+        help="--against: write results/benchmarks/engine_against.json",
+    )
+    args = ap.parse_args(argv)
+    if args.against is not None:
+        return bench_engine_against(args.against, args.rounds, args.write)
+    if args.write or args.rounds != 3:
+        raise SystemExit("benchmark engine: --rounds and --write go with --against REF")
+    runs = engine_runs(3)
+    best, ts = runs["periods_per_wall_s"], runs["ts_s"]
+    return {
+        "periods_per_s": round(best["paper_bench"]),
+        "real_time_factor": round(best["paper_bench"] * ts, 2),
+        "ideal_bench_periods_per_s": round(best["ideal_bench"]),
+        "ideal_bench_real_time_factor": round(best["ideal_bench"] * ts, 2),
         "observers": 2,
         "plant": "switching-level",
-        "scenario": sc.name,
+        "scenario": runs["scenario"],
     }
+
+
+# a child of `bench_engine_against`: the engine of the tree whose python/ it puts first on
+# sys.path, measured by this file's `engine_runs`, loaded by its path (not as a module of that
+# engine), so both engines are measured by the same code
+_CHILD = (
+    "import json, runpy, sys\n"
+    "sys.path.insert(0, sys.argv[1])\n"
+    "runs = runpy.run_path(sys.argv[2])['engine_runs'](int(sys.argv[3]))\n"
+    "print(json.dumps(runs))\n"
+)
+RUNS_PER_ROUND = 3
+
+
+def _ref_commit(ref: str, root: Path) -> str:
+    """The full hash of commit `ref` of the checkout at `root`, which must hold the
+    in-process engine; else SystemExit with one line."""
+    import subprocess
+
+    bad = f"benchmark engine: --against {ref}:"
+    if not ref or ref.startswith("-"):
+        raise SystemExit(f"{bad} not a commit name")
+    try:
+        sha = subprocess.run(
+            ["git", "rev-parse", "--verify", "--quiet", f"{ref}^{{commit}}"],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            timeout=30,
+        ).stdout.strip()
+        has_engine = (
+            sha
+            and not subprocess.run(
+                ["git", "cat-file", "-e", f"{sha}:python/fluxdrive/drive/sim.py"],
+                cwd=root,
+                capture_output=True,
+                timeout=30,
+            ).returncode
+        )
+    except (OSError, subprocess.SubprocessError) as exc:
+        raise SystemExit(f"{bad} git could not read the checkout {root}: {exc}") from None
+    if not sha:
+        raise SystemExit(f"{bad} no such commit in the checkout {root}")
+    if not has_engine:
+        raise SystemExit(f"{bad} commit {sha[:10]} has no python/fluxdrive/drive/sim.py")
+    return sha
+
+
+def _export_commit(sha: str, root: Path, dest: Path) -> None:
+    """The tree of commit `sha` (git archive) into the folder `dest`."""
+    import io
+    import subprocess
+    import tarfile
+
+    tar = subprocess.run(["git", "archive", "--format=tar", sha], cwd=root, capture_output=True)
+    if tar.returncode:
+        msg = tar.stderr.decode(errors="replace").strip().splitlines()
+        raise SystemExit(f"benchmark engine: git archive {sha[:10]} failed: {msg[-1:]}")
+    with tarfile.open(fileobj=io.BytesIO(tar.stdout)) as tf:
+        tf.extractall(dest, filter="data")
+
+
+def _engine_child(side: str, tree: Path, cache: Path) -> dict:
+    """`engine_runs` in a fresh interpreter of this venv on the engine of checkout `tree`
+    (its python/ first on sys.path, its config, numba cache folder `cache`)."""
+    import subprocess
+
+    env = {**os.environ, "FLUXDRIVE_ROOT": str(tree), "NUMBA_CACHE_DIR": str(cache)}
+    args = [sys.executable, "-c", _CHILD, str(tree / "python"), __file__, str(RUNS_PER_ROUND)]
+    r = subprocess.run(args, cwd=tree, env=env, capture_output=True, text=True)
+    for line in r.stderr.splitlines():
+        if line.startswith("[bench] run "):
+            print(f"[bench]   {side:8s} {line[len('[bench] ') :]}", file=sys.stderr)
+    if r.returncode:
+        last = (r.stderr.strip().splitlines() or [f"exit {r.returncode}"])[-1]
+        raise SystemExit(f"benchmark engine: the {side} engine ({tree}) failed: {last}")
+    runs = json.loads(r.stdout.strip().splitlines()[-1])
+    if Path(runs["engine"]) != (tree / "python" / "fluxdrive").resolve():
+        raise SystemExit(f"benchmark engine: the {side} child ran the engine {runs['engine']}")
+    return runs
+
+
+def bench_engine_against(ref: str, rounds: int, write: bool) -> dict:
+    """This checkout's engine against commit REF's (exported with git archive into a
+    temporary folder): round by round, each engine in a fresh interpreter of this venv,
+    measured by the same code (`engine_runs`, best of RUNS_PER_ROUND a round), in
+    alternating order; each with a numba cache of its own, new (so the first round's
+    warm-up is a cold compile).  Ratios are this engine's best rate over REF's."""
+    import tempfile
+
+    from fluxdrive.core.paths import ROOT
+
+    if rounds < 1:
+        raise SystemExit(f"benchmark engine: --rounds {rounds}: at least 1")
+    sha = _ref_commit(ref, ROOT)
+    rows: dict[str, list[dict]] = {"ref": [], "checkout": []}
+    loads = []
+    with tempfile.TemporaryDirectory(prefix="fluxdrive-against-") as tmp:
+        tree = Path(tmp) / "tree"
+        _export_commit(sha, ROOT, tree)
+        where = {"ref": tree, "checkout": ROOT}
+        for r in range(rounds):
+            loads.append(round(os.getloadavg()[0], 2))
+            for side in ("ref", "checkout") if r % 2 == 0 else ("checkout", "ref"):
+                print(f"[bench] round {r + 1}/{rounds}: {side} ({loads[-1]} load)", file=sys.stderr)
+                rows[side].append(_engine_child(side, where[side], Path(tmp) / f"numba-{side}"))
+    out = _against_summary(rows)
+    out.update(
+        against=ref,
+        against_commit=sha[:10],
+        commit=_checkout_commit(),
+        rounds=rounds,
+        runs_per_round=RUNS_PER_ROUND,
+        scenario=rows["ref"][0]["scenario"],
+        load_average_1min_per_round=loads,
+        clock="best rate of each engine over all rounds; CPU: the child process's own",
+    )
+    if write:
+        write_benchmark("engine_against", out)
+    return out
+
+
+def _checkout_commit() -> str:
+    from fluxdrive.study.cli import _commit
+
+    return _commit()
+
+
+def _against_summary(rows: dict[str, list[dict]]) -> dict:
+    """Per bench and clock: each engine's best periods per second over the rounds and the
+    ratio checkout / REF; the per-round ratios (CPU); the warm-up seconds per round.
+    Prints the table."""
+    out: dict[str, Any] = {}
+    print(
+        f"[bench] {'':12s} {'clock':5s} {'REF k/s':>9s} {'this k/s':>9s} {'ratio':>7s}",
+        file=sys.stderr,
+    )
+    for key in ("paper_bench", "ideal_bench"):
+        for clock in ("cpu", "wall"):
+            field = f"periods_per_{clock}_s"
+            ref = max(r[field][key] for r in rows["ref"])
+            new = max(r[field][key] for r in rows["checkout"])
+            out[f"{key}_ratio_per_{clock}_s"] = round(new / ref, 4)
+            out[f"{key}_ref_periods_per_{clock}_s"] = round(ref)
+            out[f"{key}_periods_per_{clock}_s"] = round(new)
+            print(
+                f"[bench] {key.replace('_', ' '):12s} {clock:5s} {ref / 1e3:9.1f} "
+                f"{new / 1e3:9.1f} {new / ref:7.4f}",
+                file=sys.stderr,
+            )
+        out[f"{key}_round_ratios_per_cpu_s"] = [
+            round(c["periods_per_cpu_s"][key] / r["periods_per_cpu_s"][key], 4)
+            for r, c in zip(rows["ref"], rows["checkout"], strict=True)
+        ]
+    out["warm_s"] = {side: [r["warm_s"] for r in rows[side]] for side in rows}
+    return out
 
 
 EXAMPLE_PLUGIN = "my_observer.flux_pll:FluxPllObserver"
