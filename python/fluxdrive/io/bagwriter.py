@@ -22,6 +22,11 @@ fsync), the file lacks only its summary and the open chunk: `./fluxdrive bag rec
 (fluxdrive.io.bagrecover) rebuilds a valid bag from the complete chunks.  While the
 bag is open, RECORDING_FILE in the bag directory keeps what metadata.yaml would get at the
 end (custom_data), for the recovery; it is removed once the bag is finalised.
+What such a kill loses is bounded in bytes by the path a message takes: the recorder's
+backlog (its `max_backlog_mb`; its callbacks wait beyond it) and the batch its feeder has
+taken off it and waits to write (at most as much again), the pipe (PIPE_BYTES of
+fluxdrive.cli.bagwriter), this side's read not yet in the bag (READ_BYTES) and the open chunk
+(fluxdrive.io.mcapfile.CHUNK_BYTES).
 
 A failing write (disk full, file too large, I/O error) stops the recording: "error
 <reason>" on stdout (the recorder logs it), the file is closed without its summary (its
@@ -59,6 +64,7 @@ _HEAD = np.dtype([("id", "<u2"), ("t", "<i8"), ("n", "<u4")])  # a message recor
 _HEAD_BYTES = np.arange(1, _MSG_HEAD)  # after the b"M"
 _M = ord("M")
 U32 = struct.Struct("<I")
+READ_BYTES = 1 << 20  # the most one read of the input takes (then handed to the bag at once)
 RECORDING_FILE = "recording.json"  # in the bag directory while the bag is being written
 EXIT_WRITE_FAILED = 3
 
@@ -134,7 +140,7 @@ class _BagStream:
         waits for the next one, one cut by EOF is dropped."""
         buf = b""
         while True:
-            block = self.read(1 << 20)
+            block = self.read(READ_BYTES)
             if not block:
                 return
             buf = buf + block if buf else block
