@@ -140,3 +140,24 @@ def test_security_enforced_without_a_keystore_is_one_line(cmd, tmp_path):
     line = _one_line(r)
     assert "ROS_SECURITY_KEYSTORE is not set" in line and "Enforce" in line, line
     assert not (tmp_path / "bag").exists()
+
+
+# an option ranged by a schema field (fluxdrive.core.schema.option): outside its range, one
+# line naming the option and the range, exit 2, before anything starts
+OUT_OF_RANGE = [
+    (["benchmark", "paced", "--rate", "0"], "--rate", "[0.001, 10.0]"),
+    (["benchmark", "paced", "--watchdog-s", "1e9"], "--watchdog-s", "[0.001, 3600.0]"),
+    (["tune", "--rate", "11"], "--rate", "[0.001, 10.0]"),
+    (["compare", "emf", "--settle-s", "-1"], "--settle-s", "[0.0, 60.0]"),
+    (["compare", "emf", "--window-s", "nan"], "--window-s", "[0.05, 60.0]"),
+]
+
+
+@pytest.mark.parametrize(
+    ("cmd", "flag", "rng"), OUT_OF_RANGE, ids=[" ".join(c[0]) for c in OUT_OF_RANGE]
+)
+def test_an_option_out_of_its_schema_range_is_one_line(cmd, flag, rng):
+    r = fluxdrive(*cmd)
+    line = _one_line(r)
+    assert r.returncode == 2, (r.returncode, line)
+    assert f"{flag} must be " in line and rng in line, line

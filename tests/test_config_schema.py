@@ -145,6 +145,28 @@ def test_docs_tables_are_generated_from_the_schema():
     assert stale_tables() == []
 
 
+def test_an_option_takes_exactly_its_fields_range():
+    """`schema.option`: a command-line option declared by a field -- its default, kind and
+    range; the ends accepted, just outside refused with one line naming the option."""
+    import argparse
+
+    from fluxdrive.experiments.fronts import FrontWindow
+
+    ap = argparse.ArgumentParser()
+    for flag in ("--settle-s", "--window-s"):
+        schema.option(ap, flag, FrontWindow)
+    assert vars(ap.parse_args([])) == {"settle_s": 0.7, "window_s": 1.0}
+    for name, (lo, hi) in schema.ranges(FrontWindow).items():
+        flag = "--" + name.replace("_", "-")
+        for ok in (lo, hi):
+            assert getattr(ap.parse_args([f"{flag}={ok!r}"]), name) == ok
+        for bad in (lo - 1e-6, hi + 1e-6):
+            with pytest.raises(ConfigError) as err:
+                ap.parse_args([f"{flag}={bad!r}"])
+            assert str(err.value).startswith(f"{flag} must be a number in [{lo}, {hi}]"), err
+    assert "[s]; range [0.05, 60]" in ap.format_help().replace("\n", " ").replace("  ", " ")
+
+
 # --------------------------------------------------------------- the nodes' descriptors
 rclpy = pytest.importorskip("rclpy")
 

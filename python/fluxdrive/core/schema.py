@@ -15,11 +15,14 @@ From the fields (`specs`):
 - `ranges(cls, card, decimation)`: what is accepted, the static range narrowed by the limits
   that follow from the card or the decimation (what a ROS node declares as its descriptor
   range: `fluxdrive_ros.params`);
-- `markdown_table(cls)`: the parameter table in the docs (`./fluxdrive docs params`).
+- `markdown_table(cls)`: the parameter table in the docs (`./fluxdrive docs params`);
+- `option(ap, "--flag", cls)`: a command-line option ranged by a field (a value outside
+  the range: ConfigError naming the option, one line where the command catches it).
 """
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import math
 from collections.abc import Callable
@@ -249,3 +252,34 @@ def markdown_table(cls: Any) -> str:
         )
         rows.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
     return "\n".join(rows)
+
+
+class _Ranged(argparse.Action):
+    """Stores an option's value once its schema field accepts it; else ConfigError
+    '--flag must be ... in [lo, hi], got v' (the commands print it as one line, exit 2)."""
+
+    def __init__(self, *args: Any, spec: Spec, **kw: Any) -> None:
+        super().__init__(*args, **kw)
+        self.spec = spec
+
+    def __call__(self, parser: Any, namespace: Any, values: Any, option_string: Any = None):
+        check_value(self.spec, values, option_string or self.dest)
+        setattr(namespace, self.dest, values)
+
+
+def option(
+    ap: Any, flag: str, cls: Any, name: str | None = None, help: str | None = None, **kw: Any
+) -> argparse.Action:
+    """Add the numeric option `flag` to the argparse parser `ap`, declared by the field `name`
+    (default: the flag's, e.g. --watchdog-s -> watchdog_s) of the schema dataclass `cls`: of
+    the field's kind, its default unless `default` is given, its help (the field's doc unless
+    given) ending in unit and range, a value outside the range refused as it is parsed."""
+    name = name or flag.lstrip("-").replace("-", "_")
+    spec = specs(cls)[name]
+    if not spec.numeric:
+        raise TypeError(f"{cls.__name__}.{name}: an option takes a numeric field")
+    if "default" not in kw:
+        kw["default"] = {f.name: f.default for f in dataclasses.fields(cls)}[name]
+    unit = f" [{spec.unit}]" if spec.unit not in ("", "-") else ""
+    text = f"{help or spec.doc}{unit}; range {spec.range_text()}".replace("%", "%%")
+    return ap.add_argument(flag, type=spec.kind, action=_Ranged, spec=spec, help=text, **kw)

@@ -19,11 +19,13 @@ variants, a user's `module:Class` included, with these functions.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from fluxdrive.core.machine import MachineCard
+from fluxdrive.core.schema import param
 from fluxdrive.drive.control import ControllerConfig, design_loops
 from fluxdrive.drive.observers import observer_config
 from fluxdrive.experiments.claims import judge
@@ -279,14 +281,25 @@ def judge_fronts(fronts: dict[str, Any]) -> list[dict]:
     return claims
 
 
+@dataclass(frozen=True)
+class FrontWindow:
+    """When θ̃ is measured at each operating point (`./fluxdrive compare --settle-s
+    --window-s`)."""
+
+    settle_s: float = param(
+        0.7, unit="s", doc="settling at the operating point before θ̃ is measured", range=(0.0, 60.0)
+    )
+    window_s: float = param(1.0, unit="s", doc="θ̃ measured over this long", range=(0.05, 60.0))
+
+
 def run_fronts(
     ctx,
     families=None,
     points=None,
     sources=SOURCES,
     plugin_keys=PLUGIN_KEYS,
-    settle_s: float = 0.7,
-    window_s: float = 1.0,
+    settle_s: float = FrontWindow.settle_s,
+    window_s: float = FrontWindow.window_s,
     bench: str | None = None,
 ) -> dict[str, Any]:
     """Build, run and analyse the fronts of `families` (name -> variant) at `points`

@@ -22,8 +22,8 @@ import sys
 import time
 from pathlib import Path
 
-from fluxdrive.core import schema
 from fluxdrive.core.machine import ConfigError
+from fluxdrive.core.schema import option
 from fluxdrive.drive.scenario import REPO_ROOT, load_scenario, save_scenario, scenario_path
 from fluxdrive_ros.runner import load_class
 
@@ -108,15 +108,20 @@ def _tune_parser() -> argparse.ArgumentParser:
     ap.add_argument(
         "--load-pu", type=float, help="hold load, of rated torque, <= 1 (default: the scenario's)"
     )
-    ap.add_argument(
+    # the plant's own fields (rate_factor, watchdog_s): what it would accept, said at once
+    timing = load_class("plant").TIMING_SETTINGS
+    option(
+        ap,
         "--rate",
-        type=float,
+        timing,
+        "rate_factor",
         default=DEFAULT_RATE,
         help=f"rate_factor: simulated seconds per wall second (default {DEFAULT_RATE:g})",
     )
-    ap.add_argument(
+    option(
+        ap,
         "--watchdog-s",
-        type=float,
+        timing,
         default=DEFAULT_WATCHDOG_S,
         help="PWM off when no duty command at all came for this much wall time: the "
         f"controller is dead (default {DEFAULT_WATCHDOG_S:g}); a later one is lateness, counted",
@@ -134,10 +139,6 @@ def _prepare(args):
     """(scenario, its file, the output folder, ROS domain) of the session: the chosen
     scenario with the hold point's overrides (saved to the output folder when there are
     any). Raises ConfigError naming why the session is refused."""
-    # the plant's own fields (rate_factor, watchdog_s): what it would accept, said before start
-    timing = schema.specs(load_class("plant").TIMING_SETTINGS)
-    schema.check_value(timing["rate_factor"], args.rate, "--rate")
-    schema.check_value(timing["watchdog_s"], args.watchdog_s, "--watchdog-s")
     base = scenario_path(args.scenario)
     over, why = hold_overrides(load_scenario(base), args.speed_rpm, args.load_pu)
     if why:

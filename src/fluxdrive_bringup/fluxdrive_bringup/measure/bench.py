@@ -572,14 +572,19 @@ def bench_paced(argv: list[str]) -> dict:
 
 
 def _paced_parser() -> argparse.ArgumentParser:
+    from fluxdrive.core.schema import option
+    from fluxdrive_ros.runner import load_class
+
     from fluxdrive_bringup.launch.runs import DEMO_SCENARIO, LAYOUTS
 
     ap = argparse.ArgumentParser(prog="fluxdrive benchmark paced", description=PACED_DOC)
     ap.add_argument("--duration", type=float, default=2.0, help="simulated seconds")
     ap.add_argument("--minutes", type=float, default=0.0, help="wall minutes (0: --duration)")
-    ap.add_argument("--watchdog-s", type=float, default=1.0, help="plant's silence limit [s]")
+    # the plant's own fields (rate_factor, watchdog_s): what it would accept, said at once
+    timing = load_class("plant").TIMING_SETTINGS
+    option(ap, "--watchdog-s", timing, help="plant's silence limit (wall time)")
     ap.add_argument("--write", metavar="LABEL", help="store under LABEL in paced.json")
-    ap.add_argument("--rate", type=float, default=1.0, help="rate_factor (1: real time)")
+    option(ap, "--rate", timing, "rate_factor", help="rate_factor (1: real time)")
     ap.add_argument("--layout", choices=LAYOUTS, default="composed")
     ap.add_argument("--scenario", default=DEMO_SCENARIO)
     ap.add_argument("--domain-id", type=int)
