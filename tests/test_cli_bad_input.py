@@ -150,6 +150,9 @@ OUT_OF_RANGE = [
     (["tune", "--rate", "11"], "--rate", "[0.001, 10.0]"),
     (["compare", "emf", "--settle-s", "-1"], "--settle-s", "[0.0, 60.0]"),
     (["compare", "emf", "--window-s", "nan"], "--window-s", "[0.05, 60.0]"),
+    (["identify", "--max-current-pu", "0.9"], "--max-current-pu", "[1.0, 3.0]"),
+    (["identify", "--max-voltage-pu", "1.5"], "--max-voltage-pu", "[0.02, 1.0]"),
+    (["identify", "--seed", "-1"], "--seed", "[0, 4294967295]"),
 ]
 
 

@@ -86,3 +86,28 @@ def test_resistance_and_deadtime_over_the_can_bridge():
     print(f"CAN: R {r:.4f} ohm (captured {r_captured:.4f}), V_dt {v_dt:.3f} V")
     assert abs(r / card.resistance_ohm - 1) <= TOLERANCE["R"]
     assert abs(v_dt / vdt_true - 1) <= TOLERANCE["V_dt"]
+
+
+def test_the_current_guard_aborts_with_the_pwm_off():
+    """IdentifySettings.max_current_pu is the phase-current guard, of the rated current: set
+    at 0.8 pu, under the procedure's own 0.89 pu peak, it trips -- IdentifyAbort naming the
+    current and 0.8 x I_rated, the PWM off on the last period."""
+    from fluxdrive.drive.identify import (
+        Identifier,
+        IdentifyAbort,
+        IdentifySettings,
+        SimPlantLink,
+    )
+
+    card = load_machine(machine_path("default_spm"))
+    link = SimPlantLink(card, 1)
+    enables: list[bool] = []
+    step = link.step
+    link.step = lambda duty, enable: enables.append(enable) or step(duty, enable)  # type: ignore[method-assign]
+    with pytest.raises(IdentifyAbort) as err:
+        Identifier(link, card, IdentifySettings(max_current_pu=0.8)).run()
+    limit = 0.8 * card.rated_current_a
+    assert str(err.value).endswith(f" A > {limit:.2f} A: PWM off"), err.value
+    peak = float(str(err.value).split()[1])
+    assert limit < peak < 0.95 * card.rated_current_a, err.value
+    assert enables[-1] is False and enables.count(False) < len(enables)

@@ -8,22 +8,34 @@ write a machine card that runs the scenarios directly.
                                                         (drive emulator on a virtual bus)
   ./fluxdrive identify --check [--machine CARD ...]     accuracy on every shipped card (or
                                                         those named): table, last line JSON
+
+Guards: --max-current-pu (abort, PWM off, above it) and --max-voltage-pu (standstill voltage
+commands); --seed the simulated plant's noise (fluxdrive.drive.identify.IdentifySettings).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
-from dataclasses import asdict
+from dataclasses import asdict, fields
 from pathlib import Path
 
 from fluxdrive.core.machine import load_machine
-from fluxdrive.drive.identify import TOLERANCE, _stderr, errors, identify_sim
+from fluxdrive.core.schema import option
+from fluxdrive.drive.identify import (
+    TOLERANCE,
+    IdentifyAbort,
+    IdentifySettings,
+    _stderr,
+    errors,
+    identify_sim,
+)
 from fluxdrive.drive.scenario import CONFIG_DIR, machine_path, save_machine
 
 
-def main(argv: list[str]) -> int:
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="fluxdrive identify",
         description=__doc__,
@@ -42,32 +54,32 @@ def main(argv: list[str]) -> int:
         action="store_true",
         help="accuracy table over the shipped cards (or --machine ones)",
     )
-    ap.add_argument("--seed", type=int, default=1)
+    for f in fields(IdentifySettings):
+        option(ap, "--" + f.name.replace("_", "-"), IdentifySettings)
     ap.add_argument(
         "--can",
         action="store_true",
         help="over the CAN bench bridge, to the drive emulator on a virtual bus "
         "(the same procedure; ~1 ms of wall time per PWM period)",
     )
-    args = ap.parse_args(argv)
+    return ap
+
+
+def main(argv: list[str]) -> int:
+    args = _parser().parse_args(argv)
+    settings = IdentifySettings(**{f.name: getattr(args, f.name) for f in fields(IdentifySettings)})
     if args.check:
         return _check(
             args.machine or sorted(p.stem for p in (CONFIG_DIR / "machines").glob("*.yaml")),
-            args.seed,
+            settings,
         )
     card = load_machine(machine_path(args.machine[0] if args.machine else "default_spm"))
     t0 = time.perf_counter()
-    if args.can:
-        from fluxdrive.can.plantlink import CanPlantLink
-        from fluxdrive.drive.identify import Identifier
-
-        link = CanPlantLink(card)
-        try:
-            ident = Identifier(link, card, progress=_stderr).run()
-        finally:
-            link.close()
-    else:
-        ident, _ = identify_sim(card, args.seed, progress=_stderr)
+    try:
+        ident = _identify(card, settings, args.can)
+    except IdentifyAbort as exc:  # a guard tripped: PWM is off, the message says why
+        print(f"fluxdrive identify: aborted: {exc}", file=sys.stderr)
+        return 1
     out = args.out or Path(f"{card.name}_identified.yaml")
     save_machine(ident.card(card), out)
     print(
@@ -80,7 +92,21 @@ def main(argv: list[str]) -> int:
     return 0
 
 
-def _check(cards: list[str], seed: int) -> int:
+def _identify(card, settings: IdentifySettings, can: bool):
+    """The procedure on the simulated plant, or over the CAN bench bridge."""
+    if not can:
+        return identify_sim(card, progress=_stderr, settings=settings)[0]
+    from fluxdrive.can.plantlink import CanPlantLink
+    from fluxdrive.drive.identify import Identifier
+
+    link = CanPlantLink(card)
+    try:
+        return Identifier(link, card, settings, progress=_stderr).run()
+    finally:
+        link.close()
+
+
+def _check(cards: list[str], settings: IdentifySettings) -> int:
     keys = list(TOLERANCE)
     print(f"{'card':18s}" + "".join(f"{k + ' err':>11s}" for k in keys) + "   ok   wall")
     rows = {}
@@ -88,7 +114,7 @@ def _check(cards: list[str], seed: int) -> int:
     for name in cards:
         card = load_machine(machine_path(name))
         t0 = time.perf_counter()
-        ident, _ = identify_sim(card, seed)
+        ident, _ = identify_sim(card, settings=settings)
         e = errors(ident, card)
         ok = all(abs(e[k]) <= TOLERANCE[k] for k in keys)
         wall = time.perf_counter() - t0

@@ -23,9 +23,10 @@ PWM rate, sensor scales; everything else is measured):
      steady torque current), then a speed step with the current limit low so the drive
      accelerates at a known torque K_t i_q (J = (K_t i_q - B w)/(dw/dt)).
 
-Guards: every phase current is checked each period against `max_current_a` (abort: PWM
-off, IdentifyAbort); the voltage commands are limited to `max_voltage_v`; PWM is off at the
-end, on an abort and on Ctrl-C (finally).
+Guards (`IdentifySettings`, the command's --max-current-pu / --max-voltage-pu): every phase
+current is checked each period against max_current_pu x the rated current (abort: PWM off,
+IdentifyAbort); the standstill voltage commands are limited to max_voltage_pu x Vdc/sqrt(3);
+PWM is off at the end, on an abort and on Ctrl-C (finally).
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ import numpy as np
 
 from fluxdrive.core.blocks import rng_new
 from fluxdrive.core.machine import MachineCard, required
+from fluxdrive.core.schema import param
 from fluxdrive.core.transforms import clarke, line_to_phase
 from fluxdrive.drive.control import (
     CO_DA,
@@ -73,6 +75,30 @@ from fluxdrive.drive.plant import (
 )
 
 RPM = 2 * math.pi / 60
+
+
+@dataclass(frozen=True)
+class IdentifySettings:
+    """What `./fluxdrive identify` takes: the guards of the procedure and the simulated
+    plant's seed."""
+
+    # the procedure itself peaks at 0.89-0.91 pu (measured on default_spm and servo_320v):
+    # a guard below the rated current would trip on it
+    max_current_pu: float = param(
+        1.2,
+        unit="pu",
+        doc="abort (PWM off) when a phase current exceeds this, of the card's rated current",
+        range=(1.0, 3.0),
+    )
+    max_voltage_pu: float = param(
+        0.5,
+        unit="pu",
+        doc="largest standstill voltage command (R, L steps), of Vdc/sqrt(3)",
+        range=(0.02, 1.0),
+    )
+    seed: int = param(
+        1, unit="-", doc="seed of the simulated plant's sensor noise", range=(0, 2**32 - 1)
+    )
 
 
 class IdentifyAbort(RuntimeError):
@@ -168,14 +194,13 @@ class Identifier:
         self,
         link: PlantLink,
         template: MachineCard,
-        max_current_pu: float = 1.2,
-        max_voltage_pu: float = 0.5,
+        settings: IdentifySettings = IdentifySettings(),
         progress: Callable[[str], None] | None = None,
     ):
         self.link = link
         self.tpl = template
-        self.i_max = max_current_pu * template.rated_current_a
-        self.v_max = max_voltage_pu * template.dc_bus_v / math.sqrt(3)
+        self.i_max = settings.max_current_pu * template.rated_current_a
+        self.v_max = settings.max_voltage_pu * template.dc_bus_v / math.sqrt(3)
         self.say = progress or (lambda s: None)
         self.vdc = template.dc_bus_v
 
@@ -430,10 +455,16 @@ class Identifier:
         return Identified(r, lind, lam, j, b, v_dt, td)
 
 
-def identify_sim(card: MachineCard, seed: int = 1, progress=None) -> tuple[Identified, float]:
-    """Identify the simulated plant of `card`; returns (result, true per-leg V_dt)."""
-    link = SimPlantLink(card, seed)
-    ident = Identifier(link, card, progress=progress).run()
+def identify_sim(
+    card: MachineCard,
+    seed: int | None = None,
+    progress=None,
+    settings: IdentifySettings = IdentifySettings(),
+) -> tuple[Identified, float]:
+    """Identify the simulated plant of `card` (seed: settings.seed unless given); returns
+    (result, true per-leg V_dt)."""
+    link = SimPlantLink(card, settings.seed if seed is None else seed)
+    ident = Identifier(link, card, settings, progress=progress).run()
     return ident, card.dc_bus_v * card.deadtime_s * card.pwm_hz
 
 
@@ -461,6 +492,7 @@ __all__ = [
     "Identified",
     "Identifier",
     "IdentifyAbort",
+    "IdentifySettings",
     "PlantLink",
     "SimPlantLink",
     "identify_sim",
