@@ -328,3 +328,48 @@ def test_a_parameter_without_a_schema_is_refused(ctx):
             declare(node, [P("gain", 1.0, "a hand-written parameter", "-", 0.0, 2.0)])
     finally:
         node.destroy_node()
+
+
+# --------------------------------------------------------------- the graph file's keys
+def _graph(top: dict | None = None, node: dict | None = None) -> dict:
+    return {
+        **(top or {}),
+        "nodes": [{"name": "plant", "node": "plant", **(node or {})}],
+    }
+
+
+@pytest.mark.parametrize("where", ["top", "node"])
+def test_graph_file_keys_take_exactly_the_schema_range(where):
+    """A graph file (`./fluxdrive launch`): its keys are the fields of
+    fluxdrive.io.graphfile -- the ends of every range accepted, just outside
+    refused in one line naming the file, the entry and the key; a choice outside its list
+    likewise, and a key no field declares."""
+    pytest.importorskip("fluxdrive_bringup")
+    from fluxdrive.io import graphfile
+    from fluxdrive_bringup.launch.launcher import parse_graph
+
+    keys = graphfile.TOP_KEYS if where == "top" else graphfile.NODE_KEYS
+    place = "g.yaml" if where == "top" else "g.yaml: nodes[0] (plant)"
+
+    def parse(kw: dict):
+        return parse_graph(_graph(kw) if where == "top" else _graph(node=kw), "g.yaml")
+
+    numeric = {k: s for k, s in keys.items() if s.numeric}
+    assert numeric and all(s.lo is not None and s.hi is not None for s in numeric.values())
+    for name, s in numeric.items():
+        for ok in (s.lo, s.hi):
+            parse({name: s.kind(ok)})
+        step = 1 if s.kind is int else max(abs(s.hi), abs(s.lo), 1.0) * 1e-6
+        for bad in (s.lo - step, s.hi + step):
+            with pytest.raises(ConfigError) as err:
+                parse({name: s.kind(bad)})
+            text = str(err.value)
+            assert text.startswith(f"{place}: {name} must be ") and "\n" not in text, text
+            assert f"[{s.lo}, {s.hi}]" in text, text
+    for name, s in keys.items():
+        if s.choices:
+            parse({name: s.choices[-1]})
+            with pytest.raises(ConfigError, match=rf"^{re.escape(place)}: {name} must be one of"):
+                parse({name: "none_of_them"})
+    with pytest.raises(ConfigError, match=rf"^{re.escape(place)}: unknown key\(s\) \['on_deth'\]"):
+        parse({"on_deth": "stop"})

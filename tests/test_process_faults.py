@@ -439,18 +439,18 @@ def test_on_death_policy_errors_name_file_and_key():
         return str(ei.value)
 
     assert bad({"on_death": "explode"}) == (
-        "g.yaml: nodes[2] (controller): 'on_death' must "
-        "be one of stop, restart, ignore, got 'explode'"
+        "g.yaml: nodes[2] (controller): on_death must be one of "
+        "['stop', 'restart', 'ignore'], got 'explode'"
     )
     assert bad({"max_restarts": -1}) == (
-        "g.yaml: nodes[2] (controller): 'max_restarts' must be an integer 0..1000, got -1"
+        "g.yaml: nodes[2] (controller): max_restarts must be an integer in [0, 1000], got -1"
     )
     assert bad({"restart_backoff_s": "soon"}) == (
-        "g.yaml: nodes[2] (controller): 'restart_backoff_s' must be a number of seconds "
-        "0..3600, got 'soon'"
+        "g.yaml: nodes[2] (controller): restart_backoff_s must be a number in "
+        "[0.0, 3600.0], got 'soon'"
     )
     assert bad({}, top={"on_death": "retry"}) == (
-        "g.yaml: 'on_death' must be one of stop, restart, ignore, got 'retry'"
+        "g.yaml: on_death must be one of ['stop', 'restart', 'ignore'], got 'retry'"
     )
     assert "'on_death: restart' is not supported for a recorder" in bad(
         {"on_death": "restart"}, node="recorder"

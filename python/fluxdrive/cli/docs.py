@@ -6,7 +6,8 @@
 ./fluxdrive docs quotes [--check]    fill the quoted figures of README.md and docs/*.md from
                                      results/ (--check: only say which files are stale)
 ./fluxdrive docs params [--check]    write the parameter tables of docs/configuration.md from
-                                     the config schemas and the node tables of docs/graph.md
+                                     the config schemas, the graph file's tables of
+                                     docs/graph.md from its schema and the node tables there
                                      from the nodes (--check: only say which are stale)
 """
 
@@ -54,14 +55,17 @@ def quotes(check: bool) -> int:
 
 
 def param_tables(check: bool) -> int:
-    """The config blocks' tables of docs/configuration.md and the study spec's of
-    docs/study.md, written from their schemas (or checked)."""
+    """The config blocks' tables of docs/configuration.md, the study spec's of
+    docs/study.md and the graph file's of docs/graph.md, written from their schemas (or
+    checked)."""
     from fluxdrive.drive import config_blocks
+    from fluxdrive.io import graphfile
     from fluxdrive.study import spec
 
     pages = [
         (config_blocks.DOC_PAGE, config_blocks.docs_tables()),
         (spec.DOC_PAGE, spec.docs_tables()),
+        (graphfile.DOC_PAGE, graphfile.docs_tables()),
     ]
     return max(_page_tables(page, tables, check) for page, tables in pages)
 

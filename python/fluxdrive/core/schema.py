@@ -59,7 +59,9 @@ class Spec:
     drive runs) or fixed for a run."""
 
     name: str
-    kind: type  # float, int, bool, str or tuple (a list of strings)
+    # float, int, bool, str, tuple (a list of strings), dict (a mapping) or list (of mappings:
+    # what they hold is the owner's to check)
+    kind: type
     unit: str
     doc: str
     lo: float | None = None
@@ -165,6 +167,10 @@ def check_value(s: Spec, v: Any, where: str) -> None:
     elif s.kind is tuple:
         if not isinstance(v, (list, tuple)) or not all(isinstance(x, str) for x in v):
             raise ConfigError(f"{where} must be a list of strings, got {v!r}")
+    elif s.kind in (dict, list):
+        if not isinstance(v, s.kind):
+            what = "a mapping" if s.kind is dict else "a list"
+            raise ConfigError(f"{where} must be {what}, got {type(v).__name__}")
     elif s.kind is str:
         if not isinstance(v, str) or (s.choices is not None and v not in s.choices):
             what = f"one of {list(s.choices)}" if s.choices is not None else "a string"

@@ -59,37 +59,20 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from fluxdrive.core import yamlio
+from fluxdrive.core import schema, yamlio
 from fluxdrive.core.machine import ConfigError
 from fluxdrive.drive.scenario import REPO_ROOT
+from fluxdrive.io.graphfile import (
+    NODE_KEYS,
+    TOP_KEYS,
+    DeathPolicy,
+    GraphSettings,
+    check_keys,
+)
 from fluxdrive_ros.runner import NODE_CLASSES, STOP_COUNTS_ENV
 from fluxdrive_ros.topics import check_namespace
 
-_POLICY_KEYS = {"on_death", "max_restarts", "restart_backoff_s"}
-ON_DEATH = ("stop", "restart", "ignore")
-_NODE_KEYS = {
-    "name",
-    "node",
-    "namespace",
-    "process",
-    "params",
-    "parameters",
-    "required",
-    "cmd",
-} | _POLICY_KEYS
-_TOP_KEYS = {
-    "name",
-    "namespace",
-    "description",
-    "discovery_range",
-    "domain_id",
-    "env",
-    "nodes",
-    "stop_timeout_s",
-    "stop_grace_s",
-    "start_timeout_s",
-    "stall_timeout_s",
-} | _POLICY_KEYS
+_POLICY_KEYS = set(schema.specs(DeathPolicy))
 
 
 @dataclass
@@ -122,21 +105,21 @@ class NodeSpec:
 class Graph:
     name: str
     nodes: list[NodeSpec]
-    discovery_range: str = "LOCALHOST"
+    discovery_range: str = GraphSettings.discovery_range
     domain_id: int | None = None
     env: dict[str, str] = field(default_factory=dict)
-    stop_timeout_s: float = 15.0
-    stop_grace_s: float = 20.0
+    stop_timeout_s: float = GraphSettings.stop_timeout_s
+    stop_grace_s: float = GraphSettings.stop_grace_s
     # a graph with a plant: the first frame must come within start_timeout_s of the start,
     # and then at least one frame per second of wall time over any stall_timeout_s (a
     # lockstep plant whose controller is silent steps one PWM-off period per
     # duty_timeout_s: far below); otherwise the graph is stopped with one line
-    start_timeout_s: float = 300.0
-    stall_timeout_s: float = 120.0
+    start_timeout_s: float = GraphSettings.start_timeout_s
+    stall_timeout_s: float = GraphSettings.stall_timeout_s
     source: str = ""
-    on_death: str = "stop"
-    max_restarts: int = 3
-    restart_backoff_s: float = 1.0
+    on_death: str = DeathPolicy.on_death
+    max_restarts: int = DeathPolicy.max_restarts
+    restart_backoff_s: float = DeathPolicy.restart_backoff_s
     namespace: str = ""  # the drive's namespace: every node under it (`__ns:=`), e.g. /a
     # sharing its ROS domain with other graphs (--shared-domain): /clock, which carries no
     # graph id, is remapped to the graph's own (fluxdrive_ros.graph.private_topic)
@@ -185,7 +168,12 @@ class Graph:
             out["domain_id"] = self.domain_id
         if self.env:
             out["env"] = dict(self.env)
-        if (self.on_death, self.max_restarts, self.restart_backoff_s) != ("stop", 3, 1.0):
+        policy = (self.on_death, self.max_restarts, self.restart_backoff_s)
+        if policy != (
+            DeathPolicy.on_death,
+            DeathPolicy.max_restarts,
+            DeathPolicy.restart_backoff_s,
+        ):
             out.update(
                 on_death=self.on_death,
                 max_restarts=self.max_restarts,
@@ -205,51 +193,26 @@ def _resolve(p: str | Path, base: Path) -> Path:
     return REPO_ROOT / p
 
 
-def _policy(d: dict, where: str) -> dict[str, Any]:
-    """The on_death keys of a node or of the graph, validated (absent keys left out)."""
-    out: dict[str, Any] = {}
-    if "on_death" in d:
-        v = d["on_death"]
-        if v not in ON_DEATH:
-            raise ConfigError(
-                f"{where}: 'on_death' must be one of {', '.join(ON_DEATH)}, got {v!r}"
-            )
-        out["on_death"] = v
-    if "max_restarts" in d:
-        v = d["max_restarts"]
-        if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= 1000:
-            raise ConfigError(f"{where}: 'max_restarts' must be an integer 0..1000, got {v!r}")
-        out["max_restarts"] = v
-    if "restart_backoff_s" in d:
-        v = d["restart_backoff_s"]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v <= 3600.0:
-            raise ConfigError(
-                f"{where}: 'restart_backoff_s' must be a number of seconds 0..3600, got {v!r}"
-            )
-        out["restart_backoff_s"] = float(v)
+def _policy(d: dict) -> dict[str, Any]:
+    """The on_death keys a node entry or the graph gives (checked by check_keys)."""
+    out = {k: d[k] for k in _POLICY_KEYS if d.get(k) is not None}
+    if "restart_backoff_s" in out:
+        out["restart_backoff_s"] = float(out["restart_backoff_s"])
     return out
 
 
 _ENV_VALUE_MAX = 32_768
 
 
-def _seconds(src: str, key: str, v: Any, lo: float, hi: float) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not lo <= v <= hi:
-        raise ConfigError(f"{src}: '{key}' must be a number of seconds {lo}..{hi}, got {v!r}")
-    return float(v)
-
-
 def parse_graph(raw: Any, src: str = "graph", base: Path = REPO_ROOT) -> Graph:
+    """A graph file's mapping as a Graph; every key checked by its field
+    (fluxdrive.io.graphfile), a bad one: ConfigError naming `src` and the key."""
     if not isinstance(raw, dict):
         raise ConfigError(f"{src}: a graph must be a mapping with a 'nodes' list")
-    bad = sorted(set(raw) - _TOP_KEYS, key=str)
-    if bad:
-        raise ConfigError(f"{src}: unknown key(s) {bad}; expected some of {sorted(_TOP_KEYS)}")
-    if "name" in raw and not isinstance(raw["name"], str):
-        raise ConfigError(f"{src}: 'name' must be a string, got {raw['name']!r}")
+    check_keys(raw, TOP_KEYS, src)
     nodes_raw = raw.get("nodes")
-    if not isinstance(nodes_raw, list) or not nodes_raw:
-        raise ConfigError(f"{src}: 'nodes' must be a non-empty list")
+    if not nodes_raw:
+        raise ConfigError(f"{src}: nodes must be a non-empty list")
     nodes = []
     seen = set()
     for i, nd in enumerate(nodes_raw):
@@ -259,62 +222,43 @@ def parse_graph(raw: Any, src: str = "graph", base: Path = REPO_ROOT) -> Graph:
             raise ConfigError(f"{where}: node {spec.fqn} appears twice")
         seen.add(spec.fqn)
         nodes.append(spec)
-    dr = str(raw.get("discovery_range", "LOCALHOST")).upper()
-    if dr not in ("LOCALHOST", "SUBNET", "SYSTEM_DEFAULT", "OFF"):
-        raise ConfigError(
-            f"{src}: 'discovery_range' must be LOCALHOST, SUBNET, OFF or SYSTEM_DEFAULT, got {dr!r}"
-        )
-    dom = raw.get("domain_id")
-    if dom is not None and (not isinstance(dom, int) or not 0 <= dom <= 232):
-        raise ConfigError(f"{src}: 'domain_id' must be an integer 0..232")
-    env = _parse_env(raw.get("env", {}) or {}, src)
-    stop_timeout_s = _seconds(src, "stop_timeout_s", raw.get("stop_timeout_s", 15.0), 0.1, 3600.0)
-    stop_grace_s = _seconds(src, "stop_grace_s", raw.get("stop_grace_s", 20.0), 0.1, 3600.0)
-    start_timeout_s = _seconds(
-        src, "start_timeout_s", raw.get("start_timeout_s", 300.0), 1.0, 86400.0
-    )
-    stall_timeout_s = _seconds(
-        src, "stall_timeout_s", raw.get("stall_timeout_s", 120.0), 1.0, 86400.0
-    )
+    given = {k: v for k, v in raw.items() if v is not None and k in schema.specs(GraphSettings)}
     g = Graph(
-        name=str(raw.get("name", Path(src).stem)),
-        namespace=check_namespace(raw.get("namespace"), f"{src}: 'namespace'"),
+        name=str(given.get("name", Path(src).stem)),
+        namespace=check_namespace(raw.get("namespace"), f"{src}: namespace"),
         nodes=nodes,
-        discovery_range=dr,
-        domain_id=dom,
-        env=env,
-        stop_timeout_s=stop_timeout_s,
-        stop_grace_s=stop_grace_s,
-        start_timeout_s=start_timeout_s,
-        stall_timeout_s=stall_timeout_s,
+        discovery_range=str(given.get("discovery_range", Graph.discovery_range)).upper(),
+        domain_id=given.get("domain_id"),
+        env=_parse_env(given.get("env", {}), src),
         source=src,
-        **_policy(raw, src),
+        **_policy(raw),
     )
+    for k in _TIMEOUT_KEYS:  # given: checked by their fields
+        if k in given:
+            setattr(g, k, float(given[k]))
     _check_processes(g, src)
     return g
+
+
+_TIMEOUT_KEYS = ("stop_timeout_s", "stop_grace_s", "start_timeout_s", "stall_timeout_s")
 
 
 def _parse_node(nd: Any, where: str, base: Path) -> NodeSpec:
     """One entry of the graph's `nodes` (where: its place in the file)."""
     if not isinstance(nd, dict):
         raise ConfigError(f"{where} must be a mapping")
-    bad = sorted(set(nd) - _NODE_KEYS, key=str)
-    if bad:
-        raise ConfigError(f"{where}: unknown key(s) {bad}; expected some of {sorted(_NODE_KEYS)}")
+    if isinstance(nd.get("params"), str):  # one file
+        nd = {**nd, "params": [nd["params"]]}
     name = nd.get("name")
+    here = f"{where} ({name})" if isinstance(name, str) and name else where
+    check_keys(nd, NODE_KEYS, here)
     if not isinstance(name, str) or not name.replace("_", "a").isalnum():
-        raise ConfigError(f"{where}: 'name' must be a ROS name (letters, digits, _), got {name!r}")
-    here = f"{where} ({name})"
+        raise ConfigError(f"{where}: name must be a ROS name (letters, digits, _), got {name!r}")
     node, cmd = _node_or_cmd(nd, here)
-    files = _param_files(nd.get("params", []) or [], here, base)
-    parameters = nd.get("parameters", {}) or {}
-    if not isinstance(parameters, dict) or not all(isinstance(k, str) for k in parameters):
-        raise ConfigError(f"{here}: 'parameters' must be a mapping name -> value")
-    for s_key in ("namespace", "process"):
-        if not isinstance(nd.get(s_key, "") or "", str):
-            raise ConfigError(f"{here}: '{s_key}' must be a string, got {nd[s_key]!r}")
-    if not isinstance(nd.get("required", False), bool):
-        raise ConfigError(f"{here}: 'required' must be true/false")
+    files = _param_files(nd.get("params") or [], here, base)
+    parameters = nd.get("parameters") or {}
+    if not all(isinstance(k, str) for k in parameters):
+        raise ConfigError(f"{here}: parameters must be a mapping name -> value")
     ns = str(nd.get("namespace", "") or "")
     if ns and not ns.startswith("/"):
         ns = "/" + ns
@@ -325,9 +269,9 @@ def _parse_node(nd: Any, where: str, base: Path) -> NodeSpec:
         process=str(nd.get("process", "") or ""),
         params=files,
         parameters=dict(parameters),
-        required=bool(nd.get("required", False)),
+        required=bool(nd.get("required") or False),
         cmd=cmd,
-        **_policy(nd, here),
+        **_policy(nd),
     )
     if spec.is_recorder and spec.on_death == "restart":
         raise ConfigError(
@@ -339,37 +283,29 @@ def _parse_node(nd: Any, where: str, base: Path) -> NodeSpec:
 
 
 def _node_or_cmd(nd: dict, here: str) -> tuple[str | None, list[str] | None]:
-    """A node's class (a known node or module:Class) or its command, exactly one of them."""
-    if ("node" in nd) == ("cmd" in nd):
+    """A node's class (a known node or module:Class) or its command, exactly one of them
+    (their types checked by check_keys)."""
+    node, cmd = nd.get("node"), nd.get("cmd")
+    if (node is None) == (cmd is None):
         raise ConfigError(
             f"{here}: give exactly one of 'node' (one of "
             f"{sorted(NODE_CLASSES)} or module:Class) and 'cmd'"
         )
-    node = nd.get("node")
-    if node is not None and (
-        not isinstance(node, str) or (node not in NODE_CLASSES and ":" not in node)
-    ):
+    if node is not None and node not in NODE_CLASSES and ":" not in node:
         raise ConfigError(
-            f"{here}: 'node' must be one of {sorted(NODE_CLASSES)} or module:Class, got {node!r}"
+            f"{here}: node must be one of {sorted(NODE_CLASSES)} or module:Class, got {node!r}"
         )
-    cmd = nd.get("cmd")
-    if cmd is not None and (
-        not isinstance(cmd, list) or not all(isinstance(c, str) for c in cmd) or not cmd
-    ):
-        raise ConfigError(f"{here}: 'cmd' must be a list of strings")
-    return node, cmd
+    if cmd is not None and not cmd:
+        raise ConfigError(f"{here}: cmd must be a non-empty list of strings")
+    return node, None if cmd is None else list(cmd)
 
 
 def _param_files(params: Any, here: str, base: Path) -> list[str]:
-    """A node's parameter files: each found and valid YAML."""
-    if isinstance(params, str):
-        params = [params]
-    if not isinstance(params, list):
-        raise ConfigError(f"{here}: 'params' must be a list of files")
+    """A node's parameter files (a list of strings: check_keys): each found and valid YAML."""
     files = []
     for p in params:
-        if not isinstance(p, str) or not p or "\0" in p:
-            raise ConfigError(f"{here}: 'params' entries must be file paths, got {p!r}")
+        if not p or "\0" in p:
+            raise ConfigError(f"{here}: params entries must be file paths, got {p!r}")
         f = _resolve(p, base)
         if not f.exists():
             raise ConfigError(f"{here}: parameter file {p} not found")
@@ -382,9 +318,7 @@ def _param_files(params: Any, here: str, base: Path) -> list[str]:
 
 
 def _parse_env(env: Any, src: str) -> dict[str, str]:
-    """The graph's `env`: variable names and scalar values."""
-    if not isinstance(env, dict):
-        raise ConfigError(f"{src}: 'env' must be a mapping")
+    """The graph's `env` (a mapping: check_keys): variable names and scalar values."""
     for k, v in env.items():
         # an environment variable is a name and a scalar; Linux takes at most 128 kB each
         if not isinstance(k, str) or not k or "=" in k or "\0" in k:
