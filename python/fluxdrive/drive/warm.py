@@ -13,8 +13,12 @@ cache, and the graph's processes load it from there.
 
 from __future__ import annotations
 
+import fcntl
+import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
 
 import numpy as np
 
@@ -81,6 +85,21 @@ def graph_kernel_calls(sc) -> list[tuple[object, tuple]]:
     ]
 
 
+@contextmanager
+def cache_lock() -> Iterator[None]:
+    """Hold numba's disk cache (NUMBA_CACHE_DIR) alone while compiling into it: processes
+    warming at once (the test suite's xdist workers, two launchers) take turns, and the later
+    ones load what the first compiled instead of compiling it again beside it."""
+    cache = os.environ.get("NUMBA_CACHE_DIR")
+    if not cache:
+        yield
+        return
+    Path(cache).mkdir(parents=True, exist_ok=True)
+    with open(Path(cache) / ".warm.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        yield
+
+
 def warm_graph_kernels(sc, say: Say) -> dict:
     """Compile or load every kernel of `graph_kernel_calls`, one progress line each
     ("compiling kernels ... 3/9 observer_step"), then one summary line.  Returns
@@ -92,11 +111,12 @@ def warm_graph_kernels(sc, say: Say) -> dict:
         return sum(st.cache_misses.values()), sum(st.cache_hits.values())
 
     t0 = time.perf_counter()
-    before = {k: counts(k) for k in KERNELS}  # setting up may call some already
-    calls = graph_kernel_calls(sc)
-    for i, (kernel, args) in enumerate(calls, 1):
-        say(f"compiling kernels ... {i}/{len(calls)} {kernel.__name__}")  # type: ignore[attr-defined]
-        kernel(*args)  # type: ignore[operator]
+    with cache_lock():
+        before = {k: counts(k) for k in KERNELS}  # setting up may call some already
+        calls = graph_kernel_calls(sc)
+        for i, (kernel, args) in enumerate(calls, 1):
+            say(f"compiling kernels ... {i}/{len(calls)} {kernel.__name__}")  # type: ignore[attr-defined]
+            kernel(*args)  # type: ignore[operator]
     after = {k: counts(k) for k in KERNELS}
     compiled = sum(after[k][0] > before[k][0] for k in KERNELS)
     cached = sum(after[k][1] > before[k][1] for k in KERNELS)
