@@ -4,6 +4,7 @@ way the bridge hands them to the graph, and can-import's answers to bad captures
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -79,6 +80,9 @@ def doctor(bag: Path) -> str:
         capture_output=True,
         text=True,
         timeout=300,
+        # its report is wrapped to the terminal's width, which without a terminal (an xdist
+        # worker) is 80: one line per sentence, whatever runs the test
+        env=dict(os.environ, COLUMNS="1000"),
     )
     out = r.stdout + r.stderr
     assert r.returncode == 0, out
