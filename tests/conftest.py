@@ -6,6 +6,14 @@ sys.path.insert(0, str(Path(__file__).parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "python"))
 
 
+def pytest_configure(config):
+    """ROS_DOMAIN_ID of this pytest process's slice (tests/ros_domains.py): the xdist
+    workers of `./fluxdrive test` never share a domain, whatever reads the environment."""
+    from ros_domains import pin_process_domain
+
+    pin_process_domain()
+
+
 def pytest_collection_finish(session):
     """Graph tests start launchers and time their start-up; after an engine change the
     launcher first compiles the nodes' kernels (fluxdrive_bringup.launch.kernels), which on

@@ -12,6 +12,7 @@ import threading
 import time
 
 import pytest
+from ros_domains import domain
 
 rclpy = pytest.importorskip("rclpy")
 
@@ -34,7 +35,7 @@ def test_bridge_node_smoke():
     emu_bus = can.Bus(interface="virtual", channel=ch, fd=True)
     emu = DriveEmulator(DriveSetup(short_2pct(0.5)), emu_bus, lockstep=True, lockstep_wait_s=0.2)
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "0")) % 100 + 1)
+    rclpy.init(context=ctx, domain_id=domain(44))
     node = BenchBridgeNode(
         context=ctx,
         parameter_overrides=[
@@ -111,7 +112,7 @@ def test_bridge_node_decimation_parameter_and_drive_check():
     emu_bus = can.Bus(interface="virtual", channel=ch, fd=True)
     emu = DriveEmulator(DriveSetup(short_2pct(0.1)), emu_bus, lockstep=False)  # FD, D = 1
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "0")) % 100 + 1)
+    rclpy.init(context=ctx, domain_id=domain(45))
     with pytest.raises(InvalidParameterValueException, match="decimation out of range"):
         BenchBridgeNode(
             context=ctx,
@@ -198,7 +199,7 @@ def test_bridge_node_publishes_every_fault_and_marks_parameter_changes():
     emu_bus = can.Bus(interface="virtual", channel=ch, fd=True)
     emu = DriveEmulator(DriveSetup(short_2pct(0.1)), emu_bus, lockstep=False)
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "0")) % 100 + 1)
+    rclpy.init(context=ctx, domain_id=domain(46))
     stale_s = 0.3
     node = BenchBridgeNode(
         context=ctx,

@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 import pytest
+from ros_domains import domain
 
 rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("msgpack")  # python-can's udp_multicast needs it
@@ -75,10 +76,10 @@ def test_emulator_and_bridge_node_in_separate_processes(tmp_path):
     from flux_drive_msgs.srv import Arm
     from fluxdrive_ros import qos, topics
 
-    domain = int(os.environ.get("ROS_DOMAIN_ID", "0")) % 100 + 2
+    dom = domain(28)
     env = dict(
         os.environ,
-        ROS_DOMAIN_ID=str(domain),
+        ROS_DOMAIN_ID=str(dom),
         ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
         CAN_CONFIG=json.dumps({"port": port, "hop_limit": 0}),
     )
@@ -134,7 +135,7 @@ def test_emulator_and_bridge_node_in_separate_processes(tmp_path):
         text=True,
     )
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=domain)
+    rclpy.init(context=ctx, domain_id=dom)
     probe = rclpy.create_node("xproc_probe", context=ctx)
     ex = rclpy.executors.SingleThreadedExecutor(context=ctx)
     ex.add_node(probe)

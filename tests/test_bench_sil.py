@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from ros_domains import domain
 
 pytest.importorskip("rclpy")
 pytest.importorskip("msgpack")  # python-can's udp_multicast needs it
@@ -53,11 +54,10 @@ def test_bench_sil_split_mode_records_every_sample_and_matches_in_process(tmp_pa
 
     sp = _case(tmp_path / "sil_2pct_split.yaml")
     bag = tmp_path / "bag"
-    domain = int(os.environ.get("ROS_DOMAIN_ID", "0")) % 100 + 3
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     p = subprocess.run(
         [sys.executable, "-m", "fluxdrive.cli", "bench", "--sil", str(sp), "--mode", "split"]
-        + ["--decimation", str(D), "--bag", str(bag), "--domain-id", str(domain), "--quiet"],
+        + ["--decimation", str(D), "--bag", str(bag), "--domain-id", str(domain(42)), "--quiet"],
         cwd=REPO,
         env=env,
         capture_output=True,

@@ -13,6 +13,7 @@ import threading
 from pathlib import Path
 
 import pytest
+from ros_domains import domain
 
 pytest.importorskip("rclpy")
 
@@ -20,7 +21,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _domain() -> int:
-    return 120 + (os.getpid() * 7 + 71) % 100
+    return domain(23)
 
 
 def fluxdrive(*args: str, env_extra: dict | None = None, timeout: float = 90.0):

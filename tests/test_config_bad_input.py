@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from ros_domains import domain
 
 rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("fluxdrive_ros")
@@ -26,7 +27,7 @@ def _env() -> dict[str, str]:
     return dict(
         os.environ,
         ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-        ROS_DOMAIN_ID=str((os.getpid() * 23 + 5) % 100 + 100),
+        ROS_DOMAIN_ID=str(domain(51)),
     )
 
 
@@ -94,7 +95,7 @@ def test_nan_sample_trip_is_logged_with_its_values(capfd):
     from rclpy.parameter import Parameter
 
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=(os.getpid() * 29 + 7) % 100 + 100)
+    rclpy.init(context=ctx, domain_id=domain(52))
     try:
         node = ControllerNode(
             "controller", context=ctx, parameter_overrides=[Parameter("scenario", value=SCENARIO)]

@@ -23,6 +23,7 @@ from fluxdrive.core.machine import ConfigError
 from fluxdrive.drive.config_blocks import BLOCKS, default_card, docs_tables, stale_tables
 from fluxdrive.drive.control import ControllerConfig
 from fluxdrive.drive.scenario import load_scenario, scenario_path
+from ros_domains import domain
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIO = str(ROOT / "config" / "scenarios" / "paper_2pct_150load.yaml")
@@ -175,7 +176,7 @@ rclpy = pytest.importorskip("rclpy")
 def ctx():
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     c = rclpy.Context()
-    rclpy.init(context=c, domain_id=(os.getpid() * 13 + 5) % 100 + 100)
+    rclpy.init(context=c, domain_id=domain(25))
     yield c
     rclpy.shutdown(context=c)
 

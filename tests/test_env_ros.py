@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from ros_domains import domain
 
 ROOT = Path(__file__).resolve().parents[1]
 MSG_PKG = ROOT / "src" / "flux_drive_msgs"
@@ -244,7 +245,7 @@ def test_publish_subscribe_localhost(monkeypatch):
     from rclpy.qos import QoSProfile, ReliabilityPolicy
 
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    domain_id = 10 + os.getpid() % 90
+    domain_id = domain(17)
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain_id)
     try:

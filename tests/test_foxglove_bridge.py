@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 import pytest
+from ros_domains import domain
 
 rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("fluxdrive_bringup")
@@ -62,7 +63,7 @@ def test_foxglove_client_receives_and_decodes_topics(tmp_path):
     from fluxdrive_ros import topics
 
     SERVICES.clear()
-    dom = 100 + (os.getpid() * 7) % 60
+    dom = domain(36)
     sp = scenario_path("paper_2pct_150load")
     sc = load_scenario(sp)
     g = graph_for_scenario(sp, sc, None, "composed", duration_s=300.0, domain_id=dom)

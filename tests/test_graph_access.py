@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 import pytest
+from ros_domains import domain
 
 rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("fluxdrive_ros")
@@ -26,7 +27,7 @@ DUTY = "/drive/duty"
 
 @pytest.fixture
 def graph():
-    g = Graph(domain_id=(os.getpid() * 23 + 5) % 100 + 100)
+    g = Graph(domain_id=domain(32))
     yield g
     g.close()
 
@@ -228,7 +229,7 @@ def _start_plant(env_extra: dict[str, str]) -> subprocess.CompletedProcess:
     env = dict(
         os.environ,
         ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-        ROS_DOMAIN_ID=str((os.getpid() * 29 + 1) % 100 + 100),
+        ROS_DOMAIN_ID=str(domain(34)),
         **env_extra,
     )
     return subprocess.run(

@@ -14,6 +14,7 @@ import time
 
 import numpy as np
 import pytest
+from ros_domains import domain
 
 rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("fluxdrive_ros")
@@ -95,7 +96,7 @@ class Graph:
 
 @pytest.fixture
 def graph():
-    g = Graph(domain_id=(os.getpid() * 13 + 7) % 100 + 100)
+    g = Graph(domain_id=domain(24))
     yield g
     g.close()
 

@@ -17,17 +17,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from ros_domains import domain
 
 pytest.importorskip("rclpy")
 pytest.importorskip("fluxdrive_bringup")
 
 ROOT = Path(__file__).resolve().parents[1]
 DURATION_S = 0.3
-
-
-def domain(offset: int) -> int:
-    """A ROS domain per test (and per pytest process)."""
-    return 120 + (os.getpid() * 7 + offset) % 100
 
 
 def _scenario(seed: int) -> Path:

@@ -8,7 +8,6 @@ design-refused values are rejected with a reason and change nothing."""
 from __future__ import annotations
 
 import dataclasses
-import os
 import re
 import threading
 import time
@@ -16,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from ros_domains import domain
 
 pytest.importorskip("rclpy")
 pytest.importorskip("fluxdrive_bringup")
@@ -45,7 +45,7 @@ def test_live_parameters_take_effect_exactly_and_bad_values_are_rejected(tmp_pat
     from fluxdrive_bringup.launch.launcher import Launcher
     from fluxdrive_bringup.launch.runs import graph_for_scenario, result_from_bag, shorten
 
-    dom = 120 + (os.getpid() * 7 + 5) % 100
+    dom = domain(18)
     sc = load_scenario(SCENARIO)
     shorten(sc, DURATION)
     bag = tmp_path / "bag"
@@ -133,7 +133,7 @@ def test_paced_plant_watchdog_switches_pwm_off_without_a_controller(tmp_path):
     from fluxdrive_bringup.launch.launcher import Graph, Launcher, NodeSpec
     from rosbags.highlevel import AnyReader
 
-    dom = 120 + (os.getpid() * 7 + 8) % 100
+    dom = domain(19)
     bag = tmp_path / "bag"
     g = Graph(
         name="paced",

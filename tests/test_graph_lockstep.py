@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from ros_domains import domain
 
 pytest.importorskip("rclpy")
 pytest.importorskip("fluxdrive_bringup")
@@ -38,11 +39,6 @@ def _on_the_ideal_bench(path: Path) -> Path:
 
 
 SCENARIO = _on_the_ideal_bench(ROOT / "config" / "scenarios" / "paper_2pct_150load.yaml")
-
-
-def domain(offset: int) -> int:
-    """A ROS domain per test (and per pytest process)."""
-    return 120 + (os.getpid() * 7 + offset) % 100
 
 
 def reference(duration: float):
@@ -86,7 +82,7 @@ def test_graph_equals_in_process_runner(tmp_path, layout, duration):
         bag=bag,
         layout=layout,
         duration_s=duration,
-        domain_id=domain(1 if layout == "composed" else 2),
+        domain_id=domain(12 if layout == "composed" else 13),
         quiet=True,
         timeout=240,
         progress=False,
@@ -159,7 +155,7 @@ def test_bag_every_frame_two_readers_and_replay_metadata(tmp_path):
     sc = load_scenario(SCENARIO)
     shorten(sc, 0.3)
     bag = tmp_path / "bag"
-    g = graph_for_scenario(SCENARIO, sc, bag, "composed", 0.3, domain(3))
+    g = graph_for_scenario(SCENARIO, sc, bag, "composed", 0.3, domain(14))
     launcher = Launcher(g, quiet=True, progress=False)
     assert launcher.run(timeout=120) == 0
     assert launcher.bags == [str(bag.resolve())]
@@ -227,7 +223,7 @@ def test_ctrl_c_finalises_the_bag(tmp_path, sig):
             "launch",
             str(gpath),
             "--domain-id",
-            str(domain(4)),
+            str(domain(15)),
         ],
         cwd=ROOT,
         env=env,
@@ -287,7 +283,7 @@ def test_tripped_run_records_the_fault(tmp_path):
         out=tmp_path / "run",
         bag=bag,
         duration_s=0.1,
-        domain_id=domain(6),
+        domain_id=domain(16),
         quiet=True,
         timeout=120,
         progress=False,

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from ros_domains import domain
 
 pytest.importorskip("rclpy")
 pytest.importorskip("fluxdrive_bringup")
@@ -51,7 +52,7 @@ def test_two_namespaced_drives_on_one_domain_each_record_their_solo_run(tmp_path
     from fluxdrive_bringup.launch.runs import result_from_bag
     from rosbags.highlevel import AnyReader
 
-    dom = 120 + (os.getpid() * 7 + 47) % 100
+    dom = domain(47)
     # one graph key for both: the same graph_id, so only the namespaces keep them apart
     env = dict(os.environ, FLUXDRIVE_GRAPH_KEY="one-key-for-both-drives")
     runs = {"a": _scenario(11), "b": _scenario(22)}

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from ros_domains import domain
 
 pytest.importorskip("rclpy")
 pytest.importorskip("fluxdrive_bringup")
@@ -32,7 +33,7 @@ def test_cli_parameter_change_is_marked_and_replays_exactly(tmp_path):
     from fluxdrive_bringup.launch.launcher import Launcher
     from fluxdrive_bringup.launch.runs import graph_for_scenario, shorten
 
-    dom = 120 + (os.getpid() * 13 + 9) % 100
+    dom = domain(54)
     sc = load_scenario(SCENARIO)
     shorten(sc, DURATION)
     # the driving observer and one shadow keep the graph light

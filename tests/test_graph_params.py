@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from ros_domains import domain
 
 rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("fluxdrive_ros")
@@ -26,7 +27,7 @@ RCLPY_OWN = {"use_sim_time", "start_type_description_service"}  # declared by rc
 def ctx():
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     c = rclpy.Context()
-    rclpy.init(context=c, domain_id=(os.getpid() * 17 + 3) % 100 + 100)
+    rclpy.init(context=c, domain_id=domain(21))
     yield c
     rclpy.shutdown(context=c)
 
@@ -178,7 +179,7 @@ def _run_node(args: list[str], timeout: float = 60.0) -> subprocess.CompletedPro
     env = dict(
         os.environ,
         ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-        ROS_DOMAIN_ID=str((os.getpid() * 19 + 11) % 100 + 100),
+        ROS_DOMAIN_ID=str(domain(22)),
     )
     return subprocess.run(
         [sys.executable, "-m", "fluxdrive_ros.runner", *args],

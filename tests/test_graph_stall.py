@@ -22,7 +22,8 @@ import time
 from pathlib import Path
 
 import pytest
-from test_process_faults import STATUS_STALE_COMMAND, Run, domain, graph_dict, read_frames
+from ros_domains import domain
+from test_process_faults import STATUS_STALE_COMMAND, Run, graph_dict, read_frames
 
 pytest.importorskip("rclpy")
 

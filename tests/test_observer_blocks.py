@@ -4,11 +4,11 @@ which it re-runs frame by frame from the state before the block (same counts).""
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
+from ros_domains import domain
 
 rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("flux_observer_node")
@@ -49,7 +49,7 @@ def test_blocks_publish_the_per_frame_estimates(monkeypatch):
     monkeypatch.setenv("FLUXDRIVE_INTRA_PROCESS", "0")  # the nodes' own publishers only
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=(os.getpid() * 13 + 5) % 100 + 100)
+    rclpy.init(context=ctx, domain_id=domain(29))
     frames = _frames()
     sent: dict[int, list[bytes]] = {}
     counts = {}

@@ -17,6 +17,7 @@ from fluxdrive.drive.observers import ES_TH, observer_config
 from fluxdrive.drive.plant import TR_THETA_E, TR_WM
 from fluxdrive.drive.scenario import CONFIG_DIR, load_scenario
 from fluxdrive.drive.sim import run_scenario
+from ros_domains import domain
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = ROOT / "examples" / "my_observer"
@@ -115,7 +116,7 @@ def test_plugin_drives_in_the_graph(tmp_path, example_importable):
         out=tmp_path / "run",
         bag=bag,
         layout="composed",
-        domain_id=120 + (os.getpid() * 7 + 9) % 100,
+        domain_id=domain(38),
         quiet=True,
         timeout=240,
         progress=False,

@@ -10,12 +10,12 @@ the same times; only their duty differs)."""
 
 from __future__ import annotations
 
-import os
 import threading
 import time
 from pathlib import Path
 
 import pytest
+from ros_domains import domain
 
 rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("spm_plant_sim")
@@ -34,7 +34,7 @@ class Plant:
         from spm_plant_sim.node import PlantNode
 
         self.ctx = rclpy.Context()
-        rclpy.init(context=self.ctx, domain_id=120 + (os.getpid() * 17 + 3) % 100)
+        rclpy.init(context=self.ctx, domain_id=domain(50))
         base = {
             "scenario": SCENARIO,
             "mode": "paced",

@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 import pytest
+from ros_domains import domain
 
 pytest.importorskip("rclpy")
 pytest.importorskip("fluxdrive_bringup")
@@ -28,10 +29,6 @@ pytest.importorskip("fluxdrive_bringup")
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIO = str(ROOT / "config" / "scenarios" / "paper_2pct_150load.yaml")
 STATUS_STALE_COMMAND = 16
-
-
-def domain(offset: int) -> int:
-    return 120 + (os.getpid() * 7 + 40 + offset) % 100
 
 
 def graph_dict(

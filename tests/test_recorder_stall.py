@@ -21,11 +21,12 @@ import signal
 import time
 
 import pytest
+from ros_domains import domain
 
 pytest.importorskip("rclpy")
 pytest.importorskip("fluxdrive_bringup")
 
-from test_process_faults import Run, domain, graph_dict  # noqa: E402
+from test_process_faults import Run, graph_dict  # noqa: E402
 
 LEASE_XML = """<?xml version="1.0" encoding="UTF-8" ?>
 <profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">

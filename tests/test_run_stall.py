@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 import pytest
+from ros_domains import domain
 
 pytest.importorskip("rclpy")
 pytest.importorskip("fluxdrive_bringup")
@@ -28,7 +29,7 @@ def test_a_stopped_drive_stops_the_run_with_one_line(tmp_path):
     from fluxdrive_bringup.launch.launcher import Launcher
     from fluxdrive_bringup.launch.runs import graph_for_scenario
 
-    dom = 120 + (os.getpid() * 41 + 17) % 100
+    dom = domain(37)
     sc = load_scenario(SCENARIO)
     sc.observers = {k: sc.observers[k] for k in ("flux_measured",)}
     g = graph_for_scenario(SCENARIO, sc, None, "composed", 300.0, dom)

@@ -15,6 +15,7 @@ import urllib.request
 from pathlib import Path
 
 import pytest
+from ros_domains import domain
 
 pytest.importorskip("aiohttp")
 pytest.importorskip("fluxdrive_bringup")
@@ -35,7 +36,7 @@ def test_oversized_header_is_one_line_and_the_page_needs_its_token():
     env = dict(
         os.environ,
         ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-        ROS_DOMAIN_ID=str(120 + (os.getpid() * 37 + 1) % 100),
+        ROS_DOMAIN_ID=str(domain(53)),
     )
     argv = [sys.executable, "-m", "fluxdrive.cli", "scope", "--port", "0", "--token", TOKEN]
     proc = subprocess.Popen(

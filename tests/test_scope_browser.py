@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 import pytest
+from ros_domains import domain
 
 rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("fluxdrive_bringup")
@@ -49,7 +50,7 @@ def test_scope_page_in_chromium(tmp_path):
     from fluxdrive_bringup.launch.launcher import Launcher, add_scope
     from fluxdrive_bringup.launch.runs import graph_for_scenario
 
-    dom = 160 + os.getpid() % 60
+    dom = domain(26)
     sp = scenario_path("paper_2pct_150load")
     sc = load_scenario(sp)
     bag = tmp_path / "bag"

@@ -6,11 +6,11 @@ on the root namespace's /drive/param_marker."""
 
 from __future__ import annotations
 
-import os
 import time
 from pathlib import Path
 
 import pytest
+from ros_domains import domain
 
 rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("fluxdrive_bringup")
@@ -43,7 +43,7 @@ def test_scope_in_a_namespace_taps_and_marks_its_own_drive():
     server = next(n for n in g.nodes if n.name == "scope")
     assert server.cmd[-2:] == ["--namespace", NS]
 
-    dom = 120 + (os.getpid() * 13 + 5) % 100
+    dom = domain(39)
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=dom)
     ros = None

@@ -64,7 +64,8 @@ def test_recorder_backpressure_holds_the_graph_and_loses_nothing(tmp_path):
 
     import psutil
     from fluxdrive.io.bagio import bag_counts
-    from test_process_faults import Run, domain, graph_dict
+    from ros_domains import domain
+    from test_process_faults import Run, graph_dict
 
     bag = tmp_path / "bag"
     n = 10_000

@@ -15,6 +15,7 @@ from fluxdrive.drive.observers import ES_TH
 from fluxdrive.drive.plant import TR_THETA_E, TR_WM
 from fluxdrive.drive.scenario import CONFIG_DIR, load_scenario
 from fluxdrive.drive.sim import run_scenario
+from ros_domains import domain
 
 PAPER = CONFIG_DIR / "scenarios" / "paper_2pct_150load.yaml"
 D = 4
@@ -104,7 +105,6 @@ def test_bridge_node_split_mode_parameters_references_and_fault_report():
     the drive's reason, and host silence ends in the drive's WATCHDOG fault, reported on
     /diagnostics as an ERROR naming the reference timeout."""
     rclpy = pytest.importorskip("rclpy")
-    import os
     import threading
     import time
 
@@ -126,7 +126,7 @@ def test_bridge_node_split_mode_parameters_references_and_fault_report():
         DriveSetup(_split_case(3.0)), emu_bus, lockstep=True, lockstep_wait_s=1.0, decimation=D
     )
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "0")) % 100 + 1)
+    rclpy.init(context=ctx, domain_id=domain(20))
     node = BenchBridgeNode(
         context=ctx,
         parameter_overrides=[

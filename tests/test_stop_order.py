@@ -20,11 +20,12 @@ import time
 from pathlib import Path
 
 import pytest
+from ros_domains import domain
 
 pytest.importorskip("rclpy")
 pytest.importorskip("fluxdrive_bringup")
 
-from test_process_faults import Run, domain, graph_dict  # noqa: E402
+from test_process_faults import Run, graph_dict  # noqa: E402
 
 SEPARATE = {n: n for n in ("plant", "flux_measured", "controller", "recorder")}
 # topics of the nodes that live through the stop: every message they published is in the bag

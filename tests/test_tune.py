@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import pytest
+from ros_domains import domain
 
 pytest.importorskip("rclpy")
 pytest.importorskip("fluxdrive_bringup")
@@ -46,7 +47,7 @@ def test_hold_point_from_the_card():
 def test_tune_holds_until_sigint(tmp_path):
     env = dict(os.environ)
     env.pop("ROS_DOMAIN_ID", None)
-    dom = 120 + (os.getpid() * 7 + 11) % 100
+    dom = domain(40)
     cmd = [sys.executable, "-m", "fluxdrive.cli", "tune", "--domain-id", str(dom)]
     proc = subprocess.Popen(
         [*cmd, "--out", str(tmp_path / "tune")],
