@@ -18,6 +18,8 @@ from ros_domains import domain
 
 pytest.importorskip("rclpy")
 pytest.importorskip("msgpack")  # python-can's udp_multicast needs it
+# the C drive paced against the graph over a CAN bus: wall-clock deadlines, so alone
+pytestmark = pytest.mark.serial
 
 from fluxdrive.analysis.metrics import compute  # noqa: E402
 from fluxdrive.core import yamlio  # noqa: E402

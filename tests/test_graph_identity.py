@@ -21,6 +21,8 @@ from ros_domains import domain
 
 pytest.importorskip("rclpy")
 pytest.importorskip("fluxdrive_bringup")
+# two whole graphs at once (a dozen processes): beside another test they starve
+pytestmark = pytest.mark.serial
 
 ROOT = Path(__file__).resolve().parents[1]
 DURATION_S = 0.3

@@ -24,6 +24,8 @@ from ros_domains import domain
 
 rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("fluxdrive_bringup")
+# a paced graph, a scope server and chromium at once, waited on in wall time: alone
+pytestmark = pytest.mark.serial
 sync_api = pytest.importorskip("playwright.sync_api")
 
 ROOT = Path(__file__).resolve().parents[1]

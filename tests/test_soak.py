@@ -17,6 +17,8 @@ from fluxdrive.io.bagio import bag_counts
 from fluxdrive.io.topics import FRAME
 
 pytest.importorskip("rclpy")
+# RSS growth and burst throughput of whole graphs: measured with the machine to itself
+pytestmark = pytest.mark.serial
 REPO = Path(__file__).resolve().parents[1]
 
 

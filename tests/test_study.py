@@ -71,6 +71,7 @@ def _computed(t):
     return t.select(cols)
 
 
+@pytest.mark.serial  # a dask cluster of two worker processes: the two cores to itself
 def test_local_cluster_two_workers_equals_serial_bit_for_bit(tmp_path):
     spec = load_spec(_spec(tmp_path))
     with Runner("serial") as r:
@@ -166,6 +167,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.serial  # a worker killed mid-study: timed against the others' progress
 def test_dask_scheduler_and_two_workers_one_killed_mid_study(tmp_path):
     dask = str(Path(sys.executable).with_name("dask"))
     port = _free_port()

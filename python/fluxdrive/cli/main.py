@@ -109,14 +109,55 @@ LIVE_REPLAY = ("fluxdrive_bringup.replay.live_replay", "main")
 EXPERIMENT_GRAPH = ("fluxdrive_bringup.launch.runs", "main_experiment_graph")
 
 
+# `./fluxdrive test` without arguments: the tests not marked `serial` on this many
+# pytest-xdist workers, then the `serial` ones (timing, throughput, heavy graphs) alone
+TEST_WORKERS = 2
+
+
 def main_test(argv: list[str]) -> int:
-    """Run the whole suite with a ROS domain of its own and discovery on localhost."""
+    """Run the suite with a ROS domain of its own and discovery on localhost: the given
+    pytest arguments as one plain pytest, or (none given) the whole suite in two parts."""
     env = dict(os.environ)
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     env.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
     env.setdefault("MPLBACKEND", "Agg")
-    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *argv]
-    return subprocess.call(cmd, cwd=REPO, env=env)
+    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider"]
+    if argv:
+        return subprocess.call([*cmd, *argv], cwd=REPO, env=env)
+    return _whole_suite(cmd, env)
+
+
+def _whole_suite(cmd: list[str], env: dict[str, str]) -> int:
+    """The parallel part, then the serial part (both always run, both print their
+    summary); non-zero when either fails.  Closes with the two parts' wall times and one
+    line of totals counted from their JUnit reports."""
+    import tempfile
+    import time
+    import xml.etree.ElementTree as ET
+
+    parts = [
+        ("parallel", ["-n", str(TEST_WORKERS), "-m", "not serial"]),
+        ("serial", ["-m", "serial"]),
+    ]
+    codes, walls, counts = [], [], {"passed": 0, "failed": 0, "skipped": 0}
+    with tempfile.TemporaryDirectory(prefix="fluxdrive-test-") as tmp:
+        for name, args in parts:
+            xml = os.path.join(tmp, f"{name}.xml")
+            print(f"== fluxdrive test: {name} part (pytest {' '.join(args)})", flush=True)
+            t0 = time.monotonic()
+            codes.append(subprocess.call([*cmd, *args, f"--junitxml={xml}"], cwd=REPO, env=env))
+            walls.append(time.monotonic() - t0)
+            if os.path.exists(xml):
+                for suite in ET.parse(xml).getroot().iter("testsuite"):
+                    n, skip = int(suite.get("tests", 0)), int(suite.get("skipped", 0))
+                    bad = int(suite.get("failures", 0)) + int(suite.get("errors", 0))
+                    counts["passed"] += n - skip - bad
+                    counts["failed"] += bad
+                    counts["skipped"] += skip
+    done = zip(parts, codes, walls, strict=True)
+    print("== fluxdrive test: " + ", ".join(f"{n} exit {c} in {w:.0f} s" for (n, _), c, w in done))
+    print("total: {passed} passed, {failed} failed, {skipped} skipped".format(**counts))
+    return next((c for c in codes if c != 0), 0)
 
 
 def main_lint(argv: list[str]) -> int:
