@@ -151,6 +151,7 @@ def test_paced_plant_watchdog_switches_pwm_off_without_a_controller(tmp_path):
                     "wait_frame_subscribers": 1,
                     "wait_duty_publishers": 0,
                     "start_delay_s": 0.0,
+                    "first_duty_timeout_s": 5.0,  # not the 30 s default: the same hold, shorter
                 },
             ),
             NodeSpec(
@@ -167,6 +168,7 @@ def test_paced_plant_watchdog_switches_pwm_off_without_a_controller(tmp_path):
     assert time.monotonic() - t0 > 5.0  # held ~5 s for a first duty command
     log = (tmp_path / "logs" / "drive.log").read_text()
     assert "watchdog: no duty command" in log and "PWM off from frame 2" in log
+    assert "(first_duty_timeout_s 5; " in log
     with AnyReader([bag]) as r:
         conns = [c for c in r.connections if c.topic == "/drive/frame"]  # not the settings
         frames = [r.deserialize(raw, c.msgtype) for c, _, raw in r.messages(connections=conns)]
