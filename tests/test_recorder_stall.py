@@ -26,36 +26,17 @@ from ros_domains import domain
 pytest.importorskip("rclpy")
 pytest.importorskip("fluxdrive_bringup")
 
-from test_process_faults import Run, graph_dict  # noqa: E402
+from test_process_faults import Run, graph_dict, short_lease  # noqa: E402
 
-LEASE_XML = """<?xml version="1.0" encoding="UTF-8" ?>
-<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
-  <participant profile_name="short_lease" is_default_profile="true">
-    <rtps>
-      <builtin>
-        <discovery_config>
-          <leaseDuration><sec>2</sec></leaseDuration>
-          <leaseAnnouncement><sec>0</sec><nanosec>500000000</nanosec></leaseAnnouncement>
-        </discovery_config>
-      </builtin>
-    </rtps>
-  </participant>
-</profiles>
-"""
 STALL_S = 6.0  # 3 leases: the recorder's participant is dropped for certain
 
 
 def test_recorder_stalled_past_its_lease_says_what_is_missing_and_why(tmp_path):
     from fluxdrive.core import yamlio
 
-    xml = tmp_path / "lease.xml"
-    xml.write_text(LEASE_XML)
     bag = tmp_path / "bag"
     g = graph_dict(
-        bag,
-        duration_s=3.0,
-        processes={"recorder": "recorder"},
-        defaults={"env": {"FASTRTPS_DEFAULT_PROFILES_FILE": str(xml)}},
+        bag, duration_s=3.0, processes={"recorder": "recorder"}, defaults=short_lease(tmp_path, 2)
     )
     g["nodes"][0]["required"] = True
     run = Run(g, domain(33), tmp_path).start()
