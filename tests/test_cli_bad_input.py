@@ -154,6 +154,19 @@ OUT_OF_RANGE = [
     (["identify", "--max-current-pu", "0.9"], "--max-current-pu", "[1.0, 3.0]"),
     (["identify", "--max-voltage-pu", "1.5"], "--max-voltage-pu", "[0.02, 1.0]"),
     (["identify", "--seed", "-1"], "--seed", "[0, 4294967295]"),
+    # options many commands share, each ranged by one field: --domain-id by the graph file's
+    # domain_id (a DDS error and exit 0 before), the servers' --port (an OverflowError
+    # traceback before), the CAN link's --decimation (a traceback on 0 or 300 before)
+    (["topic", "list", "--domain-id", "500"], "--domain-id", "[0, 232]"),
+    (["launch", "sim_lockstep", "--domain-id", "233"], "--domain-id", "[0, 232]"),
+    (["scope", "--port", "70000"], "--port", "[0, 65535]"),
+    (["foxglove", "--port", "70000"], "--port", "[0, 65535]"),
+    (["run", "paper_2pct_150load", "--scope-port", "-1"], "--scope-port", "[0, 65535]"),
+    (["can-emulator", "--decimation", "0"], "--decimation", "[1, 255]"),
+    (["can-emulator", "--decimation", "300"], "--decimation", "[1, 255]"),
+    (["bench", "--sil", "--decimation", "0"], "--decimation", "[1, 255]"),
+    (["benchmark", "bench", "--decimation", "300"], "--decimation", "[1, 255]"),
+    (["can-import", "x.log", "--out", "no_bag", "--decimation", "0"], "--decimation", "[1, 255]"),
 ]
 
 

@@ -168,6 +168,29 @@ def test_an_option_takes_exactly_its_fields_range():
     assert "[s]; range [0.05, 60]" in ap.format_help().replace("\n", " ").replace("  ", " ")
 
 
+def test_shared_options_are_ranged_by_one_field_each():
+    """--domain-id, the servers' --port/--scope-port and the CAN link's --decimation are
+    declared through `schema.option` by one field each (GraphSettings.domain_id,
+    ServeOptions.port, LinkOptions.decimation), never by a bare add_argument of their own."""
+    import ast
+
+    flags = {"--domain-id", "--port", "--scope-port", "--decimation"}
+    own = []
+    for path in [*(ROOT / "python").rglob("*.py"), *(ROOT / "src").rglob("*.py")]:
+        if "/build/" in str(path) or "/install/" in str(path):
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)):
+                continue
+            if node.func.attr != "add_argument" or not node.args:
+                continue
+            first = node.args[0]
+            if isinstance(first, ast.Constant) and first.value in flags:
+                own.append(f"{path.relative_to(ROOT)} {first.value}")
+    # the emulator's --port is a UDP multicast port of its bus (python-can checks it)
+    assert own == ["python/fluxdrive/cli/canemulator.py --port"], own
+
+
 # --------------------------------------------------------------- the nodes' descriptors
 rclpy = pytest.importorskip("rclpy")
 

@@ -62,6 +62,7 @@ import numpy as np
 from fluxdrive.can.protocol import (
     ARM_KEY,
     CLASSIC_SAMPLE_IDS,
+    DECIMATION_MAX,
     FRAME_FIELDS,
     FRAME_FLAG_ADC_CLIP,
     ID_ARM_MODE,
@@ -195,7 +196,7 @@ class BridgeConfig:
         "period, which only fits a virtual bus, classic 8; a real 1/5 Mbit/s FD bus needs "
         ">= 4, see docs/can.md); sent in ARM_MODE, the drive must report it in STATUS; "
         "observers and controller must then run at decimation * ts_s",
-        range=(0, 255),
+        range=(0, DECIMATION_MAX),
         live=False,
     )
     control_split: bool = param(

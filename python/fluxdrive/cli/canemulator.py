@@ -10,6 +10,8 @@ from typing import Any
 import can
 
 from fluxdrive.can.emulator import DriveEmulator
+from fluxdrive.can.protocol import LinkOptions
+from fluxdrive.core.schema import option
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -104,9 +106,10 @@ def _parser():
         help="udp_multicast: IP TTL / hop limit (0: never leaves this host)",
     )
     ap.add_argument("--layout", choices=("fd", "classic"), default="fd")
-    ap.add_argument(
+    option(
+        ap,
         "--decimation",
-        type=int,
+        LinkOptions,
         default=None,
         help="PWM periods per sample, either layout (default: the DBC's, FD 1, "
         "classic 8; a real 1/5 Mbit/s FD bus needs 4)",

@@ -8,6 +8,8 @@ import json
 import sys
 from pathlib import Path
 
+from fluxdrive.can.protocol import LinkOptions
+from fluxdrive.core.schema import option
 from fluxdrive.io.canimport import PHASE_FRAME_TOPIC, import_capture
 
 
@@ -28,17 +30,16 @@ def main(argv: list[str] | None = None) -> int:
         help="scenario the bench ran: its machine card and observer "
         "configurations go into the bag (default: the default machine card)",
     )
-    ap.add_argument(
+    option(
+        ap,
         "--decimation",
-        type=int,
+        LinkOptions,
+        default=None,
         help="PWM periods per sample (default: the capture's sequence-counter step)",
     )
     a = ap.parse_args(sys.argv[1:] if argv is None else argv)
     if Path(a.out).exists():
         print(f"can-import: {a.out} exists; choose a new bag directory", file=sys.stderr)
-        return 2
-    if a.decimation is not None and a.decimation < 1:
-        print(f"can-import: --decimation {a.decimation}: must be >= 1", file=sys.stderr)
         return 2
     try:
         res = import_capture(

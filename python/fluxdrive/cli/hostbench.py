@@ -40,9 +40,10 @@ import numpy as np
 
 from fluxdrive.analysis.freqresp import analyse
 from fluxdrive.can.loop import run_can_loop
-from fluxdrive.can.protocol import link_budget
+from fluxdrive.can.protocol import LinkOptions, link_budget
 from fluxdrive.core import yamlio
 from fluxdrive.core.paths import ROOT
+from fluxdrive.core.schema import option
 from fluxdrive.drive.control import CO_ID, CO_ID_REF
 from fluxdrive.drive.scenario import load_scenario, scenario_path
 from fluxdrive.drive.sim import run_scenario
@@ -124,7 +125,7 @@ def split_current_bandwidth_hz(
 def bench_bench(argv: list[str]) -> dict[str, Any]:
     ap = argparse.ArgumentParser(prog="fluxdrive benchmark bench", description=__doc__)
     ap.add_argument("--duration", type=float, default=2.0, help="drive seconds per run")
-    ap.add_argument("--decimation", type=int, default=4)
+    option(ap, "--decimation", LinkOptions)
     args = ap.parse_args(argv)
     d = int(args.decimation)
     host_sc = load_scenario(scenario_path("can_2pct_decimated"))

@@ -8,8 +8,9 @@ params`, checked by the docs test).
 - NodeEntry: the keys of an entry of `nodes`;
 - DeathPolicy: what happens when a process dies, per node entry or as the graph's default.
 
-In the engine (no ROS import), so that every graph package and the docs command read the
-same fields."""
+GraphSettings.domain_id also ranges every command's `--domain-id`, ServeOptions.port the
+scope's and the Foxglove bridge's `--port`.  In the engine (no ROS import), so that every
+graph package and the docs command read the same fields."""
 
 from __future__ import annotations
 
@@ -162,6 +163,14 @@ class NodeEntry:
     required: bool = param(
         False, unit="", doc="its process ending (code 0) ends the graph", live=False
     )
+
+
+@dataclass(frozen=True)
+class ServeOptions:
+    """The TCP port the browser scope and the Foxglove bridge serve a graph on (`scope
+    --port`, `foxglove --port`, `launch/run/tune --scope-port`), ranged once."""
+
+    port: int = param(8765, unit="-", doc="TCP port (0: any free port)", range=(0, 65535))
 
 
 TOP_KEYS = {**schema.specs(GraphSettings), **schema.specs(DeathPolicy)}

@@ -31,6 +31,8 @@ import X`` works whichever module X lives in.
 from __future__ import annotations
 
 from fluxdrive.can.protocol.budget import (
+    DECIMATION_MAX,
+    LinkOptions,
     bus_time_s,
     frame_bits,
     link_budget,
@@ -122,6 +124,8 @@ __all__ = [
     "frame_bits",
     "get_protocol",
     "link_budget",
+    "LinkOptions",
+    "DECIMATION_MAX",
     "load_database",
     "smallest_fitting_decimation",
     "pack_payloads",

@@ -5,7 +5,27 @@ No ROS imports."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
+
+from fluxdrive.core.schema import param
+
+# ARM_MODE carries the decimation D in one byte
+DECIMATION_MAX = 255
+
+
+@dataclass(frozen=True)
+class LinkOptions:
+    """The CAN link's decimation as the commands take it (can-emulator, can-import,
+    bench --sil, benchmark bench: `--decimation`), ranged once."""
+
+    decimation: int = param(
+        4,
+        unit="periods",
+        doc="PWM periods per sample on the CAN link, either layout (ARM_MODE's byte)",
+        range=(1, DECIMATION_MAX),
+    )
+
 
 # --------------------------------------------------------------------------- bus time
 
@@ -113,7 +133,9 @@ def link_budget(
     return out
 
 
-def smallest_fitting_decimation(layout: str, *, max_decimation: int = 255, **kw: Any) -> int:
+def smallest_fitting_decimation(
+    layout: str, *, max_decimation: int = DECIMATION_MAX, **kw: Any
+) -> int:
     """The smallest D for which :func:`link_budget` says the layout fits (``kw``: its bus
     settings: ``pwm_hz``, ``nominal_bitrate``, ``data_bitrate``, ``housekeeping_hz``).
     Raises ``ValueError`` if none up to ``max_decimation`` does."""

@@ -26,10 +26,12 @@ from typing import Any
 
 import yaml
 from fluxdrive.core import yamlio
+from fluxdrive.core.schema import option
+from fluxdrive.io.graphfile import GraphSettings
 
 
 def _common(ap: argparse.ArgumentParser) -> None:
-    ap.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID of the graph")
+    option(ap, "--domain-id", GraphSettings, help="ROS_DOMAIN_ID of the graph")
     ap.add_argument(
         "--wait",
         type=float,

@@ -61,12 +61,14 @@ from typing import Any
 
 from fluxdrive.core import schema, yamlio
 from fluxdrive.core.machine import ConfigError
+from fluxdrive.core.schema import option
 from fluxdrive.drive.scenario import REPO_ROOT
 from fluxdrive.io.graphfile import (
     NODE_KEYS,
     TOP_KEYS,
     DeathPolicy,
     GraphSettings,
+    ServeOptions,
     check_keys,
 )
 from fluxdrive_ros.runner import NODE_CLASSES, STOP_COUNTS_ENV
@@ -1176,7 +1178,7 @@ def _launch_parser():
         prog="fluxdrive launch", description="start a graph described in YAML"
     )
     ap.add_argument("graph", help="graph YAML (path, or a name under config/graphs/)")
-    ap.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID for every process")
+    option(ap, "--domain-id", GraphSettings, help="ROS_DOMAIN_ID for every process")
     ap.add_argument("--timeout", type=float, help="stop the graph after this many seconds")
     ap.add_argument(
         "--namespace",
@@ -1196,10 +1198,11 @@ def _launch_parser():
         help="also start the live scope (the scope tap in the plant's process and "
         "the web page; see ./fluxdrive scope)",
     )
-    ap.add_argument(
+    option(
+        ap,
         "--scope-port",
-        type=int,
-        default=8765,
+        ServeOptions,
+        "port",
         help="the scope's TCP port (default 8765; 0: any free port)",
     )
     ap.add_argument(

@@ -31,7 +31,9 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from fluxdrive.core.schema import option
 from fluxdrive.drive.scenario import REPO_ROOT, load_scenario, scenario_path
+from fluxdrive.io.graphfile import GraphSettings, ServeOptions
 
 from fluxdrive_bringup.launch.domains import choose_domain, pick_domain_id
 from fluxdrive_bringup.launch.launcher import Graph, Launcher, NodeSpec, check_namespace
@@ -297,8 +299,11 @@ def _run_parser(default_scenario: str | None) -> argparse.ArgumentParser:
         default="composed",
         help="process layout of the graph (default composed)",
     )
-    ap.add_argument(
-        "--domain-id", type=int, help="ROS_DOMAIN_ID (default: environment's, else a random one)"
+    option(
+        ap,
+        "--domain-id",
+        GraphSettings,
+        help="ROS_DOMAIN_ID (default: environment's, else a random one)",
     )
     ap.add_argument("--timeout", type=float, help="give up after this many seconds")
     ap.add_argument(
@@ -314,10 +319,11 @@ def _run_parser(default_scenario: str | None) -> argparse.ArgumentParser:
         action="store_true",
         help="watch it live: start the scope (prints its URL; see ./fluxdrive scope)",
     )
-    ap.add_argument(
+    option(
+        ap,
         "--scope-port",
-        type=int,
-        default=8765,
+        ServeOptions,
+        "port",
         help="the scope's TCP port (default 8765; 0: any free port)",
     )
     ap.add_argument(

@@ -25,6 +25,7 @@ from pathlib import Path
 from fluxdrive.core.machine import ConfigError
 from fluxdrive.core.schema import option
 from fluxdrive.drive.scenario import REPO_ROOT, load_scenario, save_scenario, scenario_path
+from fluxdrive.io.graphfile import GraphSettings, ServeOptions
 from fluxdrive_ros.runner import load_class
 
 from fluxdrive_bringup.launch.domains import choose_domain
@@ -128,10 +129,10 @@ def _tune_parser() -> argparse.ArgumentParser:
     )
     ap.add_argument("--layout", choices=LAYOUTS, default="composed")
     ap.add_argument("--out", type=Path, help="folder for logs and graph (default runs/tune-<time>)")
-    ap.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default: the environment's)")
+    option(ap, "--domain-id", GraphSettings, help="ROS_DOMAIN_ID (default: the environment's)")
     ap.add_argument("--quiet", action="store_true", help="hide the nodes' log lines")
     ap.add_argument("--scope", action="store_true", help="start the live scope (prints its URL)")
-    ap.add_argument("--scope-port", type=int, default=8765, help="the scope's TCP port")
+    option(ap, "--scope-port", ServeOptions, "port", help="the scope's TCP port")
     return ap
 
 

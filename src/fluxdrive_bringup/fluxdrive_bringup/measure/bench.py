@@ -45,7 +45,9 @@ import time
 from pathlib import Path
 
 from fluxdrive.cli.bench import benchmark_path, stamped, write_benchmark
+from fluxdrive.core.schema import option
 from fluxdrive.drive.scenario import load_scenario, scenario_path
+from fluxdrive.io.graphfile import GraphSettings
 
 
 def _say(text: str) -> None:
@@ -105,7 +107,7 @@ def _graph_parser() -> argparse.ArgumentParser:
         help=f"comma-separated, of {','.join(LAYOUTS)} (first = lockstep_rtf)",
     )
     ap.add_argument("--repeat", type=int, default=1, help="best of N graph runs per layout")
-    ap.add_argument("--domain-id", type=int)
+    option(ap, "--domain-id", GraphSettings)
     ap.add_argument(
         "--scope",
         action="store_true",
@@ -572,7 +574,6 @@ def bench_paced(argv: list[str]) -> dict:
 
 
 def _paced_parser() -> argparse.ArgumentParser:
-    from fluxdrive.core.schema import option
     from fluxdrive_ros.runner import load_class
 
     from fluxdrive_bringup.launch.runs import DEMO_SCENARIO, LAYOUTS
@@ -587,7 +588,7 @@ def _paced_parser() -> argparse.ArgumentParser:
     option(ap, "--rate", timing, "rate_factor", help="rate_factor (1: real time)")
     ap.add_argument("--layout", choices=LAYOUTS, default="composed")
     ap.add_argument("--scenario", default=DEMO_SCENARIO)
-    ap.add_argument("--domain-id", type=int)
+    option(ap, "--domain-id", GraphSettings)
     ap.add_argument(
         "--background-load",
         action="store_true",

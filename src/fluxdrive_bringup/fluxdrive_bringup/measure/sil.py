@@ -26,7 +26,10 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from fluxdrive.can.protocol import LinkOptions
+from fluxdrive.core.schema import option
 from fluxdrive.drive.scenario import REPO_ROOT, load_scenario, scenario_path
+from fluxdrive.io.graphfile import GraphSettings
 
 from fluxdrive_bringup.launch.domains import choose_domain
 from fluxdrive_bringup.launch.launcher import Launcher, NodeSpec
@@ -123,10 +126,10 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--sil", action="store_true", required=True, help="software in the loop")
     ap.add_argument("scenario", nargs="?", default="paper_2pct_150load")
     ap.add_argument("--mode", choices=MODES, default="split", help="where the current loop runs")
-    ap.add_argument("--decimation", type=int, default=4, help="PWM periods per sample")
+    option(ap, "--decimation", LinkOptions)
     ap.add_argument("--duration", type=float, help="simulate only this long [s]")
     ap.add_argument("--bag", type=Path, help="bag folder (default bags/<name>-sil-<time>)")
-    ap.add_argument("--domain-id", type=int)
+    option(ap, "--domain-id", GraphSettings)
     ap.add_argument("--timeout", type=float, default=600.0)
     ap.add_argument("--quiet", action="store_true")
     ap.add_argument(

@@ -52,6 +52,9 @@ import threading
 import time
 from typing import Any
 
+from fluxdrive.core.schema import option
+from fluxdrive.io.graphfile import GraphSettings, ServeOptions
+
 SUBPROTOCOL = "foxglove.sdk.v1"
 BRIDGE_NODE = "fluxdrive_foxglove"
 # services a viewer may call: ROS service type -> its .srv file in flux_drive_msgs
@@ -454,8 +457,8 @@ class Bridge:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="fluxdrive foxglove", description=__doc__.split("\n\n")[0])
     ap.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
-    ap.add_argument("--port", type=int, default=8765, help="TCP port (default 8765; 0: any)")
-    ap.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID of the graph")
+    option(ap, "--port", ServeOptions, help="TCP port (default 8765; 0: any)")
+    option(ap, "--domain-id", GraphSettings, help="ROS_DOMAIN_ID of the graph")
     ap.add_argument(
         "--clock",
         default="/clock",

@@ -44,6 +44,9 @@ import time
 from pathlib import Path
 from typing import Any
 
+from fluxdrive.core.schema import option
+from fluxdrive.io.graphfile import GraphSettings, ServeOptions
+
 WEB_DIR = Path(__file__).resolve().parent / "scope_web"
 TOKEN_HEADER = "X-Scope-Token"
 SCOPE_NODE = "fluxdrive_scope"
@@ -737,11 +740,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)"
     )
-    ap.add_argument(
-        "--port", type=int, default=8765, help="TCP port (default 8765; 0: any free port)"
-    )
+    option(ap, "--port", ServeOptions, help="TCP port (default 8765; 0: any free port)")
     ap.add_argument("--token", help="access token (default: a fresh random one per launch)")
-    ap.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID of the graph")
+    option(ap, "--domain-id", GraphSettings, help="ROS_DOMAIN_ID of the graph")
     ap.add_argument(
         "--attach-wait",
         type=float,
