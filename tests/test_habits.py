@@ -32,5 +32,18 @@ def test_ruff_format_clean():
 
 
 def test_mypy_clean():
+    """mypy over the engine and the ROS packages (pyproject's `files`: python and src), every
+    module of both: the count it reports is the count of their .py files (setup.py and
+    colcon's build/install/log folders aside, as pyproject excludes them)."""
     r = _run("mypy")
     assert r.returncode == 0, f"mypy found problems:\n{r.stdout}{r.stderr}"
+
+    def checked(p: Path) -> bool:  # pyproject's exclude
+        parts = p.relative_to(REPO).parts
+        return p.name != "setup.py" and not (
+            parts[0] == "src" and parts[2] in ("build", "install", "log")
+        )
+
+    files = [p for root in ("python", "src") for p in (REPO / root).rglob("*.py") if checked(p)]
+    assert {"python", "src"} == {p.relative_to(REPO).parts[0] for p in files}
+    assert f"no issues found in {len(files)} source files" in r.stdout, r.stdout
