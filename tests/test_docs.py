@@ -52,8 +52,8 @@ def test_quoted_figures_are_current():
 
 
 def test_parameter_tables_are_current():
-    """docs/configuration.md's, docs/study.md's and docs/graph.md's graph-file tables are
-    what the schemas generate."""
+    """docs/configuration.md's, docs/study.md's, docs/graph.md's graph-file and
+    docs/machines.md's identify tables are what the schemas generate."""
     from fluxdrive.drive.config_blocks import stale_tables
     from fluxdrive.io import graphfile
     from fluxdrive.study import spec
@@ -62,6 +62,10 @@ def test_parameter_tables_are_current():
     assert stale_tables(spec.docs_tables(), spec.DOC_PAGE) == [], "run ./fluxdrive docs params"
     graph = stale_tables(graphfile.docs_tables(), graphfile.DOC_PAGE)
     assert graph == [], "run ./fluxdrive docs params"
+    from fluxdrive.drive import identify
+
+    ident = stale_tables(identify.docs_tables(), identify.DOC_PAGE)
+    assert ident == [], "run ./fluxdrive docs params"
 
 
 def test_node_parameter_tables_are_current():

@@ -56,9 +56,9 @@ def quotes(check: bool) -> int:
 
 def param_tables(check: bool) -> int:
     """The config blocks' tables of docs/configuration.md, the study spec's of
-    docs/study.md and the graph file's of docs/graph.md, written from their schemas (or
-    checked)."""
-    from fluxdrive.drive import config_blocks
+    docs/study.md, the graph file's of docs/graph.md and identify's options of
+    docs/machines.md, written from their schemas (or checked)."""
+    from fluxdrive.drive import config_blocks, identify
     from fluxdrive.io import graphfile
     from fluxdrive.study import spec
 
@@ -66,6 +66,7 @@ def param_tables(check: bool) -> int:
         (config_blocks.DOC_PAGE, config_blocks.docs_tables()),
         (spec.DOC_PAGE, spec.docs_tables()),
         (graphfile.DOC_PAGE, graphfile.docs_tables()),
+        (identify.DOC_PAGE, identify.docs_tables()),
     ]
     return max(_page_tables(page, tables, check) for page, tables in pages)
 

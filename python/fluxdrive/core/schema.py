@@ -89,7 +89,10 @@ class Spec:
             return ", ".join(self.choices)
         if self.lo is None or self.hi is None:
             return ""
-        text = f"[{self.lo:g}, {self.hi:g}]"
+        if self.kind is int:  # every digit: a seed's 4294967295, not 4.29497e+09
+            text = f"[{int(self.lo)}, {int(self.hi)}]"
+        else:
+            text = f"[{self.lo:g}, {self.hi:g}]"
         return text + (f", {self.limit.text}" if self.limit else "")
 
 

@@ -41,7 +41,8 @@ import numpy as np
 
 from fluxdrive.core.blocks import rng_new
 from fluxdrive.core.machine import MachineCard, required
-from fluxdrive.core.schema import param
+from fluxdrive.core.paths import ROOT
+from fluxdrive.core.schema import markdown_table, param
 from fluxdrive.core.transforms import clarke, line_to_phase
 from fluxdrive.drive.control import (
     CO_DA,
@@ -89,16 +90,30 @@ class IdentifySettings:
         unit="pu",
         doc="abort (PWM off) when a phase current exceeds this, of the card's rated current",
         range=(1.0, 3.0),
+        live=False,
     )
     max_voltage_pu: float = param(
         0.5,
         unit="pu",
         doc="largest standstill voltage command (R, L steps), of Vdc/sqrt(3)",
         range=(0.02, 1.0),
+        live=False,
     )
     seed: int = param(
-        1, unit="-", doc="seed of the simulated plant's sensor noise", range=(0, 2**32 - 1)
+        1,
+        unit="-",
+        doc="seed of the simulated plant's sensor noise",
+        range=(0, 2**32 - 1),
+        live=False,
     )
+
+
+DOC_PAGE = ROOT / "docs" / "machines.md"  # its table of IdentifySettings
+
+
+def docs_tables() -> dict[str, str]:
+    """{block key: Markdown table} of the machines page (`./fluxdrive docs params`)."""
+    return {"identify": markdown_table(IdentifySettings) + "\n"}
 
 
 class IdentifyAbort(RuntimeError):
