@@ -53,23 +53,24 @@ def test_rounds_and_write_need_against():
     assert "--against" in str(exc.value)
 
 
-def _row(paper_cpu, ideal_cpu, paper_wall, ideal_wall, warm):
-    return {
-        "periods_per_cpu_s": {"paper_bench": paper_cpu, "ideal_bench": ideal_cpu},
-        "periods_per_wall_s": {"paper_bench": paper_wall, "ideal_bench": ideal_wall},
-        "warm_s": warm,
+def test_summary_ratio_is_the_median_chunk_ratio():
+    """Two runs of three steps (set-up + two chunks) per engine, (cpu, wall) each: the
+    ratio is the median over the six steps of REF's time over this engine's; `best` is the
+    ratio of the best runs' rates (periods over the run's summed time)."""
+    ref = [[(2.0, 4.0), (4.0, 8.0), (6.0, 6.0)], [(2.0, 2.0), (4.0, 4.0), (4.0, 4.0)]]
+    new = [[(1.0, 4.0), (5.0, 8.0), (6.0, 12.0)], [(2.0, 1.0), (2.0, 4.0), (8.0, 2.0)]]
+    steps = {
+        "ref": {"paper_bench": ref, "ideal_bench": new},
+        "checkout": {"paper_bench": new, "ideal_bench": ref},
     }
-
-
-def test_summary_ratio_is_best_over_best():
-    rows = {
-        "ref": [_row(100.0, 200.0, 80.0, 150.0, 30.0), _row(120.0, 190.0, 90.0, 160.0, 2.0)],
-        "checkout": [_row(110.0, 210.0, 60.0, 170.0, 40.0), _row(117.0, 230.0, 99.0, 140.0, 3.0)],
-    }
-    out = _against_summary(rows)
-    assert out["paper_bench_ratio_per_cpu_s"] == round(117.0 / 120.0, 4)
-    assert out["ideal_bench_ratio_per_cpu_s"] == round(230.0 / 200.0, 4)
-    assert out["paper_bench_ratio_per_wall_s"] == round(99.0 / 90.0, 4)
-    assert out["ideal_bench_ratio_per_wall_s"] == round(170.0 / 160.0, 4)
-    assert out["paper_bench_round_ratios_per_cpu_s"] == [1.1, round(117.0 / 120.0, 4)]
-    assert out["warm_s"] == {"ref": [30.0, 2.0], "checkout": [40.0, 3.0]}
+    out = _against_summary(steps, {"paper_bench": 120, "ideal_bench": 120})
+    # cpu ratios 2, 0.8, 1, 1, 2, 0.5 -> median 1; wall 1, 1, 0.5, 2, 1, 2 -> median 1
+    assert out["paper_bench_ratio_per_cpu_s"] == 1.0
+    assert out["paper_bench_ratio_per_wall_s"] == 1.0
+    # run totals (cpu): REF 12, 10; this 12, 12 -> best 120/10 vs 120/12
+    assert out["paper_bench_ref_periods_per_cpu_s"] == 12
+    assert out["paper_bench_periods_per_cpu_s"] == 10
+    assert out["paper_bench_best_ratio_per_cpu_s"] == round(10 / 12, 4)
+    assert out["paper_bench_run_ratios_per_cpu_s"] == [1.0, round(10 / 12, 4)]
+    # the other way round: the inverse ratios (cpu: 0.5, 1.25, 1, 1, 0.5, 2 -> median 1)
+    assert out["ideal_bench_best_ratio_per_cpu_s"] == round(12 / 10, 4)

@@ -246,15 +246,126 @@ def bench_engine(argv: list[str]) -> dict:
 
 
 # a child of `bench_engine_against`: the engine of the tree whose python/ it puts first on
-# sys.path, measured by this file's `engine_runs`, loaded by its path (not as a module of that
+# sys.path, driven by this file's `engine_serve`, loaded by its path (not as a module of that
 # engine), so both engines are measured by the same code
 _CHILD = (
-    "import json, runpy, sys\n"
+    "import runpy, sys\n"
     "sys.path.insert(0, sys.argv[1])\n"
-    "runs = runpy.run_path(sys.argv[2])['engine_runs'](int(sys.argv[3]))\n"
-    "print(json.dumps(runs))\n"
+    "runpy.run_path(sys.argv[2])['engine_serve']()\n"
 )
 RUNS_PER_ROUND = 3
+ENGINE_CASES = ("paper_bench", "ideal_bench")
+SIDES = ("ref", "checkout")
+
+
+def engine_serve() -> None:
+    """The engine benchmark one step at a time, on whichever `fluxdrive` this interpreter
+    imports: a command a line on stdin, a JSON line back with the step's wall and
+    process-CPU seconds.  `warm`: compile or load every kernel (answers the engine's
+    folder and each case's periods); `start CASE`: a fresh run of case CASE set up as
+    `run_scenario` sets it up; `chunk`: its next 0.25 s (`run_scenario`'s chunk; answers
+    `done` after the last); anything else ends."""
+    import fluxdrive
+    from fluxdrive.drive.sim import DriveSetup, LoopRun
+
+    path, sc, ideal = _engine_cases()
+    cases = dict(zip(ENGINE_CASES, (sc, ideal), strict=True))
+    run, chunk = None, 1
+    for line in sys.stdin:
+        cmd, _, arg = line.strip().partition(" ")
+        t0, c0 = time.perf_counter(), time.process_time()
+        info: dict[str, Any] = {}
+        if cmd == "warm":
+            _engine_warm(path, sc, ideal)
+            info["engine"] = str(Path(fluxdrive.__file__).resolve().parent)
+            info["periods"] = {k: c.n_periods for k, c in cases.items()}
+        elif cmd == "start":
+            run = LoopRun(DriveSetup(cases[arg]))
+            run.advance(0)
+            chunk = max(1, int(0.25 / run.ds.ts))
+        elif cmd == "chunk" and run is not None:
+            run.advance(min(run.n, run.k + chunk))
+            info["done"] = run.k >= run.n
+            if info["done"]:
+                run.result()
+        else:
+            return
+        info.update(wall=time.perf_counter() - t0, cpu=time.process_time() - c0)
+        print(json.dumps(info), flush=True)
+
+
+class _EngineChild:
+    """`engine_serve` in a fresh interpreter of this venv on the engine of checkout `tree`
+    (its python/ first on sys.path, its config, numba cache folder `cache`)."""
+
+    def __init__(self, side: str, tree: Path, cache: Path, log: Path):
+        import subprocess
+
+        self.side, self.tree, self.log = side, tree, log
+        env = {**os.environ, "FLUXDRIVE_ROOT": str(tree), "NUMBA_CACHE_DIR": str(cache)}
+        args = [sys.executable, "-c", _CHILD, str(tree / "python"), __file__]
+        with open(log, "w") as err:
+            self.proc = subprocess.Popen(
+                args,
+                cwd=tree,
+                env=env,
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                stderr=err,
+                text=True,
+            )
+
+    def ask(self, cmd: str) -> dict:
+        """Send one command, return its answer; SystemExit naming the child if it died."""
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        try:
+            self.proc.stdin.write(cmd + "\n")
+            self.proc.stdin.flush()
+            line = self.proc.stdout.readline()
+        except OSError:
+            line = ""
+        if not line:
+            lines = self.log.read_text(errors="replace").strip().splitlines()
+            raise SystemExit(
+                f"benchmark engine: the {self.side} engine ({self.tree}) failed: "
+                f"{lines[-1] if lines else 'no message'}"
+            )
+        return json.loads(line)
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.ask_quietly("quit")
+            self.proc.wait(timeout=60)
+
+    def ask_quietly(self, cmd: str) -> None:
+        assert self.proc.stdin is not None
+        try:
+            self.proc.stdin.write(cmd + "\n")
+            self.proc.stdin.flush()
+        except OSError:
+            pass
+
+
+def _lockstep_round(kids: dict[str, _EngineChild], r: int) -> dict:
+    """One round: RUNS_PER_ROUND runs of each case on both engines at once, chunk by chunk
+    in turn (the first to step alternates run by run), so a change of the machine's load
+    meets both.  Returns {side: {case: [[(cpu, wall) per step] per run]}}."""
+    steps: dict[str, dict[str, list]] = {s: {c: [] for c in ENGINE_CASES} for s in kids}
+    for rep in range(RUNS_PER_ROUND):
+        for i, case in enumerate(ENGINE_CASES):
+            order = list(kids) if (rep + i + r) % 2 == 0 else list(kids)[::-1]
+            for s in order:
+                a = kids[s].ask(f"start {case}")
+                steps[s][case].append([(a["cpu"], a["wall"])])
+            done = False
+            while not done:
+                answers = {s: kids[s].ask("chunk") for s in order}
+                for s, a in answers.items():
+                    steps[s][case][-1].append((a["cpu"], a["wall"]))
+                done = all(a["done"] for a in answers.values())
+                if any(a["done"] for a in answers.values()) and not done:
+                    raise SystemExit("benchmark engine: the two engines' runs differ in length")
+    return steps
 
 
 def _ref_commit(ref: str, root: Path) -> str:
@@ -305,32 +416,12 @@ def _export_commit(sha: str, root: Path, dest: Path) -> None:
         tf.extractall(dest, filter="data")
 
 
-def _engine_child(side: str, tree: Path, cache: Path) -> dict:
-    """`engine_runs` in a fresh interpreter of this venv on the engine of checkout `tree`
-    (its python/ first on sys.path, its config, numba cache folder `cache`)."""
-    import subprocess
-
-    env = {**os.environ, "FLUXDRIVE_ROOT": str(tree), "NUMBA_CACHE_DIR": str(cache)}
-    args = [sys.executable, "-c", _CHILD, str(tree / "python"), __file__, str(RUNS_PER_ROUND)]
-    r = subprocess.run(args, cwd=tree, env=env, capture_output=True, text=True)
-    for line in r.stderr.splitlines():
-        if line.startswith("[bench] run "):
-            print(f"[bench]   {side:8s} {line[len('[bench] ') :]}", file=sys.stderr)
-    if r.returncode:
-        last = (r.stderr.strip().splitlines() or [f"exit {r.returncode}"])[-1]
-        raise SystemExit(f"benchmark engine: the {side} engine ({tree}) failed: {last}")
-    runs = json.loads(r.stdout.strip().splitlines()[-1])
-    if Path(runs["engine"]) != (tree / "python" / "fluxdrive").resolve():
-        raise SystemExit(f"benchmark engine: the {side} child ran the engine {runs['engine']}")
-    return runs
-
-
 def bench_engine_against(ref: str, rounds: int, write: bool) -> dict:
     """This checkout's engine against commit REF's (exported with git archive into a
-    temporary folder): round by round, each engine in a fresh interpreter of this venv,
-    measured by the same code (`engine_runs`, best of RUNS_PER_ROUND a round), in
-    alternating order; each with a numba cache of its own, new (so the first round's
-    warm-up is a cold compile).  Ratios are this engine's best rate over REF's."""
+    temporary folder), measured by the same code (`engine_serve`): each round starts both
+    in fresh interpreters of this venv, each with a numba cache of its own, new (so the
+    first round's warm-up is a cold compile), and runs them in lockstep
+    (`_lockstep_round`).  Ratios are this engine's speed over REF's."""
     import tempfile
 
     from fluxdrive.core.paths import ROOT
@@ -338,27 +429,45 @@ def bench_engine_against(ref: str, rounds: int, write: bool) -> dict:
     if rounds < 1:
         raise SystemExit(f"benchmark engine: --rounds {rounds}: at least 1")
     sha = _ref_commit(ref, ROOT)
-    rows: dict[str, list[dict]] = {"ref": [], "checkout": []}
-    loads = []
+    commit = _checkout_commit()  # before: an edit while it runs shows as -dirty
+    steps: dict[str, dict[str, list]] = {s: {c: [] for c in ENGINE_CASES} for s in SIDES}
+    warm: dict[str, list[float]] = {s: [] for s in SIDES}
+    loads, periods = [], {}
     with tempfile.TemporaryDirectory(prefix="fluxdrive-against-") as tmp:
-        tree = Path(tmp) / "tree"
-        _export_commit(sha, ROOT, tree)
-        where = {"ref": tree, "checkout": ROOT}
+        base = Path(tmp)
+        _export_commit(sha, ROOT, base / "tree")
+        where = {"ref": base / "tree", "checkout": ROOT}
         for r in range(rounds):
             loads.append(round(os.getloadavg()[0], 2))
-            for side in ("ref", "checkout") if r % 2 == 0 else ("checkout", "ref"):
-                print(f"[bench] round {r + 1}/{rounds}: {side} ({loads[-1]} load)", file=sys.stderr)
-                rows[side].append(_engine_child(side, where[side], Path(tmp) / f"numba-{side}"))
-    out = _against_summary(rows)
+            print(f"[bench] round {r + 1}/{rounds} (load {loads[-1]})", file=sys.stderr)
+            kids = {
+                s: _EngineChild(s, where[s], base / f"numba-{s}", base / f"{s}.log") for s in SIDES
+            }
+            try:
+                for s, kid in kids.items():  # one at a time: the first round's compile times
+                    a = kid.ask("warm")
+                    if Path(a["engine"]) != (where[s] / "python" / "fluxdrive").resolve():
+                        raise SystemExit(f"benchmark engine: the {s} child ran {a['engine']}")
+                    warm[s].append(round(a["wall"], 2))
+                    periods = a["periods"]
+                got = _lockstep_round(kids, r)
+            finally:
+                for kid in kids.values():
+                    kid.close()
+            for s in SIDES:
+                for c in ENGINE_CASES:
+                    steps[s][c] += got[s][c]
+    out = _against_summary(steps, periods)
     out.update(
         against=ref,
         against_commit=sha[:10],
-        commit=_checkout_commit(),
+        commit=commit,
         rounds=rounds,
         runs_per_round=RUNS_PER_ROUND,
-        scenario=rows["ref"][0]["scenario"],
+        warm_s=warm,
         load_average_1min_per_round=loads,
-        clock="best rate of each engine over all rounds; CPU: the child process's own",
+        method="both engines at once, 0.25 s chunks in turn; ratio: the median over the "
+        "chunks of REF's time over this engine's",
     )
     if write:
         write_benchmark("engine_against", out)
@@ -371,33 +480,41 @@ def _checkout_commit() -> str:
     return _commit()
 
 
-def _against_summary(rows: dict[str, list[dict]]) -> dict:
-    """Per bench and clock: each engine's best periods per second over the rounds and the
-    ratio checkout / REF; the per-round ratios (CPU); the warm-up seconds per round.
+def _against_summary(steps: dict[str, dict[str, list]], periods: dict[str, int]) -> dict:
+    """Per case and clock (process CPU, wall): this engine's speed over REF's as the median
+    of the chunks' ratios (REF's time over this engine's for the same chunk of the same
+    run, measured side by side: robust to a burst of load on one of them), each engine's
+    best run in periods per second and their ratio, and the ratio run by run (CPU).
     Prints the table."""
     out: dict[str, Any] = {}
-    print(
-        f"[bench] {'':12s} {'clock':5s} {'REF k/s':>9s} {'this k/s':>9s} {'ratio':>7s}",
-        file=sys.stderr,
-    )
-    for key in ("paper_bench", "ideal_bench"):
-        for clock in ("cpu", "wall"):
-            field = f"periods_per_{clock}_s"
-            ref = max(r[field][key] for r in rows["ref"])
-            new = max(r[field][key] for r in rows["checkout"])
-            out[f"{key}_ratio_per_{clock}_s"] = round(new / ref, 4)
-            out[f"{key}_ref_periods_per_{clock}_s"] = round(ref)
-            out[f"{key}_periods_per_{clock}_s"] = round(new)
+    head = f"{'REF k/s':>9s} {'this k/s':>9s} {'best':>7s} {'median chunk':>12s}"
+    print(f"[bench] {'':12s} {'clock':5s} {head}", file=sys.stderr)
+    for case in ENGINE_CASES:
+        ref, new = steps["ref"][case], steps["checkout"][case]
+        for k, clock in enumerate(("cpu", "wall")):
+            t_ref = [sum(st[k] for st in run) for run in ref]
+            t_new = [sum(st[k] for st in run) for run in new]
+            chunks = [
+                a[k] / b[k]
+                for ra, rb in zip(ref, new, strict=True)
+                for a, b in zip(ra, rb, strict=True)
+                if b[k] > 0
+            ]
+            med = float(np.median(chunks))
+            best_ref, best_new = periods[case] / min(t_ref), periods[case] / min(t_new)
+            out[f"{case}_ratio_per_{clock}_s"] = round(med, 4)
+            out[f"{case}_best_ratio_per_{clock}_s"] = round(best_new / best_ref, 4)
+            out[f"{case}_ref_periods_per_{clock}_s"] = round(best_ref)
+            out[f"{case}_periods_per_{clock}_s"] = round(best_new)
+            if clock == "cpu":
+                out[f"{case}_run_ratios_per_cpu_s"] = [
+                    round(a / b, 4) for a, b in zip(t_ref, t_new, strict=True)
+                ]
             print(
-                f"[bench] {key.replace('_', ' '):12s} {clock:5s} {ref / 1e3:9.1f} "
-                f"{new / 1e3:9.1f} {new / ref:7.4f}",
+                f"[bench] {case.replace('_', ' '):12s} {clock:5s} {best_ref / 1e3:9.1f} "
+                f"{best_new / 1e3:9.1f} {best_new / best_ref:7.4f} {med:12.4f}",
                 file=sys.stderr,
             )
-        out[f"{key}_round_ratios_per_cpu_s"] = [
-            round(c["periods_per_cpu_s"][key] / r["periods_per_cpu_s"][key], 4)
-            for r, c in zip(rows["ref"], rows["checkout"], strict=True)
-        ]
-    out["warm_s"] = {side: [r["warm_s"] for r in rows[side]] for side in rows}
     return out
 
 
