@@ -37,8 +37,13 @@ def inv_park(d: float, q: float, cos_t: float, sin_t: float) -> tuple[float, flo
 
 @njit(cache=True, inline="always")
 def wrap_angle(x: float) -> float:
-    """Wrap an angle to [-pi, pi)."""
-    return (x + math.pi) % TWO_PI - math.pi
+    """Wrap an angle to [-pi, pi): (x + pi) mod 2 pi - pi.  An angle already in range (the
+    usual case: one step of an angle kept wrapped) skips the floating modulo, which returns
+    y itself for y in [0, 2 pi), so the result is the same to the bit."""
+    y = x + math.pi
+    if 0.0 <= y < TWO_PI:
+        return y - math.pi
+    return y % TWO_PI - math.pi
 
 
 @njit(cache=True, inline="always")

@@ -135,6 +135,16 @@ TR_N = _TR.close(globals())
 LEG_BOTTOM, LEG_TOP, LEG_DIODE = 0, 1, 2
 CAP_MAX_EDGES = 32  # line-level edges recorded per period (a line has <= ~10)
 
+# ---- a period's scratch (`plant_period`'s `work`): blocks, not fields, and no state (a
+# period writes each entry before it reads it), so it is no Layout and not in PS_*; a loop
+# allocates one and hands it to every period
+W_EV = 0  # event times of the period (<= 20: two ends, 12 leg instants, 3 skewed samples)
+W_VS = W_EV + 20  # volt-seconds real/ideal (6), skewed current samples (3), noise rms (3)
+W_CAP_N = W_VS + 12  # the capture model's edge count per line (3)
+W_CAP_T = W_CAP_N + 3  # its edge times, 3 lines x CAP_MAX_EDGES
+W_CAP_S = W_CAP_T + 3 * CAP_MAX_EDGES  # its edge levels, 3 lines x CAP_MAX_EDGES
+WORK_N = W_CAP_S + 3 * CAP_MAX_EDGES
+
 
 def machine_params(
     card: MachineCard,
@@ -965,19 +975,18 @@ def plant_initial_frame(st, mp, rng, frame, truth):
 
 
 @njit(cache=True)
-def plant_advance(st, mp, rng, duty, enabled, load_t, load_y, load_cfg, frame, truth):
-    """Simulate one PWM period with `duty` (3 values in [0, 1]) and sample the next frame."""
-    # one scratch allocation a period: event times, volt-seconds + skewed samples, edge
-    # counts of the capture model (and its edge lists only when that model is on)
-    buf = np.empty(36)
-    ev = buf[0:20]
-    vs = buf[20:32]  # volt-seconds, skewed samples, switching-noise rms
-    cap_n = buf[32:35]
+def plant_period(st, mp, rng, duty, enabled, load_t, load_y, load_cfg, frame, truth, work):
+    """Simulate one PWM period with `duty` (3 values in [0, 1]) and sample the next frame;
+    `work` (WORK_N floats, contents free) is the period's scratch, allocated once by the
+    caller's loop: a period allocates nothing."""
+    ev = work[W_EV:W_VS]
+    vs = work[W_VS:W_CAP_N]
+    cap_n = work[W_CAP_N:W_CAP_T]
     if mp[MP_CAP_ON] > 0.0:
-        cap_t = np.empty((3, CAP_MAX_EDGES))
-        cap_s = np.empty((3, CAP_MAX_EDGES))
+        cap_t = work[W_CAP_T:W_CAP_S].reshape((3, CAP_MAX_EDGES))
+        cap_s = work[W_CAP_S:WORK_N].reshape((3, CAP_MAX_EDGES))
     else:
-        cap_t = buf[35:36].reshape((1, 1))
+        cap_t = work[W_CAP_T : W_CAP_T + 1].reshape((1, 1))
         cap_s = cap_t
     da = min(max(duty[0], 0.0), 1.0)
     db = min(max(duty[1], 0.0), 1.0)
@@ -987,6 +996,14 @@ def plant_advance(st, mp, rng, duty, enabled, load_t, load_y, load_cfg, frame, t
     st[PS_K] += 1.0
     st[PS_T] = st[PS_K] * mp[MP_TS]
     _sample(st, mp, rng, vs, da, db, dc, enabled, frame, truth, cap_t, cap_s, cap_n)
+
+
+@njit(cache=True)
+def plant_advance(st, mp, rng, duty, enabled, load_t, load_y, load_cfg, frame, truth):
+    """`plant_period` with a scratch of its own: for callers that step one period at a time
+    from Python (the plant node, the emulator), where one allocation is nothing."""
+    work = np.empty(WORK_N)
+    plant_period(st, mp, rng, duty, enabled, load_t, load_y, load_cfg, frame, truth, work)
 
 
 def deadtime_volt_second_loss(vdc_v: float, deadtime_s: float, ts_s: float) -> float:
@@ -1000,6 +1017,7 @@ __all__ = [n for n in dir() if n.isupper() and not n.startswith("_")] + [
     "plant_state",
     "winding_resistance",
     "plant_advance",
+    "plant_period",
     "plant_initial_frame",
     "load_torque",
     "deadtime_volt_second_loss",

@@ -70,10 +70,11 @@ from fluxdrive.drive.plant import (
     FR_VAB,
     FR_VCA,
     TR_N,
+    WORK_N,
     load_config,
     machine_params,
-    plant_advance,
     plant_initial_frame,
+    plant_period,
     plant_state,
 )
 from fluxdrive.drive.scenario import RPM, Scenario
@@ -121,6 +122,7 @@ def closed_loop_chunk(
     n_obs = obs_states.shape[0]
     no_est = np.zeros(ES_N)
     ctrl = np.zeros(CO_N)
+    work = np.empty(WORK_N)  # the plant's scratch: the periods allocate nothing
     for k in range(k0, k1):
         out_frames[k, :] = frame
         out_truth[k, :] = truth
@@ -144,6 +146,7 @@ def closed_loop_chunk(
             truth,
             duty_prev,
             ctrl,
+            work,
         )
         out_ctrl[k, :] = ctrl
     return k1
@@ -167,12 +170,14 @@ def control_and_plant(
     truth,
     duty_prev,
     ctrl,
+    work,
 ):
     """Steps 2-4 of period k (after the observers): the controller turns frame k and the
     driving estimate `est` into duty(k) (in `ctrl`), the plant simulates [t_k, t_{k+1}] with
-    the latched duty(k-1) into `frame`/`truth`, and duty(k) is latched in `duty_prev`."""
+    the latched duty(k-1) into `frame`/`truth` (`work`: its scratch), and duty(k) is latched
+    in `duty_prev`."""
     controller_step(cs, cp, frame, est, w_ref[k], id_inj[k], ctrl)
-    plant_advance(
+    plant_period(
         pst,
         mp,
         rng,
@@ -183,6 +188,7 @@ def control_and_plant(
         load_cfg,
         frame,
         truth,
+        work,
     )
     for j in range(LATCH_N):
         duty_prev[j] = ctrl[j]
@@ -271,6 +277,7 @@ def split_loop_chunk(
     fdec = np.zeros(FR_N)
     ref = np.zeros(RF_N)
     ctrl = np.zeros(CO_N)
+    work = np.empty(WORK_N)  # the plant's scratch: the periods allocate nothing
     n_ring = refs.shape[0]
     ts = cp[CP_TS]
     for k in range(k0, k1):
@@ -299,7 +306,7 @@ def split_loop_chunk(
         ctrl[CO_W_REF] = host_row[CO_W_REF]
         ctrl[CO_W_FB] = host_row[CO_W_FB]
         out_ctrl[k, :] = ctrl
-        plant_advance(
+        plant_period(
             pst,
             mp,
             rng,
@@ -310,6 +317,7 @@ def split_loop_chunk(
             load_cfg,
             frame,
             truth,
+            work,
         )
         for j in range(LATCH_N):
             duty_prev[j] = ctrl[j]
@@ -571,6 +579,7 @@ class LoopRun:
         is_kernel = np.array([nm not in ds.plugins for nm in ds.names])
         no_est = np.zeros(ES_N)
         ctrl = np.zeros(CO_N)
+        work = np.empty(WORK_N)
         for k in range(self.k, k1):
             self.frames[k, :] = self.frame
             self.truths[k, :] = self.truth
@@ -597,6 +606,7 @@ class LoopRun:
                 self.truth,
                 self.latch,
                 ctrl,
+                work,
             )
             self.ctrl[k, :] = ctrl
         self.k = max(self.k, k1)
