@@ -26,6 +26,9 @@ from ros_domains import domain
 from test_process_faults import STATUS_STALE_COMMAND, Run, graph_dict, read_frames
 
 pytest.importorskip("rclpy")
+# a paced graph whose controller is stopped for wall-time spans against the plant's
+# wall-time watchdog: beside another test, its latch once missed the bag
+pytestmark = pytest.mark.serial
 
 RATE = 0.2  # simulated seconds per wall second: 2000 frames/s
 WATCHDOG_S = 1.5  # the plant's limit (default 1 s): 1.5 s, a loaded machine hiccups for 0.6 s
