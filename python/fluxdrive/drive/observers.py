@@ -212,6 +212,15 @@ def frame_out_of_range(fr, lim) -> bool:
     return False
 
 
+@njit(cache=True)
+def block_out_of_range(frames, lim) -> bool:
+    """True if any row of `frames` is `frame_out_of_range` (a shadow observer's block)."""
+    for i in range(frames.shape[0]):
+        if frame_out_of_range(frames[i], lim):
+            return True
+    return False
+
+
 @njit(cache=True, inline="always")
 def _hold(os_, out):
     """The held estimate of a frame that gives none: last angle and speed, flagged invalid."""

@@ -33,6 +33,7 @@ from fluxdrive.drive.control import (
 from fluxdrive.drive.observers import (
     ES_N,
     OS_N,
+    block_out_of_range,
     frame_limits,
     frame_out_of_range,
     observer_reset,
@@ -51,6 +52,7 @@ KERNELS = (
     observer_step,
     observer_run,
     frame_out_of_range,
+    block_out_of_range,
     controller_reset,
     controller_step,
     controller_clear_fault,
@@ -78,6 +80,7 @@ def graph_kernel_calls(sc) -> list[tuple[object, tuple]]:
         (observer_step, (ost, op, frame, est)),
         (observer_run, (ost, op, np.zeros((2, FR_N)), np.zeros((2, ES_N)))),  # shadows' blocks
         (frame_out_of_range, (frame, frame_limits(sc.machine))),
+        (block_out_of_range, (np.zeros((2, FR_N)), frame_limits(sc.machine))),
         (controller_reset, (cs,)),
         (controller_step, (cs, cp, frame, est, 0.0, 0.0, out)),
         (controller_clear_fault, (cs,)),

@@ -41,6 +41,7 @@ from fluxdrive.drive.observers import (
     OS_N,
     OS_STALE,
     ObserverConfig,
+    block_out_of_range,
     build_observer,
     frame_limits,
     frame_out_of_range,
@@ -51,7 +52,7 @@ from fluxdrive.drive.observers import (
 )
 from fluxdrive.drive.plant import FR_IA, FR_N
 from fluxdrive.drive.scenario import CONFIG_DIR, load_scenario, scenario_path
-from fluxdrive_ros.intra import RawPublisher, RawSubscription
+from fluxdrive_ros.intra import BlockReader, RawPublisher, RawSubscription
 from fluxdrive_ros.params import P, declare, on_set
 from fluxdrive_ros.runner import FluxNode, main_node
 from fluxdrive_ros.wire import EstimateWire, FrameWire, Stamp
@@ -240,6 +241,7 @@ class ObserverNode(FluxNode):
             topics.in_drive(self, common["frame_topic"]),
             self._on_frame,
             qos.reader(common["input_durability"]),
+            block=BlockReader(self._on_frames, self.block) if self.block > 1 else None,
         )
         self.create_subscription(
             fm.RunDone,
@@ -309,6 +311,16 @@ class ObserverNode(FluxNode):
             return
         self._step(data)
 
+    def _on_frames(self, _tags: list, datas: list[bytes]) -> None:
+        """Frames from the plant in this process, collected by the bus (fluxdrive_ros.intra):
+        run in blocks of at most `block_frames`."""
+        if self.pending:
+            datas = self.pending + datas
+        b = self.block
+        for i in range(0, len(datas), b):
+            self.pending = datas[i : i + b]
+            self._flush()
+
     def _flush(self) -> None:
         """Process the collected frames in one observer_run -- the kernel loop replay uses,
         over observer_step, so the estimates are the per-frame ones bit for bit.  A block
@@ -328,7 +340,7 @@ class ObserverNode(FluxNode):
         saved = st.copy()
         before = (st[OS_BAD], st[OS_STALE], st[OS_GAPS], st[OS_LOST])
         lim = self.limits
-        clean = not any(frame_out_of_range(frames[i], lim) for i in range(n))
+        clean = not block_out_of_range(frames, lim)
         if clean:
             est.fill(0.0)
             observer_run(st, self.params, frames, est)

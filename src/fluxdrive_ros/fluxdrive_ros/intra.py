@@ -31,16 +31,37 @@ from __future__ import annotations
 
 import os
 import struct
-import time
 import traceback
 from collections import defaultdict, deque
 from collections.abc import Callable
 
 BATCH = 256
+# a block subscriber's messages wait at most this long (wall time) for the block to fill
+BLOCK_WAIT_S = 0.02
 
 
 def enabled() -> bool:
     return os.environ.get("FLUXDRIVE_INTRA_PROCESS", "1") not in ("0", "false", "no", "off")
+
+
+class BlockReader:
+    """How a node takes the messages of its subscriptions from publishers of this process
+    in blocks (Bus.post): `callback(tags, datas)` gets them in the order they were
+    published -- datas[i] came through the subscription tagged tags[i] -- once `size` have
+    come, or at most BLOCK_WAIT_S of wall time after the first of them.  One callback per
+    block instead of one per message (the recorder: every sample topic; a shadow observer:
+    its frames)."""
+
+    def __init__(self, callback: Callable[[list, list[bytes]], None], size: int):
+        self.callback = callback
+        self.size = max(1, int(size))
+        self.tags: list = []
+        self.items: list[bytes] = []
+        self.tick = 0  # the bus's tick when the first message waiting came
+        self.deliver = self._deliver  # one bound method: the bus's queue entries name it
+
+    def _deliver(self, block: tuple[list, list[bytes]]) -> None:
+        self.callback(*block)
 
 
 class Bus:
@@ -55,8 +76,11 @@ class Bus:
         self.on_error: Callable[[BaseException], None] | None = None
         self.on_interrupt: Callable[[], None] | None = None
         self.delivered = 0
-        self.targets: dict[tuple[str, int], list[Callable[[bytes], None]]] = {}
-        self.block_targets: dict[tuple[str, int], tuple[list, list]] = {}
+        # (topic, publisher's graph id) -> ((block reader, tag) pairs, per-message callbacks)
+        self.targets: dict[tuple[str, int], tuple[list[tuple[BlockReader, object]], list]] = {}
+        self.readers: dict[int, BlockReader] = {}  # by id
+        self.ticks = 0  # of the block timer (BLOCK_WAIT_S / 2)
+        self.timer = None
 
     # ------------------------------------------------------------- registration
     def add_publisher(self, topic: str) -> None:
@@ -68,59 +92,85 @@ class Bus:
         self.callbacks[sub.topic].append(sub.callback)
         self.subscriptions[sub.topic].append(sub)
         self.targets.clear()
-        self.block_targets.clear()
+        if sub.block is not None:
+            self.readers[id(sub.block)] = sub.block
+            if self.timer is None:
+                self._start_timer(sub.node)
 
-    def targets_of(self, topic: str, graph_id: int) -> list[Callable[[bytes], None]]:
-        """The callbacks a publisher of `graph_id` in this process delivers `topic` to: a
-        subscriber of the same graph (the usual case: every node of a process comes from one
-        launch) takes the bytes unchecked; any other gets the graph-id filter
-        (fluxdrive_ros.graph) -- the check costs a microsecond per delivery, a few dozen of
-        them per PWM period."""
-        key = (topic, graph_id)
-        cbs = self.targets.get(key)
-        if cbs is None:
-            cbs = [s.local_callback(graph_id) for s in self.subscriptions.get(topic, [])]
-            self.targets[key] = cbs
-        return cbs
+    def _start_timer(self, node) -> None:
+        """The wall-clock tick that hands over blocks waiting longer than BLOCK_WAIT_S."""
+        from rclpy.clock import Clock, ClockType
 
-    def block_targets_of(self, topic: str, graph_id: int) -> tuple[list, list]:
-        """(the block callbacks, the per-message callbacks) a block of `topic` from a
-        publisher of `graph_id` goes to: a subscriber that takes blocks (the recorder) gets
-        the whole block in one call, the others each message."""
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.timer = node.create_timer(BLOCK_WAIT_S / 2, self._on_tick, clock=steady)
+
+    def targets_of(self, topic: str, graph_id: int) -> tuple[list, list]:
+        """((block reader, tag) pairs, per-message callbacks) a publisher of `graph_id` in
+        this process delivers `topic` to.  A subscriber that takes blocks (the recorder, a
+        shadow observer) and belongs to the publisher's graph has the messages collected
+        for it; any other takes each message: unchecked when of the same graph (the usual
+        case: every node of a process comes from one launch), else through the graph-id
+        filter (fluxdrive_ros.graph) -- the check costs a microsecond per delivery."""
         key = (topic, graph_id)
-        t = self.block_targets.get(key)
+        t = self.targets.get(key)
         if t is None:
             blocks, singles = [], []
             for s in self.subscriptions.get(topic, []):
-                cb = s.local_block_callback(graph_id)
-                if cb is not None:
-                    blocks.append(cb)
+                if s.block is not None and s.graph_id in (0, graph_id):
+                    blocks.append((s.block, s.block_tag))
                 else:
                     singles.append(s.local_callback(graph_id))
-            t = self.block_targets[key] = (blocks, singles)
+            t = self.targets[key] = (blocks, singles)
         return t
 
     # ------------------------------------------------------------- delivery
-    def post_block(self, topic: str, datas: list[bytes], graph_id: int) -> None:
-        """Messages of one publisher in a row: one queue entry per block subscriber, one
-        per message for the others (each subscriber sees them in order, as with `post`)."""
-        blocks, singles = self.block_targets_of(topic, graph_id)
-        q = self.queue
-        for cb in blocks:
-            q.append(((cb,), datas))
+    def post(self, topic: str, data: bytes, graph_id: int = 0) -> None:
+        """One message: queued for each per-message subscriber, collected for each block
+        reader (BlockReader: handed over when it holds its size, or at most BLOCK_WAIT_S of
+        wall time after its first message; in publish order, tagged by subscription)."""
+        blocks, singles = self.targets_of(topic, graph_id)
         if singles:
-            for data in datas:
-                q.append((singles, data))
-        if (blocks or singles) and not self.scheduled:
-            self._schedule()
+            self.queue.append((singles, data))
+            if not self.scheduled:
+                self._schedule()
+        for r, tag in blocks:
+            items = r.items
+            items.append(data)
+            r.tags.append(tag)
+            if len(items) == 1:
+                r.tick = self.ticks
+            elif len(items) >= r.size:
+                self._hand_over(r)
 
-    def post(self, topic: str, data: bytes, graph_id: int | None = None) -> None:
-        cbs = self.callbacks.get(topic) if graph_id is None else self.targets_of(topic, graph_id)
-        if not cbs:
-            return
-        self.queue.append((cbs, data))
+    def post_block(self, topic: str, datas: list[bytes], graph_id: int = 0) -> None:
+        """Messages of one publisher in a row (each subscriber sees them in order, as with
+        `post` of each)."""
+        blocks, singles = self.targets_of(topic, graph_id)
+        if singles:
+            self.queue.extend((singles, data) for data in datas)
+            if not self.scheduled:
+                self._schedule()
+        for r, tag in blocks:
+            if not r.items:
+                r.tick = self.ticks
+            r.items.extend(datas)
+            r.tags.extend([tag] * len(datas))
+            if len(r.items) >= r.size:
+                self._hand_over(r)
+
+    def _hand_over(self, r: BlockReader) -> None:
+        self.queue.append(((r.deliver,), (r.tags, r.items)))
+        r.tags, r.items = [], []
         if not self.scheduled:
             self._schedule()
+
+    def _on_tick(self) -> None:
+        """Blocks whose first message came before the previous tick go now (so at most
+        BLOCK_WAIT_S after it)."""
+        self.ticks += 1
+        for r in self.readers.values():
+            if r.items and r.tick < self.ticks - 1:
+                self._hand_over(r)
 
     def _schedule(self) -> None:
         if self.executor is None:  # not spinning yet: delivered once spinning starts
@@ -158,18 +208,25 @@ class Bus:
         if q and not self.scheduled:
             self._schedule()
 
-    def deliver_queued(self, callbacks: list[Callable[[bytes], None]]) -> int:
-        """Hand the messages still queued to these callbacks only (not to the others, and
-        without the executor): a node that closes last (the recorder) takes what the nodes
-        of its process published before they stopped.  Returns how many it got."""
-        own = {id(cb) for cb in callbacks}
+    def deliver_queued(self, subs: list[RawSubscription]) -> int:
+        """Hand the messages still queued or collected for these subscriptions to them now
+        (not to the others, and without the executor): a node that closes last (the
+        recorder) takes what the nodes of its process published before they stopped.
+        Returns how many messages it got."""
+        own: set[int] = set()
+        for s in subs:
+            own.update((id(s.raw_callback), id(s.callback)))
+            if s.block is not None:
+                own.add(id(s.block.deliver))
+                if s.block.items:
+                    self._hand_over(s.block)
         n = 0
         while self.queue:
             cbs, data = self.queue.popleft()
             for cb in cbs:
                 if id(cb) in own:
                     cb(data)
-                    n += 1
+                    n += len(data[1]) if isinstance(data, tuple) else 1
         return n
 
 
@@ -187,24 +244,27 @@ def bus() -> Bus | None:
 class RawPublisher:
     """A publisher of serialised messages with intra-process delivery."""
 
-    # how long the count of matched DDS readers is reused (an rcl call per publish costs
-    # about as much as the delivery itself); a reader matched meanwhile misses at most what
-    # was published in that much wall time -- never a sample of a lockstep graph, whose
+    # the count of matched DDS readers is read again every this many publishes, and at
+    # once when a reader matches (an rcl call per publish costs about as much as the
+    # delivery itself); a reader matched between its match event and the next publish
+    # misses nothing: the event makes that publish count again -- and a lockstep graph's
     # plant waits for its readers and then `start_delay_s` before the first frame
-    COUNT_REUSE_S = 0.001
+    COUNT_EVERY = 64
 
     def __init__(self, node, msg_cls, topic: str, qos):
-        self.pub = node.create_publisher(msg_cls, topic, qos)
+        from rclpy.event_handler import PublisherEventCallbacks
+
+        events = PublisherEventCallbacks(matched=self._on_matched)
+        self.pub = node.create_publisher(msg_cls, topic, qos, event_callbacks=events)
         self.topic = self.pub.topic_name
         self.bus = bus()
         if self.bus is not None:
             self.bus.add_publisher(self.topic)
-        self._post = self.bus.post if self.bus is not None else None
         member = getattr(node, "graph", None)
         self.graph_id = int(member.id) if member is not None else 0
         self._count = self.pub.get_subscription_count
         self._n_dds = 0
-        self._t_count = -1.0
+        self._until_count = 0  # publishes left before the DDS readers are counted again
         self._publish = self.pub.publish
         self.n_published = 0  # the launcher checks the bag against it (fluxdrive_ros.runner)
         pubs = getattr(node, "raw_publishers", None)
@@ -213,40 +273,39 @@ class RawPublisher:
             node.raw_publishers = pubs
         pubs.append(self)
 
-    def _dds_readers(self) -> int:
-        now = time.perf_counter()
-        if now - self._t_count >= self.COUNT_REUSE_S:
-            self._n_dds = self._count()
-            self._t_count = now
-        return self._n_dds
+    def _on_matched(self, _info) -> None:
+        self._until_count = 0
 
     def publish(self, data: bytes) -> None:
-        self.n_published += 1
-        local = False
-        if self._post is not None and self.bus is not None:
-            local = bool(self.bus.callbacks.get(self.topic))
-            if local:
-                self._post(self.topic, data, self.graph_id)
-        # over DDS when a reader elsewhere is matched -- and always when nobody in this
-        # process reads the topic, so the writer's transient-local history keeps it for
-        # a reader that matches late
-        if not local or self._dds_readers():
-            self._publish_dds((data,))
+        self._send([data], False)
 
     def publish_block(self, datas: list[bytes]) -> None:
         """Several messages in a row (a shadow observer's block of estimates): the same
         messages as `publish` of each, but a subscriber in this process that takes blocks
         (the recorder) gets them in one call."""
-        if not datas:
-            return
+        if datas:
+            self._send(datas, True)
+
+    def _send(self, datas: list[bytes], block: bool) -> None:
+        """To this process's subscribers through the bus, and over DDS when a reader
+        elsewhere is matched -- and always when nobody in this process reads the topic, so
+        the writer's transient-local history keeps it for a reader that matches late."""
         self.n_published += len(datas)
-        local = False
-        if self.bus is not None:
-            local = bool(self.bus.callbacks.get(self.topic))
-            if local:
-                self.bus.post_block(self.topic, datas, self.graph_id)
-        if not local or self._dds_readers():
-            self._publish_dds(datas)
+        b = self.bus
+        local = b is not None and bool(b.callbacks.get(self.topic))
+        if local:
+            assert b is not None
+            if block:
+                b.post_block(self.topic, datas, self.graph_id)
+            else:
+                b.post(self.topic, datas[0], self.graph_id)
+            self._until_count -= len(datas)
+            if self._until_count <= 0:
+                self._n_dds = self._count()
+                self._until_count = self.COUNT_EVERY
+            if not self._n_dds:
+                return
+        self._publish_dds(datas)
 
     def _publish_dds(self, datas) -> None:
         try:
@@ -288,12 +347,14 @@ class RawSubscription:
         callback: Callable[[bytes], None],
         qos,
         drain: int = 0,
-        block_callback: Callable[[list[bytes]], None] | None = None,
+        block: BlockReader | None = None,
+        block_tag: object = None,
     ):
         self.node = node
-        # takes a block of messages of one publisher of this process in one call (else
-        # they come one by one); not graph-filtered: used for this graph's publishers only
-        self.block_callback = block_callback
+        # messages of this graph's publishers in this process go to `block` (tagged
+        # `block_tag`) instead of `callback`; another graph's come one by one, filtered
+        self.block = block
+        self.block_tag = block_tag
         self.msg_cls = msg_cls
         self.qos = qos
         self.topic = node.resolve_topic_name(topic)
@@ -318,14 +379,6 @@ class RawSubscription:
         if self.graph_id in (0, publisher_graph_id):
             return self.raw_callback
         return self.callback
-
-    def local_block_callback(self, publisher_graph_id: int):
-        """The block callback for a publisher of this process with that graph id (None:
-        none, or another graph's publisher, whose messages go one by one through the
-        filter)."""
-        if self.block_callback is not None and self.graph_id in (0, publisher_graph_id):
-            return self.block_callback
-        return None
 
     def _drained(self, data: bytes) -> None:
         self.callback(data)

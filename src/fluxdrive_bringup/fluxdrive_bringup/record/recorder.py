@@ -59,7 +59,7 @@ from fluxdrive.core.schema import param
 from fluxdrive.drive.scenario import REPO_ROOT
 from fluxdrive.io.bagwriter import check_bag_target, pack_json
 from fluxdrive.io.messages import message_seq, seq_offset
-from fluxdrive_ros.intra import RawSubscription
+from fluxdrive_ros.intra import BlockReader, RawSubscription
 from fluxdrive_ros.params import P, config_params, declare, input_durability_param
 from fluxdrive_ros.runner import FluxNode, main_node
 
@@ -92,6 +92,9 @@ _HDR = struct.Struct("<iI")
 _U32 = struct.Struct("<I")
 _REC = struct.Struct("<cHqI")
 _STAMP_DT = np.dtype([("sec", "<i4"), ("nsec", "<u4")])  # a header's stamp
+# messages of this process's nodes reach the recorder in blocks of this many (or what came
+# within fluxdrive_ros.intra.BLOCK_WAIT_S), in publish order (fluxdrive_ros.intra.BlockReader)
+BLOCK_MESSAGES = 2048
 
 
 def conventional_type(topic: str) -> str | None:
@@ -293,6 +296,7 @@ class RecorderNode(FluxNode):
         self.done_seq: int | None = None
         self.closed = False
         self.subs: list[RawSubscription] = []
+        self.reader = BlockReader(self._on_block, BLOCK_MESSAGES)
 
     def _subscribe_all(self, pv: dict) -> None:
         """Every wanted topic (those of unknown type once they appear) and the run's end."""
@@ -410,58 +414,58 @@ class RecorderNode(FluxNode):
 
         if topic in (DIAGNOSTICS, ROSOUT):
             cb = self._own_drive(topic, cls, cb)
-        block = self._block_callback(topic, cid, cb, every_period) if stamped and has_seq else None
+        tag = _TopicBlock(self, topic, cid, cb, every_period) if stamped and has_seq else None
         sub = RawSubscription(
-            self, cls, self.sub_name.get(topic, topic), cb, prof, block_callback=block
+            self,
+            cls,
+            self.sub_name.get(topic, topic),
+            cb,
+            prof,
+            block=self.reader if tag is not None else None,
+            block_tag=tag,
         )
         self.subs.append(sub)
         self.sub_topic[sub.topic] = topic
         return True
 
-    def _block_callback(self, topic: str, cid: int, cb, every_period: bool):
-        """The callback for a block of messages from a publisher of this process (a shadow
-        observer's estimates, fluxdrive_ros.intra): the same M records the per-message `cb`
-        appends, built in one numpy pass and appended as one bytes object; messages of
-        several lengths go through `cb` one by one."""
-        counts, last = self.counts, self.last_seq
-        dtypes: dict[int, np.dtype] = {}
-
-        def block(datas: list[bytes]) -> None:
-            n = len(datas)
-            size = len(datas[0])
-            if n < 2 or any(len(d) != size for d in datas):
-                for d in datas:
-                    cb(d)
+    def _on_block(self, tags: list[_TopicBlock], datas: list[bytes]) -> None:
+        """Messages of this process's nodes (fluxdrive_ros.intra.BlockReader), in publish
+        order: each topic's M records built in one numpy pass, laid out in that order (the
+        bytes the per-message callbacks append one by one) and appended as one bytes
+        object.  A topic whose messages have several layouts: all of them one by one."""
+        groups: dict[_TopicBlock, list[int]] = {}
+        for i, tag in enumerate(tags):
+            g = groups.get(tag)
+            if g is None:
+                groups[tag] = g = []
+            g.append(i)
+        built = []
+        for tag, idx in groups.items():
+            part = datas if len(groups) == 1 else [datas[i] for i in idx]
+            recs = tag.records(part)
+            if recs is None:
+                for each, data in zip(tags, datas, strict=True):
+                    each.cb(data)
                 return
-            raw = np.frombuffer(b"".join(datas), dtype=np.uint8).reshape(n, size)
-            stamp = raw[:, 4:12].copy().view(_STAMP_DT)[:, 0]
-            t = stamp["sec"].astype(np.int64) * 1_000_000_000 + stamp["nsec"]
-            dt = dtypes.get(size)
-            if dt is None:
-                dt = dtypes[size] = np.dtype(
-                    [("op", "S1"), ("cid", "<u2"), ("t", "<i8"), ("len", "<u4"), ("m", f"V{size}")]
-                )
-            recs = np.empty(n, dtype=dt)
-            recs["op"], recs["cid"], recs["t"], recs["len"] = b"M", cid, t, size
-            recs["m"] = raw.view(f"V{size}")[:, 0]
-            self.buf.append(recs.tobytes())
-            self.last_ts = max(self.last_ts, int(t[-1]))
-            self.bytes_in += n * (size + _REC.size)
-            if self.bytes_in - self.bytes_out > self.max_backlog:
-                self._hold()
-            counts[topic] += n
-            off = seq_offset(datas[0])
-            seqs = raw[:, off : off + 8].copy().view("<u8")[:, 0].tolist()
-            if every_period:
-                prev = last.get(topic, seqs[0] - 1)
-                for k in seqs:
-                    if k > prev + 1:
-                        self._gap(topic, prev, k)
-                    prev = k
-            last[topic] = seqs[-1]
-            self.last_rx = time.monotonic()
-
-        return block
+            built.append((tag, idx, part, recs))
+        if len(built) == 1:
+            out = built[0][3].tobytes()
+        else:
+            size = np.empty(len(datas), dtype=np.int64)
+            for _, idx, _, recs in built:
+                size[idx] = recs.shape[1]
+            start = np.cumsum(size) - size
+            arr = np.empty(int(size.sum()), dtype=np.uint8)
+            for _, idx, _, recs in built:
+                arr[start[idx][:, None] + np.arange(recs.shape[1])] = recs
+            out = arr.tobytes()
+        self.buf.append(out)
+        self.bytes_in += len(out)
+        for tag, _, part, _ in built:
+            tag.account(part)
+        if self.bytes_in - self.bytes_out > self.max_backlog:
+            self._hold()
+        self.last_rx = time.monotonic()
 
     def _gap(self, topic: str, last: int, k: int) -> None:
         """A per-period topic jumped from seq `last` to `k`: those messages were published
@@ -618,7 +622,7 @@ class RecorderNode(FluxNode):
         from fluxdrive_ros import intra
 
         bus = intra.bus()
-        n = bus.deliver_queued([s.callback for s in self.subs]) if bus is not None else 0
+        n = bus.deliver_queued(self.subs) if bus is not None else 0
         return n + sum(s.take_waiting() for s in self.subs)
 
     def _short_of(self, expected: dict[str, int]) -> dict[str, dict[str, int]]:
@@ -771,6 +775,54 @@ def _read_counts(path: str) -> dict[str, int] | None:
     if not isinstance(raw, dict):
         return None
     return {str(t): int(n) for t, n in raw.items() if isinstance(n, int)}
+
+
+class _TopicBlock:
+    """One recorded topic's part of a block (RecorderNode._on_block): its M records in
+    one numpy pass, and the per-topic bookkeeping the per-message callback `cb` does."""
+
+    def __init__(self, rec: RecorderNode, topic: str, cid: int, cb, every_period: bool):
+        self.rec, self.topic, self.cid, self.cb = rec, topic, cid, cb
+        self.every_period = every_period
+        self.dtypes: dict[int, np.dtype] = {}
+        self.raw: np.ndarray | None = None
+
+    def records(self, datas: list[bytes]) -> np.ndarray | None:
+        """(n, record size) bytes of the n messages' M records (None: several layouts)."""
+        n, size = len(datas), len(datas[0])
+        if len(set(map(len, datas))) != 1:
+            return None
+        raw = np.frombuffer(b"".join(datas), dtype=np.uint8).reshape(n, size)
+        if not (raw[:, 12:16] == raw[0, 12:16]).all():  # frame_ids of several lengths
+            return None
+        stamp = raw[:, 4:12].copy().view(_STAMP_DT)[:, 0]
+        t = stamp["sec"].astype(np.int64) * 1_000_000_000 + stamp["nsec"]
+        dt = self.dtypes.get(size)
+        if dt is None:
+            dt = self.dtypes[size] = np.dtype(
+                [("op", "S1"), ("cid", "<u2"), ("t", "<i8"), ("len", "<u4"), ("m", f"V{size}")]
+            )
+        recs = np.empty(n, dtype=dt)
+        recs["op"], recs["cid"], recs["t"], recs["len"] = b"M", self.cid, t, size
+        recs["m"] = raw.view(f"V{size}")[:, 0]
+        self.raw, self.t_last = raw, int(t[-1])
+        return recs.view(np.uint8).reshape(n, dt.itemsize)
+
+    def account(self, datas: list[bytes]) -> None:
+        """Counts, the last stamp and seq, and the seq gaps of what `records` built."""
+        rec, topic, raw = self.rec, self.topic, self.raw
+        assert raw is not None
+        rec.last_ts = max(rec.last_ts, self.t_last)
+        rec.counts[topic] += len(datas)
+        off = seq_offset(datas[0])
+        seqs = raw[:, off : off + 8].copy().view("<u8")[:, 0].astype(np.int64)
+        last = rec.last_seq
+        if self.every_period:  # a seq more than one past the one before it: a gap
+            step = np.diff(seqs, prepend=last.get(topic, int(seqs[0]) - 1))
+            for i in np.flatnonzero(step > 1).tolist():
+                rec._gap(topic, int(seqs[i] - step[i]), int(seqs[i]))
+        last[topic] = int(seqs[-1])
+        self.raw = None
 
 
 def main(argv: list[str] | None = None) -> int:
