@@ -185,6 +185,15 @@ class ControlSequencer:
         """Frame k (an FR_* row; kept, not copied)."""
         c = self.counts
         c["frames"] += 1
+        if k == self.next_k and k > self.max_seq and not self.frames and not self.ests:
+            if self.sensorless and not self.tripped:  # lockstep: its estimate comes next
+                self.rejected_run = 0
+                self.max_seq = k
+                self.frames[k] = fr
+                if self.wait_k != k:  # what `_run` -> `_sample_timeout` does for it
+                    self.wait_k = k
+                    self.t_wait = time.monotonic()
+                return
         if k < self.next_k or k in self.frames:  # repeated or backwards: dropped
             c["repeated_or_backwards"] += 1
             self.rejected_run += 1
@@ -212,6 +221,14 @@ class ControlSequencer:
     def on_estimate(self, k: int, es: np.ndarray) -> None:
         """The driving observer's estimate k (an ES_* row)."""
         self.counts["estimates"] += 1
+        frames = self.frames
+        if k == self.next_k and len(frames) == 1 and k in frames and not self.ests:
+            # lockstep: the estimate of the one frame waiting -- `_run` answers it and
+            # finds nothing more to do
+            if self.sensorless:
+                self._answer(k, frames.pop(k), es)
+                self.next_k = k + 1
+                return
         if k < self.next_k:  # its frame was answered already (late, stale trip) or lost
             self.counts["late_estimates"] += 1
             return

@@ -227,6 +227,8 @@ class Codec:
             n_args += 1
         self.struct = struct.Struct("".join(fmt))
         self.size = 4 + self.struct.size
+        # the whole message, encapsulation header included: one struct call packs it
+        self.message_struct = struct.Struct("<4s" + "".join(fmt[1:]))
         self._n_args = n_args
         # positions of the numeric leaves in the full struct tuple
         const_idx = {i for i, _ in self._consts}
@@ -241,21 +243,33 @@ class Codec:
 
     def _build_pack(self) -> None:
         # a tiny generated function: pack(*values) -> bytes with the strings spliced in
-        args = []
-        it = 0
+        env: dict[str, Any] = {}
+        call = self.pack_call([f"v[{i}]" for i in range(len(self.fields))], env)
+        exec(f"def pack(*v):\n    return {call}\n", env)  # noqa: S102 - from the definition
+        self.pack = env["pack"]
+        self.n_values = len(self.fields)
+
+    def pack_call(self, values: list[str], env: dict[str, Any]) -> str:
+        """For generated code: the expression that packs the whole message (header
+        included) in one struct call from `values`, one Python expression per numeric field
+        in `fields` order; the names it uses go into `env`."""
         consts = dict(self._consts)
-        env: dict[str, Any] = {"_S": self.struct.pack, "_H": ENCAPSULATION}
+        env["_H"] = ENCAPSULATION
+        env["_S"] = self.message_struct.pack
+        args, it = ["_H"], iter(values)
         for i in range(self._n_args):
             if i in consts:
                 env[f"_c{i}"] = consts[i]
                 args.append(f"_c{i}")
             else:
-                args.append(f"v[{it}]")
-                it += 1
-        src = f"def pack(*v):\n    return _H + _S({', '.join(args)})\n"
-        exec(src, env)  # noqa: S102 - generated from the message definition only
-        self.pack = env["pack"]
-        self.n_values = it
+                args.append(next(it))
+        return f"_S({', '.join(args)})"
+
+    def unpack_source(self) -> tuple[list[int], list[tuple[int, int]]]:
+        """For generated code reading `m = self.struct.unpack_from(data, 4)`: the position in
+        `m` of each numeric field (`fields` order) and the (position, value) checks of the
+        string lengths that make a message this layout (with len(data) == size)."""
+        return list(self._num_idx), list(self._len_checks)
 
     def numpy_dtype(self, itemsize: int | None = None):
         """A numpy structured dtype over whole messages of this layout (field names =

@@ -266,26 +266,19 @@ class RowCodec:
                 args.append(f"(int(v[{cols[f]}]) & {FRAME_FLAGS_OUT}) | {int(flags_or)} | xf")
             else:
                 args.append(_pack_expr(kinds[f], cols[f]))
-        env: dict = {"_P": self.codec.pack}
-        src = (
-            f"def pack(row, seq, sec, nsec, xf=0):\n    v = row.tolist()\n"
-            f"    return _P({', '.join(args)})\n"
-        )
+        env: dict = {}
+        call = self.codec.pack_call(args, env)  # one struct call a message
+        src = f"def pack(row, seq, sec, nsec, xf=0):\n    v = row.tolist()\n    return {call}\n"
         exec(src, env)  # noqa: S102 - generated from the mapping table only
         self.pack: Callable[..., bytes] = env["pack"]
         idx = {f: i for i, f in enumerate(self.codec.fields)}
-        sets = [f"    out[{c}] = {_unpack_expr(kinds[f], idx[f])}" for f, c in mapping]
-        seq_i = idx["seq"]
-        if mtype == topics.T_FRAME:
-            sets.append(f"    out[{FR_SEQ}] = m[{seq_i}]")
-            sets.append(f"    out[{FR_FLAGS}] = m[{idx['status_flags']}] & {FRAME_FLAGS_IN}")
-        elif mtype == topics.T_TRUTH:
-            th = idx["theta_e"]
-            sets[0] = f"    out[{TR_THETA_E}] = m[{th}] + {TWO_PI!r} if m[{th}] < 0.0 else m[{th}]"
+        self._kinds, self._mapping = kinds, mapping
         env = {}
-        src = "def fill(m, out):\n" + "\n".join(sets) + f"\n    return m[{seq_i}]\n"
-        exec(src, env)  # noqa: S102
+        exec(self._fill_source("fill", list(range(len(idx)))), env)  # noqa: S102
         self.fill: Callable[[tuple, np.ndarray], int] = env["fill"]
+        seq_i = idx["seq"]
+        self._fast: dict[int, Callable[[bytes, np.ndarray], int]] = {}
+        self.unpack: Callable[[bytes, np.ndarray], int] = self._unpack_for(self.codec)
         # unpack_block (PhaseFrames only): (column, field position) of the mapped fields
         self._block = [(c, idx[f]) for f, c in mapping] if mtype == topics.T_FRAME else []
         self._seq_i = seq_i
@@ -332,9 +325,53 @@ class RowCodec:
         blob = bytes(buf)
         return [blob[i * size : (i + 1) * size] for i in range(n)]
 
-    def unpack(self, data: bytes, out: np.ndarray) -> int:
-        """Fill the mapped columns of `out` from serialised bytes; returns seq."""
-        return self.fill(self.decoder.decode(data), out)
+    def _fill_source(self, name: str, pos: list[int]) -> str:
+        """The body of a generated `name(m, out)` that fills the mapped columns of `out`
+        from a value tuple `m` in which field j (`Codec.fields` order) is m[pos[j]]."""
+        idx = {f: pos[i] for i, f in enumerate(self.codec.fields)}
+        kinds = self._kinds
+        sets = [f"    out[{c}] = {_unpack_expr(kinds[f], idx[f])}" for f, c in self._mapping]
+        seq_i = idx["seq"]
+        if self.mtype == topics.T_FRAME:
+            sets.append(f"    out[{FR_SEQ}] = m[{seq_i}]")
+            sets.append(f"    out[{FR_FLAGS}] = m[{idx['status_flags']}] & {FRAME_FLAGS_IN}")
+        elif self.mtype == topics.T_TRUTH:
+            th = idx["theta_e"]
+            sets[0] = f"    out[{TR_THETA_E}] = m[{th}] + {TWO_PI!r} if m[{th}] < 0.0 else m[{th}]"
+        return f"def {name}(m, out):\n" + "\n".join(sets) + f"\n    return m[{seq_i}]\n"
+
+    def _unpack_for(self, codec) -> Callable[[bytes, np.ndarray], int]:
+        """`unpack` for messages of `codec`'s layout: one struct call and the column
+        sets; a message of another layout goes through the decoder (and the next one of
+        that layout through a function of its own)."""
+        fast = self._fast.get(id(codec))
+        if fast is not None:
+            return fast
+        pos, checks = codec.unpack_source()
+        test = " and ".join([f"len(data) == {codec.size}"] + [f"m[{i}] == {c}" for i, c in checks])
+        body = self._fill_source("_fill", pos).replace("\n    ", "\n        ")
+        src = (
+            "def unpack(data, out):\n"
+            f"    m = _U(data, 4) if len(data) == {codec.size} else None\n"
+            f"    if m is not None and {test}:\n"
+            + "\n".join(body.split("\n")[1:]).rstrip()
+            + "\n    return _slow(data, out)\n"
+        )
+        env = {"_U": codec.struct.unpack_from, "_slow": self._unpack_other}
+        exec(src, env)  # noqa: S102 - generated from the mapping table only
+        fast = env["unpack"]
+        if len(self._fast) < 16:
+            self._fast[id(codec)] = fast
+        return fast
+
+    def _unpack_other(self, data: bytes, out: np.ndarray) -> int:
+        """A message of a layout `unpack` was not made for (another frame_id, variant):
+        decoded here; `unpack` is now made for its layout."""
+        seq = self.fill(self.decoder.decode(data), out)
+        c = self.decoder._last
+        if c is not None:
+            self.unpack = self._unpack_for(c)
+        return seq
 
     def unpack_block(self, datas: list[bytes], out: np.ndarray) -> list[int] | None:
         """Rows out[:n] from n PhaseFrames of one layout (one publisher's) in one numpy
@@ -346,11 +383,14 @@ class RowCodec:
         c = self.decoder.codec_for(datas[0])
         if list(c.strings) != ["header.frame_id"]:
             return None
-        size, strlen = c.size, datas[0][12:16]  # the frame_id's length fixes the layout
-        if any(len(d) != size or d[12:16] != strlen for d in datas):
+        n, size = len(datas), c.size
+        if len(datas[0]) != size or len(set(map(len, datas))) != 1:
             return None
-        arr = np.frombuffer(b"".join(datas), dtype=c.numpy_dtype())
-        n = len(datas)
+        raw = b"".join(datas)
+        u8 = np.frombuffer(raw, dtype=np.uint8).reshape(n, size)
+        if not (u8[:, 12:16] == u8[0, 12:16]).all():  # the frame_id's length: the layout
+            return None
+        arr = np.frombuffer(raw, dtype=c.numpy_dtype())
         for col, j in self._block:
             out[:n, col] = arr[f"f{j}"]
         seq = arr[f"f{self._seq_i}"]

@@ -476,6 +476,19 @@ class PlantNode(FluxNode):
         self._publish(k, flags)
 
     def _publish(self, k: int, flags: int = 0) -> None:
+        if self.paced:
+            self._paced_publish(k)
+        sec, nsec = self.stamp(k)
+        self.pub_frame.publish(self.fw.pack(self.frame, sec, nsec, flags))
+        self.pub_truth.publish(self.tw.pack(self.truth, k, sec, nsec))
+        self.k = k
+        if self.clock_dec and k % self.clock_dec == 0:
+            self.pub_clock.publish(self.clock_codec.pack(sec, nsec))
+        if not k & 63:  # the wall clock is read every 64 frames only
+            self._progress(k)
+
+    def _paced_publish(self, k: int) -> None:
+        """The paced loop's bookkeeping of frame k's publication (wall time)."""
         self.t_last_frame = time.perf_counter()
         self.t_pub[k % 4096] = self.t_last_frame
         if self.stalled_since is not None:
@@ -484,12 +497,8 @@ class PlantNode(FluxNode):
                 f"{self.t_last_frame - self.stalled_since:.2f} s without one"
             )
             self.stalled_since = None
-        sec, nsec = self.stamp(k)
-        self.pub_frame.publish(self.fw.pack(self.frame, sec, nsec, flags))
-        self.pub_truth.publish(self.tw.pack(self.truth, k, sec, nsec))
-        self.k = k
-        if self.clock_dec and k % self.clock_dec == 0:
-            self.pub_clock.publish(self.clock_codec.pack(sec, nsec))
+
+    def _progress(self, k: int) -> None:
         if self.pv["progress_interval_s"] > 0.0:
             now = time.perf_counter()
             if now - self.t_last_progress >= self.pv["progress_interval_s"]:
