@@ -91,6 +91,14 @@ def pwm_off_latch() -> np.ndarray:
     return latch
 
 
+@njit(cache=True, inline="always")
+def _row_into(out, k, row):
+    """out[k, :] = row, element by element (a slice assignment builds its indexers each
+    period)."""
+    for j in range(row.shape[0]):
+        out[k, j] = row[j]
+
+
 @njit(cache=True)
 def closed_loop_chunk(
     k0,
@@ -124,8 +132,8 @@ def closed_loop_chunk(
     ctrl = np.zeros(CO_N)
     work = np.empty(WORK_N)  # the plant's scratch: the periods allocate nothing
     for k in range(k0, k1):
-        out_frames[k, :] = frame
-        out_truth[k, :] = truth
+        _row_into(out_frames, k, frame)
+        _row_into(out_truth, k, truth)
         for o in range(n_obs):
             observer_step(obs_states[o], obs_params[o], frame, out_est[o, k])
         est = out_est[driving, k] if driving >= 0 else no_est
@@ -148,7 +156,7 @@ def closed_loop_chunk(
             ctrl,
             work,
         )
-        out_ctrl[k, :] = ctrl
+        _row_into(out_ctrl, k, ctrl)
     return k1
 
 
@@ -281,8 +289,8 @@ def split_loop_chunk(
     n_ring = refs.shape[0]
     ts = cp[CP_TS]
     for k in range(k0, k1):
-        out_frames[k, :] = frame
-        out_truth[k, :] = truth
+        _row_into(out_frames, k, frame)
+        _row_into(out_truth, k, truth)
         window_add(win, frame)
         # the drive takes the host's answer to sample j = k/D - 1 - delay at this boundary
         if k % decimation == 0:
@@ -305,7 +313,7 @@ def split_loop_chunk(
                 out_est[o, k, :] = out_est[o, k - 1, :]
         ctrl[CO_W_REF] = host_row[CO_W_REF]
         ctrl[CO_W_FB] = host_row[CO_W_FB]
-        out_ctrl[k, :] = ctrl
+        _row_into(out_ctrl, k, ctrl)
         plant_period(
             pst,
             mp,
