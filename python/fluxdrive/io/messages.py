@@ -489,16 +489,21 @@ class ControlWire:
         return self.duty.pack(co, seq, sec, nsec)
 
     def pack_state(self, co: np.ndarray, seq: int, sec: int, nsec: int) -> bytes:
+        return self.state_codec(co).pack(co, seq, sec, nsec)
+
+    def state_codec(self, co: np.ndarray) -> RowCodec:
+        """The ControllerState codec of a CO_* row: one per fault text (the string is part
+        of the layout)."""
         code = int(co[CO_FAULT])
         c = self.state_codecs.get(code)
-        if c is None:  # one codec per fault text (the string is part of the layout)
+        if c is None:
             c = RowCodec(
                 topics.T_STATE,
                 {"header.frame_id": self.frame_id, "fault_reason": fault_name(code)},
                 graph_id=self.graph_id,
             )
             self.state_codecs[code] = c
-        return c.pack(co, seq, sec, nsec)
+        return c
 
 
 class ReferenceWire:

@@ -330,6 +330,44 @@ class RawPublisher:
         return self.pub.wait_for_all_acked(timeout)
 
 
+class BlockSender:
+    """Rows of a topic that feeds nothing back in the loop (the plant's truth, the
+    controller's state), published in blocks: `add` keeps the row, and every `size` rows
+    (or at `flush`: a timer, the end of the run, a stop) they are packed in one numpy pass
+    (RowCodec.pack_block: the bytes `pack` gives one by one) and published as one block --
+    a subscriber in this process that takes blocks (the recorder) gets them in one call,
+    every other reader the same messages, only later.  Rows of another codec (a
+    ControllerState's fault text is part of its layout) start a new block."""
+
+    def __init__(self, pub: RawPublisher, stamp, width: int, size: int = 256):
+        import numpy as np
+
+        self.pub = pub
+        self.stamp = stamp  # fluxdrive.io.messages.Stamp of the seqs
+        self.rows = np.empty((size, width))
+        self.seqs: list[int] = []
+        self.size = size
+        self.codec = None  # the RowCodec of the rows kept
+
+    def add(self, codec, row, seq: int) -> None:
+        if codec is not self.codec:
+            self.flush()
+            self.codec = codec
+        seqs = self.seqs
+        self.rows[len(seqs)] = row
+        seqs.append(seq)
+        if len(seqs) == self.size:
+            self.flush()
+
+    def flush(self) -> None:
+        seqs = self.seqs
+        if not seqs or self.codec is None:
+            return
+        self.seqs = []
+        rows = self.rows[: len(seqs)]
+        self.pub.publish_block(self.codec.pack_block(rows, seqs, self.stamp.ns_block(seqs)))
+
+
 class RawSubscription:
     """A raw (bytes) subscription with intra-process delivery.
 

@@ -60,6 +60,7 @@ from fluxdrive.drive.control import (
     CO_EN,
     CO_FAULT,
     CO_MODE,
+    CO_N,
     CS_FAULT,
     FAULT_NAMES,
     MODE_NAMES,
@@ -72,7 +73,7 @@ from fluxdrive.drive.scenario import CONFIG_DIR, RPM, load_scenario, scenario_pa
 from fluxdrive.drive.sequencer import ControlSequencer
 from fluxdrive.drive.sim import DriveSetup
 from fluxdrive.io.messages import ReferenceWire
-from fluxdrive_ros.intra import RawPublisher, RawSubscription
+from fluxdrive_ros.intra import BlockSender, RawPublisher, RawSubscription
 from fluxdrive_ros.params import P, declare, on_set
 from fluxdrive_ros.runner import FluxNode, main_node
 from fluxdrive_ros.wire import ControlWire, EstimateWire, FrameWire, Stamp
@@ -338,6 +339,8 @@ class ControllerNode(FluxNode):
         self.pub_state = RawPublisher(
             self, fm.ControllerState, in_drive(self, topics.CONTROLLER_STATE), qos.SAMPLES
         )
+        # the state feeds nothing back: published in blocks (at most 0.1 s late, the timer)
+        self.state_blocks = BlockSender(self.pub_state, self.stamp, CO_N)
         self.sub_frame = RawSubscription(
             self,
             fm.PhaseFrame,
@@ -413,10 +416,11 @@ class ControllerNode(FluxNode):
             self.pub_duty.publish(self.rw.pack(self.seq.ref, k, sec, nsec))
         else:
             self.pub_duty.publish(self.cw.pack_duty(out, k, sec, nsec))
-        self.pub_state.publish(self.cw.pack_state(out, k, sec, nsec))
+        self.state_blocks.add(self.cw.state_codec(out), out, k)
         if out[CO_FAULT] != self._fault_code:  # latched or cleared at this sample
             self._fault_event(k, out, sec, nsec)
         if self.done_seq is not None and k >= self.done_seq:
+            self.state_blocks.flush()
             self.finished = True
 
     def _fault_event(self, k: int, out: np.ndarray, sec: int, nsec: int) -> None:
@@ -441,6 +445,7 @@ class ControllerNode(FluxNode):
         self.log(text, level)  # the sequencer's (level, text) onto FluxNode.log
 
     def _check_wall_timeout(self) -> None:
+        self.state_blocks.flush()
         if not self.finished:  # past the run's last sample no frame is due
             self.seq.check_wall()
 
@@ -518,9 +523,12 @@ class ControllerNode(FluxNode):
             return
         self.done_seq = int(msg.seq)
         if self.seq.next_k > self.done_seq:
+            self.state_blocks.flush()
             self.finished = True
 
     def close(self) -> None:
+        if self.context.ok():  # stopped or done: the states kept go out
+            self.state_blocks.flush()
         if self.done_seq is not None:
             from rclpy.duration import Duration
 

@@ -75,7 +75,7 @@ from fluxdrive.drive.plant import FR_N, MP_TD, TR_N, plant_advance, plant_initia
 from fluxdrive.drive.scenario import ScenarioSettings, load_scenario, scenario_path
 from fluxdrive.drive.sim import DriveSetup
 from fluxdrive_ros.cdr import Codec, Decoder
-from fluxdrive_ros.intra import RawPublisher, RawSubscription
+from fluxdrive_ros.intra import BlockSender, RawPublisher, RawSubscription
 from fluxdrive_ros.params import P, config_params, declare, input_durability_param, on_set
 from fluxdrive_ros.runner import FluxNode, main_node
 from fluxdrive_ros.wire import STATUS_SIMULATED, STATUS_STALE_COMMAND, FrameWire, Stamp, TruthWire
@@ -346,6 +346,8 @@ class PlantNode(FluxNode):
         self.pub_truth = RawPublisher(
             self, fm.PlantTruth, in_drive(self, topics.TRUTH), qos.SAMPLES
         )
+        # lockstep: the truth in blocks (paced: each as it comes, for a live view)
+        self.truth_blocks = None if self.paced else BlockSender(self.pub_truth, self.stamp, TR_N)
         self.pub_clock = RawPublisher(self, Clock, in_drive(self, topics.CLOCK), qos.CLOCK)
         self.pub_done = self.create_publisher(fm.RunDone, in_drive(self, topics.DONE), qos.LATCHED)
         # its watchdog's trips and returns, as DriveFault events (not latched: PWM off only
@@ -480,7 +482,10 @@ class PlantNode(FluxNode):
             self._paced_publish(k)
         sec, nsec = self.stamp(k)
         self.pub_frame.publish(self.fw.pack(self.frame, sec, nsec, flags))
-        self.pub_truth.publish(self.tw.pack(self.truth, k, sec, nsec))
+        if self.truth_blocks is not None:  # lockstep: nothing waits for the truth
+            self.truth_blocks.add(self.tw.rc, self.truth, k)
+        else:
+            self.pub_truth.publish(self.tw.pack(self.truth, k, sec, nsec))
         self.k = k
         if self.clock_dec and k % self.clock_dec == 0:
             self.pub_clock.publish(self.clock_codec.pack(sec, nsec))
@@ -590,11 +595,17 @@ class PlantNode(FluxNode):
         m.reason = text
         self.pub_fault.publish(m)
 
+    def _flush_truth(self) -> None:
+        if self.truth_blocks is not None:
+            self.truth_blocks.flush()
+
     def _lockstep_watchdog(self) -> None:
         """lockstep: no duty command for duty_timeout_s of wall time -> the period it would
-        have driven goes with the PWM off (flagged stale); again each further timeout."""
+        have driven goes with the PWM off (flagged stale); again each further timeout.
+        Also sends the truth kept so far (a slow loop's truth is at most 50 ms late)."""
         if self.done or not self.started:
             return
+        self._flush_truth()
         now = time.perf_counter()
         if self.k != self._wd_k:  # the loop moved: a duty command came
             if self.watchdog_tripped:
@@ -880,6 +891,7 @@ class PlantNode(FluxNode):
         )
         if self.paced:
             self._log_pacing()
+        self._flush_truth()
         msg = fm.RunDone()
         msg.header.stamp.sec, msg.header.stamp.nanosec = self.stamp(self.k)
         msg.seq = self.k
@@ -910,6 +922,7 @@ class PlantNode(FluxNode):
         if k < self.n and self.context.ok():
             try:
                 self._advance(np.array([0.5, 0.5, 0.5]), False, k, STATUS_STALE_COMMAND)
+                self._flush_truth()
                 for p in (self.pub_frame, self.pub_truth):
                     p.wait_for_all_acked(Duration(seconds=2.0))
             except Exception as exc:  # noqa: BLE001 - shutting down anyway

@@ -40,7 +40,7 @@ from fluxdrive_bringup.launch.launcher import Graph, Launcher, NodeSpec, check_n
 
 LAYOUTS = ("composed", "split", "separate")
 # frames a shadow observer collects per kernel call (5 ms at 10 kHz)
-SHADOW_BLOCK_FRAMES = 50
+SHADOW_BLOCK_FRAMES = 500
 DEMO_SCENARIO = "paper_2pct_150load"
 
 
