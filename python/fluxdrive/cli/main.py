@@ -145,7 +145,8 @@ def _whole_suite(cmd: list[str], env: dict[str, str]) -> int:
             xml = os.path.join(tmp, f"{name}.xml")
             print(f"== fluxdrive test: {name} part (pytest {' '.join(args)})", flush=True)
             t0 = time.monotonic()
-            codes.append(subprocess.call([*cmd, *args, f"--junitxml={xml}"], cwd=REPO, env=env))
+            run = [*cmd, *args, "--durations=15", f"--junitxml={xml}"]  # slowest: what to cut
+            codes.append(subprocess.call(run, cwd=REPO, env=env))
             walls.append(time.monotonic() - t0)
             if os.path.exists(xml):
                 for suite in ET.parse(xml).getroot().iter("testsuite"):
