@@ -311,9 +311,10 @@ class ObserverNode(FluxNode):
             return
         self._step(data)
 
-    def _on_frames(self, _tags: list, datas: list[bytes]) -> None:
+    def _on_frames(self, parts: list[tuple[object, list[bytes]]]) -> None:
         """Frames from the plant in this process, collected by the bus (fluxdrive_ros.intra):
         run in blocks of at most `block_frames`."""
+        datas = parts[0][1] if len(parts) == 1 else [d for _, part in parts for d in part]
         if self.pending:
             datas = self.pending + datas
         b = self.block

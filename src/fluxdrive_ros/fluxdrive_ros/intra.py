@@ -44,24 +44,47 @@ def enabled() -> bool:
     return os.environ.get("FLUXDRIVE_INTRA_PROCESS", "1") not in ("0", "false", "no", "off")
 
 
+class _Slot:
+    """The messages of one subscription waiting in its BlockReader."""
+
+    __slots__ = ("reader", "tag", "items")
+
+    def __init__(self, reader: BlockReader, tag: object):
+        self.reader, self.tag = reader, tag
+        self.items: list[bytes] = []
+
+
 class BlockReader:
     """How a node takes the messages of its subscriptions from publishers of this process
-    in blocks (Bus.post): `callback(tags, datas)` gets them in the order they were
-    published -- datas[i] came through the subscription tagged tags[i] -- once `size` have
-    come, or at most BLOCK_WAIT_S of wall time after the first of them.  One callback per
+    in blocks (Bus.post): `callback(parts)` gets [(tag, datas), ...] -- each subscription's
+    messages (tagged by it) in the order they were published -- once `size` have come in
+    all, or at most BLOCK_WAIT_S of wall time after the first of them.  One callback per
     block instead of one per message (the recorder: every sample topic; a shadow observer:
     its frames)."""
 
-    def __init__(self, callback: Callable[[list, list[bytes]], None], size: int):
+    def __init__(self, callback: Callable[[list], None], size: int):
         self.callback = callback
         self.size = max(1, int(size))
-        self.tags: list = []
-        self.items: list[bytes] = []
+        self.slots: dict[int, _Slot] = {}  # by id of the tag
+        self.count = 0  # messages waiting
         self.tick = 0  # the bus's tick when the first message waiting came
-        self.deliver = self._deliver  # one bound method: the bus's queue entries name it
+        self.deliver = callback  # what the bus's queue entries name
 
-    def _deliver(self, block: tuple[list, list[bytes]]) -> None:
-        self.callback(*block)
+    def slot(self, tag: object) -> _Slot:
+        sl = self.slots.get(id(tag))
+        if sl is None:
+            sl = self.slots[id(tag)] = _Slot(self, tag)
+        return sl
+
+    def take(self) -> list[tuple[object, list[bytes]]]:
+        """What waits, by subscription; nothing waits afterwards."""
+        parts = []
+        for sl in self.slots.values():
+            if sl.items:
+                parts.append((sl.tag, sl.items))
+                sl.items = []
+        self.count = 0
+        return parts
 
 
 class Bus:
@@ -76,8 +99,8 @@ class Bus:
         self.on_error: Callable[[BaseException], None] | None = None
         self.on_interrupt: Callable[[], None] | None = None
         self.delivered = 0
-        # (topic, publisher's graph id) -> ((block reader, tag) pairs, per-message callbacks)
-        self.targets: dict[tuple[str, int], tuple[list[tuple[BlockReader, object]], list]] = {}
+        # (topic, publisher's graph id) -> (block readers' slots, per-message callbacks)
+        self.targets: dict[tuple[str, int], tuple[list[_Slot], list]] = {}
         self.readers: dict[int, BlockReader] = {}  # by id
         self.ticks = 0  # of the block timer (BLOCK_WAIT_S / 2)
         self.timer = None
@@ -117,7 +140,7 @@ class Bus:
             blocks, singles = [], []
             for s in self.subscriptions.get(topic, []):
                 if s.block is not None and s.graph_id in (0, graph_id):
-                    blocks.append((s.block, s.block_tag))
+                    blocks.append(s.block.slot(s.block_tag))
                 else:
                     singles.append(s.local_callback(graph_id))
             t = self.targets[key] = (blocks, singles)
@@ -133,13 +156,13 @@ class Bus:
             self.queue.append((singles, data))
             if not self.scheduled:
                 self._schedule()
-        for r, tag in blocks:
-            items = r.items
-            items.append(data)
-            r.tags.append(tag)
-            if len(items) == 1:
+        for sl in blocks:
+            sl.items.append(data)
+            r = sl.reader
+            r.count += 1
+            if r.count == 1:
                 r.tick = self.ticks
-            elif len(items) >= r.size:
+            elif r.count >= r.size:
                 self._hand_over(r)
 
     def post_block(self, topic: str, datas: list[bytes], graph_id: int = 0) -> None:
@@ -150,17 +173,17 @@ class Bus:
             self.queue.extend((singles, data) for data in datas)
             if not self.scheduled:
                 self._schedule()
-        for r, tag in blocks:
-            if not r.items:
+        for sl in blocks:
+            r = sl.reader
+            if not r.count:
                 r.tick = self.ticks
-            r.items.extend(datas)
-            r.tags.extend([tag] * len(datas))
-            if len(r.items) >= r.size:
+            sl.items.extend(datas)
+            r.count += len(datas)
+            if r.count >= r.size:
                 self._hand_over(r)
 
     def _hand_over(self, r: BlockReader) -> None:
-        self.queue.append(((r.deliver,), (r.tags, r.items)))
-        r.tags, r.items = [], []
+        self.queue.append(((r.deliver,), r.take()))
         if not self.scheduled:
             self._schedule()
 
@@ -169,7 +192,7 @@ class Bus:
         BLOCK_WAIT_S after it)."""
         self.ticks += 1
         for r in self.readers.values():
-            if r.items and r.tick < self.ticks - 1:
+            if r.count and r.tick < self.ticks - 1:
                 self._hand_over(r)
 
     def _schedule(self) -> None:
@@ -218,7 +241,7 @@ class Bus:
             own.update((id(s.raw_callback), id(s.callback)))
             if s.block is not None:
                 own.add(id(s.block.deliver))
-                if s.block.items:
+                if s.block.count:
                     self._hand_over(s.block)
         n = 0
         while self.queue:
@@ -226,7 +249,7 @@ class Bus:
             for cb in cbs:
                 if id(cb) in own:
                     cb(data)
-                    n += len(data[1]) if isinstance(data, tuple) else 1
+                    n += sum(len(d) for _, d in data) if isinstance(data, list) else 1
         return n
 
 

@@ -95,6 +95,7 @@ _STAMP_DT = np.dtype([("sec", "<i4"), ("nsec", "<u4")])  # a header's stamp
 # messages of this process's nodes reach the recorder in blocks of this many (or what came
 # within fluxdrive_ros.intra.BLOCK_WAIT_S), in publish order (fluxdrive_ros.intra.BlockReader)
 BLOCK_MESSAGES = 2048
+STEP_SEQS = 4  # a block's topics are laid out in the bag this many samples at a time
 
 
 def conventional_type(topic: str) -> str | None:
@@ -428,41 +429,26 @@ class RecorderNode(FluxNode):
         self.sub_topic[sub.topic] = topic
         return True
 
-    def _on_block(self, tags: list[_TopicBlock], datas: list[bytes]) -> None:
-        """Messages of this process's nodes (fluxdrive_ros.intra.BlockReader), in publish
-        order: each topic's M records built in one numpy pass, laid out in that order (the
-        bytes the per-message callbacks append one by one) and appended as one bytes
-        object.  A topic whose messages have several layouts: all of them one by one."""
-        groups: dict[_TopicBlock, list[int]] = {}
-        for i, tag in enumerate(tags):
-            g = groups.get(tag)
-            if g is None:
-                groups[tag] = g = []
-            g.append(i)
+    def _on_block(self, parts: list[tuple[_TopicBlock, list[bytes]]]) -> None:
+        """Messages of this process's nodes (fluxdrive_ros.intra.BlockReader), by topic:
+        each topic's M records built in one numpy pass, the topics' records laid out in step
+        (`in_step`) and appended as one bytes object.  A topic whose messages have several
+        layouts: its messages one by one."""
         built = []
-        for tag, idx in groups.items():
-            part = datas if len(groups) == 1 else [datas[i] for i in idx]
-            recs = tag.records(part)
+        for tag, datas in parts:
+            recs = tag.records(datas)
             if recs is None:
-                for each, data in zip(tags, datas, strict=True):
-                    each.cb(data)
-                return
-            built.append((tag, idx, part, recs))
-        if len(built) == 1:
-            out = built[0][3].tobytes()
-        else:
-            size = np.empty(len(datas), dtype=np.int64)
-            for _, idx, _, recs in built:
-                size[idx] = recs.shape[1]
-            start = np.cumsum(size) - size
-            arr = np.empty(int(size.sum()), dtype=np.uint8)
-            for _, idx, _, recs in built:
-                arr[start[idx][:, None] + np.arange(recs.shape[1])] = recs
-            out = arr.tobytes()
+                for data in datas:
+                    tag.cb(data)
+            else:
+                built.append((tag, datas, recs))
+        if not built:
+            return
+        out = in_step([(recs, tag.seqs) for tag, _, recs in built])
         self.buf.append(out)
         self.bytes_in += len(out)
-        for tag, _, part, _ in built:
-            tag.account(part)
+        for tag, datas, _ in built:
+            tag.account(datas)
         if self.bytes_in - self.bytes_out > self.max_backlog:
             self._hold()
         self.last_rx = time.monotonic()
@@ -777,6 +763,30 @@ def _read_counts(path: str) -> dict[str, int] | None:
     return {str(t): int(n) for t, n in raw.items() if isinstance(n, int)}
 
 
+def in_step(topics: list[tuple[np.ndarray, np.ndarray]]) -> bytes:
+    """Several topics' records ((n, record size) bytes, their seqs) as one bytes object, laid
+    out STEP_SEQS samples at a time (every topic's records of seqs up to the next multiple,
+    then the next STEP_SEQS), so a bag cut anywhere (a SIGKILL) holds its topics in step as
+    message-by-message recording would.  Seqs that go backwards: topic after topic."""
+    if len(topics) == 1:
+        return topics[0][0].tobytes()
+    lo = min(int(q[0]) for _, q in topics)
+    hi = max(int(q[-1]) for _, q in topics)
+    if hi - lo > 1_000_000 or any((np.diff(q) < 0).any() for _, q in topics):
+        return b"".join(r.tobytes() for r, _ in topics)
+    edges = np.arange(lo - lo % STEP_SEQS + STEP_SEQS, hi + 1, STEP_SEQS)
+    cols = []
+    for r, q in topics:
+        cut = np.concatenate(([0], np.searchsorted(q, edges, side="left"), [len(q)]))
+        cols.append((r.tobytes(), (cut * r.shape[1]).tolist()))
+    out = []
+    for i in range(len(edges) + 1):
+        for b, cut in cols:
+            if cut[i + 1] > cut[i]:
+                out.append(b[cut[i] : cut[i + 1]])
+    return b"".join(out)
+
+
 class _TopicBlock:
     """One recorded topic's part of a block (RecorderNode._on_block): its M records in
     one numpy pass, and the per-topic bookkeeping the per-message callback `cb` does."""
@@ -785,7 +795,8 @@ class _TopicBlock:
         self.rec, self.topic, self.cid, self.cb = rec, topic, cid, cb
         self.every_period = every_period
         self.dtypes: dict[int, np.dtype] = {}
-        self.raw: np.ndarray | None = None
+        self.seqs = np.zeros(0, dtype=np.int64)  # of the messages `records` built
+        self.t_last = 0
 
     def records(self, datas: list[bytes]) -> np.ndarray | None:
         """(n, record size) bytes of the n messages' M records (None: several layouts)."""
@@ -805,24 +816,22 @@ class _TopicBlock:
         recs = np.empty(n, dtype=dt)
         recs["op"], recs["cid"], recs["t"], recs["len"] = b"M", self.cid, t, size
         recs["m"] = raw.view(f"V{size}")[:, 0]
-        self.raw, self.t_last = raw, int(t[-1])
+        off = seq_offset(datas[0])
+        self.seqs = raw[:, off : off + 8].copy().view("<u8")[:, 0].astype(np.int64)
+        self.t_last = int(t[-1])
         return recs.view(np.uint8).reshape(n, dt.itemsize)
 
     def account(self, datas: list[bytes]) -> None:
         """Counts, the last stamp and seq, and the seq gaps of what `records` built."""
-        rec, topic, raw = self.rec, self.topic, self.raw
-        assert raw is not None
+        rec, topic, seqs = self.rec, self.topic, self.seqs
         rec.last_ts = max(rec.last_ts, self.t_last)
         rec.counts[topic] += len(datas)
-        off = seq_offset(datas[0])
-        seqs = raw[:, off : off + 8].copy().view("<u8")[:, 0].astype(np.int64)
         last = rec.last_seq
         if self.every_period:  # a seq more than one past the one before it: a gap
             step = np.diff(seqs, prepend=last.get(topic, int(seqs[0]) - 1))
             for i in np.flatnonzero(step > 1).tolist():
                 rec._gap(topic, int(seqs[i] - step[i]), int(seqs[i]))
         last[topic] = int(seqs[-1])
-        self.raw = None
 
 
 def main(argv: list[str] | None = None) -> int:
