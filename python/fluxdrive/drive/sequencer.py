@@ -185,15 +185,20 @@ class ControlSequencer:
         """Frame k (an FR_* row; kept, not copied)."""
         c = self.counts
         c["frames"] += 1
-        if k == self.next_k and k > self.max_seq and not self.frames and not self.ests:
-            if self.sensorless and not self.tripped:  # lockstep: its estimate comes next
-                self.rejected_run = 0
-                self.max_seq = k
-                self.frames[k] = fr
-                if self.wait_k != k:  # what `_run` -> `_sample_timeout` does for it
-                    self.wait_k = k
-                    self.t_wait = time.monotonic()
-                return
+        nxt = self.next_k
+        if (
+            k == self.max_seq + 1
+            and not self.ests
+            and (nxt in self.frames if self.frames else k == nxt)
+            and self._in_step()
+        ):
+            # lockstep: the next frame in order while next_k waits for its estimate --
+            # `_run` would only wait on
+            self.rejected_run = 0
+            self.max_seq = k
+            self.frames[k] = fr
+            self._waiting()
+            return
         if k < self.next_k or k in self.frames:  # repeated or backwards: dropped
             c["repeated_or_backwards"] += 1
             self.rejected_run += 1
@@ -222,13 +227,18 @@ class ControlSequencer:
         """The driving observer's estimate k (an ES_* row)."""
         self.counts["estimates"] += 1
         frames = self.frames
-        if k == self.next_k and len(frames) == 1 and k in frames and not self.ests:
-            # lockstep: the estimate of the one frame waiting -- `_run` answers it and
-            # finds nothing more to do
-            if self.sensorless:
-                self._answer(k, frames.pop(k), es)
-                self.next_k = k + 1
+        if k == self.next_k and k in frames and not self.ests and self.sensorless:
+            # lockstep: the estimate of the frame waiting -- answered as `_run` does; then
+            # it would wait for the next frame's estimate
+            self._answer(k, frames.pop(k), es)
+            self.next_k = k + 1
+            if not frames:
                 return
+            if self.next_k in frames and self._in_step():
+                self._waiting()
+                return
+            self._run()
+            return
         if k < self.next_k:  # its frame was answered already (late, stale trip) or lost
             self.counts["late_estimates"] += 1
             return
@@ -237,6 +247,22 @@ class ControlSequencer:
             for j in sorted(self.ests)[: len(self.ests) - self.depth]:
                 del self.ests[j]
         self._run()
+
+    def _in_step(self) -> bool:
+        """`_run` would just wait for next_k's estimate (its frame being here): not tripped,
+        no sample timeout possible yet (frames past it < the limit, the next one counted)."""
+        return (
+            self.sensorless
+            and not self.tripped
+            and self.max_seq + 1 - self.next_k < self.n_pos_timeout
+            and len(self.frames) < self.depth
+        )
+
+    def _waiting(self) -> None:
+        """What `_run` -> `_sample_timeout` does while next_k waits for its estimate."""
+        if self.wait_k != self.next_k:
+            self.wait_k = self.next_k
+            self.t_wait = time.monotonic()
 
     def check_wall(self, now: float | None = None) -> None:
         """Wall-clock timeout of the estimate the sequence is waiting for; call it every
