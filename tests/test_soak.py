@@ -1,8 +1,8 @@
 """Load check, short version: `./fluxdrive soak` on a ~10 s lockstep graph run
 and a 6-pass unpaced burst replay.  Every message of every topic in the bag (counts from
 the mcap summary = periods, and equal to the recorder's metadata.yaml), RSS growth of the
-graph after warm-up under 20 MiB, burst received == sent in order with flat memory.
-The 5-minute soak is the same command with its defaults (figures in README)."""
+graph (each process after its own warm-up) under 20 MiB, burst received == sent in order
+with flat memory.  The 5-minute soak is the same command with its defaults (figures in README)."""
 
 from __future__ import annotations
 
@@ -55,6 +55,42 @@ def test_soak_and_burst_lose_nothing_and_do_not_grow():
     sample_frames = bag_counts(REPO / "bags" / "samples" / "paper_2pct_150load")[0]
     assert res["burst_frames_received"] == res["burst_frames_sent"] == 4 * sample_frames[FRAME]
     assert res["burst_order_errors"] == 0
+
+
+def _writer_run(leak_mib_per_s: float) -> dict[str, list[tuple[float, float]]]:
+    """100 s sampled every second: the drive flat at 200 MiB from t = 0; the bag writer
+    starts at t = 30 (after the run's 20 s warm-up), grows 86 -> 115 MiB over its first
+    10 s of start-up, then stays flat, or grows by `leak_mib_per_s` from t = 40."""
+    drive = [(float(t), 200.0) for t in range(101)]
+    writer = [
+        (float(t), 86.0 + 2.9 * (t - 30) if t < 40 else 115.0 + leak_mib_per_s * (t - 40))
+        for t in range(30, 101)
+    ]
+    return {"drive[1]": drive, "bagwriter[2]": writer}
+
+
+def test_a_late_process_start_up_is_not_growth_but_its_leak_is():
+    from fluxdrive_bringup.measure.soak import RssSampler, graph_growth
+
+    flat = _writer_run(0.0)
+    # the summed series after the run's warm-up (t >= 20) counts the writer's start-up:
+    # first third t = 20..46, median (14th) = 200 + 86 + 3 * 2.9; last 315: +20.3 > 20
+    old = RssSampler(1.0)
+    old.samples = [(t, m + dict(flat["bagwriter[2]"]).get(t, 0.0)) for t, m in flat["drive[1]"]]
+    assert old.warmup_s() == 20.0
+    assert old.growth_mb() == pytest.approx((294.7, 315.0, 20.3))
+    # each process from its own warm-up (the writer from t = 50): nothing grew
+    start, end, growth, per = graph_growth(flat, 20.0)
+    assert (start, end, growth) == (315.0, 315.0, 0.0)
+    assert per == {"drive[1]": (200.0, 200.0, 0.0), "bagwriter[2]": (115.0, 115.0, 0.0)}
+    # a leak of 1 MiB/s in the late writer: its samples t = 50..100, thirds of 17, medians
+    # at t = 58 and t = 92 -> 133 and 167 MiB, +34 MiB, over the 20 MiB limit
+    start, end, growth, per = graph_growth(_writer_run(1.0), 20.0)
+    assert per["bagwriter[2]"] == (133.0, 167.0, 34.0)
+    assert (start, end, growth) == (333.0, 367.0, 34.0)
+    # a process seen for less than its warm-up plus three samples is not judged
+    _, _, growth, per = graph_growth({**flat, "late[3]": [(99.0, 50.0), (100.0, 90.0)]}, 20.0)
+    assert growth == 0.0 and all(g != g for g in per["late[3]"])
 
 
 def test_recorder_backpressure_holds_the_graph_and_loses_nothing(tmp_path):

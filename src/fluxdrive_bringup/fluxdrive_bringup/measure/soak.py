@@ -5,9 +5,11 @@
    is set from a short calibration run's real-time factor, so the run ends by itself and
    every topic has a known message count: one frame, one estimate per observer, one
    controller state and one truth sample per PWM period.  The resident memory (VmRSS) of
-   every process of the graph (bag-writer helper included) is sampled every --sample-s;
-   after a warm-up of 20 % of the run, the growth (median of the last third of the
-   samples minus median of the first third) must stay under --max-growth-mb.  The
+   every process of the graph (bag-writer helper included) is sampled every --sample-s.
+   Each process is judged after its own warm-up (20 % of the run, counted from the
+   process's first sample, so a helper started late has its start-up excluded): its
+   growth is the median of the last third of its samples minus the median of the first
+   third; the sum over the processes must stay under --max-growth-mb.  The
    bag's per-topic counts are read from the mcap summary (independent of the recorder's
    own metadata.yaml, which is checked too) and must equal the number of periods.
 2. Burst replay: the bag is published by `./fluxdrive replay --live` with no pacing
@@ -96,6 +98,48 @@ def _label(pid: int) -> str:
     return Path(argv[0].decode(errors="replace")).name or str(pid)
 
 
+def _median_growth(steady: list[float]) -> tuple[float, float, float]:
+    """(MiB, MiB, growth): medians of the first and the last third of `steady`, and their
+    difference.  Medians, because the bag writer's buffers and the allocator make single
+    samples swing by tens of MiB; a leak moves the medians, a swing does not."""
+    k = max(1, len(steady) // 3)
+    start = statistics.median(steady[:k])
+    end = statistics.median(steady[-k:])
+    return start, end, end - start
+
+
+def growth_per_process(
+    per_proc: dict[str, list[tuple[float, float]]], warmup_s: float
+) -> dict[str, tuple[float, float, float]]:
+    """Growth of each process from its own steady state: a process's baseline is taken
+    from its samples once it has been running (been seen) for `warmup_s`, so a process
+    that starts late (the bag writer starts after the kernels compiled) has its own
+    start-up excluded, while a leak in it still moves its medians.  A process with fewer
+    than three samples after its own warm-up cannot be judged: its triple is NaN."""
+    out: dict[str, tuple[float, float, float]] = {}
+    for lab, series in per_proc.items():
+        if not series:
+            continue
+        cutoff = series[0][0] + warmup_s
+        steady = [m for t, m in series if t >= cutoff]
+        out[lab] = _median_growth(steady) if len(steady) >= 3 else (float("nan"),) * 3
+    return out
+
+
+def graph_growth(
+    per_proc: dict[str, list[tuple[float, float]]], warmup_s: float
+) -> tuple[float, float, float, dict[str, tuple[float, float, float]]]:
+    """(MiB, MiB, growth, per process): the sums over the processes that can be judged of
+    their own baselines, ends and growths (`growth_per_process`), and the per-process
+    triples."""
+    per = growth_per_process(per_proc, warmup_s)
+    judged = [v for v in per.values() if v[2] == v[2]]
+    if not judged:
+        return float("nan"), float("nan"), float("nan"), per
+    start, end, growth = (sum(v[i] for v in judged) for i in range(3))
+    return start, end, growth, per
+
+
 class RssSampler(threading.Thread):
     """Samples the VmRSS [MiB] of a set of process groups (or pids) periodically, summed
     and per process."""
@@ -106,18 +150,19 @@ class RssSampler(threading.Thread):
         self.groups = groups  # callable -> set of pgids
         self.pids = pids  # callable -> list of pids
         self.samples: list[tuple[float, float]] = []  # (monotonic s, MiB summed)
-        self.per_proc: dict[str, list[float]] = {}  # label -> MiB per sample
+        self.per_proc: dict[str, list[tuple[float, float]]] = {}  # label -> (s, MiB)
         self.stop_evt = threading.Event()
 
     def sample(self) -> float:
         pids = list(self.pids()) if self.pids else _pids_in_groups(self.groups())
+        now = time.monotonic()
         total = 0.0
         for pid in pids:
             mib = _rss_kib(pid) / 1024.0
             total += mib
             if mib > 0:
                 lab = f"{_label(pid)}[{pid}]"
-                self.per_proc.setdefault(lab, []).append(round(mib, 1))
+                self.per_proc.setdefault(lab, []).append((now, round(mib, 1)))
         return total
 
     def run(self) -> None:
@@ -127,21 +172,21 @@ class RssSampler(threading.Thread):
                 self.samples.append((time.monotonic(), mib))
             self.stop_evt.wait(self.period_s)
 
+    def warmup_s(self, warmup_frac: float = 0.2) -> float:
+        """The warm-up: `warmup_frac` of the sampled span [s]."""
+        if len(self.samples) < 2:
+            return 0.0
+        return warmup_frac * (self.samples[-1][0] - self.samples[0][0])
+
     def growth_mb(self, warmup_frac: float = 0.2) -> tuple[float, float, float]:
-        """(MiB, MiB, growth): medians of the first and the last third of the samples
-        after the warm-up, and their difference.  Medians, because the bag writer's
-        buffers and the allocator make single samples swing by tens of MiB; a leak moves
-        the medians, a swing does not."""
+        """(MiB, MiB, growth) of the summed samples after the warm-up (`_median_growth`)."""
         if len(self.samples) < 4:
             return (float("nan"),) * 3
-        t0, t1 = self.samples[0][0], self.samples[-1][0]
-        steady = [m for t, m in self.samples if t >= t0 + warmup_frac * (t1 - t0)]
+        cutoff = self.samples[0][0] + self.warmup_s(warmup_frac)
+        steady = [m for t, m in self.samples if t >= cutoff]
         if len(steady) < 3:
             steady = [m for _, m in self.samples[-3:]]
-        k = max(1, len(steady) // 3)
-        start = statistics.median(steady[:k])
-        end = statistics.median(steady[-k:])
-        return start, end, end - start
+        return _median_growth(steady)
 
 
 # ------------------------------------------------------------------ bag message counts
@@ -226,7 +271,8 @@ def lockstep_soak(
     meta_diff = {
         t: (mc.get(t), meta.get(t)) for t in set(mc) | set(meta) if mc.get(t) != meta.get(t)
     }
-    start, end, growth = sampler.growth_mb()
+    rss = _rss_figures(sampler)
+    start, end, growth = rss["rss_mb_after_warmup"], rss["rss_mb_end"], rss["rss_growth_mb"]
     bag_mb = sum(f.stat().st_size for f in bag.iterdir()) / 2**20
     res = {
         "soak_wall_s": round(wall, 1),
@@ -239,12 +285,7 @@ def lockstep_soak(
         "lost": lost,
         "metadata_mismatch": meta_diff,
         "bag_mb": round(bag_mb, 1),
-        "rss_mb_after_warmup": round(start, 1),
-        "rss_mb_end": round(end, 1),
-        "rss_growth_mb": round(growth, 1),
-        "rss_samples": len(sampler.samples),
-        "rss_mb_series": [round(m, 1) for _, m in sampler.samples],
-        "rss_mb_per_process": sampler.per_proc,
+        **rss,
     }
     res["soak_ok"] = bool(not lost and not meta_diff and growth <= max_growth_mb)
     _say(
@@ -254,6 +295,27 @@ def lockstep_soak(
     )
     shutil.rmtree(bag, ignore_errors=True)
     return res
+
+
+def _rss_figures(sampler: RssSampler) -> dict:
+    """The graph's memory figures: per-process baselines and growths (each process after
+    its own warm-up, `graph_growth`), their sums, and the series sampled."""
+    start, end, growth, per = graph_growth(sampler.per_proc, sampler.warmup_s())
+    _say(
+        "RSS growth per process after its own warm-up: "
+        + ", ".join(f"{lab} {g:+.1f} MiB" for lab, (_, _, g) in per.items())
+    )
+    return {
+        "rss_mb_after_warmup": round(start, 1),
+        "rss_mb_end": round(end, 1),
+        "rss_growth_mb": round(growth, 1),
+        "rss_growth_mb_per_process": {
+            lab: None if g != g else round(g, 1) for lab, (_, _, g) in per.items()
+        },
+        "rss_samples": len(sampler.samples),
+        "rss_mb_series": [round(m, 1) for _, m in sampler.samples],
+        "rss_mb_per_process": {lab: [m for _, m in s] for lab, s in sampler.per_proc.items()},
+    }
 
 
 # ------------------------------------------------------------------ 2. burst replay
