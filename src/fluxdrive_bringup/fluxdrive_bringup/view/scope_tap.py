@@ -292,6 +292,9 @@ TRIGGERS = ("off", "param", "mode", "fault", "threshold")
 # a trigger may be seen after its sample: a parameter marker comes over DDS (up to a few
 # tap periods late on a loaded machine); the armed tap keeps this much more history
 TRIGGER_LATE_S = 0.5
+# truth samples kept for the estimates' error: 1.6 s at 10 kHz, more than a truth block
+# (256 rows) or a shadow's block of estimates (500) can lag
+TRUTH_KEPT = 16384
 
 
 class _Envelopes:
@@ -497,6 +500,9 @@ class ScopeTapNode(FluxNode):
         self.skipped = 0
         self.types: dict[str, str] = {}
         self.spec: dict[str, list[np.ndarray]] = {}  # observer -> [rows (4, n) per period]
+        # estimates newer than the newest truth, held until their truth arrives (the truth
+        # comes in blocks, after the driving observer's own estimates): observer -> rows
+        self.spec_pending: dict[str, np.ndarray] = {}
         self.spec_t0 = time.monotonic()
         self.last_mode: int | None = None
         self.markers: list[bytes] = []  # ParameterMarker CDR of this period
@@ -788,8 +794,9 @@ class ScopeTapNode(FluxNode):
         if self.pole_pairs:
             fields.append(("omega_e", omega_m * self.pole_pairs, 3))
         env.put("truth", s, fields)
-        # keep the last two periods' truth for the estimates' error (they may lag)
-        keep = max(0, len(self.truth_seq) - 4 * len(s))
+        # keep the truth a while for the estimates' error (they may lag, or lead it by a
+        # block): the newest TRUTH_KEPT samples, whatever a period brought
+        keep = max(0, len(self.truth_seq) + len(s) - TRUTH_KEPT)
         self.truth_seq = np.r_[self.truth_seq[keep:], s]
         self.truth_th = np.r_[self.truth_th[keep:], th]
         o = np.argsort(self.truth_seq, kind="stable")
@@ -809,20 +816,8 @@ class ScopeTapNode(FluxNode):
             th_true[hit] = self.truth_th[ix[hit]]
             err[hit] = wrap_deg((th_est[hit] - th_true[hit]) * DEG)
         fx, fy = c["flux_ab[0]"], c["flux_ab[1]"]
-        # samples for the order spectra (computed by the scope server): the rotor angle
-        # (true where known, else the estimate's), θ̃ [rad], λ̂α, truth flag
-        known = np.isfinite(th_true)
         o = np.argsort(s, kind="stable")
-        self.spec.setdefault(name, []).append(
-            np.stack(
-                [
-                    np.where(known, th_true, th_est)[o],
-                    np.radians(err)[o],
-                    fx[o],
-                    known[o].astype(float),
-                ]
-            )
-        )
+        self._spectrum_rows(name, np.stack([s[o].astype(float), th_est[o], fx[o]]))
         env.put(
             f"est/{name}",
             s,
@@ -835,6 +830,32 @@ class ScopeTapNode(FluxNode):
         )
         n = max(1, len(s) // int(self.pv["locus_points"]))
         doc["locus"][name] = np.stack([fx[::n], fy[::n]]) * 1e3
+
+    def _spectrum_rows(self, name: str, rows: np.ndarray) -> None:
+        """Samples for the order spectra (computed by the scope server): the rotor angle (true
+        where known, else the estimate's), θ̃ [rad], λ̂α, truth flag. `rows` are seq, the
+        estimated angle and λ̂α; those newer than the newest truth wait for it (at most
+        TRUTH_KEPT samples: a graph without truth does not hold them)."""
+        held = self.spec_pending.pop(name, None)
+        if held is not None:
+            rows = np.concatenate([held, rows], axis=1)
+        if len(self.truth_seq):
+            wait = rows[0] > self.truth_seq[-1]
+            if wait.any() and wait.sum() < TRUTH_KEPT:
+                self.spec_pending[name] = rows[:, wait]
+                rows = rows[:, ~wait]
+        if not rows.shape[1]:
+            return
+        s, th_est = rows[0].astype(np.int64), rows[1]
+        th_true = np.full(len(s), np.nan)
+        if len(self.truth_seq):
+            ix = np.clip(np.searchsorted(self.truth_seq, s), 0, len(self.truth_seq) - 1)
+            hit = self.truth_seq[ix] == s
+            th_true[hit] = self.truth_th[ix[hit]]
+        known = np.isfinite(th_true)
+        err = np.where(known, np.radians(wrap_deg((th_est - th_true) * DEG)), np.nan)
+        angle = np.where(known, th_true, th_est)
+        self.spec.setdefault(name, []).append(np.stack([angle, err, rows[2], known.astype(float)]))
 
     def _spectrum_samples(self, doc: dict) -> None:
         """The newest spectrum_window_s of samples (sim time), sent at most once a wall
