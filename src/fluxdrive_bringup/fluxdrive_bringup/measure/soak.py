@@ -18,7 +18,8 @@
    first pass to the last.
 
 Progress goes to stderr; the last stdout line is a JSON object with "ok" and the figures.
-Exit code 0 when every check passed.
+Exit code 0 when every check passed.  --write stores the figures in
+results/benchmarks/soak.json, which docs/performance.md quotes.
 """
 
 from __future__ import annotations
@@ -283,6 +284,7 @@ def lockstep_soak(
         else None,
         "messages": int(sum(mc.values())),
         "lost": lost,
+        "lost_messages": int(sum(lost.values())),
         "metadata_mismatch": meta_diff,
         "bag_mb": round(bag_mb, 1),
         **rss,
@@ -489,6 +491,11 @@ def soak(argv: list[str]) -> dict:
     ap.add_argument("--burst-loops", type=int, default=10)
     ap.add_argument("--skip-soak", action="store_true")
     ap.add_argument("--skip-burst", action="store_true")
+    ap.add_argument(
+        "--write",
+        action="store_true",
+        help="store the figures in results/benchmarks/soak.json (quoted by docs/performance.md)",
+    )
     args = ap.parse_args(argv)
     res: dict = {}
     tmp = Path(tempfile.mkdtemp(prefix="fluxdrive-soak-"))
@@ -512,6 +519,10 @@ def soak(argv: list[str]) -> dict:
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     res["ok"] = all(v for k, v in res.items() if k.endswith("_ok"))
+    if args.write:
+        from fluxdrive.cli.bench import write_benchmark
+
+        write_benchmark("soak", res)
     return res
 
 
