@@ -392,7 +392,7 @@ def _host_frames(log):
     return arm, duties
 
 
-@pytest.mark.serial  # the longest firmware run: closed loops of the C MCU over the CAN bus
+# in the parallel part: in-process and lockstep (each answer waited for), nothing timed
 def test_sil_host_mode_matches_the_python_emulator(tmp_path):
     """The C core as the emulator's MCU (mcu="c"), host mode, D = 1, FD on the virtual bus,
     the 2 % case sensorless: (1) closed loop through the bridge and the engine's observer and
