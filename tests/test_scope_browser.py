@@ -88,7 +88,12 @@ def test_scope_page_in_chromium(tmp_path):
                 "window.scopeStats.envelopes > 10 && window.scopeStats.lastSeq > 0", timeout=120_000
             )
             s1 = page.evaluate("({...window.scopeStats})")
-            page.wait_for_timeout(2000)
+            # the traces advance: new samples arrive and are drawn (waited for, not slept)
+            page.wait_for_function(
+                "([seq, n]) => window.scopeStats.lastSeq > seq && window.scopeStats.redraws > n",
+                arg=[s1["lastSeq"], s1["redraws"]],
+                timeout=30_000,
+            )
             s2 = page.evaluate("({...window.scopeStats})")
             assert s2["lastSeq"] > s1["lastSeq"], (s1, s2)  # the traces advance
             assert s2["redraws"] > s1["redraws"]
@@ -181,7 +186,7 @@ def test_scope_page_in_chromium(tmp_path):
                     page.click(f'#chart-{chart} .lg:has-text("{name}")')
             assert page.locator("#chart-flux .lg.off").count() == 2
             row.evaluate("e => e.scrollIntoView({block: 'center'})")  # the refusal in view
-            page.wait_for_timeout(700)
+            _drawn_again(page)
             page.screenshot(path=str(shot), full_page=True)
             assert not errors, errors
             page.locator("#capture").screenshot(path=str(shot_capture))
@@ -204,6 +209,13 @@ def test_scope_page_in_chromium(tmp_path):
     ]
     assert "out of range" in marks[1].reason and marks[0].node == "/controller"
     assert 0 < marks[0].seq <= marks[1].seq
+
+
+def _drawn_again(page) -> None:
+    """Wait until the charts have been redrawn twice since now (a legend click or a scroll
+    shows from the next redraw on)."""
+    n = page.evaluate("window.scopeStats.redraws")
+    page.wait_for_function("(n) => window.scopeStats.redraws >= n + 2", arg=n, timeout=30_000)
 
 
 def _zoom_and_cursor(page) -> None:
