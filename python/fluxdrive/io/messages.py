@@ -288,42 +288,69 @@ class RowCodec:
             (idx[f], "", kinds[f], cols[f]) if f in cols else (idx[f], f, "", -1)
             for f in self.codec.fields
         ]
-        self._template: bytes | None = None
-        self._dtype: np.dtype | None = None
+        self._template = b""
+        self._plan: list[tuple[int, np.dtype, int, str, str, int]] | None = None
+        self._void = np.dtype("V1")
 
     def pack_block(
         self, rows: np.ndarray, seqs: list[int] | np.ndarray, stamp_ns: np.ndarray
     ) -> list[bytes]:
         """`pack` of n rows at once: the messages of rows[i] with seq seqs[i] stamped
         stamp_ns[i] (integer ns), built in one numpy pass over a block of messages -- the
-        same bytes `pack` gives one by one (tests/test_observer_blocks.py).  Not for
+        same bytes `pack` gives one by one (tests/test_graph_codec.py).  Not for
         PhaseFrames (their status bits are combined per message)."""
         if self.mtype == topics.T_FRAME:
             raise ValueError("pack_block: PhaseFrames are packed one by one")
         n = rows.shape[0]
-        size = self.codec.size
-        if self._template is None:  # the strings, the padding; the fields' dtype
+        if not n:
+            return []
+        if self._plan is None:  # the strings, the padding, graph_id; where the fields go
             self._template = self.pack(np.zeros(self.width), 0, 0, 0)
-            self._dtype = self.codec.numpy_dtype()
+            self._plan = self._block_plan()
+            self._void = np.dtype(f"V{self.codec.size}")
         buf = bytearray(self._template * n)
-        arr = np.frombuffer(buf, dtype=self._dtype)
+        size = self.codec.size
         stamp = np.asarray(stamp_ns, dtype=np.int64)
-        for j, src, kind, col in self._pack_src:
-            f = arr[f"f{j}"]
-            if not src:
-                v = rows[:, col]
+        for off, dt, k, src, kind, col in self._plan:
+            if not src:  # k fields from row columns col.. at once
+                f = np.ndarray((n, k), dt, buf, off, (size, dt.itemsize))
+                v = rows[:, col : col + k]
                 # as `pack`: bool is v > 0.5; integers truncate toward zero (int())
                 f[:] = v > 0.5 if kind == "bool" else np.trunc(v) if kind in _INT_KINDS else v
-            elif src == "header.stamp.sec":
+                continue
+            f = np.ndarray((n,), dt, buf, off, (size,))
+            if src == "header.stamp.sec":
                 f[:] = stamp // 1_000_000_000
             elif src == "header.stamp.nanosec":
                 f[:] = stamp % 1_000_000_000
             elif src == "seq":
                 f[:] = seqs
-            elif src == "graph_id":
-                f[:] = self.graph_id
-        blob = bytes(buf)
-        return [blob[i * size : (i + 1) * size] for i in range(n)]
+        # each message's bytes: numpy makes the n bytes objects (a slice each costs more)
+        return np.frombuffer(buf, self._void).tolist()
+
+    def _block_plan(self) -> list[tuple[int, np.dtype, int, str, str, int]]:
+        """pack_block's writes, (offset, dtype, count, source, kind, first column): a run of
+        float64 fields from consecutive columns is one write; graph_id is left to the
+        template (`pack` writes it as a constant)."""
+        dtype = self.codec.numpy_dtype()
+        plan: list[list] = []
+        for j, src, kind, col in self._pack_src:
+            if src == "graph_id":
+                continue
+            dt, off = dtype.fields[f"f{j}"][:2]
+            last = plan[-1] if plan else None
+            if (
+                last is not None
+                and not src
+                and not last[3]
+                and kind == last[4] == "float64"
+                and col == last[5] + last[2]
+                and off == last[0] + 8 * last[2]
+            ):
+                last[2] += 1
+            else:
+                plan.append([off, dt, 1, src, kind, col])
+        return [(int(p[0]), p[1], int(p[2]), p[3], p[4], int(p[5])) for p in plan]
 
     def _fill_source(self, name: str, pos: list[int]) -> str:
         """The body of a generated `name(m, out)` that fills the mapped columns of `out`
