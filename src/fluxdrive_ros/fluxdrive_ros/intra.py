@@ -32,6 +32,7 @@ from __future__ import annotations
 import os
 import struct
 import traceback
+from array import array
 from collections import defaultdict, deque
 from collections.abc import Callable
 
@@ -360,15 +361,18 @@ class BlockSender:
     (RowCodec.pack_block: the bytes `pack` gives one by one) and published as one block --
     a subscriber in this process that takes blocks (the recorder) gets them in one call,
     every other reader the same messages, only later.  Rows of another codec (a
-    ControllerState's fault text is part of its layout) start a new block."""
+    ControllerState's fault text is part of its layout) start a new block.
+
+    `add` runs every PWM period, so it keeps as little as it can: the row's bytes (float64,
+    the engine's rows; a copy, the caller reuses its row) and the seq in an int64 array,
+    both turned into arrays without a copy per element at `flush`."""
 
     def __init__(self, pub: RawPublisher, stamp, width: int, size: int = 256):
-        import numpy as np
-
         self.pub = pub
         self.stamp = stamp  # fluxdrive.io.messages.Stamp of the seqs
-        self.rows = np.empty((size, width))
-        self.seqs: list[int] = []
+        self.width = width
+        self.rows: list[bytes] = []
+        self.seqs = array("q")
         self.size = size
         self.codec = None  # the RowCodec of the rows kept
 
@@ -376,19 +380,23 @@ class BlockSender:
         if codec is not self.codec:
             self.flush()
             self.codec = codec
+        self.rows.append(row.tobytes())
         seqs = self.seqs
-        self.rows[len(seqs)] = row
         seqs.append(seq)
         if len(seqs) == self.size:
             self.flush()
 
     def flush(self) -> None:
+        import numpy as np
+
         seqs = self.seqs
         if not seqs or self.codec is None:
             return
-        self.seqs = []
-        rows = self.rows[: len(seqs)]
-        self.pub.publish_block(self.codec.pack_block(rows, seqs, self.stamp.ns_block(seqs)))
+        raw = b"".join(self.rows)
+        self.rows, self.seqs = [], array("q")
+        rows = np.frombuffer(raw, dtype=np.float64).reshape(len(seqs), self.width)
+        ks = np.frombuffer(seqs, dtype=np.int64)
+        self.pub.publish_block(self.codec.pack_block(rows, ks, self.stamp.ns_block(ks)))
 
 
 class RawSubscription:
