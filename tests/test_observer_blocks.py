@@ -95,3 +95,27 @@ def test_frames_unpacked_as_a_block_equal_one_by_one():
     one = np.zeros((len(frames), FR_N))
     assert seqs == [fw.unpack(d, one[i]) for i, d in enumerate(frames)]
     assert np.array_equal(block, one, equal_nan=True)
+
+
+def test_shadows_share_one_unpacked_block():
+    """The shadows of a process each get their own list of the same frames: the first
+    unpacks them, the others take its rows; other frames are unpacked anew."""
+    from flux_observer_node.node import FrameBlock
+    from fluxdrive.drive.observers import frame_limits
+    from fluxdrive.drive.plant import FR_N
+    from fluxdrive.drive.scenario import load_scenario
+    from fluxdrive.io.messages import FrameWire
+
+    frames = _frames()
+    fw = FrameWire()
+    first = FrameBlock.of(list(frames[:64]), fw)
+    assert FrameBlock.of(list(frames[:64]), fw) is first  # another reader, the same block
+    one = np.zeros((64, FR_N))
+    seqs = [fw.unpack(d, one[i]) for i, d in enumerate(frames[:64])]
+    assert np.array_equal(first.rows, one, equal_nan=True)
+    assert first.seqs.tolist() == seqs and first.last_seq == max(seqs)
+    lim = frame_limits(load_scenario(SCENARIO).machine)
+    assert not first.out_of_range(lim)
+    later = FrameBlock.of(list(frames[64:128]), fw)
+    assert later is not first and later.seqs.tolist() == list(range(64, 128))
+    assert FrameBlock.of(list(frames[64:128]), fw) is later

@@ -177,6 +177,44 @@ def common_params(decimation: int) -> list[P]:
 BLOCK_WAIT_S = 0.05
 
 
+class FrameBlock:
+    """A block of PhaseFrames as FR_* rows, unpacked once for every shadow observer of the
+    process.  The bus collects each shadow's frames for it on its own, but they are the same
+    messages (one plant's), so the first shadow to run a block unpacks it and the others find
+    it here (the last block only: the shadows run one after the other) -- as does the check
+    against a card's sensor ranges (`out_of_range`, by the limits).  Equal messages give
+    equal rows: the block is found again by comparing the messages, each one by identity
+    first.  `rows` and `seqs` are shared: read them only."""
+
+    _last: FrameBlock | None = None  # the block unpacked last in this process
+
+    def __init__(self, datas: list[bytes], fw: FrameWire):
+        self.datas = list(datas)  # its own list: the caller's may change
+        n = len(datas)
+        self.rows = np.zeros((n, FR_N))
+        seqs = fw.unpack_block(self.datas, self.rows)
+        if seqs is None:  # frames of several layouts: one by one
+            seqs = [fw.unpack(data, self.rows[i]) for i, data in enumerate(self.datas)]
+        self.seqs = np.asarray(seqs, dtype=np.int64)
+        self.last_seq = int(max(seqs))
+        self._oor: dict[bytes, bool] = {}
+
+    @classmethod
+    def of(cls, datas: list[bytes], fw: FrameWire) -> FrameBlock:
+        blk = cls._last
+        if blk is None or blk.datas != datas:
+            blk = cls._last = cls(datas, fw)
+        return blk
+
+    def out_of_range(self, limits: np.ndarray) -> bool:
+        """block_out_of_range of the rows against these limits (a card's)."""
+        key = limits.tobytes()
+        oor = self._oor.get(key)
+        if oor is None:
+            oor = self._oor[key] = bool(block_out_of_range(self.rows, limits))
+        return oor
+
+
 class ObserverNode(FluxNode):
     PLUGIN_SETTINGS = ObserverPlugin  # what a user variant declares besides its model
 
@@ -298,7 +336,6 @@ class ObserverNode(FluxNode):
         """Shadows in blocks (block_frames > 1): frames wait here, then one observer_run."""
         self.block = block_frames if self.plugin is None else 1
         self.pending: list[bytes] = []
-        self.blk_frames = np.zeros((self.block, FR_N))
         self.blk_est = np.zeros((self.block, ES_N))
         if self.block > 1:
             self.create_timer(BLOCK_WAIT_S, self._flush)
@@ -333,18 +370,15 @@ class ObserverNode(FluxNode):
             return
         self.pending = []
         n = len(pend)
-        frames, est = self.blk_frames[:n], self.blk_est[:n]
-        seqs = self.fw.unpack_block(pend, self.blk_frames)
-        if seqs is None:  # frames of several layouts: one by one
-            seqs = [self.fw.unpack(data, frames[i]) for i, data in enumerate(pend)]
+        blk = FrameBlock.of(pend, self.fw)  # unpacked once for every shadow of the process
+        est = self.blk_est[:n]
         st = self.state
         saved = st.copy()
         before = (st[OS_BAD], st[OS_STALE], st[OS_GAPS], st[OS_LOST])
-        lim = self.limits
-        clean = not block_out_of_range(frames, lim)
+        clean = not blk.out_of_range(self.limits)
         if clean:
             est.fill(0.0)
-            observer_run(st, self.params, frames, est)
+            observer_run(st, self.params, blk.rows, est)
             clean = (st[OS_BAD], st[OS_STALE], st[OS_GAPS], st[OS_LOST]) == before
         if not clean:
             st[:] = saved
@@ -353,13 +387,14 @@ class ObserverNode(FluxNode):
             return
         # the block's estimates in one pass, to a reader of this process (the recorder) as
         # one block; the same messages as one by one
+        seqs = blk.seqs
         self.pub.publish_block(self.ew.pack_block(est, seqs, self.stamp.ns_block(seqs)))
         c = self.counts.values
         c["frames"] += n
         c["good"] += n
         c["invalid_estimates"] += int(np.count_nonzero(est[:, ES_VALID] == 0.0))
         self.row[:] = est[n - 1]
-        self.last_seq = max(self.last_seq, max(seqs))
+        self.last_seq = max(self.last_seq, blk.last_seq)
         if self.done_seq is not None and self.last_seq >= self.done_seq:
             self.finished = True
 
