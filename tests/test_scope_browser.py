@@ -33,15 +33,25 @@ CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 TOKEN = "scope-test-token"
 
 
-def _param(node: str, name: str, domain_id: int):
-    from fluxdrive_bringup.inspect.commands import Session, _get
+class _Params:
+    """Parameter reads as `param get` makes them, through one inspection session for the
+    whole test (one DDS participant discovered once, not one per read)."""
 
-    s = Session(domain_id=domain_id, wait_s=3.0)
-    try:
-        ((_, v),) = _get(s, node, [name])
+    def __init__(self, domain_id: int):
+        self.domain_id = domain_id
+        self.session = None
+
+    def __call__(self, node: str, name: str):
+        from fluxdrive_bringup.inspect.commands import Session, _get
+
+        if self.session is None:
+            self.session = Session(domain_id=self.domain_id, wait_s=3.0)
+        ((_, v),) = _get(self.session, node, [name])
         return v
-    finally:
-        s.close()
+
+    def close(self) -> None:
+        if self.session is not None:
+            self.session.close()
 
 
 @pytest.mark.timeout(300)
@@ -61,6 +71,7 @@ def test_scope_page_in_chromium(tmp_path):
     captures = tmp_path / "captures"
     next(n for n in g.nodes if n.node == "scope_tap").parameters["capture_dir"] = str(captures)
     launcher = Launcher(g, quiet=True, progress=False, log_dir=tmp_path / "logs")
+    _param = _Params(dom)
     t0 = time.monotonic()
     launcher.start()
     shot = Path(os.environ.get("FLUXDRIVE_SCOPE_SCREENSHOT", tmp_path / "scope.png"))
@@ -136,7 +147,7 @@ def test_scope_page_in_chromium(tmp_path):
             row.locator("input").press("Enter")
             status = row.locator(".status")
             sync_api.expect(status).to_contain_text("✓", timeout=15_000)
-            assert _param("/controller", "position_timeout_s", dom) == pytest.approx(0.07)
+            assert _param("/controller", "position_timeout_s") == pytest.approx(0.07)
             # ... the change triggered a capture: written, reopened by the server, shown
             page.wait_for_function(
                 "window.scopeCapture && window.scopeCapture.series", timeout=60_000
@@ -148,12 +159,12 @@ def test_scope_page_in_chromium(tmp_path):
             row.locator("input").press("Enter")
             sync_api.expect(status).to_contain_text("out of range", timeout=15_000)
             assert "✗" in status.inner_text()
-            assert _param("/controller", "position_timeout_s", dom) == pytest.approx(0.07)
+            assert _param("/controller", "position_timeout_s") == pytest.approx(0.07)
             assert row.locator("input").input_value() == "0.07"  # reverted in the panel
             # values at their precision (no 20.00000000001): what the box shows is the
             # node's value, shortest form
             hb = page.locator('tr[data-node="/controller"][data-name="handback_rpm"] input')
-            v_hb = _param("/controller", "handback_rpm", dom)
+            v_hb = _param("/controller", "handback_rpm")
             assert float(hb.input_value()) == pytest.approx(v_hb, rel=1e-11)
             assert len(hb.input_value()) <= 13, hb.input_value()
 
@@ -192,6 +203,7 @@ def test_scope_page_in_chromium(tmp_path):
             page.locator("#capture").screenshot(path=str(shot_capture))
             browser.close()
     finally:
+        _param.close()
         launcher.stop()
     assert shot.stat().st_size > 20_000
     # the two sets are markers in the bag, at the sample they happened
