@@ -119,3 +119,36 @@ def test_shadows_share_one_unpacked_block():
     later = FrameBlock.of(list(frames[64:128]), fw)
     assert later is not first and later.seqs.tolist() == list(range(64, 128))
     assert FrameBlock.of(list(frames[64:128]), fw) is later
+
+
+def test_shadows_share_one_reader_on_the_bus():
+    """Subscriptions that share a reader (Bus.shared_reader: the shadows' frames) have their
+    messages collected once, and each block goes to each of them, in publish order."""
+    from types import SimpleNamespace
+
+    from fluxdrive_ros.intra import Bus
+
+    bus = Bus()
+    bus.timer = object()  # no block timer (it needs a node): blocks go by size here
+    got: dict[str, list] = {"a": [], "b": [], "solo": []}
+    for name in ("a", "b"):
+        reader = bus.shared_reader(("/f", 7, 3), got[name].append, 3)
+        bus.add_subscription(
+            SimpleNamespace(topic="/f", block=reader, block_tag=None, graph_id=7, callback=None)
+        )
+    solo = bus.shared_reader(("/f", 7, 2), got["solo"].append, 2)  # another block size
+    bus.add_subscription(
+        SimpleNamespace(topic="/f", block=solo, block_tag=None, graph_id=7, callback=None)
+    )
+    assert len(bus.targets_of("/f", 7)[0]) == 2  # one slot per reader
+    for i in range(6):
+        bus.post("/f", bytes([i]), 7)
+    while bus.queue:  # what the executor's drain does
+        cbs, data = bus.queue.popleft()
+        for cb in cbs:
+            cb(data)
+    blocks = [[(None, [b"\x00", b"\x01", b"\x02"])], [(None, [b"\x03", b"\x04", b"\x05"])]]
+    assert got["a"] == got["b"] == blocks
+    assert [d for parts in got["solo"] for _, ds in parts for d in ds] == [
+        bytes([i]) for i in range(6)
+    ]

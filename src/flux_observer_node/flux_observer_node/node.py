@@ -52,7 +52,7 @@ from fluxdrive.drive.observers import (
 )
 from fluxdrive.drive.plant import FR_IA, FR_N
 from fluxdrive.drive.scenario import CONFIG_DIR, load_scenario, scenario_path
-from fluxdrive_ros.intra import BlockReader, RawPublisher, RawSubscription
+from fluxdrive_ros.intra import BlockReader, RawPublisher, RawSubscription, bus
 from fluxdrive_ros.params import P, declare, on_set
 from fluxdrive_ros.runner import FluxNode, main_node
 from fluxdrive_ros.wire import EstimateWire, FrameWire, Stamp
@@ -273,13 +273,14 @@ class ObserverNode(FluxNode):
         self._frames_reported = 0
         self._logged = 0
         self.pub = RawPublisher(self, fm.RotorEstimate, "~/" + topics.ESTIMATE, qos.SAMPLES)
+        frame_topic = topics.in_drive(self, common["frame_topic"])
         self.sub = RawSubscription(
             self,
             fm.PhaseFrame,
-            topics.in_drive(self, common["frame_topic"]),
+            frame_topic,
             self._on_frame,
             qos.reader(common["input_durability"]),
-            block=BlockReader(self._on_frames, self.block) if self.block > 1 else None,
+            block=self._block_reader(frame_topic),
         )
         self.create_subscription(
             fm.RunDone,
@@ -339,6 +340,18 @@ class ObserverNode(FluxNode):
         self.blk_est = np.zeros((self.block, ES_N))
         if self.block > 1:
             self.create_timer(BLOCK_WAIT_S, self._flush)
+
+    def _block_reader(self, topic: str):
+        """How the frames of a publisher in this process come in blocks (block_frames > 1):
+        the shadows of one graph with the same block size share a reader, so the bus
+        collects each frame once for them all (fluxdrive_ros.intra.SharedBlockReader)."""
+        if self.block <= 1:
+            return None
+        b = bus()
+        if b is None:
+            return BlockReader(self._on_frames, self.block)
+        key = (self.resolve_topic_name(topic), int(self.graph.id), self.block)
+        return b.shared_reader(key, self._on_frames, self.block)
 
     def _on_frame(self, data: bytes) -> None:
         if self.block > 1:

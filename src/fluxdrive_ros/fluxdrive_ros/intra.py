@@ -88,6 +88,22 @@ class BlockReader:
         return parts
 
 
+class SharedBlockReader(BlockReader):
+    """One BlockReader for several subscriptions of this process that take the same
+    messages in blocks of the same size (the shadow observers' frames): the bus collects
+    each message once for all of them (one slot, not one per subscriber, on a topic of every
+    PWM period), and each block goes to every callback in turn, in the order they joined,
+    as the same list (read it only).  `Bus.shared_reader` gives it by key."""
+
+    def __init__(self, size: int):
+        self.callbacks: list[Callable[[list], None]] = []
+        super().__init__(self._fan_out, size)
+
+    def _fan_out(self, parts: list) -> None:
+        for cb in self.callbacks:
+            cb(parts)
+
+
 class Bus:
     def __init__(self):
         self.publishers: dict[str, int] = defaultdict(int)
@@ -103,6 +119,7 @@ class Bus:
         # (topic, publisher's graph id) -> (block readers' slots, per-message callbacks)
         self.targets: dict[tuple[str, int], tuple[list[_Slot], list]] = {}
         self.readers: dict[int, BlockReader] = {}  # by id
+        self.shared_readers: dict[tuple, SharedBlockReader] = {}
         self.ticks = 0  # of the block timer (BLOCK_WAIT_S / 2)
         self.timer = None
 
@@ -120,6 +137,15 @@ class Bus:
             self.readers[id(sub.block)] = sub.block
             if self.timer is None:
                 self._start_timer(sub.node)
+
+    def shared_reader(self, key: tuple, callback: Callable[[list], None], size: int):
+        """The SharedBlockReader of `key` (what its subscriptions have in common: topic,
+        graph, block size), with `callback` joined."""
+        r = self.shared_readers.get(key)
+        if r is None:
+            r = self.shared_readers[key] = SharedBlockReader(size)
+        r.callbacks.append(callback)
+        return r
 
     def _start_timer(self, node) -> None:
         """The wall-clock tick that hands over blocks waiting longer than BLOCK_WAIT_S."""
@@ -141,7 +167,9 @@ class Bus:
             blocks, singles = [], []
             for s in self.subscriptions.get(topic, []):
                 if s.block is not None and s.graph_id in (0, graph_id):
-                    blocks.append(s.block.slot(s.block_tag))
+                    sl = s.block.slot(s.block_tag)
+                    if sl not in blocks:  # a shared reader's slot: once for them all
+                        blocks.append(sl)
                 else:
                     singles.append(s.local_callback(graph_id))
             t = self.targets[key] = (blocks, singles)
