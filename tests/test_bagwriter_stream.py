@@ -2,7 +2,8 @@
 fluxdrive.io.mcapfile): what goes down the pipe comes back out of the bag message for message
 -- same bytes, same log times -- in every reader (mcap's own, rosbags, the project's), however
 the pipe cuts the stream; and the bulk path writes the very file that writing the same
-messages one by one does."""
+messages one by one does.  A block record (the recorder's messages of several topics, each as
+they came) is laid out four seqs at a time: the file of the message records in that order."""
 
 from __future__ import annotations
 
@@ -14,7 +15,8 @@ import numpy as np
 import pytest
 from fluxdrive.io import mcapfile
 from fluxdrive.io.bagio import BagWriter, read_raw
-from fluxdrive.io.bagwriter import MSG_HDR, pack_json, write_stream
+from fluxdrive.io.bagwriter import BLOCK_PART, MSG_HDR, STEP_SEQS, pack_json, write_stream
+from fluxdrive.io.messages import message_seq
 
 OFFSET_NS = 1_700_000_000_000_000_000
 TOPICS = [
@@ -157,3 +159,92 @@ def test_a_cut_stream_keeps_what_was_complete(tmp_path, capsys):
     msgs, _ = mcap_messages(bag)
     assert len(msgs) == 1 + len(sent) - 1
     assert (bag / "metadata.yaml").exists()
+
+
+def sample(seq: int, frame_id: bytes = b"drive", tail: bytes = b"") -> bytes:
+    """A per-sample message as the graph serialises it: CDR header, stamp (seq x 100 us),
+    frame_id, seq aligned to 8, graph_id, then `tail`."""
+    sec, nsec = divmod(seq * 100_000, 10**9)
+    fid = frame_id + b"\0"
+    head = b"\x00\x01\x00\x00" + struct.pack("<iII", sec, nsec, len(fid)) + fid
+    return head + bytes(-(len(head) - 4) % 8) + struct.pack("<QQ", seq, 7) + tail
+
+
+def block_record(parts: list[tuple[int, list[bytes]]]) -> bytes:
+    """The recorder's block record of these topics' messages (recorder id, messages)."""
+    table, body = [struct.pack("<H", len(parts))], []
+    for cid, datas in parts:
+        size = len(datas[0]) if len({len(d) for d in datas}) == 1 else 0
+        table.append(BLOCK_PART.pack(cid, len(datas), size))
+        if not size:
+            body.append(struct.pack(f"<{len(datas)}I", *map(len, datas)))
+        body += datas
+    raw = b"".join(table + body)
+    return b"B" + struct.pack("<I", len(raw)) + raw
+
+
+def in_step(parts: list[tuple[int, list[bytes]]]) -> list[tuple[int, bytes]]:
+    """The order the bag gets: topics of several sizes or frame_id lengths first, as they
+    came; the others by seq // STEP_SEQS, topic after topic within it (seqs going backwards
+    in one of them: topic after topic)."""
+    mixed = [p for p in parts if len({(len(d), d[12:16]) for d in p[1]}) > 1]
+    even = [p for p in parts if p not in mixed]
+    out = [(cid, d) for cid, datas in mixed for d in datas]
+    seqs = [[message_seq(d) for d in datas] for _, datas in even]
+    if any(q != sorted(q) for q in seqs):
+        return out + [(cid, d) for cid, datas in even for d in datas]
+    keyed = [
+        ((q // STEP_SEQS, j), cid, d)
+        for j, (cid, datas) in enumerate(even)
+        for q, d in zip(seqs[j], datas, strict=True)
+    ]
+    return out + [(cid, d) for _, cid, d in sorted(keyed, key=lambda x: x[0])]
+
+
+def block_parts(k0: int, n: int) -> list[tuple[int, list[bytes]]]:
+    """A frame topic, an estimate topic lagging by 3 seqs with its own tail, a topic of two
+    sizes and one whose frame_ids have two lengths (one size)."""
+    mixed_ids = [sample(k, b"drive" if k % 2 else b"drivexx") for k in range(k0, k0 + n)]
+    return [
+        (1, [sample(k, tail=bytes(48)) for k in range(k0, k0 + n)]),
+        (5, [sample(k, b"obs", b"flux" * 9) for k in range(k0 - 3, k0 + n - 3)]),
+        (2, [sample(k, tail=b"x" * (k % 3 == 0) * 8) for k in range(k0 - 1, k0 + n - 1)]),
+        (2, mixed_ids),
+    ]
+
+
+def records(bag: Path, body: list[bytes]) -> bytes:
+    head = {"path": str(bag), "custom_data": {}, "epoch_offset_ns": OFFSET_NS}
+    conns = [pack_json(b"C", {"id": i, "topic": t, "type": ty}) for i, t, ty in TOPICS]
+    return b"".join([pack_json(b"H", head), *conns, *body, b"E"])
+
+
+def message_record(cid: int, data: bytes) -> bytes:
+    sec, nsec = struct.unpack_from("<iI", data, 4)
+    return MSG_HDR.pack(b"M", cid, sec * 10**9 + nsec, len(data)) + data
+
+
+def test_a_block_is_the_messages_laid_out_in_step(tmp_path, capsys):
+    """Blocks (among message and flush records, the pipe cutting them anywhere) give the
+    very file that their messages one by one in step order give; seqs going backwards in a
+    topic: topic after topic; a block cut by EOF is dropped whole."""
+    blocks = [block_parts(10, 37), block_parts(47, 1), block_parts(48, 120)]
+    blocks.append([(1, [sample(k) for k in (300, 299, 301)]), (5, [sample(298, b"obs")])])
+    clock = message_record(2, struct.pack("<4siI", b"\x00\x01\x00\x00", 0, 5))
+    body_b, body_m = [], []
+    for parts in blocks:
+        body_b += [block_record(parts), clock, b"F"]
+        body_m += [message_record(cid, d) for cid, d in in_step(parts)] + [clock, b"F"]
+    a, b = tmp_path / "a" / "bag", tmp_path / "b" / "bag"
+    assert write_stream(Pipe(records(a, body_b))) == 0
+    assert write_stream(Pipe(records(b, body_m))) == 0
+    n = sum(len(d) for parts in blocks for _, d in parts) + len(blocks)
+    assert capsys.readouterr().out.split("\n")[1] == f"closed {n}"
+    ((fa,), (fb,)) = a.glob("*.mcap"), b.glob("*.mcap")
+    assert fa.read_bytes() == fb.read_bytes()
+
+    cut = tmp_path / "cut" / "bag"
+    raw = records(cut, body_b[:3])[:-1]  # a whole block, then 100 bytes of the next one
+    assert write_stream(Pipe(raw + block_record(blocks[1])[:100])) == 0
+    msgs, _ = mcap_messages(cut)
+    assert len(msgs) == 1 + sum(len(d) for _, d in blocks[0]) + 1  # settings, block, clock

@@ -37,8 +37,19 @@ Protocol on stdin (little endian):
                     "epoch_offset_ns": int}                     (bag time = stamp + offset)
   b"C" u32 n, JSON {"id": int, "topic": str, "type": str}       a connection (before use)
   b"M" u16 id, i64 t_ns, u32 n, n bytes of CDR                   a message
+  b"B" u32 n, then n bytes: u16 k, k x (u16 id, u32 count,      a block (below)
+       u32 size), then topic after topic: (size 0: its count
+       sizes, u32 each) its messages back to back
   b"F"                                                          flush: close the open chunk
   b"E"                                                          end: finalise and exit
+A block carries several topics' sample messages (flux_drive_msgs: header, then u64 seq), each
+topic's in publish order, all of one size or (size 0) of the sizes listed; their bag time is
+the header stamp.  The recorder hands them over as they came (one join per topic); this side
+lays them out in the bag STEP_SEQS samples at a time (`block_order`): every topic's messages
+of seqs up to the next multiple, then the next STEP_SEQS, so a bag cut anywhere holds its
+topics in step as message-by-message recording would.  A topic of several layouts (sizes,
+frame_id lengths) goes first, as it came; seqs that go backwards: topic after topic.  A block
+cut by EOF is dropped whole (its topics stay in step).
 On stdout: "ready" once the bag is open, "closed <messages>" once finalised, "error <text>"
 when writing failed; errors on stderr with a non-zero exit.
 """
@@ -54,6 +65,8 @@ from typing import TYPE_CHECKING, BinaryIO
 
 import numpy as np
 
+from fluxdrive.io.messages import seq_offset
+
 if TYPE_CHECKING:
     from fluxdrive.io.bagio import BagWriter
 
@@ -64,6 +77,10 @@ _HEAD = np.dtype([("id", "<u2"), ("t", "<i8"), ("n", "<u4")])  # a message recor
 _HEAD_BYTES = np.arange(1, _MSG_HEAD)  # after the b"M"
 _M = ord("M")
 U32 = struct.Struct("<I")
+_U16 = struct.Struct("<H")
+BLOCK_PART = struct.Struct("<HII")  # a block's topic: recorder id, messages, size (0: listed)
+_PART = np.dtype([("id", "<u2"), ("n", "<u4"), ("size", "<u4")])
+STEP_SEQS = 4  # a block's topics are laid out in the bag this many samples at a time
 READ_BYTES = 1 << 20  # the most one read of the input takes (then handed to the bag at once)
 RECORDING_FILE = "recording.json"  # in the bag directory while the bag is being written
 EXIT_WRITE_FAILED = 3
@@ -193,7 +210,7 @@ class _BagStream:
             return -1
         if kind == b"M":  # messages() stopped here: the record is not complete yet
             return None
-        if kind not in (b"C", b"H"):
+        if kind not in (b"C", b"H", b"B"):
             print(f"bagwriter: corrupt input (record type {kind!r})", file=sys.stderr)
             return -1
         if pos + 5 > len(buf):
@@ -201,6 +218,9 @@ class _BagStream:
         (n,) = U32.unpack_from(buf, pos + 1)
         if pos + 5 + n > len(buf):
             return None
+        if kind == b"B":
+            self.block(buf, pos + 5, n)
+            return pos + 5 + n
         obj = json.loads(buf[pos + 5 : pos + 5 + n])
         if kind == b"C":
             self.add_connection(obj)
@@ -208,6 +228,21 @@ class _BagStream:
             self.open_bag(obj)
             _say("ready")
         return pos + 5 + n
+
+    def block(self, buf: bytes, pos: int, n: int) -> None:
+        """A block record's messages (at `pos`, `n` bytes) into the bag, laid out in step."""
+        if self.writer is None:
+            raise RuntimeError("bag writer: a block before the bag's header")
+        ids, first, size = block_order(buf, pos, n)
+        if not len(ids):
+            return
+        conns = self.conn_of[ids]
+        if conns.min() < 0:
+            raise RuntimeError("bag writer: a block before its connection")
+        t = _gather(buf, first + 4, np.dtype("<i4")).astype(np.int64) * 1_000_000_000
+        t += _gather(buf, first + 8, np.dtype("<u4"))
+        self.writer.write_many(conns, t, buf, first, size)
+        self.n_msgs += len(ids)
 
     def add_connection(self, c: dict) -> None:
         if self.writer is None:
@@ -269,6 +304,75 @@ class _BagStream:
                 )
             _say(f"error {failed}")  # the recorder logs it
         return failed
+
+
+def _gather(buf: bytes, at: np.ndarray, dt: np.dtype) -> np.ndarray:
+    """The values of type `dt` at byte offsets `at` of `buf`."""
+    raw = np.frombuffer(buf, np.uint8)
+    return raw[at[:, None] + np.arange(dt.itemsize)].view(dt)[:, 0]
+
+
+def _block_parts(buf: bytes, pos: int, n: int) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """A block record's topics: (recorder id, where each message starts, its size)."""
+    (k,) = _U16.unpack_from(buf, pos)
+    table = np.frombuffer(buf, _PART, k, pos + 2)
+    at = pos + 2 + k * _PART.itemsize
+    parts = []
+    for cid, count, size in table.tolist():
+        if size:
+            sizes = np.full(count, size, np.int64)
+        else:  # the sizes, then the messages
+            sizes = np.frombuffer(buf, "<u4", count, at).astype(np.int64)
+            at += 4 * count
+        parts.append((cid, at + np.cumsum(sizes) - sizes, sizes))
+        at += int(sizes.sum())
+    if at != pos + n:
+        raise RuntimeError("bag writer: a block's sizes do not add up to its length")
+    return parts
+
+
+def block_order(buf: bytes, pos: int, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A block record's messages in bag order: (recorder ids, starts, sizes).  Topics of one
+    layout are laid out STEP_SEQS seqs at a time (each topic's messages of seqs below the
+    next multiple of STEP_SEQS, topic after topic, then the next STEP_SEQS); a topic of
+    several layouts goes first, as it came; seqs that go backwards (or a block spanning more
+    than a million seqs): topic after topic."""
+    first_parts, step_parts, seqs = [], [], []
+    for cid, first, sizes in _block_parts(buf, pos, n):
+        if not len(first):
+            continue
+        flen = _gather(buf, first + 12, np.dtype("<u4"))  # header.frame_id's length
+        if (sizes != sizes[0]).any() or (flen != flen[0]).any():
+            first_parts.append((cid, first, sizes))
+            continue
+        off = seq_offset(buf[first[0] : first[0] + 16])
+        seqs.append(_gather(buf, first + off, np.dtype("<u8")).astype(np.int64))
+        step_parts.append((cid, first, sizes))
+    parts = first_parts + step_parts
+    if not parts:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
+    ids = np.concatenate([np.full(len(f), c, np.int64) for c, f, _ in parts])
+    first = np.concatenate([f for _, f, _ in parts])
+    sizes = np.concatenate([s for _, _, s in parts])
+    order = _step_order(seqs)
+    if order is not None:
+        order = np.concatenate([np.arange(len(ids) - len(order)), order + len(ids) - len(order)])
+        ids, first, sizes = ids[order], first[order], sizes[order]
+    return ids, first, sizes
+
+
+def _step_order(seqs: list[np.ndarray]) -> np.ndarray | None:
+    """The order that lays topics with these seqs out STEP_SEQS at a time (None: as they
+    are -- one topic, seqs going backwards, or more than a million seqs apart)."""
+    if len(seqs) < 2:
+        return None
+    lo = min(int(q[0]) for q in seqs)
+    hi = max(int(q[-1]) for q in seqs)
+    if hi - lo > 1_000_000 or any((q[1:] < q[:-1]).any() for q in seqs):
+        return None
+    step = np.concatenate(seqs) // STEP_SEQS - lo // STEP_SEQS
+    topic = np.repeat(np.arange(len(seqs)), [len(q) for q in seqs])
+    return np.argsort(step * len(seqs) + topic, kind="stable")
 
 
 def write_stream(inp: BinaryIO) -> int:
