@@ -5,12 +5,15 @@ the graph's sample QoS (reliable, deep, transient-local: nothing published durin
 is lost).  In a process shared with the drive nodes, their topics arrive through the
 intra-process bus (fluxdrive_ros.intra); from other processes over DDS.
 
-Writing: a callback only appends the framed bytes to a buffer; a feeder thread ships the
-buffer every 20 ms to the bag-writer helper process (fluxdrive.io.bagwriter: MCAP built
-in bulk), which runs on the other core.  Every `flush_interval_s` (0.5 s) the writer closes
-its open MCAP chunk and flushes the file, so at most that much (or one 1 MiB chunk, about
-0.1 s of a 10 kHz run) is at risk if the recorder and its writer are killed outright;
-`./fluxdrive bag recover` rebuilds a valid bag from the rest.  At start the bag directory
+Writing: a callback only appends the framed bytes to a buffer -- the messages of this
+process's nodes a block at a time, as one block record (each topic's messages joined as they
+came; the writer lays the topics out in step and takes the times from the stamps) -- and a
+feeder thread ships the buffer every 20 ms to the bag-writer helper process
+(fluxdrive.io.bagwriter: MCAP built in bulk), which runs on the other core.  Every
+`flush_interval_s` (0.5 s) the writer closes its open MCAP chunk and flushes the file, so at
+most that much (or one 1 MiB chunk, about 0.1 s of a 10 kHz run) is at risk if the recorder
+and its writer are killed outright; `./fluxdrive bag recover` rebuilds a valid bag from the
+rest.  At start the bag directory
 must be new and writable and its file system must have `min_free_mb` free (one-line error
 otherwise); a write that fails later (disk full) stops the recording with an error, the
 recorder exits 1 and the complete chunks stay recoverable.
@@ -57,7 +60,7 @@ from pathlib import Path
 import numpy as np
 from fluxdrive.core.schema import param
 from fluxdrive.drive.scenario import REPO_ROOT
-from fluxdrive.io.bagwriter import check_bag_target, pack_json
+from fluxdrive.io.bagwriter import BLOCK_PART, MSG_HDR, check_bag_target, pack_json
 from fluxdrive.io.messages import message_seq, seq_offset
 from fluxdrive_ros.intra import BlockReader, RawSubscription
 from fluxdrive_ros.params import P, config_params, declare, input_durability_param
@@ -90,12 +93,12 @@ DEFAULT_TOPICS = [
 ] + [DIAGNOSTICS, ROSOUT]
 _HDR = struct.Struct("<iI")
 _U32 = struct.Struct("<I")
-_REC = struct.Struct("<cHqI")
-_STAMP_DT = np.dtype([("sec", "<i4"), ("nsec", "<u4")])  # a header's stamp
+_U16 = struct.Struct("<H")
+_REC = MSG_HDR
 # messages of this process's nodes reach the recorder in blocks of this many (or what came
 # within fluxdrive_ros.intra.BLOCK_WAIT_S), in publish order (fluxdrive_ros.intra.BlockReader)
 BLOCK_MESSAGES = 2048
-STEP_SEQS = 4  # a block's topics are laid out in the bag this many samples at a time
+_IOV_MAX = os.sysconf("SC_IOV_MAX")  # the most buffers one write takes
 
 
 def conventional_type(topic: str) -> str | None:
@@ -328,11 +331,8 @@ class RecorderNode(FluxNode):
         # bag times on a real epoch: sample time + the wall clock at the start (header
         # stamps stay sim time; the offset is recorded in the bag's settings)
         offset = 0 if self.pv["timestamps"] == "receive" else time.time_ns()
-        self._send(
-            pack_json(
-                b"H", {"path": str(self.bag_dir), "custom_data": custom, "epoch_offset_ns": offset}
-            )
-        )
+        head = {"path": str(self.bag_dir), "custom_data": custom, "epoch_offset_ns": offset}
+        self._send([pack_json(b"H", head)])
         line = self.pipe_out.readline().decode().strip()
         if line != "ready":
             self.proc.wait(timeout=10)
@@ -415,7 +415,7 @@ class RecorderNode(FluxNode):
 
         if topic in (DIAGNOSTICS, ROSOUT):
             cb = self._own_drive(topic, cls, cb)
-        tag = _TopicBlock(self, topic, cid, cb, every_period) if stamped and has_seq else None
+        tag = _TopicBlock(self, topic, cid, every_period) if stamped and has_seq else None
         sub = RawSubscription(
             self,
             cls,
@@ -431,23 +431,20 @@ class RecorderNode(FluxNode):
 
     def _on_block(self, parts: list[tuple[_TopicBlock, list[bytes]]]) -> None:
         """Messages of this process's nodes (fluxdrive_ros.intra.BlockReader), by topic:
-        each topic's M records built in one numpy pass, the topics' records laid out in step
-        (`in_step`) and appended as one bytes object.  A topic whose messages have several
-        layouts: its messages one by one."""
-        built = []
+        appended as one block record (fluxdrive.io.bagwriter), each topic's messages as
+        they came -- the bag writer lays the topics out in step and takes the times from
+        the stamps -- then counted, a topic at a time."""
+        table = [b"", _U16.pack(len(parts))]
+        items: list[bytes] = []
         for tag, datas in parts:
-            recs = tag.records(datas)
-            if recs is None:
-                for data in datas:
-                    tag.cb(data)
-            else:
-                built.append((tag, datas, recs))
-        if not built:
-            return
-        out = in_step([(recs, tag.seqs) for tag, _, recs in built])
-        self.buf.append(out)
-        self.bytes_in += len(out)
-        for tag, datas, _ in built:
+            tag.add(datas, table, items)
+        n = 2 + BLOCK_PART.size * len(parts) + sum(map(len, items))  # after b"B", u32
+        table[0] = b"B" + _U32.pack(n)
+        buf = self.buf
+        buf.append(b"".join(table))
+        buf += items
+        self.bytes_in += 5 + n
+        for tag, datas in parts:
             tag.account(datas)
         if self.bytes_in - self.bytes_out > self.max_backlog:
             self._hold()
@@ -506,16 +503,13 @@ class RecorderNode(FluxNode):
             self._discover_timer.cancel()
 
     # ----------------------------------------------------------------- feeding the writer
-    def _take(self) -> bytes:
+    def _take(self) -> list[bytes]:
+        """What the callbacks appended so far (the buffer is left empty)."""
         buf = self.buf
-        n = len(buf)
-        if not n:
-            return b""
-        items = buf[:n]
-        del buf[:n]
-        out = b"".join(items)
-        self.bytes_out += len(out)
-        return out
+        items = buf[: len(buf)]
+        del buf[: len(items)]
+        self.bytes_out += sum(map(len, items))
+        return items
 
     def _hold(self) -> None:
         """Backpressure: wait (in the callback, so the executor of this process waits too)
@@ -537,29 +531,37 @@ class RecorderNode(FluxNode):
     def _feeder(self) -> None:
         t_flush = time.monotonic()
         while not self.stop.wait(0.02):
-            chunk = self._take()
+            items = self._take()
             now = time.monotonic()
             if now - t_flush >= self.pv["flush_interval_s"]:
                 t_flush = now
-                chunk += b"F"  # the writer closes its open chunk: on disk from here on
-            if chunk:
+                items.append(b"F")  # the writer closes its open chunk: on disk from here on
+            if items:
                 with self.lock:
                     if self.closed:
                         return
                     try:
-                        self._send(chunk)
+                        self._send(items)
                     except OSError as exc:
                         self._writer_failed(exc)
                         return
 
-    def _send(self, data: bytes) -> None:
-        """All of `data` down the pipe to the writer.  A raw pipe write returns early when a
-        signal interrupts it part-way (Ctrl-C, a SIGSTOP/SIGCONT, a profiler attaching):
-        a record cut there corrupted the writer's input ("corrupt input (record type
-        b'N')", seen under py-spy)."""
-        view = memoryview(data)
-        while view:
-            view = view[self.pipe.write(view) :]
+    def _send(self, items: list[bytes]) -> None:
+        """All of `items` down the pipe to the writer, one after the other, in as few
+        writes as the system allows (no copy into one buffer first).  A pipe write returns
+        early when a signal interrupts it part-way (Ctrl-C, a SIGSTOP/SIGCONT, a profiler
+        attaching): a record cut there corrupted the writer's input ("corrupt input (record
+        type b'N')", seen under py-spy), so what is left is written again."""
+        fd = self.pipe.fileno()
+        views: list = list(items)
+        i = 0
+        while i < len(views):
+            n = os.writev(fd, views[i : i + _IOV_MAX])
+            while i < len(views) and n >= len(views[i]):
+                n -= len(views[i])
+                i += 1
+            if n:
+                views[i] = memoryview(views[i])[n:]
 
     def _writer_failed(self, exc: OSError) -> None:
         """The bag writer stopped (a write failed: disk full, ...): stop recording, say why
@@ -713,7 +715,7 @@ class RecorderNode(FluxNode):
                 return
             self.closed = True
             try:
-                self._send(self._take() + b"E")
+                self._send([*self._take(), b"E"])
                 self.pipe.close()
             except OSError:
                 pass
@@ -763,75 +765,68 @@ def _read_counts(path: str) -> dict[str, int] | None:
     return {str(t): int(n) for t, n in raw.items() if isinstance(n, int)}
 
 
-def in_step(topics: list[tuple[np.ndarray, np.ndarray]]) -> bytes:
-    """Several topics' records ((n, record size) bytes, their seqs) as one bytes object, laid
-    out STEP_SEQS samples at a time (every topic's records of seqs up to the next multiple,
-    then the next STEP_SEQS), so a bag cut anywhere (a SIGKILL) holds its topics in step as
-    message-by-message recording would.  Seqs that go backwards: topic after topic."""
-    if len(topics) == 1:
-        return topics[0][0].tobytes()
-    lo = min(int(q[0]) for _, q in topics)
-    hi = max(int(q[-1]) for _, q in topics)
-    if hi - lo > 1_000_000 or any((np.diff(q) < 0).any() for _, q in topics):
-        return b"".join(r.tobytes() for r, _ in topics)
-    edges = np.arange(lo - lo % STEP_SEQS + STEP_SEQS, hi + 1, STEP_SEQS)
-    cols = []
-    for r, q in topics:
-        cut = np.concatenate(([0], np.searchsorted(q, edges, side="left"), [len(q)]))
-        cols.append((r.tobytes(), (cut * r.shape[1]).tolist()))
-    out = []
-    for i in range(len(edges) + 1):
-        for b, cut in cols:
-            if cut[i + 1] > cut[i]:
-                out.append(b[cut[i] : cut[i + 1]])
-    return b"".join(out)
-
-
 class _TopicBlock:
-    """One recorded topic's part of a block (RecorderNode._on_block): its M records in
-    one numpy pass, and the per-topic bookkeeping the per-message callback `cb` does."""
+    """One recorded topic's part of a block (RecorderNode._on_block): its part of the block
+    record, and the bookkeeping the per-message callback does, once per block."""
 
-    def __init__(self, rec: RecorderNode, topic: str, cid: int, cb, every_period: bool):
-        self.rec, self.topic, self.cid, self.cb = rec, topic, cid, cb
+    def __init__(self, rec: RecorderNode, topic: str, cid: int, every_period: bool):
+        self.rec, self.topic, self.cid = rec, topic, cid
         self.every_period = every_period
-        self.dtypes: dict[int, np.dtype] = {}
-        self.seqs = np.zeros(0, dtype=np.int64)  # of the messages `records` built
-        self.t_last = 0
+        self.raw = b""  # the messages of the last block, back to back
+        self.size = 0  # of each of them (0: several sizes)
+        self.views: dict[tuple[int, int], np.dtype] = {}  # (seq offset, size) -> frame_id, seq
 
-    def records(self, datas: list[bytes]) -> np.ndarray | None:
-        """(n, record size) bytes of the n messages' M records (None: several layouts)."""
+    def add(self, datas: list[bytes], table: list[bytes], items: list[bytes]) -> None:
+        """The messages into the block record: the table entry to `table`, the sizes if
+        several and the messages to `items`."""
         n, size = len(datas), len(datas[0])
+        self.raw = raw = b"".join(datas)
         if len(set(map(len, datas))) != 1:
-            return None
-        raw = np.frombuffer(b"".join(datas), dtype=np.uint8).reshape(n, size)
-        if not (raw[:, 12:16] == raw[0, 12:16]).all():  # frame_ids of several lengths
-            return None
-        stamp = raw[:, 4:12].copy().view(_STAMP_DT)[:, 0]
-        t = stamp["sec"].astype(np.int64) * 1_000_000_000 + stamp["nsec"]
-        dt = self.dtypes.get(size)
-        if dt is None:
-            dt = self.dtypes[size] = np.dtype(
-                [("op", "S1"), ("cid", "<u2"), ("t", "<i8"), ("len", "<u4"), ("m", f"V{size}")]
-            )
-        recs = np.empty(n, dtype=dt)
-        recs["op"], recs["cid"], recs["t"], recs["len"] = b"M", self.cid, t, size
-        recs["m"] = raw.view(f"V{size}")[:, 0]
-        off = seq_offset(datas[0])
-        self.seqs = raw[:, off : off + 8].copy().view("<u8")[:, 0].astype(np.int64)
-        self.t_last = int(t[-1])
-        return recs.view(np.uint8).reshape(n, dt.itemsize)
+            size = 0
+            items.append(struct.pack(f"<{n}I", *map(len, datas)))
+        table.append(BLOCK_PART.pack(self.cid, n, size))
+        items.append(raw)
+        self.size = size
 
     def account(self, datas: list[bytes]) -> None:
-        """Counts, the last stamp and seq, and the seq gaps of what `records` built."""
-        rec, topic, seqs = self.rec, self.topic, self.seqs
-        rec.last_ts = max(rec.last_ts, self.t_last)
+        """Counts, the newest stamp, the last seq and the seq gaps (a topic with one message
+        per period: a seq more than one past the one before it)."""
+        rec, topic = self.rec, self.topic
+        last = datas[-1]
+        s, ns = _HDR.unpack_from(last, 4)
+        rec.last_ts = max(rec.last_ts, s * 1_000_000_000 + ns)
         rec.counts[topic] += len(datas)
-        last = rec.last_seq
-        if self.every_period:  # a seq more than one past the one before it: a gap
-            step = np.diff(seqs, prepend=last.get(topic, int(seqs[0]) - 1))
-            for i in np.flatnonzero(step > 1).tolist():
-                rec._gap(topic, int(seqs[i] - step[i]), int(seqs[i]))
-        last[topic] = int(seqs[-1])
+        k = message_seq(last)
+        if self.every_period:
+            prev = rec.last_seq.get(topic)
+            if prev is None or k - prev != len(datas) or not self._in_a_row(datas, prev):
+                for q in map(message_seq, datas):
+                    if prev is not None and q > prev + 1:
+                        rec._gap(topic, prev, q)
+                    prev = q
+        rec.last_seq[topic] = k
+
+    def _in_a_row(self, datas: list[bytes], prev: int) -> bool:
+        """The seqs prev + 1, prev + 2, ... (read in one numpy pass when the messages have
+        one size and one frame_id)."""
+        size, first = self.size, datas[0]
+        if not size:
+            return False
+        off = seq_offset(first)
+        dt = self.views.get((off, size))
+        if dt is None:
+            dt = self.views[(off, size)] = np.dtype(
+                {
+                    "names": ["flen", "seq"],
+                    "formats": ["<u4", "<u8"],
+                    "offsets": [12, off],
+                    "itemsize": size,
+                }
+            )
+        v = np.frombuffer(self.raw, dt)
+        return bool((v["flen"] == v["flen"][0]).all()) and bool(
+            (v["seq"] == np.arange(prev + 1, prev + 1 + len(datas), dtype=np.uint64)).all()
+        )
 
 
 def main(argv: list[str] | None = None) -> int:
