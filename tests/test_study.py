@@ -71,15 +71,23 @@ def _computed(t):
     return t.select(cols)
 
 
-@pytest.mark.serial  # a dask cluster of two worker processes: the two cores to itself
-def test_local_cluster_two_workers_equals_serial_bit_for_bit(tmp_path):
-    spec = load_spec(_spec(tmp_path))
+@pytest.fixture(scope="module")
+def serial_study(tmp_path_factory):
+    """The 16-task study (4 draws) run in this process, in order: the reference both
+    cluster tests compare with, run once.  (spec, summary, results table)"""
+    tmp = tmp_path_factory.mktemp("serial_study")
+    spec = load_spec(_spec(tmp, draws=4))
     with Runner("serial") as r:
-        s1 = run_study(spec, tmp_path / "serial", r, echo=False)
+        summary = run_study(spec, tmp / "serial", r, echo=False)
+    return spec, summary, pq.read_table(tmp / "serial" / "results.parquet")
+
+
+@pytest.mark.serial  # a dask cluster of two worker processes: the two cores to itself
+def test_local_cluster_two_workers_equals_serial_bit_for_bit(tmp_path, serial_study):
+    spec, s1, a = serial_study
     with Runner("local", workers=2) as r:
         s2 = run_study(spec, tmp_path / "local", r, echo=False)
-    assert s1["rows"] == s2["rows"] == 2 * 2 * 3 and s1["failed"] == s2["failed"] == 0
-    a = pq.read_table(tmp_path / "serial" / "results.parquet")
+    assert s1["rows"] == s2["rows"] == 2 * 2 * 4 and s1["failed"] == s2["failed"] == 0
     b = pq.read_table(tmp_path / "local" / "results.parquet")
     assert _computed(a).equals(_computed(b))  # every float identical, same task order
     assert len(set(b.column("worker").to_pylist())) == 2  # both workers did work
@@ -89,7 +97,7 @@ def test_local_cluster_two_workers_equals_serial_bit_for_bit(tmp_path):
     for i in (i for i in range(a.num_rows) if d["variant"][i] == "flux"):
         j = d["task_id"].index(d["task_id"][i].replace("flux|", "emf|"))
         assert d["r_hat_err"][i] == d["r_hat_err"][j] and d["seed"][i] == d["seed"][j]
-    assert len(set(d["seed"])) == 3 and len(set(d["r_hat_err"])) == 3
+    assert len(set(d["seed"])) == 4 and len(set(d["r_hat_err"])) == 4
     assert (tmp_path / "local" / "p_stable.png").stat().st_size > 5000
     assert "P(stable) per cell" in (tmp_path / "local" / "report.md").read_text()
 
@@ -168,7 +176,7 @@ def _free_port() -> int:
 
 
 @pytest.mark.serial  # a worker killed mid-study: timed against the others' progress
-def test_dask_scheduler_and_two_workers_one_killed_mid_study(tmp_path):
+def test_dask_scheduler_and_two_workers_one_killed_mid_study(tmp_path, serial_study):
     dask = str(Path(sys.executable).with_name("dask"))
     port = _free_port()
     addr = f"tcp://127.0.0.1:{port}"
@@ -210,7 +218,7 @@ def test_dask_scheduler_and_two_workers_one_killed_mid_study(tmp_path):
                     start_new_session=True,
                 )
             )
-        spec = load_spec(_spec(tmp_path, draws=4))  # 16 tasks
+        spec, _, serial = serial_study  # 16 tasks
         r = Runner(addr)
         r.client.wait_for_workers(2, timeout=60)
         killed = {}
@@ -236,9 +244,7 @@ def test_dask_scheduler_and_two_workers_one_killed_mid_study(tmp_path):
         survivor = [w for w in set(workers) if w != killed["addr"]]
         assert len(survivor) == 1 and workers.count(survivor[0]) >= 16 - 2
         # the same numbers as in-process
-        with Runner("serial") as rs:
-            run_study(spec, tmp_path / "ser", rs, echo=False)
-        assert _computed(t).equals(_computed(pq.read_table(tmp_path / "ser" / "results.parquet")))
+        assert _computed(t).equals(_computed(serial))
     finally:
         for p in procs:
             if p.poll() is None:
