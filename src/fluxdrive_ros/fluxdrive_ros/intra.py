@@ -122,6 +122,8 @@ class Bus:
         self.shared_readers: dict[tuple, SharedBlockReader] = {}
         self.ticks = 0  # of the block timer (BLOCK_WAIT_S / 2)
         self.timer = None
+        # bumped whenever a subscription comes: a publisher's cached targets are stale then
+        self.gen = 0
 
     # ------------------------------------------------------------- registration
     def add_publisher(self, topic: str) -> None:
@@ -133,6 +135,7 @@ class Bus:
         self.callbacks[sub.topic].append(sub.callback)
         self.subscriptions[sub.topic].append(sub)
         self.targets.clear()
+        self.gen += 1
         if sub.block is not None:
             self.readers[id(sub.block)] = sub.block
             if self.timer is None:
@@ -180,7 +183,11 @@ class Bus:
         """One message: queued for each per-message subscriber, collected for each block
         reader (BlockReader: handed over when it holds its size, or at most BLOCK_WAIT_S of
         wall time after its first message; in publish order, tagged by subscription)."""
-        blocks, singles = self.targets_of(topic, graph_id)
+        self.deliver(self.targets_of(topic, graph_id), data)
+
+    def deliver(self, targets: tuple[list, list], data: bytes) -> None:
+        """`post` to targets already looked up (`targets_of`, valid while `gen` stays)."""
+        blocks, singles = targets
         if singles:
             self.queue.append((singles, data))
             if not self.scheduled:
@@ -317,7 +324,8 @@ class RawPublisher:
         self._count = self.pub.get_subscription_count
         self._n_dds = 0
         self._until_count = 0  # publishes left before the DDS readers are counted again
-        self._publish = self.pub.publish
+        self._gen = -1  # the bus's gen when _targets was looked up (-1: none, or not local)
+        self._targets: tuple[list, list] = ([], [])
         self.n_published = 0  # the launcher checks the bag against it (fluxdrive_ros.runner)
         pubs = getattr(node, "raw_publishers", None)
         if pubs is None:
@@ -329,7 +337,17 @@ class RawPublisher:
         self._until_count = 0
 
     def publish(self, data: bytes) -> None:
-        self._send([data], False)
+        b = self.bus
+        if b is None or self._gen != b.gen or self._until_count <= 1:
+            self._send([data], False)
+            return
+        # the usual case, as `_send` does it: readers in this process, their targets known
+        # (the bus's subscriptions unchanged since), the DDS readers not due to be counted
+        self.n_published += 1
+        self._until_count -= 1
+        b.deliver(self._targets, data)
+        if self._n_dds:
+            self._publish_dds((data,))
 
     def publish_block(self, datas: list[bytes]) -> None:
         """Several messages in a row (a shadow observer's block of estimates): the same
@@ -347,22 +365,28 @@ class RawPublisher:
         local = b is not None and bool(b.callbacks.get(self.topic))
         if local:
             assert b is not None
+            self._targets, self._gen = b.targets_of(self.topic, self.graph_id), b.gen
             if block:
                 b.post_block(self.topic, datas, self.graph_id)
             else:
-                b.post(self.topic, datas[0], self.graph_id)
+                b.deliver(self._targets, datas[0])
             self._until_count -= len(datas)
             if self._until_count <= 0:
                 self._n_dds = self._count()
                 self._until_count = self.COUNT_EVERY
             if not self._n_dds:
                 return
+        else:
+            self._gen = -1
         self._publish_dds(datas)
 
     def _publish_dds(self, datas) -> None:
         try:
-            for data in datas:
-                self._publish(data)
+            # rclpy's Publisher.publish of bytes, the handle held once for the whole block
+            h = self.pub.handle
+            with h:
+                for data in datas:
+                    h.publish_raw(data)
         except Exception:
             import rclpy
 
