@@ -79,8 +79,23 @@ from fluxdrive.drive.control import (
     trip_values,
 )
 from fluxdrive.drive.observers import ES_N, ES_VALID, ES_W
-from fluxdrive.drive.plant import FR_EN
+from fluxdrive.drive.plant import FR_EN, FR_N
 
+# what the sequencer counts (`counts`), in this order
+COUNTS = (
+    "frames",
+    "estimates",
+    "repeated_or_backwards",
+    "missing_frames",
+    "late_estimates",
+    "stale_trips",
+    "lost_frames",
+    "lost_intervals",
+    "skipped_frames",
+    "flying_restarts",
+    "restarts",
+    "faults_latched",
+)
 Log = Callable[[str, str], None]  # (level: "info" | "warning" | "error", text)
 Emit = Callable[[int, np.ndarray], None]  # (seq, CO_* row) for every answered frame
 
@@ -108,6 +123,7 @@ class ControlSequencer:
         resync_window_s: float = 10.0,
         min_wait_s: float = 0.25,
         split: bool = False,
+        own_rows: bool = False,
     ):
         self.cp = cp
         # split mode: answer with the host's reference (`ref`, RF_*; host_reference_step at
@@ -138,6 +154,8 @@ class ControlSequencer:
         controller_reset(self.cs)
         self.out = np.zeros(CO_N)
         self.no_est = np.zeros(ES_N)
+        self._step = self._kernel(own_rows)
+        self.spare: list[np.ndarray] = []  # rows of answered frames, for the caller's next ones
         self.frames: dict[int, np.ndarray] = {}
         self.ests: dict[int, np.ndarray] = {}
         self.next_k = 0
@@ -153,23 +171,17 @@ class ControlSequencer:
         self.recover_from = -1  # first lost frame of a recovery not yet back in closed loop
         self.resync_at: list[int] = []  # frames at which lost intervals began
         self.finished_k = -1  # last frame answered
-        self.counts = {
-            n: 0
-            for n in (
-                "frames",
-                "estimates",
-                "repeated_or_backwards",
-                "missing_frames",
-                "late_estimates",
-                "stale_trips",
-                "lost_frames",
-                "lost_intervals",
-                "skipped_frames",
-                "flying_restarts",
-                "restarts",
-                "faults_latched",
-            )
-        }
+        self.counts = dict.fromkeys(COUNTS, 0)
+
+    def _kernel(self, own_rows: bool) -> Callable[..., object]:
+        """controller_step; for a caller whose every frame is a float64 row of FR_N and every
+        estimate one of ES_N (own_rows), its compiled overload without numba's dispatch."""
+        if not own_rows:
+            return controller_step
+        from fluxdrive.drive.warm import direct
+
+        fr = np.zeros(FR_N)
+        return direct(controller_step, self.cs, self.cp, fr, self.no_est, 0.0, 0.0, self.out)
 
     # ------------------------------------------------------------------ settings
     def set_timeouts(self, position_timeout_s: float, position_wall_timeout_s: float) -> None:
@@ -224,7 +236,7 @@ class ControlSequencer:
         self._run()
 
     def on_estimate(self, k: int, es: np.ndarray) -> None:
-        """The driving observer's estimate k (an ES_* row)."""
+        """The driving observer's estimate k (an ES_* row; copied if kept)."""
         self.counts["estimates"] += 1
         frames = self.frames
         if k == self.next_k and k in frames and not self.ests and self.sensorless:
@@ -242,7 +254,7 @@ class ControlSequencer:
         if k < self.next_k:  # its frame was answered already (late, stale trip) or lost
             self.counts["late_estimates"] += 1
             return
-        self.ests[k] = es
+        self.ests[k] = es.copy()
         if len(self.ests) > self.depth:  # estimates of frames that never came
             for j in sorted(self.ests)[: len(self.ests) - self.depth]:
                 del self.ests[j]
@@ -253,7 +265,7 @@ class ControlSequencer:
         no sample timeout possible yet (frames past it < the limit, the next one counted)."""
         return (
             self.sensorless
-            and not self.tripped
+            and self.cs[CS_MODE] != MODE_FAULT  # not tripped
             and self.max_seq + 1 - self.next_k < self.n_pos_timeout
             and len(self.frames) < self.depth
         )
@@ -421,9 +433,11 @@ class ControlSequencer:
 
     def _answer(self, k: int, fr: np.ndarray, es: np.ndarray) -> None:
         cs = self.cs
-        if not self.tripped:
+        tripped = cs[CS_MODE] == MODE_FAULT
+        if not tripped:
             if self._lost(k, fr):
                 self._resync(k, es)
+                tripped = cs[CS_MODE] == MODE_FAULT  # too many lost intervals: latched
             elif self.lost_run:
                 # each lost frame re-decided flying vs. start-up (a braked rotor slows
                 # below the handover speed during a long gap): say which one resumes
@@ -442,32 +456,35 @@ class ControlSequencer:
         w_ref = (
             self.const_ref
             if self.const_ref is not None
-            else float(self.w_ref_profile[min(max(k, 0), n - 1)])
+            else self.w_ref_profile.item(min(max(k, 0), n - 1))
         )
-        inj = float(self.id_inj[k]) if 0 <= k < self.id_inj.shape[0] else 0.0
-        was_fault = self.tripped
-        w_fb_prev = float(self.out[CO_W_FB])
+        inj = self.id_inj.item(k) if 0 <= k < self.id_inj.shape[0] else 0.0
+        out = self.out
+        w_fb_prev = out.item(CO_W_FB)
         if self.split:
-            host_reference_step(cs, self.cp, fr, es, w_ref, inj, self.out, self.ref)
+            host_reference_step(cs, self.cp, fr, es, w_ref, inj, out, self.ref)
         else:
-            controller_step(cs, self.cp, fr, es, w_ref, inj, self.out)
-        if self.tripped and not was_fault:
+            self._step(cs, self.cp, fr, es, w_ref, inj, out)
+        if not tripped and cs[CS_MODE] == MODE_FAULT:
             code = int(cs[CS_FAULT])
             self.fault_detail = f"{trip_values(code, fr, es, self.cp, cs, w_fb_prev)} (frame {k})"
             self._log_fault(code)
-        if self.recover_from >= 0 and self.out[CO_MODE] == MODE_CLOSED_LOOP and not self.lost_run:
+        if self.recover_from >= 0 and out[CO_MODE] == MODE_CLOSED_LOOP and not self.lost_run:
             self.log(
                 "info",
                 f"closed loop again at frame {k}, {k - self.recover_from} "
                 f"period(s) after the lost interval began",
             )
             self.recover_from = -1
-        self.enables[k] = bool(self.out[CO_EN] > 0.5)
-        if len(self.enables) > 8:
-            for j in [j for j in self.enables if j < k - 4]:
-                del self.enables[j]
+        enables = self.enables
+        enables[k] = out.item(CO_EN) > 0.5
+        if len(enables) > 8:
+            for j in [j for j in enables if j < k - 4]:
+                del enables[j]
         self.finished_k = k
-        self.emit(k, self.out)
+        if len(self.spare) < 4:  # the frame is done with
+            self.spare.append(fr)
+        self.emit(k, out)
 
     def _resync(self, k: int, es: np.ndarray) -> None:
         """A lost interval: re-synchronise instead of counting it as loss of lock."""

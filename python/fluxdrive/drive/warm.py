@@ -60,6 +60,18 @@ KERNELS = (
 )
 
 
+def direct(kernel, *args) -> Callable:
+    """`kernel`'s machine code for arguments of the types of `args`, callable without numba's
+    dispatch (which works out the type of every argument at every call: 0.2-0.5 us for the
+    kernels a node calls per sample).  The same compiled code as `kernel(*args)` (compiled,
+    or loaded from the disk cache, now; nothing is run).  Only for a caller that passes
+    arguments of these very types at every call -- the same arrays, or arrays made the same
+    way (numba checks an array's dtype, not its dimensions or memory layout)."""
+    from numba import typeof
+
+    return kernel.compile(tuple(typeof(a) for a in args))  # type: ignore[attr-defined]
+
+
 def graph_kernel_calls(sc) -> list[tuple[object, tuple]]:
     """(kernel, arguments) of every kernel the plant, observer and controller nodes call
     from Python, with arguments of the types those nodes pass (scenario `sc`)."""

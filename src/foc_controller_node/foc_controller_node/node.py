@@ -301,6 +301,7 @@ class ControllerNode(FluxNode):
             pv["max_resyncs"],
             pv["resync_window_s"],
             split=self.split,
+            own_rows=True,  # _on_frame / _on_est: rows of their own, float64
         )
 
     def _wire(self, card, pv: dict, common: dict, estimate_topic: str) -> None:
@@ -369,6 +370,8 @@ class ControllerNode(FluxNode):
             fm.DriveFault, in_drive(self, topics.FAULT), qos.MARKERS
         )
         self._fault_code = 0.0  # CO_FAULT of the last published sample
+        self.state_rc = self.cw.state_codec(np.zeros(CO_N))  # the ControllerState codec of it
+        self.es = np.empty(ES_N)  # each estimate's row
         self.reset_service = self.resolve_service_name("~/reset_fault")
         self.create_service(ResetFault, self.reset_service, self._on_reset)
 
@@ -403,11 +406,13 @@ class ControllerNode(FluxNode):
 
     # ----------------------------------------------------------------- samples
     def _on_frame(self, data: bytes) -> None:
-        fr = np.empty(FR_N)
+        # the sequencer keeps the frame until it is answered, then hands its row back
+        spare = self.seq.spare
+        fr = spare.pop() if spare else np.empty(FR_N)
         self.seq.on_frame(self.fw.unpack(data, fr), fr)
 
     def _on_est(self, data: bytes) -> None:
-        es = np.empty(ES_N)
+        es = self.es  # the sequencer keeps a copy if it keeps the estimate
         self.seq.on_estimate(self.ew.unpack(data, es), es)
 
     def _publish(self, k: int, out: np.ndarray) -> None:
@@ -415,9 +420,12 @@ class ControllerNode(FluxNode):
         if self.split:
             self.pub_duty.publish(self.rw.pack(self.seq.ref, k, sec, nsec))
         else:
-            self.pub_duty.publish(self.cw.pack_duty(out, k, sec, nsec))
-        self.state_blocks.add(self.cw.state_codec(out), out, k)
-        if out[CO_FAULT] != self._fault_code:  # latched or cleared at this sample
+            self.pub_duty.publish(self.cw.duty.pack(out, k, sec, nsec))
+        fault = out.item(CO_FAULT)
+        # the state's codec goes with its fault text (ControlWire.state_codec)
+        rc = self.state_rc if fault == self._fault_code else self.cw.state_codec(out)
+        self.state_blocks.add(rc, out, k)
+        if fault != self._fault_code:  # latched or cleared at this sample
             self._fault_event(k, out, sec, nsec)
         if self.done_seq is not None and k >= self.done_seq:
             self.state_blocks.flush()
@@ -428,7 +436,8 @@ class ControllerNode(FluxNode):
         FAULT_NONE once a reset cleared it."""
         code = int(out[CO_FAULT])
         before = int(self._fault_code)
-        self._fault_code = out[CO_FAULT]
+        self._fault_code = out.item(CO_FAULT)
+        self.state_rc = self.cw.state_codec(out)
         m = fm.DriveFault()
         m.header.stamp.sec, m.header.stamp.nanosec = sec, nsec
         m.header.frame_id = self.cw.frame_id
