@@ -52,6 +52,7 @@ from fluxdrive.drive.observers import (
 )
 from fluxdrive.drive.plant import FR_IA, FR_N
 from fluxdrive.drive.scenario import CONFIG_DIR, load_scenario, scenario_path
+from fluxdrive.drive.warm import direct
 from fluxdrive_ros.intra import BlockReader, RawPublisher, RawSubscription, bus
 from fluxdrive_ros.params import P, declare, on_set
 from fluxdrive_ros.runner import FluxNode, main_node
@@ -257,6 +258,7 @@ class ObserverNode(FluxNode):
         self.last_seq = -1
         self.done_seq: int | None = None
         self.limits = frame_limits(card)
+        self._kernels()
         self.counts = diag.Counters(
             "frames",
             "good",
@@ -278,7 +280,7 @@ class ObserverNode(FluxNode):
             self,
             fm.PhaseFrame,
             frame_topic,
-            self._on_frame,
+            self._on_frame if self.block > 1 else self._step,
             qos.reader(common["input_durability"]),
             block=self._block_reader(frame_topic),
         )
@@ -294,6 +296,15 @@ class ObserverNode(FluxNode):
         self.get_logger().info(
             f"{obs_name}: variant {self.cfg.variant}, {self.cfg.voltage_source} voltages, "
             f"publishing {self.pub.topic_name}"
+        )
+
+    def _kernels(self) -> None:
+        """The kernels of a frame (`_step`), without numba's dispatch: always these arrays."""
+        self._out_of_range = direct(frame_out_of_range, self.frame, self.limits)
+        self._observer_step = (
+            observer_step
+            if self.params is None
+            else direct(observer_step, self.state, self.params, self.frame, self.row)
         )
 
     def _load(self, first: dict):
@@ -412,25 +423,25 @@ class ObserverNode(FluxNode):
             self.finished = True
 
     def _step(self, data: bytes) -> None:
-        fr, st, c = self.frame, self.state, self.counts.values
+        fr, st, c, row = self.frame, self.state, self.counts.values, self.row
         seq = self.fw.unpack(data, fr)
-        before = (st[OS_BAD], st[OS_STALE], st[OS_GAPS])
-        oor = frame_out_of_range(fr, self.limits)
+        before = (st.item(OS_BAD), st.item(OS_STALE), st.item(OS_GAPS))
+        oor = self._out_of_range(fr, self.limits)
         if oor:  # beyond the sensors' full scale: a bad sample like a NaN
             fr[FR_IA] = np.nan
-        self.row.fill(0.0)
+        row.fill(0.0)
         if self.plugin is not None:  # the user's class handles bad input its own way
-            self.row[:] = self.plugin.step(fr.copy())
+            row[:] = self.plugin.step(fr.copy())
         else:
-            observer_step(st, self.params, fr, self.row)
+            self._observer_step(st, self.params, fr, row)
         sec, nsec = self.stamp(seq)
-        self.pub.publish(self.ew.pack(self.row, seq, sec, nsec))
+        self.pub.publish(self.ew.rc.pack(row, seq, sec, nsec))
         c["frames"] += 1
-        if self.row[ES_VALID] == 0.0:
+        if row.item(ES_VALID) == 0.0:
             c["invalid_estimates"] += 1
-        if (st[OS_BAD], st[OS_STALE], st[OS_GAPS]) != before:
+        if (st.item(OS_BAD), st.item(OS_STALE), st.item(OS_GAPS)) != before:
             self._count_bad(seq, oor, before)
-        elif st[OS_LOST] != self._lost_seen:  # a lost interval (watchdog PWM off): coasted
+        elif st.item(OS_LOST) != self._lost_seen:  # a lost interval (watchdog PWM off): coasted
             self._lost(seq)
         else:
             c["good"] += 1

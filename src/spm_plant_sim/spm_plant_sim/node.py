@@ -74,6 +74,7 @@ from fluxdrive.core.schema import param
 from fluxdrive.drive.plant import FR_N, MP_TD, TR_N, plant_advance, plant_initial_frame
 from fluxdrive.drive.scenario import ScenarioSettings, load_scenario, scenario_path
 from fluxdrive.drive.sim import DriveSetup
+from fluxdrive.drive.warm import direct
 from fluxdrive_ros.cdr import Codec, Decoder
 from fluxdrive_ros.intra import BlockSender, RawPublisher, RawSubscription
 from fluxdrive_ros.params import P, config_params, declare, input_durability_param, on_set
@@ -408,6 +409,20 @@ class PlantNode(FluxNode):
             self.load_t, self.load_y = ds.load_t, ds.load_y
         else:
             self.load_t, self.load_y = ds.load_t, ds.load_y * float(pv["load_scale"])
+        # plant_advance without numba's dispatch: always these arrays (the load's made alike)
+        self._plant_advance = direct(
+            plant_advance,
+            self.pst,
+            self.mp,
+            self.rng,
+            self.duty,
+            False,
+            self.load_t,
+            self.load_y,
+            ds.load_cfg,
+            self.frame,
+            self.truth,
+        )
 
     def _apply(self, changes: dict) -> str:
         new = {**self.pv, **changes}
@@ -463,7 +478,7 @@ class PlantNode(FluxNode):
 
     # ----------------------------------------------------------------- stepping
     def _advance(self, duty, enabled: bool, k: int, flags: int = 0) -> None:
-        plant_advance(
+        self._plant_advance(
             self.pst,
             self.mp,
             self.rng,
@@ -526,23 +541,13 @@ class PlantNode(FluxNode):
                     f"{self.guard.allowed}"
                 )
             return
+        # (sec, nsec, seq, graph_id, da, db, dc, enable): graph_id checked already
         v = self.duty_dec.decode(data)
-        v = v[:3] + v[4:]  # (sec, nsec, seq, da, db, dc, enable): graph_id checked already
         seq = v[2]
-        c = self.counts.values
-        c["duty_received"] += 1
-        da, db, dc = v[3], v[4], v[5]
-        if not (math.isfinite(da) and math.isfinite(db) and math.isfinite(dc)):
-            self._bad_duty(
-                "duty_nonfinite",
-                f"duty command {seq}: non-finite duty ({da}, {db}, {dc}): PWM off for that period",
-            )
-            v = (v[0], v[1], seq, 0.5, 0.5, 0.5, False)
-        elif not (-1e-9 <= min(da, db, dc) and max(da, db, dc) <= 1.0 + 1e-9):
-            self._bad_duty(
-                "duty_out_of_range",
-                f"duty command {seq}: duty ({da:g}, {db:g}, {dc:g}) outside [0, 1]: clamped",
-            )
+        self.counts.values["duty_received"] += 1
+        lo, hi = -1e-9, 1.0 + 1e-9
+        if not (lo <= v[4] <= hi and lo <= v[5] <= hi and lo <= v[6] <= hi):
+            v = self._odd_duty(v)  # non-finite (a NaN fails every comparison) or beyond [0, 1]
         if seq > self.k:
             self._bad_duty(
                 "unexpected_seq",
@@ -550,7 +555,7 @@ class PlantNode(FluxNode):
             )
             return
         if self.paced:
-            self._paced_duty(seq, (v[3], v[4], v[5], bool(v[6])))
+            self._paced_duty(seq, (v[4], v[5], v[6], bool(v[7])))
             return
         if self.done:
             return
@@ -565,14 +570,31 @@ class PlantNode(FluxNode):
             return
         self._lockstep(v)
 
+    def _odd_duty(self, v: tuple) -> tuple:
+        """A duty command with a non-finite duty (-> PWM off for its period) or one outside
+        [0, 1] (clamped by the modulator, plant_advance): counted and logged."""
+        seq, da, db, dc = v[2], v[4], v[5], v[6]
+        if not (math.isfinite(da) and math.isfinite(db) and math.isfinite(dc)):
+            self._bad_duty(
+                "duty_nonfinite",
+                f"duty command {seq}: non-finite duty ({da}, {db}, {dc}): PWM off for that period",
+            )
+            return (v[0], v[1], seq, v[3], 0.5, 0.5, 0.5, False)
+        self._bad_duty(
+            "duty_out_of_range",
+            f"duty command {seq}: duty ({da:g}, {db:g}, {dc:g}) outside [0, 1]: clamped",
+        )
+        return v
+
     def _lockstep(self, v: tuple) -> None:
         """Apply duty(seq = next_duty) to frame seq + 2, then any queued successors."""
         seq = v[2]
+        duty = self.duty
         while True:
             k = seq + 2
             if k < self.n:
-                self.duty[0], self.duty[1], self.duty[2] = v[3], v[4], v[5]
-                self._advance(self.duty, bool(v[6]), k)
+                duty[0], duty[1], duty[2] = v[4], v[5], v[6]
+                self._advance(duty, bool(v[7]), k)
             self.next_duty = seq + 1
             if seq >= self.n - 1:
                 self._finish()
