@@ -58,13 +58,19 @@ class _Params:
 def test_scope_page_in_chromium(tmp_path):
     if not Path(CHROMIUM).exists():
         pytest.skip("chromium not installed (tools/bootstrap.sh installs Debian's package)")
-    from fluxdrive.drive.scenario import load_scenario, scenario_path
+    import numpy as np
+    from fluxdrive.drive.scenario import load_scenario, save_scenario, scenario_path
     from fluxdrive_bringup.launch.launcher import Launcher, add_scope
     from fluxdrive_bringup.launch.runs import graph_for_scenario
 
     dom = domain(26)
-    sp = scenario_path("paper_2pct_150load")
-    sc = load_scenario(sp)
+    sc = load_scenario(scenario_path("paper_2pct_150load"))
+    # the paper's 150 % load trips the drive's I2t protection part-way into the
+    # run, and then the rotor stands: no electrical period for the order spectrum, and a
+    # latched fault for the reset button.  A fast lockstep graph gets there before the page
+    # is through, so the test holds the same start at 80 % (tune_60rpm_80load's point)
+    sc.load_profile_pu = np.array([[0.0, 0.0], [1.0, 0.0], [9.0, 0.8]])
+    sp = save_scenario(sc, tmp_path / "paper_2pct_80load.yaml")
     bag = tmp_path / "bag"
     g = graph_for_scenario(sp, sc, bag, "composed", duration_s=300.0, domain_id=dom)
     add_scope(g, port=0, token=TOKEN, observers=list(sc.observers))
