@@ -545,6 +545,12 @@ def main(argv: list[str] | None = None) -> int:
         rclpy.spin(node)
     except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
         pass
+    except RuntimeError:
+        if rclpy.ok():
+            raise
+        # a SIGINT/SIGTERM shut the context down while the executor was taking a message:
+        # rclpy reports the invalidated handle as a RuntimeError ("Unable to convert call
+        # argument"); it is the stop that was asked for (the drive is disarmed below)
     finally:
         node.destroy_node()
         if rclpy.ok():
