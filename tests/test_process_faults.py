@@ -115,6 +115,13 @@ def short_lease(tmp: Path, lease_s: int) -> dict:
     return {"env": {"FASTRTPS_DEFAULT_PROFILES_FILE": str(xml)}}
 
 
+# the lease of the graphs whose test SIGKILLs a reader of the plant's frames: a stopping
+# writer waits for every matched reader's acknowledgement (fluxdrive_ros.runner,
+# STOP_ACK_TIMEOUT_S = 10 s), and a killed reader stays matched until its participant's
+# lease runs out (20 s by default): with 4 s the stop waits at most 4 s for the dead one
+KILLED_LEASE_S = 4
+
+
 class Run:
     """A Launcher running in a background thread; its [launch] and node lines collected."""
 
@@ -229,7 +236,11 @@ def test_kill_controller_stop_policy(tmp_path):
     (the recorder lags it on a loaded machine) are gone with its writer, so the bag's duties
     are the recorder's own count, not the kill frame."""
     bag = tmp_path / "bag"
-    g = graph_dict(bag, processes={"controller": "controller", "recorder": "recorder"})
+    g = graph_dict(
+        bag,
+        processes={"controller": "controller", "recorder": "recorder"},
+        defaults=short_lease(tmp_path, KILLED_LEASE_S),
+    )
     run = Run(g, domain(1), tmp_path).start()
     k_kill = run.wait_frames(3000)
     pid = run.pid("controller")
@@ -268,6 +279,7 @@ def test_kill_controller_ignore_policy_plant_watchdog(tmp_path):
         processes={"controller": "controller", "recorder": "recorder"},
         policies={"controller": {"on_death": "ignore"}},
         plant={"duty_timeout_s": 0.3},
+        defaults=short_lease(tmp_path, KILLED_LEASE_S),
     )
     run = Run(g, domain(2), tmp_path).start()
     run.wait_frames(3000)
@@ -360,6 +372,7 @@ def test_kill_driving_observer_controller_goes_pwm_off(tmp_path):
         bag,
         processes={"flux_measured": "obs_fm", "recorder": "recorder"},
         policies={"flux_measured": {"on_death": "ignore"}},
+        defaults=short_lease(tmp_path, KILLED_LEASE_S),
     )
     run = Run(g, domain(8), tmp_path).start()
     k_kill = run.wait_frames(2000)
