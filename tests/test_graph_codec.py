@@ -167,3 +167,91 @@ def test_estimate_blocks_pack_the_same_bytes_as_one_by_one():
     ks = [int(k) for k in seqs]
     block = ew.pack_block(es, seqs, stamp.ns_block(seqs))
     assert block == [ew.pack(es[i], k, *stamp(k)) for i, k in enumerate(ks)]
+
+
+def _odd_rows(rng, n: int, width: int) -> np.ndarray:
+    """Rows of every kind of value a row may hold: NaN, signed zeros, huge and tiny."""
+    rows = rng.normal(size=(n, width)) * 10.0 ** rng.integers(-8, 8, size=(n, width))
+    rows[3, :] = np.nan
+    rows[4, :] = -0.0
+    rows[5, :] = 1e300
+    return rows
+
+
+def test_frame_blocks_pack_the_same_bytes_as_one_by_one():
+    """PhaseFrames packed in one numpy pass (the bits each frame carries: its own flags
+    kept to the travelling ones, the publisher's, a per-frame extra) are the messages
+    `pack` gives one by one."""
+    from fluxdrive.drive.plant import FR_EN, FR_ENC, FR_FLAGS, FR_N, FR_SEQ
+    from fluxdrive.io.messages import STATUS_SIMULATED, STATUS_STALE_COMMAND
+    from fluxdrive_ros.wire import FrameWire, Stamp
+
+    rng = np.random.default_rng(11)
+    stamp = Stamp(2.5e-4)
+    seqs = np.arange(39_990, 40_050)
+    n = len(seqs)
+    fr = _odd_rows(rng, n, FR_N)
+    fr[:, FR_EN] = rng.integers(0, 2, n)
+    fr[:, FR_ENC] = np.round(fr[:, FR_ENC])
+    fr[:, FR_FLAGS] = rng.integers(0, 64, n)
+    fr[:, FR_SEQ] = seqs
+    xf = rng.choice([0, STATUS_STALE_COMMAND], n)
+    fw = FrameWire("bench", extra_flags=STATUS_SIMULATED, graph_id=77)
+    block = fw.rc.pack_block(fr, seqs, stamp.ns_block(seqs), xf)
+    assert block == [fw.pack(fr[i], *stamp(int(k)), int(xf[i])) for i, k in enumerate(seqs)]
+
+
+@pytest.mark.parametrize("mtype", ["frame", "estimate", "duty", "state", "truth"])
+def test_rows_delivered_in_process_are_the_rows_the_messages_give(mtype):
+    """A reader in the publisher's process gets `wire_row` of the publisher's row instead of
+    the bytes (fluxdrive_ros.intra): it must be, bit for bit, the row `unpack` fills from the
+    message `pack` makes -- in every column the message carries (NaN in the others)."""
+    from fluxdrive.drive.control import CO_FAULT, CO_N
+    from fluxdrive.drive.observers import ES_N, ES_VALID
+    from fluxdrive.drive.plant import FR_EN, FR_FLAGS, FR_N, TR_N, TR_THETA_E
+    from fluxdrive.io import topics
+    from fluxdrive.io.messages import MAPS, STATUS_SIMULATED, RowCodec
+    from fluxdrive_ros.wire import Stamp
+
+    rng = np.random.default_rng(5)
+    kind = {
+        "frame": (topics.T_FRAME, FR_N),
+        "estimate": (topics.T_ESTIMATE, ES_N),
+        "duty": (topics.T_DUTY, CO_N),
+        "state": (topics.T_STATE, CO_N),
+        "truth": (topics.T_TRUTH, TR_N),
+    }
+    mt, width = kind[mtype]
+    rc = RowCodec(mt, flags_or=STATUS_SIMULATED if mtype == "frame" else 0, graph_id=3)
+    carried = {c for _, c in MAPS[mt][0]}
+    if mtype == "frame":
+        from fluxdrive.drive.plant import FR_SEQ
+
+        carried.add(FR_SEQ)
+    rows = _odd_rows(rng, 40, width)
+    rows[:, {"frame": FR_EN, "estimate": ES_VALID}.get(mtype, 0)] = rng.uniform(0, 1, 40)
+    if mtype == "frame":
+        rows[:, FR_FLAGS] = rng.integers(0, 64, 40)
+    if mtype == "state":
+        rows[:, CO_FAULT] = 0.0
+        from fluxdrive.drive.control import CO_MODE
+
+        rows[:, CO_MODE] = rng.integers(0, 5, 40)
+    if mtype == "truth":
+        rows[:, TR_THETA_E] = rng.uniform(-7, 7, 40)
+    stamp = Stamp(1e-4)
+    for i, row in enumerate(rows):
+        if mtype == "state" and not np.isfinite(row).all():
+            continue  # integer fields of a state are whole numbers: NaN does not pack
+        k = 1_000 + i
+        xf = 16 if i % 3 == 0 else 0
+        args = (xf,) if mtype == "frame" else ()
+        got = rc.wire_row(row, k, *args)
+        via = np.full(width, -1.0)
+        rc.unpack(rc.pack(row, k, *stamp(k), *args), via)
+        for c in range(width):
+            if c in carried:
+                assert np.array_equal(got[c : c + 1], via[c : c + 1], equal_nan=True), (i, c)
+                assert np.signbit(got[c]) == np.signbit(via[c]), (i, c)
+            else:
+                assert np.isnan(got[c]), (i, c)

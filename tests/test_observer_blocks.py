@@ -67,6 +67,11 @@ def test_blocks_publish_the_per_frame_estimates(monkeypatch):
             )
             out: list[bytes] = []
             node.pub.publish = out.append  # what the node hands its publisher, in order
+
+            def publish_row(rc, row, seq, xf=0, out=out, stamp=node.stamp):
+                out.append(rc.pack(row, seq, *stamp(seq), xf))  # the message of the row
+
+            node.pub.publish_row = publish_row
             node.pub.publish_block = out.extend  # (a block: its messages in a row)
             for data in frames:
                 node._on_frame(data)

@@ -38,6 +38,7 @@ Conventions the mapping owns:
 from __future__ import annotations
 
 import math
+import re
 import struct
 from collections.abc import Callable
 
@@ -271,6 +272,8 @@ class RowCodec:
         src = f"def pack(row, seq, sec, nsec, xf=0):\n    v = row.tolist()\n    return {call}\n"
         exec(src, env)  # noqa: S102 - generated from the mapping table only
         self.pack: Callable[..., bytes] = env["pack"]
+        self.flags_or = int(flags_or)
+        self._pack_args = args
         idx = {f: i for i, f in enumerate(self.codec.fields)}
         self._kinds, self._mapping = kinds, mapping
         env = {}
@@ -285,22 +288,60 @@ class RowCodec:
         self._flags_i = idx.get("status_flags", -1)
         # pack_block: (field position, source) -- a row column with its kind, or the stamp
         self._pack_src = [
-            (idx[f], "", kinds[f], cols[f]) if f in cols else (idx[f], f, "", -1)
+            (idx[f], "", kinds[f], cols[f])
+            if f in cols and not (mtype == topics.T_FRAME and f == "status_flags")
+            else (idx[f], f, "", -1)
             for f in self.codec.fields
         ]
         self._template = b""
         self._plan: list[tuple[int, np.dtype, int, str, str, int]] | None = None
         self._void = np.dtype("V1")
+        self.wire_row = self._build_wire_row()
+
+    def _build_wire_row(self) -> Callable[..., np.ndarray] | None:
+        """`wire_row(row, seq, xf=0)` -> the row a reader's `unpack` fills from the message
+        `pack(row, seq, sec, nsec, xf)` makes -- without the bytes, for a reader in the same
+        process (fluxdrive_ros.intra: rows delivered as rclcpp's intra-process delivery
+        hands over the message, not its serialisation).  Generated from the same
+        expressions: each column is `fill`'s expression of the field with `pack`'s
+        expression of that field put in, so a row and its trip through CDR agree bit for bit
+        (tests/test_graph_codec.py).  Columns the message does not carry are NaN.  None for
+        a type with float32 fields (the trip through CDR rounds them)."""
+        if any(self._kinds[f] == "float32" for f in self.codec.fields):
+            return None
+        args = {i: a for i, a in enumerate(self._pack_args)}
+        exprs: dict[int, str] = {}
+        src = self._fill_source("fill", list(range(len(self.codec.fields))))
+        for line in src.split("\n")[1:]:
+            hit = re.fullmatch(r"    out\[(\d+)\] = (.*)", line)
+            if hit:  # the column's value: fill's expression of pack's expression
+                expr = re.sub(r"m\[(\d+)\]", lambda g: f"({args[int(g.group(1))]})", hit[2])
+                exprs[int(hit[1])] = re.sub(r"v\[(\d+)\]", r"row.item(\1)", expr)
+        # every column carried: a copy of the row and the columns that are not the row's
+        # own value (booleans, integers, seq, flags); else NaN and the carried columns
+        moved = {c: e for c, e in exprs.items() if e != f"(row.item({c}))"}
+        if len(exprs) == self.width:
+            lines = ["    out = row.copy()"] + [f"    out[{c}] = {e}" for c, e in moved.items()]
+        else:
+            lines = ["    out = _nans.copy()"]
+            lines += [f"    out[{c}] = {e}" for c, e in exprs.items()]
+        fn = "def wire_row(row, seq, xf=0):\n" + "\n".join(lines) + "\n    return out\n"
+        env: dict = {"_nans": np.full(self.width, math.nan)}
+        exec(fn, env)  # noqa: S102 - generated from the mapping table only
+        self._wire_source = fn
+        return env["wire_row"]
 
     def pack_block(
-        self, rows: np.ndarray, seqs: list[int] | np.ndarray, stamp_ns: np.ndarray
+        self,
+        rows: np.ndarray,
+        seqs: list[int] | np.ndarray,
+        stamp_ns: np.ndarray,
+        xf: np.ndarray | None = None,
     ) -> list[bytes]:
         """`pack` of n rows at once: the messages of rows[i] with seq seqs[i] stamped
-        stamp_ns[i] (integer ns), built in one numpy pass over a block of messages -- the
-        same bytes `pack` gives one by one (tests/test_graph_codec.py).  Not for
-        PhaseFrames (their status bits are combined per message)."""
-        if self.mtype == topics.T_FRAME:
-            raise ValueError("pack_block: PhaseFrames are packed one by one")
+        stamp_ns[i] (integer ns) and, for PhaseFrames, extra status bits xf[i] (default
+        none), built in one numpy pass over a block of messages -- the same bytes `pack`
+        gives one by one (tests/test_graph_codec.py)."""
         n = rows.shape[0]
         if not n:
             return []
@@ -325,6 +366,11 @@ class RowCodec:
                 f[:] = stamp % 1_000_000_000
             elif src == "seq":
                 f[:] = seqs
+            elif src == "status_flags":  # as `pack`: (flags & OUT) | the codec's | xf
+                bits = (
+                    np.trunc(rows[:, FR_FLAGS]).astype(np.int64) & FRAME_FLAGS_OUT
+                ) | self.flags_or
+                f[:] = bits if xf is None else bits | np.asarray(xf, dtype=np.int64)
         # each message's bytes: numpy makes the n bytes objects (a slice each costs more)
         return np.frombuffer(buf, self._void).tolist()
 

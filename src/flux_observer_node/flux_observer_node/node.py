@@ -274,7 +274,9 @@ class ObserverNode(FluxNode):
         self._good_reported = 0
         self._frames_reported = 0
         self._logged = 0
-        self.pub = RawPublisher(self, fm.RotorEstimate, "~/" + topics.ESTIMATE, qos.SAMPLES)
+        self.pub = RawPublisher(
+            self, fm.RotorEstimate, "~/" + topics.ESTIMATE, qos.SAMPLES, stamp=self.stamp
+        )
         frame_topic = topics.in_drive(self, common["frame_topic"])
         self.sub = RawSubscription(
             self,
@@ -283,6 +285,7 @@ class ObserverNode(FluxNode):
             self._on_frame if self.block > 1 else self._step,
             qos.reader(common["input_durability"]),
             block=self._block_reader(frame_topic),
+            row_callback=self._step_row if self.block <= 1 else None,
         )
         self.create_subscription(
             fm.RunDone,
@@ -423,19 +426,28 @@ class ObserverNode(FluxNode):
             self.finished = True
 
     def _step(self, data: bytes) -> None:
-        fr, st, c, row = self.frame, self.state, self.counts.values, self.row
-        seq = self.fw.unpack(data, fr)
+        self._step_frame(self.frame, self.fw.unpack(data, self.frame))
+
+    def _step_row(self, msg: tuple) -> None:
+        """A frame of the plant in this process, as its row (fluxdrive_ros.intra; shared
+        with the controller: read only)."""
+        self._step_frame(msg[0], msg[1])
+
+    def _step_frame(self, fr: np.ndarray, seq: int) -> None:
+        st, c, row = self.state, self.counts.values, self.row
         before = (st.item(OS_BAD), st.item(OS_STALE), st.item(OS_GAPS))
         oor = self._out_of_range(fr, self.limits)
         if oor:  # beyond the sensors' full scale: a bad sample like a NaN
+            if fr is not self.frame:  # another reader's row too: marked in our copy
+                self.frame[:] = fr
+                fr = self.frame
             fr[FR_IA] = np.nan
         row.fill(0.0)
         if self.plugin is not None:  # the user's class handles bad input its own way
             row[:] = self.plugin.step(fr.copy())
         else:
             self._observer_step(st, self.params, fr, row)
-        sec, nsec = self.stamp(seq)
-        self.pub.publish(self.ew.rc.pack(row, seq, sec, nsec))
+        self.pub.publish_row(self.ew.rc, row, seq)
         c["frames"] += 1
         if row.item(ES_VALID) == 0.0:
             c["invalid_estimates"] += 1

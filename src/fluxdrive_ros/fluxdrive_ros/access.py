@@ -96,6 +96,7 @@ class CommandGuard:
         self.last_rejected = ""
         self._verdicts: dict[bytes, tuple[str, str]] = {}  # mark -> (reason, text), cached
         self._ok_len, self._ok_tail = 0, b""  # the last accepted command's commander field
+        self._ok_codec: object = None  # the codec of the last accepted row (accept_codec)
 
     def accept_raw(self, data: bytes) -> bool:
         """A serialised DutyCommand (its commander field, read without decoding the rest)."""
@@ -122,6 +123,18 @@ class CommandGuard:
         self.rejected[verdict[0]] += 1
         self.last_rejected = verdict[1]
         return False
+
+    def accept_codec(self, rc) -> bool:
+        """A command handed over as a row by a publisher of this process (fluxdrive_ros.intra:
+        `rc` is its RowCodec): the mark is the codec's commander string, the same one
+        its bytes would carry."""
+        if rc is self._ok_codec:
+            self.accepted += 1
+            return True
+        ok = self.accept_mark(rc.codec.strings.get("commander", ""))
+        if ok and not self.anyone:
+            self._ok_codec = rc
+        return ok
 
     def accept_mark(self, frame_id: str) -> bool:
         if self.anyone or frame_id.encode() in self.valid:

@@ -15,6 +15,17 @@ readers.  This module gives the fluxdrive nodes the same shortcut:
   otherwise it subscribes over DDS as usual.  Messages of another graph are dropped (and
   counted) before the callback (fluxdrive_ros.graph).
 
+Rows instead of bytes: a node that publishes an engine row (`RawPublisher.publish_row`: a
+frame, an estimate, a duty command) hands a reader of this process that takes rows
+(`RawSubscription(row_callback=...)`) the row itself -- `RowCodec.wire_row`, the very row the
+reader's `unpack` would fill from the message (fluxdrive.io.messages), without packing and
+unpacking it: rclcpp's intra-process delivery hands over the message, not its serialisation,
+too.  Readers that take blocks (the recorder, the shadow observers) get the same messages'
+bytes, packed in blocks (`RowCodec.pack_block`, one numpy pass) when `ROW_BLOCK` rows have
+come, at the bus's timer tick, or when a node or the recorder asks (`flush_rows`,
+`deliver_queued`).  The bytes path stays for everything else: a reader in another process
+(DDS), a reader of this process without a row callback, another graph's reader.
+
 Ordering: deliveries go through one FIFO per process, drained by executor tasks in batches
 of `BATCH`; between batches the executor serves everything else (parameter services,
 timers, messages from other processes), so a lockstep loop that lives entirely inside one
@@ -37,6 +48,9 @@ from collections import defaultdict, deque
 from collections.abc import Callable
 
 BATCH = 256
+# rows a publisher keeps for the block readers of its topic before packing them (at most
+# this many, or one block timer tick)
+ROW_BLOCK = 256
 # a block subscriber's messages wait at most this long (wall time) for the block to fill
 BLOCK_WAIT_S = 0.02
 
@@ -124,6 +138,10 @@ class Bus:
         self.timer = None
         # bumped whenever a subscription comes: a publisher's cached targets are stale then
         self.gen = 0
+        # (topic, publisher's graph id) -> (block readers' slots, row callbacks), or None
+        # when a reader of the topic here takes bytes only
+        self.row_targets: dict[tuple[str, int], tuple[list[_Slot], list] | None] = {}
+        self.row_blocks: list[RowBlocks] = []  # every publisher's rows kept for block readers
 
     # ------------------------------------------------------------- registration
     def add_publisher(self, topic: str) -> None:
@@ -135,6 +153,7 @@ class Bus:
         self.callbacks[sub.topic].append(sub.callback)
         self.subscriptions[sub.topic].append(sub)
         self.targets.clear()
+        self.row_targets.clear()
         self.gen += 1
         if sub.block is not None:
             self.readers[id(sub.block)] = sub.block
@@ -178,6 +197,33 @@ class Bus:
             t = self.targets[key] = (blocks, singles)
         return t
 
+    def row_targets_of(self, topic: str, graph_id: int) -> tuple[list, list] | None:
+        """(block readers' slots, row callbacks) a publisher of `graph_id` in this process
+        hands rows of `topic` to (`RawPublisher.publish_row`) -- or None when a reader of
+        the topic here takes bytes only (no row callback, or another graph's: the graph-id
+        filter reads the bytes).  Valid while `gen` stays."""
+        key = (topic, graph_id)
+        if key in self.row_targets:
+            return self.row_targets[key]
+        blocks: list[_Slot] = self.targets_of(topic, graph_id)[0]
+        rows: list[Callable[[tuple], None]] = []
+        t: tuple[list, list] | None = (blocks, rows)
+        for s in self.subscriptions.get(topic, []):
+            if s.block is not None and s.graph_id in (0, graph_id):
+                continue  # a block reader: its slot is in `blocks`
+            if s.row_callback is None or s.graph_id not in (0, graph_id):
+                t = None
+                break
+            rows.append(s.row_callback)
+        self.row_targets[key] = t
+        return t
+
+    def flush_rows(self) -> None:
+        """Every publisher's rows kept for block readers, packed and handed to them now."""
+        for rb in self.row_blocks:
+            if rb.seqs:
+                rb.flush()
+
     # ------------------------------------------------------------- delivery
     def post(self, topic: str, data: bytes, graph_id: int = 0) -> None:
         """One message: queued for each per-message subscriber, collected for each block
@@ -209,6 +255,11 @@ class Bus:
             self.queue.extend((singles, data) for data in datas)
             if not self.scheduled:
                 self._schedule()
+        self.post_slots(blocks, datas)
+
+    def post_slots(self, blocks: list[_Slot], datas: list[bytes]) -> None:
+        """Messages in a row to these block readers' slots only (`post_block`'s part for
+        block readers)."""
         for sl in blocks:
             r = sl.reader
             if not r.count:
@@ -224,9 +275,10 @@ class Bus:
             self._schedule()
 
     def _on_tick(self) -> None:
-        """Blocks whose first message came before the previous tick go now (so at most
-        BLOCK_WAIT_S after it)."""
+        """Rows kept for block readers are packed and handed to them; blocks whose first
+        message came before the previous tick go now (so at most BLOCK_WAIT_S after it)."""
         self.ticks += 1
+        self.flush_rows()
         for r in self.readers.values():
             if r.count and r.tick < self.ticks - 1:
                 self._hand_over(r)
@@ -272,6 +324,7 @@ class Bus:
         (not to the others, and without the executor): a node that closes last (the
         recorder) takes what the nodes of its process published before they stopped.
         Returns how many messages it got."""
+        self.flush_rows()
         own: set[int] = set()
         for s in subs:
             own.update((id(s.raw_callback), id(s.callback)))
@@ -310,7 +363,7 @@ class RawPublisher:
     # plant waits for its readers and then `start_delay_s` before the first frame
     COUNT_EVERY = 64
 
-    def __init__(self, node, msg_cls, topic: str, qos):
+    def __init__(self, node, msg_cls, topic: str, qos, stamp=None):
         from rclpy.event_handler import PublisherEventCallbacks
 
         events = PublisherEventCallbacks(matched=self._on_matched)
@@ -326,6 +379,11 @@ class RawPublisher:
         self._until_count = 0  # publishes left before the DDS readers are counted again
         self._gen = -1  # the bus's gen when _targets was looked up (-1: none, or not local)
         self._targets: tuple[list, list] = ([], [])
+        # publish_row: the row targets (valid with _gen), the stamps of seqs, rows kept for
+        # block readers
+        self._rows_to: tuple[list, list] | None = None
+        self.stamp = stamp  # fluxdrive.io.messages.Stamp (publish_row)
+        self._row_blocks: RowBlocks | None = None
         self.n_published = 0  # the launcher checks the bag against it (fluxdrive_ros.runner)
         pubs = getattr(node, "raw_publishers", None)
         if pubs is None:
@@ -349,6 +407,50 @@ class RawPublisher:
         if self._n_dds:
             self._publish_dds((data,))
 
+    def publish_row(self, rc, row, seq: int, xf: int = 0) -> None:
+        """The message `rc.pack(row, seq, *stamp(seq), xf)` (rc: a fluxdrive.io.messages
+        RowCodec of this topic's type), as `publish` of it -- but while every reader in this
+        process takes rows and none is matched elsewhere, without the bytes: each row
+        reader gets (`rc.wire_row(row, seq, xf)`, seq, rc) -- one new row for all of them,
+        read it only -- and the block readers the bytes later, packed in blocks."""
+        b = self.bus
+        rows_to = self._rows_to
+        if (
+            rows_to is None
+            or b is None
+            or self._gen != b.gen
+            or self._until_count <= 1
+            or self._n_dds
+        ):
+            self._publish_row_bytes(rc, row, seq, xf)
+            return
+        self.n_published += 1
+        self._until_count -= 1
+        slots, cbs = rows_to
+        if cbs:
+            b.queue.append((cbs, (rc.wire_row(row, seq, xf), seq, rc)))
+            if not b.scheduled:
+                b._schedule()
+        if slots:
+            rb = self._row_blocks
+            if rb is None:
+                rb = self._row_blocks = RowBlocks(b, self.stamp)
+            rb.add(slots, rc, row, seq, xf)
+
+    def _publish_row_bytes(self, rc, row, seq: int, xf: int) -> None:
+        """publish_row through the bytes (and a look at the bus: may rows go next time?)."""
+        sec, nsec = self.stamp(seq)
+        self._send([rc.pack(row, seq, sec, nsec, xf)], False)
+        b = self.bus
+        self._rows_to = None
+        if b is not None and self._gen == b.gen and rc.wire_row is not None:
+            self._rows_to = b.row_targets_of(self.topic, self.graph_id)
+
+    def flush_rows(self) -> None:
+        """The rows kept for block readers, packed and handed to them now."""
+        if self._row_blocks is not None and self._row_blocks.seqs:
+            self._row_blocks.flush()
+
     def publish_block(self, datas: list[bytes]) -> None:
         """Several messages in a row (a shadow observer's block of estimates): the same
         messages as `publish` of each, but a subscriber in this process that takes blocks
@@ -361,6 +463,8 @@ class RawPublisher:
         elsewhere is matched -- and always when nobody in this process reads the topic, so
         the writer's transient-local history keeps it for a reader that matches late."""
         self.n_published += len(datas)
+        if self._row_blocks is not None and self._row_blocks.seqs:
+            self._row_blocks.flush()  # the block readers get the messages in order
         b = self.bus
         local = b is not None and bool(b.callbacks.get(self.topic))
         if local:
@@ -404,6 +508,50 @@ class RawPublisher:
 
     def wait_for_all_acked(self, timeout) -> bool:
         return self.pub.wait_for_all_acked(timeout)
+
+
+class RowBlocks:
+    """The rows a publisher hands to the block readers of this process (the recorder, the
+    shadow observers) as messages: kept (the row's bytes, seq, extra flags), then packed in
+    one numpy pass (`RowCodec.pack_block`: the bytes `pack` gives one by one) and posted to
+    the readers' slots -- every ROW_BLOCK rows, at the bus's tick, when the codec or the
+    readers change, and before the publisher sends bytes (so they come in order)."""
+
+    def __init__(self, bus: Bus, stamp):
+        self.bus = bus
+        self.stamp = stamp
+        self.rows: list[bytes] = []
+        self.seqs = array("q")
+        self.xfs = array("q")
+        self.codec = None
+        self.slots: list[_Slot] = []
+        bus.row_blocks.append(self)
+
+    def add(self, slots: list[_Slot], rc, row, seq: int, xf: int) -> None:
+        if rc is not self.codec or slots is not self.slots:
+            self.flush()
+            self.codec, self.slots = rc, slots
+        self.rows.append(row.tobytes())
+        self.xfs.append(xf)
+        seqs = self.seqs
+        seqs.append(seq)
+        if len(seqs) >= ROW_BLOCK:
+            self.flush()
+
+    def flush(self) -> None:
+        import numpy as np
+
+        seqs = self.seqs
+        if not seqs or self.codec is None:
+            return
+        raw, xfs = b"".join(self.rows), self.xfs
+        self.rows, self.seqs, self.xfs = [], array("q"), array("q")
+        rows = np.frombuffer(raw, dtype=np.float64).reshape(len(seqs), -1)
+        ks = np.frombuffer(seqs, dtype=np.int64)
+        datas = self.codec.pack_block(
+            rows, ks, self.stamp.ns_block(ks), np.frombuffer(xfs, np.int64)
+        )
+        self.bus.post_slots(self.slots, datas)
 
 
 class BlockSender:
@@ -470,8 +618,11 @@ class RawSubscription:
         drain: int = 0,
         block: BlockReader | None = None,
         block_tag: object = None,
+        row_callback: Callable[[tuple], None] | None = None,
     ):
         self.node = node
+        # rows from a publisher of this process (RawPublisher.publish_row): (row, seq, codec)
+        self.row_callback = row_callback
         # messages of this graph's publishers in this process go to `block` (tagged
         # `block_tag`) instead of `callback`; another graph's come one by one, filtered
         self.block = block

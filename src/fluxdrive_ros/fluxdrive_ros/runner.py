@@ -77,6 +77,9 @@ class FluxNode(Node):
     @finished.setter
     def finished(self, value: bool) -> None:
         self._finished = bool(value)
+        if value:  # its last messages kept for block readers (fluxdrive_ros.intra) go now
+            for pub in getattr(self, "raw_publishers", ()):
+                pub.flush_rows()
         if value and self._finish_hook is not None:
             self._finish_hook()
 

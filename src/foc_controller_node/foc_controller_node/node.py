@@ -331,11 +331,15 @@ class ControllerNode(FluxNode):
         in_drive = topics.drive_topic
         if self.split:
             self.pub_duty = RawPublisher(
-                self, fm.CurrentReference, in_drive(self, topics.CURRENT_REF), qos.SAMPLES
+                self,
+                fm.CurrentReference,
+                in_drive(self, topics.CURRENT_REF),
+                qos.SAMPLES,
+                stamp=self.stamp,
             )
         else:
             self.pub_duty = RawPublisher(
-                self, fm.DutyCommand, in_drive(self, topics.DUTY), qos.SAMPLES
+                self, fm.DutyCommand, in_drive(self, topics.DUTY), qos.SAMPLES, stamp=self.stamp
             )
         self.pub_state = RawPublisher(
             self, fm.ControllerState, in_drive(self, topics.CONTROLLER_STATE), qos.SAMPLES
@@ -348,6 +352,7 @@ class ControllerNode(FluxNode):
             topics.in_drive(self, common["frame_topic"]),
             self._on_frame,
             qos.reader(common["input_durability"]),
+            row_callback=self._on_frame_row,
         )
         self.sub_est = None
         if self.sensorless:
@@ -357,6 +362,7 @@ class ControllerNode(FluxNode):
                 topics.in_drive(self, estimate_topic),
                 self._on_est,
                 qos.reader(common["input_durability"]),
+                row_callback=self._on_est_row,
             )
         self.create_subscription(
             fm.RunDone,
@@ -411,22 +417,30 @@ class ControllerNode(FluxNode):
         fr = spare.pop() if spare else np.empty(FR_N)
         self.seq.on_frame(self.fw.unpack(data, fr), fr)
 
+    def _on_frame_row(self, msg: tuple) -> None:
+        """A frame of the plant in this process, as its row (fluxdrive_ros.intra): a new
+        row, which nobody writes -- kept as it is until answered."""
+        self.seq.on_frame(msg[1], msg[0])
+
     def _on_est(self, data: bytes) -> None:
         es = self.es  # the sequencer keeps a copy if it keeps the estimate
         self.seq.on_estimate(self.ew.unpack(data, es), es)
 
+    def _on_est_row(self, msg: tuple) -> None:
+        """The driving observer's estimate in this process, as its row."""
+        self.seq.on_estimate(msg[1], msg[0])
+
     def _publish(self, k: int, out: np.ndarray) -> None:
-        sec, nsec = self.stamp(k)
         if self.split:
-            self.pub_duty.publish(self.rw.pack(self.seq.ref, k, sec, nsec))
+            self.pub_duty.publish_row(self.rw.rc, self.seq.ref, k)
         else:
-            self.pub_duty.publish(self.cw.duty.pack(out, k, sec, nsec))
+            self.pub_duty.publish_row(self.cw.duty, out, k)
         fault = out.item(CO_FAULT)
         # the state's codec goes with its fault text (ControlWire.state_codec)
         rc = self.state_rc if fault == self._fault_code else self.cw.state_codec(out)
         self.state_blocks.add(rc, out, k)
         if fault != self._fault_code:  # latched or cleared at this sample
-            self._fault_event(k, out, sec, nsec)
+            self._fault_event(k, out, *self.stamp(k))
         if self.done_seq is not None and k >= self.done_seq:
             self.state_blocks.flush()
             self.finished = True

@@ -71,6 +71,7 @@ import numpy as np
 from fluxdrive.core import schema
 from fluxdrive.core.machine import DEADTIME_RANGE_S
 from fluxdrive.core.schema import param
+from fluxdrive.drive.control import CO_DA, CO_DB, CO_DC, CO_EN
 from fluxdrive.drive.plant import FR_N, MP_TD, TR_N, plant_advance, plant_initial_frame
 from fluxdrive.drive.scenario import ScenarioSettings, load_scenario, scenario_path
 from fluxdrive.drive.sim import DriveSetup
@@ -342,7 +343,7 @@ class PlantNode(FluxNode):
         # every topic relative to the drive's namespace (`__ns:=/a`: /a/drive/frame, /a/clock)
         in_drive = topics.drive_topic
         self.pub_frame = RawPublisher(
-            self, fm.PhaseFrame, in_drive(self, topics.FRAME), qos.SAMPLES
+            self, fm.PhaseFrame, in_drive(self, topics.FRAME), qos.SAMPLES, stamp=self.stamp
         )
         self.pub_truth = RawPublisher(
             self, fm.PlantTruth, in_drive(self, topics.TRUTH), qos.SAMPLES
@@ -365,6 +366,7 @@ class PlantNode(FluxNode):
             self._on_duty,
             qos.reader(pv["input_durability"]),
             drain=256,
+            row_callback=self._on_duty_row,
         )
 
     def _init_state(self, pv: dict) -> None:
@@ -495,15 +497,14 @@ class PlantNode(FluxNode):
     def _publish(self, k: int, flags: int = 0) -> None:
         if self.paced:
             self._paced_publish(k)
-        sec, nsec = self.stamp(k)
-        self.pub_frame.publish(self.fw.pack(self.frame, sec, nsec, flags))
+        self.pub_frame.publish_row(self.fw.rc, self.frame, k, flags)  # frame's seq: k
         if self.truth_blocks is not None:  # lockstep: nothing waits for the truth
             self.truth_blocks.add(self.tw.rc, self.truth, k)
         else:
-            self.pub_truth.publish(self.tw.pack(self.truth, k, sec, nsec))
+            self.pub_truth.publish(self.tw.pack(self.truth, k, *self.stamp(k)))
         self.k = k
         if self.clock_dec and k % self.clock_dec == 0:
-            self.pub_clock.publish(self.clock_codec.pack(sec, nsec))
+            self.pub_clock.publish(self.clock_codec.pack(*self.stamp(k)))
         if not k & 63:  # the wall clock is read every 64 frames only
             self._progress(k)
 
@@ -542,7 +543,24 @@ class PlantNode(FluxNode):
                 )
             return
         # (sec, nsec, seq, graph_id, da, db, dc, enable): graph_id checked already
-        v = self.duty_dec.decode(data)
+        self._duty(self.duty_dec.decode(data))
+
+    def _on_duty_row(self, msg: tuple) -> None:
+        """A duty command of a controller in this process, as its row (fluxdrive_ros.intra):
+        the mark is its codec's commander string."""
+        co, seq, rc = msg
+        if not self.guard.accept_codec(rc):
+            if self.guard.n_rejected <= 3:
+                self.get_logger().warning(
+                    f"duty command dropped ({self.guard.last_rejected}); obeyed only from "
+                    f"{self.guard.allowed}"
+                )
+            return
+        v = co.tolist()
+        self._duty((0, 0, seq, 0, v[CO_DA], v[CO_DB], v[CO_DC], v[CO_EN] > 0.5))
+
+    def _duty(self, v: tuple) -> None:
+        """A duty command (sec, nsec, seq, graph_id, da, db, dc, enable) to apply."""
         seq = v[2]
         self.counts.values["duty_received"] += 1
         lo, hi = -1e-9, 1.0 + 1e-9
@@ -618,8 +636,10 @@ class PlantNode(FluxNode):
         self.pub_fault.publish(m)
 
     def _flush_truth(self) -> None:
+        """The truth and the frames kept for block readers (the recorder) go out."""
         if self.truth_blocks is not None:
             self.truth_blocks.flush()
+        self.pub_frame.flush_rows()
 
     def _lockstep_watchdog(self) -> None:
         """lockstep: no duty command for duty_timeout_s of wall time -> the period it would
