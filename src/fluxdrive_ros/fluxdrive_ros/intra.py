@@ -415,17 +415,18 @@ class RawPublisher:
         read it only -- and the block readers the bytes later, packed in blocks."""
         b = self.bus
         rows_to = self._rows_to
-        if (
-            rows_to is None
-            or b is None
-            or self._gen != b.gen
-            or self._until_count <= 1
-            or self._n_dds
-        ):
+        if rows_to is None or b is None or self._gen != b.gen or self._n_dds:
             self._publish_row_bytes(rc, row, seq, xf)
             return
         self.n_published += 1
         self._until_count -= 1
+        if self._until_count <= 0:  # DDS readers counted again (as `_send` does)
+            self._until_count = self.COUNT_EVERY
+            self._n_dds = self._count()
+            if self._n_dds:  # one matched elsewhere: this message goes in bytes
+                self.n_published -= 1
+                self._publish_row_bytes(rc, row, seq, xf)
+                return
         slots, cbs = rows_to
         if cbs:
             b.queue.append((cbs, (rc.wire_row(row, seq, xf), seq, rc)))
