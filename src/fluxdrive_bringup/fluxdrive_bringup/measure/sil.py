@@ -38,6 +38,12 @@ from fluxdrive_bringup.record.recorder import DEFAULT_TOPICS
 from fluxdrive_ros import topics
 
 MODES = ("host", "split")
+# the drive's exit ends the run, and nothing else of this graph ends by itself (no plant, so
+# no /drive/done): the graph's stop_grace_s (default 20 s) would pass idle every run.  The
+# lockstep drive has its answers of all but its last sample when it exits; this is time for
+# that last sample's frame, estimate and answer -- the stop then hands the recorder what
+# each node published (fluxdrive_bringup.launch.launcher)
+STOP_GRACE_S = 3.0
 SWEEP_RESULTS = REPO_ROOT / "results" / "can" / "sil_current_sweep.json"
 
 
@@ -117,6 +123,7 @@ def sil_graph(sp: Path, sc, bag: Path, *, mode: str, decimation: int, domain_id:
         ],
     )
     g.nodes = [emulator, bridge, *g.nodes]
+    g.stop_grace_s = STOP_GRACE_S
     g.env["CAN_CONFIG"] = json.dumps({"port": port, "hop_limit": 0})
     return g
 
