@@ -6,7 +6,8 @@ controller, recorder; every message recorded).
                   last frame, as the plant measures it), 10 kHz PWM, composed layout;
                   the recorded bag is checked to hold every sample; the best of --repeat
                   runs, each run's in lockstep_rtf_runs and their median in
-                  lockstep_rtf_median
+                  lockstep_rtf_median; host_steal_pct_runs: the share of CPU time the
+                  virtual machine's host took away during each of those runs (/proc/stat)
   in_process_rtf  the same scenario and observers through fluxdrive.drive.sim.run_scenario
   graph_process_cpu_us_per_period, bag_writer_cpu_us_per_period
                   CPU per PWM period of the graph's process and of its helper (the
@@ -73,6 +74,7 @@ def bench_graph(argv: list[str]) -> dict:
     out: dict = {}
     page: dict = {}
     runs: dict[str, list[float]] = {}  # every run's real-time factor, by layout
+    steal: dict[str, list[float | None]] = {}  # and the host's steal time over it
     tmp = Path(tempfile.mkdtemp(prefix="fluxdrive-bench-"))
     try:
         for lay in layouts:
@@ -80,9 +82,11 @@ def bench_graph(argv: list[str]) -> dict:
             cpus: dict[bool, list[dict]] = {}
             for rep in range(args.repeat):
                 for with_scope in [False, True] if args.scope else [False]:
+                    before = host_cpu_times()
                     rtf, c, seen = _graph_run(args, sp, sc, lay, rep, with_scope, tmp)
                     if not with_scope:
                         runs.setdefault(lay, []).append(round(rtf, 3))
+                        steal.setdefault(lay, []).append(steal_pct(before, host_cpu_times()))
                     page = seen or page
                     if c:
                         cpus.setdefault(with_scope, []).append(c)
@@ -96,6 +100,9 @@ def bench_graph(argv: list[str]) -> dict:
     # the spread behind the best: a 2-core machine's scheduling moves a run by +-20 %
     res["lockstep_rtf_runs"] = runs[layouts[0]]
     res["lockstep_rtf_median"] = round(statistics.median(runs[layouts[0]]), 3)
+    # a virtual machine's CPUs are shared with other guests: the share of time they were
+    # taken away during each run says how quiet the host was
+    res["host_steal_pct_runs"] = steal[layouts[0]]
     res.update(cpu_figures(first_cpu, sc.machine.ts_s))
     if args.closed_loop:
         res.update(closed_loop_cpu(sp, args.duration, args.domain_id, sc.machine.ts_s))
@@ -290,6 +297,27 @@ def _graph_result(args, sc, layouts: list[str], out: dict, page: dict, in_rtf: f
     if len(layouts) > 1:
         res.update(out)
     return res
+
+
+def host_cpu_times() -> tuple[int, int] | None:
+    """(steal, total) jiffies of all CPUs since boot (/proc/stat; None where there is none):
+    steal is time a virtual machine's CPU was ready but the host ran something else."""
+    try:
+        with open("/proc/stat") as f:
+            fields = f.readline().split()
+    except OSError:
+        return None
+    if not fields or fields[0] != "cpu" or len(fields) < 9:
+        return None
+    ticks = [int(x) for x in fields[1:9]]  # user nice system idle iowait irq softirq steal
+    return ticks[7], sum(ticks)
+
+
+def steal_pct(before: tuple[int, int] | None, after: tuple[int, int] | None) -> float | None:
+    """The host's steal time between two host_cpu_times readings, in % of all CPU time."""
+    if before is None or after is None or after[1] <= before[1]:
+        return None
+    return round(100.0 * (after[0] - before[0]) / (after[1] - before[1]), 1)
 
 
 def cpu_figures(runs: list[dict], ts_s: float) -> dict:
