@@ -190,7 +190,7 @@ class ControlSequencer:
 
     @property
     def tripped(self) -> bool:
-        return self.cs[CS_MODE] == MODE_FAULT
+        return self.cs.item(CS_MODE) == MODE_FAULT
 
     # ------------------------------------------------------------------ inputs
     def on_frame(self, k: int, fr: np.ndarray) -> None:
@@ -265,7 +265,7 @@ class ControlSequencer:
         no sample timeout possible yet (frames past it < the limit, the next one counted)."""
         return (
             self.sensorless
-            and self.cs[CS_MODE] != MODE_FAULT  # not tripped
+            and self.cs.item(CS_MODE) != MODE_FAULT  # not tripped
             and self.max_seq + 1 - self.next_k < self.n_pos_timeout
             and len(self.frames) < self.depth
         )
@@ -429,11 +429,11 @@ class ControlSequencer:
 
     def _lost(self, k: int, fr: np.ndarray) -> bool:
         """Frame k was made with PWM off although duty(k-2) asked for it on."""
-        return self.enables.pop(k - 2, False) and fr[FR_EN] < 0.5
+        return self.enables.pop(k - 2, False) and fr.item(FR_EN) < 0.5
 
     def _answer(self, k: int, fr: np.ndarray, es: np.ndarray) -> None:
         cs = self.cs
-        tripped = cs[CS_MODE] == MODE_FAULT
+        tripped = cs.item(CS_MODE) == MODE_FAULT
         if not tripped:
             if self._lost(k, fr):
                 self._resync(k, es)
@@ -465,7 +465,7 @@ class ControlSequencer:
             host_reference_step(cs, self.cp, fr, es, w_ref, inj, out, self.ref)
         else:
             self._step(cs, self.cp, fr, es, w_ref, inj, out)
-        if not tripped and cs[CS_MODE] == MODE_FAULT:
+        if not tripped and cs.item(CS_MODE) == MODE_FAULT:
             code = int(cs[CS_FAULT])
             self.fault_detail = f"{trip_values(code, fr, es, self.cp, cs, w_fb_prev)} (frame {k})"
             self._log_fault(code)
@@ -478,7 +478,8 @@ class ControlSequencer:
             self.recover_from = -1
         enables = self.enables
         enables[k] = out.item(CO_EN) > 0.5
-        if len(enables) > 8:
+        enables.pop(k - 5, None)  # only the last few are read (k - 2 at most back)
+        if len(enables) > 8:  # older ones left by a jump in k
             for j in [j for j in enables if j < k - 4]:
                 del enables[j]
         self.finished_k = k
