@@ -274,6 +274,18 @@ class ObserverNode(FluxNode):
         self._good_reported = 0
         self._frames_reported = 0
         self._logged = 0
+        self._wire(common)
+        on_set(self, self.specs, self._apply, lambda: self.last_seq + 1, card.ts_s)
+        self.diag = diag.Diagnostics(self, common["diagnostics_period_s"])
+        self.diag.add("input", self._diag_input)
+        self.get_logger().info(
+            f"{obs_name}: variant {self.cfg.variant}, {self.cfg.voltage_source} voltages, "
+            f"publishing {self.pub.topic_name}"
+        )
+
+    def _wire(self, common: dict) -> None:
+        """The estimate publisher, the frame subscription (rows from a plant in this process,
+        or blocks for a shadow), the end of the run."""
         self.pub = RawPublisher(
             self, fm.RotorEstimate, "~/" + topics.ESTIMATE, qos.SAMPLES, stamp=self.stamp
         )
@@ -292,13 +304,6 @@ class ObserverNode(FluxNode):
             topics.drive_topic(self, topics.DONE),
             self.graph.typed(topics.DONE, self._on_done),
             qos.LATCHED,
-        )
-        on_set(self, self.specs, self._apply, lambda: self.last_seq + 1, card.ts_s)
-        self.diag = diag.Diagnostics(self, common["diagnostics_period_s"])
-        self.diag.add("input", self._diag_input)
-        self.get_logger().info(
-            f"{obs_name}: variant {self.cfg.variant}, {self.cfg.voltage_source} voltages, "
-            f"publishing {self.pub.topic_name}"
         )
 
     def _kernels(self) -> None:

@@ -219,10 +219,18 @@ class Bus:
         return t
 
     def flush_rows(self) -> None:
-        """Every publisher's rows kept for block readers, packed and handed to them now."""
+        """Every publisher's rows kept for block readers, packed and handed to them now --
+        all of them before any reader's block is handed over, so a block holds the topics
+        in step."""
+        posted = False
         for rb in self.row_blocks:
             if rb.seqs:
-                rb.flush()
+                rb.flush(hand_over=False)
+                posted = True
+        if posted:
+            for r in list(self.readers.values()):
+                if r.count >= r.size:
+                    self._hand_over(r)
 
     # ------------------------------------------------------------- delivery
     def post(self, topic: str, data: bytes, graph_id: int = 0) -> None:
@@ -257,16 +265,17 @@ class Bus:
                 self._schedule()
         self.post_slots(blocks, datas)
 
-    def post_slots(self, blocks: list[_Slot], datas: list[bytes]) -> None:
+    def post_slots(self, blocks: list[_Slot], datas: list[bytes], hand_over: bool = True) -> None:
         """Messages in a row to these block readers' slots only (`post_block`'s part for
-        block readers)."""
+        block readers); a full block is handed over unless `hand_over` is false (the
+        caller does it once it has posted everything)."""
         for sl in blocks:
             r = sl.reader
             if not r.count:
                 r.tick = self.ticks
             sl.items.extend(datas)
             r.count += len(datas)
-            if r.count >= r.size:
+            if hand_over and r.count >= r.size:
                 self._hand_over(r)
 
     def _hand_over(self, r: BlockReader) -> None:
@@ -515,8 +524,9 @@ class RowBlocks:
     """The rows a publisher hands to the block readers of this process (the recorder, the
     shadow observers) as messages: kept (the row's bytes, seq, extra flags), then packed in
     one numpy pass (`RowCodec.pack_block`: the bytes `pack` gives one by one) and posted to
-    the readers' slots -- every ROW_BLOCK rows, at the bus's tick, when the codec or the
-    readers change, and before the publisher sends bytes (so they come in order)."""
+    the readers' slots -- every publisher's at once when one holds ROW_BLOCK rows (so the
+    topics reach a reader in step), at the bus's tick, when the codec or the readers change,
+    and before the publisher sends bytes (so they come in order)."""
 
     def __init__(self, bus: Bus, stamp):
         self.bus = bus
@@ -537,9 +547,11 @@ class RowBlocks:
         seqs = self.seqs
         seqs.append(seq)
         if len(seqs) >= ROW_BLOCK:
-            self.flush()
+            # every publisher's rows at once: the topics reach a block reader in step (the
+            # recorder lays them out so, and a bag cut short keeps them so)
+            self.bus.flush_rows()
 
-    def flush(self) -> None:
+    def flush(self, hand_over: bool = True) -> None:
         import numpy as np
 
         seqs = self.seqs
@@ -552,7 +564,7 @@ class RowBlocks:
         datas = self.codec.pack_block(
             rows, ks, self.stamp.ns_block(ks), np.frombuffer(xfs, np.int64)
         )
-        self.bus.post_slots(self.slots, datas)
+        self.bus.post_slots(self.slots, datas, hand_over)
 
 
 class BlockSender:

@@ -556,8 +556,8 @@ class PlantNode(FluxNode):
                     f"{self.guard.allowed}"
                 )
             return
-        v = co.tolist()
-        self._duty((0, 0, seq, 0, v[CO_DA], v[CO_DB], v[CO_DC], v[CO_EN] > 0.5))
+        cmd = co.tolist()
+        self._duty((0, 0, seq, 0, cmd[CO_DA], cmd[CO_DB], cmd[CO_DC], cmd[CO_EN] > 0.5))
 
     def _duty(self, v: tuple) -> None:
         """A duty command (sec, nsec, seq, graph_id, da, db, dc, enable) to apply."""
