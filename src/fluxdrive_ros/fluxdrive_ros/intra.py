@@ -457,9 +457,10 @@ class RawPublisher:
             self._rows_to = b.row_targets_of(self.topic, self.graph_id)
 
     def flush_rows(self) -> None:
-        """The rows kept for block readers, packed and handed to them now."""
+        """The rows kept for block readers, packed and handed to them now -- with every
+        other publisher's of the process (Bus.flush_rows: the topics stay in step)."""
         if self._row_blocks is not None and self._row_blocks.seqs:
-            self._row_blocks.flush()
+            self._row_blocks.bus.flush_rows()
 
     def publish_block(self, datas: list[bytes]) -> None:
         """Several messages in a row (a shadow observer's block of estimates): the same
