@@ -102,6 +102,10 @@ class Bridge:
         self.channels: dict[str, Any] = {}  # topic -> foxglove Channel
         self.by_id: dict[int, str] = {}
         self.subs: dict[str, Any] = {}  # topic -> rclpy subscription
+        # topics whose subscription the ROS thread is to make or drop: the SDK's threads ask,
+        # the ROS thread (the one spinning the executor) does it -- an rclpy subscription
+        # made from another thread while the executor waits may never be served
+        self.to_change: set[str] = set()
         self.refs: dict[str, int] = {}  # topic -> subscribed viewers
         self.skipped: set[str] = set()
         self.params = Session(
@@ -182,33 +186,12 @@ class Bridge:
 
     # ServerListener (called from the SDK's threads)
     def on_subscribe(self, client, channel) -> None:
-        from fluxdrive_ros.topics import msg_class
-
         topic = self.by_id.get(channel.id)
         if topic is None:
             return
         with self.lock:
             self.refs[topic] = self.refs.get(topic, 0) + 1
-            if topic in self.subs:
-                return
-            ch, mtype = self.channels[topic]
-            log = ch.log
-            fields = list(msg_class(mtype).get_fields_and_field_types().items())
-            stamped = bool(fields) and fields[0] == ("header", "std_msgs/Header")
-
-            def cb(data: bytes) -> None:
-                t = self.sim_ns  # the drive's sample time when it has a /clock
-                if stamped and len(data) >= 12 and self._graph_has_clock():
-                    # a sim graph: a stamped message's own stamp is its sample time on the
-                    # /clock's time base; the newest /clock would race it (DDS delivers the
-                    # two topics in any order, and a lockstep graph runs ahead of its clock)
-                    sec, nsec = struct.unpack_from("<iI" if data[1] == 1 else ">iI", data, 4)
-                    t = sec * 1_000_000_000 + nsec
-                log(data, log_time=time.time_ns() if t is None else t)
-
-            self.subs[topic] = self.node.create_subscription(
-                msg_class(mtype), topic, cb, self._qos(topic), raw=True
-            )
+            self.to_change.add(topic)
 
     def on_unsubscribe(self, client, channel) -> None:
         topic = self.by_id.get(channel.id)
@@ -216,8 +199,42 @@ class Bridge:
             return
         with self.lock:
             self.refs[topic] = max(0, self.refs.get(topic, 0) - 1)
-            if self.refs[topic] == 0 and topic in self.subs:
-                self.node.destroy_subscription(self.subs.pop(topic))
+            self.to_change.add(topic)
+
+    def apply_subscriptions(self) -> None:
+        """(ROS thread) Make the subscriptions clients asked for, drop the unwanted ones."""
+        with self.lock:
+            if not self.to_change:
+                return
+            todo, self.to_change = self.to_change, set()
+            for topic in todo:
+                wanted = self.refs.get(topic, 0) > 0
+                if wanted and topic not in self.subs:
+                    self.subs[topic] = self._subscribe(topic)
+                elif not wanted and topic in self.subs:
+                    self.node.destroy_subscription(self.subs.pop(topic))
+
+    def _subscribe(self, topic: str):
+        from fluxdrive_ros.topics import msg_class
+
+        ch, mtype = self.channels[topic]
+        log = ch.log
+        fields = list(msg_class(mtype).get_fields_and_field_types().items())
+        stamped = bool(fields) and fields[0] == ("header", "std_msgs/Header")
+
+        def cb(data: bytes) -> None:
+            t = self.sim_ns  # the drive's sample time when it has a /clock
+            if stamped and len(data) >= 12 and self._graph_has_clock():
+                # a sim graph: a stamped message's own stamp is its sample time on the
+                # /clock's time base; the newest /clock would race it (DDS delivers the
+                # two topics in any order, and a lockstep graph runs ahead of its clock)
+                sec, nsec = struct.unpack_from("<iI" if data[1] == 1 else ">iI", data, 4)
+                t = sec * 1_000_000_000 + nsec
+            log(data, log_time=time.time_ns() if t is None else t)
+
+        return self.node.create_subscription(
+            msg_class(mtype), topic, cb, self._qos(topic), raw=True
+        )
 
     # ------------------------------------------------------------------ time
     def _graph_has_clock(self) -> bool:
@@ -439,7 +456,8 @@ class Bridge:
                 if time.monotonic() - t_disc > 1.0:
                     t_disc = time.monotonic()
                     self.discover()
-                self.ex.spin_once(timeout_sec=0.05)
+                self.apply_subscriptions()
+                self.ex.spin_once(timeout_sec=0.02)
         finally:
             self.server.stop()
             self.params.close()
