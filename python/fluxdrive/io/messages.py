@@ -328,7 +328,6 @@ class RowCodec:
         fn = "def wire_row(row, seq, xf=0):\n" + "\n".join(lines) + "\n    return out\n"
         env: dict = {"_nans": np.full(self.width, math.nan)}
         exec(fn, env)  # noqa: S102 - generated from the mapping table only
-        self._wire_source = fn
         return env["wire_row"]
 
     def pack_block(

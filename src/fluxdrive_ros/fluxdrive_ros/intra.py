@@ -521,21 +521,53 @@ class RawPublisher:
         return self.pub.wait_for_all_acked(timeout)
 
 
-class RowBlocks:
-    """The rows a publisher hands to the block readers of this process (the recorder, the
-    shadow observers) as messages: kept (the row's bytes, seq, extra flags), then packed in
-    one numpy pass (`RowCodec.pack_block`: the bytes `pack` gives one by one) and posted to
-    the readers' slots -- every publisher's at once when one holds ROW_BLOCK rows (so the
-    topics reach a reader in step), at the bus's tick, when the codec or the readers change,
-    and before the publisher sends bytes (so they come in order)."""
+class KeptRows:
+    """Rows kept to go out later as one block of messages (BlockSender, RowBlocks): `keep`
+    runs every PWM period, so it keeps as little as it can -- the row's bytes (float64, the
+    engine's rows; a copy, the caller reuses its row), the seq and the extra status bits in
+    int64 arrays -- and `take` packs them in one numpy pass (RowCodec.pack_block: the bytes
+    `pack` gives one by one)."""
 
-    def __init__(self, bus: Bus, stamp):
-        self.bus = bus
-        self.stamp = stamp
+    def __init__(self, stamp):
+        self.stamp = stamp  # fluxdrive.io.messages.Stamp of the seqs
         self.rows: list[bytes] = []
         self.seqs = array("q")
         self.xfs = array("q")
-        self.codec = None
+        self.codec = None  # the RowCodec of the rows kept
+
+    def keep(self, row, seq: int, xf: int) -> int:
+        """Keep a row; how many are kept now."""
+        self.rows.append(row.tobytes())
+        self.xfs.append(xf)
+        seqs = self.seqs
+        seqs.append(seq)
+        return len(seqs)
+
+    def take(self) -> list[bytes]:
+        """The messages of the rows kept; none are kept afterwards."""
+        import numpy as np
+
+        seqs = self.seqs
+        if not seqs or self.codec is None:
+            return []
+        raw, xfs = b"".join(self.rows), self.xfs
+        self.rows, self.seqs, self.xfs = [], array("q"), array("q")
+        rows = np.frombuffer(raw, dtype=np.float64).reshape(len(seqs), -1)
+        ks = np.frombuffer(seqs, dtype=np.int64)
+        xf = np.frombuffer(xfs, dtype=np.int64)
+        return self.codec.pack_block(rows, ks, self.stamp.ns_block(ks), xf)
+
+
+class RowBlocks(KeptRows):
+    """The rows a publisher hands to the block readers of this process (the recorder, the
+    shadow observers) as messages, posted to the readers' slots -- every publisher's at
+    once when one holds ROW_BLOCK rows (so the topics reach a reader in step), at the bus's
+    tick, when the codec or the readers change, and before the publisher sends bytes (so
+    they come in order)."""
+
+    def __init__(self, bus: Bus, stamp):
+        super().__init__(stamp)
+        self.bus = bus
         self.slots: list[_Slot] = []
         bus.row_blocks.append(self)
 
@@ -543,74 +575,42 @@ class RowBlocks:
         if rc is not self.codec or slots is not self.slots:
             self.flush()
             self.codec, self.slots = rc, slots
-        self.rows.append(row.tobytes())
-        self.xfs.append(xf)
-        seqs = self.seqs
-        seqs.append(seq)
-        if len(seqs) >= ROW_BLOCK:
+        if self.keep(row, seq, xf) >= ROW_BLOCK:
             # every publisher's rows at once: the topics reach a block reader in step (the
             # recorder lays them out so, and a bag cut short keeps them so)
             self.bus.flush_rows()
 
     def flush(self, hand_over: bool = True) -> None:
-        import numpy as np
-
-        seqs = self.seqs
-        if not seqs or self.codec is None:
-            return
-        raw, xfs = b"".join(self.rows), self.xfs
-        self.rows, self.seqs, self.xfs = [], array("q"), array("q")
-        rows = np.frombuffer(raw, dtype=np.float64).reshape(len(seqs), -1)
-        ks = np.frombuffer(seqs, dtype=np.int64)
-        datas = self.codec.pack_block(
-            rows, ks, self.stamp.ns_block(ks), np.frombuffer(xfs, np.int64)
-        )
-        self.bus.post_slots(self.slots, datas, hand_over)
+        datas = self.take()
+        if datas:
+            self.bus.post_slots(self.slots, datas, hand_over)
 
 
-class BlockSender:
+class BlockSender(KeptRows):
     """Rows of a topic that feeds nothing back in the loop (the plant's truth, the
     controller's state), published in blocks: `add` keeps the row, and every `size` rows
     (or at `flush`: a timer, the end of the run, a stop) they are packed in one numpy pass
-    (RowCodec.pack_block: the bytes `pack` gives one by one) and published as one block --
-    a subscriber in this process that takes blocks (the recorder) gets them in one call,
-    every other reader the same messages, only later.  Rows of another codec (a
-    ControllerState's fault text is part of its layout) start a new block.
+    and published as one block -- a subscriber in this process that takes blocks (the
+    recorder) gets them in one call, every other reader the same messages, only later.
+    Rows of another codec (a ControllerState's fault text is part of its layout) start a
+    new block."""
 
-    `add` runs every PWM period, so it keeps as little as it can: the row's bytes (float64,
-    the engine's rows; a copy, the caller reuses its row) and the seq in an int64 array,
-    both turned into arrays without a copy per element at `flush`."""
-
-    def __init__(self, pub: RawPublisher, stamp, width: int, size: int = 256):
+    def __init__(self, pub: RawPublisher, stamp, size: int = 256):
+        super().__init__(stamp)
         self.pub = pub
-        self.stamp = stamp  # fluxdrive.io.messages.Stamp of the seqs
-        self.width = width
-        self.rows: list[bytes] = []
-        self.seqs = array("q")
         self.size = size
-        self.codec = None  # the RowCodec of the rows kept
 
     def add(self, codec, row, seq: int) -> None:
         if codec is not self.codec:
             self.flush()
             self.codec = codec
-        self.rows.append(row.tobytes())
-        seqs = self.seqs
-        seqs.append(seq)
-        if len(seqs) == self.size:
+        if self.keep(row, seq, 0) == self.size:
             self.flush()
 
     def flush(self) -> None:
-        import numpy as np
-
-        seqs = self.seqs
-        if not seqs or self.codec is None:
-            return
-        raw = b"".join(self.rows)
-        self.rows, self.seqs = [], array("q")
-        rows = np.frombuffer(raw, dtype=np.float64).reshape(len(seqs), self.width)
-        ks = np.frombuffer(seqs, dtype=np.int64)
-        self.pub.publish_block(self.codec.pack_block(rows, ks, self.stamp.ns_block(ks)))
+        datas = self.take()
+        if datas:
+            self.pub.publish_block(datas)
 
 
 class RawSubscription:

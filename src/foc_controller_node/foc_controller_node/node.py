@@ -345,7 +345,7 @@ class ControllerNode(FluxNode):
             self, fm.ControllerState, in_drive(self, topics.CONTROLLER_STATE), qos.SAMPLES
         )
         # the state feeds nothing back: published in blocks (at most 0.1 s late, the timer)
-        self.state_blocks = BlockSender(self.pub_state, self.stamp, CO_N)
+        self.state_blocks = BlockSender(self.pub_state, self.stamp)
         self.sub_frame = RawSubscription(
             self,
             fm.PhaseFrame,

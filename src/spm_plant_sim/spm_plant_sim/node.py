@@ -349,7 +349,7 @@ class PlantNode(FluxNode):
             self, fm.PlantTruth, in_drive(self, topics.TRUTH), qos.SAMPLES
         )
         # lockstep: the truth in blocks (paced: each as it comes, for a live view)
-        self.truth_blocks = None if self.paced else BlockSender(self.pub_truth, self.stamp, TR_N)
+        self.truth_blocks = None if self.paced else BlockSender(self.pub_truth, self.stamp)
         self.pub_clock = RawPublisher(self, Clock, in_drive(self, topics.CLOCK), qos.CLOCK)
         self.pub_done = self.create_publisher(fm.RunDone, in_drive(self, topics.DONE), qos.LATCHED)
         # its watchdog's trips and returns, as DriveFault events (not latched: PWM off only
@@ -536,11 +536,7 @@ class PlantNode(FluxNode):
 
     def _on_duty(self, data: bytes) -> None:
         if not self.guard.accept_raw(data):  # not from an allowed commander: ignored
-            if self.guard.n_rejected <= 3:
-                self.get_logger().warning(
-                    f"duty command dropped ({self.guard.last_rejected}); obeyed only from "
-                    f"{self.guard.allowed}"
-                )
+            self._refused()
             return
         # (sec, nsec, seq, graph_id, da, db, dc, enable): graph_id checked already
         self._duty(self.duty_dec.decode(data))
@@ -550,14 +546,18 @@ class PlantNode(FluxNode):
         the mark is its codec's commander string."""
         co, seq, rc = msg
         if not self.guard.accept_codec(rc):
-            if self.guard.n_rejected <= 3:
-                self.get_logger().warning(
-                    f"duty command dropped ({self.guard.last_rejected}); obeyed only from "
-                    f"{self.guard.allowed}"
-                )
+            self._refused()
             return
         cmd = co.tolist()
         self._duty((0, 0, seq, 0, cmd[CO_DA], cmd[CO_DB], cmd[CO_DC], cmd[CO_EN] > 0.5))
+
+    def _refused(self) -> None:
+        """A duty command not from an allowed commander: ignored, the first three logged."""
+        if self.guard.n_rejected <= 3:
+            self.get_logger().warning(
+                f"duty command dropped ({self.guard.last_rejected}); obeyed only from "
+                f"{self.guard.allowed}"
+            )
 
     def _duty(self, v: tuple) -> None:
         """A duty command (sec, nsec, seq, graph_id, da, db, dc, enable) to apply."""
