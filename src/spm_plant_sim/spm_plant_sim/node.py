@@ -524,7 +524,7 @@ class PlantNode(FluxNode):
             now = time.perf_counter()
             if now - self.t_last_progress >= self.pv["progress_interval_s"]:
                 self.t_last_progress = now
-                self.progress(f"{k + 1} {self.n} {now - self.t_wall0:.3f}")
+                self.progress(f"{k + 1} {self.n} {now - self.t_wall0:.3f} {self.ds.ts!r}")
 
     def _bad_duty(self, kind: str, text: str) -> None:
         self.counts.add(kind)
@@ -926,7 +926,7 @@ class PlantNode(FluxNode):
             self._pace_timer.cancel()
         el = time.perf_counter() - self.t_wall0
         sim = (self.k + 1) * self.ds.ts
-        self.progress(f"{self.k + 1} {self.n} {el:.3f}")
+        self.progress(f"{self.k + 1} {self.n} {el:.3f} {self.ds.ts!r}")
         self.get_logger().info(
             f"done: {self.k + 1} frames, {sim:.3f} s simulated in {el:.2f} s wall "
             f"(real-time factor {sim / max(el, 1e-9):.3f})"

@@ -476,6 +476,7 @@ class Launcher:
         self.bags: list[str] = []
         self.scope_urls: list[str] = []
         self.progress: tuple[int, int, float] | None = None
+        self.progress_ts_s = 1e-4  # until the plant says its own period (@progress)
         self.lock = threading.Lock()
         self.stopping = False
         self.interrupted = False
@@ -708,9 +709,13 @@ class Launcher:
             logf.close()
 
     def _on_progress(self, line: str) -> None:
+        fields = line.split()[1:]
         try:
-            k_text, n_text, wall_text = line.split()[1:4]
+            k_text, n_text, wall_text = fields[:3]
             self.progress = (int(k_text), int(n_text), float(wall_text))
+            # the plant's PWM period [s] (its card's), so a 20 kHz card reads right
+            if len(fields) > 3 and 0.0 < float(fields[3]) < 1.0:
+                self.progress_ts_s = float(fields[3])
         except ValueError:
             return
         now = time.monotonic()
@@ -722,7 +727,7 @@ class Launcher:
         if not self.show_progress:
             return
         k, n, wall = self.progress
-        ts = 1e-4
+        ts = self.progress_ts_s
         sim = k * ts
         rtf = sim / wall if wall > 0 else 0.0
         total = f"/{n * ts:.2f}" if n < 2**62 else ""
