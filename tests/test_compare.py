@@ -77,3 +77,31 @@ def test_matched_ratio_when_one_front_starts_above_the_other():
     assert matched_ratio(low, "flux", "emf", "f")["ratios"] == []
     none = matched_ratio({"flux": {"f": flux}, "emf": {"f": []}}, "flux", "emf", "f")
     assert none["ratios"] == [] and none["matched_bw_hz"] is None
+
+
+def test_variant_specs_take_fixed_settings_as_replay_does(example_importable, tmp_path):
+    """`compare` takes replay's `TARGET:key=value` specs: the fixed setting rides in every
+    swept config, PLL (and cutoff) still swept; a key the variant lacks is one line."""
+    from fluxdrive.cli.compare import _parser, families_of, out_folder
+    from fluxdrive.core.machine import ConfigError
+    from fluxdrive.drive.config_blocks import default_card
+    from fluxdrive.experiments.fronts import build_cases
+
+    fams = families_of(["paper_robust:pll_damping=0.7", f"{PLUGIN}:rate_lpf_hz=5"])
+    assert fams == {
+        "paper_robust_pll_damping_0_7": "paper_robust:pll_damping=0.7",
+        "flux_pll_observer_rate_lpf_hz_5_0": f"{PLUGIN}:rate_lpf_hz=5.0",
+    }
+    _, obs = build_cases(True, default_card(), fams, [(0.1, 0.0)], ("measured",))
+    ours = [c for n, c in obs.items() if n.startswith("paper_robust")]
+    theirs = [c for n, c in obs.items() if n.startswith("flux_pll")]
+    assert {c["pll_damping"] for c in ours} == {0.7}
+    assert len({c["pll_bandwidth_hz"] for c in ours}) == 3  # the quick PLL factors
+    assert {c["extra"]["rate_lpf_hz"] for c in theirs} == {5.0}
+    with pytest.raises(ConfigError):
+        families_of(["paper_robust:no_such_key=1"])
+    # nothing lands in the tracked results/ unless asked
+    args = _parser().parse_args(["paper_robust"])
+    assert out_folder(args).parts[-2:] == ("out", "compare")
+    args = _parser().parse_args(["paper_robust", "--write"])
+    assert out_folder(args).parts[-2:] == ("results", "compare")

@@ -1,10 +1,11 @@
 """`./fluxdrive compare VARIANT... [--speeds PU,...] [--loads PU,...] [--sources ...]`:
 Pareto fronts of θ̃ (RMS, broadband noise, 6th order) against the speed-loop bandwidth each
 observer's speed path allows, for any set of observer variants -- built-in names or a user's
-`module:Class` -- sweeping each one's PLL (and the EMF path's speed LPF with it) and, where
-it has one, its flux cutoff.  Every variant runs in shadow on the same encoder-driven runs,
-one per operating point; the fronts come from the `fronts` experiment's code
-(fluxdrive.experiments.fronts).  Writes compare.json and compare.png (default
+`module:Class`, each with fixed settings as replay takes them (`TARGET:key=value,...`) --
+sweeping each one's PLL (and the EMF path's speed LPF with it) and, where it has one, its flux
+cutoff.  Every variant runs in shadow on the same encoder-driven runs, one per operating
+point; the fronts come from the `fronts` experiment's code (fluxdrive.experiments.fronts).
+Writes compare.json and compare.png (default out/compare/; `--write`: the tracked
 results/compare/).  A plugin gets the sweep as constructor keywords (--pll-key,
 --cutoff-key); the last line printed is the JSON summary."""
 
@@ -23,6 +24,7 @@ from fluxdrive.drive.observers import observer_config
 from fluxdrive.drive.scenario import REPO_ROOT, load_bench_file, machine_path
 from fluxdrive.experiments import fronts as fr
 from fluxdrive.experiments.common import Ctx
+from fluxdrive.replay.lab import parse_variant
 
 
 def _floats(text: str, what: str) -> list[float]:
@@ -55,21 +57,39 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--pll-key", default="pll_hz", help="a plugin's PLL keyword [Hz]")
     ap.add_argument("--cutoff-key", default="cutoff_hz", help="a plugin's flux cutoff [Hz]")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
-    ap.add_argument("--out", type=Path, default=REPO_ROOT / "results" / "compare")
+    ap.add_argument(
+        "--out",
+        type=Path,
+        help="output folder (default out/compare; with --write results/compare)",
+    )
+    ap.add_argument(
+        "--write", action="store_true", help="write the tracked results/compare/ (regenerate it)"
+    )
     return ap
 
 
 def families_of(variants: list[str]) -> dict[str, str]:
-    """Family name (the variant's, made a plain identifier) -> variant; each one validated
-    (an unknown name or a plugin that does not load: one line)."""
+    """Family name (the variant's label, made a plain identifier) -> variant spec, each one
+    validated (an unknown name, a plugin that does not load or a bad `key=value`: one
+    line).  A spec is replay's: `[label=]TARGET[:key=value,...]`, TARGET a built-in name or
+    `module:Class`; its settings are fixed, the PLL and cutoff are swept."""
     fams: dict[str, str] = {}
     for v in variants:
-        observer_config(v)
-        last = re.sub(r"(?<=[a-z0-9])(?=[A-Z])", "_", v.rsplit(":", 1)[-1])  # CamelCase
+        spec = parse_variant(v)
+        cfg = observer_config(spec.target)
+        if spec.params and ":" not in spec.target:
+            cfg.with_overrides(**spec.params)  # a key the variant lacks: one line, here
+        label = v.split("=", 1)[0] if spec.label and v.startswith(spec.label + "=") else ""
+        last = label or re.sub(r"(?<=[a-z0-9])(?=[A-Z])", "_", spec.target.rsplit(":", 1)[-1])
         name = re.sub(r"\W+", "_", last).strip("_").lower() or "variant"
+        if spec.params and not label:
+            name += "_" + "_".join(re.sub(r"\W+", "_", f"{k}_{x}") for k, x in spec.params.items())
         while name in fams:
             name += "_"
-        fams[name] = v
+        target = spec.target + (
+            ":" + ",".join(f"{k}={x}" for k, x in spec.params.items()) if spec.params else ""
+        )
+        fams[name] = target
     return fams
 
 
@@ -98,8 +118,18 @@ def summary(data: dict[str, Any], families: dict[str, str]) -> dict[str, Any]:
     return out
 
 
+def out_folder(args: argparse.Namespace) -> Path:
+    """Where compare writes: --out, else results/compare/ (tracked) only with --write, else
+    out/compare/ (untracked), so a trial run never rewrites the committed results."""
+    if args.out is not None:
+        return Path(args.out)
+    return REPO_ROOT / ("results" if args.write else "out") / "compare"
+
+
 def run(args: argparse.Namespace) -> dict[str, Any]:
     from fluxdrive.study.runner import runner_from_args
+
+    args.out = out_folder(args)
 
     families = families_of(args.variants)
     sources = tuple(s.strip() for s in args.sources.split(",") if s.strip())

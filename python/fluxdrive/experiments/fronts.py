@@ -31,6 +31,7 @@ from fluxdrive.drive.observers import observer_config
 from fluxdrive.experiments.claims import judge
 from fluxdrive.experiments.common import PAPER_BENCH, plt
 from fluxdrive.experiments.paper import harmonic_residual_rms, theta_err
+from fluxdrive.replay.lab import parse_variant
 
 # multiples of each variant's card-derived PLL bandwidth (and EMF speed LPF) swept
 FACTORS = (0.4, 0.6, 0.8, 1.0, 1.4, 2.0)
@@ -55,14 +56,19 @@ def _setting(
 ):
     """One observer config of a sweep: the variant's card-derived PLL (and EMF speed LPF)
     times pll_f and flux cutoff times wc_f.  A plugin takes them as constructor keywords
-    (PLUGIN_KEYS), from the built-in rules' values for the flux observer."""
-    base = observer_config("paper_robust" if ":" in variant else variant, card)
+    (PLUGIN_KEYS), from the built-in rules' values for the flux observer.  `variant` is a
+    replay-style spec, `TARGET[:key=value,...]`: its fixed settings ride along unswept."""
+    spec = parse_variant(variant)
+    target, fixed = spec.target, dict(spec.params)
+    plugin = ":" in target
+    base = observer_config("paper_robust" if plugin else target, card)
     pll_hz = round(pll_f * float(base.pll_bandwidth_hz or 0.0), 6)
     wc_hz = round(wc_f * float(base.cutoff_hz or 0.0), 6)
-    if ":" in variant:
-        extra = {keys["pll"]: pll_hz, keys["cutoff"]: wc_hz}
-        return {"variant": variant, "extra": extra, "pll_bandwidth_hz": pll_hz}
-    cfg: dict[str, Any] = {"variant": variant, "voltage_source": src, "pll_bandwidth_hz": pll_hz}
+    if plugin:
+        extra = {**fixed, keys["pll"]: pll_hz, keys["cutoff"]: wc_hz}
+        return {"variant": target, "extra": extra, "pll_bandwidth_hz": pll_hz}
+    cfg: dict[str, Any] = {**fixed, "variant": target, "voltage_source": src}
+    cfg["pll_bandwidth_hz"] = pll_hz
     if base.speed_lpf_hz:
         cfg["speed_lpf_hz"] = round(pll_f * base.speed_lpf_hz, 6)
     if wc_f != 1.0:
@@ -71,9 +77,10 @@ def _setting(
 
 
 def _has_cutoff(variant: str, card: MachineCard) -> bool:
-    if ":" in variant:
+    target = parse_variant(variant).target
+    if ":" in target:
         return True
-    return bool(observer_config(variant, card).cutoff_hz) and variant != "emf"
+    return bool(observer_config(target, card).cutoff_hz) and target != "emf"
 
 
 def build_cases(
