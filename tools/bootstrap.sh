@@ -16,6 +16,9 @@
 #   6. the firmware's target toolchain (Debian's gcc-arm-none-eabi + libnewlib-arm-none-eabi
 #      for the Cortex-M4F build, qemu-system-arm for its instruction count) when missing,
 #      the same way (FLUXDRIVE_NO_ARM=1: a note, and those tests skip).
+#   Steps 5 and 6 run only for what the command needs: FLUXDRIVE_BOOTSTRAP_EXTRAS lists them
+#   ("browser", "arm"; the launcher sets it per command: `test` both, `bench` and `benchmark`
+#   the toolchain, the demo neither); unset (this script run by hand), both.
 #
 # Needs only python3.11 (with headers), cmake and g++ on the machine; pip reaches the
 # package index. Progress on stderr, prefixed "[bootstrap]". Exits non-zero on any failure.
@@ -115,9 +118,13 @@ arm_present() {
 }
 arm_done() { arm_present || [ -f "$ARM_NOTE" ]; }
 
+# What this command needs beyond the venv and the workspace (see the header).
+EXTRAS="${FLUXDRIVE_BOOTSTRAP_EXTRAS-browser arm}"
+wants() { case " $EXTRAS " in *" $1 "*) return 0 ;; *) return 1 ;; esac; }
+
 # ------------------------------------------------------------------------- fast path
 if [ "${FLUXDRIVE_BOOTSTRAP_FORCE:-0}" != 1 ] && ! moved && pip_current && colcon_current &&
-  browser_done && arm_done; then
+  { ! wants browser || browser_done; } && { ! wants arm || arm_done; }; then
   exit 0
 fi
 
@@ -252,7 +259,7 @@ if [ "${FLUXDRIVE_BOOTSTRAP_FORCE:-0}" = 1 ] || ! colcon_current; then
 fi
 
 # -------------------------------------------------------------------------- browser
-if ! command -v chromium >/dev/null 2>&1 && [ ! -f "$BROWSER_NOTE" ]; then
+if wants browser && ! command -v chromium >/dev/null 2>&1 && [ ! -f "$BROWSER_NOTE" ]; then
   if [ "${FLUXDRIVE_NO_BROWSER:-0}" = 1 ]; then
     echo "FLUXDRIVE_NO_BROWSER=1" >"$BROWSER_NOTE"
     log "chromium not installed (FLUXDRIVE_NO_BROWSER=1): the scope's browser test will skip"
@@ -274,7 +281,7 @@ if ! command -v chromium >/dev/null 2>&1 && [ ! -f "$BROWSER_NOTE" ]; then
 fi
 
 # ---------------------------------------------------------------- firmware toolchain
-if ! arm_present && [ ! -f "$ARM_NOTE" ]; then
+if wants arm && ! arm_present && [ ! -f "$ARM_NOTE" ]; then
   if [ "${FLUXDRIVE_NO_ARM:-0}" = 1 ]; then
     echo "FLUXDRIVE_NO_ARM=1" >"$ARM_NOTE"
     log "ARM toolchain not installed (FLUXDRIVE_NO_ARM=1): the firmware's target tests skip"
