@@ -6,13 +6,16 @@
  *   sample    raw ADC/capture (HAL) -> SI units (calibration in fd_config_t)
  *   window    per-period accumulation; every D-th period a sample (SAMPLE_FD or the four
  *             SAMPLE_C_* frames) with line voltages and duties averaged over the window
- *   protect   over-current (instantaneous), I2t, DC-bus over/under-voltage (engine codes)
+ *   protect   timer break and gate-driver inputs, ADC saturation, over-current
+ *             (instantaneous), I2t, DC-bus over/under-voltage (engine codes), temperature;
+ *             thresholds: the stricter of the board's (fd_config_t) and the DRIVE_PARAM
  *   protocol  STATUS and latched-FAULT repeats at 10 Hz; received ARM_MODE, DUTY_CMD,
  *             HOST_REF, DRIVE_PARAM (answered by DRIVE_PARAM_ACK), HOST_HEARTBEAT
  *   command   host mode: the DUTY_CMD answering sample k-D at each sample boundary, duty
  *             watchdog; split mode: the newest HOST_REF, reference timeout, and the dq
  *             current loop on the extrapolated angle (fd_current_loop)
- *   output    PWM compare values + enable (HAL)
+ *   output    modulation guards (finite, MAX_DUTY, bootstrap charge after arming), PWM
+ *             compare values + enable (HAL); then the HAL's overrun check
  *
  * The Python emulator's MCU logic (python/fluxdrive/can/emulator.py) is the reference for
  * host mode; the engine's _current_loops / _protect (python/fluxdrive/drive/control/kernel.py) for
@@ -40,10 +43,20 @@ enum {
     FD_FAULT_OVERCURRENT_I2T = 2,
     FD_FAULT_OVERVOLTAGE = 3,
     FD_FAULT_UNDERVOLTAGE = 4,
+    FD_FAULT_STALE_INPUT = 8,
     FD_FAULT_WATCHDOG = 9,
     FD_FAULT_HOST_HEARTBEAT_LOST = 16,
-    FD_FAULT_BAD_COMMAND = 20
+    FD_FAULT_GATE_DRIVER = 17,
+    FD_FAULT_ADC_FAULT = 18,
+    FD_FAULT_BAD_COMMAND = 20,
+    FD_FAULT_BUS_ERROR = 21,
+    FD_FAULT_OVERTEMPERATURE = 22,
+    FD_FAULT_DEADLINE_MISSED = 24,
+    FD_FAULT_INTERNAL = 255
 };
+/* FAULT.fault_detail of OVERCURRENT: phase index in bits 0-1; 3 = the hardware path (the
+ * comparator into the timer's break input; no phase known) */
+#define FD_OC_DETAIL_BREAK 3u
 
 /* STATUS.st_state */
 enum { FD_ST_BOOT = 0, FD_ST_IDLE = 1, FD_ST_ARMED = 2, FD_ST_RUNNING = 3, FD_ST_FAULT = 4 };
@@ -68,7 +81,8 @@ enum {
     FD_PRM_VDC_MAX_V = 14,
     FD_PRM_HEARTBEAT_TIMEOUT_S = 15,
     FD_PRM_POLE_PAIRS = 16,
-    FD_PRM_COUNT = 17 /* ids 1..16; index 0 unused */
+    FD_PRM_MAX_DUTY = 17,
+    FD_PRM_COUNT = 18 /* ids 1..17; index 0 unused */
 };
 /* DRIVE_PARAM_ACK pa_status */
 enum {
@@ -93,6 +107,19 @@ typedef struct {
     uint32_t pwm_period_ticks;   /* compare value of 100 % duty */
     uint32_t cmd_timeout_us;     /* default duty watchdog (ARM_MODE.cmd_timeout = 0) */
     uint32_t status_period;      /* periods between STATUS frames (10 Hz) */
+    /* ---- board limits: what the power stage and its sensors allow; a DRIVE_PARAM can
+     * only tighten them (the protections use the stricter of the two) */
+    int32_t current_adc_max_counts; /* highest current ADC result (12 bit: 4095); a result
+                                     * at 0 or at this is saturated: fault ADC_FAULT */
+    float oc_limit_a;            /* over-current trip cap [A], below the ADC full scale */
+    float vdc_max_v;             /* bus over-voltage trip [V] (the stage's rating) */
+    float vdc_min_v;             /* bus under-voltage trip while armed [V] */
+    float vdc_modulation_min_v;  /* below this bus no duty is computed or applied [V] */
+    int32_t temp_max_c;          /* over-temperature trip [degC] */
+    int32_t temp_hysteresis_c;   /* reset allowed at temp_max_c - this [degC] */
+    uint32_t bootstrap_periods;  /* low sides on before the first switching period */
+    uint32_t ref_max_age_periods; /* HOST_REF older than this at reception: refused */
+    uint32_t ref_horizon_periods; /* extrapolation beyond this: fault STALE_INPUT */
 } fd_config_t;
 
 /** dq current-loop state (the engine's CS_ID_I / CS_IQ_I). */
@@ -162,6 +189,10 @@ typedef struct {
     uint32_t faults;
     uint32_t param_rx;
     uint32_t refs_applied;
+    uint32_t ref_old;      /* HOST_REFs refused: older than ref_max_age_periods */
+    uint32_t ref_future;   /* HOST_REFs refused: numbered ahead of the drive's counter */
+    uint32_t adc_clipped;  /* periods with a saturated current reading */
+    uint32_t duty_limited; /* periods a duty was limited to MAX_DUTY */
 } fd_stats_t;
 
 /** The whole drive state. Fields are public for tests and the SIL binding; firmware code
@@ -175,7 +206,9 @@ typedef struct {
     uint32_t t_us; /* SAMPLE_FD.t_mcu of sample k [us] */
     float i_abc[3], v_ll[3], vdc;
     int32_t encoder;
-    uint8_t clip;
+    uint8_t clip;          /* a current reading saturated in this sample */
+    uint16_t clip_detail;  /* its phase (bits 0-1) and raw count (bits 2-15) */
+    int32_t temp_c;        /* power-stage temperature of this sample [degC] */
     /* what the PWM held over the period just ended */
     float duty_applied[3];
     uint8_t pwm_applied;
@@ -186,6 +219,14 @@ typedef struct {
     /* state machine */
     uint8_t armed, pwm_enabled, fault_latched, fault_code, fault_count, mode, split;
     uint8_t reset_prev, stale_prev, status_alive, hb_seen;
+    uint8_t ran_first;          /* a sample boundary has passed (host mode's first command) */
+    uint8_t temp_hot;           /* last temperature at or above cfg.temp_max_c */
+    fd_hal_status_t hw;         /* power-stage and CAN controller status of this period */
+    uint32_t bootstrap_left;    /* periods of low-side bootstrap charge still to run */
+    /* limits in effect (board cap and DRIVE_PARAM, the stricter), updated on a write */
+    float oc_trip_a, vdc_max_v, vdc_min_v, max_duty;
+    float ticks_f;              /* pwm_period_ticks as float */
+    float inv_ticks;            /* 1 / pwm_period_ticks */
     uint16_t applied_seq;
     uint32_t last_cmd_k, last_ref_k;
     uint32_t next_status_k, next_fault_k;

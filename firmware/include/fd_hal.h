@@ -11,6 +11,14 @@
  * hold the line-voltage high times of the period [t_(k-1), t_k] just ended. fd_hal_pwm_write
  * sets the compare values and the output enable for the period [t_k, t_(k+1)] now running.
  */
+/* Hardware over-current path (part of this contract): a comparator per phase current (or
+ * on the bus shunt) at a threshold above the core's software trip drives the PWM timer's
+ * break input. On a trip the timer opens all six switches in hardware (MOE cleared), with
+ * no software in the path; fd_hal_status_read then reports break_event and the core
+ * latches OVERCURRENT (detail FD_OC_DETAIL_BREAK). The outputs stay off until
+ * fd_hal_pwm_write(..., true) after the fault was reset (the port sets MOE again there).
+ * The SIL HAL models this as an instant trip: the period whose reading is beyond the
+ * comparator threshold runs with the gates open. */
 #ifndef FD_HAL_H
 #define FD_HAL_H
 
@@ -46,7 +54,18 @@ typedef struct {
     uint8_t data[64];
 } fd_can_frame_t;
 
+/** Power-stage and CAN-controller status, read once per period interrupt. */
+typedef struct {
+    uint8_t break_event; /* the timer's break input tripped since the last read (the
+                          * over-current comparator cut the gates in hardware; BKIF) */
+    uint8_t gate_fault;  /* the gate driver's fault output is asserted (nFAULT) */
+    uint8_t can_bus_off; /* the CAN controller is bus-off */
+    uint8_t can_tec;     /* transmit error counter (saturated at 255) */
+    uint8_t can_rec;     /* receive error counter (saturated at 255) */
+} fd_hal_status_t;
+
 void fd_hal_adc_read(void *hal, fd_adc_raw_t *out);
+void fd_hal_status_read(void *hal, fd_hal_status_t *out);
 void fd_hal_capture_read(void *hal, fd_capture_raw_t *out);
 /** Compare values (0..pwm period ticks, upper switch on-time per leg, centre-aligned) and
  *  the gate enable for the period now starting. enable = false opens all six switches. */
@@ -57,6 +76,10 @@ bool fd_hal_can_tx(void *hal, const fd_can_frame_t *frame);
 bool fd_hal_can_rx(void *hal, fd_can_frame_t *frame);
 /** Free-running microsecond counter (wraps at 2^32). */
 uint32_t fd_hal_time_us(void *hal);
+/** Called last in the period interrupt: true if this interrupt missed its deadline (on a
+ *  timer: the counter read now is past the compare-preload deadline of the running period,
+ *  or the period interrupt's flag is pending again, i.e. a period was lost). */
+bool fd_hal_period_overrun(void *hal);
 
 #ifdef __cplusplus
 }

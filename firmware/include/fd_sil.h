@@ -28,6 +28,13 @@ typedef struct {
     uint32_t rx_head, rx_tail;
     fd_can_frame_t tx[FD_SIL_QUEUE];
     uint32_t tx_head, tx_tail;
+    /* injected power-stage / CAN status (fd_sil_inject) and the hardware over-current
+     * comparator: |count - break_mid| >= break_counts on any phase trips the break
+     * (break_counts 0: no comparator) */
+    fd_hal_status_t hw;
+    int32_t break_mid, break_counts;
+    int32_t break_latched; /* gates held open by the break until the core writes PWM off */
+    int32_t overrun_next;  /* the next fd_hal_period_overrun answers true (once) */
 } fd_sil_t;
 
 size_t fd_sil_sizeof(void);
@@ -37,6 +44,12 @@ void fd_sil_set_inputs(fd_sil_t *s, const int32_t current_counts[3], int32_t vdc
                        const int32_t high_ticks[3], int32_t period_ticks, int32_t encoder_counts,
                        int32_t temp_c, uint32_t time_us);
 void fd_sil_set_time(fd_sil_t *s, uint32_t time_us);
+/** Fault injection: the gate driver's fault input, the CAN controller's error state, and
+ *  a missed deadline reported at the end of the next period interrupt. */
+void fd_sil_inject(fd_sil_t *s, int32_t gate_fault, int32_t can_tec, int32_t can_rec,
+                   int32_t can_bus_off, int32_t overrun);
+/** The hardware over-current comparator on the current ADC counts (0: none). */
+void fd_sil_set_break(fd_sil_t *s, int32_t mid_counts, int32_t threshold_counts);
 /** PWM of the period now starting: compare values and enable. */
 void fd_sil_get_pwm(const fd_sil_t *s, uint32_t compare[3], int32_t *enable);
 /** Queue a received frame for the core; 0 if the queue is full. */

@@ -59,7 +59,23 @@ static const prm_spec_t PRM_SPEC[FD_PRM_COUNT] = {
     [FD_PRM_VDC_MAX_V] = {1.0f, 1.0e4f, 1.0e4f, 0},
     [FD_PRM_HEARTBEAT_TIMEOUT_S] = {0.0f, 60.0f, 0.5f, 0},
     [FD_PRM_POLE_PAIRS] = {1.0f, 64.0f, 4.0f, 1},
+    /* drive-only: the largest upper-switch duty, so every period keeps a low-side window
+     * for shunt sampling and bootstrap recharge (0.95 of 100 us: 5 us) */
+    [FD_PRM_MAX_DUTY] = {0.5f, 1.0f, 0.95f, 0},
 };
+
+static float minf2(float a, float b) { return a < b ? a : b; }
+static float maxf2(float a, float b) { return a > b ? a : b; }
+
+/* the limits in effect: the stricter of the board's (fd_config_t) and the DRIVE_PARAM */
+static void update_limits(fd_core_t *c)
+{
+    c->oc_trip_a = minf2(c->prm[FD_PRM_OVERCURRENT_A], c->cfg.oc_limit_a);
+    c->vdc_max_v = minf2(c->prm[FD_PRM_VDC_MAX_V], c->cfg.vdc_max_v);
+    c->vdc_min_v = maxf2(maxf2(c->prm[FD_PRM_VDC_MIN_V], c->cfg.vdc_min_v),
+                         c->cfg.vdc_modulation_min_v);
+    c->max_duty = c->prm[FD_PRM_MAX_DUTY];
+}
 
 static uint32_t seconds_to_us(float s) { return (uint32_t)(s * 1.0e6f + 0.5f); }
 
@@ -69,7 +85,20 @@ int fd_core_param_read(const fd_core_t *c, int prm_id, float *value)
         *value = 0.0f;
         return FD_PA_UNKNOWN_PARAM;
     }
-    *value = c->prm[prm_id];
+    switch (prm_id) { /* the value in effect where a board limit is stricter */
+    case FD_PRM_OVERCURRENT_A:
+        *value = c->oc_trip_a;
+        break;
+    case FD_PRM_VDC_MAX_V:
+        *value = c->vdc_max_v;
+        break;
+    case FD_PRM_VDC_MIN_V:
+        *value = c->vdc_min_v;
+        break;
+    default:
+        *value = c->prm[prm_id];
+        break;
+    }
     return FD_PA_OK;
 }
 
@@ -89,6 +118,7 @@ int fd_core_param_write(fd_core_t *c, int prm_id, float value)
         return FD_PA_NOT_WHILE_RUNNING;
     }
     c->prm[prm_id] = value;
+    update_limits(c);
     return FD_PA_OK;
 }
 
@@ -266,7 +296,7 @@ static void send_status(fd_core_t *c, int32_t temp_c)
     int8_t t = (int8_t)(temp_c < -128 ? -128 : (temp_c > 127 ? 127 : temp_c));
     int n = fd_encode_status(b, c->status_alive, state, c->armed, c->pwm_enabled, c->fault_latched,
                              c->cfg.classic_layout, c->cfg.decimation,
-                             (uint16_t)(c->stats.tx_overruns & 0xFFFFu), t, 0);
+                             (uint16_t)(c->stats.tx_overruns & 0xFFFFu), t, c->hw.can_rec);
     c->status_alive = (uint8_t)(c->status_alive + 1u);
     send(c, FD_CAN_STATUS_FRAME_ID, b, n, 0);
 }
@@ -351,13 +381,19 @@ static int cause_gone(const fd_core_t *c)
     int ph = 0;
     switch (c->fault_code) {
     case FD_FAULT_OVERCURRENT:
-        return max_abs_current(c, &ph) <= c->prm[FD_PRM_OVERCURRENT_A];
+        return max_abs_current(c, &ph) <= c->oc_trip_a && !c->hw.break_event;
     case FD_FAULT_OVERCURRENT_I2T:
         return c->i2t <= c->prm[FD_PRM_I2T_LIMIT_PU2S];
     case FD_FAULT_OVERVOLTAGE:
-        return c->vdc <= c->prm[FD_PRM_VDC_MAX_V];
+        return c->vdc <= c->vdc_max_v;
     case FD_FAULT_UNDERVOLTAGE:
-        return c->vdc >= c->prm[FD_PRM_VDC_MIN_V];
+        return c->vdc >= c->vdc_min_v;
+    case FD_FAULT_ADC_FAULT:
+        return !c->clip;
+    case FD_FAULT_GATE_DRIVER:
+        return !c->hw.gate_fault;
+    case FD_FAULT_OVERTEMPERATURE:
+        return c->temp_c < c->cfg.temp_max_c - c->cfg.temp_hysteresis_c;
     default:
         return 1; /* timeouts and bad commands: nothing persists once PWM is off */
     }
@@ -372,39 +408,58 @@ static void clear_fault(fd_core_t *c)
     }
 }
 
-/* over-current, I2t, bus over/under-voltage on the sample just taken (engine's order) */
+/* the protections on the sample just taken, each latched with PWM off (raise_fault) in
+ * this very period. Comparisons are written so that a NaN reading trips (!(x <= limit)).
+ * Order: the hardware inputs, ADC saturation, then the engine's _protect order
+ * (over-current, I2t, bus over-voltage, bus under-voltage), then the temperature. */
 static void protect(fd_core_t *c)
 {
     const float sq3 = 1.7320508075688772f;
-    float ia = (2.0f * c->i_abc[0] - c->i_abc[1] - c->i_abc[2]) / 3.0f;
-    float ib = (c->i_abc[1] - c->i_abc[2]) / sq3;
+    float ia = (2.0f * c->i_abc[0] - c->i_abc[1] - c->i_abc[2]) * (1.0f / 3.0f);
+    float ib = (c->i_abc[1] - c->i_abc[2]) * (1.0f / sq3);
     c->i2t = fd_i2t_step(c->i2t, ia, ib, c->prm[FD_PRM_RATED_CURRENT_A], c->cfg.ts_s);
     if (c->fault_latched) {
         return;
     }
-    int ph = 0;
-    float imax = max_abs_current(c, &ph);
-    if (imax > c->prm[FD_PRM_OVERCURRENT_A]) {
-        int a10 = (int)(imax * 10.0f);
-        if (a10 > 16383) {
-            a10 = 16383;
+    if (c->hw.break_event) { /* the comparator already opened the gates */
+        raise_fault(c, FD_FAULT_OVERCURRENT, FD_OC_DETAIL_BREAK);
+        return;
+    }
+    if (c->hw.gate_fault) {
+        raise_fault(c, FD_FAULT_GATE_DRIVER, 0);
+        return;
+    }
+    if (c->clip) { /* a saturated reading: the current is unknown, at least full scale */
+        raise_fault(c, FD_FAULT_ADC_FAULT, c->clip_detail);
+        return;
+    }
+    for (int j = 0; j < 3; ++j) {
+        float a = fabsf(c->i_abc[j]);
+        if (!(a <= c->oc_trip_a)) {
+            float a10 = a * 10.0f;
+            uint32_t d = a10 >= 0.0f && a10 < 16383.0f ? (uint32_t)a10 : 16383u;
+            raise_fault(c, FD_FAULT_OVERCURRENT, (uint16_t)((uint32_t)j | (d << 2)));
+            return;
         }
-        raise_fault(c, FD_FAULT_OVERCURRENT, (uint16_t)(ph | (a10 << 2)));
-        return;
     }
-    if (c->i2t > c->prm[FD_PRM_I2T_LIMIT_PU2S]) {
+    if (!(c->i2t <= c->prm[FD_PRM_I2T_LIMIT_PU2S])) {
         float d = c->i2t * 100.0f;
-        raise_fault(c, FD_FAULT_OVERCURRENT_I2T, (uint16_t)(d > 65535.0f ? 65535.0f : d));
+        raise_fault(c, FD_FAULT_OVERCURRENT_I2T, (uint16_t)(d < 65535.0f ? d : 65535.0f));
         return;
     }
-    uint16_t vdet = (uint16_t)clampf(c->vdc * 100.0f, 0.0f, 65535.0f);
-    if (c->vdc > c->prm[FD_PRM_VDC_MAX_V]) {
+    float v100 = c->vdc * 100.0f;
+    uint16_t vdet = (uint16_t)(v100 > 0.0f ? (v100 < 65535.0f ? v100 : 65535.0f) : 0.0f);
+    if (!(c->vdc <= c->vdc_max_v)) {
         raise_fault(c, FD_FAULT_OVERVOLTAGE, vdet);
         return;
     }
     /* under-voltage only while armed: an unpowered bus at boot is no fault */
-    if (c->armed && c->vdc < c->prm[FD_PRM_VDC_MIN_V]) {
+    if (c->armed && !(c->vdc >= c->vdc_min_v)) {
         raise_fault(c, FD_FAULT_UNDERVOLTAGE, vdet);
+        return;
+    }
+    if (c->temp_c >= c->cfg.temp_max_c) {
+        raise_fault(c, FD_FAULT_OVERTEMPERATURE, (uint16_t)(c->temp_c > 0 ? c->temp_c : 0));
     }
 }
 
@@ -442,6 +497,14 @@ static void on_arm_mode(fd_core_t *c, const fd_can_frame_t *f)
         c->ref_new.valid = 0;
     }
     if (m.arm && m.arm_key == FD_ARM_KEY && !c->fault_latched) {
+        if (!c->armed) {
+            /* supervision starts at arming: the heartbeat and split mode's reference
+             * timeout count from now, not from a first frame; the first switching period
+             * is preceded by the bootstrap charge */
+            c->hb_last_us = fd_hal_time_us(c->hal);
+            c->last_ref_k = c->k;
+            c->bootstrap_left = c->cfg.bootstrap_periods;
+        }
         c->armed = 1;
         c->mode = m.mode;
     } else {
@@ -516,6 +579,18 @@ static void on_host_ref(fd_core_t *c, const fd_can_frame_t *f)
     r.iq = fd_can_host_ref_ref_iq_decode(m.ref_iq);
     r.theta = fd_can_host_ref_ref_theta_decode(m.ref_theta);
     r.omega = fd_can_host_ref_ref_omega_decode(m.ref_omega);
+    /* its age against the drive's period counter (16-bit, wrap-safe): numbered ahead of
+     * the drive it cannot be a sample the drive sent; older than ref_max_age_periods it
+     * would be extrapolated too far */
+    int16_t age = (int16_t)(uint16_t)((uint16_t)(c->k & FD_SEQ_MASK) - r.seq);
+    if (age < 0) {
+        c->stats.ref_future++;
+        return;
+    }
+    if ((uint32_t)age > c->cfg.ref_max_age_periods) {
+        c->stats.ref_old++;
+        return;
+    }
     /* a reference older than the one in use arrived too late */
     if (c->ref.valid && (int16_t)(uint16_t)(r.seq - c->ref.seq) <= 0) {
         c->stats.duty_late++;
@@ -587,7 +662,8 @@ int fd_core_has_answer(const fd_core_t *c, uint16_t seq)
 static void take_command(fd_core_t *c)
 {
     uint32_t d = c->cfg.decimation;
-    if (c->k < d) {
+    if (!c->ran_first) { /* the first boundary: no sample before it to answer */
+        c->ran_first = 1;
         return;
     }
     uint16_t want = (uint16_t)((c->k - d) & FD_SEQ_MASK);
@@ -663,7 +739,7 @@ static void take_reference(fd_core_t *c)
         } else if (!c->ref.enable) {
             c->pwm_enabled = 0;
         }
-    } else if (c->pwm_enabled) {
+    } else if (c->armed) { /* supervised from arming (last_ref_k set there) */
         uint32_t elapsed_us = (c->k - c->last_ref_k) * c->cfg.period_us;
         if (elapsed_us > seconds_to_us(c->prm[FD_PRM_REF_TIMEOUT_S])) {
             raise_fault(c, FD_FAULT_WATCHDOG, (uint16_t)(elapsed_us / 100u));
@@ -684,8 +760,18 @@ static void run_current_loop(fd_core_t *c)
     p.advance = c->prm[FD_PRM_VOLTAGE_ADVANCE];
     p.tdcomp_s = c->prm[FD_PRM_DEADTIME_COMP_S];
     float lim = c->prm[FD_PRM_CUR_LIMIT_A];
-    float ia = (2.0f * c->i_abc[0] - c->i_abc[1] - c->i_abc[2]) / 3.0f;
-    float ib = (c->i_abc[1] - c->i_abc[2]) / sq3;
+    /* the extrapolation horizon: periods since the reference's sample */
+    uint16_t n = (uint16_t)((c->k - c->ref.seq) & FD_SEQ_MASK);
+    if (n > c->cfg.ref_horizon_periods) {
+        raise_fault(c, FD_FAULT_STALE_INPUT, n);
+        return;
+    }
+    if (!(c->vdc >= c->cfg.vdc_modulation_min_v)) { /* no duty from a bus that low */
+        c->split_duty_valid = 0;
+        return;
+    }
+    float ia = (2.0f * c->i_abc[0] - c->i_abc[1] - c->i_abc[2]) * (1.0f / 3.0f);
+    float ib = (c->i_abc[1] - c->i_abc[2]) * (1.0f / sq3);
     float th = ref_angle(c, &c->ref);
     th = th - FD_TWO_PI * floorf((th + FD_PI) / FD_TWO_PI); /* [-pi, pi) */
     c->theta_used = th;
@@ -699,34 +785,87 @@ static void run_current_loop(fd_core_t *c)
 
 /* ------------------------------------------------------------------ the interrupt */
 
-static void read_sample(fd_core_t *c, int32_t *temp_c)
+static void read_sample(fd_core_t *c)
 {
     fd_adc_raw_t adc;
     fd_capture_raw_t cap;
     fd_hal_adc_read(c->hal, &adc);
     fd_hal_capture_read(c->hal, &cap);
+    fd_hal_status_read(c->hal, &c->hw);
     uint8_t clip = 0;
+    uint16_t clip_detail = 0;
     for (int j = 0; j < 3; ++j) {
-        int32_t x = adc.current_counts[j] - c->cfg.current_offset_counts[j];
-        if (x >= c->cfg.current_clip_counts || x <= -c->cfg.current_clip_counts) {
+        int32_t raw = adc.current_counts[j];
+        int32_t x = raw - c->cfg.current_offset_counts[j];
+        /* saturated: at either rail of the converter, or beyond the calibrated span */
+        if (raw <= 0 || raw >= c->cfg.current_adc_max_counts || x >= c->cfg.current_clip_counts ||
+            x <= -c->cfg.current_clip_counts) {
+            if (!clip) {
+                int32_t r = raw < 0 ? 0 : (raw > 16383 ? 16383 : raw);
+                clip_detail = (uint16_t)((uint32_t)j | ((uint32_t)r << 2));
+            }
             clip = 1;
         }
         c->i_abc[j] = (float)x * c->cfg.current_lsb_a;
     }
     c->clip = clip;
+    c->clip_detail = clip_detail;
+    c->stats.adc_clipped += clip;
     c->vdc = (float)adc.vdc_counts * c->cfg.vdc_lsb_v;
     float per = cap.period_ticks > 0 ? (float)cap.period_ticks : 1.0f;
     for (int j = 0; j < 3; ++j) {
         c->v_ll[j] = (float)cap.high_ticks[j] / per * c->vdc;
     }
     c->encoder = cap.encoder_counts;
-    *temp_c = adc.temp_c;
+    c->temp_c = adc.temp_c;
 }
+
+/* The duties reaching the timer: a non-finite duty is refused (returns 0); each is put in
+ * [0, 1]; a triplet above MAX_DUTY is moved down by a common shift (the line voltages stay
+ * as they were) while its lowest duty allows it, else each duty is clamped to MAX_DUTY. */
+static int guard_duties(fd_core_t *c, const float in[3], float out[3])
+{
+    float hi = 0.0f;
+    float lo = 1.0f;
+    for (int j = 0; j < 3; ++j) {
+        float d = in[j];
+        if (!isfinite(d)) {
+            return 0;
+        }
+        d = clampf(d, 0.0f, 1.0f);
+        hi = d > hi ? d : hi;
+        lo = d < lo ? d : lo;
+        out[j] = d;
+    }
+    float md = c->max_duty;
+    if (hi > md) {
+        float shift = hi - md;
+        c->stats.duty_limited++;
+        for (int j = 0; j < 3; ++j) {
+            out[j] = lo >= shift ? out[j] - shift : minf2(out[j], md);
+        }
+    }
+    return 1;
+}
+
+static void heartbeat_check(fd_core_t *c)
+{
+    float hb_s = c->prm[FD_PRM_HEARTBEAT_TIMEOUT_S];
+    if (hb_s > 0.0f && c->armed) { /* hb_last_us: the last heartbeat or the arming */
+        uint32_t since = fd_hal_time_us(c->hal) - c->hb_last_us;
+        if (since > seconds_to_us(hb_s)) {
+            uint32_t d = since / 100u;
+            raise_fault(c, FD_FAULT_HOST_HEARTBEAT_LOST, (uint16_t)(d > 65535u ? 65535u : d));
+        }
+    }
+}
+
+/* wrap-safe "k has reached t" on the 32-bit period counter */
+static int reached(uint32_t k, uint32_t t) { return (int32_t)(k - t) >= 0; }
 
 void fd_core_period(fd_core_t *c)
 {
-    int32_t temp_c = 0;
-    read_sample(c, &temp_c);
+    read_sample(c);
     /* window: the period [t_(k-1), t_k] just ended (frame 0 opens the first window) */
     for (int j = 0; j < 3; ++j) {
         c->win_v[j] += c->v_ll[j];
@@ -742,11 +881,11 @@ void fd_core_period(fd_core_t *c)
         send_sample(c);
         reset_window(c);
     }
-    if (c->k >= c->next_status_k) {
-        send_status(c, temp_c);
+    if (reached(c->k, c->next_status_k)) {
+        send_status(c, c->temp_c);
         c->next_status_k = c->k + c->cfg.status_period;
     }
-    if (c->fault_latched && c->k >= c->next_fault_k) {
+    if (c->fault_latched && reached(c->k, c->next_fault_k)) {
         send_fault(c, 0);
         c->next_fault_k = c->k + c->cfg.status_period;
     }
@@ -759,48 +898,59 @@ void fd_core_period(fd_core_t *c)
     } else if (boundary) {
         take_command(c);
     }
-    float hb_s = c->prm[FD_PRM_HEARTBEAT_TIMEOUT_S];
-    if (hb_s > 0.0f && c->armed && c->hb_seen) {
-        uint32_t since = fd_hal_time_us(c->hal) - c->hb_last_us;
-        if (since > seconds_to_us(hb_s)) {
-            uint32_t d = since / 100u;
-            raise_fault(c, FD_FAULT_HOST_HEARTBEAT_LOST, (uint16_t)(d > 65535u ? 65535u : d));
-        }
-    }
+    heartbeat_check(c);
     if (!c->armed) {
         c->pwm_enabled = 0;
     }
 
     /* output for the period [t_k, t_(k+1)] now starting */
     uint8_t enable = c->pwm_enabled;
+    uint8_t boot = (uint8_t)(enable && c->bootstrap_left > 0u);
     if (c->split) {
         /* the duty computed from the previous sample (one period of computation delay,
          * as the engine's convention); none yet: PWM stays off this period */
-        if (c->pwm_enabled && c->split_duty_valid) {
-            for (int j = 0; j < 3; ++j) {
-                c->duty[j] = c->split_duty[j];
-            }
-        } else {
+        if (!c->pwm_enabled || (!boot && !c->split_duty_valid)) {
             enable = 0;
             for (int j = 0; j < 3; ++j) {
                 c->duty[j] = 0.5f;
             }
+        } else if (!boot) {
+            for (int j = 0; j < 3; ++j) {
+                c->duty[j] = c->split_duty[j];
+            }
         }
         if (c->pwm_enabled) {
-            run_current_loop(c);
+            if (!boot || c->bootstrap_left == 1u) { /* the last bootstrap period computes */
+                run_current_loop(c);                /* the first switching period's duty */
+            }
         } else {
             c->split_duty_valid = 0;
             c->cur.id_i = 0.0f;
             c->cur.iq_i = 0.0f;
         }
+        enable = (uint8_t)(enable && c->pwm_enabled); /* the loop may have tripped */
+    }
+    float d[3];
+    if (boot && enable) { /* bootstrap charge: low sides on (upper duty 0) */
+        c->bootstrap_left--;
+        d[0] = d[1] = d[2] = 0.0f;
+    } else if (!guard_duties(c, c->duty, d)) {
+        raise_fault(c, FD_FAULT_INTERNAL, 1u); /* a non-finite duty never reaches the gates */
+        enable = 0;
+        d[0] = d[1] = d[2] = 0.5f;
     }
     uint32_t cmp[3];
     for (int j = 0; j < 3; ++j) {
-        cmp[j] = (uint32_t)(c->duty[j] * (float)c->cfg.pwm_period_ticks + 0.5f);
-        c->duty_applied[j] = (float)cmp[j] / (float)c->cfg.pwm_period_ticks;
+        cmp[j] = (uint32_t)(d[j] * c->ticks_f + 0.5f); /* d in [0, 1] */
+        c->duty_applied[j] = (float)cmp[j] * c->inv_ticks;
     }
     c->pwm_applied = enable;
     fd_hal_pwm_write(c->hal, cmp, enable);
+    if (fd_hal_period_overrun(c->hal)) { /* this interrupt ran past its deadline */
+        raise_fault(c, FD_FAULT_DEADLINE_MISSED, (uint16_t)(c->k & FD_SEQ_MASK));
+        c->pwm_applied = 0;
+        fd_hal_pwm_write(c->hal, cmp, false);
+    }
     c->k++;
     /* t_mcu of the next sample: k * period mod (2^32 - 1) us, kept without a 64-bit product */
     uint32_t p = c->cfg.period_us;
@@ -826,6 +976,17 @@ void fd_config_default(fd_config_t *cfg)
     cfg->pwm_period_ticks = 50000u;
     cfg->cmd_timeout_us = 1000u;
     cfg->status_period = 1000u;
+    /* the reference board: 12-bit current ADC over +-20 A, 100 V bus ADC, a 48 V stage */
+    cfg->current_adc_max_counts = 4095;
+    cfg->oc_limit_a = 0.9f * 20.0f;    /* 18 A: 10 % below the ADC's full scale */
+    cfg->vdc_max_v = 60.0f;            /* the stage's 60 V rating (100 V ADC span) */
+    cfg->vdc_min_v = 10.0f;            /* gate-driver supply limit of a 48 V stage */
+    cfg->vdc_modulation_min_v = 6.0f;  /* below: no duty computed or applied */
+    cfg->temp_max_c = 90;
+    cfg->temp_hysteresis_c = 10;
+    cfg->bootstrap_periods = 10u;      /* 1 ms low sides on before the first switching */
+    cfg->ref_max_age_periods = 100u;   /* 10 ms */
+    cfg->ref_horizon_periods = 200u;   /* 20 ms of extrapolation at most */
 }
 
 void fd_core_init(fd_core_t *c, const fd_config_t *cfg, void *hal)
@@ -846,4 +1007,7 @@ void fd_core_init(fd_core_t *c, const fd_config_t *cfg, void *hal)
     }
     c->win_pwm = 1;
     c->mode = FD_MODE_IDLE;
+    c->ticks_f = (float)c->cfg.pwm_period_ticks;
+    c->inv_ticks = c->cfg.pwm_period_ticks > 0u ? 1.0f / c->ticks_f : 0.0f;
+    update_limits(c);
 }

@@ -31,6 +31,7 @@ static void setup(uint8_t decimation)
     fd_config_t cfg;
     fd_config_default(&cfg);
     cfg.decimation = decimation;
+    cfg.bootstrap_periods = 0u; /* the bootstrap charge has a test of its own */
     fd_sil_init(&sil);
     fd_core_init(&core, &cfg, &sil);
 }
@@ -246,7 +247,7 @@ static void test_params(void)
 {
     setup(1);
     CHECK(fd_core_param_write(&core, 0, 1.0f) == FD_PA_UNKNOWN_PARAM);
-    CHECK(fd_core_param_write(&core, 17, 1.0f) == FD_PA_UNKNOWN_PARAM);
+    CHECK(fd_core_param_write(&core, FD_PRM_COUNT, 1.0f) == FD_PA_UNKNOWN_PARAM);
     CHECK(fd_core_param_write(&core, FD_PRM_CUR_KP, NAN) == FD_PA_NOT_FINITE);
     CHECK(fd_core_param_write(&core, FD_PRM_CUR_KP, -1.0f) == FD_PA_OUT_OF_RANGE);
     CHECK(fd_core_param_write(&core, FD_PRM_CUR_KP, 2.5f) == FD_PA_OK && core.prm[1] == 2.5f);
@@ -350,6 +351,329 @@ static void test_host_heartbeat(void)
     CHECK(!core.fault_latched && core.pwm_enabled);
 }
 
+/* ---------------------------------------------------------------- fault injection
+ * Each protection: the injected condition in sample k -> PWM off in the output of the
+ * same period interrupt (0 periods), the fault latched, one FAULT frame with its code. */
+
+static int32_t temp_c = 35;
+
+static void period_t(void)
+{
+    fd_sil_set_inputs(&sil, cur_counts, vdc_counts, ticks, 4096, 0, temp_c,
+                      core.k * core.cfg.period_us);
+    fd_core_period(&core);
+}
+
+/* host mode, PWM on (board defaults but no bootstrap), then one period with `inject`
+ * applied before it; checks the trip in that very period */
+static void expect_trip(uint8_t code, void (*inject)(void))
+{
+    setup(1);
+    run_armed();
+    CHECK(core.pwm_enabled && sil.pwm_enable == 1);
+    n_fault = 0;
+    inject();
+    send_duty((uint16_t)(core.k - 1u), 0.5f, 1);
+    period_t();
+    drain();
+    if (core.fault_code != code) {
+        fprintf(stderr, "expected fault %u, got %u\n", code, core.fault_code);
+    }
+    CHECK(core.fault_latched && core.fault_code == code);
+    CHECK(!core.pwm_enabled && sil.pwm_enable == 0); /* off from this period's output */
+    CHECK(n_fault == 1 && last_fault.fault_code == code && last_fault.fault_pwm_disabled == 1);
+    /* held: 20 more periods of the condition, PWM stays off, no new FAULT frame but the
+     * 10 Hz repeat */
+    for (int i = 0; i < 20; ++i) {
+        period_t();
+        CHECK(sil.pwm_enable == 0);
+    }
+    cur_counts[0] = cur_counts[1] = cur_counts[2] = 2048;
+    vdc_counts = 983;
+    temp_c = 35;
+    fd_sil_inject(&sil, 0, 0, 0, 0, 0);
+    fd_sil_set_break(&sil, 0, 0);
+}
+
+static void inj_adc_low(void) { cur_counts[0] = 0; }          /* held at count 0 */
+static void inj_adc_high(void) { cur_counts[2] = 4095; }      /* held at count 4095 */
+static void inj_overcurrent(void) { cur_counts[1] = 2048 + 1850; } /* 18.07 A > 18 A cap */
+static void inj_break(void) { fd_sil_set_break(&sil, 2048, 600); cur_counts[0] = 2048 + 700; }
+static void inj_gate(void) { fd_sil_inject(&sil, 1, 0, 0, 0, 0); }
+static void inj_hot(void) { temp_c = 90; }
+static void inj_overvoltage(void) { vdc_counts = 2500; } /* 61.0 V > the 60 V rating */
+static void inj_zero_bus(void) { vdc_counts = 0; }
+static void inj_overrun(void) { fd_sil_inject(&sil, 0, 0, 0, 0, 1); }
+
+static void test_fault_injection(void)
+{
+    expect_trip(FD_FAULT_ADC_FAULT, inj_adc_low);
+    CHECK((last_fault.fault_detail & 3u) == 0u && (last_fault.fault_detail >> 2) == 0u);
+    expect_trip(FD_FAULT_ADC_FAULT, inj_adc_high);
+    CHECK((last_fault.fault_detail & 3u) == 2u && (last_fault.fault_detail >> 2) == 4095u);
+    expect_trip(FD_FAULT_OVERCURRENT, inj_overcurrent);
+    CHECK((last_fault.fault_detail & 3u) == 1u && (last_fault.fault_detail >> 2) == 180u);
+    expect_trip(FD_FAULT_OVERCURRENT, inj_break);
+    CHECK(last_fault.fault_detail == FD_OC_DETAIL_BREAK);
+    expect_trip(FD_FAULT_GATE_DRIVER, inj_gate);
+    expect_trip(FD_FAULT_OVERTEMPERATURE, inj_hot);
+    CHECK(last_fault.fault_detail == 90u);
+    expect_trip(FD_FAULT_OVERVOLTAGE, inj_overvoltage);
+    expect_trip(FD_FAULT_UNDERVOLTAGE, inj_zero_bus);
+    CHECK(last_fault.fault_detail == 0u);
+    expect_trip(FD_FAULT_DEADLINE_MISSED, inj_overrun);
+}
+
+static void test_board_caps(void)
+{
+    setup(1);
+    float v = 0.0f;
+    /* the host may ask for more; the drive keeps its board limit and says so */
+    CHECK(fd_core_param_write(&core, FD_PRM_OVERCURRENT_A, 1000.0f) == FD_PA_OK);
+    CHECK(fd_core_param_read(&core, FD_PRM_OVERCURRENT_A, &v) == FD_PA_OK && v == 18.0f);
+    CHECK(v < 2048.0f * core.cfg.current_lsb_a); /* below the ADC's full scale */
+    CHECK(fd_core_param_write(&core, FD_PRM_VDC_MAX_V, 1.0e4f) == FD_PA_OK);
+    CHECK(fd_core_param_read(&core, FD_PRM_VDC_MAX_V, &v) == FD_PA_OK && v == 60.0f);
+    CHECK(fd_core_param_write(&core, FD_PRM_VDC_MIN_V, 0.0f) == FD_PA_OK);
+    CHECK(fd_core_param_read(&core, FD_PRM_VDC_MIN_V, &v) == FD_PA_OK && v == 10.0f);
+    CHECK(fd_core_param_write(&core, FD_PRM_OVERCURRENT_A, 5.0f) == FD_PA_OK); /* tighter */
+    CHECK(fd_core_param_read(&core, FD_PRM_OVERCURRENT_A, &v) == FD_PA_OK && v == 5.0f);
+    /* the fault reset needs the cause gone: a hot stage until 10 degC below the trip */
+    expect_trip(FD_FAULT_OVERTEMPERATURE, inj_hot);
+    temp_c = 81;
+    send_arm(0, FD_ARM_KEY, 1, 0);
+    period_t();
+    CHECK(core.fault_latched);
+    send_arm(0, FD_ARM_KEY, 0, 0);
+    period_t();
+    temp_c = 79;
+    send_arm(0, FD_ARM_KEY, 1, 0);
+    period_t();
+    CHECK(!core.fault_latched);
+    temp_c = 35;
+}
+
+/* a NaN bus (a broken scale) trips like a 0 V bus: nothing NaN reaches the timer */
+static void test_nan_bus(void)
+{
+    fd_config_t cfg;
+    fd_config_default(&cfg);
+    cfg.bootstrap_periods = 0u;
+    cfg.vdc_lsb_v = NAN;
+    fd_sil_init(&sil);
+    fd_core_init(&core, &cfg, &sil);
+    send_arm(1, FD_ARM_KEY, 0, 1); /* split mode: the current loop divides by the bus */
+    period();
+    /* !(NaN <= VDC_MAX) is the first bus check to trip */
+    CHECK(core.fault_code == FD_FAULT_OVERVOLTAGE && sil.pwm_enable == 0);
+    for (int j = 0; j < 3; ++j) {
+        CHECK(sil.pwm_compare[j] <= cfg.pwm_period_ticks);
+    }
+    /* the last line: a NaN duty (here a NaN gain forced past the parameter checks) is
+     * refused at the timer with fault INTERNAL */
+    setup(1);
+    CHECK(fd_core_param_write(&core, FD_PRM_CUR_KP, 1.0f) == FD_PA_OK);
+    CHECK(fd_core_param_write(&core, FD_PRM_HEARTBEAT_TIMEOUT_S, 0.0f) == FD_PA_OK);
+    send_arm(1, FD_ARM_KEY, 0, 1);
+    period();
+    send_ref(0, 1.0f, 1);
+    period();
+    period();
+    CHECK(sil.pwm_enable == 1);
+    core.prm[FD_PRM_CUR_KP] = NAN;
+    send_ref((uint16_t)(core.k - 1u), 1.0f, 1);
+    period(); /* the loop computes a NaN duty for the next period */
+    send_ref((uint16_t)(core.k - 1u), 1.0f, 1);
+    period();
+    drain();
+    CHECK(core.fault_code == FD_FAULT_INTERNAL && sil.pwm_enable == 0);
+    for (int j = 0; j < 3; ++j) {
+        CHECK(sil.pwm_compare[j] == 25000u);
+    }
+}
+
+static void test_heartbeat_from_arming(void)
+{
+    setup(1);
+    period();
+    run_armed(); /* armed in period 1 at 100 us, no heartbeat ever: supervised from there */
+    while (!core.fault_latched && core.k < 6000u) {
+        send_duty((uint16_t)(core.k - 1u), 0.5f, 1);
+        period();
+        drain();
+    }
+    CHECK(core.fault_code == FD_FAULT_HOST_HEARTBEAT_LOST && core.k - 1u == 1u + 5001u);
+    CHECK(sil.pwm_enable == 0);
+}
+
+static void test_reference_from_arming(void)
+{
+    setup(1);
+    send_arm(1, FD_ARM_KEY, 0, 1);
+    period(); /* armed in split mode in period 0; no HOST_REF ever */
+    while (!core.fault_latched && core.k < 300u) {
+        period();
+    }
+    CHECK(core.fault_code == FD_FAULT_WATCHDOG && core.k - 1u == 101u);
+}
+
+static void test_max_duty(void)
+{
+    setup(1);
+    send_arm(1, FD_ARM_KEY, 0, 0);
+    period();
+    struct fd_can_duty_cmd_t m;
+    uint8_t b[8];
+    fd_can_duty_cmd_init(&m);
+    m.cmd_seq = 0;
+    m.cmd_duty_a = fd_can_duty_cmd_cmd_duty_a_encode(1.0f); /* full on: refused at 0.95 */
+    m.cmd_duty_b = fd_can_duty_cmd_cmd_duty_b_encode(0.5f);
+    m.cmd_duty_c = fd_can_duty_cmd_cmd_duty_c_encode(0.2f);
+    m.cmd_enable = 1;
+    CHECK(fd_can_duty_cmd_pack(b, &m, 8) == 8);
+    push(FD_CAN_DUTY_CMD_FRAME_ID, b, 8, 0);
+    period();
+    /* shifted down by 0.05 together (line voltages kept): 0.95, 0.45, 0.15 of 50000 */
+    CHECK(sil.pwm_enable == 1 && sil.pwm_compare[0] == 47500u);
+    CHECK(sil.pwm_compare[1] == 22500u && sil.pwm_compare[2] == 7500u);
+    m.cmd_seq = 1;
+    m.cmd_duty_c = fd_can_duty_cmd_cmd_duty_c_encode(0.0f); /* no room below: clamped */
+    CHECK(fd_can_duty_cmd_pack(b, &m, 8) == 8);
+    push(FD_CAN_DUTY_CMD_FRAME_ID, b, 8, 0);
+    period();
+    CHECK(sil.pwm_compare[0] == 47500u && sil.pwm_compare[1] == 25000u);
+    CHECK(sil.pwm_compare[2] == 0u && core.stats.duty_limited == 2u);
+    CHECK(fd_core_param_write(&core, FD_PRM_MAX_DUTY, 0.4f) == FD_PA_OUT_OF_RANGE);
+}
+
+static void test_bootstrap(void)
+{
+    fd_config_t cfg;
+    fd_config_default(&cfg); /* 10 bootstrap periods */
+    fd_sil_init(&sil);
+    fd_core_init(&core, &cfg, &sil);
+    send_arm(1, FD_ARM_KEY, 0, 0);
+    period();
+    int boot = 0;
+    for (int i = 0; i < 20; ++i) {
+        send_duty((uint16_t)(core.k - 1u), 0.6f, 1);
+        period();
+        if (sil.pwm_enable && sil.pwm_compare[0] == 0u && sil.pwm_compare[1] == 0u) {
+            CHECK(i == boot); /* the first enabled periods, consecutively */
+            boot++;
+        } else {
+            CHECK(sil.pwm_enable == 1 && sil.pwm_compare[0] == 30000u);
+        }
+    }
+    CHECK(boot == 10);
+    /* a fresh arming charges again; PWM on without re-arming does not */
+    send_duty((uint16_t)(core.k - 1u), 0.6f, 0);
+    period();
+    send_duty((uint16_t)(core.k - 1u), 0.6f, 1);
+    period();
+    CHECK(sil.pwm_enable == 1 && sil.pwm_compare[0] == 30000u);
+}
+
+/* references with an age and an order */
+static void test_reference_age(void)
+{
+    setup(1);
+    CHECK(fd_core_param_write(&core, FD_PRM_HEARTBEAT_TIMEOUT_S, 0.0f) == FD_PA_OK);
+    CHECK(fd_core_param_write(&core, FD_PRM_REF_TIMEOUT_S, 10.0f) == FD_PA_OK);
+    send_arm(1, FD_ARM_KEY, 0, 1);
+    for (int i = 0; i < 1200; ++i) {
+        period();
+    }
+    /* 100 ms old (1000 periods) and 5 periods ahead of the drive: refused, counted */
+    send_ref((uint16_t)(core.k - 1000u), 1.0f, 1);
+    send_ref((uint16_t)(core.k + 5u), 1.0f, 1);
+    period();
+    CHECK(core.stats.ref_old == 1u && core.stats.ref_future == 1u);
+    CHECK(core.stats.refs_applied == 0u && !core.pwm_enabled);
+    /* 60 references each 100 ms old: none applied */
+    for (int i = 0; i < 60; ++i) {
+        send_ref((uint16_t)(core.k - 1000u), 1.0f, 1);
+        period();
+    }
+    CHECK(core.stats.ref_old == 61u && core.stats.refs_applied == 0u);
+    /* a fresh one is taken; then none: the extrapolation ends at the horizon (200
+     * periods after the reference's sample) with STALE_INPUT, before the 10 s timeout */
+    uint32_t j = core.k - 1u;
+    send_ref((uint16_t)j, 1.0f, 1);
+    period();
+    CHECK(core.pwm_enabled && core.stats.refs_applied == 1u);
+    n_fault = 0;
+    while (!core.fault_latched && core.k < j + 1000u) {
+        period();
+        drain();
+    }
+    CHECK(core.fault_code == FD_FAULT_STALE_INPUT && core.k - 1u == j + 201u);
+    CHECK(n_fault == 1 && last_fault.fault_detail == 201u && sil.pwm_enable == 0);
+}
+
+/* the 16-bit sequence wrap in split mode: references across 65535 -> 0 are taken, the
+ * angle extrapolates continuously */
+static void test_seq_wrap(void)
+{
+    setup(1);
+    CHECK(fd_core_param_write(&core, FD_PRM_HEARTBEAT_TIMEOUT_S, 0.0f) == FD_PA_OK);
+    core.k = 65500u;
+    core.next_status_k = 65500u;
+    core.t_us = 65500u * 100u;
+    send_arm(1, FD_ARM_KEY, 0, 1);
+    period();
+    float prev = 0.0f;
+    int jumps = 0;
+    for (int i = 0; i < 100; ++i) {
+        struct fd_can_host_ref_t m;
+        uint8_t b[12];
+        fd_can_host_ref_init(&m);
+        uint16_t seq = (uint16_t)(core.k - 1u);
+        m.ref_seq = seq;
+        m.ref_iq = fd_can_host_ref_ref_iq_encode(1.0f);
+        /* theta(t_j) of a 50 rad/s frame, omega 50 rad/s */
+        float th = fmodf(50.0f * (float)(core.k - 1u) * 1.0e-4f, 6.2831853f);
+        m.ref_theta = fd_can_host_ref_ref_theta_encode(th);
+        m.ref_omega = fd_can_host_ref_ref_omega_encode(50.0f);
+        m.ref_enable = 1;
+        CHECK(fd_can_host_ref_pack(b, &m, 12) == 12);
+        push(FD_CAN_HOST_REF_FRAME_ID, b, 12, 1);
+        period();
+        if (i > 2) {
+            float d = core.theta_used - prev;
+            d = d - 6.2831853f * floorf((d + 3.14159265f) / 6.2831853f);
+            jumps += fabsf(d - 50.0f * 1.0e-4f) > 2.0e-3f;
+        }
+        prev = core.theta_used;
+    }
+    CHECK(core.k == 65601u && !core.fault_latched && core.stats.refs_applied == 100u);
+    CHECK(core.stats.ref_old == 0u && core.stats.ref_future == 0u && jumps == 0);
+}
+
+/* the 32-bit period counter wrap (4.97 days at 10 kHz): STATUS stays at 10 Hz, commands
+ * keep being taken, no fault */
+static void test_period_wrap(void)
+{
+    setup(1);
+    CHECK(fd_core_param_write(&core, FD_PRM_HEARTBEAT_TIMEOUT_S, 0.0f) == FD_PA_OK);
+    core.k = 0xFFFFFFFFu - 1500u;
+    core.next_status_k = core.k;
+    run_armed();
+    uint32_t status0 = 0;
+    uint32_t id, len, fdf;
+    uint8_t b[64];
+    for (int i = 0; i < 3000; ++i) {
+        send_duty((uint16_t)(core.k - 1u), 0.5f, 1);
+        period();
+        while (fd_sil_tx_pop(&sil, &id, b, &len, &fdf)) {
+            status0 += id == FD_CAN_STATUS_FRAME_ID;
+        }
+    }
+    CHECK(core.k < 2000u && !core.fault_latched && core.pwm_enabled);
+    CHECK(status0 == 3u); /* 3000 periods at one STATUS per 1000 */
+    CHECK(core.stats.duty_applied == 3004u && core.stats.stale_periods == 0u);
+}
+
 int main(void)
 {
     test_arm_key();
@@ -360,6 +684,16 @@ int main(void)
     test_params();
     test_reference_timeout();
     test_host_heartbeat();
+    test_fault_injection();
+    test_board_caps();
+    test_nan_bus();
+    test_heartbeat_from_arming();
+    test_reference_from_arming();
+    test_max_duty();
+    test_bootstrap();
+    test_reference_age();
+    test_seq_wrap();
+    test_period_wrap();
     if (failures) {
         fprintf(stderr, "fd_core_test: %d check(s) failed\n", failures);
         return 1;

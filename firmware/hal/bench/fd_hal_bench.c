@@ -44,3 +44,7 @@ bool fd_hal_can_rx(void *hal, fd_can_frame_t *frame)
 }
 
 uint32_t fd_hal_time_us(void *hal) { return ((fd_bench_hal_t *)hal)->time_us; }
+
+void fd_hal_status_read(void *hal, fd_hal_status_t *out) { *out = ((fd_bench_hal_t *)hal)->hw; }
+
+bool fd_hal_period_overrun(void *hal) { return ((fd_bench_hal_t *)hal)->overrun != 0u; }

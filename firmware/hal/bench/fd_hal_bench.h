@@ -22,6 +22,8 @@ typedef struct {
     uint32_t rx_head, rx_tail;
     fd_can_frame_t tx[FD_BENCH_QUEUE];
     uint32_t tx_head;
+    fd_hal_status_t hw;  /* power-stage / CAN status (all clear on the bench) */
+    uint32_t overrun;    /* what fd_hal_period_overrun answers (0 on the bench) */
 } fd_bench_hal_t;
 
 /** Queue a frame for the core (0 if full). */

@@ -22,6 +22,33 @@ void fd_sil_set_inputs(fd_sil_t *s, const int32_t current_counts[3], int32_t vdc
     s->cap.period_ticks = period_ticks;
     s->cap.encoder_counts = encoder_counts;
     s->time_us = time_us;
+    if (s->break_counts > 0) { /* the comparator trips as the reading crosses: instant */
+        for (int j = 0; j < 3; ++j) {
+            int32_t x = current_counts[j] - s->break_mid;
+            if (x >= s->break_counts || x <= -s->break_counts) {
+                s->break_latched = 1;
+                s->hw.break_event = 1;
+            }
+        }
+    }
+}
+
+static uint8_t sat8(int32_t x) { return (uint8_t)(x < 0 ? 0 : (x > 255 ? 255 : x)); }
+
+void fd_sil_inject(fd_sil_t *s, int32_t gate_fault, int32_t can_tec, int32_t can_rec,
+                   int32_t can_bus_off, int32_t overrun)
+{
+    s->hw.gate_fault = (uint8_t)(gate_fault != 0);
+    s->hw.can_tec = sat8(can_tec);
+    s->hw.can_rec = sat8(can_rec);
+    s->hw.can_bus_off = (uint8_t)(can_bus_off != 0);
+    s->overrun_next = overrun != 0;
+}
+
+void fd_sil_set_break(fd_sil_t *s, int32_t mid_counts, int32_t threshold_counts)
+{
+    s->break_mid = mid_counts;
+    s->break_counts = threshold_counts;
 }
 
 void fd_sil_set_time(fd_sil_t *s, uint32_t time_us) { s->time_us = time_us; }
@@ -80,13 +107,31 @@ void fd_hal_adc_read(void *hal, fd_adc_raw_t *out) { *out = ((fd_sil_t *)hal)->a
 
 void fd_hal_capture_read(void *hal, fd_capture_raw_t *out) { *out = ((fd_sil_t *)hal)->cap; }
 
+void fd_hal_status_read(void *hal, fd_hal_status_t *out)
+{
+    fd_sil_t *s = (fd_sil_t *)hal;
+    *out = s->hw;
+    s->hw.break_event = 0; /* an event flag: cleared by reading (BKIF) */
+}
+
 void fd_hal_pwm_write(void *hal, const uint32_t compare[3], bool enable)
 {
     fd_sil_t *s = (fd_sil_t *)hal;
     for (int j = 0; j < 3; ++j) {
         s->pwm_compare[j] = compare[j];
     }
-    s->pwm_enable = enable ? 1 : 0;
+    if (!enable) {
+        s->break_latched = 0; /* the core has seen it: the next enable sets MOE again */
+    }
+    s->pwm_enable = enable && !s->break_latched ? 1 : 0;
+}
+
+bool fd_hal_period_overrun(void *hal)
+{
+    fd_sil_t *s = (fd_sil_t *)hal;
+    bool late = s->overrun_next != 0;
+    s->overrun_next = 0;
+    return late;
 }
 
 bool fd_hal_can_tx(void *hal, const fd_can_frame_t *frame)

@@ -54,9 +54,12 @@ PARAM_IDS: dict[str, int] = {
     "CUR_KP": 1, "CUR_KI": 2, "L_HAT": 3, "LAMBDA_HAT": 4, "DECOUPLE": 5,
     "VOLTAGE_ADVANCE": 6, "DEADTIME_COMP_S": 7, "CUR_LIMIT_A": 8, "REF_TIMEOUT_S": 9,
     "OVERCURRENT_A": 10, "I2T_LIMIT_PU2S": 11, "RATED_CURRENT_A": 12, "VDC_MIN_V": 13,
-    "VDC_MAX_V": 14, "HEARTBEAT_TIMEOUT_S": 15, "POLE_PAIRS": 16,
+    "VDC_MAX_V": 14, "HEARTBEAT_TIMEOUT_S": 15, "POLE_PAIRS": 16, "MAX_DUTY": 17,
 }  # fmt: skip
 """DRIVE_PARAM prm_id by name (the DBC's value table; tests check they agree)."""
+DRIVE_ONLY_PARAMS = ("MAX_DUTY",)
+"""DRIVE_PARAMs the drive keeps at its own default unless written (not in the engine's
+``DRIVE_PARAM_RANGES``): MAX_DUTY, the largest upper-switch duty (default 0.95)."""
 PA_STATUS = ("OK", "UNKNOWN_PARAM", "OUT_OF_RANGE", "NOT_WHILE_RUNNING", "NOT_FINITE", "READ_ONLY")
 
 
@@ -128,13 +131,23 @@ class _Config(ctypes.Structure):
         ("pwm_period_ticks", ctypes.c_uint32),
         ("cmd_timeout_us", ctypes.c_uint32),
         ("status_period", ctypes.c_uint32),
+        ("current_adc_max_counts", ctypes.c_int32),
+        ("oc_limit_a", ctypes.c_float),
+        ("vdc_max_v", ctypes.c_float),
+        ("vdc_min_v", ctypes.c_float),
+        ("vdc_modulation_min_v", ctypes.c_float),
+        ("temp_max_c", ctypes.c_int32),
+        ("temp_hysteresis_c", ctypes.c_int32),
+        ("bootstrap_periods", ctypes.c_uint32),
+        ("ref_max_age_periods", ctypes.c_uint32),
+        ("ref_horizon_periods", ctypes.c_uint32),
     ]
 
 
 _STAT_NAMES = (
     "periods", "samples_sent", "duty_rx", "duty_applied", "duty_late", "stale_periods",
     "ref_rx", "arm_rx", "bad_rx", "tx_overruns", "layout_mismatch", "disarm_rx", "faults",
-    "param_rx", "refs_applied",
+    "param_rx", "refs_applied", "ref_old", "ref_future", "adc_clipped", "duty_limited",
 )  # fmt: skip
 
 
@@ -208,6 +221,8 @@ def _c_signatures() -> dict[str, tuple[Any, list[Any]]]:
         "fd_sil_set_time": (None, [P, U32]),
         "fd_sil_get_pwm": (None, [P, U32P, I32P]),
         "fd_sil_rx_push": (ctypes.c_int, [P, U32, U8P, U32, U32]),
+        "fd_sil_inject": (None, [P, I32, I32, I32, I32, I32]),
+        "fd_sil_set_break": (None, [P, I32, I32]),
         "fd_sil_tx_pop": (ctypes.c_int, [P, U32P, U8P, U32P, U32P]),
         # state, params, i_alpha, i_beta, th, we, id_ref, iq_ref, vdc, ts, out
         "fd_current_loop": (
@@ -279,6 +294,7 @@ class FirmwareCore:
         classic: bool = False,
         cmd_timeout_s: float = 1e-3,
         pwm_period_ticks: int = 50_000,
+        bootstrap_periods: int = 0,
     ) -> None:
         self.lib = load_library()
         self.scales = sensor_scales(mp)
@@ -300,6 +316,20 @@ class FirmwareCore:
         cfg.pwm_period_ticks = int(pwm_period_ticks)
         cfg.cmd_timeout_us = int(round(cmd_timeout_s * 1e6))
         cfg.status_period = int(round(0.1 / self.ts))
+        # the board limits of the plant's sensors: over-current cap 5 % below the current
+        # ADC's full scale, bus over-voltage 2 % below the bus ADC's, no duty below 5 % of
+        # it; the under-voltage trip is the host's VDC_MIN_V (the plant has no stage rating)
+        mid = self.scales.current_mid_counts
+        cfg.current_adc_max_counts = 2 * mid
+        full_a = mid * self.scales.current_lsb_a
+        bus_v = float(mp[pl.MP_VDC_RANGE])
+        cfg.oc_limit_a = 0.95 * full_a
+        cfg.vdc_max_v = 0.98 * bus_v
+        cfg.vdc_min_v = 0.0
+        cfg.vdc_modulation_min_v = 0.05 * bus_v
+        # no bootstrap charge unless asked: the Python reference MCU has none, and the
+        # tests compare the two sample for sample
+        cfg.bootstrap_periods = int(bootstrap_periods)
         self.config = cfg
         self.pwm_period_ticks = int(pwm_period_ticks)
         self._sil = _buffer(int(self.lib.fd_sil_sizeof()))
@@ -348,6 +378,30 @@ class FirmwareCore:
             int(temp_c),
             int(time_us) & 0xFFFFFFFF,
         )
+
+    def inject(
+        self,
+        *,
+        gate_fault: bool = False,
+        can_tec: int = 0,
+        can_rec: int = 0,
+        can_bus_off: bool = False,
+        overrun: bool = False,
+    ) -> None:
+        """Fault injection into the SIL HAL: the gate driver's fault input, the CAN
+        controller's error counters and bus-off state (held until the next call), and a
+        missed deadline reported at the end of the next period interrupt."""
+        self.lib.fd_sil_inject(
+            self._sil, int(gate_fault), int(can_tec), int(can_rec), int(can_bus_off), int(overrun)
+        )
+
+    def set_break(self, threshold_a: float) -> None:
+        """The hardware over-current comparator (into the timer's break input) at
+        ``threshold_a`` on any phase (0: none): the period whose reading crosses it runs
+        with the gates open, and the core latches OVERCURRENT."""
+        s = self.scales
+        counts = int(round(threshold_a / s.current_lsb_a)) if threshold_a > 0.0 else 0
+        self.lib.fd_sil_set_break(self._sil, s.current_mid_counts, counts)
 
     def set_time(self, time_us: int) -> None:
         self.lib.fd_sil_set_time(self._sil, int(time_us) & 0xFFFFFFFF)
