@@ -60,6 +60,19 @@ def check_mcap(bag: Path) -> dict[str, int]:
                 assert decoded.seq >= 0
         chans = summary.channels
         assert all("offered_qos_profiles" in c.metadata for c in chans.values())
+        # rosbag2's MCAP storage (Jazzy) names each channel's type by its RIHS01 hash
+        from fluxdrive.io.bagio import typestore
+
+        store = typestore()
+        for c in chans.values():
+            schema = summary.schemas[c.schema_id].name
+            assert c.metadata.get("topic_type_hash") == store.hash_rihs01(schema), c.topic
+        # the bag spans its data: its first message (the settings) is at the first frame
+        first_frame = min(
+            m.log_time
+            for _s, ch, m in reader.iter_messages(topics=["/drive/frame"], log_time_order=True)
+        )
+        assert summary.statistics.message_start_time == first_frame
         meta = {m.name for m in reader.iter_metadata()}
         assert {"rosbag2", "fluxdrive"} <= meta
     from mcap.records import Chunk, Message

@@ -50,6 +50,7 @@ from fluxdrive.io.topics import (
     T_STRING,
     T_TRUTH,
     TRUTH,
+    offered_lifespan_s,
     offered_qos,
 )
 
@@ -118,7 +119,8 @@ class _McapStorage:
             connection.topic,
             "cdr",
             self.schema_ids[connection.msgtype],
-            {"offered_qos_profiles": offered_qos_profiles},
+            # what rosbag2's MCAP storage (Jazzy) puts beside the QoS: the type's RIHS01 hash
+            {"offered_qos_profiles": offered_qos_profiles, "topic_type_hash": connection.digest},
         )
 
     def write(self, connection: Any, timestamp: int, data: bytes | memoryview) -> None:
@@ -160,6 +162,8 @@ def _qos(topic: str) -> list:
 
     depth, durability = offered_qos(topic)
     inf = QosTime(sec=9223372036, nsec=854775807)  # rmw's "infinite", as rosbag2 records it
+    life_s = offered_lifespan_s(topic)
+    lifespan = inf if life_s is None else QosTime(sec=int(life_s), nsec=0)
     return [
         Qos(
             QosHistory.KEEP_LAST,
@@ -169,7 +173,7 @@ def _qos(topic: str) -> list:
             if durability == "transient_local"
             else QosDurability.VOLATILE,
             inf,
-            inf,
+            lifespan,
             QosLiveliness.AUTOMATIC,
             inf,
             False,
@@ -216,12 +220,18 @@ class BagWriter:
         self.storage.records[META_KEY] = {META_KEY: text}
         self.conns: list[Any] = []
         self._channel_of = np.zeros(0, np.int64)  # connection id -> MCAP channel id
-        cid = self.add_connection(SETTINGS, T_STRING)
-        self.w.write(
-            self.conns[cid],
-            int(self.settings["epoch_offset_ns"]),  # at t = 0
-            self.store.serialize_cdr(self.store.types[T_STRING](data=text), T_STRING),
+        self._settings_cid = self.add_connection(SETTINGS, T_STRING)
+        self._settings_msg: bytes | None = self.store.serialize_cdr(
+            self.store.types[T_STRING](data=text), T_STRING
         )
+
+    def _settings_at(self, t_log_ns: int) -> None:
+        """The settings message, once, at the time of the bag's first data message: a bag
+        cut out of a run (a sample bag, a scope capture) then spans its data, as rosbag2
+        would record it, not seconds of nothing from t = 0."""
+        msg, self._settings_msg = self._settings_msg, None
+        if msg is not None:
+            self.w.write(self.conns[self._settings_cid], int(t_log_ns), msg)
 
     def add_connection(self, topic: str, msgtype: str, store: Any = None) -> int:
         """A topic (`store`: a typestore for a type that is not the project's); returns its
@@ -237,6 +247,8 @@ class BagWriter:
         return len(self.conns) - 1
 
     def write(self, cid: int, t_ns: int, data: bytes | memoryview) -> None:
+        if self._settings_msg is not None:
+            self._settings_at(t_ns + self.offset)
         self.w.write(self.conns[cid], t_ns + self.offset, data)
 
     def write_many(
@@ -252,6 +264,8 @@ class BagWriter:
             ids = self.storage.channel_ids
             self._channel_of = np.array([ids[c.id] for c in self.conns], np.int64)
         t = np.asarray(t_ns, np.int64) + self.offset
+        if self._settings_msg is not None:
+            self._settings_at(int(t.min()))
         size = np.asarray(size, np.int64)
         self.storage.file.add_many(
             src, np.asarray(first, np.int64), size, self._channel_of[cids], t
@@ -268,6 +282,7 @@ class BagWriter:
         self.storage.flush(sync)
 
     def close(self) -> None:
+        self._settings_at(self.offset)  # a bag without data: the settings at t = 0
         self.w.close()
         meta = self.path / "metadata.yaml"
         meta.write_text(_distro(meta.read_text()))

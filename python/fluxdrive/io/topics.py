@@ -49,14 +49,27 @@ SETTINGS = "/fluxdrive/settings"  # std_msgs/String, JSON, one message at the st
 # (offered_qos_profiles) so a playback offers the same: (history depth, durability); all
 # reliable, keep-last.
 SAMPLE_DEPTH = 10000
+# shared by every node of the domain (rcl's and fluxdrive_ros.diagnostics' publishers)
+ROSOUT = "/rosout"  # rcl_interfaces/Log
+DIAGNOSTICS = "/diagnostics"  # diagnostic_msgs/DiagnosticArray
 OFFERED_QOS: dict[str, tuple[int, str]] = {
     DONE: (1, "transient_local"),  # latched: a late reader still gets the end of the run
     SETTINGS: (1, "transient_local"),
     MARKER: (100, "transient_local"),
     FAULT: (100, "transient_local"),
+    # rcl's rosout profile: the last 1000 lines, kept 10 s, for late readers (a recorder
+    # that starts after the nodes still gets their first lines)
+    ROSOUT: (1000, "transient_local"),
+    DIAGNOSTICS: (10, "volatile"),  # fluxdrive_ros.diagnostics.QOS
 }
+OFFERED_LIFESPAN_S: dict[str, float] = {ROSOUT: 10.0}  # others: infinite
 SAMPLE_QOS = (SAMPLE_DEPTH, "transient_local")  # every per-sample topic and /clock
 
 
 def offered_qos(topic: str) -> tuple[int, str]:
     return OFFERED_QOS.get(topic, SAMPLE_QOS)
+
+
+def offered_lifespan_s(topic: str) -> float | None:
+    """The lifespan a topic's publishers offer [s]; None: infinite."""
+    return OFFERED_LIFESPAN_S.get(topic)

@@ -22,15 +22,16 @@ from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from fluxdrive.core.schema import param as schema_param
+from fluxdrive.io.topics import DIAGNOSTICS, OFFERED_QOS
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from .params import P, config_params
 
-TOPIC = "/diagnostics"
+TOPIC = DIAGNOSTICS
 OK, WARN, ERROR = 0, 1, 2  # DiagnosticStatus.level (a byte in the message)
 LEVEL_NAMES = {OK: "OK", WARN: "WARN", ERROR: "ERROR"}
 QOS = QoSProfile(
-    depth=10,
+    depth=OFFERED_QOS[DIAGNOSTICS][0],  # what bags record as offered (one definition)
     reliability=ReliabilityPolicy.RELIABLE,
     history=HistoryPolicy.KEEP_LAST,
     durability=DurabilityPolicy.VOLATILE,

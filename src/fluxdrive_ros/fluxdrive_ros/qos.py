@@ -80,3 +80,14 @@ MARKERS = QoSProfile(
 # /clock: written like the samples (reliable, deep, transient-local) so that the recorder
 # keeps every tick; compatible with the usual clock readers (best effort or reliable, depth 1)
 CLOCK = SAMPLES
+
+
+# /rosout as rcl's publishers offer it (fluxdrive.io.topics.OFFERED_QOS): a transient-local
+# reader gets each node's last lines (kept 10 s) from before it matched, so a recorder that
+# starts after the nodes still records their start-up lines
+ROSOUT_READER = QoSProfile(
+    depth=1000,
+    reliability=ReliabilityPolicy.RELIABLE,
+    history=HistoryPolicy.KEEP_LAST,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)

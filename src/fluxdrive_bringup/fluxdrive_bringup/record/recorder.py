@@ -71,8 +71,8 @@ from fluxdrive_ros import qos, topics
 
 # the domain-wide topics of every ROS graph: the recorder keeps what its own drive's nodes
 # published (namespaced drive: names under its namespace; see _own_drive)
-DIAGNOSTICS = "/diagnostics"  # diagnostic_msgs/DiagnosticArray, every node, 1 Hz
-ROSOUT = "/rosout"  # rcl_interfaces/Log: every node's log lines
+DIAGNOSTICS = topics.DIAGNOSTICS  # diagnostic_msgs/DiagnosticArray, every node, 1 Hz
+ROSOUT = topics.ROSOUT  # rcl_interfaces/Log: every node's log lines
 T_DIAGNOSTICS = "diagnostic_msgs/msg/DiagnosticArray"
 T_LOG = "rcl_interfaces/msg/Log"
 # relative names: the recorder's drive namespace (`__ns:=/a` records /a/drive/frame); the
@@ -380,7 +380,7 @@ class RecorderNode(FluxNode):
             topics.MARKER: qos.MARKERS,
             topics.FAULT: qos.MARKERS,
             DIAGNOSTICS: qos.WATCH,
-            ROSOUT: qos.WATCH,
+            ROSOUT: qos.ROSOUT_READER,
         }.get(topic, qos.reader(self.pv["input_durability"]))
         buf = self.buf
         counts = self.counts
