@@ -494,6 +494,7 @@ def test_drive_param_ranges_are_the_engines(lib):
     for name in fw.PARAM_IDS:
         value = drive.core.param_read(name)
         want = "NOT_WHILE_RUNNING" if name in ctl.DRIVE_PARAMS_STOPPED else "OK"
+        want = "READ_ONLY" if name in fw.READ_ONLY_PARAMS else want
         assert drive.core.param_write(name, value) == want, name
 
 
@@ -658,3 +659,54 @@ def test_decimated_samples_match_the_python_emulator(db, layout, decimation):
     pwm = [db.decode_message(ids[-1], p, decode_choices=False) for p in sent["c"][ids[-1]]]
     key = "pwm_enabled" if layout == "fd" else "c_pwm_enabled"
     assert sum(int(p[key]) for p in pwm) > 0.9 * len(pwm)  # PWM on: averages of real windows
+
+
+def test_sil_calibration_removes_injected_current_offsets(db):
+    """A drive that requires calibration refuses to arm (FAULT NOT_CALIBRATED); CALIBRATE_ADC
+    with the plant's readings carrying 0.3 A / -0.2 A / 0.1 A of offset (PWM off, no
+    current) averages 1000 periods, reports the offsets as read-only DRIVE_PARAMs (whole
+    ADC counts here: the offsets are quantised readings), and afterwards the same readings
+    are sampled as 0 A; arming then works."""
+    _, mp = _card_mp()
+    core = fw.FirmwareCore(mp, require_calibration=True)
+    arm_msg = db.get_message_by_name("ARM_MODE")
+
+    def arm(mode: int, arm_: int = 1, reset: int = 0) -> can.Message:
+        data = arm_msg.encode(
+            {"arm": arm_, "arm_key": ARM_KEY, "reset_fault": reset, "sample_layout": 0,
+             "control_split": 0, "mode": mode, "cmd_timeout": 0, "decimation": 1,
+             "arm_counter": 0}
+        )  # fmt: skip
+        return can.Message(arbitration_id=arm_msg.frame_id, data=data, is_extended_id=False)
+
+    lsb = core.scales.current_lsb_a
+    offsets = np.array([0.3, -0.2, 0.1])
+    frame = np.zeros(pl.FR_N)
+    frame[pl.FR_IA : pl.FR_IC + 1] = _quantise(offsets, lsb)
+    frame[pl.FR_VDC] = 72.0
+
+    def run(n: int) -> list[can.Message]:
+        sent = []
+        for _ in range(n):
+            core.set_sample(frame, core.k * 100)
+            core.period()
+            sent += core.pop_tx()
+        return sent
+
+    core.push(arm(1))
+    sent = run(2)
+    faults = [db.decode_message(m.arbitration_id, m.data) for m in sent if m.arbitration_id == 0x10]
+    assert str(faults[0]["fault_code"]) == "NOT_CALIBRATED" and not core.state()["armed"]
+    core.push(arm(2, reset=1))
+    run(1001)  # the period taking the request, then 1000 periods averaged
+    assert core.param_read("CAL_DONE") == 1.0 and not core.state()["fault_latched"]
+    got = np.array([core.param_read(f"CAL_OFFSET_{p}") for p in "ABC"])
+    want = core.scales.current_mid_counts + np.round(offsets / lsb)
+    np.testing.assert_array_equal(got, want)
+    assert core.param_write("CAL_OFFSET_A", 0.0) == "READ_ONLY"
+    sent = run(1)
+    sample = db.decode_message(0x80, [m for m in sent if m.arbitration_id == 0x80][0].data)
+    assert sample["i_a"] == sample["i_b"] == sample["i_c"] == 0.0
+    core.push(arm(1))
+    run(1)
+    assert core.state()["armed"]

@@ -51,6 +51,7 @@ enum {
     FD_FAULT_BAD_COMMAND = 20,
     FD_FAULT_BUS_ERROR = 21,
     FD_FAULT_OVERTEMPERATURE = 22,
+    FD_FAULT_NOT_CALIBRATED = 23,
     FD_FAULT_DEADLINE_MISSED = 24,
     FD_FAULT_INTERNAL = 255
 };
@@ -59,9 +60,19 @@ enum {
 #define FD_OC_DETAIL_BREAK 3u
 
 /* STATUS.st_state */
-enum { FD_ST_BOOT = 0, FD_ST_IDLE = 1, FD_ST_ARMED = 2, FD_ST_RUNNING = 3, FD_ST_FAULT = 4 };
+enum {
+    FD_ST_BOOT = 0,
+    FD_ST_IDLE = 1,
+    FD_ST_ARMED = 2,
+    FD_ST_RUNNING = 3,
+    FD_ST_FAULT = 4,
+    FD_ST_CALIBRATING = 5
+};
 /* ARM_MODE.mode / SAMPLE_FD.mode */
-enum { FD_MODE_IDLE = 0, FD_MODE_RUN = 1 };
+enum { FD_MODE_IDLE = 0, FD_MODE_RUN = 1, FD_MODE_CALIBRATE_ADC = 2 };
+/* FAULT.fault_detail of ADC_FAULT from a failed offset calibration: this bit, the phase in
+ * bits 0-1, |offset - nominal| in counts in bits 2-14 (saturated) */
+#define FD_ADC_DETAIL_CALIBRATION 0x8000u
 
 /* DRIVE_PARAM prm_id (DBC value table) */
 enum {
@@ -82,7 +93,15 @@ enum {
     FD_PRM_HEARTBEAT_TIMEOUT_S = 15,
     FD_PRM_POLE_PAIRS = 16,
     FD_PRM_MAX_DUTY = 17,
-    FD_PRM_COUNT = 18 /* ids 1..17; index 0 unused */
+    /* read-only: the offset calibration's result (ARM_MODE.mode CALIBRATE_ADC) */
+    FD_PRM_CAL_OFFSET_A = 18,    /* current ADC result at 0 A, phase a [counts] */
+    FD_PRM_CAL_OFFSET_B = 19,
+    FD_PRM_CAL_OFFSET_C = 20,
+    FD_PRM_CAL_CAPTURE_AB = 21,  /* capture high ticks with PWM off, v_ab [ticks] */
+    FD_PRM_CAL_CAPTURE_BC = 22,
+    FD_PRM_CAL_CAPTURE_CA = 23,
+    FD_PRM_CAL_DONE = 24,        /* 1: calibrated since boot */
+    FD_PRM_COUNT = 25 /* ids 1..24; index 0 unused */
 };
 /* DRIVE_PARAM_ACK pa_status */
 enum {
@@ -120,6 +139,10 @@ typedef struct {
     uint32_t bootstrap_periods;  /* low sides on before the first switching period */
     uint32_t ref_max_age_periods; /* HOST_REF older than this at reception: refused */
     uint32_t ref_horizon_periods; /* extrapolation beyond this: fault STALE_INPUT */
+    /* ---- offset calibration (ARM_MODE.mode CALIBRATE_ADC, PWM off) */
+    uint32_t cal_periods;          /* periods averaged (at most 65536) */
+    int32_t cal_max_offset_counts; /* |offset - current_offset_counts| beyond: ADC_FAULT */
+    uint8_t require_calibration;   /* 1: arming an uncalibrated drive is NOT_CALIBRATED */
 } fd_config_t;
 
 /** dq current-loop state (the engine's CS_ID_I / CS_IQ_I). */
@@ -226,6 +249,12 @@ typedef struct {
     /* limits in effect (board cap and DRIVE_PARAM, the stricter), updated on a write */
     float oc_trip_a, vdc_max_v, vdc_min_v, max_duty;
     float ticks_f;              /* pwm_period_ticks as float */
+    /* offset calibration */
+    uint8_t calibrating, cal_valid, cal_req_prev;
+    uint32_t cal_n;
+    int32_t cal_sum_i[3], cal_sum_cap[3];
+    float cur_off[3]; /* current offsets in effect [counts] (nominal until calibrated) */
+    float cap_off[3]; /* capture offsets in effect [ticks] */
     float inv_ticks;            /* 1 / pwm_period_ticks */
     uint16_t applied_seq;
     uint32_t last_cmd_k, last_ref_k;

@@ -37,6 +37,7 @@ static uint16_t encode_unsigned(float value, float scale)
 typedef struct {
     float lo, hi, dflt;
     uint8_t not_while_running;
+    uint8_t read_only;
 } prm_spec_t;
 
 /* ranges in SI units (DBC prm_id value table): the engine's DRIVE_PARAM_RANGES and
@@ -62,6 +63,14 @@ static const prm_spec_t PRM_SPEC[FD_PRM_COUNT] = {
     /* drive-only: the largest upper-switch duty, so every period keeps a low-side window
      * for shunt sampling and bootstrap recharge (0.95 of 100 us: 5 us) */
     [FD_PRM_MAX_DUTY] = {0.5f, 1.0f, 0.95f, 0},
+    /* the calibration's result, read-only */
+    [FD_PRM_CAL_OFFSET_A] = {0.0f, 0.0f, 0.0f, 0, 1},
+    [FD_PRM_CAL_OFFSET_B] = {0.0f, 0.0f, 0.0f, 0, 1},
+    [FD_PRM_CAL_OFFSET_C] = {0.0f, 0.0f, 0.0f, 0, 1},
+    [FD_PRM_CAL_CAPTURE_AB] = {0.0f, 0.0f, 0.0f, 0, 1},
+    [FD_PRM_CAL_CAPTURE_BC] = {0.0f, 0.0f, 0.0f, 0, 1},
+    [FD_PRM_CAL_CAPTURE_CA] = {0.0f, 0.0f, 0.0f, 0, 1},
+    [FD_PRM_CAL_DONE] = {0.0f, 0.0f, 0.0f, 0, 1},
 };
 
 static float minf2(float a, float b) { return a < b ? a : b; }
@@ -108,6 +117,9 @@ int fd_core_param_write(fd_core_t *c, int prm_id, float value)
         return FD_PA_UNKNOWN_PARAM;
     }
     const prm_spec_t *s = &PRM_SPEC[prm_id];
+    if (s->read_only) {
+        return FD_PA_READ_ONLY;
+    }
     if (!isfinite(value)) {
         return FD_PA_NOT_FINITE;
     }
@@ -287,6 +299,8 @@ static void send_status(fd_core_t *c, int32_t temp_c)
     uint8_t state = FD_ST_IDLE;
     if (c->fault_latched) {
         state = FD_ST_FAULT;
+    } else if (c->calibrating) {
+        state = FD_ST_CALIBRATING;
     } else if (c->pwm_enabled) {
         state = FD_ST_RUNNING;
     } else if (c->armed) {
@@ -472,6 +486,64 @@ static void disarm(fd_core_t *c)
     c->mode = FD_MODE_IDLE;
 }
 
+/* ------------------------------------------------------------------ calibration */
+
+/* CALIBRATE_ADC: PWM off (disarmed) for cal_periods periods, the current and capture
+ * readings summed; at the end the offsets are stored, readable as DRIVE_PARAMs
+ * CAL_OFFSET_* / CAL_CAPTURE_* and CAL_DONE, and used from the next sample on. */
+static void start_calibration(fd_core_t *c)
+{
+    disarm(c);
+    c->calibrating = 1;
+    c->mode = FD_MODE_CALIBRATE_ADC;
+    c->cal_n = 0;
+    for (int j = 0; j < 3; ++j) {
+        c->cal_sum_i[j] = 0;
+        c->cal_sum_cap[j] = 0;
+    }
+}
+
+static void calibration_step(fd_core_t *c, const fd_adc_raw_t *adc, const fd_capture_raw_t *cap)
+{
+    for (int j = 0; j < 3; ++j) {
+        c->cal_sum_i[j] += adc->current_counts[j];
+        c->cal_sum_cap[j] += cap->high_ticks[j];
+    }
+    if (c->clip) { /* a saturated reading with the bridge off: the channel is broken */
+        c->calibrating = 0;
+        c->mode = FD_MODE_IDLE;
+        raise_fault(c, FD_FAULT_ADC_FAULT, c->clip_detail);
+        return;
+    }
+    c->cal_n++;
+    uint32_t n = c->cal_n;
+    if (n < c->cfg.cal_periods) {
+        return;
+    }
+    c->calibrating = 0;
+    c->mode = FD_MODE_IDLE;
+    float fn = (float)n; /* divides once per calibration, exact for whole means */
+    float off[3];
+    for (int j = 0; j < 3; ++j) {
+        off[j] = (float)c->cal_sum_i[j] / fn;
+        float dev = fabsf(off[j] - (float)c->cfg.current_offset_counts[j]);
+        if (!(dev <= (float)c->cfg.cal_max_offset_counts)) {
+            uint32_t d = dev < 8191.0f ? (uint32_t)dev : 8191u;
+            raise_fault(c, FD_FAULT_ADC_FAULT,
+                        (uint16_t)(FD_ADC_DETAIL_CALIBRATION | (uint32_t)j | (d << 2)));
+            return;
+        }
+    }
+    for (int j = 0; j < 3; ++j) {
+        c->cur_off[j] = off[j];
+        c->cap_off[j] = (float)c->cal_sum_cap[j] / fn;
+        c->prm[FD_PRM_CAL_OFFSET_A + j] = c->cur_off[j];
+        c->prm[FD_PRM_CAL_CAPTURE_AB + j] = c->cap_off[j];
+    }
+    c->cal_valid = 1;
+    c->prm[FD_PRM_CAL_DONE] = 1.0f;
+}
+
 static void on_arm_mode(fd_core_t *c, const fd_can_frame_t *f)
 {
     struct fd_can_arm_mode_t m;
@@ -496,7 +568,22 @@ static void on_arm_mode(fd_core_t *c, const fd_can_frame_t *f)
         c->ref.valid = 0;
         c->ref_new.valid = 0;
     }
-    if (m.arm && m.arm_key == FD_ARM_KEY && !c->fault_latched) {
+    int cal_req = m.arm && m.arm_key == FD_ARM_KEY && m.mode == FD_MODE_CALIBRATE_ADC;
+    int cal_edge = cal_req && !c->cal_req_prev;
+    c->cal_req_prev = (uint8_t)cal_req;
+    if (c->calibrating && !cal_req) { /* anything else ends a calibration unfinished */
+        c->calibrating = 0;
+        c->mode = FD_MODE_IDLE;
+    }
+    if (cal_req) {
+        if (cal_edge && !c->fault_latched) {
+            start_calibration(c);
+        }
+    } else if (m.arm && m.arm_key == FD_ARM_KEY && !c->fault_latched && c->cfg.require_calibration &&
+               !c->cal_valid) {
+        disarm(c);
+        raise_fault(c, FD_FAULT_NOT_CALIBRATED, 0); /* the refusal, as a FAULT frame */
+    } else if (m.arm && m.arm_key == FD_ARM_KEY && !c->fault_latched) {
         if (!c->armed) {
             /* supervision starts at arming: the heartbeat and split mode's reference
              * timeout count from now, not from a first frame; the first switching period
@@ -806,7 +893,7 @@ static void read_sample(fd_core_t *c)
             }
             clip = 1;
         }
-        c->i_abc[j] = (float)x * c->cfg.current_lsb_a;
+        c->i_abc[j] = ((float)raw - c->cur_off[j]) * c->cfg.current_lsb_a;
     }
     c->clip = clip;
     c->clip_detail = clip_detail;
@@ -814,10 +901,13 @@ static void read_sample(fd_core_t *c)
     c->vdc = (float)adc.vdc_counts * c->cfg.vdc_lsb_v;
     float per = cap.period_ticks > 0 ? (float)cap.period_ticks : 1.0f;
     for (int j = 0; j < 3; ++j) {
-        c->v_ll[j] = (float)cap.high_ticks[j] / per * c->vdc;
+        c->v_ll[j] = ((float)cap.high_ticks[j] - c->cap_off[j]) / per * c->vdc;
     }
     c->encoder = cap.encoder_counts;
     c->temp_c = adc.temp_c;
+    if (c->calibrating) {
+        calibration_step(c, &adc, &cap);
+    }
 }
 
 /* The duties reaching the timer: a non-finite duty is refused (returns 0); each is put in
@@ -987,6 +1077,9 @@ void fd_config_default(fd_config_t *cfg)
     cfg->bootstrap_periods = 10u;      /* 1 ms low sides on before the first switching */
     cfg->ref_max_age_periods = 100u;   /* 10 ms */
     cfg->ref_horizon_periods = 200u;   /* 20 ms of extrapolation at most */
+    cfg->cal_periods = 1000u;          /* 0.1 s with the bridge off */
+    cfg->cal_max_offset_counts = 205;  /* 2 A of a 20 A full scale */
+    cfg->require_calibration = 1u;
 }
 
 void fd_core_init(fd_core_t *c, const fd_config_t *cfg, void *hal)
@@ -1007,6 +1100,13 @@ void fd_core_init(fd_core_t *c, const fd_config_t *cfg, void *hal)
     }
     c->win_pwm = 1;
     c->mode = FD_MODE_IDLE;
+    for (int j = 0; j < 3; ++j) {
+        c->cur_off[j] = (float)c->cfg.current_offset_counts[j];
+        c->cap_off[j] = 0.0f;
+    }
+    if (c->cfg.cal_periods == 0u || c->cfg.cal_periods > 65536u) {
+        c->cfg.cal_periods = c->cfg.cal_periods == 0u ? 1u : 65536u; /* sums fit int32 */
+    }
     c->ticks_f = (float)c->cfg.pwm_period_ticks;
     c->inv_ticks = c->cfg.pwm_period_ticks > 0u ? 1.0f / c->ticks_f : 0.0f;
     update_limits(c);

@@ -31,7 +31,8 @@ static void setup(uint8_t decimation)
     fd_config_t cfg;
     fd_config_default(&cfg);
     cfg.decimation = decimation;
-    cfg.bootstrap_periods = 0u; /* the bootstrap charge has a test of its own */
+    cfg.bootstrap_periods = 0u;   /* the bootstrap charge and the calibration have */
+    cfg.require_calibration = 0u; /* tests of their own */
     fd_sil_init(&sil);
     fd_core_init(&core, &cfg, &sil);
 }
@@ -459,6 +460,7 @@ static void test_nan_bus(void)
     fd_config_t cfg;
     fd_config_default(&cfg);
     cfg.bootstrap_periods = 0u;
+    cfg.require_calibration = 0u;
     cfg.vdc_lsb_v = NAN;
     fd_sil_init(&sil);
     fd_core_init(&core, &cfg, &sil);
@@ -550,6 +552,7 @@ static void test_bootstrap(void)
 {
     fd_config_t cfg;
     fd_config_default(&cfg); /* 10 bootstrap periods */
+    cfg.require_calibration = 0u;
     fd_sil_init(&sil);
     fd_core_init(&core, &cfg, &sil);
     send_arm(1, FD_ARM_KEY, 0, 0);
@@ -674,6 +677,113 @@ static void test_period_wrap(void)
     CHECK(core.stats.duty_applied == 3004u && core.stats.stale_periods == 0u);
 }
 
+/* offset calibration: ARM_MODE mode CALIBRATE_ADC */
+static void send_arm_mode(uint8_t arm, uint8_t mode)
+{
+    struct fd_can_arm_mode_t m;
+    uint8_t b[8];
+    fd_can_arm_mode_init(&m);
+    m.arm = arm;
+    m.arm_key = FD_ARM_KEY;
+    m.mode = mode;
+    m.decimation = core.cfg.decimation;
+    CHECK(fd_can_arm_mode_pack(b, &m, 8) == 8);
+    push(FD_CAN_ARM_MODE_FRAME_ID, b, 8, 0);
+}
+
+static float read_param(uint8_t id)
+{
+    struct fd_can_drive_param_t m;
+    uint8_t b[8];
+    fd_can_drive_param_init(&m);
+    m.prm_id = id;
+    m.prm_seq = id;
+    CHECK(fd_can_drive_param_pack(b, &m, 8) == 8);
+    push(FD_CAN_DRIVE_PARAM_FRAME_ID, b, 8, 0);
+    n_ack = 0;
+    period();
+    drain();
+    CHECK(n_ack == 1 && last_ack.pa_id == id && last_ack.pa_status == FD_PA_OK);
+    return last_ack.pa_value;
+}
+
+static void test_calibration(void)
+{
+    fd_config_t cfg;
+    fd_config_default(&cfg); /* requires calibration, 1000 periods */
+    cfg.bootstrap_periods = 0u;
+    fd_sil_init(&sil);
+    fd_core_init(&core, &cfg, &sil);
+    /* uncalibrated: arming refused with NOT_CALIBRATED, PWM stays off */
+    n_fault = 0;
+    send_arm_mode(1, FD_MODE_RUN);
+    send_duty(0, 0.5f, 1);
+    period();
+    period();
+    drain();
+    CHECK(!core.armed && sil.pwm_enable == 0 && core.fault_code == FD_FAULT_NOT_CALIBRATED);
+    CHECK(n_fault == 1 && last_fault.fault_code == FD_FAULT_NOT_CALIBRATED);
+    send_arm(0, FD_ARM_KEY, 1, 0); /* the refusal resets at once */
+    period();
+    CHECK(!core.fault_latched);
+    /* offsets of +30, -20, +7 counts and a capture offset of 3 ticks on v_ab; the
+     * calibration averages exactly cal_periods periods with PWM off */
+    cur_counts[0] = 2048 + 30;
+    cur_counts[1] = 2048 - 20;
+    cur_counts[2] = 2048 + 7;
+    ticks[0] = 3;
+    send_arm_mode(1, FD_MODE_CALIBRATE_ADC);
+    uint32_t n = 0;
+    int state5 = 0;
+    uint32_t id, len, fdf;
+    uint8_t b[64];
+    do {
+        period();
+        n++;
+        CHECK(sil.pwm_enable == 0 && !core.armed);
+        while (fd_sil_tx_pop(&sil, &id, b, &len, &fdf)) {
+            struct fd_can_status_t st;
+            if (id == FD_CAN_STATUS_FRAME_ID && fd_can_status_unpack(&st, b, len) == 0) {
+                state5 += st.st_state == FD_ST_CALIBRATING;
+            }
+        }
+        if ((n % 100u) == 0u) {
+            send_arm_mode(1, FD_MODE_CALIBRATE_ADC); /* the host's 10 Hz repeat: no restart */
+        }
+    } while (core.calibrating && n < 5000u);
+    /* the period that took the request, then 1000 periods of readings */
+    CHECK(n == 1001u && core.cal_valid && !core.fault_latched && state5 == 1);
+    CHECK(read_param(FD_PRM_CAL_OFFSET_A) == 2078.0f && read_param(FD_PRM_CAL_OFFSET_B) == 2028.0f);
+    CHECK(read_param(FD_PRM_CAL_OFFSET_C) == 2055.0f && read_param(FD_PRM_CAL_CAPTURE_AB) == 3.0f);
+    CHECK(read_param(FD_PRM_CAL_DONE) == 1.0f);
+    CHECK(fd_core_param_write(&core, FD_PRM_CAL_OFFSET_A, 2048.0f) == FD_PA_READ_ONLY);
+    /* the offsets in use: the same readings are 0 A and 0 V now */
+    period();
+    CHECK(core.i_abc[0] == 0.0f && core.i_abc[1] == 0.0f && core.i_abc[2] == 0.0f);
+    CHECK(core.v_ll[0] == 0.0f);
+    /* and arming works */
+    send_arm_mode(1, FD_MODE_RUN);
+    send_duty((uint16_t)(core.k), 0.5f, 1);
+    period();
+    send_duty((uint16_t)(core.k - 1u), 0.5f, 1);
+    period();
+    CHECK(core.armed && sil.pwm_enable == 1);
+    /* an offset beyond 205 counts (2 A): the calibration fails with ADC_FAULT */
+    send_arm_mode(0, FD_MODE_IDLE);
+    period();
+    cur_counts[1] = 2048 - 300;
+    send_arm_mode(1, FD_MODE_CALIBRATE_ADC);
+    for (int i = 0; i < 1001; ++i) {
+        period();
+        drain();
+    }
+    CHECK(core.fault_code == FD_FAULT_ADC_FAULT && !core.calibrating);
+    CHECK(last_fault.fault_detail == (FD_ADC_DETAIL_CALIBRATION | 1u | (300u << 2)));
+    CHECK(read_param(FD_PRM_CAL_OFFSET_B) == 2028.0f); /* the last good result is kept */
+    cur_counts[0] = cur_counts[1] = cur_counts[2] = 2048;
+    ticks[0] = 0;
+}
+
 int main(void)
 {
     test_arm_key();
@@ -694,6 +804,7 @@ int main(void)
     test_reference_age();
     test_seq_wrap();
     test_period_wrap();
+    test_calibration();
     if (failures) {
         fprintf(stderr, "fd_core_test: %d check(s) failed\n", failures);
         return 1;

@@ -55,11 +55,19 @@ PARAM_IDS: dict[str, int] = {
     "VOLTAGE_ADVANCE": 6, "DEADTIME_COMP_S": 7, "CUR_LIMIT_A": 8, "REF_TIMEOUT_S": 9,
     "OVERCURRENT_A": 10, "I2T_LIMIT_PU2S": 11, "RATED_CURRENT_A": 12, "VDC_MIN_V": 13,
     "VDC_MAX_V": 14, "HEARTBEAT_TIMEOUT_S": 15, "POLE_PAIRS": 16, "MAX_DUTY": 17,
+    "CAL_OFFSET_A": 18, "CAL_OFFSET_B": 19, "CAL_OFFSET_C": 20, "CAL_CAPTURE_AB": 21,
+    "CAL_CAPTURE_BC": 22, "CAL_CAPTURE_CA": 23, "CAL_DONE": 24,
 }  # fmt: skip
 """DRIVE_PARAM prm_id by name (the DBC's value table; tests check they agree)."""
-DRIVE_ONLY_PARAMS = ("MAX_DUTY",)
-"""DRIVE_PARAMs the drive keeps at its own default unless written (not in the engine's
-``DRIVE_PARAM_RANGES``): MAX_DUTY, the largest upper-switch duty (default 0.95)."""
+READ_ONLY_PARAMS = (
+    "CAL_OFFSET_A", "CAL_OFFSET_B", "CAL_OFFSET_C", "CAL_CAPTURE_AB", "CAL_CAPTURE_BC",
+    "CAL_CAPTURE_CA", "CAL_DONE",
+)  # fmt: skip
+"""The offset calibration's result (ARM_MODE mode CALIBRATE_ADC): current offsets [ADC
+counts], capture offsets [ticks], CAL_DONE 1 once calibrated; a write is READ_ONLY."""
+DRIVE_ONLY_PARAMS = ("MAX_DUTY", *READ_ONLY_PARAMS)
+"""DRIVE_PARAMs not in the engine's ``DRIVE_PARAM_RANGES``: MAX_DUTY, the largest
+upper-switch duty (the drive's default 0.95 unless written), and the read-only ones."""
 PA_STATUS = ("OK", "UNKNOWN_PARAM", "OUT_OF_RANGE", "NOT_WHILE_RUNNING", "NOT_FINITE", "READ_ONLY")
 
 
@@ -141,6 +149,9 @@ class _Config(ctypes.Structure):
         ("bootstrap_periods", ctypes.c_uint32),
         ("ref_max_age_periods", ctypes.c_uint32),
         ("ref_horizon_periods", ctypes.c_uint32),
+        ("cal_periods", ctypes.c_uint32),
+        ("cal_max_offset_counts", ctypes.c_int32),
+        ("require_calibration", ctypes.c_uint8),
     ]
 
 
@@ -295,6 +306,7 @@ class FirmwareCore:
         cmd_timeout_s: float = 1e-3,
         pwm_period_ticks: int = 50_000,
         bootstrap_periods: int = 0,
+        require_calibration: bool = False,
     ) -> None:
         self.lib = load_library()
         self.scales = sensor_scales(mp)
@@ -330,6 +342,12 @@ class FirmwareCore:
         # no bootstrap charge unless asked: the Python reference MCU has none, and the
         # tests compare the two sample for sample
         cfg.bootstrap_periods = int(bootstrap_periods)
+        # offset calibration (ARM_MODE mode CALIBRATE_ADC): offsets up to 10 % of the
+        # current ADC's half range; arming an uncalibrated drive is refused (FAULT
+        # NOT_CALIBRATED) only with require_calibration, since the emulator's hosts arm
+        # without calibrating first
+        cfg.cal_max_offset_counts = max(1, mid // 10)
+        cfg.require_calibration = int(bool(require_calibration))
         self.config = cfg
         self.pwm_period_ticks = int(pwm_period_ticks)
         self._sil = _buffer(int(self.lib.fd_sil_sizeof()))
