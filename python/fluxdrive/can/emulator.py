@@ -46,7 +46,10 @@ No HOST_REF for REF_TIMEOUT_S while PWM is on: PWM off, WATCHDOG latched, FAULT 
 DRIVE_PARAM writes/reads the drive-side parameters (``DRIVE_PARAM_FIELDS``, ranges
 ``DRIVE_PARAM_RANGES``) and answers each with a DRIVE_PARAM_ACK.
 
-MCU logic (``mcu``): ``"python"`` (default) runs the logic above in this module; ``"c"`` runs
+MCU logic (``mcu``): ``"python"`` (default) runs the logic above in this module; ``"pil"``
+runs the board image that would be flashed on the virtual board (fluxdrive.can.vboard, the
+same interface as the C core below, its PWM through the timer model's compare preload);
+``"c"`` runs
 the C drive firmware (``firmware/``, through :class:`fluxdrive.can.firmware.FirmwareCore`)
 as the MCU: per period the plant's frame goes in as raw ADC/capture counts, the received
 frames into its CAN queue, its period interrupt runs, and its PWM duties/enable drive
@@ -212,8 +215,8 @@ class DriveEmulator:
         protocol: FluxdriveProtocol | None = None,
         mcu: str = "python",
     ) -> None:
-        if mcu not in ("python", "c"):
-            raise ValueError(f"mcu must be 'python' or 'c', not {mcu!r}")
+        if mcu not in ("python", "c", "pil"):
+            raise ValueError(f"mcu must be 'python', 'c' or 'pil', not {mcu!r}")
         self.mcu = mcu
         self.setup = setup
         self.bus = bus
@@ -248,7 +251,7 @@ class DriveEmulator:
         self._fw: Any = None
         self._fw_rx: collections.deque[can.Message] = collections.deque()
         self._t0_wall = time.monotonic()
-        if mcu == "c":
+        if mcu in ("c", "pil"):
             self._fw = self._new_firmware()
 
     def _init_plant(self) -> None:
@@ -350,7 +353,13 @@ class DriveEmulator:
         layout, D, watchdog, over-current trip and heartbeat timeout, the drive parameters
         of the scenario's design (host mode uses only the protections among them)."""
 
-        fw = FirmwareCore(
+        if self.mcu == "pil":  # the board image on the virtual board (fluxdrive.can.vboard)
+            from fluxdrive.can.vboard import VirtualBoard
+
+            make: Any = VirtualBoard
+        else:
+            make = FirmwareCore
+        fw = make(
             self.setup.mp,
             decimation=self.decimation,
             classic=self.layout == "classic",

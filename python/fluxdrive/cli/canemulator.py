@@ -142,9 +142,10 @@ def _parser():
     )
     ap.add_argument(
         "--mcu",
-        choices=("python", "c"),
+        choices=("python", "c", "pil"),
         default="python",
-        help="the drive's MCU: the engine's kernels (python) or the C firmware core (c)",
+        help="the drive's MCU: the engine's kernels (python), the C firmware core (c), or the "
+        "board image on the virtual board (pil)",
     )
     ap.add_argument(
         "--record-out",

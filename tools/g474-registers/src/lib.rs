@@ -1,0 +1,1 @@
+//! Register data only (see Cargo.toml); never built.
