@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -417,6 +418,32 @@ def node_parameters(n: NodeSpec) -> dict[str, Any]:
     return out
 
 
+def container_spec(pname: str, members: list[NodeSpec]) -> dict[str, Any]:
+    """The container spec (fluxdrive_ros.runner) of the graph process `pname` holding the
+    node entries `members`: what the launcher starts, and what the ROS 2 launch files start
+    (fluxdrive_bringup.launch.rosgraph)."""
+    return {
+        "process": pname,
+        "nodes": [
+            {
+                "class": m.node,
+                "name": m.name,
+                "namespace": m.namespace,
+                "parameters": m.parameters,
+                "params_files": m.params,
+            }
+            for m in members
+        ],
+    }
+
+
+# a process's last lines kept for its death line (Proc.fatal_line)
+TAIL_LINES = 40
+_FATAL = re.compile(
+    r"\[(ERROR|FATAL)\]|\b(ERROR|FATAL)\b|cannot start|^\w+(\.\w+)*(Error|Exception): "
+)
+
+
 class Proc:
     def __init__(
         self,
@@ -438,6 +465,16 @@ class Proc:
         self.ignored = False
         self.bag_open: str | None = None  # bag directory its recorder opened
         self.t_last_line = time.monotonic()  # when it last wrote a line (progress included)
+        self.tail: deque[str] = deque(maxlen=TAIL_LINES)  # its last output lines
+
+    def fatal_line(self) -> str:
+        """The line that says why it ended: its last error line (a logged ERROR/FATAL, a
+        `cannot start`, a traceback's exception line), else its last line; "" if silent."""
+        lines = [ln for ln in self.tail if ln.strip()]
+        for ln in reversed(lines):
+            if _FATAL.search(ln):
+                return ln.strip()
+        return lines[-1].strip() if lines else ""
 
     @property
     def process(self) -> subprocess.Popen:
@@ -482,6 +519,7 @@ class Launcher:
         self.interrupted = False
         self.stop_signal = 0  # the signal that stopped the graph (run())
         self.failed: list[Proc] = []
+        self.timed_out = False  # run(timeout) reached its timeout (and stopped the graph)
         self.ignored: list[Proc] = []
         self.restarts: dict[str, int] = {}  # process name -> restarts so far
         self._spawn_lock = threading.Lock()  # no restart once a stop has begun
@@ -518,19 +556,7 @@ class Launcher:
     def _argv(self, pname: str, members: list[NodeSpec]) -> list[str]:
         if members[0].cmd:
             return list(members[0].cmd)
-        spec = {
-            "process": pname,
-            "nodes": [
-                {
-                    "class": m.node,
-                    "name": m.name,
-                    "namespace": m.namespace,
-                    "parameters": m.parameters,
-                    "params_files": m.params,
-                }
-                for m in members
-            ],
-        }
+        spec = container_spec(pname, members)
         argv = [sys.executable, "-m", "fluxdrive_ros.runner", "--spec-json", json.dumps(spec)]
         if self.g.namespace:  # the whole drive under it (fluxdrive_ros.runner)
             argv += ["--ros-args", "-r", f"__ns:={self.g.namespace}"]
@@ -700,6 +726,7 @@ class Launcher:
                 continue
             if "WARN" in line or "ERROR" in line:
                 self.last_warning = f"[{p.name}] {line}"
+            p.tail.append(line)
             if logf:
                 logf.write(line + "\n")
                 logf.flush()
@@ -926,7 +953,11 @@ class Launcher:
             if p.on_death == "restart"
             else "on_death: stop"
         )
-        self._emit(f"[launch] ERROR: process {p.label} died ({what}); stopping the graph ({why})")
+        last = p.fatal_line()
+        said = f"; its last error: {last}" if last else ""
+        self._emit(
+            f"[launch] ERROR: process {p.label} died ({what}); stopping the graph ({why}){said}"
+        )
         return True
 
     def wait(self, timeout: float | None = None) -> int:
@@ -980,6 +1011,7 @@ class Launcher:
                 self._join()
                 return 1
             if t_end is not None and time.monotonic() > t_end:
+                self.timed_out = True
                 self._emit("[launch] timeout; stopping the graph")
                 self.stop()
                 self._join()
@@ -990,6 +1022,15 @@ class Launcher:
             p for p in self.procs if p.code not in (0, None) and not self.stopping and not p.ignored
         ]
         return 1 if bad else 0
+
+    def failure_text(self) -> str:
+        """'; <process>: <its fatal line>' of the first process whose death stopped the
+        graph ('' when none did): for a command's closing line."""
+        for p in self.failed:
+            last = p.fatal_line()
+            if last:
+                return f"; {p.label}: {last}"
+        return ""
 
     def _restart_when_due(self, p: Proc, now: float) -> None:
         """A process waiting for its restart: restarted once its back-off is over (never

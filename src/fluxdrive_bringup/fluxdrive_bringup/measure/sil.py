@@ -191,10 +191,15 @@ def run_sil(sp: Path, sc, args):
         flush=True,
     )
     t0 = time.perf_counter()
-    code = Launcher(g, quiet=args.quiet, progress=False, log_dir=out / "logs").run(args.timeout)
+    launcher = Launcher(g, quiet=args.quiet, progress=False, log_dir=out / "logs")
+    code = launcher.run(args.timeout)
     wall = time.perf_counter() - t0
     if code != 0 or not truth_out.exists():
-        print(f"[bench] the bench failed (exit {code}); logs in {out / 'logs'}", file=sys.stderr)
+        print(
+            f"[bench] the bench failed (exit {code}){launcher.failure_text()}; logs in "
+            f"{out / 'logs'}",
+            file=sys.stderr,
+        )
         return code or 1, None, None, None
     res, arr = result_from_sil_bag(bag, sc, args.decimation, truth_out, wall)
     # truth: from the drive's process; duty: split mode answers with current references
