@@ -31,7 +31,8 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "bench": (
         "fluxdrive_bringup.cli",
         "main_bench",
-        "bench --sil: the C drive on a CAN bus under the whole ROS graph",
+        "bench --interface socketcan --channel can0: a real drive on CAN under the ROS "
+        "graph, after a pre-flight; bench --sil: the C drive in the loop",
     ),
     "tune": (
         "fluxdrive_bringup.cli",

@@ -58,14 +58,14 @@ from fluxdrive.can.bridge import (
     FaultEvent,
     bus_factory_from_params,
 )
+from fluxdrive.can.preflight import drive_param_name
+from fluxdrive.can.preflight import scenario_drive_params as drive_defaults
 from fluxdrive.can.protocol import link_budget, smallest_fitting_decimation
 from fluxdrive.core import schema
 from fluxdrive.core.schema import param
 from fluxdrive.drive.control import (
     DRIVE_PARAM_RANGES,
-    ControllerConfig,
     DriveParams,
-    drive_param_values,
 )
 from fluxdrive.drive.plant import FR_SEQ
 from fluxdrive_ros.params import P, config_params, declare, on_set
@@ -81,11 +81,6 @@ _SOFTWARE_BUSES = ("virtual", "udp_multicast")  # no wire time: any layout and D
 DRIVE_PARAMS = tuple(DRIVE_PARAM_RANGES)
 
 
-def drive_param_name(prm: str) -> str:
-    """The ROS parameter of a DRIVE_PARAM: drive.<name in lower case> (a DriveParams field)."""
-    return "drive." + prm.lower()
-
-
 def drive_param_table(values: dict[str, float]) -> list[P]:
     """Split mode: one live parameter per drive-side parameter (DriveParams; default
     `values`, the scenario's controller design)."""
@@ -94,22 +89,6 @@ def drive_param_table(values: dict[str, float]) -> list[P]:
         replace(P.of(specs[prm.lower()], float(values.get(prm, 0.0))), name=drive_param_name(prm))
         for prm in DRIVE_PARAMS
     ]
-
-
-def drive_defaults(scenario: str) -> dict[str, float]:
-    """The drive-side parameters of a scenario's controller design (or the default card's)."""
-    from fluxdrive.core.machine import load_machine
-    from fluxdrive.drive.scenario import CONFIG_DIR, load_scenario, scenario_path
-
-    if scenario:
-        sc = load_scenario(scenario_path(scenario))
-        cfg, card = sc.control, sc.machine
-    else:
-        card = load_machine(CONFIG_DIR / "machines" / "default_spm.yaml")
-        cfg = ControllerConfig()
-    vals = drive_param_values(cfg.to_params(card))
-    vals["HEARTBEAT_TIMEOUT_S"] = 0.0
-    return vals
 
 
 # BridgeConfig fields the node declares under their own names

@@ -17,7 +17,10 @@ def main_run(argv: list[str]) -> int:
 
 
 def main_bench(argv: list[str]) -> int:
-    from fluxdrive_bringup.measure.sil import main
+    if "--sil" in argv:
+        from fluxdrive_bringup.measure.sil import main
+    else:  # the real bench: a drive on a CAN bus
+        from fluxdrive_bringup.measure.realbench import main
 
     return main(argv)
 
