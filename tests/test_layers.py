@@ -70,7 +70,11 @@ def modules() -> dict[str, Path]:
     for base in roots:
         for f in base.rglob("*.py"):
             rel = f.relative_to(base)
-            if rel.parts[0] in ("build", "install", "log", "test") or rel.name == "setup.py":
+            if (
+                rel.parts[0] in ("build", "install", "log", "test")
+                or rel.name == "setup.py"
+                or rel.name.endswith(".launch.py")  # ROS 2 launch files, not modules
+            ):
                 continue
             parts = list(rel.with_suffix("").parts)
             if parts[-1] == "__init__":

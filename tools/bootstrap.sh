@@ -67,11 +67,15 @@ colcon_inputs() {
     \( -name build -o -name install -o -name log -o -name '__pycache__' -o -name '.*' \) -prune -o \
     -type f \( -name package.xml -o -name CMakeLists.txt -o -name setup.py -o -name setup.cfg \
     -o -name '*.msg' -o -name '*.srv' -o -name '*.action' -o -name '*.cmake' -o -name COLCON_IGNORE \
-    -o -path '*/resource/*' \) -print | LC_ALL=C sort)
+    -o -path '*/resource/*' -o -path '*/launch/*.launch.py' \) -print | LC_ALL=C sort)
 }
+# config/ is installed into share/fluxdrive_bringup (its setup.py): a file added or removed
+# there needs a colcon run (the files themselves are symlinked: edits show up without one)
+config_names() { (cd "$ROOT" && find config -type f | LC_ALL=C sort); }
 colcon_hash() {
   {
     echo "pip $(cat "$PIP_STAMP" 2>/dev/null || true)"
+    config_names
     local f
     while IFS= read -r f; do
       echo "== $f"
