@@ -186,6 +186,32 @@ def test_preflight_against_the_c_firmware_core():
     assert "the drive refused POLE_PAIRS = 1e+06: OUT_OF_RANGE" in results[1].line
 
 
+def test_offset_calibration_on_the_c_firmware_core():
+    """`bench --calibrate`'s request against the C core: CALIBRATE_ADC held while the core
+    averages its readings with PWM off (STATUS CALIBRATING), back to IDLE with CAL_DONE = 1
+    in the core; the drive never armed."""
+    from fluxdrive.can.emulator import DriveEmulator
+    from fluxdrive.can.preflight import calibrate
+    from fluxdrive.drive.sim import DriveSetup
+    from test_bench_bridge import short_2pct
+
+    ch = new_virtual_channel("pf-cal")
+    bus = can.Bus(interface="virtual", channel=ch, fd=True)
+    emu = DriveEmulator(DriveSetup(short_2pct(60.0)), bus, lockstep=False, decimation=4, mcu="c")
+    assert emu._fw.param_read("CAL_DONE") == 0.0
+    emu.start(600_000)
+    try:
+        cfg = BridgeConfig(decimation=4, control_split=True)
+        res = calibrate(bus_factory_from_params("virtual", ch), cfg, 20.0, 5.0)
+    finally:
+        emu.stop()
+        bus.shutdown()
+    assert res.ok, res.line
+    assert res.line.startswith(f"offsets calibrated on virtual channel {ch} (drive IDLE after")
+    assert emu._fw.param_read("CAL_DONE") == 1.0
+    assert not emu._fw.state()["armed"] and not emu._fw.state()["pwm_enabled"]
+
+
 def _fluxdrive(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
     return subprocess.run(
         [str(FLUXDRIVE), *args],
@@ -209,6 +235,26 @@ def test_bench_without_can0_refuses_in_one_line_and_starts_nothing(tmp_path):
     )
     assert lines[0].endswith("; nothing started")
     assert "[launch]" not in r.stdout and not bag.exists()
+
+
+def test_bench_sets_reach_the_bridge_and_the_preflight():
+    """`--set bench_bridge.drive.cur_limit_a=2.5` and --interface become the bridge's -p
+    arguments, after its parameter file: the pre-flight reads what the node will read."""
+    pytest.importorskip("rclpy")
+    from fluxdrive_bringup.launch.launcher import load_graph
+    from fluxdrive_bringup.measure import realbench
+
+    g = load_graph("bench_real")
+    br = realbench.bridge_entry(g)
+    realbench._set_bridge(br, "interface", "pcan")
+    realbench._set_bridge(br, "drive.cur_limit_a", 2.5)
+    pv = realbench.bridge_parameters(br)
+    assert pv["interface"] == "pcan" and pv["channel"] == "can0" and pv["decimation"] == 4
+    assert br.cmd is not None and br.cmd[-2:] == ["-p", "drive.cur_limit_a:=2.5"]
+    params = realbench.drive_parameters(pv)
+    assert params["CUR_LIMIT_A"] == 2.5 and len(params) == 16  # DRIVE_PARAM_RANGES
+    cfg = realbench.bridge_config(pv)
+    assert cfg.decimation == 4 and cfg.control_split
 
 
 def test_bench_check_reads_the_graph_and_a_drive_over_udp_multicast():

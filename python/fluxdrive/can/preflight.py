@@ -24,10 +24,18 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
+import can
+
 from fluxdrive.can.bridge import BridgeConfig, BusFactory, CanBridge
 from fluxdrive.can.protocol import PROTOCOL_VERSION, get_protocol
 
-__all__ = ["PreflightResult", "drive_param_name", "preflight", "scenario_drive_params"]
+__all__ = [
+    "PreflightResult",
+    "calibrate",
+    "drive_param_name",
+    "preflight",
+    "scenario_drive_params",
+]
 
 
 def drive_param_name(prm: str) -> str:
@@ -191,3 +199,77 @@ def preflight(
         f"protocol {PROTOCOL_VERSION}, {bridge.layout} layout at D={bridge.decimation}{acks}",
         status,
     )
+
+
+def _choice(message: Any, signal: str, name: str) -> int:
+    """The value of `name` in a signal's value table (the DBC's)."""
+    sig = message.get_signal_by_name(signal)
+    return next(int(k) for k, v in (sig.choices or {}).items() if str(v) == name)
+
+
+def calibrate(
+    factory: BusFactory, cfg: BridgeConfig, timeout_s: float = 5.0, status_wait_s: float = 1.0
+) -> PreflightResult:
+    """The drive's offset calibration, motor at standstill: ARM_MODE mode CALIBRATE_ADC with
+    the arm key, repeated every heartbeat period while it runs (any other ARM_MODE ends a
+    calibration unfinished), until STATUS leaves CALIBRATING (done) or a FAULT frame says why
+    it failed (ADC_FAULT: an offset out of range).  The drive stays disarmed, PWM off,
+    throughout; a disarm ends it."""
+    from fluxdrive.can.protocol import ARM_KEY, ID_ARM_MODE, ID_FAULT, ID_STATUS
+    from fluxdrive.drive.control import FAULT_NAMES
+
+    proto = get_protocol()
+    arm_msg, status_msg, fault_msg = (proto.message(n) for n in ("ARM_MODE", "STATUS", "FAULT"))
+    states = _state_names()
+    where = f"{factory.interface} channel {factory.channel}"
+    bridge, why = _open(factory, cfg)  # the bus opened as the pre-flight opens it
+    if bridge is None:
+        return PreflightResult(False, why)
+    bus = bridge.bus
+    assert bus is not None
+    fields = {
+        "arm": 1, "arm_key": ARM_KEY, "mode": _choice(arm_msg, "mode", "CALIBRATE_ADC"),
+        "reset_fault": 0, "sample_layout": int(bridge.layout == "classic"),
+        "control_split": int(cfg.control_split), "cmd_timeout": 0.0,
+        "decimation": bridge.decimation, "arm_counter": 0,
+    }  # fmt: skip
+    seen: list[str] = []
+    t0 = time.monotonic()
+    next_send = t0
+    line = f"no drive answers on {where}: no STATUS frame within {status_wait_s:g} s"
+    try:
+        while time.monotonic() - t0 < (timeout_s if seen else status_wait_s):
+            if time.monotonic() >= next_send:
+                next_send += cfg.heartbeat_period_s
+                fields["arm_counter"] = (fields["arm_counter"] + 1) % 256
+                data = arm_msg.encode(fields, strict=False)
+                bus.send(can.Message(arbitration_id=ID_ARM_MODE, data=data, is_extended_id=False))
+            msg = bus.recv(0.01)
+            if msg is None:
+                continue
+            if msg.arbitration_id == ID_FAULT:
+                f = fault_msg.decode(bytes(msg.data), decode_choices=False)
+                if f["fault_code"] and f["fault_latched"]:
+                    name = FAULT_NAMES.get(int(f["fault_code"]), str(f["fault_code"]))
+                    return PreflightResult(
+                        False,
+                        f"the offset calibration failed: drive fault {f['fault_code']} {name} "
+                        f"(detail {f['fault_detail']}); nothing stored",
+                    )
+            elif msg.arbitration_id == ID_STATUS:
+                st = status_msg.decode(bytes(msg.data), decode_choices=False)
+                seen.append(states.get(int(st["st_state"]), str(st["st_state"])))
+                if "CALIBRATING" in seen and seen[-1] != "CALIBRATING":
+                    took = time.monotonic() - t0
+                    return PreflightResult(
+                        True,
+                        f"offsets calibrated on {where} (drive {seen[-1]} after "
+                        f"{took:.1f} s); the drive uses them from its next sample",
+                    )
+                line = (
+                    f"the drive on {where} did not calibrate within {timeout_s:g} s "
+                    f"(its states: {' -> '.join(dict.fromkeys(seen))})"
+                )
+    finally:
+        bridge.shutdown()  # arm = 0: ends a calibration still running
+    return PreflightResult(False, line)

@@ -21,7 +21,12 @@ from pathlib import Path
 from typing import Any
 
 from fluxdrive.can.bridge import BridgeConfig, bus_factory_from_params
-from fluxdrive.can.preflight import drive_param_name, preflight, scenario_drive_params
+from fluxdrive.can.preflight import (
+    calibrate,
+    drive_param_name,
+    preflight,
+    scenario_drive_params,
+)
 from fluxdrive.core import yamlio
 from fluxdrive.core.machine import ConfigError
 from fluxdrive.core.schema import option
@@ -126,6 +131,12 @@ def _parser() -> argparse.ArgumentParser:
     )
     ap.add_argument("--check", action="store_true", help="the pre-flight only; nothing starts")
     ap.add_argument(
+        "--calibrate",
+        action="store_true",
+        help="the drive's current/capture offset calibration (motor at standstill, PWM off); "
+        "nothing else starts",
+    )
+    ap.add_argument(
         "--status-wait", type=float, default=1.0, help="wait this long for the drive's STATUS [s]"
     )
     ap.add_argument("--duration", type=float, help="stop the bench after this long [s]")
@@ -136,7 +147,8 @@ def _parser() -> argparse.ArgumentParser:
         action="append",
         default=[],
         metavar="NODE.PARAM=VALUE",
-        help="override a node parameter (YAML value), e.g. controller.speed_ref_mode=constant",
+        help="override a node parameter (YAML value), e.g. controller.speed_ref_mode=constant "
+        "or bench_bridge.drive.cur_limit_a=2.0 (the pre-flight writes that one too)",
     )
     return ap
 
@@ -151,7 +163,13 @@ def main(argv: list[str]) -> int:
     for opt, prm in BUS_OPTIONS.items():
         if getattr(args, opt) is not None:
             _set_bridge(bridge, prm, getattr(args, opt))
-    _apply_sets(g, args.set)
+    ours = [x for x in args.set if x.partition(".")[0] == bridge.name]
+    for item in ours:  # the bridge is a command: its sets become -p NAME:=VALUE
+        key, eq, val = item.partition("=")
+        if not eq or not key.partition(".")[2]:
+            raise ConfigError(f"--set {item!r}: expected {bridge.name}.PARAM=VALUE")
+        _set_bridge(bridge, key.partition(".")[2], yamlio.loads(val))
+    _apply_sets(g, [x for x in args.set if x not in ours])
     pv = bridge_parameters(bridge)
     factory = bus_factory_from_params(
         str(pv.get("interface", "virtual")),
@@ -160,6 +178,10 @@ def main(argv: list[str]) -> int:
         bool(pv.get("fd", True)),
         int(pv.get("data_bitrate", 5_000_000)),
     )
+    if args.calibrate:
+        res = calibrate(factory, bridge_config(pv), status_wait_s=args.status_wait)
+        print(f"[bench] {res.line}", file=sys.stdout if res.ok else sys.stderr)
+        return 0 if res.ok else 2
     res = preflight(factory, bridge_config(pv), drive_parameters(pv), args.status_wait)
     if not res.ok:
         print(f"[bench] refused to arm: {res.line}; nothing started", file=sys.stderr)
