@@ -14,9 +14,10 @@ import numpy as np
 import pytest
 from fluxdrive.analysis.metrics import wrap
 from fluxdrive.can.bridge import BridgeConfig, CanBridge
-from fluxdrive.can.emulator import FAULT_CMD_TIMEOUT, DriveEmulator
+from fluxdrive.can.emulator import DriveEmulator
 from fluxdrive.can.loop import new_virtual_channel, run_can_loop
 from fluxdrive.can.protocol import ID_ARM_MODE, ID_DUTY_CMD, ID_SAMPLE_FD, get_protocol
+from fluxdrive.core.protocol_constants import FAULT_WATCHDOG
 from fluxdrive.drive.control import CO_EN, CO_MODE, FAULT_BAD_SAMPLE, MODE_CLOSED_LOOP
 from fluxdrive.drive.observers import ES_TH, ES_W
 from fluxdrive.drive.plant import (
@@ -234,12 +235,10 @@ def test_mcu_command_watchdog_disables_pwm():
         for _ in range(12):  # the bridge stops answering: 1 ms = 10 periods
             emu.step()
         assert (
-            not emu.pwm_enabled
-            and emu.fault_latched
-            and emu.stats.fault_codes == [FAULT_CMD_TIMEOUT]
+            not emu.pwm_enabled and emu.fault_latched and emu.stats.fault_codes == [FAULT_WATCHDOG]
         )
         br.poll(timeout=0.05)
-        assert br.diagnostics().get("mcu_fault_code") == FAULT_CMD_TIMEOUT and not br.armed
+        assert br.diagnostics().get("mcu_fault_code") == FAULT_WATCHDOG and not br.armed
     finally:
         br.shutdown()
         emu_bus.shutdown()

@@ -67,12 +67,8 @@ def random_in_range(msg, n: int, rng: np.random.Generator) -> np.ndarray:
 
 def test_dbc_messages_and_priorities(proto):
     ids = {m.name: m.frame_id for m in proto.db.messages}
-    assert ids == {
-        "FAULT": 0x010, "ARM_MODE": 0x020, "DUTY_CMD": 0x040, "SAMPLE_FD": 0x080,
-        "SAMPLE_C_CUR": 0x100, "SAMPLE_C_VLT": 0x101, "SAMPLE_C_DUTY": 0x102,
-        "SAMPLE_C_AUX": 0x103, "STATUS": 0x700, "HOST_HEARTBEAT": 0x701,
-        "HOST_REF": 0x041, "DRIVE_PARAM": 0x680, "DRIVE_PARAM_ACK": 0x681,
-    }  # fmt: skip
+    # the ids themselves are generated (fluxdrive.core.protocol_constants): only their order
+    assert all(i < 0x800 for i in ids.values()), "11-bit ids"
     # safety > duty/reference deadline > telemetry > housekeeping (lower ID wins)
     assert ids["FAULT"] < ids["ARM_MODE"] < ids["DUTY_CMD"] < ids["SAMPLE_FD"] < ids["STATUS"]
     assert ids["DUTY_CMD"] < ids["HOST_REF"] < ids["SAMPLE_FD"]

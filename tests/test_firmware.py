@@ -12,7 +12,14 @@ import can
 import numpy as np
 import pytest
 from fluxdrive.can import firmware as fw
-from fluxdrive.can.protocol import ARM_KEY, load_database
+from fluxdrive.can.protocol import (
+    ARM_KEY,
+    CLASSIC_SAMPLE_IDS,
+    ID_ARM_MODE,
+    ID_SAMPLE_FD,
+    ID_STATUS,
+    load_database,
+)
 from fluxdrive.drive import control as ctl
 from fluxdrive.drive import plant as pl
 from fluxdrive.drive.control import kernel
@@ -385,7 +392,7 @@ def _host_frames(log):
     duty_msg = db.get_message_by_name("DUTY_CMD")
     arm, duties = None, {}
     for m in can.BLFReader(str(log)):
-        if m.arbitration_id == 0x020 and arm is None:
+        if m.arbitration_id == ID_ARM_MODE and arm is None:
             arm = m
         elif m.arbitration_id == duty_msg.frame_id:
             duties[int(duty_msg.decode(bytes(m.data))["cmd_seq"])] = m
@@ -420,10 +427,10 @@ def test_sil_host_mode_matches_the_python_emulator(tmp_path):
     arm, duties = _host_frames(tmp_path / "python.blf")
     sent = {mcu: _replay(sc, mcu, arm, duties) for mcu in ("python", "c")}
     db = load_database()
-    for aid in (0x080, 0x700):
+    for aid in (ID_SAMPLE_FD, ID_STATUS):
         msg = db.get_message_by_frame_id(aid)
         ref, got = sent["python"][aid], sent["c"][aid]
-        assert len(got) == len(ref) >= (sc.n_periods if aid == 0x080 else 1)
+        assert len(got) == len(ref) >= (sc.n_periods if aid == ID_SAMPLE_FD else 1)
         worst = {s.name: 0 for s in msg.signals}
         for a, b in zip(ref, got, strict=True):
             da = msg.decode(a, decode_choices=False, scaling=False)
@@ -448,7 +455,7 @@ def _replay(sc, mcu, arm, duties, layout="fd", decimation=1, n=None):
     fd = layout == "fd"
     drive = can.Bus(interface="virtual", channel=ch, fd=fd)
     host = can.Bus(interface="virtual", channel=ch, fd=fd)
-    sent: dict[int, list[bytes]] = {i: [] for i in (0x080, 0x100, 0x101, 0x102, 0x103, 0x700)}
+    sent: dict[int, list[bytes]] = {i: [] for i in (ID_SAMPLE_FD, *CLASSIC_SAMPLE_IDS, ID_STATUS)}
     d = decimation
     try:
         emu = DriveEmulator(
@@ -642,11 +649,11 @@ def test_decimated_samples_match_the_python_emulator(db, layout, decimation):
         )  # fmt: skip
         duties[j] = can.Message(arbitration_id=duty_msg.frame_id, data=data, is_extended_id=False)
     sent = {mcu: _replay(sc, mcu, arm, duties, layout, d, n) for mcu in ("python", "c")}
-    ids = (0x080,) if layout == "fd" else (0x100, 0x101, 0x102, 0x103)
-    for aid in (*ids, 0x700):
+    ids = (ID_SAMPLE_FD,) if layout == "fd" else CLASSIC_SAMPLE_IDS
+    for aid in (*ids, ID_STATUS):
         msg = db.get_message_by_frame_id(aid)
         ref, got = sent["python"][aid], sent["c"][aid]
-        assert len(got) == len(ref) >= (n // d if aid != 0x700 else 1)
+        assert len(got) == len(ref) >= (n // d if aid != ID_STATUS else 1)
         worst = {s.name: 0 for s in msg.signals}
         for a, b in zip(ref, got, strict=True):
             da = msg.decode(a, decode_choices=False, scaling=False)

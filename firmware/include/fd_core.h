@@ -28,90 +28,22 @@
 #include <stdint.h>
 
 #include "fd_hal.h"
+#include "fd_protocol.h"
 
 #ifdef __cplusplus
 extern "C" {
 #endif
 
-#define FD_PROTOCOL_VERSION 2u
-#define FD_ARM_KEY 0xA5u
+/* Protocol constants (FD_PROTOCOL_VERSION, FD_ARM_KEY, FD_FAULT_*, FD_ST_*, FD_MODE_*,
+ * FD_PRM_*, FD_PA_*) are generated from the DBC at build time into fd_protocol.h
+ * (firmware/codegen.cmake): add a code to the DBC, not here. */
 
-/* fault codes: the engine's FAULT_* (fluxdrive.drive.control) and the DBC's drive-only 16+ */
-enum {
-    FD_FAULT_NONE = 0,
-    FD_FAULT_OVERCURRENT = 1,
-    FD_FAULT_OVERCURRENT_I2T = 2,
-    FD_FAULT_OVERVOLTAGE = 3,
-    FD_FAULT_UNDERVOLTAGE = 4,
-    FD_FAULT_STALE_INPUT = 8,
-    FD_FAULT_WATCHDOG = 9,
-    FD_FAULT_HOST_HEARTBEAT_LOST = 16,
-    FD_FAULT_GATE_DRIVER = 17,
-    FD_FAULT_ADC_FAULT = 18,
-    FD_FAULT_BAD_COMMAND = 20,
-    FD_FAULT_BUS_ERROR = 21,
-    FD_FAULT_OVERTEMPERATURE = 22,
-    FD_FAULT_NOT_CALIBRATED = 23,
-    FD_FAULT_DEADLINE_MISSED = 24,
-    FD_FAULT_INTERNAL = 255
-};
 /* FAULT.fault_detail of OVERCURRENT: phase index in bits 0-1; 3 = the hardware path (the
  * comparator into the timer's break input; no phase known) */
 #define FD_OC_DETAIL_BREAK 3u
-
-/* STATUS.st_state */
-enum {
-    FD_ST_BOOT = 0,
-    FD_ST_IDLE = 1,
-    FD_ST_ARMED = 2,
-    FD_ST_RUNNING = 3,
-    FD_ST_FAULT = 4,
-    FD_ST_CALIBRATING = 5
-};
-/* ARM_MODE.mode / SAMPLE_FD.mode */
-enum { FD_MODE_IDLE = 0, FD_MODE_RUN = 1, FD_MODE_CALIBRATE_ADC = 2 };
 /* FAULT.fault_detail of ADC_FAULT from a failed offset calibration: this bit, the phase in
  * bits 0-1, |offset - nominal| in counts in bits 2-14 (saturated) */
 #define FD_ADC_DETAIL_CALIBRATION 0x8000u
-
-/* DRIVE_PARAM prm_id (DBC value table) */
-enum {
-    FD_PRM_CUR_KP = 1,
-    FD_PRM_CUR_KI = 2,
-    FD_PRM_L_HAT = 3,
-    FD_PRM_LAMBDA_HAT = 4,
-    FD_PRM_DECOUPLE = 5,
-    FD_PRM_VOLTAGE_ADVANCE = 6,
-    FD_PRM_DEADTIME_COMP_S = 7,
-    FD_PRM_CUR_LIMIT_A = 8,
-    FD_PRM_REF_TIMEOUT_S = 9,
-    FD_PRM_OVERCURRENT_A = 10,
-    FD_PRM_I2T_LIMIT_PU2S = 11,
-    FD_PRM_RATED_CURRENT_A = 12,
-    FD_PRM_VDC_MIN_V = 13,
-    FD_PRM_VDC_MAX_V = 14,
-    FD_PRM_HEARTBEAT_TIMEOUT_S = 15,
-    FD_PRM_POLE_PAIRS = 16,
-    FD_PRM_MAX_DUTY = 17,
-    /* read-only: the offset calibration's result (ARM_MODE.mode CALIBRATE_ADC) */
-    FD_PRM_CAL_OFFSET_A = 18,    /* current ADC result at 0 A, phase a [counts] */
-    FD_PRM_CAL_OFFSET_B = 19,
-    FD_PRM_CAL_OFFSET_C = 20,
-    FD_PRM_CAL_CAPTURE_AB = 21,  /* capture high ticks with PWM off, v_ab [ticks] */
-    FD_PRM_CAL_CAPTURE_BC = 22,
-    FD_PRM_CAL_CAPTURE_CA = 23,
-    FD_PRM_CAL_DONE = 24,        /* 1: calibrated since boot */
-    FD_PRM_COUNT = 25 /* ids 1..24; index 0 unused */
-};
-/* DRIVE_PARAM_ACK pa_status */
-enum {
-    FD_PA_OK = 0,
-    FD_PA_UNKNOWN_PARAM = 1,
-    FD_PA_OUT_OF_RANGE = 2,
-    FD_PA_NOT_WHILE_RUNNING = 3,
-    FD_PA_NOT_FINITE = 4,
-    FD_PA_READ_ONLY = 5
-};
 
 /** Build-time configuration of a board: what a real firmware fixes at compile time. */
 typedef struct {

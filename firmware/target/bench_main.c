@@ -46,7 +46,7 @@ static void arm(uint8_t split)
     fd_can_arm_mode_init(&m);
     m.arm = 1u;
     m.arm_key = (uint8_t)FD_ARM_KEY;
-    m.mode = 1u;
+    m.mode = (uint8_t)FD_MODE_RUN;
     m.control_split = split;
     m.decimation = 1u;
     (void)fd_can_arm_mode_pack(b, &m, 8u);

@@ -58,7 +58,7 @@ static void send_arm(uint8_t arm, uint8_t key, uint8_t reset, uint8_t split)
     m.arm_key = key;
     m.reset_fault = reset;
     m.control_split = split;
-    m.mode = 1;
+    m.mode = FD_MODE_RUN;
     m.decimation = core.cfg.decimation;
     CHECK(fd_can_arm_mode_pack(b, &m, 8) == 8);
     push(FD_CAN_ARM_MODE_FRAME_ID, b, 8, 0);
@@ -154,7 +154,7 @@ static void test_watchdog(void)
     /* default cmd_timeout 1 ms = 10 periods after the last fresh command */
     CHECK(tripped_at == (int)(last - 1u + 10u));
     CHECK(core.fault_code == FD_FAULT_WATCHDOG && !core.pwm_enabled && sil.pwm_enable == 0);
-    CHECK(n_fault == 1 && last_fault.fault_code == 9 && last_fault.fault_latched == 1);
+    CHECK(n_fault == 1 && last_fault.fault_code == FD_FAULT_WATCHDOG && last_fault.fault_latched == 1);
     CHECK(last_fault.fault_detail == 10); /* elapsed 1.0 ms in 0.1 ms */
     CHECK(last_fault.fault_seq == (uint16_t)tripped_at);
     /* FAULT repeated at 10 Hz while latched */
@@ -175,7 +175,7 @@ static void test_fault_latch_reset(void)
     period();
     drain();
     CHECK(core.fault_latched && core.fault_code == FD_FAULT_OVERCURRENT && !core.armed);
-    CHECK(last_fault.fault_code == 1);
+    CHECK(last_fault.fault_code == FD_FAULT_OVERCURRENT);
     CHECK((last_fault.fault_detail & 3u) == 1u);           /* phase b */
     CHECK((last_fault.fault_detail >> 2) == 107u);         /* 10.7 A in 0.1 A */
     send_arm(1, FD_ARM_KEY, 1, 0); /* reset while the cause persists: refused, stays off */
@@ -191,8 +191,8 @@ static void test_fault_latch_reset(void)
     send_arm(0, FD_ARM_KEY, 1, 0); /* rising edge, cause gone: cleared, FAULT code 0 */
     period();
     drain();
-    CHECK(!core.fault_latched && core.fault_code == 0);
-    CHECK(n_fault == 1 && last_fault.fault_code == 0 && last_fault.fault_latched == 0);
+    CHECK(!core.fault_latched && core.fault_code == FD_FAULT_NONE);
+    CHECK(n_fault == 1 && last_fault.fault_code == FD_FAULT_NONE && last_fault.fault_latched == 0);
 }
 
 static void test_decimation_average(void)
@@ -337,7 +337,7 @@ static void test_host_heartbeat(void)
     }
     /* the first period more than 0.5 s (5000 periods of 100 us) after the heartbeat */
     CHECK(core.fault_code == FD_FAULT_HOST_HEARTBEAT_LOST && core.k - 1u == hb_k + 5001u);
-    CHECK(last_fault.fault_code == 16 && last_fault.fault_detail == 5001u);
+    CHECK(last_fault.fault_code == FD_FAULT_HOST_HEARTBEAT_LOST && last_fault.fault_detail == 5001u);
     CHECK(!core.armed && sil.pwm_enable == 0);
     /* 0 turns the timeout off */
     setup(1);

@@ -23,6 +23,7 @@ from fluxdrive.drive.control import (
     CO_MODE,
     CO_W_FB,
     FAULT_NAMES,
+    FAULT_NONE,
     MODE_CLOSED_LOOP,
     describe_trip,
     trip_message,
@@ -221,7 +222,9 @@ def compute(result) -> dict[str, Any]:
     faults = result.ctrl[:, CO_FAULT]
     fault_code = int(faults.max()) if faults.size else 0
     ref_rpm = float(np.mean(result.w_ref[sl])) * RAD_S_TO_RPM
-    stable = fault_code == 0 and abs(speed["mean_error_rpm"]) <= 0.2 * max(abs(ref_rpm), 1.0)
+    stable = fault_code == FAULT_NONE and abs(speed["mean_error_rpm"]) <= 0.2 * max(
+        abs(ref_rpm), 1.0
+    )
     if result.driving != "encoder":
         d = observers[result.driving]
         stable = stable and d["theta_err_peak_deg"] < 60.0

@@ -81,6 +81,7 @@ from fluxdrive.can.protocol import (
     SeqTracker,
     get_protocol,
 )
+from fluxdrive.core.protocol_constants import MODE_IDLE, MODE_RUN
 from fluxdrive.core.schema import param
 from fluxdrive.drive.control import (
     FAULT_BAD_SAMPLE,
@@ -569,7 +570,7 @@ class CanBridge:
             {"arm": int(arm), "reset_fault": int(reset_fault),
              "sample_layout": int(self.layout == "classic"),
              "control_split": int(self.cfg.control_split),
-             "mode": 1 if arm else 0, "arm_key": ARM_KEY if arm else 0,
+             "mode": MODE_RUN if arm else MODE_IDLE, "arm_key": ARM_KEY if arm else 0,
              "cmd_timeout": min(self.mcu_cmd_timeout_s, 6.5535),
              "decimation": self.decimation, "arm_counter": self._arm_counter},
             strict=False,

@@ -89,6 +89,18 @@ from fluxdrive.can.protocol import (
     FluxdriveProtocol,
     get_protocol,
 )
+from fluxdrive.core.protocol_constants import (
+    FAULT_HOST_HEARTBEAT_LOST,
+    FAULT_NONE,
+    FAULT_OVERCURRENT,
+    FAULT_WATCHDOG,
+    MODE_IDLE,
+    MODE_RUN,
+    ST_ARMED,
+    ST_FAULT,
+    ST_IDLE,
+    ST_RUNNING,
+)
 from fluxdrive.drive.control import (
     CO_DA,
     CO_DC,
@@ -143,23 +155,9 @@ _V_LL = slice(FR_VAB, FR_VCA + 1)
 _DUTIES = slice(FR_DA, FR_DC + 1)
 
 __all__ = [
-    "FAULT_CMD_TIMEOUT",
-    "FAULT_HOST_HEARTBEAT_LOST",
-    "FAULT_OVERCURRENT",
     "DriveEmulator",
     "EmulatorStats",
-    "ST_ARMED",
-    "ST_FAULT",
-    "ST_IDLE",
-    "ST_RUNNING",
 ]
-
-# DBC value tables
-# the engine's codes (fluxdrive.drive.control FAULT_*) where it has one; 16+ drive-only
-FAULT_NONE, FAULT_OVERCURRENT, FAULT_CMD_TIMEOUT, FAULT_HOST_HEARTBEAT_LOST = 0, 1, 9, 16
-FAULT_BAD_COMMAND = 20
-ST_BOOT, ST_IDLE, ST_ARMED, ST_RUNNING, ST_FAULT = 0, 1, 2, 3, 4
-MODE_IDLE, MODE_RUN = 0, 1
 
 _SEQ_MOD = 1 << SEQ_BITS
 
@@ -883,7 +881,7 @@ class DriveEmulator:
             self._stale_prev = True
             self.stats.stale_periods += 1
             if self.pwm_enabled and (k - self._last_cmd_k) * self.ts >= self.cmd_timeout_s - 1e-12:
-                self._raise_fault(FAULT_CMD_TIMEOUT, int((k - self._last_cmd_k) * self.ts * 1e4))
+                self._raise_fault(FAULT_WATCHDOG, int((k - self._last_cmd_k) * self.ts * 1e4))
 
     # ------------------------------------------------------------------ running
 

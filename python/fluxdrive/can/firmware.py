@@ -36,6 +36,7 @@ import can
 import numpy as np
 
 from fluxdrive.core.paths import ROOT
+from fluxdrive.core.protocol_constants import PA_CHOICES, PRM_CHOICES
 from fluxdrive.drive import plant as pl
 
 __all__ = [
@@ -50,15 +51,8 @@ __all__ = [
 ]
 
 FIRMWARE_DIR = ROOT / "firmware"
-PARAM_IDS: dict[str, int] = {
-    "CUR_KP": 1, "CUR_KI": 2, "L_HAT": 3, "LAMBDA_HAT": 4, "DECOUPLE": 5,
-    "VOLTAGE_ADVANCE": 6, "DEADTIME_COMP_S": 7, "CUR_LIMIT_A": 8, "REF_TIMEOUT_S": 9,
-    "OVERCURRENT_A": 10, "I2T_LIMIT_PU2S": 11, "RATED_CURRENT_A": 12, "VDC_MIN_V": 13,
-    "VDC_MAX_V": 14, "HEARTBEAT_TIMEOUT_S": 15, "POLE_PAIRS": 16, "MAX_DUTY": 17,
-    "CAL_OFFSET_A": 18, "CAL_OFFSET_B": 19, "CAL_OFFSET_C": 20, "CAL_CAPTURE_AB": 21,
-    "CAL_CAPTURE_BC": 22, "CAL_CAPTURE_CA": 23, "CAL_DONE": 24,
-}  # fmt: skip
-"""DRIVE_PARAM prm_id by name (the DBC's value table; tests check they agree)."""
+PARAM_IDS: dict[str, int] = {name: pid for pid, name in PRM_CHOICES.items()}
+"""DRIVE_PARAM prm_id by name (the DBC's value table, generated)."""
 READ_ONLY_PARAMS = (
     "CAL_OFFSET_A", "CAL_OFFSET_B", "CAL_OFFSET_C", "CAL_CAPTURE_AB", "CAL_CAPTURE_BC",
     "CAL_CAPTURE_CA", "CAL_DONE",
@@ -68,7 +62,6 @@ counts], capture offsets [ticks], CAL_DONE 1 once calibrated; a write is READ_ON
 DRIVE_ONLY_PARAMS = ("MAX_DUTY", *READ_ONLY_PARAMS)
 """DRIVE_PARAMs not in the engine's ``DRIVE_PARAM_RANGES``: MAX_DUTY, the largest
 upper-switch duty (the drive's default 0.95 unless written), and the read-only ones."""
-PA_STATUS = ("OK", "UNKNOWN_PARAM", "OUT_OF_RANGE", "NOT_WHILE_RUNNING", "NOT_FINITE", "READ_ONLY")
 
 
 class FirmwareBuildError(RuntimeError):
@@ -84,7 +77,12 @@ def _source_hash(extra: str) -> str:
     files = sorted(
         p for p in FIRMWARE_DIR.rglob("*") if p.is_file() and "__pycache__" not in p.parts
     )
-    for p in [*files, ROOT / "config" / "can" / "fluxdrive.dbc"]:
+    generated_from = [
+        ROOT / "config" / "can" / "fluxdrive.dbc",
+        ROOT / "tools" / "gen_protocol.py",
+        ROOT / "python" / "fluxdrive" / "can" / "protocol" / "generate.py",
+    ]
+    for p in [*files, *generated_from]:
         h.update(str(p.relative_to(ROOT)).encode())
         h.update(p.read_bytes())
     return h.hexdigest()
@@ -367,7 +365,7 @@ class FirmwareCore:
     def param_write(self, name: str | int, value: float) -> str:
         """Write a DRIVE_PARAM as a received frame would; returns the pa_status name."""
         pid = PARAM_IDS[name] if isinstance(name, str) else int(name)
-        return PA_STATUS[self.lib.fd_core_param_write(self._core, pid, float(value))]
+        return PA_CHOICES[self.lib.fd_core_param_write(self._core, pid, float(value))]
 
     def param_read(self, name: str | int) -> float:
         pid = PARAM_IDS[name] if isinstance(name, str) else int(name)

@@ -59,7 +59,6 @@ from fluxdrive.can import g474_regmap as rm
 from fluxdrive.can.firmware import (
     _STAT_NAMES,
     FIRMWARE_DIR,
-    PA_STATUS,
     PARAM_IDS,
     FirmwareBuildError,
     _source_hash,
@@ -67,6 +66,7 @@ from fluxdrive.can.firmware import (
 )
 from fluxdrive.can.protocol import ID_DUTY_CMD, ID_HOST_REF, get_protocol
 from fluxdrive.core.paths import ROOT
+from fluxdrive.core.protocol_constants import PA_CHOICES
 from fluxdrive.drive import plant as pl
 
 __all__ = [
@@ -494,7 +494,7 @@ class VirtualBoard:
     # ------------------------------------------------------------------ the interface
     def param_write(self, name: str | int, value: float) -> str:
         pid = PARAM_IDS[name] if isinstance(name, str) else int(name)
-        return PA_STATUS[self._call("fd_core_param_write", (self._core, pid), (float(value),))]
+        return PA_CHOICES[self._call("fd_core_param_write", (self._core, pid), (float(value),))]
 
     def param_read(self, name: str | int) -> float:
         pid = PARAM_IDS[name] if isinstance(name, str) else int(name)

@@ -7,6 +7,11 @@ source of truth). No ROS imports.
 - :mod:`~fluxdrive.can.protocol.budget`: the bits and bus time of every frame and the link
   budget of a sample period.
 
+Every protocol constant (message ids ``ID_*``, ``PROTOCOL_VERSION``, ``ARM_KEY``, the value
+tables' ``FAULT_*``, ``PRM_*``, ``PA_*``, ``MODE_*``, ``ST_*``) is generated from the DBC into
+:mod:`fluxdrive.core.protocol_constants` by :mod:`~fluxdrive.can.protocol.generate` (and into
+the firmware's ``fd_protocol.h``); the ids are re-exported here.
+
 Messages (11-bit IDs, lower ID wins arbitration, all signals little-endian):
 
 ====== ================ ===== ==========================================================
@@ -39,26 +44,11 @@ from fluxdrive.can.protocol.budget import (
     smallest_fitting_decimation,
 )
 from fluxdrive.can.protocol.codec import (
-    ARM_KEY,
     CLASSIC_SAMPLE_IDS,
     DBC_ENV_VAR,
     FRAME_FIELDS,
     FRAME_FLAG_ADC_CLIP,
     FRAME_INDEX,
-    ID_ARM_MODE,
-    ID_DRIVE_PARAM,
-    ID_DRIVE_PARAM_ACK,
-    ID_DUTY_CMD,
-    ID_FAULT,
-    ID_HOST_HEARTBEAT,
-    ID_HOST_REF,
-    ID_SAMPLE_C_AUX,
-    ID_SAMPLE_C_CUR,
-    ID_SAMPLE_C_DUTY,
-    ID_SAMPLE_C_VLT,
-    ID_SAMPLE_FD,
-    ID_STATUS,
-    PROTOCOL_VERSION,
     ClassicReassembler,
     DecodeResult,
     FluxdriveProtocol,
@@ -81,6 +71,23 @@ from fluxdrive.can.protocol.sequence import (
     SeqTracker,
     count_seq_gaps,
     unwrap_counter,
+)
+from fluxdrive.core.protocol_constants import (
+    ARM_KEY,
+    ID_ARM_MODE,
+    ID_DRIVE_PARAM,
+    ID_DRIVE_PARAM_ACK,
+    ID_DUTY_CMD,
+    ID_FAULT,
+    ID_HOST_HEARTBEAT,
+    ID_HOST_REF,
+    ID_SAMPLE_C_AUX,
+    ID_SAMPLE_C_CUR,
+    ID_SAMPLE_C_DUTY,
+    ID_SAMPLE_C_VLT,
+    ID_SAMPLE_FD,
+    ID_STATUS,
+    PROTOCOL_VERSION,
 )
 
 __all__ = [

@@ -32,28 +32,17 @@ from cantools.database.can import Database, Message
 
 from fluxdrive.can.protocol.sequence import SEQ_BITS, unwrap_counter
 from fluxdrive.core.paths import DBC_PATH
+from fluxdrive.core.protocol_constants import (
+    ID_SAMPLE_C_AUX,
+    ID_SAMPLE_C_CUR,
+    ID_SAMPLE_C_DUTY,
+    ID_SAMPLE_C_VLT,
+)
 from fluxdrive.drive import plant as _pl
 
-PROTOCOL_VERSION = 2
-"""Protocol version carried in STATUS / HOST_HEARTBEAT."""
-ARM_KEY = 0xA5
-"""ARM_MODE.arm_key value required for arm=1 to take effect."""
 DBC_ENV_VAR = "FLUXDRIVE_DBC"
 """Environment variable overriding the DBC path."""
 
-ID_FAULT = 0x010
-ID_ARM_MODE = 0x020
-ID_DUTY_CMD = 0x040
-ID_HOST_REF = 0x041
-ID_SAMPLE_FD = 0x080
-ID_SAMPLE_C_CUR = 0x100
-ID_SAMPLE_C_VLT = 0x101
-ID_SAMPLE_C_DUTY = 0x102
-ID_SAMPLE_C_AUX = 0x103
-ID_STATUS = 0x700
-ID_HOST_HEARTBEAT = 0x701
-ID_DRIVE_PARAM = 0x680
-ID_DRIVE_PARAM_ACK = 0x681
 CLASSIC_SAMPLE_IDS = (ID_SAMPLE_C_CUR, ID_SAMPLE_C_VLT, ID_SAMPLE_C_DUTY, ID_SAMPLE_C_AUX)
 
 FRAME_FIELDS: tuple[str, ...] = _pl.FRAME_COLUMNS

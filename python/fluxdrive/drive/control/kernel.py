@@ -22,6 +22,20 @@ from numba import njit
 
 from fluxdrive.core.blocks import lowpass_step, pi_output, pi_update, pll_step, pole
 from fluxdrive.core.layout import Layout
+from fluxdrive.core.protocol_constants import (
+    FAULT_BAD_SAMPLE,
+    FAULT_LOSS_OF_LOCK,
+    FAULT_NONE,
+    FAULT_OVERCURRENT,
+    FAULT_OVERCURRENT_I2T,
+    FAULT_OVERSPEED,
+    FAULT_OVERVOLTAGE,
+    FAULT_POSITION_INVALID,
+    FAULT_STALE_INPUT,
+    FAULT_START_FAILED,
+    FAULT_UNDERVOLTAGE,
+    FAULT_WATCHDOG,
+)
 from fluxdrive.core.transforms import TWO_PI, clarke, inv_clarke, inv_park, park, wrap_angle
 from fluxdrive.drive.observers import ES_TH, ES_VALID, ES_W
 from fluxdrive.drive.plant import FR_ENC, FR_IA, FR_IB, FR_IC, FR_VDC
@@ -90,35 +104,22 @@ CS_N = _CS.close(globals())
 
 MODE_DISABLED, MODE_ALIGN, MODE_IF_RAMP, MODE_CLOSED_LOOP, MODE_FAULT = range(5)
 MODE_NAMES = {0: "disabled", 1: "align", 2: "if_ramp", 3: "closed_loop", 4: "fault"}
-# fault codes: the same numbers as flux_drive_msgs/msg/DriveFault
-(
-    FAULT_NONE,
-    FAULT_OVERCURRENT,
-    FAULT_OVERCURRENT_I2T,
-    FAULT_OVERVOLTAGE,
-    FAULT_UNDERVOLTAGE,
-    FAULT_OVERSPEED,
-    FAULT_LOSS_OF_LOCK,
-    FAULT_POSITION_INVALID,
-    FAULT_STALE_INPUT,
-    FAULT_WATCHDOG,
-    FAULT_BAD_SAMPLE,
-    FAULT_START_FAILED,
-) = range(12)
 FAULT_NAMES = {
-    0: "none",
-    1: "over-current (instantaneous)",
-    2: "over-current (I2t)",
-    3: "DC-bus over-voltage",
-    4: "DC-bus under-voltage",
-    5: "over-speed",
-    6: "loss of observer lock",
-    7: "position estimate not finite",
-    8: "stale input",
-    9: "watchdog",
-    10: "bad sample (NaN/inf)",
-    11: "start-up failed",
+    FAULT_NONE: "none",
+    FAULT_OVERCURRENT: "over-current (instantaneous)",
+    FAULT_OVERCURRENT_I2T: "over-current (I2t)",
+    FAULT_OVERVOLTAGE: "DC-bus over-voltage",
+    FAULT_UNDERVOLTAGE: "DC-bus under-voltage",
+    FAULT_OVERSPEED: "over-speed",
+    FAULT_LOSS_OF_LOCK: "loss of observer lock",
+    FAULT_POSITION_INVALID: "position estimate not finite",
+    FAULT_STALE_INPUT: "stale input",
+    FAULT_WATCHDOG: "watchdog",
+    FAULT_BAD_SAMPLE: "bad sample (NaN/inf)",
+    FAULT_START_FAILED: "start-up failed",
 }
+"""The engine's fault codes (the DBC's fault_code table up to START_FAILED, the same numbers
+as flux_drive_msgs/msg/DriveFault) with their descriptions."""
 
 # ---- controller output CO_*
 _CO = Layout("CO")
