@@ -53,6 +53,28 @@ def _recv_json(ws, want_op: str, timeout: float, pred=lambda m: True) -> dict:
     raise AssertionError(f"no '{want_op}' message within {timeout} s")
 
 
+def _handshake(port: int, path: str, host: str, origin: str | None) -> str:
+    """A raw WebSocket handshake (any Host and Origin header); the server's answer."""
+    import socket
+
+    head = (
+        f"GET {path} HTTP/1.1\r\nHost: {host}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+        f"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n"
+        f"Sec-WebSocket-Protocol: foxglove.sdk.v1\r\n"
+        + (f"Origin: {origin}\r\n" if origin else "")
+        + "\r\n"
+    )
+    with socket.create_connection(("127.0.0.1", port), timeout=10) as sock:
+        sock.sendall(head.encode())
+        out = b""
+        while b"\r\n\r\n" not in out:
+            chunk = sock.recv(4096)
+            if not chunk:
+                break
+            out += chunk
+    return out.decode(errors="replace")
+
+
 @pytest.mark.timeout(240)
 def test_foxglove_client_receives_and_decodes_topics(tmp_path):
     from fluxdrive.drive.scenario import load_scenario, scenario_path
@@ -88,6 +110,21 @@ def test_foxglove_client_receives_and_decodes_topics(tmp_path):
         line = next(ln for ln in lines if ln.startswith("foxglove: ws://"))
         url = line.split()[1]
         assert url.startswith("ws://127.0.0.1:") and "subprotocol foxglove.sdk.v1" in line
+        assert "/?token=" in url
+
+        # only the operator: the probe's cross-origin client (a page of another site, with
+        # or without the token), a DNS-rebinding page's Host, no token -- refused (403)
+        port = int(url.split("/?")[0].rsplit(":", 1)[1])
+        token = url.split("token=", 1)[1]
+        refused = {
+            "cross-origin": ("/", "127.0.0.1", "http://evil.example"),
+            "cross-origin with token": (f"/?token={token}", "127.0.0.1", "http://evil.example"),
+            "Host evil.example": (f"/?token={token}", f"evil.example:{port}", None),
+            "no token": ("/", f"127.0.0.1:{port}", None),
+        }
+        for what, (path, host, origin) in refused.items():
+            reply = _handshake(port, path, host, origin)
+            assert reply.startswith("HTTP/1.1 403"), (what, reply)
 
         # the older protocol alone is refused during the handshake
         with pytest.raises(Exception) as exc:  # websockets' InvalidStatus / InvalidHandshake
@@ -164,6 +201,19 @@ def test_foxglove_client_receives_and_decodes_topics(tmp_path):
             ec = Codec(topics.T_ESTIMATE)
             th = [edec.decode(b)[ec.index("theta_e")] for b in got[2]]
             assert all(-math.pi <= x < math.pi for x in th)
+
+            # the token's holder is the operator: sets a parameter
+            ws.send(
+                json.dumps(
+                    {
+                        "op": "setParameters",
+                        "id": "s0",
+                        "parameters": [{"name": "/plant.load_scale", "value": 0.5}],
+                    }
+                )
+            )
+            d = _recv_json(ws, "parameterValues", 20, lambda d: d.get("id") == "s0")
+            assert d["parameters"][0]["value"] == pytest.approx(0.5)
 
             # parameters: read one, a refused set comes back as a status with the reason
             ws.send(
@@ -246,6 +296,8 @@ def test_foxglove_client_receives_and_decodes_topics(tmp_path):
                 elif isinstance(m, str) and _note(json.loads(m)).get("op") == "serviceCallFailure":
                     raise AssertionError(m)
             assert resp is not None and resp.success, resp
+        refusals = [ln for ln in lines if ln.startswith("foxglove: refused ")]
+        assert len(refusals) == len(refused), lines
     finally:
         bridge.terminate()
         try:

@@ -3,16 +3,16 @@
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
 from fluxdrive.core.machine import ConfigError
+from fluxdrive.core.schema import Parser
 from fluxdrive.io.bagrecover import is_finalised, mcap_file, recover, report
 
 
 def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="fluxdrive bag", description="bag maintenance")
+    ap = Parser(prog="fluxdrive bag", description="bag maintenance")
     sub = ap.add_subparsers(dest="cmd", required=True)
     rp = sub.add_parser(
         "recover",

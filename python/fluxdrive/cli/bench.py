@@ -14,6 +14,8 @@ from typing import Any
 
 import numpy as np
 
+from fluxdrive.core.schema import Parser
+
 # kind -> (module, function); each returns a dict printed as the JSON last line
 BENCHES = {
     "engine": ("fluxdrive.cli.bench", "bench_engine"),
@@ -73,14 +75,13 @@ def bench_experiments(argv: list[str]) -> dict:
     """The experiments' cost: each one run as `./fluxdrive experiment` runs it (in-process
     engine, no ROS), its wall time and the CPU time it took (this process and its workers);
     the report goes to a scratch folder, results/experiments is left alone."""
-    import argparse
     import tempfile
 
     from fluxdrive.experiments.registry import expand, experiments, run_experiment
     from fluxdrive.study.runner import runner_from_args
     from fluxdrive.study.tasks import warm_kernels
 
-    ap = argparse.ArgumentParser(prog="fluxdrive benchmark experiments")
+    ap = Parser(prog="fluxdrive benchmark experiments")
     ap.add_argument("names", nargs="?", default="paper", help="experiments or a group (paper)")
     ap.add_argument("--workers", type=int, default=1, help="dask workers (1: in-process)")
     ap.add_argument("--quick", action="store_true", help="the quick variants")
@@ -217,9 +218,8 @@ def bench_engine(argv: list[str]) -> dict:
     both see the same machine load; best of 3 each).  `--against REF`: this checkout's
     engine against commit REF's, measured alternately in fresh interpreters
     (`bench_engine_against`)."""
-    import argparse
 
-    ap = argparse.ArgumentParser(prog="fluxdrive benchmark engine")
+    ap = Parser(prog="fluxdrive benchmark engine")
     ap.add_argument("--against", metavar="REF", help="a commit to measure this engine against")
     ap.add_argument("--rounds", type=int, default=3, help="--against: rounds (default 3)")
     ap.add_argument(
@@ -559,7 +559,6 @@ def bench_plugin(argv: list[str]) -> dict:
     in-process (the per-period Python loop, step() per frame) against the built-in flux
     observer (paper_robust) in the compiled loop.  Costs are this process's CPU time (best
     of 3), which a loaded machine hardly changes; wall time would."""
-    import argparse
 
     from fluxdrive.drive.observers import make_observer
     from fluxdrive.drive.plant import FR_SEQ
@@ -567,7 +566,7 @@ def bench_plugin(argv: list[str]) -> dict:
     from fluxdrive.io.bagio import read_run_bag
     from fluxdrive.replay.lab import SAMPLES_DIR, parse_variant
 
-    ap = argparse.ArgumentParser(prog="fluxdrive benchmark plugin")
+    ap = Parser(prog="fluxdrive benchmark plugin")
     ap.add_argument("spec", nargs="?", default=EXAMPLE_PLUGIN, help="module:Class[:k=v,...]")
     ap.add_argument("--samples", type=int, default=100_000, help="replay: frames stepped")
     ap.add_argument("--seconds", type=float, default=1.0, help="closed loop: simulated time")

@@ -5,13 +5,33 @@ from __future__ import annotations
 
 import sys
 import time
+from dataclasses import dataclass
 from typing import Any
 
 import can
 
 from fluxdrive.can.emulator import DriveEmulator
 from fluxdrive.can.protocol import LinkOptions
-from fluxdrive.core.schema import option
+from fluxdrive.core.schema import Parser, option, param
+from fluxdrive.drive.scenario import ScenarioSettings
+
+
+@dataclass
+class EmulatorOptions:
+    """can-emulator's waits, ranged once (a NaN wait spun at 100 % CPU, deaf to SIGTERM)."""
+
+    lockstep_wait_s: float = param(
+        0.5,
+        unit="s",
+        doc="lockstep: wall time to wait for the duty of the previous sample",
+        range=(1e-4, 3600.0),
+    )
+    wait_for_host_s: float = param(
+        0.0,
+        unit="s",
+        doc="wait up to this long for the host's first HOST_HEARTBEAT",
+        range=(0.0, 3600.0),
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -83,9 +103,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _parser():
-    import argparse
 
-    ap = argparse.ArgumentParser(prog="fluxdrive can-emulator", description=main.__doc__)
+    ap = Parser(prog="fluxdrive can-emulator", description=main.__doc__)
     ap.add_argument(
         "scenario",
         nargs="?",
@@ -115,24 +134,14 @@ def _parser():
         "classic 8; a real 1/5 Mbit/s FD bus needs 4)",
     )
     ap.add_argument("--periods", type=int, default=None, help="PWM periods to run")
-    ap.add_argument("--duration", type=float, default=None, help="override duration_s [s]")
+    option(ap, "--duration", ScenarioSettings, "duration_s", default=None)
     ap.add_argument(
         "--free-running",
         action="store_true",
         help="pace periods to wall time and never wait for duties (a real MCU)",
     )
-    ap.add_argument(
-        "--lockstep-wait",
-        type=float,
-        default=0.5,
-        help="lockstep: wall time to wait for the duty of the previous sample [s]",
-    )
-    ap.add_argument(
-        "--wait-for-host",
-        type=float,
-        default=0.0,
-        help="wait up to this long for the host's first HOST_HEARTBEAT [s]",
-    )
+    option(ap, "--lockstep-wait", EmulatorOptions, "lockstep_wait_s")
+    option(ap, "--wait-for-host", EmulatorOptions, "wait_for_host_s")
     ap.add_argument(
         "--wait-armed",
         type=float,

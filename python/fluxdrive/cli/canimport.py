@@ -3,13 +3,12 @@ PhaseFrames (fluxdrive.io.canimport)."""
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
 
 from fluxdrive.can.protocol import LinkOptions
-from fluxdrive.core.schema import option
+from fluxdrive.core.schema import Parser, option
 from fluxdrive.io.canimport import PHASE_FRAME_TOPIC, import_capture
 
 
@@ -18,7 +17,7 @@ def main(argv: list[str] | None = None) -> int:
     prints counts, last line JSON.  Exit 2: nothing imported (one line why); 1: imported,
     but the capture is truncated (the bag holds the frames before the cut, and says so in
     its metadata); 0: imported whole."""
-    ap = argparse.ArgumentParser(
+    ap = Parser(
         prog="fluxdrive can-import",
         description="CAN capture (.log/.asc/.blf) -> bag of PhaseFrames",
     )

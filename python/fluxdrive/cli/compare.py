@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from fluxdrive.core.machine import ConfigError
-from fluxdrive.core.schema import option
+from fluxdrive.core.schema import Parser, option
 from fluxdrive.drive.observers import observer_config
 from fluxdrive.drive.scenario import REPO_ROOT, load_bench_file, machine_path
 from fluxdrive.experiments import fronts as fr
@@ -38,7 +38,7 @@ def _floats(text: str, what: str) -> list[float]:
 
 
 def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(
+    ap = Parser(
         prog="fluxdrive compare",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,

@@ -19,6 +19,7 @@ import sys
 
 from fluxdrive.analysis.quotes import QuoteError, count, fill, quoted_files, stale
 from fluxdrive.core.paths import ROOT
+from fluxdrive.core.schema import Parser
 
 
 def build(out: str, quiet: bool = False) -> int:
@@ -109,7 +110,7 @@ def node_tables(check: bool) -> int:
 
 
 def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(
+    ap = Parser(
         prog="fluxdrive docs",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,

@@ -16,6 +16,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from fluxdrive.core.machine import ConfigError, load_machine
+from fluxdrive.core.schema import Parser
 from fluxdrive.drive.scenario import REPO_ROOT, load_bench_file, machine_path
 from fluxdrive.experiments.claims import count, counts_line
 from fluxdrive.experiments.common import DEFAULT_MACHINE, claim
@@ -30,7 +31,7 @@ from fluxdrive.experiments.registry import (
 
 
 def _parser(names: list[str]) -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(
+    ap = Parser(
         prog="fluxdrive experiment",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,

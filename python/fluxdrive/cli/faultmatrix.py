@@ -3,16 +3,16 @@
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
+from fluxdrive.core.schema import Parser
 from fluxdrive.drive import faultmatrix
 from fluxdrive.drive.faultmatrix import run_matrix, table, write_doc
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(
+    ap = Parser(
         prog="fluxdrive fault-matrix", description=(faultmatrix.__doc__ or "").split("\n\n")[0]
     )
     ap.add_argument(

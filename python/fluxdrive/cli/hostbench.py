@@ -30,7 +30,6 @@ quotes it). No ROS.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import sys
@@ -43,7 +42,7 @@ from fluxdrive.can.loop import run_can_loop
 from fluxdrive.can.protocol import LinkOptions, link_budget
 from fluxdrive.core import yamlio
 from fluxdrive.core.paths import ROOT
-from fluxdrive.core.schema import option
+from fluxdrive.core.schema import Parser, option
 from fluxdrive.drive.control import CO_ID, CO_ID_REF
 from fluxdrive.drive.scenario import load_scenario, scenario_path
 from fluxdrive.drive.sim import run_scenario
@@ -123,7 +122,7 @@ def split_current_bandwidth_hz(
 
 
 def bench_bench(argv: list[str]) -> dict[str, Any]:
-    ap = argparse.ArgumentParser(prog="fluxdrive benchmark bench", description=__doc__)
+    ap = Parser(prog="fluxdrive benchmark bench", description=__doc__)
     ap.add_argument("--duration", type=float, default=2.0, help="drive seconds per run")
     option(ap, "--decimation", LinkOptions)
     args = ap.parse_args(argv)

@@ -23,7 +23,7 @@ from dataclasses import asdict, fields
 from pathlib import Path
 
 from fluxdrive.core.machine import load_machine
-from fluxdrive.core.schema import option
+from fluxdrive.core.schema import Parser, option
 from fluxdrive.drive.identify import (
     TOLERANCE,
     IdentifyAbort,
@@ -36,7 +36,7 @@ from fluxdrive.drive.scenario import CONFIG_DIR, machine_path, save_machine
 
 
 def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(
+    ap = Parser(
         prog="fluxdrive identify",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,

@@ -3,13 +3,13 @@ never import ROS; graph commands live in the fluxdrive_bringup package (src/).""
 
 from __future__ import annotations
 
-import argparse
 import importlib
 import os
 import subprocess
 import sys
 
 from fluxdrive.core.paths import ROOT
+from fluxdrive.core.schema import Parser
 
 REPO = ROOT
 
@@ -169,7 +169,7 @@ def main_lint(argv: list[str]) -> int:
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help", "help"):
-        parser = argparse.ArgumentParser(prog="fluxdrive", description=__doc__)
+        parser = Parser(prog="fluxdrive", description=__doc__)
         parser.print_usage()
         print("\ncommands:")
         for name, (_, _, text) in COMMANDS.items():

@@ -5,6 +5,7 @@ fluxdrive_bringup.replay.live_replay, which shares this parser."""
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import time
@@ -13,6 +14,8 @@ from typing import Any
 
 from fluxdrive.analysis.metrics import compute, format_table, write_json
 from fluxdrive.core.machine import ConfigError, load_machine
+from fluxdrive.core.paths import check_output
+from fluxdrive.core.schema import Parser
 from fluxdrive.drive.scenario import REPO_ROOT
 from fluxdrive.io.bagio import BagError, RunBag, read_run_bag
 from fluxdrive.replay import lab
@@ -37,12 +40,14 @@ def _parse_window(s: str | None) -> tuple[float, float] | None:
         a, b = (float(x) for x in s.split(":"))
     except ValueError:
         raise ConfigError(f"--window '{s}': expected START:END in seconds") from None
+    if not (math.isfinite(a) and math.isfinite(b) and 0.0 <= a < b):
+        raise ConfigError(f"--window '{s}': expected finite seconds 0 <= START < END")
     return (a, b)
 
 
 def build_parser() -> argparse.ArgumentParser:
     """`fluxdrive replay`'s options (the live publisher in fluxdrive_bringup shares them)."""
-    ap = argparse.ArgumentParser(
+    ap = Parser(
         prog="fluxdrive replay",
         description=lab.__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -125,6 +130,9 @@ def _main(args) -> int:
     machine = load_machine(args.machine) if args.machine else None
     window = _parse_window(args.window)
     out = args.out or REPO_ROOT / "runs" / f"replay-{time.strftime('%Y%m%d-%H%M%S')}"
+    check_output(out, "--out")
+    if args.write_bag is not None:
+        check_output(args.write_bag, "--write-bag")
     if args.sweep:
         return _sweep(args, window, out)
     metrics_all: dict[str, Any] = {}

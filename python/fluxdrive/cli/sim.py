@@ -2,17 +2,17 @@
 
 from __future__ import annotations
 
-import argparse
 import time
 from pathlib import Path
 
 from fluxdrive.analysis.report import report
+from fluxdrive.core.schema import Parser
 from fluxdrive.drive.scenario import REPO_ROOT, load_scenario, scenario_path
 from fluxdrive.drive.sim import run_scenario
 
 
 def main_sim(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="fluxdrive sim", description=__doc__)
+    ap = Parser(prog="fluxdrive sim", description=__doc__)
     ap.add_argument("scenario", help="scenario YAML (path, or a name under config/scenarios)")
     ap.add_argument("--out", type=Path, help="output folder (default runs/<name>-sim-<time>)")
     ap.add_argument(

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from fluxdrive.core.machine import ConfigError
+from fluxdrive.core.schema import Parser
 from fluxdrive.drive.scenario import REPO_ROOT
 from fluxdrive.study import cli as study_cli
 from fluxdrive.study.cli import run_study
@@ -18,7 +19,7 @@ from fluxdrive.study.tasks import warm_kernels
 
 
 def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(
+    ap = Parser(
         prog="fluxdrive study",
         description=study_cli.__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,

@@ -41,7 +41,9 @@ def _require_range(src: str, key: str, value: Any, lo: float, hi: float) -> floa
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ConfigError(f"{src}: '{key}' must be a number in [{lo}, {hi}], got {value!r}")
     v = float(value)
-    if not (lo <= v <= hi) or not math.isfinite(v):
+    if not math.isfinite(v):
+        raise ConfigError(f"{src}: '{key}' must be a finite number, got {v}")
+    if not lo <= v <= hi:
         raise ConfigError(f"{src}: '{key}' = {v} is out of range [{lo}, {hi}]")
     return v
 

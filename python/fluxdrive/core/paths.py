@@ -54,3 +54,35 @@ def project_file(path: Path, what: str) -> Path:
         f"definitions from the fluxdrive checkout ({ROOT}); set {ROOT_ENV} to "
         f"the checkout"
     )
+
+
+def check_output(path: Path | str, flag: str, kind: str = "dir", new: bool = False) -> Path:
+    """An output path checked before any work starts: a folder (`kind="dir"`, may exist
+    unless `new`) or a file (`kind="file"`, replaced if it exists) that can be written --
+    the nearest existing folder on its way takes a probe file (this catches a read-only file
+    system, a missing permission and a file in the way, whoever runs it).  ConfigError
+    naming `flag` and the path otherwise."""
+    import tempfile
+
+    from fluxdrive.core.errors import ConfigError
+
+    p = Path(path).expanduser()
+    if p.exists():
+        if new:
+            raise ConfigError(f"{flag} {p} exists already; choose a new one")
+        if kind == "dir" and not p.is_dir():
+            raise ConfigError(f"{flag} {p} is a file, not a folder")
+        if kind == "file" and p.is_dir():
+            raise ConfigError(f"{flag} {p} is a folder, not a file")
+    probe_dir = p if p.is_dir() else p.parent
+    while not probe_dir.exists() and probe_dir != probe_dir.parent:
+        probe_dir = probe_dir.parent
+    if not probe_dir.is_dir():
+        raise ConfigError(f"{flag} {p}: {probe_dir} is a file, not a folder")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".fluxdrive-probe-", dir=probe_dir)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise ConfigError(f"{flag} {p}: cannot write in {probe_dir} ({exc.strerror})") from None
+    return p

@@ -17,7 +17,10 @@ From the fields (`specs`):
   range: `fluxdrive_ros.params`);
 - `markdown_table(cls)`: the parameter table in the docs (`./fluxdrive docs params`);
 - `option(ap, "--flag", cls)`: a command-line option ranged by a field (a value outside
-  the range: ConfigError naming the option, one line where the command catches it).
+  the range: ConfigError naming the option, one line where the command catches it);
+- `Parser`: the argument parser every command uses: any `type=float` option takes finite
+  numbers only, `type=int` refuses what does not fit in int64, and a bad option is one line
+  (`prog: argument --x: ...`, exit 2) instead of argparse's usage block.
 """
 
 from __future__ import annotations
@@ -277,7 +280,13 @@ class _Ranged(argparse.Action):
 
 
 def option(
-    ap: Any, flag: str, cls: Any, name: str | None = None, help: str | None = None, **kw: Any
+    ap: Any,
+    flag: str,
+    cls: Any,
+    name: str | None = None,
+    help: str | None = None,
+    short: str | None = None,
+    **kw: Any,
 ) -> argparse.Action:
     """Add the numeric option `flag` to the argparse parser `ap`, declared by the field `name`
     (default: the flag's, e.g. --watchdog-s -> watchdog_s) of the schema dataclass `cls`: of
@@ -291,4 +300,55 @@ def option(
         kw["default"] = {f.name: f.default for f in dataclasses.fields(cls)}[name]
     unit = f" [{spec.unit}]" if spec.unit not in ("", "-") else ""
     text = f"{help or spec.doc}{unit}; range {spec.range_text()}".replace("%", "%%")
-    return ap.add_argument(flag, type=spec.kind, action=_Ranged, spec=spec, help=text, **kw)
+    kind = _as_float if spec.kind is float else int64 if spec.kind is int else spec.kind
+    flags = (short, flag) if short else (flag,)
+    return ap.add_argument(*flags, type=kind, action=_Ranged, spec=spec, help=text, **kw)
+
+
+def _as_float(text: str) -> float:
+    """A ranged option's float: NaN and inf pass to its range check, which names the range."""
+    return float(text)
+
+
+_as_float.__name__ = "float"
+
+
+INT64_MAX = 2**63 - 1
+
+
+def finite_float(text: str) -> float:
+    """argparse type for every float option (`Parser`): NaN and ±inf refused."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
+    return v
+
+
+def int64(text: str) -> int:
+    """argparse type for every int option (`Parser`): at most 20 digits, within int64."""
+    t = text.strip()
+    if len(t) > 20:
+        raise argparse.ArgumentTypeError(f"must be an integer within int64, got {t[:24]!r}...")
+    try:
+        v = int(t)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer, got {text!r}") from None
+    if not -INT64_MAX - 1 <= v <= INT64_MAX:
+        raise argparse.ArgumentTypeError(f"must be an integer within int64, got {text!r}")
+    return v
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse with the project's rules for bad input: finite floats, int64 ints, one line
+    on a bad option (subcommand parsers inherit it)."""
+
+    def __init__(self, *args: Any, **kw: Any) -> None:
+        super().__init__(*args, **kw)
+        self.register("type", float, finite_float)
+        self.register("type", int, int64)
+
+    def error(self, message: str) -> Any:
+        self.exit(2, f"{self.prog}: {message.splitlines()[0] if message else 'bad option'}\n")

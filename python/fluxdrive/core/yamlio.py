@@ -165,6 +165,9 @@ def load_file(path: str | Path) -> Any:
     """Read and parse a YAML file; OSError / yaml.YAMLError (also for a file too large or
     not UTF-8) propagate to the caller, who names the file in its message."""
     path = Path(path)
+    if path.exists() and not path.is_file():  # a FIFO or a device would block the read
+        kind = "a folder" if path.is_dir() else "not a regular file (a FIFO, socket or device)"
+        raise LimitError(f"{kind}: a YAML file is read whole, from a regular file only")
     if path.is_file() and path.stat().st_size > 4 * MAX_DOCUMENT_CHARS:
         raise LimitError(f"{path.stat().st_size} bytes, too large for a YAML file")
     try:

@@ -541,9 +541,23 @@ def _speed_profile(src: str, raw: dict, card: MachineCard) -> np.ndarray:
         if "speed_rpm" in raw:
             raise ConfigError(f"{src}: give speed_rpm or speed_pu, not both")
         prof = _profile(src, "speed_pu", raw["speed_pu"])
+        _check_speed(src, "speed_pu", prof[:, 1], SPEED_MAX_PU)
         prof[:, 1] *= card.rated_speed_rpm
         return prof
-    return _profile(src, "speed_rpm", raw.get("speed_rpm", 60.0))
+    prof = _profile(src, "speed_rpm", raw.get("speed_rpm", 60.0))
+    _check_speed(src, "speed_rpm", prof[:, 1], SPEED_MAX_PU * card.rated_speed_rpm)
+    return prof
+
+
+SPEED_MAX_PU = 10.0  # a speed reference beyond 10 x rated: a typo (1e308 overflowed to inf rpm)
+
+
+def _check_speed(src: str, key: str, values: np.ndarray, limit: float) -> None:
+    if np.max(np.abs(values)) > limit:
+        raise ConfigError(
+            f"{src}: '{key}' must stay within +-{limit:g} ({SPEED_MAX_PU:g} x the card's rated "
+            f"speed), got {float(np.max(np.abs(values))):g}"
+        )
 
 
 def load_bench_file(path: Path, card: MachineCard) -> BenchConfig:

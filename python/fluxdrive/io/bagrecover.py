@@ -91,8 +91,18 @@ def recover(bag: Path, out: Path | None = None) -> Recovery:
     copy = _ChunkCopy(writer, rec)
     try:
         copy.run(mcap)
-    finally:
+    except ConfigError:  # not a bag this can rebuild: no half bag left behind
+        import contextlib
+        import shutil
+
+        with contextlib.suppress(Exception):
+            writer.abort()
+        shutil.rmtree(out, ignore_errors=True)
+        raise
+    except BaseException:
         writer.close()
+        raise
+    writer.close()
     if copy.first_seq is not None:
         rec.frame_seqs = (copy.first_seq, copy.last_seq, copy.gaps)
     if not copy.conns:
@@ -196,6 +206,12 @@ class _ChunkCopy:
         sch = self.schemas.get(x.schema_id)
         if sch is None:
             return
+        if x.message_encoding != "cdr" or sch.encoding != "ros2msg":
+            # a foreign MCAP (JSON, protobuf, ...): not a rosbag2 bag, nothing to rebuild
+            raise ConfigError(
+                f"bag recover: {x.topic} is encoded {x.message_encoding!r} with a "
+                f"{sch.encoding!r} schema; only rosbag2 bags (cdr, ros2msg) are recovered"
+            )
         ts = self.store
         if sch.name not in self.store.fielddefs:  # not ours: its embedded text
             ts = get_typestore(Stores.EMPTY)

@@ -168,9 +168,16 @@ class NodeEntry:
 @dataclass(frozen=True)
 class ServeOptions:
     """The TCP port the browser scope and the Foxglove bridge serve a graph on (`scope
-    --port`, `foxglove --port`, `launch/run/tune --scope-port`), ranged once."""
+    --port`, `foxglove --port`, `launch/run/tune --scope-port`) and their connection cap
+    (`--max-clients`), ranged once."""
 
     port: int = param(8765, unit="-", doc="TCP port (0: any free port)", range=(0, 65535))
+    max_clients: int = param(
+        100,
+        unit="-",
+        doc="open connections at most; the next is refused at once (HTTP 503)",
+        range=(1, 10000),
+    )
 
 
 TOP_KEYS = {**schema.specs(GraphSettings), **schema.specs(DeathPolicy)}

@@ -27,7 +27,6 @@ See docs/replay.md.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -48,6 +47,7 @@ from fluxdrive.analysis.metrics import (
     wrap,
 )
 from fluxdrive.core.machine import ConfigError, MachineCard
+from fluxdrive.core.schema import Parser
 from fluxdrive.drive.control import CO_MODE, CO_N, CO_W_REF, ControllerConfig
 from fluxdrive.drive.observers import (
     ES_LA,
@@ -801,7 +801,7 @@ def write_augmented_bag(res: ReplayResult, bag: RunBag, path: Path) -> Path:
 def bench_replay(argv: list[str]) -> dict[str, Any]:
     """Samples/s of each built-in variant over a sample bag's frames, one core."""
 
-    ap = argparse.ArgumentParser(prog="fluxdrive benchmark replay")
+    ap = Parser(prog="fluxdrive benchmark replay")
     ap.add_argument("bag", nargs="?", type=Path)
     ap.add_argument("--samples", type=int, default=2_000_000)
     ap.add_argument("--variant", action="append")

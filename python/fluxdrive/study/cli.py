@@ -11,7 +11,6 @@ DIR/p_stable.png, DIR/theta_rms.png, DIR/report.md, DIR/summary.json.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import shutil
@@ -21,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from fluxdrive.core.machine import ConfigError
+from fluxdrive.core.schema import Parser
 from fluxdrive.drive.scenario import REPO_ROOT
 from fluxdrive.study import maps, store
 from fluxdrive.study.runner import Progress, Runner
@@ -215,7 +215,7 @@ def bench_study(argv: list[str]) -> dict[str, Any]:
 
     import yaml
 
-    ap = argparse.ArgumentParser(prog="fluxdrive benchmark study")
+    ap = Parser(prog="fluxdrive benchmark study")
     ap.add_argument(
         "--tasks",
         type=int,

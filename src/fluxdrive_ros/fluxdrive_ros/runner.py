@@ -30,7 +30,6 @@ Container spec (JSON, given as `--spec FILE` or `--spec-json TEXT`):
 
 from __future__ import annotations
 
-import argparse
 import importlib
 import json
 import os
@@ -41,6 +40,7 @@ from collections.abc import Callable
 from typing import Any
 
 import rclpy
+from fluxdrive.core.schema import Parser
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -468,7 +468,7 @@ def main_node(cls_spec: str, default_name: str, argv: list[str] | None = None) -
 
 
 def container_main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="fluxdrive-container", description=__doc__.split("\n")[0])
+    ap = Parser(prog="fluxdrive-container", description=__doc__.split("\n")[0])
     ap.add_argument("--spec", help="JSON spec file")
     ap.add_argument("--spec-json", help="JSON spec text")
     args, rest = ap.parse_known_args(argv)

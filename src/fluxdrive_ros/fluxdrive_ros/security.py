@@ -19,13 +19,14 @@ What the installed middleware does (measured; details in docs/safety.md):
 
 from __future__ import annotations
 
-import argparse
 import os
 import re
 import shutil
 import subprocess
 import sys
 from pathlib import Path
+
+from fluxdrive.core.schema import Parser
 
 _GOVERNANCE = """<?xml version="1.0" encoding="UTF-8"?>
 <dds xmlns:xsi="http://www.w3.org/2001/XMLSchema-instance"
@@ -120,6 +121,25 @@ def _openssl(*args: str, cwd: Path) -> None:
     r = subprocess.run(["openssl", *args], cwd=cwd, capture_output=True, text=True)
     if r.returncode != 0:
         raise RuntimeError(f"openssl {args[0]} failed: {r.stderr.strip().splitlines()[-1]}")
+
+
+def loopback_tls_pair(days: int = 2) -> tuple[bytes, bytes]:
+    """(certificate, PKCS#8 key) PEM of a self-signed P-256 certificate for 127.0.0.1, made in
+    a private temporary folder that is removed at once (the Foxglove bridge's inner server:
+    fluxdrive_bringup.view.gate)."""
+    import tempfile
+
+    if shutil.which("openssl") is None:
+        raise RuntimeError("the openssl command is needed for the bridge's inner TLS link")
+    with tempfile.TemporaryDirectory(prefix="fluxdrive-tls-") as tmp:
+        d = Path(tmp)  # mode 0700: the key is never readable by others
+        _openssl(
+            "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1",
+            "-nodes", "-keyout", "key.pem", "-out", "cert.pem", "-days", str(days),
+            "-subj", "/CN=127.0.0.1", "-addext", "subjectAltName=IP:127.0.0.1",
+            cwd=d,
+        )  # fmt: skip
+        return (d / "cert.pem").read_bytes(), (d / "key.pem").read_bytes()
 
 
 def make_keystore(root: Path, enclaves: list[str], days: int = 3650) -> list[Path]:
@@ -223,7 +243,7 @@ def _make_enclave(
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(
+    ap = Parser(
         prog="python -m fluxdrive_ros.security",
         description="SROS2 keystore for the fluxdrive graph (openssl)",
     )

@@ -84,6 +84,30 @@ def in_drive(node, topic: str) -> str:
     return (ns.rstrip("/") + "/" + topic) if ns != "/" else "/" + topic
 
 
+ROS_NAME_RE = re.compile(r"/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*")
+
+
+def check_ros_name(value: Any, where: str, kind: str = "name") -> str:
+    """A node, topic or service name as a user gave it ('plant' -> '/plant'), or ConfigError
+    naming `where` -- checked before rclpy sees it (rclpy raises its own exception types,
+    or a 500 in a server, on names it cannot form)."""
+    if not isinstance(value, str) or len(value) > 255 or not ROS_NAME_RE.fullmatch(value):
+        shown = repr(value)[:80]
+        raise ConfigError(
+            f"{where} must be a ROS {kind} like /controller/reset_fault (letters, digits, _ "
+            f"between slashes, not starting with a digit), got {shown}"
+        )
+    return value if value.startswith("/") else "/" + value
+
+
+def check_service_name(value: Any, where: str) -> str:
+    return check_ros_name(value, where, "service name")
+
+
+def check_node_name(value: Any, where: str) -> str:
+    return check_ros_name(value, where, "node name")
+
+
 def check_namespace(value: Any, where: str) -> str:
     """A drive namespace ('/a', 'a/b' -> '/a/b'; None or '' -> ''), or ConfigError naming
     `where`."""

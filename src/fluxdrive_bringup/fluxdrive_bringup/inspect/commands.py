@@ -20,24 +20,63 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import re
 import sys
 import time
+from dataclasses import dataclass
 from typing import Any
 
 import yaml
 from fluxdrive.core import yamlio
-from fluxdrive.core.schema import option
+from fluxdrive.core.errors import ConfigError
+from fluxdrive.core.paths import check_output
+from fluxdrive.core.schema import Parser, option, param
 from fluxdrive.io.graphfile import GraphSettings
+from fluxdrive_ros.topics import check_node_name, check_ros_name, check_service_name
+
+
+@dataclass
+class InspectOptions:
+    """The inspection commands' numeric options, ranged once."""
+
+    window_s: float = param(1.0, unit="s", doc="report period", range=(0.01, 3600.0))
+    duration_s: float = param(
+        0.0, unit="s", doc="stop after this long (0: until Ctrl-C)", range=(0.0, 1e6)
+    )
+    timeout_s: float = param(
+        0.0, unit="s", doc="give up after this long (0: never)", range=(0.0, 1e6)
+    )
+    wait_s: float = param(
+        5.0,
+        unit="s",
+        doc="longest discovery wait (`list` returns once discovery has settled)",
+        range=(0.0, 3600.0),
+    )
+
+
+def check_field_path(cls, path: str, flag: str = "--field") -> None:
+    """A dotted field path (`header.stamp.sec`, `i_abc.0`) that messages of `cls` have, or
+    ConfigError naming the option, the type and the fields there are."""
+    d: Any = _msg_to_plain(cls())
+    for part in path.split("."):
+        if isinstance(d, list):
+            if not part.isdigit():
+                raise ConfigError(f"{flag} {path}: '{part}' is not an index into a list")
+            d = d[int(part)] if int(part) < len(d) else None
+        elif isinstance(d, dict):
+            if part not in d:
+                raise ConfigError(
+                    f"{flag} {path}: {cls.__name__} has no field '{part}' here; fields: "
+                    f"{', '.join(d)}"
+                )
+            d = d[part]
+        elif d is not None:
+            raise ConfigError(f"{flag} {path}: '{part}' is below a plain value")
 
 
 def _common(ap: argparse.ArgumentParser) -> None:
     option(ap, "--domain-id", GraphSettings, help="ROS_DOMAIN_ID of the graph")
-    ap.add_argument(
-        "--wait",
-        type=float,
-        default=5.0,
-        help="longest discovery wait [s] (default 5; `list` returns once discovery has settled)",
-    )
+    option(ap, "--wait", InspectOptions, "wait_s")
 
 
 # A participant that missed another's first announcements learns of it from the next
@@ -167,7 +206,7 @@ def _msg_to_plain(msg) -> Any:
 
 # --------------------------------------------------------------------------- topic
 def main_topic(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="fluxdrive topic", description="topic list|echo|hz")
+    ap = Parser(prog="fluxdrive topic", description="topic list|echo|hz")
     sub = ap.add_subparsers(dest="cmd", required=True)
     p = sub.add_parser("list", help="topics with types")
     p.add_argument("-v", "--verbose", action="store_true", help="publisher/subscriber counts")
@@ -176,14 +215,16 @@ def main_topic(argv: list[str]) -> int:
     p.add_argument("topic")
     p.add_argument("-n", "--count", type=int, default=0, help="stop after N messages")
     p.add_argument("--field", help="print only this field (dotted path)")
-    p.add_argument("--timeout", type=float, default=0.0, help="give up after [s]")
+    option(p, "--timeout", InspectOptions, "timeout_s")
     _common(p)
     p = sub.add_parser("hz", help="message rate")
     p.add_argument("topic")
-    p.add_argument("-w", "--window", type=float, default=1.0, help="report period [s]")
-    p.add_argument("--duration", type=float, default=0.0, help="stop after [s] (0: Ctrl-C)")
+    option(p, "--window", InspectOptions, "window_s", short="-w")
+    option(p, "--duration", InspectOptions, "duration_s")
     _common(p)
     args = ap.parse_args(argv)
+    if args.cmd != "list":
+        check_ros_name(args.topic, "TOPIC", "topic name")
     s = Session(args)
     try:
         if args.cmd == "list":
@@ -210,6 +251,8 @@ def main_topic(argv: list[str]) -> int:
         from fluxdrive_ros.topics import msg_class
 
         cls = msg_class(ty)
+        if args.cmd == "echo" and args.field:
+            check_field_path(cls, args.field)
         if args.cmd == "echo":
             return _echo(s, args, cls)
         return _hz(s, args, cls)
@@ -270,7 +313,7 @@ def _hz(s: Session, args, cls) -> int:
 
 # --------------------------------------------------------------------------- node
 def main_node(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="fluxdrive node", description="node list")
+    ap = Parser(prog="fluxdrive node", description="node list")
     sub = ap.add_subparsers(dest="cmd", required=True)
     p = sub.add_parser("list", help="nodes of the graph")
     _common(p)
@@ -291,6 +334,7 @@ def main_node(argv: list[str]) -> int:
 
 # --------------------------------------------------------------------------- param
 def _call(s: Session, srv_type, name: str, req, timeout: float = 5.0):
+    check_service_name(name, "service")  # before rclpy: it raises its own types on a bad one
     # one client per service and session (a long-lived session, the scope's, calls often)
     cache = s.__dict__.setdefault("_clients", {})
     cli = cache.get((srv_type, name))
@@ -314,6 +358,16 @@ def _call(s: Session, srv_type, name: str, req, timeout: float = 5.0):
 
 def _node_fqn(node: str) -> str:
     return node if node.startswith("/") else "/" + node
+
+
+PARAM_NAME_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*")
+
+
+def check_param_name(name: str, where: str = "NAME") -> None:
+    if len(name) > 255 or not PARAM_NAME_RE.fullmatch(name):
+        raise ConfigError(
+            f"{where} must be a parameter name (letters, digits, _ and dots), got {name[:80]!r}"
+        )
 
 
 def _get(s: Session, node: str, names: list[str]):
@@ -354,7 +408,17 @@ def parse_value(text: str, current_type: int | None):
     double parameter becomes a float, like the nodes accept in their files)."""
     from rcl_interfaces.msg import ParameterType
 
-    v = yamlio.loads(text)
+    try:
+        v = yamlio.loads(text)
+    except yamlio.LimitError as exc:  # e.g. an integer outside int64
+        raise ConfigError(f"value {text[:60]!r}: {yamlio.describe(exc)}") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(
+            f"value {text[:60]!r} is not valid YAML: {yamlio.describe(exc)}"
+        ) from None
+    check_param_value(v, text)
+    if isinstance(v, list) and any(isinstance(x, float) for x in v):
+        v = [float(x) for x in v]  # [1, 2.5]: a list of doubles
     if (
         current_type == ParameterType.PARAMETER_DOUBLE
         and isinstance(v, int)
@@ -364,6 +428,39 @@ def parse_value(text: str, current_type: int | None):
     if current_type == ParameterType.PARAMETER_STRING and not isinstance(v, str):
         v = text
     return v
+
+
+INT64 = (-(2**63), 2**63 - 1)
+
+
+def check_param_value(v: Any, text: str) -> None:
+    """A value a ROS parameter can hold: a bool, an int64, a double, a string, or a list of
+    one of these (ints and doubles may mix: a list of doubles); else ConfigError."""
+    shown = text[:60]
+
+    def scalar(x: Any) -> type | None:
+        if isinstance(x, bool):
+            return bool
+        if isinstance(x, int):
+            if not INT64[0] <= x <= INT64[1]:
+                raise ConfigError(f"value {shown!r}: an integer parameter is int64")
+            return int
+        return float if isinstance(x, float) else str if isinstance(x, str) else None
+
+    if isinstance(v, list):
+        kinds = {scalar(x) for x in v}
+        if (None in kinds or len(kinds) > 1) and not kinds <= {int, float}:
+            names = sorted(k.__name__ if k else "nested" for k in kinds)
+            raise ConfigError(
+                f"value {shown!r}: a list parameter holds one type (bools, integers, "
+                f"numbers or strings), got {names}"
+            )
+    elif v is None or scalar(v) is None:
+        what = "a mapping" if isinstance(v, dict) else "nothing" if v is None else type(v).__name__
+        raise ConfigError(
+            f"value {shown!r}: a parameter is a bool, integer, number, string or a list of "
+            f"one of these, got {what}"
+        )
 
 
 def set_param(s: Session, node: str, name: str, text: str) -> tuple[bool, str, Any]:
@@ -382,7 +479,7 @@ def set_param(s: Session, node: str, name: str, text: str) -> tuple[bool, str, A
 
 
 def main_param(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="fluxdrive param", description="param list|get|set|dump")
+    ap = Parser(prog="fluxdrive param", description="param list|get|set|dump")
     sub = ap.add_subparsers(dest="cmd", required=True)
     p = sub.add_parser("list", help="parameter names of a node")
     p.add_argument("node")
@@ -402,8 +499,14 @@ def main_param(argv: list[str]) -> int:
     p.add_argument("-o", "--output", help="write to this file instead of stdout")
     _common(p)
     args = ap.parse_args(argv)
+    node = check_node_name(args.node, "NODE")
+    if args.cmd in ("get", "set"):
+        check_param_name(args.name)
+    if args.cmd == "set":
+        parse_value(args.value, None)  # the value's form, before any ROS call
+    if args.cmd == "dump" and args.output:
+        check_output(args.output, "--output", kind="file")
     s = Session(args)
-    node = _node_fqn(args.node)
     try:
         if args.cmd == "list":
             for n in _list(s, node):
@@ -458,7 +561,7 @@ def main_fault(argv: list[str]) -> int:
     """`./fluxdrive fault reset [SERVICE]`: clear a latched drive fault (the only way one is
     cleared).  Runs as node /fluxdrive_operator, the name the controller's
     allowed_operators (and a bench bridge's allowed_commanders, if listed) must contain."""
-    ap = argparse.ArgumentParser(prog="fluxdrive fault", description=main_fault.__doc__)
+    ap = Parser(prog="fluxdrive fault", description=main_fault.__doc__)
     sub = ap.add_subparsers(dest="cmd", required=True)
     p = sub.add_parser("reset", help="clear a latched fault")
     p.add_argument(
@@ -470,6 +573,7 @@ def main_fault(argv: list[str]) -> int:
     )
     _common(p)
     args = ap.parse_args(argv)
+    check_service_name(args.service, "SERVICE")
     s = Session(args, node_name=OPERATOR_NODE)
     try:
         ok, message = reset_fault(s, args.service)

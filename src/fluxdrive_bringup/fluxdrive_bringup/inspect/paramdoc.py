@@ -10,7 +10,6 @@ the fields of the controller's and observers' config blocks are in docs/configur
 
 from __future__ import annotations
 
-import argparse
 import os
 import shutil
 import sys
@@ -19,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from fluxdrive.core import schema
+from fluxdrive.core.schema import Parser
 from fluxdrive.drive.config_blocks import BLOCKS
 from fluxdrive.drive.scenario import CONFIG_DIR, REPO_ROOT
 
@@ -151,7 +151,7 @@ def fill(text: str, page: Path = PAGE) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="paramdoc", description=__doc__.split("\n\n")[0])
+    ap = Parser(prog="paramdoc", description=__doc__.split("\n\n")[0])
     how = ap.add_mutually_exclusive_group()
     how.add_argument("--write", action="store_true", help=f"rewrite the tables in {PAGE.name}")
     how.add_argument("--check", action="store_true", help="exit 1 when they are stale")

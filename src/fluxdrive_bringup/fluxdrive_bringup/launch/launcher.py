@@ -60,9 +60,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import yaml
 from fluxdrive.core import schema, yamlio
 from fluxdrive.core.machine import ConfigError
-from fluxdrive.core.schema import option
+from fluxdrive.core.paths import check_output
+from fluxdrive.core.schema import Parser, option
 from fluxdrive.drive.scenario import REPO_ROOT
 from fluxdrive.io.graphfile import (
     NODE_KEYS,
@@ -300,7 +302,29 @@ def _node_or_cmd(nd: dict, here: str) -> tuple[str | None, list[str] | None]:
         )
     if cmd is not None and not cmd:
         raise ConfigError(f"{here}: cmd must be a non-empty list of strings")
+    if node is not None and node not in NODE_CLASSES:
+        _check_node_class(node, here)
     return node, None if cmd is None else list(cmd)
+
+
+def _check_node_class(node: str, here: str) -> None:
+    """A user's node class `module:Class`: its module must be found on the Python path
+    before anything starts (without running it: a process would fail at start with a
+    traceback and the graph with 'exit 1')."""
+    import importlib.util
+
+    mod, _, cls = node.partition(":")
+    why = ""
+    if not cls.isidentifier() or not all(p.isidentifier() for p in mod.split(".")):
+        why = "expected module.path:ClassName"
+    else:
+        try:
+            if importlib.util.find_spec(mod) is None:
+                why = f"no module named {mod!r} on the Python path"
+        except Exception as exc:  # noqa: BLE001 - a parent package that fails to import
+            why = f"cannot look up module {mod!r}: {type(exc).__name__}: {exc}".splitlines()[0]
+    if why:
+        raise ConfigError(f"{here}: node class {node!r}: {why}")
 
 
 def _param_files(params: Any, here: str, base: Path) -> list[str]:
@@ -1188,6 +1212,8 @@ def launcher_env_discovery(g: Graph) -> str:
 
 def main(argv: list[str]) -> int:
     args = _launch_parser().parse_args(argv)
+    if args.log_dir is not None:
+        check_output(args.log_dir, "--log-dir")
     from fluxdrive_ros.security import precheck
 
     why = precheck()
@@ -1218,11 +1244,8 @@ def main(argv: list[str]) -> int:
 
 
 def _launch_parser():
-    import argparse
 
-    ap = argparse.ArgumentParser(
-        prog="fluxdrive launch", description="start a graph described in YAML"
-    )
+    ap = Parser(prog="fluxdrive launch", description="start a graph described in YAML")
     ap.add_argument("graph", help="graph YAML (path, or a name under config/graphs/)")
     option(ap, "--domain-id", GraphSettings, help="ROS_DOMAIN_ID for every process")
     ap.add_argument("--timeout", type=float, help="stop the graph after this many seconds")
@@ -1272,8 +1295,14 @@ def _apply_sets(g: Graph, sets: list[str]) -> None:
                 f"--set {item!r}: expected NODE.PARAM=VALUE with NODE one of "
                 f"{[n.name for n in g.nodes]}"
             )
+        try:
+            value = yamlio.loads(val)
+        except yaml.YAMLError as exc:
+            raise ConfigError(
+                f"--set {item[:80]!r}: the value is not valid YAML: {yamlio.describe(exc)}"
+            ) from None
         for n in match:
-            n.parameters[pname] = yamlio.loads(val)
+            n.parameters[pname] = value
 
 
 def _choose_free_domain(g: Graph) -> str:

@@ -31,8 +31,9 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from fluxdrive.core.schema import option
-from fluxdrive.drive.scenario import REPO_ROOT, load_scenario, scenario_path
+from fluxdrive.core.paths import check_output
+from fluxdrive.core.schema import Parser, option
+from fluxdrive.drive.scenario import REPO_ROOT, ScenarioSettings, load_scenario, scenario_path
 from fluxdrive.io.graphfile import GraphSettings, ServeOptions
 
 from fluxdrive_bringup.launch.domains import choose_domain, pick_domain_id
@@ -256,7 +257,7 @@ def main_run(argv: list[str], default_scenario: str | None = None) -> int:
     sp = scenario_path(args.scenario if default_scenario is None else default_scenario)
     sc = load_scenario(sp)
     stamp = time.strftime("%Y%m%d-%H%M%S")
-    out = args.out or REPO_ROOT / "runs" / f"{sc.name}-{stamp}"
+    out = check_output(args.out or REPO_ROOT / "runs" / f"{sc.name}-{stamp}", "--out")
     bag = args.bag or REPO_ROOT / "bags" / f"{sc.name}-{stamp}"
     dom, refused = _run_preflight(args, bag)
     if refused:
@@ -284,7 +285,7 @@ def main_run(argv: list[str], default_scenario: str | None = None) -> int:
 
 
 def _run_parser(default_scenario: str | None) -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(
+    ap = Parser(
         prog="fluxdrive run" if default_scenario is None else "fluxdrive demo",
         description=__doc__.split("\n\n")[0],
     )
@@ -292,7 +293,14 @@ def _run_parser(default_scenario: str | None) -> argparse.ArgumentParser:
         ap.add_argument("scenario", help="scenario YAML (path, or a name under config/scenarios)")
     ap.add_argument("--out", type=Path, help="report folder (default runs/<name>-<time>)")
     ap.add_argument("--bag", type=Path, help="bag folder (default bags/<name>-<time>)")
-    ap.add_argument("--duration", type=float, help="simulate only this long [s]")
+    option(
+        ap,
+        "--duration",
+        ScenarioSettings,
+        "duration_s",
+        default=None,
+        help="simulate only this long (default: the scenario's duration_s)",
+    )
     ap.add_argument(
         "--layout",
         choices=LAYOUTS,
@@ -341,6 +349,7 @@ def _run_preflight(args, bag: Path) -> tuple[int | None, str]:
     if Path(bag).exists():
         # a failed run must never be mistaken for this old bag
         return None, f"bag directory {bag} exists already; choose a new one (--bag)"
+    check_output(bag, "--bag", new=True)
     from fluxdrive_ros.security import precheck
 
     why = precheck()

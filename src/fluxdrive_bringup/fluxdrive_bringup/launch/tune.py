@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 from fluxdrive.core.machine import ConfigError
-from fluxdrive.core.schema import option
+from fluxdrive.core.schema import Parser, option
 from fluxdrive.drive.scenario import REPO_ROOT, load_scenario, save_scenario, scenario_path
 from fluxdrive.io.graphfile import GraphSettings, ServeOptions
 from fluxdrive_ros.runner import load_class
@@ -101,9 +101,7 @@ def main(argv: list[str]) -> int:
 
 
 def _tune_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(
-        prog="fluxdrive tune", description=__doc__.split("\n\n")[0].replace("\n", " ")
-    )
+    ap = Parser(prog="fluxdrive tune", description=__doc__.split("\n\n")[0].replace("\n", " "))
     ap.add_argument("--scenario", default=TUNE_SCENARIO, help="hold-point scenario (tune_*)")
     ap.add_argument("--speed-rpm", type=float, help="hold speed [rpm] (default: the scenario's)")
     ap.add_argument(

@@ -49,7 +49,7 @@ import time
 from pathlib import Path
 
 from fluxdrive.cli.bench import benchmark_path, stamped, write_benchmark
-from fluxdrive.core.schema import option
+from fluxdrive.core.schema import Parser, option
 from fluxdrive.drive.scenario import load_scenario, scenario_path
 from fluxdrive.io.graphfile import GraphSettings
 
@@ -114,7 +114,7 @@ def bench_graph(argv: list[str]) -> dict:
 def _graph_parser() -> argparse.ArgumentParser:
     from fluxdrive_bringup.launch.runs import DEMO_SCENARIO, LAYOUTS
 
-    ap = argparse.ArgumentParser(prog="fluxdrive benchmark graph", description=__doc__)
+    ap = Parser(prog="fluxdrive benchmark graph", description=__doc__)
     ap.add_argument("--duration", type=float, default=3.0, help="simulated seconds (default 3)")
     ap.add_argument("--scenario", default=DEMO_SCENARIO)
     ap.add_argument(
@@ -615,7 +615,7 @@ def _paced_parser() -> argparse.ArgumentParser:
 
     from fluxdrive_bringup.launch.runs import DEMO_SCENARIO, LAYOUTS
 
-    ap = argparse.ArgumentParser(prog="fluxdrive benchmark paced", description=PACED_DOC)
+    ap = Parser(prog="fluxdrive benchmark paced", description=PACED_DOC)
     ap.add_argument("--duration", type=float, default=2.0, help="simulated seconds")
     ap.add_argument("--minutes", type=float, default=0.0, help="wall minutes (0: --duration)")
     # the plant's own fields (rate_factor, watchdog_s): what it would accept, said at once

@@ -16,7 +16,6 @@ the bridge cannot publish, and the same metric table is printed.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import random
@@ -27,8 +26,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 from fluxdrive.can.protocol import LinkOptions
-from fluxdrive.core.schema import option
-from fluxdrive.drive.scenario import REPO_ROOT, load_scenario, scenario_path
+from fluxdrive.core.schema import Parser, option
+from fluxdrive.drive.scenario import REPO_ROOT, ScenarioSettings, load_scenario, scenario_path
 from fluxdrive.io.graphfile import GraphSettings
 
 from fluxdrive_bringup.launch.domains import choose_domain
@@ -129,12 +128,12 @@ def sil_graph(sp: Path, sc, bag: Path, *, mode: str, decimation: int, domain_id:
 
 
 def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="fluxdrive bench", description=__doc__.split("\n\n")[0])
+    ap = Parser(prog="fluxdrive bench", description=__doc__.split("\n\n")[0])
     ap.add_argument("--sil", action="store_true", required=True, help="software in the loop")
     ap.add_argument("scenario", nargs="?", default="paper_2pct_150load")
     ap.add_argument("--mode", choices=MODES, default="split", help="where the current loop runs")
     option(ap, "--decimation", LinkOptions)
-    ap.add_argument("--duration", type=float, help="simulate only this long [s]")
+    option(ap, "--duration", ScenarioSettings, "duration_s", default=None)
     ap.add_argument("--bag", type=Path, help="bag folder (default bags/<name>-sil-<time>)")
     option(ap, "--domain-id", GraphSettings)
     ap.add_argument("--timeout", type=float, default=600.0)

@@ -37,6 +37,7 @@ import threading
 import time
 from pathlib import Path
 
+from fluxdrive.core.schema import Parser
 from fluxdrive.drive.scenario import REPO_ROOT, load_scenario, scenario_path
 from fluxdrive.io.bagio import bag_counts
 from fluxdrive_ros.topics import CONTROLLER_STATE, FRAME, TRUTH, estimate_topic
@@ -468,7 +469,7 @@ def _burst_result(
 
 
 def soak(argv: list[str]) -> dict:
-    ap = argparse.ArgumentParser(
+    ap = Parser(
         prog="fluxdrive soak",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,

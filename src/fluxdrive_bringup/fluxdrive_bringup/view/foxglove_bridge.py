@@ -2,9 +2,16 @@
 Foxglove / Lichtblick with the Foxglove SDK (foxglove-sdk from PyPI).
 
     ./fluxdrive foxglove [--port 8765] [--host 127.0.0.1] [--domain-id N] [--clock /clock]
+                         [--allow-origin ORIGIN] [--allow-host NAME] [--max-clients 100]
 
-Connect a viewer to ws://127.0.0.1:8765 ("Open connection" -> "Foxglove WebSocket").  The
-server speaks the WebSocket subprotocol `foxglove.sdk.v1` (foxglove-sdk 0.30); a client that
+prints `foxglove: ws://127.0.0.1:8765/?token=...` -- connect a viewer to that URL ("Open
+connection" -> "Foxglove WebSocket"), token included.  Only the operator connects: every
+connection needs the token (drawn afresh per launch), a Host header naming this machine and,
+from a browser, an Origin of this machine or one given with --allow-origin (a web viewer's,
+e.g. `--allow-origin https://viewer.example`); at most --max-clients at once, the next is
+refused at once (fluxdrive_bringup.view.gate; docs/safety.md).
+
+The server speaks the WebSocket subprotocol `foxglove.sdk.v1` (foxglove-sdk 0.30); a client that
 offers only the older `foxglove.websocket.v1` is refused during the handshake (HTTP 400), so
 use a viewer recent enough for the SDK's protocol (see docs/scope.md).
 
@@ -28,7 +35,8 @@ subscribed to parameters (parametersSubscribe) gets every change of them, whoeve
 Services: every ResetFault (`<controller>/reset_fault`, a bench bridge's) and Arm
 (`/drive/arm`) service of the graph, found by discovery, called with cdr request and
 response; the bridge calls them as node /fluxdrive_operator (the operator the controller's
-`allowed_operators` names, as `./fluxdrive fault reset` does).
+`allowed_operators` names, as `./fluxdrive fault reset` does) -- which is why only the
+token's holder may connect at all.
 
 Time: the graph's `/clock` (`--clock`, e.g. /bench_a/clock for a namespaced drive) is
 broadcast as the server time, and every message goes out with the newest /clock time as its
@@ -43,7 +51,6 @@ view at full rate with little cost use `./fluxdrive scope` (decimated in the gra
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import struct
@@ -52,8 +59,10 @@ import threading
 import time
 from typing import Any
 
-from fluxdrive.core.schema import option
+from fluxdrive.core.schema import Parser, option
 from fluxdrive.io.graphfile import GraphSettings, ServeOptions
+
+from fluxdrive_bringup.view.gate import access_from_args, add_access_options
 
 SUBPROTOCOL = "foxglove.sdk.v1"
 BRIDGE_NODE = "fluxdrive_foxglove"
@@ -119,14 +128,29 @@ class Bridge:
         self.sim_ns: int | None = None  # newest /clock [ns]
         self._clock_seen = False  # a publisher of the clock topic was seen
         self._t_time = 0.0
+        # the SDK's server listens on a loopback port in TLS with a certificate of this
+        # launch only the gate trusts; the gate owns the public port and its rules
+        from fluxdrive_ros.security import loopback_tls_pair
+
+        from fluxdrive_bringup.view.gate import FoxgloveGate
+
+        cert, key = loopback_tls_pair()
         self.server = foxglove.start_server(
             name="fluxdrive",
-            host=args.host,
-            port=args.port,
+            host="127.0.0.1",
+            port=0,
             capabilities=[Capability.Parameters, Capability.Services, Capability.Time],
             server_listener=self,
             supported_encodings=["cdr"],
+            tls_cert=cert,
+            tls_key=key,
         )
+        self.gate = FoxgloveGate(args.access, self.server.port, cert)
+        try:
+            self.gate.start(args.host, args.port)
+        except BaseException:
+            self.server.stop()
+            raise
         self.stop = threading.Event()
         from rcl_interfaces.msg import ParameterEvent
         from rclpy.qos import qos_profile_parameter_events
@@ -419,7 +443,7 @@ class Bridge:
                 text = v if isinstance(v, str) else json.dumps(v)
                 try:
                     ok, reason, _ = set_param(self.params, node, pname, text)
-                except (LookupError, TimeoutError) as exc:
+                except (LookupError, TimeoutError, ValueError) as exc:  # ValueError: ConfigError
                     ok, reason = False, str(exc)
                 print(
                     f"foxglove: set {node} {pname} = {text}: "
@@ -437,10 +461,11 @@ class Bridge:
 
     # ------------------------------------------------------------------ run
     def run(self) -> int:
-        port = self.server.port
+        host = self.args.host if self.args.host not in ("0.0.0.0", "::", "") else "127.0.0.1"
         print(
-            f"foxglove: ws://{self.args.host}:{port} (WebSocket subprotocol {SUBPROTOCOL}; "
-            f"ROS_DOMAIN_ID={self.args.domain_id})",
+            f"foxglove: ws://{host}:{self.gate.port}/?token={self.args.access.token} "
+            f"(WebSocket subprotocol {SUBPROTOCOL}; ROS_DOMAIN_ID={self.args.domain_id}; "
+            f"at most {self.args.access.max_clients} clients)",
             flush=True,
         )
         import signal
@@ -459,6 +484,7 @@ class Bridge:
                 self.apply_subscriptions()
                 self.ex.spin_once(timeout_sec=0.02)
         finally:
+            self.gate.stop()
             self.server.stop()
             self.params.close()
             if self.operator is not None:
@@ -473,9 +499,15 @@ class Bridge:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="fluxdrive foxglove", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
+    ap = Parser(prog="fluxdrive foxglove", description=__doc__.split("\n\n")[0])
+    ap.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="address to bind (default 127.0.0.1: this machine only; another address lets "
+        "anyone who reaches it and holds the token operate the drive)",
+    )
     option(ap, "--port", ServeOptions, help="TCP port (default 8765; 0: any)")
+    add_access_options(ap)
     option(ap, "--domain-id", GraphSettings, help="ROS_DOMAIN_ID of the graph")
     ap.add_argument(
         "--clock",
@@ -487,6 +519,7 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     if args.domain_id is None:
         args.domain_id = int(os.environ.get("ROS_DOMAIN_ID", "0") or 0)
+    args.access = access_from_args(args, "foxglove")
     try:
         import foxglove  # noqa: F401
     except ImportError:
@@ -497,7 +530,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         b = Bridge(args)
-    except RuntimeError as exc:  # the SDK cannot bind the port
+    except (RuntimeError, OSError) as exc:  # the gate or the SDK cannot bind its port
         print(
             f"foxglove: cannot start the server on {args.host}:{args.port}: {exc}", file=sys.stderr
         )

@@ -24,19 +24,21 @@ Parts (one process):
 - an aiohttp server: the page (scope_web/, uPlot vendored under scope_web/vendor), /ws, /api.
 
 Binds 127.0.0.1 unless --host says otherwise (then anyone who can reach the port and has
-the URL can set parameters and reset faults).  Exit with Ctrl-C; with --exit-on-done (run
-and demo use it) a second after the graph's /drive/done.
+the URL can set parameters and reset faults).  Every request passes the operator's rules
+(fluxdrive_bringup.view.gate: a Host of this machine, no foreign page's Origin, the token for
+everything but the page's scripts and styles, at most --max-clients live pages); a refusal
+is one line to the client and one in the log, never a 500.  Started by the launcher, the URL
+with its token goes to the launcher's console only, never into the log file.  Exit with
+Ctrl-C; with --exit-on-done (run and demo use it) a second after the graph's /drive/done.
 """
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import concurrent.futures
 import json
 import logging
 import os
-import secrets
 import struct
 import sys
 import threading
@@ -44,11 +46,14 @@ import time
 from pathlib import Path
 from typing import Any
 
-from fluxdrive.core.schema import option
+from fluxdrive.core.machine import ConfigError
+from fluxdrive.core.schema import Parser, option
 from fluxdrive.io.graphfile import GraphSettings, ServeOptions
+from fluxdrive_ros.topics import check_service_name
+
+from fluxdrive_bringup.view.gate import Access, access_from_args, add_access_options
 
 WEB_DIR = Path(__file__).resolve().parent / "scope_web"
-TOKEN_HEADER = "X-Scope-Token"
 SCOPE_NODE = "fluxdrive_scope"
 _OWN_NODES = {"/" + SCOPE_NODE, "/fluxdrive_scope_params", "/fluxdrive_operator"}
 MODE_NAMES = {0: "disabled", 1: "align", 2: "I/f ramp", 3: "closed loop", 4: "FAULT"}
@@ -383,7 +388,8 @@ def _plain(v: Any) -> Any:
 class Scope:
     def __init__(self, args):
         self.args = args
-        self.token = args.token or secrets.token_urlsafe(18)
+        self.access: Access = args.access
+        self.token = self.access.token
         self.clients: set = set()
         self.sockets: set = set()
         self.loop: asyncio.AbstractEventLoop | None = None
@@ -428,25 +434,41 @@ class Scope:
             q.put_nowait(text)
 
     def _authorised(self, request) -> bool:
-        tok = request.query.get("token") or request.headers.get(TOKEN_HEADER, "")
-        return secrets.compare_digest(tok.encode(), self.token.encode())
+        return self.access.has_token(request.path_qs, request.headers)
+
+    def _refuse(self, request, status: int, reason: str, as_json: bool = False):
+        """One line to the client (text, or JSON {error} for the API) and one to the log."""
+        from aiohttp import web
+
+        line = self.access.refused(str(request.remote), status, reason)
+        if as_json:
+            return web.json_response({"ok": False, "error": line.strip()}, status=status)
+        return web.Response(status=status, text=line)
+
+    def _no_token(self, request, as_json: bool = True):
+        return self._refuse(
+            request, 403, "missing or wrong token (use the URL the scope printed)", as_json
+        )
 
     # handlers
     async def index(self, request):
         from aiohttp import web
 
         if not self._authorised(request):
-            return web.Response(
-                status=403,
-                text="scope: missing or wrong token; use the URL that ./fluxdrive scope printed\n",
-            )
+            return self._no_token(request, as_json=False)
         return web.FileResponse(WEB_DIR / "index.html", headers={"Cache-Control": "no-store"})
 
     async def ws(self, request):
         from aiohttp import WSMsgType, web
 
         if not self._authorised(request):
-            return web.Response(status=403, text="wrong token\n")
+            return self._no_token(request, as_json=False)
+        if len(self.sockets) >= self.access.max_clients:
+            return self._refuse(
+                request,
+                503,
+                f"connection limit reached ({self.access.max_clients} pages; --max-clients)",
+            )
         sock = web.WebSocketResponse(heartbeat=10.0, max_msg_size=1 << 20)
         await sock.prepare(request)
         q: asyncio.Queue = asyncio.Queue(maxsize=2)
@@ -479,7 +501,7 @@ class Scope:
         from aiohttp import web
 
         if not self._authorised(request):
-            return web.json_response({"error": "wrong token"}, status=403)
+            return self._no_token(request)
         try:
             nodes = await self.params.run(self.params.nodes)
             out = []
@@ -501,7 +523,7 @@ class Scope:
         from aiohttp import web
 
         if not self._authorised(request):
-            return web.json_response({"error": "wrong token"}, status=403)
+            return self._no_token(request)
         try:
             body = await request.json()
             node, name, text = str(body["node"]), str(body["name"]), str(body["value"])
@@ -528,10 +550,14 @@ class Scope:
         from aiohttp import web
 
         if not self._authorised(request):
-            return web.json_response({"error": "wrong token"}, status=403)
+            return self._no_token(request)
         # the drive's controller (in its namespace) unless the page names another service
         own = getattr(self.args, "namespace", "") + "/controller/reset_fault"
         service = request.query.get("service", own)
+        try:
+            check_service_name(service, "service")
+        except ConfigError as exc:
+            return self._refuse(request, 400, str(exc), as_json=True)
         try:
             ok, message = await self.params.run(self.params.reset, service)
         except (LookupError, TimeoutError) as exc:
@@ -545,7 +571,7 @@ class Scope:
         from aiohttp import web
 
         if not self._authorised(request):
-            return web.json_response({"error": "wrong token"}, status=403)
+            return self._no_token(request)
         try:
             body = await request.json()
             sets = [("trigger", str(body["trigger"]))]
@@ -574,7 +600,7 @@ class Scope:
         from aiohttp import web
 
         if not self._authorised(request):
-            return web.json_response({"error": "wrong token"}, status=403)
+            return self._no_token(request)
         if self.capture is None:
             return web.json_response({"path": None})
         return web.json_response(self.capture)
@@ -584,7 +610,7 @@ class Scope:
         from aiohttp import web
 
         if not self._authorised(request):
-            return web.Response(status=403, text="wrong token\n")
+            return self._no_token(request, as_json=False)
         if self.capture is None or "error" in self.capture:
             return web.Response(status=404, text="no capture yet\n")
         files = sorted(Path(self.capture["path"]).glob("*.mcap"))
@@ -603,7 +629,7 @@ class Scope:
         from aiohttp import web
 
         if not self._authorised(request):
-            return web.json_response({"error": "wrong token"}, status=403)
+            return self._no_token(request)
         r = self.ros
         return web.json_response(
             {
@@ -618,19 +644,30 @@ class Scope:
 
     @staticmethod
     def _page_guard(scope: Scope):
-        """Middleware: the page itself (index.html) is served only with the token, also
-        under /static/ (the scripts and styles it loads carry no token and no secret)."""
+        """Middleware: every request's Host and Origin checked (gate.Access.where); the page
+        itself (index.html) served only with the token, also under /static/ (the scripts and
+        styles it loads carry no token and no secret); an unforeseen error in a handler is
+        one line to the client and the log, not aiohttp's 500 page."""
         from aiohttp import web
 
         @web.middleware
         async def guard(request, handler):
+            bad = scope.access.where(request.headers)
+            if bad is not None:
+                return scope._refuse(request, *bad, as_json=request.path.startswith("/api/"))
             if (
                 request.path.startswith("/static/")
                 and Path(request.path).name.lower() == "index.html"
                 and not scope._authorised(request)
             ):
-                return web.Response(status=403, text="scope: the page needs its token\n")
-            return await handler(request)
+                return scope._refuse(request, 403, "the page needs its token")
+            try:
+                return await handler(request)
+            except web.HTTPException:
+                raise
+            except Exception as exc:  # noqa: BLE001 - one line, never a traceback page
+                why = f"{type(exc).__name__}: {exc}".splitlines()[0][:300]
+                return scope._refuse(request, 400, f"cannot serve {request.path}: {why}", True)
 
         return guard
 
@@ -680,9 +717,12 @@ class Scope:
         port = runner.addresses[0][1]
         host = self.args.host if self.args.host not in ("0.0.0.0", "::") else "127.0.0.1"
         url = f"http://{host}:{port}/?token={self.token}"
-        print(f"scope: {url}", flush=True)
         if os.environ.get("FLUXDRIVE_GRAPH_KEY"):  # started by the launcher (--scope)
+            # the launcher's log file keeps this output: the address without its token
+            print(f"scope: http://{host}:{port}/ (the URL with its token: on the console)")
             print(f"@scope-url {url}", flush=True)
+        else:
+            print(f"scope: {url}", flush=True)
         stop = asyncio.Event()
         import signal
 
@@ -736,12 +776,12 @@ def quiet_bad_requests() -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="fluxdrive scope", description=__doc__.split("\n\n")[0])
+    ap = Parser(prog="fluxdrive scope", description=__doc__.split("\n\n")[0])
     ap.add_argument(
         "--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)"
     )
     option(ap, "--port", ServeOptions, help="TCP port (default 8765; 0: any free port)")
-    ap.add_argument("--token", help="access token (default: a fresh random one per launch)")
+    add_access_options(ap)
     option(ap, "--domain-id", GraphSettings, help="ROS_DOMAIN_ID of the graph")
     ap.add_argument(
         "--attach-wait",
@@ -760,11 +800,11 @@ def main(argv: list[str] | None = None) -> int:
         "on /bench_a/drive/param_marker; default: the root namespace)",
     )
     args = ap.parse_args(sys.argv[1:] if argv is None else argv)
-    from fluxdrive.core.machine import ConfigError
     from fluxdrive_ros.topics import check_namespace
 
     try:
         args.namespace = check_namespace(args.namespace, "--namespace")
+        args.access = access_from_args(args, "scope")
     except ConfigError as exc:
         print(f"scope: {exc}", file=sys.stderr)
         return 2

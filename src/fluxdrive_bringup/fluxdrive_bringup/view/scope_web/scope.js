@@ -568,7 +568,7 @@ function updateDrive(doc) {
 
 $("reset").addEventListener("click", async () => {
   $("resetmsg").textContent = "…";
-  const r = await fetch("api/reset", { method: "POST", headers: { "X-Scope-Token": TOKEN } });
+  const r = await fetch("api/reset", { method: "POST", headers: { "X-Fluxdrive-Token": TOKEN } });
   const j = await r.json();
   $("resetmsg").textContent = (j.ok ? "ok: " : "refused: ") + j.message;
   $("resetmsg").className = j.ok ? "ok" : "bad";
@@ -612,7 +612,7 @@ function paramRow(node, p) {
   td1.appendChild(td3);
   const send = async () => {
     td3.textContent = "…"; td3.className = "status";
-    const r = await fetch("api/param", { method: "POST", headers: { "Content-Type": "application/json", "X-Scope-Token": TOKEN },
+    const r = await fetch("api/param", { method: "POST", headers: { "Content-Type": "application/json", "X-Fluxdrive-Token": TOKEN },
                                          body: JSON.stringify({ node, name: p.name, value: input.value }) });
     const j = await r.json();
     td3.textContent = j.ok ? "✓ " + (j.reason || "set") : "✗ " + j.reason;
@@ -636,7 +636,7 @@ async function loadParams() {
   $("nodes").textContent = "loading…";
   document.body.dataset.params = "loading";
   try {
-    const r = await fetch("api/nodes", { headers: { "X-Scope-Token": TOKEN } });
+    const r = await fetch("api/nodes", { headers: { "X-Fluxdrive-Token": TOKEN } });
     const j = await r.json();
     const host = $("nodes");
     host.innerHTML = "";
@@ -680,7 +680,7 @@ function updateTrigger(doc) {
 }
 
 async function loadCapture(attempt = 0) {
-  const r = await fetch("api/capture", { headers: { "X-Scope-Token": TOKEN } });
+  const r = await fetch("api/capture", { headers: { "X-Fluxdrive-Token": TOKEN } });
   const j = await r.json();
   if (!j.path || j.path !== capturePath) {  // the server is still reading the bag
     if (attempt < 40) setTimeout(() => loadCapture(attempt + 1), 250);
@@ -740,7 +740,7 @@ $("arm").addEventListener("click", async () => {
   $("trigstate").textContent = "arming…";
   const body = { trigger: $("trig").value, field: $("trigfield").value, level: $("triglevel").value,
                  pre_s: $("trigpre").value, post_s: $("trigpost").value };
-  const r = await fetch("api/trigger", { method: "POST", headers: { "Content-Type": "application/json", "X-Scope-Token": TOKEN },
+  const r = await fetch("api/trigger", { method: "POST", headers: { "Content-Type": "application/json", "X-Fluxdrive-Token": TOKEN },
                                           body: JSON.stringify(body) });
   const j = await r.json();
   $("trigstate").textContent = j.ok ? j.reason : "refused: " + j.reason;
