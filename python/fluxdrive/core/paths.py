@@ -60,13 +60,24 @@ def check_output(path: Path | str, flag: str, kind: str = "dir", new: bool = Fal
     """An output path checked before any work starts: a folder (`kind="dir"`, may exist
     unless `new`) or a file (`kind="file"`, replaced if it exists) that can be written --
     the nearest existing folder on its way takes a probe file (this catches a read-only file
-    system, a missing permission and a file in the way, whoever runs it).  ConfigError
-    naming `flag` and the path otherwise."""
+    system, a missing permission and a file in the way, whoever runs it).  Returns the path
+    made absolute ('..' resolved as the shell would); ConfigError naming `flag` otherwise."""
+    from fluxdrive.core.errors import ConfigError
+
+    p = Path(os.path.abspath(Path(path).expanduser()))
+    try:
+        return _check_output(p, flag, kind, new)
+    except OSError as exc:  # a name too long, a loop of links, ...
+        raise ConfigError(f"{flag} {str(p)[:200]}: {exc.strerror or exc}") from None
+
+
+def _check_output(p: Path, flag: str, kind: str, new: bool) -> Path:
     import tempfile
 
     from fluxdrive.core.errors import ConfigError
 
-    p = Path(path).expanduser()
+    if any(len(os.fsencode(part)) > 255 for part in p.parts):
+        raise ConfigError(f"{flag} {str(p)[:200]}...: a name in it is longer than 255 bytes")
     if p.exists():
         if new:
             raise ConfigError(f"{flag} {p} exists already; choose a new one")

@@ -259,6 +259,10 @@ class FoxgloveGate:
 
         async def close() -> None:
             server.close()
+            me = asyncio.current_task()
+            for task in asyncio.all_tasks():  # the open connections' pipes
+                if task is not me:
+                    task.cancel()
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(server.wait_closed(), 2.0)
             loop.stop()
@@ -286,11 +290,19 @@ class FoxgloveGate:
                 head = await asyncio.wait_for(
                     reader.readuntil(b"\r\n\r\n"), 1.0 if full else HANDSHAKE_TIMEOUT_S
                 )
-            except (TimeoutError, asyncio.IncompleteReadError, ConnectionError):
+            except ConnectionError:
+                writer.close()
+                return
+            except (TimeoutError, asyncio.IncompleteReadError) as exc:
                 if full:  # the answer goes out whether or not the request head came
                     await self._refuse(writer, client, 503, self._full_text())
+                elif isinstance(exc, TimeoutError):
+                    why = f"no complete request head within {HANDSHAKE_TIMEOUT_S:g} s"
+                    await self._refuse(writer, client, 400, why)
+                elif exc.partial:
+                    await self._refuse(writer, client, 400, "incomplete request head")
                 else:
-                    writer.close()
+                    writer.close()  # connected and closed without a word
                 return
             except asyncio.LimitOverrunError:
                 await self._refuse(writer, client, 431, "request head too long")
@@ -322,7 +334,6 @@ class FoxgloveGate:
         except (OSError, ssl.SSLError) as exc:
             await self._refuse(writer, client, 503, f"the bridge's server is not answering ({exc})")
             return
-        self.accepted += 1
         up_w.write(head)
 
         async def copy(src: asyncio.StreamReader, dst: asyncio.StreamWriter) -> None:
@@ -336,4 +347,22 @@ class FoxgloveGate:
                 with contextlib.suppress(Exception):
                     dst.close()
 
-        await asyncio.gather(copy(reader, up_w), copy(up_r, writer))
+        to_server = asyncio.create_task(copy(reader, up_w))
+        try:
+            first = await up_r.read(65536)
+        except (ConnectionError, ssl.SSLError, OSError):
+            first = b""
+        if not first:  # the SDK dropped the handshake without a word: say it in one line
+            to_server.cancel()
+            with contextlib.suppress(Exception):
+                up_w.close()
+            why = (
+                "not a WebSocket handshake the server takes (Upgrade, Connection, Sec-WebSocket-*)"
+            )
+            await self._refuse(writer, client, 400, why)
+            return
+        self.accepted += 1
+        writer.write(first)
+        with contextlib.suppress(ConnectionError, OSError):
+            await writer.drain()
+        await asyncio.gather(to_server, copy(up_r, writer))
