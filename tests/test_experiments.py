@@ -48,9 +48,82 @@ def test_claims_table_is_the_experiments_registry():
         "held": 1,
         "disagreement": 1,
         "modelling_gap": 0,
+        "undecided": 0,
         "calibrated": 1,
         "by_design": 0,
     }
+
+
+def test_claims_table_is_frozen_at_its_registered_version():
+    """The table's claims hash to the SHA-256 registered for its version in
+    config/claims_history.yaml (a change to a claim needs a new version there)."""
+    from fluxdrive.core import yamlio
+    from fluxdrive.experiments.claims import CLAIMS_FILE, content_hash, registry_info
+
+    info = registry_info()
+    computed = content_hash(yamlio.load_file(CLAIMS_FILE)["claims"])
+    assert info["problems"] == [], f"the claims now hash to {computed}"
+    assert info["registered"] and info["version"] == info["history"][-1]["version"] >= 2
+
+
+def test_a_threshold_changed_without_a_new_version_is_refused(tmp_path):
+    """Relax one threshold in a copy of the table: its hash no longer matches the version's;
+    registering a new version (the table's version, its hash, a history entry) makes it
+    frozen again.  Reformatting the YAML alone changes nothing."""
+    from fluxdrive.core import yamlio
+    from fluxdrive.experiments.claims import CLAIMS_FILE, HISTORY_FILE, content_hash, registry_info
+
+    text = CLAIMS_FILE.read_text()
+    hist = HISTORY_FILE.read_text()
+    table, history = tmp_path / "claims.yaml", tmp_path / "history.yaml"
+    table.write_text(text.replace("# ", "#  "))  # comments only
+    history.write_text(hist)
+    assert registry_info(table, history)["problems"] == []
+    relaxed = text.replace("threshold: 0.25\n", "threshold: 0.3\n", 1)
+    assert relaxed != text
+    table.write_text(relaxed)
+    problems = registry_info(table, history)["problems"]
+    assert any("register a new version" in p for p in problems)
+    version = yamlio.load_file(table)["version"]
+    new_hash = content_hash(yamlio.load_file(table)["claims"])
+    relaxed = re.sub(r"^sha256: \S+", f"sha256: {new_hash}", relaxed, flags=re.M)
+    table.write_text(relaxed)  # the table's own hash updated, the version not
+    assert any(
+        "changed without a new version" in p for p in registry_info(table, history)["problems"]
+    )
+    table.write_text(relaxed.replace(f"version: {version}", f"version: {version + 1}", 1))
+    history.write_text(
+        hist + f"  - version: {version + 1}\n    sha256: {new_hash}\n"
+        '    date: "2026-11-30"\n    what: relaxed for the test\n'
+    )
+    assert registry_info(table, history)["problems"] == []
+
+
+def test_verdicts_over_seeds_have_intervals_margins_and_original_tests():
+    """Mean and 95 % Student-t interval of the per-seed values; a comparison is better /
+    worse / no difference / undecided against threshold ± margin; the row changed before
+    registration is judged under both tests."""
+    from fluxdrive.experiments.claims import compare, interval, judge
+
+    st = interval([1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0])
+    half = 2.365 * math.sqrt(6.0) / math.sqrt(8.0)  # t(0.975, 7)·s/√n, s² = 6
+    assert st["mean"] == 4.5 and st["ci95"] == pytest.approx([4.5 - half, 4.5 + half])
+    assert interval([1.0])["ci95"] == [-math.inf, math.inf]  # one seed bounds nothing
+    assert math.isinf(interval([1.0, math.nan])["ci95"][1])  # a run that stopped
+    assert compare("<", 1.0, 0.05, [0.80, 0.90]) == "better"
+    assert compare("<", 1.0, 0.05, [1.10, 1.20]) == "worse"
+    assert compare("<", 1.0, 0.05, [0.97, 1.02]) == "no difference"
+    assert compare("<", 1.0, 0.05, [0.90, 1.02]) == "undecided"
+    # flux/EMF noise 0.98 ± 0.01 over 8 seeds: "no difference", so not held -- never a coin
+    # flip on one seed; the original test also wanted the total RMS lower
+    seeds = [0.97, 0.98, 0.99, 0.98, 0.97, 0.99, 0.98, 0.98]
+    c = judge("fig14.measured_snr", "x", math.nan, samples=seeds, also={"theta_rms_ratio": 0.5})
+    assert c["stats"]["outcome"] == "no difference" and c["verdict"] == "disagreement"
+    better = [0.6 + 0.01 * k for k in range(8)]
+    c = judge("fig14.measured_snr", "x", math.nan, samples=better, also={"theta_rms_ratio": 1.1})
+    assert c["verdict"] == "held" and c["original"]["verdict"] == "disagreement"
+    wide = [0.2, 1.8, 0.3, 1.7, 0.2, 1.8, 0.3, 1.7]
+    assert judge("fig14.measured_snr", "x", math.nan, samples=wide)["verdict"] == "undecided"
 
 
 def test_groups_name_the_papers_figures():

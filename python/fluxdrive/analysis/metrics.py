@@ -2,8 +2,9 @@
 runner, the graph run, replay and the experiments.
 
 All angle metrics use the true electrical angle at the sample instant.  Harmonic orders are
-taken against the rotor's electrical angle (c_n = 2 <x e^{-j n theta_e}>) over a whole
-number of electrical periods, so they stay meaningful when the speed moves a little.
+taken against the rotor's electrical angle by one joint least-squares fit of orders 0..20
+(fit_orders) over a whole number of electrical periods, so they stay exact when the speed
+moves; what the fit leaves is the broadband noise (noise_rms).
 """
 
 from __future__ import annotations
@@ -53,71 +54,117 @@ def whole_periods(theta_unwrapped: np.ndarray) -> slice:
     return slice(0, max(end, 2))
 
 
-def angle_weights(theta: np.ndarray) -> np.ndarray:
-    """Per-sample weights |dθ| normalised to 1: averages over the electrical angle, not time.
-    Why: under speed ripple (a hunting rotor, the deadtime's 6th-order torque ripple) time samples
-    crowd where the rotor is slow; a time average then makes e^{jnθ} non-orthogonal and leaks the
-    fundamental into neighbouring orders, either way (a 5 % 6th-order angle ripple moves the 5th/7th
-    by 3× of it).  The rectangle rule over a half-open window of whole periods; at constant speed
-    the weights are uniform and nothing changes.  Steps are taken modulo 2π, so theta may be
-    wrapped."""
-    n = len(theta)
-    if n < 2:
-        return np.full(n, 1.0 / max(n, 1))
-    d = np.abs(wrap(np.diff(theta)))  # wrapped or unwrapped angles alike
-    w = np.append(d, d[-1])
-    s = float(w.sum())
-    if not math.isfinite(s) or s <= 0:  # standstill: no angle to average over
-        return np.full(n, 1.0 / n)
-    return w / s
+# orders fitted jointly: 0 (DC) .. 20; THD's orders and what "broadband noise" leaves out
+FIT_ORDERS = 20
 
 
-def harmonic(
-    x: np.ndarray, theta: np.ndarray, order: int, weights: np.ndarray | None = None
-) -> complex:
-    """Complex amplitude of order `order` of x against the angle theta (an average over the
-    angle: angle_weights)."""
-    w = angle_weights(theta) if weights is None else weights
-    return complex(2.0 * np.sum(w * x * np.exp(-1j * order * theta)))
+@dataclass(frozen=True)
+class OrderFit:
+    """A joint least-squares fit of orders 0..N of x against the angle theta:
+    x ≈ c_0 + Σ_{n=1..N} Re(c_n·e^{jnθ}) (c_0 the real DC part, |c_n| order n's amplitude),
+    and what the fit leaves (`residual`: the broadband noise, higher and non-integer orders).
+    x may be (samples,) or (samples, signals): then every array has a signals axis last."""
+
+    coef: np.ndarray
+    residual: np.ndarray
+
+    def amplitude(self, order: int) -> np.ndarray | float:
+        a = np.abs(self.coef[order])
+        return float(a) if np.ndim(a) == 0 else a
+
+    @property
+    def noise_rms(self) -> np.ndarray | float:
+        r = np.sqrt(np.mean(self.residual**2, axis=0)) if len(self.residual) else np.nan
+        return float(r) if np.ndim(r) == 0 else r
 
 
-def _spectrum(x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Complex amplitudes of orders 0..max(THD_ORDERS) (angle-weighted) and the weights."""
-    w = angle_weights(theta)
-    return np.array([harmonic(x, theta, n, w) for n in range(max(THD_ORDERS) + 1)]), w
+def fit_orders(x: np.ndarray, theta: np.ndarray, max_order: int = FIT_ORDERS) -> OrderFit:
+    """Joint least-squares fit of orders 0..max_order of x against the measured angle theta
+    (wrapped or unwrapped; the true rotor angle at each sample).  Why joint: under speed
+    ripple (a hunting rotor, the deadtime's 6th-order torque ripple) the samples crowd where
+    the rotor is slow, so e^{jnθ} are not orthogonal over the samples; a projection on one
+    order at a time then leaks the others into it and leaves harmonic power in the residual,
+    which a joint fit does not: it assumes nothing about the speed, only that x is a function
+    of θ plus noise.  Non-finite input gives nan coefficients and residual."""
+    x = np.asarray(x, dtype=float)
+    th = np.asarray(theta, dtype=float)
+    y = x[:, None] if x.ndim == 1 else x
+    n_col = 2 * max_order + 1
+    coef = np.full((max_order + 1, y.shape[1]), np.nan + 0j)
+    res = np.full(y.shape, np.nan)
+    ok = np.all(np.isfinite(y), axis=0)  # a signal with a non-finite sample: nan
+    if len(th) and np.all(np.isfinite(th)) and ok.any():
+        e1 = np.exp(1j * th)
+        a = np.empty((len(th), n_col))
+        a[:, 0] = 1.0
+        en = np.ones(len(th), dtype=complex)
+        for k in range(1, max_order + 1):
+            en = en * e1
+            a[:, 2 * k - 1] = en.real
+            a[:, 2 * k] = en.imag
+        gram = a.T @ a
+        if len(th) >= n_col and np.linalg.cond(gram) < 1e10:
+            sol = np.linalg.solve(gram, a.T @ y[:, ok])
+        else:  # less than a period or a standstill: the minimum-norm fit
+            sol = np.linalg.lstsq(a, y[:, ok], rcond=None)[0]
+        res[:, ok] = y[:, ok] - a @ sol
+        coef[0, ok] = sol[0]
+        coef[1:, ok] = sol[1::2] - 1j * sol[2::2]  # a·cos + b·sin = Re((a − jb)·e^{jθ})
+    if x.ndim == 1:
+        return OrderFit(coef[:, 0], res[:, 0])
+    return OrderFit(coef, res)
 
 
-def thd(x: np.ndarray, theta: np.ndarray) -> float:
-    """Harmonics 2..20 over the fundamental (Figs. 15, 16)."""
-    c, _ = _spectrum(x, theta)
+def harmonic(x: np.ndarray, theta: np.ndarray, order: int) -> complex:
+    """Complex amplitude c_n of order `order` of x against the angle theta, from the joint
+    fit of orders 0..max(20, order) (fit_orders); order 0: the DC part."""
+    return complex(fit_orders(x, theta, max(FIT_ORDERS, order)).coef[order])
+
+
+def noise_rms(x: np.ndarray, theta_unwrapped: np.ndarray, max_order: int = FIT_ORDERS) -> float:
+    """Broadband noise of x: the RMS of what the joint fit of orders 0..max_order against the
+    rotor angle leaves, over the largest whole number of electrical periods (the SNR of θ̃
+    in the paper's sense)."""
+    sl = whole_periods(theta_unwrapped)
+    return float(fit_orders(x[sl], theta_unwrapped[sl], max_order).noise_rms)
+
+
+def _thd_of(c: np.ndarray) -> float:
     h1 = abs(c[1])
-    if h1 <= 0:
+    if not h1 > 0:
         return float("nan")
     return float(math.sqrt(float(np.sum(np.abs(c[list(THD_ORDERS)]) ** 2))) / h1)
 
 
+def _thd_n_of(c: np.ndarray, residual: np.ndarray) -> float:
+    h1 = abs(c[1])
+    if not h1 > 0:
+        return float("nan")
+    resid_ms = float(np.mean(residual**2))
+    rest_ms = float(np.real(c[0])) ** 2 + float(np.sum(np.abs(c[list(THD_ORDERS)]) ** 2)) / 2
+    return float(math.sqrt(rest_ms + resid_ms) / (h1 / math.sqrt(2.0)))
+
+
+def thd(x: np.ndarray, theta: np.ndarray) -> float:
+    """Harmonics 2..20 over the fundamental (Figs. 15, 16), from the joint fit."""
+    return _thd_of(fit_orders(x, theta).coef)
+
+
 def thd_n(x: np.ndarray, theta: np.ndarray) -> float:
     """THD+N: RMS of everything but the fundamental (DC, orders 2.., broadband noise) over the
-    fundamental's RMS.  x over a whole number of electrical periods of theta.  Built from the
-    same angle-weighted spectrum as thd(): DC² + the orders 2..20 exactly as thd() counts them +
-    the mean square of what is left after removing orders 0..20 (noise, higher and non-integer
-    orders), so THD+N >= THD holds by construction, not only up to leakage."""
-    c, w = _spectrum(x, theta)
-    h1 = abs(c[1])
-    if h1 <= 0:
-        return float("nan")
-    fit = np.real(c[0]) / 2.0 + sum(
-        np.real(c[n] * np.exp(1j * n * theta)) for n in range(1, len(c))
-    )
-    resid_ms = float(np.sum(w * (x - fit) ** 2))
-    dc = np.real(c[0]) / 2.0
-    rest_ms = dc**2 + float(np.sum(np.abs(c[list(THD_ORDERS)]) ** 2)) / 2.0 + resid_ms
-    return float(math.sqrt(rest_ms) / (h1 / math.sqrt(2.0)))
+    fundamental's RMS.  x over a whole number of electrical periods of theta.  From the same
+    joint fit as thd(): DC² + the orders 2..20 exactly as thd() counts them + the mean square
+    of what the fit leaves (noise, higher and non-integer orders), so THD+N >= THD holds by
+    construction."""
+    f = fit_orders(x, theta)
+    return _thd_n_of(f.coef, f.residual)
 
 
 def harmonic_spectrum(x: np.ndarray, theta: np.ndarray, orders=range(1, 21)) -> dict[int, float]:
-    w = angle_weights(theta)
-    return {n: abs(harmonic(x, theta, n, w)) for n in orders}
+    """|c_n| of the requested orders, from one joint fit of orders 0..max(20, the highest)."""
+    orders = list(orders)
+    c = fit_orders(x, theta, max([FIT_ORDERS, *orders])).coef
+    return {n: float(abs(c[n])) for n in orders}
 
 
 @dataclass
@@ -139,23 +186,26 @@ def observer_metrics(
     err = wrap(est[:, ES_TH] - theta_true)
     sl = whole_periods(theta_unwrapped)
     th = theta_unwrapped[sl]
-    e = err[sl]
+    # one joint fit of θ̃, λ̂α and êα against the rotor angle (one factorisation)
+    fit = fit_orders(np.column_stack([err[sl], est[sl, ES_LA], est[sl, ES_EA]]), th)
+    c, res = fit.coef, fit.residual
     flux_mag = np.hypot(est[:, ES_LA], est[:, ES_LB])
     mean_mag = float(np.mean(flux_mag))
     return {
         "theta_err_rms_deg": float(np.degrees(np.sqrt(np.mean(err**2)))),
         "theta_err_peak_deg": float(np.degrees(np.max(np.abs(err)))),
         "theta_err_mean_deg": float(np.degrees(np.mean(err))),
-        "theta_err_h1_deg": float(np.degrees(abs(harmonic(e, th, 1)))),
-        "theta_err_h6_deg": float(np.degrees(abs(harmonic(e, th, 6)))),
+        "theta_err_h1_deg": float(np.degrees(abs(c[1, 0]))),
+        "theta_err_h6_deg": float(np.degrees(abs(c[6, 0]))),
+        "theta_err_noise_deg": float(np.degrees(np.sqrt(np.mean(res[:, 0] ** 2)))),
         "flux_radius_spread": float((flux_mag.max() - flux_mag.min()) / mean_mag)
         if mean_mag > 0
         else float("nan"),
         "flux_radius_mean_vs": mean_mag,
-        "thd_flux_alpha": thd(est[sl, ES_LA], th),
-        "thd_emf_alpha": thd(est[sl, ES_EA], th),
-        "thdn_flux_alpha": thd_n(est[sl, ES_LA], th),
-        "thdn_emf_alpha": thd_n(est[sl, ES_EA], th),
+        "thd_flux_alpha": _thd_of(c[:, 1]),
+        "thd_emf_alpha": _thd_of(c[:, 2]),
+        "thdn_flux_alpha": _thd_n_of(c[:, 1], res[:, 1]),
+        "thdn_emf_alpha": _thd_n_of(c[:, 2], res[:, 2]),
         "valid_fraction": float(np.mean(est[:, ES_VALID] > 0.5)),
     }
 
@@ -252,6 +302,7 @@ RANKED = (
     ("theta_err_rms_deg", "θ̃ RMS", "°"),
     ("theta_err_peak_deg", "θ̃ peak", "°"),
     ("theta_err_h6_deg", "θ̃ 6th order", "°"),
+    ("theta_err_noise_deg", "θ̃ noise", "°"),
     ("thd_flux_alpha", "THD λ̂α", ""),
     ("thdn_flux_alpha", "THD+N λ̂α", ""),
 )
@@ -328,6 +379,7 @@ def format_table(m: dict[str, Any]) -> str:
         ("theta_err_mean_deg", "mean°", 7, 3),
         ("theta_err_h1_deg", "h1°", 6, 3),
         ("theta_err_h6_deg", "h6°", 7, 3),
+        ("theta_err_noise_deg", "noise°", 7, 3),
         ("flux_radius_spread", "spread", 7, 3),
         ("thd_flux_alpha", "THDλα", 7, 3),
         ("thd_emf_alpha", "THDeα", 7, 3),
@@ -373,7 +425,8 @@ def format_table(m: dict[str, Any]) -> str:
         lines.append(lowest)
     lines.append(
         "(* driving; θ̃ = θ̂ − θ in electrical degrees over the window; h1/h6 orders "
-        "of θ̃ vs the rotor angle; spread = (max−min)/mean |λ̂|; THD: orders 2..20; "
+        "of θ̃ vs the rotor angle, noise what a joint fit of orders 0..20 leaves; "
+        "spread = (max−min)/mean |λ̂|; THD: orders 2..20; "
         "THD+N: all but the fundamental, noise and DC included)"
     )
     return "\n".join(lines)

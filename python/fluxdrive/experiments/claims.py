@@ -1,4 +1,4 @@
-"""The paper's claims, registered before the runs (config/claims.yaml).
+"""The paper's claims, registered before the runs (config/claims.yaml), frozen by version.
 
 An experiment measures a number per claim and hands it to `judge`; the verdict comes from the
 table's test and threshold, never from the experiment's code, and the table's class decides
@@ -6,11 +6,26 @@ how it counts: only a passing *reproduction* is "held"; a failing one is a genui
 disagreement or a modelling gap (the row says which, the explanation says why); a claim a
 model number was fitted to (`calibrated`) or a setting was chosen for (`by_design`) is
 reported with its number but never counted as held.
+
+Frozen: the table carries a version and the SHA-256 of its claim definitions
+(`content_hash`), and config/claims_history.yaml keeps every version's hash; a claim changed
+without a new version no longer matches its registered hash (`frozen_problems`, checked by
+tests/test_experiments.py, printed in the report).  A row whose test changed before it was
+first registered keeps the earlier test (`original`): the report shows both verdicts.
+
+Statistics: an experiment hands the per-seed values (`samples`); the row's value is their
+mean with a 95 % Student-t confidence interval, and the verdict needs the whole interval on
+one side of the threshold.  A comparison registers an equivalence `margin`: the interval
+inside threshold ± margin is "no difference", wholly past threshold ∓ margin "better" or
+"worse", anything else "undecided" (more seeds needed); only "better" holds.  A row without a
+margin is a test, not a comparison: the interval passes, fails or leaves it undecided.
 """
 
 from __future__ import annotations
 
 import functools
+import hashlib
+import json
 import math
 import operator
 from pathlib import Path
@@ -21,30 +36,84 @@ from fluxdrive.core.machine import ConfigError
 from fluxdrive.drive.scenario import CONFIG_DIR
 
 CLAIMS_FILE = CONFIG_DIR / "claims.yaml"
+HISTORY_FILE = CONFIG_DIR / "claims_history.yaml"
 CLASSES = ("reproduction", "calibrated", "by_design")
 FAILURES = ("disagreement", "modelling_gap")
-# the five counts of the report, in its order
-VERDICTS = ("held", "disagreement", "modelling_gap", "calibrated", "by_design")
+# the six counts of the report, in its order
+VERDICTS = ("held", "disagreement", "modelling_gap", "undecided", "calibrated", "by_design")
 VERDICT_TEXT = {
     "held": "held",
     "disagreement": "genuine disagreement",
     "modelling_gap": "modelling gap",
+    "undecided": "undecided",
     "calibrated": "calibrated",
     "by_design": "by design",
 }
 TESTS = {"<": operator.lt, "<=": operator.le, ">": operator.gt, ">=": operator.ge}
 _KEYS = {"id", "experiment", "claim", "source", "operating_point", "quantity", "metric"}
 _KEYS |= {"unit", "test", "threshold", "class"}
-_OPTIONAL = {"if_fails", "variants", "calibration", "design", "sources"}
+_OPTIONAL = {"if_fails", "variants", "calibration", "design", "sources", "margin", "original"}
+MIN_SEEDS = 8  # a verdict from fewer seeds says so
+# two-sided 95 % Student-t quantiles by degrees of freedom (beyond 30: the normal's)
+_T95 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571, 6: 2.447, 7: 2.365, 8: 2.306}
+_T95 |= {9: 2.262, 10: 2.228, 11: 2.201, 12: 2.179, 13: 2.160, 14: 2.145, 15: 2.131}
+_T95 |= {16: 2.120, 17: 2.110, 18: 2.101, 19: 2.093, 20: 2.086, 25: 2.060, 30: 2.042}
+
+
+def content_hash(rows: list[dict[str, Any]]) -> str:
+    """SHA-256 of the claim definitions: the `claims` list as canonical JSON (keys sorted,
+    no whitespace, UTF-8), so any change to any row -- test, threshold, class, text, margin --
+    changes it, and reformatting the YAML does not."""
+    text = json.dumps(rows, sort_keys=True, ensure_ascii=False, separators=(",", ":"))
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def _load(path: Path, key: str) -> Any:
+    try:
+        return yamlio.load_file(path)[key]
+    except (OSError, KeyError, TypeError, yamlio.YAMLError) as exc:
+        raise ConfigError(f"{path}: cannot read `{key}`: {exc}") from exc
+
+
+def registry_info(path: Path = CLAIMS_FILE, history: Path = HISTORY_FILE) -> dict[str, Any]:
+    """The table's declared version and hash, the hash recomputed from its rows, the
+    history's versions, and what does not agree (`problems`: empty when frozen)."""
+    doc = yamlio.load_file(path) if path.exists() else {}
+    rows = _load(path, "claims")
+    computed = content_hash(rows)
+    version, declared = doc.get("version"), doc.get("sha256")
+    versions = _load(history, "versions") if history.exists() else []
+    by_version = {v.get("version"): v for v in versions if isinstance(v, dict)}
+    problems = []
+    if declared != computed:
+        problems.append(
+            f"{path}: sha256 {str(declared)[:12]}... is not the claims' own {computed[:12]}... "
+            "(a claim changed: register a new version)"
+        )
+    reg = by_version.get(version)
+    if reg is None:
+        problems.append(f"{history}: version {version} is not registered")
+    elif reg.get("sha256") != computed:
+        problems.append(
+            f"{history}: version {version} was registered as {str(reg.get('sha256'))[:12]}..., "
+            f"the claims hash to {computed[:12]}... (changed without a new version)"
+        )
+    nums = [v.get("version") for v in versions if isinstance(v, dict)]
+    if nums != list(range(1, len(nums) + 1)) or (nums and version != nums[-1]):
+        problems.append(f"{history}: versions must be 1, 2, ... with the table at the last")
+    return {
+        "version": version,
+        "sha256": computed,
+        "registered": not problems,
+        "problems": problems,
+        "history": [{k: v.get(k) for k in ("version", "sha256", "date", "what")} for v in versions],
+    }
 
 
 @functools.cache
 def registered(path: Path = CLAIMS_FILE) -> dict[str, dict[str, Any]]:
     """The table, by id; a malformed row is one line naming the file and the row."""
-    try:
-        rows = yamlio.load_file(path)["claims"]
-    except (OSError, KeyError, TypeError, yamlio.YAMLError) as exc:
-        raise ConfigError(f"{path}: cannot read the claims table: {exc}") from exc
+    rows = _load(path, "claims")
     out: dict[str, dict[str, Any]] = {}
     for i, row in enumerate(rows):
         where = f"{path}: claims[{i}]"
@@ -56,19 +125,102 @@ def registered(path: Path = CLAIMS_FILE) -> dict[str, dict[str, Any]]:
             raise ConfigError(f"{where}: a reproduction (only) names if_fails in {FAILURES}")
         if row["id"] in out:
             raise ConfigError(f"{where}: duplicate id {row['id']}")
+        if "margin" in row and not (isinstance(row["margin"], float) and row["margin"] >= 0):
+            raise ConfigError(f"{where}: margin is a number >= 0 in the metric's unit")
+        orig = row.get("original")
+        if orig is not None and not (
+            isinstance(orig, dict)
+            and {"commit", "why", "tests"} == set(orig)
+            and all(
+                isinstance(t, dict)
+                and {"metric", "test", "threshold"} == set(t)
+                and t["test"] in TESTS
+                for t in orig["tests"]
+            )
+        ):
+            raise ConfigError(
+                f"{where}: original needs commit, why and tests (metric, test, threshold)"
+            )
         out[row["id"]] = row
     return out
 
 
-def judge(cid: str, ours: str, value: float, why: str = "", variant: str | None = None) -> dict:
+def interval(samples: list[float]) -> dict[str, Any]:
+    """Mean of the per-seed values and its 95 % Student-t confidence interval (a non-finite
+    seed -- a run that stopped -- makes the interval unbounded)."""
+    n = len(samples)
+    if n == 0:
+        return {"n": 0, "mean": math.nan, "ci95": [math.nan, math.nan]}
+    finite = all(math.isfinite(x) for x in samples)
+    mean = sum(samples) / n if finite else math.nan
+    if not finite or n < 2:  # one seed bounds nothing
+        return {"n": n, "mean": mean, "ci95": [-math.inf, math.inf]}
+    sd = math.sqrt(sum((x - mean) ** 2 for x in samples) / (n - 1))
+    dof = n - 1
+    t = _T95[max(k for k in _T95 if k <= dof)] if dof <= 30 else 1.960  # conservative
+    half = t * sd / math.sqrt(n)
+    return {"n": n, "mean": mean, "ci95": [mean - half, mean + half]}
+
+
+def compare(test: str, threshold: float, margin: float, ci: list[float]) -> str:
+    """A comparison's outcome from its interval: "better" (wholly past threshold − margin on
+    the side the test asks for), "worse" (wholly past threshold + margin the other way), "no
+    difference" (wholly inside threshold ± margin), else "undecided"."""
+    lo, hi = ci
+    if test in ("<", "<="):
+        if TESTS[test](hi, threshold - margin):
+            return "better"
+        if lo > threshold + margin:
+            return "worse"
+    else:
+        if TESTS[test](lo, threshold + margin):
+            return "better"
+        if hi < threshold - margin:
+            return "worse"
+    if threshold - margin <= lo and hi <= threshold + margin:
+        return "no difference"
+    return "undecided"
+
+
+def _passes(test: str, threshold: float, value: float) -> bool:
+    return not math.isnan(value) and bool(TESTS[test](value, float(threshold)))
+
+
+def judge(
+    cid: str,
+    ours: str,
+    value: float,
+    why: str = "",
+    variant: str | None = None,
+    samples: list[float] | None = None,
+    also: dict[str, float] | None = None,
+) -> dict:
     """One claim's row of the report: the registered claim `cid` (for `variant`, if the row
-    has variants) judged on the measured `value` (nan: not measured -> does not pass)."""
+    has variants) judged on the measured `value` (nan: not measured -> does not pass), or on
+    the per-seed `samples` (the value: their mean, with a 95 % interval); `also`: the values
+    of other metrics an `original` test of the row needs."""
     row = registered()[cid]
+    thr = float(row["threshold"])
+    stats = None
+    if samples is not None:
+        stats = interval([float(x) for x in samples])
+        value = stats["mean"]
     value = float(value)
-    passes = not math.isnan(value) and bool(TESTS[row["test"]](value, float(row["threshold"])))
+    passes = _passes(row["test"], thr, value)
     cls = row["class"]
+    decided = True
+    if stats is not None:
+        stats["seeds_short"] = stats["n"] < MIN_SEEDS
+        margin = float(row.get("margin", 0.0))
+        stats["margin"] = margin
+        outcome = compare(row["test"], thr, margin, stats["ci95"])
+        if "margin" not in row:  # a test, not a comparison: passes / fails / undecided
+            outcome = {"better": "passes", "undecided": "undecided"}.get(outcome, "fails")
+        stats["outcome"] = outcome
+        passes = outcome in ("better", "passes")
+        decided = outcome != "undecided"
     if cls == "reproduction":
-        verdict = "held" if passes else row["if_fails"]
+        verdict = ("held" if passes else row["if_fails"]) if decided else "undecided"
     else:
         verdict = cls
     tag = f"[{variant}] " if variant else ""
@@ -85,6 +237,10 @@ def judge(cid: str, ours: str, value: float, why: str = "", variant: str | None 
         "holds": passes if cls == "reproduction" else None,  # only a reproduction can hold
         "verdict": verdict,
     }
+    if stats is not None:
+        out["stats"] = stats
+    if "original" in row:
+        out["original"] = _original(row, value, also or {})
     reason = row.get("calibration") or row.get("design")
     why = "; ".join(x for x in (reason, why) if x)
     if why:
@@ -92,8 +248,28 @@ def judge(cid: str, ours: str, value: float, why: str = "", variant: str | None 
     return out
 
 
+def _original(row: dict[str, Any], value: float, also: dict[str, float]) -> dict[str, Any]:
+    """The verdict under the row's test before it was changed (every test must pass; the
+    row's own metric is `value`, the others come from `also`)."""
+    orig = row["original"]
+    vals = {row["metric"]: value, **also}
+    parts, ok = [], True
+    for t in orig["tests"]:
+        v = float(vals.get(t["metric"], math.nan))
+        ok = ok and _passes(t["test"], t["threshold"], v)
+        parts.append(f"{t['metric']} {t['test']} {t['threshold']:g} ({v:.4g})")
+    verdict = ("held" if ok else row["if_fails"]) if row["class"] == "reproduction" else None
+    return {
+        "test": " and ".join(parts),
+        "passes": ok,
+        "verdict": verdict or row["class"],
+        "commit": orig["commit"],
+        "why": orig["why"],
+    }
+
+
 def count(claims: list[dict]) -> dict[str, int]:
-    """The five counts over judged claims (rows without a verdict -- beyond the paper -- are
+    """The six counts over judged claims (rows without a verdict -- beyond the paper -- are
     not counted)."""
     n = dict.fromkeys(VERDICTS, 0)
     for c in claims:

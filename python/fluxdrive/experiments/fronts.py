@@ -30,7 +30,6 @@ from fluxdrive.drive.control import ControllerConfig, design_loops
 from fluxdrive.drive.observers import observer_config
 from fluxdrive.experiments.claims import judge
 from fluxdrive.experiments.common import PAPER_BENCH, plt
-from fluxdrive.experiments.paper import harmonic_residual_rms, theta_err
 from fluxdrive.replay.lab import parse_variant
 
 # multiples of each variant's card-derived PLL bandwidth (and EMF speed LPF) swept
@@ -111,19 +110,13 @@ def build_cases(
 
 
 def _x_front(r, m) -> dict[str, Any]:
-    from fluxdrive.drive.plant import TR_THETA_E
-    from fluxdrive.experiments.paper import _win
-
-    sl = _win(r)
-    thu = np.unwrap(r.truth[sl, TR_THETA_E])
     out: dict[str, Any] = {}
     for nm in r.names:
         o = m["observers"][nm]
-        noise = math.degrees(harmonic_residual_rms(theta_err(r, nm)[sl], thu))
         out[nm] = {
             "rms_deg": o["theta_err_rms_deg"],
             "h6_deg": o["theta_err_h6_deg"],
-            "noise_deg": noise,
+            "noise_deg": o["theta_err_noise_deg"],
         }
     return {"obs": out}
 

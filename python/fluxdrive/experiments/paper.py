@@ -13,7 +13,14 @@ from typing import Any
 import numpy as np
 
 from fluxdrive.analysis.freqresp import analyse
-from fluxdrive.analysis.metrics import RAD_S_TO_RPM, harmonic, steady_window, whole_periods, wrap
+from fluxdrive.analysis.metrics import (
+    RAD_S_TO_RPM,
+    harmonic,
+    harmonic_spectrum,
+    steady_window,
+    whole_periods,
+    wrap,
+)
 from fluxdrive.core.machine import MachineCard, card_current_bandwidth_hz
 from fluxdrive.core.transforms import clarke
 from fluxdrive.drive.control import (
@@ -36,7 +43,7 @@ from fluxdrive.drive.observers import (
     observer_config,
 )
 from fluxdrive.drive.plant import TR_IA, TR_IB, TR_IC, TR_THETA_E, TR_WM
-from fluxdrive.experiments.claims import judge, registered
+from fluxdrive.experiments.claims import MIN_SEEDS, judge, registered
 from fluxdrive.experiments.common import (
     LITERAL,
     OBS4,
@@ -60,20 +67,6 @@ def _win(r):
 
 def theta_err(r, name):
     return wrap(r.estimate(name)[:, ES_TH] - r.truth[:, TR_THETA_E])
-
-
-def harmonic_residual_rms(x: np.ndarray, theta_unw: np.ndarray, orders=range(0, 21)) -> float:
-    """RMS of x after removing its orders 0..20 against the rotor angle: the broadband
-    noise part (what the paper calls the SNR of theta~)."""
-    sl = whole_periods(theta_unw)
-    x, th = x[sl], theta_unw[sl]
-    y = x - np.mean(x)
-    for n in orders:
-        if n == 0:
-            continue
-        c = harmonic(y, th, n)
-        y = y - np.real(c * np.exp(1j * n * th))
-    return float(np.sqrt(np.mean(y**2)))
 
 
 def _dec(x, n=3000):
@@ -107,7 +100,6 @@ def op_point(r) -> dict:
 def _x_fig14(r, m, show_s=0.5):
     sl = _win(r)
     th = r.truth[sl, TR_THETA_E]
-    thu = np.unwrap(th)
     cap = r.scenario.bench.voltage_capture
     out = {"metrics": m, "noise": {}, "op": op_point(r)}
     out["capture"] = (
@@ -119,7 +111,7 @@ def _x_fig14(r, m, show_s=0.5):
     series = {"t": _dec(r.t[sl][-n_show:]), "theta": _dec(th[-n_show:])}
     for nm in r.names:
         e = theta_err(r, nm)[sl]
-        out["noise"][nm] = math.degrees(harmonic_residual_rms(e, thu))
+        out["noise"][nm] = m["observers"][nm]["theta_err_noise_deg"]
         series[nm] = _dec(np.degrees(e[-n_show:]))
         series[nm + "_th"] = _dec(r.estimate(nm)[sl, ES_TH][-n_show:])
     out["series"] = series
@@ -144,7 +136,8 @@ def _fig14_jobs(ctx, seeds: list[int]) -> list:
 
 
 def _fig14_analyse(res: list[dict]) -> dict:
-    """Per observer, per seed: θ̃ RMS, 6th order, broadband noise, peak; stability; slips."""
+    """Per observer, per seed: θ̃ RMS, mean, 6th order, broadband noise, peak; stability;
+    slips."""
     names = list(OBS6)
 
     def per(key: str) -> dict[str, list[float]]:
@@ -153,6 +146,7 @@ def _fig14_analyse(res: list[dict]) -> dict:
     peak = per("theta_err_peak_deg")
     return {
         "rms": per("theta_err_rms_deg"),
+        "mean": per("theta_err_mean_deg"),
         "h6": per("theta_err_h6_deg"),
         "noise": {n: [r["noise"][n] for r in res] for n in names},
         "peak": peak,
@@ -253,8 +247,30 @@ def _fig14_measured_snr_why(a: dict, k: str) -> str:
     )
 
 
+def _ratio(d: dict, a: str, b: str) -> list[float]:
+    """Per seed: d[a] over d[b] (the same seed's runs: a paired comparison)."""
+    return [div(x, y) for x, y in zip(d[a], d[b], strict=True)]
+
+
+def _ci(c: dict, fmt: str = "{:.3g}") -> str:
+    """' (mean M, 95 % CI [lo, hi], N seeds: outcome)' of a row judged over seeds."""
+    st = c.get("stats")
+    if not st:
+        return ""
+    lo, hi = (fmt.format(x) for x in st["ci95"])
+    return (
+        f" (mean {fmt.format(st['mean'])}, 95 % CI [{lo}, {hi}], {st['n']} seeds: {st['outcome']})"
+    )
+
+
+def _with_ci(c: dict) -> dict:
+    c["ours"] += _ci(c)
+    return c
+
+
 def _fig14_variant_claims(a: dict, vname: str, k: str) -> list[dict]:
-    """The four per-variant rows: 6th order and SNR on commanded and measured voltages."""
+    """The four per-variant rows: 6th order and SNR on commanded and measured voltages, each
+    over the seeds (per-seed values, paired flux/EMF on the same seed)."""
     rms, h6, noise, sl = a["rms"], a["h6"], a["noise"], a["slipped"]
     fc, fm = f"{k}_commanded", f"{k}_measured"
     ec, em = "emf_commanded", "emf_measured"
@@ -267,42 +283,88 @@ def _fig14_variant_claims(a: dict, vname: str, k: str) -> list[dict]:
         if any(sl[fm] + sl[em])
         else ""
     )
-    return [
+    gone = [
+        max(div(x_em, x_ec), div(x_fm, x_fc))
+        for x_em, x_ec, x_fm, x_fc in zip(h6[em], h6[ec], h6[fm], h6[fc], strict=True)
+    ]
+    rows = [
         judge(
             "fig14.commanded_6th",
             f"6th order: emf {q(h6, ec)}°, flux {q(h6, fc)}° (RMS {q(rms, ec)}° / {q(rms, fc)}°)",
-            min(_med(h6, ec), _med(h6, fc)),
+            math.nan,
             variant=vname,
+            samples=[min(x, y) for x, y in zip(h6[ec], h6[fc], strict=True)],
         ),
         judge(
             "fig14.commanded_snr",
-            f"broadband noise (θ̃ minus orders 0-20): flux {q(noise, fc)}° vs emf "
-            f"{q(noise, ec)}°; total RMS {q(rms, fc)}° vs {q(rms, ec)}°",
-            _med(noise, fc) / _med(noise, ec),
+            f"broadband noise (θ̃ minus the joint fit of orders 0-20): flux {q(noise, fc)}° vs "
+            f"emf {q(noise, ec)}°; total RMS {q(rms, fc)}° vs {q(rms, ec)}°",
+            math.nan,
             _fig14_commanded_snr_why(a, fc),
             variant=vname,
+            samples=_ratio(noise, fc, ec),
         ),
         judge(
             "fig14.measured_6th_gone",
             f"6th order: emf {q(h6, em)}°, flux {q(h6, fm)}° (commanded: {q(h6, ec)}° / "
             f"{q(h6, fc)}°)",
-            max(_med(h6, em) / _med(h6, ec), _med(h6, fm) / _med(h6, fc)),
+            math.nan,
             _fig14_capture_why(a),
             variant=vname,
+            samples=gone,
         ),
         judge(
             "fig14.measured_snr",
             f"noise flux {q(noise, fm)}° vs emf {q(noise, em)}°; RMS {q(rms, fm)}° vs "
             f"{q(rms, em)}°" + slips,
-            _med(noise, fm) / _med(noise, em),
+            math.nan,
             _fig14_measured_snr_why(a, k),
             variant=vname,
+            samples=_ratio(noise, fm, em),
+            also={"theta_rms_ratio": float(np.mean(_ratio(rms, fm, em)))},
         ),
     ]
+    return [_with_ci(c) for c in rows]
+
+
+def _fig14_position_claims(a: dict, vname: str, k: str) -> list[dict]:
+    """The paper's position-error claim, per voltage source: total θ̃ RMS and its mean and
+    6th-order parts, flux over (or minus) EMF, per seed."""
+    rms, h6, mean = a["rms"], a["h6"], a["mean"]
+    rows = []
+    for src in ("commanded", "measured"):
+        f, e = f"{k}_{src}", f"emf_{src}"
+        tag = f"{vname}, {src}"
+        absd = [abs(x) - abs(y) for x, y in zip(mean[f], mean[e], strict=True)]
+        rows += [
+            judge(
+                "fig14.position_error_rms",
+                f"θ̃ RMS flux {per_seed(rms[f])}° vs emf {per_seed(rms[e])}°",
+                math.nan,
+                variant=tag,
+                samples=_ratio(rms, f, e),
+            ),
+            judge(
+                "fig14.position_error_mean",
+                f"mean θ̃ flux {per_seed(mean[f])}° vs emf {per_seed(mean[e])}°",
+                math.nan,
+                variant=tag,
+                samples=absd,
+            ),
+            judge(
+                "fig14.position_error_h6",
+                f"6th order of θ̃ flux {per_seed(h6[f])}° vs emf {per_seed(h6[e])}°",
+                math.nan,
+                variant=tag,
+                samples=_ratio(h6, f, e),
+            ),
+        ]
+    return [_with_ci(c) for c in rows]
 
 
 def _fig14_judge(a: dict) -> list[dict]:
     claims = [c for vname, k in VARIANTS for c in _fig14_variant_claims(a, vname, k)]
+    claims += [c for vname, k in VARIANTS for c in _fig14_position_claims(a, vname, k)]
     st = a["stable"]
     claims.append(
         judge(
@@ -318,11 +380,12 @@ def _fig14_judge(a: dict) -> list[dict]:
 def fig14(ctx):
     """Fig. 14: θ̃ of every observer on commanded and measured voltages at the 2 % / 150 %
     point, per seed: build -> run -> analyse -> plot -> judge."""
-    seeds = [1] if ctx.quick else [1, 2, 3]
+    seeds = [1] if ctx.quick else list(range(1, 1 + MIN_SEEDS))
     res = ctx.run(_fig14_jobs(ctx, seeds))
     a = _fig14_analyse(res)
     figs = [_fig14_plot(ctx, a, res[0]["series"], seeds[0])]
     data = {"seeds": seeds, "rms_deg": a["rms"], "h6_deg": a["h6"], "noise_deg": a["noise"]}
+    data["mean_deg"] = a["mean"]
     data["peak_deg"] = a["peak"]
     return {"claims": _fig14_judge(a), "figures": figs, "data": data}
 
@@ -778,8 +841,8 @@ def _fig4_one(ctx, r) -> tuple[dict, list[np.ndarray]]:
     iq = float(np.mean(r["iq"][k0:]))
 
     def h57(x):
-        h = [abs(harmonic(x[sl], thu[sl], n)) for n in (1, 5, 7)]
-        return float(math.hypot(h[1], h[2]) / h[0])
+        h = harmonic_spectrum(x[sl], thu[sl], (1, 5, 7))
+        return float(math.hypot(h[5], h[7]) / h[1])
 
     out: dict = {}
     shown = []

@@ -23,7 +23,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from fluxdrive.experiments.claims import VERDICT_TEXT, count, counts_line
+from fluxdrive.experiments.claims import VERDICT_TEXT, count, counts_line, registry_info
 
 # re-exported: study specs, the graph runner and tests name them here
 from fluxdrive.experiments.common import (  # noqa: F401
@@ -118,30 +118,53 @@ def _fmt_holds(h) -> str:
 
 
 def fmt_verdict(c: dict) -> str:
-    """A registered claim's verdict (bold where a reproduction fails); a claim beyond the
-    paper (no verdict): whether it holds."""
+    """A registered claim's verdict (bold where a reproduction fails or is undecided), with a
+    comparison's outcome over seeds and, where the test changed before registration, the
+    verdict under the original test; a claim beyond the paper (no verdict): whether it
+    holds."""
     v = c.get("verdict")
     if v is None:
         return _fmt_holds(c["holds"])
     text = VERDICT_TEXT[v]
-    if v in ("disagreement", "modelling_gap"):
-        return f"**{text}**"
-    # a calibrated or by-design claim never counts as held, but one that fails its own
-    # registered test says so
-    return text if c.get("passes", True) else f"{text} (**fails its test**)"
+    if v in ("disagreement", "modelling_gap", "undecided"):
+        text = f"**{text}**"
+    elif not c.get("passes", True):
+        # a calibrated or by-design claim never counts as held, but one that fails its own
+        # registered test says so
+        text = f"{text} (**fails its test**)"
+    st = c.get("stats")
+    if st:
+        text += f" ({st['outcome']}, {st['n']} seeds)"
+    o = c.get("original")
+    if o:
+        text += f"; original test ({o['commit']}): {VERDICT_TEXT.get(o['verdict'], o['verdict'])}"
+    return text
+
+
+def _fmt_value(c: dict) -> str:
+    st = c.get("stats")
+    if not st:
+        return f"**{c['value']:.4g}**"
+    lo, hi = st["ci95"]
+    margin = f", margin ±{st['margin']:g}" if st.get("margin") else ""
+    return f"**{c['value']:.4g}** [{lo:.4g}, {hi:.4g}]{margin}"
 
 
 def _claim_rows(claims: list[dict]) -> list[str]:
     lines = [
-        "| id | claim (source; operating point) | class | registered test | ours | verdict "
-        "| why / note |",
+        "| id | claim (source; operating point) | class | registered test: value [95 % CI] "
+        "| ours | verdict | why / note |",
         "|---|---|---|---|---|---|---|",
     ]
     for c in claims:
         why = c.get("why", c.get("note", ""))
         if "verdict" in c:
             what = f"{_md(c['claim'])} ({_md(c['source'])}; {_md(c['operating_point'])})"
-            test = f"{_md(c['test'])}: **{c['value']:.4g}**"
+            test = f"{_md(c['test'])}: {_fmt_value(c)}"
+            o = c.get("original")
+            if o:
+                test += f"; original: {_md(o['test'])}"
+                why = "; ".join(x for x in (why, f"test changed in {o['commit']}: {o['why']}") if x)
             cls = c["class"].replace("_", " ")
         else:
             what, test, cls = _md(c["claim"]), "", "beyond the paper"
@@ -149,6 +172,77 @@ def _claim_rows(claims: list[dict]) -> list[str]:
             f"| {c.get('id', '')} | {what} | {cls} | {test} | {_md(c['ours'])} | "
             f"{fmt_verdict(c)} | {_md(why)} |"
         )
+    return lines
+
+
+OBSERVERS = {"paper_robust": "[paper_robust", "paper (literal)": "[paper (literal)"}
+
+
+def counts_by_observer(claims: list[dict]) -> dict[str, dict[str, int]]:
+    """The counts of the rows judging each flux observer (by the variant in the row's id),
+    and of the rest (rows that involve neither)."""
+    out = {
+        name: count([c for c in claims if tag in c.get("id", "")])
+        for name, tag in OBSERVERS.items()
+    }
+    rest = [c for c in claims if not any(t in c.get("id", "") for t in OBSERVERS.values())]
+    out["neither"] = count(rest)
+    return out
+
+
+def original_changes(claims: list[dict]) -> list[dict]:
+    """The rows whose verdict under the original (pre-registration) test differs."""
+    return [
+        {"id": c["id"], "current": c["verdict"], "original": c["original"]["verdict"]}
+        for c in claims
+        if c.get("original") and c["original"]["verdict"] != c["verdict"]
+    ]
+
+
+def _report_head(doc: dict[str, Any]) -> list[str]:
+    """The report's head: what it is, the registry's version and hash, the counts overall
+    and per flux observer, the verdicts the original tests change."""
+    reg, n, changed = doc["registry"], doc["counts"], doc["original_tests_changed"]
+    lines = [
+        "# fluxdrive experiments: the paper's claims with our numbers",
+        "",
+        "Chen, Chen, Yang, IEEE Access 2019, reproduced on the switching-level engine "
+        "(docs/engine.md).  Every claim of the paper is registered before the runs in "
+        "config/claims.yaml: its source, operating point, the quantity measured, the test and "
+        "threshold, and a class.  The verdict comes from that table: only a reproduction that "
+        "passes is *held*; a failing one is a genuine disagreement or a modelling gap (why: "
+        "the mechanism); a claim a model number was fitted to (*calibrated*) or a setting was "
+        "chosen for (*by design*) shows its number but is not counted.  THD is orders 2..20, "
+        "THD+N everything but the fundamental; rows that use either show both.",
+        "",
+        f"**Claims registry: version {reg['version']}, sha256 `{reg['sha256'][:16]}`** "
+        + (
+            "(the hash registered for this version in config/claims_history.yaml)."
+            if reg["registered"]
+            else "(**not the registered claims**: " + "; ".join(reg["problems"]) + ")."
+        ),
+        "",
+        "Rows judged over seeds show the mean of the per-seed values with its 95 % confidence "
+        "interval; a comparison's outcome (better / worse / no difference / undecided) comes "
+        "from the interval against the registered threshold ± margin.  Rows whose test was "
+        "changed before the first registration show the verdict under the original test too.",
+        "",
+        f"**Claims: {counts_line(n)}.**",
+        "",
+        *(f"- {name}: {counts_line(c)}" for name, c in doc["counts_by_observer"].items()),
+        "",
+    ]
+    if changed:
+        lines += [
+            "Verdicts that differ under the original tests: "
+            + "; ".join(
+                f"{x['id']} {VERDICT_TEXT[x['current']]} (original: "
+                f"{VERDICT_TEXT.get(x['original'], x['original'])})"
+                for x in changed
+            )
+            + ".",
+            "",
+        ]
     return lines
 
 
@@ -167,24 +261,20 @@ def write_report(out: Path, results: dict[str, dict]) -> None:
     allres = {
         k: allres[k] for k in sorted(allres, key=lambda k: order.index(k) if k in order else 999)
     }
-    n = count([c for r in allres.values() for c in r.get("claims", [])])
-    doc = {"counts": n, "experiments": allres}  # the counts: for the docs to quote
+    judged = [c for r in allres.values() for c in r.get("claims", [])]
+    n = count(judged)
+    by_obs = counts_by_observer(judged)
+    reg = registry_info()
+    changed = original_changes(judged)
+    doc = {  # the counts and the registry: for the docs to quote
+        "registry": {k: reg[k] for k in ("version", "sha256", "registered", "problems")},
+        "counts": n,
+        "counts_by_observer": by_obs,
+        "original_tests_changed": changed,
+        "experiments": allres,
+    }
     jpath.write_text(json.dumps(doc, indent=1, default=_json_default))
-    lines = [
-        "# fluxdrive experiments: the paper's claims with our numbers",
-        "",
-        "Chen, Chen, Yang, IEEE Access 2019, reproduced on the switching-level engine "
-        "(docs/engine.md).  Every claim of the paper is registered before the runs in "
-        "config/claims.yaml: its source, operating point, the quantity measured, the test and "
-        "threshold, and a class.  The verdict comes from that table: only a reproduction that "
-        "passes is *held*; a failing one is a genuine disagreement or a modelling gap (why: "
-        "the mechanism); a claim a model number was fitted to (*calibrated*) or a setting was "
-        "chosen for (*by design*) shows its number but is not counted.  THD is orders 2..20, "
-        "THD+N everything but the fundamental; rows that use either show both.",
-        "",
-        f"**Claims: {counts_line(n)}.**",
-        "",
-    ]
+    lines = _report_head(doc)
     for name, r in allres.items():
         lines += [
             f"## {name}: {r.get('title', '')}",

@@ -637,6 +637,7 @@ MD_COLS = [
     ("theta_err_mean_deg", "θ̃ mean °"),
     ("theta_err_h1_deg", "h1 °"),
     ("theta_err_h6_deg", "h6 °"),
+    ("theta_err_noise_deg", "θ̃ noise °"),
     ("flux_radius_spread", "spread"),
     ("thd_flux_alpha", "THD λα"),
     ("thd_emf_alpha", "THD eα"),
