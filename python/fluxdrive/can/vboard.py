@@ -26,8 +26,9 @@ loop's idle point (``fd_board_wait``), and then, per PWM period, does what the s
   context is active) below the background loop's stack and runs the handler until it
   returns; then the background loop runs until it is idle again;
 * FDCAN1: the message RAM is memory; TXBAR takes a TX buffer element to the bus, received
-  frames that pass the standard-id filters go into RX FIFO 0 (3 elements; a full FIFO
-  leaves a frame waiting on the bus side), RXF0A releases them;
+  frames that pass the standard-id filters go into RX FIFO 0 (3 elements; while it is full
+  a frame waits on the bus side and enters when RXF0A releases an element: in lockstep the
+  host's frames pile up between interrupts, which a free-running bus spreads out);
 * IWDG: refreshes are counted; a 10 ms gap counts a watchdog reset (none expected).
 
 :meth:`VirtualBoard.pwm` answers with the active compare values and MOE: the plant gets
@@ -591,12 +592,11 @@ class VirtualBoard:
         return d, moe
 
     def push(self, msg: can.Message) -> bool:
-        """A frame from the bus: dropped by the filters, or into RX FIFO 0; False while
-        the FIFO is full (it waits on the bus side)."""
+        """A frame from the bus: dropped by the filters, or into RX FIFO 0; while the
+        FIFO's 3 elements are taken it waits on the bus side (the sender's queue) and
+        enters as the core releases elements (RXF0A). Always True."""
         if msg.is_extended_id or not self._accepts(msg.arbitration_id):
             return True
-        if len(self._rx_fifo) >= 3:
-            return False
         self._rx_wait.append(msg)
         self._refill()
         return True
@@ -628,7 +628,8 @@ class VirtualBoard:
                 s, valid = struct.unpack_from("<HB", raw, i * o["cmd_size"])
                 if valid and s == seq:
                     return True
-        for aid, _dlc, data in self._rx_fifo:
+        waiting = [(m.arbitration_id, 0, bytes(m.data)) for m in self._rx_wait]
+        for aid, _dlc, data in [*self._rx_fifo, *waiting]:
             if aid in (ID_DUTY_CMD, ID_HOST_REF):
                 name, key = (
                     ("DUTY_CMD", "cmd_seq") if aid == ID_DUTY_CMD else ("HOST_REF", "ref_seq")

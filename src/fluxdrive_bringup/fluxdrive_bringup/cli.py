@@ -17,7 +17,7 @@ def main_run(argv: list[str]) -> int:
 
 
 def main_bench(argv: list[str]) -> int:
-    if "--sil" in argv:
+    if "--sil" in argv or "--pil" in argv:  # simulated drive: host build or board image
         from fluxdrive_bringup.measure.sil import main
     else:  # the real bench: a drive on a CAN bus
         from fluxdrive_bringup.measure.realbench import main

@@ -1,5 +1,6 @@
 """`./fluxdrive bench --sil [SCENARIO]`: the whole bench path in one command, software in the
-loop.
+loop. `--pil`: the same graph with the board image that would be flashed
+(firmware/board/nucleo_g474) on the virtual board (fluxdrive.can.vboard) as the drive.
 
 The scenario's lockstep graph (runs.graph_for_scenario) with its plant replaced by the bench:
 - the drive: `./fluxdrive can-emulator --mcu c` (the C firmware core as the MCU, lockstep,
@@ -26,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 from fluxdrive.can.protocol import LinkOptions
+from fluxdrive.can.vboard import BOARD_DECIMATIONS
 from fluxdrive.core.schema import Parser, option
 from fluxdrive.drive.scenario import REPO_ROOT, ScenarioSettings, load_scenario, scenario_path
 from fluxdrive.io.graphfile import GraphSettings
@@ -46,9 +48,12 @@ STOP_GRACE_S = 3.0
 SWEEP_RESULTS = REPO_ROOT / "results" / "can" / "sil_current_sweep.json"
 
 
-def sil_graph(sp: Path, sc, bag: Path, *, mode: str, decimation: int, domain_id: int, truth_out):
+def sil_graph(
+    sp: Path, sc, bag: Path, *, mode: str, decimation: int, domain_id: int, truth_out, mcu="c"
+):
     """The lockstep graph of `sc` with the plant replaced by the C drive on a udp_multicast
-    bus and the bench_bridge node."""
+    bus and the bench_bridge node. `mcu`: "c" (the core's host build, SIL) or "pil" (the
+    board image on the virtual board, processor in the loop)."""
     rnd = random.Random(time.monotonic_ns())
     group = f"239.255.{rnd.randint(1, 254)}.{rnd.randint(1, 254)}"
     port = rnd.randint(20000, 60000)
@@ -75,7 +80,7 @@ def sil_graph(sp: Path, sc, bag: Path, *, mode: str, decimation: int, domain_id:
             "can-emulator",
             str(sp),
             "--mcu",
-            "c",
+            mcu,
             "--interface",
             "udp_multicast",
             "--channel",
@@ -129,7 +134,14 @@ def sil_graph(sp: Path, sc, bag: Path, *, mode: str, decimation: int, domain_id:
 
 def main(argv: list[str]) -> int:
     ap = Parser(prog="fluxdrive bench", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--sil", action="store_true", required=True, help="software in the loop")
+    kind = ap.add_mutually_exclusive_group(required=True)
+    kind.add_argument("--sil", action="store_true", help="software in the loop")
+    kind.add_argument(
+        "--pil",
+        action="store_true",
+        help="processor in the loop: the board image that would be flashed, on the virtual "
+        f"board (fluxdrive.can.vboard; D in {BOARD_DECIMATIONS})",
+    )
     ap.add_argument("scenario", nargs="?", default="paper_2pct_150load")
     ap.add_argument("--mode", choices=MODES, default="split", help="where the current loop runs")
     option(ap, "--decimation", LinkOptions)
@@ -148,6 +160,13 @@ def main(argv: list[str]) -> int:
     args = ap.parse_args(argv)
     if not 1 <= args.decimation <= 64:
         print("[bench] --decimation must be in 1..64", file=sys.stderr)
+        return 2
+    if args.pil and args.decimation not in BOARD_DECIMATIONS:
+        print(
+            f"[bench] --pil: the board image is built for --decimation in {BOARD_DECIMATIONS}, "
+            f"not {args.decimation}",
+            file=sys.stderr,
+        )
         return 2
     if args.sweep_current:
         return sweep_current(args)
@@ -168,11 +187,16 @@ def run_sil(sp: Path, sc, args):
     """Run `sc` (saved at `sp`) on the SIL bench; (exit code, SimResult or None, the bag's
     arrays, report folder). Missing samples are printed and kept in arr["missing_real"]."""
     stamp = time.strftime("%Y%m%d-%H%M%S")
-    bag = args.bag or REPO_ROOT / "bags" / f"{sc.name}-sil-{stamp}"
+    tag = "pil" if getattr(args, "pil", False) else "sil"
+    bag = args.bag or REPO_ROOT / "bags" / f"{sc.name}-{tag}-{stamp}"
     args.bag_used = bag
     if Path(bag).exists():
         print(f"[bench] bag directory {bag} exists already; choose a new one (--bag)")
         return 2, None, None, None
+    if tag == "pil":  # built here, not inside the drive's process while the graph waits
+        from fluxdrive.can.vboard import build_board
+
+        build_board()
     dom, why = choose_domain(args.domain_id, "bench")
     if dom is None:
         print(f"[bench] {why}", file=sys.stderr)
@@ -181,11 +205,20 @@ def run_sil(sp: Path, sc, args):
     out.mkdir(parents=True, exist_ok=True)
     truth_out = out / "truth.npy"
     g = sil_graph(
-        sp, sc, bag, mode=args.mode, decimation=args.decimation, domain_id=dom, truth_out=truth_out
+        sp,
+        sc,
+        bag,
+        mode=args.mode,
+        decimation=args.decimation,
+        domain_id=dom,
+        truth_out=truth_out,
+        mcu="pil" if tag == "pil" else "c",
     )
     (out / "graph.yaml").write_text(yaml.safe_dump(g.to_dict(), sort_keys=False))
     print(
-        f"[bench] {sc.name}: C drive + plant, {args.mode} mode, D={args.decimation}, "
+        f"[bench] {sc.name}: "
+        + ("board image on the virtual board" if tag == "pil" else "C drive")
+        + f" + plant, {args.mode} mode, D={args.decimation}, "
         f"{sc.duration_s:g} s, ROS_DOMAIN_ID={dom}; graph: {out / 'graph.yaml'}",
         flush=True,
     )
