@@ -43,6 +43,24 @@ CASES: list[tuple[str, str, list[str], str]] = [
         "--duration",
     ),
     (
+        "bench-real-nan",
+        "`bench --duration nan` (a real bench: nan passed its `<= 0` check)",
+        ["bench", "--duration", "nan"],
+        "--duration",
+    ),
+    (
+        "bench-real-set",
+        "`bench --set` with broken YAML for the bridge",
+        ["bench", "--set", "bench_bridge.cur_limit_a=[1,"],
+        "--set",
+    ),
+    (
+        "benchmark-can-nan",
+        "`benchmark can --rate nan` (an int(nan) traceback)",
+        ["benchmark", "can", "--rate", "nan"],
+        "--rate",
+    ),
+    (
         "run-out-file",
         "`run --out` on an existing file",
         ["run", "paper_2pct_150load", "--out", "{file}"],
@@ -95,6 +113,12 @@ CASES: list[tuple[str, str, list[str], str]] = [
         "`launch` with node class `no_such_module:Thing`",
         ["launch", "{tmp}/graph.yaml"],
         "no module named 'no_such_module'",
+    ),
+    (
+        "launch-class-attr",
+        "`launch` with node class `json:Nope` (the module is there, the class is not)",
+        ["launch", "{tmp}/graph_attr.yaml"],
+        "module 'json' has no 'Nope'",
     ),
     (
         "log-dir",
@@ -190,6 +214,7 @@ CASES: list[tuple[str, str, list[str], str]] = [
 NEEDS_ROS = {"param-get-name", "fault-reset-name", "echo-field", "param-dump-o"}
 TESTS = {
     "echo-field": "test_field_of_a_live_topic",
+    "launch-class-attr": "test_node_class_without_its_class",
 }
 
 
@@ -231,6 +256,9 @@ def files(tmp_path_factory):
     )
     (tmp / "graph.yaml").write_text(
         "name: bad_class\nnodes:\n  - {name: thing, node: 'no_such_module:Thing'}\n"
+    )
+    (tmp / "graph_attr.yaml").write_text(
+        "name: bad_attr\nnodes:\n  - {name: thing, node: 'json:Nope'}\n"
     )
     card = (ROOT / "config" / "machines" / "default_spm.yaml").read_text()
     (tmp / "card.yaml").write_text(_set_key(card, "pole_pairs", "2.5"))
@@ -335,6 +363,19 @@ def test_field_of_a_live_topic(files):
         stop.set()
         t.join(5)
         ctx.try_shutdown()
+
+
+def test_node_class_without_its_class(files):
+    """A node class whose module imports but lacks the class: the process that would host it
+    says so in one line (was a traceback), the launcher names it and stops, exit 1."""
+    pytest.importorskip("rclpy")
+    case = next(c for c in CASES if c[0] == "launch-class-attr")
+    r = fluxdrive(*[a.format(**files) for a in case[2]])
+    out = r.stdout + r.stderr
+    assert "Traceback" not in out, out
+    assert r.returncode != 0, out
+    lines = [ln for ln in out.splitlines() if case[3] in ln]
+    assert lines and lines[0].startswith("[thing] cannot start node 'thing': node class"), out
 
 
 def docs_table() -> str:

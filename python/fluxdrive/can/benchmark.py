@@ -273,9 +273,9 @@ def bench_can_cli(argv: list[str]) -> dict[str, Any]:
     and a flat-out run of ``--frames`` frames (default 100 000). ``frames_per_s`` is the
     flat-out decoded rate, ``dropped`` the frames lost over both runs; the sustained
     figures are under ``sustained_*``."""
-    import argparse
+    from fluxdrive.core.schema import Parser
 
-    ap = argparse.ArgumentParser(prog="fluxdrive benchmark can")
+    ap = Parser(prog="fluxdrive benchmark can")
     ap.add_argument("--frames", type=int, default=100_000)
     ap.add_argument("--rate", type=float, default=10_000.0)
     ap.add_argument("--seconds", type=float, default=3.0)

@@ -218,9 +218,9 @@ def bench_firmware(argv: list[str]) -> dict[str, Any]:
     """`./fluxdrive benchmark firmware`: cross build, flash/RAM, the period interrupt's
     instruction count in host and split mode against 170 MHz / 10 kHz; writes
     results/firmware/target.json (the caller prints the record as the last line)."""
-    import argparse
+    from fluxdrive.core.schema import Parser
 
-    ap = argparse.ArgumentParser(prog="fluxdrive benchmark firmware", description=__doc__)
+    ap = Parser(prog="fluxdrive benchmark firmware", description=__doc__)
     ap.parse_args(argv)
     missing = target_available()
     if missing:

@@ -354,9 +354,21 @@ def _init(args: list[str], what: str) -> bool:
 
 
 def load_class(spec: str):
+    """The node class of `spec` (a known node or a user's module:Class); a module that does
+    not import or has no such class is a ConfigError of one line (the user's module: its own
+    error named, no traceback)."""
+    from fluxdrive.core.errors import ConfigError
+
     spec = NODE_CLASSES.get(spec, spec)
     mod, _, cls = spec.partition(":")
-    return getattr(importlib.import_module(mod), cls)
+    try:
+        module = importlib.import_module(mod)
+    except Exception as exc:  # noqa: BLE001 - whatever the user's module raises on import
+        why = f"{type(exc).__name__}: {exc}".splitlines()[0][:300]
+        raise ConfigError(f"node class {spec!r}: cannot import {mod!r} ({why})") from None
+    if not cls or not hasattr(module, cls):
+        raise ConfigError(f"node class {spec!r}: module {mod!r} has no {cls!r}")
+    return getattr(module, cls)
 
 
 def _param_overrides(params: dict[str, Any]) -> list[Parameter]:

@@ -1295,14 +1295,19 @@ def _apply_sets(g: Graph, sets: list[str]) -> None:
                 f"--set {item!r}: expected NODE.PARAM=VALUE with NODE one of "
                 f"{[n.name for n in g.nodes]}"
             )
-        try:
-            value = yamlio.loads(val)
-        except yaml.YAMLError as exc:
-            raise ConfigError(
-                f"--set {item[:80]!r}: the value is not valid YAML: {yamlio.describe(exc)}"
-            ) from None
+        value = set_value(item, val)
         for n in match:
             n.parameters[pname] = value
+
+
+def set_value(item: str, val: str) -> Any:
+    """The YAML value of one `--set NODE.PARAM=VALUE` (ConfigError naming the item)."""
+    try:
+        return yamlio.loads(val)
+    except yaml.YAMLError as exc:
+        raise ConfigError(
+            f"--set {item[:80]!r}: the value is not valid YAML: {yamlio.describe(exc)}"
+        ) from None
 
 
 def _choose_free_domain(g: Graph) -> str:

@@ -29,7 +29,7 @@ from fluxdrive.can.preflight import (
 )
 from fluxdrive.core import yamlio
 from fluxdrive.core.machine import ConfigError
-from fluxdrive.core.schema import option
+from fluxdrive.core.schema import Parser, option
 from fluxdrive.drive.control import DRIVE_PARAM_RANGES
 from fluxdrive.drive.scenario import REPO_ROOT
 from fluxdrive.io.graphfile import GraphSettings
@@ -41,6 +41,7 @@ from fluxdrive_bringup.launch.launcher import (
     NodeSpec,
     _apply_sets,
     load_graph,
+    set_value,
 )
 
 BRIDGE_MODULE = "bench_bridge.bridge_node"
@@ -119,7 +120,7 @@ def bridge_config(pv: dict[str, Any]) -> BridgeConfig:
 
 
 def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="fluxdrive bench", description=__doc__.split("\n\n")[0])
+    ap = Parser(prog="fluxdrive bench", description=__doc__.split("\n\n")[0])
     ap.add_argument("--interface", help="python-can interface: socketcan, pcan, kvaser, slcan, ...")
     ap.add_argument(
         "--channel", help="python-can channel: can0, PCAN_USBBUS1, 0, /dev/ttyACM0, ..."
@@ -168,7 +169,7 @@ def main(argv: list[str]) -> int:
         key, eq, val = item.partition("=")
         if not eq or not key.partition(".")[2]:
             raise ConfigError(f"--set {item!r}: expected {bridge.name}.PARAM=VALUE")
-        _set_bridge(bridge, key.partition(".")[2], yamlio.loads(val))
+        _set_bridge(bridge, key.partition(".")[2], set_value(item, val))
     _apply_sets(g, [x for x in args.set if x not in ours])
     pv = bridge_parameters(bridge)
     factory = bus_factory_from_params(
