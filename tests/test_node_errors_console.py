@@ -20,6 +20,7 @@ def test_a_dying_node_says_why_on_the_console():
     line -- the console, not only the node's log."""
     pytest.importorskip("rclpy")
     from fluxdrive_bringup.launch.launcher import Graph, Launcher, NodeSpec
+    from ros_domains import domain
 
     ctrl = NodeSpec(
         name="controller",
@@ -29,7 +30,8 @@ def test_a_dying_node_says_why_on_the_console():
     )
     idle = NodeSpec(name="idle", cmd=[sys.executable, "-c", "import time; time.sleep(60)"])
     out = io.StringIO()
-    launcher = Launcher(Graph("refusal", [ctrl, idle]), out=out, quiet=True, progress=False)
+    g = Graph("refusal", [ctrl, idle], domain_id=domain(56))
+    launcher = Launcher(g, out=out, quiet=True, progress=False)
     code = launcher.run(120.0)
     death = [ln for ln in out.getvalue().splitlines() if "died" in ln]
     assert code == 1 and len(death) == 1, out.getvalue()
