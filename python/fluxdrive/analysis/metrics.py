@@ -357,7 +357,8 @@ def trip_info(result) -> dict[str, Any] | None:
         d = result.names.index(result.driving) if result.driving in result.names else -1
         est = result.est[d, k] if d >= 0 else np.full(8, np.nan)
         w_prev = float(result.ctrl[k - 1, CO_W_FB]) if k > 0 else 0.0
-        detail = describe_trip(code, result.frames[k], est, cp, w_fb_prev_rad_s=w_prev)
+        cs = getattr(result, "controller_state", None)
+        detail = describe_trip(code, result.frames[k], est, cp, cs, w_fb_prev_rad_s=w_prev)
     except Exception:  # noqa: BLE001 - a replayed run may lack a controller model: name only
         pass
     t_s = float(result.t[k])

@@ -349,6 +349,9 @@ class SimResult:
     # split mode: the host's samples are every `decimation` periods (the estimate rows
     # between two hold the sample's); 1: every period
     decimation: int = 1
+    # the controller's state (CS_*) at the end of the run (split mode: the host's): what
+    # a latched trip saw (fluxdrive.drive.control.trips explains it with these values)
+    controller_state: np.ndarray | None = None
 
     def estimate(self, name: str) -> np.ndarray:
         return self.est[self.names.index(name)]
@@ -635,6 +638,7 @@ class LoopRun:
             ds.segments,
             self.wall_s,
             ds.decimation if ds.split else 1,
+            self.cs.copy(),
         )
 
 

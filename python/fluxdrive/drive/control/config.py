@@ -52,10 +52,15 @@ from fluxdrive.drive.control.kernel import (
     CP_KP_W,
     CP_L,
     CP_LAM,
+    CP_LOCK_COS,
+    CP_LOCK_LPF,
+    CP_LOCK_MARGIN,
+    CP_LOCK_TIMEOUT,
     CP_N,
     CP_OC_TRIP,
     CP_OS_TRIP,
     CP_P,
+    CP_R,
     CP_REF_TIMEOUT,
     CP_SRC,
     CP_TDCOMP,
@@ -261,6 +266,34 @@ class ControllerConfig:
         doc="loss-of-lock trip: estimate invalid this long in closed loop",
         range=(1e-4, 10.0),
     )
+    # The back-EMF check (docs/engine.md, Protections): the observer's valid flag alone is
+    # not trusted.  0.25 pu clears the measured-voltage errors at low speed (deadtime
+    # residue and R^ error, about 0.1 pu on the default card at 150 % load) and stops a
+    # runaway far below the over-speed trip.
+    lock_emf_margin_pu: float = param(
+        0.25,
+        unit="pu",
+        doc="loss-of-lock trip on the drive's own signals: the speed the back-EMF implies "
+        "(frame voltages and currents in the estimate's frame) above 1.5 x the estimated "
+        "speed plus this much, per unit of rated speed; 0: off",
+        range=(0.0, 5.0),
+    )
+    lock_emf_angle_deg: float = param(
+        60.0,
+        unit="deg",
+        doc="loss-of-lock trip: above lock_emf_margin_pu of speed, the back-EMF this far off "
+        "the estimate's q axis",
+        range=(10.0, 180.0),
+    )
+    lock_emf_lpf_hz: float = param(
+        20.0, unit="Hz", doc="low-pass of the back-EMF check", range=(0.1, 1000.0)
+    )
+    lock_emf_timeout_s: float = param(
+        0.1,
+        unit="s",
+        doc="loss-of-lock trip: the back-EMF disagreeing with the estimate this long",
+        range=(1e-4, 10.0),
+    )
     # 0.3 s: the paper observer's compensation frequency settles in ~0.3 s
     handover_dwell_s: float = param(
         0.3,
@@ -448,6 +481,11 @@ class ControllerConfig:
         cp[CP_I2T_LIMIT] = self.i2t_limit_pu2s
         cp[CP_IRATED] = card.rated_current_a
         cp[CP_REF_TIMEOUT] = self.reference_timeout_s
+        cp[CP_R] = card.resistance_ohm if self.r_hat_ohm is None else self.r_hat_ohm
+        cp[CP_LOCK_MARGIN] = self.lock_emf_margin_pu * card.rated_speed_rad_s * card.pole_pairs
+        cp[CP_LOCK_COS] = math.cos(math.radians(self.lock_emf_angle_deg))
+        cp[CP_LOCK_LPF] = 2 * math.pi * self.lock_emf_lpf_hz
+        cp[CP_LOCK_TIMEOUT] = self.lock_emf_timeout_s
         return cp
 
 

@@ -38,7 +38,16 @@ from fluxdrive.core.protocol_constants import (
 )
 from fluxdrive.core.transforms import TWO_PI, clarke, inv_clarke, inv_park, park, wrap_angle
 from fluxdrive.drive.observers import ES_TH, ES_VALID, ES_W
-from fluxdrive.drive.plant import FR_ENC, FR_IA, FR_IB, FR_IC, FR_VDC
+from fluxdrive.drive.plant import (
+    FR_ENC,
+    FR_IA,
+    FR_IB,
+    FR_IC,
+    FR_VAB,
+    FR_VBC,
+    FR_VCA,
+    FR_VDC,
+)
 
 # ---- controller parameter vector CP_*
 _CP = Layout("CP")
@@ -76,6 +85,12 @@ CP_IRATED = _CP.index()  # rated current [A]
 CP_HANDOVER_TIMEOUT = _CP.index()  # at handover speed this long without handover -> trip [s]
 CP_AGREE_LPF = _CP.index()  # handover agreement low-pass pole [rad/s]; 0: per sample
 CP_REF_TIMEOUT = _CP.index()  # split mode: no reference this long with PWM on -> trip [s]
+# loss of lock judged from the drive's own signals (the back-EMF check, _emf_lock)
+CP_R = _CP.index()  # model resistance R^ [ohm]
+CP_LOCK_MARGIN = _CP.index()  # implied speed over 1.5 |w^| by this much -> trip [rad/s el.]; 0 off
+CP_LOCK_COS = _CP.index()  # cosine of the largest back-EMF angle off the estimate's q axis
+CP_LOCK_LPF = _CP.index()  # low-pass pole of the back-EMF check [rad/s]
+CP_LOCK_TIMEOUT = _CP.index()  # disagreement this long in closed loop -> trip [s]
 CP_N = _CP.close(globals())
 SRC_ENCODER, SRC_ESTIMATE = 0, 1
 
@@ -100,7 +115,13 @@ CS_I2T = _CS.index()  # I2t integral [pu^2 s]
 CS_HO_WAIT_T = _CS.index()  # time the I-f ramp has waited at the handover speed [s]
 CS_AG_C, CS_AG_S = _CS.indices(2)  # filtered unit vector of (estimate - I-f) angle
 CS_AG_W = _CS.index()  # filtered (estimated - I-f) electrical speed [rad/s]
+CS_EMF_D, CS_EMF_Q = _CS.indices(2)  # filtered back-EMF in the estimate's frame [V]
+CS_EMF_MAG = _CS.index()  # filtered back-EMF magnitude [V]
+CS_LOCK_T = _CS.index()  # time the back-EMF has disagreed with the estimate [s]
+CS_LOCK_WHY = _CS.index()  # LOCK_* of the last disagreement (what a loss-of-lock trip saw)
 CS_N = _CS.close(globals())
+# why the lock was judged lost (CS_LOCK_WHY; fluxdrive.drive.control.trips explains each)
+LOCK_OK, LOCK_INVALID, LOCK_EMF_SPEED, LOCK_EMF_ANGLE = range(4)
 
 MODE_DISABLED, MODE_ALIGN, MODE_IF_RAMP, MODE_CLOSED_LOOP, MODE_FAULT = range(5)
 MODE_NAMES = {0: "disabled", 1: "align", 2: "if_ramp", 3: "closed_loop", 4: "fault"}
@@ -357,6 +378,10 @@ def _if_ramp(cs, cp, est, w_ref_m, id_inj, ia, ib, p, ts):
         cs[CS_T_MODE] = 0.0
         cs[CS_WFB_F] = est[ES_W] / p
         _rotate_current_integrators(cs, th - est[ES_TH])
+        cs[CS_EMF_D] = 0.0  # the back-EMF check starts afresh on the observer's frame
+        cs[CS_EMF_Q] = 0.0
+        cs[CS_EMF_MAG] = 0.0
+        cs[CS_LOCK_T] = 0.0
         return est[ES_TH], est[ES_W], id_ref, MODE_CLOSED_LOOP
     return th, we, id_ref, MODE_IF_RAMP
 
@@ -439,6 +464,43 @@ def _current_loops(cs, cp, ia, ib, th, we, id_ref, iq_ref, vdc, ts, out):
 
 
 @njit(cache=True, inline="always")
+def _emf_lock(cs, cp, fr, ia, ib, th, we, ts):
+    """Loss of lock judged from the drive's own signals, whatever the observer's valid flag
+    says: the back-EMF in the estimate's frame from the frame's measured line voltages
+    (the average over the period just ended, so at mid-period angle) and currents,
+    e_dq = v_dq - R^ i_dq - w^ L^ J i_dq, which is w lambda on the q axis while the
+    estimate holds the rotor.  Two disagreements (docs/engine.md, *Protections*):
+    LOCK_EMF_SPEED, the speed it implies, |e| / lambda^, above 1.5 |w^| + margin (a rotor
+    running away under a frame that drifts); LOCK_EMF_ANGLE, above the margin's speed the
+    back-EMF more than the set angle off the q axis of w^'s sign.  Returns the LOCK_* seen
+    this period (LOCK_OK: agreement)."""
+    th_m = th - 0.5 * we * ts
+    c_t = math.cos(th_m)
+    s_t = math.sin(th_m)
+    va = (fr[FR_VAB] - fr[FR_VCA]) / 3.0
+    vb = fr[FR_VBC] * 0.5773502691896258  # 1/sqrt(3)
+    vd, vq = park(va, vb, c_t, s_t)
+    i_d, i_q = park(ia, ib, c_t, s_t)
+    wl = we * cp[CP_L]
+    ed = vd - cp[CP_R] * i_d + wl * i_q
+    eq = vq - cp[CP_R] * i_q - wl * i_d
+    a = pole(cp[CP_LOCK_LPF], ts)
+    cs[CS_EMF_D] = lowpass_step(cs[CS_EMF_D], ed, a)
+    cs[CS_EMF_Q] = lowpass_step(cs[CS_EMF_Q], eq, a)
+    cs[CS_EMF_MAG] = lowpass_step(cs[CS_EMF_MAG], math.sqrt(ed * ed + eq * eq), a)
+    lam = cp[CP_LAM]
+    margin = cp[CP_LOCK_MARGIN]
+    if cs[CS_EMF_MAG] > (1.5 * abs(we) + margin) * lam:
+        return LOCK_EMF_SPEED
+    mag = math.sqrt(cs[CS_EMF_D] ** 2 + cs[CS_EMF_Q] ** 2)
+    if mag > margin * lam:
+        along = cs[CS_EMF_Q] if we >= 0.0 else -cs[CS_EMF_Q]
+        if along < cp[CP_LOCK_COS] * mag:
+            return LOCK_EMF_ANGLE
+    return LOCK_OK
+
+
+@njit(cache=True, inline="always")
 def _references(cs, cp, fr, est, w_ref_m, id_inj, out):
     """Everything a control period does before the current loops: measure + protect ->
     position feedback -> references (align / I-f / closed loop).  Returns (run, i_alpha,
@@ -468,10 +530,22 @@ def _references(cs, cp, fr, est, w_ref_m, id_inj, out):
                 cs[CS_INV_T] += ts
                 if cs[CS_INV_T] > cp[CP_INV_TIMEOUT]:
                     # PLL error or flux magnitude out of bounds for too long
+                    cs[CS_LOCK_WHY] = LOCK_INVALID
                     _trip(cs, out, FAULT_LOSS_OF_LOCK)
                     return False, ia, ib, 0.0, 0.0, 0.0, 0.0
             else:
                 cs[CS_INV_T] = 0.0
+            if cp[CP_LOCK_MARGIN] > 0.0:
+                # the observer's own flag is not trusted alone (a user's plugin may lie)
+                why = _emf_lock(cs, cp, fr, ia, ib, th, we, ts)
+                if why == LOCK_OK:
+                    cs[CS_LOCK_T] = 0.0
+                else:
+                    cs[CS_LOCK_T] += ts
+                    cs[CS_LOCK_WHY] = why
+                    if cs[CS_LOCK_T] > cp[CP_LOCK_TIMEOUT]:
+                        _trip(cs, out, FAULT_LOSS_OF_LOCK)
+                        return False, ia, ib, 0.0, 0.0, 0.0, 0.0
     w_m_fb = we / p
     if abs(w_m_fb) > cp[CP_OS_TRIP]:
         _trip(cs, out, FAULT_OVERSPEED)

@@ -12,13 +12,21 @@ from fluxdrive.drive.control.kernel import (
     CP_IF_I,
     CP_INV_TIMEOUT,
     CP_IRATED,
+    CP_LAM,
+    CP_LOCK_COS,
+    CP_LOCK_MARGIN,
+    CP_LOCK_TIMEOUT,
     CP_OC_TRIP,
     CP_OS_TRIP,
     CP_P,
     CP_SRC,
     CP_VDC_MAX,
     CP_VDC_MIN,
+    CS_EMF_D,
+    CS_EMF_MAG,
+    CS_EMF_Q,
     CS_I2T,
+    CS_LOCK_WHY,
     FAULT_BAD_SAMPLE,
     FAULT_LOSS_OF_LOCK,
     FAULT_NAMES,
@@ -29,6 +37,8 @@ from fluxdrive.drive.control.kernel import (
     FAULT_POSITION_INVALID,
     FAULT_START_FAILED,
     FAULT_UNDERVOLTAGE,
+    LOCK_EMF_ANGLE,
+    LOCK_EMF_SPEED,
     SRC_ESTIMATE,
 )
 from fluxdrive.drive.observers import ES_TH, ES_W
@@ -72,10 +82,7 @@ def trip_values(
         w = est[ES_W] / cp[CP_P] if cp[CP_SRC] == SRC_ESTIMATE else w_fb_prev_rad_s
         return f"{abs(w) * rpm:.0f} rpm > {cp[CP_OS_TRIP] * rpm:.0f} rpm (control.overspeed_pu)"
     if code == FAULT_LOSS_OF_LOCK:
-        return (
-            f"estimate flagged invalid (PLL error or |flux| out of bounds) for more than "
-            f"{cp[CP_INV_TIMEOUT]:g} s in closed loop (control.invalid_timeout_s)"
-        )
+        return _lock_values(est, cp, cs)
     if code == FAULT_START_FAILED:
         i_if = cp[CP_IF_I] / cp[CP_IRATED]
         return (
@@ -95,6 +102,37 @@ def trip_values(
         ]
         return ", ".join(bad) or "a value not finite"
     return "latched by the controller"
+
+
+def _lock_values(est: np.ndarray, cp: np.ndarray, cs: np.ndarray | None) -> str:
+    """Which loss-of-lock check tripped (CS_LOCK_WHY), with its numbers."""
+    why = int(cs[CS_LOCK_WHY]) if cs is not None else -1
+    rpm = 60.0 / (2 * math.pi) / cp[CP_P]  # electrical rad/s -> mechanical rpm
+    after = f"for more than {cp[CP_LOCK_TIMEOUT]:g} s (control.lock_emf_timeout_s)"
+    if why == LOCK_EMF_SPEED and cs is not None:
+        w_emf = cs[CS_EMF_MAG] / cp[CP_LAM]
+        w_est = abs(est[ES_W])
+        return (
+            f"the back-EMF implies {w_emf * rpm:.0f} rpm, the estimate says {w_est * rpm:.0f} "
+            f"rpm (> 1.5 x estimate + {cp[CP_LOCK_MARGIN] * rpm:.0f} rpm, "
+            f"control.lock_emf_margin_pu) {after}"
+        )
+    if why == LOCK_EMF_ANGLE and cs is not None:
+        off = math.degrees(
+            math.atan2(abs(cs[CS_EMF_D]), cs[CS_EMF_Q] * math.copysign(1, est[ES_W]))
+        )
+        limit = math.degrees(math.acos(cp[CP_LOCK_COS]))
+        return (
+            f"the back-EMF is {off:.0f} deg off the estimate's q axis (> {limit:.0f} deg, "
+            f"control.lock_emf_angle_deg) {after}"
+        )
+    flag = (
+        f"estimate flagged invalid (PLL error or |flux| out of bounds) for more than "
+        f"{cp[CP_INV_TIMEOUT]:g} s in closed loop (control.invalid_timeout_s)"
+    )
+    if cs is None:  # the state is not at hand: either check may have tripped
+        return f"{flag}, or the back-EMF disagreed with the estimate (control.lock_emf_*)"
+    return flag
 
 
 def describe_trip(
