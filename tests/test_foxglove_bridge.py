@@ -5,8 +5,9 @@ with the scenario's DC bus voltage, estimates with wrapped angles); parameters r
 refused set comes back as a status with the node's reason; a parameter subscription
 receives a change made with `./fluxdrive param set` (another process); the controller's
 reset_fault is called as a service (cdr request and response); the server's time and the
-messages' log times follow the graph's /clock.  A client offering only the older
-foxglove.websocket.v1 subprotocol is refused at the handshake."""
+messages' log times follow the graph's /clock.  A client offering only the older name of
+the protocol, foxglove.websocket.v1, is served under that name: it lists the channels and a
+frame it receives decodes with rosbags' CDR reader from the advertised ros2msg schema."""
 
 from __future__ import annotations
 
@@ -75,6 +76,54 @@ def _handshake(port: int, path: str, host: str, origin: str | None) -> str:
     return out.decode(errors="replace")
 
 
+def _legacy_client_decodes_a_frame(url: str, frame_topic: str, vdc: float) -> None:
+    """A client of the protocol's older name (foxglove.websocket.v1 only, as Lichtblick
+    <= 1.21 offers): served under that name, it lists the channels, subscribes to the
+    frames and decodes one with rosbags' CDR reader built from the advertised schema --
+    nothing of the project's decodes it."""
+    from rosbags.typesys import Stores, get_typestore
+    from rosbags.typesys.msg import get_types_from_msg
+
+    with ws_client.connect(
+        url, subprotocols=["foxglove.websocket.v1"], max_size=None, open_timeout=10
+    ) as ws:
+        assert ws.subprotocol == "foxglove.websocket.v1"
+        _recv_json(ws, "serverInfo", 10)
+        chans: dict[str, dict] = {}
+        t_end = time.monotonic() + 30
+        while frame_topic not in chans and time.monotonic() < t_end:
+            d = _recv_json(ws, "advertise", t_end - time.monotonic())
+            chans.update({c["topic"]: c for c in d["channels"]})
+        ch = chans[frame_topic]
+        ws.send(
+            json.dumps({"op": "subscribe", "subscriptions": [{"id": 7, "channelId": ch["id"]}]})
+        )
+        data = None
+        t_end = time.monotonic() + 60
+        while data is None and time.monotonic() < t_end:
+            try:
+                m = ws.recv(timeout=2)
+            except TimeoutError:
+                continue
+            if isinstance(m, bytes) and m[0] == 0x01 and struct.unpack_from("<I", m, 1)[0] == 7:
+                data = m[13:]
+        assert data is not None, "no frame on the legacy connection"
+    store = get_typestore(Stores.ROS2_JAZZY)
+    types: dict = {}
+    # the ros2msg schema: the type's definition, then each dependency after a line of '='
+    name, schema = ch["schemaName"], ch["schema"]
+    parts = schema.split("\n" + "=" * 80 + "\n")
+    types.update(get_types_from_msg(parts[0], name))
+    for part in parts[1:]:
+        head, _, body = part.partition("\n")
+        dep = head.removeprefix("MSG: ").strip()
+        pkg, _, typ = dep.partition("/")
+        types.update(get_types_from_msg(body, dep if "/msg/" in dep else f"{pkg}/msg/{typ}"))
+    store.register(types)
+    msg = store.deserialize_cdr(data, name)
+    assert msg.seq >= 0 and abs(msg.vdc - vdc) < 0.05 * vdc, (msg.seq, msg.vdc)
+
+
 @pytest.mark.timeout(240)
 def test_foxglove_client_receives_and_decodes_topics(tmp_path):
     from fluxdrive.drive.scenario import load_scenario, scenario_path
@@ -126,10 +175,7 @@ def test_foxglove_client_receives_and_decodes_topics(tmp_path):
             reply = _handshake(port, path, host, origin)
             assert reply.startswith("HTTP/1.1 403"), (what, reply)
 
-        # the older protocol alone is refused during the handshake
-        with pytest.raises(Exception) as exc:  # websockets' InvalidStatus / InvalidHandshake
-            ws_client.connect(url, subprotocols=["foxglove.websocket.v1"], open_timeout=5)
-        assert "400" in str(exc.value) or "subprotocol" in str(exc.value).lower()
+        _legacy_client_decodes_a_frame(url, topics.FRAME, sc.machine.dc_bus_v)
 
         with ws_client.connect(
             url, subprotocols=["foxglove.sdk.v1"], max_size=None, open_timeout=10
@@ -306,3 +352,25 @@ def test_foxglove_client_receives_and_decodes_topics(tmp_path):
             bridge.kill()
         launcher.stop()
     assert Path(tmp_path).exists()
+
+
+def test_gate_renames_the_legacy_subprotocol_both_ways():
+    """The rename alone, on handshake bytes: only a client offering the old name and not
+    the new is rewritten; the answer names the old protocol back; anything else untouched."""
+    from fluxdrive_bringup.view.gate import legacy_subprotocol_answer, legacy_subprotocol_request
+
+    def req(protocols: str) -> bytes:
+        return (
+            b"GET /?token=x HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\n"
+            b"Sec-WebSocket-Protocol: " + protocols.encode() + b"\r\nX-Other: 1\r\n\r\n"
+        )
+
+    out, legacy = legacy_subprotocol_request(req("foxglove.websocket.v1"))
+    assert legacy and out == req("foxglove.sdk.v1")
+    for same in ("foxglove.sdk.v1", "foxglove.sdk.v1, foxglove.websocket.v1", "other.v2"):
+        assert legacy_subprotocol_request(req(same)) == (req(same), False), same
+    answer = (
+        b"HTTP/1.1 101 Switching Protocols\r\nupgrade: websocket\r\n"
+        b"sec-websocket-protocol: foxglove.sdk.v1\r\nsec-websocket-accept: abc=\r\n\r\n"
+    )
+    assert legacy_subprotocol_answer(answer) == answer.replace(b"sdk.v1", b"websocket.v1")

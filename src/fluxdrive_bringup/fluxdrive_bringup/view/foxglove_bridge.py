@@ -12,8 +12,9 @@ e.g. `--allow-origin https://viewer.example`); at most --max-clients at once, th
 refused at once (fluxdrive_bringup.view.gate; docs/safety.md).
 
 The server speaks the WebSocket subprotocol `foxglove.sdk.v1` (foxglove-sdk 0.30); a client that
-offers only the older `foxglove.websocket.v1` is refused during the handshake (HTTP 400), so
-use a viewer recent enough for the SDK's protocol (see docs/scope.md).
+offers only the older name of the same protocol, `foxglove.websocket.v1` (Lichtblick <= 1.21,
+@foxglove/ws-protocol's default), is served too: the gate renames the subprotocol in the
+handshake both ways (docs/scope.md).
 
 Topics: found by discovery (every second); each becomes a channel with message encoding
 `cdr` and schema encoding `ros2msg` (the message definition with its dependencies, as a

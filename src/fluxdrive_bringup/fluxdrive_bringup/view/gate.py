@@ -207,6 +207,41 @@ def parse_head(head: bytes) -> tuple[str, str, dict[str, str]]:
     return parts[0], parts[1], headers
 
 
+# Foxglove's WebSocket protocol under its two names: the SDK's server speaks only the new one;
+# clients of before its rename (Lichtblick <= 1.21, @foxglove/ws-protocol's default) offer
+# only the old.  The protocol is the same (the SDK says so); only the handshake's
+# Sec-WebSocket-Protocol differs, so the gate renames it on the way in and back out.
+SUBPROTOCOL = "foxglove.sdk.v1"
+LEGACY_SUBPROTOCOL = "foxglove.websocket.v1"
+_PROTOCOL_LINE = re.compile(rb"(?im)^(sec-websocket-protocol:)([^\r\n]*)\r\n")
+
+
+def legacy_subprotocol_request(head: bytes) -> tuple[bytes, bool]:
+    """A handshake offering the old name and not the new: the same request offering the
+    new name, and True (its answer is renamed back by `legacy_subprotocol_answer`)."""
+    m = _PROTOCOL_LINE.search(head)
+    if m is None:
+        return head, False
+    offered = [p.strip() for p in m.group(2).decode("latin-1").split(",")]
+    if SUBPROTOCOL in offered or LEGACY_SUBPROTOCOL not in offered:
+        return head, False
+    line = m.group(1) + b" " + SUBPROTOCOL.encode() + b"\r\n"
+    return head[: m.start()] + line + head[m.end() :], True
+
+
+def legacy_subprotocol_answer(head: bytes) -> bytes:
+    """The server's handshake answer with the protocol it chose named the old way."""
+    return _PROTOCOL_LINE.sub(
+        lambda m: (
+            m.group(1) + b" " + LEGACY_SUBPROTOCOL.encode() + b"\r\n"
+            if m.group(2).strip() == SUBPROTOCOL.encode()
+            else m.group(0)
+        ),
+        head,
+        count=1,
+    )
+
+
 class FoxgloveGate:
     """The public port of `./fluxdrive foxglove`: each connection's WebSocket handshake
     checked by `access`, an accepted one piped to the SDK's TLS server on `upstream_port`."""
@@ -327,6 +362,7 @@ class FoxgloveGate:
         return f"connection limit reached ({self.access.max_clients} clients; --max-clients)"
 
     async def _pipe(self, reader, writer, head: bytes, client: str) -> None:
+        head, legacy = legacy_subprotocol_request(head)
         try:
             up_r, up_w = await asyncio.open_connection(
                 "127.0.0.1", self.upstream_port, ssl=self.ssl, server_hostname="127.0.0.1"
@@ -349,9 +385,14 @@ class FoxgloveGate:
 
         to_server = asyncio.create_task(copy(reader, up_w))
         try:
-            first = await up_r.read(65536)
-        except (ConnectionError, ssl.SSLError, OSError):
+            # the answer's head alone (the frames after it stay for the copy below)
+            first = await up_r.readuntil(b"\r\n\r\n")
+        except (ConnectionError, ssl.SSLError, OSError, asyncio.IncompleteReadError):
             first = b""
+        except asyncio.LimitOverrunError:  # not an HTTP answer we can read: pass it on
+            first = await up_r.read(65536)
+        if legacy and first:
+            first = legacy_subprotocol_answer(first)
         if not first:  # the SDK dropped the handshake without a word: say it in one line
             to_server.cancel()
             with contextlib.suppress(Exception):
