@@ -13,6 +13,7 @@ check and `param set`'s value check.
 from __future__ import annotations
 
 import contextlib
+import io
 import os
 import subprocess
 import sys
@@ -402,3 +403,31 @@ def test_docs_table_is_current():
         "docs/safety.md's bad-input table is out of date: "
         "FLUXDRIVE_WRITE_DOCS=1 ./fluxdrive test tests/test_cli_one_line.py -k docs"
     )
+
+
+def test_log_file_on_a_full_disk_does_not_stop_the_output(tmp_path):
+    """A log folder that fills up while a graph runs (a 4 KiB tmpfs here): the launcher says
+    so in one line and keeps reading the process's output (a reader that died of the
+    ENOSPC left the process blocked on a full pipe)."""
+    pytest.importorskip("fluxdrive_bringup")
+    from fluxdrive_bringup.launch.launcher import Graph, Launcher, Proc
+
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4k", "tmpfs", str(logs)]).returncode:
+        pytest.fail("could not mount a 4 KiB tmpfs (needs root)")
+    try:
+        out = io.StringIO()
+        launcher = Launcher(Graph(name="t", nodes=[]), quiet=True, log_dir=logs)
+        launcher.out = out
+        # 200 000 lines of 80 bytes: 16 MB, far more than a pipe and the disk hold
+        code = "import sys\nfor i in range(200000): print('x' * 79)\nprint('last line')"
+        p = Proc("chatty", [], [sys.executable, "-c", code])
+        p.popen = subprocess.Popen(p.argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        launcher._pump(p)
+        assert p.popen.wait(timeout=60) == 0  # it wrote everything: nobody stopped reading
+        assert p.tail[-1] == "last line"
+        said = [ln for ln in out.getvalue().splitlines() if "log file of chatty" in ln]
+        assert said == ["[launch] log file of chatty stopped: No space left on device"], said
+    finally:
+        subprocess.run(["umount", str(logs)], check=False)

@@ -47,6 +47,7 @@ back-off, or ignore it (the graph runs on; exit code unaffected).  A process tha
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -722,8 +723,11 @@ class Launcher:
     def _pump(self, p: Proc) -> None:
         logf = None
         if self.log_dir is not None:
-            self.log_dir.mkdir(parents=True, exist_ok=True)
-            logf = open(self.log_dir / f"{p.name}.log", "a" if p.restarts else "w")  # noqa: SIM115
+            try:  # checked before the start (--log-dir); a disk can still fill or turn read-only
+                self.log_dir.mkdir(parents=True, exist_ok=True)
+                logf = open(self.log_dir / f"{p.name}.log", "a" if p.restarts else "w")  # noqa: SIM115
+            except OSError as exc:  # the process's output is still read (a full pipe blocks it)
+                self._emit(f"[launch] no log file for {p.name} in {self.log_dir}: {exc.strerror}")
         assert p.popen and p.popen.stdout
         for raw in p.popen.stdout:
             p.t_last_line = time.monotonic()
@@ -752,8 +756,14 @@ class Launcher:
                 self.last_warning = f"[{p.name}] {line}"
             p.tail.append(line)
             if logf:
-                logf.write(line + "\n")
-                logf.flush()
+                try:
+                    logf.write(line + "\n")
+                    logf.flush()
+                except OSError as exc:  # a full disk: say so once, keep reading the output
+                    self._emit(f"[launch] log file of {p.name} stopped: {exc.strerror}")
+                    with contextlib.suppress(OSError):
+                        logf.close()
+                    logf = None
             if not self.quiet:
                 self._emit(f"[{p.name}] {line}")
         if logf:
