@@ -158,7 +158,7 @@ def test_malformed_frames_and_gaps_counted_loop_continues():
         tx.shutdown()
     d = br.diagnostics()
     assert d["fast_path_frames"] == len(seqs) + 1
-    assert frames.shape[0] == len(seqs)
+    assert frames.shape[0] == len(seqs) - 1  # the duplicate is not handed on
     assert d["seq_gaps"] == 1 and d["seq_lost"] == 3 and d["seq_duplicates"] == 1
     assert d["malformed_length"] == 1
     assert list(frames[:8, FR_SEQ]) == [65530 + i for i in range(8)]  # unwrapped past 65535

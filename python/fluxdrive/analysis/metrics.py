@@ -42,15 +42,19 @@ def wrap(x: np.ndarray) -> np.ndarray:
 
 def whole_periods(theta_unwrapped: np.ndarray) -> slice:
     """Largest leading part of the window spanning a whole number of electrical periods
-    (falls back to everything when less than one period elapsed)."""
-    span = abs(theta_unwrapped[-1] - theta_unwrapped[0])
-    n_per = math.floor(span / (2 * math.pi))
+    (falls back to everything when less than one period elapsed).  Samples that are not
+    finite (rows a run never received) are skipped: the span runs between the first and
+    the last finite angle."""
+    th = np.asarray(theta_unwrapped, dtype=np.float64)
+    ok = np.flatnonzero(np.isfinite(th))
+    if ok.size < 2:
+        return slice(0, len(th))
+    first, last = float(th[ok[0]]), float(th[ok[-1]])
+    n_per = math.floor(abs(last - first) / (2 * math.pi))
     if n_per < 1:
-        return slice(0, len(theta_unwrapped))
-    target = theta_unwrapped[0] + math.copysign(
-        n_per * 2 * math.pi, theta_unwrapped[-1] - theta_unwrapped[0]
-    )
-    end = int(np.argmin(np.abs(theta_unwrapped - target)))
+        return slice(0, len(th))
+    target = first + math.copysign(n_per * 2 * math.pi, last - first)
+    end = int(ok[np.argmin(np.abs(th[ok] - target))])
     return slice(0, max(end, 2))
 
 

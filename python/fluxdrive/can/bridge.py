@@ -16,18 +16,28 @@
   ARM_MODE tells the MCU the layout and D; a STATUS reporting another layout or D is
   counted (``layout_mismatch``) and latches a fault (the loop would run at the wrong
   sample time), so the drive cannot be armed until it agrees;
-* **malformed** frames (wrong length, FD flag clear, out of the DBC range, non-finite) are
-  dropped and counted by reason; **sequence gaps**, duplicates and out-of-order frames
-  are counted (:class:`SeqTracker`) and the loop continues;
-* **stale data**: no valid sample for ``stale_timeout_s`` while the link was live ->
-  STALE fault (latched), a disable DUTY_CMD and a disarm ARM_MODE;
+* **malformed** frames (wrong length, FD flag clear, out of the DBC range, non-finite; the
+  housekeeping frames' signals too; a datagram the bus cannot unpack) are dropped and
+  counted by reason;
+* **only new samples go on** (:class:`SeqFilter`): sequence gaps are counted and the loop
+  continues; duplicates (a repeat, a replay), late (out-of-order) samples and jumps (a
+  counter further ahead than ``seq_jump_max`` periods plus what the time since the newest
+  sample allows) are counted and dropped, never handed to the graph;
+* **stale data**: no valid new sample for ``stale_timeout_s`` while the link was live ->
+  STALE fault (latched; the reason names the samples dropped meanwhile), a disable
+  DUTY_CMD and a disarm ARM_MODE;
 * **arming**: duties go out with ``cmd_enable=1`` only while armed (by :meth:`arm`,
   the node's parameter or service) and no fault is latched; otherwise enable is forced
   to 0 and the suppression counted. ARM_MODE is repeated at 10 Hz with the HOST_HEARTBEAT.
   :meth:`shutdown` disarms (disable + disarm frames) before closing the bus;
 * **bus errors / bus-off**: an exception from the bus (or a bus reporting
   ``BusState.ERROR``) closes it; reconnects are attempted through the injectable
-  ``bus_factory`` with exponential back-off. The bridge comes back disarmed;
+  ``bus_factory`` with exponential back-off. The bridge comes back disarmed; lost while
+  armed, it latches a STALE fault naming the bus error (the drive goes to PWM off on its
+  own command watchdog);
+* **floods**: a software bus (``udp_multicast``) gets a receive buffer of
+  ``BusFactory.receive_buffer_bytes``, so a burst of foreign frames waits in it instead
+  of pushing samples out; frames of other IDs cost one counter each;
 * **split mode** (``BridgeConfig.control_split``): ARM_MODE.control_split = 1; the graph's
   current references go out as HOST_REF (:meth:`send_reference`, ref_seq = the wire seq of
   the sample answered, enable forced to 0 unless armed and unfaulted, like duties); the
@@ -78,7 +88,7 @@ from fluxdrive.can.protocol import (
     SEQ_BITS,
     ClassicReassembler,
     FluxdriveProtocol,
-    SeqTracker,
+    SeqFilter,
     get_protocol,
 )
 from fluxdrive.core.protocol_constants import MODE_IDLE, MODE_RUN
@@ -97,6 +107,7 @@ __all__ = [
     "CanBridge",
     "FaultEvent",
     "bus_factory_from_params",
+    "widen_receive_buffer",
 ]
 
 FRAME_FLAG_STALE_COMMAND = 16
@@ -214,6 +225,14 @@ class BridgeConfig:
         range=(1e-3, 10.0),
         live=False,
     )
+    seq_jump_max: int = param(
+        1000,
+        unit="periods",
+        doc="a sample whose counter is further ahead of the newest than this (plus 1.5 "
+        "times the PWM periods since the newest arrived) is a jump: counted and dropped",
+        range=(1, 32767),
+        live=False,
+    )
 
 
 # python-can interfaces that take no bit-rate arguments (software buses)
@@ -232,6 +251,7 @@ class BusFactory:
     fd: bool = True
     data_bitrate: int = 5_000_000
     extra: dict[str, Any] | None = None
+    receive_buffer_bytes: int = 4 << 20
 
     def __call__(self) -> can.BusABC:
         kw: dict[str, Any] = {"interface": self.interface, "channel": self.channel, "fd": self.fd}
@@ -240,7 +260,26 @@ class BusFactory:
             if self.fd:
                 kw["data_bitrate"] = self.data_bitrate
         kw.update(self.extra or {})
-        return can.Bus(**kw)
+        bus = can.Bus(**kw)
+        widen_receive_buffer(bus, self.receive_buffer_bytes)
+        return bus
+
+
+def widen_receive_buffer(bus: can.BusABC, size_bytes: int = 4 << 20) -> int:
+    """A ``udp_multicast`` bus's socket receive buffer raised to ``size_bytes`` (as far as
+    the system's limit allows): the default (about 200 kB, a few hundred datagrams) drops
+    samples when a burst of other frames arrives faster than the reader takes them.
+    Returns the size in effect (0: not a socket bus)."""
+    import socket
+
+    sock = getattr(getattr(bus, "_multicast", None), "_socket", None)
+    if not isinstance(sock, socket.socket):
+        return 0
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, int(size_bytes))
+        return int(sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
+    except OSError:
+        return 0
 
 
 def bus_factory_from_params(
@@ -343,10 +382,10 @@ class CanBridge:
         self.drive_mismatch: str = ""  # the last STATUS's layout/D disagreement ("" = none)
         self._mismatch_run = 0  # consecutive disagreeing STATUS frames
         self.mcu: dict[str, Any] = {}  # last MCU status / fault / sample flags
-        self.seq = SeqTracker(step=self.decimation)
-        self._seq_hi = 0  # unwrapped period index of the last valid sample
+        # which samples are new; the stream is never followed across a jump: it goes
+        # stale and faults, and a reset or a reconnect starts it again
+        self.seq = SeqFilter(step=self.decimation, max_jump=self.cfg.seq_jump_max)
         self._seq_out = 0  # seq of the last frame handed out (the sample index j = k // D)
-        self._seq_last16: int | None = None
         self._last_valid_t: float | None = None
         self._next_hb_t = 0.0
         self._hb_alive = 0
@@ -383,7 +422,7 @@ class CanBridge:
         self.counters["connects"] += 1
         self._backoff = self.cfg.reconnect_initial_s
         self._last_valid_t = None  # the stale timer restarts with the first frame
-        self._seq_last16 = None
+        self.seq.reanchor()
         self._reasm = ClassicReassembler(protocol=self.proto)
         self._next_hb_t = 0.0
         self.drive_mismatch = ""  # the drive's next STATUS tells again
@@ -402,6 +441,17 @@ class CanBridge:
         self.last_error = f"bus: {exc!r}" if not isinstance(exc, str) else exc
         if self.armed:
             self.counters["disarmed_by_bus_error"] += 1
+            if not self.fault:  # the reason stays: no arming until a reset
+                self.counters["faults"] += 1
+                self.fault = f"CAN bus lost while armed ({self.last_error})"
+                self.fault_events.append(
+                    FaultEvent(
+                        FAULT_STALE_INPUT,
+                        True,
+                        f"{self.fault}: disarmed, PWM off by the drive's command watchdog",
+                        "host",
+                    )
+                )
         self.armed = False
         bus, self.bus = self.bus, None
         if bus is not None:
@@ -612,6 +662,7 @@ class CanBridge:
                 FaultEvent(FAULT_NONE, False, f"'{self.fault}' cleared by a reset", "host")
             )
         self.fault = ""
+        self.seq.reanchor()  # a stream that went stale on dropped samples starts again
         if self.connected:
             self._send_arm(False, reset_fault=True)
             self._send_arm(False, reset_fault=False)
@@ -649,7 +700,7 @@ class CanBridge:
         bus = self.bus
         sample_ids = (ID_SAMPLE_FD,) if self.layout == "fd" else CLASSIC_SAMPLE_IDS
         try:
-            msg = bus.recv(timeout=timeout)
+            msg = self._recv(bus, timeout)
             while msg is not None:
                 if msg.arbitration_id in sample_ids and not msg.is_error_frame:
                     samples.append(msg)
@@ -657,7 +708,7 @@ class CanBridge:
                     self._handle_other(msg)
                 if len(samples) >= max_frames:
                     break
-                msg = bus.recv(timeout=0.0)
+                msg = self._recv(bus, 0.0)
             state = getattr(bus, "state", None)
             if state == can.BusState.ERROR:
                 raise can.CanOperationError("bus-off (BusState.ERROR)")
@@ -669,6 +720,17 @@ class CanBridge:
         self.tick(self.clock())
         return frames
 
+    def _recv(self, bus: can.BusABC, timeout: float) -> can.Message | None:
+        """One message; a datagram the bus cannot unpack (anything on a software bus's
+        group and port) is malformed, not a dead bus."""
+        try:
+            return bus.recv(timeout=timeout)
+        except can.CanOperationError as exc:
+            if "could not unpack" not in str(exc):
+                raise
+            self._malformed("datagram", f"not a CAN message: {exc.__cause__ or exc}")
+            return None
+
     def _handle_other(self, msg: can.Message) -> None:
         if msg.is_error_frame:
             self.counters["error_frames"] += 1
@@ -676,7 +738,7 @@ class CanBridge:
         aid = msg.arbitration_id
         try:
             if aid == ID_STATUS:
-                d = self._msg_status.decode(bytes(msg.data), decode_choices=False)
+                d = _decode_checked(self._msg_status, msg.data)
                 self.counters["status_rx"] += 1
                 self.mcu.update(
                     state=int(d["st_state"]), armed=int(d["st_armed"]),
@@ -688,7 +750,7 @@ class CanBridge:
                 )  # fmt: skip
                 self._check_drive_layout(bool(d["st_sample_layout"]), int(d["st_decimation"]))
             elif aid == ID_FAULT:
-                d = self._msg_fault.decode(bytes(msg.data), decode_choices=False)
+                d = _decode_checked(self._msg_fault, msg.data)
                 self.counters["fault_rx"] += 1
                 self.mcu.update(
                     fault_code=int(d["fault_code"]),
@@ -700,7 +762,7 @@ class CanBridge:
                     self.armed = False  # the MCU disarmed itself
                     self.counters["disarmed_by_mcu_fault"] += 1
             elif aid == ID_DRIVE_PARAM_ACK:
-                d = self._msg_ack.decode(bytes(msg.data), decode_choices=False)
+                d = _decode_checked(self._msg_ack, msg.data)
                 self.counters["param_ack_rx"] += 1
                 with self._ack_cv:
                     key = (int(d["pa_id"]), int(d["pa_seq"]))
@@ -770,26 +832,43 @@ class CanBridge:
             frames[:, _I_FLAGS] = (frames[:, _I_FLAGS].astype(np.int64) & FRAME_FLAG_ADC_CLIP) | (
                 np.where(stale[valid] > 0.5, FRAME_FLAG_STALE_COMMAND, 0)
             )
-            if valid.any():
-                last = res.values[np.flatnonzero(valid)[-1]]
-                self._note_info(dict(zip(names, last, strict=True)))
+            vals, stale_v = res.values[valid], stale[valid] > 0.5
+
+            def info(i: int) -> dict[str, Any]:
+                return dict(zip(names, vals[i], strict=True))
         else:
-            rows = []
+            rows, infos = [], []
             for i, m in enumerate(msgs):
-                row = self._decode_one(m, ok_fd[i])
-                if row is not None:
-                    rows.append(row)
+                got = self._decode_one(m, ok_fd[i])
+                if got is not None:
+                    rows.append(got[0])
+                    infos.append(got[1])
             frames = np.vstack(rows) if rows else np.empty((0, len(FRAME_FIELDS)))
+            stale_v = np.array([bool(d["cmd_stale"]) for d in infos], dtype=bool)
+
+            def info(i: int) -> dict[str, Any]:
+                return infos[i]
+
         if frames.shape[0]:
-            self._hand_out(frames)
+            frames, keep = self._hand_out(frames)
+            if frames.shape[0]:  # what the drive says of itself: from new samples only
+                self._note_info(info(int(np.flatnonzero(keep)[-1])))
+                self.counters["mcu_cmd_stale"] += int(np.count_nonzero(stale_v[keep]))
         return frames
 
-    def _hand_out(self, frames: np.ndarray) -> None:
-        """Valid samples of either layout, in place: gap accounting and seq unwrap, then
-        the period index k -> the sample index j = k // D (the wire seq of each j kept
-        for the duty answering it)."""
+    def _hand_out(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Valid samples of either layout: only the new ones go on (:class:`SeqFilter`;
+        duplicates, late ones and jumps are counted and dropped), their seq unwrapped to
+        the period index k, then k -> the sample index j = k // D (the wire seq of each j
+        kept for the duty answering it). Returns (the new samples, the taken mask)."""
         wire = frames[:, _I_SEQ].astype(np.int64)
-        self._sequence(frames)  # -> unwrapped period index k
+        now = self.clock()
+        keep, k = self.seq.accept(wire, np.full(wire.size, now), self.proto.pwm_frequency)
+        if not keep.all():
+            frames, wire = frames[keep], wire[keep]
+            if not frames.shape[0]:
+                return frames, keep
+        frames[:, _I_SEQ] = k[keep]
         if self.decimation > 1:
             j = np.floor_divide(frames[:, _I_SEQ].astype(np.int64), self.decimation)
             frames[:, _I_SEQ] = j
@@ -798,8 +877,9 @@ class CanBridge:
             while len(self._wire) > 512:
                 del self._wire[next(iter(self._wire))]
         self._seq_out = int(frames[-1, _I_SEQ])
-        self._last_valid_t = self.clock()
+        self._last_valid_t = now
         self.counters["frames_out"] += frames.shape[0]
+        return frames, keep
 
     def _check_drive_layout(self, classic: bool, decimation: int) -> None:
         """STATUS: the drive must run the layout and D this bridge asked for; otherwise
@@ -826,6 +906,7 @@ class CanBridge:
         """Reassemble classic sample parts into frames (seq: see :meth:`_hand_out`)."""
         ra = self._reasm
         rows: list[np.ndarray] = []
+        auxes: list[dict[str, Any]] = []
         for m in msgs:
             self.counters["rx_sample_parts"] += 1
             n_bad, n_inc = ra.malformed, ra.incomplete
@@ -838,23 +919,26 @@ class CanBridge:
                 self.counters["classic_incomplete"] += ra.incomplete - n_inc
             if row is None:
                 continue
-            aux = ra.last_aux
+            aux = dict(ra.last_aux)
             row[_I_FLAGS] = (int(row[_I_FLAGS]) & FRAME_FLAG_ADC_CLIP) | (
                 FRAME_FLAG_STALE_COMMAND if aux.get("c_cmd_stale") else 0
             )
-            self.mcu["sample_armed"] = int(aux.get("c_armed", 0))
-            self.mcu["sample_fault_active"] = int(aux.get("c_fault_active", 0))
-            if aux.get("c_cmd_stale"):
-                self.counters["mcu_cmd_stale"] += 1
             rows.append(row)
+            auxes.append(aux)
         if not rows:
             return np.empty((0, len(FRAME_FIELDS)))
         frames = np.vstack(rows)
         self.counters["rx_samples"] += frames.shape[0]
-        self._hand_out(frames)
+        frames, keep = self._hand_out(frames)
+        for i in np.flatnonzero(keep).tolist():  # what the drive says: new samples only
+            aux = auxes[i]
+            self.mcu["sample_armed"] = int(aux.get("c_armed", 0))
+            self.mcu["sample_fault_active"] = int(aux.get("c_fault_active", 0))
+            if aux.get("c_cmd_stale"):
+                self.counters["mcu_cmd_stale"] += 1
         return frames
 
-    def _decode_one(self, m: can.Message, is_fd: bool) -> np.ndarray | None:
+    def _decode_one(self, m: can.Message, is_fd: bool) -> tuple[np.ndarray, dict] | None:
         data = bytes(m.data)
         if len(data) != self._msg_fd.length:
             self._malformed("length", f"wrong length {len(data)} bytes (expected 64)")
@@ -877,36 +961,12 @@ class CanBridge:
         row[_I_FLAGS] = (int(d["adc_clip"]) & FRAME_FLAG_ADC_CLIP) | (
             FRAME_FLAG_STALE_COMMAND if d["cmd_stale"] else 0
         )
-        self._note_info(d)
-        return row
+        return row, d
 
     def _note_info(self, d: dict[str, Any]) -> None:
         self.mcu["sample_armed"] = int(d["armed"])
         self.mcu["sample_fault_code"] = int(d["fault_code"])
         self.mcu["cmd_seq_applied"] = int(d["cmd_seq_applied"])
-        if d["cmd_stale"]:
-            self.counters["mcu_cmd_stale"] += 1
-
-    def _sequence(self, frames: np.ndarray) -> None:
-        """Gap accounting and seq unwrap (16-bit wire counter -> 64-bit period index)."""
-        s16 = frames[:, _I_SEQ].astype(np.int64)
-        self.seq.update_many(s16)
-        out = np.empty(s16.shape[0], dtype=np.float64)
-        hi = self._seq_hi
-        last = self._seq_last16
-        for i, s in enumerate(s16):
-            if last is None:
-                hi = int(s) if hi == 0 else hi + ((int(s) - hi) % _SEQ_MOD)
-            else:
-                d = (int(s) - last) % _SEQ_MOD
-                if d >= _SEQ_MOD // 2:
-                    d -= _SEQ_MOD
-                hi += d
-            last = int(s)
-            out[i] = hi
-        self._seq_hi = hi
-        self._seq_last16 = last
-        frames[:, _I_SEQ] = out
 
     # ------------------------------------------------------------------ periodic
 
@@ -921,7 +981,13 @@ class CanBridge:
         if t is not None and now - t > self.cfg.stale_timeout_s and not self.fault:
             self.counters["stale_faults"] += 1
             self._last_valid_t = None
-            self._raise_fault(f"stale data: no valid sample for {now - t:.3f} s", FAULT_STALE_INPUT)
+            why = f"stale data: no valid sample for {now - t:.3f} s"
+            if self.seq.reject_run:
+                why += (
+                    f" ({self.seq.reject_run} samples dropped meanwhile, the last: "
+                    f"{self.seq.last_reason})"
+                )
+            self._raise_fault(why, FAULT_STALE_INPUT)
         if now >= self._next_hb_t:
             self._next_hb_t = now + self.cfg.heartbeat_period_s
             self._hb_alive = (self._hb_alive + 1) % 256
@@ -968,6 +1034,8 @@ class CanBridge:
             "seq_lost": st.lost,
             "seq_duplicates": st.duplicates,
             "seq_out_of_order": st.out_of_order,
+            "seq_jumps": st.jumps,
+            "seq_rejected": st.rejected,
             "last_error": self.last_error,
         }
         base = (
@@ -992,6 +1060,20 @@ class CanBridge:
         out.update({f"malformed_{k}": int(v) for k, v in sorted(self.malformed_reasons.items())})
         out.update({f"mcu_{k}": v for k, v in sorted(self.mcu.items())})
         return out
+
+
+def _decode_checked(msg: Any, data: bytes | bytearray) -> dict[str, Any]:
+    """A housekeeping frame decoded with every signal checked against the DBC: finite and
+    within its range (ValueError naming the signal otherwise)."""
+    d = msg.decode(bytes(data), decode_choices=False)
+    for sig in msg.signals:
+        v = float(d[sig.name])
+        if not math.isfinite(v):
+            raise ValueError(f"{msg.name}.{sig.name} is {v}")
+        lo, hi = sig.minimum, sig.maximum
+        if (lo is not None and v < lo) or (hi is not None and v > hi):
+            raise ValueError(f"{msg.name}.{sig.name}={v:g} outside [{lo}, {hi}]")
+    return d
 
 
 def _reason_kind(reason: str) -> str:

@@ -41,7 +41,7 @@ from fluxdrive.can.protocol import (
     SEQ_BITS,
     ClassicReassembler,
     FluxdriveProtocol,
-    count_seq_gaps,
+    SeqFilter,
     get_protocol,
     pack_payloads,
 )
@@ -73,7 +73,10 @@ class CaptureResult:
     ``decoded`` (valid samples),
     ``malformed`` (wrong length / out of range / wrong FD flag), ``other`` (non-sample
     messages), ``error_frames``, ``gaps`` / ``lost`` / ``duplicates`` / ``out_of_order``
-    (sequence counter over the decoded samples); ``layout``: "fd", "classic" or "none";
+    / ``jumps`` / ``resyncs`` / ``rejected`` (sequence counter over the decoded samples,
+    :class:`fluxdrive.can.protocol.SeqFilter`: only new samples are kept -- a repeated or
+    replayed, late or jumping sample is counted and left out of ``frames``), ``kept``
+    (the samples in ``frames``); ``layout``: "fd", "classic" or "none";
     ``reasons``: up to 100 examples of why frames were rejected (index, reason);
     ``truncated``: why the capture ends early ("" if it does not; a .blf only)."""
 
@@ -311,9 +314,20 @@ def read_capture(
         "malformed_lines": len(bad_lines),
         **dec.counts,
     }
-    st = count_seq_gaps(dec.frames[:, FR_SEQ].astype(np.int64), bits=SEQ_BITS, step=dec.step)
+    # only new samples: a capture of a bus with repeats or replays on it holds each once
+    sf = SeqFilter(step=dec.step, window=max(len(dec.frames), 1), resync_after=8)
+    keep, _ = sf.accept(dec.frames[:, FR_SEQ].astype(np.int64), dec.ts, proto.pwm_frequency)
+    dec.frames, dec.ts = dec.frames[keep], dec.ts[keep]
+    st = sf.stats
     counts.update(
-        gaps=st.gaps, lost=st.lost, duplicates=st.duplicates, out_of_order=st.out_of_order
+        gaps=st.gaps,
+        lost=st.lost,
+        duplicates=st.duplicates,
+        out_of_order=st.out_of_order,
+        jumps=st.jumps,
+        resyncs=st.resyncs,
+        rejected=st.rejected,
+        kept=int(keep.sum()),
     )
     if not len(dec.frames):
         raise CaptureError(

@@ -175,6 +175,7 @@ class EmulatorStats:
     lockstep_timeouts: int = 0
     arm_rx: int = 0
     bad_rx: int = 0
+    filtered_rx: int = 0  # frames the MCU's acceptance filter kept out (not the host's)
     tx_timeouts: int = 0
     layout_mismatch: int = 0
     disarm_rx: int = 0
@@ -248,6 +249,10 @@ class DriveEmulator:
         self._thread: threading.Thread | None = None
         self._fw: Any = None
         self._fw_rx: collections.deque[can.Message] = collections.deque()
+        # the CAN controller's acceptance filter: only what the host sends reaches the MCU
+        self._rx_ids = frozenset(
+            m.frame_id for m in self.proto.db.messages if "BENCH_PC" in (m.senders or ())
+        )
         self._t0_wall = time.monotonic()
         if mcu in ("c", "pil"):
             self._fw = self._new_firmware()
@@ -392,6 +397,9 @@ class DriveEmulator:
             return
         aid = msg.arbitration_id
         if self._fw is not None:
+            if aid not in self._rx_ids:  # a flood of other IDs never queues before a duty
+                self.stats.filtered_rx += 1
+                return
             if aid == ID_HOST_HEARTBEAT:
                 self._hb_last = time.monotonic()
             self._fw_rx.append(msg)

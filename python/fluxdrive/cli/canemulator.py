@@ -10,6 +10,7 @@ from typing import Any
 
 import can
 
+from fluxdrive.can.bridge import widen_receive_buffer
 from fluxdrive.can.emulator import DriveEmulator
 from fluxdrive.can.protocol import LinkOptions
 from fluxdrive.core.schema import Parser, option, param
@@ -49,6 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     sc = _scenario(a.scenario, a.duration)
     try:
         bus = can.Bus(**_bus_kwargs(a))
+        widen_receive_buffer(bus)  # a burst of other frames must not push duties out
     except (can.CanError, OSError, ImportError, ValueError) as exc:
         print(
             f"can-emulator: cannot open the {a.interface} bus on {a.channel}: {exc}",

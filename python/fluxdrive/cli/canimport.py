@@ -59,7 +59,9 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"[can-import] {res['decoded']} sample frames decoded ({res['layout']}, D = "
         f"{res['decimation']}, sample period {res['sample_period_s'] * 1e3:g} ms), "
-        f"{res['malformed']} malformed, {res['gaps']} gaps -> {res['written']} PhaseFrames "
+        f"{res['malformed']} malformed, {res['gaps']} gaps, {res['duplicates']} duplicates, "
+        f"{res['out_of_order']} out of order, {res['jumps']} jumps (left out) -> "
+        f"{res['written']} PhaseFrames "
         f"on {a.topic} in {a.out}",
         file=sys.stderr,
     )

@@ -75,6 +75,11 @@ def import_capture(
             "decimation": d,
             "pwm_hz": card.pwm_hz,
             "sample_period_s": d / card.pwm_hz,
+            # the samples left out (repeated, replayed, late, jumping) and the gaps
+            "sequence": {
+                key: int(cap.counts.get(key, 0))
+                for key in ("gaps", "lost", "duplicates", "out_of_order", "jumps", "rejected")
+            },
             **({"truncated": cap.truncated} if cap.truncated else {}),
         },
     }

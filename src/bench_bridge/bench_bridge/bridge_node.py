@@ -481,6 +481,7 @@ class BenchBridgeNode(Node):
         elif (
             d["malformed"]
             or d["seq_gaps"]
+            or d["seq_rejected"]
             or d["bus_errors"]
             or self.guard.n_rejected
             or d["layout_mismatch"]
@@ -508,11 +509,22 @@ class BenchBridgeNode(Node):
         arr.status = [st]
         self.diag_pub.publish(arr)
 
+    def link_summary(self) -> str:
+        """One line at the end: the samples handed on and what was dropped, by kind."""
+        d = self.bridge.diagnostics()
+        return (
+            f"CAN link: {d['frames_out']} samples handed on; dropped: {d['seq_duplicates']} "
+            f"duplicates, {d['seq_out_of_order']} out of order, {d['seq_jumps']} jumps, "
+            f"{d['malformed']} malformed; {d['seq_gaps']} gaps ({d['seq_lost']} lost); "
+            f"{d.get('rx_other', 0)} frames of other IDs"
+        )
+
     def destroy_node(self) -> None:
         if self.graph.foreign:
             self.get_logger().warning(self.graph.summary())
         self._stop.set()
         self._thread.join(1.0)
+        self.get_logger().info(self.link_summary())
         self.bridge.shutdown()  # disarms first
         super().destroy_node()
 

@@ -3,7 +3,8 @@ source of truth). No ROS imports.
 
 - :mod:`~fluxdrive.can.protocol.codec`: the messages, the engine frame's columns on the bus, a
   cantools codec plus a vectorised numpy fast path, the classic layout's reassembly;
-- :mod:`~fluxdrive.can.protocol.sequence`: sequence counters (gaps, duplicates, unwrapping);
+- :mod:`~fluxdrive.can.protocol.sequence`: sequence counters (gaps, duplicates, which samples
+  are new, unwrapping);
 - :mod:`~fluxdrive.can.protocol.budget`: the bits and bus time of every frame and the link
   budget of a sample period.
 
@@ -67,6 +68,7 @@ from fluxdrive.can.protocol.codec import (
 )
 from fluxdrive.can.protocol.sequence import (
     SEQ_BITS,
+    SeqFilter,
     SeqStats,
     SeqTracker,
     count_seq_gaps,
@@ -116,6 +118,7 @@ __all__ = [
     "DecodeResult",
     "FluxdriveProtocol",
     "NumpyCodec",
+    "SeqFilter",
     "SeqStats",
     "SeqTracker",
     "ValidationReport",
