@@ -405,26 +405,58 @@ def test_kill_driving_observer_controller_goes_pwm_off(tmp_path):
     assert not any(pwm[first_off + 2 :]) and any(pwm[:first_off])
 
 
-def test_launcher_killed_graph_stops_and_bag_is_finalised(tmp_path):
-    """SIGKILL of the launcher itself: its processes (in sessions of their own) get SIGTERM
-    from the kernel (parent-death signal), stop cleanly -- none outlives it -- and the
-    recorder finalises the bag."""
+LAYOUT_PROCESSES = {
+    # composed: one process, the recorder closing last in it
+    "composed": {},
+    # separate: every node a process of its own
+    "separate": {
+        "plant": "plant",
+        "flux_measured": "obs",
+        "controller": "controller",
+        "recorder": "recorder",
+    },
+}
+
+
+def _graph_pids(stop_dir: Path) -> list[int]:
+    """Live processes (not zombies) started for the graph: their environment names its
+    stop directory (the launcher's processes and whatever they started, the bag writer)."""
+    key = f"FLUXDRIVE_STOP_DIR={stop_dir}".encode()
+    out = []
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            if key in (d / "environ").read_bytes().split(b"\0") and (
+                (d / "stat").read_text().split()[2] != "Z"
+            ):
+                out.append(int(d.name))
+        except OSError:
+            continue
+    return out
+
+
+@pytest.mark.parametrize("layout", ["composed", "separate"])
+def test_launcher_killed_graph_says_its_last_word(tmp_path, layout):
+    """SIGKILL of the launcher mid-run: its processes (in sessions of their own) get SIGTERM
+    from the kernel (parent-death signal) all at once; the plant takes the drive to PWM off
+    and publishes that frame, the recorder waits until every process has said what it
+    published (their counts files, the launcher being gone), takes it all and finalises the
+    bag: the last frame recorded has the PWM off, every frame the plant published is in the
+    bag or the shortfall is in its metadata, and no process of the graph is left."""
+    import json
+
     import yaml
 
     bag = tmp_path / "bag"
     gpath = tmp_path / "graph.yaml"
-    gpath.write_text(yaml.safe_dump(graph_dict(bag, processes={"recorder": "recorder"})))
-    env = dict(os.environ)
+    gpath.write_text(yaml.safe_dump(graph_dict(bag, processes=LAYOUT_PROCESSES[layout])))
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    env = dict(os.environ, TMPDIR=str(tmp))  # the launcher's stop directory goes there
+    dom = domain(9) if layout == "composed" else domain(62)
     proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "fluxdrive.cli",
-            "launch",
-            str(gpath),
-            "--domain-id",
-            str(domain(9)),
-        ],
+        [sys.executable, "-m", "fluxdrive.cli", "launch", str(gpath), "--domain-id", str(dom)],
         cwd=ROOT,
         env=env,
         stdout=subprocess.PIPE,
@@ -434,31 +466,35 @@ def test_launcher_killed_graph_stops_and_bag_is_finalised(tmp_path):
     lines: list[str] = []
     threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True).start()
     mcap = bag / "bag.mcap"
-    t_end = time.monotonic() + 90
-    while not (mcap.exists() and mcap.stat().st_size > 2_000_000):  # a few chunks in
+    t_end = time.monotonic() + 120
+    while not (mcap.exists() and mcap.stat().st_size > 2_000_000):  # mid-run, a few chunks in
         assert proc.poll() is None and time.monotonic() < t_end, "".join(lines)
         time.sleep(0.1)
+    stop_dir = next(tmp.glob("fluxdrive-stop-*"))
     pids = [int(x) for x in re.findall(r"started \(pid (\d+)\)", "".join(lines))]
-    assert len(pids) == 2, "".join(lines)
+    assert len(pids) == len(set(LAYOUT_PROCESSES[layout].values()) or {"drive"}), "".join(lines)
     proc.kill()
     proc.wait()
-    t_end = time.monotonic() + 30
-    alive = pids
-    while alive and time.monotonic() < t_end:
+    t_end = time.monotonic() + 60
+    while _graph_pids(stop_dir) and time.monotonic() < t_end:
         time.sleep(0.1)
-        alive = [
-            p
-            for p in pids
-            if os.path.exists(f"/proc/{p}") and open(f"/proc/{p}/stat").read().split()[2] != "Z"
-        ]
-    assert not alive, f"graph processes outlived the launcher: {alive}"
-    for _ in range(100):  # the bag writer finishes after the recorder
-        if (bag / "metadata.yaml").exists():
-            break
-        time.sleep(0.1)
-    seqs, _, _, _ = read_frames(bag)
-    print(f"launcher SIGKILLed; its processes {pids} ended; bag finalised with {len(seqs)} frames")
+    assert not _graph_pids(stop_dir), f"graph processes outlived the launcher: {pids}"
+    seqs, pwm, _, _ = read_frames(bag)
+    plant_proc = "plant" if layout == "separate" else "drive"
+    published = json.loads((stop_dir / f"{plant_proc}.published.json").read_text())
+    n_pub = published["/drive/frame"]
+    info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    note = json.loads((info.get("custom_data") or {}).get("fluxdrive_missing") or "{}")
+    print(
+        f"{layout}: launcher SIGKILLed; its processes {pids} ended; the plant published "
+        f"{n_pub} frames, the bag holds {len(seqs)} (last PWM {'on' if pwm[-1] else 'off'}); "
+        f"metadata: {note or 'no shortfall'}"
+    )
     assert seqs == list(range(len(seqs))) and len(seqs) > 1000
+    if len(seqs) == n_pub:
+        assert not pwm[-1] and any(pwm), "the last recorded frame must have the PWM off"
+    else:  # the shortfall stated
+        assert note["topics"]["/drive/frame"] == {"recorded": len(seqs), "published": n_pub}
 
 
 def test_on_death_policy_errors_name_file_and_key():

@@ -118,12 +118,22 @@ class FluxNode(Node):
             else:
                 lg.info(text)
         else:
-            print(f"[{level.upper()}] [{self.get_logger().name}]: {text}", flush=True)
+            say(f"[{level.upper()}] [{self.get_logger().name}]: {text}")
 
     def progress(self, text: str) -> None:
         """A machine-readable progress line for the launcher (not logged)."""
-        sys.stdout.write(f"@progress {text}\n")
+        say(f"@progress {text}")
+
+
+def say(line: str) -> None:
+    """One line on stdout (the launcher reads it). A launcher that is gone (killed) took its
+    reader with it: from then on the lines go nowhere instead of raising BrokenPipeError in
+    whatever callback wrote one -- the process still has its stop to make."""
+    try:
+        sys.stdout.write(line + "\n")
         sys.stdout.flush()
+    except (BrokenPipeError, OSError, ValueError):
+        sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - for the rest of the process
 
 
 def make_executor(context=None):
@@ -175,11 +185,31 @@ def spin(nodes: list[FluxNode], executor=None, poll_s: float = 0.5) -> int:
     code = _close_nodes(nodes, code)
     flush_publishers(nodes, STOP_ACK_TIMEOUT_S)
     if os.environ.get("FLUXDRIVE_GRAPH_KEY"):  # started by the launcher: it checks the bag
-        for n in nodes:
-            for pub in getattr(n, "raw_publishers", []):
-                print(f"@published {pub.topic} {pub.n_published}", flush=True)
+        report_published(nodes)
     _shutdown(ex, nodes)
     return code
+
+
+def report_published(nodes: list[FluxNode]) -> None:
+    """What the nodes published, per topic, once they are flushed: `@published` lines for
+    the launcher, and the same in $FLUXDRIVE_STOP_DIR/<process>.published.json for a
+    recorder of the graph to read when the launcher is gone (killed: no one reads the
+    lines), see fluxdrive_bringup.record.recorder."""
+    counts: dict[str, int] = {}
+    for n in nodes:
+        for pub in getattr(n, "raw_publishers", []):
+            counts[pub.topic] = counts.get(pub.topic, 0) + int(pub.n_published)
+    stop_dir, proc = os.environ.get(STOP_DIR_ENV, ""), os.environ.get(PROCESS_ENV, "")
+    if stop_dir and proc:
+        try:
+            f = os.path.join(stop_dir, f"{proc}{PUBLISHED_SUFFIX}")
+            with open(f + ".tmp", "w") as fh:
+                json.dump(counts, fh)
+            os.replace(f + ".tmp", f)  # whole or not at all when the recorder reads it
+        except OSError:
+            pass  # the launcher removed its directory: it is there to read the lines
+    for topic, n_pub in counts.items():
+        say(f"@published {topic} {n_pub}")
 
 
 def _start_bus(ex, all_done, failed: list[BaseException], request_stop) -> None:
@@ -270,6 +300,14 @@ def stop_requests() -> int:
 # the graph's nodes published per topic (their `@published` lines as they exited): the
 # recorder finalises once it has received that many (fluxdrive_bringup.record.recorder)
 STOP_COUNTS_ENV = "FLUXDRIVE_STOP_COUNTS"
+# the launcher's directory for them, the process's name in the graph, and the graph's
+# processes that report what they published (runner processes): each writes
+# <dir>/<process>.published.json as it exits, so a recorder whose launcher was killed still
+# knows what to wait for and what its bag lacks
+STOP_DIR_ENV = "FLUXDRIVE_STOP_DIR"
+PROCESS_ENV = "FLUXDRIVE_PROCESS"
+REPORTING_ENV = "FLUXDRIVE_REPORTING_PROCESSES"
+PUBLISHED_SUFFIX = ".published.json"
 
 # a stopping process waits this long at most for its readers elsewhere (the recorder) to
 # acknowledge what it published, so that none of it dies with its writers

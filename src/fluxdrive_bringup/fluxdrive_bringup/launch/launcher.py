@@ -75,7 +75,13 @@ from fluxdrive.io.graphfile import (
     ServeOptions,
     check_keys,
 )
-from fluxdrive_ros.runner import NODE_CLASSES, STOP_COUNTS_ENV
+from fluxdrive_ros.runner import (
+    NODE_CLASSES,
+    PROCESS_ENV,
+    REPORTING_ENV,
+    STOP_COUNTS_ENV,
+    STOP_DIR_ENV,
+)
 from fluxdrive_ros.topics import check_namespace
 
 _POLICY_KEYS = set(schema.specs(DeathPolicy))
@@ -664,6 +670,11 @@ class Launcher:
         )
         self._t_start = time.monotonic()
         env = self.env()
+        # a recorder whose launcher is killed reads there what the others published
+        env[STOP_DIR_ENV] = str(self._stop_directory())
+        env[REPORTING_ENV] = ",".join(
+            pname for pname, members in self.g.processes().items() if not members[0].cmd
+        )
         if self._restart_transport(dict(env)) and not self.quiet:
             self._emit(
                 "[launch] on_death: restart in the graph: Fast DDS without shared "
@@ -696,6 +707,7 @@ class Launcher:
         self._restart_transport(env)
         if p.restarts:
             env["FLUXDRIVE_RESTART_COUNT"] = str(p.restarts)
+        env[PROCESS_ENV] = p.name
         if p.has_recorder:
             env[STOP_COUNTS_ENV] = str(self._counts_file(p))
         p.code = None
@@ -910,13 +922,17 @@ class Launcher:
         for p in self.procs:
             p.process.wait()
 
-    def _counts_file(self, p: Proc) -> Path:
-        """Where the recorder of process `p` finds the published counts on a stop."""
+    def _stop_directory(self) -> Path:
+        """The run's directory of counts files (removed when the run ends)."""
         if self._stop_dir is None:
             import tempfile
 
             self._stop_dir = Path(tempfile.mkdtemp(prefix="fluxdrive-stop-"))
-        return self._stop_dir / f"{p.name}.json"
+        return self._stop_dir
+
+    def _counts_file(self, p: Proc) -> Path:
+        """Where the recorder of process `p` finds the published counts on a stop."""
+        return self._stop_directory() / f"{p.name}.json"
 
     def _hand_counts(self, stopped: list[Proc], recorders: list[Proc]) -> None:
         """Between the two stop groups: every stopped process's `@published` lines read

@@ -48,6 +48,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import signal
 import struct
 import subprocess
 import sys
@@ -64,7 +65,7 @@ from fluxdrive.io.bagwriter import BLOCK_PART, MSG_HDR, check_bag_target, pack_j
 from fluxdrive.io.messages import message_seq, seq_offset
 from fluxdrive_ros.intra import BlockReader, RawSubscription
 from fluxdrive_ros.params import P, config_params, declare, input_durability_param
-from fluxdrive_ros.runner import FluxNode, main_node
+from fluxdrive_ros.runner import FluxNode, main_node, say
 
 import flux_drive_msgs.msg as fm
 from fluxdrive_ros import qos, topics
@@ -264,8 +265,7 @@ class RecorderNode(FluxNode):
         if pv["scenario"]:
             custom = self._run_metadata(pv)
         self._start_writer(custom)
-        sys.stdout.write(f"@bag-open {self.bag_dir}\n")  # the launcher names it if unfinalised
-        sys.stdout.flush()
+        say(f"@bag-open {self.bag_dir}")  # the launcher names it if unfinalised
         self._init_state()
         self._subscribe_all(pv)
         self.stop = threading.Event()
@@ -293,6 +293,8 @@ class RecorderNode(FluxNode):
         self.lost: dict[str, int] = {}  # seq jumps of the per-period topics: lost in transit
         self.sub_topic: dict[str, str] = {}  # subscribed (resolved) name -> bag topic
         self.stop_missing: dict[str, dict[str, int]] = {}  # short at the end of the stop drain
+        self.stop_why = "published by the stopped nodes, never received"
+        self.unreported: list[str] = []  # launcher gone: processes that did not report
         self.closes_last = True  # fluxdrive_ros.runner: after the nodes that publish
         self._ppid = os.getppid()  # the launcher: gone = every graph process is stopping
         self.last_rx = time.monotonic()
@@ -637,25 +639,31 @@ class RecorderNode(FluxNode):
         launcher (it stops the recorder last and writes the nodes' published counts to
         $FLUXDRIVE_STOP_COUNTS first): until that many have arrived per topic, or a short
         topic has no publisher left (each flushes before it exits, so what has not come
-        then never will).  The launcher gone (every graph process got SIGTERM at once):
-        until no sample topic has a publisher left.  Stopped alone: what is waiting.  At
+        then never will).  The launcher gone (killed: every graph process got SIGTERM at
+        once, see _parent_gone): until each of the graph's other processes has written
+        what it published ($FLUXDRIVE_STOP_DIR, _wait_reports), then as with the launcher's
+        counts.  Stopped alone: what is waiting.  At
         most stop_drain_timeout_s (a second signal ends it at once); what is missing is
         logged and noted in the bag's metadata."""
         from fluxdrive_ros.runner import STOP_COUNTS_ENV, stop_requests
 
         expected = _read_counts(os.environ.get(STOP_COUNTS_ENV, ""))
-        parent_gone = os.getppid() != self._ppid
+        parent_gone = expected is None and self._parent_gone(0.5 if stop_requests() else 0.05)
         if expected is None and not parent_gone:
             self._take_waiting()
             return
         limit = float(self.pv["stop_drain_timeout_s"])
         t_end = time.monotonic() + limit
+        reported: dict[str, int] | None = None
+        if expected is None:  # the launcher is gone: the processes say it themselves
+            reported = self._wait_reports(t_end)
         cut: list[str] = []
         while True:
             n = self._take_waiting()
             live = self._live_publishers()
-            if expected is not None:
-                live = [t for t in self._short_of(expected) if t in live]
+            if expected is not None or reported is not None:
+                short = self._short_of(expected if expected is not None else reported or {})
+                live = [t for t in short if t in live]
             if not live and not n:
                 break
             if time.monotonic() >= t_end or stop_requests() > 1:
@@ -666,6 +674,14 @@ class RecorderNode(FluxNode):
         self._take_waiting()
         if expected is not None:
             self.stop_missing = self._short_of(expected)
+        elif reported is not None:
+            self.stop_missing = self._short_of(reported)
+            if not self.stop_missing and not cut and not self.unreported:
+                self.log(
+                    "stop: the launcher is gone; the bag holds every message the graph's "
+                    f"processes say they published ({sum(reported.values())} on "
+                    f"{len(reported)} topics)"
+                )
         if self.stop_missing or cut:
             what = ", ".join(
                 f"{t} {v['recorded']} of {v['published']} "
@@ -683,15 +699,80 @@ class RecorderNode(FluxNode):
                 "warning",
             )
 
+    def _parent_gone(self, wait_s: float) -> bool:
+        """Whether the launcher is gone. A killed launcher's threads die one by one: the
+        parent-death signal comes when the thread that started this process dies, and
+        until the last one has, this process is a child of another thread of the same
+        launcher (the same pid). So a stop signal without the launcher's counts waits up to
+        `wait_s` for the parent to change."""
+        t_end = time.monotonic() + wait_s
+        while os.getppid() == self._ppid and not _dying(self._ppid):
+            if time.monotonic() >= t_end:
+                return False
+            time.sleep(0.01)
+        return True
+
+    def _wait_reports(self, t_end: float) -> dict[str, int]:
+        """The launcher is gone (killed): every process of the graph got SIGTERM at once.
+        Take messages while waiting until each of the graph's other reporting processes has
+        written what it published (fluxdrive_ros.runner.report_published: after its readers
+        acknowledged every message, so what is not here by then never comes), at most
+        until `t_end`; their counts summed by topic. Processes that never report (killed
+        too) are named in ``unreported`` and in the log."""
+        from fluxdrive_ros.runner import (
+            PROCESS_ENV,
+            PUBLISHED_SUFFIX,
+            REPORTING_ENV,
+            STOP_DIR_ENV,
+            stop_requests,
+        )
+
+        stop_dir = Path(os.environ.get(STOP_DIR_ENV) or "")
+        own = os.environ.get(PROCESS_ENV, "")
+        names = [n for n in os.environ.get(REPORTING_ENV, "").split(",") if n and n != own]
+        got: dict[str, dict[str, int]] = {}
+        while True:
+            n = self._take_waiting()
+            for name in names:
+                if name not in got:
+                    counts = _read_counts(str(stop_dir / f"{name}{PUBLISHED_SUFFIX}"))
+                    if counts is not None:
+                        got[name] = counts
+            if len(got) == len(names) or time.monotonic() >= t_end or stop_requests() > 1:
+                break
+            if not n:
+                time.sleep(0.005)
+        self.unreported = [nm for nm in names if nm not in got]
+        if self.unreported:
+            self.log(
+                f"stop: the launcher is gone and processes {', '.join(self.unreported)} did "
+                "not say what they published (killed too, or still stopping): their "
+                "messages cannot be checked",
+                "warning",
+            )
+        total: dict[str, int] = {}
+        for counts in got.values():
+            for topic, n_pub in counts.items():
+                total[topic] = total.get(topic, 0) + int(n_pub)
+        self.stop_why = "launcher gone: published by the graph's processes, never received"
+        return total
+
     def _note_missing(self) -> None:
         """What the bag lacks and why, in its metadata (custom_data fluxdrive_missing)."""
         from fluxdrive.io.bagio import note_missing
 
+        if self.unreported:
+            note_missing(
+                self.bag_dir,
+                {},
+                "recorder: the launcher is gone and processes "
+                f"{', '.join(self.unreported)} did not say what they published",
+            )
         if self.stop_missing:
             note_missing(
                 self.bag_dir,
                 self.stop_missing,
-                "recorder: published by the stopped nodes, never received",
+                f"recorder: {self.stop_why}",
             )
         if self.lost:
             note_missing(
@@ -748,8 +829,25 @@ class RecorderNode(FluxNode):
         )
         self.log(f"bag {self.bag_dir} finalised: {total} messages ({detail}){held}{foreign}{lost}")
         self._note_missing()
-        sys.stdout.write(f"@bag {self.bag_dir}\n")
-        sys.stdout.flush()
+        say(f"@bag {self.bag_dir}")
+
+
+def _dying(pid: int) -> bool:
+    """Whether process `pid` is gone or on its way: no longer there, a zombie (its main
+    thread dead), or a SIGKILL pending for it (Linux /proc; False where unreadable)."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except FileNotFoundError:
+        return True
+    except OSError:
+        return False
+    fields = dict(ln.split(":", 1) for ln in status.splitlines() if ":" in ln)
+    if fields.get("State", "").strip()[:1] in ("Z", "X"):
+        return True
+    try:
+        return bool(int(fields.get("ShdPnd", "0").strip(), 16) & (1 << (signal.SIGKILL - 1)))
+    except ValueError:
+        return False
 
 
 def _read_counts(path: str) -> dict[str, int] | None:
