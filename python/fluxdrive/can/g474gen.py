@@ -230,7 +230,7 @@ def render(data: dict, version: str) -> tuple[str, str]:
     return "\n".join(h), "\n".join(py)
 
 
-def main() -> int:
+def write_outputs() -> int:
     crate = crate_dir()
     version = crate.name.split("-", 1)[1]
     header, pymap = render(generate(crate), version)
@@ -241,4 +241,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(write_outputs())

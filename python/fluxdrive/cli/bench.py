@@ -24,11 +24,36 @@ BENCHES = {
     "paced": ("fluxdrive_bringup.measure.bench", "bench_paced"),
     "can": ("fluxdrive.can.benchmark", "bench_can_cli"),
     "study": ("fluxdrive.study.cli", "bench_study"),
-    "firmware": ("fluxdrive.can.firmware_target", "bench_firmware"),
+    "firmware": ("fluxdrive.cli.bench", "bench_firmware"),
     "plugin": ("fluxdrive.cli.bench", "bench_plugin"),
     "bench": ("fluxdrive.cli.hostbench", "bench_bench"),
     "experiments": ("fluxdrive.cli.bench", "bench_experiments"),
 }
+
+
+def bench_firmware(argv: list[str]) -> dict[str, Any]:
+    """`benchmark firmware`: the target build's figures (fluxdrive.can.firmware_target),
+    then the board image measured in closed loop on the virtual board
+    (fluxdrive.can.vboard_bench); one record, the board's under "board"."""
+    from fluxdrive.can.firmware_target import bench_firmware as target
+    from fluxdrive.can.vboard_bench import BOARD_RESULTS_PATH, board_benchmark
+    from fluxdrive.core.paths import ROOT
+
+    rec = target(argv)
+    board = board_benchmark()
+    b = board["size"]
+    print(f"board   {board['board']}: flash {b['flash']} B, RAM {b['ram']} B")
+    for mode in ("split_mode", "host_mode"):
+        m = board[mode]
+        print(
+            f"board   {mode} (D={m['decimation']}) on the virtual board, closed loop: period "
+            f"interrupt max {m['isr_instructions_max']} instructions, median "
+            f"{m['isr_instructions_median']} over {m['periods']} periods; stack high-water "
+            f"{m['stack_high_water_bytes']} B"
+        )
+    print(f"written {BOARD_RESULTS_PATH.relative_to(ROOT)}")
+    rec["board"] = board
+    return rec
 
 
 def benchmark_path(name: str) -> Path:
