@@ -347,13 +347,35 @@ def _call(s: Session, srv_type, name: str, req, timeout: float = 5.0):
         raise LookupError(
             f"service {name} not available (is the node running, same ROS_DOMAIN_ID={s.domain_id}?)"
         )
-    fut = cli.call_async(req)
+    # an answer can be lost: a server answers before its writer has matched this client's
+    # response reader (discovery lags on a loaded machine) and DDS drops it. So a request not
+    # answered within a second goes out again (then after 2 s, ...) until the deadline; the
+    # first answer counts. Every service called here is idempotent: get, list, describe, a
+    # set to one value, a fault reset
     t_end = time.monotonic() + timeout
-    while not fut.done() and time.monotonic() < t_end:
-        s.spin_for(0.02)
-    if not fut.done():
-        raise TimeoutError(f"{name}: no answer within {timeout} s")
-    return fut.result()
+    futs = []
+    wait_s = CALL_RESEND_S
+    while True:
+        futs.append(cli.call_async(req))
+        t_try = min(t_end, time.monotonic() + wait_s)
+        while time.monotonic() < t_try and not any(f.done() for f in futs):
+            s.spin_for(0.02)
+        done = next((f for f in futs if f.done()), None)
+        if done is not None:
+            for f in futs:
+                if f is not done:
+                    cli.remove_pending_request(f)
+            return done.result()
+        if time.monotonic() >= t_end:
+            for f in futs:
+                cli.remove_pending_request(f)
+            sent = f" ({len(futs)} requests)" if len(futs) > 1 else ""
+            raise TimeoutError(f"{name}: no answer within {timeout} s{sent}")
+        wait_s *= 2
+
+
+# a service request not answered within this long is sent again (see _call)
+CALL_RESEND_S = 1.0
 
 
 def _node_fqn(node: str) -> str:
