@@ -135,3 +135,51 @@ def test_split_closed_loop_on_the_virtual_board_matches_sil():
         rms[mcu] = _theta_rms_deg(r.est[0, k_win:, ES_TH], r.truth[::D][k_win:m, TR_THETA_E])
     print(f"theta~ RMS from 1.0 s: SIL {rms['c']:.4f} deg, virtual board {rms['pil']:.4f} deg")
     assert abs(rms["pil"] - rms["c"]) < 0.1
+
+
+def _fault_frames(board) -> list[dict]:
+    from fluxdrive.can.protocol import ID_FAULT, get_protocol
+
+    msg = get_protocol().message("FAULT")
+    return [
+        msg.decode(bytes(m.data), decode_choices=False)
+        for m in board.pop_tx()
+        if m.arbitration_id == ID_FAULT
+    ]
+
+
+@pytest.mark.parametrize("fault", ["break", "gate"])
+def test_fault_inputs_latch_on_the_virtual_board(fault):
+    """The hardware inputs of the port, injected on the virtual board: a phase current above
+    COMP1's threshold (DAC3 at 19 A) trips TIM1's break at the update (MOE cleared before the
+    interrupt runs, the break interrupt counted) and the core latches OVERCURRENT with the
+    break's detail in that period's interrupt; nFAULT low latches GATE_DRIVER. Each sends a
+    FAULT frame; PWM stays off."""
+    from fluxdrive.core.protocol_constants import FAULT_GATE_DRIVER, FAULT_OVERCURRENT
+    from test_split_can import _split_case
+
+    vb = VirtualBoard(DriveSetup(_split_case(1.0)).mp, decimation=4)
+    frame = np.zeros(pl.FR_N)
+    frame[pl.FR_VDC] = 72.0
+    for i in range(4):
+        vb.set_sample(frame, 100 * i)
+        vb.period()
+    vb.pop_tx()
+    bdtr = rm.REG["TIM1_BDTR"][0]
+    vb.regs[bdtr] |= 1 << rm.FIELD["TIM1_BDTR_MOE"][0]  # outputs on, as after an arming
+    if fault == "break":
+        frame[pl.FR_IA], frame[pl.FR_IB] = 19.5, -19.5  # above DAC3's 19 A, below full scale
+    else:
+        vb.gate_fault = True
+    vb.set_sample(frame, 500)
+    vb.period()
+    st = vb.state()
+    faults = _fault_frames(vb)
+    assert st["fault_latched"] and not st["pwm_enabled"] and not vb.pwm()[1]
+    if fault == "break":
+        assert vb.break_trips == 1 and vb.board_state()["break_trips"] == 1
+        assert st["fault_code"] == FAULT_OVERCURRENT
+        assert [(f["fault_code"], f["fault_detail"]) for f in faults] == [(FAULT_OVERCURRENT, 3)]
+    else:
+        assert vb.break_trips == 0 and st["fault_code"] == FAULT_GATE_DRIVER
+        assert [f["fault_code"] for f in faults] == [FAULT_GATE_DRIVER]
