@@ -1143,6 +1143,35 @@ def bag_counts(bag: Path) -> tuple[dict[str, int], dict[str, int]]:
 
 
 MISSING_KEY = "fluxdrive_missing"  # custom_data key: JSON, what a bag lacks and why
+CAN_LINK_KEY = "fluxdrive_can_link"  # custom_data key: JSON, the bench bridge's link counts
+
+
+def last_status(bag: str | Path, name_prefix: str) -> dict[str, str]:
+    """The values of the last DiagnosticStatus named `name_prefix`... a bag recorded on
+    /diagnostics ({} if none): a node's counters as it last reported them."""
+    ts = typestore()
+    out: dict[str, str] = {}
+    for _topic, mt, _t, raw in read_raw(bag, lambda t: t.endswith("/diagnostics")):
+        for st in ts.deserialize_cdr(raw, mt).status:
+            if st.name.startswith(name_prefix):
+                out = {kv.key: kv.value for kv in st.values}
+    return out
+
+
+def note_custom(bag: Path, key: str, data: dict[str, Any]) -> bool:
+    """Add `data` (JSON) to a finalised bag's metadata.yaml as custom_data `key`; False if
+    the metadata cannot be read or written (the caller says so in its log)."""
+    f = Path(bag) / "metadata.yaml"
+    try:
+        meta = yamlio.load_file(f)
+        info = meta["rosbag2_bagfile_information"]
+        custom = info.get("custom_data") or {}
+        custom[key] = json.dumps(data)
+        info["custom_data"] = custom
+        f.write_text(yamlio.dumps(meta, sort_keys=False))
+    except (OSError, ValueError, yamlio.YAMLError, KeyError, TypeError, AttributeError):
+        return False
+    return True
 
 
 def note_missing(

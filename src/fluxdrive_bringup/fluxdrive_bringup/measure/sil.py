@@ -242,7 +242,38 @@ def run_sil(sp: Path, sc, args):
         + (f"; MISSING samples: {miss}" if miss else "; every sample of every topic present")
     )
     arr["missing_real"] = miss
+    note_can_link(bag)
     return 0, res, arr, out
+
+
+# the bench bridge's counts of what it took and dropped (fluxdrive.can.bridge diagnostics)
+CAN_LINK_COUNTS = (
+    "frames_out",
+    "seq_gaps",
+    "seq_lost",
+    "seq_duplicates",
+    "seq_out_of_order",
+    "seq_jumps",
+    "seq_rejected",
+    "malformed",
+    "rx_other",
+)
+
+
+def note_can_link(bag: Path) -> dict[str, int]:
+    """The bench bridge's last reported link counts (its /diagnostics in the bag): printed
+    and kept in the bag's metadata (custom_data fluxdrive_can_link)."""
+    from fluxdrive.io.bagio import CAN_LINK_KEY, last_status, note_custom
+
+    vals = last_status(bag, "bench_bridge")
+    link = {k: int(vals[k]) for k in CAN_LINK_COUNTS if vals.get(k, "").lstrip("-").isdigit()}
+    if link:
+        note_custom(bag, CAN_LINK_KEY, link)
+        print(
+            "[bench] CAN link (the bridge's last report): "
+            + ", ".join(f"{k} {v}" for k, v in link.items())
+        )
+    return link
 
 
 def sweep_current(args) -> int:
