@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import ctypes
 import math
+import re
 import subprocess
 
 import can
@@ -53,11 +54,22 @@ def test_c_unit_tests_pass_and_core_uses_no_heap(lib):
     assert not {"malloc", "calloc", "realloc", "free"} & set(undefined)
 
 
-def _on_grid(rng, lo, hi, scale, n):
+def _on_grid(rng, lo, hi, scale, n, spread=0.4):
     """n float32 values in [lo, hi] at least 0.1 LSB away from a rounding boundary: a value
-    within float32 rounding of x.5 LSB could round either way in float32 and float64."""
+    within float32 rounding of x.5 LSB could round either way in float32 and float64.
+    ``spread`` (LSB) 0.1 keeps values on a grid 4x coarser than the finest field they go to
+    0.1 of that field's LSB away from its boundaries too."""
     raw = rng.integers(round(lo / scale), round(hi / scale), n, endpoint=True)
-    return (raw + rng.uniform(-0.4, 0.4, n)).clip(lo / scale, hi / scale) * scale
+    return (raw + rng.uniform(-spread, spread, n)).clip(lo / scale, hi / scale) * scale
+
+
+SINCOS_ERR_MAX = float(
+    re.search(
+        r"#define FD_SINCOS_ERR_MAX ([0-9.e+-]+)f",
+        (fw.FIRMWARE_DIR / "include" / "fd_math.h").read_text(),
+    ).group(1)  # type: ignore[union-attr]
+)
+"""fd_sincosf's absolute error bound (firmware/include/fd_math.h)."""
 
 
 def _f32(x):
@@ -116,7 +128,7 @@ def test_encoders_are_cantools_byte_for_byte(lib, db):
         f = np.concatenate(
             [
                 _on_grid(rng, -25.0, 25.0, 0.001, 3),
-                _on_grid(rng, -100.0, 100.0, 0.004, 3),  # on the classic 4 mV grid too
+                _on_grid(rng, -100.0, 100.0, 0.004, 3, 0.1),  # the 1 mV and the 4 mV grid
                 _on_grid(rng, 0.0, 100.0, 0.002, 1),
                 _on_grid(rng, 0.0, 1.0, 2e-5, 3),
             ]
@@ -322,7 +334,13 @@ def test_protections_trip_where_the_engine_trips(lib, case):
 
 def test_current_loop_is_the_engines_in_float32(lib):
     """fd_current_loop against _current_loops: 300 chained steps on seeded random inputs
-    (integrators carried on both sides), hexagon limit and deadtime feed-forward included."""
+    (integrators carried on both sides), hexagon limit and deadtime feed-forward included.
+
+    Tolerances: float32 rounding (the constant terms) plus fd_sincosf's error bound
+    FD_SINCOS_ERR_MAX = e (tests/test_firmware_math.py) carried through the loop: Park's
+    i_d = i_alpha cos + i_beta sin is off by at most (|i_alpha| + |i_beta|) e, the PI output
+    by kp times that, the inverse Park at the advanced angle by (|v_d| + |v_q|) e, a duty by
+    that over Vdc; the integrators by (kp + ki Ts) times the current error."""
     rng = np.random.default_rng(3)
     card, _ = _card_mp()
     cp = ctl.ControllerConfig().to_params(card)
@@ -348,14 +366,20 @@ def test_current_loop_is_the_engines_in_float32(lib):
         lib.fd_current_loop(ctypes.byref(st), ctypes.byref(p), *args, ts, ctypes.byref(o))
         vmag = math.hypot(out[ctl.CO_VD], out[ctl.CO_VQ])
         saturated += vmag > 0.5 * args[6]
-        tol_v = 2e-5 * card.dc_bus_v
-        np.testing.assert_allclose(list(o.duty), out[ctl.CO_DA : ctl.CO_DC + 1], atol=2e-6)
-        assert o.i_d == pytest.approx(out[ctl.CO_ID], abs=1e-5)
-        assert o.i_q == pytest.approx(out[ctl.CO_IQ], abs=1e-5)
+        e_i = (abs(ia) + abs(ib)) * SINCOS_ERR_MAX  # Park's error from fd_sincosf
+        e_v = abs(p.kp) * e_i + (abs(out[ctl.CO_VD]) + abs(out[ctl.CO_VQ])) * SINCOS_ERR_MAX
+        tol_i = 1e-5 + e_i
+        tol_v = 2e-5 * card.dc_bus_v + e_v
+        tol_int = tol_v + (abs(p.kp) + abs(p.ki) * ts) * e_i
+        np.testing.assert_allclose(
+            list(o.duty), out[ctl.CO_DA : ctl.CO_DC + 1], atol=2e-6 + e_v / args[6]
+        )
+        assert o.i_d == pytest.approx(out[ctl.CO_ID], abs=tol_i)
+        assert o.i_q == pytest.approx(out[ctl.CO_IQ], abs=tol_i)
         assert o.v_d == pytest.approx(out[ctl.CO_VD], abs=tol_v)
         assert o.v_q == pytest.approx(out[ctl.CO_VQ], abs=tol_v)
-        assert st.id_i == pytest.approx(cs[ctl.CS_ID_I], abs=tol_v)
-        assert st.iq_i == pytest.approx(cs[ctl.CS_IQ_I], abs=tol_v)
+        assert st.id_i == pytest.approx(cs[ctl.CS_ID_I], abs=tol_int)
+        assert st.iq_i == pytest.approx(cs[ctl.CS_IQ_I], abs=tol_int)
     assert saturated > 10  # the hexagon limit and the back-calculation were exercised
 
 

@@ -7,11 +7,13 @@
 #include <string.h>
 
 #include "fd_can.h"
+#include "fd_math.h"
 
 #define FD_SEQ_MASK 0xFFFFu
 #define FD_T_MCU_MOD 4294967295u /* t_mcu wraps after 4294.967295 s (the DBC's range) */
 #define FD_PI 3.14159265358979f
 #define FD_TWO_PI 6.28318530717959f
+#define FD_INV_TWO_PI 0.159154943091895f
 
 /* signal ranges of the DBC's sample messages: a saturated reading is sent at the range
  * limit instead of wrapping (the classic layout's converters in the Python emulator clip
@@ -24,12 +26,21 @@ static float clampf(float x, float lo, float hi) { return x < lo ? lo : (x > hi 
 
 /* Unsigned scaled signals: cantools' generated encoders for these convert through double
  * (its unsigned helper), a soft-float library call on a single-precision FPU. The same
- * rounding in float32, with the generated decoder's own scale (the value of raw 1;
- * offsets are 0 in this DBC). */
-static uint16_t encode_unsigned(float value, float scale)
+ * rounding in float32, multiplied by the DBC's reciprocal scale (FD_INV_SCALE_*,
+ * generated; offsets are 0 in this DBC). */
+static uint16_t encode_unsigned(float value, float inv_scale)
 {
-    float r = roundf(value / scale);
-    return r <= 0.0f ? 0u : (r >= 65535.0f ? 65535u : (uint16_t)r);
+    float r = fd_roundf(value * inv_scale);
+    return r > 0.0f ? (r < 65535.0f ? (uint16_t)r : 65535u) : 0u; /* NaN: 0 */
+}
+
+/* Signed scaled signals, in range (sample_values saturates them): the generated encoders
+ * divide by the scale and call roundf; the same rounding with the DBC's reciprocal scale
+ * (generated, fd_protocol.h), inline. NaN: 0. */
+static int32_t encode_signed(float value, float inv_scale)
+{
+    float r = fd_roundf(value * inv_scale);
+    return r == r ? (int32_t)r : 0;
 }
 
 /* ------------------------------------------------------------------ parameters */
@@ -191,16 +202,16 @@ int fd_encode_sample_fd(uint8_t out[64], uint16_t seq, const float f[10], int32_
     struct fd_can_sample_fd_t m;
     fd_can_sample_fd_init(&m);
     m.seq = seq;
-    m.i_a = fd_can_sample_fd_i_a_encode(g[0]);
-    m.i_b = fd_can_sample_fd_i_b_encode(g[1]);
-    m.i_c = fd_can_sample_fd_i_c_encode(g[2]);
-    m.v_ab = fd_can_sample_fd_v_ab_encode(g[3]);
-    m.v_bc = fd_can_sample_fd_v_bc_encode(g[4]);
-    m.v_ca = fd_can_sample_fd_v_ca_encode(g[5]);
-    m.vdc = encode_unsigned(g[6], fd_can_sample_fd_vdc_decode(1u));
-    m.duty_a = encode_unsigned(g[7], fd_can_sample_fd_duty_a_decode(1u));
-    m.duty_b = encode_unsigned(g[8], fd_can_sample_fd_duty_b_decode(1u));
-    m.duty_c = encode_unsigned(g[9], fd_can_sample_fd_duty_c_decode(1u));
+    m.i_a = (int16_t)encode_signed(g[0], FD_INV_SCALE_SAMPLE_FD_I_A);
+    m.i_b = (int16_t)encode_signed(g[1], FD_INV_SCALE_SAMPLE_FD_I_B);
+    m.i_c = (int16_t)encode_signed(g[2], FD_INV_SCALE_SAMPLE_FD_I_C);
+    m.v_ab = encode_signed(g[3], FD_INV_SCALE_SAMPLE_FD_V_AB);
+    m.v_bc = encode_signed(g[4], FD_INV_SCALE_SAMPLE_FD_V_BC);
+    m.v_ca = encode_signed(g[5], FD_INV_SCALE_SAMPLE_FD_V_CA);
+    m.vdc = encode_unsigned(g[6], FD_INV_SCALE_SAMPLE_FD_VDC);
+    m.duty_a = encode_unsigned(g[7], FD_INV_SCALE_SAMPLE_FD_DUTY_A);
+    m.duty_b = encode_unsigned(g[8], FD_INV_SCALE_SAMPLE_FD_DUTY_B);
+    m.duty_c = encode_unsigned(g[9], FD_INV_SCALE_SAMPLE_FD_DUTY_C);
     m.encoder = encoder;          /* scale 1: the raw value is the count */
     m.cmd_seq_applied = cmd_seq_applied;
     m.t_mcu = t_mcu_us;           /* scale 1 us: the raw value is the timer */
@@ -230,16 +241,16 @@ int fd_encode_sample_classic(uint8_t out[4][8], uint16_t seq, const float f[10],
     fd_can_sample_c_duty_init(&dut);
     fd_can_sample_c_aux_init(&aux);
     cur.c_seq = vlt.c_seq = dut.c_seq = aux.c_seq = seq;
-    cur.c_i_a = fd_can_sample_c_cur_c_i_a_encode(g[0]);
-    cur.c_i_b = fd_can_sample_c_cur_c_i_b_encode(g[1]);
-    cur.c_i_c = fd_can_sample_c_cur_c_i_c_encode(g[2]);
-    vlt.c_v_ab = fd_can_sample_c_vlt_c_v_ab_encode(g[3]);
-    vlt.c_v_bc = fd_can_sample_c_vlt_c_v_bc_encode(g[4]);
-    vlt.c_v_ca = fd_can_sample_c_vlt_c_v_ca_encode(g[5]);
-    dut.c_duty_a = encode_unsigned(g[7], fd_can_sample_c_duty_c_duty_a_decode(1u));
-    dut.c_duty_b = encode_unsigned(g[8], fd_can_sample_c_duty_c_duty_b_decode(1u));
-    dut.c_duty_c = encode_unsigned(g[9], fd_can_sample_c_duty_c_duty_c_decode(1u));
-    aux.c_vdc = encode_unsigned(g[6], fd_can_sample_c_aux_c_vdc_decode(1u));
+    cur.c_i_a = (int16_t)encode_signed(g[0], FD_INV_SCALE_SAMPLE_C_CUR_C_I_A);
+    cur.c_i_b = (int16_t)encode_signed(g[1], FD_INV_SCALE_SAMPLE_C_CUR_C_I_B);
+    cur.c_i_c = (int16_t)encode_signed(g[2], FD_INV_SCALE_SAMPLE_C_CUR_C_I_C);
+    vlt.c_v_ab = (int16_t)encode_signed(g[3], FD_INV_SCALE_SAMPLE_C_VLT_C_V_AB);
+    vlt.c_v_bc = (int16_t)encode_signed(g[4], FD_INV_SCALE_SAMPLE_C_VLT_C_V_BC);
+    vlt.c_v_ca = (int16_t)encode_signed(g[5], FD_INV_SCALE_SAMPLE_C_VLT_C_V_CA);
+    dut.c_duty_a = encode_unsigned(g[7], FD_INV_SCALE_SAMPLE_C_DUTY_C_DUTY_A);
+    dut.c_duty_b = encode_unsigned(g[8], FD_INV_SCALE_SAMPLE_C_DUTY_C_DUTY_B);
+    dut.c_duty_c = encode_unsigned(g[9], FD_INV_SCALE_SAMPLE_C_DUTY_C_DUTY_C);
+    aux.c_vdc = encode_unsigned(g[6], FD_INV_SCALE_SAMPLE_C_AUX_C_VDC);
     /* low 24 bits, two's complement (the receiver unwraps) */
     uint32_t low = ((uint32_t)encoder + 0x800000u) & 0xFFFFFFu;
     aux.c_encoder = (int32_t)low - 0x800000;
@@ -270,19 +281,29 @@ int fd_encode_param_ack(uint8_t out[8], uint8_t id, uint8_t seq, uint8_t status,
 
 /* ------------------------------------------------------------------ transmit */
 
-static void send(fd_core_t *c, uint32_t id, const uint8_t *data, int len, uint8_t fd)
+/* a frame whose payload is already in f->data (encoded in place: no copy) */
+static void send_frame(fd_core_t *c, fd_can_frame_t *f, uint32_t id, int len, uint8_t fd)
 {
     if (len < 0) {
         return;
     }
-    fd_can_frame_t f;
-    f.id = id;
-    f.len = (uint8_t)len;
-    f.fd = fd;
-    memcpy(f.data, data, (size_t)len);
-    if (!fd_hal_can_tx(c->hal, &f)) {
+    f->id = id;
+    f->len = (uint8_t)len;
+    f->fd = fd;
+    if (!fd_hal_can_tx(c->hal, f)) {
         c->stats.tx_overruns++;
     }
+}
+
+/* a classic frame (at most 8 bytes, data[8]): a fixed-size copy, two word moves */
+static void send(fd_core_t *c, uint32_t id, const uint8_t *data, int len, uint8_t fd)
+{
+    if (len < 0 || len > 8) {
+        return;
+    }
+    fd_can_frame_t f;
+    memcpy(f.data, data, 8u);
+    send_frame(c, &f, id, len, fd);
 }
 
 static void send_fault(fd_core_t *c, uint16_t detail)
@@ -318,7 +339,7 @@ static void send_status(fd_core_t *c, int32_t temp_c)
 static void send_sample(fd_core_t *c)
 {
     float f[10];
-    float inv_n = c->win_n > 0u ? 1.0f / (float)c->win_n : 1.0f;
+    float inv_n = c->win_n > 1u ? 1.0f / (float)c->win_n : 1.0f; /* D = 1: no division */
     for (int j = 0; j < 3; ++j) {
         f[j] = c->i_abc[j];
         f[3 + j] = c->win_n > 1u ? c->win_v[j] * inv_n : c->v_ll[j];
@@ -339,10 +360,10 @@ static void send_sample(fd_core_t *c)
             send(c, FD_CAN_SAMPLE_C_AUX_FRAME_ID, b[3], 8, 0);
         }
     } else {
-        uint8_t b[64];
-        int n = fd_encode_sample_fd(b, seq, f, c->encoder, c->applied_seq, c->t_us, flags,
+        fd_can_frame_t fr;
+        int n = fd_encode_sample_fd(fr.data, seq, f, c->encoder, c->applied_seq, c->t_us, flags,
                                     c->mode, c->fault_code);
-        send(c, FD_CAN_SAMPLE_FD_FRAME_ID, b, n, 1);
+        send_frame(c, &fr, FD_CAN_SAMPLE_FD_FRAME_ID, n, 1);
     }
     c->stats.samples_sent++;
 }
@@ -808,9 +829,9 @@ static void take_reference(fd_core_t *c)
             /* keep the current PIs' integrators in the new frame: a fixed voltage vector
              * seen from a frame advanced by (new - old) turns by (old - new) */
             float dth = ref_angle(c, &c->ref) - ref_angle(c, &c->ref_new);
-            dth = dth - FD_TWO_PI * floorf((dth + FD_PI) / FD_TWO_PI);
-            float cs = cosf(dth);
-            float sn = sinf(dth);
+            dth = dth - FD_TWO_PI * fd_floorf((dth + FD_PI) * FD_INV_TWO_PI);
+            float cs, sn;
+            fd_sincosf(dth, &sn, &cs);
             float cid = c->cur.id_i;
             float ciq = c->cur.iq_i;
             c->cur.id_i = cid * cs - ciq * sn;
@@ -860,7 +881,7 @@ static void run_current_loop(fd_core_t *c)
     float ia = (2.0f * c->i_abc[0] - c->i_abc[1] - c->i_abc[2]) * (1.0f / 3.0f);
     float ib = (c->i_abc[1] - c->i_abc[2]) * (1.0f / sq3);
     float th = ref_angle(c, &c->ref);
-    th = th - FD_TWO_PI * floorf((th + FD_PI) / FD_TWO_PI); /* [-pi, pi) */
+    th = th - FD_TWO_PI * fd_floorf((th + FD_PI) * FD_INV_TWO_PI); /* [-pi, pi) */
     c->theta_used = th;
     fd_current_loop(&c->cur, &p, ia, ib, th, c->ref.omega, clampf(c->ref.id, -lim, lim),
                     clampf(c->ref.iq, -lim, lim), c->vdc, c->cfg.ts_s, &c->cur_out);
@@ -900,8 +921,9 @@ static void read_sample(fd_core_t *c)
     c->stats.adc_clipped += clip;
     c->vdc = (float)adc.vdc_counts * c->cfg.vdc_lsb_v;
     float per = cap.period_ticks > 0 ? (float)cap.period_ticks : 1.0f;
+    float v_per_tick = c->vdc / per; /* one division for the three phases */
     for (int j = 0; j < 3; ++j) {
-        c->v_ll[j] = ((float)cap.high_ticks[j] - c->cap_off[j]) / per * c->vdc;
+        c->v_ll[j] = ((float)cap.high_ticks[j] - c->cap_off[j]) * v_per_tick;
     }
     c->encoder = cap.encoder_counts;
     c->temp_c = adc.temp_c;

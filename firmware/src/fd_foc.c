@@ -2,10 +2,13 @@
  * _svpwm and _protect (python/fluxdrive/drive/control/kernel.py) with the same blocks
  * (core/blocks.py pi_output / pi_update, core/transforms.py clarke / park). Operation for
  * operation the same order, so a float32 result differs from the engine's float64 one only
- * by rounding (tests/test_firmware.py compares them). */
+ * by rounding and by fd_sincosf's error (tests/test_firmware.py compares them). No library
+ * call and one division per step unless the hexagon limit or the deadtime feed-forward act
+ * (fd_math.h; the cycle budget in docs/firmware.md). */
 #include <math.h>
 
 #include "fd_core.h"
+#include "fd_math.h"
 
 #define FD_SQRT3_2 0.8660254037844386f
 
@@ -32,8 +35,8 @@ static float svpwm(float va, float vb, float vdc, float duty[3])
 {
     float p[3];
     inv_clarke(va, vb, p);
-    float hi = fmaxf(p[0], fmaxf(p[1], p[2]));
-    float lo = fminf(p[0], fminf(p[1], p[2]));
+    float hi = fd_fmaxf(p[0], fd_fmaxf(p[1], p[2]));
+    float lo = fd_fminf(p[0], fd_fminf(p[1], p[2]));
     float span = hi - lo;
     float scale = 1.0f;
     if (span > vdc) {
@@ -45,8 +48,9 @@ static float svpwm(float va, float vb, float vdc, float duty[3])
         lo *= scale;
     }
     float off = -0.5f * (hi + lo);
+    float inv_vdc = 1.0f / vdc;
     for (int j = 0; j < 3; ++j) {
-        duty[j] = 0.5f + (p[j] + off) / vdc;
+        duty[j] = 0.5f + (p[j] + off) * inv_vdc;
     }
     return scale;
 }
@@ -55,8 +59,8 @@ void fd_current_loop(fd_cur_state_t *st, const fd_cur_params_t *p, float i_alpha
                      float th, float we, float id_ref, float iq_ref, float vdc, float ts,
                      fd_cur_out_t *out)
 {
-    float c_t = cosf(th);
-    float s_t = sinf(th);
+    float c_t, s_t;
+    fd_sincosf(th, &s_t, &c_t);
     float i_d = i_alpha * c_t + i_beta * s_t;
     float i_q = -i_alpha * s_t + i_beta * c_t;
     float lh = p->l_hat;
@@ -66,8 +70,8 @@ void fd_current_loop(fd_cur_state_t *st, const fd_cur_params_t *p, float i_alpha
     float vd_u = pi_output(p->kp, st->id_i, ed) - dec * we * lh * iq_ref;
     float vq_u = pi_output(p->kp, st->iq_i, eq) + dec * we * (lh * id_ref + p->lambda_hat);
     float th_adv = th + p->advance * ts * we;
-    float c_a = cosf(th_adv);
-    float s_a = sinf(th_adv);
+    float c_a, s_a;
+    fd_sincosf(th_adv, &s_a, &c_a);
     float va = vd_u * c_a - vq_u * s_a;
     float vb = vd_u * s_a + vq_u * c_a;
     float d[3];
@@ -100,5 +104,7 @@ float fd_i2t_step(float i2t, float i_alpha, float i_beta, float rated_a, float t
 {
     /* integrate (i/I_rated)^2 - 1 while above rated (never below 0) */
     float i_pk2 = (i_alpha * i_alpha + i_beta * i_beta) / (rated_a * rated_a);
-    return fmaxf(i2t + (i_pk2 - 1.0f) * ts, 0.0f);
+    return fd_fmaxf(i2t + (i_pk2 - 1.0f) * ts, 0.0f);
 }
+
+void fd_sincos(float x, float *s, float *c) { fd_sincosf(x, s, c); }

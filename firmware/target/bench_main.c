@@ -1,6 +1,7 @@
 /* The target images' program: the drive core on synthetic readings, host mode then split
  * mode, each period interrupt between two marker calls (fd_mark_begin / fd_mark_end) so an
- * instruction trace can count what one interrupt executes (tools/count_isr.py).
+ * instruction trace can count and cost what one interrupt executes
+ * (fluxdrive.can.firmware_target, docs/firmware.md).
  *
  * Worst paths on purpose: D = 1 (a SAMPLE_FD encoded every period), STATUS every 8th period
  * (a real drive: every 1000th), a DRIVE_PARAM answered in some periods, and in split mode a

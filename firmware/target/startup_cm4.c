@@ -1,9 +1,9 @@
-/* Minimal Cortex-M4F start-up: vector table, .data/.bss set-up, FPU on, main(). The
+/* Minimal Cortex-M4F start-up: vector table, .ccm/.data/.bss set-up, FPU on, main(). The
  * period interrupt of a real port is the PWM timer's (or the ADC end-of-conversion)
  * handler calling fd_core_period (docs/firmware.md, porting). */
 #include <stdint.h>
 
-extern uint32_t _sidata, _sdata, _edata, _sbss, _ebss, _estack;
+extern uint32_t _sidata, _sdata, _edata, _sbss, _ebss, _estack, _siccm, _sccm, _eccm;
 int main(void);
 void Reset_Handler(void);
 void Default_Handler(void);
@@ -16,7 +16,13 @@ void Default_Handler(void)
 
 void Reset_Handler(void)
 {
-    uint32_t *src = &_sidata;
+    uint32_t *src = &_siccm;
+    if (src != &_sccm) { /* the interrupt's code into CCM SRAM (sections.ld) */
+        for (uint32_t *dst = &_sccm; dst < &_eccm;) {
+            *dst++ = *src++;
+        }
+    }
+    src = &_sidata;
     for (uint32_t *dst = &_sdata; dst < &_edata;) {
         *dst++ = *src++;
     }

@@ -5,7 +5,8 @@
 
 #include "g474_regs.h"
 
-extern uint32_t _sidata, _sdata, _edata, _sbss, _ebss, _estack, _stack_size;
+extern uint32_t _sidata, _sdata, _edata, _sbss, _ebss, _estack, _stack_size, _siccm, _sccm,
+    _eccm;
 int main(void);
 void Reset_Handler(void);
 void Default_Handler(void);
@@ -33,7 +34,13 @@ G4_IRQ_LIST(FD_DECLARE)
 
 void Reset_Handler(void)
 {
-    uint32_t *src = &_sidata;
+    uint32_t *src = &_siccm;
+    if (src != &_sccm) { /* the period interrupt's code into CCM SRAM (sections.ld) */
+        for (uint32_t *dst = &_sccm; dst < &_eccm;) {
+            *dst++ = *src++;
+        }
+    }
+    src = &_sidata;
     for (uint32_t *dst = &_sdata; dst < &_edata;) {
         *dst++ = *src++;
     }

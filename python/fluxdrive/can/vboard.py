@@ -94,6 +94,7 @@ _RETURN = 0x0807FF00  # where an emulated exception / call returns to (unused fl
 _SCRATCH = 0x20017000  # frames handed to the core between interrupts
 _FLASH, _FLASH_SIZE = 0x08000000, 512 * 1024
 _RAM, _RAM_SIZE = 0x20000000, 96 * 1024
+_CCM, _CCM_SIZE = 0x10000000, 32 * 1024  # the period interrupt's code (sections.ld)
 _PAGES = (0x40000000, 0x40003000, 0x40006000, 0x40007000, 0x40010000, 0x40012000,
           0x40013000, 0x40021000, 0x40022000, 0x48000000, 0x50000000, 0x50001000,
           0xE000E000)  # fmt: skip
@@ -234,6 +235,7 @@ class VirtualBoard:
         mu.ctl_set_cpu_model(ac.UC_CPU_ARM_CORTEX_M4)
         mu.mem_map(_FLASH, _FLASH_SIZE, uc.UC_PROT_READ | uc.UC_PROT_EXEC)
         mu.mem_map(_RAM, _RAM_SIZE)
+        mu.mem_map(_CCM, _CCM_SIZE)
         mu.mem_map(rm.SRAMCAN_BASE & ~0xFFF, 0x1000)
         self.flash = bytearray(_FLASH_SIZE)
         for paddr, off, size in segs:
@@ -249,6 +251,7 @@ class VirtualBoard:
         self.measure = measure
         if measure:
             mu.hook_add(uc.UC_HOOK_BLOCK, self._on_block, begin=_FLASH, end=_FLASH + 0x80000)
+            mu.hook_add(uc.UC_HOOK_BLOCK, self._on_block, begin=_CCM, end=_CCM + _CCM_SIZE)
         # plant-side state of the models
         self._adc = [ADC_MID, ADC_MID, ADC_MID, 0]
         self._temp_counts = TEMP_ZERO_COUNTS + 35 * TEMP_COUNTS_PER_C
@@ -488,8 +491,8 @@ class VirtualBoard:
             key = (address, size)
             n = self._block_n.get(key)
             if n is None:
-                off = address - _FLASH
-                n = self._block_n[key] = _thumb_count(bytes(self.flash[off : off + size]))
+                code = bytes(mu.mem_read(address, size))
+                n = self._block_n[key] = _thumb_count(code)
             self._n += n
 
     # ------------------------------------------------------------------ the interface

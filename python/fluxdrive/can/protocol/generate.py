@@ -11,7 +11,9 @@ its numbers into named constants:
   ``fault_code`` of FAULT and SAMPLE_FD, ``prm_id``/``pa_id``) must carry the same table;
   a value table without a prefix is an error, so a new table gets a name in the DBC;
 - every integer network attribute (``BA_DEF_ ... INT``), CamelCase to UPPER_SNAKE:
-  ``ProtocolVersion`` -> ``PROTOCOL_VERSION``, ``ArmKey`` -> ``ARM_KEY``, ...
+  ``ProtocolVersion`` -> ``PROTOCOL_VERSION``, ``ArmKey`` -> ``ARM_KEY``, ...;
+- C only: ``FD_INV_SCALE_<MESSAGE>_<SIGNAL>``, the reciprocal of every scaled integer
+  signal's factor (the firmware's encoders multiply instead of dividing).
 
 Python: the generated module ``fluxdrive/core/protocol_constants.py`` is committed (not built
 at import) so that the engine's kernels (which may not import ``can``), mypy and ruff see plain
@@ -68,6 +70,7 @@ class ProtocolConstants:
     message_ids: dict[str, int]
     tables: dict[str, ValueTable]
     attributes: dict[str, int]
+    inv_scales: dict[str, float] = field(default_factory=dict)  # C only: <MSG>_<SIG>
 
 
 def _upper_snake(camel: str) -> str:
@@ -85,9 +88,12 @@ def extract(db: Database) -> ProtocolConstants:
     inconsistent value table)."""
     ids: dict[str, int] = {}
     tables: dict[str, ValueTable] = {}
+    inv_scales: dict[str, float] = {}
     for msg in sorted(db.messages, key=lambda m: m.frame_id):
         ids[_check_name(msg.name, f"BO_ {msg.frame_id}")] = int(msg.frame_id)
         for sig in msg.signals:
+            if float(sig.scale) != 1.0 and not sig.is_float:
+                inv_scales[f"{msg.name}_{sig.name.upper()}"] = 1.0 / float(sig.scale)
             if not sig.choices:
                 continue
             where = f"VAL_ {msg.frame_id} {sig.name}"
@@ -114,7 +120,7 @@ def extract(db: Database) -> ProtocolConstants:
         for name, attr in db.dbc.attributes.items():
             if attr.definition.type_name == "INT":
                 attributes[_upper_snake(name)] = int(attr.value)
-    return ProtocolConstants(str(db.version or ""), ids, tables, attributes)
+    return ProtocolConstants(str(db.version or ""), ids, tables, attributes, inv_scales)
 
 
 def load(dbc: str | Path = DBC_DEFAULT) -> ProtocolConstants:
@@ -170,6 +176,9 @@ def c_header_text(pc: ProtocolConstants) -> str:
             out.append(f"    FD_{t.prefix}_{name} = {value},")
         out.append(f"    FD_{t.prefix}_COUNT = {max(t.entries) + 1} /* one past the largest */")
         out.append("};")
+    out += ["", "/* 1 / scale of every scaled signal: encoders multiply instead of dividing */"]
+    for name, inv in pc.inv_scales.items():
+        out.append(f"#define FD_INV_SCALE_{name} {float(f'{inv:.9g}')!r}f")
     out += ["", "#endif /* FD_PROTOCOL_H */"]
     return "\n".join(out) + "\n"
 
