@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import json
 import os
 import subprocess
 import sys
@@ -212,7 +213,6 @@ CASES: list[tuple[str, str, list[str], str]] = [
         "'flux_h5' must be a finite number",
     ),
 ]
-NEEDS_ROS = {"param-get-name", "fault-reset-name", "echo-field", "param-dump-o"}
 TESTS = {
     "echo-field": "test_field_of_a_live_topic",
     "launch-class-attr": "test_node_class_without_its_class",
@@ -240,6 +240,67 @@ def _one_line(r: subprocess.CompletedProcess) -> str:
     err = r.stderr.strip()
     assert len(err.splitlines()) == 1, err
     return err
+
+
+# Every case through the command line's own entry (fluxdrive.cli.main.main, what `python -m
+# fluxdrive.cli` calls) in one interpreter: its stderr and exit per case, and any exception
+# that escaped it (what would have been a traceback); a case still running after 60 s is
+# recorded as hung.  One start-up for all cases instead of one each (2-3 s apiece).
+BATCH = r"""
+import contextlib, io, json, signal, sys, traceback
+from fluxdrive.cli.main import main
+
+class Hung(BaseException):
+    pass
+
+def hung(*_a):
+    raise Hung()
+
+signal.signal(signal.SIGALRM, hung)
+out = {}
+for case, argv in json.loads(sys.argv[1]).items():
+    err, std = io.StringIO(), io.StringIO()
+    code, escaped = None, ""
+    signal.alarm(60)
+    try:
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(std):
+            code = main(argv)
+    except SystemExit as e:
+        code = e.code if isinstance(e.code, int) else 1
+    except Hung:
+        escaped = "hung for 60 s"
+    except BaseException:
+        escaped = traceback.format_exc()
+    finally:
+        signal.alarm(0)
+    out[case] = {"code": code, "stderr": err.getvalue(), "stdout": std.getvalue(),
+                 "escaped": escaped}
+print("@batch " + json.dumps(out))
+"""
+
+
+@pytest.fixture(scope="module")
+def batch(files):
+    """{case: its outcome} of every parametrized case, run in one interpreter."""
+    argvs = {c[0]: [a.format(**files) for a in c[2]] for c in CASES if c[0] not in TESTS}
+    env = {
+        **os.environ,
+        "ROS_DOMAIN_ID": str(domain(57)),
+        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+    }
+    t0 = time.monotonic()
+    r = subprocess.run(
+        [sys.executable, "-c", BATCH, json.dumps(argvs)],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    line = next((ln for ln in r.stdout.splitlines() if ln.startswith("@batch ")), None)
+    assert line is not None, r.stderr[-3000:]
+    print(f"{len(argvs)} cases in {time.monotonic() - t0:.1f} s")
+    return json.loads(line[7:])
 
 
 @pytest.fixture(scope="module")
@@ -311,22 +372,29 @@ def _foreign_mcap(path: Path) -> None:
     [(c[0], c[2], c[3]) for c in CASES if c[0] not in TESTS],
     ids=[c[0] for c in CASES if c[0] not in TESTS],
 )
-def test_bad_input_is_one_line(case, argv, want, files):
+def test_bad_input_is_one_line(case, argv, want, files, batch):
     if case == "run-out-ro" and not files["mounted"]:
         pytest.fail("could not mount a read-only tmpfs for the read-only case (needs root)")
-    if case in NEEDS_ROS:
-        pytest.importorskip("rclpy")
-    args = [a.format(**files) for a in argv]
-    t0 = time.monotonic()
-    r = fluxdrive(*args)
-    line = _one_line(r)
-    assert r.returncode != 0, (r.returncode, line)
-    assert want in line, line
-    print(f"{case}: exit {r.returncode} in {time.monotonic() - t0:.1f} s: {line}")
+    r = batch[case]
+    assert not r["escaped"], r["escaped"]  # a traceback, or a hang
+    err = r["stderr"].strip()
+    assert "Traceback" not in err + r["stdout"], err
+    assert len(err.splitlines()) == 1, err
+    assert r["code"] not in (0, None), (r["code"], err)
+    assert want in err, err
+    print(f"{case}: exit {r['code']}: {err}")
     if case in ("run-out-file", "run-out-ro", "fifo", "run-nan"):
-        assert "[launch]" not in r.stdout and "[run] graph" not in r.stdout  # nothing started
+        assert "[launch]" not in r["stdout"] and "[run] graph" not in r["stdout"]  # nothing ran
     if case == "bag-recover-json":
         assert not Path(files["tmp"], "rec").exists()  # no half bag left behind
+
+
+def test_the_wrapper_gives_the_same_one_line(files):
+    """One case end to end through `python -m fluxdrive.cli` (the ./fluxdrive wrapper's
+    command): the same line on stderr, exit 2."""
+    r = fluxdrive("run", "demo", "--duration", "nan")
+    line = _one_line(r)
+    assert r.returncode == 2 and "--duration" in line, line
 
 
 def test_field_of_a_live_topic(files):
