@@ -7,6 +7,7 @@ in-process against the C core's software-in-the-loop run. No ROS."""
 
 from __future__ import annotations
 
+import functools
 import shutil
 
 import numpy as np
@@ -113,17 +114,20 @@ def test_period_interrupt_runs_on_each_update_and_compare_is_preloaded(board):
     assert 0 < board.stack_high_water() < 4096 and board.iwdg_resets == 0
 
 
-def test_split_closed_loop_on_the_virtual_board_matches_sil():
+def test_split_closed_loop_on_the_virtual_board_matches_sil(monkeypatch):
     """The paper's 2 % drive in split mode at D = 4 through the bridge (in-process, no ROS):
     the board image on the virtual board as the MCU (its duties through the timer's
     preload: one period later than the SIL HAL applies them) and the C core's SIL build:
     θ̃ RMS over the last 0.5 s within 0.1° of each other, closed loop, no fault."""
+    from fluxdrive.can import vboard
     from fluxdrive.can.loop import run_can_loop
     from fluxdrive.drive.control import CO_MODE, MODE_CLOSED_LOOP
     from fluxdrive.drive.observers import ES_TH
     from fluxdrive.drive.plant import TR_THETA_E
     from test_split_can import D, _split_case, _theta_rms_deg
 
+    # no instruction counting here (the closed loop is the point; benchmark firmware counts)
+    monkeypatch.setattr(vboard, "VirtualBoard", functools.partial(VirtualBoard, measure=False))
     sc = _split_case(1.5)
     k_win = int(1.0 / sc.machine.ts_s) // D
     rms = {}
@@ -183,3 +187,24 @@ def test_fault_inputs_latch_on_the_virtual_board(fault):
     else:
         assert vb.break_trips == 0 and st["fault_code"] == FAULT_GATE_DRIVER
         assert [f["fault_code"] for f in faults] == [FAULT_GATE_DRIVER]
+
+
+def test_instruction_trace_adds_up_to_the_count():
+    """trace=True keeps each period interrupt's executed blocks (for a cycle model): their
+    Thumb instructions add up to the interrupt's instruction count."""
+    from fluxdrive.can.vboard import _thumb_count
+    from test_split_can import _split_case
+
+    vb = VirtualBoard(DriveSetup(_split_case(1.0)).mp, decimation=4, trace=True)
+    frame = np.zeros(pl.FR_N)
+    frame[pl.FR_VDC] = 72.0
+    for i in range(6):
+        vb.set_sample(frame, 100 * i)
+        vb.period()
+    assert len(vb.isr_blocks) == len(vb.isr_instructions) == 6
+    for blocks, n in zip(vb.isr_blocks, vb.isr_instructions, strict=True):
+        total = sum(
+            c * _thumb_count(bytes(vb.flash[a - 0x08000000 : a - 0x08000000 + s]))
+            for (a, s), c in blocks.items()
+        )
+        assert total == n

@@ -210,6 +210,7 @@ class VirtualBoard:
         measure: bool = True,
         elf: Path | None = None,
         bootstrap_periods: int = 0,
+        trace: bool = False,
     ) -> None:
         # bootstrap_periods: FirmwareCore's knob; the image's is fixed at build (fd_board.h)
         import unicorn as uc
@@ -248,6 +249,11 @@ class VirtualBoard:
         self._n = 0
         self._block_n: dict[tuple[int, int], int] = {}
         self.isr_instructions: list[int] = []
+        self.trace = trace and measure
+        self.isr_blocks: list[collections.Counter[tuple[int, int]]] = []
+        """trace=True: per period interrupt, how often each translated block (address,
+        size) ran; with :attr:`flash` the executed instruction stream, for a cycle model."""
+        self._blocks: collections.Counter[tuple[int, int]] = collections.Counter()
         self.measure = measure
         if measure:
             mu.hook_add(uc.UC_HOOK_BLOCK, self._on_block, begin=_FLASH, end=_FLASH + 0x80000)
@@ -472,11 +478,14 @@ class VirtualBoard:
         mu.reg_write(ac.UC_ARM_REG_SP, frame_sp)
         mu.reg_write(ac.UC_ARM_REG_LR, _RETURN | 1)
         self._n = 0
+        self._blocks = collections.Counter()
         self.counting = self.measure
         mu.emu_start(self.vectors[16 + irq] | 1, _RETURN, count=5_000_000)
         self.counting = False
         if self.measure and irq == rm.IRQ["ADC1_2"]:
             self.isr_instructions.append(self._n)
+            if self.trace:
+                self.isr_blocks.append(self._blocks)
         mu.context_restore(self._main)
 
     def _background(self) -> None:
@@ -494,6 +503,8 @@ class VirtualBoard:
                 code = bytes(mu.mem_read(address, size))
                 n = self._block_n[key] = _thumb_count(code)
             self._n += n
+            if self.trace:
+                self._blocks[key] += 1
 
     # ------------------------------------------------------------------ the interface
     def param_write(self, name: str | int, value: float) -> str:
