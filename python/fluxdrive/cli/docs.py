@@ -9,6 +9,8 @@
                                      the config schemas, the graph file's tables of
                                      docs/graph.md from its schema and the node tables there
                                      from the nodes (--check: only say which are stale)
+./fluxdrive docs tour                run the shipped scenarios in-process and write
+                                     results/tour/scenarios.json, which docs/tour.md quotes
 """
 
 from __future__ import annotations
@@ -16,6 +18,8 @@ from __future__ import annotations
 import argparse
 import subprocess
 import sys
+from pathlib import Path
+from typing import Any
 
 from fluxdrive.analysis.quotes import QuoteError, count, fill, quoted_files, stale
 from fluxdrive.core.paths import ROOT
@@ -109,6 +113,55 @@ def node_tables(check: bool) -> int:
     return subprocess.call(cmd, cwd=ROOT)
 
 
+TOUR_RESULTS = ROOT / "results" / "tour" / "scenarios.json"
+TOUR_EXAMPLE = "paper_2pct_150load"  # the scenario whose printed table the tour shows
+
+
+def tour_results(out: Path = TOUR_RESULTS) -> int:
+    """Run every shipped scenario in-process (the seed in its file) as `./fluxdrive sim`
+    does and write what docs/tour.md quotes: per scenario whether it is stable, the driving
+    observer's θ̃ RMS, the trip if any, the mean speed; for TOUR_EXAMPLE the metric table
+    `sim` prints, as a Markdown code block, and every observer's θ̃ RMS and 6th order."""
+    import json
+
+    from fluxdrive.analysis.metrics import compute, format_table
+    from fluxdrive.drive.scenario import CONFIG_DIR, load_scenario
+    from fluxdrive.drive.sim import run_scenario
+
+    data: dict[str, Any] = {}
+    for path in sorted((CONFIG_DIR / "scenarios").glob("*.yaml")):
+        sc = load_scenario(path)
+        res = run_scenario(sc, progress=False)
+        m = compute(res)
+        drv = m["observers"].get(m["driving"], {})
+        row: dict[str, Any] = {
+            "stable": m["stable"],
+            "stable_text": "stable" if m["stable"] else "not stable",
+            "driving": m["driving"],
+            "seed": sc.seed,
+            "rms_deg": drv.get("theta_err_rms_deg"),
+            "speed_mean_rpm": m["speed"]["mean_rpm"],
+            "trip": (m["trip"] or {}).get("message", ""),
+            "simulated_s": sc.duration_s,
+            "wall_s": res.wall_s,
+        }
+        if sc.name == TOUR_EXAMPLE:
+            obs = m["observers"]
+            # on lines of their own: the quote's markers stay outside the code block
+            row["table"] = f"\n```\n{format_table(m)}\n```\n"
+            row["observers"] = {
+                nm: {"rms_deg": o["theta_err_rms_deg"], "h6_deg": o["theta_err_h6_deg"]}
+                for nm, o in obs.items()
+            }
+            row["lowest_rms"] = min(obs, key=lambda nm: obs[nm]["theta_err_rms_deg"])
+        data[sc.name] = row
+        print(f"{sc.name}: {row['stable_text']}, θ̃ RMS {row['rms_deg']}", flush=True)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(data, indent=1, default=float) + "\n")
+    print(f"written: {out}; now ./fluxdrive docs quotes")
+    return 0
+
+
 def main(argv: list[str]) -> int:
     ap = Parser(
         prog="fluxdrive docs",
@@ -123,7 +176,12 @@ def main(argv: list[str]) -> int:
     q.add_argument("--check", action="store_true", help="only report stale files (exit 1)")
     pt = sub.add_parser("params", help="write the parameter tables from the config schemas")
     pt.add_argument("--check", action="store_true", help="only report stale tables (exit 1)")
+    sub.add_parser(
+        "tour", help="run the shipped scenarios and write results/tour/ (docs/tour.md quotes it)"
+    )
     args = ap.parse_args(argv)
+    if args.cmd == "tour":
+        return tour_results()
     if args.cmd == "build":
         return build(args.out)
     if args.cmd == "serve":
