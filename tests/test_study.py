@@ -290,3 +290,42 @@ def test_bad_spec_one_line_nonzero(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert rc == 2 and "Traceback" not in err and len(err.splitlines()) == 1
     assert "random.r_hat_eror" in err and str(p) in err
+
+
+def test_a_load_axis_scales_the_scenarios_own_profile_and_the_report_says_so(tmp_path):
+    """A grid level on a key the scenario file holds as a profile scales that profile (the
+    load still ramps in after the start, as in the file) instead of replacing it with a
+    constant from t = 0; the report names what every axis sets and why runs were lost."""
+    import pyarrow as pa
+    from fluxdrive.study.maps import unstable_reasons
+    from fluxdrive.study.spec import axis_override_text, scenario_axis_value
+
+    spec = load_spec(_spec(tmp_path, draws=1, grid={"speed_rpm": [300.0], "load_pu": [1.5]}))
+    p = next(t for t in spec.tasks() if t["variant"] == "flux")
+    sc = build_task_scenario(p)
+    t_s, y_nm = sc.load_breakpoints_nm()
+    kt_nm_per_a = 1.5 * 4 * 0.0235
+    assert list(t_s) == [0.0, 0.05]  # the file's timing
+    assert y_nm[0] == 0.0 and y_nm[-1] == pytest.approx(1.5 * kt_nm_per_a * 9.0)
+    text = axis_override_text(spec, "load_pu")
+    assert "scales the scenario file's load_pu profile" in text, text
+    assert "replaces the scenario file's speed_rpm" in axis_override_text(spec, "speed_rpm")
+    # a profile as the grid value replaces; a key the file lacks is set
+    assert scenario_axis_value({"load_pu": [[0, 0], [1, 2]]}, "load_pu", [[0, 1]])[0] == [[0, 1]]
+    assert scenario_axis_value({}, "seed", 3) == (
+        3,
+        "sets seed (the scenario file leaves it unset)",
+    )
+    rows = pa.table(
+        {
+            "task_id": ["a", "b", "c"],
+            "variant": ["flux", "flux", "emf"],
+            "speed_rpm": [300.0, 300.0, 300.0],
+            "load_pu": [1.5, 1.5, 1.5],
+            "stable": [False, True, False],
+            "fault_code": [11, 0, 0],
+        }
+    )
+    lines = "\n".join(unstable_reasons(rows, spec))
+    assert "| flux | speed_rpm = 300, load_pu = 1.5 | start-up failed (1) |" in lines, lines
+    assert "| emf | speed_rpm = 300, load_pu = 1.5 | no fault, but the speed missed" in lines

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from fluxdrive.study.spec import PERTURBATIONS, StudySpec
+from fluxdrive.study.spec import PERTURBATIONS, StudySpec, axis_override_text
 
 Z95 = 1.959963984540054  # two-sided 95 % normal quantile
 
@@ -190,6 +190,36 @@ def _dist(d: dict[str, Any]) -> str:
     return f"one of {d['values']}"
 
 
+def unstable_reasons(table, spec: StudySpec) -> list[str]:
+    """Report lines: every grid point with runs that were not stable, and why (the latched
+    fault, or what the stability verdict found without one), counted over the draws."""
+    from fluxdrive.drive.control import FAULT_NAMES
+
+    d = table.to_pydict()
+    axes = [a for a in spec.grid if a in d]
+    why: dict[tuple[str, str], dict[str, int]] = {}
+    for r in range(len(d["task_id"])):
+        if d["stable"][r]:
+            continue
+        code = int(d["fault_code"][r] or 0)
+        text = (
+            FAULT_NAMES.get(code, f"fault {code}")
+            if code
+            else "no fault, but the speed missed its reference by over 20 % or the loop did "
+            "not stay closed on the observer"
+        )
+        at = ", ".join(f"{a} = {d[a][r]:g}" for a in axes) or "—"
+        cell = why.setdefault((d["variant"][r], at), {})
+        cell[text] = cell.get(text, 0) + 1
+    if not why:
+        return []
+    out = ["## Runs that were not stable, and why", "", "| variant | grid point | why (runs) |"]
+    out.append("|---|---|---|")
+    for (v, at), reasons in why.items():
+        out.append(f"| {v} | {at} | " + "; ".join(f"{t} ({n})" for t, n in reasons.items()) + " |")
+    return [*out, ""]
+
+
 def write_report(
     table, spec: StudySpec, out: Path, failures: list[dict[str, Any]], info: dict[str, Any]
 ) -> dict[str, Any]:
@@ -217,10 +247,18 @@ def write_report(
         lines.append(f"| {a} | {_dist(d)} | {PERTURBATIONS[a][1]} |")
     lines += [
         "",
-        "Grid: "
-        + "; ".join(f"{a} = {', '.join(f'{x:g}' for x in v)}" for a, v in spec.grid.items()),
+        "## What the grid sets",
         "",
+        "| axis | values | what it sets |",
+        "|---|---|---|",
     ]
+    for a, v in spec.grid.items():
+        vals = ", ".join(f"{x:g}" if isinstance(x, (int, float)) else str(x) for x in v)
+        lines.append(f"| {a} | {vals} | {axis_override_text(spec, a)} |")
+    for a in spec.map_axes:
+        if a not in spec.grid:
+            lines.append(f"| {a} (map axis) | — | not varied: the map has one row/column |")
+    lines.append("")
     if low:
         lines += [
             f"## Lowest speed holding {low[next(iter(low))]['load_pu']:g} pu load with "
@@ -263,6 +301,7 @@ def write_report(
             )
         lines.append("")
     lines += ["Cells: stable runs / runs (median θ̃ RMS of the stable runs, electrical).", ""]
+    lines += unstable_reasons(table, spec)
     if failures:
         lines += ["## Failed tasks (after one retry)", "", "| task | error |", "|---|---|"]
         for f in failures:

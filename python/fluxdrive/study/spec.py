@@ -468,6 +468,51 @@ def _axis_kind(src: str, where: str, name: str, scen: dict[str, Any]) -> str:
     return kind
 
 
+# scenario keys that may be a profile, [[t_s, value], ...]: a grid value for one of them is a
+# level, so it scales the file's own profile (a load ramped in after the start stays ramped);
+# a profile given as the grid value replaces it
+PROFILE_KEYS = ("load_pu", "speed_pu", "speed_rpm")
+
+
+def scenario_axis_value(raw: dict[str, Any], key: str, value: Any) -> tuple[Any, str]:
+    """What a grid value of scenario key `key` sets in a scenario file `raw`, and the words
+    for the report: a number for a key the file holds as a profile scales that profile so
+    its largest magnitude is the value (the profile's shape and timing kept); anything
+    else replaces the file's value (or sets the key the file leaves unset)."""
+    base = raw.get(key)
+    if key in PROFILE_KEYS and isinstance(value, (int, float)) and isinstance(base, list):
+        peak = max((abs(float(v)) for _, v in base), default=0.0)
+        if peak > 0.0:
+            scaled = [[t, float(v) * float(value) / peak] for t, v in base]
+            return scaled, (
+                f"scales the scenario file's {key} profile {base} to peak at the axis value "
+                f"(its shape and timing kept)"
+            )
+    if key in raw:
+        return value, f"replaces the scenario file's {key} ({raw[key]})"
+    return value, f"sets {key} (the scenario file leaves it unset)"
+
+
+def axis_override_text(spec: StudySpec, name: str) -> str:
+    """What grid axis `name` overrides, in the words the report uses."""
+    kind = axis_kind(name)
+    if kind == "observer":
+        return "the observer setting of every variant"
+    if kind == "control":
+        return f"the controller setting {name[8:]}"
+    if kind == "perturbation":
+        return PERTURBATIONS[name][1]
+    if "file" in spec.scenario:
+        from fluxdrive.core import yamlio
+
+        raw = yamlio.load_file(spec.scenario["file"]) or {}
+        sample = spec.grid[name][0] if spec.grid.get(name) else 1.0
+        return scenario_axis_value(raw, name, sample)[1]
+    if "builder" in spec.scenario:
+        return f"the builder {spec.scenario['builder']}'s {name}"
+    return f"scenario key {name}"
+
+
 def axis_kind(name: str) -> str:
     if name in OBSERVER_KEYS:
         return "observer"

@@ -23,7 +23,7 @@ from fluxdrive.drive.scenario import CONFIG_DIR, Scenario, load_scenario
 from fluxdrive.drive.sim import run_scenario
 from fluxdrive.io.bagio import read_run_bag
 from fluxdrive.replay.lab import VariantSpec, live_changes, replay_bag
-from fluxdrive.study.spec import BUILDERS, PERTURBATIONS, axis_kind
+from fluxdrive.study.spec import BUILDERS, PERTURBATIONS, axis_kind, scenario_axis_value
 
 ALPHA_CU_PER_K = 0.00393  # copper resistance
 ALPHA_NDFEB_PER_K = -0.0012  # remanence of NdFeB magnets
@@ -137,6 +137,8 @@ def build_task_scenario(p: dict[str, Any]) -> Scenario:
     else:
         raw = yamlio.load_file(spec["file"]) or {}
         driving = "encoder" if raw.get("driving", "encoder") == "encoder" else vname
+        # a level on a profile key scales the file's profile (spec.scenario_axis_value)
+        scen_kw = {k: scenario_axis_value(raw, k, v)[0] for k, v in scen_kw.items()}
         over = {**scen_kw, "observers": {vname: obs}, "driving": driving, "seed": p["seed"]}
         sc = load_scenario(spec["file"], machine=spec.get("machine"), overrides=over)
     for k, v in p["grid"].items():
