@@ -456,15 +456,24 @@ def test_sil_host_mode_matches_the_python_emulator(tmp_path):
         ref, got = sent["python"][aid], sent["c"][aid]
         assert len(got) == len(ref) >= (sc.n_periods if aid == ID_SAMPLE_FD else 1)
         worst = {s.name: 0 for s in msg.signals}
-        for a, b in zip(ref, got, strict=True):
+        for i, (a, b) in enumerate(zip(ref, got, strict=True)):
             da = msg.decode(a, decode_choices=False, scaling=False)
             dc = msg.decode(b, decode_choices=False, scaling=False)
             for name in worst:
+                if i == 0 and name in _ARMING_SIGNALS:
+                    continue
                 worst[name] = max(worst[name], abs(int(da[name]) - int(dc[name])))
         print(f"{msg.name}: largest difference per signal [LSB] {worst}")
         assert max(worst.values()) <= 1, worst
         # counters, flags and states exactly; only scaled values may round differently
         assert all(worst[s.name] == 0 for s in msg.signals if s.scale == 1), worst
+
+
+# The ARM_MODE sent before period 0: the C MCU's background context takes it before the
+# first interrupt, so its first sample and STATUS already say armed; the Python MCU takes
+# received frames inside the period, after its sample. Only those signals of the first frame
+# of each id differ.
+_ARMING_SIGNALS = {"armed", "mode", "c_armed", "st_armed", "st_state"}
 
 
 def _replay(sc, mcu, arm, duties, layout="fd", decimation=1, n=None):
@@ -679,10 +688,12 @@ def test_decimated_samples_match_the_python_emulator(db, layout, decimation):
         ref, got = sent["python"][aid], sent["c"][aid]
         assert len(got) == len(ref) >= (n // d if aid != ID_STATUS else 1)
         worst = {s.name: 0 for s in msg.signals}
-        for a, b in zip(ref, got, strict=True):
+        for i, (a, b) in enumerate(zip(ref, got, strict=True)):
             da = msg.decode(a, decode_choices=False, scaling=False)
             dc = msg.decode(b, decode_choices=False, scaling=False)
             for name in worst:
+                if i == 0 and name in _ARMING_SIGNALS:
+                    continue
                 worst[name] = max(worst[name], abs(int(da[name]) - int(dc[name])))
         print(f"{layout} D={d} {msg.name}: largest difference [LSB] {worst}")
         assert max(worst.values()) <= 1, worst
@@ -729,7 +740,7 @@ def test_sil_calibration_removes_injected_current_offsets(db):
     faults = [db.decode_message(m.arbitration_id, m.data) for m in sent if m.arbitration_id == 0x10]
     assert str(faults[0]["fault_code"]) == "NOT_CALIBRATED" and not core.state()["armed"]
     core.push(arm(2, reset=1))
-    run(1001)  # the period taking the request, then 1000 periods averaged
+    run(1000)  # the request is taken in the background before the first of them
     assert core.param_read("CAL_DONE") == 1.0 and not core.state()["fault_latched"]
     got = np.array([core.param_read(f"CAL_OFFSET_{p}") for p in "ABC"])
     want = core.scales.current_mid_counts + np.round(offsets / lsb)

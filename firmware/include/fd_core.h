@@ -24,6 +24,7 @@
 #ifndef FD_CORE_H
 #define FD_CORE_H
 
+#include <stdatomic.h>
 #include <stdbool.h>
 #include <stdint.h>
 
@@ -127,6 +128,30 @@ typedef struct {
     float id, iq, theta, omega;
 } fd_host_ref_t;
 
+/* Hand-over from the background context to the period interrupt, lock-free (one writer,
+ * one reader, the reader never waits):
+ * - DUTY_CMDs: a single-producer single-consumer ring; the background writes a slot, then
+ *   publishes it by advancing `head` (release); the interrupt reads up to FD_CMD_RING
+ *   slots between `tail` and `head` (acquire) into its own slots and advances `tail`.
+ * - HOST_REF: a sequence lock; the background makes `seq` odd, writes the reference, makes
+ *   it even again; the interrupt takes a reference only when `seq` is even, differs from
+ *   the last one it took, and is unchanged after the copy. An interrupt that lands inside
+ *   a write (seq odd) keeps the reference it has and takes the new one a period later. */
+#define FD_CMD_RING 8u
+typedef struct {
+    fd_duty_cmd_t slot[FD_CMD_RING];
+    atomic_uint head; /* written only by the background */
+    atomic_uint tail; /* written only by the interrupt */
+} fd_cmd_ring_t;
+
+typedef struct {
+    atomic_uint seq;  /* even: stable, odd: being written */
+    fd_host_ref_t ref;
+} fd_ref_box_t;
+
+/* frames the background takes from the CAN controller per fd_core_background call */
+#define FD_BG_FRAMES 16u
+
 /** Counters (what the emulator's EmulatorStats counts). */
 typedef struct {
     uint32_t periods;
@@ -148,6 +173,9 @@ typedef struct {
     uint32_t ref_future;   /* HOST_REFs refused: numbered ahead of the drive's counter */
     uint32_t adc_clipped;  /* periods with a saturated current reading */
     uint32_t duty_limited; /* periods a duty was limited to MAX_DUTY */
+    uint32_t cmd_ring_full;     /* DUTY_CMDs dropped: the hand-over ring was full */
+    uint32_t ref_handover_busy; /* interrupts that met a HOST_REF half written */
+    uint32_t bg_frames;         /* frames handled by the background context */
 } fd_stats_t;
 
 /** The whole drive state. Fields are public for tests and the SIL binding; firmware code
@@ -198,7 +226,10 @@ typedef struct {
     /* protections */
     float i2t;
     /* split mode */
-    fd_host_ref_t ref_new;    /* newest received, not yet taken */
+    fd_ref_box_t ref_box;     /* newest received (background -> interrupt) */
+    unsigned ref_box_taken;   /* ref_box.seq of the last reference the interrupt took */
+    fd_cmd_ring_t cmd_ring;   /* received DUTY_CMDs (background -> interrupt) */
+    uint8_t in_isr;           /* fd_core_period running: a second entry is an overrun */
     fd_host_ref_t ref;        /* in use */
     fd_cur_state_t cur;
     fd_cur_out_t cur_out;     /* output of the last current-loop step */
@@ -212,15 +243,24 @@ typedef struct {
 void fd_config_default(fd_config_t *cfg);
 /** Initialise (PWM off, disarmed, parameters at their defaults). */
 void fd_core_init(fd_core_t *c, const fd_config_t *cfg, void *hal);
-/** The per-PWM-period interrupt body (see the file comment). */
+/** The per-PWM-period interrupt body (see the file comment). Bounded: no CAN reception,
+ *  at most FD_CMD_RING commands and one reference taken over, at most a sample (one
+ *  SAMPLE_FD or four SAMPLE_C_*), a STATUS and a FAULT frame sent. */
 void fd_core_period(fd_core_t *c);
+/** The background context: the main loop (or an interrupt of lower priority than the
+ *  period interrupt) calls it as often as it can. Takes up to FD_BG_FRAMES received frames
+ *  from the HAL and handles each (fd_core_handle_frame); returns how many. */
+unsigned fd_core_background(fd_core_t *c);
 /** DRIVE_PARAM access (what a received DRIVE_PARAM does); returns a FD_PA_* status. */
 int fd_core_param_write(fd_core_t *c, int prm_id, float value);
 int fd_core_param_read(const fd_core_t *c, int prm_id, float *value);
 /** 1 if the host's answer to sample `seq` (a DUTY_CMD in host mode, a HOST_REF in split
  *  mode) has been received and not yet taken (lockstep drivers wait for it). */
 int fd_core_has_answer(const fd_core_t *c, uint16_t seq);
-/** Handle one received frame (fd_core_period polls the HAL and calls this). */
+/** Handle one received frame in the background context (fd_core_background calls it):
+ *  DUTY_CMD and HOST_REF go to the interrupt through the lock-free hand-over; ARM_MODE,
+ *  DRIVE_PARAM (answered with DRIVE_PARAM_ACK from here) and HOST_HEARTBEAT change the
+ *  state inside a short critical section (fd_hal_irq_lock). */
 void fd_core_handle_frame(fd_core_t *c, const fd_can_frame_t *f);
 
 /* ---- frame encoders (the DBC's scaling through the generated codec; exposed for the

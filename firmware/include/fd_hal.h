@@ -3,8 +3,11 @@
  * Thin on purpose: the core does every conversion to SI units and all protocol work; a
  * board port only moves raw counts and CAN frames. Every call takes the port's context
  * pointer (the `hal` given to fd_core_init), so one process can hold several drives (the
- * software-in-the-loop build does). All calls are made from the PWM-period interrupt
- * (fd_core_period), never re-entered. No call may block.
+ * software-in-the-loop build does). Two contexts call it: the PWM-period interrupt
+ * (fd_core_period: ADC, capture, status, PWM, CAN TX, time, overrun) and the background
+ * (fd_core_background: CAN RX, CAN TX, time, the critical section). fd_hal_can_tx is called
+ * from both, so a port makes it safe against the period interrupt (e.g. separate TX
+ * buffers per context, or a critical section around the FIFO put). No call may block.
  *
  * Timing (docs/engine.md, timing convention): the period interrupt for sample k runs right
  * after the ADC conversion triggered at the carrier valley t_k. The capture registers then
@@ -76,6 +79,12 @@ bool fd_hal_can_tx(void *hal, const fd_can_frame_t *frame);
 bool fd_hal_can_rx(void *hal, fd_can_frame_t *frame);
 /** Free-running microsecond counter (wraps at 2^32). */
 uint32_t fd_hal_time_us(void *hal);
+/** A critical section against the period interrupt (on a Cortex-M: raise BASEPRI to its
+ *  priority, or PRIMASK), returning the state to restore; the background context holds it
+ *  for a few dozen instructions (an ARM_MODE, a DRIVE_PARAM write). Never called from the
+ *  period interrupt. */
+uint32_t fd_hal_irq_lock(void *hal);
+void fd_hal_irq_unlock(void *hal, uint32_t state);
 /** Called last in the period interrupt: true if this interrupt missed its deadline (on a
  *  timer: the counter read now is past the compare-preload deadline of the running period,
  *  or the period interrupt's flag is pending again, i.e. a period was lost). */

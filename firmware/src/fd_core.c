@@ -518,6 +518,10 @@ static void start_calibration(fd_core_t *c)
     c->calibrating = 1;
     c->mode = FD_MODE_CALIBRATE_ADC;
     c->cal_n = 0;
+    /* a STATUS (CALIBRATING) from the next interrupt on, then every status_period: the
+     * host sees the state whatever the phase of the 10 Hz STATUS, and the next one after
+     * the end (cal_periods <= status_period) says it is over */
+    c->next_status_k = c->k;
     for (int j = 0; j < 3; ++j) {
         c->cal_sum_i[j] = 0;
         c->cal_sum_cap[j] = 0;
@@ -587,7 +591,7 @@ static void on_arm_mode(fd_core_t *c, const fd_can_frame_t *f)
         }
         c->split = m.control_split;
         c->ref.valid = 0;
-        c->ref_new.valid = 0;
+        c->ref_box_taken = atomic_load_explicit(&c->ref_box.seq, memory_order_acquire);
     }
     int cal_req = m.arm && m.arm_key == FD_ARM_KEY && m.mode == FD_MODE_CALIBRATE_ADC;
     int cal_edge = cal_req && !c->cal_req_prev;
@@ -642,19 +646,41 @@ static void on_duty_cmd(fd_core_t *c, const fd_can_frame_t *f)
             return;
         }
     }
-    /* replace the same seq, else a free slot, else the oldest (furthest behind) */
+    /* to the interrupt: fill the slot at head, then publish it */
+    fd_cmd_ring_t *r = &c->cmd_ring;
+    unsigned head = atomic_load_explicit(&r->head, memory_order_relaxed);
+    unsigned tail = atomic_load_explicit(&r->tail, memory_order_acquire);
+    if (head - tail >= FD_CMD_RING) {
+        c->stats.cmd_ring_full++;
+        return;
+    }
+    fd_duty_cmd_t *x = &r->slot[head % FD_CMD_RING];
+    x->seq = m.cmd_seq;
+    x->enable = m.cmd_enable;
+    x->valid = 1;
+    for (int j = 0; j < 3; ++j) {
+        x->duty[j] = d[j];
+    }
+    atomic_store_explicit(&r->head, head + 1u, memory_order_release);
+    c->stats.duty_rx++;
+}
+
+/* interrupt: a command into its slots; replace the same seq, else a free slot, else the
+ * oldest (furthest behind) */
+static void store_command(fd_core_t *c, const fd_duty_cmd_t *in)
+{
     unsigned slot = FD_CMD_SLOTS;
     unsigned oldest = 0;
     uint16_t worst = 0;
     for (unsigned s = 0; s < FD_CMD_SLOTS; ++s) {
-        if (c->cmds[s].valid && c->cmds[s].seq == m.cmd_seq) {
+        if (c->cmds[s].valid && c->cmds[s].seq == in->seq) {
             slot = s;
             break;
         }
         if (!c->cmds[s].valid && slot == FD_CMD_SLOTS) {
             slot = s;
         }
-        uint16_t behind = (uint16_t)(m.cmd_seq - c->cmds[s].seq);
+        uint16_t behind = (uint16_t)(in->seq - c->cmds[s].seq);
         if (c->cmds[s].valid && behind >= worst) {
             worst = behind;
             oldest = s;
@@ -663,13 +689,54 @@ static void on_duty_cmd(fd_core_t *c, const fd_can_frame_t *f)
     if (slot == FD_CMD_SLOTS) {
         slot = oldest;
     }
-    c->cmds[slot].valid = 1;
-    c->cmds[slot].seq = m.cmd_seq;
-    c->cmds[slot].enable = m.cmd_enable;
-    for (int j = 0; j < 3; ++j) {
-        c->cmds[slot].duty[j] = d[j];
+    c->cmds[slot] = *in;
+}
+
+/* interrupt: everything the background published since the last period (bounded by the
+ * ring's size) */
+static void take_commands_over(fd_core_t *c)
+{
+    fd_cmd_ring_t *r = &c->cmd_ring;
+    unsigned tail = atomic_load_explicit(&r->tail, memory_order_relaxed);
+    unsigned head = atomic_load_explicit(&r->head, memory_order_acquire);
+    for (unsigned n = 0; tail != head && n < FD_CMD_RING; ++n, ++tail) {
+        store_command(c, &r->slot[tail % FD_CMD_RING]);
     }
-    c->stats.duty_rx++;
+    atomic_store_explicit(&r->tail, tail, memory_order_release);
+}
+
+/* background: publish a reference under the sequence lock */
+static void publish_reference(fd_core_t *c, const fd_host_ref_t *r)
+{
+    fd_ref_box_t *b = &c->ref_box;
+    unsigned s = atomic_load_explicit(&b->seq, memory_order_relaxed);
+    atomic_store_explicit(&b->seq, s + 1u, memory_order_relaxed); /* odd: writing */
+    atomic_thread_fence(memory_order_release);
+    b->ref = *r;
+    atomic_store_explicit(&b->seq, s + 2u, memory_order_release); /* even: stable */
+}
+
+/* interrupt: the newest published reference, if there is a new one and it is whole */
+static int take_reference_over(fd_core_t *c, fd_host_ref_t *out)
+{
+    fd_ref_box_t *b = &c->ref_box;
+    unsigned s1 = atomic_load_explicit(&b->seq, memory_order_acquire);
+    if (s1 == c->ref_box_taken) {
+        return 0;
+    }
+    if (s1 & 1u) { /* this interrupt preempted the writer: take it next period */
+        c->stats.ref_handover_busy++;
+        return 0;
+    }
+    *out = b->ref;
+    atomic_thread_fence(memory_order_acquire);
+    unsigned s2 = atomic_load_explicit(&b->seq, memory_order_relaxed);
+    if (s2 != s1) {
+        c->stats.ref_handover_busy++;
+        return 0;
+    }
+    c->ref_box_taken = s1;
+    return 1;
 }
 
 static void on_host_ref(fd_core_t *c, const fd_can_frame_t *f)
@@ -704,7 +771,7 @@ static void on_host_ref(fd_core_t *c, const fd_can_frame_t *f)
         c->stats.duty_late++;
         return;
     }
-    c->ref_new = r;
+    publish_reference(c, &r);
     c->stats.ref_rx++;
 }
 
@@ -716,9 +783,11 @@ static void on_drive_param(fd_core_t *c, const fd_can_frame_t *f)
         return;
     }
     c->stats.param_rx++;
+    uint32_t irq = fd_hal_irq_lock(c->hal); /* the limits change together */
     int status = m.prm_write ? fd_core_param_write(c, m.prm_id, m.prm_value) : FD_PA_OK;
     float value = 0.0f;
     int rs = fd_core_param_read(c, m.prm_id, &value);
+    fd_hal_irq_unlock(c->hal, irq);
     if (rs != FD_PA_OK) {
         status = rs;
     }
@@ -729,9 +798,13 @@ static void on_drive_param(fd_core_t *c, const fd_can_frame_t *f)
 
 void fd_core_handle_frame(fd_core_t *c, const fd_can_frame_t *f)
 {
+    uint32_t irq;
+    c->stats.bg_frames++;
     switch (f->id) {
     case FD_CAN_ARM_MODE_FRAME_ID:
+        irq = fd_hal_irq_lock(c->hal); /* the state machine is the interrupt's too */
         on_arm_mode(c, f);
+        fd_hal_irq_unlock(c->hal, irq);
         break;
     case FD_CAN_DUTY_CMD_FRAME_ID:
         on_duty_cmd(c, f);
@@ -743,21 +816,42 @@ void fd_core_handle_frame(fd_core_t *c, const fd_can_frame_t *f)
         on_drive_param(c, f);
         break;
     case FD_CAN_HOST_HEARTBEAT_FRAME_ID:
+        irq = fd_hal_irq_lock(c->hal);
         c->hb_seen = 1;
         c->hb_last_us = fd_hal_time_us(c->hal);
+        fd_hal_irq_unlock(c->hal, irq);
         break;
     default:
         break;
     }
 }
 
+unsigned fd_core_background(fd_core_t *c)
+{
+    fd_can_frame_t f;
+    unsigned n = 0;
+    while (n < FD_BG_FRAMES && fd_hal_can_rx(c->hal, &f)) {
+        fd_core_handle_frame(c, &f);
+        n++;
+    }
+    return n;
+}
+
 int fd_core_has_answer(const fd_core_t *c, uint16_t seq)
 {
     if (c->split) {
-        return c->ref_new.valid && c->ref_new.seq == seq;
+        unsigned s = atomic_load_explicit(&c->ref_box.seq, memory_order_acquire);
+        return s != c->ref_box_taken && !(s & 1u) && c->ref_box.ref.seq == seq;
     }
     for (unsigned s = 0; s < FD_CMD_SLOTS; ++s) {
         if (c->cmds[s].valid && c->cmds[s].seq == seq) {
+            return 1;
+        }
+    }
+    const fd_cmd_ring_t *r = &c->cmd_ring;
+    unsigned head = atomic_load_explicit(&r->head, memory_order_acquire);
+    for (unsigned i = atomic_load_explicit(&r->tail, memory_order_relaxed); i != head; ++i) {
+        if (r->slot[i % FD_CMD_RING].seq == seq) {
             return 1;
         }
     }
@@ -824,11 +918,23 @@ static float ref_angle(const fd_core_t *c, const fd_host_ref_t *r)
 /* split mode, every period: the newest HOST_REF, the reference timeout */
 static void take_reference(fd_core_t *c)
 {
-    if (c->ref_new.valid) {
+    fd_host_ref_t nr;
+    int fresh = take_reference_over(c, &nr);
+    if (fresh) { /* still newer than the one in use, and not too old by now */
+        int16_t age = (int16_t)(uint16_t)((uint16_t)(c->k & FD_SEQ_MASK) - nr.seq);
+        if (c->ref.valid && (int16_t)(uint16_t)(nr.seq - c->ref.seq) <= 0) {
+            c->stats.duty_late++;
+            fresh = 0;
+        } else if (age < 0 || (uint32_t)age > c->cfg.ref_max_age_periods) {
+            c->stats.ref_old++;
+            fresh = 0;
+        }
+    }
+    if (fresh) {
         if (c->ref.valid && c->pwm_enabled) {
             /* keep the current PIs' integrators in the new frame: a fixed voltage vector
              * seen from a frame advanced by (new - old) turns by (old - new) */
-            float dth = ref_angle(c, &c->ref) - ref_angle(c, &c->ref_new);
+            float dth = ref_angle(c, &c->ref) - ref_angle(c, &nr);
             dth = dth - FD_TWO_PI * fd_floorf((dth + FD_PI) * FD_INV_TWO_PI);
             float cs, sn;
             fd_sincosf(dth, &sn, &cs);
@@ -837,8 +943,7 @@ static void take_reference(fd_core_t *c)
             c->cur.id_i = cid * cs - ciq * sn;
             c->cur.iq_i = cid * sn + ciq * cs;
         }
-        c->ref = c->ref_new;
-        c->ref_new.valid = 0;
+        c->ref = nr;
         c->stats.refs_applied++;
         c->last_ref_k = c->k;
         if (c->ref.enable && c->armed && !c->fault_latched) {
@@ -977,6 +1082,14 @@ static int reached(uint32_t k, uint32_t t) { return (int32_t)(k - t) >= 0; }
 
 void fd_core_period(fd_core_t *c)
 {
+    if (c->in_isr) { /* entered again before the last one returned: never wait */
+        raise_fault(c, FD_FAULT_DEADLINE_MISSED, 0xFFFFu);
+        const uint32_t half[3] = {c->cfg.pwm_period_ticks / 2u, c->cfg.pwm_period_ticks / 2u,
+                                  c->cfg.pwm_period_ticks / 2u};
+        fd_hal_pwm_write(c->hal, half, false);
+        return;
+    }
+    c->in_isr = 1;
     read_sample(c);
     /* window: the period [t_(k-1), t_k] just ended (frame 0 opens the first window) */
     for (int j = 0; j < 3; ++j) {
@@ -1001,10 +1114,7 @@ void fd_core_period(fd_core_t *c)
         send_fault(c, 0);
         c->next_fault_k = c->k + c->cfg.status_period;
     }
-    fd_can_frame_t f;
-    while (fd_hal_can_rx(c->hal, &f)) {
-        fd_core_handle_frame(c, &f);
-    }
+    take_commands_over(c); /* bounded: FD_CMD_RING at most */
     if (c->split) {
         take_reference(c);
     } else if (boundary) {
@@ -1068,6 +1178,7 @@ void fd_core_period(fd_core_t *c)
     uint32_t p = c->cfg.period_us;
     c->t_us = c->t_us >= FD_T_MCU_MOD - p ? c->t_us - (FD_T_MCU_MOD - p) : c->t_us + p;
     c->stats.periods++;
+    c->in_isr = 0;
 }
 
 /* ------------------------------------------------------------------ init */

@@ -84,6 +84,8 @@ static void readings(uint32_t k)
 
 static void run_period(uint32_t tag)
 {
+    while (fd_core_background(&core) > 0u) { /* the main loop between interrupts */
+    }
     readings(core.k);
     fd_mark_begin(tag);
     fd_core_period(&core);
@@ -141,6 +143,8 @@ int main(void)
     off.cmd_seq = (uint16_t)(core.k - 1u);
     (void)fd_can_duty_cmd_pack(b8, &off, 8u);
     push(FD_CAN_DUTY_CMD_FRAME_ID, b8, 8u, 0u);
+    while (fd_core_background(&core) > 0u) {
+    }
     readings(core.k);
     fd_core_period(&core);
     arm(1u);

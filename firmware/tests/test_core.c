@@ -4,6 +4,7 @@
  * comparisons with the engine's Python reference (I2t, current loop, codec, emulator) are
  * in tests/test_firmware.py. Exit status 0 = all passed. */
 #include <math.h>
+#include <stdatomic.h>
 #include <stdio.h>
 #include <string.h>
 
@@ -41,6 +42,8 @@ static void period(void)
 {
     fd_sil_set_inputs(&sil, cur_counts, vdc_counts, ticks, 4096, 0, 35,
                       core.k * core.cfg.period_us);
+    while (fd_core_background(&core) > 0u) { /* the background before the interrupt */
+    }
     fd_core_period(&core);
 }
 
@@ -236,11 +239,14 @@ static void test_bus_voltage(void)
     drain();
     CHECK(core.fault_code == FD_FAULT_UNDERVOLTAGE && last_fault.fault_detail == 1708u);
     vdc_counts = 1300; /* 31.7 V */
+    period(); /* a reset is judged (in the background) on the last sample taken */
+    CHECK(core.fault_code == FD_FAULT_UNDERVOLTAGE);
     send_arm(0, FD_ARM_KEY, 1, 0);
-    period(); /* the reset clears UV (the bus is above its minimum) ... */
-    CHECK(!core.fault_latched);
-    period(); /* ... and the next sample trips OV */
-    CHECK(core.fault_code == FD_FAULT_OVERVOLTAGE);
+    n_fault = 0;
+    period(); /* the reset clears UV (the bus is above its minimum), this sample trips OV */
+    drain();
+    CHECK(core.fault_code == FD_FAULT_OVERVOLTAGE && n_fault == 2);
+    CHECK(last_fault.fault_code == FD_FAULT_OVERVOLTAGE);
     vdc_counts = 983;
 }
 
@@ -362,6 +368,8 @@ static void period_t(void)
 {
     fd_sil_set_inputs(&sil, cur_counts, vdc_counts, ticks, 4096, 0, temp_c,
                       core.k * core.cfg.period_us);
+    while (fd_core_background(&core) > 0u) {
+    }
     fd_core_period(&core);
 }
 
@@ -442,12 +450,13 @@ static void test_board_caps(void)
     /* the fault reset needs the cause gone: a hot stage until 10 degC below the trip */
     expect_trip(FD_FAULT_OVERTEMPERATURE, inj_hot);
     temp_c = 81;
+    period_t(); /* a reset is judged on the last sample taken */
     send_arm(0, FD_ARM_KEY, 1, 0);
     period_t();
     CHECK(core.fault_latched);
     send_arm(0, FD_ARM_KEY, 0, 0);
-    period_t();
     temp_c = 79;
+    period_t();
     send_arm(0, FD_ARM_KEY, 1, 0);
     period_t();
     CHECK(!core.fault_latched);
@@ -751,8 +760,8 @@ static void test_calibration(void)
             send_arm_mode(1, FD_MODE_CALIBRATE_ADC); /* the host's 10 Hz repeat: no restart */
         }
     } while (core.calibrating && n < 5000u);
-    /* the period that took the request, then 1000 periods of readings */
-    CHECK(n == 1001u && core.cal_valid && !core.fault_latched && state5 == 1);
+    /* taken in the background before the first: 1000 periods of readings */
+    CHECK(n == 1000u && core.cal_valid && !core.fault_latched && state5 == 1);
     CHECK(read_param(FD_PRM_CAL_OFFSET_A) == 2078.0f && read_param(FD_PRM_CAL_OFFSET_B) == 2028.0f);
     CHECK(read_param(FD_PRM_CAL_OFFSET_C) == 2055.0f && read_param(FD_PRM_CAL_CAPTURE_AB) == 3.0f);
     CHECK(read_param(FD_PRM_CAL_DONE) == 1.0f);
@@ -784,6 +793,127 @@ static void test_calibration(void)
     ticks[0] = 0;
 }
 
+/* ---------------------------------------------------------------- the two contexts */
+
+/* 60 queued DRIVE_PARAM requests: the period interrupt handles none of them (it sends
+ * only its sample and STATUS); the background answers FD_BG_FRAMES per call */
+static void test_bounded_interrupt(void)
+{
+    setup(1);
+    period();
+    drain();
+    for (int i = 0; i < 60; ++i) {
+        struct fd_can_drive_param_t m;
+        uint8_t b[8];
+        fd_can_drive_param_init(&m);
+        m.prm_id = FD_PRM_CUR_KP;
+        m.prm_seq = (uint8_t)i;
+        CHECK(fd_can_drive_param_pack(b, &m, 8) == 8);
+        push(FD_CAN_DRIVE_PARAM_FRAME_ID, b, 8, 0);
+    }
+    core.next_status_k = core.k; /* a STATUS in this period too: the most it sends */
+    uint32_t sent0 = sil.tx_head;
+    fd_sil_set_inputs(&sil, cur_counts, vdc_counts, ticks, 4096, 0, 35, core.k * 100u);
+    fd_core_period(&core); /* the interrupt alone */
+    CHECK(sil.tx_head - sent0 == 2u && core.stats.param_rx == 0u);
+    CHECK(sil.rx_head - sil.rx_tail == 60u);
+    n_ack = 0;
+    drain();
+    unsigned per_call[5];
+    for (int i = 0; i < 5; ++i) {
+        per_call[i] = fd_core_background(&core);
+        drain();
+    }
+    CHECK(per_call[0] == 16u && per_call[1] == 16u && per_call[2] == 16u);
+    CHECK(per_call[3] == 12u && per_call[4] == 0u);
+    CHECK(n_ack == 60 && core.stats.param_rx == 60u && last_ack.pa_seq == 59u);
+}
+
+/* the DUTY_CMD ring: at most FD_CMD_RING waiting; more are dropped and counted */
+static void test_command_ring(void)
+{
+    setup(1);
+    send_arm(1, FD_ARM_KEY, 0, 0);
+    period();
+    for (int i = 0; i < 10; ++i) {
+        send_duty((uint16_t)(100 + i), 0.5f, 1);
+    }
+    while (fd_core_background(&core) > 0u) {
+    }
+    CHECK(core.stats.duty_rx == 8u && core.stats.cmd_ring_full == 2u);
+    CHECK(fd_core_has_answer(&core, 107) && !fd_core_has_answer(&core, 108));
+    fd_sil_set_inputs(&sil, cur_counts, vdc_counts, ticks, 4096, 0, 35, core.k * 100u);
+    fd_core_period(&core); /* takes all eight over into its slots */
+    CHECK(atomic_load(&core.cmd_ring.tail) == 8u && fd_core_has_answer(&core, 107));
+}
+
+static void send_ref_th(uint16_t seq, float theta, float omega)
+{
+    struct fd_can_host_ref_t m;
+    uint8_t b[12];
+    fd_can_host_ref_init(&m);
+    m.ref_seq = seq;
+    m.ref_iq = fd_can_host_ref_ref_iq_encode(1.0f);
+    m.ref_theta = fd_can_host_ref_ref_theta_encode(theta);
+    m.ref_omega = fd_can_host_ref_ref_omega_encode(omega);
+    m.ref_enable = 1;
+    CHECK(fd_can_host_ref_pack(b, &m, 12) == 12);
+    push(FD_CAN_HOST_REF_FRAME_ID, b, 12, 1);
+}
+
+/* a reference handed over while the interrupt runs: the interrupt lands in the middle of
+ * a background write (sequence odd, half the fields new); it keeps extrapolating the
+ * reference it has, and takes the new one, whole, in the next period */
+static void test_reference_handover_interleaved(void)
+{
+    setup(1);
+    CHECK(fd_core_param_write(&core, FD_PRM_HEARTBEAT_TIMEOUT_S, 0.0f) == FD_PA_OK);
+    send_arm(1, FD_ARM_KEY, 0, 1);
+    period();
+    send_ref_th((uint16_t)(core.k - 1u), 1.0f, 100.0f);
+    period();
+    period();
+    CHECK(core.pwm_enabled && core.ref.theta == fd_can_host_ref_ref_theta_decode(
+                                                     fd_can_host_ref_ref_theta_encode(1.0f)));
+    float th_old = core.ref.theta;
+    uint16_t seq_old = core.ref.seq;
+    /* the background begins a write: seq odd, seq and theta written, the rest not yet */
+    unsigned s = atomic_load(&core.ref_box.seq);
+    atomic_store(&core.ref_box.seq, s + 1u);
+    core.ref_box.ref.seq = (uint16_t)(core.k - 1u);
+    core.ref_box.ref.theta = 2.5f;
+    core.ref_box.ref.valid = 1;
+    core.ref_box.ref.enable = 1;
+    fd_sil_set_inputs(&sil, cur_counts, vdc_counts, ticks, 4096, 0, 35, core.k * 100u);
+    fd_core_period(&core); /* the interrupt preempts the writer */
+    CHECK(core.ref.theta == th_old && core.ref.seq == seq_old);
+    CHECK(core.stats.ref_handover_busy == 1u && !core.fault_latched && sil.pwm_enable == 1);
+    /* the extrapolated angle is the old reference's: theta + omega (k - seq) Ts */
+    float want = th_old + 100.0f * (float)(uint16_t)(core.k - 1u - seq_old) * 1.0e-4f;
+    CHECK(fabsf(core.theta_used - want) < 1.0e-4f);
+    /* the writer finishes; the next interrupt takes it */
+    core.ref_box.ref.iq = 1.0f;
+    core.ref_box.ref.omega = 100.0f;
+    core.ref_box.ref.id = 0.0f;
+    atomic_store(&core.ref_box.seq, s + 2u);
+    period();
+    CHECK(core.ref.theta == 2.5f && core.stats.refs_applied == 2u);
+    CHECK(core.stats.ref_handover_busy == 1u);
+}
+
+/* an interrupt entered again before the last one returned */
+static void test_reentry(void)
+{
+    setup(1);
+    run_armed();
+    n_fault = 0;
+    core.in_isr = 1;
+    fd_core_period(&core);
+    drain();
+    CHECK(core.fault_code == FD_FAULT_DEADLINE_MISSED && sil.pwm_enable == 0);
+    CHECK(n_fault == 1 && last_fault.fault_detail == 0xFFFFu);
+}
+
 int main(void)
 {
     test_arm_key();
@@ -805,6 +935,10 @@ int main(void)
     test_seq_wrap();
     test_period_wrap();
     test_calibration();
+    test_bounded_interrupt();
+    test_command_ring();
+    test_reference_handover_interleaved();
+    test_reentry();
     if (failures) {
         fprintf(stderr, "fd_core_test: %d check(s) failed\n", failures);
         return 1;

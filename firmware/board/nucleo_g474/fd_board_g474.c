@@ -26,10 +26,13 @@ const uint32_t fd_board_debug[] = {
     (uint32_t)offsetof(fd_core_t, mode),
     (uint32_t)offsetof(fd_core_t, stats),
     (uint32_t)offsetof(fd_core_t, prm),
-    (uint32_t)offsetof(fd_core_t, ref_new),
+    (uint32_t)offsetof(fd_core_t, ref_box),
     (uint32_t)offsetof(fd_core_t, cmds),
     (uint32_t)sizeof(fd_duty_cmd_t),
     (uint32_t)FD_CMD_SLOTS,
+    (uint32_t)offsetof(fd_core_t, ref_box_taken),
+    (uint32_t)offsetof(fd_core_t, cmd_ring),
+    (uint32_t)FD_CMD_RING,
     (uint32_t)sizeof(fd_board_t),
 };
 
@@ -385,8 +388,9 @@ static void fdcan_init(void)
                       FIELD(G4_FDCAN1_RXGFC, ANFE, 2u) | G4_FDCAN1_RXGFC_RRFS_Msk |
                       G4_FDCAN1_RXGFC_RRFE_Msk;
     G4_FDCAN1_TXBC = 0u; /* TX FIFO mode */
-    /* bus-off, error passive and RX FIFO 0 message lost on interrupt line 1 */
-    G4_FDCAN1_IE = G4_FDCAN1_IE_BOE_Msk | G4_FDCAN1_IE_RF0LE_Msk;
+    /* bus-off, error passive, RX FIFO 0 message lost and new message on interrupt line 1
+     * (a new message wakes the background loop from wfi: it handles received frames) */
+    G4_FDCAN1_IE = G4_FDCAN1_IE_BOE_Msk | G4_FDCAN1_IE_RF0LE_Msk | G4_FDCAN1_IE_RF0NE_Msk;
     G4_FDCAN1_ILS = G4_FDCAN1_ILS_BERR_Msk | G4_FDCAN1_ILS_RXFIFO0_Msk;
     G4_FDCAN1_ILE = G4_FDCAN1_ILE_EINT1_Msk;
     G4_FDCAN1_CCCR &= ~(G4_FDCAN1_CCCR_CCE_Msk | G4_FDCAN1_CCCR_INIT_Msk);
@@ -410,6 +414,8 @@ static uint32_t iwdg_seen;
 
 void fd_board_background(void)
 {
+    while (fd_core_background(&fd_board_core) > 0u) { /* CAN reception, below the period */
+    }
     /* refresh only while the period interrupt keeps running */
     if (fd_board.periods != iwdg_seen) {
         iwdg_seen = fd_board.periods;
@@ -550,6 +556,22 @@ void fd_hal_pwm_write(void *hal, const uint32_t compare[3], bool enable)
 
 /* Called last in the period interrupt: TIM1's update flag (cleared on entry) set again
  * means the next valley passed, and with it the preload deadline of the running period */
+/* the background's critical sections: PRIMASK (the break path needs no CPU) */
+uint32_t fd_hal_irq_lock(void *hal)
+{
+    (void)hal;
+    uint32_t primask;
+    __asm__ volatile("mrs %0, primask" : "=r"(primask));
+    __asm__ volatile("cpsid i" : : : "memory");
+    return primask;
+}
+
+void fd_hal_irq_unlock(void *hal, uint32_t state)
+{
+    (void)hal;
+    __asm__ volatile("msr primask, %0" : : "r"(state) : "memory");
+}
+
 bool fd_hal_period_overrun(void *hal)
 {
     (void)hal;

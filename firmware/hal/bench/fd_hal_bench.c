@@ -67,4 +67,17 @@ uint32_t fd_hal_time_us(void *hal) { return ((fd_bench_hal_t *)hal)->time_us; }
 
 void fd_hal_status_read(void *hal, fd_hal_status_t *out) { *out = ((fd_bench_hal_t *)hal)->hw; }
 
+/* the bench calls the background between interrupts, never inside one */
+uint32_t fd_hal_irq_lock(void *hal)
+{
+    (void)hal;
+    return 0u;
+}
+
+void fd_hal_irq_unlock(void *hal, uint32_t state)
+{
+    (void)hal;
+    (void)state;
+}
+
 bool fd_hal_period_overrun(void *hal) { return ((fd_bench_hal_t *)hal)->overrun != 0u; }

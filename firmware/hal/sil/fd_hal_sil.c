@@ -126,6 +126,19 @@ void fd_hal_pwm_write(void *hal, const uint32_t compare[3], bool enable)
     s->pwm_enable = enable && !s->break_latched ? 1 : 0;
 }
 
+/* one thread calls both contexts in turn: nothing to lock */
+uint32_t fd_hal_irq_lock(void *hal)
+{
+    (void)hal;
+    return 0u;
+}
+
+void fd_hal_irq_unlock(void *hal, uint32_t state)
+{
+    (void)hal;
+    (void)state;
+}
+
 bool fd_hal_period_overrun(void *hal)
 {
     fd_sil_t *s = (fd_sil_t *)hal;

@@ -12,7 +12,10 @@ memory (the C side has no heap). Per PWM period the driver
 * hands it the raw readings of sample k (:meth:`FirmwareCore.set_sample` converts the
   plant's frame to ADC counts, capture ticks and encoder counts with the plant's own sensor
   scales, ``fluxdrive.drive.plant`` MP_*),
-* moves received CAN frames in (:meth:`push`), runs the period interrupt (:meth:`period`),
+* moves received CAN frames in (:meth:`push`), runs the two contexts as the target does
+  (:meth:`period`: the background context, which takes the received frames and hands
+  DUTY_CMDs and HOST_REFs to the interrupt lock-free, then the period interrupt, which
+  never reads the CAN controller itself),
 * reads the PWM back (:meth:`pwm`: duties and enable for the period now starting) and the
   frames the core sent (:meth:`pop_tx`).
 
@@ -157,6 +160,7 @@ _STAT_NAMES = (
     "periods", "samples_sent", "duty_rx", "duty_applied", "duty_late", "stale_periods",
     "ref_rx", "arm_rx", "bad_rx", "tx_overruns", "layout_mismatch", "disarm_rx", "faults",
     "param_rx", "refs_applied", "ref_old", "ref_future", "adc_clipped", "duty_limited",
+    "cmd_ring_full", "ref_handover_busy", "bg_frames",
 )  # fmt: skip
 
 
@@ -219,6 +223,7 @@ def _c_signatures() -> dict[str, tuple[Any, list[Any]]]:
         "fd_config_default": (None, [ctypes.POINTER(_Config)]),
         "fd_core_init": (None, [P, ctypes.POINTER(_Config), P]),
         "fd_core_period": (None, [P]),
+        "fd_core_background": (ctypes.c_uint, [P]),
         "fd_core_param_write": (ctypes.c_int, [P, ctypes.c_int, F]),
         "fd_core_param_read": (ctypes.c_int, [P, ctypes.c_int, FP]),
         "fd_sil_has_answer": (ctypes.c_int, [P, P, U16]),
@@ -423,8 +428,17 @@ class FirmwareCore:
         self.lib.fd_sil_set_time(self._sil, int(time_us) & 0xFFFFFFFF)
 
     def period(self) -> None:
-        """The period interrupt of the sample set last."""
+        """One period as the target runs it: the background context until it has no
+        received frame left (what the main loop does between interrupts), then the period
+        interrupt on the sample set last."""
+        while self.lib.fd_core_background(self._core):
+            pass
         self.lib.fd_core_period(self._core)
+
+    def background(self) -> int:
+        """One call of the background context alone (at most 16 received frames handled);
+        returns how many it handled."""
+        return int(self.lib.fd_core_background(self._core))
 
     def pwm(self) -> tuple[np.ndarray, bool]:
         """Duties (compare / period ticks) and enable for the period now starting."""
@@ -445,8 +459,8 @@ class FirmwareCore:
         )
 
     def handle_now(self, msg: can.Message) -> None:
-        """Serve a received frame at once, between period interrupts (what a firmware's
-        background loop does with parameter requests); its answer is in :meth:`pop_tx`."""
+        """Serve a received frame at once in the background context, between period
+        interrupts (``fd_core_handle_frame``); its answer is in :meth:`pop_tx`."""
         data = bytes(msg.data)[:64]
         f = _Frame(msg.arbitration_id, len(data), int(bool(msg.is_fd)))
         ctypes.memmove(f.data, data, len(data))

@@ -311,7 +311,8 @@ class VirtualBoard:
         self._main = mu.context_save()
         dbg = self.syms["fd_board_debug"][0]
         names = ("size", "k", "armed", "pwm_enabled", "fault_latched", "split", "fault_code",
-                 "mode", "stats", "prm", "ref_new", "cmds", "cmd_size", "cmd_slots")  # fmt: skip
+                 "mode", "stats", "prm", "ref_box", "cmds", "cmd_size", "cmd_slots",
+                 "ref_box_taken", "cmd_ring", "cmd_ring_slots")  # fmt: skip
         vals = struct.unpack_from(f"<{len(names)}I", self.flash, dbg - _FLASH)
         self._off = dict(zip(names, vals, strict=True))
         self._core = self.syms["fd_board_core"][0]
@@ -585,7 +586,16 @@ class VirtualBoard:
 
     def period(self) -> None:
         """One PWM period from the valley t_k: update event, conversions, the period
-        interrupt, the background loop."""
+        interrupt, the background loop. Frames received since the last period woke the
+        background loop first (the FDCAN's new-message interrupt ends its wfi): the core
+        takes CAN frames only there and hands commands and references to the interrupt."""
+        waiting = len(self._rx_fifo) + len(self._rx_wait)
+        while waiting:
+            self._background()
+            left = len(self._rx_fifo) + len(self._rx_wait)
+            if left >= waiting:
+                break
+            waiting = left
         self._update_event()
         r = self._r
         if self.regs.get(r["ADC1_IER"], 0) & _bit("ADC1_IER_JEOSIE") and self.regs.get(
@@ -633,14 +643,24 @@ class VirtualBoard:
         seq &= 0xFFFF
         o, mem = self._off, self.mu.mem_read
         if self.state()["split"]:
-            s, valid = struct.unpack("<HB", mem(self._core + o["ref_new"], 3))
-            if valid and s == seq:
+            # the sequence-locked reference: even, not yet taken, answering seq
+            box, s, valid = struct.unpack("<IHB", mem(self._core + o["ref_box"], 7))
+            (taken,) = struct.unpack("<I", mem(self._core + o["ref_box_taken"], 4))
+            if box != taken and not box & 1 and valid and s == seq:
                 return True
         else:
             raw = mem(self._core + o["cmds"], o["cmd_size"] * o["cmd_slots"])
             for i in range(o["cmd_slots"]):
                 s, valid = struct.unpack_from("<HB", raw, i * o["cmd_size"])
                 if valid and s == seq:
+                    return True
+            # the ring the background fills: slots, then head, then tail
+            n = o["cmd_ring_slots"]
+            ring = mem(self._core + o["cmd_ring"], o["cmd_size"] * n + 8)
+            head, tail = struct.unpack_from("<II", ring, o["cmd_size"] * n)
+            for i in range(tail, head):
+                s, _valid = struct.unpack_from("<HB", ring, (i % n) * o["cmd_size"])
+                if s == seq:
                     return True
         waiting = [(m.arbitration_id, 0, bytes(m.data)) for m in self._rx_wait]
         for aid, _dlc, data in [*self._rx_fifo, *waiting]:
