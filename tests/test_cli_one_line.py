@@ -207,6 +207,18 @@ CASES: list[tuple[str, str, list[str], str]] = [
         "'pole_pairs' must be an integer",
     ),
     (
+        "card-pole-pairs-0",
+        "a machine card with `pole_pairs: 0`",
+        ["sim", "{tmp}/card_zero_scenario.yaml"],
+        "'pole_pairs' = 0 is out of range [1, 64]",
+    ),
+    (
+        "card-range",
+        "a machine card with a per-unit value out of its range (`flux_h5: 0.9`)",
+        ["sim", "{tmp}/card_h5_scenario.yaml"],
+        "'flux_h5' = 0.9 is out of range [-0.5, 0.5]",
+    ),
+    (
         "card-nan",
         "a machine card with `flux_h5: .nan`",
         ["sim", "{tmp}/card_nan_scenario.yaml"],
@@ -325,6 +337,8 @@ def files(tmp_path_factory):
     card = (ROOT / "config" / "machines" / "default_spm.yaml").read_text()
     (tmp / "card.yaml").write_text(_set_key(card, "pole_pairs", "2.5"))
     (tmp / "card_nan.yaml").write_text(_set_key(card, "flux_h5", ".nan"))
+    (tmp / "card_zero.yaml").write_text(_set_key(card, "pole_pairs", "0"))
+    (tmp / "card_h5.yaml").write_text(_set_key(card, "flux_h5", "0.9"))
     base = (ROOT / "config" / "scenarios" / "tune_60rpm_80load.yaml").read_text()
     base = base.replace("../machines/", f"{ROOT}/config/machines/")
     base = base.replace("../benches/", f"{ROOT}/config/benches/")
@@ -332,7 +346,7 @@ def files(tmp_path_factory):
         "\n".join(ln for ln in base.splitlines() if not ln.startswith("speed_rpm:"))
         + "\nspeed_pu: 1e308\n"
     )
-    for name in ("card", "card_nan"):
+    for name in ("card", "card_nan", "card_zero", "card_h5"):
         (tmp / f"{name}_scenario.yaml").write_text(
             base.replace(f"{ROOT}/config/machines/default_spm.yaml", str(tmp / f"{name}.yaml"))
         )

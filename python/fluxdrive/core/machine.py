@@ -44,7 +44,7 @@ def _require_range(src: str, key: str, value: Any, lo: float, hi: float) -> floa
     if not math.isfinite(v):
         raise ConfigError(f"{src}: '{key}' must be a finite number, got {v}")
     if not lo <= v <= hi:
-        raise ConfigError(f"{src}: '{key}' = {v} is out of range [{lo}, {hi}]")
+        raise ConfigError(f"{src}: '{key}' = {value!r} is out of range [{lo}, {hi}]")
     return v
 
 
