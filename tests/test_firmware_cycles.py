@@ -72,6 +72,12 @@ def test_bounds_of_a_small_trace_in_ccm_and_in_flash():
     assert flash.classes["branch_taken"] == 1 and flash.classes["fdiv"] == 1
 
 
+def test_table_branch_loads_before_it_branches():
+    prog = [(0x0, 4, "tbb", "[pc, r3]"), (0x10, 2, "movs", "r0, #1")]
+    b = _coster(prog, "ccm").cost([0x0, 0x10], 0x12)
+    assert b.lower == 3 + 1 + fc.ENTRY_EXIT_LOWER and b.upper == 5 + 1 + fc.ENTRY_EXIT_UPPER
+
+
 def test_flash_fetch_bounds_a_straight_run():
     """Eight single-cycle 32-bit instructions and a taken 32-bit branch: 36 bytes are five
     64-bit lines, 5 cycles each with 4 wait states, more than the 12 cycles they execute."""

@@ -19,7 +19,7 @@ VPUSH/VPOP (N registers, a D
 register counts 2)
 branch not taken                  1            1
 branch taken (B, BL, BX, CBZ,     2            4
-POP {pc}, anything writing pc)    (1 + P, P = 1..3: pipeline refill)
+POP {pc}, anything writing pc)    (1 + P, P = 1..3: pipeline refill; TBB/TBH 2 + P)
 FPU add/sub/mul/neg/abs/cmp/cvt,  1            1
 VMOV, VMRS
 VMOV of two core registers        2            2
@@ -322,7 +322,7 @@ def _cycles(ins: Insn, taken: bool, prev_mem: bool) -> tuple[int, int]:
     elif c == "multi":
         base = (1 + ins.regs, 1 + ins.regs)
     elif c == "branch":
-        base = (1, 1)
+        base = (2, 2) if ins.op in ("tbb", "tbh") else (1, 1)  # a table branch loads first
     elif c == "fdiv":
         base = (14, 14)
     elif c == "fmac":
