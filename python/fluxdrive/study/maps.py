@@ -252,9 +252,9 @@ def write_report(
         "| axis | values | what it sets |",
         "|---|---|---|",
     ]
-    for a, v in spec.grid.items():
-        vals = ", ".join(f"{x:g}" if isinstance(x, (int, float)) else str(x) for x in v)
-        lines.append(f"| {a} | {vals} | {axis_override_text(spec, a)} |")
+    for axis, values in spec.grid.items():
+        vals = ", ".join(f"{x:g}" if isinstance(x, (int, float)) else str(x) for x in values)
+        lines.append(f"| {axis} | {vals} | {axis_override_text(spec, axis)} |")
     for a in spec.map_axes:
         if a not in spec.grid:
             lines.append(f"| {a} (map axis) | — | not varied: the map has one row/column |")
