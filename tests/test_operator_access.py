@@ -132,6 +132,7 @@ def test_foxglove_gate_refuses_strangers_and_caps_connections():
         dt = time.monotonic() - t0
         assert reply.startswith("HTTP/1.1 503"), reply
         assert "connection limit reached (100 clients" in reply
+        print(f"client {cap + 1} refused with 503 in {dt * 1000:.1f} ms")
         assert dt < 5.0, dt
         assert logged[-1].startswith("foxglove: refused 127.0.0.1:") and " 503 " in logged[-1]
         # one leaves: the next gets in
