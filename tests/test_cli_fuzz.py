@@ -91,17 +91,24 @@ class _Captured(Exception):
         self.parser = parser
 
 
-def _commands():
+def _commands() -> list[str]:
+    """Every command, and every `benchmark NAME` (each one a command with its own parser)."""
+    from fluxdrive.cli.bench import BENCHES
     from fluxdrive.cli.main import COMMANDS
 
-    return {k: v for k, v in COMMANDS.items() if k not in SKIP_COMMANDS}
+    cmds = [k for k in COMMANDS if k not in SKIP_COMMANDS and k != "benchmark"]
+    return cmds + [f"benchmark {name}" for name in BENCHES]
 
 
 def _func(cmd: str):
     import importlib
 
-    mod, fn, _ = _commands()[cmd]
-    return getattr(importlib.import_module(mod), fn)
+    from fluxdrive.cli.main import COMMANDS
+
+    word, _, sub = cmd.partition(" ")
+    mod, fn, _ = COMMANDS[word]
+    main = getattr(importlib.import_module(mod), fn)
+    return (lambda argv: main([sub, *argv])) if sub else main
 
 
 @pytest.fixture(scope="module")
@@ -190,9 +197,9 @@ def _check_parse(cmd: str, argv: list[str]) -> str:
 
 def test_fuzz_every_command_option(parsers):
     """Every command's options, hostile values: parsed (finite, int64) or one line."""
-    assert {"run", "launch", "param", "topic", "bench", "replay", "scope", "foxglove"} <= set(
-        parsers
-    ), sorted(parsers)
+    want = {"run", "launch", "param", "topic", "bench", "replay", "scope", "foxglove"}
+    want |= {"benchmark can", "benchmark graph", "benchmark engine"}
+    assert want <= set(parsers), sorted(parsers)
     seen: dict[str, int] = {}
     t0 = time.monotonic()
 
