@@ -106,7 +106,8 @@ def summary(data: dict[str, Any], families: dict[str, str]) -> dict[str, Any]:
                 "front_rms": cell[fam]["front_rms"],
                 "front_noise": cell[fam]["front_noise"],
                 "front_h6": cell[fam]["front_h6"],
-                "max_bandwidth_hz": max(p[0] for p in cell[fam]["front_rms"]),
+                # None: every setting slipped (no front)
+                "max_bandwidth_hz": max((p[0] for p in cell[fam]["front_rms"]), default=None),
             }
             for fam in families
         }
