@@ -5,6 +5,8 @@ lower <= upper with every bound above one cycle per instruction."""
 
 from __future__ import annotations
 
+from collections import Counter
+
 import pytest
 from fluxdrive.can import firmware_cycles as fc
 
@@ -108,3 +110,21 @@ def test_image_places_the_interrupt_in_ccm_and_bounds_its_trace():
         assert len(pcs) < b.lower < b.upper, (tag, b.lower, b.upper)
         assert sum(b.classes.values()) == len(pcs)
         assert "sinf" not in b.by_function and "memcpy" not in b.by_function
+        # the same execution known only as counted basic blocks (what the virtual board's
+        # block hook records): bounds that bracket the ordered trace's
+        blocks: Counter[tuple[int, int]] = Counter()
+        start = pcs[0]
+        for pc, nxt in zip(pcs, [*pcs[1:], end], strict=True):
+            if nxt != pc + coster.insns[pc].size:
+                blocks[(start, pc + coster.insns[pc].size - start)] += 1
+                start = nxt
+        bb = coster.cost_blocks(blocks)
+        assert bb.instructions == len(pcs)
+        assert bb.lower <= b.lower and bb.upper >= b.upper, (
+            tag,
+            bb.lower,
+            b.lower,
+            bb.upper,
+            b.upper,
+        )
+        assert bb.upper < 1.2 * b.upper

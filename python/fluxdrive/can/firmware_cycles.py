@@ -54,7 +54,7 @@ import bisect
 import re
 import subprocess
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -99,6 +99,15 @@ class Insn:
     regs: int = 0  # registers moved by a multiple load/store (D registers count 2)
     writes_pc: bool = False
     literal: bool = False  # a PC-relative load
+    conditional: bool = False  # a condition code (or CBZ/CBNZ): may fall through
+
+
+def _is_conditional(mnemonic: str) -> bool:
+    m = mnemonic.split(".")[0].lower()
+    if m in ("cbz", "cbnz"):
+        return True
+    cm = re.fullmatch(rf"(.+?)({_CONDS})", m)
+    return bool(cm and cm.group(1) in _KNOWN and m not in _KNOWN)
 
 
 def _base(mnemonic: str) -> str:
@@ -195,7 +204,8 @@ def disassemble(elf: Path) -> dict[int, Insn]:
         op = _base(m.group(3))
         args = m.group(4).split(";")[0].strip()
         cls, regs, wpc, lit = _classify(op, args)
-        insns[addr] = Insn(addr, size, op, args, cls, regs, wpc, lit)
+        cond = _is_conditional(m.group(3))
+        insns[addr] = Insn(addr, size, op, args, cls, regs, wpc, lit, cond)
     return insns
 
 
@@ -301,6 +311,44 @@ class TraceCoster:
             b.lower += lo
             b.upper += hi + extra
             b.by_function[fn] += hi + extra
+        b.lower += ENTRY_EXIT_LOWER
+        b.upper += ENTRY_EXIT_UPPER
+        return b
+
+    def cost_blocks(self, blocks: Mapping[tuple[int, int], int]) -> CycleBounds:
+        """Bounds of one interrupt known only as executed basic blocks ((address, size) ->
+        times executed, as an emulator's block hook counts them; the order is lost). A
+        block's last branch counts as taken in the upper bound, and in the lower one only
+        when it is unconditional; in flash every block starts a fresh line fetch (upper).
+        These bracket :meth:`cost` of the same execution."""
+        b = CycleBounds()
+        for (start, size), times in blocks.items():
+            pc, end = start, start + size
+            lo_sum = hi_sum = 0
+            prev_mem = False
+            flash = self.where.get(self.function(start), "flash") == "flash"
+            while pc < end:
+                ins = self.insns.get(pc)
+                if ins is None:
+                    raise ValueError(f"no instruction at 0x{pc:08x} in the disassembly")
+                last = pc + ins.size >= end
+                branch = last and (ins.cls == "branch" or ins.writes_pc)
+                lo, _ = _cycles(ins, branch and not ins.conditional, prev_mem)
+                _, hi = _cycles(ins, branch, prev_mem)
+                prev_mem = ins.cls == "mem" and not ins.writes_pc
+                if ins.literal:
+                    hi += FLASH_WAIT_STATES if flash else 1
+                lo_sum += lo
+                hi_sum += hi
+                b.classes[ins.cls] += times
+                b.instructions += times
+                pc += ins.size
+            if flash:
+                lines = -(-size // FLASH_LINE_BYTES)
+                hi_sum = max(hi_sum, (FLASH_WAIT_STATES + 1) * lines) + FLASH_WAIT_STATES
+            b.lower += times * lo_sum
+            b.upper += times * hi_sum
+            b.by_function[self.function(start)] += times * hi_sum
         b.lower += ENTRY_EXIT_LOWER
         b.upper += ENTRY_EXIT_UPPER
         return b
