@@ -152,6 +152,30 @@ typedef struct {
 /* frames the background takes from the CAN controller per fd_core_background call */
 #define FD_BG_FRAMES 16u
 
+/* the fault log: the last FD_FAULT_LOG faults with the period counter they were raised in */
+#define FD_FAULT_LOG 8u
+typedef struct {
+    uint8_t code;
+    uint16_t detail;
+    uint32_t k;
+} fd_fault_entry_t;
+
+/* DRIVE_PARAM PARAM_SOURCE: where the parameters at boot came from */
+enum { FD_PRM_SOURCE_DEFAULTS = 0, FD_PRM_SOURCE_STORED = 1, FD_PRM_SOURCE_BAD_CRC = 2 };
+
+/* the stored parameter record (fd_hal_storage_*): the writable DRIVE_PARAMs and a CRC-32
+ * (IEEE 802.3, reflected, over everything before it) */
+#define FD_STORE_MAGIC 0x46445031u /* "FDP1" */
+typedef struct {
+    uint32_t magic;
+    uint32_t count; /* FD_PRM_COUNT of the firmware that wrote it */
+    float prm[FD_PRM_COUNT];
+    uint32_t crc;
+} fd_param_record_t;
+
+/** CRC-32 (IEEE 802.3, reflected, init and final xor 0xFFFFFFFF) of n bytes. */
+uint32_t fd_crc32(const void *data, uint32_t n);
+
 /** Counters (what the emulator's EmulatorStats counts). */
 typedef struct {
     uint32_t periods;
@@ -176,6 +200,8 @@ typedef struct {
     uint32_t cmd_ring_full;     /* DUTY_CMDs dropped: the hand-over ring was full */
     uint32_t ref_handover_busy; /* interrupts that met a HOST_REF half written */
     uint32_t bg_frames;         /* frames handled by the background context */
+    uint32_t can_bus_offs;      /* bus-off events of the CAN controller */
+    uint32_t param_saves;       /* parameter records written to storage */
 } fd_stats_t;
 
 /** The whole drive state. Fields are public for tests and the SIL binding; firmware code
@@ -230,6 +256,10 @@ typedef struct {
     unsigned ref_box_taken;   /* ref_box.seq of the last reference the interrupt took */
     fd_cmd_ring_t cmd_ring;   /* received DUTY_CMDs (background -> interrupt) */
     uint8_t in_isr;           /* fd_core_period running: a second entry is an overrun */
+    uint8_t bus_off_prev;     /* the CAN controller was bus-off at the last period */
+    uint32_t bus_off_recovered; /* stats.can_bus_offs the background has recovered */
+    fd_fault_entry_t fault_log[FD_FAULT_LOG]; /* ring, newest at fault_log_n - 1 */
+    uint32_t fault_log_n;     /* faults logged since boot */
     fd_host_ref_t ref;        /* in use */
     fd_cur_state_t cur;
     fd_cur_out_t cur_out;     /* output of the last current-loop step */
@@ -241,7 +271,8 @@ typedef struct {
 
 /** Defaults of a 10 kHz board (fd_config_t) and of the DRIVE_PARAMs. */
 void fd_config_default(fd_config_t *cfg);
-/** Initialise (PWM off, disarmed, parameters at their defaults). */
+/** Initialise (PWM off, disarmed): parameters from storage if its record's CRC holds, else
+ *  the defaults (DRIVE_PARAM PARAM_SOURCE says which). Before the interrupts start. */
 void fd_core_init(fd_core_t *c, const fd_config_t *cfg, void *hal);
 /** The per-PWM-period interrupt body (see the file comment). Bounded: no CAN reception,
  *  at most FD_CMD_RING commands and one reference taken over, at most a sample (one
@@ -254,6 +285,8 @@ unsigned fd_core_background(fd_core_t *c);
 /** DRIVE_PARAM access (what a received DRIVE_PARAM does); returns a FD_PA_* status. */
 int fd_core_param_write(fd_core_t *c, int prm_id, float value);
 int fd_core_param_read(const fd_core_t *c, int prm_id, float *value);
+/** Fault log entry i (0 = newest); 0 if there is none. */
+int fd_core_fault_log(const fd_core_t *c, uint32_t i, fd_fault_entry_t *out);
 /** 1 if the host's answer to sample `seq` (a DUTY_CMD in host mode, a HOST_REF in split
  *  mode) has been received and not yet taken (lockstep drivers wait for it). */
 int fd_core_has_answer(const fd_core_t *c, uint16_t seq);

@@ -85,6 +85,14 @@ uint32_t fd_hal_time_us(void *hal);
  *  period interrupt. */
 uint32_t fd_hal_irq_lock(void *hal);
 void fd_hal_irq_unlock(void *hal, uint32_t state);
+/** The CAN controller is bus-off: start its recovery (FDCAN: clear CCCR.INIT; the
+ *  controller rejoins after 128 x 11 recessive bits). Background context. */
+void fd_hal_can_recover(void *hal);
+/** Non-volatile parameter storage (a flash page, EEPROM emulation; RAM in the SIL),
+ *  background context and fd_core_init only; may take milliseconds. read: false if
+ *  nothing was ever stored; write: false if it failed. */
+bool fd_hal_storage_read(void *hal, void *buf, uint32_t len);
+bool fd_hal_storage_write(void *hal, const void *buf, uint32_t len);
 /** Called last in the period interrupt: true if this interrupt missed its deadline (on a
  *  timer: the counter read now is past the compare-preload deadline of the running period,
  *  or the period interrupt's flag is pending again, i.e. a period was lost). */

@@ -35,6 +35,11 @@ typedef struct {
     int32_t break_mid, break_counts;
     int32_t break_latched; /* gates held open by the break until the core writes PWM off */
     int32_t overrun_next;  /* the next fd_hal_period_overrun answers true (once) */
+    uint32_t can_recoveries; /* fd_hal_can_recover calls (each ends the bus-off) */
+    /* the parameter storage: RAM standing in for a flash page */
+    uint8_t store[sizeof(fd_param_record_t)];
+    uint32_t store_len;   /* bytes stored, 0: nothing */
+    int32_t store_fail;   /* 1: writes fail */
 } fd_sil_t;
 
 size_t fd_sil_sizeof(void);

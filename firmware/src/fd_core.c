@@ -82,7 +82,85 @@ static const prm_spec_t PRM_SPEC[FD_PRM_COUNT] = {
     [FD_PRM_CAL_CAPTURE_BC] = {0.0f, 0.0f, 0.0f, 0, 1},
     [FD_PRM_CAL_CAPTURE_CA] = {0.0f, 0.0f, 0.0f, 0, 1},
     [FD_PRM_CAL_DONE] = {0.0f, 0.0f, 0.0f, 0, 1},
+    /* storage and diagnostics */
+    [FD_PRM_PARAM_SOURCE] = {0.0f, 0.0f, 0.0f, 0, 1},
+    [FD_PRM_PARAM_SAVE] = {0.0f, 1.0f, 0.0f, 0, 0}, /* write 1: store (PWM off) */
+    [FD_PRM_FAULT_LOG] = {0.0f, 0.0f, 0.0f, 0, 1},
+    [FD_PRM_CAN_TEC] = {0.0f, 0.0f, 0.0f, 0, 1},
+    [FD_PRM_CAN_BUS_OFFS] = {0.0f, 0.0f, 0.0f, 0, 1},
 };
+
+/* what goes to storage: the writable parameters (not the results and diagnostics) */
+static int stored_param(int id)
+{
+    return !PRM_SPEC[id].read_only && id != FD_PRM_PARAM_SAVE;
+}
+
+uint32_t fd_crc32(const void *data, uint32_t n)
+{
+    const uint8_t *p = (const uint8_t *)data;
+    uint32_t crc = 0xFFFFFFFFu;
+    for (uint32_t i = 0; i < n; ++i) { /* bitwise: no table in flash, background only */
+        crc ^= p[i];
+        for (int b = 0; b < 8; ++b) {
+            crc = (crc >> 1) ^ (0xEDB88320u & (0u - (crc & 1u)));
+        }
+    }
+    return ~crc;
+}
+
+/* PARAM_SAVE: the record built under the critical section, written outside it (a flash
+ * write takes milliseconds: the period interrupt must keep running) */
+static int save_params(fd_core_t *c)
+{
+    fd_param_record_t rec;
+    memset(&rec, 0, sizeof(rec));
+    uint32_t irq = fd_hal_irq_lock(c->hal);
+    int running = c->pwm_enabled;
+    for (int i = 1; i < (int)FD_PRM_COUNT; ++i) {
+        rec.prm[i] = stored_param(i) ? c->prm[i] : 0.0f;
+    }
+    fd_hal_irq_unlock(c->hal, irq);
+    if (running) {
+        return FD_PA_NOT_WHILE_RUNNING;
+    }
+    rec.magic = FD_STORE_MAGIC;
+    rec.count = FD_PRM_COUNT;
+    rec.crc = fd_crc32(&rec, (uint32_t)offsetof(fd_param_record_t, crc));
+    if (!fd_hal_storage_write(c->hal, &rec, (uint32_t)sizeof(rec))) {
+        return FD_PA_STORAGE_FAILED;
+    }
+    c->stats.param_saves++;
+    return FD_PA_OK;
+}
+
+/* boot: the stored record if its CRC holds (each value checked against its range again),
+ * else the defaults; PARAM_SOURCE says which */
+static void load_params(fd_core_t *c)
+{
+    fd_param_record_t rec;
+    float src = (float)FD_PRM_SOURCE_DEFAULTS;
+    if (fd_hal_storage_read(c->hal, &rec, (uint32_t)sizeof(rec))) {
+        int ok = rec.magic == FD_STORE_MAGIC && rec.count == FD_PRM_COUNT &&
+                 rec.crc == fd_crc32(&rec, (uint32_t)offsetof(fd_param_record_t, crc));
+        for (int i = 1; ok && i < (int)FD_PRM_COUNT; ++i) {
+            const prm_spec_t *s = &PRM_SPEC[i];
+            ok = !stored_param(i) || (isfinite(rec.prm[i]) && rec.prm[i] >= s->lo &&
+                                      rec.prm[i] <= s->hi);
+        }
+        if (ok) {
+            for (int i = 1; i < (int)FD_PRM_COUNT; ++i) {
+                if (stored_param(i)) {
+                    c->prm[i] = rec.prm[i];
+                }
+            }
+            src = (float)FD_PRM_SOURCE_STORED;
+        } else {
+            src = (float)FD_PRM_SOURCE_BAD_CRC;
+        }
+    }
+    c->prm[FD_PRM_PARAM_SOURCE] = src;
+}
 
 static float minf2(float a, float b) { return a < b ? a : b; }
 static float maxf2(float a, float b) { return a > b ? a : b; }
@@ -115,6 +193,18 @@ int fd_core_param_read(const fd_core_t *c, int prm_id, float *value)
     case FD_PRM_VDC_MIN_V:
         *value = c->vdc_min_v;
         break;
+    case FD_PRM_FAULT_LOG:
+        *value = (float)(c->fault_log_n < FD_FAULT_LOG ? c->fault_log_n : FD_FAULT_LOG);
+        break;
+    case FD_PRM_CAN_TEC:
+        *value = (float)c->hw.can_tec;
+        break;
+    case FD_PRM_CAN_BUS_OFFS:
+        *value = (float)c->stats.can_bus_offs;
+        break;
+    case FD_PRM_PARAM_SAVE:
+        *value = 0.0f;
+        break;
     default:
         *value = c->prm[prm_id];
         break;
@@ -130,6 +220,9 @@ int fd_core_param_write(fd_core_t *c, int prm_id, float value)
     const prm_spec_t *s = &PRM_SPEC[prm_id];
     if (s->read_only) {
         return FD_PA_READ_ONLY;
+    }
+    if (prm_id == FD_PRM_PARAM_SAVE && value == 1.0f) {
+        return save_params(c);
     }
     if (!isfinite(value)) {
         return FD_PA_NOT_FINITE;
@@ -390,6 +483,11 @@ static void raise_fault(fd_core_t *c, uint8_t code, uint16_t detail)
     c->armed = 0;
     c->split_duty_valid = 0;
     if (is_new) {
+        fd_fault_entry_t *e = &c->fault_log[c->fault_log_n % FD_FAULT_LOG];
+        e->code = code;
+        e->detail = detail;
+        e->k = c->k;
+        c->fault_log_n++;
         c->fault_count = (uint8_t)(c->fault_count < 255u ? c->fault_count + 1u : 255u);
         c->stats.faults++;
         send_fault(c, detail);
@@ -462,6 +560,10 @@ static void protect(fd_core_t *c)
     }
     if (c->hw.gate_fault) {
         raise_fault(c, FD_FAULT_GATE_DRIVER, 0);
+        return;
+    }
+    if (c->hw.can_bus_off && c->armed) { /* the host can no longer reach the drive */
+        raise_fault(c, FD_FAULT_BUS_ERROR, c->hw.can_tec);
         return;
     }
     if (c->clip) { /* a saturated reading: the current is unknown, at least full scale */
@@ -783,10 +885,22 @@ static void on_drive_param(fd_core_t *c, const fd_can_frame_t *f)
         return;
     }
     c->stats.param_rx++;
+    int status = FD_PA_OK;
+    if (m.prm_write && m.prm_id == FD_PRM_PARAM_SAVE && m.prm_value == 1.0f) {
+        status = save_params(c); /* locks only while it copies */
+    }
     uint32_t irq = fd_hal_irq_lock(c->hal); /* the limits change together */
-    int status = m.prm_write ? fd_core_param_write(c, m.prm_id, m.prm_value) : FD_PA_OK;
+    if (m.prm_write && !(m.prm_id == FD_PRM_PARAM_SAVE && m.prm_value == 1.0f)) {
+        status = fd_core_param_write(c, m.prm_id, m.prm_value);
+    }
     float value = 0.0f;
     int rs = fd_core_param_read(c, m.prm_id, &value);
+    fd_fault_entry_t log[FD_FAULT_LOG];
+    uint32_t n_log = 0;
+    if (m.prm_id == FD_PRM_FAULT_LOG && rs == FD_PA_OK) { /* copied under the lock */
+        for (; fd_core_fault_log(c, n_log, &log[n_log]); ++n_log) {
+        }
+    }
     fd_hal_irq_unlock(c->hal, irq);
     if (rs != FD_PA_OK) {
         status = rs;
@@ -794,6 +908,24 @@ static void on_drive_param(fd_core_t *c, const fd_can_frame_t *f)
     uint8_t b[8];
     int n = fd_encode_param_ack(b, m.prm_id, m.prm_seq, (uint8_t)status, value);
     send(c, FD_CAN_DRIVE_PARAM_ACK_FRAME_ID, b, n, 0);
+    for (uint32_t i = 0; i < n_log; ++i) { /* the entries, newest first */
+        struct fd_can_fault_log_t e;
+        fd_can_fault_log_init(&e);
+        e.fl_index = (uint8_t)i;
+        e.fl_code = log[i].code;
+        e.fl_detail = log[i].detail;
+        e.fl_period = log[i].k;
+        send(c, FD_CAN_FAULT_LOG_FRAME_ID, b, fd_can_fault_log_pack(b, &e, 8), 0);
+    }
+}
+
+int fd_core_fault_log(const fd_core_t *c, uint32_t i, fd_fault_entry_t *out)
+{
+    if (i >= FD_FAULT_LOG || i >= c->fault_log_n) {
+        return 0;
+    }
+    *out = c->fault_log[(c->fault_log_n - 1u - i) % FD_FAULT_LOG];
+    return 1;
 }
 
 void fd_core_handle_frame(fd_core_t *c, const fd_can_frame_t *f)
@@ -830,6 +962,12 @@ unsigned fd_core_background(fd_core_t *c)
 {
     fd_can_frame_t f;
     unsigned n = 0;
+    /* bus-off seen by the interrupt: start the controller's recovery (once per event) */
+    uint32_t offs = c->stats.can_bus_offs;
+    if (offs != c->bus_off_recovered) {
+        c->bus_off_recovered = offs;
+        fd_hal_can_recover(c->hal);
+    }
     while (n < FD_BG_FRAMES && fd_hal_can_rx(c->hal, &f)) {
         fd_core_handle_frame(c, &f);
         n++;
@@ -1005,6 +1143,10 @@ static void read_sample(fd_core_t *c)
     fd_hal_adc_read(c->hal, &adc);
     fd_hal_capture_read(c->hal, &cap);
     fd_hal_status_read(c->hal, &c->hw);
+    if (c->hw.can_bus_off && !c->bus_off_prev) {
+        c->stats.can_bus_offs++; /* the background starts the recovery */
+    }
+    c->bus_off_prev = c->hw.can_bus_off;
     uint8_t clip = 0;
     uint16_t clip_detail = 0;
     for (int j = 0; j < 3; ++j) {
@@ -1240,6 +1382,7 @@ void fd_core_init(fd_core_t *c, const fd_config_t *cfg, void *hal)
     if (c->cfg.cal_periods == 0u || c->cfg.cal_periods > 65536u) {
         c->cfg.cal_periods = c->cfg.cal_periods == 0u ? 1u : 65536u; /* sums fit int32 */
     }
+    load_params(c);
     c->ticks_f = (float)c->cfg.pwm_period_ticks;
     c->inv_ticks = c->cfg.pwm_period_ticks > 0u ? 1.0f / c->ticks_f : 0.0f;
     update_limits(c);

@@ -914,6 +914,134 @@ static void test_reentry(void)
     CHECK(n_fault == 1 && last_fault.fault_detail == 0xFFFFu);
 }
 
+/* ---------------------------------------------------------------- fault log, storage, CAN */
+
+static int n_log;
+static struct fd_can_fault_log_t logs[FD_FAULT_LOG];
+
+static void drain_log(void)
+{
+    uint32_t id, len, fdf;
+    uint8_t b[64];
+    while (fd_sil_tx_pop(&sil, &id, b, &len, &fdf)) {
+        if (id == FD_CAN_FAULT_LOG_FRAME_ID && n_log < (int)FD_FAULT_LOG) {
+            CHECK(fd_can_fault_log_unpack(&logs[n_log], b, len) == 0);
+            n_log++;
+        } else if (id == FD_CAN_DRIVE_PARAM_ACK_FRAME_ID) {
+            CHECK(fd_can_drive_param_ack_unpack(&last_ack, b, len) == 0);
+            n_ack++;
+        }
+    }
+}
+
+static void request(uint8_t id, uint8_t write, float value)
+{
+    struct fd_can_drive_param_t m;
+    uint8_t b[8];
+    fd_can_drive_param_init(&m);
+    m.prm_id = id;
+    m.prm_write = write;
+    m.prm_value = value;
+    CHECK(fd_can_drive_param_pack(b, &m, 8) == 8);
+    push(FD_CAN_DRIVE_PARAM_FRAME_ID, b, 8, 0);
+}
+
+static void test_fault_log(void)
+{
+    setup(1);
+    uint32_t k_trip[10];
+    for (int i = 0; i < 10; ++i) { /* ten over-temperature trips, each reset */
+        temp_c = 95;
+        period_t();
+        k_trip[i] = core.k - 1u;
+        temp_c = 35;
+        period_t();
+        send_arm(0, FD_ARM_KEY, 1, 0);
+        period_t();
+        send_arm(0, FD_ARM_KEY, 0, 0);
+        period_t();
+    }
+    CHECK(!core.fault_latched && core.fault_log_n == 10u);
+    drain();
+    request(FD_PRM_FAULT_LOG, 0, 0.0f);
+    n_log = 0;
+    n_ack = 0;
+    period_t();
+    drain_log();
+    CHECK(n_ack == 1 && last_ack.pa_value == 8.0f && n_log == 8);
+    for (int i = 0; i < n_log; ++i) { /* newest first: the last eight */
+        CHECK(logs[i].fl_index == i && logs[i].fl_code == FD_FAULT_OVERTEMPERATURE);
+        CHECK(logs[i].fl_detail == 95u && logs[i].fl_period == k_trip[9 - i]);
+    }
+}
+
+static void test_param_storage(void)
+{
+    setup(1);
+    float v = -1.0f;
+    CHECK(fd_core_param_read(&core, FD_PRM_PARAM_SOURCE, &v) == FD_PA_OK &&
+          v == (float)FD_PRM_SOURCE_DEFAULTS);
+    CHECK(fd_core_param_write(&core, FD_PRM_CUR_KP, 2.5f) == FD_PA_OK);
+    CHECK(fd_core_param_write(&core, FD_PRM_MAX_DUTY, 0.9f) == FD_PA_OK);
+    n_ack = 0;
+    request(FD_PRM_PARAM_SAVE, 1, 1.0f); /* over the bus, PWM off */
+    period();
+    drain();
+    CHECK(n_ack == 1 && last_ack.pa_status == FD_PA_OK && core.stats.param_saves == 1u);
+    /* the next boot loads them */
+    fd_config_t cfg = core.cfg;
+    fd_core_init(&core, &cfg, &sil);
+    CHECK(core.prm[FD_PRM_CUR_KP] == 2.5f && core.max_duty == 0.9f);
+    CHECK(core.prm[FD_PRM_PARAM_SOURCE] == (float)FD_PRM_SOURCE_STORED);
+    /* one flipped bit in the record: the defaults, and PARAM_SOURCE says why */
+    sil.store[12] ^= 0x10u;
+    fd_core_init(&core, &cfg, &sil);
+    CHECK(core.prm[FD_PRM_CUR_KP] == 0.0f && core.max_duty == 0.95f);
+    CHECK(core.prm[FD_PRM_PARAM_SOURCE] == (float)FD_PRM_SOURCE_BAD_CRC);
+    /* a failing store and a save with PWM on are refused */
+    sil.store_fail = 1;
+    CHECK(fd_core_param_write(&core, FD_PRM_PARAM_SAVE, 1.0f) == FD_PA_STORAGE_FAILED);
+    sil.store_fail = 0;
+    run_armed();
+    CHECK(core.pwm_enabled);
+    CHECK(fd_core_param_write(&core, FD_PRM_PARAM_SAVE, 1.0f) == FD_PA_NOT_WHILE_RUNNING);
+    CHECK(fd_crc32("123456789", 9) == 0xCBF43926u); /* the CRC-32 check value */
+}
+
+static void test_bus_off(void)
+{
+    setup(1);
+    fd_sil_inject(&sil, 0, 96, 17, 0, 0);
+    period();
+    float v = 0.0f;
+    CHECK(fd_core_param_read(&core, FD_PRM_CAN_TEC, &v) == FD_PA_OK && v == 96.0f);
+    core.next_status_k = core.k;
+    period();
+    uint32_t id, len, fdf;
+    uint8_t b[64];
+    int rec = -1;
+    while (fd_sil_tx_pop(&sil, &id, b, &len, &fdf)) {
+        struct fd_can_status_t st;
+        if (id == FD_CAN_STATUS_FRAME_ID && fd_can_status_unpack(&st, b, len) == 0) {
+            rec = st.st_rx_errors;
+        }
+    }
+    CHECK(rec == 17); /* the controller's REC, not 0 */
+    run_armed();
+    n_fault = 0;
+    fd_sil_inject(&sil, 0, 255, 17, 1, 0); /* bus-off while running */
+    send_duty((uint16_t)(core.k - 1u), 0.5f, 1);
+    period();
+    drain();
+    CHECK(core.fault_code == FD_FAULT_BUS_ERROR && sil.pwm_enable == 0);
+    CHECK(n_fault == 1 && last_fault.fault_detail == 255u && core.stats.can_bus_offs == 1u);
+    CHECK(fd_core_background(&core) == 0u && sil.can_recoveries == 1u); /* recovery */
+    CHECK(!sil.hw.can_bus_off);
+    CHECK(fd_core_param_read(&core, FD_PRM_CAN_BUS_OFFS, &v) == FD_PA_OK && v == 1.0f);
+    fd_core_background(&core);
+    CHECK(sil.can_recoveries == 1u); /* once per event */
+}
+
 int main(void)
 {
     test_arm_key();
@@ -939,6 +1067,9 @@ int main(void)
     test_command_ring();
     test_reference_handover_interleaved();
     test_reentry();
+    test_fault_log();
+    test_param_storage();
+    test_bus_off();
     if (failures) {
         fprintf(stderr, "fd_core_test: %d check(s) failed\n", failures);
         return 1;

@@ -556,6 +556,31 @@ void fd_hal_pwm_write(void *hal, const uint32_t compare[3], bool enable)
 
 /* Called last in the period interrupt: TIM1's update flag (cleared on entry) set again
  * means the next valley passed, and with it the preload deadline of the running period */
+/* bus-off: FDCAN1_IT1 already cleared INIT (the recovery runs); again does no harm */
+void fd_hal_can_recover(void *hal)
+{
+    (void)hal;
+    G4_FDCAN1_CCCR &= ~G4_FDCAN1_CCCR_INIT_Msk;
+}
+
+/* Parameter storage in a flash page is not written for this port: nothing is stored (the
+ * core boots on its defaults, PARAM_SOURCE 0) and a PARAM_SAVE answers STORAGE_FAILED. */
+bool fd_hal_storage_read(void *hal, void *buf, uint32_t len)
+{
+    (void)hal;
+    (void)buf;
+    (void)len;
+    return false;
+}
+
+bool fd_hal_storage_write(void *hal, const void *buf, uint32_t len)
+{
+    (void)hal;
+    (void)buf;
+    (void)len;
+    return false;
+}
+
 /* the background's critical sections: PRIMASK (the break path needs no CPU) */
 uint32_t fd_hal_irq_lock(void *hal)
 {

@@ -67,6 +67,25 @@ uint32_t fd_hal_time_us(void *hal) { return ((fd_bench_hal_t *)hal)->time_us; }
 
 void fd_hal_status_read(void *hal, fd_hal_status_t *out) { *out = ((fd_bench_hal_t *)hal)->hw; }
 
+void fd_hal_can_recover(void *hal) { (void)hal; }
+
+/* no storage on the bench: the defaults at boot, a save fails */
+bool fd_hal_storage_read(void *hal, void *buf, uint32_t len)
+{
+    (void)hal;
+    (void)buf;
+    (void)len;
+    return false;
+}
+
+bool fd_hal_storage_write(void *hal, const void *buf, uint32_t len)
+{
+    (void)hal;
+    (void)buf;
+    (void)len;
+    return false;
+}
+
 /* the bench calls the background between interrupts, never inside one */
 uint32_t fd_hal_irq_lock(void *hal)
 {

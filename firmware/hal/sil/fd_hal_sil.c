@@ -126,6 +126,35 @@ void fd_hal_pwm_write(void *hal, const uint32_t compare[3], bool enable)
     s->pwm_enable = enable && !s->break_latched ? 1 : 0;
 }
 
+void fd_hal_can_recover(void *hal)
+{
+    fd_sil_t *s = (fd_sil_t *)hal;
+    s->can_recoveries++;
+    s->hw.can_bus_off = 0;
+    s->hw.can_tec = 0;
+}
+
+bool fd_hal_storage_read(void *hal, void *buf, uint32_t len)
+{
+    fd_sil_t *s = (fd_sil_t *)hal;
+    if (s->store_len == 0u || len > s->store_len) {
+        return false;
+    }
+    memcpy(buf, s->store, len);
+    return true;
+}
+
+bool fd_hal_storage_write(void *hal, const void *buf, uint32_t len)
+{
+    fd_sil_t *s = (fd_sil_t *)hal;
+    if (s->store_fail || len > sizeof(s->store)) {
+        return false;
+    }
+    memcpy(s->store, buf, len);
+    s->store_len = len;
+    return true;
+}
+
 /* one thread calls both contexts in turn: nothing to lock */
 uint32_t fd_hal_irq_lock(void *hal)
 {

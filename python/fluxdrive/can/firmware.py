@@ -58,13 +58,17 @@ PARAM_IDS: dict[str, int] = {name: pid for pid, name in PRM_CHOICES.items()}
 """DRIVE_PARAM prm_id by name (the DBC's value table, generated)."""
 READ_ONLY_PARAMS = (
     "CAL_OFFSET_A", "CAL_OFFSET_B", "CAL_OFFSET_C", "CAL_CAPTURE_AB", "CAL_CAPTURE_BC",
-    "CAL_CAPTURE_CA", "CAL_DONE",
+    "CAL_CAPTURE_CA", "CAL_DONE", "PARAM_SOURCE", "FAULT_LOG", "CAN_TEC", "CAN_BUS_OFFS",
 )  # fmt: skip
-"""The offset calibration's result (ARM_MODE mode CALIBRATE_ADC): current offsets [ADC
-counts], capture offsets [ticks], CAL_DONE 1 once calibrated; a write is READ_ONLY."""
-DRIVE_ONLY_PARAMS = ("MAX_DUTY", *READ_ONLY_PARAMS)
+"""Read-only DRIVE_PARAMs (a write is READ_ONLY): the offset calibration's result
+(ARM_MODE mode CALIBRATE_ADC: current offsets [ADC counts], capture offsets [ticks],
+CAL_DONE 1 once calibrated), PARAM_SOURCE (0 defaults, 1 loaded from storage, 2 defaults
+because the stored record's CRC failed), FAULT_LOG (entries held; a read over CAN is
+followed by one FAULT_LOG frame per entry), the CAN controller's TEC and bus-off count."""
+DRIVE_ONLY_PARAMS = ("MAX_DUTY", "PARAM_SAVE", *READ_ONLY_PARAMS)
 """DRIVE_PARAMs not in the engine's ``DRIVE_PARAM_RANGES``: MAX_DUTY, the largest
-upper-switch duty (the drive's default 0.95 unless written), and the read-only ones."""
+upper-switch duty (the drive's default 0.95 unless written), PARAM_SAVE (write 1 with PWM
+off: the parameters into the drive's storage with a CRC), and the read-only ones."""
 
 
 class FirmwareBuildError(RuntimeError):
@@ -160,7 +164,7 @@ _STAT_NAMES = (
     "periods", "samples_sent", "duty_rx", "duty_applied", "duty_late", "stale_periods",
     "ref_rx", "arm_rx", "bad_rx", "tx_overruns", "layout_mismatch", "disarm_rx", "faults",
     "param_rx", "refs_applied", "ref_old", "ref_future", "adc_clipped", "duty_limited",
-    "cmd_ring_full", "ref_handover_busy", "bg_frames",
+    "cmd_ring_full", "ref_handover_busy", "bg_frames", "can_bus_offs", "param_saves",
 )  # fmt: skip
 
 
