@@ -752,3 +752,51 @@ def test_sil_calibration_removes_injected_current_offsets(db):
     core.push(arm(1))
     run(1)
     assert core.state()["armed"]
+
+
+@pytest.mark.parametrize("case", ["break", "gate", "hot", "overrun", "saturated"])
+def test_sil_fault_injection_through_the_binding(db, case):
+    """FirmwareCore's fault injection (the SIL HAL's inputs a board wires to pins and
+    timers): each condition, injected into a host-mode drive with PWM on, turns the PWM off
+    in that very period and sends one FAULT frame with its code."""
+    from fluxdrive.core import protocol_constants as pc
+
+    card, mp = _card_mp()
+    drive = _Drive(mp, ctl.ControllerConfig().to_params(card))
+    for _ in range(3):
+        assert drive.sample(np.zeros(3), card.dc_bus_v) == 0
+    assert drive.core.pwm()[1]
+    i_abc = np.zeros(3)
+    temp_c = 35
+    if case == "break":
+        drive.core.set_break(15.0)  # the comparator below the software trip (18.9 A)
+        i_abc[0] = 16.0
+    elif case == "gate":
+        drive.core.inject(gate_fault=True)
+    elif case == "overrun":
+        drive.core.inject(overrun=True)
+    elif case == "saturated":
+        i_abc[2] = -float(card.current_range_a)  # the converter's lower rail
+    else:
+        temp_c = 95
+    k = drive.core.k
+    data = drive.duty.encode(
+        {"cmd_seq": k - 1, "cmd_duty_a": 0.5, "cmd_duty_b": 0.5, "cmd_duty_c": 0.5,
+         "cmd_enable": 1}
+    )  # fmt: skip
+    drive.core.push(can.Message(arbitration_id=drive.duty.frame_id, data=data))
+    drive.frame[pl.FR_IA : pl.FR_IC + 1] = _quantise(i_abc, float(mp[pl.MP_ADC_LSB]))
+    drive.core.set_sample(drive.frame, k * 100, temp_c=temp_c)
+    drive.core.period()
+    faults = [
+        db.decode_message(m.arbitration_id, m.data, decode_choices=False)
+        for m in drive.core.pop_tx()
+        if m.arbitration_id == pc.ID_FAULT
+    ]
+    want = {"break": pc.FAULT_OVERCURRENT, "gate": pc.FAULT_GATE_DRIVER,
+            "hot": pc.FAULT_OVERTEMPERATURE, "overrun": pc.FAULT_DEADLINE_MISSED,
+            "saturated": pc.FAULT_ADC_FAULT}[case]  # fmt: skip
+    assert [f["fault_code"] for f in faults] == [want]
+    assert drive.core.pwm()[1] is False and drive.core.state()["fault_latched"]
+    if case == "break":
+        assert faults[0]["fault_detail"] == 3  # no phase: the hardware path
