@@ -548,14 +548,22 @@ class CanBridge:
                 self.counters["ref_tx_enabled"] += 1
         return ok
 
+    def read_drive_param(
+        self, name: str, timeout_s: float | None = None
+    ) -> tuple[bool, str, float]:
+        """Read drive parameter ``name`` (DRIVE_PARAM with prm_write = 0): (answered, reason,
+        its value on the drive), like :meth:`set_drive_param` without the write."""
+        return self.set_drive_param(name, 0.0, timeout_s, write=False)
+
     def set_drive_param(
-        self, name: str, value: float, timeout_s: float | None = None
+        self, name: str, value: float, timeout_s: float | None = None, *, write: bool = True
     ) -> tuple[bool, str, float]:
         """Write drive parameter ``name`` (DRIVE_PARAM value table) and wait for its
         DRIVE_PARAM_ACK: (accepted, reason, value in effect). Refused without sending if
         the name is unknown or the value not finite; a refusal names the drive's status.
         Another thread may be polling the bus (the node's CAN thread); otherwise this
-        polls it itself, keeping the samples for the next :meth:`poll`."""
+        polls it itself, keeping the samples for the next :meth:`poll`.  ``write`` False:
+        a read (:meth:`read_drive_param`)."""
         pid = self.param_ids.get(name)
         if pid is None:
             return False, f"unknown drive parameter {name!r}; known: {sorted(self.param_ids)}", 0.0
@@ -566,7 +574,7 @@ class CanBridge:
             seq = self._prm_seq
             self._acks.pop((pid, seq), None)
         data = self._msg_prm.encode(
-            {"prm_id": pid, "prm_seq": seq, "prm_write": 1, "prm_value": float(value)}
+            {"prm_id": pid, "prm_seq": seq, "prm_write": int(write), "prm_value": float(value)}
         )
         if not self._send(ID_DRIVE_PARAM, data):
             return False, f"{name}: DRIVE_PARAM could not be sent ({self.last_error})", 0.0
@@ -594,7 +602,8 @@ class CanBridge:
         text = self._ack_status.get(status, f"status {status}")
         if status != 0:
             self.counters["param_refused"] += 1
-            return False, f"the drive refused {name} = {value:g}: {text} (in effect: {v:g})", v
+            what = f"{name} = {value:g}" if write else f"a read of {name}"
+            return False, f"the drive refused {what}: {text} (in effect: {v:g})", v
         self.counters["param_ok"] += 1
         return True, f"{name} = {v:g} on the drive", v
 
