@@ -174,6 +174,16 @@ def elf_symbols(path: Path) -> dict[str, tuple[int, int]]:
     return _elf(path)[2]
 
 
+def thumb_pcs(address: int, code: bytes) -> list[int]:
+    """Addresses of the Thumb instructions of a block of code starting at ``address``."""
+    out, i = [], 0
+    while i + 1 < len(code):
+        out.append(address + i)
+        hw = code[i] | (code[i + 1] << 8)
+        i += 4 if (hw & 0xF800) in (0xE800, 0xF000, 0xF800) else 2
+    return out
+
+
 def _thumb_count(code: bytes) -> int:
     """Thumb instructions in a block of code (32-bit ones start 0b11101/11110/11111)."""
     n = i = 0
@@ -255,6 +265,9 @@ class VirtualBoard:
         size) ran; with :attr:`flash` the executed instruction stream, for a cycle model."""
         self._blocks: collections.Counter[tuple[int, int]] = collections.Counter()
         self.measure = measure
+        self.on_isr: Any = None
+        """Called after each period interrupt with (instructions, executed blocks in order
+        [(address, size)]) when set (and ``measure``): a cycle model's input."""
         if measure:
             mu.hook_add(uc.UC_HOOK_BLOCK, self._on_block, begin=_FLASH, end=_FLASH + 0x80000)
             mu.hook_add(uc.UC_HOOK_BLOCK, self._on_block, begin=_CCM, end=_CCM + _CCM_SIZE)
@@ -313,7 +326,7 @@ class VirtualBoard:
         names = ("size", "k", "armed", "pwm_enabled", "fault_latched", "split", "fault_code",
                  "mode", "stats", "prm", "ref_box", "cmds", "cmd_size", "cmd_slots",
                  "ref_box_taken", "cmd_ring", "cmd_ring_slots")  # fmt: skip
-        vals = struct.unpack_from(f"<{len(names)}I", self.flash, dbg - _FLASH)
+        vals = struct.unpack(f"<{len(names)}I", mu.mem_read(dbg, 4 * len(names)))
         self._off = dict(zip(names, vals, strict=True))
         self._core = self.syms["fd_board_core"][0]
         if self.mu.mem_read(_CPACR, 4) == b"":  # pragma: no cover - mapped above
@@ -480,6 +493,7 @@ class VirtualBoard:
         mu.reg_write(ac.UC_ARM_REG_LR, _RETURN | 1)
         self._n = 0
         self._blocks = collections.Counter()
+        self._seq: list[tuple[int, int]] = []
         self.counting = self.measure
         mu.emu_start(self.vectors[16 + irq] | 1, _RETURN, count=5_000_000)
         self.counting = False
@@ -487,6 +501,8 @@ class VirtualBoard:
             self.isr_instructions.append(self._n)
             if self.trace:
                 self.isr_blocks.append(self._blocks)
+            if self.on_isr is not None:
+                self.on_isr(self._n, self._seq)
         mu.context_restore(self._main)
 
     def _background(self) -> None:
@@ -506,6 +522,8 @@ class VirtualBoard:
             self._n += n
             if self.trace:
                 self._blocks[key] += 1
+            if self.on_isr is not None:
+                self._seq.append(key)
 
     # ------------------------------------------------------------------ the interface
     def param_write(self, name: str | int, value: float) -> str:
