@@ -209,8 +209,9 @@ def test_frames_stop_disable_within_timeout():
         assert not br.arm()[0]
         br.send_duty(60, (0.5, 0.5, 0.5), True)
         assert br.counters["enable_suppressed"] >= 1
-        # the MCU saw the disarm and its own command watchdog, PWM is off
+        # the MCU's next interrupt takes the disarm: PWM off
         emu._drain(0.05)
+        emu.step()
         assert not emu.armed and not emu.pwm_enabled
     finally:
         br.shutdown()
@@ -615,7 +616,8 @@ def test_fd_decimation_mismatch_refuses_arming_and_latches_a_fault():
     sc = short_2pct(0.1)
     ch = new_virtual_channel()
     emu_bus = can.Bus(interface="virtual", channel=ch, fd=True)
-    emu = DriveEmulator(DriveSetup(sc), emu_bus, lockstep=False)  # FD, D = 1 (default)
+    # FD, D = 1 (default), a STATUS every period
+    emu = DriveEmulator(DriveSetup(sc), emu_bus, lockstep=False, status_period_s=sc.machine.ts_s)
     br = CanBridge(
         lambda: can.Bus(interface="virtual", channel=ch, fd=True), BridgeConfig(decimation=4)
     )
@@ -625,17 +627,18 @@ def test_fd_decimation_mismatch_refuses_arming_and_latches_a_fault():
     try:
         br.poll(timeout=0.01)  # first tick: heartbeat + ARM_MODE (D = 4)
         emu._drain(0.1)
+        emu.step()  # the drive's interrupt takes the ARM_MODE, sends its STATUS
         assert emu.stats.layout_mismatch >= 1
-        emu._send_status()
         br.poll(timeout=0.1)
         ok, why = br.arm()
         assert not ok and "D=1" in why and "D=4" in why and not br.fault
-        emu._send_status()
+        emu.step()  # the next STATUS
         br.poll(timeout=0.1)
         assert "layout mismatch" in br.fault and not br.armed
         dg = br.diagnostics()
         assert dg["layout_mismatch"] == 2 and dg["faults"] == 1 and dg["state"] == "fault"
         emu._drain(0.1)
+        emu.step()
         assert not emu.armed and not emu.pwm_enabled
         # one fault event for the node's DriveFault: samples of another rate are bad
         # samples; the reset clears it (and it comes back while the drive disagrees)

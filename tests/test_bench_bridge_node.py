@@ -84,6 +84,7 @@ def test_bridge_node_smoke():
         spinner.join(timeout=5.0)
         node.destroy_node()  # disarms
         emu._drain(0.1)
+        emu.step()  # the drive's interrupt takes the ARM_MODE
         assert not emu.armed
         probe.destroy_node()
         rclpy.shutdown(context=ctx)
@@ -110,7 +111,8 @@ def test_bridge_node_decimation_parameter_and_drive_check():
 
     ch = new_virtual_channel()
     emu_bus = can.Bus(interface="virtual", channel=ch, fd=True)
-    emu = DriveEmulator(DriveSetup(short_2pct(0.1)), emu_bus, lockstep=False)  # FD, D = 1
+    sc = short_2pct(0.1)  # the drive: FD, D = 1, a STATUS every period
+    emu = DriveEmulator(DriveSetup(sc), emu_bus, lockstep=False, status_period_s=sc.machine.ts_s)
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain(45))
     with pytest.raises(InvalidParameterValueException, match="decimation out of range"):
@@ -148,13 +150,13 @@ def test_bridge_node_decimation_parameter_and_drive_check():
         t0 = time.monotonic()
         while time.monotonic() - t0 < 10.0 and emu.stats.layout_mismatch == 0:
             emu._drain(0.05)  # the node's ARM_MODE asks for D = 4
-        assert emu.stats.layout_mismatch >= 1
-        emu._send_status()  # the drive says D = 1
+            emu.step()  # the drive's interrupt takes it
+        assert emu.stats.layout_mismatch >= 1  # and its STATUS says D = 1
         while time.monotonic() - t0 < 10.0 and not node.bridge.drive_mismatch:
             time.sleep(0.02)
         res = arm.call(Arm.Request(arm=True), timeout_sec=5.0)
         assert res is not None and not res.success and "D=1" in res.message, res
-        emu._send_status()
+        emu.step()  # the next STATUS
         while time.monotonic() - t0 < 10.0 and not node.bridge.fault:
             time.sleep(0.02)
         assert "layout mismatch" in node.bridge.fault
@@ -184,8 +186,9 @@ def test_bridge_node_publishes_every_fault_and_marks_parameter_changes():
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     import can
     from bench_bridge.bridge_node import BenchBridgeNode
-    from fluxdrive.can.emulator import FAULT_OVERCURRENT, DriveEmulator
+    from fluxdrive.can.emulator import DriveEmulator
     from fluxdrive.can.loop import new_virtual_channel
+    from fluxdrive.drive.plant import FR_IA
     from fluxdrive.drive.sim import DriveSetup
     from rclpy.parameter import Parameter
     from rclpy.parameter_client import AsyncParameterClient
@@ -197,7 +200,10 @@ def test_bridge_node_publishes_every_fault_and_marks_parameter_changes():
 
     ch = new_virtual_channel()
     emu_bus = can.Bus(interface="virtual", channel=ch, fd=True)
-    emu = DriveEmulator(DriveSetup(short_2pct(0.1)), emu_bus, lockstep=False)
+    # the drive's over-current trip at 8 A (a stored parameter)
+    emu = DriveEmulator(
+        DriveSetup(short_2pct(0.1)), emu_bus, lockstep=False, params={"OVERCURRENT_A": 8.0}
+    )
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain(46))
     stale_s = 0.3
@@ -229,7 +235,8 @@ def test_bridge_node_publishes_every_fault_and_marks_parameter_changes():
         while not cond():
             assert time.monotonic() < t_end, f"no {what}: faults {faults}, markers {markers}"
             if drive:
-                emu._drain(0.02)  # the drive reads its bus (ARM_MODE's reset pulse)
+                emu.step()  # the drive's interrupt reads its bus (ARM_MODE's reset pulse)
+                time.sleep(0.01)
             else:
                 time.sleep(0.02)
 
@@ -272,7 +279,12 @@ def test_bridge_node_publishes_every_fault_and_marks_parameter_changes():
         assert (f.code, f.latched) == (DriveFault.FAULT_NONE, False)
         assert f.reason.startswith("'stale data") and "cleared" in f.reason
         # the drive's own fault, reported in its FAULT frame: its code, "drive via" us
-        emu._raise_fault(FAULT_OVERCURRENT, 3 << 2)  # the drive's over-current trip
+        # the drive's own over-current trip: phase a's sensor reads 9 A for one period
+        emu.sample_hook = lambda k, fr: fr.__setitem__(FR_IA, 9.0)
+        emu.step()
+        emu.sample_hook = None
+        assert emu.fault_latched and not emu.pwm_enabled
+        emu.step()  # a sample without it: the cause is gone, a reset may clear it
         wait(lambda: len(faults) == 3, "the drive's DriveFault")
         f = faults[2]
         assert (f.code, f.latched) == (DriveFault.OVERCURRENT, True)

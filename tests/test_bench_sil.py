@@ -2,7 +2,8 @@
 the drive's MCU with the plant in its process, on a udp_multicast bus (a port of its own,
 TTL 0), the bench_bridge node, the observer and controller nodes and the recorder -- in split
 mode at D = 4 on the ideal-bench 2 % case the CAN split tests use (test_split_can.py), checked
-from the recorded bag against the in-process split run of the same case."""
+from the recorded bag against the in-process split run of the same case: θ̃ RMS within
+0.05°."""
 
 from __future__ import annotations
 
@@ -97,6 +98,7 @@ def test_bench_sil_split_mode_records_every_sample_and_matches_in_process(tmp_pa
     th_sil = compute(res)["observers"]["flux_measured"]["theta_err_rms_deg"]
     print(f"theta~ RMS: SIL graph {th_sil:.3f} deg, in-process split {th_ref:.3f} deg")
     assert ref["stable"]
-    # 0.3 deg: the graph starts its I-f run a few samples later than the in-process one
-    # (the first armed period has PWM off), plus the protocol's quantisation
-    assert abs(th_sil - th_ref) < 0.3
+    # the timing of real timers on both sides (a duty computed at t_k applies from t_(k+1):
+    # the SIL's timer model, the in-process split loop): equal up to the protocol's
+    # quantisation and the C core's float32
+    assert abs(th_sil - th_ref) < 0.05

@@ -1,6 +1,6 @@
 """The C drive firmware (firmware/) on this machine: its C unit tests, its DBC codec against
 cantools, its protections and current loop against the engine, and the software-in-the-loop
-drive (DriveEmulator(mcu="c")) against the Python emulator. No ROS."""
+drive (DriveEmulator: the plant and the C core) against the plant's own frames. No ROS."""
 
 from __future__ import annotations
 
@@ -16,7 +16,6 @@ from fluxdrive.can import firmware as fw
 from fluxdrive.can.protocol import (
     ARM_KEY,
     CLASSIC_SAMPLE_IDS,
-    ID_ARM_MODE,
     ID_SAMPLE_FD,
     ID_STATUS,
     load_database,
@@ -410,76 +409,41 @@ def test_cross_compiles_for_cortex_m4f_and_fits_the_g474():
 # ---------------------------------------------------------------- software in the loop
 
 
-def _host_frames(log):
-    """The host's frames in a bus log: the first ARM_MODE, and the DUTY_CMDs by cmd_seq."""
-    db = load_database()
+def _arm_msg(db, layout="fd", decimation=1):
+    arm_msg = db.get_message_by_name("ARM_MODE")
+    return can.Message(
+        arbitration_id=arm_msg.frame_id,
+        is_extended_id=False,
+        data=arm_msg.encode(
+            {"arm": 1, "arm_key": ARM_KEY, "reset_fault": 0, "control_split": 0, "mode": 1,
+             "sample_layout": int(layout == "classic"), "cmd_timeout": 0,
+             "decimation": decimation, "arm_counter": 0}
+        ),
+    )  # fmt: skip
+
+
+def _turning_duties(db, sc, n, d):
+    """DUTY_CMDs answering every sample: a duty vector turning at a ramped frequency
+    (0 -> 20 Hz electrical over 0.4 s), by cmd_seq."""
     duty_msg = db.get_message_by_name("DUTY_CMD")
-    arm, duties = None, {}
-    for m in can.BLFReader(str(log)):
-        if m.arbitration_id == ID_ARM_MODE and arm is None:
-            arm = m
-        elif m.arbitration_id == duty_msg.frame_id:
-            duties[int(duty_msg.decode(bytes(m.data))["cmd_seq"])] = m
-    return arm, duties
+    duties = {}
+    for j in range(0, n, d):
+        t = j * sc.machine.ts_s
+        th = 2 * np.pi * 0.5 * 20.0 * t * t / 0.4
+        dv = [0.5 + 0.08 * math.cos(th - i * 2 * np.pi / 3) for i in range(3)]
+        data = duty_msg.encode(
+            {"cmd_seq": j, "cmd_duty_a": dv[0], "cmd_duty_b": dv[1], "cmd_duty_c": dv[2],
+             "cmd_enable": 1}
+        )  # fmt: skip
+        duties[j] = can.Message(arbitration_id=duty_msg.frame_id, data=data, is_extended_id=False)
+    return duties
 
 
-# in the parallel part: in-process and lockstep (each answer waited for), nothing timed
-def test_sil_host_mode_matches_the_python_emulator(tmp_path):
-    """The C core as the emulator's MCU (mcu="c"), host mode, D = 1, FD on the virtual bus,
-    the 2 % case sensorless: (1) closed loop through the bridge and the engine's observer and
-    controller, θ̃ RMS within 0.05° of the Python emulator's run of the same scenario;
-    (2) the Python run's host frames (ARM_MODE, every DUTY_CMD) replayed into both MCUs
-    alike: every SAMPLE_FD and STATUS the C MCU sends agrees with the Python MCU's within
-    one LSB per signal (a closed loop cannot show this: one LSB of float32 rounding in a
-    sample changes the host's answer and the runs part, statistically alike)."""
-    from fluxdrive.can.loop import run_can_loop
-    from test_bench_bridge import short_2pct, theta_rms_deg
-
-    sc = short_2pct(1.5)
-    k0 = int(1.0 / sc.machine.ts_s)
-    runs, rms = {}, {}
-    for mcu in ("python", "c"):
-        log = tmp_path / f"{mcu}.blf"
-        runs[mcu] = run_can_loop(sc, emulator_kw={"mcu": mcu}, log_path=str(log))
-        rms[mcu] = theta_rms_deg(runs[mcu].est[0], runs[mcu].truth, k0)
-        assert runs[mcu].diagnostics["faults"] == 0 and runs[mcu].diagnostics["malformed"] == 0
-        assert np.all(runs[mcu].ctrl[k0:, ctl.CO_MODE] == ctl.MODE_CLOSED_LOOP)
-    print(f"theta RMS from 1.0 s: Python MCU {rms['python']:.4f} deg, C MCU {rms['c']:.4f} deg")
-    assert abs(rms["c"] - rms["python"]) < 0.05
-
-    # (2) open loop: the Python run's command stream into both MCUs, stepped here alike
-    arm, duties = _host_frames(tmp_path / "python.blf")
-    sent = {mcu: _replay(sc, mcu, arm, duties) for mcu in ("python", "c")}
-    db = load_database()
-    for aid in (ID_SAMPLE_FD, ID_STATUS):
-        msg = db.get_message_by_frame_id(aid)
-        ref, got = sent["python"][aid], sent["c"][aid]
-        assert len(got) == len(ref) >= (sc.n_periods if aid == ID_SAMPLE_FD else 1)
-        worst = {s.name: 0 for s in msg.signals}
-        for i, (a, b) in enumerate(zip(ref, got, strict=True)):
-            da = msg.decode(a, decode_choices=False, scaling=False)
-            dc = msg.decode(b, decode_choices=False, scaling=False)
-            for name in worst:
-                if i == 0 and name in _ARMING_SIGNALS:
-                    continue
-                worst[name] = max(worst[name], abs(int(da[name]) - int(dc[name])))
-        print(f"{msg.name}: largest difference per signal [LSB] {worst}")
-        assert max(worst.values()) <= 1, worst
-        # counters, flags and states exactly; only scaled values may round differently
-        assert all(worst[s.name] == 0 for s in msg.signals if s.scale == 1), worst
-
-
-# The ARM_MODE sent before period 0: the C MCU's background context takes it before the
-# first interrupt, so its first sample and STATUS already say armed; the Python MCU takes
-# received frames inside the period, after its sample. Only those signals of the first frame
-# of each id differ.
-_ARMING_SIGNALS = {"armed", "mode", "c_armed", "st_armed", "st_state"}
-
-
-def _replay(sc, mcu, arm, duties, layout="fd", decimation=1, n=None):
-    """Step an emulator (``mcu``) through the scenario with a scripted host: ``arm`` before
-    period 0, the DUTY_CMD answering sample k-D before each sample boundary k. Returns the
-    sample (SAMPLE_FD or SAMPLE_C_*) and STATUS payloads it sent."""
+def _replay(sc, arm, duties, layout="fd", decimation=1, n=None):
+    """Step the drive (plant + C core) through the scenario with a scripted host: ``arm``
+    before period 0, the DUTY_CMD answering sample k-D before each sample boundary k.
+    Returns the sample (SAMPLE_FD or SAMPLE_C_*) and STATUS payloads it sent, and the
+    plant's frames per period."""
     from fluxdrive.can.emulator import DriveEmulator
     from fluxdrive.can.loop import new_virtual_channel
     from fluxdrive.drive.sim import DriveSetup
@@ -492,8 +456,9 @@ def _replay(sc, mcu, arm, duties, layout="fd", decimation=1, n=None):
     d = decimation
     try:
         emu = DriveEmulator(
-            DriveSetup(sc), drive, lockstep=False, mcu=mcu, layout=layout, decimation=d
-        )
+            DriveSetup(sc), drive, lockstep=False, layout=layout, decimation=d, record=True,
+            params={"HEARTBEAT_TIMEOUT_S": 0.0},  # the scripted host sends no heartbeat
+        )  # fmt: skip
         host.send(arm)
         for k in range(sc.n_periods if n is None else n):
             if k >= d and k % d == 0:
@@ -507,7 +472,80 @@ def _replay(sc, mcu, arm, duties, layout="fd", decimation=1, n=None):
     finally:
         drive.shutdown()
         host.shutdown()
-    return sent
+    return sent, emu.recorded()[0]
+
+
+_SAMPLE_SIGNALS = ("i_a", "i_b", "i_c", "v_ab", "v_bc", "v_ca", "vdc", "duty_a", "duty_b",
+                   "duty_c", "encoder", "pwm_enabled")  # fmt: skip
+
+
+def _check_samples_are_the_plants(db, sent, frames, layout, d):
+    """Every sample the C core sent reports the plant's frames: sample j (period k = j D)
+    currents, bus voltage and encoder of frame k, line voltages and duties averaged over
+    the periods (t_(k-D), t_k], PWM on only if on in all of them
+    (`fluxdrive.can.protocol.decimate_frames`, the offline reference; sample 0: frame 0),
+    within one LSB per signal. The duties the core reports are what its timer held, the
+    plant's frames what the plant was driven with: equal only if the SIL's timer model and
+    the core agree on when a written duty applies."""
+    from fluxdrive.can.protocol import FRAME_INDEX, decimate_frames
+
+    ref = np.vstack([frames[:1], decimate_frames(frames, d)])
+    pre = "" if layout == "fd" else "c_"
+    ids = (ID_SAMPLE_FD,) if layout == "fd" else CLASSIC_SAMPLE_IDS
+    got: dict[str, list[float]] = {}
+    for aid in ids:
+        msg = db.get_message_by_frame_id(aid)
+        for p in sent[aid]:
+            dec = msg.decode(p, decode_choices=False)
+            for name in _SAMPLE_SIGNALS:
+                if pre + name in dec:
+                    got.setdefault(name, []).append(float(dec[pre + name]))
+    m = min(len(v) for v in got.values())
+    assert m >= min(ref.shape[0], 1000)
+    worst = {}
+    for name, values in got.items():
+        sig = next(
+            s for aid in ids for s in db.get_message_by_frame_id(aid).signals
+            if s.name == pre + name
+        )  # fmt: skip
+        want = ref[:m, FRAME_INDEX["encoder_counts" if name == "encoder" else name]]
+        if name == "encoder" and layout == "classic":  # 24 bits on the wire
+            want = (want + 2**23) % 2**24 - 2**23
+        worst[name] = float(np.max(np.abs(np.array(values[:m]) - want)) / sig.scale)
+    print(f"{layout} D={d}: largest difference from the plant's frames [LSB] {worst}")
+    assert max(worst.values()) <= 1.0 + 1e-6, worst
+    return got
+
+
+# in the parallel part: in-process and lockstep (each answer waited for), nothing timed
+def test_sil_host_mode_closed_loop_and_samples_are_the_plants(db):
+    """The drive (plant + C core), host mode, D = 1, FD on the virtual bus: (1) the 2 %
+    case sensorless closes the loop through the bridge and the engine's observer and
+    controller, in closed loop from 1 s, within 0.1 deg theta~ RMS of the in-process run
+    of the same scenario (which has one period less of delay: there the controller runs in
+    the period's interrupt; over CAN the host's answer to sample k is written at k+1 and
+    applies from k+2); (2) an open-loop command stream: every SAMPLE_FD is the plant's
+    frame within one LSB, the duties the core reports are those the plant was driven with."""
+    from fluxdrive.can.loop import run_can_loop
+    from fluxdrive.drive.sim import run_scenario
+    from test_bench_bridge import short_2pct, theta_rms_deg
+
+    sc = short_2pct(1.5)
+    k0 = int(1.0 / sc.machine.ts_s)
+    r = run_can_loop(sc)
+    rms = theta_rms_deg(r.est[0], r.truth, k0)
+    assert r.diagnostics["faults"] == 0 and r.diagnostics["malformed"] == 0
+    assert np.all(r.ctrl[k0:, ctl.CO_MODE] == ctl.MODE_CLOSED_LOOP)
+    ref = run_scenario(sc, progress=False)
+    rms_ref = theta_rms_deg(ref.est[0], ref.truth, k0)
+    print(f"theta RMS from 1.0 s: over CAN {rms:.4f} deg, in-process {rms_ref:.4f} deg")
+    assert abs(rms - rms_ref) < 0.1
+
+    n = 2000
+    sent, frames = _replay(sc, _arm_msg(db), _turning_duties(db, sc, n, 1), n=n)
+    got = _check_samples_are_the_plants(db, sent, frames, "fd", 1)
+    assert sum(got["pwm_enabled"]) > 0.9 * len(got["pwm_enabled"])
+    assert len(sent[ID_STATUS]) >= 1
 
 
 # ---------------------------------------------------------------- split mode
@@ -615,7 +653,7 @@ def test_split_drive_is_the_engines_split_drive_step(lib, db):
 
 
 def test_c_mcu_answers_drive_params_between_periods(db):
-    """DRIVE_PARAM over the bus to DriveEmulator(mcu="c"): answered at once, between
+    """DRIVE_PARAM over the bus to the drive (DriveEmulator): answered at once, between
     period interrupts (a host writing parameters never stalls a lockstep period), with
     the status and the value in effect."""
     from fluxdrive.can.emulator import DriveEmulator
@@ -628,7 +666,8 @@ def test_c_mcu_answers_drive_params_between_periods(db):
     host = can.Bus(interface="virtual", channel=ch, fd=True)
     prm, ack = db.get_message_by_name("DRIVE_PARAM"), db.get_message_by_name("DRIVE_PARAM_ACK")
     try:
-        emu = DriveEmulator(DriveSetup(short_2pct(0.6)), drive, lockstep=False, mcu="c")
+        ds = DriveSetup(short_2pct(0.6))  # the drive holds the scenario's design
+        emu = DriveEmulator(ds, drive, lockstep=False, params=ctl.drive_param_values(ds.cp))
         asks = [(1, 1, 1, 2.5), (2, 9, 1, 50.0), (3, 99, 0, 0.0), (4, 3, 0, 0.0)]
         for seq, pid, write, value in asks:
             data = prm.encode({"prm_id": pid, "prm_seq": seq, "prm_write": write,
@@ -652,55 +691,19 @@ def test_c_mcu_answers_drive_params_between_periods(db):
 
 
 @pytest.mark.parametrize("layout,decimation", [("fd", 4), ("classic", 8)])
-def test_decimated_samples_match_the_python_emulator(db, layout, decimation):
-    """Decimation (window averages of line voltages and duties, flags over the window) and
+def test_decimated_samples_are_the_plants_windows(db, layout, decimation):
+    """Decimation (window averages of line voltages and duties, PWM over the window) and
     the classic layout: an open-loop command stream (a duty vector turning at a ramped
-    frequency, every sample answered) into the Python and the C MCU alike; every sample
-    frame and STATUS agrees within one LSB per signal, counters and flags exactly."""
+    frequency, every sample answered) into the drive; every sample is the plant's window
+    (`decimate_frames`) within one LSB per signal."""
     from test_bench_bridge import short_2pct
 
     sc = short_2pct(0.6)
     n, d = 4000, decimation
-    arm_msg, duty_msg = db.get_message_by_name("ARM_MODE"), db.get_message_by_name("DUTY_CMD")
-    arm = can.Message(
-        arbitration_id=arm_msg.frame_id,
-        is_extended_id=False,
-        data=arm_msg.encode(
-            {"arm": 1, "arm_key": ARM_KEY, "reset_fault": 0, "control_split": 0, "mode": 1,
-             "sample_layout": int(layout == "classic"), "cmd_timeout": 0,
-             "decimation": d, "arm_counter": 0}
-        ),
-    )  # fmt: skip
-    duties = {}
-    for j in range(0, n, d):
-        t = j * sc.machine.ts_s
-        th = 2 * np.pi * 0.5 * 20.0 * t * t / 0.4  # 0 -> 20 Hz electrical over 0.4 s
-        dv = [0.5 + 0.08 * math.cos(th - i * 2 * np.pi / 3) for i in range(3)]
-        data = duty_msg.encode(
-            {"cmd_seq": j, "cmd_duty_a": dv[0], "cmd_duty_b": dv[1], "cmd_duty_c": dv[2],
-             "cmd_enable": 1}
-        )  # fmt: skip
-        duties[j] = can.Message(arbitration_id=duty_msg.frame_id, data=data, is_extended_id=False)
-    sent = {mcu: _replay(sc, mcu, arm, duties, layout, d, n) for mcu in ("python", "c")}
-    ids = (ID_SAMPLE_FD,) if layout == "fd" else CLASSIC_SAMPLE_IDS
-    for aid in (*ids, ID_STATUS):
-        msg = db.get_message_by_frame_id(aid)
-        ref, got = sent["python"][aid], sent["c"][aid]
-        assert len(got) == len(ref) >= (n // d if aid != ID_STATUS else 1)
-        worst = {s.name: 0 for s in msg.signals}
-        for i, (a, b) in enumerate(zip(ref, got, strict=True)):
-            da = msg.decode(a, decode_choices=False, scaling=False)
-            dc = msg.decode(b, decode_choices=False, scaling=False)
-            for name in worst:
-                if i == 0 and name in _ARMING_SIGNALS:
-                    continue
-                worst[name] = max(worst[name], abs(int(da[name]) - int(dc[name])))
-        print(f"{layout} D={d} {msg.name}: largest difference [LSB] {worst}")
-        assert max(worst.values()) <= 1, worst
-        assert all(worst[s.name] == 0 for s in msg.signals if s.scale == 1), worst
-    pwm = [db.decode_message(ids[-1], p, decode_choices=False) for p in sent["c"][ids[-1]]]
-    key = "pwm_enabled" if layout == "fd" else "c_pwm_enabled"
-    assert sum(int(p[key]) for p in pwm) > 0.9 * len(pwm)  # PWM on: averages of real windows
+    arm = _arm_msg(db, layout, d)
+    sent, frames = _replay(sc, arm, _turning_duties(db, sc, n, d), layout, d, n)
+    got = _check_samples_are_the_plants(db, sent, frames, layout, d)
+    assert sum(got["pwm_enabled"]) > 0.9 * len(got["pwm_enabled"])  # averages of real windows
 
 
 def test_sil_calibration_removes_injected_current_offsets(db):

@@ -84,3 +84,24 @@ def test_speed_loop_sweep_meets_its_design(tmp_path):
     assert fr["bandwidth_hz"] == pytest.approx(10.0, rel=0.15), fr
     assert abs(fr["gain_db"][0]) < 1.5, fr  # tracks at 4 Hz
     assert np.all(np.isfinite(fr["gain_db"]))
+
+
+def test_current_loop_margins_and_the_cost_of_one_more_period():
+    """The loop model's margins at a designed 1 kHz loop with the timing contract's one
+    period of delay (a duty computed at t_k applies from t_(k+1)): its closed loop is the
+    design's bandwidth, and one more period (host mode over CAN: the answer to sample k is
+    written at k+1, applies from k+2) leaves the gain crossover where it is -- a delay has
+    unit gain -- and takes exactly 360 f_c Ts degrees of phase margin there."""
+    from fluxdrive.drive.control import current_loop_margins
+
+    card = ideal_machine(deadtime_s=0.0)
+    kp, ki = design_current_loop(card, 1000.0)
+    one = current_loop_margins(card, kp, ki)
+    two = current_loop_margins(card, kp, ki, delay_periods=2)
+    print(f"1 period: {one}\n2 periods: {two}")
+    assert one["delay_periods"] == 1 and one["bandwidth_hz"] == pytest.approx(1000.0, rel=0.01)
+    assert two["crossover_hz"] == pytest.approx(one["crossover_hz"], rel=1e-3)
+    lost = 360.0 * one["crossover_hz"] * card.ts_s
+    assert one["phase_margin_deg"] - two["phase_margin_deg"] == pytest.approx(lost, abs=0.1)
+    assert 40.0 < two["phase_margin_deg"] < one["phase_margin_deg"] < 90.0
+    assert 0.0 < two["gain_margin_db"] < one["gain_margin_db"]

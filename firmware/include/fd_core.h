@@ -218,9 +218,12 @@ typedef struct {
     uint8_t clip;          /* a current reading saturated in this sample */
     uint16_t clip_detail;  /* its phase (bits 0-1) and raw count (bits 2-15) */
     int32_t temp_c;        /* power-stage temperature of this sample [degC] */
-    /* what the PWM held over the period just ended */
+    /* what the PWM held over the period just ended, and what the last interrupt wrote into
+     * the timer's preload registers (in force from the next update event) */
     float duty_applied[3];
     uint8_t pwm_applied;
+    float duty_preload[3];
+    uint8_t pwm_preload;
     /* sample window */
     float win_v[3], win_duty[3];
     uint32_t win_n;
@@ -263,8 +266,6 @@ typedef struct {
     fd_host_ref_t ref;        /* in use */
     fd_cur_state_t cur;
     fd_cur_out_t cur_out;     /* output of the last current-loop step */
-    float split_duty[3];      /* computed from the last sample, applied this period */
-    uint8_t split_duty_valid;
     float theta_used;         /* angle of the last current-loop step [rad] */
     fd_stats_t stats;
 } fd_core_t;

@@ -11,8 +11,15 @@
  *
  * Timing (docs/engine.md, timing convention): the period interrupt for sample k runs right
  * after the ADC conversion triggered at the carrier valley t_k. The capture registers then
- * hold the line-voltage high times of the period [t_(k-1), t_k] just ended. fd_hal_pwm_write
- * sets the compare values and the output enable for the period [t_k, t_(k+1)] now running.
+ * hold the line-voltage high times of the period [t_(k-1), t_k] just ended.
+ *
+ * The timing of real timers: fd_hal_pwm_write in the interrupt of sample k writes the compare
+ * values (and an output enable) into the timer's preload registers; they take effect at the
+ * next update event, the carrier valley t_(k+1), and hold over [t_(k+1), t_(k+2)]. The period
+ * [t_k, t_(k+1)] already running keeps what the previous interrupt wrote. A cleared enable is
+ * the exception: it opens all six switches at once (main output enable off), in the running
+ * period. A duty computed from sample k therefore acts one period later, the delay the loop
+ * design assumes; the SIL's timer model (fluxdrive.can.firmware) does exactly this.
  */
 /* Hardware over-current path (part of this contract): a comparator per phase current (or
  * on the bus shunt) at a threshold above the core's software trip drives the PWM timer's
@@ -71,7 +78,8 @@ void fd_hal_adc_read(void *hal, fd_adc_raw_t *out);
 void fd_hal_status_read(void *hal, fd_hal_status_t *out);
 void fd_hal_capture_read(void *hal, fd_capture_raw_t *out);
 /** Compare values (0..pwm period ticks, upper switch on-time per leg, centre-aligned) and
- *  the gate enable for the period now starting. enable = false opens all six switches. */
+ *  the gate enable into the preload registers: in force from the next update event.
+ *  enable = false opens all six switches at once. */
 void fd_hal_pwm_write(void *hal, const uint32_t compare[3], bool enable);
 /** Queue a frame for transmission; false if the TX queue is full (frame dropped). */
 bool fd_hal_can_tx(void *hal, const fd_can_frame_t *frame);

@@ -481,7 +481,6 @@ static void raise_fault(fd_core_t *c, uint8_t code, uint16_t detail)
     c->fault_code = code;
     c->fault_latched = 1;
     c->armed = 0;
-    c->split_duty_valid = 0;
     if (is_new) {
         fd_fault_entry_t *e = &c->fault_log[c->fault_log_n % FD_FAULT_LOG];
         e->code = code;
@@ -1098,8 +1097,10 @@ static void take_reference(fd_core_t *c)
     }
 }
 
-/* split mode: the current loop on this sample; its duty is applied over the next period */
-static void run_current_loop(fd_core_t *c)
+/* split mode: the current loop on this sample; its duty is written in this interrupt and
+ * applies from the next update event (t_(k+1)), like every duty (fd_hal.h). 0: no duty
+ * (the reference is beyond the horizon, or the bus too low to modulate) */
+static int run_current_loop(fd_core_t *c)
 {
     const float sq3 = 1.7320508075688772f;
     fd_cur_params_t p;
@@ -1115,11 +1116,10 @@ static void run_current_loop(fd_core_t *c)
     uint16_t n = (uint16_t)((c->k - c->ref.seq) & FD_SEQ_MASK);
     if (n > c->cfg.ref_horizon_periods) {
         raise_fault(c, FD_FAULT_STALE_INPUT, n);
-        return;
+        return 0;
     }
     if (!(c->vdc >= c->cfg.vdc_modulation_min_v)) { /* no duty from a bus that low */
-        c->split_duty_valid = 0;
-        return;
+        return 0;
     }
     float ia = (2.0f * c->i_abc[0] - c->i_abc[1] - c->i_abc[2]) * (1.0f / 3.0f);
     float ib = (c->i_abc[1] - c->i_abc[2]) * (1.0f / sq3);
@@ -1128,10 +1128,7 @@ static void run_current_loop(fd_core_t *c)
     c->theta_used = th;
     fd_current_loop(&c->cur, &p, ia, ib, th, c->ref.omega, clampf(c->ref.id, -lim, lim),
                     clampf(c->ref.iq, -lim, lim), c->vdc, c->cfg.ts_s, &c->cur_out);
-    for (int j = 0; j < 3; ++j) {
-        c->split_duty[j] = c->cur_out.duty[j];
-    }
-    c->split_duty_valid = 1;
+    return 1;
 }
 
 /* ------------------------------------------------------------------ the interrupt */
@@ -1267,28 +1264,24 @@ void fd_core_period(fd_core_t *c)
         c->pwm_enabled = 0;
     }
 
-    /* output for the period [t_k, t_(k+1)] now starting */
+    /* output: written now, in force from the update event at t_(k+1) (compare preload);
+     * an enable cleared here opens the switches at once (fd_hal.h) */
     uint8_t enable = c->pwm_enabled;
     uint8_t boot = (uint8_t)(enable && c->bootstrap_left > 0u);
     if (c->split) {
-        /* the duty computed from the previous sample (one period of computation delay,
-         * as the engine's convention); none yet: PWM stays off this period */
-        if (!c->pwm_enabled || (!boot && !c->split_duty_valid)) {
-            enable = 0;
+        int have = 0;
+        if (c->pwm_enabled && !boot) { /* after the bootstrap charge: the current loop */
+            have = run_current_loop(c);
+            for (int j = 0; j < 3; ++j) {
+                c->duty[j] = have ? c->cur_out.duty[j] : 0.5f;
+            }
+            if (!have) {
+                enable = 0; /* no duty this period: the gates stay open */
+            }
+        } else if (!c->pwm_enabled) {
             for (int j = 0; j < 3; ++j) {
                 c->duty[j] = 0.5f;
             }
-        } else if (!boot) {
-            for (int j = 0; j < 3; ++j) {
-                c->duty[j] = c->split_duty[j];
-            }
-        }
-        if (c->pwm_enabled) {
-            if (!boot || c->bootstrap_left == 1u) { /* the last bootstrap period computes */
-                run_current_loop(c);                /* the first switching period's duty */
-            }
-        } else {
-            c->split_duty_valid = 0;
             c->cur.id_i = 0.0f;
             c->cur.iq_i = 0.0f;
         }
@@ -1306,13 +1299,17 @@ void fd_core_period(fd_core_t *c)
     uint32_t cmp[3];
     for (int j = 0; j < 3; ++j) {
         cmp[j] = (uint32_t)(d[j] * c->ticks_f + 0.5f); /* d in [0, 1] */
-        c->duty_applied[j] = (float)cmp[j] * c->inv_ticks;
+        /* the period [t_k, t_(k+1)] runs on what the previous interrupt wrote */
+        c->duty_applied[j] = c->duty_preload[j];
+        c->duty_preload[j] = (float)cmp[j] * c->inv_ticks;
     }
-    c->pwm_applied = enable;
+    c->pwm_applied = (uint8_t)(c->pwm_preload && enable);
+    c->pwm_preload = enable;
     fd_hal_pwm_write(c->hal, cmp, enable);
     if (fd_hal_period_overrun(c->hal)) { /* this interrupt ran past its deadline */
         raise_fault(c, FD_FAULT_DEADLINE_MISSED, (uint16_t)(c->k & FD_SEQ_MASK));
-        c->pwm_applied = 0;
+        c->pwm_applied = 0; /* a cleared enable acts at once */
+        c->pwm_preload = 0;
         fd_hal_pwm_write(c->hal, cmp, false);
     }
     c->k++;
@@ -1372,6 +1369,7 @@ void fd_core_init(fd_core_t *c, const fd_config_t *cfg, void *hal)
     for (int j = 0; j < 3; ++j) {
         c->duty[j] = 0.5f;
         c->duty_applied[j] = 0.5f;
+        c->duty_preload[j] = 0.5f;
     }
     c->win_pwm = 1;
     c->mode = FD_MODE_IDLE;

@@ -297,8 +297,8 @@ static void test_reference_timeout(void)
     period();
     CHECK(core.armed && core.split);
     send_ref(0, 1.0f, 1);
-    period(); /* reference taken, PWM on; the first duty is applied from the next period */
-    CHECK(core.pwm_enabled && sil.pwm_enable == 0);
+    period(); /* reference taken, PWM on: the first duty written, in force from t_(k+1) */
+    CHECK(core.pwm_enabled && sil.pwm_enable == 1);
     period();
     CHECK(sil.pwm_enable == 1);
     uint32_t taken = core.k - 2u;

@@ -19,8 +19,12 @@ memory (the C side has no heap). Per PWM period the driver
 * reads the PWM back (:meth:`pwm`: duties and enable for the period now starting) and the
   frames the core sent (:meth:`pop_tx`).
 
-``DriveEmulator(mcu="c")`` (fluxdrive.can.emulator) does exactly that with the project's
-plant; the Python MCU logic there stays as the reference the C core is tested against.
+The SIL's timer model is a real timer's (firmware/include/fd_hal.h): what the interrupt of
+sample k writes sits in the compare preload registers until the update event at t_(k+1),
+so the period [t_k, t_(k+1)] runs on what the previous interrupt wrote; only a cleared
+enable acts at once (the gates open in the running period).
+
+``DriveEmulator`` (fluxdrive.can.emulator) does exactly that with the project's plant.
 No ROS imports.
 """
 
@@ -314,6 +318,7 @@ class FirmwareCore:
         pwm_period_ticks: int = 50_000,
         bootstrap_periods: int = 0,
         require_calibration: bool = False,
+        status_period_s: float = 0.1,
     ) -> None:
         self.lib = load_library()
         self.scales = sensor_scales(mp)
@@ -334,7 +339,7 @@ class FirmwareCore:
         cfg.vdc_lsb_v = self.scales.vdc_lsb_v
         cfg.pwm_period_ticks = int(pwm_period_ticks)
         cfg.cmd_timeout_us = int(round(cmd_timeout_s * 1e6))
-        cfg.status_period = int(round(0.1 / self.ts))
+        cfg.status_period = max(1, int(round(status_period_s / self.ts)))
         # the board limits of the plant's sensors: over-current cap 5 % below the current
         # ADC's full scale, bus over-voltage 2 % below the bus ADC's, no duty below 5 % of
         # it; the under-voltage trip is the host's VDC_MIN_V (the plant has no stage rating)
@@ -346,8 +351,8 @@ class FirmwareCore:
         cfg.vdc_max_v = 0.98 * bus_v
         cfg.vdc_min_v = 0.0
         cfg.vdc_modulation_min_v = 0.05 * bus_v
-        # no bootstrap charge unless asked: the Python reference MCU has none, and the
-        # tests compare the two sample for sample
+        # no bootstrap charge unless asked: the in-process loops the SIL is compared with
+        # have none
         cfg.bootstrap_periods = int(bootstrap_periods)
         # offset calibration (ARM_MODE mode CALIBRATE_ADC): offsets up to 10 % of the
         # current ADC's half range; arming an uncalibrated drive is refused (FAULT
@@ -369,6 +374,10 @@ class FirmwareCore:
         self._len = ctypes.c_uint32()
         self._fd = ctypes.c_uint32()
         self._data = (ctypes.c_uint8 * 64)()
+        # the timer's active registers (loaded at the last update event): duties, enable;
+        # the port starts the timer at half duty with the outputs off
+        self._active: tuple[np.ndarray, bool] = (np.full(3, 0.5), False)
+        self._interrupts = 0
 
     # ---------------------------------------------------------------- parameters
     def param_write(self, name: str | int, value: float) -> str:
@@ -433,24 +442,36 @@ class FirmwareCore:
 
     def period(self) -> None:
         """One period as the target runs it: the background context until it has no
-        received frame left (what the main loop does between interrupts), then the period
-        interrupt on the sample set last."""
+        received frame left (what the main loop does between interrupts), the timer's
+        update event at t_k (the preload the previous interrupt wrote goes active), then
+        the period interrupt on the sample set last."""
         while self.lib.fd_core_background(self._core):
             pass
+        if self._interrupts:
+            self._active = self.written()
         self.lib.fd_core_period(self._core)
+        self._interrupts += 1
 
     def background(self) -> int:
         """One call of the background context alone (at most 16 received frames handled);
         returns how many it handled."""
         return int(self.lib.fd_core_background(self._core))
 
-    def pwm(self) -> tuple[np.ndarray, bool]:
-        """Duties (compare / period ticks) and enable for the period now starting."""
+    def written(self) -> tuple[np.ndarray, bool]:
+        """Duties (compare / period ticks) and enable the last interrupt wrote (the timer's
+        preload registers: in force from the next update event)."""
         self.lib.fd_sil_get_pwm(self._sil, self._cmp, ctypes.byref(self._en))
         p = float(self.pwm_period_ticks)
         return np.array([self._cmp[0] / p, self._cmp[1] / p, self._cmp[2] / p]), bool(
             self._en.value
         )
+
+    def pwm(self) -> tuple[np.ndarray, bool]:
+        """Duties and enable over the period now starting, [t_k, t_(k+1)] after the
+        interrupt of sample k: the duties its predecessor wrote, on only if both it and its
+        predecessor enabled (a cleared enable opens the switches at once)."""
+        duty, enabled = self._active
+        return duty.copy(), enabled and self.written()[1]
 
     def push(self, msg: can.Message) -> bool:
         """A received frame into the core's RX queue; False if the queue is full."""

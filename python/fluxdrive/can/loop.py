@@ -1,12 +1,16 @@
 """Closed loop through the CAN encoding, in-process (no ROS):
 
-  DriveEmulator -> python-can bus -> CanBridge -> observer_step / controller_step
-  -> CanBridge -> bus -> DriveEmulator
+  DriveEmulator (plant + C drive core) -> python-can bus -> CanBridge -> observer_step /
+  controller_step -> CanBridge -> bus -> DriveEmulator
 
-The emulator runs in a thread in lockstep (it waits for the duty answering frame k-1
-before simulating period k), the bridge and the kernels in the calling thread, so a run
+The emulator runs in a thread in lockstep (it waits for the answer to sample k-D before
+the interrupt of period k), the bridge and the kernels in the calling thread, so a run
 is deterministic and comparable with :func:`fluxdrive.drive.sim.run_scenario` on the same
-scenario (differences come only from the protocol's quantisation).
+scenario. Split mode matches it up to the protocol's quantisation (both keep the timing of
+real timers: the drive's duty from sample k applies from t_(k+1)); host mode over CAN has
+one period more than in-process host mode (the host's answer to sample k is written by the
+drive's interrupt at k+1 and applies from k+2, where in-process the controller's duty
+from frame k applies from k+1).
 
 ``decimation=D`` (either layout; ``layout="classic"`` runs over the classic-CAN layout on
 a non-FD bus, by default with the DBC's D = 8) sends a sample every D PWM periods, so the
@@ -17,7 +21,7 @@ keeps switching at Ts. Control at D*Ts needs its own tuning: the scenario
 A scenario in split mode (``control.mode: split``, its ``control.decimation`` D) runs split
 over the bus: the bridge sends ARM_MODE.control_split and the drive-side parameters as
 DRIVE_PARAMs (each acknowledged), the observers and ``host_reference_step`` answer every
-sample with a HOST_REF, and the emulated drive closes the current loop every period.
+sample with a HOST_REF, and the drive's C core closes the current loop every period.
 """
 
 from __future__ import annotations

@@ -1,7 +1,9 @@
 """The power stage over the CAN bench bridge, as identification's `PlantLink`: each step
-sends the duty answering the last sample and waits for the next one (the drive emulator in
-lockstep in tests, the bench's MCU on a real bus).  The duty acts one period later than on
-the in-process link; the procedure reads what was applied from the frames' duty fields."""
+sends the duty answering the last sample and waits for the next one (the drive emulator --
+the plant and the C drive core -- in lockstep in tests, the bench's MCU on a real bus).  The
+duty acts two periods after its sample (written by the drive's next interrupt, applied from
+the update event after it), one later than on the in-process link; the procedure reads what
+was applied from the frames' duty fields."""
 
 from __future__ import annotations
 
@@ -23,7 +25,7 @@ from fluxdrive.drive.sim import DriveSetup
 
 class CanPlantLink:
     """PlantLink over python-can through `CanBridge`.  `emulate=True` starts the drive
-    emulator (the simulated plant of `card` as the MCU) on a virtual channel."""
+    emulator (the simulated plant of `card` and the C drive core) on a virtual channel."""
 
     def __init__(
         self,

@@ -1,5 +1,5 @@
-"""`./fluxdrive can-emulator [SCENARIO] ...`: the drive emulator (fluxdrive.can.emulator) as a
-process of its own on a python-can bus."""
+"""`./fluxdrive can-emulator [SCENARIO] ...`: the drive emulator (fluxdrive.can.emulator: the
+plant and the C drive core) as a process of its own on a python-can bus."""
 
 from __future__ import annotations
 
@@ -153,10 +153,10 @@ def _parser():
     )
     ap.add_argument(
         "--mcu",
-        choices=("python", "c", "pil"),
-        default="python",
-        help="the drive's MCU: the engine's kernels (python), the C firmware core (c), or the "
-        "board image on the virtual board (pil)",
+        choices=("c", "pil"),
+        default="c",
+        help="the drive's MCU: the C firmware core (c, software in the loop) or the board "
+        "image on the virtual board (pil)",
     )
     ap.add_argument(
         "--record-out",
@@ -194,7 +194,7 @@ def _wait_for_host(emu: DriveEmulator, wait_s: float) -> bool:
     if wait_s <= 0:
         return True
     deadline = time.monotonic() + wait_s
-    while emu._hb_last is None and not emu._stop.is_set():
+    while emu.host_heard_s is None and not emu._stop.is_set():
         if time.monotonic() > deadline:
             print(f"can-emulator: no host heartbeat within {wait_s:g} s", file=sys.stderr)
             return False

@@ -18,10 +18,20 @@ and timed) and the host loop (bridge logic, observers, controller) in this proce
                 in the latency too, as load on the host's CPU would be. Host mode
                 runs `config/scenarios/can_2pct_decimated.yaml` (tuned for control at D*Ts),
                 split mode the paper's 2 % case with the drive closing the current loop.
-  split_current_bw_hz  the split drive's current loop measured with Fig. 17's protocol
-                in-process (flux drive, 10 % speed, half load, d-axis stepped sine), with the
-                drive's deadtime feed-forward at the card's deadtime; also without it and
-                host mode at D = 1 for comparison.
+  c_loop        the C drive core's current loop (split mode) measured with Fig. 17's
+                protocol (flux drive, 10 % speed, half load, d-axis stepped sine) through the
+                whole CAN loop in lockstep -- the C core and the plant behind the bus, the
+                host's observer and reference step in front of it -- with the drive's
+                deadtime feed-forward at the card's deadtime. At D = 1 (a sample every PWM
+                period: the reference and the measurement reach up to the PWM rate's Nyquist
+                frequency, which the bench's D = 4 would cut at 1 250 Hz) and up to 3 kHz, so
+                the -3 dB point is a resolved crossing, not the sweep's top; its gains per
+                frequency, and the loop model's phase and gain margins at the drive's gains
+                (`fluxdrive.drive.control.current_loop_margins`) with the timing contract's
+                one period of delay, and with two (host mode over CAN: the answer to sample
+                k is written at k+1 and applies from k+2).
+  in_process_*  the same sweep through the engine's in-process split loop (D = 4 and 1) and
+                host mode at D = 1, for comparison.
 
 Options: --duration S (drive seconds of each run, default 2), --decimation D.
 The last line on stdout is a JSON object, also written to results/can/bench.json (docs/can.md
@@ -32,6 +42,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import sys
 from typing import Any
 
@@ -43,12 +54,13 @@ from fluxdrive.can.protocol import LinkOptions, link_budget
 from fluxdrive.core import yamlio
 from fluxdrive.core.paths import ROOT
 from fluxdrive.core.schema import Parser, option
-from fluxdrive.drive.control import CO_ID, CO_ID_REF
+from fluxdrive.drive.control import CO_ID, CO_ID_REF, CP_KI_I, CP_KP_I, current_loop_margins
 from fluxdrive.drive.scenario import load_scenario, scenario_path
-from fluxdrive.drive.sim import run_scenario
+from fluxdrive.drive.sim import DriveSetup, run_scenario
 
 __all__ = [
     "bench_bench",
+    "c_loop_current_sweep",
     "current_sweep_scenario",
     "latency_figures",
     "split_current_bandwidth_hz",
@@ -56,6 +68,8 @@ __all__ = [
 
 RESULTS_PATH = ROOT / "results" / "can" / "bench.json"
 SWEEP_HZ = [200.0, 500.0, 700.0, 850.0, 1000.0, 1200.0, 1500.0]
+# the C loop's sweep at D = 1: on to 3 kHz (0.6 of the PWM rate's Nyquist frequency)
+C_SWEEP_HZ = [*SWEEP_HZ, 2000.0, 2500.0, 3000.0]
 
 
 def _say(text: str) -> None:
@@ -121,6 +135,46 @@ def split_current_bandwidth_hz(
     return round(float(fr["bandwidth_hz"]), 1)
 
 
+def c_loop_current_sweep(
+    deadtime_comp: bool = True, freqs_hz: list[float] | None = None
+) -> dict[str, Any]:
+    """Fig. 17's d-axis sweep through the C drive core in split mode at D = 1 over the
+    in-process CAN loop (`run_can_loop`, lockstep): i_d (the host's Park of the drive's
+    samples in the frame of the reference it sent) against i_d*; gains per frequency, the
+    -3 dB crossing, and the loop model's margins at the drive's gains."""
+    sc = current_sweep_scenario(1, deadtime_comp, "split", freqs_hz or C_SWEEP_HZ)
+    ds = DriveSetup(sc)
+    r = run_can_loop(sc)
+    m = r.ctrl.shape[0]
+    segs = [s for s in ds.segments["current_d"] if s.k_end <= m]
+    fr = analyse(r.ctrl[:, CO_ID], r.ctrl[:, CO_ID_REF], segs, sc.machine.ts_s)
+    bw = float(fr["bandwidth_hz"])
+    kp, ki = float(ds.cp[CP_KP_I]), float(ds.cp[CP_KI_I])
+    margins = {
+        f"delay_{d}": {
+            k: round(v, 2) if math.isfinite(v) else None
+            for k, v in current_loop_margins(sc.machine, kp, ki, d).items()
+        }
+        for d in (1, 2)
+    }
+    return {
+        "decimation": 1,
+        "frequency_hz": fr["frequency_hz"],
+        "gain_db": [round(g, 2) for g in fr["gain_db"]],
+        "phase_deg": [round(p, 1) for p in fr["phase_deg"]],
+        "coherence": [round(c, 3) for c in fr["coherence"]],
+        # a crossing inside the band, or None: then the sweep did not resolve it
+        "bandwidth_hz": round(bw, 1) if math.isfinite(bw) else None,
+        "sweep_top_hz": max(fr["frequency_hz"]),
+        "kp_v_per_a": round(kp, 4),
+        "ki_v_per_as": round(ki, 1),
+        "margins": margins,
+        "drive_faults": list(r.emulator_stats["fault_codes"]),
+        "lockstep_timeouts": int(r.emulator_stats["lockstep_timeouts"]),
+        "wall_s": round(r.wall_s, 1),
+    }
+
+
 def bench_bench(argv: list[str]) -> dict[str, Any]:
     ap = Parser(prog="fluxdrive benchmark bench", description=__doc__)
     ap.add_argument("--duration", type=float, default=2.0, help="drive seconds per run")
@@ -165,10 +219,16 @@ def bench_bench(argv: list[str]) -> dict[str, Any]:
         _say(f"{mode} mode, {dur:g} s of drive time in lockstep ...")
         out[mode] = _live_run(sc, d, budget_us, watchdogs[mode])
         _say(f"{mode}: {out[mode]}")
+    _say("current-loop sweep through the C drive core (Fig. 17 protocol, split, D = 1) ...")
+    out["c_loop"] = c_loop_current_sweep()
+    _say(f"C loop: {out['c_loop']}")
     _say("current-loop sweeps (Fig. 17 protocol, in-process) ...")
-    out["split_current_bw_hz"] = split_current_bandwidth_hz(d, True)
-    out["split_current_bw_hz_no_deadtime_comp"] = split_current_bandwidth_hz(d, False)
-    out["host_d1_current_bw_hz_no_deadtime_comp"] = split_current_bandwidth_hz(1, False, "host")
+    out["in_process_split_current_bw_hz"] = split_current_bandwidth_hz(d, True)
+    out["in_process_split_d1_current_bw_hz"] = split_current_bandwidth_hz(1, True)
+    out["in_process_split_current_bw_hz_no_deadtime_comp"] = split_current_bandwidth_hz(d, False)
+    out["in_process_host_d1_current_bw_hz_no_deadtime_comp"] = split_current_bandwidth_hz(
+        1, False, "host"
+    )
     RESULTS_PATH.parent.mkdir(parents=True, exist_ok=True)
     RESULTS_PATH.write_text(json.dumps(out, indent=2) + "\n")
     _say(f"written {RESULTS_PATH.relative_to(ROOT)}")

@@ -163,7 +163,10 @@ from fluxdrive.drive.control.kernel import (
     split_drive_take_reference,
 )
 from fluxdrive.drive.control.loop_design import (
+    DELAY_PERIODS,
     LoopDesign,
+    current_loop_margins,
+    current_open_loop,
     design_current_loop,
     design_loops,
     design_speed_loop,
@@ -177,6 +180,9 @@ from fluxdrive.drive.control.trips import (
 )
 
 __all__ = [
+    "DELAY_PERIODS",
+    "current_loop_margins",
+    "current_open_loop",
     "CP_TS",
     "CP_P",
     "CP_L",

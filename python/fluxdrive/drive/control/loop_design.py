@@ -6,6 +6,13 @@ RL pole; with the 1.5-period delay of a real digital drive the closed loop then 
 loop (ZOH RL plant, one period of computation delay, the PI) has exactly the requested
 -3 dB bandwidth.  The speed PI is designed the same way on J s + B with the current loop
 approximated as its designed first-order bandwidth.
+
+The one period is the timing of real timers (firmware/include/fd_hal.h): a duty computed in
+the interrupt of sample k is written into the PWM timer's preload registers and applies from
+the update event t_(k+1).  The in-process runner (host and split mode), the C drive core and
+the SIL's timer model all keep that contract; `current_loop_margins` gives the phase and gain
+margins of the designed loop with that delay (or with any other, e.g. host mode over CAN,
+where the host's answer to sample k is written at k+1 and applies from k+2).
 """
 
 from __future__ import annotations
@@ -20,18 +27,77 @@ from fluxdrive.core.machine import (
     MachineCard,
 )
 
-
 # ====================================================================== design
-def _current_loop_tf(kp: float, ki: float, r: float, lind: float, ts: float, f_hz: np.ndarray):
-    """Discrete closed loop i/i* at f: ZOH RL plant, one period of computation delay,
-    PI with forward-Euler integral (as implemented in controller_step)."""
-    z = np.exp(1j * 2 * np.pi * f_hz * ts)
+DELAY_PERIODS = 1
+"""Computation delay of the timing contract [PWM periods]: duty(k) acts over [k+1, k+2]."""
+
+
+def current_open_loop(
+    kp: float,
+    ki: float,
+    r: float,
+    lind: float,
+    ts: float,
+    f_hz: np.ndarray,
+    delay_periods: int = DELAY_PERIODS,
+) -> np.ndarray:
+    """Discrete open loop of the current PI at f: ZOH RL plant, `delay_periods` whole
+    periods of computation delay, PI with forward-Euler integral (as controller_step)."""
+    z = np.exp(1j * 2 * np.pi * np.asarray(f_hz, dtype=float) * ts)
     a = math.exp(-r * ts / lind)
     b = (1 - a) / r if r > 0 else ts / lind
-    plant = b / (z - a) / z  # one period of delay: duty(k) acts over [k+1, k+2]
+    plant = b / (z - a) / z**delay_periods  # duty(k) acts over [k+d, k+d+1]
     ctrl = kp + ki * ts / (z - 1)  # integral term uses past errors (output, then update)
-    loop = ctrl * plant
+    return ctrl * plant
+
+
+def _current_loop_tf(kp: float, ki: float, r: float, lind: float, ts: float, f_hz: np.ndarray):
+    """Discrete closed loop i/i* at f (`current_open_loop` with the contract's delay)."""
+    loop = current_open_loop(kp, ki, r, lind, ts, f_hz)
     return loop / (1 + loop)
+
+
+def current_loop_margins(
+    card: MachineCard,
+    kp: float,
+    ki: float,
+    delay_periods: int = DELAY_PERIODS,
+    r_hat: float | None = None,
+    l_hat: float | None = None,
+) -> dict[str, float]:
+    """Phase margin [deg] at the gain crossover and gain margin [dB] at the -180 deg phase
+    crossing of the current loop `current_open_loop` (PI `kp`, `ki` on the card's R, L, or
+    the given estimates, at the card's PWM period), and the closed loop's -3 dB bandwidth;
+    a margin the loop does not have below Nyquist is inf."""
+    r = card.resistance_ohm if r_hat is None else r_hat
+    lind = card.inductance_h if l_hat is None else l_hat
+    ts = card.ts_s
+    f = np.geomspace(1.0, 0.5 / ts * 0.9999, 20000)
+    lo = current_open_loop(kp, ki, r, lind, ts, f, delay_periods)
+    mag = np.abs(lo)
+    ph = np.unwrap(np.angle(lo))
+    pm = gm = math.inf
+    fc = fp = math.nan
+    cross = np.nonzero((mag[:-1] >= 1.0) & (mag[1:] < 1.0))[0]
+    if cross.size:
+        i = int(cross[0])
+        pm = float(np.degrees(ph[i]) + 180.0)
+        fc = float(f[i])
+    pc = np.nonzero((ph[:-1] > -np.pi) & (ph[1:] <= -np.pi))[0]
+    if pc.size:
+        i = int(pc[0])
+        gm = float(-20.0 * np.log10(mag[i]))
+        fp = float(f[i])
+    closed = lo / (1 + lo)
+    below = np.nonzero(np.abs(closed) < 1 / math.sqrt(2))[0]
+    return {
+        "delay_periods": int(delay_periods),
+        "phase_margin_deg": pm,
+        "gain_margin_db": gm,
+        "crossover_hz": fc,
+        "phase_crossover_hz": fp,
+        "bandwidth_hz": float(f[below[0]]) if below.size else math.inf,
+    }
 
 
 def _bandwidth_from_tf(tf_fn, f_lo: float, f_hi: float) -> float:

@@ -3,7 +3,7 @@ loop. `--pil`: the same graph with the board image that would be flashed
 (firmware/board/nucleo_g474) on the virtual board (fluxdrive.can.vboard) as the drive.
 
 The scenario's lockstep graph (runs.graph_for_scenario) with its plant replaced by the bench:
-- the drive: `./fluxdrive can-emulator --mcu c` (the C firmware core as the MCU, lockstep,
+- the drive: `./fluxdrive can-emulator` (the C firmware core as the MCU, lockstep,
   the project's plant in that process), on python-can's `udp_multicast` bus with a port of
   its own and TTL 0 (the datagrams never leave this host); it is the graph's required
   process: its last period ends the run;
