@@ -190,6 +190,19 @@ def _dist(d: dict[str, Any]) -> str:
     return f"one of {d['values']}"
 
 
+def grid_lines(spec: StudySpec) -> list[str]:
+    """Report lines: what every grid axis sets (a level scaling the scenario's profile, a
+    value replacing the file's, an observer or controller setting, an uncertainty)."""
+    lines = ["## What the grid sets", "", "| axis | values | what it sets |", "|---|---|---|"]
+    for axis, values in spec.grid.items():
+        vals = ", ".join(f"{x:g}" if isinstance(x, (int, float)) else str(x) for x in values)
+        lines.append(f"| {axis} | {vals} | {axis_override_text(spec, axis)} |")
+    for a in spec.map_axes:
+        if a not in spec.grid:
+            lines.append(f"| {a} (map axis) | — | not varied: the map has one row/column |")
+    return [*lines, ""]
+
+
 def unstable_reasons(table, spec: StudySpec) -> list[str]:
     """Report lines: every grid point with runs that were not stable, and why (the latched
     fault, or what the stability verdict found without one), counted over the draws."""
@@ -245,20 +258,7 @@ def write_report(
     ]
     for a, d in spec.random.items():
         lines.append(f"| {a} | {_dist(d)} | {PERTURBATIONS[a][1]} |")
-    lines += [
-        "",
-        "## What the grid sets",
-        "",
-        "| axis | values | what it sets |",
-        "|---|---|---|",
-    ]
-    for axis, values in spec.grid.items():
-        vals = ", ".join(f"{x:g}" if isinstance(x, (int, float)) else str(x) for x in values)
-        lines.append(f"| {axis} | {vals} | {axis_override_text(spec, axis)} |")
-    for a in spec.map_axes:
-        if a not in spec.grid:
-            lines.append(f"| {a} (map axis) | — | not varied: the map has one row/column |")
-    lines.append("")
+    lines += ["", *grid_lines(spec)]
     if low:
         lines += [
             f"## Lowest speed holding {low[next(iter(low))]['load_pu']:g} pu load with "
