@@ -265,7 +265,7 @@ class BagWriter:
             self._channel_of = np.array([ids[c.id] for c in self.conns], np.int64)
         t = np.asarray(t_ns, np.int64) + self.offset
         if self._settings_msg is not None:
-            self._settings_at(int(t.min()))
+            self._settings_at(int(t[0]))  # the first message, as `write` one by one has it
         size = np.asarray(size, np.int64)
         self.storage.file.add_many(
             src, np.asarray(first, np.int64), size, self._channel_of[cids], t
