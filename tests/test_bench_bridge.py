@@ -6,6 +6,7 @@ shipped emulator capture importing into a bag of PhaseFrames. No ROS."""
 
 from __future__ import annotations
 
+import threading
 import time
 from pathlib import Path
 
@@ -16,7 +17,13 @@ from fluxdrive.analysis.metrics import wrap
 from fluxdrive.can.bridge import BridgeConfig, CanBridge
 from fluxdrive.can.emulator import DriveEmulator
 from fluxdrive.can.loop import new_virtual_channel, run_can_loop
-from fluxdrive.can.protocol import ID_ARM_MODE, ID_DUTY_CMD, ID_SAMPLE_FD, get_protocol
+from fluxdrive.can.protocol import (
+    ID_ARM_MODE,
+    ID_DUTY_CMD,
+    ID_SAMPLE_FD,
+    ID_STATUS,
+    get_protocol,
+)
 from fluxdrive.core.protocol_constants import FAULT_WATCHDOG
 from fluxdrive.drive.control import CO_EN, CO_MODE, FAULT_BAD_SAMPLE, MODE_CLOSED_LOOP
 from fluxdrive.drive.observers import ES_TH, ES_W
@@ -652,3 +659,64 @@ def test_fd_decimation_mismatch_refuses_arming_and_latches_a_fault():
     finally:
         br.shutdown()
         emu_bus.shutdown()
+
+
+def test_arming_needs_the_drive_parameters_read_back_and_its_protocol_version():
+    """The bridge writes the drive's parameters and reads each back before arming: a value
+    the drive holds other than written (an over-current trip above the board's own cap,
+    0.95 of the current ADC's full scale) refuses arming in one line naming it, the design's
+    values pass; a drive whose STATUS speaks another protocol version is refused too."""
+    from fluxdrive.can.loop import drive_params_of
+    from fluxdrive.can.protocol import PROTOCOL_VERSION
+
+    sc = short_2pct(0.1)
+    ds = DriveSetup(sc)
+    ch = new_virtual_channel()
+    emu_bus = can.Bus(interface="virtual", channel=ch, fd=True)
+    peer = can.Bus(interface="virtual", channel=ch, fd=True)
+    emu = DriveEmulator(ds, emu_bus, lockstep=False)
+    br = CanBridge(lambda: can.Bus(interface="virtual", channel=ch, fd=True))
+    br.require_params = True
+    br.connect()
+    done = threading.Event()
+    server = threading.Thread(target=emu.serve, args=(done,), daemon=True)
+    server.start()
+    try:
+        ok, why = br.arm()
+        assert not ok and "not written and read back" in why
+        values = drive_params_of(ds)
+        cap = 0.95 * sc.machine.current_range_a
+        ok, why = br.write_drive_params({**values, "OVERCURRENT_A": cap + 5.0}, timeout_s=5.0)
+        assert not ok and why.startswith("drive parameter mismatch: OVERCURRENT_A"), why
+        assert f"the drive holds {cap:g}" in why
+        assert not br.arm()[0] and br.diagnostics()["param_mismatch"] == 1
+        ok, why = br.write_drive_params(values, timeout_s=5.0)
+        assert ok, why
+        done.set()
+        server.join(5.0)
+        # a STATUS of another protocol version: refused, said in one line
+        status = get_protocol().encode(
+            "STATUS",
+            {"st_protocol_version": PROTOCOL_VERSION + 1, "st_state": 1, "st_decimation": 1,
+             "st_temp": 35},
+        )  # fmt: skip
+        peer.send(can.Message(arbitration_id=ID_STATUS, data=status, is_extended_id=False))
+        t0 = time.monotonic()
+        while not br.protocol_mismatch and time.monotonic() - t0 < 5.0:
+            br.poll(timeout=0.02)
+        ok, why = br.arm()
+        assert not ok and why == (
+            f"protocol version mismatch: the drive speaks version {PROTOCOL_VERSION + 1}, "
+            f"this host version {PROTOCOL_VERSION}"
+        )
+        emu.step()  # the drive's own STATUS (its version): arming goes through
+        t0 = time.monotonic()
+        while br.protocol_mismatch and time.monotonic() - t0 < 5.0:
+            br.poll(timeout=0.02)
+        assert br.arm() == (True, "armed")
+    finally:
+        done.set()
+        server.join(5.0)
+        br.shutdown()
+        emu_bus.shutdown()
+        peer.shutdown()

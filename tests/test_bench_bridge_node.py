@@ -64,8 +64,15 @@ def test_bridge_node_smoke():
     try:
         spinner.start()
         assert arm.wait_for_service(timeout_sec=5.0)
-        res = arm.call(Arm.Request(arm=True), timeout_sec=5.0)
-        assert res is not None and res.success
+        # the drive answers its bus between periods until armed (its parameters first)
+        armed = threading.Event()
+        server = threading.Thread(target=emu.serve, args=(armed,), kwargs={"until_armed": True})
+        server.start()
+        res = arm.call(Arm.Request(arm=True), timeout_sec=10.0)
+        armed.set()
+        server.join()
+        assert res is not None and res.success, res
+        assert node.bridge.diagnostics()["params_verified"]
         emu.start(300)
         t0 = time.monotonic()
         while time.monotonic() - t0 < 60.0 and len(got) < 300:

@@ -58,9 +58,11 @@ def test_split_over_can_matches_the_in_process_split_run():
     (a duty written at t_k applies from t_(k+1)), the in-process run the engine's drive-side
     kernels under the same contract."""
     sc = _split_case(2.5)
-    r = run_can_loop(sc)
+    r = run_can_loop(sc, emulator_kw={"lockstep_wait_s": 5.0})  # a loaded machine stalls
     diag, emu = r.diagnostics, r.emulator_stats
-    assert diag["control_split"] and diag["param_ok"] == diag["param_tx"] == 15
+    # 16 written (the heartbeat timeout too), then 16 read back: all answered, all equal
+    assert diag["control_split"] and diag["param_ok"] == diag["param_tx"] == 32
+    assert diag["params_verified"] and diag["param_mismatch"] == 0
     assert emu["lockstep_timeouts"] == 0 and emu["faults"] == 0
     assert emu["refs_applied"] == r.est.shape[1] - 1 <= emu["ref_rx"]  # the last: after the run
     m = r.est.shape[1]
@@ -176,7 +178,7 @@ def test_bridge_node_split_mode_parameters_references_and_fault_report():
         kp = node.get_parameter("drive.cur_kp").value
         assert wait(lambda: emu.core.state()["split"])  # the drive's interrupt took ARM_MODE
         assert emu.core.param_read("CUR_KP") == pytest.approx(kp, rel=1e-6)
-        assert emu.stats.param_rx == 16
+        assert emu.stats.param_rx == 32  # 16 written, 16 read back
         assert wait(lambda: len(frames) > 200 and emu.pwm_enabled)
         f = frames[-1]
         assert f.pwm_enabled and abs(f.i_abc[0] - 2.0) < 0.2, f.i_abc  # i_a = i_d at 0 rad

@@ -91,7 +91,7 @@ from fluxdrive.can.protocol import (
     SeqFilter,
     get_protocol,
 )
-from fluxdrive.core.protocol_constants import MODE_IDLE, MODE_RUN
+from fluxdrive.core.protocol_constants import FAULT_CHOICES, MODE_IDLE, MODE_RUN
 from fluxdrive.core.schema import param
 from fluxdrive.drive.control import (
     FAULT_BAD_SAMPLE,
@@ -380,6 +380,11 @@ class CanBridge:
         self.armed = False
         self.fault: str = ""  # latched host-side fault reason ("" = none)
         self.drive_mismatch: str = ""  # the last STATUS's layout/D disagreement ("" = none)
+        # the last STATUS's protocol version disagreement ("" = none)
+        self.protocol_mismatch: str = ""
+        # arming needs the drive parameters written and read back (write_drive_params)
+        self.require_params = False
+        self.params_verified = False
         self._mismatch_run = 0  # consecutive disagreeing STATUS frames
         self.mcu: dict[str, Any] = {}  # last MCU status / fault / sample flags
         # which samples are new; the stream is never followed across a jump: it goes
@@ -426,6 +431,8 @@ class CanBridge:
         self._reasm = ClassicReassembler(protocol=self.proto)
         self._next_hb_t = 0.0
         self.drive_mismatch = ""  # the drive's next STATUS tells again
+        self.protocol_mismatch = ""
+        self.params_verified = False  # another drive may answer now
         self._mismatch_run = 0
         return True
 
@@ -607,13 +614,39 @@ class CanBridge:
         self.counters["param_ok"] += 1
         return True, f"{name} = {v:g} on the drive", v
 
+    def write_drive_params(
+        self, values: dict[str, float], timeout_s: float | None = None
+    ) -> tuple[bool, str]:
+        """Write every drive parameter of ``values`` (each acknowledged), then read each
+        back: (True, what was done) or (False, the first refusal, missing answer or value
+        the drive holds other than the one written -- float32 rounding aside -- in one
+        line). With :attr:`require_params`, :meth:`arm` refuses until this has passed since
+        the last (re)connect."""
+        self.params_verified = False
+        for name, v in values.items():
+            ok, why, _ = self.set_drive_param(name, v, timeout_s)
+            if not ok:
+                return False, f"drive parameters not taken: {why}"
+        for name, v in values.items():
+            ok, why, got = self.read_drive_param(name, timeout_s)
+            if not ok:
+                return False, f"drive parameters not read back: {why}"
+            if not _same_float32(got, v):
+                self.counters["param_mismatch"] += 1
+                return False, (
+                    f"drive parameter mismatch: {name} written {v:g}, the drive holds {got:g} "
+                    f"(a limit of its own?): not armed"
+                )
+        self.params_verified = True
+        return True, f"{len(values)} drive parameters written and read back"
+
     def drive_fault_text(self) -> str:
         """The drive's latched fault as one line ("" when none): name, code, detail."""
         f = self.drive_fault
         if not f or not f.get("code") or not f.get("latched"):
             return ""
         code = int(f["code"])
-        name = FAULT_NAMES.get(code, f"drive fault {code}")
+        name = fault_name(code)
         detail = int(f.get("detail", 0))
         extra = ""
         if code == 9:  # WATCHDOG: duty (host mode) or reference (split mode) timeout
@@ -637,14 +670,14 @@ class CanBridge:
         return self._send(ID_ARM_MODE, data)
 
     def arm(self) -> tuple[bool, str]:
-        """Arm the drive (host side and ARM_MODE). Refused while a fault is latched, the
-        drive's last STATUS reported another layout or D, or the bus is down."""
-        if self.fault:
-            return False, f"fault latched: {self.fault}; reset it first"
-        if self.drive_mismatch:
-            return False, self.drive_mismatch
-        if not self.connected:
-            return False, "CAN bus not connected"
+        """Arm the drive (host side and ARM_MODE). Refused while :meth:`arm_refusal` says
+        why, or with :attr:`require_params` until the drive's parameters were written and
+        read back (:meth:`write_drive_params`)."""
+        why = self.arm_refusal()
+        if why:
+            return False, why
+        if self.require_params and not self.params_verified:
+            return False, "drive parameters not written and read back since the last connect"
         with self._arm_lock:
             self.armed = True
             if not self._send_arm(True):
@@ -652,6 +685,20 @@ class CanBridge:
                 return False, "ARM_MODE could not be sent"
         self.counters["arms"] += 1
         return True, "armed"
+
+    def arm_refusal(self) -> str:
+        """Why :meth:`arm` would refuse before anything is written to the drive ("" =
+        nothing): a latched fault, another protocol version or layout/D in the drive's last
+        STATUS, the bus down."""
+        if self.fault:
+            return f"fault latched: {self.fault}; reset it first"
+        if self.protocol_mismatch:
+            return self.protocol_mismatch
+        if self.drive_mismatch:
+            return self.drive_mismatch
+        if not self.connected:
+            return "CAN bus not connected"
+        return ""
 
     def disarm(self, reason: str = "") -> tuple[bool, str]:
         """Disarm: a disable DUTY_CMD (for the last sample) and ARM_MODE arm=0."""
@@ -758,6 +805,7 @@ class CanBridge:
                     decimation=int(d["st_decimation"]),
                 )  # fmt: skip
                 self._check_drive_layout(bool(d["st_sample_layout"]), int(d["st_decimation"]))
+                self._check_protocol_version(int(d["st_protocol_version"]))
             elif aid == ID_FAULT:
                 d = _decode_checked(self._msg_fault, msg.data)
                 self.counters["fault_rx"] += 1
@@ -806,7 +854,7 @@ class CanBridge:
             ev = FaultEvent(int(d["fault_code"]), True, self.drive_fault_text(), "drive")
             self.fault_events.append(ev)
         elif was and not (d["fault_code"] and d["fault_latched"]):
-            name = FAULT_NAMES.get(was, f"drive fault {was}")
+            name = fault_name(was)
             ev = FaultEvent(FAULT_NONE, False, f"drive fault {was} {name} cleared", "drive")
             self.fault_events.append(ev)
 
@@ -889,6 +937,21 @@ class CanBridge:
         self._last_valid_t = now
         self.counters["frames_out"] += frames.shape[0]
         return frames, keep
+
+    def _check_protocol_version(self, version: int) -> None:
+        """STATUS: the drive must speak this host's protocol version (the DBC's); otherwise
+        every frame may mean something else. Refuses :meth:`arm`; while armed, latches a
+        fault (disable + disarm)."""
+        if version == PROTOCOL_VERSION:
+            self.protocol_mismatch = ""
+            return
+        self.counters["protocol_mismatch"] += 1
+        self.protocol_mismatch = (
+            f"protocol version mismatch: the drive speaks version {version}, this host "
+            f"version {PROTOCOL_VERSION}"
+        )
+        if self.armed and not self.fault:
+            self._raise_fault(self.protocol_mismatch, FAULT_BAD_SAMPLE)
 
     def _check_drive_layout(self, classic: bool, decimation: int) -> None:
         """STATUS: the drive must run the layout and D this bridge asked for; otherwise
@@ -1039,6 +1102,8 @@ class CanBridge:
             "control_split": bool(self.cfg.control_split),
             "drive_fault": self.drive_fault_text(),
             "drive_mismatch": self.drive_mismatch,
+            "protocol_mismatch": self.protocol_mismatch,
+            "params_verified": self.params_verified,
             "seq_gaps": st.gaps,
             "seq_lost": st.lost,
             "seq_duplicates": st.duplicates,
@@ -1063,6 +1128,8 @@ class CanBridge:
             "error_frames",
             "fast_path_frames",
             "layout_mismatch",
+            "protocol_mismatch",
+            "param_mismatch",
         )
         out.update({k: 0 for k in base})
         out.update({k: int(v) for k, v in sorted(self.counters.items())})
@@ -1083,6 +1150,27 @@ def _decode_checked(msg: Any, data: bytes | bytearray) -> dict[str, Any]:
         if (lo is not None and v < lo) or (hi is not None and v > hi):
             raise ValueError(f"{msg.name}.{sig.name}={v:g} outside [{lo}, {hi}]")
     return d
+
+
+HOST_HEARTBEAT_TIMEOUT_S = 0.5
+"""The drive's HEARTBEAT_TIMEOUT_S a bridge writes: five of its 10 Hz HOST_HEARTBEATs
+(``BridgeConfig.heartbeat_period_s``) missed, the drive turns PWM off (supervised from
+arming, in both modes)."""
+
+
+def fault_name(code: int) -> str:
+    """A drive fault code's name: the engine's words where it has the code, else the DBC's
+    value table (``GATE_DRIVER`` -> "gate driver")."""
+    name = FAULT_NAMES.get(code)
+    if name is None:
+        name = FAULT_CHOICES.get(code, f"code {code}").lower().replace("_", " ")
+    return name
+
+
+def _same_float32(a: float, b: float) -> bool:
+    """Equal as the drive stores them (float32), within its rounding."""
+    fa, fb = float(np.float32(a)), float(np.float32(b))
+    return abs(fa - fb) <= 1e-6 * max(abs(fa), abs(fb))
 
 
 def _reason_kind(reason: str) -> str:

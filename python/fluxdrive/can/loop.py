@@ -18,10 +18,12 @@ observers and the controller run at D*Ts (:func:`decimated_scenario`) while the 
 keeps switching at Ts. Control at D*Ts needs its own tuning: the scenario
 ``config/scenarios/can_2pct_decimated.yaml`` carries one for D = 4..8.
 
-A scenario in split mode (``control.mode: split``, its ``control.decimation`` D) runs split
-over the bus: the bridge sends ARM_MODE.control_split and the drive-side parameters as
-DRIVE_PARAMs (each acknowledged), the observers and ``host_reference_step`` answer every
-sample with a HOST_REF, and the drive's C core closes the current loop every period.
+Before arming (both modes) the bridge writes the drive's parameters of the scenario's
+design as DRIVE_PARAMs, each acknowledged, and reads each back (``drive_params_of``;
+arming is refused on a refusal or a mismatch). A scenario in split mode (``control.mode:
+split``, its ``control.decimation`` D) runs split over the bus: the bridge sends
+ARM_MODE.control_split, the observers and ``host_reference_step`` answer every sample with a
+HOST_REF, and the drive's C core closes the current loop every period.
 """
 
 from __future__ import annotations
@@ -38,7 +40,12 @@ from typing import Any
 import can
 import numpy as np
 
-from fluxdrive.can.bridge import BridgeConfig, CanBridge, bus_factory_from_params
+from fluxdrive.can.bridge import (
+    HOST_HEARTBEAT_TIMEOUT_S,
+    BridgeConfig,
+    CanBridge,
+    bus_factory_from_params,
+)
 from fluxdrive.can.canlog import open_writer
 from fluxdrive.can.emulator import DriveEmulator
 from fluxdrive.drive.control import (
@@ -60,7 +67,13 @@ from fluxdrive.drive.observers import ES_N, observer_step
 from fluxdrive.drive.plant import FR_N, FR_SEQ
 from fluxdrive.drive.sim import DriveSetup
 
-__all__ = ["CanLoopResult", "decimated_scenario", "new_virtual_channel", "run_can_loop"]
+__all__ = [
+    "CanLoopResult",
+    "decimated_scenario",
+    "drive_params_of",
+    "new_virtual_channel",
+    "run_can_loop",
+]
 
 _counter = itertools.count()
 
@@ -185,16 +198,18 @@ def run_can_loop(
     cfg = _bridge_config(bridge_config, decimation is not None, d, split)
     bridge = CanBridge(bus_factory_from_params("virtual", ch, fd=fd), cfg)
     bridge.connect()
-    if arm:
-        bridge.arm()
+    if arm:  # the drive's parameters written and read back, then armed (both modes)
+        bridge.require_params = True
+        _configure_drive(emu, bridge, ds)
+        ok, why = bridge.arm()
+        if not ok:
+            raise RuntimeError(f"the drive was not armed: {why}")
     if control_scenario is None:
         control_scenario = decimated_scenario(scenario, d) if d > 1 and not split else scenario
     dsc = DriveSetup(control_scenario) if control_scenario is not scenario else ds
     host = _Host(dsc, math.ceil(n / d), split, d)
     host.warm()
     t0 = time.perf_counter()
-    if split:
-        _configure_split_drive(emu, bridge, ds)
     emu.start(n, realtime=realtime)
     try:
         _serve(bridge, emu, host, frame_hook)
@@ -262,18 +277,23 @@ class _Buses:
             self.tap.shutdown()
 
 
-def _configure_split_drive(emu: DriveEmulator, bridge: CanBridge, ds: DriveSetup) -> None:
-    """The drive-side parameters of this scenario's design, each acknowledged, all in
-    effect before the drive's first period (a run does not depend on when)."""
+def drive_params_of(ds: DriveSetup) -> dict[str, float]:
+    """The drive parameters a host writes for this scenario's design (both modes): the
+    drive-side controller row's (`drive_param_values`) and the host heartbeat timeout."""
+    return {**drive_param_values(ds.cp), "HEARTBEAT_TIMEOUT_S": HOST_HEARTBEAT_TIMEOUT_S}
+
+
+def _configure_drive(emu: DriveEmulator, bridge: CanBridge, ds: DriveSetup) -> None:
+    """The drive's parameters of this scenario's design, each acknowledged and read back,
+    all in effect before the drive's first period (a run does not depend on when)."""
     configured = threading.Event()
     server = threading.Thread(target=emu.serve, args=(configured,), daemon=True)
     server.start()
     try:
-        for name, value in drive_param_values(ds.cp).items():
-            # generous: a cold numba cache compiles the emulator's kernels meanwhile
-            ok, why, _ = bridge.set_drive_param(name, value, timeout_s=60.0)
-            if not ok:
-                raise RuntimeError(f"drive parameter refused: {why}")
+        # generous: a cold numba cache compiles the emulator's kernels meanwhile
+        ok, why = bridge.write_drive_params(drive_params_of(ds), timeout_s=60.0)
+        if not ok:
+            raise RuntimeError(why)
     finally:
         configured.set()
         server.join()

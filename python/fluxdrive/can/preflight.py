@@ -27,7 +27,7 @@ from typing import Any
 
 import can
 
-from fluxdrive.can.bridge import BridgeConfig, BusFactory, CanBridge
+from fluxdrive.can.bridge import HOST_HEARTBEAT_TIMEOUT_S, BridgeConfig, BusFactory, CanBridge
 from fluxdrive.can.protocol import PROTOCOL_VERSION, get_protocol
 
 __all__ = [
@@ -59,7 +59,7 @@ def scenario_drive_params(scenario: str) -> dict[str, float]:
         card = load_machine(CONFIG_DIR / "machines" / "default_spm.yaml")
         cfg = ControllerConfig()
     vals = drive_param_values(cfg.to_params(card))
-    vals["HEARTBEAT_TIMEOUT_S"] = 0.0
+    vals["HEARTBEAT_TIMEOUT_S"] = HOST_HEARTBEAT_TIMEOUT_S  # the host supervised, both modes
     return vals
 
 

@@ -17,14 +17,16 @@ Thin wrapper over :class:`fluxdrive.can.bridge.CanBridge` (all supervisor logic 
   (DutyCommand) -> DUTY_CMD frames, service ``/drive/arm`` (flux_drive_msgs/srv/Arm) and
   ``/drive/reset_fault`` (ResetFault), diagnostics on ``/diagnostics``;
 * split mode (``control_split``, read-only): ARM_MODE.control_split = 1, subscribes
-  ``/drive/current_ref`` (CurrentReference) -> HOST_REF instead of duties; the drive-side
-  parameters are ROS parameters ``drive.<name>`` (the DBC's DRIVE_PARAM table, lower case:
-  ``drive.cur_kp``, ``drive.ref_timeout_s``, ...; defaults from the ``scenario``'s controller
-  design, ``design_loops`` at the PWM rate), written to the drive as DRIVE_PARAMs before
-  every arming (arming is refused with the drive's reason if one is not acknowledged) and
-  whenever one is set (live: the set is refused with the drive's reason on a refusal or
-  without an acknowledgement); the drive's FAULT frames (e.g. the reference timeout) are
-  reported on /diagnostics (level ERROR, the fault named in the message);
+  ``/drive/current_ref`` (CurrentReference) -> HOST_REF instead of duties;
+* the drive's parameters, in both modes, are ROS parameters ``drive.<name>`` (the DBC's
+  DRIVE_PARAM table, lower case: ``drive.cur_kp``, ``drive.overcurrent_a``,
+  ``drive.heartbeat_timeout_s``, ...; defaults from the ``scenario``'s controller design,
+  ``design_loops`` at the PWM rate, and the host heartbeat supervised), written to the
+  drive as DRIVE_PARAMs and read back before every arming (arming is refused, in one line
+  logged and answered, if one is refused, unanswered or read back other than written, or
+  if the drive's STATUS speaks another protocol version) and whenever one is set (live:
+  the set is refused with the drive's reason); the drive's FAULT frames are reported on
+  /diagnostics (level ERROR, the fault named in the message);
 * every fault, latched or cleared, as a flux_drive_msgs/DriveFault on ``/drive/fault``
   (reliable, transient-local, like the controller's): the drive's (its FAULT frames; source
   ``drive via <this node>``) and the supervisor's own (stale data: STALE_INPUT, a drive
@@ -221,8 +223,9 @@ class BenchBridgeNode(Node):
         self.ts = pv["ts_s"]
         self.frame_id = pv["frame_id"]
         self.split = bool(pv["control_split"])
-        self.drive_specs = drive_param_table(drive_defaults(pv["scenario"])) if self.split else []
-        self.drive_values = declare(self, self.drive_specs) if self.split else {}
+        # the drive's parameters, both modes (host mode: its protections and supervision)
+        self.drive_specs = drive_param_table(drive_defaults(pv["scenario"]))
+        self.drive_values = declare(self, self.drive_specs)
         # the allow-list names nodes of this drive (/controller: <namespace>/controller)
         self.allowed = topics.drive_names(self, list(pv["allowed_commanders"]))
         # graph identity (fluxdrive_ros.graph): its frames carry the graph's id, duties of
@@ -234,6 +237,7 @@ class BenchBridgeNode(Node):
         self.duty_out_of_range = 0
         self.service_refused = 0
         self.bridge = self._make_bridge(pv)
+        self.bridge.require_params = True  # arming: written and read back first
         self._report_link()
         self._mismatch_logged = ""
         self._drive_fault_logged = ""
@@ -406,21 +410,23 @@ class BenchBridgeNode(Node):
         )
 
     def _push_drive_params(self, values: dict[str, float]) -> str:
-        """Write drive parameters (DRIVE_PARAM name -> value); '' or the first refusal."""
-        for prm, v in values.items():
-            ok, why, _ = self.bridge.set_drive_param(prm, float(v))
-            if not ok:
-                return why
-        return ""
+        """Write drive parameters (DRIVE_PARAM name -> value) and read them back; '' or
+        the first refusal or mismatch."""
+        ok, why = self.bridge.write_drive_params({p: float(v) for p, v in values.items()})
+        return "" if ok else why
 
     def _arm(self) -> tuple[bool, str]:
-        """Arm; in split mode the drive first gets (and acknowledges) every drive.* value."""
-        if self.split:
-            vals = {prm: self.drive_values[drive_param_name(prm)] for prm in DRIVE_PARAMS}
-            why = self._push_drive_params(vals)
-            if why:
-                return False, f"drive parameters not taken: {why}"
-        return self.bridge.arm()
+        """Arm, both modes: the drive first gets every drive.* value, acknowledged and read
+        back; a refusal, a mismatch or another protocol version refuses, said in one line."""
+        vals = {prm: self.drive_values[drive_param_name(prm)] for prm in DRIVE_PARAMS}
+        why = self.bridge.arm_refusal() or self._push_drive_params(vals)
+        if why:
+            self.get_logger().error(f"not armed: {why}")
+            return False, why
+        ok, why = self.bridge.arm()
+        if not ok:
+            self.get_logger().error(f"not armed: {why}")
+        return ok, why
 
     def _refused(self, service: str) -> str | None:
         why = access.check_service_caller(self, service, self.allowed)
