@@ -271,7 +271,12 @@ class VirtualBoard:
         if measure:
             mu.hook_add(uc.UC_HOOK_BLOCK, self._on_block, begin=_FLASH, end=_FLASH + 0x80000)
             mu.hook_add(uc.UC_HOOK_BLOCK, self._on_block, begin=_CCM, end=_CCM + _CCM_SIZE)
-        # plant-side state of the models
+        self._init_models()
+        self._proto = get_protocol()
+        self._boot()
+
+    def _init_models(self) -> None:
+        """The plant-side state of the peripheral models, at reset."""
         self._adc = [ADC_MID, ADC_MID, ADC_MID, 0]
         self._temp_counts = TEMP_ZERO_COUNTS + 35 * TEMP_COUNTS_PER_C
         self._pulses = [(0, 0), (0, 0), (0, 0)]  # per line: (+ width, - width) [ticks]
@@ -290,8 +295,6 @@ class VirtualBoard:
         self.break_trips = 0
         self.gate_fault = False
         self.periods = 0
-        self._proto = get_protocol()
-        self._boot()
 
     # ------------------------------------------------------------------ set-up
     @staticmethod

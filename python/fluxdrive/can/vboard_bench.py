@@ -56,6 +56,36 @@ class _Costing:
         self.costed.append(self.coster.cost(pcs, _RETURN))
 
 
+def _mode_record(vb: Any, costing: _Costing, d: int, r: Any, wall_s: float) -> dict[str, Any]:
+    """One mode's figures: the interrupt's instructions over every period, the cycle bounds
+    of the costed ones, the stack mark, faults."""
+    from fluxdrive.can.firmware_target import CPU_HZ, PWM_HZ
+
+    n = np.array(vb.isr_instructions)
+    costed = costing.costed
+    upper = sorted(b.upper for b in costed)
+    lower = sorted(b.lower for b in costed)
+    budget = CPU_HZ / PWM_HZ
+    return {
+        "decimation": d,
+        "periods": int(n.size),
+        "isr_instructions_max": int(n.max()),
+        "isr_instructions_median": int(np.median(n)),
+        "isr_instructions_min": int(n.min()),
+        "percent_of_period_at_1_cycle_per_instruction": round(100.0 * float(n.max()) / budget, 2),
+        "costed_periods": len(costed),
+        "cycles_lower_max": lower[-1],
+        "cycles_lower_median": lower[len(lower) // 2],
+        "cycles_upper_max": upper[-1],
+        "cycles_upper_median": upper[len(upper) // 2],
+        "percent_of_period_upper": round(100.0 * upper[-1] / budget, 2),
+        "stack_high_water_bytes": vb.stack_high_water(),
+        "faults": int(r.emulator_stats["faults"]),
+        "iwdg_resets": vb.iwdg_resets,
+        "wall_s": round(wall_s, 1),
+    }
+
+
 def board_benchmark(duration_s: float = 1.5) -> dict[str, Any]:
     """The board image in closed loop on the virtual board (in-process, through the bridge
     and the engine's host side): the period interrupt's executed instructions (every
@@ -99,31 +129,7 @@ def board_benchmark(duration_s: float = 1.5) -> dict[str, Any]:
         finally:
             emu_mod.DriveEmulator._new_firmware = orig  # type: ignore[method-assign]
         vb = boards[-1]
-        n = np.array(vb.isr_instructions)
-        costed = costing.costed
-        upper = sorted(b.upper for b in costed)
-        lower = sorted(b.lower for b in costed)
-        budget = CPU_HZ / PWM_HZ
-        rec[f"{mode}_mode"] = {
-            "decimation": d,
-            "periods": int(n.size),
-            "isr_instructions_max": int(n.max()),
-            "isr_instructions_median": int(np.median(n)),
-            "isr_instructions_min": int(n.min()),
-            "percent_of_period_at_1_cycle_per_instruction": round(
-                100.0 * float(n.max()) / (CPU_HZ / PWM_HZ), 2
-            ),
-            "costed_periods": len(costed),
-            "cycles_lower_max": lower[-1],
-            "cycles_lower_median": lower[len(lower) // 2],
-            "cycles_upper_max": upper[-1],
-            "cycles_upper_median": upper[len(upper) // 2],
-            "percent_of_period_upper": round(100.0 * upper[-1] / budget, 2),
-            "stack_high_water_bytes": vb.stack_high_water(),
-            "faults": int(r.emulator_stats["faults"]),
-            "iwdg_resets": vb.iwdg_resets,
-            "wall_s": round(time.perf_counter() - t0, 1),
-        }
+        rec[f"{mode}_mode"] = _mode_record(vb, costing, d, r, time.perf_counter() - t0)
         rec["size"] = target_sizes(vb.elf)
     rec["method"] = (
         "the board image (fd_board_d4.elf, fd_board_d1.elf) on the virtual board in closed "
