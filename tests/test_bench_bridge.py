@@ -720,3 +720,80 @@ def test_arming_needs_the_drive_parameters_read_back_and_its_protocol_version():
         br.shutdown()
         emu_bus.shutdown()
         peer.shutdown()
+
+
+@pytest.mark.parametrize(
+    "case", ["gate_driver", "hw_overcurrent", "adc_saturation", "overrun", "overtemperature"]
+)
+def test_injected_drive_fault_turns_pwm_off_and_reaches_the_bridge(case):
+    """The drive (plant + C core) running host mode with PWM on, its parameters written and
+    read back: a condition injected into its SIL HAL or sensors -- the gate driver's fault
+    input, a phase current beyond the hardware comparator (the timer's break input), a
+    current reading at the ADC's rail, an interrupt past its deadline, a stage temperature
+    above the board's limit (90 degC in the SIL; 120 degC read) -- turns the PWM off
+    in the very period (the plant's next frame has it off), latches the fault and its
+    FAULT frame reaches the bridge as one fault event naming it."""
+    from fluxdrive.can.loop import drive_params_of
+    from fluxdrive.core.protocol_constants import (
+        FAULT_ADC_FAULT,
+        FAULT_DEADLINE_MISSED,
+        FAULT_GATE_DRIVER,
+        FAULT_OVERCURRENT,
+        FAULT_OVERTEMPERATURE,
+    )
+
+    code = {
+        "gate_driver": FAULT_GATE_DRIVER,
+        "hw_overcurrent": FAULT_OVERCURRENT,
+        "adc_saturation": FAULT_ADC_FAULT,
+        "overrun": FAULT_DEADLINE_MISSED,
+        "overtemperature": FAULT_OVERTEMPERATURE,
+    }[case]
+    sc = short_2pct(0.1)
+    ds = DriveSetup(sc)
+    ch = new_virtual_channel()
+    emu_bus = can.Bus(interface="virtual", channel=ch, fd=True)
+    emu = DriveEmulator(ds, emu_bus, lockstep=False)
+    br = CanBridge(lambda: can.Bus(interface="virtual", channel=ch, fd=True))
+    br.require_params = True
+    br.connect()
+    done = threading.Event()
+    server = threading.Thread(target=emu.serve, args=(done,), daemon=True)
+    server.start()
+    try:
+        ok, why = br.write_drive_params(drive_params_of(ds), timeout_s=5.0)
+        done.set()
+        server.join(5.0)
+        assert ok, why
+        assert br.arm()[0]
+        for _ in range(30):
+            emu.step()
+            for fr in br.poll(timeout=0.02):
+                br.send_duty(int(fr[FR_SEQ]), (0.5, 0.5, 0.5), True)
+        assert emu.pwm_enabled and emu.frame[FR_EN] == 1.0
+        rail = sc.machine.current_range_a
+        if case == "gate_driver":
+            emu.core.inject(gate_fault=True)
+        elif case == "overrun":
+            emu.core.inject(overrun=True)
+        elif case == "overtemperature":
+            emu.stage_temp_c = 120
+        elif case == "hw_overcurrent":
+            emu.core.set_break(0.8 * rail)
+            emu.sample_hook = lambda k, f: f.__setitem__(FR_IA, 0.9 * rail)
+        else:
+            emu.sample_hook = lambda k, f: f.__setitem__(FR_IA, rail)
+        emu.step()  # the period the condition appears in
+        assert emu.fault_latched and emu.fault_code == code and not emu.pwm_enabled
+        assert emu.frame[FR_EN] == 0.0  # the plant ran that period with the gates open
+        t0 = time.monotonic()
+        while not br.fault_events and time.monotonic() - t0 < 5.0:
+            br.poll(timeout=0.02)
+        (ev,) = [e for e in br.fault_events if e.latched]
+        assert ev.code == code and ev.origin == "drive" and "PWM off" in ev.reason
+        assert not br.armed
+        print(f"{case}: {ev.reason}")
+    finally:
+        done.set()
+        br.shutdown()
+        emu_bus.shutdown()

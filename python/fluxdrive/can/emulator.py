@@ -168,6 +168,9 @@ class DriveEmulator:
         self._cmd_timeout_s = cmd_timeout_s
         self._status_period_s = status_period_s
         self._fw: Any = self._new_firmware()
+        self.stage_temp_c = 35
+        """The power stage's temperature the drive reads [degC] (the plant has no thermal
+        model: fault injection sets it)."""
         self.sample_hook: Callable[[int, np.ndarray], None] | None = None
         """Fault injection: called with (k, a copy of frame k) before the core reads it;
         what it changes in the copy is what the drive's sensors report (the plant's state
@@ -252,11 +255,11 @@ class DriveEmulator:
                 self._drain(min(left, 0.05))
                 self._fw_feed()
         if self.sample_hook is None:
-            fw.set_sample(self.frame, self.time_us())
+            fw.set_sample(self.frame, self.time_us(), self.stage_temp_c)
         else:
             seen = self.frame.copy()
             self.sample_hook(k, seen)
-            fw.set_sample(seen, self.time_us())
+            fw.set_sample(seen, self.time_us(), self.stage_temp_c)
         fw.period()
         if self.record and k % d == 0:
             self._sent_wall[k % _SEQ_MOD] = time.time()
