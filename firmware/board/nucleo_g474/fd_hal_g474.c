@@ -618,9 +618,13 @@ bool fd_hal_can_tx(void *hal, const fd_can_frame_t *frame)
     uint32_t n = DLC_LEN[dlc];
     for (uint32_t w = 0; w < n; w += 4u) {
         uint32_t v = 0;
-        for (uint32_t b = 0; b < 4u; ++b) {
-            uint32_t i = w + b;
-            v |= (uint32_t)(i < frame->len ? frame->data[i] : 0u) << (8u * b);
+        if (w + 4u <= frame->len) { /* a whole word of payload: one load (little-endian) */
+            memcpy(&v, &frame->data[w], 4u);
+        } else {
+            for (uint32_t b = 0; b < 4u; ++b) {
+                uint32_t i = w + b;
+                v |= (uint32_t)(i < frame->len ? frame->data[i] : 0u) << (8u * b);
+            }
         }
         MRAM(base + 8u + w) = v;
     }

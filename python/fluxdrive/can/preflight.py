@@ -29,6 +29,7 @@ import can
 
 from fluxdrive.can.bridge import HOST_HEARTBEAT_TIMEOUT_S, BridgeConfig, BusFactory, CanBridge
 from fluxdrive.can.protocol import PROTOCOL_VERSION, get_protocol
+from fluxdrive.core.protocol_constants import PA_OK
 
 __all__ = [
     "PreflightResult",
@@ -283,7 +284,7 @@ class _Calibration:
                 )
         elif msg.arbitration_id == self.ack.frame_id and self.cal_id is not None:
             a = self.ack.decode(data, decode_choices=False)
-            if a["pa_id"] == self.cal_id and a["pa_status"] == 0:
+            if a["pa_id"] == self.cal_id and a["pa_status"] == PA_OK:
                 self.cal_done.append(float(a["pa_value"]))
         elif msg.arbitration_id == self.status.frame_id:
             st = self.status.decode(data, decode_choices=False)
