@@ -662,10 +662,12 @@ def test_fd_decimation_mismatch_refuses_arming_and_latches_a_fault():
 
 
 def test_arming_needs_the_drive_parameters_read_back_and_its_protocol_version():
-    """The bridge writes the drive's parameters and reads each back before arming: a value
-    the drive holds other than written (an over-current trip above the board's own cap,
-    0.95 of the current ADC's full scale) refuses arming in one line naming it, the design's
-    values pass; a drive whose STATUS speaks another protocol version is refused too."""
+    """The bridge writes the drive's parameters and reads each back before arming: arming
+    waits for it; a protection limit the board holds stricter than asked (an over-current
+    trip above its own cap, 0.95 of the current ADC's full scale) passes, said in the answer
+    (the drive protects at its rating); any other difference refuses in one line; a drive
+    whose STATUS speaks another protocol version is refused too."""
+    from fluxdrive.can.bridge import _tighter
     from fluxdrive.can.loop import drive_params_of
     from fluxdrive.can.protocol import PROTOCOL_VERSION
 
@@ -687,11 +689,13 @@ def test_arming_needs_the_drive_parameters_read_back_and_its_protocol_version():
         values = drive_params_of(ds)
         cap = 0.95 * sc.machine.current_range_a
         ok, why = br.write_drive_params({**values, "OVERCURRENT_A": cap + 5.0}, timeout_s=5.0)
-        assert not ok and why.startswith("drive parameter mismatch: OVERCURRENT_A"), why
-        assert f"the drive holds {cap:g}" in why
-        assert not br.arm()[0] and br.diagnostics()["param_mismatch"] == 1
+        assert ok and f"stricter limits hold: OVERCURRENT_A {cap:g} (asked {cap + 5:g})" in why
+        assert br.diagnostics()["param_tightened"] == 1 and br.diagnostics()["param_mismatch"] == 0
         ok, why = br.write_drive_params(values, timeout_s=5.0)
         assert ok, why
+        # a stricter limit passes; a looser one, or any other parameter's difference, refuses
+        assert _tighter("OVERCURRENT_A", 20.0, 19.0) and not _tighter("OVERCURRENT_A", 19.0, 20.0)
+        assert _tighter("VDC_MIN_V", 10.0, 12.0) and not _tighter("CUR_KP", 1.0, 0.5)
         done.set()
         server.join(5.0)
         # a STATUS of another protocol version: refused, said in one line

@@ -44,8 +44,11 @@
 #ifndef FD_BOARD_REQUIRE_CALIBRATION
 #define FD_BOARD_REQUIRE_CALIBRATION 0u
 #endif
-#define FD_BOARD_OVERCURRENT_A 18.0f  /* software trip, below the ADC's 20 A full scale */
-#define FD_BOARD_HW_OVERCURRENT_A 19.0f /* comparator -> TIM1 break (hardware, no CPU) */
+/* software trip at 0.95 of the ADC's 20 A full scale (the SIL's cap, so one board model):
+ * the default card's 2.1 pu trip (18.9 A) fits under it, and a host that asks for more is
+ * refused at arming by the read-back */
+#define FD_BOARD_OVERCURRENT_A 19.0f
+#define FD_BOARD_HW_OVERCURRENT_A 19.5f /* comparator -> TIM1 break (hardware, no CPU) */
 #define FD_BOARD_RATED_CURRENT_A 9.0f
 
 /** The board's fd_config_t (10 kHz, D as built). */

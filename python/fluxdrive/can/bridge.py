@@ -523,7 +523,7 @@ class CanBridge:
     def _wire_seq(self, seq: int) -> int:
         """16-bit wire seq of the sample a duty answers (sample index j -> its seq)."""
         if self.decimation > 1:
-            return self._wire.get(seq, (seq * self.decimation) % _SEQ_MOD)
+            return self._wire.get(seq, seq * self.decimation) % _SEQ_MOD
         return seq % _SEQ_MOD
 
     def send_reference(
@@ -627,18 +627,27 @@ class CanBridge:
             ok, why, _ = self.set_drive_param(name, v, timeout_s)
             if not ok:
                 return False, f"drive parameters not taken: {why}"
+        tightened: list[str] = []
         for name, v in values.items():
             ok, why, got = self.read_drive_param(name, timeout_s)
             if not ok:
                 return False, f"drive parameters not read back: {why}"
-            if not _same_float32(got, v):
-                self.counters["param_mismatch"] += 1
-                return False, (
-                    f"drive parameter mismatch: {name} written {v:g}, the drive holds {got:g} "
-                    f"(a limit of its own?): not armed"
-                )
+            if _same_float32(got, v):
+                continue
+            if _tighter(name, v, got):
+                # a protection limit the board holds stricter than asked (its rating: a
+                # DRIVE_PARAM only ever tightens it): the drive protects there, said here
+                tightened.append(f"{name} {got:g} (asked {v:g})")
+                continue
+            self.counters["param_mismatch"] += 1
+            return False, (
+                f"drive parameter mismatch: {name} written {v:g}, the drive holds {got:g}: "
+                f"not armed"
+            )
         self.params_verified = True
-        return True, f"{len(values)} drive parameters written and read back"
+        self.counters["param_tightened"] += len(tightened)
+        note = f"; the board's stricter limits hold: {', '.join(tightened)}" if tightened else ""
+        return True, f"{len(values)} drive parameters written and read back{note}"
 
     def drive_fault_text(self) -> str:
         """The drive's latched fault as one line ("" when none): name, code, detail."""
@@ -1130,6 +1139,7 @@ class CanBridge:
             "layout_mismatch",
             "protocol_mismatch",
             "param_mismatch",
+            "param_tightened",
         )
         out.update({k: 0 for k in base})
         out.update({k: int(v) for k, v in sorted(self.counters.items())})
@@ -1165,6 +1175,24 @@ def fault_name(code: int) -> str:
     if name is None:
         name = FAULT_CHOICES.get(code, f"code {code}").lower().replace("_", " ")
     return name
+
+
+# drive parameters that are protection limits, by the direction in which the drive's own
+# value is the stricter one (a board rating below what the host asked for, a bus floor above)
+_UPPER_LIMITS = frozenset(
+    {"OVERCURRENT_A", "CUR_LIMIT_A", "VDC_MAX_V", "I2T_LIMIT_PU2S", "REF_TIMEOUT_S",
+     "HEARTBEAT_TIMEOUT_S", "MAX_DUTY"}
+)  # fmt: skip
+_LOWER_LIMITS = frozenset({"VDC_MIN_V"})
+
+
+def _tighter(name: str, asked: float, held: float) -> bool:
+    """The drive holds a stricter protection limit than the one written."""
+    if name in _UPPER_LIMITS:
+        return held < asked
+    if name in _LOWER_LIMITS:
+        return held > asked
+    return False
 
 
 def _same_float32(a: float, b: float) -> bool:
