@@ -217,7 +217,12 @@ def run_can_loop(
         emu.stop()
         bridge.shutdown()
         buses.close()
-    wall = time.perf_counter() - t0
+    return _loop_result(ds, dsc, emu, bridge, host, time.perf_counter() - t0, d)
+
+
+def _loop_result(ds, dsc, emu, bridge, host, wall_s: float, d: int) -> CanLoopResult:
+    """What a CAN loop gave: the drive's recorded frames and truth, the host's rows, both
+    sides' counters, the answer latencies and the host's compute time per sample."""
     fs, tr = emu.recorded()
     m = host.m
     return CanLoopResult(
@@ -229,7 +234,7 @@ def run_can_loop(
         host.ctrl_rows[:m],
         bridge.diagnostics(),
         emu.stats.as_dict(),
-        wall,
+        wall_s,
         extra={
             "answer_latency_s": np.array(emu.answer_latency_s),
             "host_compute_s": np.array(host.host_s),

@@ -48,6 +48,16 @@ STOP_GRACE_S = 3.0
 SWEEP_RESULTS = REPO_ROOT / "results" / "can" / "sil_current_sweep.json"
 
 
+def _drive_node(sp: Path, sc, mcu: str, group: str, port: int, d: int, truth_out) -> NodeSpec:
+    """The drive of the graph: `can-emulator` (plant + C core or the virtual board) on the
+    run's udp_multicast group, lockstep, its truth recorded to `truth_out`."""
+    cmd = [sys.executable, "-m", "fluxdrive.cli", "can-emulator", str(sp), "--mcu", mcu]
+    cmd += ["--interface", "udp_multicast", "--channel", group, "--port", str(port)]
+    cmd += ["--hop-limit", "0", "--decimation", str(d), "--duration", repr(float(sc.duration_s))]
+    cmd += ["--lockstep-wait", "1.0", "--wait-armed", "120", "--record-out", str(truth_out)]
+    return NodeSpec(name="drive", cmd=cmd, required=True)
+
+
 def sil_graph(
     sp: Path, sc, bag: Path, *, mode: str, decimation: int, domain_id: int, truth_out, mcu="c"
 ):
@@ -71,37 +81,7 @@ def sil_graph(
             if mode == "split":  # the controller's answers are current references
                 n.parameters["topics"] = [*DEFAULT_TOPICS, topics.rel(topics.CURRENT_REF)]
     g.nodes = [n for n in g.nodes if n.node != "plant"]
-    emulator = NodeSpec(
-        name="drive",
-        cmd=[
-            sys.executable,
-            "-m",
-            "fluxdrive.cli",
-            "can-emulator",
-            str(sp),
-            "--mcu",
-            mcu,
-            "--interface",
-            "udp_multicast",
-            "--channel",
-            group,
-            "--port",
-            str(port),
-            "--hop-limit",
-            "0",
-            "--decimation",
-            str(d),
-            "--duration",
-            repr(float(sc.duration_s)),
-            "--lockstep-wait",
-            "1.0",
-            "--wait-armed",
-            "120",
-            "--record-out",
-            str(truth_out),
-        ],
-        required=True,
-    )
+    emulator = _drive_node(sp, sc, mcu, group, port, d, truth_out)
     bridge_params = {
         "interface": "udp_multicast",
         "channel": group,
