@@ -100,21 +100,34 @@ def test_plant_obeys_duty_commands_only_from_allowed_commanders(graph, tmp_path)
 
 
 def test_bridge_arms_and_resets_only_for_allowed_nodes(graph):
-    """bench bridge (virtual CAN bus, no drive): /drive/arm and /drive/reset_fault obey
-    only while every client of them is an allowed node; a disarm is always obeyed; duty
-    commands from other nodes are dropped and counted."""
+    """bench bridge (virtual CAN bus, the C drive answering it between periods, as before
+    its first: arming writes and reads back the drive's parameters): /drive/arm and
+    /drive/reset_fault obey only while every client of them is an allowed node; a disarm
+    is always obeyed; duty commands from other nodes are dropped and counted."""
+    import threading
+
+    import can
     from bench_bridge.bridge_node import BenchBridgeNode
+    from fluxdrive.can.emulator import DriveEmulator
     from fluxdrive.can.loop import new_virtual_channel
+    from fluxdrive.drive.scenario import load_scenario, scenario_path
+    from fluxdrive.drive.sim import DriveSetup
     from rclpy.parameter import Parameter
 
     from flux_drive_msgs.msg import DutyCommand
     from flux_drive_msgs.srv import Arm, ResetFault
     from fluxdrive_ros import access
 
+    ch = new_virtual_channel()
+    emu_bus = can.Bus(interface="virtual", channel=ch, fd=True)
+    emu = DriveEmulator(DriveSetup(load_scenario(scenario_path("paper_2pct_150load"))), emu_bus)
+    served = threading.Event()
+    server = threading.Thread(target=emu.serve, args=(served,), daemon=True)
+    server.start()
     bridge = BenchBridgeNode(
         context=graph.ctx,
         parameter_overrides=[
-            Parameter("channel", value=new_virtual_channel()),
+            Parameter("channel", value=ch),
             Parameter("stale_timeout_s", value=60.0),
         ],
     )
@@ -191,6 +204,9 @@ def test_bridge_arms_and_resets_only_for_allowed_nodes(graph):
     finally:
         graph.ex.remove_node(bridge)
         bridge.destroy_node()
+        served.set()
+        server.join(5.0)
+        emu_bus.shutdown()
 
 
 def test_launcher_keeps_discovery_local_and_keys_each_launch(monkeypatch):
