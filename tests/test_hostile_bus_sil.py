@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 import time
@@ -135,7 +136,10 @@ def test_bench_sil_survives_jump_replay_and_flood(tmp_path):
     line = next(ln for ln in log.splitlines() if "CAN link:" in ln)
     print(line)
     assert "1 jumps" in line and "600 duplicates" in line, line
-    assert "20000 frames of other IDs" in line, line
+    # the flood's foreign frames: counted, not passed on; udp_multicast (a datagram each)
+    # may lose some of them at the socket, never a sample (all checked above)
+    m = re.search(r"(\d+) frames of other IDs", line)
+    assert m and 0 < int(m.group(1)) <= 20000, line
     # ... and in the bag's metadata, from its last /diagnostics report
     info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
     link = json.loads(info["custom_data"]["fluxdrive_can_link"])
