@@ -23,6 +23,23 @@ from test_process_faults import SCENARIO, Run, graph_dict  # noqa: E402
 BUSY = "import time\nt = time.monotonic() + 120\nwhile time.monotonic() < t:\n    pass\n"
 
 
+def _wait_busy(procs: list[subprocess.Popen], cpu_s: float = 0.3, timeout: float = 60.0) -> None:
+    """Until each busy process has used `cpu_s` of CPU time (it is running, not starting)."""
+    tick = os.sysconf("SC_CLK_TCK")
+
+    def used(p: subprocess.Popen) -> float:
+        try:
+            f = open(f"/proc/{p.pid}/stat").read().rsplit(")", 1)[1].split()
+        except OSError:
+            return 0.0
+        return (int(f[11]) + int(f[12])) / tick
+
+    t_end = time.monotonic() + timeout
+    while any(used(p) < cpu_s for p in procs):
+        assert time.monotonic() < t_end, "the busy processes did not start"
+        time.sleep(0.05)
+
+
 def test_a_lost_answer_is_asked_for_again():
     """A service whose first answer never comes (lost on the way, as DDS drops a response
     sent before the client's reader matched): the call asks again after a second and takes
@@ -79,6 +96,93 @@ def test_a_lost_answer_is_asked_for_again():
     print(f"answered after {took:.2f} s, the second request")
 
 
+def test_services_answer_while_the_data_path_is_busy_and_changes_wait_for_it():
+    """A node whose data path is held inside one long callback (a busy loop standing in for
+    a lockstep graph that never lets go): its parameter reads are answered meanwhile, by the
+    process's service thread (fluxdrive_ros.services); a parameter set is taken at once but
+    runs on the data path's thread after that callback, never inside it, and then answers.
+    The service thread runs at a raised OS priority, or says in the log why not."""
+    import threading
+
+    import rclpy
+    from fluxdrive_bringup.inspect.commands import Session, _get, set_param
+    from rcl_interfaces.msg import SetParametersResult
+
+    from fluxdrive_ros import runner, services
+
+    class BusyNode(runner.FluxNode):
+        def __init__(self, name: str, **kw):
+            super().__init__(name, **kw)
+            self.declare_parameter("gain", 1.0)
+            self.in_callback = threading.Event()
+            self.release = threading.Event()
+            self.set_seen: list[tuple[int, bool]] = []  # (thread, inside the busy callback)
+            self.add_on_set_parameters_callback(self._on_set)
+            self.timer = self.create_timer(0.01, self._work)
+            self.lines: list[str] = []
+
+        def _work(self) -> None:
+            self.timer.cancel()
+            self.in_callback.set()
+            while not self.release.is_set():  # the data path, busy
+                pass
+            self.in_callback.clear()
+
+        def _on_set(self, params):
+            self.set_seen.append((threading.get_ident(), self.in_callback.is_set()))
+            return SetParametersResult(successful=True)
+
+        def log(self, text: str, level: str = "info") -> None:
+            self.lines.append(text)
+            super().log(text, level)
+
+    dom = domain(71)
+    rclpy.init(domain_id=dom)  # the process's context, as a fluxdrive process has it
+    node = BusyNode("busy_node")
+    codes: list[int] = []
+    spin_thread = threading.Thread(target=lambda: codes.append(runner.spin([node])), daemon=True)
+    s = Session(domain_id=dom, wait_s=20.0)
+    setter: list[tuple[bool, str, object]] = []
+    try:
+        spin_thread.start()
+        assert node.in_callback.wait(20.0), "the busy callback never ran"
+        side = node.service_side
+        # a read, answered while the data path is inside its callback
+        assert _get(s, "/busy_node", ["gain"])[0][1] == 1.0
+        assert node.in_callback.is_set()
+        # a set: taken by the service thread, waiting for the data path
+        th = threading.Thread(
+            target=lambda: setter.append(set_param(s, "/busy_node", "gain", "2.0")), daemon=True
+        )
+        th.start()
+        t_end = time.monotonic() + 20.0
+        while not side.jobs and time.monotonic() < t_end:
+            time.sleep(0.01)
+        assert side.jobs and not node.set_seen and not setter  # waiting, not applied
+        node.release.set()
+        th.join(20.0)
+        assert setter and setter[0][0], setter
+        # on the data path's thread, between its callbacks (a request asked again while
+        # waiting is applied again: the same value)
+        assert node.set_seen and all(
+            (t, inside) == (spin_thread.ident, False) for t, inside in node.set_seen
+        ), node.set_seen
+        assert _get(s, "/busy_node", ["gain"])[0][1] == 2.0
+        # the service thread's priority: raised, or the log says why not
+        stat = open(f"/proc/self/task/{side.thread.native_id}/stat").read()
+        nice = int(stat.rsplit(")", 1)[1].split()[16])
+        assert nice == services.SERVICE_NICE or any(
+            "service thread at the process's priority" in ln for ln in node.lines
+        ), (nice, node.lines)
+    finally:
+        node.release.set()
+        s.close()
+        node.finished = True
+        spin_thread.join(20.0)
+        rclpy.try_shutdown()
+    assert codes == [0]
+
+
 @pytest.mark.serial  # it measures answering times on a loaded machine: alone
 def test_scope_calls_answer_within_their_deadline_at_twice_the_cores(tmp_path):
     from fluxdrive_bringup.view.scope import ParamSide
@@ -100,7 +204,7 @@ def test_scope_calls_answer_within_their_deadline_at_twice_the_cores(tmp_path):
         run.wait_frames(200, timeout=300)  # the run phase: kernels compiled, loop closed
         n_busy = 2 * (os.cpu_count() or 1)
         busy = [subprocess.Popen([sys.executable, "-c", BUSY]) for _ in range(n_busy)]
-        time.sleep(2.0)  # the load is there
+        _wait_busy(busy)  # the load is there
         times: list[tuple[str, float]] = []
 
         def timed(what: str, fn, *args):
@@ -126,6 +230,18 @@ def test_scope_calls_answer_within_their_deadline_at_twice_the_cores(tmp_path):
             assert ok and now == pytest.approx(0.05 + 0.01 * i), why
         rows = timed("describe the controller", side.describe, "/controller")
         assert any(r["name"] == "position_timeout_s" for r in rows)
+        # the controller's fault reset, as the operator (nothing latched: it says so)
+        ok, why = timed("reset the controller's fault", side.reset, "/controller/reset_fault")
+        assert ok and why == "no latched fault", why
+        # the services are the drive process's service thread's (fluxdrive_ros.services)
+        s = side._s()
+        hidden = [
+            (n, ns) for n, ns in s.node.get_node_names_and_namespaces() if n.startswith("_flux")
+        ]
+        served = {n for h in hidden for n, _ in s.node.get_service_names_and_types_by_node(*h)}
+        assert {"/controller/set_parameters", "/controller/reset_fault"} <= served, served
+        assert "/scope_tap/get_parameters" in served, served
+        load = os.getloadavg()[0]
         frames_under_load = run.frames()
     finally:
         for b in busy:
@@ -138,5 +254,5 @@ def test_scope_calls_answer_within_their_deadline_at_twice_the_cores(tmp_path):
     print(
         f"{len(times)} calls beside {n_busy} busy processes: worst {worst[0]} "
         f"{worst[1]:.2f} s, median {sorted(t for _, t in times)[len(times) // 2]:.2f} s; "
-        f"the graph at frame {frames_under_load}"
+        f"the graph at frame {frames_under_load}; load average {load:.1f}"
     )

@@ -7,6 +7,10 @@ SIGINT/SIGTERM, while `spin_once(timeout)` in a loop is fine (timers fire, idle 
 nothing, a signal ends it through ExternalShutdownException).  `FLUXDRIVE_EXECUTOR=single`
 selects rclpy's SingleThreadedExecutor instead (slower; for comparison).
 
+Services (parameters, fault reset, arming) are served by a thread of their own
+(fluxdrive_ros.services): reads answered there, changes run on this executor between two of
+its callbacks.  `FLUXDRIVE_SERVICE_THREAD=0` keeps them on this executor (for comparison).
+
 Nodes that share a process share one DDS participant, so messages between them are
 delivered in-process by the middleware (no transport), which is what makes a 10 kHz
 lockstep loop cheap; other processes (recorder, inspection tools) still see every topic.
@@ -166,6 +170,7 @@ def spin(nodes: list[FluxNode], executor=None, poll_s: float = 0.5) -> int:
     from .intra import share_sim_time
 
     share_sim_time(nodes)  # one /clock reader for the process, not one per node
+    side = _service_side(nodes, ex)
     for n in nodes:
         n._finish_hook = check
         ex.add_node(n)
@@ -180,6 +185,8 @@ def spin(nodes: list[FluxNode], executor=None, poll_s: float = 0.5) -> int:
     _stop_on_signals(request_stop)
     check()
     code = _spin_until_done(ex, all_done, poll_s)
+    if side is not None:
+        side.close()
     if failed:
         code = 1
     code = _close_nodes(nodes, code)
@@ -188,6 +195,16 @@ def spin(nodes: list[FluxNode], executor=None, poll_s: float = 0.5) -> int:
         report_published(nodes)
     _shutdown(ex, nodes)
     return code
+
+
+def _service_side(nodes: list[FluxNode], ex):
+    """The process's service thread (fluxdrive_ros.services), unless FLUXDRIVE_SERVICE_THREAD=0
+    keeps the services on the data path's executor (for comparison)."""
+    if not nodes or os.environ.get("FLUXDRIVE_SERVICE_THREAD", "1") in ("0", "false", "no", "off"):
+        return None
+    from .services import ServiceSide
+
+    return ServiceSide(nodes, ex, nodes[0].log)
 
 
 def report_published(nodes: list[FluxNode]) -> None:

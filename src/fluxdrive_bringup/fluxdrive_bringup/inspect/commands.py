@@ -322,8 +322,12 @@ def main_node(argv: list[str]) -> int:
     try:
         s.discover()
         me = s.node.get_name()
-        names = sorted(
-            {f"{ns.rstrip('/')}/{n}" for n, ns in s.node.get_node_names_and_namespaces() if n != me}
+        names = sorted(  # hidden nodes (a leading '_': a process's service node) left out
+            {
+                f"{ns.rstrip('/')}/{n}"
+                for n, ns in s.node.get_node_names_and_namespaces()
+                if n != me and not n.startswith("_")
+            }
         )
         for n in names:
             print(n)

@@ -384,12 +384,11 @@ class Bridge:
     def _nodes(self) -> list[str]:
         s = self.params
         out = []
+        # by name, not by node: a process's services are served by a hidden node of its own
+        # (fluxdrive_ros.services)
+        svcs = {n for n, _ in s.node.get_service_names_and_types()}
         for name, ns in s.node.get_node_names_and_namespaces():
             fqn = f"{ns.rstrip('/')}/{name}"
-            try:
-                svcs = {n for n, _ in s.node.get_service_names_and_types_by_node(name, ns)}
-            except Exception:  # noqa: BLE001 - gone meanwhile
-                continue
             if f"{fqn}/get_parameters" in svcs:
                 out.append(fqn)
         return sorted(set(out))

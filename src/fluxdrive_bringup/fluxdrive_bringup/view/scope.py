@@ -227,11 +227,13 @@ class ParamSide:
         s = self._s()
         s.spin_for(0.2)
         out = []
+        # by name, not by node: a process's services are served by a hidden node of its own
+        # (fluxdrive_ros.services)
+        svcs = {n for n, _ in s.node.get_service_names_and_types()}
         for name, ns in s.node.get_node_names_and_namespaces():
             fqn = f"{ns.rstrip('/')}/{name}"
             if fqn in _OWN_NODES or name.startswith("fluxdrive_inspect_"):
                 continue
-            svcs = {n for n, _ in s.node.get_service_names_and_types_by_node(name, ns)}
             if f"{fqn}/describe_parameters" in svcs:
                 out.append(fqn)
         return sorted(set(out))
