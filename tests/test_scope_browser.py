@@ -180,7 +180,16 @@ def test_scope_page_in_chromium(tmp_path):
             assert float(hb.input_value()) == pytest.approx(v_hb, rel=1e-11)
             assert len(hb.input_value()) <= 13, hb.input_value()
 
-            # export: the view as CSV, the capture as MCAP
+            # export: the view as CSV, the capture as MCAP; the charts must hold data in
+            # view first (on a loaded machine the page may not have drawn any since the
+            # last step: the CSV was then only its header)
+            page.wait_for_function(
+                """(() => { const lines = window.scopeExportCsv().split("\\n");
+                   const col = lines[0].split(",").indexOf("idq:i_q:max");
+                   return col > 0 && lines.slice(1).filter(
+                     (l) => l && l.split(",")[col] !== "").length > 10; })()""",
+                timeout=60_000,
+            )
             with page.expect_download() as dl:
                 page.click("#csv")
             rows = list(csv.reader(io.StringIO(Path(dl.value.path()).read_text())))

@@ -38,6 +38,7 @@ import asyncio
 import concurrent.futures
 import json
 import logging
+import math
 import os
 import struct
 import sys
@@ -46,7 +47,9 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from fluxdrive.core.machine import ConfigError
+from fluxdrive.core.paths import ROOT as REPO_ROOT
 from fluxdrive.core.schema import Parser, option
 from fluxdrive.io.graphfile import GraphSettings, ServeOptions
 from fluxdrive_ros.topics import check_service_name
@@ -386,6 +389,180 @@ def _plain(v: Any) -> Any:
     return v
 
 
+# ------------------------------------------------------------------------ instrument
+RAW_KEEP_S = 10.0  # sample seconds of full-rate samples kept per stream
+RAW_WAIT_S = 20.0  # an export waits this long (wall) for the samples of its view
+FFT_WAIT_S = 3.0  # an FFT waits this long for samples up to the end of its span
+FFT_MIN_SAMPLES = 16
+EDGE_EVENTS_KEPT = 20
+
+
+def _num(v: float) -> float | None:
+    return None if not math.isfinite(v) else float(f"{v:.7g}")
+
+
+class Instrument:
+    """The full-rate samples the tap sends along (`raw_streams`), kept per stream, and the
+    edge trigger fed with them (the engine's fluxdrive.analysis.instrument: the maths is
+    there, this only holds state between the ROS thread and the web handlers)."""
+
+    def __init__(self) -> None:
+        from fluxdrive.analysis.instrument import SampleBuffer
+
+        self.lock = threading.Lock()
+        self.buf = SampleBuffer(int(RAW_KEEP_S / 1e-4))
+        self.ts_s = 1e-4
+        self.wanted: set[str] = set()  # streams asked of the tap
+        self.edge: Any = None  # an EdgeTrigger while one is set
+        self.edge_cfg: dict[str, Any] = {}
+        self.pending: list[Any] = []  # events waiting for their window's end
+        self.events: list[dict[str, Any]] = []  # the newest, with their windows
+        self.missing: dict[str, int] = {}  # stream -> samples that never arrived
+        self.stopped = False  # the operator stopped the edge trigger
+
+    def on_head(self, head: dict) -> None:
+        """ROS thread: an envelope's raw samples into the buffer and the edge trigger."""
+        raw = head.get("raw") or {}
+        if not raw:
+            return
+        names = head.get("raw_fields", {})
+        with self.lock:
+            self.ts_s = float(head.get("ts_s", self.ts_s))
+            self.buf.max_samples = int(round(RAW_KEEP_S / self.ts_s))
+            for stream, a in raw.items():
+                flds = names.get(stream)
+                if not flds or a.shape[0] != len(flds) + 1:
+                    continue
+                order = np.argsort(a[0], kind="stable")
+                seq = a[0][order].astype(np.int64)
+                fields = {f: a[1 + i][order] for i, f in enumerate(flds)}
+                self._note_gaps(stream, seq)
+                self.buf.put(stream, seq, fields)
+                cfg = self.edge_cfg
+                if self.edge is not None and cfg["stream"] == stream and cfg["field"] in fields:
+                    self.pending += self.edge.feed(seq, fields[cfg["field"]])
+            self._complete()
+
+    def _note_gaps(self, stream: str, seq: np.ndarray) -> None:
+        """Samples that never arrived (before the newest held, not in this block): said in
+        the log and counted (an export or FFT of a span with a gap says so)."""
+        last = self.buf.newest(stream)
+        if last < 0 or not len(seq):
+            return
+        new = seq[seq > last]
+        edges = np.r_[last, new]
+        for i in np.flatnonzero(np.diff(edges) > 1)[:3]:
+            a, b = int(edges[i]) + 1, int(edges[i + 1]) - 1
+            self.missing[stream] = self.missing.get(stream, 0) + (b - a + 1)
+            print(f"scope: {stream} samples {a}..{b} never arrived", flush=True)
+
+    def _complete(self) -> None:
+        """Events whose window (post_s after them) is held: with their samples, for the page."""
+        cfg = self.edge_cfg
+        if not self.pending or not cfg:
+            return
+        newest = self.buf.newest(cfg["stream"])
+        post = int(round(cfg["post_s"] / self.ts_s))
+        pre = int(round(cfg["pre_s"] / self.ts_s))
+        while self.pending and self.pending[0].seq + post <= newest:
+            ev = self.pending.pop(0)
+            seq, v = self.buf.trace(cfg["trace"])
+            sel = (seq >= ev.seq - pre) & (seq <= ev.seq + post)
+            self.events.append(
+                {
+                    "n": len(self.events) + 1 if not self.events else self.events[-1]["n"] + 1,
+                    "seq": ev.seq,
+                    "t_s": round(ev.seq * self.ts_s, 9),
+                    "auto": ev.auto,
+                    "t": [round(float(k) * self.ts_s, 9) for k in seq[sel]],
+                    "v": [_num(x) for x in v[sel].tolist()],
+                }
+            )
+            del self.events[:-EDGE_EVENTS_KEPT]
+
+    def set_edge(self, cfg: dict[str, Any]) -> None:
+        from fluxdrive.analysis.instrument import EdgeTrigger
+
+        with self.lock:
+            ts = self.ts_s
+            self.edge = EdgeTrigger(
+                edge=cfg["edge"],
+                level=cfg["level"],
+                hysteresis=cfg["hysteresis"],
+                mode=cfg["mode"],
+                holdoff_samples=max(int(round((cfg["post_s"] + cfg["holdoff_s"]) / ts)), 1),
+                auto_timeout_samples=max(int(round(cfg["auto_timeout_s"] / ts)), 1),
+            )
+            self.edge_cfg = cfg
+            self.pending, self.events, self.stopped = [], [], False
+
+    def stop_edge(self) -> None:
+        """Disarm; the count and the events stay on show."""
+        with self.lock:
+            if self.edge is not None:
+                self.edge.armed = False
+            self.stopped, self.pending = True, []
+
+    def edge_state(self) -> dict[str, Any]:
+        with self.lock:
+            e = self.edge
+            return {
+                "set": e is not None,
+                "armed": bool(e is not None and e.armed),
+                "stopped": self.stopped,
+                "fired": int(e.fired) if e is not None else 0,
+                "config": dict(self.edge_cfg),
+                "events": list(self.events),
+            }
+
+    def held(self, stream: str) -> tuple[float, float] | None:
+        """The sample times [s] of the oldest and newest sample held of `stream`."""
+        with self.lock:
+            a, b = self.buf.oldest(stream), self.buf.newest(stream)
+            return None if b < 0 else (a * self.ts_s, b * self.ts_s)
+
+    def covers(self, stream: str, t0_s: float, t1_s: float) -> bool:
+        """Whether every sample of [t0, t1] is held (the view's first and last included)."""
+        with self.lock:
+            ts = self.ts_s
+            a, b = self.buf.oldest(stream), self.buf.newest(stream)
+            return b >= 0 and a <= math.ceil(t0_s / ts - 1e-6) and b >= math.floor(t1_s / ts + 1e-6)
+
+    def view(self, stream: str, t0_s: float, t1_s: float):
+        with self.lock:
+            return self.buf.view(stream, self.ts_s, t0_s, t1_s)
+
+    def spectrum(self, trace: str, window: str, t0_s: float, t1_s: float) -> dict[str, Any]:
+        """The amplitude spectrum of `trace` over the samples held in [t0, t1] (the newest
+        gap-free run of them)."""
+        from fluxdrive.analysis.instrument import amplitude_spectrum, in_view
+
+        with self.lock:
+            seq, v = self.buf.trace(trace)
+            ix = in_view(seq, self.ts_s, t0_s, t1_s)
+            seq, v, ts = seq[ix], v[ix], self.ts_s
+        gaps = np.flatnonzero(np.diff(seq) != 1)
+        if len(gaps):
+            seq, v = seq[gaps[-1] + 1 :], v[gaps[-1] + 1 :]
+        if len(seq) < FFT_MIN_SAMPLES:
+            raise LookupError(
+                f"{trace}: {len(seq)} samples in the span so far (at least {FFT_MIN_SAMPLES})"
+            )
+        sp = amplitude_spectrum(v, ts, window)
+        return {
+            "trace": trace,
+            "window": window,
+            "n": sp.n,
+            "t0_s": round(float(seq[0]) * ts, 9),
+            "t1_s": round(float(seq[-1]) * ts, 9),
+            "df_hz": sp.df_hz,
+            "gap_cut": bool(len(gaps)),
+            "scaling": "peak amplitude: a sine of amplitude A on a bin reads A",
+            "f_hz": [round(f, 6) for f in sp.f_hz.tolist()],
+            "amp": [_num(a) for a in sp.amplitude.tolist()],
+        }
+
+
 # ------------------------------------------------------------------------ web side
 class Scope:
     def __init__(self, args):
@@ -405,9 +582,11 @@ class Scope:
         self.capture_pool = concurrent.futures.ThreadPoolExecutor(
             1, thread_name_prefix="scope-capture"
         )
+        self.instrument = Instrument()
 
     # ROS thread: a capture the tap wrote is reopened from its bag (worker thread)
     def on_head(self, head: dict) -> None:
+        self.instrument.on_head(head)
         cap = head.get("capture")
         if not cap or cap.get("path") in (None, self.capture_path):
             return
@@ -627,6 +806,184 @@ class Scope:
             },
         )
 
+    async def _want_raw(self, stream: str) -> str | None:
+        """Ask the tap for `stream`'s full-rate samples (its `raw_streams`); None, or why not."""
+        ins, params = self.instrument, self.params
+        if stream in ins.wanted:
+            return None
+        if params is None:
+            return "the scope is not serving yet"
+        text = ",".join(sorted(ins.wanted | {stream}))
+        try:
+            tap = await params.run(params.tap)
+            ok, reason, _ = await params.run(params.set, tap, "raw_streams", text)
+        except (LookupError, TimeoutError) as exc:
+            return f"cannot ask the scope tap for {stream}'s samples: {exc}"
+        if not ok:
+            return f"the scope tap refused raw_streams={text}: {reason}"
+        ins.wanted.add(stream)
+        print(f"scope: full-rate samples of {text} asked of {tap}", flush=True)
+        return None
+
+    @staticmethod
+    async def _until(pred, timeout_s: float) -> bool:
+        """Wait (polling, 50 ms) until pred() holds or the timeout; whether it holds."""
+        t_end = time.monotonic() + timeout_s
+        while not pred():
+            if time.monotonic() >= t_end:
+                return False
+            await asyncio.sleep(0.05)
+        return True
+
+    def _span(self, request) -> tuple[str, float, float]:
+        """trace (stream:field), t0, t1 of a request; ValueError with the reason."""
+        q = request.query
+        trace = q.get("trace", "")
+        if ":" not in trace:
+            raise ValueError(f"trace {trace!r}: expected stream:field, e.g. frame:i_a")
+        try:
+            t0, t1 = float(q["t0"]), float(q["t1"])
+        except (KeyError, ValueError):
+            raise ValueError("expected t0 and t1 [s] (the view)") from None
+        if not (math.isfinite(t0) and math.isfinite(t1) and t1 > t0):
+            raise ValueError(f"the view {t0}..{t1} s is empty")
+        return trace, t0, t1
+
+    async def api_fft(self, request):
+        """GET ?trace=stream:field&window=hann&t0=&t1=: the amplitude spectrum in Hz of the
+        trace's full-rate samples in the view (fluxdrive.analysis.instrument)."""
+        from aiohttp import web
+        from fluxdrive.analysis.instrument import WINDOWS
+
+        if not self._authorised(request):
+            return self._no_token(request)
+        try:
+            trace, t0, t1 = self._span(request)
+        except ValueError as exc:
+            return self._refuse(request, 400, str(exc), as_json=True)
+        window = request.query.get("window", "hann")
+        if window not in WINDOWS:
+            why = f"window {window!r} is not one of {', '.join(WINDOWS)}"
+            return self._refuse(request, 400, why, as_json=True)
+        stream = trace.rpartition(":")[0]
+        why = await self._want_raw(stream)
+        if why:
+            return web.json_response({"ok": False, "error": why}, status=503)
+        ins = self.instrument
+        await self._until(lambda: (ins.held(stream) or (0, -1))[1] >= t1 - ins.ts_s, FFT_WAIT_S)
+        try:
+            out = ins.spectrum(trace, window, t0, t1)
+        except KeyError:
+            return web.json_response({"ok": False, "error": f"no trace {trace}"}, status=404)
+        except (LookupError, ValueError) as exc:
+            return web.json_response({"ok": False, "error": str(exc)}, status=503)
+        return web.json_response({"ok": True, **out})
+
+    async def api_edge(self, request):
+        """GET: the edge trigger's state and its newest events (with their samples);
+        POST {trace, edge, level, hysteresis, mode, pre_s, post_s, holdoff_s,
+        auto_timeout_s} sets and arms it, {"trace": ""} stops it."""
+        from aiohttp import web
+
+        if not self._authorised(request):
+            return self._no_token(request)
+        ins = self.instrument
+        if request.method == "GET":
+            return web.json_response(ins.edge_state())
+        try:
+            body = await request.json()
+            trace = str(body["trace"])
+            if not trace:
+                ins.stop_edge()
+                return web.json_response({"ok": True, "reason": "stopped"})
+            cfg = {
+                "trace": trace,
+                "stream": trace.rpartition(":")[0],
+                "field": trace.rpartition(":")[2],
+                "edge": str(body.get("edge", "rising")),
+                "mode": str(body.get("mode", "normal")),
+            }
+            for key, default in (
+                ("level", 0.0),
+                ("hysteresis", 0.0),
+                ("pre_s", 0.005),
+                ("post_s", 0.01),
+                ("holdoff_s", 0.0),
+                ("auto_timeout_s", 0.1),
+            ):
+                cfg[key] = float(body.get(key, default))
+                if not math.isfinite(cfg[key]):
+                    raise ValueError(f"{key} must be a finite number")
+            if not cfg["stream"] or not 0 <= cfg["pre_s"] <= 1 or not 0 <= cfg["post_s"] <= 1:
+                raise ValueError("expected trace stream:field, 0 <= pre_s, post_s <= 1 s")
+            ins.set_edge(cfg)
+        except (KeyError, TypeError, ValueError, ConfigError) as exc:
+            why = f"edge trigger: {exc}" if str(exc) else "edge trigger: expected JSON {trace, ...}"
+            return web.json_response({"ok": False, "reason": why}, status=400)
+        why = await self._want_raw(cfg["stream"])
+        if why:
+            ins.stop_edge()
+            return web.json_response({"ok": False, "reason": why}, status=503)
+        print(f"scope: edge trigger armed: {cfg}", flush=True)
+        return web.json_response({"ok": True, "reason": f"armed ({cfg['mode']})"})
+
+    async def api_raw(self, request):
+        """GET /api/raw.csv or /api/raw.mcap ?trace=stream:field&t0=&t1=: every full-rate
+        sample of the trace's stream in the view, once they are all held (waits up to
+        RAW_WAIT_S: the samples of a live view's end may still be on their way)."""
+        from aiohttp import web
+        from fluxdrive.io.scope_export import raw_csv, write_raw_bag
+
+        if not self._authorised(request):
+            return self._no_token(request)
+        try:
+            trace, t0, t1 = self._span(request)
+        except ValueError as exc:
+            return self._refuse(request, 400, str(exc), as_json=True)
+        stream = trace.rpartition(":")[0]
+        why = await self._want_raw(stream)
+        if why:
+            return web.json_response({"ok": False, "error": why}, status=503)
+        ins = self.instrument
+        if not await self._until(lambda: ins.covers(stream, t0, t1), RAW_WAIT_S):
+            held = ins.held(stream)
+            span = f"{held[0]:.4f}..{held[1]:.4f} s" if held else "nothing yet"
+            why = (
+                f"the view {t0:.4f}..{t1:.4f} s is not all held: {stream} samples held "
+                f"{span} (they start when first asked for; zoom into that span)"
+            )
+            return self._refuse(request, 409, why, as_json=True)
+        seq, fields = ins.view(stream, t0, t1)
+        ts = ins.ts_s
+        name = f"scope-{stream.replace('/', '_')}-{int(seq[0])}-{int(seq[-1])}"
+        if request.path.endswith(".csv"):
+            return web.Response(
+                text=raw_csv({stream: (seq, fields)}, ts),
+                content_type="text/csv",
+                headers={"Content-Disposition": f'attachment; filename="{name}.csv"'},
+            )
+        from fluxdrive.io.bagwriter import check_bag_target
+
+        path = Path(self.args.export_dir) / f"{name}-{time.strftime('%Y%m%d-%H%M%S')}"
+        try:
+            check_bag_target(path)
+        except ValueError as exc:
+            return self._refuse(request, 409, str(exc), as_json=True)
+        info = {"t0_s": t0, "t1_s": t1, "seq0": int(seq[0]), "seq1": int(seq[-1])}
+        loop = asyncio.get_running_loop()
+        mcap = await loop.run_in_executor(
+            self.capture_pool, write_raw_bag, path, {stream: (seq, fields)}, ts, info
+        )
+        print(f"scope: raw export of {stream} {t0}..{t1} s: {path}", flush=True)
+        return web.FileResponse(
+            mcap,
+            headers={
+                "Content-Disposition": f'attachment; filename="{name}.mcap"',
+                "Content-Type": "application/octet-stream",
+                "X-Fluxdrive-Bag": path.name,
+            },
+        )
+
     async def api_status(self, request):
         from aiohttp import web
 
@@ -641,6 +998,9 @@ class Scope:
                 "clients": len(self.clients),
                 "local_tap": r.local_tap is not None,
                 "last_seq": r.last_seq,
+                # the full-rate samples held per stream: [first, last] sample time [s]
+                "raw": {s: self.instrument.held(s) for s in sorted(self.instrument.wanted)},
+                "raw_missing": dict(self.instrument.missing),
             }
         )
 
@@ -686,6 +1046,11 @@ class Scope:
         app.router.add_post("/api/trigger", self.api_trigger)
         app.router.add_get("/api/capture", self.api_capture)
         app.router.add_get("/api/capture.mcap", self.api_capture_mcap)
+        app.router.add_get("/api/fft", self.api_fft)
+        app.router.add_get("/api/edge", self.api_edge)
+        app.router.add_post("/api/edge", self.api_edge)
+        app.router.add_get("/api/raw.csv", self.api_raw)
+        app.router.add_get("/api/raw.mcap", self.api_raw)
         app.router.add_static("/static/", WEB_DIR, show_index=False)
         return app
 
@@ -794,6 +1159,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument(
         "--exit-on-done", action="store_true", help="exit a second after the graph's /drive/done"
+    )
+    ap.add_argument(
+        "--export-dir",
+        default=str(REPO_ROOT / "bags" / "exports"),
+        help="where raw MCAP exports of the view go, one bag each (default bags/exports)",
     )
     ap.add_argument(
         "--namespace",

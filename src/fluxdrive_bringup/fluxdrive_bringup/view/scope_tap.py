@@ -27,7 +27,10 @@ Envelope JSON (one object per period)::
 Besides: per period the parameter markers seen ("markers"), the trigger state ("armed",
 "pending") and the newest capture bag ("capture"); about once a wall second, per observer,
 the newest `spectrum_window_s` of samples for the order spectra ("arrays" "spec/<name>":
-rotor angle, θ̃ [rad], λ̂α [V s], truth flag), which the scope server turns into orders.
+rotor angle, θ̃ [rad], λ̂α [V s], truth flag), which the scope server turns into orders;
+and, for the streams named in `raw_streams` (set by the scope server when the page asks for
+an FFT, an edge trigger or a raw export), every period's full-rate samples as decoded
+("arrays" "raw/<stream>": seq and the fields named in "raw_fields").
 
 Streams: "frame" (i_a, i_b, i_c [A], v_ab, v_bc, v_ca, vdc [V]),
 "state" (i_d, i_q, i_d_ref, i_q_ref [A], speed_ref, speed_fb [rpm], mode),
@@ -213,6 +216,7 @@ def page_json(cdr: bytes) -> tuple[str, dict]:
     if spectra:
         head["spectrum"] = spectra
     text = json.dumps(head, separators=(",", ":")).replace("NaN", "null")  # JSON has no NaN
+    head["raw"] = {n[4:]: a for n, a in arrays.items() if n.startswith("raw/")}  # server only
     return text, head
 
 
@@ -354,6 +358,13 @@ class TapEnvelope:
         unit="s",
         doc="order spectra of θ̃ and λ̂α over this much of the newest samples, renewed as often",
         range=(0.1, 10.0),
+    )
+    raw_streams: str = param(
+        "",
+        unit="",
+        doc="send these streams' full-rate samples along with every envelope, for the "
+        "scope server's FFT, edge triggers and raw export (comma-separated: frame, "
+        "state, duty, truth, est/<observer>; the scope sets it; empty: none)",
     )
 
 
@@ -752,6 +763,7 @@ class ScopeTapNode(FluxNode):
         if fr:
             c = decode_batch(self.decoders[topics.FRAME], fr, FRAME_PATHS)
             env.put("frame", c["seq"], [(n, f(c), d) for n, f, d in FRAME_FIELDS])
+            seq_max = max(seq_max, int(c["seq"].max()))  # a bench without a controller
         du = msgs.get(topics.DUTY, [])
         if du:
             c = decode_batch(self.decoders[topics.DUTY], du, DUTY_PATHS)
@@ -764,6 +776,7 @@ class ScopeTapNode(FluxNode):
                 self._estimate_envelope(name, em, env, doc)
         doc["seq"] = seq_max
         self._spectrum_samples(doc)
+        self._raw_samples(env, doc)
         if self.marker_raw:
             doc["markers"] = self._marker_list()
         self._triggers(env.cols)
@@ -868,9 +881,21 @@ class ScopeTapNode(FluxNode):
         full = [n for n, r in self.spec.items() if sum(x.shape[1] for x in r) >= n_win]
         if full and now - self.spec_t0 >= 1.0:
             self.spec_t0 = now
-            doc["arrays"] = {
-                f"spec/{n}": np.concatenate(self.spec.pop(n), axis=1)[:, -n_win:] for n in full
-            }
+            doc.setdefault("arrays", {}).update(
+                {f"spec/{n}": np.concatenate(self.spec.pop(n), axis=1)[:, -n_win:] for n in full}
+            )
+
+    def _raw_samples(self, env: _Envelopes, doc: dict) -> None:
+        """The full-rate samples of the streams in `raw_streams` (`arrays` "raw/<stream>":
+        rows seq and the stream's fields, named in `raw_fields`), as decoded for the
+        envelopes: no second decode."""
+        wanted = {s.strip() for s in str(self.pv["raw_streams"]).split(",") if s.strip()}
+        for stream in sorted(wanted & set(env.cols)):
+            seq, fields = env.cols[stream]
+            doc.setdefault("arrays", {})[f"raw/{stream}"] = np.stack(
+                [np.asarray(seq, dtype=float), *fields.values()]
+            )
+            doc.setdefault("raw_fields", {})[stream] = list(fields)
 
     def _marker_list(self) -> list[dict]:
         """This period's parameter markers, for the page."""

@@ -110,6 +110,7 @@ function ingest(doc) {
   const obs = doc.observers || [];
   if (obs.join(",") !== observers.join(",")) { observers = obs; buildCharts(); }
   noteArrival();
+  updateTraceList();
   dirty = true;
 }
 
@@ -780,6 +781,183 @@ $("csv").addEventListener("click", () => {
   document.body.appendChild(a); a.click(); a.remove();
 });
 $("robust").addEventListener("change", () => { dirty = true; dataDirty = true; for (const c of charts) if (c.u) c.u.redraw(true, true); });
+
+// ------------------------------------------------------------------ instrument
+// FFT in Hz, edge trigger and raw export of one trace's full-rate samples: the scope
+// server computes (fluxdrive.analysis.instrument); the page asks and draws.
+const api = (path, opts = {}) => fetch(path, { ...opts, headers: { "X-Fluxdrive-Token": TOKEN, "Content-Type": "application/json", ...(opts.headers || {}) } });
+let traceNames = "";
+function updateTraceList() {
+  const names = [];
+  for (const [s, st] of Object.entries(store)) for (const f of Object.keys(st.f)) names.push(s + ":" + f);
+  names.sort();
+  const key = names.join(",");
+  if (key === traceNames) return;
+  traceNames = key;
+  const sel = $("itrace"), keep = sel.value;
+  sel.innerHTML = names.map((n) => `<option value="${escapeHtml(n)}">${escapeHtml(n)}</option>`).join("");
+  if (names.includes(keep)) sel.value = keep;
+  else if (names.includes("frame:i_a")) sel.value = "frame:i_a";
+}
+// the time charts' view [t0, t1] (zoomed, held or scrolling)
+function viewSpan() {
+  const ch = charts.find((c) => c.u && c.def.kind !== "spectrum" && c.u.scales.x.min !== undefined);
+  return ch ? [ch.u.scales.x.min, ch.u.scales.x.max] : null;
+}
+const spanQuery = (v) => `trace=${encodeURIComponent($("itrace").value)}&t0=${v[0]}&t1=${v[1]}`;
+
+let fft = null, fftChart = null, fftBusy = false, fftView = "";
+const fftCur = { a: null, b: null };  // cursor frequencies [Hz]
+window.scopeFft = () => fft;          // read by the browser test
+window.scopeFftCursors = () => ({ ...fftCur });
+window.scopeDebug.view = () => viewSpan();
+window.scopeDebug.fftChart = () => fftChart;
+function fftAt(f) {  // the nearest bin: [f, amplitude]
+  if (!fft) return null;
+  const i = Math.max(0, Math.min(fft.f_hz.length - 1, Math.round(f / fft.df_hz)));
+  return [fft.f_hz[i], fft.amp[i]];
+}
+function fftPeak(f0, f1) {  // the highest bin in [f0, f1] (else the nearest): [f, amplitude]
+  if (!fft) return null;
+  const n = fft.f_hz.length, d = fft.df_hz;
+  let lo = Math.max(0, Math.ceil(f0 / d)), hi = Math.min(n - 1, Math.floor(f1 / d));
+  if (lo > hi) return fftAt((f0 + f1) / 2);
+  let k = lo;
+  for (let i = lo + 1; i <= hi; i++) if (fft.amp[i] > fft.amp[k]) k = i;
+  return [fft.f_hz[k], fft.amp[k]];
+}
+function fftReadout() {
+  const parts = [];
+  const a = fftCur.a !== null ? fftAt(fftCur.a) : null, b = fftCur.b !== null ? fftAt(fftCur.b) : null;
+  if (a) parts.push(`A f=${fmtR(a[0])} Hz amp=${fmtR(a[1])}`);
+  if (b) parts.push(`B f=${fmtR(b[0])} Hz amp=${fmtR(b[1])}`);
+  if (a && b) parts.push(`Δf=${fmtR(b[0] - a[0])} Hz Δamp=${fmtR(b[1] - a[1])}`);
+  $("fftcursors").textContent = parts.length ? "FFT: " + parts.join("  ") : "FFT: click: cursor A; shift-click: B";
+}
+function drawFft() {
+  const host = $("fftplot");
+  if (!fftChart) {
+    fftChart = new uPlot({
+      width: Math.max(300, host.clientWidth - 12), height: 180, legend: { show: false },
+      scales: { x: { time: false }, y: { range: (u, mn, mx) => [0, (Number.isFinite(mx) ? Math.max(mx, 1e-12) : 1) * 1.1] } },
+      axes: [{ size: 28, label: "f [Hz]", labelSize: 14 }, { size: 60 }],
+      cursor: { drag: { x: true, y: false } },
+      series: [{ label: "f [Hz]" }, { label: "amplitude", stroke: COLORS[0], width: 1, points: { show: false } }],
+      hooks: { draw: [(u) => {
+        const g = u.ctx, dpr = devicePixelRatio || 1;
+        for (const [k, c] of [["a", "#000"], ["b", "#6a1b9a"]]) {
+          if (fftCur[k] === null) continue;
+          const x = Math.round(u.valToPos(fftCur[k], "x", true));
+          g.save(); g.strokeStyle = c; g.lineWidth = dpr;
+          g.beginPath(); g.moveTo(x, u.bbox.top); g.lineTo(x, u.bbox.top + u.bbox.height); g.stroke();
+          g.fillStyle = c; g.font = `${10 * dpr}px sans-serif`; g.fillText(k.toUpperCase(), x + 3 * dpr, u.bbox.top + 10 * dpr);
+          g.restore();
+        }
+      }] },
+    }, [[], []], host);
+    fftChart.over.addEventListener("click", (e) => {
+      // the highest bin within 3 pixels of the click: a pixel spans several bins
+      const f0 = fftChart.posToVal(e.offsetX - 3, "x"), f1 = fftChart.posToVal(e.offsetX + 3, "x");
+      const bin = fftPeak(f0, f1);
+      if (!bin) return;
+      if (e.shiftKey) fftCur.b = bin[0]; else fftCur.a = bin[0];
+      fftReadout(); fftChart.redraw(false, false);
+    });
+  }
+  fftChart.setData([fft.f_hz, fft.amp]);
+  fftReadout();
+}
+async function updateFft() {
+  if (!$("fften").checked || fftBusy || !$("itrace").value) return;
+  const v = viewSpan();
+  if (!v || !drawableSpan(v[0], v[1])) return;
+  const key = `${$("itrace").value} ${$("fftwin").value} ${v[0]} ${v[1]}`;
+  if (paused() && key === fftView && fft) return;  // a held view: computed once
+  fftBusy = true;
+  try {
+    const r = await api(`api/fft?${spanQuery(v)}&window=${$("fftwin").value}`);
+    const j = await r.json();
+    if (!j.ok) { $("fftinfo").textContent = j.error; return; }
+    fft = j; fftView = key;
+    let k = 1;
+    for (let i = 2; i < j.amp.length; i++) if (j.amp[i] > j.amp[k]) k = i;
+    $("fftinfo").textContent = `${j.trace}, ${j.window}: ${j.n} samples ${fmtR(j.t0_s)}…${fmtR(j.t1_s)} s, ` +
+      `bins ${fmtR(j.df_hz)} Hz; peak ${fmtR(j.f_hz[k])} Hz, ${fmtR(j.amp[k])} (${j.scaling})` + (j.gap_cut ? "; cut at a gap" : "");
+    drawFft();
+  } catch (e) {
+    $("fftinfo").textContent = "FFT failed: " + e;
+  } finally { fftBusy = false; }
+}
+setInterval(updateFft, 1000);
+$("fften").addEventListener("change", updateFft);
+$("fftwin").addEventListener("change", () => { fftView = ""; updateFft(); });
+
+let edgeState = null, edgeChart = null, edgeShown = 0, edgeTimer = null;
+window.scopeEdge = () => edgeState;  // read by the browser test
+$("earm").addEventListener("click", async () => {
+  $("estate").textContent = "arming…";
+  const body = { trace: $("itrace").value, edge: $("edge").value, level: $("elevel").value,
+                 hysteresis: $("ehyst").value, mode: $("emode").value, pre_s: $("epre").value,
+                 post_s: $("epost").value, auto_timeout_s: $("eauto").value };
+  const r = await api("api/edge", { method: "POST", body: JSON.stringify(body) });
+  const j = await r.json();
+  $("estate").textContent = j.ok ? j.reason : "refused: " + j.reason;
+  edgeShown = 0;
+  if (j.ok && !edgeTimer) edgeTimer = setInterval(pollEdge, 500);
+});
+$("estop").addEventListener("click", async () => {
+  await api("api/edge", { method: "POST", body: JSON.stringify({ trace: "" }) });
+  clearInterval(edgeTimer); edgeTimer = null;
+  await pollEdge();
+});
+async function pollEdge() {
+  const r = await api("api/edge");
+  const j = await r.json();
+  edgeState = j;
+  const c = j.config || {};
+  const last = j.events.length ? j.events[j.events.length - 1] : null;
+  $("estate").textContent = !j.set ? "not set" :
+    `${j.stopped ? "stopped" : j.armed ? "armed" : "done"} (${c.mode}, ${c.edge} ${c.trace} through ${c.level} ± ${c.hysteresis}): fired ${j.fired}` +
+    (last ? `; #${last.n} at t=${fmtR(last.t_s)} s (${last.auto ? "auto: no edge within the timeout" : "edge"})` : "");
+  if (last && last.n !== edgeShown) { edgeShown = last.n; drawEdge(last, c); }
+}
+function drawEdge(ev, c) {
+  const host = $("edgeplot");
+  host.innerHTML = "";
+  edgeChart = new uPlot({
+    width: Math.max(300, host.clientWidth - 12), height: 150, legend: { show: false },
+    scales: { x: { time: false } }, axes: [{ size: 28, values: (u, vs) => vs.map((v) => v.toFixed(4)) }, { size: 52 }],
+    series: [{ label: "t [s]" }, { label: c.trace, stroke: COLORS[0], width: 1, points: { show: ev.t.length < 200 } }],
+    hooks: { draw: [(u) => {
+      const g = u.ctx, x = Math.round(u.valToPos(ev.t_s, "x", true)), y = Math.round(u.valToPos(c.level, "y", true));
+      g.save(); g.strokeStyle = "#c62828"; g.setLineDash([5, 3]);
+      g.beginPath(); g.moveTo(x, u.bbox.top); g.lineTo(x, u.bbox.top + u.bbox.height);
+      g.moveTo(u.bbox.left, y); g.lineTo(u.bbox.left + u.bbox.width, y); g.stroke(); g.restore();
+    }] },
+  }, [ev.t, ev.v], host);
+}
+
+async function rawExport(kind) {
+  const v = viewSpan();
+  if (!v || !$("itrace").value) return;
+  window.scopeRawView = v;  // read by the browser test
+  $("rawmsg").textContent = `waiting for every sample of ${fmtR(v[0])}…${fmtR(v[1])} s…`;
+  const r = await fetch(`api/raw.${kind}?${spanQuery(v)}`, { headers: { "X-Fluxdrive-Token": TOKEN } });
+  if (!r.ok) {
+    const j = await r.json().catch(() => ({ error: r.statusText }));
+    $("rawmsg").textContent = j.error || j.reason || r.statusText;
+    return;
+  }
+  const blob = await r.blob();
+  const name = (r.headers.get("Content-Disposition") || "").match(/filename="([^"]+)"/);
+  const a = document.createElement("a");
+  a.href = URL.createObjectURL(blob);
+  a.download = name ? name[1] : `scope-raw.${kind}`;
+  document.body.appendChild(a); a.click(); a.remove();
+  $("rawmsg").textContent = `${a.download}: the view ${fmtR(v[0])}…${fmtR(v[1])} s, ${blob.size} bytes`;
+}
+$("rawcsv").addEventListener("click", () => rawExport("csv"));
+$("rawmcap").addEventListener("click", () => rawExport("mcap"));
 
 // ------------------------------------------------------------------ connection
 function connect() {
