@@ -1,6 +1,8 @@
 """The scope server against hostile requests: an oversized header is answered (400) and
 logged in one line naming the client (aiohttp logged a full traceback), and the page is not
-served without its token under /static/ either (its scripts and styles are)."""
+served without its token under /static/ either (its scripts and styles are); the
+instrument's calls (FFT, raw export, edge trigger) need the token and answer bad input
+with one line naming it."""
 
 from __future__ import annotations
 
@@ -30,6 +32,24 @@ def _get(url: str) -> int:
             return r.status
     except urllib.error.HTTPError as exc:
         return exc.code
+
+
+def _answer(url: str, body: dict | None = None) -> tuple[int, str]:
+    """Status and the JSON answer's one line (`error` or `reason`) of a GET (or a POST of
+    body) with the token."""
+    import json
+
+    data = json.dumps(body).encode() if body is not None else None
+    req = urllib.request.Request(
+        url, data=data, headers={"X-Fluxdrive-Token": TOKEN, "Content-Type": "application/json"}
+    )
+    try:
+        with urllib.request.urlopen(req, timeout=30) as r:
+            status, text = r.status, r.read().decode()
+    except urllib.error.HTTPError as exc:
+        status, text = exc.code, exc.read().decode()
+    j = json.loads(text)
+    return status, str(j.get("error") or j.get("reason") or "")
 
 
 def test_oversized_header_is_one_line_and_the_page_needs_its_token():
@@ -66,6 +86,16 @@ def test_oversized_header_is_one_line_and_the_page_needs_its_token():
             "root without token": _get(f"{base}/"),
             "script": _get(f"{base}/static/scope.js"),
         }
+        # the instrument's calls: bad input is one line naming what is wrong
+        instrument = {
+            "fft without token": _get(f"{base}/api/fft?trace=frame:i_a&t0=0&t1=1"),
+            "fft window": _answer(f"{base}/api/fft?trace=frame:i_a&t0=0&t1=1&window=kaiser"),
+            "fft trace": _answer(f"{base}/api/fft?trace=i_a&t0=0&t1=1"),
+            "raw view": _answer(f"{base}/api/raw.csv?trace=frame:i_a&t0=1&t1=0.5"),
+            "raw no view": _answer(f"{base}/api/raw.mcap?trace=frame:i_a"),
+            "edge mode": _answer(f"{base}/api/edge", {"trace": "frame:i_a", "mode": "repeat"}),
+            "edge level": _answer(f"{base}/api/edge", {"trace": "frame:i_a", "level": "x"}),
+        }
     finally:
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=30)
@@ -78,6 +108,22 @@ def test_oversized_header_is_one_line_and_the_page_needs_its_token():
         "root without token": 403,
         "script": 200,
     }
+    assert instrument == {
+        "fft without token": 403,
+        "fft window": (400, instrument["fft window"][1]),
+        "fft trace": (400, instrument["fft trace"][1]),
+        "raw view": (400, instrument["raw view"][1]),
+        "raw no view": (400, instrument["raw no view"][1]),
+        "edge mode": (
+            400,
+            "edge trigger: trigger mode: 'repeat' is not one of normal, auto, single",
+        ),
+        "edge level": (400, "edge trigger: could not convert string to float: 'x'"),
+    }, instrument
+    assert "'kaiser' is not one of rectangular, hann, flattop" in instrument["fft window"][1]
+    assert "expected stream:field" in instrument["fft trace"][1]
+    assert "is empty" in instrument["raw view"][1]
+    assert "expected t0 and t1" in instrument["raw no view"][1]
     assert "Traceback" not in err
     bad = [ln for ln in err.splitlines() if "bad request" in ln]
     assert len(bad) == 1 and "refused a bad request from 127.0.0.1" in bad[0], err

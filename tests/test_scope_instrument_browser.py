@@ -1,14 +1,15 @@
 """The scope as an instrument, in a real browser (Debian's chromium via playwright): a known
 tone published on /drive/frame (i_a = 2 A sin(2π 250 Hz t), every sample, seq and stamp
 of a 10 kHz drive) by a process with the scope tap in it (tests/scope_tone.py: as in a
-graph started with --scope), and the scope server.  On the page: the FFT in Hz of
-i_a shows the tone at its bin with its amplitude (flat-top window), the FFT cursors read
-it; an edge trigger (rising through 1 A, hysteresis 0.5 A, normal mode) fires twice, at the
-samples the tone crosses the level, re-arming in between; the raw CSV and MCAP exports of
-the held view hold exactly the samples in view, each equal to the published value (the
-MCAP read back with the project's bag reader and with mcap).  Saves a screenshot of the
-instrument panel (FLUXDRIVE_SCOPE_SCREENSHOT=docs/img/scope.png renews
-docs/img/scope-instrument.png next to it)."""
+graph started with --scope), and the scope server.  On the page: the FFT in Hz of i_a
+shows the tone at its bin with its amplitude (flat-top window), the FFT cursors read it;
+an edge trigger (rising through 1 A, hysteresis 0.5 A, normal mode) fires twice, at the
+samples the tone crosses the level, re-arming in between (single: once; auto on a level
+never reached: free runs at its timeout); the raw CSV and MCAP exports of the held view
+hold exactly the samples in view, each equal to the published value (the MCAP read back
+with the project's bag reader and with mcap).  Saves a screenshot of the instrument panel
+(FLUXDRIVE_SCOPE_SCREENSHOT=docs/img/scope.png renews docs/img/scope-instrument.png next
+to it)."""
 
 from __future__ import annotations
 
@@ -165,17 +166,46 @@ def _fft(page) -> None:
 
 
 def _edges(page) -> None:
-    """Rising through LEVEL_A with hysteresis, normal mode: fires, re-arms, fires again,
-    each time at a sample where the tone crosses the level."""
+    """Single: one firing at a crossing, then done; auto on a level never reached: free
+    runs at its timeout; normal (rising through LEVEL_A with hysteresis): fires, re-arms,
+    fires again, each time at a sample where the tone crosses the level."""
     page.fill("#elevel", str(LEVEL_A))
     page.fill("#ehyst", str(HYST_A))
     page.select_option("#edge", "rising")
-    page.select_option("#emode", "normal")
     page.fill("#epre", "0.002")
     page.fill("#epost", "0.004")
+    # single: one firing at a crossing, then done while the tone keeps crossing
+    page.select_option("#emode", "single")
     page.click("#earm")
     page.wait_for_function(
-        "(() => { const e = window.scopeEdge(); return e && e.events.length >= 2; })()",
+        "(() => { const e = window.scopeEdge();"
+        " return e && e.config.mode === 'single' && e.events.length >= 1; })()",
+        timeout=120_000,
+    )
+    (first,) = page.evaluate("window.scopeEdge()")["events"]
+    assert first["seq"] in expected_edges(first["seq"] - 100, first["seq"])
+    _wait_newest(page, first["seq"] + 400)  # ten more crossings held by the server
+    st = page.evaluate("window.scopeEdge()")
+    assert not st["armed"] and st["fired"] == 1 and len(st["events"]) == 1
+    # auto: a level the tone never reaches; it free-runs every `auto after` (200 samples)
+    page.fill("#elevel", str(1.5 * AMP_A))
+    page.fill("#eauto", "0.02")
+    page.select_option("#emode", "auto")
+    page.click("#earm")
+    page.wait_for_function(
+        "(() => { const e = window.scopeEdge();"
+        " return e && e.config.mode === 'auto' && e.events.length >= 2; })()",
+        timeout=120_000,
+    )
+    ev = page.evaluate("window.scopeEdge()")["events"][:2]
+    assert all(e["auto"] for e in ev) and ev[1]["seq"] - ev[0]["seq"] == 200
+    # normal: every edge after the acquisition
+    page.fill("#elevel", str(LEVEL_A))
+    page.select_option("#emode", "normal")
+    page.click("#earm")
+    page.wait_for_function(
+        "(() => { const e = window.scopeEdge();"
+        " return e && e.config.mode === 'normal' && e.events.length >= 2; })()",
         timeout=120_000,
     )
     st = page.evaluate("window.scopeEdge()")
@@ -192,10 +222,22 @@ def _edges(page) -> None:
         seq = np.round(t / TS_S).astype(np.int64)
         assert seq[0] == e["seq"] - 20 and seq[-1] == e["seq"] + 40  # 2 ms before, 4 after
         assert np.allclose(e["v"], i_abc(seq)[0], rtol=1e-6, atol=1e-6)
+    page.wait_for_function("window.scopeEdge().fired >= 3", timeout=60_000)  # drawn one
     page.click("#estop")
     sync_api.expect(page.locator("#estate")).to_contain_text("stopped", timeout=20_000)
     st = page.evaluate("window.scopeEdge()")
     assert st["stopped"] and not st["armed"] and st["fired"] >= 2
+
+
+def _wait_newest(page, seq: int) -> None:
+    """Until the server holds i_a's samples up to seq."""
+    js = """async ([token, t]) => {
+         const r = await fetch("api/status", { headers: { "X-Fluxdrive-Token": token } });
+         const h = (await r.json()).raw.frame; return Boolean(h && h[1] >= t); }"""
+    t_end = time.monotonic() + 120
+    while not page.evaluate(js, [TOKEN, seq * TS_S]):
+        assert time.monotonic() < t_end
+        page.wait_for_timeout(250)
 
 
 def _raw_export(page, exports: Path) -> None:

@@ -194,44 +194,79 @@ def in_view(seq: np.ndarray, ts_s: float, t0_s: float, t1_s: float) -> np.ndarra
 
 class SampleBuffer:
     """The newest full-rate samples of named streams (seq and fields), at most
-    `max_samples` per stream, kept in sample order without duplicates."""
+    `max_samples` per stream, in sample order without duplicates.  Blocks are kept as they
+    come and joined only when read (a block a period, a read a second: no copy of the whole
+    buffer per block); a sample at or before the newest one held is dropped."""
 
     def __init__(self, max_samples: int = 100_000):
         self.max_samples = max_samples
-        self.streams: dict[str, tuple[np.ndarray, dict[str, np.ndarray]]] = {}
+        self._chunks: dict[str, list[tuple[np.ndarray, dict[str, np.ndarray]]]] = {}
+        self._n: dict[str, int] = {}
 
     def put(self, stream: str, seq: np.ndarray, fields: dict[str, np.ndarray]) -> None:
         seq = np.asarray(seq, dtype=np.int64)
-        old = self.streams.get(stream)
-        if old is not None and list(old[1]) == list(fields):
-            seq = np.r_[old[0], seq]
-            fields = {k: np.r_[old[1][k], np.asarray(v, dtype=float)] for k, v in fields.items()}
+        chunks = self._chunks.get(stream)
+        if chunks and list(chunks[0][1]) != list(fields):  # other fields: start afresh
+            chunks = None
+        if chunks is None:
+            chunks = self._chunks[stream] = []
+            self._n[stream] = 0
+        last = self.newest(stream)
         seq, first = np.unique(seq, return_index=True)  # sorted, first copy of a repeated seq
+        keep = seq > last
+        seq, first = seq[keep], first[keep]
+        if not len(seq):
+            return
+        chunks.append((seq, {k: np.asarray(v, dtype=float)[first] for k, v in fields.items()}))
+        self._n[stream] += len(seq)
+        while len(chunks) > 1 and self._n[stream] - len(chunks[0][0]) >= self.max_samples:
+            self._n[stream] -= len(chunks.pop(0)[0])
+
+    def _joined(self, stream: str) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        chunks = self._chunks[stream]
+        if len(chunks) > 1:
+            seq = np.concatenate([c[0] for c in chunks])
+            flds = {k: np.concatenate([c[1][k] for c in chunks]) for k in chunks[0][1]}
+            chunks[:] = [(seq, flds)]
+        seq, flds = chunks[0]
         cut = max(0, len(seq) - self.max_samples)
-        self.streams[stream] = (
-            seq[cut:],
-            {k: np.asarray(v, dtype=float)[first][cut:] for k, v in fields.items()},
-        )
+        if cut:
+            seq, flds = seq[cut:], {k: v[cut:] for k, v in flds.items()}
+            chunks[0] = (seq, flds)
+            self._n[stream] = len(seq)
+        return seq, flds
+
+    @property
+    def streams(self) -> dict[str, tuple[np.ndarray, dict[str, np.ndarray]]]:
+        return {s: self._joined(s) for s, c in self._chunks.items() if c}
 
     def newest(self, stream: str) -> int:
-        got = self.streams.get(stream)
-        return int(got[0][-1]) if got is not None and len(got[0]) else -1
+        chunks = self._chunks.get(stream)
+        return int(chunks[-1][0][-1]) if chunks else -1
 
     def oldest(self, stream: str) -> int:
-        got = self.streams.get(stream)
-        return int(got[0][0]) if got is not None and len(got[0]) else -1
+        chunks = self._chunks.get(stream)
+        if not chunks:
+            return -1
+        return (
+            int(self._joined(stream)[0][0])
+            if self._n[stream] > self.max_samples
+            else int(chunks[0][0][0])
+        )
 
     def trace(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         """seq and values of `stream:field`."""
         stream, _, fld = name.rpartition(":")
-        got = self.streams.get(stream)
-        if got is None or fld not in got[1]:
+        if not self._chunks.get(stream) or fld not in self._chunks[stream][0][1]:
             raise KeyError(name)
-        return got[0], got[1][fld]
+        seq, flds = self._joined(stream)
+        return seq, flds[fld]
 
     def view(self, stream: str, ts_s: float, t0_s: float, t1_s: float):
         """seq and fields of `stream` within [t0, t1]."""
-        seq, flds = self.streams[stream]
+        if not self._chunks.get(stream):
+            raise KeyError(stream)
+        seq, flds = self._joined(stream)
         ix = in_view(seq, ts_s, t0_s, t1_s)
         return seq[ix], {k: v[ix] for k, v in flds.items()}
 
