@@ -328,6 +328,9 @@ class CanBridge:
         self._msg_status = self.proto.message("STATUS")
         self._msg_hb = self.proto.message("HOST_HEARTBEAT")
         self._msg_ref = self.proto.message("HOST_REF")
+        # an angle within half a step below 2 pi rounds to 2 pi, one past the wire's top
+        th = self._msg_ref.get_signal_by_name("ref_theta")
+        self._theta_top = 2.0 * math.pi - 0.5 * float(th.scale)
         self._msg_prm = self.proto.message("DRIVE_PARAM")
         self._msg_ack = self.proto.message("DRIVE_PARAM_ACK")
         self.param_ids = {
@@ -391,6 +394,9 @@ class CanBridge:
         # stale and faults, and a reset or a reconnect starts it again
         self.seq = SeqFilter(step=self.decimation, max_jump=self.cfg.seq_jump_max)
         self._seq_out = 0  # seq of the last frame handed out (the sample index j = k // D)
+        # the bus's receive timestamp [s] of the oldest sample the last poll took (0.0:
+        # none): a host timing its answers counts from there
+        self.poll_first_rx_s = 0.0
         self._last_valid_t: float | None = None
         self._next_hb_t = 0.0
         self._hb_alive = 0
@@ -542,9 +548,12 @@ class CanBridge:
         if en and (not self.armed or self.fault):
             en = False
             self.counters["enable_suppressed"] += 1
+        theta = vals[2] % (2.0 * math.pi)
+        if theta >= self._theta_top:  # the same angle as 0, which the wire can carry
+            theta = 0.0
         data = self._msg_ref.encode(
             {"ref_seq": self._wire_seq(int(seq)), "ref_id": vals[0], "ref_iq": vals[1],
-             "ref_theta": vals[2] % (2.0 * math.pi), "ref_omega": vals[3],
+             "ref_theta": theta, "ref_omega": vals[3],
              "ref_enable": int(en)},
             strict=False,
         )  # fmt: skip
@@ -781,6 +790,7 @@ class CanBridge:
             frames = self._decode(samples)
             self._bus_failed(exc)
             return frames
+        self.poll_first_rx_s = samples[0].timestamp if samples else 0.0
         frames = self._decode(samples)
         self.tick(self.clock())
         return frames

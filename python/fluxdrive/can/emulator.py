@@ -98,7 +98,8 @@ class DriveEmulator:
 
     ``setup`` is a :class:`fluxdrive.drive.sim.DriveSetup` (plant parameters, load profile,
     seed). ``bus`` is any python-can bus (usually ``interface="virtual"`` in-process).
-    ``record`` keeps the true state per period (``truth``) and the frames sent, for tests.
+    ``record`` keeps the true state per period (``truth``) and the frames sent, for tests,
+    and times the host's answers (``answer_latency_s``); ``time_answers`` only times them.
     """
 
     def __init__(
@@ -113,6 +114,7 @@ class DriveEmulator:
         status_period_s: float = 0.1,
         send_timeout_s: float = 0.5,
         record: bool = False,
+        time_answers: bool = False,
         layout: str = "fd",
         decimation: int | None = None,
         protocol: FluxdriveProtocol | None = None,
@@ -148,14 +150,20 @@ class DriveEmulator:
         self.record = record
         self.rec_frames: list[np.ndarray] = []
         self.rec_truth: list[np.ndarray] = []
-        # record=True: wall time (time.time) each sample went out, by wire seq, and the
-        # host's answer latency [s] (the answer's bus timestamp minus its sample's send
-        # time), for benchmarks
+        # record=True or time_answers=True: wall time (time.time) each sample went out, by
+        # wire seq, and the host's answer latency [s] (the answer's bus timestamp minus its
+        # sample's send time), for benchmarks
+        self._time_answers = bool(record or time_answers)
         self._sent_wall: dict[int, float] = {}
         self.answer_latency_s: list[float] = []
         # the answers' sequence signals: DUTY_CMD.cmd_seq, HOST_REF.ref_seq
         self._answer_seq = {ID_DUTY_CMD: "cmd_seq", ID_HOST_REF: "ref_seq"}
         self.host_heard_s: float | None = None  # monotonic time of the last HOST_HEARTBEAT
+        self.schedule_clock = False
+        """Free-running: the drive's clock is its periods (k periods, as in lockstep), not
+        the wall clock -- for an emulator paced to the wall clock, whose process the PC can
+        stall: it catches up, and an MCU's timer never stalls (the host's lateness stays
+        the host's)."""
         self._warm_plant()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -215,7 +223,7 @@ class DriveEmulator:
         if msg.arbitration_id == ID_HOST_HEARTBEAT:
             self.host_heard_s = time.monotonic()
         seq_signal = self._answer_seq.get(msg.arbitration_id)
-        if self.record and seq_signal is not None:
+        if self._time_answers and seq_signal is not None:
             try:
                 seq = int(self.proto.decode(msg.arbitration_id, bytes(msg.data))[seq_signal])
             except Exception:  # noqa: BLE001 - a bad frame: the core counts it
@@ -261,7 +269,7 @@ class DriveEmulator:
             self.sample_hook(k, seen)
             fw.set_sample(seen, self.time_us(), self.stage_temp_c)
         fw.period()
-        if self.record and k % d == 0:
+        if self._time_answers and k % d == 0:
             self._sent_wall[k % _SEQ_MOD] = time.time()
             if len(self._sent_wall) > 256:
                 del self._sent_wall[next(iter(self._sent_wall))]
@@ -286,7 +294,7 @@ class DriveEmulator:
         """The drive's free-running microsecond clock: free-running, wall time since
         construction; in lockstep the drive's own time, k periods (the drive waits for the
         host, so its host supervision -- heartbeat timeout -- counts drive time too)."""
-        if self.lockstep:
+        if self.lockstep or self.schedule_clock:
             return int(round(self.k * self.ts * 1e6))
         return int((time.monotonic() - self._t0_wall) * 1e6)
 

@@ -69,6 +69,7 @@ from fluxdrive.drive.sim import DriveSetup
 
 __all__ = [
     "CanLoopResult",
+    "HostLoop",
     "decimated_scenario",
     "drive_params_of",
     "new_virtual_channel",
@@ -207,7 +208,7 @@ def run_can_loop(
     if control_scenario is None:
         control_scenario = decimated_scenario(scenario, d) if d > 1 and not split else scenario
     dsc = DriveSetup(control_scenario) if control_scenario is not scenario else ds
-    host = _Host(dsc, math.ceil(n / d), split, d)
+    host = HostLoop(dsc, math.ceil(n / d), split, d)
     host.warm()
     t0 = time.perf_counter()
     emu.start(n, realtime=realtime)
@@ -304,19 +305,22 @@ def _configure_drive(emu: DriveEmulator, bridge: CanBridge, ds: DriveSetup) -> N
         server.join()
 
 
-class _Host:
-    """The host's side of the loop: the observers and the controller (split: the host's
-    reference step) over the received samples, their rows, and the answer to each."""
+class HostLoop:
+    """The host's side of the loop -- the bridge's hot path after the decode: the observers
+    and the controller (split: the host's reference step) over the received samples, their
+    rows, and the answer to each. ``n_rows`` rows are kept (sample m in row m % n_rows: a
+    long paced run keeps only the newest)."""
 
-    def __init__(self, dsc: DriveSetup, n_smp: int, split: bool, decimation: int) -> None:
+    def __init__(self, dsc: DriveSetup, n_rows: int, split: bool, decimation: int) -> None:
         self.dsc = dsc
         self.split = split
         self.cs = dsc.new_controller()
         self.obs = dsc.new_observer_states()
         self.n_obs = self.obs.shape[0]
-        self.est_rows = np.zeros((self.n_obs, n_smp, ES_N))
-        self.ctrl_rows = np.zeros((n_smp, CO_N))
-        self.rx_rows = np.zeros((n_smp, FR_N))
+        self.n_rows = max(int(n_rows), 1)
+        self.est_rows = np.zeros((self.n_obs, self.n_rows, ES_N))
+        self.ctrl_rows = np.zeros((self.n_rows, CO_N))
+        self.rx_rows = np.zeros((self.n_rows, FR_N))
         self.no_est = np.zeros(ES_N)
         self.ctrl = np.zeros(CO_N)
         self.ref = np.zeros(RF_N)
@@ -341,7 +345,7 @@ class _Host:
 
     def step(self, fr: np.ndarray, kk: int) -> None:
         """Sample `kk` through the observers and the controller, rows kept."""
-        dsc, m = self.dsc, self.m
+        dsc, m = self.dsc, self.m % self.n_rows
         self.rx_rows[m] = fr
         for o in range(self.n_obs):
             observer_step(self.obs[o], dsc.obs_params[o], fr, self.est_rows[o, m])
@@ -366,7 +370,7 @@ class _Host:
             bridge.send_duty(kk, ctrl[CO_DA : CO_DC + 1], ctrl[CO_EN] > 0.5)
 
 
-def _serve(bridge: CanBridge, emu: DriveEmulator, host: _Host, frame_hook: Any) -> None:
+def _serve(bridge: CanBridge, emu: DriveEmulator, host: HostLoop, frame_hook: Any) -> None:
     """Handle and answer every sample the bridge decodes, until the emulator has finished
     and the bus has been quiet for 0.3 s."""
     n_smp = host.rx_rows.shape[0]

@@ -36,6 +36,17 @@ and timed) and the host loop (bridge logic, observers, controller) in this proce
 Options: --duration S (drive seconds of each run, default 2), --decimation D.
 The last line on stdout is a JSON object, also written to results/can/bench.json (docs/can.md
 quotes it). No ROS.
+
+--paced: the bench in real time instead (fluxdrive.can.paced): the drive (plant and C core)
+in a process of its own paced by the wall clock at the PWM rate, a sample every D periods
+(split mode, FD layout), the host's hot path (the bridge's decode, observers, reference step,
+HOST_REF: the bench_bridge node's CAN thread) in another, in real time (SCHED_FIFO at
+--priority, memory locked, pinned, garbage collector off the hot path; what is not
+permitted is said in one line; the drive at --drive-priority), over udp_multicast on
+127.0.0.1, with --busy-cores busy loops beside them (default 1), for --minutes (default
+10). Samples, references, those later than the drive's reference timeout, latency
+p50/p99/max [us], the drive's missed periods; a progress line every 10 s; the JSON last
+line also written to results/can/bench_paced.json (docs/can.md and the README quote it).
 """
 
 from __future__ import annotations
@@ -44,14 +55,16 @@ import dataclasses
 import json
 import math
 import sys
+import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from fluxdrive.analysis.freqresp import analyse
 from fluxdrive.can.loop import run_can_loop
+from fluxdrive.can.paced import PacedConfig, run_paced_bench, split_bench_scenario
 from fluxdrive.can.protocol import LinkOptions, link_budget
-from fluxdrive.core import yamlio
 from fluxdrive.core.paths import ROOT
 from fluxdrive.core.schema import Parser, option
 from fluxdrive.drive.control import CO_ID, CO_ID_REF, CP_KI_I, CP_KP_I, current_loop_margins
@@ -67,6 +80,7 @@ __all__ = [
 ]
 
 RESULTS_PATH = ROOT / "results" / "can" / "bench.json"
+PACED_RESULTS_PATH = ROOT / "results" / "can" / "bench_paced.json"
 SWEEP_HZ = [200.0, 500.0, 700.0, 850.0, 1000.0, 1200.0, 1500.0]
 # the C loop's sweep at D = 1: on to 3 kHz (0.6 of the PWM rate's Nyquist frequency)
 C_SWEEP_HZ = [*SWEEP_HZ, 2000.0, 2500.0, 3000.0]
@@ -175,12 +189,54 @@ def c_loop_current_sweep(
     }
 
 
+def paced_bench(cfg: PacedConfig, path: Any = None) -> dict[str, Any]:
+    """`benchmark bench --paced`: one paced run, its record written to `path` (default
+    results/can/bench_paced.json) and returned; a failed run is one line and exit 1."""
+    res = run_paced_bench(cfg)
+    for key in ("error", "host_error"):
+        if res.get(key):
+            print(f"fluxdrive benchmark bench --paced: {res[key]}", file=sys.stderr)
+            raise SystemExit(1)
+    res["measured"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    out = Path(path) if path is not None else PACED_RESULTS_PATH
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(res, indent=2) + "\n")
+    _say(
+        f"{res['samples']} samples, {res['references']} references, "
+        f"{res['late_beyond_timeout']} later than the {res['reference_timeout_ms']:g} ms "
+        f"timeout, {res['unanswered']} unanswered; latency p50/p99/max "
+        f"{res['latency_p50_us']}/{res['latency_p99_us']}/{res['latency_max_us']} us; "
+        f"drive: {res['drive_missed_periods']} missed periods, faults {res['drive_faults']}"
+    )
+    _say(f"written {out.relative_to(ROOT) if out.is_relative_to(ROOT) else out}")
+    return res
+
+
 def bench_bench(argv: list[str]) -> dict[str, Any]:
     ap = Parser(prog="fluxdrive benchmark bench", description=__doc__)
     ap.add_argument("--duration", type=float, default=2.0, help="drive seconds per run")
     option(ap, "--decimation", LinkOptions)
+    ap.add_argument("--paced", action="store_true", help="the bench in real time (see above)")
+    option(ap, "--minutes", PacedConfig)
+    option(ap, "--busy-cores", PacedConfig)
+    option(ap, "--priority", PacedConfig)
+    option(ap, "--drive-priority", PacedConfig)
+    ap.add_argument(
+        "--out", default=None, help="--paced: write the record here (default: the results file)"
+    )
     args = ap.parse_args(argv)
     d = int(args.decimation)
+    if args.paced:
+        return paced_bench(
+            PacedConfig(
+                minutes=args.minutes,
+                decimation=d,
+                busy_cores=args.busy_cores,
+                priority=args.priority,
+                drive_priority=args.drive_priority,
+            ),
+            args.out,
+        )
     host_sc = load_scenario(scenario_path("can_2pct_decimated"))
     pwm_hz = host_sc.machine.pwm_hz
     lb = link_budget("fd", decimation=d, pwm_hz=pwm_hz)
@@ -190,18 +246,7 @@ def bench_bench(argv: list[str]) -> dict[str, Any]:
         scenario_path("can_2pct_decimated"),
         overrides={"duration_s": dur, "steady_window_s": [dur / 2, dur]},
     )
-    paper = scenario_path("paper_2pct_150load")
-    raw = yamlio.load_file(paper)
-    split_sc = load_scenario(
-        paper,
-        overrides={
-            "duration_s": dur,
-            "steady_window_s": [dur / 2, dur],
-            "load_pu": 0.0,
-            "control": {**raw["control"], "mode": "split", "decimation": d},
-            "observers": {"flux_measured": raw["observers"]["flux_measured"]},
-        },
-    )
+    split_sc = split_bench_scenario(dur, d)
     _say(f"D = {d}: host budget {budget_us:.0f}-{lb['host_budget_us_none']:.0f} us per sample")
     _say("warming up (compiling the kernels) ...")
     for sc in (host_sc, split_sc):

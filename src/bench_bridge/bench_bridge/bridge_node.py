@@ -63,6 +63,7 @@ from fluxdrive.can.bridge import (
 from fluxdrive.can.preflight import drive_param_name
 from fluxdrive.can.preflight import scenario_drive_params as drive_defaults
 from fluxdrive.can.protocol import link_budget, smallest_fitting_decimation
+from fluxdrive.can.realtime import HotPath
 from fluxdrive.core import schema
 from fluxdrive.core.schema import param
 from fluxdrive.drive.control import (
@@ -198,6 +199,23 @@ class BridgeNodeSettings:
         "drive.* defaults (split mode; empty: the default machine card's)",
         live=False,
     )
+    realtime_priority: int = param(
+        0,
+        unit="",
+        doc="SCHED_FIFO priority of the CAN thread, the hot path from a sample to its "
+        "answer, with the process's memory locked and the garbage collector off that "
+        "path (fluxdrive.can.realtime; not permitted: one warning line; 0: normal "
+        "scheduling)",
+        range=(0, 99),
+        live=False,
+    )
+    realtime_cpu: int = param(
+        -1,
+        unit="",
+        doc="core the CAN thread is pinned to (an isolated one on a bench PC; -1: any)",
+        range=(-1, 1023),
+        live=False,
+    )
 
 
 def node_params() -> list[P]:
@@ -252,6 +270,8 @@ class BenchBridgeNode(Node):
         )
         self.bridge.connect()
         self._stop = threading.Event()
+        cpu = int(pv["realtime_cpu"])
+        self._hot = HotPath(int(pv["realtime_priority"]), None if cpu < 0 else cpu)
         self._thread = threading.Thread(target=self._can_loop, name="can-rx", daemon=True)
         self._thread.start()
         if pv["armed"]:
@@ -340,21 +360,29 @@ class BenchBridgeNode(Node):
 
     # ---------------------------------------------------------------- CAN side
     def _can_loop(self) -> None:
-        while not self._stop.is_set():
-            try:
-                frames = self.bridge.poll(timeout=0.01)
-            except Exception as exc:  # noqa: BLE001 - keep the supervisor alive
-                self.get_logger().error(f"CAN poll: {exc!r}")
-                continue
-            try:
-                for fr in frames:
-                    self.pub.publish(self._to_msg(fr))
-                while self.bridge.fault_events:
-                    self._publish_fault(self.bridge.fault_events.popleft())
-            except Exception:  # noqa: BLE001 - rclpy shut down under us: the run is over
-                if self.context.ok():
-                    raise
-                return
+        """The hot path (fluxdrive.can.realtime.HotPath: real time as far as permitted,
+        said in the log): poll, publish each sample, faults."""
+        with self._hot as hot:
+            if hot.priority > 0:
+                self.get_logger().info(hot.report.line())
+                for note in hot.report.notes:
+                    self.get_logger().warning(note)
+            while not self._stop.is_set():
+                try:
+                    frames = self.bridge.poll(timeout=0.01)
+                except Exception as exc:  # noqa: BLE001 - keep the supervisor alive
+                    self.get_logger().error(f"CAN poll: {exc!r}")
+                    continue
+                try:
+                    for fr in frames:
+                        self.pub.publish(self._to_msg(fr))
+                    while self.bridge.fault_events:
+                        self._publish_fault(self.bridge.fault_events.popleft())
+                except Exception:  # noqa: BLE001 - rclpy shut down under us: the run is over
+                    if self.context.ok():
+                        raise
+                    return
+                hot.after_answer()  # a young collection when one is due
 
     def _publish_fault(self, ev: FaultEvent) -> None:
         """A fault latched or cleared on the bench as a DriveFault, stamped with the newest
