@@ -179,3 +179,49 @@ def test_controller_descriptor_range_is_what_the_controller_accepts():
         dataclasses.replace(split, reference_timeout_s=lo).check(card)
         with pytest.raises(ConfigError, match="two samples"):
             dataclasses.replace(split, reference_timeout_s=lo * 0.99).check(card)
+
+
+def test_raw_samples_reach_the_server_instrument_and_gaps_are_named():
+    """The tap's raw arrays (raw_streams) cross the wire untouched into the server's
+    instrument: its edge trigger fires at the crossing sample, and a view with samples
+    that never arrived is refused with their count instead of exported short."""
+    scope = pytest.importorskip("fluxdrive_bringup.view.scope")
+
+    def envelope_of(seq: np.ndarray) -> dict:
+        i_a = np.sin(2 * math.pi * 250.0 * seq * 1e-4)
+        raw = np.stack([seq.astype(float), i_a, np.full(len(seq), 48.0)])
+        doc = {"v": 1, "seq": int(seq[-1]), "ts_s": 1e-4, "streams": {}, "locus": {}}
+        doc["arrays"], doc["raw_fields"] = {"raw/frame": raw}, {"frame": ["i_a", "vdc"]}
+        return scope_tap.page_json(scope_tap.pack_envelopes(doc))[1]
+
+    ins = scope.Instrument()
+    ins.set_edge(
+        {
+            "trace": "frame:i_a",
+            "stream": "frame",
+            "field": "i_a",
+            "edge": "rising",
+            "level": 0.5,
+            "hysteresis": 0.2,
+            "mode": "single",
+            "pre_s": 0.001,
+            "post_s": 0.001,
+            "holdoff_s": 0.0,
+            "auto_timeout_s": 0.1,
+        }
+    )
+    ins.on_head(envelope_of(np.arange(0, 400)))
+    ins.on_head(envelope_of(np.arange(410, 800)))  # 400..409 never arrived
+    assert ins.missing == {"frame": 10}
+    st = ins.edge_state()
+    # sin(2π·250 Hz·k·ts) = sin(πk/20) reaches 0.5 at k = 20/6 = 3.33: sample 4 fires
+    assert [e["seq"] for e in st["events"]] == [4]
+    assert st["fired"] == 1 and not st["armed"]  # single
+    ev = st["events"][0]  # 1 ms before (from sample 0: no earlier one) to 1 ms after
+    assert ev["t"][0] == 0.0 and ev["t"][-1] == pytest.approx(14e-4)
+    assert ev["v"][4] == pytest.approx(math.sin(math.pi * 4 / 20), rel=1e-6)
+    assert ins.covers("frame", 0.0, 0.079)
+    seq, fields = ins.view("frame", 0.0, 0.0399)
+    assert seq.tolist() == list(range(0, 400)) and (fields["vdc"] == 48.0).all()
+    with pytest.raises(LookupError, match="10 of the view's 800 frame samples never reached"):
+        ins.view("frame", 0.0, 0.0799)

@@ -529,8 +529,20 @@ class Instrument:
             return b >= 0 and a <= math.ceil(t0_s / ts - 1e-6) and b >= math.floor(t1_s / ts + 1e-6)
 
     def view(self, stream: str, t0_s: float, t1_s: float):
+        """Every sample of `stream` in [t0, t1]; LookupError naming how many never arrived
+        when some did not (an export holds exactly the samples in view, or nothing)."""
+        from fluxdrive.analysis.instrument import contiguous
+
         with self.lock:
-            return self.buf.view(stream, self.ts_s, t0_s, t1_s)
+            ts = self.ts_s
+            seq, fields = self.buf.view(stream, ts, t0_s, t1_s)
+        want = math.floor(t1_s / ts + 1e-6) - math.ceil(t0_s / ts - 1e-6) + 1
+        if len(seq) != want or not contiguous(seq):
+            raise LookupError(
+                f"{want - len(seq)} of the view's {want} {stream} samples never reached the "
+                "scope (see its log); export a span without them"
+            )
+        return seq, fields
 
     def spectrum(self, trace: str, window: str, t0_s: float, t1_s: float) -> dict[str, Any]:
         """The amplitude spectrum of `trace` over the samples held in [t0, t1] (the newest
@@ -953,7 +965,10 @@ class Scope:
                 f"{span} (they start when first asked for; zoom into that span)"
             )
             return self._refuse(request, 409, why, as_json=True)
-        seq, fields = ins.view(stream, t0, t1)
+        try:
+            seq, fields = ins.view(stream, t0, t1)
+        except LookupError as exc:
+            return self._refuse(request, 409, str(exc), as_json=True)
         ts = ins.ts_s
         name = f"scope-{stream.replace('/', '_')}-{int(seq[0])}-{int(seq[-1])}"
         if request.path.endswith(".csv"):
