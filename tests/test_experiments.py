@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import re
+import statistics
 
 import pytest
 from fluxdrive.core.machine import MachineCard
@@ -39,16 +40,24 @@ def test_claims_table_is_the_experiments_registry():
     used = set(re.findall(r'judge\(\s*"([a-z0-9_.]+)"', src)) | set(FRONT_CLAIMS)
     assert used == set(table)
     for row in table.values():
-        assert (row["class"] == "reproduction") == ("if_fails" in row)
+        assert row["if_fails"] in ("disagreement", "modelling_gap")
         assert row["class"] == "reproduction" or row.get("calibration") or row.get("design")
+    # a model number fitted to a figure does not judge it; rows true by construction apart
+    for cid in ("fig14.measured_6th_gone", "fig19.step_dip", "fig18.emf"):
+        assert table[cid]["class"] == "calibrated"
+    for cid in ("fig17.flux", "fig18.flux", "robust.departures_leak"):
+        assert table[cid]["class"] == "by_design"
     # the verdict is the table's test: a calibrated claim that passes is not "held"
     c = judge("fig13.fullload_hexagon", "x", 10.0)
     assert c["passes"] and c["holds"] is None and c["verdict"] == "calibrated"
     r = judge("fig14.stable", "x", 0.5)
     assert r["verdict"] == "disagreement" and r["holds"] is False
-    assert count([c, r, judge("fig14.stable", "x", 1.0)]) == {
+    # a by-design row that fails its own test counts as the failure it names, not apart
+    leak = judge("robust.departures_leak", "x", 0.9)
+    assert leak["verdict"] == "disagreement" and leak["holds"] is None
+    assert count([c, r, leak, judge("fig14.stable", "x", 1.0)]) == {
         "held": 1,
-        "disagreement": 1,
+        "disagreement": 2,
         "modelling_gap": 0,
         "undecided": 0,
         "calibrated": 1,
@@ -126,6 +135,35 @@ def test_verdicts_over_seeds_have_intervals_margins_and_original_tests():
     assert c["verdict"] == "held" and c["original"]["verdict"] == "disagreement"
     wide = [0.2, 1.8, 0.3, 1.7, 0.2, 1.8, 0.3, 1.7]
     assert judge("fig14.measured_snr", "x", math.nan, samples=wide)["verdict"] == "undecided"
+
+
+def test_a_one_seed_experiments_rows_are_judged_over_its_seeds():
+    """The registry's seed runs: per-seed rows -> the mean with its t-interval, the margin's
+    outcome, every seed's value in the text; a run lost on every seed (inf) fails, on some
+    seeds leaves a test undecided."""
+    from fluxdrive.experiments.claims import judge, over_seeds
+
+    def seed_rows(k: int, tight: float, rec: float) -> list[dict]:
+        return [
+            judge("fig13.fullload_flux_tighter", f"seed {k}", tight),
+            judge("fig19.fullload_4pct", "x", 1.0),
+            judge("fig17.flux", "x", rec),
+        ]
+
+    tight = [0.50, 0.52, 0.48, 0.51, 0.49, 0.50, 0.53, 0.47]
+    inf = math.inf
+    rows = over_seeds([seed_rows(k, x, inf) for k, x in enumerate(tight, 1)])
+    t0, full, lost = rows
+    half = 2.365 * statistics.stdev(tight) / math.sqrt(8)
+    assert t0["value"] == pytest.approx(0.5) and t0["stats"]["ci95"] == pytest.approx(
+        [0.5 - half, 0.5 + half]
+    )
+    assert t0["stats"]["outcome"] == "better" and t0["verdict"] == "held"
+    assert t0["per_seed"] == tight and "per seed: 0.5, 0.52" in t0["ours"]
+    assert full["stats"]["outcome"] == "passes" and full["stats"]["n"] == 8
+    assert lost["verdict"] == "disagreement" and lost["stats"]["outcome"] == "fails"
+    some = over_seeds([seed_rows(k, 0.5, inf if k == 3 else 0.01) for k in range(1, 9)])
+    assert some[2]["verdict"] == "undecided"
 
 
 def test_groups_name_the_papers_figures():

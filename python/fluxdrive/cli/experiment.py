@@ -18,7 +18,7 @@ from pathlib import Path
 from fluxdrive.core.machine import ConfigError, load_machine
 from fluxdrive.core.schema import Parser
 from fluxdrive.drive.scenario import REPO_ROOT, load_bench_file, machine_path
-from fluxdrive.experiments.claims import count, counts_line
+from fluxdrive.experiments.claims import MIN_SEEDS, count, counts_line
 from fluxdrive.experiments.common import DEFAULT_MACHINE, claim
 from fluxdrive.experiments.registry import (
     expand,
@@ -42,6 +42,13 @@ def _parser(names: list[str]) -> argparse.ArgumentParser:
         "beyond, all) or 'list': " + ", ".join(names),
     )
     ap.add_argument("--quick", action="store_true", help="fewer points, shorter runs")
+    ap.add_argument(
+        "--seeds",
+        type=int,
+        metavar="N",
+        help="noise seeds per verdict of an experiment that runs one seed (1..64; default "
+        f"{MIN_SEEDS}, 1 with --quick)",
+    )
     ap.add_argument("--out", type=Path, help="output folder (default results/experiments)")
     ap.add_argument(
         "--workers",
@@ -178,6 +185,7 @@ def _run_all(
                     machine=machine,
                     graph_run=graph_run,
                     bench=args.bench,
+                    seeds=args.seeds,
                 )
             except Exception as exc:  # one broken experiment must not lose the others
                 res = _failed(n, args.quick, exc)
@@ -200,7 +208,10 @@ def main(argv: list[str], graph_run: Callable | None = None) -> int:
     """The command; `graph_run` (scenario -> SimResult through the node graph) is what the
     graph tools pass in for --graph."""
     reg = experiments()
-    args = _parser(list(reg)).parse_args(argv)
+    ap = _parser(list(reg))
+    args = ap.parse_args(argv)
+    if args.seeds is not None and not 1 <= args.seeds <= 64:
+        ap.error(f"--seeds: {args.seeds} is not in 1..64")
     machine = None
     out = args.out
     if args.machine:

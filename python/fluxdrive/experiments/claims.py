@@ -2,10 +2,11 @@
 
 An experiment measures a number per claim and hands it to `judge`; the verdict comes from the
 table's test and threshold, never from the experiment's code, and the table's class decides
-how it counts: only a passing *reproduction* is "held"; a failing one is a genuine
-disagreement or a modelling gap (the row says which, the explanation says why); a claim a
-model number was fitted to (`calibrated`) or a setting was chosen for (`by_design`) is
-reported with its number but never counted as held.
+how it counts: only a passing *reproduction* is "held"; a failing row is a genuine
+disagreement or a modelling gap (the row's `if_fails` says which, the explanation says why),
+whatever its class; a claim a model number was fitted to (`calibrated`) or a setting was
+chosen for or that is true by construction (`by_design`) is reported with its number and,
+when it passes, counted apart: never as held.
 
 Frozen: the table carries a version and the SHA-256 of its claim definitions
 (`content_hash`), and config/claims_history.yaml keeps every version's hash; a claim changed
@@ -19,6 +20,8 @@ one side of the threshold.  A comparison registers an equivalence `margin`: the 
 inside threshold ± margin is "no difference", wholly past threshold ∓ margin "better" or
 "worse", anything else "undecided" (more seeds needed); only "better" holds.  A row without a
 margin is a test, not a comparison: the interval passes, fails or leaves it undecided.
+An experiment that runs one seed is run once per seed by the registry (`over_seeds` judges
+its rows on the per-seed values).
 """
 
 from __future__ import annotations
@@ -52,7 +55,10 @@ VERDICT_TEXT = {
 TESTS = {"<": operator.lt, "<=": operator.le, ">": operator.gt, ">=": operator.ge}
 _KEYS = {"id", "experiment", "claim", "source", "operating_point", "quantity", "metric"}
 _KEYS |= {"unit", "test", "threshold", "class"}
-_OPTIONAL = {"if_fails", "variants", "calibration", "design", "sources", "margin", "original"}
+_OPTIONAL = {"variants", "calibration", "design", "sources", "margin", "original", "observer"}
+_KEYS.add("if_fails")
+# the flux observers a row judges (a row's `variants`, or its `observer`)
+OBSERVERS = ("paper_robust", "paper (literal)")
 MIN_SEEDS = 8  # a verdict from fewer seeds says so
 # two-sided 95 % Student-t quantiles by degrees of freedom (beyond 30: the normal's)
 _T95 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571, 6: 2.447, 7: 2.365, 8: 2.306}
@@ -121,8 +127,14 @@ def registered(path: Path = CLAIMS_FILE) -> dict[str, dict[str, Any]]:
             raise ConfigError(f"{where}: needs exactly the keys {sorted(_KEYS)} (+ optional)")
         if row["class"] not in CLASSES or row["test"] not in TESTS:
             raise ConfigError(f"{where}: class in {CLASSES}, test in {sorted(TESTS)}")
-        if (row["class"] == "reproduction") != (row.get("if_fails") in FAILURES):
-            raise ConfigError(f"{where}: a reproduction (only) names if_fails in {FAILURES}")
+        if row.get("if_fails") not in FAILURES:
+            raise ConfigError(f"{where}: names if_fails in {FAILURES}")
+        if row.get("observer", OBSERVERS[0]) not in OBSERVERS or (
+            "observer" in row and "variants" in row
+        ):
+            raise ConfigError(
+                f"{where}: observer is one of {OBSERVERS}, for a row without variants"
+            )
         if row["id"] in out:
             raise ConfigError(f"{where}: duplicate id {row['id']}")
         if "margin" in row and not (isinstance(row["margin"], float) and row["margin"] >= 0):
@@ -151,6 +163,8 @@ def interval(samples: list[float]) -> dict[str, Any]:
     n = len(samples)
     if n == 0:
         return {"n": 0, "mean": math.nan, "ci95": [math.nan, math.nan]}
+    if n > 1 and all(x == samples[0] for x in samples):  # inf on every seed too: bounded
+        return {"n": n, "mean": samples[0], "ci95": [samples[0], samples[0]]}
     finite = all(math.isfinite(x) for x in samples)
     mean = sum(samples) / n if finite else math.nan
     if not finite or n < 2:  # one seed bounds nothing
@@ -200,29 +214,8 @@ def judge(
     the per-seed `samples` (the value: their mean, with a 95 % interval); `also`: the values
     of other metrics an `original` test of the row needs."""
     row = registered()[cid]
-    thr = float(row["threshold"])
-    stats = None
-    if samples is not None:
-        stats = interval([float(x) for x in samples])
-        value = stats["mean"]
-    value = float(value)
-    passes = _passes(row["test"], thr, value)
     cls = row["class"]
-    decided = True
-    if stats is not None:
-        stats["seeds_short"] = stats["n"] < MIN_SEEDS
-        margin = float(row.get("margin", 0.0))
-        stats["margin"] = margin
-        outcome = compare(row["test"], thr, margin, stats["ci95"])
-        if "margin" not in row:  # a test, not a comparison: passes / fails / undecided
-            outcome = {"better": "passes", "undecided": "undecided"}.get(outcome, "fails")
-        stats["outcome"] = outcome
-        passes = outcome in ("better", "passes")
-        decided = outcome != "undecided"
-    if cls == "reproduction":
-        verdict = ("held" if passes else row["if_fails"]) if decided else "undecided"
-    else:
-        verdict = cls
+    value, passes, verdict, stats = _decide(row, value, samples)
     tag = f"[{variant}] " if variant else ""
     out = {
         "id": cid + (f"[{variant}]" if variant else ""),
@@ -239,12 +232,78 @@ def judge(
     }
     if stats is not None:
         out["stats"] = stats
+    obs = row.get("observer") or next((o for o in OBSERVERS if variant and o in variant), None)
+    if obs:
+        out["observer"] = obs
     if "original" in row:
         out["original"] = _original(row, value, also or {})
     reason = row.get("calibration") or row.get("design")
     why = "; ".join(x for x in (reason, why) if x)
     if why:
         out["why" if verdict in FAILURES else "note"] = why
+    return out
+
+
+def _decide(
+    row: dict[str, Any], value: float, samples: list[float] | None
+) -> tuple[float, bool, str, dict[str, Any] | None]:
+    """(value, passes, verdict, stats) of registered `row` on `value` or the per-seed
+    `samples`: a passing row is held (a reproduction) or its class; a failing one its
+    `if_fails`, whatever its class; an interval that decides nothing is undecided."""
+    thr = float(row["threshold"])
+    stats = None
+    if samples is not None:
+        stats = interval([float(x) for x in samples])
+        value = stats["mean"]
+    value = float(value)
+    passes = _passes(row["test"], thr, value)
+    decided = True
+    if stats is not None:
+        stats["seeds_short"] = stats["n"] < MIN_SEEDS
+        margin = float(row.get("margin", 0.0))
+        stats["margin"] = margin
+        outcome = compare(row["test"], thr, margin, stats["ci95"])
+        if "margin" not in row:  # a test, not a comparison: passes / fails / undecided
+            outcome = {"better": "passes", "undecided": "undecided"}.get(outcome, "fails")
+        stats["outcome"] = outcome
+        passes = outcome in ("better", "passes")
+        decided = outcome != "undecided"
+    if not decided:
+        verdict = "undecided"
+    elif not passes:
+        verdict = row["if_fails"]
+    else:
+        verdict = "held" if row["class"] == "reproduction" else row["class"]
+    return value, passes, verdict, stats
+
+
+def over_seeds(per_seed: list[list[dict]]) -> list[dict]:
+    """The rows of an experiment run once per seed (`per_seed[k]`: seed k's rows, the same
+    rows in every seed), each registered row judged on its per-seed values (mean, 95 %
+    interval, outcome); its text is the first seed's with every seed's value appended.  Rows
+    beyond the paper (no verdict) are the first seed's."""
+    first = per_seed[0]
+    out = []
+    for i, c in enumerate(first):
+        if "verdict" not in c:
+            out.append(c)
+            continue
+        vals = [float(s[i]["value"]) for s in per_seed]
+        if any(s[i]["id"] != c["id"] for s in per_seed):
+            raise ValueError(f"{c['id']}: the seeds' rows differ")
+        row = registered()[c["id"].split("[", 1)[0]]
+        value, passes, verdict, stats = _decide(row, math.nan, vals)
+        d = dict(c)
+        d.update(value=value, passes=passes, verdict=verdict, stats=stats)
+        d["holds"] = passes if row["class"] == "reproduction" else None
+        d["per_seed"] = vals
+        d["ours"] = f"{c['ours']} (seed 1; per seed: {', '.join(f'{v:.4g}' for v in vals)})"
+        if "original" in c and {x["metric"] for x in row["original"]["tests"]} <= {row["metric"]}:
+            d["original"] = _original(row, value, {})
+        note = d.pop("why", None) or d.pop("note", None)
+        if note:
+            d["why" if verdict in FAILURES else "note"] = note
+        out.append(d)
     return out
 
 
@@ -258,11 +317,14 @@ def _original(row: dict[str, Any], value: float, also: dict[str, float]) -> dict
         v = float(vals.get(t["metric"], math.nan))
         ok = ok and _passes(t["test"], t["threshold"], v)
         parts.append(f"{t['metric']} {t['test']} {t['threshold']:g} ({v:.4g})")
-    verdict = ("held" if ok else row["if_fails"]) if row["class"] == "reproduction" else None
+    if not ok:
+        verdict = row["if_fails"]
+    else:
+        verdict = "held" if row["class"] == "reproduction" else row["class"]
     return {
         "test": " and ".join(parts),
         "passes": ok,
-        "verdict": verdict or row["class"],
+        "verdict": verdict,
         "commit": orig["commit"],
         "why": orig["why"],
     }

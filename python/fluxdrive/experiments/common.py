@@ -247,9 +247,10 @@ def _job(args):
 class Ctx:
     """What an experiment runs in, passed to it explicitly (no module state): where its
     figures go, quick or full, the parallel runner, the machine card every scenario runs on
-    (`experiment --machine`; None: the default card, or a scenario file's own) and the graph
-    runner (`experiment --graph`: scenario -> SimResult through the ROS node graph, installed
-    by the graph tools; None: in-process)."""
+    (`experiment --machine`; None: the default card, or a scenario file's own), the noise
+    seed its scenarios take unless they set one (the registry runs a one-seed experiment once
+    per seed) and the graph runner (`experiment --graph`: scenario -> SimResult through the
+    ROS node graph, installed by the graph tools; None: in-process)."""
 
     out: Path = Path(".")
     quick: bool = False
@@ -259,6 +260,7 @@ class Ctx:
     machine: Path | None = None
     graph_run: Callable[[Scenario], Any] | None = None
     bench: Path | None = None  # `experiment --bench`: this bench file replaces the paper bench
+    seed: int = 1  # the noise seed of every scenario the context builds (unless one is given)
 
     @functools.cached_property
     def card(self) -> MachineCard:
@@ -275,15 +277,18 @@ class Ctx:
         return pu_rpm(speed_pu, self.machine)
 
     def build(self, machine_kw: dict | None = None, base: str | None = None, **raw) -> Scenario:
-        """`build` on this context's card."""
+        """`build` on this context's card, with the context's seed unless `seed` is given."""
+        raw.setdefault("seed", self.seed)
         return build(machine_kw, base, card=self.machine, **raw)
 
     def sensorless(self, speed_rpm: float, load_pu: float, **kw) -> Scenario:
-        """`sensorless` on this context's card."""
+        """`sensorless` on this context's card, with the context's seed unless given."""
+        kw.setdefault("seed", self.seed)
         return sensorless(speed_rpm, load_pu, card=self.machine, **kw)
 
     def encoder_run(self, speed_rpm: float, load_pu: float, **kw) -> Scenario:
-        """`encoder_run` on this context's card."""
+        """`encoder_run` on this context's card, with the context's seed unless given."""
+        kw.setdefault("seed", self.seed)
         return encoder_run(speed_rpm, load_pu, card=self.machine, **kw)
 
     def log(self, msg: str) -> None:

@@ -371,7 +371,8 @@ def _fig14_judge(a: dict) -> list[dict]:
             "fig14.stable",
             f"paper_robust driving: stable on {sum(st)}/{len(st)} seeds (the literal observer as "
             "the driving one: see the paper_robust experiment)",
-            sum(st) / len(st),
+            math.nan,
+            samples=[float(bool(x)) for x in st],
         )
     )
     return claims
@@ -1038,7 +1039,7 @@ def _fr_injection(kind: str, freqs, ctx, t_inj: float) -> tuple[dict, int]:
     return {key: inj}, n
 
 
-def _fr_scenario(driving, freqs, kind, seed=1, ctx: Ctx | None = None):
+def _fr_scenario(driving, freqs, kind, seed: int | None = None, ctx: Ctx | None = None):
     """Fig. 17's (kind "current") or Fig. 18's ("speed") stepped-sine sweep at 10 % speed
     with `driving` closing the loop, on the context's card (None: the default card)."""
     ctx = ctx or Ctx()
@@ -1069,7 +1070,7 @@ def _fr_scenario(driving, freqs, kind, seed=1, ctx: Ctx | None = None):
         machine_kw=machine_kw,
         name=f"fr_{kind}_{driving}",
         duration_s=round(n * ctx.cv.ts + 0.01, 4),
-        seed=seed,
+        seed=ctx.seed if seed is None else seed,
         speed_rpm=[[0.0, start], [0.8, start], [1.8, speed_rpm]],
         load_type="brake",
         load_pu=[[0.0, 0.0], [2.0, 0.0], list(load_end)],

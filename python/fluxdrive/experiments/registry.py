@@ -23,7 +23,16 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from fluxdrive.experiments.claims import VERDICT_TEXT, count, counts_line, registry_info
+from fluxdrive.experiments.claims import (
+    FAILURES,
+    MIN_SEEDS,
+    OBSERVERS,
+    VERDICT_TEXT,
+    count,
+    counts_line,
+    over_seeds,
+    registry_info,
+)
 
 # re-exported: study specs, the graph runner and tests name them here
 from fluxdrive.experiments.common import (  # noqa: F401
@@ -90,10 +99,13 @@ def run_experiment(
     machine: Path | None = None,
     graph_run: Callable | None = None,
     bench: Path | None = None,
+    seeds: int | None = None,
 ) -> dict:
     """Run one experiment in a context of its own (card `machine`, None: the default card;
     `graph_run`: every scenario through the node graph; `bench`: a bench file that replaces the
-    paper bench)."""
+    paper bench).  An experiment whose registered rows come from one seed is run again on
+    seeds 2..`seeds` (None: MIN_SEEDS, 1 when quick; figures from seed 1) and its rows judged
+    over the seeds; one that runs its seeds itself is run once."""
     fn, title = _registry()[name]
     ctx = Ctx(
         out=Path(out),
@@ -107,9 +119,29 @@ def run_experiment(
     )
     t0 = time.perf_counter()
     res = fn(ctx)
+    n_seeds = seeds if seeds is not None else (1 if quick else MIN_SEEDS)
+    if n_seeds > 1 and any("verdict" in c and "stats" not in c for c in res["claims"]):
+        res = _over_seeds(fn, ctx, res, n_seeds)
     res["runtime_s"] = round(time.perf_counter() - t0, 2)
     res["title"] = title
     res["quick"] = quick
+    return res
+
+
+def _over_seeds(fn: Callable, ctx: Ctx, first: dict, n_seeds: int) -> dict:
+    """`first` (seed 1's result) with its rows judged over seeds 1..n_seeds: the experiment
+    run again per seed (its figures into a scratch folder), the seeds' data kept by seed."""
+    import dataclasses
+    import tempfile
+
+    runs = [first]
+    with tempfile.TemporaryDirectory(prefix="fluxdrive-seed-") as tmp:
+        for s in range(2, n_seeds + 1):
+            ctx.log(f"seed {s} of {n_seeds}")
+            runs.append(fn(dataclasses.replace(ctx, out=Path(tmp), seed=s)))
+    res = dict(first)
+    res["claims"] = over_seeds([r["claims"] for r in runs])
+    res["seeds"] = list(range(1, n_seeds + 1))
     return res
 
 
@@ -128,10 +160,10 @@ def fmt_verdict(c: dict) -> str:
     text = VERDICT_TEXT[v]
     if v in ("disagreement", "modelling_gap", "undecided"):
         text = f"**{text}**"
-    elif not c.get("passes", True):
-        # a calibrated or by-design claim never counts as held, but one that fails its own
-        # registered test says so
-        text = f"{text} (**fails its test**)"
+    if c.get("class", "reproduction") != "reproduction" and v in FAILURES:
+        # a calibrated or by-design claim never counts as held; one that fails its own
+        # registered test counts as that failure and says which class it is
+        text += f" ({c['class'].replace('_', ' ')}, fails its test)"
     st = c.get("stats")
     if st:
         text += f" ({st['outcome']}, {st['n']} seeds)"
@@ -175,18 +207,15 @@ def _claim_rows(claims: list[dict]) -> list[str]:
     return lines
 
 
-OBSERVERS = {"paper_robust": "[paper_robust", "paper (literal)": "[paper (literal)"}
-
-
 def counts_by_observer(claims: list[dict]) -> dict[str, dict[str, int]]:
-    """The counts of the rows judging each flux observer (by the variant in the row's id),
-    and of the rest (rows that involve neither)."""
-    out = {
-        name: count([c for c in claims if tag in c.get("id", "")])
-        for name, tag in OBSERVERS.items()
-    }
-    rest = [c for c in claims if not any(t in c.get("id", "") for t in OBSERVERS.values())]
-    out["neither"] = count(rest)
+    """The counts of the rows judging each flux observer (the row's variant or its
+    registered `observer`), and of the rest (rows that involve neither)."""
+
+    def observer(c: dict) -> str | None:  # rows judged before `observer` was kept: the id's
+        return c.get("observer") or next((o for o in OBSERVERS if f"[{o}" in c.get("id", "")), None)
+
+    out = {name: count([c for c in claims if observer(c) == name]) for name in OBSERVERS}
+    out["neither"] = count([c for c in claims if observer(c) is None])
     return out
 
 
@@ -212,7 +241,9 @@ def _report_head(doc: dict[str, Any]) -> list[str]:
         "threshold, and a class.  The verdict comes from that table: only a reproduction that "
         "passes is *held*; a failing one is a genuine disagreement or a modelling gap (why: "
         "the mechanism); a claim a model number was fitted to (*calibrated*) or a setting was "
-        "chosen for (*by design*) shows its number but is not counted.  THD is orders 2..20, "
+        "chosen for or that is true by construction (*by design*) shows its number and is "
+        "counted apart, never as held -- and when it fails its own test it counts as that "
+        "failure.  THD is orders 2..20, "
         "THD+N everything but the fundamental; rows that use either show both.",
         "",
         f"**Claims registry: version {reg['version']}, sha256 `{reg['sha256'][:16]}`** "
@@ -222,9 +253,10 @@ def _report_head(doc: dict[str, Any]) -> list[str]:
             else "(**not the registered claims**: " + "; ".join(reg["problems"]) + ")."
         ),
         "",
-        "Rows judged over seeds show the mean of the per-seed values with its 95 % confidence "
-        "interval; a comparison's outcome (better / worse / no difference / undecided) comes "
-        "from the interval against the registered threshold ± margin.  Rows whose test was "
+        "Every row is judged over noise seeds (their number is in the verdict): the mean of "
+        "the per-seed values with its 95 % confidence interval; a comparison's outcome "
+        "(better / worse / no difference / undecided) comes from the interval against the "
+        "registered threshold ± margin.  Rows whose test was "
         "changed before the first registration show the verdict under the original test too.",
         "",
         f"**Claims: {counts_line(n)}.**",
