@@ -102,6 +102,10 @@ def split_bench_scenario(duration_s: float, decimation: int) -> Any:
     )
 
 
+# the drive this far behind the wall clock is no paced run any more (and, at real-time
+# priority, a thread that never sleeps): the run stops with an error
+_GIVE_UP_S = 1.0
+
 # the scenario's own length: its profile (start, ramp to speed) then held to the run's end
 _PROFILE_S = 4.0
 
@@ -125,13 +129,22 @@ def _bus_kwargs(cfg: PacedConfig) -> dict[str, Any]:
     return {"port": cfg.port, "hop_limit": 0}
 
 
+def _child() -> None:
+    """A child process leaves Ctrl-C to the parent (which stops it)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def _busy_main() -> None:  # pragma: no cover - a child process, terminated by the parent
+    _child()
     while True:
         pass
 
 
 def _drive_main(cfg: PacedConfig, cpu: int | None, out: Any) -> None:
     """The drive process: serve the bus until the host armed it, then run paced."""
+    _child()
     import can
 
     from fluxdrive.can.bridge import widen_receive_buffer
@@ -163,7 +176,7 @@ def _drive_main(cfg: PacedConfig, cpu: int | None, out: Any) -> None:
         bus.shutdown()
         out.put(res)
     except Exception as exc:  # noqa: BLE001 - one line to the parent, not a traceback
-        out.put({"error": f"drive process: {exc!r}"})
+        out.put({"error": f"drive process: {type(exc).__name__}: {exc}"})
 
 
 def _run_paced(emu: Any, n: int, cfg: PacedConfig) -> dict[str, Any]:
@@ -191,6 +204,11 @@ def _run_paced(emu: Any, n: int, cfg: PacedConfig) -> dict[str, Any]:
         else:
             if lag > ts:
                 missed += 1
+                if lag > _GIVE_UP_S:  # a real-time thread that never sleeps: stop it
+                    raise RuntimeError(
+                        f"the emulated drive fell {lag:.1f} s behind the wall clock at "
+                        f"{k * ts:.1f} s: this PC does not run it at the PWM rate"
+                    )
             worst_lag = max(worst_lag, lag)
         t_step = clock()
         emu.step()
@@ -251,6 +269,7 @@ def _run_paced(emu: Any, n: int, cfg: PacedConfig) -> dict[str, Any]:
 def _host_main(cfg: PacedConfig, cpu: int | None, stop: Any, out: Any) -> None:
     """The host process: the bridge's hot path (decode -> observers -> reference step ->
     HOST_REF) in a HotPath until `stop`."""
+    _child()
     from fluxdrive.can.bridge import BridgeConfig, CanBridge, bus_factory_from_params
     from fluxdrive.can.loop import HostLoop, drive_params_of
     from fluxdrive.can.realtime import HotPath
@@ -319,7 +338,7 @@ def _host_main(cfg: PacedConfig, cpu: int | None, stop: Any, out: Any) -> None:
             }
         )
     except Exception as exc:  # noqa: BLE001 - one line to the parent, not a traceback
-        out.put({"error": f"host process: {exc!r}"})
+        out.put({"error": f"host process: {type(exc).__name__}: {exc}"})
 
 
 def _pct(x_s: np.ndarray, q: float) -> float | None:

@@ -192,7 +192,11 @@ def c_loop_current_sweep(
 def paced_bench(cfg: PacedConfig, path: Any = None) -> dict[str, Any]:
     """`benchmark bench --paced`: one paced run, its record written to `path` (default
     results/can/bench_paced.json) and returned; a failed run is one line and exit 1."""
-    res = run_paced_bench(cfg)
+    try:
+        res = run_paced_bench(cfg)
+    except KeyboardInterrupt:
+        print("fluxdrive benchmark bench --paced: interrupted, nothing written", file=sys.stderr)
+        raise SystemExit(130) from None
     for key in ("error", "host_error"):
         if res.get(key):
             print(f"fluxdrive benchmark bench --paced: {res[key]}", file=sys.stderr)
