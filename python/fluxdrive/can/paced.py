@@ -10,13 +10,16 @@ beside them (`./fluxdrive benchmark bench --paced`; no ROS).
   one period late (``drive_missed_periods``: an MCU's interrupt would have overrun; the
   emulated MCU shares the PC, which can hold it up). After such a hold-up it catches up,
   its clock its periods (an MCU's timer never stalls);
-* **host** (a process): the bench_bridge node's hot path -- :class:`CanBridge` decodes the
-  sample, :class:`fluxdrive.can.loop.HostLoop` runs the observers and the host's reference
-  step, the bridge sends the HOST_REF -- in a :class:`fluxdrive.can.realtime.HotPath`
+* **host** (a process): one thread from the sample to its answer -- :class:`CanBridge`
+  decodes the sample (as in the bench_bridge node's CAN thread),
+  :class:`fluxdrive.can.loop.HostLoop` runs the observers and the host's reference step,
+  the bridge sends the HOST_REF -- in a :class:`fluxdrive.can.realtime.HotPath`
   (``SCHED_FIFO``, memory locked, pinned to its core, the garbage collector off the hot
-  path), as the node's CAN thread runs it. It times its own part (``host_latency_*``: from
-  the bus's receive timestamp of the sample -- the oldest of a poll's, for each of them --
-  to its answer sent) and its work (``host_compute_*``: decoded -> answer sent);
+  path), the HotPath the node's CAN thread runs too (on the real-bench graph the observers
+  and the controller are nodes of their own, behind ROS topics: not measured here). It
+  times its own part (``host_latency_*``: from the bus's receive timestamp of the sample
+  -- the oldest of a poll's, for each of them -- to its answer sent) and its work
+  (``host_compute_*``: decoded -> answer sent);
 * **busy** (``busy_cores`` processes): a loop that never sleeps, at normal priority.
 
 The drive runs the paper's 2 % case unloaded in split mode (its profile held at its end

@@ -40,7 +40,8 @@ quotes it). No ROS.
 --paced: the bench in real time instead (fluxdrive.can.paced): the drive (plant and C core)
 in a process of its own paced by the wall clock at the PWM rate, a sample every D periods
 (split mode, FD layout), the host's hot path (the bridge's decode, observers, reference step,
-HOST_REF: the bench_bridge node's CAN thread) in another, in real time (SCHED_FIFO at
+HOST_REF, in one thread: the bench_bridge node's CAN thread's real-time set-up) in another,
+in real time (SCHED_FIFO at
 --priority, memory locked, pinned, garbage collector off the hot path; what is not
 permitted is said in one line; the drive at --drive-priority), over udp_multicast on
 127.0.0.1, with --busy-cores busy loops beside them (default 1), for --minutes (default
