@@ -29,6 +29,12 @@ protocol's quantisation, and the drive's microsecond clock is its own time (k pe
 free-running (``lockstep=False``) it takes whatever has arrived and its clock is wall time
 (a real MCU).
 
+``inject`` (a :class:`fluxdrive.can.faultcases.Injection`, or a list run one after the
+other) injects a protection's condition from a period on -- sensors, HAL inputs, host frames
+-- the same way on either MCU, holds it ``INJECT_HOLD`` periods after the PWM went off, then
+removes it; the next one starts once the host has reset and re-armed the drive and PWM has
+run ``INJECT_SETTLE`` periods. Each reaction is recorded (``EmulatorStats.injections``); the
+run ends ``INJECT_HOLD`` periods after the last one was removed.
 ``sample_hook`` changes what the drive's sensors report (fault injection); ``status_period_s``
 is the core's STATUS period. The core boots with its own defaults (the parameters a host
 writes before arming, as on a real drive); ``params`` writes DRIVE_PARAMs before the first
@@ -50,8 +56,10 @@ import numpy as np
 
 from fluxdrive.can.firmware import FirmwareCore
 from fluxdrive.can.protocol import (
+    ID_ARM_MODE,
     ID_DRIVE_PARAM,
     ID_DUTY_CMD,
+    ID_FAULT,
     ID_HOST_HEARTBEAT,
     ID_HOST_REF,
     SEQ_BITS,
@@ -63,6 +71,10 @@ from fluxdrive.drive.plant import FR_N, TR_N, plant_advance, plant_initial_frame
 __all__ = ["DriveEmulator", "EmulatorStats"]
 
 _SEQ_MOD = 1 << SEQ_BITS
+INJECT_HOLD = 20
+"""Periods an injected condition is held after the PWM went off (the latch must hold)."""
+INJECT_SETTLE = 20
+"""Periods of PWM after a re-arming before the next injection."""
 
 
 @dataclass
@@ -88,6 +100,12 @@ class EmulatorStats:
     ref_rx: int = 0  # split mode: HOST_REF received
     refs_applied: int = 0  # HOST_REF taken by the current loop
     param_rx: int = 0  # DRIVE_PARAM requests answered
+    # fault injection (``inject``), per injection: the case, the period it started, whether
+    # PWM ran in the period before, the first period from then on that ran with PWM off,
+    # periods with PWM on after that while it was held (a latch: none), what was injected,
+    # the reaction bound [periods], the FAULT frames sent meanwhile ([k, code, detail])
+    injections: list[dict[str, Any]] = field(default_factory=list)
+    injected_frames: int = 0  # host frames an injection dropped or changed
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -119,6 +137,7 @@ class DriveEmulator:
         decimation: int | None = None,
         protocol: FluxdriveProtocol | None = None,
         mcu: str = "c",
+        inject: Any = None,
     ) -> None:
         if mcu not in ("c", "pil"):
             raise ValueError(f"mcu must be 'c' or 'pil', not {mcu!r}")
@@ -137,16 +156,7 @@ class DriveEmulator:
         self.lockstep = lockstep
         self.lockstep_wait_s = lockstep_wait_s
         self.send_timeout_s = send_timeout_s
-        self.ts = float(setup.ts)
-        self.pst, self.rng = setup.new_plant()
-        self.frame = np.zeros(FR_N)
-        self.truth = np.zeros(TR_N)
-        plant_initial_frame(self.pst, setup.mp, self.rng, self.frame, self.truth)
-        self.k = 0  # index of the frame held in self.frame
-        self.stats = EmulatorStats()
-        self.armed = self.pwm_enabled = self.fault_latched = False
-        self.fault_code = self.mode = 0
-        self.duty = np.full(3, 0.5)  # over the period last simulated
+        self._init_plant(setup)
         self.record = record
         self.rec_frames: list[np.ndarray] = []
         self.rec_truth: list[np.ndarray] = []
@@ -175,6 +185,7 @@ class DriveEmulator:
         self._t0_wall = time.monotonic()
         self._cmd_timeout_s = cmd_timeout_s
         self._status_period_s = status_period_s
+        self._init_injections(inject)
         self._fw: Any = self._new_firmware()
         self.stage_temp_c = 35
         """The power stage's temperature the drive reads [degC] (the plant has no thermal
@@ -183,10 +194,47 @@ class DriveEmulator:
         """Fault injection: called with (k, a copy of frame k) before the core reads it;
         what it changes in the copy is what the drive's sensors report (the plant's state
         stays as it is)."""
-        for name, value in (params or {}).items():
+        self._store_params(params or {})
+        if self.inject is not None and self.inject.case.before_arming:  # for the arming
+            self._start_injection(self.inject)
+
+    def _init_plant(self, setup: Any) -> None:
+        """The plant at its initial frame (k = 0), the drive's state and counters."""
+        self.ts = float(setup.ts)
+        self.pst, self.rng = setup.new_plant()
+        self.frame = np.zeros(FR_N)
+        self.truth = np.zeros(TR_N)
+        plant_initial_frame(self.pst, setup.mp, self.rng, self.frame, self.truth)
+        self.k = 0  # index of the frame held in self.frame
+        self.stats = EmulatorStats()
+        self.armed = self.pwm_enabled = self.fault_latched = False
+        self.fault_code = self.mode = 0
+        self.duty = np.full(3, 0.5)  # over the period last simulated
+
+    def _store_params(self, params: dict[str, float]) -> None:
+        """DRIVE_PARAMs written before the first period (a drive whose parameters are
+        stored)."""
+        for name, value in params.items():
             status = self._fw.param_write(name, float(value))
             if status != "OK":
                 raise ValueError(f"C drive core refused {name} = {value:g}: {status}")
+
+    def _init_injections(self, inject: Any) -> None:
+        self.injections: list[Any] = (
+            [] if inject is None else list(inject) if isinstance(inject, list) else [inject]
+        )
+        """The fault injections (fluxdrive.can.faultcases.Injection), in order."""
+        self.inject = self.injections[0] if self.injections else None
+        """The injection in force or next (None: none left)."""
+        self._pwm_prev = False
+        self._pwm_run = 0  # periods PWM has run without a break
+        self._heartbeat_k = -1  # the period of the last HOST_HEARTBEAT or arming
+        self._inject_done_k: int | None = None
+        self._answers_lost_k = -1  # answers to samples before this period were lost
+        first = self.inject
+        if first is not None and first.case.before_arming:
+            if first.k_at != 0 or len(self.injections) > 1:
+                raise ValueError(f"{first.case.name} is injected alone, before arming (at 0 s)")
 
     def _new_firmware(self) -> Any:
         """The drive's MCU (``mcu``): the C core with the SIL HAL, or the virtual board."""
@@ -196,6 +244,8 @@ class DriveEmulator:
             from fluxdrive.can.vboard import VirtualBoard
 
             return VirtualBoard(self.setup.mp, **kw)
+        if self.inject is not None and self.inject.case.before_arming:
+            kw["require_calibration"] = self.inject.case.name == "not_calibrated"
         return FirmwareCore(self.setup.mp, status_period_s=self._status_period_s, **kw)
 
     @property
@@ -220,8 +270,19 @@ class DriveEmulator:
         if msg.arbitration_id not in self._rx_ids:  # a flood of other IDs never queues
             self.stats.filtered_rx += 1
             return
+        inj = self.inject
+        if inj is not None and inj.active:
+            changed = inj.host_frame(msg, self.proto)
+            if changed is not msg:
+                self.stats.injected_frames += 1
+            if changed is None:
+                return
+            msg = changed
         if msg.arbitration_id == ID_HOST_HEARTBEAT:
             self.host_heard_s = time.monotonic()
+            self._heartbeat_k = self.k
+        elif msg.arbitration_id == ID_ARM_MODE and self._arms(msg):
+            self._heartbeat_k = self.k  # the drive supervises the heartbeat from arming
         seq_signal = self._answer_seq.get(msg.arbitration_id)
         if self._time_answers and seq_signal is not None:
             try:
@@ -232,6 +293,13 @@ class DriveEmulator:
             if t is not None and msg.timestamp > 0.0:
                 self.answer_latency_s.append(msg.timestamp - t)
         self._fw_rx.append(msg)
+
+    def _arms(self, msg: can.Message) -> bool:
+        """An ARM_MODE that arms the drive (the start of its host supervision)."""
+        try:
+            return bool(self.proto.decode(ID_ARM_MODE, bytes(msg.data))["arm"])
+        except Exception:  # noqa: BLE001 - a bad frame: the core counts it
+            return False
 
     def _drain(self, timeout: float = 0.0) -> None:
         """Take everything already received; wait at most ``timeout`` for the first."""
@@ -250,9 +318,15 @@ class DriveEmulator:
         if self.record:
             self.rec_frames.append(self.frame.copy())
             self.rec_truth.append(self.truth.copy())
+        inj = self.inject
+        if inj is not None and not inj.active and self._ready(inj):
+            self._start_injection(inj)
         self._drain(0.0)
         self._fw_feed(hold_refs=self.lockstep and k % d != 0)
-        if k % d == 0 and k >= d and self.lockstep:
+        waits = (
+            inj is None or not inj.active or inj.host_answers
+        ) and k - d >= self._answers_lost_k
+        if k % d == 0 and k >= d and self.lockstep and waits:
             want = (k - d) % _SEQ_MOD
             deadline = time.monotonic() + self.lockstep_wait_s
             while not fw.has_answer(want) and not self._stop.is_set():
@@ -262,12 +336,17 @@ class DriveEmulator:
                     break
                 self._drain(min(left, 0.05))
                 self._fw_feed()
-        if self.sample_hook is None:
+        if self.sample_hook is None and (inj is None or not inj.active):
             fw.set_sample(self.frame, self.time_us(), self.stage_temp_c)
         else:
             seen = self.frame.copy()
-            self.sample_hook(k, seen)
-            fw.set_sample(seen, self.time_us(), self.stage_temp_c)
+            temp_c = self.stage_temp_c
+            if self.sample_hook is not None:
+                self.sample_hook(k, seen)
+            if inj is not None and inj.active:
+                inj.sensors(seen)
+                temp_c = inj.temp_c if inj.temp_c is not None else temp_c
+            fw.set_sample(seen, self.time_us(), temp_c)
         fw.period()
         if self._time_answers and k % d == 0:
             self._sent_wall[k % _SEQ_MOD] = time.time()
@@ -282,6 +361,10 @@ class DriveEmulator:
         self.fault_code = int(st["fault_code"])
         self.mode = int(st["mode"])
         self.duty = duty
+        if inj is not None and inj.active:
+            self._follow_injection(inj, bool(enabled))
+        self._pwm_prev = bool(enabled)
+        self._pwm_run = self._pwm_run + 1 if enabled else 0
         s = self.setup
         plant_advance(
             self.pst, s.mp, self.rng, duty, enabled, s.load_t, s.load_y, s.load_cfg,
@@ -289,6 +372,49 @@ class DriveEmulator:
         )  # fmt: skip
         self.k = k + 1
         self._sync_stats()
+
+    def _ready(self, inj: Any) -> bool:
+        """The next injection may start: the first at its period, each later one once PWM
+        has run INJECT_SETTLE periods again (the host reset and re-armed the drive)."""
+        if inj is self.injections[0]:
+            return self.k >= inj.k_at
+        return self._pwm_run >= INJECT_SETTLE
+
+    def _follow_injection(self, inj: Any, enabled: bool) -> None:
+        """Per period while `inj` is in force: its reaction recorded; INJECT_HOLD periods
+        after the PWM went off the condition is removed and the next one is up."""
+        rec = self.stats.injections[-1]
+        if not enabled and rec["pwm_off_k"] < 0:
+            rec["pwm_off_k"] = self.k
+        elif enabled and rec["pwm_off_k"] >= 0:
+            rec["pwm_on_after_off"] += 1
+        if rec["pwm_off_k"] >= 0 and self.k >= rec["pwm_off_k"] + INJECT_HOLD:
+            if not inj.host_answers:  # the answers to the samples until now are lost
+                self._answers_lost_k = self.k
+            inj.stop(self._fw)
+            i = self.injections.index(inj) + 1
+            self.inject = self.injections[i] if i < len(self.injections) else None
+            if self.inject is None:
+                self._inject_done_k = self.k
+
+    @property
+    def injections_done(self) -> bool:
+        """Every injection was made and removed, and INJECT_HOLD periods have passed."""
+        done = self._inject_done_k
+        return done is not None and self.k >= done + INJECT_HOLD
+
+    def _start_injection(self, inj: Any) -> None:
+        """The injection's start at its period: limits read, HAL inputs set, a stray frame
+        queued (fluxdrive.can.faultcases)."""
+        inj.start(self._fw, self.ts, self.decimation)
+        self.stats.injections.append(
+            {"case": inj.case.name, "inject_k": self.k, "pwm_on_before": self._pwm_prev,
+             "pwm_off_k": -1, "pwm_on_after_off": 0, "inject_level": inj.level,
+             "inject_bound": inj.bound, "fault_frames": [], "heartbeat_k": self._heartbeat_k}
+        )  # fmt: skip
+        stray = inj.stray_frame(self.proto, bool(self._fw.state()["split"]), self.decimation)
+        if stray is not None:
+            self._fw_rx.append(stray)
 
     def time_us(self) -> int:
         """The drive's free-running microsecond clock: free-running, wall time since
@@ -325,6 +451,12 @@ class DriveEmulator:
     def _fw_send(self) -> None:
         """What the C core sent, onto the bus."""
         for msg in self._fw.pop_tx():
+            inj = self.inject
+            if inj is not None and inj.active and msg.arbitration_id == ID_FAULT:
+                f = self.proto.decode(ID_FAULT, bytes(msg.data))
+                frames = self.stats.injections[-1]["fault_frames"]
+                if len(frames) < 16:
+                    frames.append([self.k, int(f["fault_code"]), int(f["fault_detail"])])
             try:
                 self.bus.send(msg, timeout=self.send_timeout_s)
             except can.CanError:
@@ -365,8 +497,12 @@ class DriveEmulator:
                 self._fw.handle_now(self._fw_rx.popleft())
             self._fw_send()
             self._sync_stats()
-            if until_armed and self._fw.state()["armed"]:
+            st = self._fw.state()
+            if until_armed and st["armed"]:
                 self.armed = True
+                return
+            if until_armed and st["fault_latched"]:  # the arming refused with a fault
+                self.fault_latched = True
                 return
 
     def run(self, n_periods: int, realtime: bool = False) -> None:
@@ -374,7 +510,7 @@ class DriveEmulator:
         periods to wall time (free-running MCU)."""
         t0 = time.perf_counter()
         for i in range(n_periods):
-            if self._stop.is_set():
+            if self._stop.is_set() or self.injections_done:
                 break
             if realtime:
                 lag = i * self.ts - (time.perf_counter() - t0)

@@ -344,7 +344,7 @@ class FirmwareCore:
         # ADC's full scale, bus over-voltage 2 % below the bus ADC's, no duty below 5 % of
         # it; the under-voltage trip is the host's VDC_MIN_V (the plant has no stage rating)
         mid = self.scales.current_mid_counts
-        cfg.current_adc_max_counts = 2 * mid
+        cfg.current_adc_max_counts = 2 * mid - 1  # a converter's highest result (12 bit: 4095)
         full_a = mid * self.scales.current_lsb_a
         bus_v = float(mp[pl.MP_VDC_RANGE])
         cfg.oc_limit_a = 0.95 * full_a
@@ -378,6 +378,7 @@ class FirmwareCore:
         # the port starts the timer at half duty with the outputs off
         self._active: tuple[np.ndarray, bool] = (np.full(3, 0.5), False)
         self._interrupts = 0
+        self._adc_held: dict[int, int] = {}
 
     # ---------------------------------------------------------------- parameters
     def param_write(self, name: str | int, value: float) -> str:
@@ -401,6 +402,8 @@ class FirmwareCore:
             self._cur[j] = int(round(frame[pl.FR_IA + j] / s.current_lsb_a)) + s.current_mid_counts
             frac = float(frame[pl.FR_VAB + j]) / vdc if vdc > 0.0 else 0.0
             self._ticks[j] = int(round(frac * s.capture_period_ticks))
+        for j, counts in self._adc_held.items():
+            self._cur[j] = counts
         enc = (int(frame[pl.FR_ENC]) + 2**31) % 2**32 - 2**31
         self.lib.fd_sil_set_inputs(
             self._sil,
@@ -428,6 +431,15 @@ class FirmwareCore:
         self.lib.fd_sil_inject(
             self._sil, int(gate_fault), int(can_tec), int(can_rec), int(can_bus_off), int(overrun)
         )
+
+    def hold_adc(self, phase: int, counts: int | None) -> None:
+        """Fault injection: the current ADC's result of `phase` (0..2) held at `counts`
+        from the next sample on, whatever the current (a converter fault); None releases
+        it."""
+        if counts is None:
+            self._adc_held.pop(phase, None)
+        else:
+            self._adc_held[phase] = int(counts)
 
     def set_break(self, threshold_a: float) -> None:
         """The hardware over-current comparator (into the timer's break input) at

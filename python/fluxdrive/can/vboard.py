@@ -294,6 +294,9 @@ class VirtualBoard:
         self._iwdg_k = 0
         self.break_trips = 0
         self.gate_fault = False
+        self._overrun_next = False
+        self._adc_held: dict[int, int] = {}
+        self._period_irq = False  # the period interrupt is running
         self.periods = 0
 
     # ------------------------------------------------------------------ set-up
@@ -391,6 +394,10 @@ class VirtualBoard:
             v = regs.get(a, 0) & ~v
         elif a in (r["TIM1_SR"], r["TIM3_SR"], r["TIM5_SR"], r["TIM8_SR"]):  # rc_w0
             v = regs.get(a, 0) & v
+            if a == r["TIM1_SR"] and self._overrun_next and self._period_irq:
+                # an injected overrun: the next update event falls inside this interrupt
+                v |= _bit("TIM1_SR_UIF")
+                self._overrun_next = False
         elif a == r["TIM1_EGR"]:
             if v & 1:  # UG: shadows loaded
                 self._shadow = [regs[r[f"TIM1_CCR{j}"]] for j in (1, 2, 3)]
@@ -498,8 +505,9 @@ class VirtualBoard:
         self._blocks = collections.Counter()
         self._seq: list[tuple[int, int]] = []
         self.counting = self.measure
+        self._period_irq = irq == rm.IRQ["ADC1_2"]
         mu.emu_start(self.vectors[16 + irq] | 1, _RETURN, count=5_000_000)
-        self.counting = False
+        self.counting = self._period_irq = False
         if self.measure and irq == rm.IRQ["ADC1_2"]:
             self.isr_instructions.append(self._n)
             if self.trace:
@@ -534,9 +542,50 @@ class VirtualBoard:
         return PA_CHOICES[self._call("fd_core_param_write", (self._core, pid), (float(value),))]
 
     def param_read(self, name: str | int) -> float:
+        """The value in effect (fd_core_param_read: a board limit where it is stricter)."""
         pid = PARAM_IDS[name] if isinstance(name, str) else int(name)
-        raw = self.mu.mem_read(self._core + self._off["prm"] + 4 * pid, 4)
-        return float(struct.unpack("<f", raw)[0])
+        self._call("fd_core_param_read", (self._core, pid, _SCRATCH))
+        return float(struct.unpack("<f", self.mu.mem_read(_SCRATCH, 4))[0])
+
+    def inject(
+        self,
+        *,
+        gate_fault: bool = False,
+        can_tec: int = 0,
+        can_rec: int = 0,
+        can_bus_off: bool = False,
+        overrun: bool = False,
+    ) -> None:
+        """FirmwareCore.inject on the board's inputs: nFAULT (PC10) low, FDCAN1's error
+        counters (ECR) and bus-off (PSR.BO; held until the next call), and the next period
+        interrupt overrunning (TIM1's update flag set again while it runs)."""
+        r = self._r
+        self.gate_fault = bool(gate_fault)
+        tec_pos, rec_pos = rm.FIELD["FDCAN1_ECR_TEC"][0], rm.FIELD["FDCAN1_ECR_REC"][0]
+        self.regs[r["FDCAN1_ECR"]] = (min(can_tec, 255) << tec_pos) | (min(can_rec, 127) << rec_pos)
+        psr = self.regs.get(r["FDCAN1_PSR"], 0) & ~_bit("FDCAN1_PSR_BO")
+        self.regs[r["FDCAN1_PSR"]] = psr | (_bit("FDCAN1_PSR_BO") if can_bus_off else 0)
+        self._overrun_next = bool(overrun)
+
+    def hold_adc(self, phase: int, counts: int | None) -> None:
+        """FirmwareCore.hold_adc: ADC1's injected result of `phase` held at `counts` (a
+        converter fault; COMP1 still sees the current); None releases it."""
+        if counts is None:
+            self._adc_held.pop(phase, None)
+        else:
+            self._adc_held[phase] = int(counts)
+
+    def set_break(self, threshold_a: float) -> None:
+        """FirmwareCore.set_break: on the board the image sets its comparator (DAC3 at
+        FD_BOARD_HW_OVERCURRENT_A); the threshold must be that one (0: it stays)."""
+        if threshold_a == 0.0:
+            return
+        dac = self.regs.get(self._r["DAC3_DHR12R1"], 4095) - ADC_MID
+        if abs(dac * 40.0 / 4096.0 - threshold_a) > 40.0 / 4096.0:
+            raise ValueError(
+                f"the board image's comparator is at {dac * 40.0 / 4096.0:.2f} A, "
+                f"not {threshold_a:g} A"
+            )
 
     def set_sample(self, frame: np.ndarray, time_us: int, temp_c: int = 35) -> None:
         """Sample k: the analog inputs at t_k and the comparator pulses of the period just
@@ -545,7 +594,9 @@ class VirtualBoard:
         cur = [int(round(frame[pl.FR_IA + j] / lsb)) + ADC_MID for j in range(3)]
         vdc = float(frame[pl.FR_VDC])
         self._adc = [*cur, int(round(vdc / (100.0 / 4096.0)))]
-        self._i_peak_counts = max(abs(c - ADC_MID) for c in cur)
+        self._i_peak_counts = max(abs(c - ADC_MID) for c in cur)  # COMP1: the analog side
+        for j, counts in self._adc_held.items():
+            self._adc[j] = counts
         self._temp_counts = TEMP_ZERO_COUNTS + int(temp_c) * TEMP_COUNTS_PER_C
         for j in range(3):
             frac = float(frame[pl.FR_VAB + j]) / vdc if vdc > 0.0 else 0.0

@@ -48,6 +48,15 @@ def main(argv: list[str] | None = None) -> int:
 
     a = _parser().parse_args(sys.argv[1:] if argv is None else argv)
     sc = _scenario(a.scenario, a.duration)
+    inject = None
+    if a.inject:
+        from fluxdrive.can.faultcases import parse_injections
+
+        try:
+            inject = parse_injections(a.inject, sc.machine.ts_s)
+        except ValueError as exc:
+            print(f"can-emulator: {exc}", file=sys.stderr)
+            return 2
     try:
         bus = can.Bus(**_bus_kwargs(a))
         widen_receive_buffer(bus)  # a burst of other frames must not push duties out
@@ -66,6 +75,7 @@ def main(argv: list[str] | None = None) -> int:
         decimation=a.decimation,
         mcu=a.mcu,
         record=a.record_out is not None,
+        inject=inject,
     )
     signal.signal(signal.SIGTERM, lambda *_: emu._stop.set())
     signal.signal(signal.SIGINT, lambda *_: emu._stop.set())
@@ -148,8 +158,9 @@ def _parser():
         "--wait-armed",
         type=float,
         default=0.0,
-        help="answer the bus without running periods until the host arms the drive, up to "
-        "this long [s] (a lockstep run then starts armed and configured)",
+        help="answer the bus without running periods until the host arms the drive (or the "
+        "drive refuses the arming with a fault), up to this long [s] (a lockstep run then "
+        "starts armed and configured)",
     )
     ap.add_argument(
         "--mcu",
@@ -157,6 +168,15 @@ def _parser():
         default="c",
         help="the drive's MCU: the C firmware core (c, software in the loop) or the board "
         "image on the virtual board (pil)",
+    )
+    ap.add_argument(
+        "--inject",
+        default=None,
+        metavar="CASE@T[,CASE...]",
+        help="inject a protection's condition at T s of drive time (fluxdrive.can.faultcases: "
+        "overcurrent, gate_driver, heartbeat, ref_lost, ...), each next case once the host "
+        "has reset and re-armed the drive; the run ends after the last; the final JSON says "
+        "each reaction",
     )
     ap.add_argument(
         "--record-out",

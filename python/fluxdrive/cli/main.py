@@ -71,6 +71,11 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
         "main",
         "the drive emulator (plant as the MCU) on a CAN bus, as a process",
     ),
+    "fault-cases": (
+        "fluxdrive.cli.faultcases",
+        "main",
+        "the drive's protections injected on each target (--write docs/firmware.md)",
+    ),
     "fault-matrix": (
         "fluxdrive.cli.faultmatrix",
         "main",

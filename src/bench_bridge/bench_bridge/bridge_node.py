@@ -258,7 +258,6 @@ class BenchBridgeNode(Node):
         self.bridge.require_params = True  # arming: written and read back first
         self._report_link()
         self._mismatch_logged = ""
-        self._drive_fault_logged = ""
         self._wire(pv["diagnostics_period_s"])
         # every accepted change is a marker in the bag, at the next sample
         on_set(
@@ -527,11 +526,8 @@ class BenchBridgeNode(Node):
         else:
             st.level = DiagnosticStatus.OK
         st.message = d["state"] + (f": {d['fault']}" if d["fault"] else "")
-        if d["drive_fault"]:
+        if d["drive_fault"]:  # logged once, with its DriveFault (_publish_fault)
             st.message += f"; {d['drive_fault']}"
-            if d["drive_fault"] != self._drive_fault_logged:
-                self.get_logger().error(d["drive_fault"])
-        self._drive_fault_logged = d["drive_fault"]
         d.update(
             self.guard.values(),
             duty_out_of_range=self.duty_out_of_range,

@@ -32,6 +32,7 @@ from fluxdrive.core.schema import Parser, option
 from fluxdrive.drive.scenario import REPO_ROOT, ScenarioSettings, load_scenario, scenario_path
 from fluxdrive.io.graphfile import GraphSettings
 
+from fluxdrive_bringup.inspect.commands import OPERATOR_NODE
 from fluxdrive_bringup.launch.domains import choose_domain
 from fluxdrive_bringup.launch.launcher import Launcher, NodeSpec
 from fluxdrive_bringup.launch.runs import graph_for_scenario, shorten
@@ -48,18 +49,31 @@ STOP_GRACE_S = 3.0
 SWEEP_RESULTS = REPO_ROOT / "results" / "can" / "sil_current_sweep.json"
 
 
-def _drive_node(sp: Path, sc, mcu: str, group: str, port: int, d: int, truth_out) -> NodeSpec:
+def _drive_node(
+    sp: Path, sc, mcu: str, group: str, port: int, d: int, truth_out, inject: str | None = None
+) -> NodeSpec:
     """The drive of the graph: `can-emulator` (plant + C core or the virtual board) on the
-    run's udp_multicast group, lockstep, its truth recorded to `truth_out`."""
+    run's udp_multicast group, lockstep, its truth recorded to `truth_out`; `inject`: a
+    fault case injected (`CASE@T`, fluxdrive.can.faultcases)."""
     cmd = [sys.executable, "-m", "fluxdrive.cli", "can-emulator", str(sp), "--mcu", mcu]
     cmd += ["--interface", "udp_multicast", "--channel", group, "--port", str(port)]
     cmd += ["--hop-limit", "0", "--decimation", str(d), "--duration", repr(float(sc.duration_s))]
     cmd += ["--lockstep-wait", "1.0", "--wait-armed", "120", "--record-out", str(truth_out)]
+    cmd += ["--inject", inject] if inject else []
     return NodeSpec(name="drive", cmd=cmd, required=True)
 
 
 def sil_graph(
-    sp: Path, sc, bag: Path, *, mode: str, decimation: int, domain_id: int, truth_out, mcu="c"
+    sp: Path,
+    sc,
+    bag: Path,
+    *,
+    mode: str,
+    decimation: int,
+    domain_id: int,
+    truth_out,
+    mcu="c",
+    inject: str | None = None,
 ):
     """The lockstep graph of `sc` with the plant replaced by the C drive on a udp_multicast
     bus and the bench_bridge node. `mcu`: "c" (the core's host build, SIL) or "pil" (the
@@ -81,7 +95,7 @@ def sil_graph(
             if mode == "split":  # the controller's answers are current references
                 n.parameters["topics"] = [*DEFAULT_TOPICS, topics.rel(topics.CURRENT_REF)]
     g.nodes = [n for n in g.nodes if n.node != "plant"]
-    emulator = _drive_node(sp, sc, mcu, group, port, d, truth_out)
+    emulator = _drive_node(sp, sc, mcu, group, port, d, truth_out, inject)
     bridge_params = {
         "interface": "udp_multicast",
         "channel": group,
@@ -96,6 +110,8 @@ def sil_graph(
     ros_args = [
         f"{k}:={str(v).lower() if isinstance(v, bool) else v}" for k, v in bridge_params.items()
     ]
+    if inject and "," in inject:  # a schedule: the operator resets and re-arms in between
+        ros_args.append(f"allowed_commanders:=['/controller', '/{OPERATOR_NODE}']")
     bridge = NodeSpec(
         name="bench_bridge",
         cmd=[
@@ -129,6 +145,14 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--bag", type=Path, help="bag folder (default bags/<name>-sil-<time>)")
     option(ap, "--domain-id", GraphSettings)
     ap.add_argument("--timeout", type=float, default=600.0)
+    ap.add_argument(
+        "--inject",
+        default=None,
+        metavar="CASE@T",
+        help="inject a drive protection's condition at T s of drive time (a case of "
+        "fluxdrive.can.faultcases); prints the drive's reaction instead of the metrics, "
+        "exit 0 if it latched the case's fault within its bound",
+    )
     ap.add_argument("--quiet", action="store_true")
     ap.add_argument(
         "--sweep-current",
@@ -153,7 +177,18 @@ def main(argv: list[str]) -> int:
     sp = scenario_path(args.scenario)
     sc = load_scenario(sp)
     shorten(sc, args.duration)
+    if args.inject:
+        from fluxdrive.can.faultcases import parse_injections
+
+        try:
+            parse_injections(args.inject, sc.machine.ts_s)
+        except ValueError as exc:
+            print(f"[bench] {exc}", file=sys.stderr)
+            return 2
     code, res, arr, out = run_sil(sp, sc, args)
+    if args.inject:
+        report_dir = Path(str(args.bag_used) + "-report")
+        return code or injection_result(args.inject, report_dir / "logs" / "drive.log")
     if res is None:
         return code
     from fluxdrive.analysis.report import report
@@ -193,6 +228,7 @@ def run_sil(sp: Path, sc, args):
         domain_id=dom,
         truth_out=truth_out,
         mcu="pil" if tag == "pil" else "c",
+        inject=getattr(args, "inject", None),
     )
     (out / "graph.yaml").write_text(yaml.safe_dump(g.to_dict(), sort_keys=False))
     print(
@@ -204,7 +240,15 @@ def run_sil(sp: Path, sc, args):
     )
     t0 = time.perf_counter()
     launcher = Launcher(g, quiet=args.quiet, progress=False, log_dir=out / "logs")
-    code = launcher.run(args.timeout)
+    operator = None
+    if "," in (getattr(args, "inject", None) or ""):
+        operator = InjectionOperator(dom)
+        operator.start()
+    try:
+        code = launcher.run(args.timeout)
+    finally:
+        if operator is not None:
+            operator.stop()
     wall = time.perf_counter() - t0
     if code != 0 or not truth_out.exists():
         print(
@@ -224,6 +268,91 @@ def run_sil(sp: Path, sc, args):
     arr["missing_real"] = miss
     note_can_link(bag)
     return 0, res, arr, out
+
+
+def injection_result(inject: str, drive_log: Path) -> int:
+    """The drive's reaction to each case of `inject` (its last log line, the JSON of
+    can-emulator): one line per case, the last line JSON (a list of outcomes); 0 if every
+    requirement of every case held."""
+    from fluxdrive.can.faultcases import NOT_MADE, case, outcome
+
+    cases = [case(p.partition("@")[0].strip()) for p in inject.split(",")]
+    lines = drive_log.read_text().splitlines() if drive_log.is_file() else []
+    stats = next((json.loads(x) for x in reversed(lines) if x.startswith("{")), None)
+    if stats is None:
+        print(f"[bench] --inject {inject}: no final report of the drive in {drive_log}")
+        return 1
+    recs = stats["injections"]
+    out = []
+    for i, fc in enumerate(cases):
+        res = outcome(fc, recs[i] if i < len(recs) else NOT_MADE)
+        bad = [k for k, ok in res["checks"].items() if not ok]
+        print(
+            f"[bench] injected {fc.name} ({res['level']}): PWM off after {res['reaction']} "
+            f"periods (bound {res['bound']}), FAULT codes {res['fault_codes'][:3]}"
+            + (f"; NOT MET: {', '.join(bad)}" if bad else "")
+        )
+        out.append(res)
+    print(json.dumps(out))
+    return 0 if all(r["ok"] for r in out) else 1
+
+
+class InjectionOperator:
+    """The operator of an injection schedule (`--inject A@T,B,C`), as node
+    /fluxdrive_operator: after each drive fault the bridge reports (a latched DriveFault from
+    the drive), it asks the bridge's /drive/reset_fault until the drive reports the fault
+    cleared (the drive removes the condition INJECT_HOLD periods after its PWM went off),
+    clears the controller's latch if it has one (/controller/reset_fault: repeated lost
+    intervals latch it), and re-arms (/drive/arm) -- what a person at the bench does."""
+
+    def __init__(self, domain_id: int) -> None:
+        import threading
+
+        self.domain_id = domain_id
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="operator", daemon=True)
+        self.resets = 0
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(15.0)
+
+    def _run(self) -> None:
+        from collections import deque
+
+        from flux_drive_msgs.msg import DriveFault
+        from flux_drive_msgs.srv import Arm, ResetFault
+        from fluxdrive_bringup.inspect.commands import OPERATOR_NODE, Session, _call
+
+        s = Session(domain_id=self.domain_id, node_name=OPERATOR_NODE, wait_s=3.0)
+        events: deque = deque()
+        s.node.create_subscription(DriveFault, "/drive/fault", lambda m: events.append(m), 100)
+        latched = False
+        try:
+            while not self._stop.is_set():
+                s.spin_for(0.05)
+                while events:
+                    ev = events.popleft()
+                    if ev.source.startswith("drive via"):
+                        latched = bool(ev.latched)
+                        if not latched and not self._stop.is_set():  # cleared: re-arm
+                            _call(s, ResetFault, "/controller/reset_fault", ResetFault.Request())
+                            _call(s, Arm, "/drive/arm", Arm.Request(arm=True))
+                if latched and not self._stop.is_set():
+                    _call(s, ResetFault, "/drive/reset_fault", ResetFault.Request())
+                    self.resets += 1
+                    s.spin_for(0.1)
+        except Exception as exc:  # noqa: BLE001 - the graph is going down: said, not raised
+            if not self._stop.is_set():
+                print(f"[bench] operator: {exc}", file=sys.stderr)
+        finally:
+            s.close()
+
+
+# the bench bridge's counts of what it took and dropped
 
 
 # the bench bridge's counts of what it took and dropped (fluxdrive.can.bridge diagnostics)
