@@ -302,4 +302,4 @@ def test_rig_card_for_the_step_load_differs_from_the_default_only_in_inertia():
     x_back = x[np.argmin(np.abs(x * np.exp(1.0 - x) - 0.2))]
     assert x_back / w_n < 0.2
     sc = load_scenario(CONFIG_DIR / "scenarios" / "paper_6pct_stepload.yaml")
-    assert sc.machine == rig
+    assert sc.machine == dataclasses.replace(rig, name="default_spm+paper_rig")

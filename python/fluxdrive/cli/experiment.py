@@ -17,7 +17,7 @@ from pathlib import Path
 
 from fluxdrive.core.machine import ConfigError, load_machine
 from fluxdrive.core.schema import Parser
-from fluxdrive.drive.scenario import REPO_ROOT, load_bench_file, machine_path
+from fluxdrive.drive.scenario import MACHINE_HELP, REPO_ROOT, load_bench_file, machine_path
 from fluxdrive.experiments.claims import MIN_SEEDS, count, counts_line
 from fluxdrive.experiments.common import DEFAULT_MACHINE, claim
 from fluxdrive.experiments.registry import (
@@ -80,9 +80,7 @@ def _parser(names: list[str]) -> argparse.ArgumentParser:
     )
     ap.add_argument(
         "--machine",
-        help="run every scenario on this machine card (per-unit "
-        "speeds scale with its rated speed, defaults derive from it; results go "
-        "to results/experiments-<card> unless --out)",
+        help=MACHINE_HELP + " (results go to results/experiments-<card> unless --out)",
     )
     return ap
 
@@ -218,6 +216,12 @@ def main(argv: list[str], graph_run: Callable | None = None) -> int:
         card = load_machine(machine_path(args.machine))  # refuse a bad card up front
         machine = machine_path(args.machine).resolve()
         out = out or REPO_ROOT / "results" / f"experiments-{card.name}"
+        print(
+            f"--machine {card.name}: the motor of every run; the scenario files the runs start "
+            "from keep their rig (load inertia and friction, PWM, deadtime, sensors), the "
+            "scenarios built in memory have no rig beyond the card",
+            flush=True,
+        )
     if args.bench:
         load_bench_file(args.bench, load_machine(machine or DEFAULT_MACHINE))  # refuse early
         out = out or REPO_ROOT / "results" / f"bench-{args.bench.stem}"

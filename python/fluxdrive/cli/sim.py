@@ -7,7 +7,7 @@ from pathlib import Path
 
 from fluxdrive.analysis.report import report
 from fluxdrive.core.schema import Parser
-from fluxdrive.drive.scenario import REPO_ROOT, load_scenario, scenario_path
+from fluxdrive.drive.scenario import MACHINE_HELP, REPO_ROOT, load_scenario, scenario_path
 from fluxdrive.drive.sim import run_scenario
 
 
@@ -15,14 +15,12 @@ def main_sim(argv: list[str]) -> int:
     ap = Parser(prog="fluxdrive sim", description=__doc__)
     ap.add_argument("scenario", help="scenario YAML (path, or a name under config/scenarios)")
     ap.add_argument("--out", type=Path, help="output folder (default runs/<name>-sim-<time>)")
-    ap.add_argument(
-        "--machine",
-        help="run on this machine card (a path or a name under "
-        "config/machines); per-unit speeds and every unset default follow it",
-    )
+    ap.add_argument("--machine", help=MACHINE_HELP)
     ap.add_argument("--no-plots", action="store_true")
     args = ap.parse_args(argv)
     sc = load_scenario(scenario_path(args.scenario), machine=args.machine)
+    if sc.machine_note:
+        print(sc.machine_note, flush=True)
     out = args.out or REPO_ROOT / "runs" / f"{sc.name}-sim-{time.strftime('%Y%m%d-%H%M%S')}"
     res = run_scenario(sc, progress="always")
     rtf = sc.duration_s / res.wall_s if res.wall_s > 0 else float("inf")

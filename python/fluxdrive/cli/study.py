@@ -8,14 +8,26 @@ import json
 from pathlib import Path
 from typing import Any
 
-from fluxdrive.core.machine import ConfigError
+from fluxdrive.core.machine import ConfigError, load_machine
 from fluxdrive.core.schema import Parser
-from fluxdrive.drive.scenario import REPO_ROOT
+from fluxdrive.drive.scenario import MACHINE_HELP, REPO_ROOT, load_scenario, machine_path
 from fluxdrive.study import cli as study_cli
 from fluxdrive.study.cli import run_study
 from fluxdrive.study.runner import runner_from_args
-from fluxdrive.study.spec import load_spec
+from fluxdrive.study.spec import StudySpec, load_spec
 from fluxdrive.study.tasks import warm_kernels
+
+
+def on_machine(spec: StudySpec, machine: str) -> str:
+    """`--machine`: every task's motor is this card (the spec's scenario.machine replaced);
+    the line saying what was kept."""
+    card = machine_path(machine).resolve()
+    load_machine(card)  # a bad card: refused here, in one line, before any task
+    spec.scenario["machine"] = str(card)
+    if "file" in spec.scenario:
+        return load_scenario(spec.scenario["file"], machine=card).machine_note
+    what = "the recorded bag's" if spec.kind == "bag" else f"builder {spec.scenario['builder']}'s"
+    return f"--machine {card.stem}: the motor from its card, everything else {what}"
 
 
 def main(argv: list[str]) -> int:
@@ -41,6 +53,7 @@ def main(argv: list[str]) -> int:
         type=int,
         help="LocalCluster worker processes (default: every core; 1 runs in-process)",
     )
+    ap.add_argument("--machine", help=MACHINE_HELP)
     ap.add_argument("--restart", action="store_true", help="discard what --out holds")
     ap.add_argument(
         "--maps-only",
@@ -49,6 +62,8 @@ def main(argv: list[str]) -> int:
     )
     args = ap.parse_args(argv)
     spec = load_spec(args.spec)
+    if args.machine is not None:
+        print(on_machine(spec, args.machine), flush=True)
     out = args.out or REPO_ROOT / "runs" / f"study-{spec.name}"
     if args.maps_only:
         from fluxdrive.study import maps, store

@@ -16,6 +16,10 @@ from fluxdrive.core import yamlio
 from fluxdrive.core.errors import ConfigError as ConfigError  # its home for importers
 from fluxdrive.core.schema import param, ranges
 
+# how far a stated rated torque may be from K_t I_rated = 1.5 p lambda I_rated (a nameplate's
+# rounding and its RMS/peak conventions agree far better; a mix-up is off by 20 % or more)
+TORQUE_TOLERANCE = 0.05
+
 # what an inverter deadtime (or a feed-forward of it) may be, in seconds: one range for the card,
 # the plant override of a scenario, the controller's, observers' and drive's feed-forward
 DEADTIME_RANGE_S: tuple[float, float] = (0.0, 1e-4)
@@ -74,10 +78,26 @@ class MachineCard:
         9.0, unit="A", doc="rated current, peak per phase", range=(0.001, 10000.0), live=False
     )
     inertia_kgm2: float = param(
-        1.5e-4, unit="kg m^2", doc="inertia of motor and dyno", range=(1e-09, 1000.0), live=False
+        1.5e-4,
+        unit="kg m^2",
+        doc="inertia of the motor (a scenario's rig adds its load's)",
+        range=(1e-09, 1000.0),
+        live=False,
     )
     viscous_nms: float = param(
-        1.0e-4, unit="N m s/rad", doc="viscous friction", range=(0.0, 1000.0), live=False
+        1.0e-4,
+        unit="N m s/rad",
+        doc="viscous friction of the motor (a scenario's rig adds its load's)",
+        range=(0.0, 1000.0),
+        live=False,
+    )
+    stated_torque_nm: float = param(
+        0.0,
+        unit="N m",
+        doc="rated torque as the nameplate states it (0: not stated); refused unless "
+        f"1.5 p lambda x rated current agrees within {TORQUE_TOLERANCE:.0%}",
+        range=(0.0, 1e6),
+        live=False,
     )
     dc_bus_v: float = param(72.0, unit="V", doc="DC-bus voltage", range=(1.0, 10000.0), live=False)
     pwm_hz: float = param(
@@ -203,6 +223,16 @@ class MachineCard:
             _require_range(src, key, getattr(self, key), lo, hi)
         if self.deadtime_s * self.pwm_hz >= 0.2:
             raise ConfigError(f"{src}: deadtime_s {self.deadtime_s} is >= 20 % of the PWM period")
+        if self.stated_torque_nm > 0.0:
+            t = self.rated_torque_nm
+            off = t / self.stated_torque_nm - 1.0
+            if abs(off) > TORQUE_TOLERANCE:
+                raise ConfigError(
+                    f"{src}: stated_torque_nm {self.stated_torque_nm:g} N m disagrees with "
+                    f"K_t x rated_current_a = 1.5 x {self.pole_pairs} x {self.flux_linkage_vs:g} "
+                    f"V s x {self.rated_current_a:g} A = {t:.3g} N m ({off:+.0%}, tolerance "
+                    f"{TORQUE_TOLERANCE:.0%})"
+                )
         return self
 
 
@@ -217,9 +247,88 @@ def card_current_bandwidth_hz(card: MachineCard) -> float:
 
 _SECTIONS = ("motor", "inverter", "sensors", "options")
 
+# ---- the nameplate: what a motor's plate (or its datasheet's first table) states, in its
+# own conventions (line-to-line values, RMS current, K_e in V per 1000 rpm), turned into the
+# card's per-phase peak quantities; what a plate lacks is derived (NAMEPLATE_DERIVED, the
+# same rules in docs/machines.md, "A card from the nameplate")
+NAMEPLATE_KEYS: dict[str, str] = {
+    "poles": "number of magnet poles (2 x pole_pairs)",
+    "rated_voltage_v": "rated (DC-bus) voltage -> dc_bus_v",
+    "rated_speed_rpm": "rated speed -> rated_speed_rpm",
+    "rated_current_a_rms": "rated phase current, RMS -> rated_current_a = sqrt(2) x",
+    "rated_torque_nm": "rated torque -> stated_torque_nm (checked against K_e and the current)",
+    "ke_v_per_krpm": "back-EMF constant, line-to-line RMS volts per 1000 rpm -> flux_linkage_vs",
+    "resistance_ll_ohm": "line-to-line resistance -> resistance_ohm = half of it",
+    "inductance_ll_h": "line-to-line inductance -> inductance_h = half of it",
+    "rotor_inertia_kgm2": "rotor inertia -> inertia_kgm2",
+}
+NAMEPLATE_REQUIRED = tuple(NAMEPLATE_KEYS)
+NAMEPLATE_DERIVED: dict[str, str] = {
+    "viscous_nms": "1 % of the rated torque at rated speed",
+    "current_range_a": "2.5 x the rated peak current (above the 2.1 pu over-current trip)",
+    "current_noise_a": "a thousandth of current_range_a (2 LSB of a 12-bit ADC)",
+    "dc_bus_range_v": "1.5 x rated_voltage_v (above the 1.32 x over-voltage trip)",
+}
+
+
+def flux_from_ke(ke_v_per_krpm: float, pole_pairs: int) -> float:
+    """Magnet flux, peak per phase [V s], from K_e in line-to-line RMS volts per 1000 rpm:
+    e_phase,peak = sqrt(2/3) e_LL,rms = lambda p omega_m."""
+    return ke_v_per_krpm * math.sqrt(2.0 / 3.0) / (pole_pairs * 1000.0 * 2.0 * math.pi / 60.0)
+
+
+def _from_nameplate(src: str, plate: Any) -> dict[str, Any]:
+    """The card keys a nameplate gives (and those it lacks, derived), or one line naming
+    the key that is missing or wrong, or the disagreement between K_e, current and torque."""
+    if not isinstance(plate, dict):
+        raise ConfigError(f"{src}: 'nameplate' must be a mapping of {list(NAMEPLATE_KEYS)}")
+    refuse_unknown_keys(src, plate, list(NAMEPLATE_KEYS), "nameplate")
+    missing = [k for k in NAMEPLATE_REQUIRED if k not in plate]
+    if missing:
+        raise ConfigError(f"{src}: nameplate lacks {missing} (a card from the nameplate needs all)")
+    poles = plate["poles"]
+    if isinstance(poles, bool) or not isinstance(poles, int) or poles < 2 or poles % 2:
+        raise ConfigError(f"{src}: 'nameplate.poles' must be an even integer >= 2, got {poles!r}")
+    v = {
+        k: _require_range(src, f"nameplate.{k}", plate[k], 1e-12, 1e9)
+        for k in NAMEPLATE_KEYS
+        if k != "poles"
+    }
+    p = poles // 2
+    lam = flux_from_ke(v["ke_v_per_krpm"], p)
+    i_pk = math.sqrt(2.0) * v["rated_current_a_rms"]
+    torque = 1.5 * p * lam * i_pk
+    off = torque / v["rated_torque_nm"] - 1.0
+    if abs(off) > TORQUE_TOLERANCE:
+        raise ConfigError(
+            f"{src}: nameplate disagrees: ke_v_per_krpm {v['ke_v_per_krpm']:g} gives K_t "
+            f"{torque / v['rated_current_a_rms']:.3g} N m/A rms, x rated_current_a_rms "
+            f"{v['rated_current_a_rms']:g} A = {torque:.3g} N m, but rated_torque_nm is "
+            f"{v['rated_torque_nm']:g} N m ({off:+.0%}, tolerance {TORQUE_TOLERANCE:.0%})"
+        )
+    w_r = v["rated_speed_rpm"] * 2.0 * math.pi / 60.0
+    i_range = 2.5 * i_pk
+    return {
+        "pole_pairs": p,
+        "rated_speed_rpm": v["rated_speed_rpm"],
+        "flux_linkage_vs": lam,
+        "resistance_ohm": 0.5 * v["resistance_ll_ohm"],
+        "inductance_h": 0.5 * v["inductance_ll_h"],
+        "rated_current_a": i_pk,
+        "stated_torque_nm": v["rated_torque_nm"],
+        "inertia_kgm2": v["rotor_inertia_kgm2"],
+        "dc_bus_v": v["rated_voltage_v"],
+        # what the plate lacks (NAMEPLATE_DERIVED)
+        "viscous_nms": 0.01 * v["rated_torque_nm"] / w_r,
+        "current_range_a": i_range,
+        "current_noise_a": i_range / 1000.0,
+        "dc_bus_range_v": 1.5 * v["rated_voltage_v"],
+    }
+
 
 def load_machine(path: str | Path) -> MachineCard:
-    """Load a machine card YAML (flat keys, or grouped under motor/inverter/sensors/options)."""
+    """Load a machine card YAML (flat keys, or grouped under motor/inverter/sensors/options;
+    a `nameplate` section gives the motor in a plate's terms, see `_from_nameplate`)."""
     path = Path(path)
     try:
         raw = yamlio.load_file(path)
@@ -228,8 +337,11 @@ def load_machine(path: str | Path) -> MachineCard:
     if not isinstance(raw, dict):
         raise ConfigError(f"{path}: a machine card must be a mapping")
     flat: dict[str, Any] = {}
+    plate: dict[str, Any] = {}
     for key, value in raw.items():
-        if key in _SECTIONS and isinstance(value, dict):
+        if key == "nameplate":
+            plate = _from_nameplate(str(path), value)
+        elif key in _SECTIONS and isinstance(value, dict):
             flat.update(value)
         else:
             flat[key] = value
@@ -239,7 +351,10 @@ def load_machine(path: str | Path) -> MachineCard:
         raise ConfigError(
             f"{path}: unknown machine-card key(s) {unknown}; expected some of {sorted(known)}"
         )
-    kwargs: dict[str, Any] = {}
+    twice = sorted(set(plate) & set(flat), key=str)
+    if twice and "nameplate" in raw:
+        raise ConfigError(f"{path}: {twice} given beside the nameplate that sets them")
+    kwargs: dict[str, Any] = dict(plate)
     for key, value in flat.items():
         ftype = known[key].type
         if ftype in ("int", int):
@@ -253,6 +368,111 @@ def load_machine(path: str | Path) -> MachineCard:
         else:
             kwargs[key] = _require_range(str(path), key, value, -math.inf, math.inf)
     return MachineCard(**kwargs).validate(str(path))
+
+
+# ---- the rig: what a scenario's test bench adds to the motor and keeps when the motor is
+# swapped (`--machine`): the load machine's inertia and friction, the inverter's switching
+# and the sensors' resolution and noise.  The bus voltage and the sensors' full scales are
+# sized to the motor and come with its card.
+RIG_DRIVE_KEYS: tuple[str, ...] = (
+    "pwm_hz",
+    "deadtime_s",
+    "device_drop_v",
+    "current_adc_bits",
+    "current_noise_a",
+    "capture_bits",
+    "dc_bus_adc_bits",
+    "dc_bus_noise_v",
+    "encoder_lines",
+)
+_RIG_SECTIONS = ("load", "inverter", "sensors")
+
+
+@dataclass(frozen=True)
+class Rig:
+    """A test rig: the load coupled to the motor (inertia and friction added to the card's)
+    and the drive's inverter and sensor settings (RIG_DRIVE_KEYS, replacing the card's)."""
+
+    name: str
+    load_inertia_kgm2: float = 0.0
+    load_viscous_nms: float = 0.0
+    drive: dict[str, float] = field(default_factory=dict)  # RIG_DRIVE_KEYS -> value
+    source: str = ""
+
+    def on(self, card: MachineCard, src: str = "rig") -> MachineCard:
+        """`card`'s motor on this rig."""
+        import dataclasses
+
+        return dataclasses.replace(
+            card,
+            inertia_kgm2=card.inertia_kgm2 + self.load_inertia_kgm2,
+            viscous_nms=card.viscous_nms + self.load_viscous_nms,
+            **self.drive,
+        ).validate(src)
+
+    def describe(self) -> str:
+        d = self.drive
+        return (
+            f"rig {self.name}: load J {self.load_inertia_kgm2:.3g} kg m^2, load friction "
+            f"{self.load_viscous_nms:.3g} N m s/rad, PWM {d['pwm_hz']:g} Hz, deadtime "
+            f"{d['deadtime_s']:.3g} s, {d['current_adc_bits']}-bit current ADC "
+            f"({d['current_noise_a']:g} A rms noise), encoder {d['encoder_lines']} lines"
+        )
+
+
+def rig_of_card(card: MachineCard) -> Rig:
+    """The rig a scenario without `rig:` runs on: its card's inverter and sensor settings,
+    no load inertia or friction beyond the card's own."""
+    return Rig(name=f"of the card {card.name}", drive={k: getattr(card, k) for k in RIG_DRIVE_KEYS})
+
+
+def load_rig(path: str | Path) -> Rig:
+    """A rig file: `name`, `load: {inertia_kgm2, viscous_nms}`, `inverter: {pwm_hz,
+    deadtime_s, device_drop_v}`, `sensors: {...}` (RIG_DRIVE_KEYS; a key left out: the
+    default card's value).  A bad file: one line naming the file and the key."""
+    path = Path(path)
+    src = str(path)
+    try:
+        raw = yamlio.load_file(path)
+    except (OSError, yamlio.YAMLError) as exc:
+        raise ConfigError(f"{src}: cannot read rig file: {yamlio.describe(exc)}") from exc
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{src}: a rig file must be a mapping")
+    refuse_unknown_keys(src, raw, ["name", *_RIG_SECTIONS], "the top level")
+    load = raw.get("load") or {}
+    if not isinstance(load, dict):
+        raise ConfigError(f"{src}: 'load' must be a mapping of inertia_kgm2, viscous_nms")
+    refuse_unknown_keys(src, load, ["inertia_kgm2", "viscous_nms"], "load")
+    drive_raw: dict[str, Any] = {}
+    for sec in ("inverter", "sensors"):
+        part = raw.get(sec) or {}
+        if not isinstance(part, dict):
+            raise ConfigError(f"{src}: '{sec}' must be a mapping")
+        drive_raw.update(part)
+    refuse_unknown_keys(src, drive_raw, list(RIG_DRIVE_KEYS), "inverter/sensors")
+    default = MachineCard()
+    lim = ranges(MachineCard)
+    drive: dict[str, Any] = {}
+    for key in RIG_DRIVE_KEYS:
+        value = drive_raw.get(key, getattr(default, key))
+        if isinstance(getattr(default, key), int):
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise ConfigError(f"{src}: '{key}' must be an integer, got {value!r}")
+            _require_range(src, key, value, *lim[key])
+            drive[key] = value
+        else:
+            drive[key] = _require_range(src, key, value, *lim[key])
+    return Rig(
+        name=str(raw.get("name", path.stem)),
+        load_inertia_kgm2=_require_range(
+            src, "load.inertia_kgm2", load.get("inertia_kgm2", 0.0), 0.0, 1000.0
+        ),
+        load_viscous_nms=_require_range(
+            src, "load.viscous_nms", load.get("viscous_nms", 0.0), 0.0, 1000.0
+        ),
+        drive=drive,
+        source=src,
+    )
 
 
 @dataclass

@@ -8,6 +8,7 @@ and what was expected.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -21,14 +22,24 @@ from fluxdrive.core.machine import (
     DEADTIME_RANGE_S,
     ConfigError,
     MachineCard,
+    Rig,
     load_machine,
+    load_rig,
     refuse_unknown_keys,
     required,
+    rig_of_card,
 )
 from fluxdrive.core.paths import CONFIG_DIR, ROOT, project_file
 from fluxdrive.core.schema import check_value, param, specs
 from fluxdrive.drive.control import CARD_RULES, ControllerConfig
 from fluxdrive.drive.observers import ObserverConfig, observer_config
+
+# the help of every command's `--machine` (sim, run, bench --sil, study, experiment, ...)
+MACHINE_HELP = (
+    "run on this motor (a machine card: a path or a name under config/machines); the "
+    "scenario's rig (load inertia and friction, PWM, deadtime, sensors) stays, per-unit speeds "
+    "and every unset default follow the motor, and one line says what was kept"
+)
 
 REPO_ROOT = ROOT  # the checkout (fluxdrive.core.paths: FLUXDRIVE_ROOT or the one we sit in)
 RPM = 2.0 * math.pi / 60.0
@@ -59,6 +70,9 @@ class Scenario:
     source: str = ""
     extra: dict[str, Any] = field(default_factory=dict)
     bench: BenchConfig = field(default_factory=BenchConfig)  # default: the ideal bench
+    # what `--machine` kept of the scenario's rig, one line for the command to print ("": the
+    # scenario's own card; not a setting: a file written from the scenario does not carry it)
+    machine_note: str = ""
 
     @property
     def n_periods(self) -> int:
@@ -258,6 +272,7 @@ _TOP_KEYS = {
     "name",
     "description",
     "machine",
+    "rig",
     "duration_s",
     "seed",
     "speed_rpm",
@@ -293,7 +308,7 @@ def load_scenario(
     path = Path(path)
     src = str(path)
     raw = _read_scenario(path, machine, overrides, raw)
-    card = _scenario_card(path, raw, machine)
+    card, note = _scenario_card(path, raw, machine)
     duration = _setting(src, raw, "duration_s")
     seed = _setting(src, raw, "seed")
     bench_raw, bench_src = _bench_raw(src, path, raw.get("bench"))
@@ -333,6 +348,7 @@ def load_scenario(
         source=src,
         extra=dict(_mapping(src, "extra", raw.get("extra"))),
         bench=bench,
+        machine_note=note,
     )
 
 
@@ -366,14 +382,45 @@ def _read_scenario(
     return raw
 
 
-def _scenario_card(path: Path, raw: dict[str, Any], machine: str | Path | None) -> MachineCard:
-    """The card `--machine` names (a path, or a card name under config/machines), else the
-    scenario's own; a bad card is said to belong to this scenario."""
-    mpath = machine_path(machine) if machine is not None else _own_card_path(path, raw)
+def _scenario_card(
+    path: Path, raw: dict[str, Any], machine: str | Path | None
+) -> tuple[MachineCard, str]:
+    """The motor (the card `--machine` names: a path, or a card name under config/machines;
+    else the scenario's own) on the scenario's rig (`rig:`, a rig file relative to the
+    scenario; else the inverter and sensors of its own card, no load beyond it), and with
+    `--machine` one line saying what of the scenario it kept.  A bad card or rig is said to
+    belong to this scenario."""
+    own = _own_card_path(path, raw)
     try:
-        return load_machine(mpath)
+        motor = load_machine(machine_path(machine) if machine is not None else own)
+        rig = _scenario_rig(path, raw, own if machine is not None else None)
+        card = motor if rig is None else rig.on(motor, f"{path}: {rig.name} with {motor.name}")
+        if "rig" in raw:  # a rig file's: the card says so (the runs' reports name it)
+            card = dataclasses.replace(card, name=f"{motor.name}+{rig.name}")
     except ConfigError as exc:  # the card's own line, said to belong to this scenario
         raise ConfigError(f"{path}: 'machine': {exc}") from exc
+    if machine is None:
+        return card, ""
+    assert rig is not None
+    note = (
+        f"--machine {motor.name}: the motor (and its bus and sensor full scales) from its "
+        f"card; kept the scenario's {rig.describe()} (total J {card.inertia_kgm2:.3g} kg m^2)"
+    )
+    return card, note
+
+
+def _scenario_rig(path: Path, raw: dict[str, Any], own: Path | None) -> Rig | None:
+    """The scenario's rig file (`rig:`), else that of its own card (`own`; None: the card
+    is used as it is)."""
+    name = raw.get("rig")
+    if name is None:
+        return None if own is None else rig_of_card(load_machine(own))
+    if not isinstance(name, str) or not name or "\0" in name:
+        raise ConfigError(
+            f"'rig' must be the path of a rig file (relative to the scenario), got {name!r}"
+        )
+    rpath = Path(name)
+    return load_rig(rpath if rpath.is_absolute() else path.parent / rpath)
 
 
 def _control_config(src: str, raw: dict[str, Any], card: MachineCard) -> ControllerConfig:
@@ -610,6 +657,31 @@ def _config_file(name_or_path: str | Path, folder: str, what: str) -> Path:
     raise ConfigError(f"{what} '{name_or_path}' not found (looked at {p} and {cand})")
 
 
+# the scenario whose `observers` block is the project's observer set, declared once there: the
+# graph files expand `observers_of:` it, the observer nodes take their settings from it, the
+# experiments' OBS6 and beyond.VARIANTS read it (observer_set)
+OBSERVER_SET_SCENARIO = "paper_2pct_150load"
+
+
+def observer_set(path: str | Path | None = None) -> dict[str, dict[str, Any]]:
+    """A scenario file's `observers` block as written (name -> settings), without loading
+    the rest; default: the project's observer set (OBSERVER_SET_SCENARIO)."""
+    p = scenario_path(str(path or OBSERVER_SET_SCENARIO))
+    try:
+        raw = yamlio.load_file(p)
+    except (OSError, yamlio.YAMLError) as exc:
+        raise ConfigError(f"{p}: cannot read scenario: {yamlio.describe(exc)}") from exc
+    obs = raw.get("observers") if isinstance(raw, dict) else None
+    if not isinstance(obs, dict) or not all(isinstance(v, dict) for v in obs.values()):
+        raise ConfigError(f"{p}: 'observers' must be a mapping name -> settings")
+    return {str(k): dict(v) for k, v in obs.items()}
+
+
+def observer_names(path: str | Path) -> list[str]:
+    """The names of the observers a scenario file declares (in its order)."""
+    return list(observer_set(path))
+
+
 def scenario_path(name_or_path: str) -> Path:
     """Accept a path, or a bare scenario name under config/scenarios/."""
     return _config_file(name_or_path, "scenarios", "scenario")
@@ -692,12 +764,27 @@ def save_scenario(sc: Scenario, path: str | Path) -> Path:
     return path
 
 
+def scenario_on_machine(
+    path: Path, machine: str | Path | None, folder: Path
+) -> tuple[Path, Scenario]:
+    """`--machine` for the commands that hand a scenario file to other processes (the node
+    graph, the drive emulator): the scenario on that motor written to `folder` (with its
+    card), and the scenario, whose `machine_note` says what was kept; no machine: the file
+    as it is."""
+    sc = load_scenario(path, machine=machine)
+    if machine is None:
+        return path, sc
+    folder.mkdir(parents=True, exist_ok=True)
+    out = save_scenario(sc, folder / f"{path.stem}.yaml")
+    return out, sc
+
+
 def scenario_differences(a: Scenario, b: Scenario, rel_tol: float = 1e-15) -> list[str]:
     """Names of the fields in which two scenarios differ (numbers within `rel_tol`: a fault
     offset goes through per-unit and back)."""
     out = []
     for f in fields(Scenario):
-        if f.name in ("source",):
+        if f.name in ("source", "machine_note"):
             continue
         x, y = getattr(a, f.name), getattr(b, f.name)
         if isinstance(x, np.ndarray):

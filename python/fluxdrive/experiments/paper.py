@@ -1555,7 +1555,7 @@ def _fig19_step_claim(rows, rig, model: dict, floor_rpm: float) -> dict:
         (
             f"paper_rig.yaml infers J = {rig.inertia_kgm2:.3g} kg·m² from the paper's dip for a "
             "ζ = 1 PI loop of 10 Hz; "
-            if rig.name == "paper_rig"
+            if rig.name.endswith("+paper_rig")  # the scenario's rig file (config/rigs)
             else ""
         )
         + "our design rule gives this drive K_p = "

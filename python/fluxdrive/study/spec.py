@@ -23,7 +23,7 @@ from fluxdrive.core.machine import ConfigError
 from fluxdrive.core.schema import check_value, markdown_table, param, specs
 from fluxdrive.drive.control import ControllerConfig
 from fluxdrive.drive.observers import ObserverConfig
-from fluxdrive.drive.scenario import CONFIG_DIR, REPO_ROOT, scenario_path
+from fluxdrive.drive.scenario import CONFIG_DIR, REPO_ROOT, machine_path, scenario_path
 
 STUDY_DIR = CONFIG_DIR / "studies"
 
@@ -439,9 +439,12 @@ def _scenario(src: str, base: Path, s: Any) -> dict[str, Any]:
             _finite(src, "scenario.window_s", x)
     if "encoder_offset_deg" in s:
         _finite(src, "scenario.encoder_offset_deg", s["encoder_offset_deg"])
-    if "machine" in s:
+    if "machine" in s:  # a path relative to the spec, or a card name under config/machines
         m = base / _path_text(src, "scenario.machine", s["machine"])
-        out["machine"] = str(m.resolve() if m.exists() else Path(str(s["machine"])).resolve())
+        try:
+            out["machine"] = str((m if m.exists() else machine_path(str(s["machine"]))).resolve())
+        except ConfigError as exc:
+            raise _err(src, f"scenario.machine: {exc}") from exc
     return out
 
 

@@ -126,6 +126,8 @@ def build_task_scenario(p: dict[str, Any]) -> Scenario:
             )
         if spec["builder"] != "encoder_run":
             kw["driving"] = vname
+        if spec.get("machine"):  # `study --machine` or scenario.machine: the builder's card
+            kw["card"] = spec["machine"]
         sc = fn(
             float(speed),
             float(load),

@@ -33,7 +33,14 @@ import numpy as np
 import yaml
 from fluxdrive.core.paths import check_output
 from fluxdrive.core.schema import Parser, option
-from fluxdrive.drive.scenario import REPO_ROOT, ScenarioSettings, load_scenario, scenario_path
+from fluxdrive.drive.scenario import (
+    MACHINE_HELP,
+    REPO_ROOT,
+    ScenarioSettings,
+    load_scenario,
+    scenario_on_machine,
+    scenario_path,
+)
 from fluxdrive.io.graphfile import GraphSettings, ServeOptions
 
 from fluxdrive_bringup.launch.domains import choose_domain, pick_domain_id
@@ -255,9 +262,12 @@ def interrupted_bag_note(bag: Path) -> str:
 def main_run(argv: list[str], default_scenario: str | None = None) -> int:
     args = _run_parser(default_scenario).parse_args(argv)
     sp = scenario_path(args.scenario if default_scenario is None else default_scenario)
-    sc = load_scenario(sp)
+    sc = load_scenario(sp, machine=args.machine)
     stamp = time.strftime("%Y%m%d-%H%M%S")
     out = check_output(args.out or REPO_ROOT / "runs" / f"{sc.name}-{stamp}", "--out")
+    if args.machine is not None:  # the graph's nodes read the scenario on this motor
+        sp, sc = scenario_on_machine(sp, args.machine, out)
+        print(f"[run] {sc.machine_note}", flush=True)
     bag = args.bag or REPO_ROOT / "bags" / f"{sc.name}-{stamp}"
     dom, refused = _run_preflight(args, bag)
     if refused:
@@ -291,6 +301,7 @@ def _run_parser(default_scenario: str | None) -> argparse.ArgumentParser:
     )
     if default_scenario is None:
         ap.add_argument("scenario", help="scenario YAML (path, or a name under config/scenarios)")
+    ap.add_argument("--machine", help=MACHINE_HELP)
     ap.add_argument("--out", type=Path, help="report folder (default runs/<name>-<time>)")
     ap.add_argument("--bag", type=Path, help="bag folder (default bags/<name>-<time>)")
     option(

@@ -29,7 +29,14 @@ import yaml
 from fluxdrive.can.protocol import LinkOptions
 from fluxdrive.can.vboard import BOARD_DECIMATIONS
 from fluxdrive.core.schema import Parser, option
-from fluxdrive.drive.scenario import REPO_ROOT, ScenarioSettings, load_scenario, scenario_path
+from fluxdrive.drive.scenario import (
+    MACHINE_HELP,
+    REPO_ROOT,
+    ScenarioSettings,
+    load_scenario,
+    scenario_on_machine,
+    scenario_path,
+)
 from fluxdrive.io.graphfile import GraphSettings
 
 from fluxdrive_bringup.inspect.commands import OPERATOR_NODE
@@ -139,6 +146,7 @@ def main(argv: list[str]) -> int:
         f"board (fluxdrive.can.vboard; D in {BOARD_DECIMATIONS})",
     )
     ap.add_argument("scenario", nargs="?", default="paper_2pct_150load")
+    ap.add_argument("--machine", help=MACHINE_HELP)
     ap.add_argument("--mode", choices=MODES, default="split", help="where the current loop runs")
     option(ap, "--decimation", LinkOptions)
     option(ap, "--duration", ScenarioSettings, "duration_s", default=None)
@@ -175,6 +183,12 @@ def main(argv: list[str]) -> int:
     if args.sweep_current:
         return sweep_current(args)
     sp = scenario_path(args.scenario)
+    if args.machine is not None:  # the drive process and the nodes read it on this motor
+        tag = "pil" if args.pil else "sil"
+        stem = f"{sp.stem}-{Path(args.machine).stem}-{tag}-{time.strftime('%Y%m%d-%H%M%S')}"
+        args.bag = args.bag or REPO_ROOT / "bags" / stem
+        sp, sc = scenario_on_machine(sp, args.machine, Path(str(args.bag) + "-report"))
+        print(f"[bench] {sc.machine_note}", flush=True)
     sc = load_scenario(sp)
     shorten(sc, args.duration)
     if args.inject:
