@@ -76,10 +76,7 @@ DESCENT_DECEL_PU_S = 1.0 / 15.0
 # flux_*: paper_robust, the flux observer that can drive (the literal `paper` loses lock
 # after a sensorless start: experiment paper_robust)
 VARIANTS: dict[str, dict[str, Any]] = {
-    "flux_measured": {"variant": "paper_robust", "voltage_source": "measured"},
-    "flux_commanded": {"variant": "paper_robust", "voltage_source": "commanded"},
-    "emf_measured": {"variant": "emf", "voltage_source": "measured"},
-    "emf_commanded": {"variant": "emf", "voltage_source": "commanded"},
+    **OBS4,  # the project's observer set (declared once: fluxdrive.drive.scenario.observer_set)
     "hl_measured": {"variant": "hinkkanen_luomi", "voltage_source": "measured"},
     "ortega_measured": {"variant": "ortega", "voltage_source": "measured"},
     "ortega_commanded": {"variant": "ortega", "voltage_source": "commanded"},

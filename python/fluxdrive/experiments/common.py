@@ -23,6 +23,7 @@ from fluxdrive.drive.scenario import (
     load_bench_file,
     load_scenario,
     machine_path,
+    observer_set,
     scenario_path,
 )
 
@@ -30,19 +31,13 @@ DEFAULT_MACHINE = CONFIG_DIR / "machines" / "default_spm.yaml"
 # the non-ideal bench of the paper scenarios (`experiment --bench FILE` runs FILE in its place)
 PAPER_BENCH = CONFIG_DIR / "benches" / "paper_lab.yaml"
 
-# flux_*: the flux observer that drives (paper_robust: the literal one loses lock, see the
-# paper_robust experiment); paper_*: the paper's observer exactly as written, in shadow
-OBS4 = {
-    "flux_measured": {"variant": "paper_robust", "voltage_source": "measured"},
-    "flux_commanded": {"variant": "paper_robust", "voltage_source": "commanded"},
-    "emf_measured": {"variant": "emf", "voltage_source": "measured"},
-    "emf_commanded": {"variant": "emf", "voltage_source": "commanded"},
-}
-LITERAL = {
-    "paper_measured": {"variant": "paper", "voltage_source": "measured"},
-    "paper_commanded": {"variant": "paper", "voltage_source": "commanded"},
-}
-OBS6 = {**OBS4, **LITERAL}
+# the project's observer set, declared once (the demo scenario's `observers`:
+# fluxdrive.drive.scenario.observer_set): flux_* the flux observer that drives (paper_robust:
+# the literal one loses lock, see the paper_robust experiment), emf_* the back-EMF observer;
+# paper_*: the paper's observer exactly as written, in shadow
+OBS6 = observer_set()
+OBS4 = {k: v for k, v in OBS6.items() if not k.startswith("paper_")}
+LITERAL = {k: v for k, v in OBS6.items() if k.startswith("paper_")}
 
 
 # ---------------------------------------------------------------- scenario building

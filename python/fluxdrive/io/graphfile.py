@@ -163,6 +163,14 @@ class NodeEntry:
     required: bool = param(
         False, unit="", doc="its process ending (code 0) ends the graph", live=False
     )
+    observers_of: str | None = param(
+        None,
+        unit="",
+        doc="a scenario file (relative to the graph file or the repo): this entry stands for "
+        "one node per observer the scenario declares, named after it (give no name)",
+        kind=str,
+        live=False,
+    )
 
 
 @dataclass(frozen=True)

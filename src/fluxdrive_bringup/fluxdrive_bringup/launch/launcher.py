@@ -227,8 +227,7 @@ def parse_graph(raw: Any, src: str = "graph", base: Path = REPO_ROOT) -> Graph:
         raise ConfigError(f"{src}: nodes must be a non-empty list")
     nodes = []
     seen = set()
-    for i, nd in enumerate(nodes_raw):
-        where = f"{src}: nodes[{i}]"
+    for where, nd in _expand_observers(nodes_raw, src, base):
         spec = _parse_node(nd, where, base)
         if spec.fqn in seen:
             raise ConfigError(f"{where}: node {spec.fqn} appears twice")
@@ -253,6 +252,31 @@ def parse_graph(raw: Any, src: str = "graph", base: Path = REPO_ROOT) -> Graph:
 
 
 _TIMEOUT_KEYS = ("stop_timeout_s", "stop_grace_s", "start_timeout_s", "stall_timeout_s")
+
+
+def _expand_observers(nodes_raw: Any, src: str, base: Path) -> list[tuple[str, Any]]:
+    """(where, entry) of the graph's `nodes`, an `observers_of: SCENARIO` entry
+    standing for one entry per observer of that scenario (the set declared once, in the
+    scenario's observers), named after it."""
+    if not isinstance(nodes_raw, list):
+        raise ConfigError(f"{src}: nodes must be a non-empty list")
+    out: list[tuple[str, Any]] = []
+    for i, nd in enumerate(nodes_raw):
+        where = f"{src}: nodes[{i}]"
+        if not isinstance(nd, dict) or "observers_of" not in nd:
+            out.append((where, nd))
+            continue
+        sp = nd["observers_of"]
+        if not isinstance(sp, str) or not sp or "\0" in sp or "name" in nd:
+            raise ConfigError(
+                f"{where}: observers_of must be a scenario file's path, and the entry has no name"
+            )
+        from fluxdrive.drive.scenario import observer_names
+
+        rest = {k: v for k, v in nd.items() if k != "observers_of"}
+        for name in observer_names(_resolve(sp, base)):
+            out.append((f"{where} ({name}, observers_of)", {**rest, "name": name}))
+    return out
 
 
 def _parse_node(nd: Any, where: str, base: Path) -> NodeSpec:
