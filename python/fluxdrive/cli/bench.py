@@ -1,5 +1,5 @@
-"""`./fluxdrive benchmark engine|replay|graph|paced|can|study|firmware|plugin|bench|experiments`:
-throughput figures; the last line of each is a JSON object."""
+"""`./fluxdrive benchmark KIND`, KIND one of engine|replay|graph|paced|can|study|firmware|plugin|
+bench|experiments|setup: throughput figures; the last line of each is a JSON object."""
 
 from __future__ import annotations
 
@@ -28,6 +28,7 @@ BENCHES = {
     "plugin": ("fluxdrive.cli.bench", "bench_plugin"),
     "bench": ("fluxdrive.cli.hostbench", "bench_bench"),
     "experiments": ("fluxdrive.cli.bench", "bench_experiments"),
+    "setup": ("fluxdrive.cli.setupbench", "bench_setup"),
 }
 
 
