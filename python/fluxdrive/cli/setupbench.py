@@ -24,8 +24,28 @@ from fluxdrive.core.schema import Parser
 
 # what the bootstrap's stderr says when it installs a Debian package (tools/bootstrap.sh)
 APT_LINE = re.compile(r"installing Debian's (.+?) for ")
+# what the bootstrap says when the colcon build is done (tools/bootstrap.sh)
+COLCON_LINE = re.compile(r"workspace built in (\d+) s")
 # environment a checkout's own shell may carry that would skip or redirect the set-up
-_CLEARED = ("FLUXDRIVE_SKIP_BOOTSTRAP", "FLUXDRIVE_ROOT", "VIRTUAL_ENV", "PYTHONPATH")
+_CLEARED = (
+    "FLUXDRIVE_SKIP_BOOTSTRAP",
+    "FLUXDRIVE_ROOT",
+    "FLUXDRIVE_PYTHON",
+    "VIRTUAL_ENV",
+    "PYTHONPATH",
+)
+
+
+def _fresh_env(pip_cache: bool) -> dict[str, str]:
+    """This environment without what points at this checkout (its variables, its .venv and
+    .ws on PATH), so the fresh tree finds the machine's own python3.11 as a new user would."""
+    env = {k: v for k, v in os.environ.items() if k not in _CLEARED}
+    mine = (str(ROOT / ".venv"), str(ROOT / ".ws"))
+    path = [p for p in env.get("PATH", "").split(os.pathsep) if p and not p.startswith(mine)]
+    env["PATH"] = os.pathsep.join(path)
+    if not pip_cache:
+        env["PIP_NO_CACHE_DIR"] = "1"
+    return env
 
 
 def _timed_help(tree: Path, env: dict[str, str], timeout_s: float) -> tuple[float, str]:
@@ -57,9 +77,7 @@ def bench_setup(argv: list[str]) -> dict[str, Any]:
     from fluxdrive.cli.bench import _export_commit, _ref_commit, write_benchmark
 
     sha = _ref_commit("HEAD", ROOT)
-    env = {k: v for k, v in os.environ.items() if k not in _CLEARED}
-    if not args.pip_cache:
-        env["PIP_NO_CACHE_DIR"] = "1"
+    env = _fresh_env(args.pip_cache)
     with tempfile.TemporaryDirectory(prefix="fluxdrive-setup-") as tmp:
         tree = Path(tmp) / "fluxdrive"
         tree.mkdir()
@@ -70,7 +88,7 @@ def bench_setup(argv: list[str]) -> dict[str, Any]:
         again, _ = _timed_help(tree, env, args.timeout)
         print(f"[setup] every later use: {again:.2f} s", flush=True)
     apt = [pkg for m in APT_LINE.finditer(log) for pkg in m.group(1).split()]
-    steps = [ln for ln in log.splitlines() if ln.startswith("[bootstrap]")]
+    colcon = COLCON_LINE.search(log)
     res = {
         "commit": sha,
         "first_use_s": round(first, 1),
@@ -78,7 +96,7 @@ def bench_setup(argv: list[str]) -> dict[str, Any]:
         "later_use_s": round(again, 2),
         "pip_download_cache": bool(args.pip_cache),
         "debian_packages_installed": apt,
-        "bootstrap_steps": steps,
+        "colcon_build_s": int(colcon.group(1)) if colcon else None,
         "cpus": os.cpu_count(),
     }
     if args.write:
