@@ -107,19 +107,31 @@ def test_machine_swaps_the_motor_and_keeps_the_rig():
     assert own.inertia_kgm2 == load_machine(CONFIG_DIR / "machines" / "paper_rig.yaml").inertia_kgm2
 
 
-def _step_metrics(card: str, **over) -> dict:
-    sc = load_scenario(scenario_path("paper_6pct_stepload"), machine=card, overrides=over or None)
-    sc.observers = {sc.driving: sc.observers[sc.driving]}  # the shadows: for time
-    return compute(run_scenario(sc, progress=False))
+def _predicted_dip_rpm(sc) -> float:
+    """The speed dip of the designed PI speed loop under a rated-torque step, from the loop's
+    natural frequency w_n = sqrt(K_t K_i / J): T_L / (e J w_n) (docs/engine.md; the rig
+    file's derivation of the dyno's inertia)."""
+    m = sc.machine
+    w_n = math.sqrt(m.torque_constant_nm_per_a * sc.control.design(m).ki_w / m.inertia_kgm2)
+    return m.rated_torque_nm / (math.e * m.inertia_kgm2 * w_n) * 60 / (2 * math.pi)
 
 
 @pytest.mark.parametrize("card", CARDS)
 def test_step_load_runs_on_every_shipped_card(card):
-    """The 6 % / 100 % step on the paper rig, motor swapped: stable, no trip, back on the
-    reference speed after the step."""
-    m = _step_metrics(card)
-    assert m["stable"] and m["trip"] is None, m.get("trip")
-    assert abs(m["speed"]["mean_error_rpm"]) < 0.05 * m["speed"]["mean_rpm"]
+    """The 6 % / 100 % step on the paper rig, motor swapped: the sensorless start hands over
+    before the step on every card; where the loop's predicted dip is below the speed the
+    drive holds it and is back on the reference, else (outer_rotor_48v: 7 N m at 36 rpm on
+    the rig's dyno) it stalls after the step and trips saying why."""
+    sc = load_scenario(scenario_path("paper_6pct_stepload"), machine=card)
+    sc.observers = {sc.driving: sc.observers[sc.driving]}  # the shadows: for time
+    m = compute(run_scenario(sc, progress=False))
+    speed = float(sc.speed_profile_rpm[-1, 1])
+    if _predicted_dip_rpm(sc) < speed:
+        assert m["stable"] and m["trip"] is None, m.get("trip")
+        assert abs(m["speed"]["mean_error_rpm"]) < 0.05 * speed
+    else:
+        assert not m["stable"] and m["trip"]["t_s"] > sc.step_load_time_s, m["trip"]
+        assert m["trip"]["fault"] == "loss of observer lock"
 
 
 def test_lab_card_holds_2pct_150pct_on_the_paper_bench():
@@ -176,3 +188,16 @@ def test_bench_sil_on_the_lab_card_holds_the_step(tmp_path):
     assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
     assert "kept the scenario's rig paper_rig" in p.stdout
     assert "stable=True" in p.stdout, p.stdout[-3000:]
+
+
+def test_study_sweeps_the_load_on_the_lab_card(tmp_path):
+    """The shipped study (config/studies/lab_card_load.yaml): the demo's 2 % case on the lab
+    card, its load_pu axis a level of the scenario's own ramp: every level holds, and the
+    report names the axis as run (1.5 is the profile's own 150 %)."""
+    p = _cli(["study", "lab_card_load", "--workers", "1", "--out", str(tmp_path)], 1800)
+    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
+    rep = (tmp_path / "report.md").read_text()
+    assert "| load_pu | 0.5, 1, 1.5 | scales the scenario file's load_pu profile" in rep
+    for level in ("0.5", "1", "1.5"):
+        assert f"| {level} | 1/1 (" in rep, rep  # stable, with its angle error
+    assert "flux_measured: holds 1.5 pu" in p.stdout and "down to 60.0 rpm" in p.stdout

@@ -396,7 +396,7 @@ class Rig:
     name: str
     load_inertia_kgm2: float = 0.0
     load_viscous_nms: float = 0.0
-    drive: dict[str, float] = field(default_factory=dict)  # RIG_DRIVE_KEYS -> value
+    drive: dict[str, Any] = field(default_factory=dict)  # RIG_DRIVE_KEYS -> value
     source: str = ""
 
     def on(self, card: MachineCard, src: str = "rig") -> MachineCard:
@@ -421,9 +421,16 @@ class Rig:
 
 
 def rig_of_card(card: MachineCard) -> Rig:
-    """The rig a scenario without `rig:` runs on: its card's inverter and sensor settings,
-    no load inertia or friction beyond the card's own."""
-    return Rig(name=f"of the card {card.name}", drive={k: getattr(card, k) for k in RIG_DRIVE_KEYS})
+    """The rig a scenario without `rig:` keeps when `--machine` swaps its motor: its card's
+    inverter and sensor settings, and the card's inertia and friction as the load's (a card
+    that is a motor on its dyno -- the shipped cards' `motor + dyno` inertia -- cannot say
+    which part is the motor's; the swapped motor's own add to it)."""
+    return Rig(
+        name=f"of the card {card.name}",
+        load_inertia_kgm2=card.inertia_kgm2,
+        load_viscous_nms=card.viscous_nms,
+        drive={k: getattr(card, k) for k in RIG_DRIVE_KEYS},
+    )
 
 
 def load_rig(path: str | Path) -> Rig:

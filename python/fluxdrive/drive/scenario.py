@@ -387,20 +387,25 @@ def _scenario_card(
 ) -> tuple[MachineCard, str]:
     """The motor (the card `--machine` names: a path, or a card name under config/machines;
     else the scenario's own) on the scenario's rig (`rig:`, a rig file relative to the
-    scenario; else the inverter and sensors of its own card, no load beyond it), and with
+    scenario; else, for a swapped motor, the rig of its own card: `rig_of_card`), and with
     `--machine` one line saying what of the scenario it kept.  A bad card or rig is said to
     belong to this scenario."""
     own = _own_card_path(path, raw)
+    same = machine is not None and machine_path(machine).resolve() == own.resolve()
+    if same:  # the scenario's own card: nothing to swap
+        machine = None
     try:
         motor = load_machine(machine_path(machine) if machine is not None else own)
         rig = _scenario_rig(path, raw, own if machine is not None else None)
         card = motor if rig is None else rig.on(motor, f"{path}: {rig.name} with {motor.name}")
-        if "rig" in raw:  # a rig file's: the card says so (the runs' reports name it)
+        if rig is not None and "rig" in raw:  # a rig file: the card says so (reports name it)
             card = dataclasses.replace(card, name=f"{motor.name}+{rig.name}")
     except ConfigError as exc:  # the card's own line, said to belong to this scenario
         raise ConfigError(f"{path}: 'machine': {exc}") from exc
     if machine is None:
-        return card, ""
+        return card, (
+            f"--machine {card.name}: the scenario's own card, nothing swapped" if same else ""
+        )
     assert rig is not None
     note = (
         f"--machine {motor.name}: the motor (and its bus and sensor full scales) from its "
