@@ -544,9 +544,11 @@ class Instrument:
             )
         return seq, fields
 
-    def spectrum(self, trace: str, window: str, t0_s: float, t1_s: float) -> dict[str, Any]:
+    def spectrum(
+        self, trace: str, window: str, t0_s: float, t1_s: float, ac: bool = False
+    ) -> dict[str, Any]:
         """The amplitude spectrum of `trace` over the samples held in [t0, t1] (the newest
-        gap-free run of them)."""
+        gap-free run of them); `ac`: its mean removed first."""
         from fluxdrive.analysis.instrument import amplitude_spectrum, in_view
 
         with self.lock:
@@ -560,10 +562,11 @@ class Instrument:
             raise LookupError(
                 f"{trace}: {len(seq)} samples in the span so far (at least {FFT_MIN_SAMPLES})"
             )
-        sp = amplitude_spectrum(v, ts, window)
+        sp = amplitude_spectrum(v, ts, window, remove_mean=ac)
         return {
             "trace": trace,
             "window": window,
+            "ac": ac,
             "n": sp.n,
             "t0_s": round(float(seq[0]) * ts, 9),
             "t1_s": round(float(seq[-1]) * ts, 9),
@@ -862,8 +865,9 @@ class Scope:
         return trace, t0, t1
 
     async def api_fft(self, request):
-        """GET ?trace=stream:field&window=hann&t0=&t1=: the amplitude spectrum in Hz of the
-        trace's full-rate samples in the view (fluxdrive.analysis.instrument)."""
+        """GET ?trace=stream:field&window=hann&t0=&t1=[&ac=1]: the amplitude spectrum in Hz
+        of the trace's full-rate samples in the view (fluxdrive.analysis.instrument; ac=1:
+        the mean removed first)."""
         from aiohttp import web
         from fluxdrive.analysis.instrument import WINDOWS
 
@@ -884,9 +888,10 @@ class Scope:
         ins = self.instrument
         await self._until(lambda: (ins.held(stream) or (0, -1))[1] >= t1 - ins.ts_s, FFT_WAIT_S)
         try:
-            out = ins.spectrum(trace, window, t0, t1)
+            out = ins.spectrum(trace, window, t0, t1, request.query.get("ac", "0") == "1")
         except KeyError:
-            return web.json_response({"ok": False, "error": f"no trace {trace}"}, status=404)
+            why = f"no samples of {trace} yet (is it a trace the page shows?)"
+            return web.json_response({"ok": False, "error": why}, status=404)
         except (LookupError, ValueError) as exc:
             return web.json_response({"ok": False, "error": str(exc)}, status=503)
         return web.json_response({"ok": True, **out})

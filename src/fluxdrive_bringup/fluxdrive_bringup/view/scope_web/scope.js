@@ -871,17 +871,18 @@ async function updateFft() {
   if (!$("fften").checked || fftBusy || !$("itrace").value) return;
   const v = viewSpan();
   if (!v || !drawableSpan(v[0], v[1])) return;
-  const key = `${$("itrace").value} ${$("fftwin").value} ${v[0]} ${v[1]}`;
+  const ac = $("fftac").checked ? 1 : 0;
+  const key = `${$("itrace").value} ${$("fftwin").value} ${ac} ${v[0]} ${v[1]}`;
   if (paused() && key === fftView && fft) return;  // a held view: computed once
   fftBusy = true;
   try {
-    const r = await api(`api/fft?${spanQuery(v)}&window=${$("fftwin").value}`);
+    const r = await api(`api/fft?${spanQuery(v)}&window=${$("fftwin").value}&ac=${ac}`);
     const j = await r.json();
     if (!j.ok) { $("fftinfo").textContent = j.error; return; }
     fft = j; fftView = key;
     let k = 1;
     for (let i = 2; i < j.amp.length; i++) if (j.amp[i] > j.amp[k]) k = i;
-    $("fftinfo").textContent = `${j.trace}, ${j.window}: ${j.n} samples ${fmtR(j.t0_s)}…${fmtR(j.t1_s)} s, ` +
+    $("fftinfo").textContent = `${j.trace}, ${j.window}${j.ac ? ", AC" : ""}: ${j.n} samples ${fmtR(j.t0_s)}…${fmtR(j.t1_s)} s, ` +
       `bins ${fmtR(j.df_hz)} Hz; peak ${fmtR(j.f_hz[k])} Hz, ${fmtR(j.amp[k])} (${j.scaling})` + (j.gap_cut ? "; cut at a gap" : "");
     drawFft();
   } catch (e) {
@@ -891,6 +892,7 @@ async function updateFft() {
 setInterval(updateFft, 1000);
 $("fften").addEventListener("change", updateFft);
 $("fftwin").addEventListener("change", () => { fftView = ""; updateFft(); });
+$("fftac").addEventListener("change", () => { fftView = ""; updateFft(); });
 
 let edgeState = null, edgeChart = null, edgeShown = 0, edgeTimer = null;
 window.scopeEdge = () => edgeState;  // read by the browser test
