@@ -419,6 +419,7 @@ class Instrument:
         self.events: list[dict[str, Any]] = []  # the newest, with their windows
         self.missing: dict[str, int] = {}  # stream -> samples that never arrived
         self.stopped = False  # the operator stopped the edge trigger
+        self.last_raw: dict[str, float] = {}  # stream -> when its last samples came (wall)
 
     def on_head(self, head: dict) -> None:
         """ROS thread: an envelope's raw samples into the buffer and the edge trigger."""
@@ -438,6 +439,7 @@ class Instrument:
                 fields = {f: a[1 + i][order] for i, f in enumerate(flds)}
                 self._note_gaps(stream, seq)
                 self.buf.put(stream, seq, fields)
+                self.last_raw[stream] = time.monotonic()
                 cfg = self.edge_cfg
                 if self.edge is not None and cfg["stream"] == stream and cfg["field"] in fields:
                     self.pending += self.edge.feed(seq, fields[cfg["field"]])
@@ -824,8 +826,8 @@ class Scope:
     async def _want_raw(self, stream: str) -> str | None:
         """Ask the tap for `stream`'s full-rate samples (its `raw_streams`); None, or why not."""
         ins, params = self.instrument, self.params
-        if stream in ins.wanted:
-            return None
+        if stream in ins.wanted and time.monotonic() - ins.last_raw.get(stream, -1e9) < 5.0:
+            return None  # asked, and its samples come (else ask again: a reset tap, a set)
         if params is None:
             return "the scope is not serving yet"
         text = ",".join(sorted(ins.wanted | {stream}))
@@ -836,8 +838,9 @@ class Scope:
             return f"cannot ask the scope tap for {stream}'s samples: {exc}"
         if not ok:
             return f"the scope tap refused raw_streams={text}: {reason}"
+        if stream not in ins.wanted:
+            print(f"scope: full-rate samples of {text} asked of {tap}", flush=True)
         ins.wanted.add(stream)
-        print(f"scope: full-rate samples of {text} asked of {tap}", flush=True)
         return None
 
     @staticmethod
