@@ -31,17 +31,22 @@ def test_claims_table_is_the_experiments_registry():
     from pathlib import Path
 
     from fluxdrive.experiments.claims import count, judge, registered
+    from fluxdrive.experiments.registry import experiment_modules
 
     table = registered()
-    exp = Path(__file__).resolve().parents[1] / "python/fluxdrive/experiments"
-    src = (exp / "paper.py").read_text() + (exp / "fronts.py").read_text()
+    # every experiment module the registry lists (a claim judged anywhere is registered)
+    src = "".join(Path(m.__file__).read_text() for m in experiment_modules())
     from fluxdrive.experiments.fronts import FRONT_CLAIMS
 
     used = set(re.findall(r'judge\(\s*"([a-z0-9_.]+)"', src)) | set(FRONT_CLAIMS)
     assert used == set(table)
     for row in table.values():
         assert row["if_fails"] in ("disagreement", "modelling_gap")
-        assert row["class"] == "reproduction" or row.get("calibration") or row.get("design")
+        assert (
+            row["class"] in ("reproduction", "beyond")
+            or row.get("calibration")
+            or row.get("design")
+        )
     # a model number fitted to a figure does not judge it; rows true by construction apart
     for cid in ("fig14.measured_6th_gone", "fig19.step_dip", "fig18.emf"):
         assert table[cid]["class"] == "calibrated"
@@ -63,6 +68,50 @@ def test_claims_table_is_the_experiments_registry():
         "calibrated": 1,
         "by_design": 0,
     }
+
+
+def test_experiments_are_found_by_listing_the_package(tmp_path, monkeypatch):
+    """A module with EXPERIMENTS and GROUP in the experiments package is an experiment (no
+    hand-kept list); the groups follow GROUP; a beyond-the-paper row is judged like a
+    reproduction but counted apart from the paper's claims in the report."""
+    import sys
+
+    import fluxdrive.experiments as pkg
+    from fluxdrive.experiments import registry
+    from fluxdrive.experiments.claims import judge
+
+    names = {m.__name__.rsplit(".", 1)[1] for m in registry.experiment_modules()}
+    assert {"paper", "fronts", "beyond", "emf_start"} <= names
+    (tmp_path / "extra_probe.py").write_text(
+        'GROUP = "beyond"\nEXPERIMENTS = {"probe": (lambda ctx: {"claims": []}, "probe")}\n'
+    )
+    monkeypatch.setattr(pkg, "__path__", [*pkg.__path__, str(tmp_path)])
+    registry.experiment_modules.cache_clear()
+    try:
+        assert "probe" in registry.groups()["beyond"]
+        assert "probe" in registry.experiments() and "probe" not in registry.groups()["paper"]
+    finally:
+        registry.experiment_modules.cache_clear()
+        sys.modules.pop("fluxdrive.experiments.extra_probe", None)
+    row = judge("emf_start.speed_holds", "x", 1.0)
+    assert row["verdict"] == "held" and row["class"] == "beyond"
+    paper_row = judge("fig14.stable", "x", 1.0)
+    registry.write_report(tmp_path, {"a": {"claims": [row, paper_row]}})
+    import json
+
+    doc = json.loads((tmp_path / "report.json").read_text())
+    assert doc["counts"]["held"] == 1 and doc["counts_beyond"]["held"] == 1
+
+
+def test_emf_start_rows_rest_on_a_sensorless_handover(tmp_path):
+    """emf_start (quick: 2 seeds): every seed hands over to the EMF observer on the I-f ramp
+    and holds 60 rpm at 150 %; each registered row says which handover it rests on."""
+    r = _run("emf_start", tmp_path)
+    for cid in ("emf_start.clean", "emf_start.theta_bounded", "emf_start.speed_holds"):
+        row = next(c for c in r["claims"] if c["id"] == cid)
+        assert row["verdict"] == "held", row
+        assert "handover to emf_measured" in row["ours"]
+    assert all(x["clean"] for x in r["data"]["runs"])
 
 
 def test_claims_table_is_frozen_at_its_registered_version():

@@ -40,6 +40,47 @@ def wrap(x: np.ndarray) -> np.ndarray:
     return (x + np.pi) % (2 * np.pi) - np.pi
 
 
+def theta_error_deg(result, name: str) -> np.ndarray:
+    """θ̃ = θ̂ − θ of observer `name` over a run, wrapped to (−180, 180] electrical degrees."""
+    est = result.estimate(name)
+    return np.degrees(np.angle(np.exp(1j * (est[:, ES_TH] - result.truth[:, TR_THETA_E]))))
+
+
+def handover(result) -> dict[str, Any]:
+    """The sensorless start's I-f -> observer handover of a run: its time, the rotor's mean
+    speed over the 0.1 s before it (the I-f ramp's), the driving observer and the criterion's
+    low-pass (0: per sample); handover_s None when the drive never reached closed loop on an
+    estimate (an encoder drive, or a start that failed)."""
+    from fluxdrive.drive.control import CO_MODE, MODE_CLOSED_LOOP
+
+    sc = result.scenario
+    closed = np.flatnonzero(result.ctrl[:, CO_MODE] == MODE_CLOSED_LOOP)
+    out: dict[str, Any] = {
+        "driving": sc.driving,
+        "criterion_lpf_hz": float(sc.control.handover_agree_lpf_hz or 0.0),
+        "handover_s": None,
+        "rotor_rpm": None,
+    }
+    if sc.driving == "encoder" or not closed.size:
+        return out
+    k0 = int(closed[0])
+    k_back = max(k0 - int(round(0.1 / sc.machine.ts_s)), 0)
+    out["handover_s"] = float(k0 * sc.machine.ts_s)
+    out["rotor_rpm"] = float(np.mean(result.truth[k_back : k0 + 1, TR_WM]) * 60.0 / (2 * np.pi))
+    return out
+
+
+def handover_text(h: dict[str, Any]) -> str:
+    """`handover` in words, for the rows that rest on it."""
+    if h["handover_s"] is None:
+        return f"{h['driving']}: no handover"
+    how = f"low-passed at {h['criterion_lpf_hz']:g} Hz" if h["criterion_lpf_hz"] else "per sample"
+    return (
+        f"{h['driving']} from a sensorless start: I-f, handover at {h['handover_s']:.2f} s with "
+        f"the rotor at {h['rotor_rpm']:.0f} rpm (criterion {how})"
+    )
+
+
 def whole_periods(theta_unwrapped: np.ndarray) -> slice:
     """Largest leading part of the window spanning a whole number of electrical periods
     (falls back to everything when less than one period elapsed).  Samples that are not

@@ -2459,6 +2459,7 @@ def rs_adapt(ctx):
     return {"claims": claims, "figures": figs, "data": {"runs": rows, "gain_per_s": gain}}
 
 
+GROUP = "beyond"  # experiments.registry lists this module
 EXPERIMENTS = {
     "lowest_speed": (lowest_speed, "lowest sustainable speed per variant at 100 % load"),
     "mismatch": (mismatch, "R̂, L̂, λ̂ mismatch and current offsets at 2 %/150 %"),

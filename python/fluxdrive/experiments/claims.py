@@ -40,7 +40,11 @@ from fluxdrive.drive.scenario import CONFIG_DIR
 
 CLAIMS_FILE = CONFIG_DIR / "claims.yaml"
 HISTORY_FILE = CONFIG_DIR / "claims_history.yaml"
-CLASSES = ("reproduction", "calibrated", "by_design")
+# `beyond`: a claim of ours past the paper, judged like a reproduction (held / its if_fails /
+# undecided) and counted apart from the paper's claims (BEYOND)
+CLASSES = ("reproduction", "calibrated", "by_design", "beyond")
+JUDGED = ("reproduction", "beyond")  # the classes a passing test makes "held"
+BEYOND = "beyond"
 FAILURES = ("disagreement", "modelling_gap")
 # the six counts of the report, in its order
 VERDICTS = ("held", "disagreement", "modelling_gap", "undecided", "calibrated", "by_design")
@@ -227,7 +231,7 @@ def judge(
         "ours": ours,
         "class": cls,
         "passes": passes,
-        "holds": passes if cls == "reproduction" else None,  # only a reproduction can hold
+        "holds": passes if cls in JUDGED else None,  # only a reproduction (or beyond) holds
         "verdict": verdict,
     }
     if stats is not None:
@@ -273,7 +277,7 @@ def _decide(
     elif not passes:
         verdict = row["if_fails"]
     else:
-        verdict = "held" if row["class"] == "reproduction" else row["class"]
+        verdict = "held" if row["class"] in JUDGED else row["class"]
     return value, passes, verdict, stats
 
 
@@ -295,7 +299,7 @@ def over_seeds(per_seed: list[list[dict]]) -> list[dict]:
         value, passes, verdict, stats = _decide(row, math.nan, vals)
         d = dict(c)
         d.update(value=value, passes=passes, verdict=verdict, stats=stats)
-        d["holds"] = passes if row["class"] == "reproduction" else None
+        d["holds"] = passes if row["class"] in JUDGED else None
         d["per_seed"] = vals
         d["ours"] = f"{c['ours']} (seed 1; per seed: {', '.join(f'{v:.4g}' for v in vals)})"
         if "original" in c and {x["metric"] for x in row["original"]["tests"]} <= {row["metric"]}:
@@ -320,7 +324,7 @@ def _original(row: dict[str, Any], value: float, also: dict[str, float]) -> dict
     if not ok:
         verdict = row["if_fails"]
     else:
-        verdict = "held" if row["class"] == "reproduction" else row["class"]
+        verdict = "held" if row["class"] in JUDGED else row["class"]
     return {
         "test": " and ".join(parts),
         "passes": ok,

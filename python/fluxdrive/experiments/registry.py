@@ -6,9 +6,12 @@ Each experiment builds scenarios, runs them through the project's one parallel r
 and one row per claim into report.md / report.json (experiments.claims judges the paper's
 claims against config/claims.yaml).
 
-Experiments live in paper.py (Figs. 2-4, 13-19), fronts.py (flux vs EMF at matched
-bandwidth) and beyond.py (lowest speed, mismatch, sensitivity, online R_s, speed reversal,
-where peers fail).  Each one is `fn(ctx) -> dict` with keys claims, figures, data; `ctx` (a
+Experiments live in the modules of this package, found by listing it (`experiment_modules`:
+no hand-kept list): a module with an `EXPERIMENTS` table (name -> (function, title)) and a
+`GROUP` ("paper" or "beyond") is one; paper.py (Figs. 2-4, 13-19), fronts.py (flux vs EMF at
+matched bandwidth), beyond.py (lowest speed, mismatch, sensitivity, online R_s, speed
+reversal, where peers fail), emf_start.py (the EMF drive's sensorless start), and whatever
+module is added.  Each one is `fn(ctx) -> dict` with keys claims, figures, data; `ctx` (a
 common.Ctx) carries the card, the runner and the output folder, and `ctx.run(jobs)` runs
 (scenario, extractor, kwargs) jobs and returns the extractors' outputs, so only small arrays
 cross process boundaries.  The command line is fluxdrive.cli.experiment.
@@ -16,14 +19,18 @@ cross process boundaries.  The command line is fluxdrive.cli.experiment.
 
 from __future__ import annotations
 
+import functools
+import importlib
 import json
 import math
+import pkgutil
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from fluxdrive.experiments.claims import (
+    BEYOND,
     FAILURES,
     MIN_SEEDS,
     OBSERVERS,
@@ -49,14 +56,34 @@ from fluxdrive.experiments.common import (  # noqa: F401
     sensorless,
 )
 
-
 # ---------------------------------------------------------------- registry
-def _registry() -> dict[str, tuple[Callable, str]]:
-    from fluxdrive.experiments import beyond as b
-    from fluxdrive.experiments import fronts as f
-    from fluxdrive.experiments import paper as p
+GROUPS = ("paper", "beyond")  # the report's order: the paper's figures, then past the paper
 
-    return {**p.EXPERIMENTS, **f.EXPERIMENTS, **b.EXPERIMENTS}
+
+@functools.cache
+def experiment_modules() -> tuple[Any, ...]:
+    """Every module of this package that holds experiments (an `EXPERIMENTS` table and a
+    `GROUP` in GROUPS), found by listing the package: the paper's first, then by name."""
+    import fluxdrive.experiments as pkg
+
+    mods = []
+    for info in pkgutil.iter_modules(pkg.__path__):
+        mod = importlib.import_module(f"{pkg.__name__}.{info.name}")
+        if isinstance(getattr(mod, "EXPERIMENTS", None), dict) and getattr(mod, "GROUP", None):
+            if mod.GROUP not in GROUPS:
+                raise ValueError(f"{mod.__name__}: GROUP must be one of {GROUPS}")
+            mods.append(mod)
+    return tuple(sorted(mods, key=lambda m: (GROUPS.index(m.GROUP), m.__name__)))
+
+
+def _registry() -> dict[str, tuple[Callable, str]]:
+    out: dict[str, tuple[Callable, str]] = {}
+    for mod in experiment_modules():
+        for name, entry in mod.EXPERIMENTS.items():
+            if name in out:
+                raise ValueError(f"{mod.__name__}: experiment {name} is defined twice")
+            out[name] = entry
+    return out
 
 
 def experiments() -> dict[str, tuple[Callable, str]]:
@@ -65,17 +92,12 @@ def experiments() -> dict[str, tuple[Callable, str]]:
 
 
 def groups() -> dict[str, list[str]]:
-    """Names that stand for several experiments: `paper` (the paper's figures, paper.py),
-    `beyond` (past the paper, fronts.py and beyond.py) and `all`."""
-    from fluxdrive.experiments import beyond as b
-    from fluxdrive.experiments import fronts as f
-    from fluxdrive.experiments import paper as p
-
-    return {
-        "paper": list(p.EXPERIMENTS),
-        "beyond": [*f.EXPERIMENTS, *b.EXPERIMENTS],
-        "all": list(_registry()),
-    }
+    """Names that stand for several experiments: `paper` (the paper's figures), `beyond`
+    (past the paper: every module whose GROUP is "beyond") and `all`."""
+    out: dict[str, list[str]] = {g: [] for g in GROUPS}
+    for mod in experiment_modules():
+        out[mod.GROUP] += list(mod.EXPERIMENTS)
+    return {**out, "all": list(_registry())}
 
 
 def expand(names: str) -> list[str]:
@@ -207,6 +229,9 @@ def _claim_rows(claims: list[dict]) -> list[str]:
     return lines
 
 
+BEYOND_VERDICTS = ("held", "disagreement", "modelling_gap", "undecided")
+
+
 def counts_by_observer(claims: list[dict]) -> dict[str, dict[str, int]]:
     """The counts of the rows judging each flux observer (the row's variant or its
     registered `observer`), and of the rest (rows that involve neither)."""
@@ -261,6 +286,11 @@ def _report_head(doc: dict[str, Any]) -> list[str]:
         "",
         f"**Claims: {counts_line(n)}.**",
         "",
+        "Claims of ours past the paper (class *beyond*: registered in the same table, judged "
+        "like a reproduction, counted apart): "
+        + ", ".join(f"{VERDICT_TEXT[v]} {doc['counts_beyond'][v]}" for v in BEYOND_VERDICTS)
+        + ".",
+        "",
         *(f"- {name}: {counts_line(c)}" for name, c in doc["counts_by_observer"].items()),
         "",
     ]
@@ -293,7 +323,8 @@ def write_report(out: Path, results: dict[str, dict]) -> None:
     allres = {
         k: allres[k] for k in sorted(allres, key=lambda k: order.index(k) if k in order else 999)
     }
-    judged = [c for r in allres.values() for c in r.get("claims", [])]
+    rows = [c for r in allres.values() for c in r.get("claims", [])]
+    judged = [c for c in rows if c.get("class") != BEYOND]  # the paper's claims
     n = count(judged)
     by_obs = counts_by_observer(judged)
     reg = registry_info()
@@ -301,6 +332,7 @@ def write_report(out: Path, results: dict[str, dict]) -> None:
     doc = {  # the counts and the registry: for the docs to quote
         "registry": {k: reg[k] for k in ("version", "sha256", "registered", "problems")},
         "counts": n,
+        "counts_beyond": count([c for c in rows if c.get("class") == BEYOND]),
         "counts_by_observer": by_obs,
         "original_tests_changed": changed,
         "experiments": allres,
