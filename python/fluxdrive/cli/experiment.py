@@ -18,7 +18,7 @@ from pathlib import Path
 from fluxdrive.core.machine import ConfigError, load_machine
 from fluxdrive.core.schema import Parser
 from fluxdrive.drive.scenario import MACHINE_HELP, REPO_ROOT, load_bench_file, machine_path
-from fluxdrive.experiments.claims import MIN_SEEDS, count, counts_line
+from fluxdrive.experiments.claims import BEYOND, MIN_SEEDS, count, counts_line
 from fluxdrive.experiments.common import DEFAULT_MACHINE, claim
 from fluxdrive.experiments.registry import (
     expand,
@@ -194,7 +194,10 @@ def _run_all(
             judged += res["claims"]
     finally:
         runner.close()
-    print(f"claims: {counts_line(count(judged))}")
+    paper = [c for c in judged if c.get("class") != BEYOND]
+    print(f"claims: {counts_line(count(paper))}")
+    if len(paper) < len(judged):
+        print(f"past the paper: {counts_line(count([c for c in judged if c not in paper]))}")
     print(
         f"report: {out / 'report.md'} ({len(names)} experiments, "
         f"{time.perf_counter() - t0:.1f} s wall total, load average {os.getloadavg()[0]:.1f})"

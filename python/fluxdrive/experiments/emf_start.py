@@ -62,6 +62,8 @@ def start_numbers(r) -> dict[str, Any]:
         "handover_s": k0 * ts if closed.size else math.nan,
         # the rotor's mean speed over the 0.1 s before the handover: the I-f ramp's
         "handover_rpm": ho["rotor_rpm"] if closed.size else math.nan,
+        # the speed the I-f ramp heads for (the reference up to the handover)
+        "ramp_target_rpm": float(np.max(np.abs(r.w_ref[: k0 + 1])) * RPM),
         "theta_max_deg": float(np.max(np.abs(err[after]))) if closed.size else math.inf,
         "valid_after": float(np.mean(r.estimate(sc.driving)[after, ES_VALID]))
         if closed.size
@@ -103,7 +105,7 @@ def _claims(rows: list[dict], seeds: list[int]) -> list[dict]:
         f"drive's criterion (estimate valid and agreeing with the ramp, low-passed at 2 Hz, for "
         f"0.3 s; the EMF observer valid on its EMF averaged over the PLL's time constant) at "
         f"{min(ho):.2f}-{max(ho):.2f} s, the rotor at {min(ho_rpm):.0f}-{max(ho_rpm):.0f} rpm on "
-        f"the I-f ramp to 200 rpm, before the load"
+        f"the I-f ramp to {rows[0]['ramp_target_rpm']:.0f} rpm, before the load"
     )
     n_clean = sum(bool(x["clean"]) for x in rows)
     lag = [x["lag_rpm"] / x["lag_pred_rpm"] - 1.0 for x in rows]
