@@ -1,7 +1,8 @@
 """The drive's protections, one case table (fluxdrive.can.faultcases) run on the targets: the
 C core's host build through its ctypes binding and the board image on the virtual board,
 each as the MCU of the drive emulator with the plant, in closed loop over a virtual CAN bus
-with the bridge and the host in-process (split mode, D = 4). Each injected condition turns
+with the bridge and the host in-process (split mode, D = 4), the cases one after the other
+in one run (an operator resets and re-arms in between). Each injected condition turns
 the PWM off within its stated number of periods and keeps it off, the drive sends a FAULT
 frame with the case's code, and the bridge gets exactly one drive fault naming it; the
 reactions are those in docs/firmware.md's generated table. No ROS."""
@@ -17,14 +18,6 @@ from fluxdrive.core import protocol_constants as pc
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "firmware.md"
-
-
-def _cases(target: str) -> list:
-    return [pytest.param(c, id=c.name) for c in fc.CASES if target not in c.not_on]
-
-
-def _doc_cell(name: str, target: str) -> str:
-    return fc.doc_cells(DOC.read_text())[name][target]
 
 
 def test_every_protection_of_the_core_is_a_case_or_said_why_not():
@@ -50,22 +43,21 @@ def test_bad_injections_are_one_clear_line():
     assert (inj.case.name, inj.k_at) == ("gate_driver", 500)
 
 
-def _check(res: dict, case: fc.FaultCase, target: str) -> None:
-    print(res)
-    assert res["ok"], res["checks"]
-    if case.name == "i2t":  # the integral's own time: limit / ((i/I_rated)^2 - 1)
-        assert res["bound"] - 0.005 * res["bound"] <= res["reaction"] <= res["bound"]
-    assert fc.cell(res) == _doc_cell(case.name, target), "./fluxdrive fault-cases --write"
-
-
-@pytest.mark.parametrize("case", _cases("core"))
-def test_case_on_the_host_built_core(case):
-    _check(fc.run_in_process(case, "c"), case, "core")
-
-
-@pytest.mark.parametrize("case", _cases("pil"))
-def test_case_on_the_virtual_board(case):
-    _check(fc.run_in_process(case, "pil"), case, "pil")
+@pytest.mark.parametrize("target", ["core", "pil"])
+def test_every_case_on_the_target(target):
+    """Every case of the table not marked otherwise, on the host core or the virtual board:
+    one run injecting them one after the other (reset and re-armed in between) and one for
+    the case before arming."""
+    cases = [c for c in fc.CASES if target not in c.not_on]
+    results = fc.run_in_process(cases, "c" if target == "core" else "pil")
+    cells = fc.doc_cells(DOC.read_text())
+    for c, res in zip(cases, results, strict=True):
+        print(target, c.name, fc.cell(res), res["checks"])
+    for c, res in zip(cases, results, strict=True):
+        assert res["ok"], (c.name, res["checks"])
+        if c.name == "i2t":  # the integral's own time: limit / ((i/I_rated)^2 - 1)
+            assert res["bound"] - 0.005 * res["bound"] <= res["reaction"] <= res["bound"]
+        assert fc.cell(res) == cells[c.name][target], "./fluxdrive fault-cases --write"
 
 
 def test_cases_not_run_on_a_target_say_why_in_the_doc():

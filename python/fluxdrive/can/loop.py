@@ -165,6 +165,7 @@ def run_can_loop(
     arm: bool = True,
     emulator_kw: dict[str, Any] | None = None,
     frame_hook: Any = None,
+    operator: Any = None,
     log_path: str | None = None,
     layout: str = "fd",
     decimation: int | None = None,
@@ -179,7 +180,9 @@ def run_can_loop(
     the layout, FD 1, classic 8); with D > 1 the observers and the controller run from
     ``control_scenario`` (default ``decimated_scenario(scenario, D)``, i.e. the
     scenario's own control section at ts = D*Ts). In split mode (the scenario's
-    ``control.mode``) D is the scenario's ``control.decimation``. A ``frame_hook`` returning
+    ``control.mode``) D is the scenario's ``control.decimation``. ``operator(bridge, host)``
+    is called before each sample is handled, with the host's HostLoop (a fault-injection
+    schedule's operator resets and re-arms). A ``frame_hook`` returning
     False leaves that sample unanswered (host silence). ``realtime`` paces the emulator to
     wall time (with ``emulator_kw={"lockstep": False}``: a free-running MCU); the host's
     answer latencies (sample sent -> answer on the bus) are in ``extra["answer_latency_s"]``,
@@ -213,7 +216,7 @@ def run_can_loop(
     t0 = time.perf_counter()
     emu.start(n, realtime=realtime)
     try:
-        _serve(bridge, emu, host, frame_hook)
+        _serve(bridge, emu, host, _with_operator(frame_hook, operator, host))
     finally:
         emu.stop()
         bridge.shutdown()
@@ -368,6 +371,18 @@ class HostLoop:
             )
         else:
             bridge.send_duty(kk, ctrl[CO_DA : CO_DC + 1], ctrl[CO_EN] > 0.5)
+
+
+def _with_operator(frame_hook: Any, operator: Any, host: HostLoop) -> Any:
+    """`frame_hook` with `operator(bridge, host)` called first (either may be None)."""
+    if operator is None:
+        return frame_hook
+
+    def hook(bridge: CanBridge, kk: int) -> Any:
+        operator(bridge, host)
+        return True if frame_hook is None else frame_hook(bridge, kk)
+
+    return hook
 
 
 def _serve(bridge: CanBridge, emu: DriveEmulator, host: HostLoop, frame_hook: Any) -> None:

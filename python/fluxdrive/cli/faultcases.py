@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
         if target == "sil":
             results = run_graph(todo, Path(tempfile.mkdtemp(prefix="fault-cases-")))[0]
         else:
-            results = [fc.run_in_process(c, "c" if target == "core" else "pil") for c in todo]
+            results = fc.run_in_process(todo, "c" if target == "core" else "pil")
         for c, res in zip(todo, results, strict=True):
             cells.setdefault(c.name, {})[target] = fc.cell(res)
             print(
@@ -74,15 +74,11 @@ def run_graph(
     import yaml
 
     ts = fc.fault_scenario(1.0).machine.ts_s
-    runs = [[c] for c in cases if c.before_arming]
-    chain = [c for c in cases if not c.before_arming]
-    runs = ([chain] if chain else []) + runs
     got: dict[str, dict[str, Any]] = {}
     bags = []
-    for i, run in enumerate(runs):
-        drive_s = fc.AT_S + sum(fc.duration_s(c, ts, fc.expected_bound(c)) for c in run)
+    for i, run in enumerate(fc.runs_of(cases)):
         sp = work / f"fault_injection_{i}.yaml"
-        sp.write_text(yaml.safe_dump(fc.scenario_raw(1.0 + 2 * drive_s), sort_keys=False))
+        sp.write_text(yaml.safe_dump(fc.scenario_raw(fc.run_drive_s(run, ts)), sort_keys=False))
         at = 0.0 if run[0].before_arming else fc.AT_S
         inject = ",".join([f"{run[0].name}@{at}", *(c.name for c in run[1:])])
         bag = work / f"bag_{i}"

@@ -352,6 +352,8 @@ class InjectionOperator:
                     ev = events.popleft()
                     if ev.source.startswith("drive via"):
                         latched = bool(ev.latched)
+                        if latched:  # as a person would: not before the condition is gone
+                            s.spin_for(0.2)
                         if not latched and not self._stop.is_set():  # cleared: re-arm
                             _call(s, ResetFault, "/controller/reset_fault", ResetFault.Request())
                             _call(s, Arm, "/drive/arm", Arm.Request(arm=True))
