@@ -12,6 +12,7 @@ import subprocess
 import sys
 import time
 
+import can
 import pytest
 from ros_domains import domain
 
@@ -38,6 +39,53 @@ def _wait_busy(procs: list[subprocess.Popen], cpu_s: float = 0.3, timeout: float
     while any(used(p) < cpu_s for p in procs):
         assert time.monotonic() < t_end, "the busy processes did not start"
         time.sleep(0.05)
+
+
+def test_a_late_bridge_is_not_a_silent_drive():
+    """The bench bridge judges stale data at the moment it last found its bus empty, not
+    after it got the CPU back: a bridge held up for 0.2 s (load, the GIL) right after an empty
+    read, while the drive's samples queued in its socket, latches nothing and takes them on
+    its next read (was: "stale data: no valid sample for 0.051 s" on a loaded machine, and
+    arming refused).  A drive that is silent for longer than the timeout still trips it."""
+    from fluxdrive.can.bridge import BridgeConfig, CanBridge
+    from fluxdrive.can.loop import new_virtual_channel
+    from test_hostile_bus import sample
+
+    now = [100.0]
+    ch = new_virtual_channel()
+    tx = can.Bus(interface="virtual", channel=ch, fd=True)
+    br = CanBridge(
+        lambda: can.Bus(interface="virtual", channel=ch, fd=True),
+        BridgeConfig(stale_timeout_s=0.05),
+        clock=lambda: now[0],
+    )
+    br.connect()
+    recv = br._recv
+    held: list[int] = []
+
+    def held_up_after_an_empty_read(bus, timeout):
+        msg = recv(bus, timeout)
+        if msg is None and held:  # found empty, then this thread waits 0.2 s meanwhile
+            tx.send(sample(held.pop()))
+            now[0] += 0.2
+        return msg
+
+    br._recv = held_up_after_an_empty_read
+    try:
+        for s in range(10):
+            tx.send(sample(s))
+        assert len(br.poll(timeout=0.01)) == 10 and not br.fault
+        held.append(10)
+        assert len(br.poll(timeout=0.01)) == 0  # empty, then held up while sample 10 came
+        assert not br.fault, br.fault
+        assert len(br.poll(timeout=0.01)) == 1 and not br.fault  # sample 10, on time
+        # a drive silent for 0.2 s: stale, latched
+        now[0] += 0.2
+        br.poll(timeout=0.01)
+        assert br.fault.startswith("stale data: no valid sample for 0.2"), br.fault
+    finally:
+        br.shutdown()
+        tx.shutdown()
 
 
 def test_a_lost_answer_is_asked_for_again():

@@ -773,6 +773,10 @@ class CanBridge:
         samples: list[can.Message] = []
         bus = self.bus
         sample_ids = (ID_SAMPLE_FD,) if self.layout == "fd" else CLASSIC_SAMPLE_IDS
+        # when the bus was last seen with nothing waiting: staleness is judged at that
+        # instant, not after this thread got the CPU back -- a bridge held up (load, the
+        # GIL) while samples queued in its socket is late, the drive is not silent
+        t_empty = self.clock()
         try:
             msg = self._recv(bus, timeout)
             while msg is not None:
@@ -782,6 +786,7 @@ class CanBridge:
                     self._handle_other(msg)
                 if len(samples) >= max_frames:
                     break
+                t_empty = self.clock()
                 msg = self._recv(bus, 0.0)
             state = getattr(bus, "state", None)
             if state == can.BusState.ERROR:
@@ -792,7 +797,7 @@ class CanBridge:
             return frames
         self.poll_first_rx_s = samples[0].timestamp if samples else 0.0
         frames = self._decode(samples)
-        self.tick(self.clock())
+        self.tick(t_empty)
         return frames
 
     def _recv(self, bus: can.BusABC, timeout: float) -> can.Message | None:
