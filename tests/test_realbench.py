@@ -300,11 +300,28 @@ def test_the_real_bench_graph_runs_against_the_c_core_over_udp_multicast(tmp_pat
         [str(FLUXDRIVE), "can-emulator", "--mcu", "c", "--interface", "udp_multicast",
          "--channel", group, "--port", str(port), "--hop-limit", "0", "--decimation", "4",
          "--free-running", "--periods", "3000000"],
-        env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     bag = tmp_path / "bag"
     can_env = {"CAN_CONFIG": f'{{"port": {port}, "hop_limit": 0}}'}
     try:
+        # the drive is up (its C core built, its loop about to run; on a loaded machine that
+        # can take longer than the bench's wait for a STATUS frame): its first line
+        err: list[str] = []
+
+        def read_err() -> None:
+            for ln in drive.stderr or []:
+                err.append(ln)
+
+        threading.Thread(target=read_err, daemon=True).start()
+        t_end = time.monotonic() + 240
+
+        def up() -> bool:
+            return any(ln.startswith("[can-emulator]") for ln in list(err))
+
+        while not up() and drive.poll() is None and time.monotonic() < t_end:
+            time.sleep(0.05)
+        assert up(), "".join(err) or "the drive did not start"
         cal = _fluxdrive(
             "bench", "--calibrate", "--interface", "udp_multicast", "--channel", group,
             "--status-wait", "60", env=can_env,
@@ -317,7 +334,12 @@ def test_the_real_bench_graph_runs_against_the_c_core_over_udp_multicast(tmp_pat
         )  # fmt: skip
     finally:
         drive.terminate()
-        drive.wait(30)
+        try:
+            drive.wait(60)
+        except subprocess.TimeoutExpired:  # not this test's question: say so, go on
+            drive.kill()
+            drive.wait(30)
+            print("the drive emulator did not stop within 60 s of SIGTERM (killed)")
     out = r.stdout + r.stderr
     assert r.returncode == 0, out[-3000:]
     assert "[bench] pre-flight passed: drive on udp_multicast" in out
