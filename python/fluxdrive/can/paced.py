@@ -241,6 +241,21 @@ def _run_paced(emu: Any, n: int, cfg: PacedConfig) -> dict[str, Any]:
     deadline = clock() + 2 * timeout_s
     while clock() < deadline:
         emu._drain(0.005)
+    drive = {
+        "missed": missed,
+        "worst_lag_s": worst_lag,
+        "worst_step_s": worst_step,
+        "worst_step_at_s": worst_step_k * ts,
+        "faults_at": faults_at,
+    }
+    return _paced_figures(emu, lat, wall, timeout_s, drive)
+
+
+def _paced_figures(
+    emu: Any, lat: Any, wall: float, timeout_s: float, drive: dict[str, Any]
+) -> dict[str, Any]:
+    """The record of a paced run: the answers' latencies against the reference timeout and
+    the sample period, and the drive's own timing (`drive`, gathered by _run_paced)."""
     st = emu.stats
     a = np.asarray(lat, dtype=float)
     us = a * 1e6
@@ -256,14 +271,14 @@ def _run_paced(emu: Any, n: int, cfg: PacedConfig) -> dict[str, Any]:
         "latency_p99_us": round(float(np.percentile(us, 99)), 1) if us.size else None,
         "latency_p999_us": round(float(np.percentile(us, 99.9)), 1) if us.size else None,
         "latency_max_us": round(float(us.max()), 1) if us.size else None,
-        "over_sample_period": int(np.sum(a > d * ts)),
-        "drive_missed_periods": missed,
-        "drive_worst_lag_us": round(worst_lag * 1e6, 1),
-        "drive_step_max_us": round(worst_step * 1e6, 1),
-        "drive_step_max_at_s": round(worst_step_k * ts, 4),
+        "over_sample_period": int(np.sum(a > emu.decimation * emu.ts)),
+        "drive_missed_periods": drive["missed"],
+        "drive_worst_lag_us": round(drive["worst_lag_s"] * 1e6, 1),
+        "drive_step_max_us": round(drive["worst_step_s"] * 1e6, 1),
+        "drive_step_max_at_s": round(drive["worst_step_at_s"], 4),
         "drive_faults": list(st.fault_codes),
         # per fault: [drive time s, the period's lag behind the wall clock us, its step us]
-        "drive_faults_at": faults_at,
+        "drive_faults_at": drive["faults_at"],
         "refs_applied": int(st.refs_applied),
         "drive_armed_at_end": bool(emu.armed),
     }
