@@ -25,7 +25,8 @@ pytest.importorskip("msgpack")  # python-can's udp_multicast needs it
 # the C drive paced against the graph over a CAN bus, and a timed flood: alone
 pytestmark = pytest.mark.serial
 
-from test_bench_sil import DURATION_S, D, _case  # noqa: E402
+from bench_harness import DURATION_S, D  # noqa: E402
+from bench_harness import case as _case  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -3,10 +3,10 @@
  * come from g474_regs.h (generated from the stm32g4 crate); the Cortex-M core registers
  * (NVIC, SCB) are the ARMv7-M architecture's. RM0440 is the reference manual. */
 #include <stddef.h>
-#include <string.h>
 
 #include "fd_board.h"
 #include "fd_can.h"
+#include "fd_can_words.h"
 #include "fd_hal.h"
 #include "g474_regs.h"
 
@@ -616,17 +616,8 @@ bool fd_hal_can_tx(void *hal, const fd_can_frame_t *frame)
     MRAM(base) = (frame->id & 0x7FFu) << 18;
     MRAM(base + 4u) = (dlc << 16) | (frame->fd ? (1u << 21) | (1u << 20) : 0u);
     uint32_t n = DLC_LEN[dlc];
-    for (uint32_t w = 0; w < n; w += 4u) {
-        uint32_t v = 0;
-        if (w + 4u <= frame->len) { /* a whole word of payload: one load (little-endian) */
-            memcpy(&v, &frame->data[w], 4u);
-        } else {
-            for (uint32_t b = 0; b < 4u; ++b) {
-                uint32_t i = w + b;
-                v |= (uint32_t)(i < frame->len ? frame->data[i] : 0u) << (8u * b);
-            }
-        }
-        MRAM(base + 8u + w) = v;
+    for (uint32_t w = 0; w < n; w += 4u) { /* the DLC's padding reads as 0 */
+        MRAM(base + 8u + w) = fd_can_word(frame, w);
     }
     G4_FDCAN1_TXBAR = 1u << idx;
     return true;
@@ -647,10 +638,7 @@ bool fd_hal_can_rx(void *hal, fd_can_frame_t *frame)
     frame->fd = (uint8_t)((r1 >> 21) & 1u);
     frame->len = DLC_LEN[(r1 >> 16) & 0xFu];
     for (uint32_t w = 0; w < frame->len; w += 4u) {
-        uint32_t v = MRAM(base + 8u + w);
-        for (uint32_t b = 0; b < 4u; ++b) {
-            frame->data[w + b] = (uint8_t)(v >> (8u * b));
-        }
+        fd_can_set_word(frame, w, MRAM(base + 8u + w));
     }
     G4_FDCAN1_RXF0A = idx;
     return true;

@@ -1,25 +1,7 @@
 /* Bench implementation of fd_hal.h for the target images (see fd_hal_bench.h). */
 #include "fd_hal_bench.h"
 
-#include <string.h>
-
-/* header and the payload's len bytes in 32-bit words, as a FIFO or an FDCAN message RAM
- * is written: not the 72-byte struct (a memcpy call, byte by byte in newlib-nano) */
-static void copy_frame(fd_can_frame_t *dst, const fd_can_frame_t *src)
-{
-    dst->id = src->id;
-    dst->len = src->len;
-    dst->fd = src->fd;
-    uint32_t n = ((uint32_t)src->len + 3u) / 4u;
-    if (n > 16u) {
-        n = 16u;
-    }
-    for (uint32_t i = 0; i < n; ++i) {
-        uint32_t w;
-        memcpy(&w, &src->data[4u * i], 4u);
-        memcpy(&dst->data[4u * i], &w, 4u);
-    }
-}
+#include "fd_can_words.h"
 
 int fd_bench_rx_push(fd_bench_hal_t *h, const fd_can_frame_t *f)
 {
@@ -47,7 +29,7 @@ void fd_hal_pwm_write(void *hal, const uint32_t compare[3], bool enable)
 bool fd_hal_can_tx(void *hal, const fd_can_frame_t *frame)
 {
     fd_bench_hal_t *h = (fd_bench_hal_t *)hal;
-    copy_frame(&h->tx[h->tx_head % FD_BENCH_QUEUE], frame);
+    fd_can_copy(&h->tx[h->tx_head % FD_BENCH_QUEUE], frame);
     h->tx_head++;
     return true;
 }
@@ -58,7 +40,7 @@ bool fd_hal_can_rx(void *hal, fd_can_frame_t *frame)
     if (h->rx_head == h->rx_tail) {
         return false;
     }
-    copy_frame(frame, &h->rx[h->rx_tail % FD_BENCH_QUEUE]);
+    fd_can_copy(frame, &h->rx[h->rx_tail % FD_BENCH_QUEUE]);
     h->rx_tail++;
     return true;
 }

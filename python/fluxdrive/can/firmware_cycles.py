@@ -58,6 +58,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from fluxdrive.can.elf import function_ranges
+
 __all__ = [
     "ENTRY_EXIT_LOWER",
     "ENTRY_EXIT_UPPER",
@@ -207,23 +209,6 @@ def disassemble(elf: Path) -> dict[int, Insn]:
         cond = _is_conditional(m.group(3))
         insns[addr] = Insn(addr, size, op, args, cls, regs, wpc, lit, cond)
     return insns
-
-
-def function_ranges(elf: Path) -> list[tuple[int, int, str]]:
-    """(start, end, name) of every function symbol with a size (arm-none-eabi-nm -S)."""
-    out = subprocess.run(
-        ["arm-none-eabi-nm", "-S", "--defined-only", str(elf)],
-        capture_output=True,
-        text=True,
-        check=True,
-    ).stdout
-    ranges = []
-    for line in out.splitlines():
-        parts = line.split()
-        if len(parts) == 4 and parts[2] in ("t", "T", "w", "W"):
-            start = int(parts[0], 16) & ~1
-            ranges.append((start, start + int(parts[1], 16), parts[3]))
-    return sorted(ranges)
 
 
 def placement(g474_elf: Path) -> dict[str, str]:

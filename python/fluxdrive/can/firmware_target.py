@@ -29,9 +29,11 @@ import re
 import shutil
 import subprocess
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from fluxdrive.can.elf import elf_symbols
 from fluxdrive.can.firmware import FIRMWARE_DIR, FirmwareBuildError, _source_hash
 from fluxdrive.can.firmware_cycles import (
     ENTRY_EXIT_LOWER,
@@ -48,6 +50,7 @@ __all__ = [
     "PWM_HZ",
     "RESULTS_PATH",
     "build_target",
+    "cross_build",
     "bench_firmware",
     "count_isr_instructions",
     "target_available",
@@ -72,21 +75,22 @@ def target_build_dir() -> Path:
     return ROOT / ".ws" / "firmware" / "target"
 
 
-def build_target(force: bool = False) -> Path:
-    """Cross-compile the target images (a no-op while no source changed)."""
-    bdir = target_build_dir()
+def cross_build(src: Path, bdir: Path, elfs: Sequence[str], what: str, force: bool = False) -> Path:
+    """Cross-compile the CMake project ``src`` (Debian's arm-none-eabi-gcc, the toolchain
+    file firmware/target/arm-none-eabi.cmake, warnings as errors) into ``bdir``; a no-op
+    while the images ``elfs`` exist and no firmware source changed (a content hash, like
+    the host build's). ``what`` names the build in its error. The one cross build of the
+    target images (here) and the board images (:func:`fluxdrive.can.vboard.build_board`)."""
     bdir.mkdir(parents=True, exist_ok=True)
     stamp = bdir / ".fluxdrive-stamp"
-    want = _source_hash("target " + sys.executable)
-    elfs = [bdir / "fd_g474.elf", bdir / "fd_an386.elf"]
-    if not force and all(e.is_file() for e in elfs) and stamp.is_file():
+    want = _source_hash(f"{what} {sys.executable}")
+    if not force and all((bdir / e).is_file() for e in elfs) and stamp.is_file():
         if stamp.read_text() == want:
             return bdir
     log = bdir / "build.log"
-    tdir = FIRMWARE_DIR / "target"
     steps = [
-        ["cmake", "-S", str(tdir), "-B", str(bdir),
-         f"-DCMAKE_TOOLCHAIN_FILE={tdir / 'arm-none-eabi.cmake'}",
+        ["cmake", "-S", str(src), "-B", str(bdir),
+         f"-DCMAKE_TOOLCHAIN_FILE={FIRMWARE_DIR / 'target' / 'arm-none-eabi.cmake'}",
          f"-DFD_PYTHON={sys.executable}", "-DCMAKE_BUILD_TYPE=Release"],
         ["cmake", "--build", str(bdir), "-j", "2"],
     ]  # fmt: skip
@@ -94,11 +98,20 @@ def build_target(force: bool = False) -> Path:
         for cmd in steps:
             rc = subprocess.run(cmd, stdout=out, stderr=subprocess.STDOUT, check=False)
             if rc.returncode != 0:
-                raise FirmwareBuildError(
-                    f"firmware target build failed: {' '.join(cmd[:2])} (log: {log})"
-                )
+                raise FirmwareBuildError(f"{what} build failed: {' '.join(cmd[:2])} (log: {log})")
     stamp.write_text(want)
     return bdir
+
+
+def build_target(force: bool = False) -> Path:
+    """Cross-compile the target images (a no-op while no source changed)."""
+    return cross_build(
+        FIRMWARE_DIR / "target",
+        target_build_dir(),
+        ("fd_g474.elf", "fd_an386.elf"),
+        "firmware target",
+        force,
+    )
 
 
 def target_sizes(elf: Path) -> dict[str, int]:
@@ -112,19 +125,11 @@ def target_sizes(elf: Path) -> dict[str, int]:
 
 
 def _symbol_ranges(elf: Path, names: tuple[str, ...]) -> dict[str, tuple[int, int]]:
-    out = subprocess.run(
-        ["arm-none-eabi-nm", "-S", str(elf)], capture_output=True, text=True, check=True
-    ).stdout
-    ranges = {}
-    for line in out.splitlines():
-        parts = line.split()
-        if len(parts) == 4 and parts[3] in names:
-            start = int(parts[0], 16) & ~1
-            ranges[parts[3]] = (start, start + int(parts[1], 16))
-    missing = set(names) - set(ranges)
+    syms = elf_symbols(elf)
+    missing = set(names) - set(syms)
     if missing:
         raise FirmwareBuildError(f"{elf}: symbols not found: {sorted(missing)}")
-    return ranges
+    return {n: (syms[n].value & ~1, (syms[n].value & ~1) + syms[n].size) for n in names}
 
 
 _TRACE = re.compile(r"^Trace \d+: \S+ \[[0-9a-f]+/([0-9a-f]+)/")

@@ -48,8 +48,6 @@ from __future__ import annotations
 
 import collections
 import struct
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -57,14 +55,8 @@ import can
 import numpy as np
 
 from fluxdrive.can import g474_regmap as rm
-from fluxdrive.can.firmware import (
-    _STAT_NAMES,
-    FIRMWARE_DIR,
-    PARAM_IDS,
-    FirmwareBuildError,
-    _source_hash,
-    sensor_scales,
-)
+from fluxdrive.can.elf import elf_symbols, read_elf, thumb_pcs
+from fluxdrive.can.firmware import _STAT_NAMES, FIRMWARE_DIR, PARAM_IDS, sensor_scales
 from fluxdrive.can.protocol import ID_DUTY_CMD, ID_HOST_REF, get_protocol
 from fluxdrive.core.paths import ROOT
 from fluxdrive.core.protocol_constants import PA_CHOICES
@@ -76,6 +68,7 @@ __all__ = [
     "board_build_dir",
     "build_board",
     "elf_symbols",
+    "thumb_pcs",
 ]
 
 BOARD_DIR = FIRMWARE_DIR / "board" / "nucleo_g474"
@@ -110,88 +103,15 @@ def board_build_dir() -> Path:
 
 def build_board(force: bool = False) -> Path:
     """Cross-compile the board images (a no-op while no firmware source changed)."""
-    bdir = board_build_dir()
-    bdir.mkdir(parents=True, exist_ok=True)
-    stamp = bdir / ".fluxdrive-stamp"
-    want = _source_hash("board " + sys.executable)
-    elfs = [bdir / f"fd_board_d{d}.elf" for d in BOARD_DECIMATIONS]
-    if not force and all(e.is_file() for e in elfs) and stamp.is_file():
-        if stamp.read_text() == want:
-            return bdir
-    log = bdir / "build.log"
-    steps = [
-        ["cmake", "-S", str(BOARD_DIR), "-B", str(bdir),
-         f"-DCMAKE_TOOLCHAIN_FILE={FIRMWARE_DIR / 'target' / 'arm-none-eabi.cmake'}",
-         f"-DFD_PYTHON={sys.executable}", "-DCMAKE_BUILD_TYPE=Release"],
-        ["cmake", "--build", str(bdir), "-j", "2"],
-    ]  # fmt: skip
-    with open(log, "w") as out:
-        for cmd in steps:
-            rc = subprocess.run(cmd, stdout=out, stderr=subprocess.STDOUT, check=False)
-            if rc.returncode != 0:
-                raise FirmwareBuildError(
-                    f"board image build failed: {' '.join(cmd[:2])} (log: {log})"
-                )
-    stamp.write_text(want)
-    return bdir
+    from fluxdrive.can.firmware_target import cross_build
 
-
-# ---------------------------------------------------------------------- ELF
-
-
-def _elf(path: Path) -> tuple[bytes, list[tuple[int, int, int]], dict[str, tuple[int, int]]]:
-    """(file bytes, PT_LOAD segments (paddr, offset, filesz), symbols name -> (value,
-    size)) of a 32-bit little-endian ELF."""
-    b = path.read_bytes()
-    if b[:4] != b"\x7fELF" or b[4] != 1 or b[5] != 1:
-        raise FirmwareBuildError(f"{path}: not a 32-bit little-endian ELF")
-    phoff, shoff = struct.unpack_from("<II", b, 28)
-    phentsize, phnum, shentsize, shnum = struct.unpack_from("<HHHH", b, 42)
-    segs = []
-    for i in range(phnum):
-        p_type, p_off, _vaddr, p_paddr, p_filesz = struct.unpack_from(
-            "<IIIII", b, phoff + i * phentsize
-        )
-        if p_type == 1 and p_filesz > 0:
-            segs.append((p_paddr, p_off, p_filesz))
-    secs = [struct.unpack_from("<IIIIIIIIII", b, shoff + i * shentsize) for i in range(shnum)]
-    syms: dict[str, tuple[int, int]] = {}
-    for s in secs:
-        if s[1] != 2:  # SHT_SYMTAB
-            continue
-        strtab = secs[s[6]]
-        for j in range(s[5] // 16):
-            name, value, size, _info, _other, _shndx = struct.unpack_from(
-                "<IIIBBH", b, s[4] + 16 * j
-            )
-            end = b.index(b"\0", strtab[4] + name)
-            syms[b[strtab[4] + name : end].decode()] = (value, size)
-    return b, segs, syms
-
-
-def elf_symbols(path: Path) -> dict[str, tuple[int, int]]:
-    """Symbol name -> (value, size) of an ELF."""
-    return _elf(path)[2]
-
-
-def thumb_pcs(address: int, code: bytes) -> list[int]:
-    """Addresses of the Thumb instructions of a block of code starting at ``address``."""
-    out, i = [], 0
-    while i + 1 < len(code):
-        out.append(address + i)
-        hw = code[i] | (code[i + 1] << 8)
-        i += 4 if (hw & 0xF800) in (0xE800, 0xF000, 0xF800) else 2
-    return out
+    elfs = [f"fd_board_d{d}.elf" for d in BOARD_DECIMATIONS]
+    return cross_build(BOARD_DIR, board_build_dir(), elfs, "board image", force)
 
 
 def _thumb_count(code: bytes) -> int:
-    """Thumb instructions in a block of code (32-bit ones start 0b11101/11110/11111)."""
-    n = i = 0
-    while i + 1 < len(code):
-        hw = code[i] | (code[i + 1] << 8)
-        i += 4 if (hw & 0xF800) in (0xE800, 0xF000, 0xF800) else 2
-        n += 1
-    return n
+    """Thumb instructions in a block of code."""
+    return len(thumb_pcs(0, code))
 
 
 # ---------------------------------------------------------------------- the board
@@ -240,7 +160,7 @@ class VirtualBoard:
         self.cmd_timeout_s = cmd_timeout_s
         self.elf = elf
         self._uc_mod, self._ac = uc, ac
-        data, segs, syms = _elf(elf)
+        data, segs, syms = read_elf(elf)
         self.syms = syms
         self.mu = mu = uc.Uc(uc.UC_ARCH_ARM, uc.UC_MODE_THUMB | uc.UC_MODE_MCLASS)
         mu.ctl_set_cpu_model(ac.UC_CPU_ARM_CORTEX_M4)

@@ -43,7 +43,8 @@ class _Costing:
         self.top: list[int] = []
 
     def take(self, vb: Any, n: int, seq: list[tuple[int, int]]) -> None:
-        from fluxdrive.can.vboard import _RETURN, thumb_pcs
+        from fluxdrive.can.elf import thumb_pcs
+        from fluxdrive.can.vboard import _RETURN
 
         worst = len(self.top) < 5 or n > min(self.top)
         if not worst and len(vb.isr_instructions) % 8:
