@@ -67,6 +67,11 @@ int fd_sil_tx_pop(fd_sil_t *s, uint32_t *id, uint8_t data[64], uint32_t *len, ui
 uint32_t fd_core_flags(const fd_core_t *c);
 const fd_stats_t *fd_core_stats(const fd_core_t *c);
 uint32_t fd_core_period_index(const fd_core_t *c);
+/** The lockstep bench's run origin: the period counter back to 0 and every period it
+ *  schedules from (STATUS, FAULT repeats, the command and reference ages) moved with it,
+ *  the next boundary the first again, after the periods a drive ran disarmed before the
+ *  run (its offset calibration). */
+void fd_sil_restart_period_index(fd_core_t *c);
 /** 1 if the host's answer to sample `seq` is waiting: taken in by the core
  *  (fd_core_has_answer) or still in the RX queue (lockstep drivers wait for it). */
 int fd_sil_has_answer(const fd_sil_t *s, const fd_core_t *c, uint16_t seq);

@@ -38,11 +38,10 @@
 #define FD_BOARD_VDC_MIN_V 10.0f
 #define FD_BOARD_VDC_MODULATION_MIN_V 6.0f /* the stage's lowest supply */
 #define FD_BOARD_TEMP_MAX_C 90
-/* arming an uncalibrated drive refused (NOT_CALIBRATED): off while the host's pre-flight
- * does not yet send CALIBRATE_ADC before arming (the bench bridge arms directly); a lab
- * calibrates by hand (ARM_MODE mode CALIBRATE_ADC) before the first arming */
+/* arming an uncalibrated drive refused (NOT_CALIBRATED): the bench bridge calibrates
+ * (ARM_MODE mode CALIBRATE_ADC, the motor at standstill, PWM off) before its first arming */
 #ifndef FD_BOARD_REQUIRE_CALIBRATION
-#define FD_BOARD_REQUIRE_CALIBRATION 0u
+#define FD_BOARD_REQUIRE_CALIBRATION 1u
 #endif
 /* software trip at 0.95 of the ADC's 20 A full scale (the SIL's cap, so one board model):
  * the default card's 2.1 pu trip (18.9 A) fits under it, and a host that asks for more is

@@ -34,6 +34,11 @@ const uint32_t fd_board_debug[] = {
     (uint32_t)offsetof(fd_core_t, cmd_ring),
     (uint32_t)FD_CMD_RING,
     (uint32_t)sizeof(fd_board_t),
+    (uint32_t)offsetof(fd_core_t, next_status_k), /* what the lockstep bench restarts */
+    (uint32_t)offsetof(fd_core_t, next_fault_k),
+    (uint32_t)offsetof(fd_core_t, last_cmd_k),
+    (uint32_t)offsetof(fd_core_t, last_ref_k),
+    (uint32_t)offsetof(fd_core_t, ran_first),
 };
 
 /* ---- Cortex-M4 core registers (ARMv7-M architecture reference) */

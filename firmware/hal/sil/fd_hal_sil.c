@@ -101,6 +101,17 @@ const fd_stats_t *fd_core_stats(const fd_core_t *c) { return &c->stats; }
 
 uint32_t fd_core_period_index(const fd_core_t *c) { return c->k; }
 
+void fd_sil_restart_period_index(fd_core_t *c)
+{
+    uint32_t k = c->k; /* unsigned: the scheduled periods keep their distance to k */
+    c->k = 0u;
+    c->next_status_k -= k;
+    c->next_fault_k -= k;
+    c->last_cmd_k -= k;
+    c->last_ref_k -= k;
+    c->ran_first = 0; /* the run's first boundary answers no sample before it */
+}
+
 /* ---- fd_hal.h */
 
 void fd_hal_adc_read(void *hal, fd_adc_raw_t *out) { *out = ((fd_sil_t *)hal)->adc; }

@@ -91,7 +91,14 @@ from fluxdrive.can.protocol import (
     SeqFilter,
     get_protocol,
 )
-from fluxdrive.core.protocol_constants import FAULT_CHOICES, MODE_IDLE, MODE_RUN
+from fluxdrive.core.protocol_constants import (
+    FAULT_CHOICES,
+    MODE_CALIBRATE_ADC,
+    MODE_IDLE,
+    MODE_RUN,
+    ST_CALIBRATING,
+    ST_CHOICES,
+)
 from fluxdrive.core.schema import param
 from fluxdrive.drive.control import (
     FAULT_BAD_SAMPLE,
@@ -390,6 +397,10 @@ class CanBridge:
         self.params_verified = False
         self._mismatch_run = 0  # consecutive disagreeing STATUS frames
         self.mcu: dict[str, Any] = {}  # last MCU status / fault / sample flags
+        # STATUS.st_state of the drive's STATUS frames, newest last (calibrate watches it)
+        self.status_states: deque[int] = deque(maxlen=256)
+        self._calibrating = False  # the ARM_MODE repeated is the calibration request
+        self.calibrated = False  # calibrate() done since the last (re)connect
         # which samples are new; the stream is never followed across a jump: it goes
         # stale and faults, and a reset or a reconnect starts it again
         self.seq = SeqFilter(step=self.decimation, max_jump=self.cfg.seq_jump_max)
@@ -439,6 +450,7 @@ class CanBridge:
         self.drive_mismatch = ""  # the drive's next STATUS tells again
         self.protocol_mismatch = ""
         self.params_verified = False  # another drive may answer now
+        self.calibrated = False
         self._mismatch_run = 0
         return True
 
@@ -675,12 +687,16 @@ class CanBridge:
         return f"drive fault {code} {name}{extra}, PWM off (latched at sample {f.get('seq')})"
 
     def _send_arm(self, arm: bool, reset_fault: bool = False) -> bool:
+        """ARM_MODE: armed (RUN) or not; while :meth:`calibrate` runs, its request instead
+        (CALIBRATE_ADC with the arm key: the drive stays disarmed, PWM off)."""
         self._arm_counter = (self._arm_counter + 1) % 256
+        cal = self._calibrating and not arm
+        mode = MODE_CALIBRATE_ADC if cal else MODE_RUN if arm else MODE_IDLE
         data = self._msg_arm.encode(
-            {"arm": int(arm), "reset_fault": int(reset_fault),
+            {"arm": int(arm or cal), "reset_fault": int(reset_fault),
              "sample_layout": int(self.layout == "classic"),
              "control_split": int(self.cfg.control_split),
-             "mode": MODE_RUN if arm else MODE_IDLE, "arm_key": ARM_KEY if arm else 0,
+             "mode": mode, "arm_key": ARM_KEY if arm or cal else 0,
              "cmd_timeout": min(self.mcu_cmd_timeout_s, 6.5535),
              "decimation": self.decimation, "arm_counter": self._arm_counter},
             strict=False,
@@ -703,6 +719,62 @@ class CanBridge:
                 return False, "ARM_MODE could not be sent"
         self.counters["arms"] += 1
         return True, "armed"
+
+    def calibrate(self, timeout_s: float = 5.0, status_wait_s: float = 1.0) -> tuple[bool, str]:
+        """The drive's current/capture offset calibration, the motor at standstill: ARM_MODE
+        mode CALIBRATE_ADC with the arm key, repeated every heartbeat period while it runs
+        (any other ARM_MODE ends a calibration unfinished), until a STATUS says CALIBRATING
+        and a later one says it is over (done), or a FAULT frame says why it failed
+        (ADC_FAULT: an offset out of range). The drive stays disarmed, PWM off, throughout;
+        a disarmed ARM_MODE ends the request. ``timeout_s`` counts from the drive's first
+        STATUS, which must come within ``status_wait_s``. Refused while armed. Another thread
+        may be polling the bus (the node's CAN thread); otherwise this polls it itself,
+        keeping the samples for the next :meth:`poll`. (done, one line)"""
+        if self.armed:
+            return False, "no offset calibration while armed: disarm first"
+        why = self.arm_refusal()
+        if why:
+            return False, why
+        if self.mcu.get("fault_latched"):
+            return False, f"the drive has a fault latched ({self.drive_fault_text()}): reset it"
+        other_polls = self._poll_thread not in (None, threading.get_ident())
+        self.status_states.clear()
+        faults0 = self.counters["fault_rx"]
+        with self._arm_lock:
+            self._calibrating = True
+            self._send_arm(False)
+        t0 = time.monotonic()
+        t_first: float | None = None
+        try:
+            while True:
+                if other_polls:
+                    time.sleep(0.005)
+                else:
+                    frames = self._poll_bus(0.005)
+                    if frames.shape[0]:
+                        self._backlog.append(frames)
+                states = list(self.status_states)
+                now = time.monotonic()
+                if states and t_first is None:
+                    t_first = now
+                if ST_CALIBRATING in states and states[-1] != ST_CALIBRATING:
+                    self.counters["calibrations"] += 1
+                    self.calibrated = True
+                    return True, f"offsets calibrated (drive {ST_CHOICES[states[-1]]})"
+                if self.counters["fault_rx"] > faults0 and self.drive_fault_text():
+                    return False, f"the offset calibration failed: {self.drive_fault_text()}"
+                if t_first is None and now - t0 > status_wait_s:
+                    return False, f"no drive answers: no STATUS frame within {status_wait_s:g} s"
+                if t_first is not None and now - t_first > timeout_s:
+                    seen = " -> ".join(dict.fromkeys(ST_CHOICES.get(x, str(x)) for x in states))
+                    return False, (
+                        f"the drive did not calibrate within {timeout_s:g} s (its states: {seen})"
+                    )
+        finally:
+            with self._arm_lock:
+                self._calibrating = False
+                if self.bus is not None:
+                    self._send_arm(False)
 
     def arm_refusal(self) -> str:
         """Why :meth:`arm` would refuse before anything is written to the drive ("" =
@@ -820,6 +892,7 @@ class CanBridge:
             if aid == ID_STATUS:
                 d = _decode_checked(self._msg_status, msg.data)
                 self.counters["status_rx"] += 1
+                self.status_states.append(int(d["st_state"]))
                 self.mcu.update(
                     state=int(d["st_state"]), armed=int(d["st_armed"]),
                     pwm_enabled=int(d["st_pwm_enabled"]),

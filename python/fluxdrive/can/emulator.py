@@ -56,16 +56,20 @@ import numpy as np
 
 from fluxdrive.can.firmware import FirmwareCore
 from fluxdrive.can.protocol import (
+    CLASSIC_SAMPLE_IDS,
     ID_ARM_MODE,
     ID_DRIVE_PARAM,
     ID_DUTY_CMD,
     ID_FAULT,
     ID_HOST_HEARTBEAT,
     ID_HOST_REF,
+    ID_SAMPLE_FD,
+    ID_STATUS,
     SEQ_BITS,
     FluxdriveProtocol,
     get_protocol,
 )
+from fluxdrive.core.protocol_constants import MODE_CALIBRATE_ADC
 from fluxdrive.drive.plant import FR_N, TR_N, plant_advance, plant_initial_frame
 
 __all__ = ["DriveEmulator", "EmulatorStats"]
@@ -138,6 +142,8 @@ class DriveEmulator:
         protocol: FluxdriveProtocol | None = None,
         mcu: str = "c",
         inject: Any = None,
+        require_calibration: bool = False,
+        bootstrap: bool = False,
     ) -> None:
         if mcu not in ("c", "pil"):
             raise ValueError(f"mcu must be 'c' or 'pil', not {mcu!r}")
@@ -185,6 +191,14 @@ class DriveEmulator:
         self._t0_wall = time.monotonic()
         self._cmd_timeout_s = cmd_timeout_s
         self._status_period_s = status_period_s
+        self.require_calibration = require_calibration
+        """The C core refuses to arm before an offset calibration (FAULT NOT_CALIBRATED),
+        as the board image does; the in-process loops' hosts calibrate either way."""
+        self.bootstrap = bootstrap
+        """The C core charges the bootstrap capacitors after arming (its default periods,
+        low sides on, as the board image does) before the first switching period."""
+        self.calibration_periods = 0  # periods run calibrating while served (pre-run)
+        self._stats0: dict[str, int] = {}  # the core's counters at the run's start
         self._init_injections(inject)
         self._fw: Any = self._new_firmware()
         self.stage_temp_c = 35
@@ -244,9 +258,18 @@ class DriveEmulator:
             from fluxdrive.can.vboard import VirtualBoard
 
             return VirtualBoard(self.setup.mp, **kw)
+        kw["require_calibration"] = self.require_calibration
         if self.inject is not None and self.inject.case.before_arming:
             kw["require_calibration"] = self.inject.case.name == "not_calibrated"
+        if self.bootstrap:
+            kw["bootstrap_periods"] = None  # the core's default
         return FirmwareCore(self.setup.mp, status_period_s=self._status_period_s, **kw)
+
+    @property
+    def requires_calibration(self) -> bool:
+        """The drive refuses to arm before an offset calibration: the board image always,
+        the C core with ``require_calibration``."""
+        return self.require_calibration or self.mcu == "pil"
 
     @property
     def core(self) -> Any:
@@ -323,10 +346,13 @@ class DriveEmulator:
             self._start_injection(inj)
         self._drain(0.0)
         self._fw_feed(hold_refs=self.lockstep and k % d != 0)
+        # lockstep: the host's answer to sample k-D, waited for (not while the drive
+        # calibrates its offsets: disarmed, it is not answered)
+        calibrating = self.mode == MODE_CALIBRATE_ADC
         waits = (
             inj is None or not inj.active or inj.host_answers
         ) and k - d >= self._answers_lost_k
-        if k % d == 0 and k >= d and self.lockstep and waits:
+        if k % d == 0 and k >= d and self.lockstep and waits and not calibrating:
             want = (k - d) % _SEQ_MOD
             deadline = time.monotonic() + self.lockstep_wait_s
             while not fw.has_answer(want) and not self._stop.is_set():
@@ -463,8 +489,9 @@ class DriveEmulator:
                 self.stats.tx_timeouts += 1
 
     def _sync_stats(self) -> None:
-        """The C core's counters under the emulator's names."""
-        c = self._fw.stats()
+        """The C core's counters under the emulator's names, from the run's first period
+        (an offset calibration before it apart: :attr:`calibration_periods`)."""
+        c = {k: v - self._stats0.get(k, 0) for k, v in self._fw.stats().items()}
         st = self.stats
         st.periods = c["periods"]
         st.samples_sent = c["samples_sent"]
@@ -497,6 +524,8 @@ class DriveEmulator:
                 self._fw.handle_now(self._fw_rx.popleft())
             self._fw_send()
             self._sync_stats()
+            if self._fw.state()["mode"] == MODE_CALIBRATE_ADC:
+                self._calibrate_at_standstill()
             st = self._fw.state()
             if until_armed and st["armed"]:
                 self.armed = True
@@ -504,6 +533,44 @@ class DriveEmulator:
             if until_armed and st["fault_latched"]:  # the arming refused with a fault
                 self.fault_latched = True
                 return
+
+    def _calibrate_at_standstill(self) -> None:
+        """The drive's offset calibration before the run (ARM_MODE mode CALIBRATE_ADC while
+        served): its periods run, PWM off, on the plant at standstill -- copies of the
+        plant's state and noise stream advanced with the gates open, so the run starts as
+        it would have -- until the drive's STATUS after the calibration has gone out; what
+        the drive sends goes onto the bus but its samples (the bench's sample stream starts
+        with the run). Lockstep: the core's period counter then starts again at 0 (the
+        run's sample index counts from the arming; ``restart_period_index``)."""
+        fw, s = self._fw, self.setup
+        pst, rng = self.pst.copy(), self.rng.copy()
+        frame, truth = self.frame.copy(), self.truth.copy()
+        gates_open = np.full(3, 0.5)
+        samples = {ID_SAMPLE_FD, *CLASSIC_SAMPLE_IDS}
+        status_after = False
+        while not status_after and not self._stop.is_set():
+            calibrating = fw.state()["mode"] == MODE_CALIBRATE_ADC
+            self._drain(0.0)
+            while self._fw_rx:  # the request's repeats, parameter reads: between periods
+                fw.handle_now(self._fw_rx.popleft())
+            fw.set_sample(frame, self.time_us(), self.stage_temp_c)
+            fw.period()
+            self.calibration_periods += 1
+            for msg in fw.pop_tx():
+                if msg.arbitration_id in samples:
+                    continue
+                status_after = status_after or (msg.arbitration_id == ID_STATUS and not calibrating)
+                try:
+                    self.bus.send(msg, timeout=self.send_timeout_s)
+                except can.CanError:
+                    self.stats.tx_timeouts += 1
+            plant_advance(
+                pst, s.mp, rng, gates_open, False, s.load_t, s.load_y, s.load_cfg, frame, truth
+            )
+        if self.lockstep:
+            fw.restart_period_index()
+        self._stats0 = fw.stats()  # the run's counters start here (EmulatorStats)
+        self._sync_stats()
 
     def run(self, n_periods: int, realtime: bool = False) -> None:
         """Run ``n_periods`` periods (or until :meth:`stop`). ``realtime`` paces the

@@ -233,8 +233,8 @@ CASES: tuple[FaultCase, ...] = (
         "fd_config_t.require_calibration",
         "PWM never on",
         not_on={
-            "pil": "the board image is built with FD_BOARD_REQUIRE_CALIBRATION 0 (the "
-            "bridge arms without calibrating first)",
+            "pil": "the in-process host calibrates the board image before arming (it "
+            "requires it: FD_BOARD_REQUIRE_CALIBRATION 1)",
         },
         before_arming=True,
     ),

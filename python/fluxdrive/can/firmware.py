@@ -239,6 +239,7 @@ def _c_signatures() -> dict[str, tuple[Any, list[Any]]]:
         "fd_core_flags": (U32, [P]),
         "fd_core_stats": (ctypes.POINTER(_Stats), [P]),
         "fd_core_period_index": (U32, [P]),
+        "fd_sil_restart_period_index": (None, [P]),
         "fd_sil_set_inputs": (None, [P, I32P, I32, I32P, I32, I32, I32, U32]),
         "fd_sil_set_time": (None, [P, U32]),
         "fd_sil_get_pwm": (None, [P, U32P, I32P]),
@@ -316,7 +317,7 @@ class FirmwareCore:
         classic: bool = False,
         cmd_timeout_s: float = 1e-3,
         pwm_period_ticks: int = 50_000,
-        bootstrap_periods: int = 0,
+        bootstrap_periods: int | None = 0,
         require_calibration: bool = False,
         status_period_s: float = 0.1,
     ) -> None:
@@ -351,9 +352,10 @@ class FirmwareCore:
         cfg.vdc_max_v = 0.98 * bus_v
         cfg.vdc_min_v = 0.0
         cfg.vdc_modulation_min_v = 0.05 * bus_v
-        # no bootstrap charge unless asked: the in-process loops the SIL is compared with
-        # have none
-        cfg.bootstrap_periods = int(bootstrap_periods)
+        # no bootstrap charge unless asked (None: the core's default, the board's): the
+        # in-process loops the SIL is compared with have none
+        if bootstrap_periods is not None:
+            cfg.bootstrap_periods = int(bootstrap_periods)
         # offset calibration (ARM_MODE mode CALIBRATE_ADC): offsets up to 10 % of the
         # current ADC's half range; arming an uncalibrated drive is refused (FAULT
         # NOT_CALIBRATED) only with require_calibration, since the emulator's hosts arm
@@ -533,6 +535,11 @@ class FirmwareCore:
     @property
     def k(self) -> int:
         return int(self.lib.fd_core_period_index(self._core))
+
+    def restart_period_index(self) -> None:
+        """The lockstep bench's run origin: the core's period counter back to 0, what it
+        schedules moved with it (``fd_sil_restart_period_index``)."""
+        self.lib.fd_sil_restart_period_index(self._core)
 
     def state(self) -> dict[str, int | bool]:
         f = int(self.lib.fd_core_flags(self._core))

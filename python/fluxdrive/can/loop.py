@@ -20,10 +20,11 @@ keeps switching at Ts. Control at D*Ts needs its own tuning: the scenario
 
 Before arming (both modes) the bridge writes the drive's parameters of the scenario's
 design as DRIVE_PARAMs, each acknowledged, and reads each back (``drive_params_of``;
-arming is refused on a refusal or a mismatch). A scenario in split mode (``control.mode:
-split``, its ``control.decimation`` D) runs split over the bus: the bridge sends
-ARM_MODE.control_split, the observers and ``host_reference_step`` answer every sample with a
-HOST_REF, and the drive's C core closes the current loop every period.
+arming is refused on a refusal or a mismatch), then calibrates the current offsets of a drive
+that requires it (the drive's periods at standstill with PWM off, before the run). A scenario
+in split mode (``control.mode: split``, its ``control.decimation`` D) runs split over the bus:
+the bridge sends ARM_MODE.control_split, the observers and ``host_reference_step`` answer
+every sample with a HOST_REF, and the drive's C core closes the current loop every period.
 """
 
 from __future__ import annotations
@@ -294,7 +295,8 @@ def drive_params_of(ds: DriveSetup) -> dict[str, float]:
 
 def _configure_drive(emu: DriveEmulator, bridge: CanBridge, ds: DriveSetup) -> None:
     """The drive's parameters of this scenario's design, each acknowledged and read back,
-    all in effect before the drive's first period (a run does not depend on when)."""
+    and its offset calibration if it requires one, all before the run's first period (a
+    run does not depend on when)."""
     configured = threading.Event()
     server = threading.Thread(target=emu.serve, args=(configured,), daemon=True)
     server.start()
@@ -303,6 +305,15 @@ def _configure_drive(emu: DriveEmulator, bridge: CanBridge, ds: DriveSetup) -> N
         ok, why = bridge.write_drive_params(drive_params_of(ds), timeout_s=60.0)
         if not ok:
             raise RuntimeError(why)
+        # a drive that refuses to arm uncalibrated (the board image; the C core when asked)
+        # is calibrated first, as the bench bridge node does (the drive's periods at
+        # standstill, PWM off, before the run: DriveEmulator.serve); the C core's SIL
+        # build otherwise keeps the nominal offsets, so its samples are the plant's ADC
+        # readings exactly
+        if emu.requires_calibration:
+            ok, why = bridge.calibrate(timeout_s=60.0, status_wait_s=60.0)
+            if not ok:
+                raise RuntimeError(why)
     finally:
         configured.set()
         server.join()

@@ -25,11 +25,8 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-import can
-
 from fluxdrive.can.bridge import HOST_HEARTBEAT_TIMEOUT_S, BridgeConfig, BusFactory, CanBridge
 from fluxdrive.can.protocol import PROTOCOL_VERSION, get_protocol
-from fluxdrive.core.protocol_constants import PA_OK
 
 __all__ = [
     "PreflightResult",
@@ -224,128 +221,22 @@ def preflight(
     )
 
 
-def _choice(message: Any, signal: str, name: str) -> int:
-    """The value of `name` in a signal's value table (the DBC's)."""
-    sig = message.get_signal_by_name(signal)
-    return next(int(k) for k, v in (sig.choices or {}).items() if str(v) == name)
-
-
-class _Calibration:
-    """One offset calibration on an open bus (see :func:`calibrate`)."""
-
-    def __init__(self, bridge: CanBridge, cfg: BridgeConfig, where: str) -> None:
-        from fluxdrive.can.protocol import ARM_KEY
-
-        proto = get_protocol()
-        self.bus, self.cfg, self.where = bridge.bus, cfg, where
-        self.arm, self.status, self.fault, self.prm, self.ack = (
-            proto.message(n)
-            for n in ("ARM_MODE", "STATUS", "FAULT", "DRIVE_PARAM", "DRIVE_PARAM_ACK")
-        )
-        self.cal_id = bridge.param_ids.get(CAL_DONE)  # None: the DBC does not name it
-        self.fields = {
-            "arm": 1, "arm_key": ARM_KEY, "mode": _choice(self.arm, "mode", "CALIBRATE_ADC"),
-            "reset_fault": 0, "sample_layout": int(bridge.layout == "classic"),
-            "control_split": int(cfg.control_split), "cmd_timeout": 0.0,
-            "decimation": bridge.decimation, "arm_counter": 0,
-        }  # fmt: skip
-        self.states: list[str] = []
-        self.cal_done: list[float] = []  # CAL_DONE as read, oldest first
-        self.t_first: float | None = None  # first STATUS
-
-    def send(self, message: Any, fields: dict[str, Any]) -> None:
-        data = message.encode(fields, strict=False)
-        assert self.bus is not None
-        self.bus.send(can.Message(arbitration_id=message.frame_id, data=data, is_extended_id=False))
-
-    def request(self) -> None:
-        """CALIBRATE_ADC (held: it must repeat while the drive calibrates)."""
-        self.fields["arm_counter"] = (self.fields["arm_counter"] + 1) % 256
-        self.send(self.arm, self.fields)
-
-    def read_cal_done(self) -> None:
-        if self.cal_id is not None:
-            self.send(
-                self.prm, {"prm_id": self.cal_id, "prm_seq": 0, "prm_write": 0, "prm_value": 0.0}
-            )
-
-    def handle(self, msg: can.Message) -> str | None:
-        """One frame: a line when the calibration ended (ok or not), else None."""
-        from fluxdrive.drive.control import FAULT_NAMES
-
-        data = bytes(msg.data)
-        if msg.arbitration_id == self.fault.frame_id:
-            f = self.fault.decode(data, decode_choices=False)
-            if f["fault_code"] and f["fault_latched"]:
-                name = FAULT_NAMES.get(int(f["fault_code"]), str(f["fault_code"]))
-                return (
-                    f"!the offset calibration failed: drive fault {f['fault_code']} {name} "
-                    f"(detail {f['fault_detail']}); nothing stored"
-                )
-        elif msg.arbitration_id == self.ack.frame_id and self.cal_id is not None:
-            a = self.ack.decode(data, decode_choices=False)
-            if a["pa_id"] == self.cal_id and a["pa_status"] == PA_OK:
-                self.cal_done.append(float(a["pa_value"]))
-        elif msg.arbitration_id == self.status.frame_id:
-            st = self.status.decode(data, decode_choices=False)
-            self.states.append(_state_names().get(int(st["st_state"]), str(st["st_state"])))
-            if self.t_first is None:
-                self.t_first = time.monotonic()
-            if self.states[-1] != "CALIBRATING":
-                return self._finished()
-        return None
-
-    def _finished(self) -> str | None:
-        """After a STATUS that is not CALIBRATING: done if a CALIBRATING one came before it,
-        or CAL_DONE went from 0 to 1 (a STATUS may fall outside the short calibration)."""
-        if "CALIBRATING" in self.states or (self.cal_done[:1] == [0.0] and 1.0 in self.cal_done):
-            return f"offsets calibrated on {self.where} (drive {self.states[-1]})"
-        self.read_cal_done()
-        return None
-
-    def run(self, timeout_s: float, status_wait_s: float) -> PreflightResult:
-        self.read_cal_done()  # before: a 0 that turns 1 is this calibration's
-        t0 = next_send = time.monotonic()
-        while True:
-            now = time.monotonic()
-            limit = t0 + status_wait_s if self.t_first is None else self.t_first + timeout_s
-            if now > limit:
-                break
-            if now >= next_send and (self.cal_done or now - t0 > 0.5 or self.cal_id is None):
-                next_send = now + self.cfg.heartbeat_period_s
-                self.request()
-            assert self.bus is not None
-            msg = self.bus.recv(0.01)
-            line = self.handle(msg) if msg is not None else None
-            if line is not None:
-                return PreflightResult(not line.startswith("!"), line.lstrip("!"))
-        if self.t_first is None:
-            return PreflightResult(
-                False,
-                f"no drive answers on {self.where}: no STATUS frame within {status_wait_s:g} s",
-            )
-        return PreflightResult(
-            False,
-            f"the drive on {self.where} did not calibrate within {timeout_s:g} s "
-            f"(its states: {' -> '.join(dict.fromkeys(self.states))})",
-        )
-
-
 def calibrate(
     factory: BusFactory, cfg: BridgeConfig, timeout_s: float = 5.0, status_wait_s: float = 1.0
 ) -> PreflightResult:
-    """The drive's offset calibration, motor at standstill: ARM_MODE mode CALIBRATE_ADC with
-    the arm key, repeated every heartbeat period while it runs (any other ARM_MODE ends a
-    calibration unfinished), until STATUS leaves CALIBRATING or the drive's CAL_DONE turns
-    from 0 to 1 (done), or a FAULT frame says why it failed (ADC_FAULT: an offset out of
-    range); `timeout_s` counts from the drive's first STATUS.  The drive stays disarmed,
-    PWM off, throughout; the disarm at the end ends a calibration still running."""
+    """The drive's offset calibration, motor at standstill, on a bus of its own: the
+    bridge's (:meth:`fluxdrive.can.bridge.CanBridge.calibrate`, the one the bench bridge
+    runs before arming). The drive stays disarmed, PWM off, throughout."""
     bridge, why = _open(factory, cfg)  # the bus opened as the pre-flight opens it
     if bridge is None:
         return PreflightResult(False, why)
+    where = f"{factory.interface} channel {factory.channel}"
     try:
-        return _Calibration(bridge, cfg, f"{factory.interface} channel {factory.channel}").run(
-            timeout_s, status_wait_s
-        )
+        ok, line = bridge.calibrate(timeout_s, status_wait_s)
     finally:
         bridge.shutdown()
+    if ok:
+        return PreflightResult(
+            True, line.replace("offsets calibrated", f"offsets calibrated on {where}", 1)
+        )
+    return PreflightResult(False, f"{line} (drive on {where})")

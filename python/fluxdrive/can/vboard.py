@@ -251,7 +251,9 @@ class VirtualBoard:
         dbg = self.syms["fd_board_debug"][0]
         names = ("size", "k", "armed", "pwm_enabled", "fault_latched", "split", "fault_code",
                  "mode", "stats", "prm", "ref_box", "cmds", "cmd_size", "cmd_slots",
-                 "ref_box_taken", "cmd_ring", "cmd_ring_slots")  # fmt: skip
+                 "ref_box_taken", "cmd_ring", "cmd_ring_slots", "board_size",
+                 "next_status_k", "next_fault_k", "last_cmd_k", "last_ref_k",
+                 "ran_first")  # fmt: skip
         vals = struct.unpack(f"<{len(names)}I", mu.mem_read(dbg, 4 * len(names)))
         self._off = dict(zip(names, vals, strict=True))
         self._core = self.syms["fd_board_core"][0]
@@ -671,6 +673,17 @@ class VirtualBoard:
     @property
     def k(self) -> int:
         return int(struct.unpack("<I", self.mu.mem_read(self._core + self._off["k"], 4))[0])
+
+    def restart_period_index(self) -> None:
+        """The lockstep bench's run origin: the core's period counter back to 0, what it
+        schedules moved with it, the next boundary the first again (as
+        ``fd_sil_restart_period_index`` on the SIL build)."""
+        k = self.k
+        for name in ("k", "next_status_k", "next_fault_k", "last_cmd_k", "last_ref_k"):
+            addr = self._core + self._off[name]
+            (v,) = struct.unpack("<I", self.mu.mem_read(addr, 4))
+            self.mu.mem_write(addr, struct.pack("<I", (v - k) & 0xFFFFFFFF))
+        self.mu.mem_write(self._core + self._off["ran_first"], b"\0")
 
     def state(self) -> dict[str, int | bool]:
         return {

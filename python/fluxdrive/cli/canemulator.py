@@ -76,6 +76,8 @@ def main(argv: list[str] | None = None) -> int:
         mcu=a.mcu,
         record=a.record_out is not None,
         inject=inject,
+        require_calibration=not a.no_require_calibration,
+        bootstrap=True,  # the board's 1 ms charge after arming, before the first switching
     )
     signal.signal(signal.SIGTERM, lambda *_: emu._stop.set())
     signal.signal(signal.SIGINT, lambda *_: emu._stop.set())
@@ -177,6 +179,13 @@ def _parser():
         "overcurrent, gate_driver, heartbeat, ref_lost, ...), each next case once the host "
         "has reset and re-armed the drive; the run ends after the last; the final JSON says "
         "each reaction",
+    )
+    ap.add_argument(
+        "--no-require-calibration",
+        action="store_true",
+        help="--mcu c: arm without an offset calibration since boot (by default the drive "
+        "refuses, FAULT NOT_CALIBRATED, as the board image does; the bench bridge calibrates "
+        "before arming)",
     )
     ap.add_argument(
         "--record-out",

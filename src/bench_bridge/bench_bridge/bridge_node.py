@@ -82,6 +82,9 @@ from fluxdrive_ros import access, graph, qos, topics
 _SOFTWARE_BUSES = ("virtual", "udp_multicast")  # no wire time: any layout and D "fit"
 # the DRIVE_PARAM names, in the order DriveParams declares them
 DRIVE_PARAMS = tuple(DRIVE_PARAM_RANGES)
+# the offset calibration before arming: from the request to the drive's STATUS saying it is
+# over (a drive takes 0.1 s; the virtual board, an instruction-set emulator, some seconds)
+CALIBRATION_TIMEOUT_S = 60.0
 
 
 def drive_param_table(values: dict[str, float]) -> list[P]:
@@ -185,6 +188,14 @@ class BridgeNodeSettings:
         range=(0.0, 600.0),
         live=False,
     )
+    calibrate_before_arming: bool = param(
+        True,
+        unit="",
+        doc="before the first arming after (re)connecting, the drive's current and capture "
+        "offset calibration (ARM_MODE mode CALIBRATE_ADC: the motor at standstill, PWM off); "
+        "false: arm a drive calibrated otherwise (bench --calibrate)",
+        live=False,
+    )
     diagnostics_period_s: float = param(
         1.0,
         unit="s",
@@ -241,6 +252,7 @@ class BenchBridgeNode(Node):
         self.ts = pv["ts_s"]
         self.frame_id = pv["frame_id"]
         self.split = bool(pv["control_split"])
+        self.p_calibrate = bool(pv["calibrate_before_arming"])
         # the drive's parameters, both modes (host mode: its protections and supervision)
         self.drive_specs = drive_param_table(drive_defaults(pv["scenario"]))
         self.drive_values = declare(self, self.drive_specs)
@@ -446,7 +458,7 @@ class BenchBridgeNode(Node):
         """Arm, both modes: the drive first gets every drive.* value, acknowledged and read
         back; a refusal, a mismatch or another protocol version refuses, said in one line."""
         vals = {prm: self.drive_values[drive_param_name(prm)] for prm in DRIVE_PARAMS}
-        why = self.bridge.arm_refusal() or self._push_drive_params(vals)
+        why = self.bridge.arm_refusal() or self._push_drive_params(vals) or self._calibrate()
         if why:
             self.get_logger().error(f"not armed: {why}")
             return False, why
@@ -454,6 +466,18 @@ class BenchBridgeNode(Node):
         if not ok:
             self.get_logger().error(f"not armed: {why}")
         return ok, why
+
+    def _calibrate(self) -> str:
+        """The offset calibration before the first arming since the bus (re)connected
+        (calibrate_before_arming); '' or why it failed."""
+        br = self.bridge
+        if not self.p_calibrate or br.calibrated or br.armed:
+            return ""
+        ok, why = br.calibrate(CALIBRATION_TIMEOUT_S, CALIBRATION_TIMEOUT_S)
+        if not ok:
+            return f"offset calibration: {why}"
+        self.get_logger().info(f"before arming: {why}")
+        return ""
 
     def _refused(self, service: str) -> str | None:
         why = access.check_service_caller(self, service, self.allowed)

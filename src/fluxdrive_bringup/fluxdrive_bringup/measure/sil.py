@@ -114,6 +114,8 @@ def sil_graph(
         "stale_timeout_s": 30.0,
         "arm_wait_s": 120.0,
     }
+    if inject and _before_arming(inject):  # the uncalibrated arming is what is injected
+        bridge_params["calibrate_before_arming"] = False
     ros_args = [
         f"{k}:={str(v).lower() if isinstance(v, bool) else v}" for k, v in bridge_params.items()
     ]
@@ -133,6 +135,16 @@ def sil_graph(
     g.stop_grace_s = STOP_GRACE_S
     g.env["CAN_CONFIG"] = json.dumps({"port": port, "hop_limit": 0})
     return g
+
+
+def _before_arming(inject: str) -> bool:
+    """The (first) injected case is one before arming (fluxdrive.can.faultcases)."""
+    from fluxdrive.can.faultcases import case
+
+    try:
+        return case(inject.split(",")[0].split("@")[0].strip()).before_arming
+    except (KeyError, ValueError):
+        return False
 
 
 def main(argv: list[str]) -> int:
