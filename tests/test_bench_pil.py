@@ -28,9 +28,11 @@ def test_bench_pil_split_mode_records_every_sample_and_matches_in_process(tmp_pa
     th_ref = theta_rms_deg(in_process(sp))
     th_pil = theta_rms_deg(got)
     print(f"theta~ RMS: PIL graph {th_pil:.3f} deg, in-process split {th_ref:.3f} deg")
-    # the SIL graph's bound (test_bench_sil.py) with the board's timer preload (one period
-    # more between the duty computed and applied) and its 1 ms bootstrap charge
-    assert abs(th_pil - th_ref) < 0.3
+    # both benches calibrate before arming and run the 1 ms bootstrap charge, and both apply
+    # a duty from the period after it was computed (the SIL's timer model, the board's
+    # preload): the SIL graph's 0.05° (test_bench_sil.py) and what the board image's float
+    # code (newlib's sinf/cosf, the ARM build) adds
+    assert abs(th_pil - th_ref) < 0.1
 
 
 def test_bench_pil_refuses_a_decimation_without_an_image():

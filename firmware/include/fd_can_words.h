@@ -32,15 +32,21 @@ static inline void fd_can_set_word(fd_can_frame_t *f, uint32_t w, uint32_t v)
     memcpy(&f->data[w], &v, 4u);
 }
 
-/** `dst` = `src`: the header and the payload's len bytes (rounded up to words). */
+/** `dst` = `src`: the header and the payload's len bytes rounded up to whole words (the
+ *  last word's bytes beyond len copied as they are). */
 static inline void fd_can_copy(fd_can_frame_t *dst, const fd_can_frame_t *src)
 {
     dst->id = src->id;
     dst->len = src->len;
     dst->fd = src->fd;
-    uint32_t n = src->len < 64u ? src->len : 64u;
-    for (uint32_t w = 0; w < n; w += 4u) {
-        fd_can_set_word(dst, w, fd_can_word(src, w));
+    uint32_t n = ((uint32_t)src->len + 3u) / 4u;
+    if (n > 16u) {
+        n = 16u;
+    }
+    for (uint32_t i = 0; i < n; ++i) {
+        uint32_t v;
+        memcpy(&v, &src->data[4u * i], 4u);
+        fd_can_set_word(dst, 4u * i, v);
     }
 }
 

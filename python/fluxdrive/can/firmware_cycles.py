@@ -262,9 +262,10 @@ class TraceCoster:
             self._fn_cache[pc] = f
         return f
 
-    def cost(self, pcs: list[int], end_pc: int) -> CycleBounds:
+    def cost(self, pcs: list[int], end_pc: int, entry_exit: bool = True) -> CycleBounds:
         """Bounds of one interrupt: ``pcs`` the executed instructions in order, ``end_pc``
-        the instruction executed after the last one."""
+        the instruction executed after the last one; ``entry_exit`` False: no exception
+        entry and exit (a pass of the background loop)."""
         b = CycleBounds(instructions=len(pcs))
         prev_mem = False
         run_exec = 0  # upper-bound execution cycles of the current straight flash run
@@ -296,8 +297,9 @@ class TraceCoster:
             b.lower += lo
             b.upper += hi + extra
             b.by_function[fn] += hi + extra
-        b.lower += ENTRY_EXIT_LOWER
-        b.upper += ENTRY_EXIT_UPPER
+        if entry_exit:
+            b.lower += ENTRY_EXIT_LOWER
+            b.upper += ENTRY_EXIT_UPPER
         return b
 
     def cost_blocks(self, blocks: Mapping[tuple[int, int], int]) -> CycleBounds:

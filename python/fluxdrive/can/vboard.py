@@ -188,6 +188,12 @@ class VirtualBoard:
         self.on_isr: Any = None
         """Called after each period interrupt with (instructions, executed blocks in order
         [(address, size)]) when set (and ``measure``): a cycle model's input."""
+        self.bg_instructions: list[int] = []
+        """Instructions of each pass of the background loop (from its idle point round to
+        it again: the CAN frames received handed to the core, the IWDG refresh)."""
+        self.on_background: Any = None
+        """As :attr:`on_isr`, after each pass of the background loop."""
+        self._seq: list[tuple[int, int]] = []
         if measure:
             mu.hook_add(uc.UC_HOOK_BLOCK, self._on_block, begin=_FLASH, end=_FLASH + 0x80000)
             mu.hook_add(uc.UC_HOOK_BLOCK, self._on_block, begin=_CCM, end=_CCM + _CCM_SIZE)
@@ -425,7 +431,7 @@ class VirtualBoard:
         mu.reg_write(ac.UC_ARM_REG_LR, _RETURN | 1)
         self._n = 0
         self._blocks = collections.Counter()
-        self._seq: list[tuple[int, int]] = []
+        self._seq = []
         self.counting = self.measure
         self._period_irq = irq == rm.IRQ["ADC1_2"]
         mu.emu_start(self.vectors[16 + irq] | 1, _RETURN, count=5_000_000)
@@ -439,11 +445,21 @@ class VirtualBoard:
         mu.context_restore(self._main)
 
     def _background(self) -> None:
-        """The background loop from its idle point once round to it again."""
+        """The background loop from its idle point once round to it again (measured: its
+        instructions into :attr:`bg_instructions`, :attr:`on_background` called)."""
         mu = self.mu
         mu.context_restore(self._main)
+        self._n = 0
+        self._seq = []
+        self._blocks = collections.Counter()  # not the last interrupt's (isr_blocks)
+        self.counting = self.measure
         mu.emu_start((self._wait + 2) | 1, self._wait, count=5_000_000)
+        self.counting = False
         self._main = mu.context_save()
+        if self.measure:
+            self.bg_instructions.append(self._n)
+            if self.on_background is not None:
+                self.on_background(self._n, self._seq)
 
     def _on_block(self, mu: Any, address: int, size: int, user: Any) -> None:
         if self.counting:
@@ -455,7 +471,7 @@ class VirtualBoard:
             self._n += n
             if self.trace:
                 self._blocks[key] += 1
-            if self.on_isr is not None:
+            if self.on_isr is not None or self.on_background is not None:
                 self._seq.append(key)
 
     # ------------------------------------------------------------------ the interface

@@ -49,8 +49,19 @@ def bench_firmware(argv: list[str]) -> dict[str, Any]:
         print(
             f"board   {mode} (D={m['decimation']}) on the virtual board, closed loop: period "
             f"interrupt max {m['isr_instructions_max']} instructions, median "
-            f"{m['isr_instructions_median']} over {m['periods']} periods; stack high-water "
+            f"{m['isr_instructions_median']} over {m['periods']} periods; cycles worst "
+            f"{m['cycles_lower_max']}..{m['cycles_upper_max']}, median "
+            f"{m['cycles_lower_median']}..{m['cycles_upper_median']} (lower..upper bound) = "
+            f"{m['percent_of_period_upper']} % of a period by the upper; stack high-water "
             f"{m['stack_high_water_bytes']} B"
+        )
+        print(
+            f"board   {mode} background loop (CAN outside the interrupt), per pass over "
+            f"{m['background_passes']}: max {m['background_instructions_max']} instructions, "
+            f"cycles worst {m['background_cycles_lower_max']}.."
+            f"{m['background_cycles_upper_max']}, median {m['background_cycles_lower_median']}"
+            f"..{m['background_cycles_upper_median']} = "
+            f"{m['background_percent_of_period_upper']} % of a period by the upper"
         )
     print(f"written {BOARD_RESULTS_PATH.relative_to(ROOT)}")
     rec["board"] = board

@@ -54,6 +54,7 @@ MODES = ("host", "split")
 # each node published (fluxdrive_bringup.launch.launcher)
 STOP_GRACE_S = 3.0
 SWEEP_RESULTS = REPO_ROOT / "results" / "can" / "sil_current_sweep.json"
+PIL_RESULTS = REPO_ROOT / "results" / "can" / "pil_vs_sil.json"
 
 
 def _drive_node(
@@ -181,6 +182,12 @@ def main(argv: list[str]) -> int:
         "whole bench (split mode); prints the -3 dB bandwidth, last line JSON, and writes "
         f"{SWEEP_RESULTS.relative_to(REPO_ROOT)}",
     )
+    ap.add_argument(
+        "--versus-sil",
+        action="store_true",
+        help="with --pil: run SCENARIO on the SIL bench first, then on the virtual board, and "
+        f"write both θ̃ RMS to {PIL_RESULTS.relative_to(REPO_ROOT)} (last line JSON)",
+    )
     args = ap.parse_args(argv)
     if not 1 <= args.decimation <= 64:
         print("[bench] --decimation must be in 1..64", file=sys.stderr)
@@ -203,6 +210,11 @@ def main(argv: list[str]) -> int:
         print(f"[bench] {sc.machine_note}", flush=True)
     sc = load_scenario(sp)
     shorten(sc, args.duration)
+    if args.versus_sil:
+        if not args.pil or args.inject:
+            print("[bench] --versus-sil goes with --pil and no --inject", file=sys.stderr)
+            return 2
+        return versus_sil(sp, sc, args)
     if args.inject:
         from fluxdrive.can.faultcases import parse_injections
 
@@ -222,6 +234,56 @@ def main(argv: list[str]) -> int:
     m = report(res, out, plots=False)
     print(f"[bench] bag: {args.bag_used}")
     return 0 if m.get("stable", True) and not arr["missing_real"] else 1
+
+
+def versus_sil(sp: Path, sc, args) -> int:
+    """`bench --pil --versus-sil`: the same scenario, mode and D on the SIL bench (the C
+    core's host build) and then with the board image on the virtual board; each run's θ̃
+    RMS of the driving observer from its bag, their difference, every sample present;
+    written to PIL_RESULTS under "<mode>_d<D>" (other entries kept)."""
+    from fluxdrive.analysis.metrics import compute
+
+    runs: dict[str, dict] = {}
+    for tag in ("sil", "pil"):
+        args.pil = tag == "pil"
+        args.bag = None
+        code, res, arr, _out = run_sil(sp, sc, args)
+        if res is None:
+            return code
+        m = compute(res)
+        bag = Path(args.bag_used)
+        runs[tag] = {
+            "theta_rms_deg": round(float(m["observers"][sc.driving]["theta_err_rms_deg"]), 4),
+            "stable": bool(m["stable"]),
+            "samples": int(arr["n"]),
+            "missing_samples": arr["missing_real"],
+            "bag": str(bag.relative_to(REPO_ROOT) if bag.is_relative_to(REPO_ROOT) else bag),
+        }
+    diff = runs["pil"]["theta_rms_deg"] - runs["sil"]["theta_rms_deg"]
+    entry = {
+        "scenario": sc.name,
+        "duration_s": float(sc.duration_s),
+        "steady_window_s": [float(x) for x in sc.steady_window_s],
+        "mode": args.mode,
+        "decimation": int(args.decimation),
+        "observer": sc.driving,
+        **runs,
+        "pil_minus_sil_deg": round(diff, 4),
+        "measured": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "never_run_on_hardware": True,
+    }
+    table = json.loads(PIL_RESULTS.read_text()) if PIL_RESULTS.exists() else {}
+    table[f"{args.mode}_d{int(args.decimation)}"] = entry
+    PIL_RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    PIL_RESULTS.write_text(json.dumps(table, indent=2, sort_keys=True) + "\n")
+    ok = all(not r["missing_samples"] for r in runs.values())
+    print(
+        f"[bench] theta~ RMS ({sc.driving}): SIL {runs['sil']['theta_rms_deg']:.3f} deg, "
+        f"virtual board {runs['pil']['theta_rms_deg']:.3f} deg ({diff:+.3f}); "
+        f"written {PIL_RESULTS.relative_to(REPO_ROOT)}"
+    )
+    print(json.dumps(entry))
+    return 0 if ok else 1
 
 
 def run_sil(sp: Path, sc, args):
