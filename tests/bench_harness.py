@@ -48,6 +48,33 @@ def case(
     return path
 
 
+def paper_case(path: Path, name: str, decimation: int = D) -> Path:
+    """Scenario `name` of config/scenarios as it is (its bench, load and duration) in split
+    mode at ``decimation``, only its driving observer (one observer node), at ``path``."""
+    src = CONFIG_DIR / "scenarios" / f"{name}.yaml"
+    raw = dict(yamlio.load_file(src))
+    for key in ("machine", "bench"):
+        if isinstance(raw.get(key), str):
+            raw[key] = str((src.parent / raw[key]).resolve())
+    raw.update(
+        name=path.stem,
+        control={**raw["control"], "mode": "split", "decimation": decimation},
+        observers={raw["driving"]: raw["observers"][raw["driving"]]},
+    )
+    path.write_text(yaml.safe_dump(raw, sort_keys=False))
+    return path
+
+
+def drive_report(bag: Path) -> dict[str, Any]:
+    """The drive's final report of a bench run (`can-emulator`'s last line JSON: its state,
+    faults and fault codes)."""
+    import json
+
+    log = Path(str(bag) + "-report") / "logs" / "drive.log"
+    lines = [ln for ln in log.read_text(errors="replace").splitlines() if ln.startswith("{")]
+    return json.loads(lines[-1])
+
+
 def run_bench(
     kind: str,
     sp: Path,
