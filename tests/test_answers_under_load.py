@@ -278,9 +278,10 @@ def test_scope_calls_answer_within_their_deadline_at_twice_the_cores(tmp_path):
             assert ok and now == pytest.approx(0.05 + 0.01 * i), why
         rows = timed("describe the controller", side.describe, "/controller")
         assert any(r["name"] == "position_timeout_s" for r in rows)
-        # the controller's fault reset, as the operator (nothing latched: it says so)
+        # the controller's fault reset, as the operator (at 150 % load the long run may have
+        # latched I2t by now: either answer will do, in time)
         ok, why = timed("reset the controller's fault", side.reset, "/controller/reset_fault")
-        assert ok and why == "no latched fault", why
+        assert ok and (why == "no latched fault" or why.startswith("cleared latched fault")), why
         # the services are the drive process's service thread's (fluxdrive_ros.services)
         s = side._s()
         hidden = [
