@@ -163,23 +163,7 @@ class DriveEmulator:
         self.lockstep_wait_s = lockstep_wait_s
         self.send_timeout_s = send_timeout_s
         self._init_plant(setup)
-        self.record = record
-        self.rec_frames: list[np.ndarray] = []
-        self.rec_truth: list[np.ndarray] = []
-        # record=True or time_answers=True: wall time (time.time) each sample went out, by
-        # wire seq, and the host's answer latency [s] (the answer's bus timestamp minus its
-        # sample's send time), for benchmarks
-        self._time_answers = bool(record or time_answers)
-        self._sent_wall: dict[int, float] = {}
-        self.answer_latency_s: list[float] = []
-        # the answers' sequence signals: DUTY_CMD.cmd_seq, HOST_REF.ref_seq
-        self._answer_seq = {ID_DUTY_CMD: "cmd_seq", ID_HOST_REF: "ref_seq"}
-        self.host_heard_s: float | None = None  # monotonic time of the last HOST_HEARTBEAT
-        self.schedule_clock = False
-        """Free-running: the drive's clock is its periods (k periods, as in lockstep), not
-        the wall clock -- for an emulator paced to the wall clock, whose process the PC can
-        stall: it catches up, and an MCU's timer never stalls (the host's lateness stays
-        the host's)."""
+        self._init_records(record, time_answers)
         self._warm_plant()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -211,6 +195,26 @@ class DriveEmulator:
         self._store_params(params or {})
         if self.inject is not None and self.inject.case.before_arming:  # for the arming
             self._start_injection(self.inject)
+
+    def _init_records(self, record: bool, time_answers: bool) -> None:
+        """What a run keeps besides the bus: the frames (record) and the answers' timing."""
+        self.record = record
+        self.rec_frames: list[np.ndarray] = []
+        self.rec_truth: list[np.ndarray] = []
+        # record=True or time_answers=True: wall time (time.time) each sample went out, by
+        # wire seq, and the host's answer latency [s] (the answer's bus timestamp minus its
+        # sample's send time), for benchmarks
+        self._time_answers = bool(record or time_answers)
+        self._sent_wall: dict[int, float] = {}
+        self.answer_latency_s: list[float] = []
+        # the answers' sequence signals: DUTY_CMD.cmd_seq, HOST_REF.ref_seq
+        self._answer_seq = {ID_DUTY_CMD: "cmd_seq", ID_HOST_REF: "ref_seq"}
+        self.host_heard_s: float | None = None  # monotonic time of the last HOST_HEARTBEAT
+        self.schedule_clock = False
+        """Free-running: the drive's clock is its periods (k periods, as in lockstep), not
+        the wall clock -- for an emulator paced to the wall clock, whose process the PC can
+        stall: it catches up, and an MCU's timer never stalls (the host's lateness stays
+        the host's)."""
 
     def _init_plant(self, setup: Any) -> None:
         """The plant at its initial frame (k = 0), the drive's state and counters."""

@@ -34,6 +34,8 @@ READ_ONLY = ("describe_parameters", "get_parameters", "get_parameter_types", "li
 # the service thread's nice value where the OS permits it (root or CAP_SYS_NICE)
 SERVICE_NICE = -5
 # the service thread's executor polls for its stop this often
+JOB_POLL_S = 0.005
+"""How often the data path looks for handed-over requests [s] (a steady-clock timer)."""
 POLL_S = 0.1
 
 
@@ -92,13 +94,20 @@ class ServiceSide:
         )
         self.jobs: deque[_Job] = deque()
         self.stopping = threading.Event()
-        # the data path's executor: a job runs there as a task (its queue takes events from
-        # other threads, the middleware's; the EventsExecutor has no guard conditions)
         self.data_executor = executor
         self.moved: list[str] = []
         for n in nodes:
             self._move(n)
             n.service_side = self
+        # jobs reach the data path through a steady-clock timer of its first node: rclpy's
+        # EventsExecutor does not run a task created from another thread (create_task) until
+        # something else wakes it, which on an idle node (the bench bridge between its CAN
+        # thread's samples) is never
+        from rclpy.clock import Clock, ClockType
+
+        self.timer = nodes[0].create_timer(
+            JOB_POLL_S, self.run_jobs, clock=Clock(clock_type=ClockType.STEADY_TIME)
+        )
         self.executor = SingleThreadedExecutor(context=ctx)
         self.executor.add_node(self.node)
         self.thread = threading.Thread(target=self._spin, name="fluxdrive-services", daemon=True)
@@ -121,7 +130,6 @@ class ServiceSide:
         def handler(req: Any, resp: Any) -> Any:
             job = _Job(cb, req, resp)
             self.jobs.append(job)
-            self.data_executor.create_task(self.run_jobs)
             while not job.done.wait(POLL_S):
                 if self.stopping.is_set() and job.cancel():
                     raise ServiceUnavailable("the process stopped before the request ran")
@@ -162,6 +170,7 @@ class ServiceSide:
         """Stop the thread (requests still waiting for the data path get no answer) and
         remove the hidden node."""
         self.stopping.set()
+        self.timer.cancel()
         self.thread.join(timeout=5.0)
         for job in list(self.jobs):
             job.cancel()

@@ -148,7 +148,8 @@ def _before_arming(inject: str) -> bool:
         return False
 
 
-def main(argv: list[str]) -> int:
+def _parser() -> Parser:
+    """The options of `fluxdrive bench --sil/--pil`."""
     ap = Parser(prog="fluxdrive bench", description=__doc__.split("\n\n")[0])
     kind = ap.add_mutually_exclusive_group(required=True)
     kind.add_argument("--sil", action="store_true", help="software in the loop")
@@ -188,6 +189,11 @@ def main(argv: list[str]) -> int:
         help="with --pil: run SCENARIO on the SIL bench first, then on the virtual board, and "
         f"write both θ̃ RMS to {PIL_RESULTS.relative_to(REPO_ROOT)} (last line JSON)",
     )
+    return ap
+
+
+def main(argv: list[str]) -> int:
+    ap = _parser()
     args = ap.parse_args(argv)
     if not 1 <= args.decimation <= 64:
         print("[bench] --decimation must be in 1..64", file=sys.stderr)
