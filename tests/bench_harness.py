@@ -53,7 +53,7 @@ def paper_case(path: Path, name: str, decimation: int = D) -> Path:
     mode at ``decimation``, only its driving observer (one observer node), at ``path``."""
     src = CONFIG_DIR / "scenarios" / f"{name}.yaml"
     raw = dict(yamlio.load_file(src))
-    for key in ("machine", "bench"):
+    for key in ("machine", "rig", "bench"):  # file references, relative to the scenario
         if isinstance(raw.get(key), str):
             raw[key] = str((src.parent / raw[key]).resolve())
     raw.update(

@@ -420,10 +420,15 @@ class InjectionOperator:
         from flux_drive_msgs.msg import DriveFault
         from flux_drive_msgs.srv import Arm, ResetFault
         from fluxdrive_bringup.inspect.commands import OPERATOR_NODE, Session, _call
+        from fluxdrive_ros import qos as fluxdrive_qos
 
         s = Session(domain_id=self.domain_id, node_name=OPERATOR_NODE, wait_s=3.0)
         events: deque = deque()
-        s.node.create_subscription(DriveFault, "/drive/fault", lambda m: events.append(m), 100)
+        # as the bridge offers it (transient local): a fault latched before this reader
+        # matched the bridge's writer (the first case, early in the run) still reaches it
+        s.node.create_subscription(
+            DriveFault, "/drive/fault", lambda m: events.append(m), fluxdrive_qos.MARKERS
+        )
         latched = False
         try:
             while not self._stop.is_set():
