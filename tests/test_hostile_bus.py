@@ -283,3 +283,26 @@ def test_report_window_skips_missing_rows():
     # from the first finite angle (sample 1): 5 periods end at sample 1001
     assert sl == slice(0, 1001)
     assert whole_periods(np.full(10, np.nan)) == slice(0, 10)
+
+
+def test_report_over_a_lost_sample_names_no_fault():
+    """A sample lost on the bench bus is a NaN row in every array of the run: the report's
+    fault code is taken over the rows that arrived (was `int(nan)`: a traceback after a
+    flood lost one sample), and a drive that never faulted reports FAULT_NONE."""
+    import dataclasses
+
+    from fluxdrive.analysis.metrics import compute
+    from fluxdrive.drive.control import CO_FAULT, FAULT_NONE
+    from fluxdrive.drive.scenario import load_scenario, scenario_path
+    from fluxdrive.drive.sim import run_scenario
+
+    sc = load_scenario(scenario_path("paper_2pct_150load"))
+    sc = dataclasses.replace(sc, duration_s=1.5, steady_window_s=(1.0, 1.5))
+    res = run_scenario(sc, progress=False)
+    whole = compute(res)
+    assert whole["fault_code"] == FAULT_NONE
+    k = res.ctrl.shape[0] // 2
+    res.ctrl[k, :] = np.nan  # the controller's state of one sample never reached the bag
+    assert np.isnan(res.ctrl[k, CO_FAULT])
+    lost = compute(res)
+    assert lost["fault_code"] == FAULT_NONE

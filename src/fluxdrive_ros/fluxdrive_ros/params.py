@@ -250,11 +250,23 @@ def on_set(
             return SetParametersResult(successful=False, reason=str(exc))
         if note:
             node.get_logger().info(f"parameters {changes}: {note}")
-        if marker is not None and sample is not None:
-            marker.publish(sample(), changes, note or "")
+        # a marker marks a change: a set to the value in force (a client re-sending a request
+        # it saw no answer to, inspect.commands._call) changes nothing and is not marked again
+        changed = {n: v for n, v in changes.items() if not _holds(node, n, v)}
+        if marker is not None and sample is not None and changed:
+            marker.publish(sample(), changed, note or "")
         return SetParametersResult(successful=True, reason=note or "")
 
     node.add_on_set_parameters_callback(cb)
+
+
+def _holds(node, name: str, value: Any) -> bool:
+    """Whether the node's parameter `name` holds `value` already (same type and value)."""
+    try:
+        now = node.get_parameter(name).value
+    except Exception:  # noqa: BLE001 - not declared (yet): a change
+        return False
+    return type(now) is type(value) and now == value
 
 
 class _MarkerPublisher:
