@@ -25,15 +25,17 @@ def _value(res, cid):
 
 
 def test_claims_table_is_the_experiments_registry():
-    """Every claim the paper experiments judge is registered, and every registered claim is
-    judged; a reproduction names how it fails, the others why they cannot count."""
+    """Every claim the experiments judge is registered (the paper's table or the one past the
+    paper), and every registered claim is judged; a reproduction names how it fails, the
+    others why they cannot count."""
     import re
     from pathlib import Path
 
-    from fluxdrive.experiments.claims import count, judge, registered
+    from fluxdrive.experiments.claims import count, judge
+    from fluxdrive.experiments.claims import table as claims_table
     from fluxdrive.experiments.registry import experiment_modules
 
-    table = registered()
+    table = claims_table()
     # every experiment module the registry lists (a claim judged anywhere is registered)
     src = "".join(Path(m.__file__).read_text() for m in experiment_modules())
     from fluxdrive.experiments.fronts import FRONT_CLAIMS
@@ -81,7 +83,12 @@ def test_experiments_are_found_by_listing_the_package(tmp_path, monkeypatch):
     from fluxdrive.experiments.claims import judge
 
     names = {m.__name__.rsplit(".", 1)[1] for m in registry.experiment_modules()}
-    assert {"paper", "fronts", "beyond", "emf_start"} <= names
+    past = {"lowest_speed", "mismatch", "sensitivity", "speed_reversal", "hexagon"}
+    assert {"paper", "fronts", "emf_start", "peers_fail", "rs_adapt"} | past <= names
+    # one experiment per module past the paper, named after it
+    for m in registry.experiment_modules():
+        if m.GROUP == "beyond":
+            assert list(m.EXPERIMENTS) == [m.__name__.rsplit(".", 1)[1]], m.__name__
     (tmp_path / "extra_probe.py").write_text(
         'GROUP = "beyond"\nEXPERIMENTS = {"probe": (lambda ctx: {"claims": []}, "probe")}\n'
     )
@@ -101,6 +108,77 @@ def test_experiments_are_found_by_listing_the_package(tmp_path, monkeypatch):
 
     doc = json.loads((tmp_path / "report.json").read_text())
     assert doc["counts"]["held"] == 1 and doc["counts_beyond"]["held"] == 1
+
+
+# what only the judge decides: an experiment module that names one of these in its code (a
+# string, a row key) or builds a claim row itself decides a verdict
+_VERDICT_WORDS = {"held", "failed", "holds", "passes", "verdict", "disagreement"}
+_VERDICT_WORDS |= {"modelling_gap", "undecided", "calibrated", "by_design"}
+
+
+def test_no_experiment_module_decides_a_verdict():
+    """Every listed experiment module (and what they share) is read as code: no string
+    constant that is a verdict or a verdict key (held, failed, verdict, holds, passes, the
+    classes' verdicts), no function `claim`; rows are `judge(...)` (a registered test decides)
+    or `observe(...)` (no verdict).  And the registry refuses at run time a row that carries a
+    verdict the judge did not give."""
+    import ast
+    from pathlib import Path
+
+    import fluxdrive.experiments as pkg
+    from fluxdrive.experiments.claims import judge
+    from fluxdrive.experiments.registry import check_rows, experiment_modules
+
+    mods = [Path(m.__file__) for m in experiment_modules()]
+    mods += [Path(pkg.__path__[0]) / "beyond_common.py", Path(pkg.__path__[0]) / "common.py"]
+    assert len(mods) >= 11
+    for path in mods:
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Constant) and isinstance(node.value, str):
+                where = f"{path.name}:{node.lineno}: {node.value!r}"
+                assert node.value not in _VERDICT_WORDS, where
+            if isinstance(node, ast.FunctionDef):
+                assert node.name != "claim", f"{path.name}:{node.lineno}"
+    row = judge("mismatch.l_angle", "x", 1.0)
+    assert row["verdict"] == "held" and row["class"] == "beyond"
+    check_rows("probe", [row, {"claim": "a measurement", "ours": "x"}])
+    for bad in (
+        {"claim": "decided here", "ours": "x", "holds": True},  # no registered claim
+        {**row, "verdict": "disagreement"},  # not what the registered test says of 1.0
+        {**row, "value": 9.0},  # the value changed after judging
+    ):
+        with pytest.raises(ValueError, match="probe"):
+            check_rows("probe", [bad])
+
+
+def test_every_claim_past_the_paper_is_produced_by_a_listed_experiment():
+    """The second table (config/claims_beyond.yaml) is frozen at its registered version, holds
+    only class `beyond`, shares no id with the paper's table, and each of its rows names a
+    listed experiment of group beyond whose module judges that id."""
+    import re
+    from pathlib import Path
+
+    from fluxdrive.experiments.claims import (
+        BEYOND_FILE,
+        BEYOND_HISTORY_FILE,
+        CLAIMS_FILE,
+        registered,
+        registry_info,
+    )
+    from fluxdrive.experiments.registry import experiment_modules
+
+    info = registry_info(BEYOND_FILE, BEYOND_HISTORY_FILE)
+    assert info["problems"] == [] and info["registered"]
+    rows = registered(BEYOND_FILE)
+    assert len(rows) >= 20 and not set(rows) & set(registered(CLAIMS_FILE))
+    by_name = {n: m for m in experiment_modules() for n in m.EXPERIMENTS}
+    for cid, row in rows.items():
+        assert row["class"] == "beyond", cid
+        mod = by_name[row["experiment"]]
+        assert mod.GROUP == "beyond", cid
+        judged = set(re.findall(r'judge\(\s*"([a-z0-9_.]+)"', Path(mod.__file__).read_text()))
+        assert cid in judged, (cid, mod.__name__)
 
 
 def test_emf_start_rows_rest_on_a_sensorless_handover(tmp_path):
@@ -569,7 +647,7 @@ def test_a_second_card_reports_its_own_numbers(tmp_path):
     assert not stale, f"default-card numbers in the gimbal card's report: {stale}"
 
 
-# one switched run's analysed row (beyond._switch_job's keys, no series)
+# one switched run's analysed row (peers_fail._switch_job's keys, no series)
 _PEER_ROW = {
     "stable": True,
     "fault": "none",
@@ -581,20 +659,20 @@ _PEER_ROW = {
 
 
 def test_past_the_paper_texts_quote_the_card_they_ran_on():
-    """The texts beyond.py builds around its runs (lowest_speed's notes, sensitivity's and
-    peers_fail's explanations) on the gimbal card: its deadtime fundamental, EMF noise L/Ts
-    sigma_i, gamma lambda^2, inertia and 2 % speed are there, none of the default card's.
-    Text builders only, fed the card's fundamental numbers (no runs: milliseconds)."""
+    """The texts the experiments past the paper build around their runs (lowest_speed's
+    notes, sensitivity's and peers_fail's explanations) on the gimbal card: its deadtime
+    fundamental, EMF noise L/Ts sigma_i, gamma lambda^2, inertia and 2 % speed are there, none
+    of the default card's.  Text builders only, fed the card's numbers (no runs: milliseconds)."""
     from fluxdrive.core.machine import load_machine
     from fluxdrive.drive.scenario import CONFIG_DIR
-    from fluxdrive.experiments import beyond
+    from fluxdrive.experiments import beyond_common, lowest_speed, peers_fail, sensitivity
     from fluxdrive.experiments.common import Ctx
 
     def texts(ctx) -> tuple[str, set[str]]:
-        mc, cr = ctx.cv, beyond.card_rates(ctx)
+        mc, cr = ctx.cv, beyond_common.card_rates(ctx)
         w, rpm = cr["w2"], ctx.rpm(0.02)
-        pred = beyond._peers_pred(ctx, w, mc.i_rated)
-        ctl = beyond._peers_control_claim(
+        pred = peers_fail._peers_pred(ctx, w, mc.i_rated)
+        ctl = peers_fail._peers_control_claim(
             {"emf_measured@2us": [_PEER_ROW]},
             mc,
             w,
@@ -602,12 +680,12 @@ def test_past_the_paper_texts_quote_the_card_they_ran_on():
         )
         nom = {"steady": False}
         parts = [
-            *beyond.lowest_notes(ctx, {}).values(),
-            beyond._peers_mechanism_why(mc, w, rpm, pred),
+            *lowest_speed.lowest_notes(ctx, {}).values(),
+            peers_fail._peers_mechanism_why(mc, w, rpm, pred),
             ctl[0].get("why", ctl[0].get("note", "")),
-            beyond._sens_kind_why("ortega", nom, [], [], [], rpm, mc, w, cr["k_ortega"]),
-            beyond.SENS_DESC["ortega"].format(k=cr["k_ortega"]),
-            beyond._peers_headline_claim({}, 1, rpm, ctx.card.deadtime_s)["claim"],
+            sensitivity._sens_kind_why("ortega", nom, [], [], [], rpm, mc, w, cr["k_ortega"]),
+            sensitivity.SENS_DESC["ortega"].format(k=cr["k_ortega"]),
+            peers_fail._peers_headline_claim({}, 1, rpm, ctx.card.deadtime_s)["ours"],
         ]
         quoted = _card_numbers(ctx.card) | {
             f"{mc.v1_dt:.2f} V",
@@ -622,7 +700,8 @@ def test_past_the_paper_texts_quote_the_card_they_ran_on():
     prose, own = texts(gimbal)
     _, default = texts(Ctx())
     assert load_machine(gimbal.machine).name == "gimbal_24v"
-    for x in (f"γλ² = {beyond.card_rates(gimbal)['k_ortega']:.0f} s⁻¹", f"{gimbal.cv.j:.3g} kg·m²"):
+    k_ortega = beyond_common.card_rates(gimbal)["k_ortega"]
+    for x in (f"γλ² = {k_ortega:.0f} s⁻¹", f"{gimbal.cv.j:.3g} kg·m²"):
         assert x in prose, x
     assert f"{gimbal.rpm(0.02):.0f} rpm" in prose
     stale = sorted(x for x in default - own if x in prose)

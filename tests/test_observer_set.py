@@ -42,7 +42,7 @@ def test_node_parameters_and_experiments_read_the_set():
     ros = yamlio.load_file(CONFIG_DIR / "ros" / "observers.yaml")
     assert list(ros) == ["/obs/**"]
     assert ros["/obs/**"]["ros__parameters"]["scenario"].endswith(f"{OBSERVER_SET_SCENARIO}.yaml")
-    from fluxdrive.experiments.beyond import VARIANTS
+    from fluxdrive.experiments.beyond_common import VARIANTS
     from fluxdrive.experiments.common import LITERAL, OBS4, OBS6
 
     assert OBS6 == SET and {**OBS4, **LITERAL} == SET

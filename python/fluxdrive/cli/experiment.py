@@ -19,7 +19,7 @@ from fluxdrive.core.machine import ConfigError, load_machine
 from fluxdrive.core.schema import Parser
 from fluxdrive.drive.scenario import MACHINE_HELP, REPO_ROOT, load_bench_file, machine_path
 from fluxdrive.experiments.claims import BEYOND, MIN_SEEDS, count, counts_line
-from fluxdrive.experiments.common import DEFAULT_MACHINE, claim
+from fluxdrive.experiments.common import DEFAULT_MACHINE
 from fluxdrive.experiments.registry import (
     expand,
     experiments,
@@ -151,7 +151,9 @@ def _failed(name: str, quick: bool, exc: Exception) -> dict:
         "runtime_s": 0.0,
         "quick": quick,
         "figures": [],
-        "claims": [claim("experiment ran", f"failed: {exc!r}", False, "see the traceback")],
+        "claims": [
+            {"claim": "experiment ran", "ours": f"failed: {exc!r}", "error": "see the traceback"}
+        ],
     }
 
 

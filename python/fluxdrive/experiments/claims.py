@@ -1,4 +1,6 @@
-"""The paper's claims, registered before the runs (config/claims.yaml), frozen by version.
+"""The claims, registered before the runs and frozen by version: the paper's
+(config/claims.yaml) and ours past the paper (config/claims_beyond.yaml, class `beyond`, a
+second table of the same form with its own version and history), one id space (`table`).
 
 An experiment measures a number per claim and hands it to `judge`; the verdict comes from the
 table's test and threshold, never from the experiment's code, and the table's class decides
@@ -6,7 +8,8 @@ how it counts: only a passing *reproduction* is "held"; a failing row is a genui
 disagreement or a modelling gap (the row's `if_fails` says which, the explanation says why),
 whatever its class; a claim a model number was fitted to (`calibrated`) or a setting was
 chosen for or that is true by construction (`by_design`) is reported with its number and,
-when it passes, counted apart: never as held.
+when it passes, counted apart: never as held; a claim past the paper (`beyond`) is held when it
+passes and counted apart from the paper's.
 
 Frozen: the table carries a version and the SHA-256 of its claim definitions
 (`content_hash`), and config/claims_history.yaml keeps every version's hash; a claim changed
@@ -40,6 +43,13 @@ from fluxdrive.drive.scenario import CONFIG_DIR
 
 CLAIMS_FILE = CONFIG_DIR / "claims.yaml"
 HISTORY_FILE = CONFIG_DIR / "claims_history.yaml"
+# the claims of the experiments past the paper: a second table of the same form (rows of class
+# `beyond` only), frozen by its own version and history, read by the same loader; `table()`
+# is both, one id space
+BEYOND_FILE = CONFIG_DIR / "claims_beyond.yaml"
+BEYOND_HISTORY_FILE = CONFIG_DIR / "claims_beyond_history.yaml"
+# (table, its history): the registries the judge reads, the paper's first
+REGISTRIES = ((CLAIMS_FILE, HISTORY_FILE), (BEYOND_FILE, BEYOND_HISTORY_FILE))
 # `beyond`: a claim of ours past the paper, judged like a reproduction (held / its if_fails /
 # undecided) and counted apart from the paper's claims (BEYOND)
 CLASSES = ("reproduction", "calibrated", "by_design", "beyond")
@@ -157,7 +167,23 @@ def registered(path: Path = CLAIMS_FILE) -> dict[str, dict[str, Any]]:
             raise ConfigError(
                 f"{where}: original needs commit, why and tests (metric, test, threshold)"
             )
+        if path == BEYOND_FILE and row["class"] != "beyond":
+            raise ConfigError(f"{where}: a claim past the paper has class beyond")
         out[row["id"]] = row
+    return out
+
+
+@functools.cache
+def table() -> dict[str, dict[str, Any]]:
+    """Every registered claim by id: the paper's table and the one past the paper (one id
+    space: an id in both is refused, naming it)."""
+    out: dict[str, dict[str, Any]] = {}
+    for path, _ in REGISTRIES:
+        rows = registered(path)
+        twice = sorted(set(rows) & set(out))
+        if twice:
+            raise ConfigError(f"{path}: ids registered in another claims table too: {twice}")
+        out.update(rows)
     return out
 
 
@@ -217,7 +243,7 @@ def judge(
     has variants) judged on the measured `value` (nan: not measured -> does not pass), or on
     the per-seed `samples` (the value: their mean, with a 95 % interval); `also`: the values
     of other metrics an `original` test of the row needs."""
-    row = registered()[cid]
+    row = table()[cid]
     cls = row["class"]
     value, passes, verdict, stats = _decide(row, value, samples)
     tag = f"[{variant}] " if variant else ""
@@ -284,8 +310,8 @@ def _decide(
 def over_seeds(per_seed: list[list[dict]]) -> list[dict]:
     """The rows of an experiment run once per seed (`per_seed[k]`: seed k's rows, the same
     rows in every seed), each registered row judged on its per-seed values (mean, 95 %
-    interval, outcome); its text is the first seed's with every seed's value appended.  Rows
-    beyond the paper (no verdict) are the first seed's."""
+    interval, outcome); its text is the first seed's with every seed's value appended.
+    Observations (rows without a verdict) are the first seed's."""
     first = per_seed[0]
     out = []
     for i, c in enumerate(first):
@@ -295,7 +321,7 @@ def over_seeds(per_seed: list[list[dict]]) -> list[dict]:
         vals = [float(s[i]["value"]) for s in per_seed]
         if any(s[i]["id"] != c["id"] for s in per_seed):
             raise ValueError(f"{c['id']}: the seeds' rows differ")
-        row = registered()[c["id"].split("[", 1)[0]]
+        row = table()[c["id"].split("[", 1)[0]]
         value, passes, verdict, stats = _decide(row, math.nan, vals)
         d = dict(c)
         d.update(value=value, passes=passes, verdict=verdict, stats=stats)
@@ -335,7 +361,7 @@ def _original(row: dict[str, Any], value: float, also: dict[str, float]) -> dict
 
 
 def count(claims: list[dict]) -> dict[str, int]:
-    """The six counts over judged claims (rows without a verdict -- beyond the paper -- are
+    """The six counts over judged claims (rows without a verdict -- observations -- are
     not counted)."""
     n = dict.fromkeys(VERDICTS, 0)
     for c in claims:

@@ -1,7 +1,7 @@
 """What the experiments share: scenario builders (`build`, `sensorless`, `encoder_run`), the card
 values predictions use (`cv`), the run context (`Ctx`: the one parallel runner, figures), the
-graph-runner hook and `claim` for rows beyond the paper.  The experiment modules (paper, fronts,
-beyond) import this, and registry imports them: no import cycle."""
+graph-runner hook and `observe` for rows that measure without claiming.  The experiment modules
+import this, and registry imports them: no import cycle."""
 
 from __future__ import annotations
 
@@ -337,12 +337,12 @@ class Ctx:
         return p.name
 
 
-def claim(text: str, ours: str, holds: bool | None, why: str = "") -> dict:
-    d = {"claim": text, "ours": ours, "holds": holds}
-    if not holds and why:
-        d["why"] = why
-    elif why:
-        d["note"] = why
+def observe(text: str, ours: str, note: str = "") -> dict:
+    """A row that reports what was measured and makes no claim: no test, no verdict (a claim
+    is a registered row judged by `claims.judge`; no experiment decides one itself)."""
+    d = {"claim": text, "ours": ours}
+    if note:
+        d["note"] = note
     return d
 
 

@@ -3,15 +3,17 @@
 Each experiment builds scenarios, runs them through the project's one parallel runner
 (fluxdrive.study.runner: a dask LocalCluster on every core, an existing cluster with
 --scheduler, or in-process with --workers 1), writes PNGs laid out like the paper's figure,
-and one row per claim into report.md / report.json (experiments.claims judges the paper's
-claims against config/claims.yaml).
+and one row per claim into report.md / report.json (experiments.claims judges every claim against
+its registered row: config/claims.yaml for the paper's, config/claims_beyond.yaml for ours past
+the paper; an experiment computes numbers, never a verdict -- `check_rows` refuses a row that
+carries one the judge did not give).
 
 Experiments live in the modules of this package, found by listing it (`experiment_modules`:
 no hand-kept list): a module with an `EXPERIMENTS` table (name -> (function, title)) and a
-`GROUP` ("paper" or "beyond") is one; paper.py (Figs. 2-4, 13-19), fronts.py (flux vs EMF at
-matched bandwidth), beyond.py (lowest speed, mismatch, sensitivity, online R_s, speed
-reversal, where peers fail), emf_start.py (the EMF drive's sensorless start), and whatever
-module is added.  Each one is `fn(ctx) -> dict` with keys claims, figures, data; `ctx` (a
+`GROUP` ("paper" or "beyond") is one; paper.py (Figs. 2-4, 13-19), and past the paper one module
+per experiment (fronts, emf_start, lowest_speed, mismatch, sensitivity, rs_adapt,
+speed_reversal, hexagon, peers_fail; what they share is beyond_common.py), and whatever module
+is added.  Each one is `fn(ctx) -> dict` with keys claims, figures, data; `ctx` (a
 common.Ctx) carries the card, the runner and the output folder, and `ctx.run(jobs)` runs
 (scenario, extractor, kwargs) jobs and returns the extractors' outputs, so only small arrays
 cross process boundaries.  The command line is fluxdrive.cli.experiment.
@@ -31,14 +33,18 @@ from typing import Any
 
 from fluxdrive.experiments.claims import (
     BEYOND,
+    BEYOND_FILE,
+    BEYOND_HISTORY_FILE,
     FAILURES,
     MIN_SEEDS,
     OBSERVERS,
     VERDICT_TEXT,
     count,
     counts_line,
+    judge,
     over_seeds,
     registry_info,
+    table,
 )
 
 # re-exported: study specs, the graph runner and tests name them here
@@ -50,8 +56,8 @@ from fluxdrive.experiments.common import (  # noqa: F401
     CardValues,
     Ctx,
     build,
-    claim,
     encoder_run,
+    observe,
     plt,
     sensorless,
 )
@@ -141,6 +147,7 @@ def run_experiment(
     )
     t0 = time.perf_counter()
     res = fn(ctx)
+    check_rows(name, res["claims"])
     n_seeds = seeds if seeds is not None else (1 if quick else MIN_SEEDS)
     if n_seeds > 1 and any("verdict" in c and "stats" not in c for c in res["claims"]):
         res = _over_seeds(fn, ctx, res, n_seeds)
@@ -148,6 +155,33 @@ def run_experiment(
     res["title"] = title
     res["quick"] = quick
     return res
+
+
+# the keys only the judge writes: a row with any of them is a judged claim
+_JUDGED_KEYS = ("verdict", "holds", "passes")
+
+
+def check_rows(name: str, rows: list[dict]) -> None:
+    """Refuse a row whose verdict the experiment `name` decided itself: a row is either a
+    registered claim as `claims.judge` returned it (its id registered, its verdict the table's
+    test on its value) or an observation with no verdict at all (`common.observe`)."""
+    reg = table()
+    for c in rows:
+        if not any(k in c for k in _JUDGED_KEYS):
+            continue
+        cid = str(c.get("id", "")).split("[", 1)[0]
+        if cid not in reg or c.get("class") != reg[cid]["class"]:
+            raise ValueError(
+                f"experiment {name}: row {c.get('id') or c.get('claim')!r} carries a verdict "
+                "but is not a registered claim as the judge returns it"
+            )
+        if "stats" not in c:
+            again = judge(cid, "", float(c["value"]))["verdict"]
+            if again != c["verdict"]:
+                raise ValueError(
+                    f"experiment {name}: row {c['id']} says {c['verdict']}, its registered "
+                    f"test on {c['value']!r} says {again}"
+                )
 
 
 def _over_seeds(fn: Callable, ctx: Ctx, first: dict, n_seeds: int) -> dict:
@@ -167,22 +201,18 @@ def _over_seeds(fn: Callable, ctx: Ctx, first: dict, n_seeds: int) -> dict:
     return res
 
 
-def _fmt_holds(h) -> str:
-    return {True: "yes", False: "**no**", None: "n/a"}[h]
-
-
 def fmt_verdict(c: dict) -> str:
     """A registered claim's verdict (bold where a reproduction fails or is undecided), with a
     comparison's outcome over seeds and, where the test changed before registration, the
     verdict under the original test; a claim beyond the paper (no verdict): whether it
     holds."""
     v = c.get("verdict")
-    if v is None:
-        return _fmt_holds(c["holds"])
+    if v is None:  # an observation (no claim), or an experiment that failed to run
+        return "**the experiment failed**" if c.get("error") else "no test (measured)"
     text = VERDICT_TEXT[v]
     if v in ("disagreement", "modelling_gap", "undecided"):
         text = f"**{text}**"
-    if c.get("class", "reproduction") != "reproduction" and v in FAILURES:
+    if c.get("class", "reproduction") not in ("reproduction", BEYOND) and v in FAILURES:
         # a calibrated or by-design claim never counts as held; one that fails its own
         # registered test counts as that failure and says which class it is
         text += f" ({c['class'].replace('_', ' ')}, fails its test)"
@@ -221,7 +251,8 @@ def _claim_rows(claims: list[dict]) -> list[str]:
                 why = "; ".join(x for x in (why, f"test changed in {o['commit']}: {o['why']}") if x)
             cls = c["class"].replace("_", " ")
         else:
-            what, test, cls = _md(c["claim"]), "", "beyond the paper"
+            what, test, cls = _md(c["claim"]), "", "observation"
+            why = c.get("error", why)
         lines.append(
             f"| {c.get('id', '')} | {what} | {cls} | {test} | {_md(c['ours'])} | "
             f"{fmt_verdict(c)} | {_md(why)} |"
@@ -271,11 +302,12 @@ def _report_head(doc: dict[str, Any]) -> list[str]:
         "failure.  THD is orders 2..20, "
         "THD+N everything but the fundamental; rows that use either show both.",
         "",
-        f"**Claims registry: version {reg['version']}, sha256 `{reg['sha256'][:16]}`** "
-        + (
-            "(the hash registered for this version in config/claims_history.yaml)."
-            if reg["registered"]
-            else "(**not the registered claims**: " + "; ".join(reg["problems"]) + ")."
+        _registry_line("Claims registry", reg, "config/claims_history.yaml"),
+        "",
+        _registry_line(
+            "Past the paper (config/claims_beyond.yaml)",
+            doc["registry_beyond"],
+            "config/claims_beyond_history.yaml",
         ),
         "",
         "Every row is judged over noise seeds (their number is in the verdict): the mean of "
@@ -286,8 +318,9 @@ def _report_head(doc: dict[str, Any]) -> list[str]:
         "",
         f"**Claims: {counts_line(n)}.**",
         "",
-        "Claims of ours past the paper (class *beyond*: registered in the same table, judged "
-        "like a reproduction, counted apart): "
+        "Claims of ours past the paper (class *beyond*: registered in the second table, "
+        "judged by the same judge over seeds, counted apart; rows marked *observation* "
+        "report a measurement and claim nothing): "
         + ", ".join(f"{VERDICT_TEXT[v]} {doc['counts_beyond'][v]}" for v in BEYOND_VERDICTS)
         + ".",
         "",
@@ -306,6 +339,14 @@ def _report_head(doc: dict[str, Any]) -> list[str]:
             "",
         ]
     return lines
+
+
+def _registry_line(what: str, reg: dict[str, Any], history: str) -> str:
+    return f"**{what}: version {reg['version']}, sha256 `{reg['sha256'][:16]}`** " + (
+        f"(the hash registered for this version in {history})."
+        if reg["registered"]
+        else "(**not the registered claims**: " + "; ".join(reg["problems"]) + ")."
+    )
 
 
 def write_report(out: Path, results: dict[str, dict]) -> None:
@@ -328,9 +369,13 @@ def write_report(out: Path, results: dict[str, dict]) -> None:
     n = count(judged)
     by_obs = counts_by_observer(judged)
     reg = registry_info()
+    reg_beyond = registry_info(BEYOND_FILE, BEYOND_HISTORY_FILE)
     changed = original_changes(judged)
     doc = {  # the counts and the registry: for the docs to quote
         "registry": {k: reg[k] for k in ("version", "sha256", "registered", "problems")},
+        "registry_beyond": {
+            k: reg_beyond[k] for k in ("version", "sha256", "registered", "problems")
+        },
         "counts": n,
         "counts_beyond": count([c for c in rows if c.get("class") == BEYOND]),
         "counts_by_observer": by_obs,

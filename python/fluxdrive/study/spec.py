@@ -29,7 +29,7 @@ STUDY_DIR = CONFIG_DIR / "studies"
 
 # scenario builders a spec may name (speed_rpm, load_pu and the variant are passed in)
 BUILDERS = {
-    "descent": "fluxdrive.experiments.beyond:descent",
+    "descent": "fluxdrive.experiments.beyond_common:descent",
     "sensorless": "fluxdrive.experiments.registry:sensorless",
     "encoder_run": "fluxdrive.experiments.registry:encoder_run",
 }
