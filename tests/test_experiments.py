@@ -293,6 +293,53 @@ def test_a_one_seed_experiments_rows_are_judged_over_its_seeds():
     assert some[2]["verdict"] == "undecided"
 
 
+def test_experiments_and_their_seeds_run_at_once_on_a_cluster_with_the_same_rows(
+    tmp_path, monkeypatch
+):
+    """On a runner with a cluster, `run_experiments` has every experiment, and each one's
+    seeds, in flight at once (the runner sees their maps overlap: each map waits for another
+    one to start), and the rows are those of the in-process run, one after the other."""
+    import threading
+
+    from fluxdrive.experiments import registry
+    from fluxdrive.experiments.claims import judge
+
+    def probe(ctx):
+        vals = ctx.map(lambda x: x * x, [ctx.seed, ctx.seed + 1])
+        row = judge("fig19.fullload_4pct", f"seed {ctx.seed}", 1.0 + 0.01 * sum(vals))
+        return {"claims": [row], "figures": [], "data": {"seed": ctx.seed}}
+
+    class Cluster:  # the runner's interface; `client` set: the experiments run in turns
+        client = object()
+
+        def __init__(self) -> None:
+            self.pairs = threading.Barrier(2, timeout=60)
+            self.maps = 0
+
+        def map(self, fn, items, progress=None):
+            self.maps += 1
+            self.pairs.wait()  # breaks (the test fails) unless another map is in flight
+            return [fn(x) for x in items]
+
+    monkeypatch.setattr(registry, "_registry", lambda: {"a": (probe, "a"), "b": (probe, "b")})
+    rows: dict[str, dict[str, list]] = {"cluster": {}, "in-process": {}}
+    cluster = Cluster()
+    for how, runner in (("cluster", cluster), ("in-process", None)):
+        registry.run_experiments(
+            ["a", "b"],
+            tmp_path,
+            lambda n, res, how=how: rows[how].__setitem__(n, res["claims"]),
+            lambda n, exc: pytest.fail(f"{n}: {exc!r}"),
+            runner,
+            seeds=3,
+            echo=False,
+        )
+    assert cluster.maps == 6  # 2 experiments x 3 seeds, each map met another in flight
+    assert rows["cluster"] == rows["in-process"]
+    row = rows["cluster"]["a"][0]
+    assert row["stats"]["n"] == 3 and row["per_seed"] == pytest.approx([1.05, 1.13, 1.25])
+
+
 def test_groups_name_the_papers_figures():
     """`experiment paper` runs exactly the paper's figures, once each, in the report's order."""
     from fluxdrive.experiments import paper

@@ -56,3 +56,23 @@ def test_thd_n_equals_thd_without_noise_or_dc_under_speed_ripple():
     a, b = thd(x[sl], theta[sl]), thd_n(x[sl], theta[sl])
     assert a == pytest.approx(math.hypot(A5, A7), rel=1e-3)
     assert b == pytest.approx(a, rel=1e-3)
+
+
+def test_one_joint_fit_of_several_signals_gives_each_its_own_numbers():
+    # thd_spectra fits every column at once: each column's THD, THD+N and spectrum are what
+    # thd(), thd_n() and harmonic_spectrum() give it alone (the known values, per seed)
+    from fluxdrive.analysis.metrics import harmonic_spectrum, thd_spectra
+
+    x0, th = _signal(0.05, 0)
+    x1, _ = _signal(0.05, 1)
+    cols = np.column_stack([x0, 0.5 * x1, np.cos(th) + 0.1 * np.cos(11 * th)])
+    fits = thd_spectra(cols, th)
+    for j, f in enumerate(fits):
+        x = cols[:, j]
+        assert f["thd"] == pytest.approx(thd(x, th), rel=1e-9)
+        assert f["thd_n"] == pytest.approx(thd_n(x, th), rel=1e-9)
+        spec = harmonic_spectrum(x, th)
+        assert f["spectrum"] == pytest.approx(spec, rel=1e-9, abs=1e-12)
+    assert fits[0]["thd"] == pytest.approx(math.hypot(A5, A7), rel=0.01)
+    assert fits[1]["spectrum"][5] == pytest.approx(0.5 * A5, rel=0.02)
+    assert fits[2]["thd"] == pytest.approx(0.1, rel=1e-6)  # noise-free: exact

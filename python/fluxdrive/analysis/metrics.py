@@ -212,6 +212,22 @@ def harmonic_spectrum(x: np.ndarray, theta: np.ndarray, orders=range(1, 21)) -> 
     return {n: float(abs(c[n])) for n in orders}
 
 
+def thd_spectra(x: np.ndarray, theta: np.ndarray, orders=range(1, 21)) -> list[dict[str, Any]]:
+    """Per column of x (samples, signals): {"thd", "thd_n", "spectrum"}, what thd(), thd_n()
+    and harmonic_spectrum(orders) give that column, from one joint fit of every column (one
+    design matrix and factorisation instead of three per signal)."""
+    orders = list(orders)
+    f = fit_orders(x, theta, max([FIT_ORDERS, *orders]))
+    return [
+        {
+            "thd": _thd_of(f.coef[:, j]),
+            "thd_n": _thd_n_of(f.coef[:, j], f.residual[:, j]),
+            "spectrum": {n: float(abs(f.coef[n, j])) for n in orders},
+        }
+        for j in range(f.coef.shape[1])
+    ]
+
+
 @dataclass
 class Window:
     k0: int

@@ -109,61 +109,129 @@ def _cpu_s() -> float:
 
 
 def bench_experiments(argv: list[str]) -> dict:
-    """The experiments' cost: each one run as `./fluxdrive experiment` runs it (in-process
-    engine, no ROS), its wall time and the CPU time it took (this process and its workers);
-    the report goes to a scratch folder, results/experiments is left alone."""
+    """The experiments' cost, run as `./fluxdrive experiment` runs them (in-process engine,
+    no ROS; on a local cluster of `--workers`, every experiment and seed at once): the wall
+    time, the CPU time of this process and its workers, and where it goes: per experiment
+    its runs, their simulated seconds and CPU seconds in the simulation and in the analysis
+    (metrics and extractor, where the run ran), and this process's own share (judging,
+    plots, the runner).  The kernels are compiled (or loaded from the cache) before the
+    clock starts; the report goes to a scratch folder, results/experiments is left alone."""
     import tempfile
 
-    from fluxdrive.experiments.registry import expand, experiments, run_experiment
+    from fluxdrive.experiments.claims import MIN_SEEDS
+    from fluxdrive.experiments.registry import expand, experiments, run_experiments
     from fluxdrive.study.runner import runner_from_args
     from fluxdrive.study.tasks import warm_kernels
 
     ap = Parser(prog="fluxdrive benchmark experiments")
     ap.add_argument("names", nargs="?", default="paper", help="experiments or a group (paper)")
-    ap.add_argument("--workers", type=int, default=1, help="dask workers (1: in-process)")
+    ap.add_argument(
+        "--workers",
+        type=int,
+        default=os.cpu_count() or 1,
+        help="dask workers (default: every core; 1: in-process, one after the other)",
+    )
+    ap.add_argument("--seeds", type=int, metavar="N", help="as `experiment --seeds`")
     ap.add_argument("--quick", action="store_true", help="the quick variants")
     ap.add_argument(
-        "--write", action="store_true", help="also write results/benchmarks/experiments.json"
+        "--write",
+        action="store_true",
+        help="also write results/benchmarks/experiments_NAMES.json",
     )
     args = ap.parse_args(argv)
     names = expand(args.names)
     bad = [n for n in names if n not in experiments()]
     if bad:
         raise SystemExit(f"benchmark experiments: unknown {bad}; known: {', '.join(experiments())}")
+    load0 = os.getloadavg()[0]
+    w0 = time.perf_counter()
     warm_kernels()  # compiled (or loaded from the cache) before the clock starts
+    warm_s = time.perf_counter() - w0
     runner = runner_from_args(None, args.workers)
-    per: dict[str, dict] = {}
+    in_process = runner.client is None
+    ledger: list[dict] = []
+    runtime: dict[str, float] = {}
+    failed: list[str] = []
+
+    def done(n: str, res: dict) -> None:
+        runtime[n] = res["runtime_s"]
+        print(f"[bench] {n:14s} done at {time.perf_counter() - wall0:7.1f} s", file=sys.stderr)
+
+    def fail(n: str, exc: Exception) -> dict:
+        failed.append(f"{n}: {exc!r}")
+        return {"runtime_s": 0.0, "claims": []}
+
     try:
         with tempfile.TemporaryDirectory() as tmp:
-            wall0, cpu0 = time.perf_counter(), _cpu_s()
-            for n in names:
-                w, c = time.perf_counter(), _cpu_s()
-                run_experiment(n, Path(tmp) / "report", args.quick, runner, echo=False)
-                per[n] = {
-                    "wall_s": round(time.perf_counter() - w, 2),
-                    "cpu_s": round(_cpu_s() - c, 2),
-                }
-                print(
-                    f"[bench] {n:14s} {per[n]['wall_s']:7.1f} s wall {per[n]['cpu_s']:7.1f} s CPU",
-                    file=sys.stderr,
-                )
+            wall0, cpu0, own0 = time.perf_counter(), _cpu_s(), time.process_time()
+            run_experiments(
+                names,
+                Path(tmp) / "report",
+                done,
+                fail,
+                runner,
+                quick=args.quick,
+                echo=False,
+                seeds=args.seeds,
+                ledger=ledger,
+            )
             wall, cpu = time.perf_counter() - wall0, _cpu_s() - cpu0
+            own = time.process_time() - own0
     finally:
         runner.close()
-    print(f"[bench] {len(names)} experiments: {wall:.1f} s wall, {cpu:.1f} s CPU", file=sys.stderr)
+    if failed:
+        raise SystemExit("benchmark experiments: " + "; ".join(failed))
     out = {
         "names": args.names,
-        "experiments": per,
         "total_wall_s": round(wall, 1),
         "total_cpu_s": round(cpu, 1),
-        "workers": args.workers,
+        "workers": runner.workers,
+        "seeds": args.seeds or (1 if args.quick else MIN_SEEDS),
         "quick": args.quick,
         "cpu_count": os.cpu_count(),
+        "warm_s": round(warm_s, 1),
+        "load_average_1min_at_start": round(load0, 2),
+        **run_costs(ledger, names, runtime, own, in_process),
     }
+    print(
+        f"[bench] {len(names)} experiments: {wall:.1f} s wall, {cpu:.1f} s CPU "
+        f"({out['runs']} runs: {out['cpu_run_s']:.1f} s simulating, "
+        f"{out['cpu_analysis_s']:.1f} s analysing; this process {out['own_cpu_s']:.1f} s)",
+        file=sys.stderr,
+    )
     if args.write:
         label = args.names.replace(",", "_") + ("_quick" if args.quick else "")
         write_benchmark(f"experiments_{label}", out)
     return out
+
+
+def run_costs(
+    ledger: list[dict],
+    names: list[str],
+    runtime: dict[str, float],
+    own_cpu_s: float,
+    in_process: bool,
+) -> dict:
+    """The ledger of runs (Ctx.ledger) summed: over all and per experiment, runs, simulated
+    seconds, CPU seconds simulating and analysing; this process's own CPU seconds
+    (`own_cpu_s`, less the runs' when they ran `in_process`)."""
+
+    def total(rows: list[dict]) -> dict:
+        return {
+            "runs": len(rows),
+            "sim_s": round(sum(r["sim_s"] for r in rows), 1),
+            "cpu_run_s": round(sum(r["cpu_run_s"] for r in rows), 2),
+            "cpu_analysis_s": round(sum(r["cpu_analysis_s"] for r in rows), 2),
+        }
+
+    per = {n: total([r for r in ledger if r["experiment"] == n]) for n in names}
+    for n in names:
+        per[n]["cpu_s"] = round(per[n]["cpu_run_s"] + per[n]["cpu_analysis_s"], 2)
+        per[n]["runtime_s"] = runtime.get(n, math.nan)
+    out = total(ledger)
+    if in_process:
+        own_cpu_s = max(own_cpu_s - out["cpu_run_s"] - out["cpu_analysis_s"], 0.0)
+    return {**out, "own_cpu_s": round(own_cpu_s, 1), "experiments": per}
 
 
 def _engine_cases() -> tuple[Path, Any, Any]:

@@ -25,7 +25,7 @@ from fluxdrive.experiments.registry import (
     experiments,
     fmt_verdict,
     groups,
-    run_experiment,
+    run_experiments,
     write_report,
 )
 
@@ -164,7 +164,8 @@ def _run_all(
     graph_run: Callable | None,
     out: Path,
 ) -> list[dict]:
-    """Run the experiments in order, each written to the report as it finishes."""
+    """Run the experiments (on a cluster all at once, in-process in order), each written to
+    the report as it ends."""
     from fluxdrive.study.runner import runner_from_args
     from fluxdrive.study.tasks import warm_kernels
 
@@ -173,27 +174,28 @@ def _run_all(
         warm_kernels()  # compiled once here, loaded from the cache by the local workers
     runner = runner_from_args(None if graph_run else args.scheduler, args.workers)
     judged: list[dict] = []
+
+    def done(n: str, res: dict) -> None:  # each experiment into the report as it ends
+        write_report(out, {n: res})
+        for c in res["claims"]:
+            print(f"[{n}] {fmt_verdict(c):22s} {c['claim']}  ->  {c['ours']}")
+        print(f"[{n}] {res['runtime_s']:.1f} s ({time.perf_counter() - t0:.0f} s elapsed)")
+        judged.extend(res["claims"])
+
+    sys.stderr.write(f"== experiments {', '.join(names)} on {runner.address}\n")
     try:
-        for n in names:
-            sys.stderr.write(f"== experiment {n} ({time.perf_counter() - t0:.0f} s elapsed)\n")
-            try:
-                res = run_experiment(
-                    n,
-                    out,
-                    args.quick,
-                    runner,
-                    machine=machine,
-                    graph_run=graph_run,
-                    bench=args.bench,
-                    seeds=args.seeds,
-                )
-            except Exception as exc:  # one broken experiment must not lose the others
-                res = _failed(n, args.quick, exc)
-            write_report(out, {n: res})
-            for c in res["claims"]:
-                print(f"[{n}] {fmt_verdict(c):22s} {c['claim']}  ->  {c['ours']}")
-            print(f"[{n}] {res['runtime_s']:.1f} s")
-            judged += res["claims"]
+        run_experiments(
+            names,
+            out,
+            done,
+            lambda n, exc: _failed(n, args.quick, exc),
+            runner,
+            quick=args.quick,
+            machine=machine,
+            graph_run=graph_run,
+            bench=args.bench,
+            seeds=args.seeds,
+        )
     finally:
         runner.close()
     paper = [c for c in judged if c.get("class") != BEYOND]

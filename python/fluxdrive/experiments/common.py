@@ -1,7 +1,8 @@
 """What the experiments share: scenario builders (`build`, `sensorless`, `encoder_run`), the card
 values predictions use (`cv`), the run context (`Ctx`: the one parallel runner, figures), the
-graph-runner hook and `observe` for rows that measure without claiming.  The experiment modules
-import this, and registry imports them: no import cycle."""
+turns of experiments run at once on one runner (`Turns`), the graph-runner hook and `observe` for
+rows that measure without claiming.  The experiment modules import this, and registry imports
+them: no import cycle."""
 
 from __future__ import annotations
 
@@ -9,8 +10,10 @@ import dataclasses
 import functools
 import math
 import sys
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -226,16 +229,78 @@ class CardValues:
 
 # ---------------------------------------------------------------- running
 def _job(args):
+    """One run and its analysis, where the runner puts it; the extractor's output with what the
+    run cost: `_wall_s`, `_sim_s` (simulated seconds), `_cpu_run_s` (the simulation) and
+    `_cpu_analysis_s` (metrics and extractor), CPU seconds of the process that ran it."""
     sc, extractor, kw, graph_run = args
     from fluxdrive.drive.sim import run_scenario
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     r = graph_run(sc) if graph_run is not None else run_scenario(sc, progress=False)
+    c1 = time.process_time()
     m = compute(r)
     out = extractor(r, m, **(kw or {}))
     out["_wall_s"] = time.perf_counter() - t0
     out["_sim_s"] = sc.duration_s
+    out["_cpu_run_s"] = c1 - c0
+    out["_cpu_analysis_s"] = time.process_time() - c1
     return out
+
+
+class Turns:
+    """Several experiments, and an experiment's seeds, at once on one parallel runner: each in
+    a thread of its own, so the runner's queue holds all their runs together (the workers of a
+    cluster never wait on one experiment's few runs or on its analysis), while only one thread
+    at a time runs experiment code: it holds the turn and gives it up only while it waits on
+    the runner (`Ctx.map`).  Experiment code (analysis, judging, pyplot, which is not
+    thread-safe) so runs as if alone, in an order that changes no number: every run is seeded
+    by its scenario and every experiment reads only its own results."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+
+    @contextmanager
+    def away(self) -> Iterator[None]:
+        """The caller holds the turn: give it up while blocked, take it back after."""
+        self._lock.release()
+        try:
+            yield
+        finally:
+            self._lock.acquire()
+
+    def all(self, fns: list[Callable[[], Any]], holding: bool = False) -> list[Any]:
+        """Each fn in a thread of its own, each running in its turn; their results in order.
+        `holding`: the caller holds the turn (an experiment starting its seeds) and gives it
+        up until they end.  The first exception one raised is raised here, after all end."""
+        out: list[Any] = [None] * len(fns)
+        err: list[BaseException | None] = [None] * len(fns)
+
+        def body(i: int, fn: Callable[[], Any]) -> None:
+            with self._lock:
+                try:
+                    out[i] = fn()
+                except BaseException as exc:  # raised in the caller's thread below
+                    err[i] = exc
+
+        threads = [
+            threading.Thread(target=body, args=(i, fn), daemon=True) for i, fn in enumerate(fns)
+        ]
+        for t in threads:
+            t.start()
+        if holding:
+            with self.away():
+                for t in threads:
+                    t.join()
+        else:
+            for t in threads:
+                t.join()
+        for e in err:
+            if e is not None:
+                raise e
+        return out
+
+
+COST_KEYS = ("_wall_s", "_sim_s", "_cpu_run_s", "_cpu_analysis_s")
 
 
 @dataclasses.dataclass
@@ -256,6 +321,10 @@ class Ctx:
     graph_run: Callable[[Scenario], Any] | None = None
     bench: Path | None = None  # `experiment --bench`: this bench file replaces the paper bench
     seed: int = 1  # the noise seed of every scenario the context builds (unless one is given)
+    turns: Turns | None = None  # experiments at once on the runner (None: this one alone)
+    # what each run cost (`_job`'s figures with the experiment and seed), when kept: a list
+    # every context of one command shares (`benchmark experiments`)
+    ledger: list[dict] | None = None
 
     @functools.cached_property
     def card(self) -> MachineCard:
@@ -301,7 +370,19 @@ class Ctx:
 
         runner = self.runner or Runner("serial")
         items = [self._on_bench(x) for x in items]
-        return runner.map(fn, items, Progress(len(items), label=self.name, echo=self.echo))
+        progress = Progress(len(items), label=self.name, echo=self.echo)
+        if self.turns is None:
+            out = runner.map(fn, items, progress)
+        else:
+            with self.turns.away():  # the other experiments' code runs meanwhile
+                out = runner.map(fn, items, progress)
+        if self.ledger is not None and fn is _job:
+            self.ledger += [
+                {"experiment": self.name, "seed": self.seed}
+                | {k[1:]: v for k, v in o.items() if k in COST_KEYS}
+                for o in out
+            ]
+        return out
 
     def _on_bench(self, item: Any) -> Any:
         """`item` (a scenario, or a job tuple holding some) with `--bench`'s file in place of

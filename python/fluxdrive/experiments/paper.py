@@ -20,6 +20,7 @@ from fluxdrive.analysis.metrics import (
     harmonic,
     harmonic_spectrum,
     steady_window,
+    thd_spectra,
     whole_periods,
     wrap,
 )
@@ -1637,16 +1638,19 @@ def _x_thd(r, m):
     sl = _win(r)
     thu = np.unwrap(r.truth[sl, TR_THETA_E])
     ws = whole_periods(thu)
-    out = {"metrics": m}
-    from fluxdrive.analysis.metrics import harmonic_spectrum, thd, thd_n
-
-    for src in ("commanded", "measured"):
+    out: dict[str, Any] = {"metrics": m}
+    srcs, sigs = ("commanded", "measured"), ("emf", "flux", "paper")
+    cols = []
+    for src in srcs:
         e = r.estimate(f"flux_{src}")[sl]
-        x = {"emf": e[ws, ES_EA], "flux": e[ws, ES_LA]}
-        x["paper"] = r.estimate(f"paper_{src}")[sl][ws, ES_LA]
-        out[src] = {f"thd_{k}": thd(v, thu[ws]) for k, v in x.items()}
-        out[src] |= {f"thdn_{k}": thd_n(v, thu[ws]) for k, v in x.items()}
-        out[src] |= {f"spec_{k}": harmonic_spectrum(v, thu[ws]) for k, v in x.items()}
+        cols += [e[ws, ES_EA], e[ws, ES_LA], r.estimate(f"paper_{src}")[sl][ws, ES_LA]]
+    # THD, THD+N and the spectrum of all six signals from one joint fit
+    fit = iter(thd_spectra(np.column_stack(cols), thu[ws]))
+    for src in srcs:
+        f = {k: next(fit) for k in sigs}
+        out[src] = {f"thd_{k}": f[k]["thd"] for k in sigs}
+        out[src] |= {f"thdn_{k}": f[k]["thd_n"] for k in sigs}
+        out[src] |= {f"spec_{k}": f[k]["spectrum"] for k in sigs}
     return out
 
 

@@ -55,6 +55,7 @@ from fluxdrive.experiments.common import (  # noqa: F401
     OBS6,
     CardValues,
     Ctx,
+    Turns,
     build,
     encoder_run,
     observe,
@@ -128,12 +129,16 @@ def run_experiment(
     graph_run: Callable | None = None,
     bench: Path | None = None,
     seeds: int | None = None,
+    turns: Turns | None = None,
+    ledger: list[dict] | None = None,
 ) -> dict:
     """Run one experiment in a context of its own (card `machine`, None: the default card;
     `graph_run`: every scenario through the node graph; `bench`: a bench file that replaces the
     paper bench).  An experiment whose registered rows come from one seed is run again on
     seeds 2..`seeds` (None: MIN_SEEDS, 1 when quick; figures from seed 1) and its rows judged
-    over the seeds; one that runs its seeds itself is run once."""
+    over the seeds; one that runs its seeds itself is run once.  `turns`: it runs beside
+    other experiments on the runner (`run_experiments`), its seeds beside each other;
+    `ledger`: what each run cost is appended to it."""
     fn, title = _registry()[name]
     ctx = Ctx(
         out=Path(out),
@@ -144,6 +149,8 @@ def run_experiment(
         machine=machine,
         graph_run=graph_run,
         bench=bench,
+        turns=turns,
+        ledger=ledger,
     )
     t0 = time.perf_counter()
     res = fn(ctx)
@@ -186,19 +193,63 @@ def check_rows(name: str, rows: list[dict]) -> None:
 
 def _over_seeds(fn: Callable, ctx: Ctx, first: dict, n_seeds: int) -> dict:
     """`first` (seed 1's result) with its rows judged over seeds 1..n_seeds: the experiment
-    run again per seed (its figures into a scratch folder), the seeds' data kept by seed."""
+    run again per seed (its figures into a scratch folder; with turns, the seeds at once),
+    the seeds' data kept by seed."""
     import dataclasses
     import tempfile
 
-    runs = [first]
     with tempfile.TemporaryDirectory(prefix="fluxdrive-seed-") as tmp:
-        for s in range(2, n_seeds + 1):
-            ctx.log(f"seed {s} of {n_seeds}")
-            runs.append(fn(dataclasses.replace(ctx, out=Path(tmp), seed=s)))
+
+        def seed(s: int) -> Callable[[], dict]:
+            def run() -> dict:
+                res = fn(dataclasses.replace(ctx, out=Path(tmp) / str(s), seed=s, echo=False))
+                ctx.log(f"seed {s} of {n_seeds} done")
+                return res
+
+            return run
+
+        later = [seed(s) for s in range(2, n_seeds + 1)]
+        if ctx.turns is not None:
+            runs = ctx.turns.all(later, holding=True)
+        else:
+            runs = [run() for run in later]
     res = dict(first)
-    res["claims"] = over_seeds([r["claims"] for r in runs])
+    res["claims"] = over_seeds([first["claims"]] + [r["claims"] for r in runs])
     res["seeds"] = list(range(1, n_seeds + 1))
     return res
+
+
+def run_experiments(
+    names: list[str],
+    out: Path,
+    done: Callable[[str, dict], None],
+    failed: Callable[[str, Exception], dict],
+    runner=None,
+    **kw: Any,
+) -> None:
+    """Run experiments `names` (`run_experiment`'s keywords in `kw`), each result handed to
+    `done(name, result)` as it ends (`failed(name, exc)` makes the result of one that raised;
+    the others still run).  On a cluster runner all of them run at once, their seeds too
+    (`Turns`: the workers see every run from the start, so none waits on one experiment's
+    few runs or analysis); in-process (no runner, a serial one, or a graph runner) one after
+    the other, in order."""
+    turns = Turns() if getattr(runner, "client", None) is not None else None
+
+    def one(n: str) -> Callable[[], None]:
+        def run() -> None:
+            try:
+                res = run_experiment(n, out, runner=runner, turns=turns, **kw)
+            except Exception as exc:  # one broken experiment must not lose the others
+                res = failed(n, exc)
+            done(n, res)
+
+        return run
+
+    if turns is None:
+        for n in names:
+            one(n)()
+    else:
+        turns.all([one(n) for n in names])
 
 
 def fmt_verdict(c: dict) -> str:
