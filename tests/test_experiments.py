@@ -340,6 +340,30 @@ def test_experiments_and_their_seeds_run_at_once_on_a_cluster_with_the_same_rows
     assert row["stats"]["n"] == 3 and row["per_seed"] == pytest.approx([1.05, 1.13, 1.25])
 
 
+def test_deltas_say_which_reproductions_hold_on_both_cards():
+    """`experiment deltas` (e.g. a second card against the default one): per reproduction both
+    reports judged, whether it holds in both, in one only or in neither; a calibrated row and
+    a claim only one report has are not among them."""
+    from fluxdrive.cli.experiment import verdict_deltas
+    from fluxdrive.experiments.claims import judge
+
+    def report(tight: float, full: float) -> dict:
+        rows = [
+            judge("fig13.fullload_flux_tighter", "x", tight),
+            judge("fig19.fullload_4pct", "x", full),
+            judge("fig14.measured_6th_gone", "x", 0.01),  # calibrated
+        ]
+        return {"experiments": {"e": {"claims": rows}}}
+
+    base, new = report(0.5, 1.0), report(2.0, 1.0)
+    new["experiments"]["f"] = {"claims": [judge("fig14.stable", "x", 1.0)]}
+    rep = verdict_deltas(base, new)["reproduction"]
+    assert rep["claims"] == 2
+    assert rep["held_both"] == ["fig19.fullload_4pct"]
+    assert rep["held_base_only"] == ["fig13.fullload_flux_tighter"]
+    assert rep["held_new_only"] == [] and rep["held_neither"] == []
+
+
 def test_groups_name_the_papers_figures():
     """`experiment paper` runs exactly the paper's figures, once each, in the report's order."""
     from fluxdrive.experiments import paper

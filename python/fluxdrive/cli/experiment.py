@@ -87,7 +87,9 @@ def _parser(names: list[str]) -> argparse.ArgumentParser:
 
 def verdict_deltas(base: dict, new: dict) -> dict:
     """Claim by claim (matched on id), the value and verdict of `base` and `new` (two
-    report.json mappings), and the counts of verdicts that changed."""
+    report.json mappings), and the counts of verdicts that changed; `reproduction`: of the
+    reproductions both judged (the claims about the observers themselves, not a number
+    calibrated on or designed for one card), which hold in both, in one only, in neither."""
 
     def claims(rep: dict) -> dict[str, dict]:
         return {
@@ -114,10 +116,23 @@ def verdict_deltas(base: dict, new: dict) -> dict:
             }
         )
     changed = [r for r in rows if r["base_verdict"] != r["new_verdict"]]
+    repro = [r for r in rows if r["id"] in b and b[r["id"]].get("class") == "reproduction"]
+    repro = [r for r in repro if r["id"] in n and n[r["id"]].get("class") == "reproduction"]
+
+    def held(r: dict, *sides: str) -> bool:
+        return all(r[f"{side}_verdict"] == "held" for side in sides)
+
     return {
         "claims": len(rows),
         "verdicts_changed": len(changed),
         "changed": changed,
+        "reproduction": {
+            "claims": len(repro),
+            "held_both": [r["id"] for r in repro if held(r, "base", "new")],
+            "held_base_only": [r["id"] for r in repro if held(r, "base") and not held(r, "new")],
+            "held_new_only": [r["id"] for r in repro if held(r, "new") and not held(r, "base")],
+            "held_neither": [r["id"] for r in repro if not held(r, "base") and not held(r, "new")],
+        },
         "counts_base": count([c for c in b.values()]),
         "counts_new": count([c for c in n.values()]),
         "rows": rows,
@@ -140,6 +155,12 @@ def _write_deltas(against: Path, out: Path) -> None:
         if r["base_verdict"] != r["new_verdict"]:
             print(f"changed: {r['id']}: {r['base_verdict']} -> {r['new_verdict']}")
     print(f"deltas: {deltas['verdicts_changed']} of {deltas['claims']} verdicts changed")
+    rep = deltas["reproduction"]
+    print(
+        f"reproductions judged in both: {rep['claims']}; held in both {len(rep['held_both'])}, "
+        f"only in {against} {len(rep['held_base_only'])}, only here "
+        f"{len(rep['held_new_only'])}, in neither {len(rep['held_neither'])}"
+    )
     print(f"written: {out / 'deltas.json'}")
 
 
