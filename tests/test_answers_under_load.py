@@ -144,28 +144,29 @@ def test_a_lost_answer_is_asked_for_again():
     print(f"answered after {took:.2f} s, the second request")
 
 
-def test_services_answer_while_the_data_path_is_busy_and_changes_wait_for_it(monkeypatch):
-    """A node whose data path is held inside one long callback (a busy loop standing in for
-    a lockstep graph that never lets go): its parameter reads are answered meanwhile, by the
-    process's service thread (fluxdrive_ros.services); a parameter set is taken at once but
-    runs on the data path's thread after that callback, never inside it, and then answers.
-    The service thread runs at a raised OS priority, or says in the log why not."""
+def _busy_node_class():
+    """A fluxdrive node whose data path can be held inside one long callback (a busy loop
+    standing in for a lockstep graph that never lets go), with two parameters, a fault
+    reset service, and a record of where each change ran: (thread, inside the callback)."""
     import threading
 
-    import rclpy
-    from fluxdrive_bringup.inspect.commands import Session, _get, set_param
     from rcl_interfaces.msg import SetParametersResult
 
-    from fluxdrive_ros import runner, services
+    from flux_drive_msgs.srv import ResetFault
+    from fluxdrive_ros import runner
 
     class BusyNode(runner.FluxNode):
         def __init__(self, name: str, **kw):
             super().__init__(name, **kw)
             self.declare_parameter("gain", 1.0)
+            self.declare_parameter("offset", 0.0)
             self.in_callback = threading.Event()
             self.release = threading.Event()
-            self.set_seen: list[tuple[int, bool]] = []  # (thread, inside the busy callback)
+            self.seen: list[tuple[str, int, bool]] = []  # (what, thread, inside the callback)
+            self.hold_set: threading.Event | None = None  # a set waits for it, if given
+            self.applying = threading.Event()
             self.add_on_set_parameters_callback(self._on_set)
+            self.create_service(ResetFault, "~/reset_fault", self._on_reset)
             self.timer = self.create_timer(0.01, self._work)
             self.lines: list[str] = []
 
@@ -177,45 +178,104 @@ def test_services_answer_while_the_data_path_is_busy_and_changes_wait_for_it(mon
             self.in_callback.clear()
 
         def _on_set(self, params):
-            self.set_seen.append((threading.get_ident(), self.in_callback.is_set()))
+            self.seen.append(("set", threading.get_ident(), self.in_callback.is_set()))
+            if self.hold_set is not None:
+                self.applying.set()
+                assert self.hold_set.wait(30.0)
             return SetParametersResult(successful=True)
+
+        def _on_reset(self, req, resp):
+            self.seen.append(("reset", threading.get_ident(), self.in_callback.is_set()))
+            resp.success, resp.message = True, "no latched fault"
+            return resp
 
         def log(self, text: str, level: str = "info") -> None:
             self.lines.append(text)
             super().log(text, level)
 
+    return BusyNode
+
+
+def _wait(cond, what: str, timeout_s: float = 20.0) -> None:
+    t_end = time.monotonic() + timeout_s
+    while not cond():
+        assert time.monotonic() < t_end, f"no {what} within {timeout_s} s"
+        time.sleep(0.01)
+
+
+def test_services_answer_while_the_data_path_is_busy_and_changes_wait_for_it(monkeypatch):
+    """A node whose data path is held inside one long callback: by default its services
+    are the process's service thread's (fluxdrive_ros.services), so its parameter reads are
+    answered meanwhile -- also while a parameter set waits for the data path.  The set and
+    the fault reset are taken at once but run on the data path's thread after that
+    callback, never inside it, and only then answer; the client's copy of the set, sent
+    again after 1 s without an answer, joins the waiting one instead of running twice.
+    The service thread runs at a raised OS priority, or says in the log why not."""
+    import threading
+
+    import rclpy
+    from fluxdrive_bringup.inspect.commands import Session, _call, _get, set_param
+
+    from flux_drive_msgs.srv import ResetFault
+    from fluxdrive_ros import runner, services
+
+    monkeypatch.delenv(services.ENV, raising=False)  # the default
     dom = domain(71)
     rclpy.init(domain_id=dom)  # the process's context, as a fluxdrive process has it
-    node = BusyNode("busy_node")
+    runner.open_service_side()  # as the runner does before it builds the nodes
+    node = _busy_node_class()("busy_node")
     codes: list[int] = []
-    monkeypatch.setenv("FLUXDRIVE_SERVICE_THREAD", "1")  # opt-in (fluxdrive_ros.runner)
     spin_thread = threading.Thread(target=lambda: codes.append(runner.spin([node])), daemon=True)
     s = Session(domain_id=dom, wait_s=20.0)
-    setter: list[tuple[bool, str, object]] = []
+    r = Session(domain_id=dom, wait_s=20.0)  # a second client, for the reset
+    answers: dict[str, object] = {}
     try:
         spin_thread.start()
         assert node.in_callback.wait(20.0), "the busy callback never ran"
         side = node.service_side
+        # every server was created on the service side as the node built it, not moved
+        # there when the process began to spin; on the node itself only rcl's own type
+        # description service (read-only, answered between the data path's callbacks)
+        assert [v.service_name for v in node.services] == ["/busy_node/get_type_description"]
+        assert {"/busy_node/get_parameters", "/busy_node/reset_fault"} <= set(side.served)
         # a read, answered while the data path is inside its callback
         assert _get(s, "/busy_node", ["gain"])[0][1] == 1.0
         assert node.in_callback.is_set()
-        # a set: taken by the service thread, waiting for the data path
+        # a set and a reset: taken by the service thread, waiting for the data path
         th = threading.Thread(
-            target=lambda: setter.append(set_param(s, "/busy_node", "gain", "2.0")), daemon=True
+            target=lambda: answers.update(set=set_param(s, "/busy_node", "gain", "2.0")),
+            daemon=True,
         )
         th.start()
-        t_end = time.monotonic() + 20.0
-        while not side.jobs and time.monotonic() < t_end:
-            time.sleep(0.01)
-        assert side.jobs and not node.set_seen and not setter  # waiting, not applied
+        rt = threading.Thread(
+            target=lambda: answers.update(
+                reset=_call(r, ResetFault, "/busy_node/reset_fault", ResetFault.Request())
+            ),
+            daemon=True,
+        )
+        rt.start()
+        _wait(lambda: len(side.jobs) == 2, "set and reset waiting")
+        # the set's client asks again after 1 s: its copy joins the waiting set
+        _wait(lambda: side.n_joined >= 1, "the set's copy joining it")
+        assert not node.seen and not answers  # waiting, not applied, not answered
+        # the service thread still answers reads meanwhile (a third session: `s` is busy)
+        q = Session(domain_id=dom, wait_s=20.0)
+        try:
+            assert _get(q, "/busy_node", ["gain", "offset"]) == [(3, 1.0), (3, 0.0)]
+        finally:
+            q.close()
+        assert node.in_callback.is_set() and not answers
         node.release.set()
-        th.join(20.0)
-        assert setter and setter[0][0], setter
-        # on the data path's thread, between its callbacks (a request asked again while
-        # waiting is applied again: the same value)
-        assert node.set_seen and all(
-            (t, inside) == (spin_thread.ident, False) for t, inside in node.set_seen
-        ), node.set_seen
+        th.join(30.0)
+        rt.join(30.0)
+        assert answers["set"][0], answers  # type: ignore[index]
+        assert answers["reset"].success, answers  # type: ignore[union-attr]
+        # each once, on the data path's thread, between its callbacks
+        assert sorted(w for w, _, _ in node.seen) == ["reset", "set"], node.seen
+        assert all((t, inside) == (spin_thread.ident, False) for _, t, inside in node.seen), (
+            node.seen
+        )
+        assert side.n_jobs == 2
         assert _get(s, "/busy_node", ["gain"])[0][1] == 2.0
         # the service thread's priority: raised, or the log says why not
         stat = open(f"/proc/self/task/{side.thread.native_id}/stat").read()
@@ -226,10 +286,102 @@ def test_services_answer_while_the_data_path_is_busy_and_changes_wait_for_it(mon
     finally:
         node.release.set()
         s.close()
+        r.close()
         node.finished = True
         spin_thread.join(20.0)
         rclpy.try_shutdown()
     assert codes == [0]
+
+
+def test_a_read_never_sees_half_of_a_change(monkeypatch):
+    """A read on the service thread while the data path applies a set of two parameters
+    at once (held inside the node's on-set callback) waits for the set to finish and then
+    sees both new values -- never the old ones while the new are being applied, never one
+    of each (fluxdrive_ros.services: apply_lock).  And with FLUXDRIVE_SERVICE_THREAD=0 the
+    process runs no service thread."""
+    import threading
+
+    import rclpy
+    from fluxdrive_bringup.inspect.commands import Session, _call, _get
+    from rcl_interfaces.srv import SetParametersAtomically
+    from rclpy.parameter import Parameter
+
+    from fluxdrive_ros import runner, services
+
+    class CountingLock:
+        """apply_lock, counting the threads that wait for it."""
+
+        def __init__(self):
+            self.lock = threading.Lock()
+            self.waiting = 0
+
+        def __enter__(self):
+            if not self.lock.acquire(blocking=False):
+                self.waiting += 1
+                self.lock.acquire()
+            return self
+
+        def __exit__(self, *exc):
+            self.lock.release()
+
+    monkeypatch.delenv(services.ENV, raising=False)
+    dom = domain(72)
+    rclpy.init(domain_id=dom)
+    runner.open_service_side()
+    node = _busy_node_class()("atomic_node")
+    node.release.set()  # an idle data path
+    node.hold_set = threading.Event()
+    spin_thread = threading.Thread(target=lambda: runner.spin([node]), daemon=True)
+    s, q = Session(domain_id=dom, wait_s=20.0), Session(domain_id=dom, wait_s=20.0)
+    got: list = []
+    try:
+        spin_thread.start()
+        _wait(lambda: getattr(node, "service_side", None) is not None, "the service thread")
+        side = node.service_side
+        side.apply_lock = CountingLock()
+        req = SetParametersAtomically.Request(
+            parameters=[
+                Parameter("gain", value=3.0).to_parameter_msg(),
+                Parameter("offset", value=0.5).to_parameter_msg(),
+            ]
+        )
+        th = threading.Thread(
+            target=lambda: _call(
+                s, SetParametersAtomically, "/atomic_node/set_parameters_atomically", req
+            ),
+            daemon=True,
+        )
+        th.start()
+        assert node.applying.wait(20.0), "the set never reached the node"
+        rd = threading.Thread(
+            target=lambda: got.append(_get(q, "/atomic_node", ["gain", "offset"])), daemon=True
+        )
+        rd.start()
+        _wait(lambda: side.apply_lock.waiting >= 1, "the read waiting for the change")
+        assert not got
+        node.hold_set.set()
+        rd.join(20.0)
+        th.join(20.0)
+        assert got == [[(3, 3.0), (3, 0.5)]], got
+    finally:
+        node.hold_set.set()
+        s.close()
+        q.close()
+        node.finished = True
+        spin_thread.join(20.0)
+        rclpy.try_shutdown()
+    # off: the services stay on the data path's executor
+    monkeypatch.setenv(services.ENV, "0")
+    assert not services.wanted()
+    rclpy.init(domain_id=dom)
+    try:
+        runner.open_service_side()
+        off = _busy_node_class()("off_node")
+        off.release.set()
+        off.finished = True
+        assert runner.spin([off]) == 0 and getattr(off, "service_side", None) is None
+    finally:
+        rclpy.try_shutdown()
 
 
 @pytest.mark.serial  # it measures answering times on a loaded machine: alone
@@ -262,7 +414,15 @@ def test_scope_calls_answer_within_their_deadline_at_twice_the_cores(tmp_path):
             times.append((what, time.monotonic() - t0))
             return out
 
-        tap = timed("find the tap", side.tap)
+        # the tap, found by graph discovery (a new participant beside 4 busy processes:
+        # seconds, not an answer to wait for): looked for until it is there
+        t_end = time.monotonic() + 120.0
+        while True:
+            try:
+                tap = timed("find the tap", side.tap)
+                break
+            except LookupError:
+                assert time.monotonic() < t_end, "no scope tap discovered within 120 s"
         assert tap == "/scope_tap"
         for i in range(5):
             ok, why, _ = timed("arm the trigger", side.set, tap, "trigger", "param")

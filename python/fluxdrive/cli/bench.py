@@ -1,5 +1,5 @@
 """`./fluxdrive benchmark KIND`, KIND one of engine|replay|graph|paced|can|study|firmware|plugin|
-bench|experiments|setup: throughput figures; the last line of each is a JSON object."""
+bench|experiments|setup|services: throughput figures; the last line of each is a JSON object."""
 
 from __future__ import annotations
 
@@ -29,6 +29,7 @@ BENCHES = {
     "bench": ("fluxdrive.cli.hostbench", "bench_bench"),
     "experiments": ("fluxdrive.cli.bench", "bench_experiments"),
     "setup": ("fluxdrive.cli.setupbench", "bench_setup"),
+    "services": ("fluxdrive_bringup.measure.answers", "bench_services"),
 }
 
 

@@ -20,7 +20,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
         "fluxdrive.cli.bench",
         "main",
         "benchmarks: engine | replay | graph | paced | can | study | firmware | plugin | "
-        "experiments | setup",
+        "experiments | setup | services",
     ),
     "demo": (
         "fluxdrive_bringup.cli",

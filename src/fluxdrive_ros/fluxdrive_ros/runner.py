@@ -7,10 +7,9 @@ SIGINT/SIGTERM, while `spin_once(timeout)` in a loop is fine (timers fire, idle 
 nothing, a signal ends it through ExternalShutdownException).  `FLUXDRIVE_EXECUTOR=single`
 selects rclpy's SingleThreadedExecutor instead (slower; for comparison).
 
-With `FLUXDRIVE_SERVICE_THREAD=1` the services (parameters, fault reset, arming) are served by
-a thread of their own (fluxdrive_ros.services): reads answered there, changes run on this
-executor between two of its callbacks.  Off by default: with it on, the SIL bench's operator
-missed fault resets in some runs of the suite (cause not isolated); see docs/graph.md.
+The services (parameters, fault reset, arming) are served by a thread of their own
+(fluxdrive_ros.services): reads answered there, changes run on this executor between two of
+its callbacks.  `FLUXDRIVE_SERVICE_THREAD=0` keeps them on this executor (for comparison).
 
 Nodes that share a process share one DDS participant, so messages between them are
 delivered in-process by the middleware (no transport), which is what makes a 10 kHz
@@ -66,6 +65,17 @@ class FluxNode(Node):
     def __init__(self, name: str, namespace: str | None = None, **kw: Any):
         self._finished = False
         self._finish_hook: Callable[[], None] | None = None
+        from . import services
+
+        # the process's service side, if the runner opened one: this node's services --
+        # the parameter services rclpy creates in Node.__init__ included -- are created there
+        # (create_service below, fluxdrive_ros.services)
+        ctx = kw.get("context")
+        if ctx is None:
+            from rclpy.utilities import get_default_context
+
+            ctx = get_default_context()
+        self._service_side = services.side_of(ctx)
         super().__init__(name, namespace=namespace or "", **kw)
         self.exit_code = 0
         # graph identity (fluxdrive_ros.graph): stamped on what it publishes, checked on
@@ -107,6 +117,16 @@ class FluxNode(Node):
         return super().create_timer(
             timer_period_sec, callback, callback_group, clock=clock, autostart=autostart
         )
+
+    def create_service(self, srv_type, srv_name: str, callback, *, qos_profile=None, **kw):
+        """A service server of this node: on the process's service side when there is one
+        (fluxdrive_ros.services: answered beside the data path), else on this node."""
+        from rclpy.qos import qos_profile_services_default
+
+        qos = qos_profile if qos_profile is not None else qos_profile_services_default
+        if self._service_side is not None and not kw:
+            return self._service_side.create_service(self, srv_type, srv_name, callback, qos)
+        return super().create_service(srv_type, srv_name, callback, qos_profile=qos, **kw)
 
     def close(self) -> None:
         """Called once when the process ends (normally or on a signal)."""
@@ -199,18 +219,23 @@ def spin(nodes: list[FluxNode], executor=None, poll_s: float = 0.5) -> int:
 
 
 def _service_side(nodes: list[FluxNode], ex):
-    """The process's service thread (fluxdrive_ros.services) if FLUXDRIVE_SERVICE_THREAD=1;
-    by default the services stay on the data path's executor."""
-    if not nodes or os.environ.get("FLUXDRIVE_SERVICE_THREAD", "0") not in (
-        "1",
-        "true",
-        "yes",
-        "on",
-    ):
-        return None
-    from .services import ServiceSide
+    """The process's service side (fluxdrive_ros.services), started on `ex`, if the process
+    opened one before it built the nodes (open_service_side); else None, and the services
+    stay on the data path's executor."""
+    from . import services
 
-    return ServiceSide(nodes, ex, nodes[0].log)
+    side = services.side_of(nodes[0].context) if nodes else None
+    if side is not None:
+        side.start(nodes, ex)
+    return side
+
+
+def open_service_side() -> None:
+    """Before the nodes are built: open the process's service side, so that their services
+    are created on it (fluxdrive_ros.services), unless FLUXDRIVE_SERVICE_THREAD=0."""
+    from . import services
+
+    services.open_side(log=lambda text, level: say(f"[{level.upper()}] [services]: {text}"))
 
 
 def report_published(nodes: list[FluxNode]) -> None:
@@ -531,6 +556,7 @@ def main_node(cls_spec: str, default_name: str, argv: list[str] | None = None) -
     if not _init(argv, default_name):
         return 2
     try:
+        open_service_side()  # its node is the process's first: a security failure shows here
         node = load_class(cls_spec)(default_name)
     except Exception as exc:  # noqa: BLE001 - configuration problems end the process
         why = _describe(exc)
@@ -562,7 +588,9 @@ def container_main(argv: list[str] | None = None) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):  # a stop while building: finish building
         signal.signal(sig, _early_stop)
     nodes = []
+    ns: Any = {}
     try:
+        open_service_side()  # its node is the process's first: a security failure shows here
         for ns in spec["nodes"]:
             nodes.append(build_node(ns, drive_ns))
     except Exception as exc:  # noqa: BLE001
