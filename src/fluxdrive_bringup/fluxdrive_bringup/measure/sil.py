@@ -187,7 +187,8 @@ def _parser() -> Parser:
         "--versus-sil",
         action="store_true",
         help="with --pil: run SCENARIO on the SIL bench first, then on the virtual board, and "
-        f"write both θ̃ RMS to {PIL_RESULTS.relative_to(REPO_ROOT)} (last line JSON)",
+        f"write both θ̃ RMS to {PIL_RESULTS.relative_to(REPO_ROOT)} (last line JSON); the whole "
+        "scenario over its own steady window unless --duration cuts it",
     )
     return ap
 
