@@ -92,3 +92,33 @@ def test_spin_down_on_the_engine_returns_the_rigs_inertia(tmp_path: Path):
     sd = inertia_from_coasts(f, b, tb)
     assert sd.inertia_kgm2 == pytest.approx(free.machine.inertia_kgm2, rel=1e-2)
     assert sd.viscous_nms == pytest.approx(free.machine.viscous_nms, rel=0.1)
+
+
+def test_noise_limited_bandwidth_is_where_the_noise_crosses_the_limit():
+    """Noise growing as bandwidth² crosses a limit at the bandwidth the power law gives
+    (log-log interpolation is exact for it); settings lost below the first that ran are
+    skipped, a setting lost above it ends the sweep, none past the limit: the highest."""
+    from fluxdrive.experiments.bandwidth_noise import noise_limited_bandwidth
+
+    bws = [2.0, 4.0, 8.0, 16.0]
+    noise = [1e-3 * (b / 2.0) ** 2 for b in bws]  # 1, 4, 16, 64 mA
+    assert noise_limited_bandwidth(bws, noise, 0.01) == pytest.approx(2.0 * math.sqrt(10.0))
+    assert noise_limited_bandwidth(bws, [math.nan, *noise[1:]], 0.01) == pytest.approx(
+        2.0 * math.sqrt(10.0)
+    )
+    assert noise_limited_bandwidth(bws, [*noise[:2], math.nan, noise[3]], 0.01) == 4.0
+    assert noise_limited_bandwidth(bws, noise, 1.0) == 16.0
+    assert math.isnan(noise_limited_bandwidth(bws, noise, 1e-4))
+
+
+def test_lowest_bandwidth_within_a_falling_noise():
+    """Noise falling as 1/bandwidth² comes within a limit at the bandwidth the power law
+    gives; never within: nan; within from the first setting: that setting."""
+    from fluxdrive.experiments.bandwidth_noise import lowest_bandwidth_within
+
+    bws = [2.0, 4.0, 8.0, 16.0]
+    noise = [4.0 * (2.0 / b) ** 2 for b in bws]  # 4, 1, 0.25, 0.0625 rpm
+    assert lowest_bandwidth_within(bws, noise, 2.0) == pytest.approx(2.0 * math.sqrt(2.0))
+    assert lowest_bandwidth_within(bws, [math.nan, *noise[1:]], 2.0) == 4.0
+    assert lowest_bandwidth_within(bws, noise, 10.0) == 2.0
+    assert math.isnan(lowest_bandwidth_within(bws, noise, 0.01))
