@@ -291,7 +291,10 @@ def test_foxglove_client_receives_and_decodes_topics(tmp_path):
             # a parameter subscription gets a change made elsewhere: the CLI, another process
             name = "/obs/flux_measured.cutoff_hz"
             ws.send(json.dumps({"op": "subscribeParameterUpdates", "parameterNames": [name]}))
-            time.sleep(0.5)
+            # the server takes a client's requests in order: once it has answered the next
+            # one, it has taken the subscription
+            ws.send(json.dumps({"op": "getParameters", "id": "g2", "parameterNames": [name]}))
+            _recv_json(ws, "parameterValues", 20, lambda d: d.get("id") == "g2")
             r = subprocess.run(
                 [
                     str(ROOT / "fluxdrive"),

@@ -144,10 +144,10 @@ def test_bridge_arms_and_resets_only_for_allowed_nodes(graph):
             wait_for(fut.done, timeout, "a service response")
             return fut.result()
 
-        res = None
-        for _ in range(50):  # until the bridge sees our client (discovery)
+        t_end = time.monotonic() + 60.0
+        while True:  # until the bridge sees our client (discovery)
             res = call(arm_ctl, Arm.Request(arm=True))
-            if res.success or "not known" not in res.message:
+            if res.success or "not known" not in res.message or time.monotonic() > t_end:
                 break
             time.sleep(0.1)
         print("arm from /controller:", res.success, res.message)
@@ -182,7 +182,9 @@ def test_bridge_arms_and_resets_only_for_allowed_nodes(graph):
             10.0,
             "duty subscription",
         )
-        time.sleep(0.3)
+        # and the bridge's reader has matched both writers (else the first duties are lost)
+        duty_sub = next(s for s in bridge.subscriptions if s.topic_name == DUTY)
+        wait_for(lambda: duty_sub.get_publisher_count() >= 2, 10.0, "the bridge's duty reader")
         tx0 = bridge.bridge.counters["duty_tx"]
         for k in range(5):
             d = DutyCommand(seq=k, duty=[0.5, 0.5, 0.5], enable=True)

@@ -43,6 +43,8 @@ def run(tmp_path_factory):
 class Graph:
     """rclpy context + executor thread + probe node; nodes added on the fly."""
 
+    open: list[Graph] = []  # the graphs not closed yet (wait_matched looks at their readers)
+
     def __init__(self, domain_id: int):
         from fluxdrive_ros import intra
 
@@ -59,6 +61,7 @@ class Graph:
         self.nodes = [self.probe]
         self.thread = threading.Thread(target=self.ex.spin, daemon=True)
         self.thread.start()
+        Graph.open.append(self)
 
     def add(self, cls, name: str, namespace: str = "", **params):
         from rclpy.parameter import Parameter
@@ -86,6 +89,7 @@ class Graph:
         return self.probe.create_publisher(msg_cls, topic, qos.SAMPLES)
 
     def close(self) -> None:
+        Graph.open.remove(self)
         self.ex.shutdown()
         self.thread.join(timeout=5.0)
         for n in self.nodes:
@@ -110,8 +114,22 @@ def wait_for(cond, timeout: float = 20.0, what: str = "condition") -> None:
 
 
 def wait_matched(pub, n: int = 1) -> None:
+    """Until `n` readers have matched the writer `pub` and every reader of its topic in the
+    open test graphs has matched it back: a reliable reader drops what comes from a writer
+    it has not matched yet, so the first messages would be lost."""
     wait_for(lambda: pub.get_subscription_count() >= n, 10.0, "discovery")
-    time.sleep(0.2)
+    readers = [
+        s
+        for g in Graph.open
+        for nd in g.nodes
+        for s in nd.subscriptions
+        if s.topic_name == pub.topic_name
+    ]
+    wait_for(
+        lambda: all(s.get_publisher_count() >= 1 for s in readers),
+        10.0,
+        f"the readers of {pub.topic_name} matching its writer",
+    )
 
 
 def diag_status(diags: list, name: str, after: int = 0):

@@ -36,9 +36,10 @@ def test_latched_fault_cleared_only_by_an_allowed_reset(graph, run, capsys):  # 
         RotorEstimate,
     )
     from flux_drive_msgs.srv import ResetFault
+    from fluxdrive_ros import access
 
     sc, r = run
-    _controller(graph, sc, position_wall_timeout_s=0.3)
+    ctl = _controller(graph, sc, position_wall_timeout_s=0.3)
     duties = graph.listen(DutyCommand, "/drive/duty")
     states = graph.listen(ControllerState, "/drive/controller_state")
     faults = graph.listen(DriveFault, "/drive/fault")
@@ -72,7 +73,10 @@ def test_latched_fault_cleared_only_by_an_allowed_reset(graph, run, capsys):  # 
     rogue = rclpy.create_node("rogue", context=graph.ctx)
     rogue.create_client(ResetFault, "/controller/reset_fault")
     graph.ex.add_node(rogue)
-    time.sleep(0.5)
+    wait_for(
+        lambda: "/rogue" in access.service_clients(ctl, "/controller/reset_fault"),
+        what="the controller to see the rogue's client",
+    )
     code = main_fault(["reset", "--domain-id", str(dom), "--wait", "10"])
     out = capsys.readouterr().out
     print(out)

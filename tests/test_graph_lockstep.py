@@ -242,7 +242,14 @@ def test_ctrl_c_finalises_the_bag(tmp_path, sig):
     else:
         proc.kill()
         pytest.fail("the graph did not start:\n" + "".join(lines))
-    time.sleep(2.0)
+    # mid-run: a few chunks of the bag written (at 2 MB well past the 1000 frames asserted
+    # below, however slowly a loaded machine runs the graph), not a fixed 2 s
+    t_end = time.monotonic() + 120
+    while not any(f.stat().st_size > 2_000_000 for f in bag.glob("*.mcap")):
+        if proc.poll() is not None or time.monotonic() > t_end:
+            proc.kill()
+            pytest.fail("the graph wrote no 2 MB of its bag:\n" + "".join(lines))
+        time.sleep(0.1)
     proc.send_signal(sig)
     try:
         proc.wait(timeout=60)

@@ -35,12 +35,14 @@ def _bus_of(report: Path, proc: subprocess.Popen, timeout_s: float = 120.0) -> d
     """The bench's bus (group, port) from the graph it writes before it starts."""
     f = report / "graph.yaml"
     t_end = time.monotonic() + timeout_s
-    while not f.exists():
+    cmd = None
+    while cmd is None:  # until the file is there and written whole (the drive's node in it)
         assert proc.poll() is None and time.monotonic() < t_end, "the bench did not start"
-        time.sleep(0.05)
-    time.sleep(0.2)  # written whole
-    g = yaml.safe_load(f.read_text())
-    cmd = next(n["cmd"] for n in g["nodes"] if n.get("name") == "drive")
+        try:
+            g = yaml.safe_load(f.read_text())
+            cmd = next(n["cmd"] for n in g["nodes"] if n.get("name") == "drive")
+        except (OSError, yaml.YAMLError, TypeError, KeyError, StopIteration):
+            time.sleep(0.05)
     return {
         "interface": "udp_multicast",
         "channel": cmd[cmd.index("--channel") + 1],

@@ -149,9 +149,10 @@ def test_scope_page_in_chromium(tmp_path):
 
             # parameter panel: a live change reaches the node ...
             row = page.locator('tr[data-node="/controller"][data-name="position_timeout_s"]')
-            for _ in range(3):  # a node too busy to answer in time (loaded machine): reload
+            t_end = time.monotonic() + 180.0
+            while True:  # a node too busy to answer in time (loaded machine): reload
                 page.wait_for_selector("body[data-params=loaded]", timeout=60_000)
-                if row.count():
+                if row.count() or time.monotonic() > t_end:
                     break
                 page.click("#reload")
             page.locator('details[data-node="/controller"]').evaluate("e => e.open = true")
@@ -182,14 +183,20 @@ def test_scope_page_in_chromium(tmp_path):
 
             # export: the view as CSV, the capture as MCAP; the charts must hold data in
             # view first (on a loaded machine the page may not have drawn any since the
-            # last step: the CSV was then only its header)
-            page.wait_for_function(
-                """(() => { const lines = window.scopeExportCsv().split("\\n");
+            # last step: the CSV was then only its header), and the view is held (paused)
+            # while it is exported: a loaded page moved it on between the two (4 rows)
+            in_view = """(() => { const lines = window.scopeExportCsv().split("\\n");
                    const col = lines[0].split(",").indexOf("idq:i_q:max");
                    return col > 0 && lines.slice(1).filter(
-                     (l) => l && l.split(",")[col] !== "").length > 10; })()""",
-                timeout=60_000,
-            )
+                     (l) => l && l.split(",")[col] !== "").length > 10; })()"""
+            t_end = time.monotonic() + 180.0
+            while True:
+                page.wait_for_function(in_view, timeout=60_000)
+                page.check("#pause")
+                if page.evaluate(in_view):
+                    break
+                page.uncheck("#pause")
+                assert time.monotonic() < t_end, "no data held in view for the export"
             with page.expect_download() as dl:
                 page.click("#csv")
             rows = list(csv.reader(io.StringIO(Path(dl.value.path()).read_text())))
@@ -208,6 +215,7 @@ def test_scope_page_in_chromium(tmp_path):
             data = Path(dl.value.path()).read_bytes()
             mcap_file = next(Path(cap["path"]).glob("*.mcap"))
             assert data[:8] == b"\x89MCAP0\r\n" and data == mcap_file.read_bytes()
+            page.uncheck("#pause")
             # the reset button asks the controller as the operator (nothing latched: ok)
             page.click("#reset")
             sync_api.expect(page.locator("#resetmsg")).to_contain_text("ok", timeout=20_000)
