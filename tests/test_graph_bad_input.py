@@ -224,8 +224,16 @@ def test_observer_flags_holds_and_reports_bad_frames(graph, run):
     # frame, the engine's policy) + the 10 lost
     assert int(v["repeated_or_backwards"]) == 2 and int(v["missing"]) == 14
     assert int(v["frames"]) == n_all
-    levels = {s.level for a in diags for s in a.status if s.name == "/obs/flux: input"}
-    assert bytes([1]) in levels  # WARN while the bad frames were reported
+    # the report that first counts the bad frames is not OK: WARN (bad input among good), or
+    # ERROR when the report's period held only unusable frames (a loaded machine delivers
+    # the frames in bursts, so a period may start and end inside the bad ones)
+    first_bad = next(
+        s
+        for a in diags
+        for s in a.status
+        if s.name == "/obs/flux: input" and int(values(s)["bad_samples"]) > 0
+    )
+    assert first_bad.level in (bytes([1]), bytes([2])), (first_bad.level, first_bad.message)
 
 
 def _controller(graph, sc, **params):
