@@ -367,6 +367,22 @@ def _seed_value(cells: dict[str, Any], fam: str, q: str) -> float:
     return max(r) if r else math.nan
 
 
+# a claim whose quantity has parts with fronts of their own: the parts' ratios shown beside it
+FRONT_PARTS = {"fronts.position_error_matched": (("mean", "|mean θ̃|"), ("h6", "6th order"))}
+
+
+def _parts_txt(cid: str, cells: dict[str, Any], fam: str) -> str:
+    """The range over the cells of each part's flux/EMF ratio at matched bandwidth (the
+    seeds' mean fronts), for a claim in FRONT_PARTS; empty otherwise."""
+    parts = []
+    for q, name in FRONT_PARTS.get(cid, ()):
+        r = [x for v in cells.values() for x in v["matched"][fam][q]["ratios"]]
+        parts.append(f"{name} {min(r):.2f}-{max(r):.2f}" if r else f"{name} not comparable")
+    if not parts:
+        return ""
+    return "; its parts, flux/EMF at matched bandwidth over the cells: " + ", ".join(parts)
+
+
 def judge_fronts(fronts: dict[str, Any], per_seed: list[dict[str, Any]] | None = None) -> list:
     """Per claim, judged flux family and voltage source: the largest flux/EMF ratio at equal
     allowed bandwidth over every operating point, per seed (`per_seed`: each seed's cells;
@@ -401,7 +417,7 @@ def judge_fronts(fronts: dict[str, Any], per_seed: list[dict[str, Any]] | None =
                 c["ours"] += (
                     f" (per-seed largest ratio: mean {st['mean']:.3g}, 95 % CI "
                     f"[{st['ci95'][0]:.3g}, {st['ci95'][1]:.3g}], {st['n']} seeds: "
-                    f"{st['outcome']})"
+                    f"{st['outcome']})" + _parts_txt(cid, cells, fam)
                 )
                 claims.append(c)
     return claims
