@@ -3,12 +3,15 @@ its image (fluxdrive.can.vboard): register data generated from the pinned stm32g
 the image built with warnings as errors, booted on the emulated Cortex-M4F (clock tree,
 timer, ADC trigger, CAN bit timing read back from the registers it wrote), the period
 interrupt on the timer's update with the compare preload, and the split-mode closed loop
-in-process against the C core's software-in-the-loop run. No ROS."""
+in-process against the C core's software-in-the-loop run, and the parameter storage in
+flash on the virtual board's FLASH interface (a save, a power cycle, a corrupted page, a
+power loss in the middle of a save). No ROS."""
 
 from __future__ import annotations
 
 import functools
 import shutil
+import struct
 
 import numpy as np
 import pytest
@@ -208,3 +211,202 @@ def test_instruction_trace_adds_up_to_the_count():
             for (a, s), c in blocks.items()
         )
         assert total == n
+
+
+# ---------------------------------------------------------------------- parameter storage
+
+_STORE_PAGE = 0x0807F000 - 0x08000000  # bank 2, page 126 (fd_board.h), in the flash image
+
+
+def _param(vb: VirtualBoard, name: str, value: float | None = None) -> tuple[str, float]:
+    """A DRIVE_PARAM over the bus (a write with ``value``, else a read) handled by the
+    board's background context; its DRIVE_PARAM_ACK as (status, value in effect)."""
+    import can
+    from fluxdrive.can.firmware import PARAM_IDS
+    from fluxdrive.can.protocol import ID_DRIVE_PARAM, ID_DRIVE_PARAM_ACK, get_protocol
+    from fluxdrive.core.protocol_constants import PA_CHOICES
+
+    proto = get_protocol()
+    data = proto.message("DRIVE_PARAM").encode(
+        {
+            "prm_id": PARAM_IDS[name],
+            "prm_seq": 1,
+            "prm_write": int(value is not None),
+            "prm_value": 0.0 if value is None else value,
+        }
+    )
+    vb.handle_now(can.Message(arbitration_id=ID_DRIVE_PARAM, data=data, is_extended_id=False))
+    acks = [
+        proto.message("DRIVE_PARAM_ACK").decode(bytes(m.data), decode_choices=False)
+        for m in vb.pop_tx()
+        if m.arbitration_id == ID_DRIVE_PARAM_ACK
+    ]
+    assert len(acks) == 1
+    return PA_CHOICES[int(acks[0]["pa_status"])], float(acks[0]["pa_value"])
+
+
+# DRIVE_PARAM PARAM_SOURCE: where the parameters at boot came from (fd_core.h)
+PRM_SOURCE_DEFAULTS, PRM_SOURCE_STORED, PRM_SOURCE_BAD_CRC = 0.0, 1.0, 2.0
+
+
+def _storage_board(flash_image: bytes | None = None) -> VirtualBoard:
+    from test_split_can import _split_case
+
+    mp = DriveSetup(_split_case(1.0)).mp
+    return VirtualBoard(mp, decimation=4, measure=False, flash_image=flash_image)
+
+
+def test_flash_register_map_and_reset_state():
+    """The FLASH interface's registers the storage uses, at RM0440's addresses (3.7) with
+    their reset values: locked, dual-bank option bytes (DBANK)."""
+    assert rm.REG["FLASH_KEYR"][0] == 0x40022008 and rm.REG["FLASH_SR"][0] == 0x40022010
+    assert rm.REG["FLASH_CR"] == (0x40022014, 0xC0000000)  # LOCK and OPTLOCK set
+    assert rm.REG["FLASH_OPTR"][0] == 0x40022020
+    assert _field(rm.REG["FLASH_OPTR"][1], "FLASH_OPTR_DBANK") == 1
+    assert rm.FIELD["FLASH_CR_PNB"] == (3, 7) and rm.FIELD["FLASH_SR_BSY"] == (16, 1)
+
+
+def test_saved_parameters_survive_a_power_cycle():
+    """PARAM_SAVE over the bus programs the set into flash (unlock, page erase, double-words,
+    the valid flag last, locked again); a new board from that flash image (a power cycle)
+    boots with the saved values and says where they came from (PARAM_SOURCE 1). A second
+    save goes to the other page with the next sequence number, and the newer set wins."""
+    vb = _storage_board()
+    assert _param(vb, "PARAM_SOURCE") == ("OK", PRM_SOURCE_DEFAULTS)  # erased flash
+    assert vb.board_state()["store_state"] == 0
+    default = _param(vb, "I2T_LIMIT_PU2S")[1]
+    assert _param(vb, "I2T_LIMIT_PU2S", 42.5) == ("OK", 42.5)
+    assert _param(vb, "REF_TIMEOUT_S", 0.004) == ("OK", pytest.approx(0.004))
+    assert _param(vb, "PARAM_SAVE", 1.0)[0] == "OK"
+    bs = vb.board_state()
+    assert (bs["store_saves"], bs["store_errors"], bs["store_seq"]) == (1, 0, 1)
+    # the page: magic, version | length, sequence and complement; the rest erased
+    img = vb.flash_image()
+    magic, ver_len, seq, nseq = struct.unpack_from("<4I", img, _STORE_PAGE)
+    assert magic == 0x53504446 and ver_len >> 16 == 1 and (seq, nseq) == (1, 0xFFFFFFFE)
+    assert img[_STORE_PAGE + 2048 : _STORE_PAGE + 4096] == b"\xff" * 2048
+    regs = vb.regs
+    assert regs[rm.REG["FLASH_CR"][0]] & (1 << 31)  # locked again
+    assert regs[rm.REG["FLASH_SR"][0]] == 0  # no error flag left
+
+    vb2 = _storage_board(img)  # power cycle
+    assert _param(vb2, "PARAM_SOURCE") == ("OK", PRM_SOURCE_STORED)
+    assert _param(vb2, "I2T_LIMIT_PU2S") == ("OK", 42.5)
+    assert _param(vb2, "REF_TIMEOUT_S")[1] == pytest.approx(0.004)
+    assert _param(vb2, "I2T_LIMIT_PU2S", 50.0)[0] == "OK"
+    assert _param(vb2, "PARAM_SAVE", 1.0)[0] == "OK"
+    assert vb2.board_state()["store_seq"] == 2
+    img2 = vb2.flash_image()
+    assert struct.unpack_from("<I", img2, _STORE_PAGE + 2048 + 8)[0] == 2  # the other page
+    assert img2[_STORE_PAGE : _STORE_PAGE + 2048] == img[_STORE_PAGE : _STORE_PAGE + 2048]
+    vb3 = _storage_board(img2)
+    assert _param(vb3, "I2T_LIMIT_PU2S") == ("OK", 50.0) and default != 50.0
+
+
+def test_a_corrupted_page_boots_with_the_defaults_and_says_so():
+    """One bit flipped in the only stored set: its CRC fails, the board boots on the
+    defaults and reports it (PARAM_SOURCE 2, the board's store state 'bad'); a new save
+    still works (the other page)."""
+    vb = _storage_board()
+    default = _param(vb, "I2T_LIMIT_PU2S")[1]
+    _param(vb, "I2T_LIMIT_PU2S", 42.5)
+    assert _param(vb, "PARAM_SAVE", 1.0)[0] == "OK"
+    img = bytearray(vb.flash_image())
+    img[_STORE_PAGE + 16 + 40] ^= 0x04  # a bit of the record
+    vb2 = _storage_board(bytes(img))
+    assert _param(vb2, "PARAM_SOURCE") == ("OK", PRM_SOURCE_BAD_CRC)
+    assert vb2.board_state()["store_state"] == 2
+    assert _param(vb2, "I2T_LIMIT_PU2S") == ("OK", default)
+    assert _param(vb2, "PARAM_SAVE", 1.0)[0] == "OK"
+    assert _param(_storage_board(vb2.flash_image()), "PARAM_SOURCE")[1] == PRM_SOURCE_STORED
+
+
+@pytest.mark.parametrize("cut_after", [1, 3, 12, -1])
+def test_a_power_loss_during_a_save_keeps_the_previous_set(cut_after):
+    """The supply goes after `cut_after` flash operations of a save (1: the page erase; 3:
+    the header; 12: within the record; -1: all but the valid flag): the next boot finds the
+    previous set intact on the other page and boots with it."""
+    vb = _storage_board()
+    _param(vb, "I2T_LIMIT_PU2S", 42.5)
+    assert _param(vb, "PARAM_SAVE", 1.0)[0] == "OK"
+    n_save = vb.flash_operations  # erase, 2 header, the record's double-words, valid flag
+    length = struct.unpack_from("<I", vb.flash_image(), _STORE_PAGE + 4)[0] & 0xFFFF
+    assert n_save == 1 + 2 + -(-length // 8) + 1
+    _param(vb, "I2T_LIMIT_PU2S", 50.0)
+    vb.cut_power_after(cut_after % n_save)
+    _param(vb, "PARAM_SAVE", 1.0)  # the board is dark: what it answers does not matter
+    vb2 = _storage_board(vb.flash_image())
+    assert _param(vb2, "I2T_LIMIT_PU2S") == ("OK", 42.5)
+    assert vb2.board_state()["store_seq"] == 1
+
+
+def test_the_flash_model_refuses_what_the_silicon_refuses():
+    """RM0440 3.3.5-3.3.7 on the model, as the CPU's stores reach it: a write to the flash
+    without PG sets PGSERR; a double-word that is not erased PROGERR; a half-word SIZERR;
+    an erase outside the storage pages (the image's own) WRPERR; a wrong key locks FLASH_CR
+    until reset (KEY1, KEY2 then unlock nothing)."""
+    vb = _storage_board()
+    _param(vb, "PARAM_SAVE", 1.0)  # page 126 holds a set
+    cr, sr, keyr = (rm.REG[f"FLASH_{n}"][0] for n in ("CR", "SR", "KEYR"))
+    bit = {n: 1 << rm.FIELD[f"FLASH_SR_{n}"][0] for n in ("PGSERR", "PROGERR", "SIZERR", "WRPERR")}
+
+    def store(addr: int, value: int, size: int = 4) -> None:  # a CPU store to a register
+        vb._write(vb.mu, addr & 0xFFF, size, value, addr & ~0xFFF)
+
+    def program(off: int, value: int, size: int = 4) -> None:  # a CPU store to the flash
+        vb._flash_write(vb.mu, off, size, value, None)
+
+    def flags() -> int:
+        v = vb.regs[sr]
+        store(sr, v)  # rc_w1: cleared
+        return v
+
+    program(2048, 0)
+    assert flags() == bit["PGSERR"]  # locked, PG not set
+    store(keyr, 0x45670123)
+    store(keyr, 0xCDEF89AB)
+    assert not vb.regs[cr] & (1 << 31)  # unlocked
+    store(cr, 1)  # PG
+    program(0, 0x12345678)
+    program(4, 0x9ABCDEF0)
+    assert flags() == bit["PROGERR"]  # the header double-word is programmed already
+    program(2048, 0x1234, size=2)
+    assert flags() == bit["SIZERR"]
+    store(cr, (1 << 1) | (5 << 3) | (1 << 16))  # PER, bank 1 page 5 (the image), STRT
+    assert flags() == bit["WRPERR"]
+    store(cr, 1 << 31)  # LOCK
+    store(keyr, 0x45670123)
+    store(keyr, 0x11111111)  # a wrong second key
+    store(keyr, 0x45670123)
+    store(keyr, 0xCDEF89AB)
+    assert vb.regs[cr] & (1 << 31)  # locked until the next reset
+
+
+def test_can_emulator_keeps_the_board_flash_across_runs(tmp_path, capsys):
+    """`can-emulator --mcu pil --flash FILE`: the board boots from FILE and writes its flash
+    back, so a set saved in one run is the next run's; each boot says where its parameters
+    came from on the console, a corrupted set included; a file of another size is one
+    line, exit 2."""
+    from fluxdrive.cli.canemulator import main
+
+    f = tmp_path / "board.flash"
+    args = ["--mcu", "pil", "--interface", "virtual", "--channel", f"flash-{tmp_path.name}"]
+    args += ["--decimation", "4", "--periods", "4", "--lockstep-wait", "0.01", "--flash", str(f)]
+    assert main(args) == 0
+    assert "board parameters: the defaults (nothing stored in flash)" in capsys.readouterr().err
+    vb = _storage_board(f.read_bytes())  # a save on the board that run left
+    _param(vb, "I2T_LIMIT_PU2S", 42.5)
+    assert _param(vb, "PARAM_SAVE", 1.0)[0] == "OK"
+    f.write_bytes(vb.flash_image())
+    assert main(args) == 0
+    assert "board parameters: the stored set 1 (flash, CRC good)" in capsys.readouterr().err
+    assert _param(_storage_board(f.read_bytes()), "I2T_LIMIT_PU2S") == ("OK", 42.5)
+    img = bytearray(f.read_bytes())
+    img[_STORE_PAGE + 16 + 40] ^= 0x04
+    f.write_bytes(bytes(img))
+    assert main(args) == 0
+    assert "no intact set (bad CRC; PARAM_SOURCE 2)" in capsys.readouterr().err
+    f.write_bytes(b"\xff" * 1024)
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"can-emulator: --flash {f}: ")

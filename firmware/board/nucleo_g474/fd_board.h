@@ -50,6 +50,21 @@
 #define FD_BOARD_HW_OVERCURRENT_A 19.5f /* comparator -> TIM1 break (hardware, no CPU) */
 #define FD_BOARD_RATED_CURRENT_A 9.0f
 
+/* parameter storage (fd_hal_storage_*): two 2 KB flash pages at the end of bank 2
+ * (dual-bank mode), 0x0807F000 and 0x0807F800, outside the image (target/g474.ld) */
+#define FD_BOARD_STORE_BANK2_ADDR 0x08040000u
+#define FD_BOARD_STORE_PAGE_BYTES 2048u
+#define FD_BOARD_STORE_FIRST_PAGE 126u /* bank 2 pages 126 and 127 */
+#define FD_BOARD_STORE_MAGIC 0x53504446u /* "FDPS" */
+#define FD_BOARD_STORE_VERSION 1u        /* the page layout (fd_hal_g474.c) */
+/* a bound on waiting for a flash operation: some ten cycles a loop, about 0.2 s at 170 MHz
+ * (a page erase takes tens of ms: the datasheet's tERASE) */
+#define FD_BOARD_FLASH_WAIT_LOOPS 4000000u
+/* fd_board_t.store_state: what the flash held at boot (and after the last save) */
+#define FD_BOARD_STORE_EMPTY 0u  /* nothing stored: the core's defaults */
+#define FD_BOARD_STORE_INTACT 1u /* the newest intact set, store_seq */
+#define FD_BOARD_STORE_BAD 2u    /* pages written, none intact: the defaults */
+
 /** The board's fd_config_t (10 kHz, D as built). */
 void fd_board_config(fd_config_t *cfg, uint8_t decimation);
 
@@ -60,6 +75,11 @@ typedef struct {
     uint32_t bus_off_events;   /* FDCAN bus-off entries (each recovered) */
     uint32_t rx_lost;          /* FDCAN RX FIFO 0 message lost */
     uint32_t clock_source;     /* 1: HSE, 2: HSI16 (HSE failed to start) */
+    uint32_t store_state;      /* FD_BOARD_STORE_* */
+    uint32_t store_seq;        /* sequence number of the stored set in use */
+    uint32_t store_saves;      /* parameter sets written */
+    uint32_t store_errors;     /* saves that failed (FLASH_SR of the last in store_error_sr) */
+    uint32_t store_error_sr;
     uint8_t pwm_on;            /* gate driver and MOE on */
     uint8_t break_event;       /* a break tripped since fd_hal_status_read last ran */
 } fd_board_t;

@@ -417,15 +417,20 @@ static void iwdg_init(void)
 
 static uint32_t iwdg_seen;
 
-void fd_board_background(void)
+/* refresh only while the period interrupt keeps running */
+static void iwdg_refresh(void)
 {
-    while (fd_core_background(&fd_board_core) > 0u) { /* CAN reception, below the period */
-    }
-    /* refresh only while the period interrupt keeps running */
     if (fd_board.periods != iwdg_seen) {
         iwdg_seen = fd_board.periods;
         G4_IWDG_KR = 0xAAAAu;
     }
+}
+
+void fd_board_background(void)
+{
+    while (fd_core_background(&fd_board_core) > 0u) { /* CAN reception, below the period */
+    }
+    iwdg_refresh();
 }
 
 void fd_board_wait(void) { __asm__ volatile("wfi"); }
@@ -568,22 +573,224 @@ void fd_hal_can_recover(void *hal)
     G4_FDCAN1_CCCR &= ~G4_FDCAN1_CCCR_INIT_Msk;
 }
 
-/* Parameter storage in a flash page is not written for this port: nothing is stored (the
- * core boots on its defaults, PARAM_SOURCE 0) and a PARAM_SAVE answers STORAGE_FAILED. */
+/* Two 2 KB pages at the end of bank 2 (dual-bank mode, OPTR.DBANK = 1, the G474's factory
+ * setting; RM0440 3.3.1), outside the image (g474.ld's FLASH region ends before them). The
+ * code runs from bank 1 and CCM SRAM: the period interrupt keeps running while bank 2 is
+ * erased or programmed (read-while-write). A page, in double-words (RM0440 3.3.7: the
+ * programming unit, each programmed once after an erase):
+ *   +0        FD_BOARD_STORE_MAGIC, layout version (16 bit) << 16 | record length
+ *   +8        sequence number, its complement
+ *   +16       the record, the last double-word padded with ones
+ *   +16+pad   CRC-32 of bytes [0, 16 + length), its complement: the valid flag
+ * A save goes to the page that does not hold the newest intact set: erase, header, record,
+ * read back and compared, the valid flag last. A power loss at any point leaves the other
+ * page, the previous set, intact; at boot the newest intact page is the set. */
+#define FLASH_KEY1 0x45670123u /* RM0440 3.3.5: the FLASH_KEYR unlock sequence */
+#define FLASH_KEY2 0xCDEF89ABu
+#define FLASH_SR_ERRORS                                                                        \
+    (G4_FLASH_SR_OPERR_Msk | G4_FLASH_SR_PROGERR_Msk | G4_FLASH_SR_WRPERR_Msk |                \
+     G4_FLASH_SR_PGAERR_Msk | G4_FLASH_SR_SIZERR_Msk | G4_FLASH_SR_PGSERR_Msk |                \
+     G4_FLASH_SR_MISERR_Msk | G4_FLASH_SR_FASTERR_Msk | G4_FLASH_SR_RDERR_Msk |                \
+     G4_FLASH_SR_OPTVERR_Msk)
+#define STORE_HEADER_BYTES 16u
+#define STORE_PAD(len) (((len) + 7u) & ~7u)
+#define STORE_RECORD_MAX (FD_BOARD_STORE_PAGE_BYTES - STORE_HEADER_BYTES - 8u)
+
+static uint32_t store_addr(uint32_t page)
+{
+    return FD_BOARD_STORE_BANK2_ADDR +
+           (FD_BOARD_STORE_FIRST_PAGE + page) * FD_BOARD_STORE_PAGE_BYTES;
+}
+
+static uint32_t flash_word(uint32_t addr) { return G4_REG(addr); }
+
+static uint32_t store_length_word(uint32_t len) { return (FD_BOARD_STORE_VERSION << 16) | len; }
+
+/* the page holds an intact set of `len` bytes (magic, version, length, sequence and CRC
+ * with their complements); its sequence number */
+static bool store_intact(uint32_t page, uint32_t len, uint32_t *seq)
+{
+    uint32_t a = store_addr(page);
+    uint32_t c = a + STORE_HEADER_BYTES + STORE_PAD(len);
+    if (flash_word(a) != FD_BOARD_STORE_MAGIC || flash_word(a + 4u) != store_length_word(len) ||
+        flash_word(a + 8u) != ~flash_word(a + 12u) || flash_word(c) != ~flash_word(c + 4u)) {
+        return false;
+    }
+    *seq = flash_word(a + 8u);
+    return flash_word(c) == fd_crc32((const void *)(uintptr_t)a, STORE_HEADER_BYTES + len);
+}
+
+/* the page holding the newest intact set (wrap-safe sequence order), -1 if none */
+static int store_newest(uint32_t len, uint32_t *seq)
+{
+    int best = -1;
+    for (uint32_t p = 0; p < 2u; ++p) {
+        uint32_t s = 0;
+        if (store_intact(p, len, &s) && (best < 0 || (int32_t)(s - *seq) > 0)) {
+            best = (int)p;
+            *seq = s;
+        }
+    }
+    return best;
+}
+
+static bool store_erased(uint32_t page)
+{
+    uint32_t a = store_addr(page);
+    for (uint32_t off = 0; off < FD_BOARD_STORE_PAGE_BYTES; off += 4u) {
+        if (flash_word(a + off) != 0xFFFFFFFFu) {
+            return false;
+        }
+    }
+    return true;
+}
+
 bool fd_hal_storage_read(void *hal, void *buf, uint32_t len)
 {
     (void)hal;
-    (void)buf;
-    (void)len;
-    return false;
+    uint8_t *out = (uint8_t *)buf;
+    uint32_t seq = 0;
+    int page = len <= STORE_RECORD_MAX ? store_newest(len, &seq) : -1;
+    if (page >= 0) {
+        uint32_t a = store_addr((uint32_t)page) + STORE_HEADER_BYTES;
+        for (uint32_t i = 0; i < len; ++i) {
+            out[i] = *(volatile const uint8_t *)(uintptr_t)(a + i);
+        }
+        fd_board.store_seq = seq;
+        fd_board.store_state = FD_BOARD_STORE_INTACT;
+        return true;
+    }
+    if (store_erased(0u) && store_erased(1u)) {
+        fd_board.store_state = FD_BOARD_STORE_EMPTY;
+        return false; /* never stored */
+    }
+    /* written, but no page holds an intact set: the buffer as erased flash, which no record
+     * check accepts (the core boots on its defaults and says so: PARAM_SOURCE "bad CRC") */
+    for (uint32_t i = 0; i < len; ++i) {
+        out[i] = 0xFFu;
+    }
+    fd_board.store_state = FD_BOARD_STORE_BAD;
+    return true;
+}
+
+/* BSY cleared (the IWDG refreshed meanwhile: a page erase takes tens of ms, the watchdog
+ * 10 ms; bounded by FD_BOARD_FLASH_WAIT_LOOPS), then the operation's error flags, cleared
+ * (rc_w1); true without an error */
+static bool flash_wait(void)
+{
+    uint32_t n = 0;
+    while ((G4_FLASH_SR & G4_FLASH_SR_BSY_Msk) && n < FD_BOARD_FLASH_WAIT_LOOPS) {
+        iwdg_refresh();
+        ++n;
+    }
+    uint32_t sr = G4_FLASH_SR;
+    G4_FLASH_SR = sr & (FLASH_SR_ERRORS | G4_FLASH_SR_EOP_Msk);
+    if (sr & (FLASH_SR_ERRORS | G4_FLASH_SR_BSY_Msk)) {
+        fd_board.store_error_sr = sr;
+        return false;
+    }
+    return true;
+}
+
+/* page erase (RM0440 3.3.6): PER, the page number and bank, then STRT */
+static bool flash_erase(uint32_t page)
+{
+    uint32_t cr = G4_FLASH_CR & ~(G4_FLASH_CR_PNB_Msk | G4_FLASH_CR_PG_Msk);
+    G4_FLASH_CR = cr | G4_FLASH_CR_PER_Msk | G4_FLASH_CR_BKER_Msk |
+                  FIELD(G4_FLASH_CR, PNB, FD_BOARD_STORE_FIRST_PAGE + page);
+    G4_FLASH_CR |= G4_FLASH_CR_STRT_Msk;
+    bool ok = flash_wait();
+    G4_FLASH_CR &= ~(G4_FLASH_CR_PER_Msk | G4_FLASH_CR_BKER_Msk | G4_FLASH_CR_PNB_Msk);
+    return ok;
+}
+
+/* one double-word (RM0440 3.3.7): PG set, the two words written in order */
+static bool flash_program(uint32_t addr, uint32_t lo, uint32_t hi)
+{
+    G4_FLASH_CR |= G4_FLASH_CR_PG_Msk;
+    G4_REG(addr) = lo;
+    G4_REG(addr + 4u) = hi;
+    bool ok = flash_wait();
+    G4_FLASH_CR &= ~G4_FLASH_CR_PG_Msk;
+    return ok;
+}
+
+/* bytes [off, off + 4) of the record, ones past its end */
+static uint32_t record_word(const uint8_t *p, uint32_t off, uint32_t len)
+{
+    uint32_t w = 0;
+    for (uint32_t i = 0; i < 4u; ++i) {
+        uint32_t b = off + i < len ? p[off + i] : 0xFFu;
+        w |= b << (8u * i);
+    }
+    return w;
+}
+
+/* the data cache may hold a page as it was before the erase: reset it (DCRST with DCEN
+ * off, RM0440 3.3.2) */
+static void flash_dcache_reset(void)
+{
+    G4_FLASH_ACR &= ~G4_FLASH_ACR_DCEN_Msk;
+    G4_FLASH_ACR |= G4_FLASH_ACR_DCRST_Msk;
+    G4_FLASH_ACR &= ~G4_FLASH_ACR_DCRST_Msk;
+    G4_FLASH_ACR |= G4_FLASH_ACR_DCEN_Msk;
+}
+
+static bool store_program(uint32_t page, const uint8_t *src, uint32_t len, uint32_t seq)
+{
+    uint32_t a = store_addr(page);
+    bool ok = flash_erase(page);
+    ok = ok && flash_program(a, FD_BOARD_STORE_MAGIC, store_length_word(len));
+    ok = ok && flash_program(a + 8u, seq, ~seq);
+    for (uint32_t off = 0; ok && off < len; off += 8u) {
+        ok = flash_program(a + STORE_HEADER_BYTES + off, record_word(src, off, len),
+                           record_word(src, off + 4u, len));
+    }
+    flash_dcache_reset();
+    for (uint32_t i = 0; ok && i < len; ++i) { /* read back before it is made valid */
+        ok = *(volatile const uint8_t *)(uintptr_t)(a + STORE_HEADER_BYTES + i) == src[i];
+    }
+    if (ok) {
+        uint32_t crc = fd_crc32((const void *)(uintptr_t)a, STORE_HEADER_BYTES + len);
+        ok = flash_program(a + STORE_HEADER_BYTES + STORE_PAD(len), crc, ~crc);
+        flash_dcache_reset();
+    }
+    uint32_t got = 0;
+    return ok && store_intact(page, len, &got) && got == seq;
 }
 
 bool fd_hal_storage_write(void *hal, const void *buf, uint32_t len)
 {
     (void)hal;
-    (void)buf;
-    (void)len;
-    return false;
+    if (len > STORE_RECORD_MAX || !(G4_FLASH_OPTR & G4_FLASH_OPTR_DBANK_Msk)) {
+        return false; /* the layout above is the dual-bank one */
+    }
+    uint32_t seq = 0;
+    int cur = store_newest(len, &seq);
+    uint32_t page = cur == 0 ? 1u : 0u;
+    seq = cur < 0 ? 1u : seq + 1u;
+    uint32_t n = 0;
+    while ((G4_FLASH_SR & G4_FLASH_SR_BSY_Msk) && n < FD_BOARD_FLASH_WAIT_LOOPS) {
+        ++n;
+    }
+    if (G4_FLASH_CR & G4_FLASH_CR_LOCK_Msk) {
+        G4_FLASH_KEYR = FLASH_KEY1;
+        G4_FLASH_KEYR = FLASH_KEY2;
+    }
+    bool ok = !(G4_FLASH_CR & G4_FLASH_CR_LOCK_Msk);
+    if (ok) {
+        G4_FLASH_SR = FLASH_SR_ERRORS | G4_FLASH_SR_EOP_Msk; /* an earlier operation's */
+        ok = store_program(page, (const uint8_t *)buf, len, seq);
+        G4_FLASH_CR |= G4_FLASH_CR_LOCK_Msk;
+    }
+    if (ok) {
+        fd_board.store_saves++;
+        fd_board.store_seq = seq;
+        fd_board.store_state = FD_BOARD_STORE_INTACT;
+    } else {
+        fd_board.store_errors++;
+    }
+    return ok;
 }
 
 /* the background's critical sections: PRIMASK (the break path needs no CPU) */

@@ -144,9 +144,15 @@ class DriveEmulator:
         inject: Any = None,
         require_calibration: bool = False,
         bootstrap: bool = False,
+        flash_image: bytes | None = None,
     ) -> None:
         if mcu not in ("c", "pil"):
             raise ValueError(f"mcu must be 'c' or 'pil', not {mcu!r}")
+        if flash_image is not None and mcu != "pil":
+            raise ValueError("a flash image is the virtual board's (mcu='pil')")
+        self.flash_image = flash_image
+        """mcu="pil": the flash the board boots from (VirtualBoard.flash_image of an
+        earlier run: its stored parameters); None: erased."""
         self.mcu = mcu
         self.setup = setup
         self.bus = bus
@@ -261,7 +267,7 @@ class DriveEmulator:
         if self.mcu == "pil":  # the board image on the virtual board (fluxdrive.can.vboard)
             from fluxdrive.can.vboard import VirtualBoard
 
-            return VirtualBoard(self.setup.mp, **kw)
+            return VirtualBoard(self.setup.mp, flash_image=self.flash_image, **kw)
         kw["require_calibration"] = self.require_calibration
         if self.inject is not None and self.inject.case.before_arming:
             kw["require_calibration"] = self.inject.case.name == "not_calibrated"

@@ -42,7 +42,7 @@ _ADC = ("isr", "ier", "cr", "cfgr", "cfgr2", "smpr1", "smpr2", "jsqr", "jdr1", "
 
 USED: dict[str, tuple[str, ...]] = {
     "RCC": ("cr", "cfgr", "pllcfgr", "ahb1enr", "ahb2enr", "apb1enr1", "apb2enr", "ccipr", "csr"),
-    "FLASH": ("acr",),
+    "FLASH": ("acr", "keyr", "sr", "cr", "optr"),
     "PWR": ("cr5",),
     "GPIOA": _GPIO,
     "GPIOB": _GPIO,

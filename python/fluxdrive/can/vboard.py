@@ -30,6 +30,15 @@ loop's idle point (``fd_board_wait``), and then, per PWM period, does what the s
   a frame waits on the bus side and enters when RXF0A releases an element: in lockstep the
   host's frames pile up between interrupts, which a free-running bus spreads out);
 * IWDG: refreshes are counted; a 10 ms gap counts a watchdog reset (none expected).
+* FLASH: the parameter storage's two pages (bank 2, pages 126 and 127; the rest of the
+  array is the image, read-only here) behind the FLASH interface (RM0440 3.3.5-3.3.7, 3.7):
+  KEYR's KEY1/KEY2 sequence clears CR.LOCK (a wrong one locks it until reset), CR.PER with
+  PNB/BKER and STRT erases a page, CR.PG with two word writes programs a double-word that
+  is erased; SR's error flags as the manual sets them (PGSERR, SIZERR, PGAERR, PROGERR,
+  WRPERR for a page outside the storage), EOP only with EOPIE. Operations complete at once
+  (BSY never reads set). :meth:`VirtualBoard.flash_image` and ``flash_image=`` carry the
+  flash across a power cycle; :meth:`VirtualBoard.cut_power_after` cuts the supply in the
+  middle of a save.
 
 :meth:`VirtualBoard.pwm` answers with the active compare values and MOE: the plant gets
 the duty the interrupt of t_(k-1) computed, as on the real timer with preload.
@@ -83,9 +92,14 @@ TEMP_ZERO_COUNTS, TEMP_COUNTS_PER_C = 500, 10
 STACK_PAINT = 0xA5A5A5A5
 EXC_FRAME_BYTES = 104  # 8 basic + 18 FP words (lazy FP stacking reserves them)
 IWDG_PERIODS = 100  # 10 ms at 10 kHz
-_RETURN = 0x0807FF00  # where an emulated exception / call returns to (unused flash)
+_RETURN = 0x0807EF00  # where an emulated exception / call returns to (unused flash)
 _SCRATCH = 0x20017000  # frames handed to the core between interrupts
 _FLASH, _FLASH_SIZE = 0x08000000, 512 * 1024
+# the parameter storage pages (fd_board.h): bank 2's pages 126 and 127 (dual-bank mode:
+# two banks of 256 KB in 2 KB pages, RM0440 3.3.1); the FLASH interface's keys (3.3.5)
+_PAGE_BYTES, _BANK_BYTES = 2048, 256 * 1024
+_STORE, _STORE_SIZE = _FLASH + _BANK_BYTES + 126 * _PAGE_BYTES, 2 * _PAGE_BYTES
+_FLASH_KEY1, _FLASH_KEY2 = 0x45670123, 0xCDEF89AB
 _RAM, _RAM_SIZE = 0x20000000, 96 * 1024
 _CCM, _CCM_SIZE = 0x10000000, 32 * 1024  # the period interrupt's code (sections.ld)
 _PAGES = (0x40000000, 0x40003000, 0x40006000, 0x40007000, 0x40010000, 0x40012000,
@@ -141,7 +155,10 @@ class VirtualBoard:
         elf: Path | None = None,
         bootstrap_periods: int = 0,
         trace: bool = False,
+        flash_image: bytes | None = None,
     ) -> None:
+        # flash_image: the flash a board left (:meth:`flash_image`): this board is that one
+        # after a power cycle (the ELF programmed over it leaves it as it was)
         # bootstrap_periods: FirmwareCore's knob; the image's is fixed at build (fd_board.h)
         import unicorn as uc
         from unicorn import arm_const as ac
@@ -164,14 +181,21 @@ class VirtualBoard:
         self.syms = syms
         self.mu = mu = uc.Uc(uc.UC_ARCH_ARM, uc.UC_MODE_THUMB | uc.UC_MODE_MCLASS)
         mu.ctl_set_cpu_model(ac.UC_CPU_ARM_CORTEX_M4)
-        mu.mem_map(_FLASH, _FLASH_SIZE, uc.UC_PROT_READ | uc.UC_PROT_EXEC)
+        # the flash: the image's part as memory, the storage pages through the FLASH
+        # interface's model (reads of the array, writes as programming steps)
+        mu.mem_map(_FLASH, _STORE - _FLASH, uc.UC_PROT_READ | uc.UC_PROT_EXEC)
         mu.mem_map(_RAM, _RAM_SIZE)
         mu.mem_map(_CCM, _CCM_SIZE)
         mu.mem_map(rm.SRAMCAN_BASE & ~0xFFF, 0x1000)
-        self.flash = bytearray(_FLASH_SIZE)
+        if flash_image is not None and len(flash_image) != _FLASH_SIZE:
+            raise ValueError(f"a flash image has {_FLASH_SIZE} bytes, not {len(flash_image)}")
+        self.flash = bytearray(b"\xff" * _FLASH_SIZE if flash_image is None else flash_image)
         for paddr, off, size in segs:
-            mu.mem_write(paddr, data[off : off + size])
+            if paddr + size > _STORE:
+                raise ValueError(f"{elf.name} reaches into the parameter pages at {_STORE:#x}")
             self.flash[paddr - _FLASH : paddr - _FLASH + size] = data[off : off + size]
+        mu.mem_write(_FLASH, bytes(self.flash[: _STORE - _FLASH]))
+        mu.mmio_map(_STORE, _STORE_SIZE, self._flash_read, None, self._flash_write, None)
         self._init_regs()
         for page in _PAGES:
             mu.mmio_map(page, 0x1000, self._read, page, self._write, page)
@@ -224,6 +248,11 @@ class VirtualBoard:
         self._adc_held: dict[int, int] = {}
         self._period_irq = False  # the period interrupt is running
         self.periods = 0
+        self._flash_first: tuple[int, int] | None = None  # a double-word's first word
+        self._flash_key_state = 0  # KEYR: 0 KEY1 next, 1 KEY2 next, -1 locked until reset
+        self.flash_operations = 0
+        """Page erases and double-word programs started (the storage's writes)."""
+        self._power_ops: int | None = None
 
     # ------------------------------------------------------------------ set-up
     @staticmethod
@@ -318,8 +347,13 @@ class VirtualBoard:
             v &= ~_bit("ADC1_CR_ADCAL")  # calibration done at once
             if v & _bit("ADC1_CR_ADEN"):
                 regs[isr] = regs.get(isr, 0) | _bit("ADC1_ISR_ADRDY")
-        elif a in (r["ADC1_ISR"], r["ADC2_ISR"], r["FDCAN1_IR"]):  # write 1 to clear
+        elif a in (r["ADC1_ISR"], r["ADC2_ISR"], r["FDCAN1_IR"], r["FLASH_SR"]):  # rc_w1
             v = regs.get(a, 0) & ~v
+        elif a == r["FLASH_KEYR"]:  # write-only
+            self._flash_key(v)
+            return
+        elif a == r["FLASH_CR"]:
+            v = self._flash_cr(v)
         elif a in (r["TIM1_SR"], r["TIM3_SR"], r["TIM5_SR"], r["TIM8_SR"]):  # rc_w0
             v = regs.get(a, 0) & v
             if a == r["TIM1_SR"] and self._overrun_next and self._period_irq:
@@ -348,6 +382,125 @@ class VirtualBoard:
             regs[odr] = (regs.get(odr, 0) | (v & 0xFFFF)) & ~(v >> 16)
             return
         regs[a] = v
+
+    # ------------------------------------------------------------------ FLASH
+    def _flash_read(self, mu: Any, offset: int, size: int, user: Any) -> int:
+        """A read of the storage pages (the flash's content, little-endian)."""
+        a = _STORE - _FLASH + offset
+        return int.from_bytes(self.flash[a : a + size], "little")
+
+    def _flash_write(self, mu: Any, offset: int, size: int, value: int, user: Any) -> None:
+        """A write to the storage pages: a programming step (RM0440 3.3.7): with PG set,
+        a word at an 8-byte aligned address and the next word at +4 program that
+        double-word, if it is erased (else PROGERR, unless both words are 0)."""
+        r, regs = self._r, self.regs
+        sr, cr = r["FLASH_SR"], regs[r["FLASH_CR"]]
+        addr = _STORE + offset
+        pending = (
+            _bit("FLASH_SR_PROGERR") | _bit("FLASH_SR_SIZERR") | _bit("FLASH_SR_PGAERR")
+            | _bit("FLASH_SR_WRPERR") | _bit("FLASH_SR_MISERR") | _bit("FLASH_SR_FASTERR")
+        )  # fmt: skip
+        err = 0
+        if not cr & _bit("FLASH_CR_PG") or regs[sr] & pending:
+            err = _bit("FLASH_SR_PGSERR")
+        elif size != 4:
+            err = _bit("FLASH_SR_SIZERR")
+        elif self._flash_first is None:
+            if addr % 8:
+                err = _bit("FLASH_SR_PGAERR")
+            else:
+                self._flash_first = (addr, value & 0xFFFFFFFF)
+                return
+        else:
+            first, lo = self._flash_first
+            self._flash_first = None
+            if addr != first + 4:
+                err = _bit("FLASH_SR_PGAERR")
+            else:
+                a = first - _FLASH
+                old = self.flash[a : a + 8]
+                new = struct.pack("<II", lo, value & 0xFFFFFFFF)
+                if old != b"\xff" * 8 and new != bytes(8):
+                    err = _bit("FLASH_SR_PROGERR")
+                elif self._flash_operation():
+                    self.flash[a : a + 8] = new
+        self._flash_done(err)
+
+    def _flash_operation(self) -> bool:
+        """An erase or a double-word program starts: counted; False once the power is
+        cut (:meth:`cut_power_after`): the flash keeps what it holds."""
+        self.flash_operations += 1
+        return self._power_ops is None or self.flash_operations <= self._power_ops
+
+    def _flash_done(self, err: int) -> None:
+        """The end of an operation: its error flags, EOP if EOPIE (RM0440 3.7.5); the
+        model's operations take no time (BSY never reads set)."""
+        r, regs = self._r, self.regs
+        eop = _bit("FLASH_SR_EOP") if regs[r["FLASH_CR"]] & _bit("FLASH_CR_EOPIE") else 0
+        regs[r["FLASH_SR"]] |= err or eop
+
+    def _flash_cr(self, v: int) -> int:
+        """FLASH_CR written: ignored while LOCK is set (only LOCK may be set again); STRT
+        with PER erases page PNB of bank BKER (2 KB pages, dual bank). Only the storage
+        pages are writable in the model: elsewhere WRPERR, as if write-protected."""
+        r, regs = self._r, self.regs
+        cr = regs[r["FLASH_CR"]]
+        if cr & _bit("FLASH_CR_LOCK"):
+            return cr
+        if not v & _bit("FLASH_CR_STRT"):
+            return v
+        v &= ~_bit("FLASH_CR_STRT")  # cleared by hardware at the operation's end
+        if v & (_bit("FLASH_CR_MER1") | _bit("FLASH_CR_MER2")):
+            self._flash_done(_bit("FLASH_SR_WRPERR"))
+        elif v & _bit("FLASH_CR_PER"):
+            pos, _w = rm.FIELD["FLASH_CR_PNB"]
+            pnb = (v & _bit("FLASH_CR_PNB")) >> pos
+            bank = 1 if v & _bit("FLASH_CR_BKER") else 0
+            a = bank * _BANK_BYTES + pnb * _PAGE_BYTES
+            if not _STORE - _FLASH <= a < _STORE - _FLASH + _STORE_SIZE:
+                self._flash_done(_bit("FLASH_SR_WRPERR"))
+            else:
+                if self._flash_operation():
+                    self.flash[a : a + _PAGE_BYTES] = b"\xff" * _PAGE_BYTES
+                self._flash_done(0)
+        return v
+
+    def _flash_key(self, v: int) -> None:
+        """FLASH_KEYR: KEY1 then KEY2 clears LOCK; any other sequence locks FLASH_CR until
+        the next reset (RM0440 3.3.5; the bus error it raises is not modelled)."""
+        r, regs = self._r, self.regs
+        if self._flash_key_state == 0 and v == _FLASH_KEY1:
+            self._flash_key_state = 1
+        elif self._flash_key_state == 1 and v == _FLASH_KEY2:
+            self._flash_key_state = 0
+            regs[r["FLASH_CR"]] &= ~_bit("FLASH_CR_LOCK")
+        else:
+            self._flash_key_state = -1  # locked until reset
+
+    def storage_note(self) -> str:
+        """Where the parameters the board booted with came from, in words (its
+        fd_board.store_state and the core's PARAM_SOURCE)."""
+        st = self.board_state()
+        if st["store_state"] == 1:
+            return f"the stored set {st['store_seq']} (flash, CRC good)"
+        if st["store_state"] == 2:
+            return (
+                "the defaults: the flash holds parameter pages but no intact set (bad CRC; "
+                f"PARAM_SOURCE {self.param_read('PARAM_SOURCE'):g})"
+            )
+        return "the defaults (nothing stored in flash)"
+
+    def flash_image(self) -> bytes:
+        """The flash as it is now (the image and the parameter pages): a new board from
+        it (``VirtualBoard(..., flash_image=...)``) is this one after a power cycle."""
+        return bytes(self.flash)
+
+    def cut_power_after(self, operations: int | None) -> None:
+        """From now on, the flash operations (page erases, double-word programs) after the
+        first ``operations`` do not happen, as if the supply went at that point: what
+        the flash then holds (:meth:`flash_image`) is what the next boot finds. None:
+        powered again."""
+        self._power_ops = None if operations is None else self.flash_operations + operations
 
     # ------------------------------------------------------------------ FDCAN
     def _transmit(self, bits: int) -> None:
@@ -725,7 +878,10 @@ class VirtualBoard:
         return 0
 
     def board_state(self) -> dict[str, int]:
-        """fd_board_t's counters."""
-        names = ("periods", "break_trips", "bus_off_events", "rx_lost", "clock_source")
+        """fd_board_t's counters and the parameter storage's state (store_state: 0 nothing
+        stored, 1 an intact set, store_seq its number, 2 pages written and none intact)."""
+        names = ("periods", "break_trips", "bus_off_events", "rx_lost", "clock_source",
+                 "store_state", "store_seq", "store_saves", "store_errors",
+                 "store_error_sr")  # fmt: skip
         raw = self.mu.mem_read(self.syms["fd_board"][0], 4 * len(names))
         return dict(zip(names, struct.unpack(f"<{len(names)}I", raw), strict=True))

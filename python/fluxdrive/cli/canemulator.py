@@ -6,6 +6,7 @@ from __future__ import annotations
 import sys
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import can
@@ -57,6 +58,12 @@ def main(argv: list[str] | None = None) -> int:
         except ValueError as exc:
             print(f"can-emulator: {exc}", file=sys.stderr)
             return 2
+    flash = None
+    if a.flash is not None:
+        if a.mcu != "pil":
+            print("can-emulator: --flash goes with --mcu pil", file=sys.stderr)
+            return 2
+        flash = a.flash.read_bytes() if a.flash.is_file() else None
     try:
         bus = can.Bus(**_bus_kwargs(a))
         widen_receive_buffer(bus)  # a burst of other frames must not push duties out
@@ -66,19 +73,27 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 2
-    emu = DriveEmulator(
-        DriveSetup(sc),
-        bus,
-        lockstep=not a.free_running,
-        lockstep_wait_s=a.lockstep_wait,
-        layout=a.layout,
-        decimation=a.decimation,
-        mcu=a.mcu,
-        record=a.record_out is not None,
-        inject=inject,
-        require_calibration=not a.no_require_calibration,
-        bootstrap=True,  # the board's 1 ms charge after arming, before the first switching
-    )
+    try:
+        emu = DriveEmulator(
+            DriveSetup(sc),
+            bus,
+            lockstep=not a.free_running,
+            lockstep_wait_s=a.lockstep_wait,
+            layout=a.layout,
+            decimation=a.decimation,
+            mcu=a.mcu,
+            record=a.record_out is not None,
+            inject=inject,
+            require_calibration=not a.no_require_calibration,
+            bootstrap=True,  # the board's 1 ms charge after arming, before the first switching
+            flash_image=flash,
+        )
+    except ValueError as exc:  # a flash image of another size
+        bus.shutdown()
+        print(f"can-emulator: --flash {a.flash}: {exc}", file=sys.stderr)
+        return 2
+    if a.mcu == "pil":
+        print(f"[can-emulator] board parameters: {emu.core.storage_note()}", file=sys.stderr)
     signal.signal(signal.SIGTERM, lambda *_: emu._stop.set())
     signal.signal(signal.SIGINT, lambda *_: emu._stop.set())
     n = sc.n_periods if a.periods is None else a.periods
@@ -97,6 +112,8 @@ def main(argv: list[str] | None = None) -> int:
             emu._drain(0.05)  # a disarm sent while we stopped
     finally:
         bus.shutdown()
+        if a.flash is not None:  # what a save wrote stays for the next run (a power cycle)
+            a.flash.write_bytes(emu.core.flash_image())
     if a.record_out is not None and emu.rec_truth:
         import numpy as np
 
@@ -186,6 +203,15 @@ def _parser():
         help="--mcu c: arm without an offset calibration since boot (by default the drive "
         "refuses, FAULT NOT_CALIBRATED, as the board image does; the bench bridge calibrates "
         "before arming)",
+    )
+    ap.add_argument(
+        "--flash",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="--mcu pil: the board's flash image, booted from FILE if it exists and written "
+        "back at the end: a parameter set saved (DRIVE_PARAM PARAM_SAVE) is there at the next "
+        "run, as after a power cycle",
     )
     ap.add_argument(
         "--record-out",
