@@ -109,21 +109,8 @@ def _cpu_s() -> float:
     return total
 
 
-def bench_experiments(argv: list[str]) -> dict:
-    """The experiments' cost, run as `./fluxdrive experiment` runs them (in-process engine,
-    no ROS; on a local cluster of `--workers`, every experiment and seed at once): the wall
-    time, the CPU time of this process and its workers, and where it goes: per experiment
-    its runs, their simulated seconds and CPU seconds in the simulation and in the analysis
-    (metrics and extractor, where the run ran), and this process's own share (judging,
-    plots, the runner).  The kernels are compiled (or loaded from the cache) before the
-    clock starts; the report goes to a scratch folder, results/experiments is left alone."""
-    import tempfile
-
-    from fluxdrive.experiments.claims import MIN_SEEDS
-    from fluxdrive.experiments.registry import expand, experiments, run_experiments
-    from fluxdrive.study.runner import runner_from_args
-    from fluxdrive.study.tasks import warm_kernels
-
+def _experiments_args(argv: list[str]):
+    """`benchmark experiments`'s options."""
     ap = Parser(prog="fluxdrive benchmark experiments")
     ap.add_argument("names", nargs="?", default="paper", help="experiments or a group (paper)")
     ap.add_argument(
@@ -139,7 +126,25 @@ def bench_experiments(argv: list[str]) -> dict:
         action="store_true",
         help="also write results/benchmarks/experiments_NAMES.json",
     )
-    args = ap.parse_args(argv)
+    return ap.parse_args(argv)
+
+
+def bench_experiments(argv: list[str]) -> dict:
+    """The experiments' cost, run as `./fluxdrive experiment` runs them (in-process engine,
+    no ROS; on a local cluster of `--workers`, every experiment and seed at once): the wall
+    time, the CPU time of this process and its workers, and where it goes: per experiment
+    its runs, their simulated seconds and CPU seconds in the simulation and in the analysis
+    (metrics and extractor, where the run ran), and this process's own share (judging,
+    plots, the runner).  The kernels are compiled (or loaded from the cache) before the
+    clock starts; the report goes to a scratch folder, results/experiments is left alone."""
+    import tempfile
+
+    from fluxdrive.experiments.claims import MIN_SEEDS
+    from fluxdrive.experiments.registry import expand, experiments, run_experiments
+    from fluxdrive.study.runner import runner_from_args
+    from fluxdrive.study.tasks import warm_kernels
+
+    args = _experiments_args(argv)
     names = expand(args.names)
     bad = [n for n in names if n not in experiments()]
     if bad:
