@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from fluxdrive.analysis.metrics import RAD_S_TO_RPM
+from fluxdrive.analysis.metrics import RAD_S_TO_RPM, theta_error_deg
 from fluxdrive.core.machine import MachineCard
 from fluxdrive.drive.control import (
     CO_FAULT,
@@ -18,8 +18,7 @@ from fluxdrive.drive.control import (
     FAULT_NAMES,
     MODE_CLOSED_LOOP,
 )
-from fluxdrive.drive.observers import ES_TH, observer_config
-from fluxdrive.drive.plant import TR_THETA_E
+from fluxdrive.drive.observers import observer_config
 from fluxdrive.experiments.common import (
     HANDBACK_MAX_PU,
     OBS4,
@@ -133,7 +132,7 @@ def x_hold(r, m):
     """Did the sensorless drive hold: metrics' verdict, where it closed the loop, and where
     (time, speed reference, load) it first lost the rotor (|theta~| > 60 deg or a fault)."""
     d = r.driving
-    err = np.degrees(np.angle(np.exp(1j * (r.estimate(d)[:, ES_TH] - r.truth[:, TR_THETA_E]))))
+    err = theta_error_deg(r, d)
     mode = r.ctrl[:, CO_MODE]
     kc = np.nonzero(mode == MODE_CLOSED_LOOP)[0]
     lost = None

@@ -8,11 +8,12 @@ import math
 
 import numpy as np
 
+from fluxdrive.analysis.metrics import theta_error_deg
 from fluxdrive.drive.control import (
     CO_IQ,
 )
-from fluxdrive.drive.observers import ES_LA, ES_LB, ES_TH
-from fluxdrive.drive.plant import TR_THETA_E, TR_WM
+from fluxdrive.drive.observers import ES_LA, ES_LB
+from fluxdrive.drive.plant import TR_WM
 from fluxdrive.experiments.claims import judge
 from fluxdrive.experiments.common import (
     OBS4,
@@ -32,7 +33,7 @@ def _x_mismatch(r, m):
     out = {"metrics": m, "we": we, "iq": iq, "obs": {}}
     for i, nm in enumerate(r.names):
         e = r.est[i, sl]
-        th_err = np.angle(np.exp(1j * (e[:, ES_TH] - r.truth[sl, TR_THETA_E])))
+        th_err = np.radians(theta_error_deg(r, nm)[sl])
         out["obs"][nm] = {
             "mag": float(np.mean(np.hypot(e[:, ES_LA], e[:, ES_LB]))),
             "mean_deg": float(np.degrees(np.mean(th_err))),

@@ -9,14 +9,14 @@ import time
 
 import numpy as np
 
-from fluxdrive.analysis.metrics import RAD_S_TO_RPM, compute
+from fluxdrive.analysis.metrics import RAD_S_TO_RPM, compute, theta_error_deg
 from fluxdrive.core.machine import card_current_bandwidth_hz
 from fluxdrive.drive.control import (
     FAULT_NAMES,
 )
 from fluxdrive.drive.control.config import SPEED_OF_CURRENT_BW
-from fluxdrive.drive.observers import ES_TH, observer_config
-from fluxdrive.drive.plant import TR_THETA_E, TR_WM
+from fluxdrive.drive.observers import observer_config
+from fluxdrive.drive.plant import TR_WM
 from fluxdrive.experiments.beyond_common import (
     DESCENT_START_PU,
     RPM,
@@ -91,7 +91,7 @@ def _switch_job(args):
     r = run_switched(sc, t_sw)
     m = compute(r)
     d = r.driving
-    err = np.degrees(np.angle(np.exp(1j * (r.est[0, :, ES_TH] - r.truth[:, TR_THETA_E]))))
+    err = theta_error_deg(r, r.names[0])
     ks = int(t_sw / sc.machine.ts_s)
     pre = err[ks - int(1.0 / sc.machine.ts_s) : ks]
     cm = float(np.degrees(np.angle(np.mean(np.exp(1j * np.radians(pre))))))

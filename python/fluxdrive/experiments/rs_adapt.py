@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from fluxdrive.analysis.metrics import RAD_S_TO_RPM, compute
+from fluxdrive.analysis.metrics import RAD_S_TO_RPM, compute, theta_error_deg
 from fluxdrive.drive.control import (
     CO_ID,
     CO_IQ,
@@ -26,8 +26,8 @@ from fluxdrive.drive.control import (
     MODE_CLOSED_LOOP,
     MODE_IF_RAMP,
 )
-from fluxdrive.drive.observers import ES_LA, ES_LB, ES_TH, ES_W, OP_LAM, OP_R
-from fluxdrive.drive.plant import TR_THETA_E, TR_WM
+from fluxdrive.drive.observers import ES_LA, ES_LB, ES_W, OP_LAM, OP_R
+from fluxdrive.drive.plant import TR_WM
 from fluxdrive.experiments.claims import judge
 from fluxdrive.experiments.common import (
     OBS4,
@@ -92,9 +92,7 @@ def _adaptive_job(args):
         "t": res.t[d],
         "r_hat": r_hist[d],
         "rpm": res.truth[d, TR_WM] * RAD_S_TO_RPM,
-        "th_err": np.degrees(
-            np.angle(np.exp(1j * (res.est[0, d, ES_TH] - res.truth[d, TR_THETA_E])))
-        ),
+        "th_err": theta_error_deg(res, res.names[0])[d],
     }
 
 

@@ -9,12 +9,12 @@ import math
 
 import numpy as np
 
-from fluxdrive.analysis.metrics import RAD_S_TO_RPM, harmonic, whole_periods
+from fluxdrive.analysis.metrics import RAD_S_TO_RPM, harmonic, theta_error_deg, whole_periods
 from fluxdrive.core.machine import MachineCard
 from fluxdrive.drive.control import (
     CO_IQ,
 )
-from fluxdrive.drive.observers import ES_LA, ES_LB, ES_TH
+from fluxdrive.drive.observers import ES_LA, ES_LB
 from fluxdrive.drive.plant import TR_THETA_E, TR_WM
 from fluxdrive.experiments.beyond_common import (
     default_k,
@@ -160,7 +160,7 @@ def x_sens(r, m):
     ws = whole_periods(thu)
     for i, nm in enumerate(r.names):
         e = r.est[i, sl]
-        err = np.angle(np.exp(1j * (e[:, ES_TH] - r.truth[sl, TR_THETA_E])))
+        err = np.radians(theta_error_deg(r, nm)[sl])
         cm = float(np.angle(np.mean(np.exp(1j * err))))
         ac = np.angle(np.exp(1j * (err - cm)))
         om = m["observers"][nm]

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fluxdrive.analysis.metrics import RAD_S_TO_RPM
+from fluxdrive.analysis.metrics import RAD_S_TO_RPM, theta_error_deg
 from fluxdrive.drive.control import (
     CO_ID,
     CO_IQ,
@@ -19,7 +19,7 @@ from fluxdrive.drive.control import (
     MODE_CLOSED_LOOP,
     MODE_IF_RAMP,
 )
-from fluxdrive.drive.observers import ES_TH, ES_W
+from fluxdrive.drive.observers import ES_W
 from fluxdrive.drive.plant import TR_THETA_E, TR_WM
 from fluxdrive.experiments.beyond_common import (
     VARIANTS,
@@ -79,7 +79,7 @@ def _x_reversal(r, m):
     ts = r.scenario.machine.ts_s
     t_rev = float(r.scenario.extra["t_reverse_s"])
     th = r.truth[:, TR_THETA_E]
-    err = np.degrees(np.angle(np.exp(1j * (r.estimate("flux_measured")[:, ES_TH] - th))))
+    err = theta_error_deg(r, "flux_measured")
     ang = np.degrees(np.angle(np.exp(1j * (r.ctrl[:, CO_TH] - th))))  # what the FOC uses
     mode = r.ctrl[:, CO_MODE]
     rpm = r.truth[:, TR_WM] * RAD_S_TO_RPM
