@@ -156,7 +156,10 @@ def _cli(args: list[str], timeout: float) -> subprocess.CompletedProcess:
     )
 
 
-@pytest.mark.serial
+# lockstep graphs (every node waits for its input, the C drive up to 1 s of wall time for
+# each answer): a busy neighbour slows them but changes no number; both passed with the load
+# average at 20-30 on two cores, so they run in the parallel part, where the core the serial
+# part leaves idle beside a lockstep graph is used
 def test_run_on_the_lab_card_holds_the_step(tmp_path):
     """`run --machine`: the graph's nodes read the scenario on the lab motor (written beside
     the report), the rig line printed, the step held."""
@@ -165,7 +168,7 @@ def test_run_on_the_lab_card_holds_the_step(tmp_path):
     pytest.importorskip("rclpy")
     p = _cli(
         ["run", "paper_6pct_stepload", "--machine", LAB, "--out", str(tmp_path / "run")]
-        + ["--bag", str(tmp_path / "bag"), "--domain-id", str(domain(12)), "--quiet"],
+        + ["--bag", str(tmp_path / "bag"), "--domain-id", str(domain(10)), "--quiet"],
         900,
     )
     assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
@@ -173,7 +176,6 @@ def test_run_on_the_lab_card_holds_the_step(tmp_path):
     assert "stable=True" in p.stdout, p.stdout[-3000:]
 
 
-@pytest.mark.serial
 def test_bench_sil_on_the_lab_card_holds_the_step(tmp_path):
     """`bench --sil --machine`: the C drive and the graph on the lab motor, the step held."""
     from ros_domains import domain
@@ -182,7 +184,7 @@ def test_bench_sil_on_the_lab_card_holds_the_step(tmp_path):
     pytest.importorskip("msgpack")
     p = _cli(
         ["bench", "--sil", "paper_6pct_stepload", "--machine", LAB]
-        + ["--bag", str(tmp_path / "bag"), "--domain-id", str(domain(13)), "--quiet"],
+        + ["--bag", str(tmp_path / "bag"), "--domain-id", str(domain(67)), "--quiet"],
         900,
     )
     assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
