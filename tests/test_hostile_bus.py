@@ -249,6 +249,56 @@ def test_flood_of_foreign_frames_costs_no_sample():
     assert d["rx_other"] == n_flood and d["seq_gaps"] == 0
 
 
+def test_drive_drops_a_datagram_that_is_no_can_message():
+    """A datagram on the drive's udp_multicast group and port that is no python-can message
+    (another program's UDP traffic: the bench draws its port at random, and DDS's ports lie
+    in the same range) is counted and dropped; the drive's frames go on, one per sample.
+    Was: the drive process died with "could not unpack received message"."""
+    pytest.importorskip("msgpack")
+    import socket
+
+    from fluxdrive.can.emulator import DriveEmulator
+    from fluxdrive.drive.scenario import CONFIG_DIR, load_scenario
+    from fluxdrive.drive.sim import DriveSetup
+
+    sc = load_scenario(
+        CONFIG_DIR / "scenarios" / "paper_2pct_150load.yaml",
+        overrides={"duration_s": 0.1, "steady_window_s": [0.05, 0.1], "bench": {}},
+    )
+    rnd = random.Random(11)
+    group = f"239.255.{rnd.randint(1, 254)}.{rnd.randint(1, 254)}"
+    kw = {"interface": "udp_multicast", "channel": group, "port": rnd.randint(20000, 60000)}
+    emu = DriveEmulator(DriveSetup(sc), can.Bus(fd=True, hop_limit=0, **kw), lockstep=False)
+    tap = can.Bus(fd=True, hop_limit=0, **kw)
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 0)
+            s.sendto(b"\x00 not a CAN message", (group, kw["port"]))
+        t_end = time.monotonic() + 30.0
+        while not emu.stats.foreign_datagrams and time.monotonic() < t_end:
+            emu.step()
+        k = emu.k
+        for _ in range(8 * emu.decimation):  # and it runs on
+            emu.step()
+        seqs, tap_dropped = [], 0
+        while True:
+            try:  # the tap hears the foreign datagram too
+                msg = tap.recv(1.0 if not seqs else 0.2)
+            except can.CanOperationError:
+                tap_dropped += 1
+                continue
+            if msg is None:
+                break
+            if msg.arbitration_id == ID_SAMPLE_FD:
+                seqs.append(int(PROTO.decode(ID_SAMPLE_FD, bytes(msg.data))["seq"]))
+    finally:
+        emu.bus.shutdown()
+        tap.shutdown()
+    assert emu.stats.foreign_datagrams == tap_dropped == 1
+    assert emu.k == k + 8 * emu.decimation
+    assert seqs == list(range(len(seqs))) and len(seqs) >= 8
+
+
 def test_housekeeping_values_checked_before_use():
     """A STATUS whose value is outside the DBC's range (st_decimation 0; the range is
     1..255) is malformed: counted, and nothing of it taken as the drive's state."""

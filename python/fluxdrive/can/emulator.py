@@ -104,6 +104,10 @@ class EmulatorStats:
     ref_rx: int = 0  # split mode: HOST_REF received
     refs_applied: int = 0  # HOST_REF taken by the current loop
     param_rx: int = 0  # DRIVE_PARAM requests answered
+    # datagrams on a software bus's group and port that are no CAN message (another
+    # program's UDP traffic on that port): dropped, as a CAN controller never hands its MCU
+    # a frame it could not receive
+    foreign_datagrams: int = 0
     # fault injection (``inject``), per injection: the case, the period it started, whether
     # PWM ran in the period before, the first period from then on that ran with PWM off,
     # periods with PWM on after that while it was held (a latch: none), what was injected,
@@ -335,11 +339,22 @@ class DriveEmulator:
             return False
 
     def _drain(self, timeout: float = 0.0) -> None:
-        """Take everything already received; wait at most ``timeout`` for the first."""
-        msg = self.bus.recv(timeout=timeout)
-        while msg is not None:
+        """Take everything already received; wait at most ``timeout`` for the first.  A
+        datagram the bus cannot unpack is counted (``foreign_datagrams``) and dropped, as the
+        bridge does (``CanBridge._recv``): the drive runs on."""
+        while True:
+            try:
+                msg = self.bus.recv(timeout=timeout)
+            except can.CanOperationError as exc:
+                if "could not unpack" not in str(exc):
+                    raise
+                self.stats.foreign_datagrams += 1
+                timeout = 0.0
+                continue
+            if msg is None:
+                return
             self._handle(msg)
-            msg = self.bus.recv(timeout=0.0)
+            timeout = 0.0
 
     # ------------------------------------------------------------------ periods
 
