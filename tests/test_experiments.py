@@ -303,11 +303,16 @@ def test_experiments_and_their_seeds_run_at_once_on_a_cluster_with_the_same_rows
 
     from fluxdrive.experiments import registry
     from fluxdrive.experiments.claims import judge
+    from fluxdrive.experiments.common import plt
+
+    saved: list[tuple[int, bool]] = []
 
     def probe(ctx):
         vals = ctx.map(lambda x: x * x, [ctx.seed, ctx.seed + 1])
         row = judge("fig19.fullload_4pct", f"seed {ctx.seed}", 1.0 + 0.01 * sum(vals))
-        return {"claims": [row], "figures": [], "data": {"seed": ctx.seed}}
+        name = ctx.fig(plt().figure(figsize=(1, 1)), f"probe_{ctx.name}")
+        saved.append((ctx.seed, (ctx.out / name).exists()))
+        return {"claims": [row], "figures": [name], "data": {"seed": ctx.seed}}
 
     class Cluster:  # the runner's interface; `client` set: the experiments run in turns
         client = object()
@@ -335,6 +340,8 @@ def test_experiments_and_their_seeds_run_at_once_on_a_cluster_with_the_same_rows
             echo=False,
         )
     assert cluster.maps == 6  # 2 experiments x 3 seeds, each map met another in flight
+    # the figures are seed 1's: a rerun on another seed draws them but saves none
+    assert sorted(saved) == [(1, True)] * 4 + [(2, False)] * 4 + [(3, False)] * 4
     assert rows["cluster"] == rows["in-process"]
     row = rows["cluster"]["a"][0]
     assert row["stats"]["n"] == 3 and row["per_seed"] == pytest.approx([1.05, 1.13, 1.25])

@@ -322,6 +322,7 @@ class Ctx:
     bench: Path | None = None  # `experiment --bench`: this bench file replaces the paper bench
     seed: int = 1  # the noise seed of every scenario the context builds (unless one is given)
     turns: Turns | None = None  # experiments at once on the runner (None: this one alone)
+    figures: bool = True  # False: figures drawn but not saved (a rerun on another seed)
     # what each run cost (`_job`'s figures with the experiment and seed), when kept: a list
     # every context of one command shares (`benchmark experiments`)
     ledger: list[dict] | None = None
@@ -407,9 +408,15 @@ class Ctx:
         return dataclasses.replace(item, bench=swap)
 
     def fig(self, fig, name: str) -> str:
-        """Save a figure as out/NAME.png; its file name."""
-        self.out.mkdir(parents=True, exist_ok=True)
+        """Save a figure as out/NAME.png; its file name.  Not saved when the context keeps no
+        figures (laying out and rendering the PNG is most of a figure's cost)."""
         p = self.out / f"{name}.png"
+        if not self.figures:
+            import matplotlib.pyplot as plt
+
+            plt.close(fig)
+            return p.name
+        self.out.mkdir(parents=True, exist_ok=True)
         fig.tight_layout()
         fig.savefig(p, dpi=100)
         import matplotlib.pyplot as plt

@@ -193,8 +193,8 @@ def check_rows(name: str, rows: list[dict]) -> None:
 
 def _over_seeds(fn: Callable, ctx: Ctx, first: dict, n_seeds: int) -> dict:
     """`first` (seed 1's result) with its rows judged over seeds 1..n_seeds: the experiment
-    run again per seed (its figures into a scratch folder; with turns, the seeds at once),
-    the seeds' data kept by seed."""
+    run again per seed (its figures not saved; with turns, the seeds at once), the seeds'
+    data kept by seed."""
     import dataclasses
     import tempfile
 
@@ -202,7 +202,10 @@ def _over_seeds(fn: Callable, ctx: Ctx, first: dict, n_seeds: int) -> dict:
 
         def seed(s: int) -> Callable[[], dict]:
             def run() -> dict:
-                res = fn(dataclasses.replace(ctx, out=Path(tmp) / str(s), seed=s, echo=False))
+                again = dataclasses.replace(
+                    ctx, out=Path(tmp) / str(s), seed=s, echo=False, figures=False
+                )
+                res = fn(again)
                 ctx.log(f"seed {s} of {n_seeds} done")
                 return res
 
