@@ -142,7 +142,9 @@ def _whole_suite(cmd: list[str], env: dict[str, str]) -> int:
     import xml.etree.ElementTree as ET
 
     parts = [
-        ("parallel", ["-n", str(TEST_WORKERS), "-m", "not serial"]),
+        # worksteal: a worker that runs out takes pending tests from the other, so the part
+        # does not end on one worker's queue of slow graph tests while the other idles
+        ("parallel", ["-n", str(TEST_WORKERS), "--dist", "worksteal", "-m", "not serial"]),
         ("serial", ["-m", "serial"]),
     ]
     codes, walls, counts = [], [], {"passed": 0, "failed": 0, "skipped": 0}
