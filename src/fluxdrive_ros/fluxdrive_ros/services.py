@@ -12,10 +12,8 @@ spins that node on a thread of its own, at a raised OS priority where the OS per
 log line where it does not).  The servers are created there in the first place, not moved
 when the process starts spinning: destroying a node's servers and creating them again on
 the hidden node announced every service three times over discovery right when the process
-started -- a restarted controller then found the observer's estimates too late (its stale-
-input timeout, 2 s of wall time, latched at load 20) -- and a client that had found a server
-as the node built it sent its requests to one about to be destroyed (`get_parameters: no
-answer within 5.0 s (3 requests)`).  Until `start` requests wait in DDS, as they waited
+started, and a client that had found a server as the node built it sent its requests to one
+about to be destroyed.  Until `start` requests wait in DDS, as they waited
 for the data path's executor to spin before.
 
 What runs where, and why that is thread-safe
