@@ -42,13 +42,45 @@ def main(argv: list[str] | None = None) -> int:
     other processes on this host). Runs ``--periods`` PWM periods (default: the
     scenario's) or until SIGINT/SIGTERM; the last stdout line is a JSON object with the
     MCU's final state and counters."""
-    import json
     import signal
-
-    from fluxdrive.drive.sim import DriveSetup
 
     a = _parser().parse_args(sys.argv[1:] if argv is None else argv)
     sc = _scenario(a.scenario, a.duration)
+    opened = _open(a, sc)
+    if isinstance(opened, int):
+        return opened
+    emu, bus = opened
+    if a.mcu == "pil":
+        print(f"[can-emulator] board parameters: {emu.core.storage_note()}", file=sys.stderr)
+    signal.signal(signal.SIGTERM, lambda *_: emu._stop.set())
+    signal.signal(signal.SIGINT, lambda *_: emu._stop.set())
+    n = sc.n_periods if a.periods is None else a.periods
+    print(
+        f"[can-emulator] {sc.name}: {a.layout} layout (D={emu.decimation}) on "
+        f"{a.interface}:{a.channel}, {n} periods, "
+        f"{'free-running' if a.free_running else 'lockstep'}",
+        file=sys.stderr,
+        flush=True,
+    )
+    t0 = time.perf_counter()
+    try:
+        rc = 0 if _wait_for_host(emu, a.wait_for_host) and _wait_armed(emu, a.wait_armed) else 1
+        if rc == 0:
+            emu.run(n, realtime=a.free_running)
+            emu._drain(0.05)  # a disarm sent while we stopped
+    finally:
+        bus.shutdown()
+        if a.flash is not None:  # what a save wrote stays for the next run (a power cycle)
+            a.flash.write_bytes(emu.core.flash_image())
+    _report(emu, a.record_out, time.perf_counter() - t0)
+    return rc
+
+
+def _open(a, sc) -> tuple[DriveEmulator, can.BusABC] | int:
+    """The bus and the drive emulator on it, from the options; an exit code (said on
+    stderr) when an option or the bus refuses."""
+    from fluxdrive.drive.sim import DriveSetup
+
     inject = None
     if a.inject:
         from fluxdrive.can.faultcases import parse_injections
@@ -92,32 +124,17 @@ def main(argv: list[str] | None = None) -> int:
         bus.shutdown()
         print(f"can-emulator: --flash {a.flash}: {exc}", file=sys.stderr)
         return 2
-    if a.mcu == "pil":
-        print(f"[can-emulator] board parameters: {emu.core.storage_note()}", file=sys.stderr)
-    signal.signal(signal.SIGTERM, lambda *_: emu._stop.set())
-    signal.signal(signal.SIGINT, lambda *_: emu._stop.set())
-    n = sc.n_periods if a.periods is None else a.periods
-    print(
-        f"[can-emulator] {sc.name}: {a.layout} layout (D={emu.decimation}) on "
-        f"{a.interface}:{a.channel}, {n} periods, "
-        f"{'free-running' if a.free_running else 'lockstep'}",
-        file=sys.stderr,
-        flush=True,
-    )
-    t0 = time.perf_counter()
-    try:
-        rc = 0 if _wait_for_host(emu, a.wait_for_host) and _wait_armed(emu, a.wait_armed) else 1
-        if rc == 0:
-            emu.run(n, realtime=a.free_running)
-            emu._drain(0.05)  # a disarm sent while we stopped
-    finally:
-        bus.shutdown()
-        if a.flash is not None:  # what a save wrote stays for the next run (a power cycle)
-            a.flash.write_bytes(emu.core.flash_image())
-    if a.record_out is not None and emu.rec_truth:
+    return emu, bus
+
+
+def _report(emu: DriveEmulator, record_out: str | None, wall_s: float) -> None:
+    """The plant's true state (``--record-out``) and the final JSON line."""
+    import json
+
+    if record_out is not None and emu.rec_truth:
         import numpy as np
 
-        np.save(a.record_out, np.vstack(emu.rec_truth))
+        np.save(record_out, np.vstack(emu.rec_truth))
     out = {
         "periods": emu.k,
         "armed": emu.armed,
@@ -126,15 +143,13 @@ def main(argv: list[str] | None = None) -> int:
         "fault_code": emu.fault_code,
         "layout": emu.layout,
         "decimation": emu.decimation,
-        "wall_s": round(time.perf_counter() - t0, 3),
+        "wall_s": round(wall_s, 3),
         **emu.stats.as_dict(),
     }
     print(json.dumps(out), flush=True)
-    return rc
 
 
 def _parser():
-
     ap = Parser(prog="fluxdrive can-emulator", description=main.__doc__)
     ap.add_argument(
         "scenario",
@@ -181,6 +196,12 @@ def _parser():
         "drive refuses the arming with a fault), up to this long [s] (a lockstep run then "
         "starts armed and configured)",
     )
+    _drive_options(ap)
+    return ap
+
+
+def _drive_options(ap) -> None:
+    """The drive side's options: MCU, injected faults, calibration, flash, truth record."""
     ap.add_argument(
         "--mcu",
         choices=("c", "pil"),
@@ -218,7 +239,6 @@ def _parser():
         default=None,
         help="write the plant's true state per PWM period (TR_* rows) to this .npy file",
     )
-    return ap
 
 
 def _scenario(name: str, duration_s: float | None):
