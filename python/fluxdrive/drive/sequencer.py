@@ -254,11 +254,26 @@ class ControlSequencer:
         if k < self.next_k:  # its frame was answered already (late, stale trip) or lost
             self.counts["late_estimates"] += 1
             return
+        if self.counts["estimates"] == 1 and k > self.next_k:
+            self._before_first_estimate(k)
         self.ests[k] = es.copy()
         if len(self.ests) > self.depth:  # estimates of frames that never came
             for j in sorted(self.ests)[: len(self.ests) - self.depth]:
                 del self.ests[j]
         self._run()
+
+    def _before_first_estimate(self, k: int) -> None:
+        """The first estimate to come is frame k's, while frames before k are here: their
+        estimates went out before this reader matched the observer's writer (a controller
+        restarted at the live samples reads volatile; one started late gets a writer's
+        history from some sample on), and estimates come in order, so they never will.
+        Those frames are skipped (counted), not waited for until the wall-time timeout
+        latches "stale input"."""
+        old = [j for j in self.frames if j < k]
+        for j in old:
+            del self.frames[j]
+        self.counts["skipped_frames"] += len(old)
+        self.next_k = k
 
     def _in_step(self) -> bool:
         """`_run` would just wait for next_k's estimate (its frame being here): not tripped,
