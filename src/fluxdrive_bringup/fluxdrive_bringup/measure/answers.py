@@ -37,7 +37,8 @@ import time
 from pathlib import Path
 
 from fluxdrive.cli.bench import write_benchmark
-from fluxdrive.core.schema import Parser
+from fluxdrive.core.schema import Parser, option
+from fluxdrive.io.graphfile import GraphSettings
 
 CALLS = ("get", "set", "reset")
 PHASES = ("quiet", "busy")
@@ -59,7 +60,7 @@ def _parser() -> Parser:
     ap.add_argument("--scenario", default=DEMO_SCENARIO, help="scenario name or path")
     ap.add_argument("--calls", type=int, default=100, help="calls of each kind per phase")
     ap.add_argument("--busy", type=int, default=2, help="busy processes in the busy phase")
-    ap.add_argument("--domain-id", type=int, default=None, help="ROS domain (default: free)")
+    option(ap, "--domain-id", GraphSettings, help="ROS domain (default: a free one)")
     ap.add_argument(
         "--write", action="store_true", help="also write results/benchmarks/services.json"
     )
@@ -72,10 +73,6 @@ def bench_services(argv: list[str]) -> dict:
         raise SystemExit(f"benchmark services: --calls must be in [1, 10000], got {args.calls}")
     if not 0 <= args.busy <= 64:
         raise SystemExit(f"benchmark services: --busy must be in [0, 64], got {args.busy}")
-    if args.domain_id is not None and not 0 <= args.domain_id <= 232:
-        raise SystemExit(
-            f"benchmark services: --domain-id must be in [0, 232], got {args.domain_id}"
-        )
     from fluxdrive.drive.scenario import load_scenario, scenario_path
 
     from fluxdrive_bringup.launch.domains import pick_domain_id
