@@ -158,7 +158,7 @@ def test_late_controller_is_counted_a_silent_one_latches(tmp_path):
     # it answers the frames queued while it stood still first: under load that is slow; or
     # its DDS reader holds every frame behind one dropped during the stop, and it says so
     # (docs/graph.md, "Limit at high frame rates")
-    held = r"no frame for 5\.0 s of wall time after frame \d+"
+    held = r"no frame for [0-9.]+ s of wall time after frame \d+"  # 5.0 s, later under load
     m = run.wait_line(f"(?P<latched>{latched})|(?P<held>{held})", after=at, timeout=90)
     if m["held"]:
         try:
