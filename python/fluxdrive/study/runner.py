@@ -155,6 +155,17 @@ class Runner:
         return self.client.scheduler.address if self.client is not None else "in-process"
 
     def close(self) -> None:
+        if self.cluster is not None and self.client is not None:
+            # our own cluster's workers go first, while the scheduler still answers: closed
+            # the other way round, a worker's heartbeat can meet a closed scheduler and its
+            # process logs an ERROR with a traceback as the command ends
+            try:
+                self.cluster.scale(0)
+                t_end = time.monotonic() + 20.0
+                while self.client.scheduler_info()["workers"] and time.monotonic() < t_end:
+                    time.sleep(0.05)
+            except Exception:  # noqa: BLE001 - closing anyway, below
+                pass
         if self.client is not None:
             self.client.close()
             self.client = None
