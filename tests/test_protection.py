@@ -106,6 +106,25 @@ def test_overspeed_trips():
     assert out[CO_FAULT] == FAULT_OVERSPEED
 
 
+@pytest.mark.parametrize(
+    "closed_loop, valid, trips", [(False, 0.0, False), (False, 1.0, True), (True, 0.0, True)]
+)
+def test_overspeed_on_the_estimate_only_where_it_is_a_speed(closed_loop, valid, trips):
+    """Sensorless, the over-speed trip reads the estimate's speed where it is one: in closed
+    loop (the drive rides it; an invalid one is also loss of lock's business) or when the
+    observer says it holds the rotor.  Before the handover an invalid estimate -- a PLL
+    wandering on a flux near 0 after PWM off -- at twice the trip speed trips nothing."""
+    cs, cp = _setup("estimate")
+    if closed_loop:
+        cs[CS_MODE] = MODE_CLOSED_LOOP
+    est = np.zeros(ES_N)
+    est[ES_W] = 2.0 * ControllerConfig().overspeed_pu * CARD.rated_speed_rad_s * CARD.pole_pairs
+    est[ES_VALID] = valid
+    codes = [_step(cs, cp, _frame(), est)[CO_FAULT] for _ in range(50)]
+    assert bool(codes[0] == FAULT_OVERSPEED) == trips
+    assert FAULT_OVERSPEED not in codes or trips
+
+
 def test_loss_of_lock_after_invalid_timeout_in_closed_loop():
     cs, cp = _setup("estimate")
     cs[CS_MODE] = MODE_CLOSED_LOOP

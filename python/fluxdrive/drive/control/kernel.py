@@ -547,7 +547,12 @@ def _references(cs, cp, fr, est, w_ref_m, id_inj, out):
                         _trip(cs, out, FAULT_LOSS_OF_LOCK)
                         return False, ia, ib, 0.0, 0.0, 0.0, 0.0
     w_m_fb = we / p
-    if abs(w_m_fb) > cp[CP_OS_TRIP]:
+    # an estimate's speed is a measurement once the drive rides it (closed loop) or the
+    # observer holds the rotor: before that (align, I-f, a restart after PWM off with the
+    # flux near 0) an invalid estimate's PLL wanders with the sensor noise -- 3 000-5 000 rpm
+    # with the rotor at 60 rpm -- and is no speed to trip on
+    speed_measured = cp[CP_SRC] == SRC_ENCODER or mode == MODE_CLOSED_LOOP or est[ES_VALID] != 0.0
+    if speed_measured and abs(w_m_fb) > cp[CP_OS_TRIP]:
         _trip(cs, out, FAULT_OVERSPEED)
         return False, ia, ib, 0.0, 0.0, 0.0, 0.0
     cs[CS_WFB_F] = lowpass_step(cs[CS_WFB_F], w_m_fb, pole(cp[CP_WFB_LPF], ts))
