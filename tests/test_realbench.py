@@ -328,7 +328,7 @@ def test_the_real_bench_graph_runs_against_the_c_core_over_udp_multicast(tmp_pat
         )  # fmt: skip
         assert cal.returncode == 0, cal.stdout + cal.stderr
         r = _fluxdrive(
-            "bench", "--interface", "udp_multicast", "--channel", group, "--duration", "30",
+            "bench", "--interface", "udp_multicast", "--channel", group, "--duration", "15",
             "--status-wait", "60", "--bag", str(bag), "--domain-id", str(domain(57)),
             "--set", "controller.speed_ref_mode=constant", env=can_env,
         )  # fmt: skip
