@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import os
-import random
 import signal
 import subprocess
 import sys
@@ -23,6 +22,7 @@ import time
 from pathlib import Path
 
 import pytest
+from fluxdrive.can.bridge import software_bus_endpoint
 from ros_domains import domain
 
 rclpy = pytest.importorskip("rclpy")
@@ -66,9 +66,7 @@ def _stop(proc: subprocess.Popen, sig: int = signal.SIGINT, timeout: float = 20.
 
 
 def test_emulator_and_bridge_node_in_separate_processes(tmp_path):
-    rnd = random.Random(os.getpid() ^ time.monotonic_ns())
-    group = f"239.255.{rnd.randint(1, 254)}.{rnd.randint(1, 254)}"
-    port = rnd.randint(20000, 60000)
+    group, port = software_bus_endpoint(os.getpid() ^ time.monotonic_ns())
     why = _multicast_loops_back(group, port)
     if why:
         pytest.skip(why)

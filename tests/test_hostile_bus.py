@@ -9,14 +9,18 @@ Real python-can buses (virtual, udp_multicast on 127.0.0.1 with TTL 0), no ROS."
 from __future__ import annotations
 
 import json
-import random
 import threading
 import time
 
 import can
 import numpy as np
 import pytest
-from fluxdrive.can.bridge import BridgeConfig, CanBridge, bus_factory_from_params
+from fluxdrive.can.bridge import (
+    BridgeConfig,
+    CanBridge,
+    bus_factory_from_params,
+    software_bus_endpoint,
+)
 from fluxdrive.can.canlog import read_capture, write_capture
 from fluxdrive.can.loop import new_virtual_channel
 from fluxdrive.can.protocol import ID_SAMPLE_FD, SeqFilter, get_protocol
@@ -207,9 +211,7 @@ def test_flood_of_foreign_frames_costs_no_sample():
     """20 000 foreign-id frames in about 0.4 s on a udp_multicast bus (127.0.0.1, TTL 0)
     between the drive's samples: every sample reaches the bridge, the flood is counted."""
     pytest.importorskip("msgpack")
-    rnd = random.Random(7)
-    group = f"239.255.{rnd.randint(1, 254)}.{rnd.randint(1, 254)}"
-    port = rnd.randint(20000, 60000)
+    group, port = software_bus_endpoint(7)
     kw = {"interface": "udp_multicast", "channel": group, "port": port, "hop_limit": 0}
     br = CanBridge(bus_factory_from_params(**kw), BridgeConfig(stale_timeout_s=30.0))
     assert br.connect()
@@ -265,9 +267,8 @@ def test_drive_drops_a_datagram_that_is_no_can_message():
         CONFIG_DIR / "scenarios" / "paper_2pct_150load.yaml",
         overrides={"duration_s": 0.1, "steady_window_s": [0.05, 0.1], "bench": {}},
     )
-    rnd = random.Random(11)
-    group = f"239.255.{rnd.randint(1, 254)}.{rnd.randint(1, 254)}"
-    kw = {"interface": "udp_multicast", "channel": group, "port": rnd.randint(20000, 60000)}
+    group, port = software_bus_endpoint(11)
+    kw = {"interface": "udp_multicast", "channel": group, "port": port}
     emu = DriveEmulator(DriveSetup(sc), can.Bus(fd=True, hop_limit=0, **kw), lockstep=False)
     tap = can.Bus(fd=True, hop_limit=0, **kw)
     try:

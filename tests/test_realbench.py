@@ -18,7 +18,7 @@ from pathlib import Path
 
 import can
 import pytest
-from fluxdrive.can.bridge import BridgeConfig, bus_factory_from_params
+from fluxdrive.can.bridge import BridgeConfig, bus_factory_from_params, software_bus_endpoint
 from fluxdrive.can.loop import new_virtual_channel
 from fluxdrive.can.preflight import preflight
 from fluxdrive.can.protocol import PROTOCOL_VERSION, get_protocol
@@ -248,10 +248,8 @@ def test_bench_check_reads_the_graph_and_a_drive_over_udp_multicast():
     other arguments from CAN_CONFIG (as the bridge node reads them), against a drive in
     this test speaking another protocol version: refused in one line, exit 2."""
     pytest.importorskip("msgpack")
-    import random
 
-    rnd = random.Random(time.monotonic_ns())
-    group, port = f"239.255.{rnd.randint(1, 254)}.{rnd.randint(1, 254)}", rnd.randint(20000, 60000)
+    group, port = software_bus_endpoint()
     try:
         bus = can.Bus(interface="udp_multicast", channel=group, port=port, hop_limit=0)
     except Exception as exc:  # noqa: BLE001
@@ -284,13 +282,11 @@ def test_the_real_bench_graph_runs_against_the_c_core_over_udp_multicast(tmp_pat
     off with WATCHDOG, and the bridge reports it)."""
     pytest.importorskip("msgpack")
     pytest.importorskip("rclpy")
-    import random
 
     from fluxdrive.io.bagio import bag_counts
     from ros_domains import domain
 
-    rnd = random.Random(time.monotonic_ns())
-    group, port = f"239.255.{rnd.randint(1, 254)}.{rnd.randint(1, 254)}", rnd.randint(20000, 60000)
+    group, port = software_bus_endpoint()
     try:
         can.Bus(interface="udp_multicast", channel=group, port=port, hop_limit=0).shutdown()
     except Exception as exc:  # noqa: BLE001

@@ -242,10 +242,29 @@ class BridgeConfig:
     )
 
 
-# python-can interfaces that take no bit-rate arguments (software buses)
 # a software bus's socket receive buffer (widen_receive_buffer): a flood's worth of datagrams
 RECEIVE_BUFFER_BYTES = 32 << 20
+# python-can interfaces that take no bit-rate arguments (software buses)
 _NO_BITRATE = ("virtual", "udp_multicast")
+
+# a software bus's UDP port, drawn from a wide range: on Linux a udp_multicast socket bound
+# to a port receives every group joined on that port, so two buses need two ports, and a
+# wide range keeps two runs beside each other apart.  DDS (RTPS) maps domain d to the ports
+# 7400 + 250 d and up, the whole range 7400-65535 over the domain ids 0-232, so a port here
+# may meet a graph's DDS traffic: the drive drops a datagram that is no CAN message and
+# counts it (foreign_datagrams), the bridge counts it malformed ("datagram").  Below
+# 7400 there is no DDS but too few ports to keep runs apart
+SOFTWARE_BUS_PORTS = (20000, 60000)
+
+
+def software_bus_endpoint(seed: int | None = None) -> tuple[str, int]:
+    """A udp_multicast bus of its own: an administratively scoped group (239.255.x.y) and a
+    port in SOFTWARE_BUS_PORTS, drawn from ``seed`` (None: the clock)."""
+    import random
+
+    rnd = random.Random(time.monotonic_ns() if seed is None else seed)
+    group = f"239.255.{rnd.randint(1, 254)}.{rnd.randint(1, 254)}"
+    return group, rnd.randrange(*SOFTWARE_BUS_PORTS)
 
 
 @dataclass

@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
-import random
 import sys
 import threading
 import time
@@ -384,11 +383,11 @@ def _get(q: Any, proc: Any, what: str, wait_s: float) -> dict[str, Any]:
 def run_paced_bench(cfg: PacedConfig) -> dict[str, Any]:
     """One paced run (module doc); the figures of both sides in one record (``error`` says
     in one line what went wrong, if something did)."""
-    rnd = random.Random(time.monotonic_ns())
-    if not cfg.group:
-        cfg.group = f"239.255.{rnd.randint(1, 254)}.{rnd.randint(1, 254)}"
-    if not cfg.port:
-        cfg.port = rnd.randint(20000, 60000)
+    from fluxdrive.can.bridge import software_bus_endpoint
+
+    group, port = software_bus_endpoint()
+    cfg.group = cfg.group or group
+    cfg.port = cfg.port or port
     drive_cpu, host_cpu = _cores(cfg)
     ctx = mp.get_context("spawn")
     stop = ctx.Event()

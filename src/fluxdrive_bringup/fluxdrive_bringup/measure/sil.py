@@ -19,13 +19,13 @@ from __future__ import annotations
 
 import json
 import math
-import random
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import yaml
+from fluxdrive.can.bridge import software_bus_endpoint
 from fluxdrive.can.protocol import LinkOptions
 from fluxdrive.can.vboard import BOARD_DECIMATIONS
 from fluxdrive.core.schema import Parser, option
@@ -86,9 +86,7 @@ def sil_graph(
     """The lockstep graph of `sc` with the plant replaced by the C drive on a udp_multicast
     bus and the bench_bridge node. `mcu`: "c" (the core's host build, SIL) or "pil" (the
     board image on the virtual board, processor in the loop)."""
-    rnd = random.Random(time.monotonic_ns())
-    group = f"239.255.{rnd.randint(1, 254)}.{rnd.randint(1, 254)}"
-    port = rnd.randint(20000, 60000)
+    group, port = software_bus_endpoint()
     d = int(decimation)
     ctrl = {"control_mode": mode, "decimation": d}
     extra = {"controller": ctrl, **{nm: {"decimation": d} for nm in sc.observers}}
