@@ -784,3 +784,33 @@ def test_write_failure_midrun_stops_recording_cleanly(tmp_path):
         f"of {limit} bytes allowed"
     )
     assert seqs == list(range(len(seqs))) and len(seqs) > 1000
+
+
+def test_graph_processes_get_the_shipped_dds_profile_unless_one_is_named(tmp_path, monkeypatch):
+    """Every graph process runs with config/dds/fastdds_profiles.xml (writers' heartbeat
+    0.1 s, so a stop does not wait up to Fast DDS's 3 s for its readers' last
+    acknowledgement); a profile in the environment or the graph's env wins."""
+    import xml.etree.ElementTree as ET
+
+    from fluxdrive_bringup.launch.launcher import (
+        DDS_PROFILE_VARS,
+        DDS_PROFILES,
+        Launcher,
+        parse_graph,
+    )
+
+    for var in DDS_PROFILE_VARS:
+        monkeypatch.delenv(var, raising=False)
+    ns = {"p": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
+    hb = ET.parse(DDS_PROFILES).getroot().find("p:data_writer/p:times/p:heartbeatPeriod", ns)
+    period_s = int(hb.find("p:sec", ns).text) + int(hb.find("p:nanosec", ns).text) * 1e-9
+    assert period_s == pytest.approx(0.1)
+
+    def env_of(defaults=None) -> dict[str, str]:
+        g = parse_graph(graph_dict(None, processes={}, defaults=defaults), "profile.yaml")
+        return Launcher(g, out=None, quiet=True, progress=False, log_dir=tmp_path).env()
+
+    assert env_of()["FASTRTPS_DEFAULT_PROFILES_FILE"] == str(DDS_PROFILES)
+    assert env_of(short_lease(tmp_path, 2))["FASTRTPS_DEFAULT_PROFILES_FILE"].endswith("lease.xml")
+    monkeypatch.setenv("FASTDDS_DEFAULT_PROFILES_FILE", "/elsewhere/mine.xml")
+    assert "FASTRTPS_DEFAULT_PROFILES_FILE" not in env_of()

@@ -87,6 +87,12 @@ from fluxdrive_ros.topics import check_namespace
 _POLICY_KEYS = set(schema.specs(DeathPolicy))
 
 
+# the graph processes' Fast DDS profile (config/dds/fastdds_profiles.xml says why), and the
+# variables by which Fast DDS 2 and 3 take one
+DDS_PROFILES = REPO_ROOT / "config" / "dds" / "fastdds_profiles.xml"
+DDS_PROFILE_VARS = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
+
+
 @dataclass
 class NodeSpec:
     name: str
@@ -603,6 +609,11 @@ class Launcher:
         if self.g.domain_id is not None:
             env["ROS_DOMAIN_ID"] = str(self.g.domain_id)
         env.update(self.g.env)
+        # the graph's Fast DDS profile (writers' heartbeat 0.1 s: a stop waits for its
+        # readers' last acknowledgement that long, not up to 3 s); a profile named in the
+        # environment or the graph's env wins
+        if not any(k in env for k in DDS_PROFILE_VARS):
+            env[DDS_PROFILE_VARS[0]] = str(DDS_PROFILES)
         env["PYTHONUNBUFFERED"] = "1"
         env.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
         env.setdefault("RCUTILS_CONSOLE_OUTPUT_FORMAT", "[{severity}] [{name}]: {message}")
@@ -716,7 +727,7 @@ class Launcher:
         """Graphs with on_death: restart run Fast DDS without its shared-memory transport
         (UDP on loopback instead): after a SIGKILL, Fast DDS 2.14's shared memory no longer
         carries a restarted process's messages to the readers that were already there
-        (eProsima/Fast-DDS#5053, #5469).  An explicit FASTDDS_BUILTIN_TRANSPORTS wins."""
+        (a known Fast DDS 2.14 defect).  An explicit FASTDDS_BUILTIN_TRANSPORTS wins."""
         if not any(self.g.policy([n])[0] == "restart" for n in self.g.nodes):
             return False
         if not env.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp").startswith("rmw_fastrtps"):
